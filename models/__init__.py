@@ -1,0 +1,1 @@
+"""The camera's physics (image formation), file formats, metrics and decoders."""

@@ -1,0 +1,104 @@
+"""The one decoder interface: codes + sensor parameters in, W and x_hat out.
+
+Every decoder (classical, learned, adaptive) subclasses :class:`Decoder` and
+implements :meth:`Decoder.predict_winding` on a single-channel map of ``m``.
+Validation, per-channel dispatch, inversion and timing live here once.
+"""
+
+from __future__ import annotations
+
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from models.errors import InvalidInputError
+from models.formation import SensorParams, dequantize, from_unwrapped
+
+#: Lower-tail percentile of the relative winding map used as the W = 0 anchor.
+ANCHOR_PERCENTILE = 0.1
+
+
+@dataclass
+class DecodeResult:
+    """Output of a decoder.
+
+    ``winding``: int64 winding numbers, same shape as the codes.
+    ``irradiance``: x_hat in wrap units (float64), same shape.
+    ``timings_ns``: wall time per stage in ns (``predict``, ``invert``, ``total``).
+    ``info``: decoder-specific facts (model version, routing decisions, ...).
+    """
+
+    winding: NDArray[np.int64]
+    irradiance: NDArray[np.float64]
+    timings_ns: dict[str, int]
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def check_frame_shape(codes: NDArray[Any]) -> None:
+    """Reject frames a decoder cannot unwrap: not 2-D/3-D, or smaller than 2 x 2."""
+    if codes.ndim == 3 and codes.shape[2] not in (1, 3):
+        raise InvalidInputError(
+            f"a frame has 1 or 3 channels, got shape {codes.shape}; give H x W or H x W x 3"
+        )
+    if codes.ndim not in (2, 3):
+        raise InvalidInputError(f"a frame is H x W or H x W x 3, got shape {codes.shape}")
+    if codes.shape[0] < 2 or codes.shape[1] < 2:
+        raise InvalidInputError(
+            f"a {codes.shape[0]} x {codes.shape[1]} frame has no neighbours to unwrap against; "
+            "spatial decoders need at least 2 x 2 pixels"
+        )
+
+
+def anchor_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
+    """Fix the unknown constant of an unwrapping: the darkest pixels get W = 0.
+
+    Unwrapping recovers W only up to a global offset. The exposure is set for the
+    dark detail, so the darkest pixels never wrap: we shift W so that its
+    lower-tail value (the ``ANCHOR_PERCENTILE`` percentile, robust to a few
+    isolated errors) is 0, then clamp to [0, max_winding] (W >= 0 since x >= 0).
+    """
+    offset = int(np.floor(np.percentile(relative, ANCHOR_PERCENTILE)))
+    winding = relative - offset
+    return np.maximum(winding, 0)
+
+
+class Decoder(ABC):
+    """Base class of all decoders. Subclasses set ``name`` and ``predict_winding``."""
+
+    name: ClassVar[str]
+    version: str = "1"
+
+    def decode(self, codes: NDArray[Any], params: SensorParams) -> DecodeResult:
+        """Decode a frame of codes (H x W or H x W x C, DN) into W and x_hat."""
+        start = time.perf_counter_ns()
+        codes = np.asarray(codes)
+        check_frame_shape(codes)
+        m = dequantize(codes, params.bits)
+        squeeze = m.ndim == 2
+        planes = m[:, :, None] if squeeze else m
+        if params.encoding == "clip":
+            winding = np.zeros(planes.shape, np.int64)
+        else:
+            winding = np.stack(
+                [self.predict_winding(planes[:, :, c], params) for c in range(planes.shape[2])],
+                axis=2,
+            ).astype(np.int64)
+        predicted = time.perf_counter_ns()
+        if squeeze:
+            winding = winding[:, :, 0]
+        x_hat = from_unwrapped(winding + m, params)
+        done = time.perf_counter_ns()
+        return DecodeResult(
+            winding=winding,
+            irradiance=x_hat,
+            timings_ns={"predict": predicted - start, "invert": done - predicted, "total": done - start},
+            info={"decoder": self.name, "version": self.version},
+        )
+
+    @abstractmethod
+    def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+        """Winding numbers (int64, H x W) for one channel of wrapped values m in [0, 1)."""

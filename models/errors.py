@@ -1,0 +1,50 @@
+"""Errors raised for bad input or impossible requests.
+
+Every error carries a stable machine-readable ``code`` (used by the REST API and
+the CLI) and a human message that says what was wrong and what to do about it.
+"""
+
+from __future__ import annotations
+
+
+class McamError(ValueError):
+    """Base class: a caller's mistake or an impossible request, never a bug."""
+
+    code = "invalid_input"
+    http_status = 422
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+
+class InvalidInputError(McamError):
+    """Input data is malformed: wrong dtype, NaN/inf, negative irradiance, codes out of range."""
+
+    code = "invalid_input"
+
+
+class MissingParameterError(McamError):
+    """A wrapped frame lacks encoding parameters and none were given on the command line or form."""
+
+    code = "missing_parameter"
+
+
+class UnsupportedFormatError(McamError):
+    """A file is not in a format we read or write."""
+
+    code = "unsupported_format"
+    http_status = 415
+
+
+class OutputOverflowError(McamError):
+    """The reconstruction does not fit the requested output dtype (float32 or float16)."""
+
+    code = "output_overflow"
+
+
+class ImageTooLargeError(McamError):
+    """An image exceeds the configured pixel or byte limit."""
+
+    code = "image_too_large"
+    http_status = 413

@@ -1,0 +1,358 @@
+"""The image formation model of a wrapping sensor: the single source of truth.
+
+Every other part of the system (simulator, training, worker, service, device,
+tests) imports this module; nothing else implements a wrap.
+
+Units and symbols
+-----------------
+- ``scene``: scene-referred linear irradiance (any positive scale, e.g. an EXR).
+- ``x``: ``scene * gain`` in *wrap units*: ``x = 1`` is where a conventional pixel
+  saturates (the pixel's wrap threshold I_max).
+- ``u``: a continuous, monotonic "unwrapped" value ``u(x)``; the sensor stores its
+  fractional part ``m = u - floor(u)`` and ``W = floor(u)`` is the winding number.
+- ``code``: ``m`` quantized to ``bits`` bits, in DN (uint8 for bits <= 8, else uint16).
+
+Encodings
+---------
+- ``modulo`` (ModuloCam): ``u = x``.
+- ``mantissa`` (MantissaCam, supplement eq. 1-2): ``u = x`` for ``x < 1`` and
+  ``u = 1 + log_alpha(x)`` for ``x >= 1``: linear until saturation, then one more
+  wrap each time ``x`` is multiplied by ``alpha``. The paper's main-text eq. 4 writes
+  a pure-log variant ``alpha^(I + W I_max)``; we implement the supplement's
+  linear-then-log model, which is continuous at ``x = 1``.
+- ``clip`` (a conventional sensor): stores ``min(x, 1)``; ``W`` is always 0.
+
+All arithmetic is float64. Outputs that would overflow the requested float dtype
+raise :class:`OutputOverflowError`; NaN, inf and negative inputs raise
+:class:`InvalidInputError`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from models.errors import InvalidInputError, OutputOverflowError
+
+Encoding = Literal["modulo", "mantissa", "clip"]
+ENCODINGS: tuple[str, ...] = ("modulo", "mantissa", "clip")
+REC709_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
+#: Largest winding number we represent (W is stored as int64).
+MAX_WINDING = np.iinfo(np.int64).max
+#: Above this expected electron count, shot noise uses the Gaussian approximation.
+_POISSON_LIMIT = 1e7
+
+
+class SensorParams(BaseModel):
+    """Parameters of one wrapped frame: encoding, quantization, exposure and noise.
+
+    ``gain`` maps scene irradiance to wrap units (``x = gain * scene``); it is
+    ``None`` when unknown (the frame is then reconstructed in wrap units).
+    ``read_noise`` is a Gaussian sigma in units of one wrap; ``full_well`` is the
+    electron count at ``x = 1`` for Poisson shot noise; ``max_wraps`` clips ``x``.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    encoding: Encoding = "mantissa"
+    alpha: float = Field(2.0, gt=1.0, le=1e6, allow_inf_nan=False)
+    bits: int = Field(8, ge=1, le=16)
+    gain: float | None = Field(None, gt=0.0, allow_inf_nan=False)
+    max_wraps: float | None = Field(None, gt=0.0, allow_inf_nan=False)
+    read_noise: float = Field(0.0, ge=0.0, le=1.0, allow_inf_nan=False)
+    full_well: float | None = Field(None, gt=0.0, allow_inf_nan=False)
+    seed: int | None = None
+
+    @classmethod
+    def parse(cls, values: dict[str, Any]) -> SensorParams:
+        """Build from a mapping (CLI flags, form fields, JSON), with a readable error."""
+        try:
+            return cls.model_validate(values)
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"{'.'.join(str(p) for p in err['loc']) or 'parameters'}: {err['msg']}"
+                for err in exc.errors()
+            )
+            raise InvalidInputError(f"invalid sensor parameters: {problems}") from None
+
+    @property
+    def code_dtype(self) -> type[np.unsignedinteger]:
+        """Storage dtype of the codes: uint8 for bits <= 8, else uint16."""
+        return np.uint8 if self.bits <= 8 else np.uint16
+
+    @property
+    def levels(self) -> int:
+        """Number of code values, ``2 ** bits``."""
+        return 1 << self.bits
+
+
+@dataclass(frozen=True)
+class SensorFrame:
+    """A simulated frame: codes (DN), true winding numbers and the exact ``x``."""
+
+    codes: NDArray[np.unsignedinteger]
+    winding: NDArray[np.int64]
+    irradiance: NDArray[np.float64]
+    params: SensorParams
+
+
+def validate_irradiance(
+    values: NDArray[Any], *, clip_negative: bool = False
+) -> tuple[NDArray[np.float64], int]:
+    """Return ``values`` as float64 after checking they are finite and non-negative.
+
+    Negative values (lossy EXR compression leaves some) are set to 0 only when
+    ``clip_negative`` is true; the second return value is how many were clipped.
+    """
+    arr = np.asarray(values)
+    if arr.size == 0:
+        raise InvalidInputError("the image is empty; give an image with at least one pixel")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise InvalidInputError(f"irradiance must be real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        raise InvalidInputError(
+            f"irradiance has {int(bad.sum())} NaN or infinite values; "
+            "replace them (e.g. with the neighbouring value) before encoding"
+        )
+    negative = arr < 0
+    n_negative = int(negative.sum())
+    if n_negative:
+        if not clip_negative:
+            raise InvalidInputError(
+                f"irradiance has {n_negative} negative values (min {arr.min():.3g}); "
+                "irradiance is non-negative: pass clip_negative / --clip-negative to set them to 0"
+            )
+        arr = np.where(negative, 0.0, arr)
+    return arr, n_negative
+
+
+def luminance(rgb: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Rec.709 luminance of an ``H x W x 3`` image; a 2-D image is returned as is."""
+    arr = np.asarray(rgb, dtype=np.float64)
+    if arr.ndim == 2:
+        return arr
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise InvalidInputError(f"expected H x W or H x W x 3, got shape {arr.shape}")
+    return arr @ REC709_WEIGHTS
+
+
+def exposure_gain(scene: NDArray[np.floating], overexposed: float) -> float:
+    """Gain such that a fraction ``overexposed`` of pixels reach ``x >= 1``.
+
+    ``gain = 1 / quantile(luminance, 1 - overexposed)``.
+    """
+    if not 0.0 < overexposed < 1.0:
+        raise InvalidInputError(f"overexposed must be in (0, 1), got {overexposed}")
+    level = float(np.quantile(luminance(scene), 1.0 - overexposed))
+    if level <= 0.0:
+        raise InvalidInputError(
+            f"the scene is too dark to set the exposure: the brightest {overexposed:.0%} "
+            "of pixels have zero luminance; give an explicit gain instead"
+        )
+    return 1.0 / level
+
+
+def to_unwrapped(x: NDArray[np.floating], params: SensorParams) -> NDArray[np.float64]:
+    """``u(x)``: the continuous value whose fractional part the sensor stores."""
+    x = np.asarray(x, dtype=np.float64)
+    if params.encoding == "modulo":
+        return x.copy()
+    if params.encoding == "clip":
+        return np.minimum(x, 1.0)
+    above = x >= 1.0
+    log_part = 1.0 + np.log(np.where(above, x, 1.0)) / np.log(params.alpha)
+    return np.where(above, log_part, x)
+
+
+def split_unwrapped(
+    u: NDArray[np.floating], params: SensorParams
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Split ``u`` into the winding number ``W = floor(u)`` and ``m = u - W`` in [0, 1]."""
+    u = np.asarray(u, dtype=np.float64)
+    if params.encoding == "clip":
+        return np.zeros(u.shape, np.int64), np.clip(u, 0.0, 1.0)
+    floor = np.floor(u)
+    too_many = floor > float(MAX_WINDING) / 2
+    if too_many.any():
+        raise InvalidInputError(
+            f"{int(too_many.sum())} pixels wrap more than {MAX_WINDING // 2} times, beyond int64 "
+            "winding numbers; lower the gain, set max_wraps, or use the mantissa encoding"
+        )
+    return floor.astype(np.int64), u - floor
+
+
+def quantize(m: NDArray[np.floating], bits: int) -> NDArray[np.unsignedinteger]:
+    """Codes in DN: ``min(floor(m * 2^bits), 2^bits - 1)``, uint8 or uint16."""
+    levels = 1 << bits
+    codes = np.clip(np.floor(np.asarray(m, np.float64) * levels), 0, levels - 1)
+    return codes.astype(np.uint8 if bits <= 8 else np.uint16)
+
+
+def validate_codes(codes: NDArray[Any], bits: int) -> NDArray[np.unsignedinteger]:
+    """Check codes are unsigned integers below ``2^bits``; return them unchanged."""
+    arr = np.asarray(codes)
+    if arr.size == 0:
+        raise InvalidInputError("the frame is empty; give a frame with at least one pixel")
+    if arr.dtype.kind not in "ui":
+        raise InvalidInputError(
+            f"codes must be integers (uint8 or uint16), got dtype {arr.dtype}; "
+            "a wrapped frame stores the raw sensor codes, not normalized floats"
+        )
+    if arr.dtype.kind == "i" and int(arr.min()) < 0:
+        raise InvalidInputError(f"codes must be non-negative, found {int(arr.min())}")
+    top = int(arr.max())
+    if top >= 1 << bits:
+        n_bad = int((arr >= (1 << bits)).sum())
+        raise InvalidInputError(
+            f"{n_bad} codes are >= 2^{bits} = {1 << bits} (max {top}); "
+            f"the frame is not {bits}-bit: set bits to the sensor's real bit depth"
+        )
+    return arr
+
+
+def dequantize(codes: NDArray[Any], bits: int) -> NDArray[np.float64]:
+    """``m`` at the bin centre: ``(code + 0.5) / 2^bits``."""
+    arr = validate_codes(codes, bits)
+    return (arr.astype(np.float64) + 0.5) / (1 << bits)
+
+
+def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: str) -> None:
+    """Raise :class:`OutputOverflowError` if ``values`` exceed ``dtype``'s finite range."""
+    limit = float(np.finfo(dtype).max)
+    over = ~(np.abs(values) <= limit)
+    if over.any():
+        raise OutputOverflowError(
+            f"{int(over.sum())} pixels of the {what} exceed the {np.dtype(dtype).name} limit "
+            f"{limit:.4g}; ask for float32 output (or float64 arrays), or lower the gain"
+        )
+
+
+def from_unwrapped(
+    u: NDArray[np.floating], params: SensorParams, dtype: type[np.floating] = np.float64
+) -> NDArray[np.floating]:
+    """Invert ``u(x)``: ``x = u`` (modulo, clip) or ``alpha^(u - 1)`` for ``u >= 1`` (mantissa).
+
+    Raises :class:`OutputOverflowError` where ``x`` would not fit ``dtype``.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    if params.encoding != "mantissa":
+        ensure_fits(u, dtype, "reconstruction")
+        return u.astype(dtype)
+    above = u >= 1.0
+    log_x = np.where(above, (u - 1.0) * np.log(params.alpha), 0.0)
+    limit = np.log(float(np.finfo(dtype).max))
+    over = log_x > limit
+    if over.any():
+        raise OutputOverflowError(
+            f"{int(over.sum())} pixels of the reconstruction exceed the {np.dtype(dtype).name} "
+            f"limit {float(np.finfo(dtype).max):.4g} (alpha^(u-1) with u up to {u.max():.6g}); "
+            "ask for float32 output, a smaller alpha, or check the winding numbers"
+        )
+    return np.where(above, np.exp(log_x), u).astype(dtype)
+
+
+def apply_shot_noise(
+    x: NDArray[np.float64], full_well: float, rng: np.random.Generator
+) -> NDArray[np.float64]:
+    """Poisson shot noise for ``full_well`` electrons at ``x = 1`` (Gaussian for huge counts)."""
+    electrons = x * full_well
+    small = electrons < _POISSON_LIMIT
+    noisy = np.empty_like(electrons)
+    noisy[small] = rng.poisson(electrons[small])
+    big = electrons[~small]
+    noisy[~small] = big + np.sqrt(big) * rng.standard_normal(big.shape)
+    return np.maximum(noisy, 0.0) / full_well
+
+
+def encode(x: NDArray[np.floating], params: SensorParams) -> SensorFrame:
+    """Encode wrap-unit irradiance ``x`` into codes, with the params' noise (seeded).
+
+    Read noise is added to the stored value and wrapped with it (a modulo pixel
+    wraps its noise too), so the returned ``winding`` is the count the pixel
+    actually made: ``W = floor(max(u + n, 0))``.
+    """
+    x, _ = validate_irradiance(x)
+    if params.max_wraps is not None:
+        x = np.minimum(x, params.max_wraps)
+    rng = np.random.default_rng(params.seed)
+    noisy_x = apply_shot_noise(x, params.full_well, rng) if params.full_well else x
+    u = to_unwrapped(noisy_x, params)
+    if params.read_noise > 0:
+        u = np.maximum(u + params.read_noise * rng.standard_normal(u.shape), 0.0)
+        if params.encoding == "clip":
+            u = np.minimum(u, 1.0)
+    winding, m = split_unwrapped(u, params)
+    return SensorFrame(quantize(m, params.bits), winding, x, params)
+
+
+def simulate(
+    scene: NDArray[np.floating],
+    params: SensorParams,
+    *,
+    overexposed: float | None = None,
+    gray: bool = False,
+    clip_negative: bool = False,
+) -> SensorFrame:
+    """Expose and encode a scene-referred image (``H x W`` or ``H x W x 3``).
+
+    The gain is ``params.gain`` if set, else chosen from ``overexposed`` (see
+    :func:`exposure_gain`), else 1 (the scene is already in wrap units). RGB is
+    encoded per channel unless ``gray`` converts it to Rec.709 luminance first.
+    The returned params carry the gain used.
+    """
+    scene, _ = validate_irradiance(scene, clip_negative=clip_negative)
+    if scene.ndim == 3 and scene.shape[2] == 1:
+        scene = scene[:, :, 0]
+    if gray:
+        scene = luminance(scene)
+    if scene.ndim not in (2, 3) or (scene.ndim == 3 and scene.shape[2] != 3):
+        raise InvalidInputError(f"expected an H x W or H x W x 3 image, got shape {scene.shape}")
+    if params.gain is not None and overexposed is not None:
+        raise InvalidInputError("give either gain or overexposed, not both")
+    gain = params.gain
+    if gain is None:
+        gain = exposure_gain(scene, overexposed) if overexposed is not None else 1.0
+    x = scene * gain
+    ensure_fits(x, np.float64, "exposed irradiance")
+    return encode(x, params.model_copy(update={"gain": gain}))
+
+
+def reconstruct(
+    codes: NDArray[Any],
+    winding: NDArray[np.integer],
+    params: SensorParams,
+    dtype: type[np.floating] = np.float64,
+    *,
+    scene_referred: bool = False,
+) -> NDArray[np.floating]:
+    """Invert the encoding given the winding numbers: ``x_hat`` from ``u = W + m``.
+
+    With ``scene_referred`` and a known gain, returns ``x_hat / gain``.
+    """
+    m = dequantize(codes, params.bits)
+    winding = np.asarray(winding)
+    if winding.shape != m.shape:
+        raise InvalidInputError(
+            f"winding map shape {winding.shape} does not match the frame {m.shape}"
+        )
+    x = from_unwrapped(winding.astype(np.float64) + m, params, np.float64)
+    if scene_referred and params.gain is not None:
+        x = x / params.gain
+    ensure_fits(x, dtype, "reconstruction")
+    return x.astype(dtype)
+
+
+def max_winding(params: SensorParams) -> int | None:
+    """Upper bound on ``W`` from the encoding and ``max_wraps``; None when unbounded."""
+    if params.encoding == "clip":
+        return 0
+    if params.max_wraps is None:
+        return None
+    u_max = to_unwrapped(np.array(params.max_wraps), params)
+    return int(np.floor(u_max + params.read_noise * 6))

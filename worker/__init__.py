@@ -1,0 +1,1 @@
+"""Reconstruction workers: consume frames and jobs from the queue, write results."""
