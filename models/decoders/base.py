@@ -95,7 +95,11 @@ class Decoder(ABC):
         return DecodeResult(
             winding=winding,
             irradiance=x_hat,
-            timings_ns={"predict": predicted - start, "invert": done - predicted, "total": done - start},
+            timings_ns={
+                "predict": predicted - start,
+                "invert": done - predicted,
+                "total": done - start,
+            },
             info={"decoder": self.name, "version": self.version},
         )
 

@@ -1,0 +1,1 @@
+"""The ``mcam`` command line: one module per command, registered in :mod:`service.cli.main`."""

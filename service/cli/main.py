@@ -1,0 +1,52 @@
+"""Entry point of the ``mcam`` console script.
+
+Each command lives in its own module exposing ``register(subparsers)``, which
+adds a sub-parser whose ``func`` default runs the command and returns an exit
+code. Errors that are the caller's (:class:`McamError`) print one clear line
+and exit 2; they never show a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from models.errors import McamError
+
+#: Command modules, in the order ``mcam --help`` lists them.
+COMMANDS: tuple[str, ...] = (
+    "service.cli.simulate",
+    "service.cli.reconstruct",
+    "service.cli.evaluate",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The root parser with every registered command."""
+    parser = argparse.ArgumentParser(
+        prog="mcam", description="MantissaCam: snapshot HDR from wrapping sensors"
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMANDS:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse arguments, run the command, map caller errors to exit code 2."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except McamError as exc:
+        print(f"mcam {args.command}: error: {exc.message}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:
+        print(f"mcam {args.command}: error: no such file: {exc.filename}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,57 @@
+"""Names of every Redis key and stream the system uses, in one place.
+
+Device daemons write ``frames:<device>`` and ``device:<device>:health``; workers
+read frame and job streams and write ``events:<device>``; the API reads all of
+them and writes ``control:<device>`` for daemons to forward to the camera.
+"""
+
+from __future__ import annotations
+
+import re
+
+from models.errors import InvalidInputError
+
+DEVICES_SET = "devices"
+JOBS_STREAM = "jobs"
+DEAD_LETTER_STREAM = "deadletter"
+WORKERS_HEARTBEAT = "workers"
+_DEVICE_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def validate_device_id(device: str) -> str:
+    """Device ids are 1-64 letters, digits, '_' or '-' (they become key and path parts)."""
+    if not _DEVICE_ID.fullmatch(device):
+        raise InvalidInputError(
+            f"invalid device id {device!r}: use 1-64 letters, digits, '_' or '-'"
+        )
+    return device
+
+
+def frame_stream(device: str) -> str:
+    """Stream of wrapped frames from one device (entries: :class:`FrameMessage` fields)."""
+    return f"frames:{validate_device_id(device)}"
+
+
+def health_key(device: str) -> str:
+    """Hash of the daemon's health counters for one device."""
+    return f"device:{validate_device_id(device)}:health"
+
+
+def control_stream(device: str) -> str:
+    """Stream of control commands from the API to the device's daemon."""
+    return f"control:{validate_device_id(device)}"
+
+
+def events_stream(device: str) -> str:
+    """Stream of events (frame reconstructed, drop, reconnect) for server-sent events."""
+    return f"events:{validate_device_id(device)}"
+
+
+def latest_key(device: str) -> str:
+    """String key holding the result-store key of the device's newest reconstruction."""
+    return f"device:{validate_device_id(device)}:latest"
+
+
+def job_key(job_id: str) -> str:
+    """Hash holding one job's record."""
+    return f"job:{job_id}"
