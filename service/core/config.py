@@ -1,0 +1,51 @@
+"""Deployment settings, read from ``MCAM_*`` environment variables and an optional ``.env``.
+
+The same settings configure the API, the workers and the device daemons; the
+CLI reads them and passes plain values into ``worker/`` and ``device/``.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """All ``MCAM_*`` settings. Sizes in bytes or pixels, times in seconds unless named ``_ms``."""
+
+    model_config = SettingsConfigDict(env_prefix="MCAM_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(Path("data"), description="results, embedded Redis, API key file")
+    redis_url: str | None = Field(
+        None, description="external Redis (redis://, rediss://, unix://); unset: embedded redis"
+    )
+    api_keys: str | None = Field(
+        None,
+        description="comma-separated 'KEY' (read+submit) or 'KEY:read' / 'KEY:submit'; "
+        "unset: one key is generated on first start and stored in the data dir",
+    )
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
+    max_pixels: int = Field(4096 * 4096, gt=0, description="per frame (all frames of a video)")
+    max_video_frames: int = Field(600, gt=0)
+    rate_limit_per_minute: int = Field(600, gt=0, description="requests per API key per minute")
+    default_decoder: str = "itoh"
+    worker_concurrency: int = Field(1, ge=1, description="jobs decoded at once per worker")
+    worker_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")
+    jobs_maxlen: int = Field(10_000, gt=0, description="jobs stream bound; submits beyond it: 503")
+    frames_maxlen: int = Field(256, gt=0, description="per-device frame stream bound (drop oldest)")
+    claim_idle_ms: int = Field(30_000, gt=0, description="reclaim entries pending this long")
+    max_deliveries: int = Field(3, ge=1, description="then the entry goes to the dead letters")
+    device_lease_ms: int = Field(5_000, gt=0, description="one worker owns a device stream")
+    heartbeat_s: float = Field(2.0, gt=0)
+    result_retention_s: float = Field(7 * 24 * 3600.0, gt=0)
+
+
+@cache
+def get_settings() -> Settings:
+    """The process-wide settings (read once)."""
+    return Settings()

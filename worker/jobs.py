@@ -1,0 +1,75 @@
+"""The record of one job as stored in Redis (``job:<id>``) and shown by the API.
+
+Times are in ns since the epoch (``time.time_ns()``); durations in ns.
+"""
+
+from __future__ import annotations
+
+import re
+from enum import StrEnum
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+from models.errors import McamError
+from models.formation import SensorParams
+
+_JOB_ID = re.compile(r"^[0-9a-f]{32}$")
+
+
+class JobState(StrEnum):
+    """Life cycle: queued -> running -> succeeded | failed | cancelled."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+    @property
+    def finished(self) -> bool:
+        return self in (JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED)
+
+
+class JobError(BaseModel):
+    """Why a job failed: a stable code and a human message."""
+
+    code: str
+    message: str
+
+
+class JobRecord(BaseModel):
+    """Everything known about a job. ``results`` maps an output name (``exr``,
+    ``winding``, ``hdr10``, ``sdr``, ``exr_zip``) to its result-store key."""
+
+    id: str
+    kind: Literal["reconstruction", "video"] = "reconstruction"
+    state: JobState = JobState.QUEUED
+    decoder: str
+    params: SensorParams
+    options: dict[str, Any] = Field(default_factory=dict)
+    progress: float = 0.0
+    frames_done: int = 0
+    frames_total: int = 1
+    created_ns: int
+    started_ns: int | None = None
+    finished_ns: int | None = None
+    timings_ns: dict[str, int] = Field(default_factory=dict)
+    error: JobError | None = None
+    results: dict[str, str] = Field(default_factory=dict)
+    info: dict[str, Any] = Field(default_factory=dict)
+    attempts: int = 0
+
+
+class JobNotFoundError(McamError):
+    """No job with that id (or the id is malformed)."""
+
+    code = "not_found"
+    http_status = 404
+
+
+def validate_job_id(job_id: str) -> str:
+    """Job ids are 32 lowercase hex digits; anything else is not found (never a path)."""
+    if not _JOB_ID.fullmatch(job_id):
+        raise JobNotFoundError(f"no job {job_id!r}: job ids are 32 hexadecimal digits")
+    return job_id
