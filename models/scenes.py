@@ -1,0 +1,177 @@
+"""HDR scenes for training and evaluation: the shipped HDRIs, a seeded synthetic
+generator, the fixed train/validation split and the "val-256" evaluation protocol.
+
+Scenes are scene-referred linear irradiance (any positive scale); frames are made
+from them only through :func:`models.formation.simulate`.
+
+val-256 (the benchmark's fixed protocol): :data:`VAL256_CROPS_PER_SCENE` seeded
+256 x 256 grayscale crops of each validation scene (``forest``, ``lobby``,
+``venice``), exposed so that 20% of pixels exceed one wrap (``overexposed=0.2``),
+``max_wraps=16``, 8 bits, ``alpha=2``, read noise 0 or as asked.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import OpenEXR
+from numpy.typing import NDArray
+
+from models.errors import InvalidInputError
+from models.formation import SensorParams, luminance, simulate
+
+HDRI_DIR = Path(__file__).resolve().parent / "data" / "hdri"
+VAL_SCENES: tuple[str, ...] = ("forest", "lobby", "venice")
+TRAIN_SCENES: tuple[str, ...] = (
+    "apartment", "bridge", "city", "dawn", "esplanade", "hall", "lab",
+    "night", "park", "sky", "studio", "sunset", "warehouse", "workshop",
+)  # fmt: skip
+SCENE_NAMES: tuple[str, ...] = tuple(sorted(TRAIN_SCENES + VAL_SCENES))
+
+VAL256_SIZE = 256
+VAL256_CROPS_PER_SCENE = 8
+VAL256_SEED = 256
+VAL256_OVEREXPOSED = 0.2
+VAL256_MAX_WRAPS = 16.0
+VAL256_BITS = 8
+
+
+class ValFrame(NamedTuple):
+    """One val-256 frame: codes (DN), true W, exact x (wrap units), params (with gain)."""
+
+    codes: NDArray[np.unsignedinteger]
+    winding: NDArray[np.int64]
+    x: NDArray[np.float64]
+    params: SensorParams
+
+
+def _read_exr_rgb(path: Path) -> NDArray[np.float64]:
+    """The RGB channels of an EXR file as float64 ``H x W x 3`` (no validation)."""
+    with OpenEXR.File(str(path)) as exr:
+        channels = exr.channels()
+        if "RGB" in channels:
+            return np.asarray(channels["RGB"].pixels, np.float64)
+        return np.stack([np.asarray(channels[c].pixels, np.float64) for c in "RGB"], axis=2)
+
+
+@cache
+def _load_hdri(name: str) -> tuple[NDArray[np.float64], int]:
+    if name not in SCENE_NAMES:
+        raise InvalidInputError(f"unknown scene {name!r}; choose one of: {', '.join(SCENE_NAMES)}")
+    rgb = _read_exr_rgb(HDRI_DIR / f"{name}.exr")
+    negative = rgb < 0
+    rgb = np.where(negative, 0.0, rgb)
+    rgb.setflags(write=False)
+    return rgb, int(negative.sum())
+
+
+def load_hdri(name: str) -> NDArray[np.float64]:
+    """Scene ``name`` as linear RGB ``H x W x 3`` float64, negatives (DWAB) set to 0."""
+    return _load_hdri(name)[0]
+
+
+def clipped_negatives(name: str) -> int:
+    """How many negative channel values the lossy EXR of scene ``name`` had (set to 0)."""
+    return _load_hdri(name)[1]
+
+
+def load_hdri_gray(name: str) -> NDArray[np.float64]:
+    """Rec.709 luminance of scene ``name``, ``H x W`` float64."""
+    return luminance(load_hdri(name))
+
+
+def val256_crop_offsets(width: int, count: int, seed: int) -> list[int]:
+    """Seeded, distinct horizontal crop offsets (columns) on a 360-degree panorama."""
+    rng = np.random.default_rng(seed)
+    return sorted(int(o) for o in rng.choice(width, size=count, replace=False))
+
+
+def val256_scenes() -> list[tuple[str, NDArray[np.float64]]]:
+    """The val-256 crops as ``(label, luminance 256 x 256)``, in a fixed order.
+
+    The validation panoramas are 256 pixels tall; each crop is a 256-column window
+    at a seeded offset, wrapping around the 360-degree seam.
+    """
+    crops = []
+    for index, name in enumerate(VAL_SCENES):
+        gray = load_hdri_gray(name)
+        top = (gray.shape[0] - VAL256_SIZE) // 2
+        rows = gray[top : top + VAL256_SIZE]
+        offsets = val256_crop_offsets(gray.shape[1], VAL256_CROPS_PER_SCENE, VAL256_SEED + index)
+        for offset in offsets:
+            crop = np.roll(rows, -offset, axis=1)[:, :VAL256_SIZE]
+            crops.append((f"{name}@{offset}", np.ascontiguousarray(crop)))
+    return crops
+
+
+def val256_frames(encoding: str, read_noise: float = 0.0) -> list[ValFrame]:
+    """The fixed val-256 evaluation set for ``encoding`` (``modulo`` or ``mantissa``).
+
+    24 frames (3 scenes x 8 crops), 256 x 256 grayscale, overexposed 0.2,
+    max_wraps 16, 8 bits, alpha 2; read noise (wrap units) seeded per crop.
+    """
+    frames = []
+    for index, (_, crop) in enumerate(val256_scenes()):
+        params = SensorParams.parse(
+            {
+                "encoding": encoding,
+                "bits": VAL256_BITS,
+                "max_wraps": VAL256_MAX_WRAPS,
+                "read_noise": read_noise,
+                "seed": VAL256_SEED + index,
+            }
+        )
+        frame = simulate(crop, params, overexposed=VAL256_OVEREXPOSED)
+        frames.append(ValFrame(frame.codes, frame.winding, frame.irradiance, frame.params))
+    return frames
+
+
+def _disk_mask(size: int, cy: float, cx: float, radius: float) -> tuple[slice, slice, NDArray]:
+    """Bounding-box slices and boolean mask of a disk on a ``size x size`` canvas."""
+    y0, y1 = max(int(cy - radius), 0), min(int(cy + radius) + 1, size)
+    x0, x1 = max(int(cx - radius), 0), min(int(cx + radius) + 1, size)
+    yy, xx = np.ogrid[y0:y1, x0:x1]
+    return slice(y0, y1), slice(x0, x1), (yy - cy) ** 2 + (xx - cx) ** 2 <= radius**2
+
+
+def _texture(rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.float64]:
+    """A multiplicative texture around 1: a random sinusoidal grating plus fine noise."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    freq, angle = rng.uniform(0.05, 0.6), rng.uniform(0, np.pi)
+    grating = np.sin(freq * (np.cos(angle) * xx + np.sin(angle) * yy) + rng.uniform(0, 6.3))
+    noise = rng.standard_normal(shape)
+    return np.exp(rng.uniform(0, 0.5) * grating + rng.uniform(0, 0.15) * noise)
+
+
+def synthetic_scene(seed: int, size: int = 128) -> NDArray[np.float64]:
+    """A seeded synthetic HDR luminance scene, ``size x size`` float64 (> 0).
+
+    Dead leaves (disks with power-law radii, occluding each other) with
+    heavy-tailed radiances (log-normal, or Pareto for a fraction), textured
+    surfaces, a few small very bright sources, a smooth gradient and vignetting.
+    """
+    rng = np.random.default_rng(seed)
+    scene = np.full((size, size), rng.lognormal(0.0, 1.0))
+    r_min, r_max = 1.5, size / 2
+    for _ in range(int(rng.integers(30, 120))):
+        radius = (r_min ** -2 - rng.uniform() * (r_min ** -2 - r_max ** -2)) ** -0.5
+        cy, cx = rng.uniform(-radius, size + radius, 2)
+        ys, xs, mask = _disk_mask(size, cy, cx, radius)
+        if not mask.any():
+            continue
+        level = rng.pareto(1.5) + 1.0 if rng.uniform() < 0.2 else rng.lognormal(0.0, 1.5)
+        patch = level * (_texture(rng, mask.shape) if rng.uniform() < 0.5 else 1.0)
+        scene[ys, xs] = np.where(mask, patch, scene[ys, xs])
+    for _ in range(int(rng.integers(0, 5))):
+        cy, cx = rng.uniform(0, size, 2)
+        ys, xs, mask = _disk_mask(size, cy, cx, rng.uniform(0.5, 3.0))
+        bright = np.median(scene) * 10 ** rng.uniform(2, 5)
+        scene[ys, xs] = np.where(mask, bright, scene[ys, xs])
+    yy, xx = np.mgrid[0:size, 0:size] / size - 0.5
+    angle = rng.uniform(0, 2 * np.pi)
+    gradient = np.exp(rng.uniform(0, 3) * (np.cos(angle) * xx + np.sin(angle) * yy))
+    vignette = np.cos(np.clip(rng.uniform(0, 1.2) * np.hypot(xx, yy), 0, 1.5)) ** 4
+    return scene * gradient * vignette + 1e-6

@@ -1,0 +1,66 @@
+"""Tests of models/scenes.py: HDRI loading, the split, val-256 and synthetic scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models import scenes
+from models.errors import InvalidInputError
+from models.formation import reconstruct
+
+
+def test_split_is_disjoint_and_complete() -> None:
+    assert set(scenes.VAL_SCENES).isdisjoint(scenes.TRAIN_SCENES)
+    assert len(scenes.SCENE_NAMES) == 17
+    assert {p.stem for p in scenes.HDRI_DIR.glob("*.exr")} == set(scenes.SCENE_NAMES)
+
+
+def test_load_hdri_is_non_negative_rgb() -> None:
+    rgb = scenes.load_hdri("forest")
+    assert rgb.shape == (256, 512, 3) and rgb.dtype == np.float64
+    assert np.isfinite(rgb).all() and rgb.min() >= 0
+    assert scenes.clipped_negatives("forest") > 0
+    assert scenes.load_hdri_gray("forest").shape == (256, 512)
+
+
+def test_unknown_scene_is_a_clear_error() -> None:
+    with pytest.raises(InvalidInputError, match="unknown scene"):
+        scenes.load_hdri("nowhere")
+
+
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+def test_val256_frames_follow_the_protocol(encoding: str) -> None:
+    frames = scenes.val256_frames(encoding)
+    assert len(frames) >= 24
+    for frame in frames[:3]:
+        codes, winding, x, params = frame
+        assert codes.shape == winding.shape == x.shape == (256, 256)
+        assert codes.dtype == np.uint8 and params.bits == 8 and params.max_wraps == 16
+        assert abs((x > 1).mean() - 0.2) < 0.01
+        assert x.max() <= 16
+        np.testing.assert_allclose(reconstruct(codes, winding, params), x, rtol=0.02, atol=1 / 256)
+
+
+def test_val256_is_deterministic_and_noise_changes_codes() -> None:
+    first, again = scenes.val256_frames("mantissa")[0], scenes.val256_frames("mantissa")[0]
+    np.testing.assert_array_equal(first.codes, again.codes)
+    noisy = scenes.val256_frames("mantissa", read_noise=0.01)[0]
+    assert noisy.params.read_noise == 0.01
+    assert (noisy.codes != first.codes).mean() > 0.1
+
+
+def test_crop_offsets_are_distinct_and_in_range() -> None:
+    offsets = scenes.val256_crop_offsets(512, 8, 1)
+    assert len(set(offsets)) == 8 and min(offsets) >= 0 and max(offsets) < 512
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31), size=st.sampled_from([16, 48, 64]))
+def test_synthetic_scene_is_seeded_finite_and_positive(seed: int, size: int) -> None:
+    scene = scenes.synthetic_scene(seed, size)
+    assert scene.shape == (size, size)
+    assert np.isfinite(scene).all() and scene.min() > 0
+    np.testing.assert_array_equal(scene, scenes.synthetic_scene(seed, size))
