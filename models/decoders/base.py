@@ -80,13 +80,19 @@ class Decoder(ABC):
         m = dequantize(codes, params.bits)
         squeeze = m.ndim == 2
         planes = m[:, :, None] if squeeze else m
+        info: dict[str, Any] = {"decoder": self.name, "version": self.version}
         if params.encoding == "clip":
             winding = np.zeros(planes.shape, np.int64)
         else:
-            winding = np.stack(
-                [self.predict_winding(planes[:, :, c], params) for c in range(planes.shape[2])],
-                axis=2,
-            ).astype(np.int64)
+            channels = [
+                self.explain_winding(planes[:, :, c], params) for c in range(planes.shape[2])
+            ]
+            winding = np.stack([w for w, _ in channels], axis=2).astype(np.int64)
+            details = [facts for _, facts in channels if facts]
+            if details:
+                info["channels" if len(channels) > 1 else "details"] = (
+                    details if len(channels) > 1 else details[0]
+                )
         predicted = time.perf_counter_ns()
         if squeeze:
             winding = winding[:, :, 0]
@@ -100,8 +106,17 @@ class Decoder(ABC):
                 "invert": done - predicted,
                 "total": done - start,
             },
-            info={"decoder": self.name, "version": self.version},
+            info=info,
         )
+
+    def explain_winding(
+        self, m: NDArray[np.float64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """Winding numbers plus facts about how they were found (shown per job).
+
+        Decoders that make per-frame choices (the adaptive router) override this.
+        """
+        return self.predict_winding(m, params), {}
 
     @abstractmethod
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
