@@ -1,0 +1,310 @@
+"""Wrapped-frame files: sensor codes (DN) plus their :class:`SensorParams`.
+
+Formats
+-------
+- ``png``: grayscale 8- or 16-bit; codes stored as-is (never rescaled); the
+  parameters as JSON in a ``tEXt`` chunk with keyword ``mantissacam``. Colour
+  frames are refused: store them as TIFF.
+- ``tiff``: any channel count (``H x W`` or ``H x W x C``); the parameters as
+  JSON in the ImageDescription tag.
+- ``npy``: the codes array only; parameters come from the caller.
+
+Reading merges the stored parameters with overrides (command-line flags or form
+fields, which win) and validates them. The pixel count is checked from the
+header before any pixel data is decoded, so a small file cannot expand into a
+huge image. Winding maps (``W``, int64) are written with :func:`write_winding`.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tifffile
+from numpy.typing import NDArray
+from PIL import Image, PngImagePlugin, UnidentifiedImageError
+
+from models.errors import (
+    ImageTooLargeError,
+    InvalidInputError,
+    McamError,
+    MissingParameterError,
+    UnsupportedFormatError,
+)
+from models.formation import SensorParams, validate_codes
+
+FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
+#: PNG text-chunk keyword holding the parameters as JSON.
+PNG_KEYWORD = "mantissacam"
+_ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
+#: Parameters a frame cannot be decoded without, and the flag that supplies each.
+_REQUIRED_FLAGS = {"encoding": "--encoding", "bits": "--bits"}
+_PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
+
+
+@dataclass(frozen=True)
+class WrappedFrame:
+    """A wrapped frame: codes in DN (uint8 or uint16, ``H x W`` or ``H x W x C``) and params."""
+
+    codes: NDArray[np.unsignedinteger]
+    params: SensorParams
+
+
+def frame_format(name: str | os.PathLike[str]) -> str:
+    """The frame format (one of :data:`FRAME_FORMATS`) of a file name, suffix or format name."""
+    text = str(name).lower()
+    key = text.rsplit(".", 1)[-1]
+    if key not in _ALIASES:
+        raise UnsupportedFormatError(
+            f"unsupported wrapped-frame format {str(name)!r}; "
+            "use one of: .png (grayscale), .tiff/.tif (any channels), .npy"
+        )
+    return _ALIASES[key]
+
+
+def check_pixel_count(width: int, height: int, max_pixels: int | None) -> None:
+    """Raise :class:`ImageTooLargeError` when ``width * height`` exceeds ``max_pixels``."""
+    if max_pixels is not None and width * height > max_pixels:
+        raise ImageTooLargeError(
+            f"the image is {width} x {height} = {width * height} pixels, above the limit of "
+            f"{max_pixels}; send a smaller image or raise the pixel limit (MCAM_MAX_PIXELS)"
+        )
+
+
+@contextmanager
+def decoding(what: str) -> Iterator[None]:
+    """Report a decoding library's failure on a truncated or corrupt file as bad input."""
+    try:
+        yield
+    except McamError:
+        raise
+    except Exception as exc:  # PIL, tifffile, zlib and OpenEXR raise many types on bad data
+        detail = " ".join(str(exc).split()) or type(exc).__name__
+        raise InvalidInputError(
+            f"{what} is truncated or corrupt ({detail}); send the complete, unmodified file"
+        ) from None
+
+
+def _check_layout(codes: NDArray[Any]) -> None:
+    if codes.ndim not in (2, 3):
+        raise InvalidInputError(
+            f"a wrapped frame is H x W or H x W x C codes, got an array of shape {codes.shape}"
+        )
+
+
+def _storage_codes(codes: NDArray[Any], params: SensorParams | None) -> NDArray[Any]:
+    """Validated codes in their storage dtype (the params' dtype, else uint8/uint16)."""
+    arr = np.asarray(codes)
+    _check_layout(arr)
+    if params is not None:
+        return validate_codes(arr, params.bits).astype(params.code_dtype, copy=False)
+    validate_codes(arr, 16)
+    return arr if arr.dtype == np.uint8 else arr.astype(np.uint16, copy=False)
+
+
+def encode_frame(codes: NDArray[Any], params: SensorParams | None, fmt: str) -> bytes:
+    """The bytes of a wrapped-frame file in format ``fmt`` (a name, suffix or file name)."""
+    fmt = frame_format(fmt)
+    arr = _storage_codes(codes, params)
+    text = params.model_dump_json() if params is not None else None
+    buffer = io.BytesIO()
+    if fmt == "npy":
+        np.save(buffer, arr, allow_pickle=False)
+    elif fmt == "tiff":
+        tifffile.imwrite(
+            buffer,
+            arr,
+            photometric="rgb" if arr.ndim == 3 and arr.shape[2] == 3 else "minisblack",
+            planarconfig="contig" if arr.ndim == 3 else None,
+            description=text,
+            metadata=None,
+            compression="zlib",
+        )
+    else:
+        if arr.ndim == 3 and arr.shape[2] == 1:
+            arr = arr[:, :, 0]
+        if arr.ndim == 3:
+            raise UnsupportedFormatError(
+                f"PNG frames are grayscale, got {arr.shape[2]} channels; "
+                "write colour frames as .tiff (or convert the scene to gray)"
+            )
+        info = PngImagePlugin.PngInfo()
+        if text is not None:
+            info.add_text(PNG_KEYWORD, text)
+        Image.fromarray(arr).save(buffer, format="PNG", pnginfo=info)
+    return buffer.getvalue()
+
+
+def write_frame(
+    path: str | os.PathLike[str], codes: NDArray[Any], params: SensorParams | None
+) -> None:
+    """Write a wrapped frame; the format follows the file's suffix."""
+    Path(path).write_bytes(encode_frame(codes, params, frame_format(path)))
+
+
+def _stored_params(text: str | None, where: str) -> dict[str, Any]:
+    """Parameters parsed from stored JSON text; {} when there is none."""
+    if not text:
+        return {}
+    try:
+        values = json.loads(text)
+    except json.JSONDecodeError:
+        raise InvalidInputError(f"the {where} is not valid JSON sensor parameters") from None
+    if not isinstance(values, dict):
+        raise InvalidInputError(f"the {where} holds JSON but not an object of sensor parameters")
+    return values
+
+
+def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+    try:
+        image = Image.open(io.BytesIO(data), formats=["PNG"])
+    except UnidentifiedImageError:
+        raise InvalidInputError("the data is not a PNG image (bad or missing signature)") from None
+    except Image.DecompressionBombError:
+        raise ImageTooLargeError("the PNG image is too large to decode safely") from None
+    check_pixel_count(image.width, image.height, max_pixels)
+    if image.mode not in _PNG_MODES:
+        raise UnsupportedFormatError(
+            f"PNG frames are 8- or 16-bit grayscale, got PNG mode {image.mode}; "
+            "store colour frames as TIFF"
+        )
+    image.load()
+    return np.asarray(image), _stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")
+
+
+def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages.first
+        check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
+        stored = _stored_params(page.description, "TIFF ImageDescription")
+        if not set(stored) <= set(SensorParams.model_fields):
+            stored = {}  # a description written by other software, not our parameters
+        return page.asarray(), stored
+
+
+def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+    buffer = io.BytesIO(data)
+    version = np.lib.format.read_magic(buffer)
+    if version == (1, 0):
+        shape, _, _ = np.lib.format.read_array_header_1_0(buffer)
+    else:
+        shape, _, _ = np.lib.format.read_array_header_2_0(buffer)
+    if len(shape) not in (2, 3):
+        raise InvalidInputError(
+            f"a wrapped frame is H x W or H x W x C codes, got an array of shape {shape}"
+        )
+    check_pixel_count(shape[1], shape[0], max_pixels)
+    buffer.seek(0)
+    return np.load(buffer, allow_pickle=False), {}
+
+
+_READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}
+
+
+def merge_params(stored: dict[str, Any], overrides: dict[str, Any] | None) -> SensorParams:
+    """Stored parameters updated by ``overrides`` (None values ignored), checked complete.
+
+    Raises :class:`MissingParameterError` naming the flags to add when the
+    encoding, the bit depth or (for mantissa) alpha is known from neither.
+    """
+    given = {key: value for key, value in (overrides or {}).items() if value is not None}
+    merged = {key: value for key, value in stored.items() if value is not None} | given
+    needed = dict(_REQUIRED_FLAGS)
+    if merged.get("encoding") == "mantissa":
+        needed["alpha"] = "--alpha"
+    missing = [key for key in needed if key not in merged]
+    if missing:
+        raise MissingParameterError(
+            f"the frame does not store its {', '.join(missing)}; "
+            f"add {' '.join(needed[key] for key in missing)} (e.g. --encoding mantissa "
+            "--alpha 2 --bits 8)"
+        )
+    return SensorParams.parse(merged)
+
+
+def decode_frame(
+    data: bytes,
+    fmt: str,
+    overrides: dict[str, Any] | None = None,
+    max_pixels: int | None = None,
+) -> WrappedFrame:
+    """Decode a wrapped-frame file's bytes; ``overrides`` fill in or replace stored params."""
+    fmt = frame_format(fmt)
+    with decoding(f"the {fmt.upper()} frame"):
+        codes, stored = _READERS[fmt](data, max_pixels)
+    _check_layout(codes)
+    params = merge_params(stored, overrides)
+    codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
+    return WrappedFrame(codes=codes, params=params)
+
+
+def read_frame(
+    path: str | os.PathLike[str],
+    overrides: dict[str, Any] | None = None,
+    max_pixels: int | None = None,
+) -> WrappedFrame:
+    """Read a wrapped-frame file; the format follows the file's suffix."""
+    fmt = frame_format(path)
+    return decode_frame(Path(path).read_bytes(), fmt, overrides, max_pixels)
+
+
+def decode_raw(data: bytes, width: int, height: int, channels: int, bits: int) -> NDArray[Any]:
+    """Codes from a raw upload: row-major ``H x W (x C)``, uint8 for bits <= 8, else uint16 LE."""
+    if min(width, height, channels) < 1:
+        raise InvalidInputError(
+            f"raw frame size must be positive, got {width} x {height} x {channels}"
+        )
+    if not 1 <= bits <= 16:
+        raise InvalidInputError(f"bits must be 1..16, got {bits}")
+    dtype = np.dtype(np.uint8) if bits <= 8 else np.dtype("<u2")
+    expected = width * height * channels * dtype.itemsize
+    if len(data) != expected:
+        raise InvalidInputError(
+            f"a raw {width} x {height} x {channels} frame of {bits}-bit codes is {expected} bytes "
+            f"({dtype.itemsize} per code), got {len(data)}; check the size and bit depth"
+        )
+    shape = (height, width) if channels == 1 else (height, width, channels)
+    codes = np.frombuffer(data, dtype=dtype).reshape(shape)
+    return validate_codes(codes.astype(dtype.newbyteorder("=")), bits)
+
+
+def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
+    """Write a winding-number map: PNG (16-bit, 0 <= W <= 65535), TIFF or npy by suffix."""
+    arr = np.asarray(winding)
+    if arr.dtype.kind not in "iu":
+        raise InvalidInputError(f"winding numbers are integers, got dtype {arr.dtype}")
+    fmt = frame_format(path)
+    if fmt == "png":
+        if arr.ndim != 2 or arr.min() < 0 or arr.max() > np.iinfo(np.uint16).max:
+            raise UnsupportedFormatError(
+                f"a PNG winding map is one channel with 0 <= W <= 65535; this map has shape "
+                f"{arr.shape} and W in [{arr.min()}, {arr.max()}]: write it as .tiff or .npy"
+            )
+        Image.fromarray(arr.astype(np.uint16)).save(path, format="PNG")
+    elif fmt == "tiff":
+        tifffile.imwrite(path, arr.astype(np.int64), metadata=None, compression="zlib")
+    else:
+        np.save(path, arr.astype(np.int64), allow_pickle=False)
+
+
+def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
+    """Read a winding-number map written by :func:`write_winding` (int64)."""
+    fmt = frame_format(path)
+    data = Path(path).read_bytes()
+    with decoding(f"the {fmt.upper()} winding map"):
+        if fmt == "png":
+            arr = np.asarray(Image.open(io.BytesIO(data), formats=["PNG"]))
+        elif fmt == "tiff":
+            arr = tifffile.imread(io.BytesIO(data))
+        else:
+            arr = np.load(io.BytesIO(data), allow_pickle=False)
+    if arr.dtype.kind not in "iu":
+        raise InvalidInputError(f"a winding map holds integers, got dtype {arr.dtype}")
+    return arr.astype(np.int64)
