@@ -1,0 +1,175 @@
+"""``auto``: spend compute only where a scene needs it.
+
+Per tile (see :mod:`models.scene_analysis`), cheapest first:
+
+1. no wrap edge -> pass-through: W is constant (no network);
+2. wrap edges but no residue -> exact path integration of the neighbour jumps
+   (every classical unwrapper agrees there; O(pixels));
+3. residues (the Itoh condition fails somewhere) -> the network tier chosen by
+   the quality level, run on the tile plus a context margin; without any learned
+   decoder installed, the classical ``itoh`` decoder stands in.
+
+A frame with no residue at all is integrated whole. Tiles are stitched into one
+consistent W by :mod:`models.tile_reconcile`; the global offset then comes from
+the network's absolute prediction where a network ran, else from the anchoring
+rule (darkest pixels W = 0). The route of every pixel is reported.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from models.decoders.base import Decoder, anchor_winding
+from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
+from models.formation import SensorParams, max_winding
+from models.scene_analysis import RegionAnalysis, analyse, neighbour_jumps
+from models.tile_reconcile import Tile, integrate_jumps, stitch
+
+QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
+#: Network tiers tried in order for each quality level; the first installed one runs.
+TIER_LADDER: dict[str, tuple[str, ...]] = {
+    "fast": ("mantissanet-tiny", "mantissanet-small", "mantissanet-base"),
+    "balanced": ("mantissanet-small", "mantissanet-base", "mantissanet-tiny"),
+    "best": ("mantissanet-base", "mantissanet-small", "mantissanet-tiny"),
+}
+#: Stand-in for hard tiles when no learned decoder is installed.
+CLASSICAL_FALLBACK = "itoh"
+PASS_THROUGH = "pass-through"
+INTEGRATION = "integration"
+
+
+class AdaptiveDecoder(Decoder):
+    """Routes each tile to the cheapest decoder that is right for it."""
+
+    name = "auto"
+
+    def __init__(self, quality: str = "balanced", tile: int = 64, margin: int = 16) -> None:
+        if quality not in QUALITIES:
+            raise ValueError(f"quality must be one of {QUALITIES}, got {quality!r}")
+        self.quality = quality
+        self.tile = tile
+        self.margin = margin
+        self.name = f"auto-{quality}"
+
+    def hard_tile_decoder(self) -> Decoder:
+        """The decoder for tiles with residues: the quality's tier, else the classical fallback."""
+        installed = {spec.name for spec in available_decoders()}
+        for name in TIER_LADDER[self.quality]:
+            if name in installed:
+                return get_decoder(name)
+        return get_decoder(CLASSICAL_FALLBACK)
+
+    def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+        return self.explain_winding(m, params)[0]
+
+    def explain_winding(
+        self, m: NDArray[np.float64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        analysis = analyse(m, params, self.tile)
+        along_cols, along_rows = neighbour_jumps(m)
+        difficulty = analysis.frame.difficulty
+        if difficulty == "none":
+            return np.zeros(m.shape, np.int64), _report({PASS_THROUGH: m.size}, "no wrap edge")
+        if difficulty == "smooth":
+            winding = anchor_winding(integrate_jumps(along_cols, along_rows), params)
+            return _clamp(winding, params), _report({INTEGRATION: m.size}, "no residue")
+        hard = self.hard_tile_decoder()
+        pixels: Counter[str] = Counter()
+        tiles: list[Tile] = []
+        absolute: list[tuple[Tile, NDArray[np.int64]]] = []
+        for region in analysis.tiles:
+            rows = slice(region.row, region.row + region.height)
+            cols = slice(region.col, region.col + region.width)
+            route = _route(region, hard.name)
+            if route == PASS_THROUGH:
+                relative = np.zeros((region.height, region.width), np.int64)
+            elif route == INTEGRATION:
+                relative = integrate_jumps(
+                    along_cols[rows, cols.start : cols.stop - 1],
+                    along_rows[rows.start : rows.stop - 1, cols],
+                )
+            else:
+                relative = self._decode_with_context(hard, m, rows, cols, params)
+            tile = Tile(rows, cols, relative)
+            tiles.append(tile)
+            if route == hard.name and hard.name != CLASSICAL_FALLBACK:
+                absolute.append((tile, relative))
+            pixels[route] += region.height * region.width
+        winding = stitch(tiles, m.shape, along_cols, along_rows)
+        if absolute:
+            winding += _network_offset(winding, absolute)
+            winding = np.maximum(winding, 0)
+        else:
+            winding = anchor_winding(winding, params)
+        reason = f"{difficulty} wraps; quality {self.quality}"
+        return _clamp(winding, params), _report(pixels, reason)
+
+    def _decode_with_context(
+        self,
+        decoder: Decoder,
+        m: NDArray[np.float64],
+        rows: slice,
+        cols: slice,
+        params: SensorParams,
+    ) -> NDArray[np.int64]:
+        """Run ``decoder`` on the tile grown by the margin, then crop back to the tile."""
+        top, left = max(rows.start - self.margin, 0), max(cols.start - self.margin, 0)
+        bottom = min(rows.stop + self.margin, m.shape[0])
+        right = min(cols.stop + self.margin, m.shape[1])
+        window = decoder.predict_winding(m[top:bottom, left:right], params)
+        return window[rows.start - top : rows.stop - top, cols.start - left : cols.stop - left]
+
+
+def _route(region: RegionAnalysis, hard_name: str) -> str:
+    if region.difficulty == "none":
+        return PASS_THROUGH
+    if region.difficulty == "smooth":
+        return INTEGRATION
+    return hard_name
+
+
+def _network_offset(
+    winding: NDArray[np.int64], absolute: list[tuple[Tile, NDArray[np.int64]]]
+) -> int:
+    """The global offset on which the network's absolute predictions agree most."""
+    votes = np.concatenate(
+        [(predicted - winding[tile.rows, tile.cols]).ravel() for tile, predicted in absolute]
+    )
+    values, counts = np.unique(votes, return_counts=True)
+    return int(values[np.argmax(counts)])
+
+
+def _clamp(winding: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
+    bound = max_winding(params)
+    return winding if bound is None else np.minimum(winding, bound)
+
+
+def _report(pixels: Counter[str] | dict[str, int], reason: str) -> dict[str, Any]:
+    total = sum(pixels.values())
+    return {
+        "routes": {name: count / total for name, count in pixels.items()},
+        "reason": reason,
+    }
+
+
+def specs() -> list[DecoderSpec]:
+    """``auto`` (balanced) and ``auto-<quality>`` for each quality level."""
+    found = [
+        DecoderSpec(
+            name=f"auto-{quality}",
+            kind="adaptive",
+            description=f"per-tile routing at quality {quality!r}: pass-through, exact "
+            "integration, or a network tier only where wraps are dense",
+            factory=lambda quality=quality: AdaptiveDecoder(quality),
+        )
+        for quality in QUALITIES
+    ]
+    balanced = found[1]
+    return [
+        DecoderSpec("auto", "adaptive", balanced.description, balanced.factory),
+        *found,
+    ]

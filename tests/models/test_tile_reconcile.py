@@ -1,0 +1,81 @@
+"""Tests of models/tile_reconcile.py: path integration and tile stitching."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models.formation import SensorParams, split_unwrapped
+from models.scene_analysis import neighbour_jumps
+from models.tile_reconcile import Tile, integrate_jumps, stitch
+
+MODULO = SensorParams(encoding="modulo")
+
+
+def smooth_field(seed: int, height: int, width: int, peak: float) -> np.ndarray:
+    """A smooth, non-negative field whose neighbour steps stay below half a wrap."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:height, 0:width] / max(height, width)
+    a, b, c = rng.uniform(0.5, 2.0, 3)
+    field = peak * (np.sin(a * 3 * rows) ** 2 + np.cos(b * 3 * cols + c) ** 2) / 2
+    step = max(np.abs(np.diff(field, axis=0)).max(), np.abs(np.diff(field, axis=1)).max())
+    return field * 0.45 / step if step > 0.45 else field
+
+
+def tiles_of(winding: np.ndarray, size: int, offsets: np.ndarray) -> list[Tile]:
+    tiles = []
+    k = 0
+    for r in range(0, winding.shape[0], size):
+        for c in range(0, winding.shape[1], size):
+            rows = slice(r, min(r + size, winding.shape[0]))
+            cols = slice(c, min(c + size, winding.shape[1]))
+            part = winding[rows, cols]
+            tiles.append(Tile(rows, cols, part - part.min() + offsets[k]))
+            k += 1
+    return tiles
+
+
+def test_integrate_jumps_shape_and_origin() -> None:
+    along_cols = np.zeros((3, 4), np.int64)
+    along_rows = np.zeros((2, 5), np.int64)
+    result = integrate_jumps(along_cols, along_rows)
+    assert result.shape == (3, 5)
+    assert result[0, 0] == 0 and not result.any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), peak=st.floats(0.0, 25.0))
+def test_integration_recovers_w_up_to_a_constant(seed: int, peak: float) -> None:
+    u = smooth_field(seed, 40, 50, peak)
+    winding, m = split_unwrapped(u, MODULO)
+    relative = integrate_jumps(*neighbour_jumps(m))
+    np.testing.assert_array_equal(relative - relative[0, 0], winding - winding[0, 0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), size=st.integers(5, 30))
+def test_stitch_undoes_random_tile_offsets(seed: int, size: int) -> None:
+    u = smooth_field(seed, 48, 60, 15.0)
+    winding, m = split_unwrapped(u, MODULO)
+    along_cols, along_rows = neighbour_jumps(m)
+    n_tiles = -(-48 // size) * -(-60 // size)
+    shuffled = np.random.default_rng(seed).integers(-50, 50, n_tiles)
+    stitched = stitch(tiles_of(winding, size, shuffled), m.shape, along_cols, along_rows)
+    np.testing.assert_array_equal(stitched - stitched[0, 0], winding - winding[0, 0])
+
+
+def test_a_minority_of_bad_border_pixels_is_outvoted() -> None:
+    u = smooth_field(3, 40, 40, 12.0)
+    winding, m = split_unwrapped(u, MODULO)
+    along_cols, along_rows = neighbour_jumps(m)
+    tiles = tiles_of(winding, 20, np.zeros(4, np.int64))
+    corrupted = tiles[1].winding.copy()
+    bad_rows = np.arange(0, 20, 3)
+    corrupted[bad_rows, 0] += 7
+    tiles[1] = Tile(tiles[1].rows, tiles[1].cols, corrupted)
+    stitched = stitch(tiles, m.shape, along_cols, along_rows)
+    error = stitched - winding - (stitched - winding)[0, 0]
+    assert set(np.flatnonzero(error[:, 20])) == set(bad_rows)
+    error[bad_rows, 20] = 0
+    assert not error.any()
