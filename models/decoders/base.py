@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import SensorParams, dequantize, from_unwrapped
+from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
 
 #: Lower-tail percentile of the relative winding map used as the W = 0 anchor.
 ANCHOR_PERCENTILE = 0.1
@@ -62,8 +62,9 @@ def anchor_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray
     isolated errors) is 0, then clamp to [0, max_winding] (W >= 0 since x >= 0).
     """
     offset = int(np.floor(np.percentile(relative, ANCHOR_PERCENTILE)))
-    winding = relative - offset
-    return np.maximum(winding, 0)
+    winding = np.maximum(relative - offset, 0)
+    top = max_winding(params)
+    return winding if top is None else np.minimum(winding, top)
 
 
 class Decoder(ABC):
