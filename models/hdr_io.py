@@ -1,0 +1,266 @@
+"""HDR image files: read OpenEXR (single- and multi-part) and Radiance RGBE, write OpenEXR.
+
+Pixels are scene-referred linear values (float64 in memory), ``H x W`` (EXR
+channel ``Y``) or ``H x W x 3`` (``R``, ``G``, ``B``). Every image read is checked
+with :func:`models.formation.validate_irradiance`: NaN and inf are rejected,
+negatives are rejected unless the caller asks to clip them (lossy EXR
+compression leaves some), and the clipped count is reported.
+
+The Radiance reader handles new-style run-length-encoded and flat scanlines;
+an RGBE pixel decodes at its mantissa bin centre, ``(m + 0.5) * 2^(e - 136)``,
+as Radiance's own ``colr_color`` does.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import OpenEXR
+from numpy.typing import NDArray
+
+from models.errors import InvalidInputError, McamError, UnsupportedFormatError
+from models.formation import ensure_fits, validate_irradiance
+from models.frames import check_pixel_count, decoding
+
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+RADIANCE_MAGICS = (b"#?RADIANCE", b"#?RGBE")
+RGB_CHANNELS = ("R", "G", "B")
+#: RGBE exponent bias plus the 8 mantissa bits: value = (m + 0.5) * 2^(e - 136).
+_RGBE_SHIFT = 136
+_RLE_MIN_WIDTH, _RLE_MAX_WIDTH = 8, 0x7FFF
+
+
+@dataclass
+class HdrImage:
+    """A linear HDR image: float64 pixels, string header attributes, negatives clipped."""
+
+    pixels: NDArray[np.float64]
+    attributes: dict[str, str] = field(default_factory=dict)
+    negatives_clipped: int = 0
+
+
+def _image_channels(names: list[str]) -> tuple[str, ...] | None:
+    """The channels holding the image: R,G,B if present, else Y, else None."""
+    if all(name in names for name in RGB_CHANNELS):
+        return RGB_CHANNELS
+    return ("Y",) if "Y" in names else None
+
+
+def _exr_file(source: Path | bytes, header_only: bool) -> Any:
+    if isinstance(source, bytes):
+        return OpenEXR.File(io.BytesIO(source), separate_channels=True, header_only=header_only)
+    return OpenEXR.File(str(source), separate_channels=True, header_only=header_only)
+
+
+def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, str]]:
+    """Pixels and string attributes of the first part holding Y or R,G,B."""
+    headers = [part.header for part in _exr_file(source, header_only=True).parts]
+    layouts = [_image_channels([ch.name for ch in header["channels"]]) for header in headers]
+    index = next((i for i, layout in enumerate(layouts) if layout is not None), None)
+    if index is None:
+        found = sorted({ch.name for header in headers for ch in header["channels"]})
+        raise UnsupportedFormatError(
+            f"no part of the OpenEXR file has a Y or R,G,B image (channels: {', '.join(found)}); "
+            "write the image as channel Y (grayscale) or R, G, B"
+        )
+    (x0, y0), (x1, y1) = headers[index]["dataWindow"]
+    check_pixel_count(int(x1 - x0 + 1), int(y1 - y0 + 1), max_pixels)
+    parts = _exr_file(source, header_only=False).parts
+    if len(parts) != len(headers):
+        # OpenEXR.File drops a part whose pixel data fails to decode instead of raising.
+        raise InvalidInputError("the OpenEXR pixel data is truncated or corrupt")
+    channels = parts[index].channels
+    planes = [channels[name].pixels for name in layouts[index]]
+    pixels = planes[0] if len(planes) == 1 else np.stack(planes, axis=2)
+    header = headers[index]
+    return pixels, {key: value for key, value in header.items() if isinstance(value, str)}
+
+
+def _radiance_header(data: bytes) -> tuple[dict[str, str], int, int, int, tuple[bool, bool]]:
+    """Header variables, (width, height), data offset and (flip rows, flip columns)."""
+    end = data.find(b"\n\n")
+    if end < 0:
+        raise InvalidInputError("the Radiance header has no blank line before the resolution")
+    variables: dict[str, str] = {}
+    for line in data[:end].decode("latin-1").splitlines()[1:]:
+        key, sep, value = line.partition("=")
+        if sep and not line.startswith("#"):
+            variables[key.strip()] = value.strip()
+    if variables.get("FORMAT", "32-bit_rle_rgbe") != "32-bit_rle_rgbe":
+        raise UnsupportedFormatError(
+            f"Radiance pixel format {variables['FORMAT']} is not supported; convert to RGBE or EXR"
+        )
+    line_end = data.find(b"\n", end + 2)
+    tokens = data[end + 2 : line_end].decode("latin-1").split() if line_end > 0 else []
+    if len(tokens) != 4 or tokens[0][1:] != "Y" or tokens[2][1:] != "X":
+        raise UnsupportedFormatError(
+            f"unsupported Radiance resolution line {' '.join(tokens)!r}; expected '-Y H +X W'"
+        )
+    try:
+        height, width = int(tokens[1]), int(tokens[3])
+    except ValueError:
+        raise InvalidInputError(f"bad Radiance resolution line {' '.join(tokens)!r}") from None
+    return variables, width, height, line_end + 1, (tokens[0][0] == "+", tokens[2][0] == "-")
+
+
+def _truncated(row: int) -> InvalidInputError:
+    return InvalidInputError(
+        f"the Radiance file is truncated or corrupt at scanline {row}; send the complete file"
+    )
+
+
+def _rle_scanline(data: bytes, pos: int, width: int, row: int) -> tuple[NDArray[np.uint8], int]:
+    """One new-style RLE scanline (components stored one after the other) as width x 4."""
+    line = np.empty((4, width), np.uint8)
+    for component in range(4):
+        x = 0
+        while x < width:
+            if pos >= len(data):
+                raise _truncated(row)
+            count = data[pos]
+            run = count - 128 if count > 128 else count
+            if run == 0 or x + run > width:
+                raise _truncated(row)
+            if count > 128:
+                if pos + 1 >= len(data):
+                    raise _truncated(row)
+                line[component, x : x + run] = data[pos + 1]
+                pos += 2
+            else:
+                chunk = data[pos + 1 : pos + 1 + run]
+                if len(chunk) != run:
+                    raise _truncated(row)
+                line[component, x : x + run] = np.frombuffer(chunk, np.uint8)
+                pos += 1 + run
+            x += run
+    return line.T, pos
+
+
+def _scanline(data: bytes, pos: int, width: int, row: int) -> tuple[NDArray[np.uint8], int]:
+    """One scanline of RGBE pixels (width x 4): new-style RLE or flat."""
+    head = data[pos : pos + 4]
+    rle = _RLE_MIN_WIDTH <= width <= _RLE_MAX_WIDTH and head[:2] == b"\x02\x02" and len(head) == 4
+    if rle and head[2] < 128:
+        if (head[2] << 8 | head[3]) != width:
+            raise InvalidInputError(
+                f"Radiance scanline {row} declares width {head[2] << 8 | head[3]}, not {width}"
+            )
+        return _rle_scanline(data, pos + 4, width, row)
+    flat = data[pos : pos + 4 * width]
+    if len(flat) != 4 * width:
+        raise _truncated(row)
+    return np.frombuffer(flat, np.uint8).reshape(width, 4), pos + 4 * width
+
+
+def rgbe_to_float(rgbe: NDArray[np.uint8]) -> NDArray[np.float64]:
+    """Decode RGBE pixels (``... x 4``): ``(m + 0.5) * 2^(e - 136)``, 0 where ``e == 0``."""
+    exponent = rgbe[..., 3].astype(np.int64)
+    scale = np.where(exponent > 0, np.ldexp(1.0, exponent - _RGBE_SHIFT), 0.0)
+    return (rgbe[..., :3].astype(np.float64) + 0.5) * scale[..., None]
+
+
+def _read_radiance(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, str]]:
+    variables, width, height, pos, (flip_rows, flip_columns) = _radiance_header(data)
+    if width < 1 or height < 1:
+        raise InvalidInputError(f"the Radiance image is {width} x {height}; it has no pixels")
+    check_pixel_count(width, height, max_pixels)
+    rgbe = np.empty((height, width, 4), np.uint8)
+    for row in range(height):
+        rgbe[row], pos = _scanline(data, pos, width, row)
+    pixels = rgbe_to_float(rgbe)
+    if flip_rows:
+        pixels = pixels[::-1]
+    if flip_columns:
+        pixels = pixels[:, ::-1]
+    return pixels, variables
+
+
+def read_hdr(
+    source: str | os.PathLike[str] | bytes,
+    *,
+    clip_negative: bool = False,
+    max_pixels: int | None = None,
+    name: str = "",
+) -> HdrImage:
+    """Read an OpenEXR or Radiance (.hdr/.pic) image from a path or bytes; format by magic.
+
+    ``name`` labels error messages (defaults to the path). Raises
+    :class:`UnsupportedFormatError`, :class:`ImageTooLargeError` or
+    :class:`InvalidInputError` (truncated, corrupt, NaN/inf/negative pixels).
+    """
+    if isinstance(source, bytes):
+        label, head = name or "the HDR image", source[:16]
+    else:
+        source = Path(source)
+        with source.open("rb") as handle:
+            label, head = name or str(source), handle.read(16)
+    try:
+        if head.startswith(EXR_MAGIC):
+            with decoding("the OpenEXR file"):
+                pixels, attributes = _read_exr(source, max_pixels)
+        elif head.startswith(RADIANCE_MAGICS):
+            data = source if isinstance(source, bytes) else source.read_bytes()
+            pixels, attributes = _read_radiance(data, max_pixels)
+        else:
+            raise UnsupportedFormatError(
+                "not an OpenEXR or Radiance HDR (.hdr, .pic) image; convert it to OpenEXR"
+            )
+        values, clipped = validate_irradiance(pixels, clip_negative=clip_negative)
+    except McamError as exc:
+        raise type(exc)(f"{label}: {exc.message}") from None
+    return HdrImage(pixels=values, attributes=attributes, negatives_clipped=clipped)
+
+
+def encode_exr(
+    pixels: NDArray[np.floating],
+    attributes: dict[str, str] | None = None,
+    *,
+    half: bool = False,
+) -> bytes:
+    """An OpenEXR file (ZIP, float32 or half) of ``H x W`` (channel Y) or ``H x W x 3`` (R,G,B).
+
+    ``attributes`` become string header attributes, after the standard ``capDate``
+    (local time, ``YYYY:MM:DD HH:MM:SS``) and ``comments``, which they may replace.
+    Raises :class:`OutputOverflowError` when a value does not fit the pixel type.
+    """
+    arr = np.asarray(pixels, dtype=np.float64)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.size == 0 or not (arr.ndim == 2 or (arr.ndim == 3 and arr.shape[2] == 3)):
+        raise InvalidInputError(
+            f"an HDR image is a non-empty H x W or H x W x 3 array, got shape {arr.shape}"
+        )
+    dtype = np.float16 if half else np.float32
+    ensure_fits(arr, dtype, "HDR image")
+    values = arr.astype(dtype)
+    if values.ndim == 2:
+        channels = {"Y": values}
+    else:
+        channels = {name: np.ascontiguousarray(values[:, :, i]) for i, name in enumerate("RGB")}
+    header: dict[str, Any] = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "capDate": time.strftime("%Y:%m:%d %H:%M:%S"),
+        "comments": "written by MantissaCam",
+    }
+    header.update(attributes or {})
+    buffer = io.BytesIO()
+    OpenEXR.File(header, channels).write(buffer)
+    return buffer.getvalue()
+
+
+def write_exr(
+    path: str | os.PathLike[str],
+    pixels: NDArray[np.floating],
+    attributes: dict[str, str] | None = None,
+    *,
+    half: bool = False,
+) -> None:
+    """Write :func:`encode_exr`'s bytes to ``path``."""
+    Path(path).write_bytes(encode_exr(pixels, attributes, half=half))
