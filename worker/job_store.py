@@ -1,0 +1,97 @@
+"""Job records in Redis (``job:<id>`` hashes) with atomic state transitions.
+
+Usage::
+
+    store = JobStore(client)
+    record = store.load(job_id)                         # JobNotFoundError if absent
+    store.transition(job_id, JobState.RUNNING, {JobState.QUEUED}, started_ns=...)
+    store.update(job_id, progress=0.5, frames_done=3)  # fields other than state
+
+Each top-level field of :class:`~worker.jobs.JobRecord` is one hash field holding
+its JSON value, so the API's cancel and the worker's progress writes never
+overwrite each other. State changes go through one Lua script that checks the
+current state and keeps the ``jobs:states`` counts.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from typing import Any
+
+import redis
+
+from worker.jobs import JobNotFoundError, JobRecord, JobState, validate_job_id
+from worker.redis_keys import JOB_STATES, job_done_channel, job_key
+
+_TRANSITION = """
+local current = redis.call('HGET', KEYS[1], 'state')
+if not current then return {0, ''} end
+local allowed = false
+for i = 3, 2 + tonumber(ARGV[2]) do
+  if ARGV[i] == current then allowed = true end
+end
+if not allowed then return {0, current} end
+redis.call('HSET', KEYS[1], 'state', ARGV[1])
+for i = 3 + tonumber(ARGV[2]), #ARGV, 2 do
+  redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1])
+end
+redis.call('HINCRBY', KEYS[2], cjson.decode(current), -1)
+redis.call('HINCRBY', KEYS[2], cjson.decode(ARGV[1]), 1)
+return {1, current}
+"""
+
+
+def encode_fields(values: dict[str, Any]) -> dict[str, str]:
+    """JSON-encode each field value (JobRecord fields, already in JSON mode)."""
+    return {name: json.dumps(value, separators=(",", ":")) for name, value in values.items()}
+
+
+def record_fields(record: JobRecord) -> dict[str, str]:
+    """The hash fields of a whole record."""
+    return encode_fields(record.model_dump(mode="json"))
+
+
+class JobStore:
+    """Reads and updates job records."""
+
+    def __init__(self, client: redis.Redis) -> None:
+        self.client = client
+        self._transition = client.register_script(_TRANSITION)
+
+    def load(self, job_id: str) -> JobRecord:
+        """The record of ``job_id``; :class:`JobNotFoundError` if unknown or malformed id."""
+        raw = self.client.hgetall(job_key(validate_job_id(job_id)))
+        if not raw:
+            raise JobNotFoundError(f"no job {job_id!r} (unknown, or expired after retention)")
+        return JobRecord.model_validate({k.decode(): json.loads(v) for k, v in raw.items()})
+
+    def update(self, job_id: str, **fields: Any) -> None:
+        """Set fields other than ``state`` (progress, timings, info, ...)."""
+        if "state" in fields:
+            raise ValueError("change the state with transition()")
+        values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
+        self.client.hset(job_key(job_id), mapping=encode_fields(values))
+
+    def transition(
+        self, job_id: str, to: JobState, allowed_from: Iterable[JobState], **fields: Any
+    ) -> tuple[bool, JobState | None]:
+        """Move to state ``to`` if the current state is in ``allowed_from`` and set
+        ``fields`` with it, atomically. Returns (changed, previous state or None if
+        the record does not exist). Finished states notify waiters."""
+        allowed = [json.dumps(state.value) for state in allowed_from]
+        values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
+        pairs = [item for pair in encode_fields(values).items() for item in pair]
+        changed, previous = self._transition(
+            keys=[job_key(job_id), JOB_STATES],
+            args=[json.dumps(to.value), len(allowed), *allowed, *pairs],
+        )
+        if changed and to.finished:
+            self.client.publish(job_done_channel(job_id), to.value)
+        return bool(changed), JobState(json.loads(previous)) if previous else None
+
+    def states(self) -> dict[str, int]:
+        """Number of job records per state (every state listed, zeros included)."""
+        raw = self.client.hgetall(JOB_STATES)
+        counts = {k.decode(): int(v) for k, v in raw.items()}
+        return {state.value: max(counts.get(state.value, 0), 0) for state in JobState}

@@ -1,0 +1,260 @@
+"""The producer side of the queue: submit jobs, publish device frames, inspect the queue.
+
+Usage (API)::
+
+    queue = JobQueue(connect(url), maxlen=s.jobs_maxlen, max_deliveries=s.max_deliveries,
+                     claim_idle_ms=s.claim_idle_ms)
+    record = queue.submit("reconstruction", codes, params, "itoh", {"scene_referred": True})
+    record = queue.wait(record.id, timeout_s=5.0)   # returns early when finished
+    record = queue.get(record.id); queue.cancel(record.id); queue.stats()
+
+Usage (device daemon)::
+
+    dropped = publish_frame(client, frame_message, maxlen=s.frames_maxlen)
+
+Job codes travel as raw bytes in the ``jobs`` stream entry (fields ``job``,
+``kind``, ``shape``, ``dtype``, ``codes``), never JSON; the record lives at
+``job:<id>``. The jobs stream rejects submissions beyond ``maxlen`` outstanding
+entries (:class:`QueueFullError`, 503); a device stream drops its oldest frames
+and counts them in ``frames_dropped_total``. Workers delete entries once done,
+so stream length is the backlog.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from typing import Any
+
+import numpy as np
+import redis
+from numpy.typing import NDArray
+
+from models.decoders.registry import available_decoders
+from models.errors import InvalidInputError, McamError
+from models.formation import SensorParams, validate_codes
+from worker.frame_message import FrameMessage
+from worker.job_store import JobStore, record_fields
+from worker.jobs import JobRecord, JobState
+from worker.metrics import Metrics, counter_key
+from worker.redis_keys import (
+    DEAD_LETTER_STREAM,
+    DEVICES_SET,
+    JOB_STATES,
+    JOBS_STREAM,
+    WORKERS_HEARTBEAT,
+    frame_stream,
+    job_done_channel,
+    job_key,
+    last_sequence_key,
+    lease_key,
+)
+
+#: Consumer group every worker joins on the jobs stream and on each frame stream.
+GROUP = "workers"
+JOB_KINDS = ("reconstruction", "video")
+
+_SUBMIT = """
+if redis.call('XLEN', KEYS[1]) >= tonumber(ARGV[1]) then return 0 end
+local n = tonumber(ARGV[2])
+for i = 3, 2 + 2 * n, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
+local entry = {}
+for i = 3 + 2 * n, #ARGV do entry[#entry + 1] = ARGV[i] end
+redis.call('XADD', KEYS[1], '*', unpack(entry))
+redis.call('HINCRBY', KEYS[3], 'queued', 1)
+return 1
+"""
+
+_PUBLISH = """
+local before = redis.call('XLEN', KEYS[1])
+local entry = {}
+for i = 3, #ARGV do entry[#entry + 1] = ARGV[i] end
+redis.call('XADD', KEYS[1], 'MAXLEN', ARGV[1], '*', unpack(entry))
+redis.call('SADD', KEYS[2], ARGV[2])
+local dropped = before + 1 - tonumber(ARGV[1])
+if dropped > 0 then redis.call('HINCRBY', KEYS[3], ARGV[2], dropped) else dropped = 0 end
+return dropped
+"""
+
+
+class QueueFullError(McamError):
+    """The jobs stream holds ``maxlen`` unfinished jobs; the client should retry later."""
+
+    code = "queue_full"
+    http_status = 503
+
+
+def ensure_group(client: redis.Redis, stream: str) -> None:
+    """Create the workers' consumer group on ``stream`` (and the stream) if missing."""
+    try:
+        client.xgroup_create(stream, GROUP, id="0", mkstream=True)
+    except redis.exceptions.ResponseError as exc:
+        if "BUSYGROUP" not in str(exc):
+            raise
+
+
+def publish_frame(client: redis.Redis, message: FrameMessage, *, maxlen: int) -> int:
+    """Append a frame to ``frames:<device>`` (registering the device); when the stream
+    holds ``maxlen`` frames the oldest are dropped. Returns how many were dropped."""
+    args: list[Any] = [maxlen, message.device]
+    for name, value in message.to_fields().items():
+        args += [name, value]
+    script = client.register_script(_PUBLISH)
+    keys = [frame_stream(message.device), DEVICES_SET, counter_key("frames_dropped_total")]
+    return int(script(keys=keys, args=args))
+
+
+def _check_submission(
+    kind: str, codes: NDArray[Any], params: SensorParams, decoder: str
+) -> NDArray[np.unsignedinteger]:
+    if kind not in JOB_KINDS:
+        raise InvalidInputError(f"unknown job kind {kind!r}; use one of {', '.join(JOB_KINDS)}")
+    codes = validate_codes(codes, params.bits)
+    if codes.dtype not in (np.uint8, np.uint16):
+        codes = codes.astype(params.code_dtype)
+    codes = np.ascontiguousarray(codes)
+    want_ndim = (2, 3) if kind == "reconstruction" else (3, 4)
+    if codes.ndim not in want_ndim:
+        layout = "H x W or H x W x C" if kind == "reconstruction" else "T x H x W or T x H x W x C"
+        raise InvalidInputError(f"a {kind} job takes {layout} codes, got shape {codes.shape}")
+    names = [spec.name for spec in available_decoders()]
+    if decoder not in names:
+        raise InvalidInputError(
+            f"unknown decoder {decoder!r}; choose one of: {', '.join(names) or '(none installed)'}"
+        )
+    return codes
+
+
+class JobQueue:
+    """Submit, inspect, wait for and cancel jobs; read queue statistics."""
+
+    def __init__(
+        self, client: redis.Redis, *, maxlen: int, max_deliveries: int, claim_idle_ms: int
+    ) -> None:
+        self.client = client
+        self.maxlen = maxlen
+        self.max_deliveries = max_deliveries
+        self.claim_idle_ms = claim_idle_ms
+        self.jobs = JobStore(client)
+        self.metrics = Metrics(client)
+        self._submit = client.register_script(_SUBMIT)
+        ensure_group(client, JOBS_STREAM)
+
+    def submit(
+        self,
+        kind: str,
+        codes: NDArray[Any],
+        params: SensorParams,
+        decoder: str,
+        options: dict[str, Any] | None = None,
+    ) -> JobRecord:
+        """Queue a job (codes in DN: one frame, or T frames for ``video``); returns its record.
+
+        Raises :class:`InvalidInputError` for bad codes/kind/decoder and
+        :class:`QueueFullError` when ``maxlen`` jobs are outstanding."""
+        codes = _check_submission(kind, codes, params, decoder)
+        record = JobRecord(
+            id=uuid.uuid4().hex,
+            kind=kind,  # type: ignore[arg-type]
+            decoder=decoder,
+            params=params,
+            options=dict(options or {}),
+            frames_total=codes.shape[0] if kind == "video" else 1,
+            created_ns=time.time_ns(),
+        )
+        fields = record_fields(record)
+        entry = {
+            "job": record.id,
+            "kind": kind,
+            "shape": ",".join(str(n) for n in codes.shape),
+            "dtype": codes.dtype.str,
+            "codes": codes.tobytes(),
+        }
+        args: list[Any] = [self.maxlen, len(fields)]
+        for pairs in (fields, entry):
+            for name, value in pairs.items():
+                args += [name, value]
+        if not self._submit(keys=[JOBS_STREAM, job_key(record.id), JOB_STATES], args=args):
+            self.metrics.inc("jobs_rejected_total")
+            raise QueueFullError(
+                f"the job queue is full ({self.maxlen} jobs waiting); retry in a few seconds"
+            )
+        return record
+
+    def get(self, job_id: str) -> JobRecord:
+        """The job's record; :class:`JobNotFoundError` if there is none."""
+        return self.jobs.load(job_id)
+
+    def cancel(self, job_id: str) -> JobRecord:
+        """Cancel a queued or running job (a worker stops at its next check); a finished
+        job is returned unchanged."""
+        self.jobs.load(job_id)
+        self.jobs.transition(
+            job_id,
+            JobState.CANCELLED,
+            (JobState.QUEUED, JobState.RUNNING),
+            finished_ns=time.time_ns(),
+        )
+        return self.jobs.load(job_id)
+
+    def wait(self, job_id: str, timeout_s: float) -> JobRecord:
+        """Block until the job finishes or ``timeout_s`` passes; returns the latest record."""
+        record = self.jobs.load(job_id)
+        if record.state.finished or timeout_s <= 0:
+            return record
+        deadline = time.monotonic() + timeout_s
+        pubsub = self.client.pubsub(ignore_subscribe_messages=True)
+        try:
+            pubsub.subscribe(job_done_channel(job_id))
+            while True:
+                record = self.jobs.load(job_id)
+                remaining = deadline - time.monotonic()
+                if record.state.finished or remaining <= 0:
+                    return record
+                pubsub.get_message(timeout=min(remaining, 0.5))
+        finally:
+            pubsub.close()
+
+    def workers(self, max_age_s: float) -> dict[str, dict[str, Any]]:
+        """Workers whose last heartbeat is younger than ``max_age_s`` (id -> heartbeat)."""
+        now = time.time_ns()
+        alive: dict[str, dict[str, Any]] = {}
+        for worker_id, raw in self.client.hgetall(WORKERS_HEARTBEAT).items():
+            beat = json.loads(raw)
+            if now - int(beat.get("ts_ns", 0)) <= max_age_s * 1e9:
+                alive[worker_id.decode()] = beat
+        return alive
+
+    def stats(self) -> dict[str, Any]:
+        """Queue depth, pending entries, jobs by state, dead letters, per-device streams."""
+        devices = sorted(d.decode() for d in self.client.smembers(DEVICES_SET))
+        pipe = self.client.pipeline(transaction=False)
+        pipe.xlen(JOBS_STREAM)
+        pipe.xpending(JOBS_STREAM, GROUP)
+        pipe.xlen(DEAD_LETTER_STREAM)
+        pipe.hgetall(counter_key("frames_dropped_total"))
+        for device in devices:
+            pipe.xlen(frame_stream(device))
+            pipe.get(lease_key(device))
+            pipe.get(last_sequence_key(device))
+        replies = pipe.execute()
+        depth, pending, dead, dropped = replies[:4]
+        dropped_by_device = {k.decode(): int(v) for k, v in dropped.items()}
+        per_device = {}
+        for i, device in enumerate(devices):
+            length, owner, last_seq = replies[4 + 3 * i : 7 + 3 * i]
+            per_device[device] = {
+                "depth": int(length),
+                "owner": owner.decode() if owner else None,
+                "last_sequence": int(last_seq) if last_seq is not None else None,
+                "frames_dropped": dropped_by_device.get(device, 0),
+            }
+        return {
+            "stream_depth": int(depth),
+            "pending": int(pending["pending"]),
+            "jobs_by_state": self.jobs.states(),
+            "dead_letters": int(dead),
+            "frames_dropped": dropped_by_device,
+            "devices": per_device,
+        }

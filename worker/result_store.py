@@ -1,0 +1,136 @@
+"""Durable result files on disk, addressed by validated keys, with a retention time.
+
+Usage::
+
+    store = ResultStore(Path("data/results"), retention_s=7 * 86400)
+    path = store.write("jobs/0123abcd.../result.exr", exr_bytes)  # atomic + fsynced
+    store.exists(key); store.read(key); store.path(key)
+    store.purge_expired()  # deletes files older than retention_s, returns how many
+
+Keys are relative paths of letters, digits and ``_ . / -`` only: no ``..``
+component, no absolute path, no empty component. Anything else raises
+:class:`InvalidKeyError` before the filesystem is touched, so ids from requests
+can never escape the store.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import time
+from pathlib import Path
+
+from models.errors import McamError
+
+_KEY = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
+_TMP_SUFFIX = ".tmp"
+
+
+class InvalidKeyError(McamError):
+    """A result key is not a safe relative path."""
+
+    code = "invalid_key"
+    http_status = 404
+
+
+class ResultNotFoundError(McamError):
+    """No result stored under that key (never written, or purged by retention)."""
+
+    code = "not_found"
+    http_status = 404
+
+
+def validate_key(key: str) -> str:
+    """Return ``key`` if it is a safe relative path, else raise :class:`InvalidKeyError`."""
+    if (
+        not isinstance(key, str)
+        or len(key) > 512
+        or not _KEY.fullmatch(key)
+        or any(part in (".", "..") for part in key.split("/"))
+        or key.endswith(_TMP_SUFFIX)
+    ):
+        raise InvalidKeyError(
+            f"invalid result key {key!r}: use a relative path of letters, digits and '_.-/' "
+            "without '..' components"
+        )
+    return key
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+class ResultStore:
+    """Files under ``root``; ``write`` is atomic (temp file, fsync, rename, fsync dir)."""
+
+    def __init__(self, root: Path, retention_s: float) -> None:
+        if retention_s <= 0:
+            raise McamError(f"retention_s must be positive, got {retention_s}")
+        self.root = Path(root).resolve()
+        self.retention_s = retention_s
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def path(self, key: str) -> Path:
+        """The file that holds ``key`` (it may not exist)."""
+        return self.root / validate_key(key)
+
+    def exists(self, key: str) -> bool:
+        """True when a result is stored under ``key``."""
+        return self.path(key).is_file()
+
+    def read(self, key: str) -> bytes:
+        """The bytes stored under ``key``; :class:`ResultNotFoundError` if there are none."""
+        try:
+            return self.path(key).read_bytes()
+        except FileNotFoundError:
+            raise ResultNotFoundError(f"no result {key!r} (never written or expired)") from None
+
+    def write(self, key: str, data: bytes) -> Path:
+        """Store ``data`` under ``key`` durably; an existing result is replaced atomically."""
+        final = self.path(key)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = final.with_name(f".{final.name}.{os.getpid()}.{time.monotonic_ns()}{_TMP_SUFFIX}")
+        try:
+            with open(tmp, "wb") as handle:
+                handle.write(data)
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.replace(tmp, final)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        _fsync_dir(final.parent)
+        return final
+
+    def delete(self, key: str) -> bool:
+        """Remove the result under ``key``; returns whether there was one."""
+        try:
+            self.path(key).unlink()
+            return True
+        except FileNotFoundError:
+            return False
+
+    def purge_expired(self, now_s: float | None = None) -> int:
+        """Delete results (and stale temp files) older than the retention time; empty
+        folders go too. Returns the number of files deleted."""
+        cutoff = (time.time() if now_s is None else now_s) - self.retention_s
+        removed = 0
+        for folder, _dirs, files in os.walk(self.root, topdown=False):
+            for name in files:
+                file = Path(folder, name)
+                try:
+                    if file.stat().st_mtime < cutoff:
+                        file.unlink()
+                        removed += 1
+                except FileNotFoundError:
+                    continue
+            if Path(folder) != self.root:
+                try:
+                    os.rmdir(folder)
+                except OSError:
+                    pass
+        return removed
