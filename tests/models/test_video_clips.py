@@ -84,7 +84,7 @@ def test_light_moves() -> None:
 def test_pan_zoom_moves_the_view() -> None:
     scene = clip_scene("pan_zoom", frames=3, size=SIZE)
     assert not np.allclose(scene[0], scene[1])
-    assert np.corrcoef(np.log(scene[0]).ravel(), np.log(scene[1]).ravel())[0, 1] > 0.8
+    assert np.corrcoef(np.log(scene[0]).ravel(), np.log(scene[1]).ravel())[0, 1] > 0.7
 
 
 @pytest.mark.parametrize(
