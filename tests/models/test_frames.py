@@ -1,0 +1,301 @@
+"""Tests of models/frames.py: wrapped-frame files, raw uploads and winding maps."""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from models.errors import (
+    ImageTooLargeError,
+    InvalidInputError,
+    MissingParameterError,
+    UnsupportedFormatError,
+)
+from models.formation import SensorParams
+from models.frames import (
+    FRAME_FORMATS,
+    PNG_KEYWORD,
+    WrappedFrame,
+    decode_frame,
+    decode_raw,
+    encode_frame,
+    frame_format,
+    read_frame,
+    read_winding,
+    write_frame,
+    write_winding,
+)
+
+PARAMS_8 = SensorParams(encoding="mantissa", alpha=2.0, bits=8, gain=3.5, seed=7)
+PARAMS_12 = SensorParams(encoding="modulo", bits=12, read_noise=0.01, max_wraps=16.0)
+
+
+def random_codes(shape: tuple[int, ...], bits: int, seed: int = 0) -> np.ndarray:
+    dtype = np.uint8 if bits <= 8 else np.uint16
+    return np.random.default_rng(seed).integers(0, 1 << bits, shape).astype(dtype)
+
+
+def png_chunk(kind: bytes, payload: bytes) -> bytes:
+    body = kind + payload
+    return struct.pack(">I", len(payload)) + body + struct.pack(">I", zlib.crc32(body))
+
+
+def png_header_only(width: int, height: int) -> bytes:
+    """A 16-bit gray PNG whose IHDR claims ``width x height`` but whose IDAT holds 4 bytes."""
+    header = png_chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0))
+    return b"\x89PNG\r\n\x1a\n" + header + png_chunk(b"IDAT", zlib.compress(bytes(64))[:4])
+
+
+@pytest.mark.parametrize(
+    ("name", "expected"),
+    [
+        ("x.png", "png"),
+        ("dir.v2/frame.PNG", "png"),
+        (".tif", "tiff"),
+        ("tiff", "tiff"),
+        ("a.tiff", "tiff"),
+        ("npy", "npy"),
+        (Path("f.npy"), "npy"),
+    ],
+)
+def test_frame_format_maps_names(name: str | Path, expected: str) -> None:
+    assert frame_format(name) == expected
+    assert expected in FRAME_FORMATS
+
+
+@pytest.mark.parametrize("name", ["x.jpg", "exr", "frame", ""])
+def test_frame_format_rejects_with_the_valid_list(name: str) -> None:
+    with pytest.raises(UnsupportedFormatError, match=r"\.png.*\.tiff.*\.npy"):
+        frame_format(name)
+
+
+@pytest.mark.parametrize(
+    ("fmt", "shape", "params"),
+    [
+        ("png", (17, 23), PARAMS_8),
+        ("png", (17, 23), PARAMS_12),
+        ("tiff", (17, 23), PARAMS_12),
+        ("tiff", (17, 23, 3), PARAMS_8),
+        ("tiff", (9, 5, 5), PARAMS_12),
+    ],
+)
+def test_round_trip_keeps_codes_and_params(
+    tmp_path: Path, fmt: str, shape: tuple[int, ...], params: SensorParams
+) -> None:
+    codes = random_codes(shape, params.bits)
+    path = tmp_path / f"frame.{fmt}"
+    write_frame(path, codes, params)
+    frame = read_frame(path)
+    assert isinstance(frame, WrappedFrame)
+    assert frame.params == params
+    assert frame.codes.shape == shape
+    assert frame.codes.dtype == params.code_dtype
+    np.testing.assert_array_equal(frame.codes, codes)
+
+
+def test_png_bit_depth_follows_bits() -> None:
+    eight = Image.open(io.BytesIO(encode_frame(random_codes((4, 4), 8), PARAMS_8, "png")))
+    sixteen = Image.open(io.BytesIO(encode_frame(random_codes((4, 4), 12), PARAMS_12, "png")))
+    assert eight.mode == "L"
+    assert sixteen.mode.startswith("I;16")
+    assert SensorParams.model_validate_json(sixteen.text[PNG_KEYWORD]) == PARAMS_12
+
+
+def test_npy_stores_codes_only_and_needs_params() -> None:
+    codes = random_codes((6, 7), 12)
+    data = encode_frame(codes, PARAMS_12, "npy")
+    np.testing.assert_array_equal(np.load(io.BytesIO(data)), codes)
+    with pytest.raises(MissingParameterError):
+        decode_frame(data, "npy")
+    frame = decode_frame(data, "npy", {"encoding": "modulo", "bits": 12})
+    np.testing.assert_array_equal(frame.codes, codes)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    bits=st.integers(1, 16),
+    fmt=st.sampled_from(FRAME_FORMATS),
+    height=st.integers(1, 9),
+    width=st.integers(1, 9),
+    seed=st.integers(0, 2**16),
+)
+def test_round_trip_any_bit_depth(bits: int, fmt: str, height: int, width: int, seed: int) -> None:
+    params = SensorParams(encoding="modulo", bits=bits)
+    codes = random_codes((height, width), bits, seed)
+    frame = decode_frame(
+        encode_frame(codes, params, fmt), fmt, {"encoding": "modulo", "bits": bits}
+    )
+    np.testing.assert_array_equal(frame.codes, codes)
+    assert frame.codes.dtype == params.code_dtype
+
+
+def test_codes_are_stored_in_the_params_dtype() -> None:
+    wide = random_codes((5, 5), 8).astype(np.int32)
+    frame = decode_frame(encode_frame(wide, PARAMS_8, "png"), "png")
+    assert frame.codes.dtype == np.uint8
+    np.testing.assert_array_equal(frame.codes, wide)
+
+
+def test_overrides_win_and_none_is_ignored() -> None:
+    data = encode_frame(random_codes((4, 4), 8), PARAMS_8, "tiff")
+    frame = decode_frame(data, "tiff", {"alpha": 4.0, "gain": 2.0, "bits": None, "encoding": None})
+    assert frame.params.alpha == 4.0
+    assert frame.params.gain == 2.0
+    assert frame.params.bits == 8
+    assert frame.params.encoding == "mantissa"
+    assert frame.params.seed == PARAMS_8.seed
+
+
+@pytest.mark.parametrize("fmt", FRAME_FORMATS)
+def test_missing_params_name_the_flags(fmt: str) -> None:
+    data = encode_frame(random_codes((4, 4), 8), None, fmt)
+    with pytest.raises(MissingParameterError, match="--encoding --bits") as err:
+        decode_frame(data, fmt)
+    assert err.value.code == "missing_parameter"
+    with pytest.raises(MissingParameterError, match="add --alpha"):
+        decode_frame(data, fmt, {"encoding": "mantissa", "bits": 8})
+    frame = decode_frame(data, fmt, {"encoding": "modulo", "bits": 8})
+    assert frame.params.encoding == "modulo"
+
+
+def test_codes_above_the_bit_depth_are_rejected() -> None:
+    data = encode_frame(np.full((3, 3), 300, np.uint16), PARAMS_12, "png")
+    with pytest.raises(InvalidInputError, match="2\\^8"):
+        decode_frame(data, "png", {"bits": 8})
+    with pytest.raises(InvalidInputError, match="2\\^8"):
+        encode_frame(np.full((3, 3), 300, np.uint16), PARAMS_8, "npy")
+
+
+@pytest.mark.parametrize(
+    "array",
+    [np.zeros((4, 4), np.float32), np.zeros(16, np.uint8), np.zeros((2, 2, 2, 2), np.uint8)],
+)
+def test_npy_with_wrong_dtype_or_shape_is_rejected(array: np.ndarray) -> None:
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    with pytest.raises(InvalidInputError, match="integers|H x W"):
+        decode_frame(buffer.getvalue(), "npy", {"encoding": "modulo", "bits": 8})
+
+
+def test_colour_png_is_refused_with_a_pointer_to_tiff() -> None:
+    with pytest.raises(UnsupportedFormatError, match="tiff"):
+        encode_frame(random_codes((4, 4, 3), 8), PARAMS_8, "png")
+    buffer = io.BytesIO()
+    Image.fromarray(random_codes((4, 4, 3), 8)).save(buffer, format="PNG")
+    with pytest.raises(UnsupportedFormatError, match="TIFF"):
+        decode_frame(buffer.getvalue(), "png", {"encoding": "modulo", "bits": 8})
+
+
+def test_single_channel_png_is_squeezed() -> None:
+    codes = random_codes((5, 6, 1), 8)
+    frame = decode_frame(encode_frame(codes, PARAMS_8, "png"), "png")
+    np.testing.assert_array_equal(frame.codes, codes[:, :, 0])
+
+
+@pytest.mark.parametrize("fmt", FRAME_FORMATS)
+def test_truncated_or_garbage_files_are_invalid_input(fmt: str) -> None:
+    data = encode_frame(random_codes((64, 64), 12), PARAMS_12, fmt)
+    for broken in (data[: len(data) // 2], data[:10], b"not an image at all" * 10):
+        with pytest.raises(InvalidInputError):
+            decode_frame(broken, fmt, {"encoding": "modulo", "bits": 12})
+
+
+def test_bad_params_json_is_invalid_input() -> None:
+    buffer = io.BytesIO()
+    tifffile.imwrite(
+        buffer, random_codes((4, 4), 8), description='{"encoding": "sideways", "bits": 8}'
+    )
+    with pytest.raises(InvalidInputError, match="encoding"):
+        decode_frame(buffer.getvalue(), "tiff")
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, random_codes((4, 4), 8), description="[1, 2]")
+    with pytest.raises(InvalidInputError, match="object"):
+        decode_frame(buffer.getvalue(), "tiff")
+
+
+def test_foreign_tiff_description_is_not_taken_for_params() -> None:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, random_codes((4, 4), 8), description='{"shape": [4, 4]}')
+    with pytest.raises(MissingParameterError):
+        decode_frame(buffer.getvalue(), "tiff")
+
+
+@pytest.mark.parametrize("fmt", FRAME_FORMATS)
+def test_pixel_limit(fmt: str) -> None:
+    data = encode_frame(random_codes((16, 8), 8), PARAMS_8, fmt)
+    overrides = {"encoding": "modulo", "bits": 8}
+    assert decode_frame(data, fmt, overrides, max_pixels=128).codes.shape == (16, 8)
+    with pytest.raises(ImageTooLargeError, match="16 = 128 pixels") as err:
+        decode_frame(data, fmt, overrides, max_pixels=127)
+    assert err.value.http_status == 413
+
+
+def test_pixel_limit_is_checked_before_pixel_data() -> None:
+    """A header claiming a huge image is refused as too large, not decoded or read as truncated."""
+    with pytest.raises(ImageTooLargeError):
+        decode_frame(png_header_only(5000, 5000), "png", max_pixels=4096 * 4096)
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, {"descr": "<u2", "fortran_order": False, "shape": (60_000, 60_000)}
+    )
+    with pytest.raises(ImageTooLargeError):
+        decode_frame(header.getvalue(), "npy", max_pixels=10**6)
+
+
+def test_decode_raw_known_bytes() -> None:
+    eight = decode_raw(bytes([0, 1, 2, 3, 4, 5]), width=3, height=2, channels=1, bits=8)
+    np.testing.assert_array_equal(eight, [[0, 1, 2], [3, 4, 5]])
+    assert eight.dtype == np.uint8
+    sixteen = decode_raw(b"\x01\x02\xff\x0f", width=2, height=1, channels=1, bits=12)
+    np.testing.assert_array_equal(sixteen, [[0x0201, 0x0FFF]])
+    assert sixteen.dtype == np.uint16
+    colour = decode_raw(bytes(range(24)), width=4, height=2, channels=3, bits=8)
+    assert colour.shape == (2, 4, 3)
+    assert colour[1, 0, 2] == 14
+
+
+def test_decode_raw_errors() -> None:
+    with pytest.raises(InvalidInputError, match="12 bytes"):
+        decode_raw(bytes(11), width=3, height=2, channels=1, bits=12)
+    with pytest.raises(InvalidInputError, match="2\\^10"):
+        decode_raw(b"\xff\xff", width=1, height=1, channels=1, bits=10)
+    with pytest.raises(InvalidInputError, match="positive"):
+        decode_raw(b"", width=0, height=2, channels=1, bits=8)
+    with pytest.raises(InvalidInputError, match="1..16"):
+        decode_raw(b"\x00", width=1, height=1, channels=1, bits=17)
+
+
+@pytest.mark.parametrize(
+    ("suffix", "winding"),
+    [
+        ("png", np.array([[0, 1], [65535, 7]])),
+        ("tiff", np.array([[-3, 70_000], [2**40, 0]])),
+        ("npy", np.arange(12).reshape(2, 2, 3)),
+    ],
+)
+def test_winding_round_trip(tmp_path: Path, suffix: str, winding: np.ndarray) -> None:
+    path = tmp_path / f"w.{suffix}"
+    write_winding(path, winding)
+    back = read_winding(path)
+    assert back.dtype == np.int64
+    np.testing.assert_array_equal(back, winding)
+
+
+def test_winding_png_refuses_what_it_cannot_hold(tmp_path: Path) -> None:
+    for winding in (np.array([[70_000]]), np.array([[-1]]), np.zeros((2, 2, 3), np.int64)):
+        with pytest.raises(UnsupportedFormatError, match="tiff or .npy"):
+            write_winding(tmp_path / "w.png", winding)
+    with pytest.raises(InvalidInputError, match="integers"):
+        write_winding(tmp_path / "w.npy", np.zeros((2, 2)))
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(InvalidInputError):
+        read_winding(tmp_path / "bad.png")
