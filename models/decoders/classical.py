@@ -61,9 +61,7 @@ def reliability_unwrap(m: NDArray[np.float64]) -> NDArray[np.float64]:
     return (unwrap_phase(phase) + np.pi) / (2.0 * np.pi)
 
 
-def relative_winding(
-    u_relative: NDArray[np.float64], m: NDArray[np.float64]
-) -> NDArray[np.int64]:
+def relative_winding(u_relative: NDArray[np.float64], m: NDArray[np.float64]) -> NDArray[np.int64]:
     """Integer W up to a global offset from an unwrapping ``u + c`` (unknown real ``c``).
 
     ``u_relative - m`` is an integer plus ``c``; the fractional part of ``c`` is
