@@ -1,0 +1,261 @@
+"""Tests of models/hdr_io.py: OpenEXR read/write and the Radiance RGBE reader."""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from models.errors import (
+    ImageTooLargeError,
+    InvalidInputError,
+    OutputOverflowError,
+    UnsupportedFormatError,
+)
+from models.hdr_io import HdrImage, encode_exr, read_hdr, rgbe_to_float, write_exr
+
+HDRI = Path(__file__).resolve().parents[2] / "models" / "data" / "hdri" / "lab.exr"
+RADIANCE_HEADER = b"#?RADIANCE\n# made by hand\nFORMAT=32-bit_rle_rgbe\nEXPOSURE=1.0\n\n"
+
+
+def exr_header() -> dict[str, object]:
+    """A fresh header: OpenEXR.File fills in the dict it is given."""
+    return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+
+
+def smooth_rgb(height: int = 12, width: int = 10) -> np.ndarray:
+    yy, xx = np.mgrid[0:height, 0:width]
+    base = np.exp(-((yy - 5.0) ** 2 + (xx - 4.0) ** 2) / 20.0) * 1000.0 + 0.01
+    return np.stack([base, base * 0.5, base * 0.25], axis=2)
+
+
+def exr_parts(path: Path, *parts: tuple[str, dict[str, np.ndarray]]) -> Path:
+    OpenEXR.File([OpenEXR.Part(exr_header(), ch, name) for name, ch in parts]).write(str(path))
+    return path
+
+
+def rle_component(values: np.ndarray) -> bytes:
+    """Radiance new-style RLE of one component: runs of >= 3 equal bytes, else literals."""
+    out, i, n = bytearray(), 0, len(values)
+    while i < n:
+        run = 1
+        while i + run < n and run < 127 and values[i + run] == values[i]:
+            run += 1
+        if run >= 3:
+            out += bytes([128 + run, int(values[i])])
+            i += run
+            continue
+        start = i
+        while i < n and i - start < 128:
+            if i + 2 < n and values[i] == values[i + 1] == values[i + 2]:
+                break
+            i += 1
+        out += bytes([i - start]) + bytes(values[start:i].astype(np.uint8))
+    return bytes(out)
+
+
+def radiance_rle(rgbe: np.ndarray, orientation: str = "-Y") -> bytes:
+    """A Radiance file of ``rgbe`` (H x W x 4) with every scanline new-style RLE."""
+    height, width, _ = rgbe.shape
+    body = bytearray(RADIANCE_HEADER + f"{orientation} {height} +X {width}\n".encode())
+    for row in rgbe:
+        body += bytes([2, 2, width >> 8, width & 0xFF])
+        for component in range(4):
+            body += rle_component(row[:, component])
+    return bytes(body)
+
+
+# A hand-built 2 x 8 file: row 0 new-style RLE, row 1 flat.
+HAND_ROW0 = (
+    bytes([2, 2, 0, 8])
+    + bytes([128 + 8, 128])  # R: a run of eight 128s
+    + bytes([8, 0, 10, 20, 30, 40, 50, 60, 70])  # G: eight literals
+    + bytes([128 + 8, 0])  # B: a run of zeros
+    + bytes([128 + 4, 129, 4, 130, 130, 131, 0])  # E: run of four 129s, four literals
+)
+HAND_ROW1 = bytes([255, 0, 0, 136] + [1, 2, 3, 0] * 7)
+HAND_FILE = RADIANCE_HEADER + b"-Y 2 +X 8\n" + HAND_ROW0 + HAND_ROW1
+
+
+def test_exr_round_trip_rgb_and_gray(tmp_path: Path) -> None:
+    rgb = smooth_rgb()
+    write_exr(tmp_path / "rgb.exr", rgb, {"encoding": "mantissa", "alpha": "2.0"})
+    image = read_hdr(tmp_path / "rgb.exr")
+    assert isinstance(image, HdrImage)
+    assert image.pixels.dtype == np.float64
+    assert image.pixels.shape == rgb.shape
+    np.testing.assert_array_equal(image.pixels, rgb.astype(np.float32))
+    assert image.attributes["encoding"] == "mantissa"
+    assert image.attributes["alpha"] == "2.0"
+    assert re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d", image.attributes["capDate"])
+    assert image.attributes["comments"]
+    assert image.negatives_clipped == 0
+    gray = read_hdr(encode_exr(rgb[:, :, 0], {"comments": "blob"}))
+    assert gray.pixels.shape == rgb.shape[:2]
+    assert gray.attributes["comments"] == "blob"
+    header = OpenEXR.File(str(tmp_path / "rgb.exr"), header_only=True).header()
+    assert sorted(ch.name for ch in header["channels"]) == ["B", "G", "R"]
+
+
+def test_exr_single_channel_is_written_as_y(tmp_path: Path) -> None:
+    write_exr(tmp_path / "y.exr", smooth_rgb()[:, :, :1])
+    header = OpenEXR.File(str(tmp_path / "y.exr"), header_only=True).header()
+    assert [ch.name for ch in header["channels"]] == ["Y"]
+
+
+@settings(max_examples=30, deadline=None)
+@given(arrays(np.float64, (3, 4), elements=st.floats(0, 6e4, allow_subnormal=False)))
+def test_exr_half_round_trip_within_half_precision(values: np.ndarray) -> None:
+    back = read_hdr(encode_exr(values, half=True)).pixels
+    np.testing.assert_allclose(back, values, rtol=2.0**-11, atol=2.0**-24)
+    np.testing.assert_array_equal(back, values.astype(np.float16))
+
+
+def test_half_and_float32_overflow_are_errors() -> None:
+    with pytest.raises(OutputOverflowError, match="2 pixels.*float16"):
+        encode_exr(np.array([[1.0, 7e4], [1e5, 3.0]]), half=True)
+    assert read_hdr(encode_exr(np.array([[1.0, 7e4]]))).pixels[0, 1] == 7e4
+    with pytest.raises(OutputOverflowError, match="float32"):
+        encode_exr(np.array([[1.0, 1e39]]))
+    with pytest.raises(OutputOverflowError):
+        encode_exr(np.array([[1.0, np.nan]]))
+
+
+@pytest.mark.parametrize("shape", [(0, 4), (4,), (3, 3, 2), (2, 2, 4)])
+def test_encode_exr_rejects_bad_shapes(shape: tuple[int, ...]) -> None:
+    with pytest.raises(InvalidInputError, match="H x W"):
+        encode_exr(np.ones(shape))
+
+
+def test_multi_part_exr_reads_the_first_image_part(tmp_path: Path) -> None:
+    rgb = smooth_rgb().astype(np.float32)
+    depth = np.ones(rgb.shape[:2], np.float32)
+    planes = {name: np.ascontiguousarray(rgb[:, :, i]) for i, name in enumerate("RGB")}
+    path = exr_parts(tmp_path / "multi.exr", ("depth", {"Z": depth}), ("beauty", planes))
+    np.testing.assert_array_equal(read_hdr(path).pixels, rgb)
+    gray = exr_parts(tmp_path / "gray.exr", ("luma", {"Y": depth * 5}), ("beauty", planes))
+    np.testing.assert_array_equal(read_hdr(gray).pixels, depth * 5)
+    nothing = exr_parts(tmp_path / "none.exr", ("depth", {"Z": depth}), ("mask", {"A": depth}))
+    with pytest.raises(UnsupportedFormatError, match="A, Z"):
+        read_hdr(nothing)
+
+
+def test_bytes_and_path_read_the_same(tmp_path: Path) -> None:
+    path = tmp_path / "scene.exr"
+    write_exr(path, smooth_rgb())
+    np.testing.assert_array_equal(read_hdr(path.read_bytes()).pixels, read_hdr(path).pixels)
+
+
+def test_truncated_and_foreign_files(tmp_path: Path) -> None:
+    data = encode_exr(np.random.default_rng(0).random((64, 64, 3)))
+    for cut in (len(data) // 2, len(data) - 8, 40):
+        with pytest.raises(InvalidInputError, match="upload.exr: .*truncated or corrupt"):
+            read_hdr(data[:cut], name="upload.exr")
+    with pytest.raises(UnsupportedFormatError, match="OpenEXR or Radiance"):
+        read_hdr(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    with pytest.raises(FileNotFoundError):
+        read_hdr(tmp_path / "missing.exr")
+
+
+def test_pixel_limit() -> None:
+    data = encode_exr(np.ones((8, 16)))
+    assert read_hdr(data, max_pixels=128).pixels.shape == (8, 16)
+    with pytest.raises(ImageTooLargeError, match="128 pixels"):
+        read_hdr(data, max_pixels=127)
+    with pytest.raises(ImageTooLargeError):
+        read_hdr(HAND_FILE, max_pixels=15)
+
+
+def test_negative_nan_and_clipping() -> None:
+    values = np.ones((4, 4))
+    values[0, :3] = -0.5
+    data = encode_exr(values)
+    with pytest.raises(InvalidInputError, match="3 negative.*--clip-negative"):
+        read_hdr(data)
+    clipped = read_hdr(data, clip_negative=True)
+    assert clipped.negatives_clipped == 3
+    assert clipped.pixels.min() == 0.0
+    infinite = np.ones((2, 2), np.float32)
+    infinite[1, 1] = np.inf
+    buffer = io.BytesIO()
+    OpenEXR.File(exr_header(), {"Y": infinite}).write(buffer)
+    with pytest.raises(InvalidInputError, match="1 NaN or infinite"):
+        read_hdr(buffer.getvalue())
+
+
+def test_real_lossy_hdri_needs_clipping() -> None:
+    with pytest.raises(InvalidInputError, match="negative"):
+        read_hdr(HDRI)
+    image = read_hdr(HDRI, clip_negative=True)
+    assert image.pixels.shape == (256, 512, 3)
+    assert image.negatives_clipped > 0
+    assert image.pixels.max() > 1.0
+
+
+def test_hand_built_radiance_file_known_values() -> None:
+    image = read_hdr(HAND_FILE, name="hand.hdr")
+    assert image.pixels.shape == (2, 8, 3)
+    assert image.attributes == {"FORMAT": "32-bit_rle_rgbe", "EXPOSURE": "1.0"}
+    # (128, 0, 0, e=129): R = 128.5 * 2^-7, G = B = 0.5 * 2^-7.
+    np.testing.assert_array_equal(image.pixels[0, 0], [1.00390625, 0.00390625, 0.00390625])
+    # (128, 70, 0, e=0) is black.
+    np.testing.assert_array_equal(image.pixels[0, 7], [0.0, 0.0, 0.0])
+    # (128, 50, 0, e=130): 2^-6 * (128.5, 50.5, 0.5); (128, 60, 0, e=131): 2^-5 * (...).
+    np.testing.assert_array_equal(image.pixels[0, 5], [2.0078125, 0.7890625, 0.0078125])
+    np.testing.assert_array_equal(image.pixels[0, 6], [4.015625, 1.890625, 0.015625])
+    # flat row: (255, 0, 0, e=136) -> 255.5; (1, 2, 3, e=0) -> black.
+    np.testing.assert_array_equal(image.pixels[1, 0], [255.5, 0.5, 0.5])
+    np.testing.assert_array_equal(image.pixels[1, 1:], 0.0)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    height=st.integers(1, 6),
+    width=st.integers(8, 300),
+    seed=st.integers(0, 2**16),
+    flat_fraction=st.floats(0, 1),
+)
+def test_radiance_rle_round_trip(height: int, width: int, seed: int, flat_fraction: float) -> None:
+    rng = np.random.default_rng(seed)
+    rgbe = rng.integers(0, 256, (height, width, 4)).astype(np.uint8)
+    runs = rng.random((height, width)) < flat_fraction
+    rgbe[runs] = rgbe[0, 0]
+    image = read_hdr(radiance_rle(rgbe))
+    np.testing.assert_array_equal(image.pixels, rgbe_to_float(rgbe))
+
+
+def test_radiance_orientation_flips_rows() -> None:
+    rgbe = np.random.default_rng(1).integers(1, 256, (3, 9, 4)).astype(np.uint8)
+    bottom_up = read_hdr(radiance_rle(rgbe, orientation="+Y")).pixels
+    np.testing.assert_array_equal(bottom_up, rgbe_to_float(rgbe)[::-1])
+
+
+def test_rgbe_to_float_is_the_bin_centre() -> None:
+    rgbe = np.array([[0, 0, 0, 0], [255, 127, 0, 128], [1, 1, 1, 1]], np.uint8)
+    expected = np.array([[0, 0, 0], [255.5 / 256, 127.5 / 256, 0.5 / 256], [1.5, 1.5, 1.5]])
+    expected[2] *= 2.0**-135
+    np.testing.assert_array_equal(rgbe_to_float(rgbe), expected)
+
+
+def test_broken_radiance_files() -> None:
+    for cut in (len(HAND_FILE) - 1, len(HAND_FILE) - len(HAND_ROW1) - 3):
+        with pytest.raises(InvalidInputError, match="truncated or corrupt at scanline"):
+            read_hdr(HAND_FILE[:cut])
+    overlong_run = HAND_FILE.replace(bytes([128 + 8, 128]), bytes([128 + 9, 128]), 1)
+    with pytest.raises(InvalidInputError, match="scanline 0"):
+        read_hdr(overlong_run)
+    with pytest.raises(InvalidInputError, match="blank line"):
+        read_hdr(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n")
+    with pytest.raises(UnsupportedFormatError, match="xyze"):
+        read_hdr(HAND_FILE.replace(b"rle_rgbe", b"rle_xyze"))
+    with pytest.raises(UnsupportedFormatError, match="resolution"):
+        read_hdr(HAND_FILE.replace(b"-Y 2 +X 8", b"+X 8 -Y 2"))
+    with pytest.raises(InvalidInputError, match="width 9"):
+        read_hdr(HAND_FILE.replace(bytes([2, 2, 0, 8]), bytes([2, 2, 0, 9])))
