@@ -33,6 +33,9 @@ class Settings(BaseSettings):
     max_pixels: int = Field(4096 * 4096, gt=0, description="per frame (all frames of a video)")
     max_video_frames: int = Field(600, gt=0)
     rate_limit_per_minute: int = Field(600, gt=0, description="requests per API key per minute")
+    max_prefer_wait_s: float = Field(
+        60.0, ge=0, description="longest 'Prefer: wait=N' a request may block for its job"
+    )
     default_decoder: str = "itoh"
     worker_concurrency: int = Field(1, ge=1, description="jobs decoded at once per worker")
     worker_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")

@@ -1,0 +1,1 @@
+"""The REST API: dependencies, errors, uploads, previews and the resource routers."""

@@ -1,0 +1,88 @@
+"""Typed FastAPI dependencies: the process state, the settings, and authenticated callers.
+
+``ReadKey`` / ``SubmitKey`` authenticate the Bearer API key (401 without or with
+an unknown key, 403 without the scope) and count the request against the key's
+rate limit (429 with ``Retry-After``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Annotated
+
+import redis
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.api.errors import ApiError
+from service.api.state import ServiceState
+from service.core.config import Settings
+from service.core.security import ApiKey
+
+log = logging.getLogger(__name__)
+
+bearer = HTTPBearer(
+    auto_error=False,
+    description="An API key: `Authorization: Bearer <key>`. The embedded default prints "
+    "the generated key on first start and stores it in `<data dir>/api_keys`.",
+)
+
+
+def get_state(request: Request) -> ServiceState:
+    """The running process's :class:`ServiceState`."""
+    state: ServiceState = request.app.state.mcam
+    return state
+
+
+StateDep = Annotated[ServiceState, Depends(get_state)]
+
+
+def get_settings(state: StateDep) -> Settings:
+    """The settings the app was created with."""
+    return state.settings
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
+
+
+def _unauthorized(message: str) -> ApiError:
+    return ApiError(401, "unauthorized", message, headers={"WWW-Authenticate": "Bearer"})
+
+
+def _check_rate(state: ServiceState, key: ApiKey) -> None:
+    try:
+        retry_after = state.limiter.retry_after(key)
+    except redis.exceptions.RedisError as exc:
+        log.warning("rate limit not enforced, Redis unreachable: %s", exc)
+        return
+    if retry_after is not None:
+        raise ApiError(
+            429,
+            "rate_limited",
+            f"this API key made more than {state.limiter.per_minute} requests this minute; "
+            f"retry in {retry_after} s",
+            headers={"Retry-After": str(retry_after)},
+        )
+
+
+def require(scope: str) -> Callable[[ServiceState, Credentials], ApiKey]:
+    """A dependency accepting keys that hold ``scope`` (``read`` or ``submit``)."""
+
+    def authenticated(state: StateDep, credentials: Credentials) -> ApiKey:
+        if credentials is None:
+            raise _unauthorized("missing API key: send the header 'Authorization: Bearer <key>'")
+        key = state.keyring.authenticate(credentials.credentials)
+        if key is None:
+            raise _unauthorized("unknown API key: check the key (see the data dir's api_keys)")
+        if scope not in key.scopes:
+            raise ApiError(403, "forbidden", f"this API key lacks the {scope!r} scope needed here")
+        _check_rate(state, key)
+        return key
+
+    return authenticated
+
+
+ReadKey = Annotated[ApiKey, Depends(require("read"))]
+SubmitKey = Annotated[ApiKey, Depends(require("submit"))]

@@ -1,0 +1,44 @@
+"""Files the API sends back: media types, winding-map bytes, and the download response."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from fastapi import Response
+from numpy.typing import NDArray
+
+from models.errors import UnsupportedFormatError
+from models.frames import encode_frame
+
+MEDIA_TYPES: dict[str, str] = {
+    "png": "image/png",
+    "tiff": "image/tiff",
+    "npy": "application/octet-stream",
+    "exr": "image/x-exr",
+}
+
+
+def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
+    """A W map file: ``npy`` (int64, any W) or 16-bit ``png``/``tiff`` (0 <= W <= 65535)."""
+    w = np.asarray(winding, dtype=np.int64)
+    if fmt == "npy":
+        buffer = io.BytesIO()
+        np.save(buffer, w, allow_pickle=False)
+        return buffer.getvalue()
+    if w.max() > np.iinfo(np.uint16).max or w.min() < 0:
+        raise UnsupportedFormatError(
+            f"W reaches {int(w.max())}, beyond a 16-bit {fmt.upper()}; ask for format=npy"
+        )
+    return encode_frame(w.astype(np.uint16), None, fmt)
+
+
+def download(
+    content: bytes, fmt: str, stem: str, headers: dict[str, str] | None = None
+) -> Response:
+    """A file response named ``<stem>.<fmt>`` with the format's media type."""
+    return Response(
+        content,
+        media_type=MEDIA_TYPES[fmt],
+        headers={"Content-Disposition": f'attachment; filename="{stem}.{fmt}"', **(headers or {})},
+    )

@@ -1,0 +1,97 @@
+"""Every error the API returns is JSON ``{"code", "message"}`` with a stable code.
+
+Caller mistakes (:class:`McamError`, validation, unknown routes, oversized bodies)
+keep their own status; an unreachable queue is 503; only a real bug is a 500.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import redis
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException
+
+from models.errors import McamError
+
+log = logging.getLogger(__name__)
+
+#: Stable codes for plain HTTP errors raised by the framework or by us.
+STATUS_CODES: dict[int, str] = {
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    406: "not_acceptable",
+    409: "conflict",
+    413: "image_too_large",
+    415: "unsupported_format",
+    422: "invalid_input",
+    429: "rate_limited",
+    503: "unavailable",
+}
+
+
+class ApiError(HTTPException):
+    """An HTTP error with a stable code (raised inside request handling, e.g. auth)."""
+
+    def __init__(
+        self, status: int, code: str, message: str, headers: dict[str, str] | None = None
+    ) -> None:
+        super().__init__(status, detail={"code": code, "message": message}, headers=headers)
+
+
+def error_body(code: str, message: str, **extra: Any) -> dict[str, Any]:
+    """The JSON body of an error response."""
+    return {"code": code, "message": message, **extra}
+
+
+def _location(loc: tuple[Any, ...] | list[Any]) -> str:
+    parts = [str(p) for p in loc if p not in ("body", "query", "path", "header")]
+    return ".".join(parts) or "request"
+
+
+async def mcam_error(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, McamError)
+    return JSONResponse(error_body(exc.code, exc.message), status_code=exc.http_status)
+
+
+async def validation_error(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    problems = [f"{_location(err['loc'])}: {err['msg']}" for err in exc.errors()]
+    details = [{"field": _location(err["loc"]), "message": err["msg"]} for err in exc.errors()]
+    return JSONResponse(
+        error_body("invalid_input", "invalid request: " + "; ".join(problems), details=details),
+        status_code=422,
+    )
+
+
+async def http_error(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, HTTPException)
+    if isinstance(exc.detail, dict):
+        body = error_body(exc.detail["code"], exc.detail["message"])
+    else:
+        body = error_body(STATUS_CODES.get(exc.status_code, "error"), str(exc.detail))
+    return JSONResponse(body, status_code=exc.status_code, headers=exc.headers)
+
+
+async def redis_error(_: Request, exc: Exception) -> JSONResponse:
+    log.warning("queue unreachable: %s", exc)
+    return JSONResponse(
+        error_body("queue_unavailable", "the job queue (Redis) is unreachable; retry shortly"),
+        status_code=503,
+        headers={"Retry-After": "5"},
+    )
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the JSON error handlers on ``app``."""
+    app.add_exception_handler(McamError, mcam_error)
+    app.add_exception_handler(RequestValidationError, validation_error)
+    app.add_exception_handler(HTTPException, http_error)
+    app.add_exception_handler(redis.exceptions.ConnectionError, redis_error)
+    app.add_exception_handler(redis.exceptions.TimeoutError, redis_error)

@@ -1,0 +1,67 @@
+"""``/health/live`` (the process answers) and ``/health/ready`` (it can do useful work)."""
+
+from __future__ import annotations
+
+import redis
+from fastapi import APIRouter
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+
+from models.decoders.registry import available_decoders
+from service.api.deps import StateDep
+from service.api.state import ServiceState
+
+router = APIRouter(prefix="/health", tags=["health"])
+#: A worker counts as alive when its heartbeat is younger than this many heartbeat periods.
+HEARTBEAT_PERIODS = 3
+
+
+class Liveness(BaseModel):
+    status: str
+
+
+class Readiness(BaseModel):
+    """``checks``: decoders loaded, queue reachable, workers heartbeating (name -> ok)."""
+
+    status: str
+    checks: dict[str, bool]
+    workers: int
+    detail: dict[str, str]
+
+
+@router.get("/live", response_model=Liveness, summary="The API process is up")
+def live() -> Liveness:
+    return Liveness(status="ok")
+
+
+def readiness(state: ServiceState) -> Readiness:
+    """Check the decoder registry, Redis and the workers' heartbeats."""
+    detail: dict[str, str] = {}
+    names = [spec.name for spec in available_decoders()]
+    decoders_ok = state.settings.default_decoder in names
+    if not decoders_ok:
+        detail["decoders"] = f"default decoder {state.settings.default_decoder!r} not installed"
+    workers = 0
+    try:
+        state.client.ping()
+        queue_ok = True
+        workers = len(state.queue.workers(HEARTBEAT_PERIODS * state.settings.heartbeat_s))
+    except redis.exceptions.RedisError as exc:
+        queue_ok = False
+        detail["queue"] = f"Redis unreachable: {exc}"
+    if queue_ok and not workers:
+        detail["workers"] = "no worker heartbeat: start one with 'mcam worker'"
+    checks = {"decoders": decoders_ok, "queue": queue_ok, "workers": workers > 0}
+    status = "ready" if all(checks.values()) else "not_ready"
+    return Readiness(status=status, checks=checks, workers=workers, detail=detail)
+
+
+@router.get(
+    "/ready",
+    response_model=Readiness,
+    responses={503: {"model": Readiness, "description": "not ready: see checks and detail"}},
+    summary="Decoders loaded, queue reachable, workers heartbeating",
+)
+def ready(state: StateDep) -> JSONResponse:
+    result = readiness(state)
+    return JSONResponse(result.model_dump(), status_code=200 if result.status == "ready" else 503)

@@ -1,0 +1,153 @@
+"""``/v1/jobs/{id}``: a job's state, its results (data files or previews), and cancelling it."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, Query, Response
+from fastapi.responses import JSONResponse
+from numpy.typing import NDArray
+
+from models.errors import InvalidInputError
+from models.formation import encode
+from models.frames import encode_frame, read_winding
+from models.hdr_io import read_hdr
+from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.downloads import MEDIA_TYPES, download, winding_bytes
+from service.api.errors import ApiError
+from service.api.previews import codes_png, log_luminance_histogram, tonemap_png, winding_png
+from service.api.schemas import AUTH_ERRORS, JobView, error_response, job_view
+from service.api.state import ServiceState
+from worker.jobs import JobRecord, JobState
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+Part = Literal["image", "winding", "codes", "histogram"]
+Format = Literal["exr", "png", "npy", "tiff", "json"]
+#: Formats each part comes in; the first is the default. ``png`` is always an 8-bit preview.
+PART_FORMATS: dict[str, tuple[str, ...]] = {
+    "image": ("exr", "png"),
+    "winding": ("npy", "png", "tiff"),
+    "codes": ("png", "npy", "tiff"),
+    "histogram": ("json",),
+}
+JOB_ERRORS = {**AUTH_ERRORS, 404: error_response("no such job (or expired)")}
+
+
+def finished_record(state: ServiceState, job_id: str) -> JobRecord:
+    """The job's record if it succeeded; 409 saying why there is no result otherwise."""
+    record = state.queue.get(job_id)
+    if record.state == JobState.SUCCEEDED:
+        return record
+    if record.state.finished:
+        reason = f": {record.error.message}" if record.error else ""
+        message = f"job {job_id} {record.state.value}{reason}; it has no result"
+    else:
+        message = f"job {job_id} is {record.state.value}; poll its state until it succeeded"
+    raise ApiError(409, "job_not_finished", message)
+
+
+def wrap_units(record: JobRecord, pixels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The EXR's pixels in wrap units (undo the scene-referred division by the gain)."""
+    if record.options.get("scene_referred") and record.params.gain is not None:
+        return pixels * record.params.gain
+    return pixels
+
+
+def wrapped_codes(record: JobRecord, x: NDArray[np.float64]) -> NDArray[np.unsignedinteger]:
+    """The frame's codes, re-encoded from the reconstruction with the formation model.
+
+    ``x_hat`` keeps each pixel's stored fraction ``m`` whatever W the decoder chose,
+    so encoding it without noise gives back the uploaded codes."""
+    exact = record.params.model_copy(
+        update={"read_noise": 0.0, "full_well": None, "max_wraps": None}
+    )
+    return encode(x, exact).codes
+
+
+def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev: float) -> Response:
+    """The bytes of ``part`` in ``fmt`` for a succeeded job."""
+    stem = f"{record.id}-{part}"
+    if part == "winding":
+        winding = read_winding(state.store.path(record.results["winding"]))
+        if fmt == "png":
+            return download(winding_png(winding), fmt, stem)
+        return download(winding_bytes(winding, fmt), fmt, stem)
+    exr = state.store.read(record.results["exr"])
+    if part == "image" and fmt == "exr":
+        return download(exr, fmt, stem)
+    x = wrap_units(record, read_hdr(exr, name="the stored result").pixels)
+    if part == "image":
+        return download(tonemap_png(x, ev), fmt, stem)
+    if part == "histogram":
+        return JSONResponse(log_luminance_histogram(x))
+    codes = wrapped_codes(record, x)
+    if fmt == "png":
+        return download(codes_png(codes, record.params.bits), fmt, stem)
+    return download(encode_frame(codes, record.params, fmt), fmt, stem)
+
+
+@router.get(
+    "/{job_id}",
+    response_model=JobView,
+    responses=JOB_ERRORS,
+    summary="A job's state, progress, timings per stage and error",
+)
+def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
+    """The job's record (times in ns since the epoch, durations in ns)."""
+    return job_view(state.queue.get(job_id))
+
+
+@router.get(
+    "/{job_id}/result",
+    summary="A finished job's result: EXR, W map, wrapped codes, previews, histogram",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {**{m: {} for m in MEDIA_TYPES.values()}, "application/json": {}},
+            "description": "the file (png: an 8-bit preview) or the histogram JSON",
+        },
+        409: error_response("the job has not succeeded"),
+        **JOB_ERRORS,
+    },
+)
+def get_result(
+    job_id: str,
+    state: StateDep,
+    _: ReadKey,
+    part: Annotated[
+        Part, Query(description="image (x_hat), winding (W), codes, histogram")
+    ] = "image",
+    format: Annotated[
+        Format | None, Query(description="default: exr, npy, png, json by part")
+    ] = None,
+    exposure: Annotated[float, Query(ge=-30, le=30, description="EV of the image preview")] = 0.0,
+) -> Response:
+    """``image`` as EXR (``png``: tonemapped at ``exposure`` EV), ``winding`` as npy/tiff
+    (``png``: colour-coded), ``codes`` re-encoded (``png``: 8-bit), ``histogram``: log10
+    luminance counts."""
+    allowed = PART_FORMATS[part]
+    fmt = format or allowed[0]
+    if fmt not in allowed:
+        raise InvalidInputError(
+            f"part {part!r} comes as {', '.join(allowed)}, not {fmt!r}; pick one of those"
+        )
+    record = finished_record(state, job_id)
+    return result_file(state, record, part, fmt, exposure)
+
+
+@router.delete(
+    "/{job_id}",
+    response_model=JobView,
+    responses={409: error_response("the job already finished"), **JOB_ERRORS},
+    summary="Cancel a queued or running job",
+)
+def delete_job(job_id: str, state: StateDep, _: SubmitKey) -> JobView:
+    """Cancel the job (a running one stops at its next check); cancelling twice is fine."""
+    record = state.queue.cancel(job_id)
+    if record.state in (JobState.SUCCEEDED, JobState.FAILED):
+        raise ApiError(
+            409, "job_finished", f"job {job_id} already {record.state.value}; nothing to cancel"
+        )
+    return job_view(record)

@@ -1,0 +1,121 @@
+"""``POST /v1/reconstructions``: queue a wrapped frame (202; 200 with ``Prefer: wait``)."""
+
+from __future__ import annotations
+
+import re
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+
+from models.decoders.base import check_frame_shape
+from models.errors import InvalidInputError, MissingParameterError
+from models.frames import WrappedFrame, check_pixel_count, decode_frame, decode_raw, merge_params
+from service.api.deps import StateDep, SubmitKey
+from service.api.schemas import UPLOAD_ERRORS, JobAccepted, JobView, job_view, upload_body
+from service.api.state import ServiceState
+from service.api.uploads import (
+    ReconstructionFields,
+    Upload,
+    merge_fields,
+    read_upload,
+    sniff_frame_format,
+)
+
+router = APIRouter(prefix="/v1", tags=["reconstructions"])
+
+_WAIT = re.compile(r"(?:^|[,;\s])wait\s*=\s*(\d+(?:\.\d+)?)", re.IGNORECASE)
+
+
+def prefer_wait_s(prefer: str | None, limit_s: float) -> float:
+    """Seconds asked for by ``Prefer: wait=N`` (RFC 7240), at most ``limit_s``; 0 if absent."""
+    match = _WAIT.search(prefer or "")
+    return min(float(match.group(1)), limit_s) if match else 0.0
+
+
+def read_wrapped_frame(
+    upload: Upload, fields: ReconstructionFields, max_pixels: int
+) -> WrappedFrame:
+    """The codes and parameters of the uploaded frame (file, or raw codes + fields)."""
+    fmt = sniff_frame_format(upload, fields.format)
+    overrides = fields.sensor_overrides()
+    if fmt != "raw":
+        frame = decode_frame(upload.data, fmt, overrides, max_pixels)
+    else:
+        if fields.width is None or fields.height is None or fields.bits is None:
+            raise MissingParameterError(
+                "a raw frame needs width, height and bits (and encoding, alpha) as parameters"
+            )
+        check_pixel_count(fields.width, fields.height, max_pixels)
+        codes = decode_raw(
+            upload.data, fields.width, fields.height, fields.channels or 1, fields.bits
+        )
+        frame = WrappedFrame(codes, merge_params({}, overrides))
+    check_frame_shape(frame.codes)
+    return frame
+
+
+def choose_decoder(fields: ReconstructionFields, default: str) -> str:
+    """``decoder``, or the adaptive decoder at ``quality``, else the configured default."""
+    if fields.decoder and fields.quality:
+        raise InvalidInputError("give either decoder or quality, not both")
+    if fields.quality:
+        return f"auto-{fields.quality}"
+    return fields.decoder or default
+
+
+def submit(
+    state: ServiceState, upload: Upload, fields: ReconstructionFields, wait_s: float
+) -> Response:
+    """Decode the upload, queue the job, and wait up to ``wait_s`` for it to finish."""
+    settings = state.settings
+    frame = read_wrapped_frame(upload, fields, settings.max_pixels)
+    decoder = choose_decoder(fields, settings.default_decoder)
+    record = state.queue.submit(
+        "reconstruction",
+        frame.codes,
+        frame.params,
+        decoder,
+        {"scene_referred": fields.scene_referred},
+    )
+    url = f"/v1/jobs/{record.id}"
+    if wait_s > 0:
+        record = state.queue.wait(record.id, wait_s)
+        if record.state.finished:
+            return JSONResponse(
+                job_view(record).model_dump(mode="json"),
+                headers={"Location": url, "Preference-Applied": f"wait={wait_s:g}"},
+            )
+    accepted = JobAccepted(id=record.id, url=url, state=record.state)
+    return JSONResponse(
+        accepted.model_dump(mode="json"), status_code=202, headers={"Location": url}
+    )
+
+
+@router.post(
+    "/reconstructions",
+    summary="Reconstruct an HDR image from a wrapped frame (asynchronous job)",
+    status_code=202,
+    response_model=JobAccepted,
+    responses={
+        200: {"model": JobView, "description": "finished within the Prefer: wait time"},
+        202: {"model": JobAccepted, "description": "queued: poll the job's url"},
+        **UPLOAD_ERRORS,
+    },
+    openapi_extra=upload_body(ReconstructionFields, "a wrapped frame (.png, .tiff, .npy, raw)"),
+)
+async def post_reconstruction(
+    request: Request,
+    query: Annotated[ReconstructionFields, Query()],
+    state: StateDep,
+    _: SubmitKey,
+    prefer: Annotated[
+        str | None, Header(description="`wait=N`: answer 200 with the job if done within N s")
+    ] = None,
+) -> Response:
+    """Queue a wrapped frame; the job's state is at ``GET /v1/jobs/{id}``."""
+    upload = await read_upload(request)
+    fields = merge_fields(ReconstructionFields, query, upload)
+    wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
+    return await run_in_threadpool(submit, state, upload, fields, wait_s)

@@ -1,0 +1,67 @@
+"""``POST /v1/simulate``: an HDR image (EXR or .hdr) -> its wrapped frame, synchronously."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
+
+from models.formation import SensorParams, simulate
+from models.frames import encode_frame
+from models.hdr_io import read_hdr
+from service.api.deps import SettingsDep, SubmitKey
+from service.api.downloads import MEDIA_TYPES, download, winding_bytes
+from service.api.schemas import UPLOAD_ERRORS, upload_body
+from service.api.uploads import SimulateFields, Upload, merge_fields, read_upload
+from service.core.config import Settings
+
+router = APIRouter(prefix="/v1", tags=["simulate"])
+
+PARAMS_HEADER = "X-Mcam-Params"
+
+
+def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) -> Response:
+    """Expose and encode the uploaded image; answer with the frame (or W) file."""
+    image = read_hdr(
+        upload.data,
+        clip_negative=fields.clip_negative,
+        max_pixels=settings.max_pixels,
+        name="the uploaded HDR image",
+    )
+    params = SensorParams.parse(
+        {k: v for k, v in fields.sensor_overrides().items() if v is not None}
+    )
+    frame = simulate(image.pixels, params, overexposed=fields.overexposed, gray=fields.gray)
+    if fields.part == "winding":
+        content = winding_bytes(frame.winding, fields.format)
+    else:
+        content = encode_frame(frame.codes, frame.params, fields.format)
+    stem = "winding" if fields.part == "winding" else "frame"
+    return download(content, fields.format, stem, {PARAMS_HEADER: frame.params.model_dump_json()})
+
+
+@router.post(
+    "/simulate",
+    summary="Simulate a wrapping sensor: HDR image in, wrapped frame out",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "the wrapped frame (codes in DN, parameters embedded in PNG/TIFF) or W; "
+            f"the parameters used (with the gain) are in the {PARAMS_HEADER} header",
+            "content": {MEDIA_TYPES[fmt]: {} for fmt in ("png", "tiff", "npy")},
+        },
+        **UPLOAD_ERRORS,
+    },
+    openapi_extra=upload_body(SimulateFields, "an OpenEXR or Radiance .hdr image"),
+)
+async def post_simulate(
+    request: Request,
+    query: Annotated[SimulateFields, Query()],
+    settings: SettingsDep,
+    _: SubmitKey,
+) -> Response:
+    """Encode an HDR image with the given sensor parameters (form fields or query)."""
+    upload = await read_upload(request)
+    fields = merge_fields(SimulateFields, query, upload)
+    return await run_in_threadpool(simulate_upload, upload, fields, settings)

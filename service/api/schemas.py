@@ -1,0 +1,89 @@
+"""Response bodies and the OpenAPI descriptions shared by the routers."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel
+
+from worker.jobs import JobRecord, JobState
+
+
+class ErrorBody(BaseModel):
+    """Every error: a stable machine-readable ``code`` and a message saying what to do."""
+
+    code: str
+    message: str
+
+
+class JobAccepted(BaseModel):
+    """A queued job: poll ``url`` for its state."""
+
+    id: str
+    url: str
+    state: JobState
+
+
+class JobView(JobRecord):
+    """A job's record plus the URLs of its resources (``self``, ``result``)."""
+
+    links: dict[str, str]
+
+
+def job_view(record: JobRecord) -> JobView:
+    """The API view of a job record."""
+    base = f"/v1/jobs/{record.id}"
+    links = {"self": base}
+    if record.state == JobState.SUCCEEDED:
+        links["result"] = f"{base}/result"
+    return JobView(**record.model_dump(), links=links)
+
+
+def error_response(description: str) -> dict[str, Any]:
+    return {"model": ErrorBody, "description": description}
+
+
+AUTH_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: error_response("missing or unknown API key"),
+    403: error_response("the API key lacks the scope"),
+    422: error_response("invalid parameters"),
+    429: error_response("rate limit exceeded (see Retry-After)"),
+    503: error_response("the queue (Redis) is unreachable or full"),
+}
+UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
+    **AUTH_ERRORS,
+    400: error_response("malformed request body"),
+    413: error_response("upload or image too large"),
+    415: error_response("unsupported file format or content type"),
+}
+
+
+def _plain(schema: dict[str, Any]) -> dict[str, Any]:
+    """A property schema without its ``null`` alternative (form fields are never null)."""
+    options = [s for s in schema.get("anyOf", []) if s.get("type") != "null"]
+    if len(options) != 1:
+        return schema
+    rest = {k: v for k, v in schema.items() if k != "anyOf"}
+    return {**options[0], **rest}
+
+
+def upload_body(fields: type[BaseModel], what: str) -> dict[str, Any]:
+    """OpenAPI ``requestBody``: multipart (``file`` + form ``fields``) or a raw body."""
+    schema = fields.model_json_schema()
+    properties = {
+        "file": {"type": "string", "format": "binary", "description": what},
+        **{name: _plain(prop) for name, prop in schema["properties"].items()},
+    }
+    return {
+        "requestBody": {
+            "required": True,
+            "content": {
+                "multipart/form-data": {
+                    "schema": {"type": "object", "properties": properties, "required": ["file"]}
+                },
+                "application/octet-stream": {
+                    "schema": {"type": "string", "format": "binary", "description": what}
+                },
+            },
+        }
+    }

@@ -1,0 +1,70 @@
+"""What one API process holds while it runs: settings, Redis, keys, queue and result store.
+
+Built at startup by :func:`open_state` and closed at shutdown. When
+``MCAM_REDIS_URL`` is unset the API starts the embedded ``redis-server`` in the
+data dir itself (the embedded default when the API runs alone).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import redis
+
+from service.core.config import Settings
+from service.core.security import KeyRing, RateLimiter
+from worker.embedded_redis import EmbeddedRedis, connect
+from worker.queue import JobQueue
+from worker.result_store import ResultStore
+
+#: Sub-folder of the data dir holding the result store (shared with the workers).
+RESULTS_DIR = "results"
+
+
+@dataclass
+class ServiceState:
+    """Per-process resources; the job queue is created on first use (it needs Redis up)."""
+
+    settings: Settings
+    client: redis.Redis
+    keyring: KeyRing
+    limiter: RateLimiter
+    store: ResultStore
+    embedded: EmbeddedRedis | None = None
+    _queue: JobQueue | None = field(default=None, repr=False)
+
+    @property
+    def queue(self) -> JobQueue:
+        """The job queue (raises a Redis ConnectionError, i.e. 503, while Redis is down)."""
+        if self._queue is None:
+            self._queue = JobQueue(
+                self.client,
+                maxlen=self.settings.jobs_maxlen,
+                max_deliveries=self.settings.max_deliveries,
+                claim_idle_ms=self.settings.claim_idle_ms,
+            )
+        return self._queue
+
+    def close(self) -> None:
+        """Release the Redis connections and stop the embedded server if we started it."""
+        self.client.close()
+        if self.embedded is not None:
+            self.embedded.stop()
+
+
+def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
+    """Connect to Redis (starting the embedded one when no URL is set) and open the store."""
+    embedded = None
+    url = settings.redis_url
+    if url is None:
+        embedded = EmbeddedRedis(settings.data_dir)
+        url = embedded.start()
+    client = connect(url)
+    return ServiceState(
+        settings=settings,
+        client=client,
+        keyring=keyring,
+        limiter=RateLimiter(client, settings.rate_limit_per_minute),
+        store=ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s),
+        embedded=embedded,
+    )

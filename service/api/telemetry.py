@@ -1,0 +1,136 @@
+"""Prometheus metrics: this process's request durations plus the queue's shared numbers.
+
+Request durations are kept per API process (labelled by route template, never
+the raw path). Queue-wait, decode and encode histograms and the counters come
+from Redis (:mod:`worker.metrics`), so every worker's observations are included;
+queue depth, jobs by state and dead letters are read at scrape time.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator
+
+import redis
+from prometheus_client import CollectorRegistry, Histogram
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    Metric,
+)
+from prometheus_client.registry import Collector
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api.state import ServiceState
+from worker.metrics import MetricFamily, read_metrics
+
+log = logging.getLogger(__name__)
+PREFIX = "mcam_"
+
+
+def _bound(value: float) -> str:
+    return "+Inf" if math.isinf(value) else repr(value)
+
+
+def _worker_family(family: MetricFamily) -> Metric:
+    name = PREFIX + family.name
+    labels = sorted({key for sample in family.samples for key in sample.labels})
+    if family.kind == "histogram":
+        metric: Metric = HistogramMetricFamily(name, family.help, labels=labels)
+        for sample in family.samples:
+            buckets = [(_bound(bound), count) for bound, count in sample.buckets]
+            metric.add_metric([sample.labels[k] for k in labels], buckets, sample.value)
+        return metric
+    metric = CounterMetricFamily(name, family.help, labels=labels)
+    for sample in family.samples:
+        metric.add_metric([sample.labels[k] for k in labels], sample.value)
+    return metric
+
+
+class QueueCollector(Collector):
+    """Reads the Redis-backed metrics and the queue's statistics at every scrape."""
+
+    def __init__(self, state: Callable[[], ServiceState]) -> None:
+        self.state = state
+
+    def collect(self) -> Iterator[Metric]:
+        up = GaugeMetricFamily(PREFIX + "queue_up", "1 when Redis answered this scrape")
+        try:
+            state = self.state()
+            families = read_metrics(state.client)
+            stats = state.queue.stats()
+        except redis.exceptions.RedisError as exc:
+            log.warning("metrics scrape without queue numbers: %s", exc)
+            up.add_metric([], 0)
+            yield up
+            return
+        up.add_metric([], 1)
+        yield up
+        yield from (_worker_family(family) for family in families)
+        yield GaugeMetricFamily(
+            PREFIX + "queue_depth", "jobs waiting in the jobs stream", value=stats["stream_depth"]
+        )
+        yield GaugeMetricFamily(
+            PREFIX + "queue_pending", "jobs delivered but not acknowledged", value=stats["pending"]
+        )
+        yield GaugeMetricFamily(
+            PREFIX + "dead_letters",
+            "entries in the dead-letter stream",
+            value=stats["dead_letters"],
+        )
+        jobs = GaugeMetricFamily(PREFIX + "jobs", "job records by state", labels=["state"])
+        for state, count in stats["jobs_by_state"].items():
+            jobs.add_metric([state], count)
+        yield jobs
+        devices = GaugeMetricFamily(
+            PREFIX + "device_stream_depth", "frames waiting per device stream", labels=["device"]
+        )
+        for device, info in stats["devices"].items():
+            devices.add_metric([device], info["depth"])
+        yield devices
+
+
+def build_registry(state: Callable[[], ServiceState]) -> tuple[CollectorRegistry, Histogram]:
+    """A registry for one app: the request histogram and the queue collector (which asks
+    ``state()`` for the running process's state at each scrape)."""
+    registry = CollectorRegistry()
+    requests = Histogram(
+        PREFIX + "http_request_duration_seconds",
+        "API request durations by method, route template and status",
+        ["method", "route", "status"],
+        registry=registry,
+    )
+    registry.register(QueueCollector(state))
+    return registry, requests
+
+
+class RequestTimer:
+    """ASGI middleware observing each HTTP request's duration into ``histogram``."""
+
+    def __init__(self, app: ASGIApp, histogram: Histogram) -> None:
+        self.app = app
+        self.histogram = histogram
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = 500
+
+        async def timed_send(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, timed_send)
+        finally:
+            route = getattr(scope.get("route"), "path", "unmatched")
+            self.histogram.labels(scope["method"], route, str(status)).observe(
+                time.perf_counter() - start
+            )

@@ -1,0 +1,154 @@
+"""Uploaded files and their parameters, named like the CLI flags.
+
+A request carries either ``multipart/form-data`` (the file in the field ``file``,
+parameters as form fields) or a raw ``application/octet-stream`` body
+(parameters as query parameters). Query parameters also apply to multipart
+requests; form fields win. The body size limit is enforced while streaming
+(:mod:`service.api.body_limit`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal, TypeVar
+
+from fastapi import Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.datastructures import UploadFile
+
+from models.decoders.adaptive import QUALITIES
+from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
+from models.formation import SensorParams
+
+Model = TypeVar("Model", bound=BaseModel)
+#: Leading bytes of the frame file formats we accept.
+_MAGIC: tuple[tuple[bytes, str], ...] = (
+    (b"\x89PNG\r\n\x1a\n", "png"),
+    (b"II*\x00", "tiff"),
+    (b"MM\x00*", "tiff"),
+    (b"\x93NUMPY", "npy"),
+)
+_MAX_FORM_FIELDS = 64
+
+
+class SensorFields(BaseModel):
+    """Sensor parameters (see ``models.formation.SensorParams``); given ones override any
+    parameters stored in the file. Ranges are checked when the parameters are merged."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    encoding: Literal["modulo", "mantissa", "clip"] | None = None
+    alpha: float | None = Field(None, description="mantissa base: one wrap per factor alpha")
+    bits: int | None = Field(None, description="bits per code (1..16)")
+    gain: float | None = Field(None, description="scene irradiance to wrap units")
+    max_wraps: float | None = Field(None, description="clip x at this many wrap units")
+    read_noise: float | None = Field(None, description="Gaussian sigma in wraps")
+    full_well: float | None = Field(None, description="electrons at x = 1 (shot noise)")
+    seed: int | None = Field(None, description="noise seed")
+
+    def sensor_overrides(self) -> dict[str, Any]:
+        """The sensor parameters that were given (None = not given)."""
+        return {name: getattr(self, name) for name in SensorParams.model_fields}
+
+
+class ReconstructionFields(SensorFields):
+    """Parameters of ``POST /v1/reconstructions``."""
+
+    decoder: str | None = Field(None, description="decoder name (GET /v1/decoders)")
+    quality: Literal[QUALITIES] | None = Field(  # type: ignore[valid-type]
+        None, description="instead of decoder: the adaptive decoder at this quality"
+    )
+    format: Literal["png", "tiff", "npy", "raw"] | None = Field(
+        None, description="frame file format; default: from the file name or its first bytes"
+    )
+    width: int | None = Field(None, ge=1, le=1 << 16, description="raw frames: pixels per row")
+    height: int | None = Field(None, ge=1, le=1 << 16, description="raw frames: rows")
+    channels: int | None = Field(None, ge=1, le=4, description="raw frames: codes per pixel")
+    scene_referred: bool = Field(False, description="divide the result by the gain (if known)")
+
+
+class SimulateFields(SensorFields):
+    """Parameters of ``POST /v1/simulate``."""
+
+    overexposed: float | None = Field(
+        None, description="instead of gain: the fraction of pixels at x >= 1"
+    )
+    gray: bool = Field(False, description="encode Rec.709 luminance instead of RGB")
+    clip_negative: bool = Field(False, description="set negative irradiance to 0")
+    format: Literal["png", "npy", "tiff"] = Field("png", description="output file format")
+    part: Literal["codes", "winding"] = Field(
+        "codes", description="the wrapped frame, or the true winding numbers W"
+    )
+
+
+@dataclass(frozen=True)
+class Upload:
+    """The uploaded bytes, the client's file name (never used as a path) and form fields."""
+
+    data: bytes
+    filename: str | None
+    fields: dict[str, str]
+
+
+async def _read_multipart(request: Request) -> Upload:
+    async with request.form(max_files=1, max_fields=_MAX_FORM_FIELDS) as form:
+        file = form.get("file")
+        if not isinstance(file, UploadFile):
+            raise MissingParameterError(
+                "no file uploaded: send it in the multipart/form-data field 'file'"
+            )
+        fields: dict[str, str] = {}
+        for name, value in form.multi_items():
+            if name == "file":
+                continue
+            if not isinstance(value, str):
+                raise InvalidInputError(f"form field {name!r} must be text, not a file")
+            fields[name] = value
+        return Upload(await file.read(), file.filename, fields)
+
+
+async def read_upload(request: Request) -> Upload:
+    """The request's file: multipart field ``file`` or the raw body."""
+    media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media == "multipart/form-data":
+        upload = await _read_multipart(request)
+    elif media == "application/octet-stream":
+        body = bytearray()
+        async for chunk in request.stream():
+            body += chunk
+        upload = Upload(bytes(body), None, {})
+    else:
+        raise UnsupportedFormatError(
+            f"unsupported content type {media or '(none)'!r}: send multipart/form-data with "
+            "the file in the field 'file', or the raw file as application/octet-stream"
+        )
+    if not upload.data:
+        raise InvalidInputError("the uploaded file is empty; send the whole file")
+    return upload
+
+
+def merge_fields(model: type[Model], query: BaseModel, upload: Upload) -> Model:
+    """Query parameters updated by the form fields, validated as ``model`` (422 if bad)."""
+    values = {**query.model_dump(exclude_unset=True), **upload.fields}
+    try:
+        return model.model_validate(values)
+    except ValidationError as exc:
+        raise RequestValidationError(exc.errors()) from None
+
+
+def sniff_frame_format(upload: Upload, declared: str | None) -> str:
+    """The frame format: declared, else the file name's suffix, else the leading bytes."""
+    if declared:
+        return declared
+    if upload.filename and "." in upload.filename:
+        suffix = upload.filename.rsplit(".", 1)[-1].lower()
+        if suffix in ("png", "tif", "tiff", "npy", "raw", "bin"):
+            return {"tif": "tiff", "bin": "raw"}.get(suffix, suffix)
+    for magic, fmt in _MAGIC:
+        if upload.data.startswith(magic):
+            return fmt
+    raise UnsupportedFormatError(
+        "cannot tell the frame's format: send a .png, .tiff or .npy file, or raw codes with "
+        "format=raw, width, height, bits and encoding"
+    )

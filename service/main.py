@@ -1,0 +1,77 @@
+"""The FastAPI application: ``create_app(settings)`` wires routers, errors, limits and metrics.
+
+Each resource's router lives in its own module under ``service/api/routes``
+and is listed once in :data:`ROUTERS`; the web viewer is served at ``/``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+from starlette.concurrency import run_in_threadpool
+
+from service.api.body_limit import BodyLimitMiddleware
+from service.api.errors import install_error_handlers
+from service.api.state import ServiceState, open_state
+from service.api.telemetry import RequestTimer, build_registry
+from service.core.config import Settings, get_settings
+from service.core.security import KeyRing
+
+log = logging.getLogger(__name__)
+
+#: Router modules (each exposes ``router``), in the order the API docs list them.
+ROUTERS: tuple[str, ...] = (
+    "service.api.routes.simulate",
+    "service.api.routes.reconstructions",
+    "service.api.routes.jobs",
+    "service.api.routes.decoders",
+    "service.api.routes.health",
+    "service.api.routes.metrics",
+)
+STATIC_DIR = Path(__file__).parent / "static"
+API_VERSION = "1.0.0"
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The API app. Redis is connected (or the embedded one started) at startup."""
+    settings = settings or get_settings()
+    keyring, new_key = KeyRing.from_settings(settings)
+    if new_key is not None:
+        log.warning("generated an API key, stored in %s", settings.data_dir / "api_keys")
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        state = await run_in_threadpool(open_state, settings, keyring)
+        app.state.mcam = state
+        try:
+            yield
+        finally:
+            await run_in_threadpool(state.close)
+
+    app = FastAPI(
+        title="MantissaCam",
+        version=API_VERSION,
+        summary="Snapshot HDR from wrapping sensors: simulate, reconstruct, inspect jobs",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    install_error_handlers(app)
+    for name in ROUTERS:
+        app.include_router(importlib.import_module(name).router)
+
+    def current_state() -> ServiceState:
+        state: ServiceState = app.state.mcam
+        return state
+
+    registry, requests = build_registry(current_state)
+    app.state.metrics_registry = registry
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
+    app.add_middleware(RequestTimer, histogram=requests)
+    app.mount("/", StaticFiles(directory=STATIC_DIR, html=True), name="viewer")
+    return app
