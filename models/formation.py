@@ -341,8 +341,9 @@ def reconstruct(
         raise InvalidInputError(
             f"winding map shape {winding.shape} does not match the frame {m.shape}"
         )
-    x = from_unwrapped(winding.astype(np.float64) + m, params, np.float64)
-    if scene_referred and params.gain is not None:
+    rescale = scene_referred and params.gain is not None
+    x = from_unwrapped(winding.astype(np.float64) + m, params, np.float64 if rescale else dtype)
+    if rescale:
         x = x / params.gain
     ensure_fits(x, dtype, "reconstruction")
     return x.astype(dtype)

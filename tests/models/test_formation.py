@@ -1,0 +1,344 @@
+"""Property and table tests of the image formation model (models/formation.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models.errors import InvalidInputError, OutputOverflowError
+from models.formation import (
+    SensorParams,
+    dequantize,
+    encode,
+    exposure_gain,
+    from_unwrapped,
+    luminance,
+    max_winding,
+    quantize,
+    reconstruct,
+    simulate,
+    split_unwrapped,
+    to_unwrapped,
+    validate_codes,
+    validate_irradiance,
+)
+
+PROPERTY = settings(max_examples=200, deadline=None)
+#: Largest winding number split_unwrapped accepts (half the int64 range, kept as headroom).
+WINDING_LIMIT = 2**62
+
+bits_st = st.integers(1, 16)
+alpha_st = st.floats(1.001, 1000.0)
+x_st = st.one_of(st.floats(0.0, 2.0), st.floats(0.0, 1e30))
+x_arrays = st.lists(x_st, min_size=1, max_size=16).map(np.array)
+
+
+def _round_trip(x: np.ndarray, params: SensorParams) -> np.ndarray:
+    frame = encode(x, params)
+    return reconstruct(frame.codes, frame.winding, params)
+
+
+@PROPERTY
+@given(x=x_arrays, bits=bits_st)
+def test_modulo_round_trip_within_half_a_code(x: np.ndarray, bits: int) -> None:
+    params = SensorParams(encoding="modulo", bits=bits)
+    if np.floor(x).max() > WINDING_LIMIT:
+        with pytest.raises(InvalidInputError, match="wrap more than"):
+            encode(x, params)
+        return
+    error = np.abs(_round_trip(x, params) - x)
+    assert np.all(error <= 2.0 ** -(bits + 1) + np.spacing(x))
+
+
+@PROPERTY
+@given(x=x_arrays, bits=bits_st, alpha=alpha_st)
+def test_mantissa_round_trip_error_bounds(x: np.ndarray, bits: int, alpha: float) -> None:
+    params = SensorParams(encoding="mantissa", alpha=alpha, bits=bits)
+    x_hat = _round_trip(x, params)
+    u = to_unwrapped(x, params)
+    linear = u < 1
+    assert np.all(np.abs(x_hat - x)[linear] <= 2.0 ** -(bits + 1))
+    half_code = 2.0 ** -(bits + 1) + np.spacing(u[~linear])
+    rounding = 4 * np.finfo(np.float64).eps * (1 + np.abs(np.log(x[~linear])))
+    bound = np.expm1(half_code * math.log(alpha)) + rounding
+    assert np.all(np.abs(x_hat[~linear] / x[~linear] - 1) <= bound)
+
+
+@PROPERTY
+@given(x=x_arrays, alpha=alpha_st)
+def test_mantissa_u_is_monotonic(x: np.ndarray, alpha: float) -> None:
+    params = SensorParams(encoding="mantissa", alpha=alpha)
+    u = to_unwrapped(np.sort(x), params)
+    assert np.all(np.diff(u) >= 0)
+
+
+@PROPERTY
+@given(alpha=alpha_st, delta=st.floats(1e-12, 1e-3))
+def test_mantissa_u_is_continuous_at_saturation(alpha: float, delta: float) -> None:
+    params = SensorParams(encoding="mantissa", alpha=alpha)
+    x = np.array([1.0 - delta, 1.0, 1.0 + delta])
+    below, at, above = to_unwrapped(x, params)
+    step_below, step_above = 1.0 - x[0], x[2] - 1.0  # exact in float64
+    assert at == 1.0
+    assert at - below == step_below
+    eps = np.finfo(np.float64).eps
+    assert 0 < above - at <= step_above / math.log(alpha) + 2 * eps
+
+
+@PROPERTY
+@given(m=st.lists(st.floats(0.0, 1.0, exclude_max=True), min_size=1).map(np.array), bits=bits_st)
+def test_quantize_then_dequantize_is_within_half_a_code(m: np.ndarray, bits: int) -> None:
+    codes = quantize(m, bits)
+    assert codes.dtype == (np.uint8 if bits <= 8 else np.uint16)
+    assert int(codes.max()) < 2**bits
+    assert np.all(np.abs(dequantize(codes, bits) - m) <= 2.0 ** -(bits + 1))
+
+
+@pytest.mark.parametrize("bits", [1, 8, 9, 16])
+def test_dequantize_then_quantize_returns_every_code(bits: int) -> None:
+    codes = np.arange(2**bits, dtype=np.uint8 if bits <= 8 else np.uint16)
+    assert np.array_equal(quantize(dequantize(codes, bits), bits), codes)
+
+
+def test_quantize_clamps_m_of_one_to_the_top_code() -> None:
+    assert quantize(np.array([1.0]), 8)[0] == 255
+
+
+@pytest.mark.parametrize(
+    ("codes", "message"),
+    [
+        (np.array([], np.uint8), "empty"),
+        (np.array([0.5, 0.2]), "integers"),
+        (np.array([-1, 3]), "non-negative"),
+        (np.array([0, 256], np.uint16), "1 codes are >= 2\\^8"),
+    ],
+)
+def test_bad_codes_are_rejected(codes: np.ndarray, message: str) -> None:
+    with pytest.raises(InvalidInputError, match=message):
+        validate_codes(codes, 8)
+
+
+@PROPERTY
+@given(
+    winding=st.lists(st.integers(0, 2**63 - 1), min_size=1, max_size=8).map(np.array),
+    alpha=alpha_st,
+    encoding=st.sampled_from(["modulo", "mantissa"]),
+    dtype=st.sampled_from([np.float16, np.float32, np.float64]),
+)
+def test_reconstruction_never_overflows_silently(
+    winding: np.ndarray, alpha: float, encoding: str, dtype: type[np.floating]
+) -> None:
+    params = SensorParams(encoding=encoding, alpha=alpha, bits=8)
+    codes = np.full(winding.shape, 128, np.uint8)
+    u = winding.astype(np.float64) + 128.5 / 256
+    limit = float(np.finfo(dtype).max)
+    over = u > limit
+    if encoding == "mantissa":
+        over = np.where(u >= 1, (u - 1) * np.log(alpha) > np.log(limit), over)
+    n_over = int(np.sum(over))
+    if n_over:
+        with pytest.raises(
+            OutputOverflowError, match=f"^{n_over} pixels .* {np.dtype(dtype).name}"
+        ):
+            reconstruct(codes, winding, params, dtype)
+        return
+    x_hat = reconstruct(codes, winding, params, dtype)
+    assert x_hat.dtype == dtype
+    assert np.all(np.isfinite(x_hat))
+
+
+def test_largest_int64_winding_reconstructs_in_float64_modulo() -> None:
+    winding = np.array([np.iinfo(np.int64).max])
+    x_hat = reconstruct(np.array([0], np.uint8), winding, SensorParams(encoding="modulo"))
+    assert x_hat[0] == pytest.approx(2.0**63)
+
+
+def test_overflow_message_names_pixel_count_and_limit() -> None:
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+    winding = np.array([[200, 1], [0, 200]])
+    with pytest.raises(OutputOverflowError, match=r"^2 pixels .*float32 limit 3\.403e\+38"):
+        reconstruct(np.zeros((2, 2), np.uint8), winding, params, np.float32)
+    with pytest.raises(OutputOverflowError, match=r"^1 pixels .*float16 limit 6\.55e\+04"):
+        from_unwrapped(np.array([70000.0, 3.0]), SensorParams(encoding="modulo"), np.float16)
+
+
+def test_too_many_wraps_for_int64_is_a_clear_error() -> None:
+    with pytest.raises(InvalidInputError, match="1 pixels wrap more than"):
+        split_unwrapped(np.array([1e30, 5.0]), SensorParams(encoding="modulo"))
+
+
+@pytest.mark.parametrize(
+    ("value", "what"),
+    [(np.nan, "NaN or infinite"), (np.inf, "NaN or infinite"), (-0.5, "negative")],
+)
+def test_bad_irradiance_is_rejected(value: float, what: str) -> None:
+    scene = np.array([[0.1, value], [value, 0.3]])
+    with pytest.raises(InvalidInputError, match=f"2 {what}"):
+        encode(scene, SensorParams())
+    with pytest.raises(InvalidInputError, match=f"2 {what}"):
+        simulate(scene, SensorParams())
+
+
+def test_clip_negative_zeroes_and_counts() -> None:
+    scene = np.array([[0.5, -1e-3], [-2e-4, 2.0]])
+    clipped, count = validate_irradiance(scene, clip_negative=True)
+    assert count == 2
+    assert np.array_equal(clipped, [[0.5, 0.0], [0.0, 2.0]])
+    frame = simulate(scene, SensorParams(encoding="modulo"), clip_negative=True)
+    assert np.array_equal(frame.winding, [[0, 0], [0, 2]])
+
+
+def test_empty_and_non_numeric_irradiance_are_rejected() -> None:
+    with pytest.raises(InvalidInputError, match="empty"):
+        validate_irradiance(np.zeros((0, 3)))
+    with pytest.raises(InvalidInputError, match="real numbers"):
+        validate_irradiance(np.array([1 + 2j]))
+
+
+@PROPERTY
+@given(data=st.data(), n=st.integers(4, 300), scale=st.floats(1e-6, 1e6))
+def test_exposure_gain_overexposes_exactly_the_requested_fraction(
+    data: st.DataObject, n: int, scale: float
+) -> None:
+    k = data.draw(st.integers(1, n - 1), label="overexposed pixels")
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1), label="seed"))
+    scene = (rng.permutation(n) + 1.0).reshape(1, n) * scale
+    frame = simulate(scene, SensorParams(encoding="modulo"), overexposed=k / n)
+    assert int(np.sum(frame.irradiance >= 1.0)) == k
+    assert frame.params.gain == exposure_gain(scene, k / n)
+
+
+def test_exposure_of_rgb_uses_rec709_luminance() -> None:
+    scene = np.zeros((2, 2, 3))
+    scene[..., 1] = [[1.0, 2.0], [3.0, 4.0]]
+    gain = exposure_gain(scene, 0.25)
+    assert gain == pytest.approx(1.0 / np.quantile(0.7152 * np.array([1, 2, 3, 4.0]), 0.75))
+    assert luminance(np.ones((1, 1, 3)))[0, 0] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("overexposed", [0.0, 1.0, -0.1])
+def test_exposure_fraction_outside_open_interval_is_rejected(overexposed: float) -> None:
+    with pytest.raises(InvalidInputError, match="overexposed must be in"):
+        exposure_gain(np.ones((4, 4)), overexposed)
+
+
+def test_exposure_of_a_black_scene_asks_for_a_gain() -> None:
+    with pytest.raises(InvalidInputError, match="too dark"):
+        simulate(np.zeros((4, 4)), SensorParams(), overexposed=0.1)
+
+
+def test_gain_and_overexposed_together_are_rejected() -> None:
+    with pytest.raises(InvalidInputError, match="either gain or overexposed"):
+        simulate(np.ones((4, 4)), SensorParams(gain=2.0), overexposed=0.1)
+
+
+def test_gray_converts_rgb_to_luminance_before_encoding() -> None:
+    scene = np.random.default_rng(0).random((3, 4, 3)) * 5
+    frame = simulate(scene, SensorParams(encoding="modulo", gain=1.0), gray=True)
+    assert frame.codes.shape == (3, 4)
+    assert np.array_equal(frame.irradiance, luminance(scene))
+
+
+def _noisy_params(seed: int | None) -> SensorParams:
+    return SensorParams(encoding="modulo", bits=12, read_noise=0.05, full_well=500.0, seed=seed)
+
+
+def test_noise_is_seeded_and_reproducible() -> None:
+    x = np.linspace(0.0, 6.0, 4096).reshape(64, 64)
+    first, again = encode(x, _noisy_params(7)), encode(x, _noisy_params(7))
+    assert np.array_equal(first.codes, again.codes)
+    assert np.array_equal(first.winding, again.winding)
+    other = encode(x, _noisy_params(8))
+    assert not np.array_equal(first.codes, other.codes)
+
+
+def test_read_noise_has_the_requested_sigma_and_wraps() -> None:
+    params = SensorParams(encoding="modulo", bits=16, read_noise=0.1, seed=3)
+    x = np.full((128, 128), 5.0)
+    frame = encode(x, params)
+    u_noisy = frame.winding + dequantize(frame.codes, params.bits)
+    assert set(np.unique(frame.winding)) <= {4, 5}
+    assert abs(np.mean(u_noisy - x)) < 0.005
+    assert np.std(u_noisy - x) == pytest.approx(0.1, rel=0.05)
+
+
+def test_shot_noise_variance_is_x_over_full_well() -> None:
+    params = SensorParams(encoding="modulo", bits=16, full_well=400.0, seed=5)
+    frame = encode(np.full((128, 128), 2.0), params)
+    u_noisy = frame.winding + dequantize(frame.codes, params.bits)
+    assert np.var(u_noisy) == pytest.approx(2.0 / 400.0, rel=0.05)
+
+
+@pytest.mark.parametrize(("encoding", "top"), [("modulo", 16), ("mantissa", 5)])
+def test_max_wraps_clips_x_and_bounds_w(encoding: str, top: int) -> None:
+    params = SensorParams(encoding=encoding, alpha=2.0, max_wraps=16.0)
+    frame = encode(np.array([0.5, 3.0, 16.0, 1e3, 1e9]), params)
+    assert frame.irradiance.max() == 16.0
+    assert frame.winding.max() == top
+    assert max_winding(params) == top
+
+
+@PROPERTY
+@given(x=x_arrays, bits=bits_st)
+def test_clip_encoding_stores_min_x_1_with_w_zero(x: np.ndarray, bits: int) -> None:
+    params = SensorParams(encoding="clip", bits=bits)
+    frame = encode(x, params)
+    assert np.all(frame.winding == 0)
+    assert np.array_equal(frame.codes, quantize(np.minimum(x, 1.0), bits))
+    assert np.all(frame.codes[x >= 1] == 2**bits - 1)
+    x_hat = reconstruct(frame.codes, frame.winding, params)
+    assert np.all(np.abs(x_hat - np.minimum(x, 1.0)) <= 2.0 ** -(bits + 1))
+    assert max_winding(params) == 0
+
+
+# Hand-computed modulo and mantissa frames at 8 bits: (x, W, code).
+MODULO_TABLE = [
+    (0.0, 0, 0),
+    (0.5, 0, 128),
+    (0.999, 0, 255),  # floor(0.999 * 256) = 255
+    (1.0, 1, 0),  # the first wrap
+    (2.75, 2, 192),
+    (16 + 1 / 256, 16, 1),
+    (1e6 + 0.5, 1_000_000, 128),
+]
+MANTISSA_TABLE = [  # alpha = 2: u = x below 1, 1 + log2(x) above
+    (0.25, 0, 64),
+    (1.0, 1, 0),
+    (1.5, 1, 149),  # u = 1.5849625, 0.5849625 * 256 = 149.75
+    (3.0, 2, 149),  # u = 2.5849625
+    (1024.0, 11, 0),
+    (1e6, 20, 238),  # u = 20.9315686, 0.9315686 * 256 = 238.48
+]
+
+
+@pytest.mark.parametrize(
+    ("encoding", "table"), [("modulo", MODULO_TABLE), ("mantissa", MANTISSA_TABLE)]
+)
+def test_forward_model_matches_hand_computed_table(encoding: str, table: list) -> None:
+    x, winding, codes = (np.array(column) for column in zip(*table, strict=True))
+    frame = encode(x, SensorParams(encoding=encoding, alpha=2.0, bits=8))
+    assert np.array_equal(frame.winding, winding)
+    assert np.array_equal(frame.codes, codes)
+
+
+def test_modulo_matches_deepinv_spatial_unwrapping_documented_example() -> None:
+    """deepinv's SpatialUnwrapping documents x = [0.5, 1.2, 2.7] -> [0.5, 0.2, -0.3] with
+    mode="round" (floor mode gives [0.5, 0.2, 0.7]); our m is the floor-mode value, which
+    equals the round-mode value modulo 1."""
+    x = np.array([0.5, 1.2, 2.7])
+    winding, m = split_unwrapped(to_unwrapped(x, SensorParams(encoding="modulo")), SensorParams())
+    assert np.allclose(m, [0.5, 0.2, 0.7])
+    assert np.allclose(np.mod([0.5, 0.2, -0.3], 1.0), m)
+    assert np.array_equal(winding, [0, 1, 2])
+
+
+def test_sensor_params_parse_gives_readable_errors() -> None:
+    with pytest.raises(InvalidInputError, match="alpha: Input should be greater than 1"):
+        SensorParams.parse({"alpha": 0.5})
+    with pytest.raises(InvalidInputError, match="bits"):
+        SensorParams.parse({"bits": 17})
+    assert SensorParams.parse({"encoding": "modulo", "bits": 12}).levels == 4096
