@@ -16,7 +16,7 @@ in ``<data_dir>/redis``. ``stop()`` shuts it down cleanly (the AOF is flushed).
 
 from __future__ import annotations
 
-import os
+import hashlib
 import subprocess
 import tempfile
 import time
@@ -62,7 +62,6 @@ class EmbeddedRedis:
         self.dir = Path(data_dir).resolve() / "redis"
         self.startup_timeout_s = startup_timeout_s
         self._process: subprocess.Popen[bytes] | None = None
-        self._socket_dir: str | None = None
         self.socket = self._socket_path()
 
     @property
@@ -71,12 +70,13 @@ class EmbeddedRedis:
         return f"unix://{self.socket}"
 
     def _socket_path(self) -> Path:
-        """The socket lives in the redis dir unless that path is too long for the kernel."""
+        """The socket lives in the redis dir unless that path is too long for the kernel;
+        then in a per-data-dir folder under the temp dir (same path every time)."""
         path = self.dir / "redis.sock"
         if len(str(path)) <= _MAX_SOCKET_PATH:
             return path
-        self._socket_dir = tempfile.mkdtemp(prefix="mcam-redis-")
-        return Path(self._socket_dir) / "redis.sock"
+        digest = hashlib.sha256(str(self.dir).encode()).hexdigest()[:16]
+        return Path(tempfile.gettempdir()) / f"mcam-redis-{digest}" / "redis.sock"
 
     def _write_config(self) -> Path:
         config = self.dir / "redis.conf"
@@ -104,7 +104,7 @@ class EmbeddedRedis:
         if self._process is not None:
             return self.url
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.socket.parent.mkdir(parents=True, exist_ok=True)
+        self.socket.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         self.socket.unlink(missing_ok=True)
         config = self._write_config()
         self._process = subprocess.Popen(
@@ -150,8 +150,6 @@ class EmbeddedRedis:
                 process.kill()
                 process.wait()
         self.socket.unlink(missing_ok=True)
-        if self._socket_dir is not None and not os.listdir(self._socket_dir):
-            os.rmdir(self._socket_dir)
 
     def __enter__(self) -> str:
         return self.start()

@@ -126,6 +126,29 @@ def _check_submission(
     return codes
 
 
+def job_entry(record: JobRecord, codes: NDArray[np.unsignedinteger]) -> dict[str, bytes | str]:
+    """The jobs-stream entry of a job: its id, kind, and the codes as raw bytes."""
+    return {
+        "job": record.id,
+        "kind": record.kind,
+        "shape": ",".join(str(n) for n in codes.shape),
+        "dtype": codes.dtype.str,
+        "codes": codes.tobytes(),
+    }
+
+
+def entry_codes(fields: dict[str, bytes]) -> NDArray[np.unsignedinteger]:
+    """The codes of a jobs-stream entry (InvalidInputError if the entry is malformed)."""
+    try:
+        shape = tuple(int(n) for n in fields["shape"].decode().split(","))
+        dtype = np.dtype(fields["dtype"].decode())
+        if dtype.kind != "u" or dtype.itemsize not in (1, 2):
+            raise ValueError(f"dtype {dtype} is not uint8/uint16")
+        return np.frombuffer(fields["codes"], dtype=dtype).reshape(shape)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise InvalidInputError(f"malformed job entry: {exc}") from None
+
+
 class JobQueue:
     """Submit, inspect, wait for and cancel jobs; read queue statistics."""
 
@@ -164,13 +187,7 @@ class JobQueue:
             created_ns=time.time_ns(),
         )
         fields = record_fields(record)
-        entry = {
-            "job": record.id,
-            "kind": kind,
-            "shape": ",".join(str(n) for n in codes.shape),
-            "dtype": codes.dtype.str,
-            "codes": codes.tobytes(),
-        }
+        entry = job_entry(record, codes)
         args: list[Any] = [self.maxlen, len(fields)]
         for pairs in (fields, entry):
             for name, value in pairs.items():
@@ -237,7 +254,7 @@ class JobQueue:
         for device in devices:
             pipe.xlen(frame_stream(device))
             pipe.get(lease_key(device))
-            pipe.get(last_sequence_key(device))
+            pipe.hget(last_sequence_key(device), "seq")
         replies = pipe.execute()
         depth, pending, dead, dropped = replies[:4]
         dropped_by_device = {k.decode(): int(v) for k, v in dropped.items()}

@@ -72,7 +72,8 @@ def lease_key(device: str) -> str:
 
 
 def last_sequence_key(device: str) -> str:
-    """String key: sequence number of the device's newest written result."""
+    """Hash ``seq`` / ``entry``: sequence number and stream entry id of the device's newest
+    handled frame (the ordering cursor of its owning worker)."""
     return f"device:{validate_device_id(device)}:seq"
 
 

@@ -22,6 +22,8 @@ from pathlib import Path
 
 from models.errors import McamError
 
+#: Sub-folder of the data dir that holds the result store (API and workers share it).
+RESULTS_DIR = "results"
 _KEY = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 _TMP_SUFFIX = ".tmp"
 

@@ -1,0 +1,98 @@
+"""``mcam worker``: run one reconstruction worker (jobs + live device streams).
+
+Usage::
+
+    MCAM_REDIS_URL=redis://queue:6379 mcam worker --concurrency 2 --threads 2
+    mcam worker                 # no MCAM_REDIS_URL: the embedded Redis of the data dir
+                                # (started by `mcam api` or `mcam serve`)
+
+Settings come from ``MCAM_*`` (``service/core/config.py``); flags override them.
+SIGTERM / Ctrl-C stop it gracefully (in-flight work is finished or handed back).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+
+from models.errors import McamError
+from service.core.config import Settings, get_settings
+from worker.device_state import FRAME_MODES
+from worker.embedded_redis import EmbeddedRedis
+
+
+def redis_url_for(settings: Settings) -> str:
+    """``MCAM_REDIS_URL``, else the socket of the embedded Redis in the data dir."""
+    if settings.redis_url:
+        return settings.redis_url
+    embedded = EmbeddedRedis(settings.data_dir)
+    if not embedded.socket.exists():
+        raise McamError(
+            f"no Redis: MCAM_REDIS_URL is unset and no embedded Redis runs for the data dir "
+            f"{settings.data_dir} (its socket {embedded.socket} is missing); start `mcam api` "
+            "or `mcam serve` first, or set MCAM_REDIS_URL"
+        )
+    return embedded.url
+
+
+def set_thread_limits(threads: int) -> None:
+    """Intra-op threads for onnxruntime and numerical libraries, set before decoders load."""
+    for name in ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS"):
+        os.environ[name] = str(threads)
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser(
+        "worker",
+        help="run a reconstruction worker",
+        description="Consume reconstruction jobs and live device frames from the queue.",
+    )
+    parser.add_argument(
+        "--concurrency", type=int, help="jobs decoded at once (default: MCAM_WORKER_CONCURRENCY)"
+    )
+    parser.add_argument(
+        "--threads", type=int, help="ONNX intra-op threads per session (MCAM_WORKER_THREADS)"
+    )
+    parser.add_argument(
+        "--decoder", help="decoder for live device frames (default: MCAM_DEFAULT_DECODER)"
+    )
+    parser.add_argument(
+        "--frame-mode",
+        choices=FRAME_MODES,
+        default="independent",
+        help="decode device frames one by one, or along time (default: independent)",
+    )
+    parser.add_argument(
+        "--no-devices", action="store_true", help="only run jobs, leave device streams alone"
+    )
+    parser.add_argument("--log-level", default="INFO", help="logging level (default: INFO)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = get_settings()
+    concurrency = args.concurrency or settings.worker_concurrency
+    threads = args.threads or settings.worker_threads
+    if concurrency < 1 or threads < 1:
+        raise McamError("--concurrency and --threads must be at least 1")
+    logging.basicConfig(
+        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    set_thread_limits(threads)
+    from worker.runner import Worker, WorkerConfig
+
+    config = WorkerConfig(
+        redis_url=redis_url_for(settings),
+        data_dir=settings.data_dir,
+        concurrency=concurrency,
+        decoder=args.decoder or settings.default_decoder,
+        frame_mode=args.frame_mode,
+        claim_idle_ms=settings.claim_idle_ms,
+        max_deliveries=settings.max_deliveries,
+        lease_ms=settings.device_lease_ms,
+        heartbeat_s=settings.heartbeat_s,
+        retention_s=settings.result_retention_s,
+        devices=not args.no_devices,
+    )
+    return Worker(config).run()

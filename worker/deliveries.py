@@ -1,0 +1,157 @@
+"""One consumer's view of a stream in the workers' consumer group: read, reclaim, ack, retry.
+
+Usage::
+
+    consumer = StreamConsumer(client, "jobs", "worker-1-t0", max_deliveries=3)
+    for delivery in consumer.reclaim(min_idle_ms=30_000) or consumer.read_new(block_ms=1000):
+        ...                                   # write the result durably first
+        consumer.done(delivery)               # XACK + XDEL in one transaction
+
+Entries of a dead consumer stay pending; :meth:`reclaim` takes those idle longer
+than ``min_idle_ms`` (XAUTOCLAIM, which counts a delivery). Entries trimmed away
+while pending (a full device stream) come back without fields and are acked.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import redis
+
+from worker.metrics import Metrics
+from worker.queue import GROUP, ensure_group
+from worker.redis_keys import DEAD_LETTER_STREAM
+
+#: The dead-letter stream keeps at most this many entries (oldest trimmed).
+DEAD_LETTER_MAXLEN = 10_000
+
+
+@dataclass
+class Delivery:
+    """A stream entry handed to this consumer; ``deliveries`` counts handings incl. this one."""
+
+    stream: str
+    entry_id: str
+    fields: dict[str, bytes]
+    deliveries: int = 1
+
+    def text(self, name: str) -> str:
+        """A header field as text (KeyError if missing)."""
+        return self.fields[name].decode()
+
+
+def entry_order(entry_id: str) -> tuple[int, int]:
+    """Sort key of a stream id ``<ms>-<seq>``."""
+    ms, _, seq = entry_id.partition("-")
+    return int(ms), int(seq or 0)
+
+
+def _fields(raw: dict[bytes, bytes] | None) -> dict[str, bytes]:
+    return {k.decode(): v for k, v in (raw or {}).items()}
+
+
+class StreamConsumer:
+    """Consumer ``name`` of the ``workers`` group on ``stream``."""
+
+    def __init__(self, client: redis.Redis, stream: str, name: str, *, max_deliveries: int) -> None:
+        self.client = client
+        self.stream = stream
+        self.name = name
+        self.max_deliveries = max_deliveries
+        self.metrics = Metrics(client)
+        ensure_group(client, stream)
+
+    def read_new(self, *, block_ms: int | None, count: int = 1) -> list[Delivery]:
+        """Entries never delivered before (blocks up to ``block_ms``; None: do not block)."""
+        reply = self.client.xreadgroup(
+            GROUP, self.name, {self.stream: ">"}, count=count, block=block_ms
+        )
+        return [
+            Delivery(self.stream, entry_id.decode(), _fields(raw))
+            for _stream, entries in reply or []
+            for entry_id, raw in entries
+        ]
+
+    def read_own_pending(self, count: int = 100) -> list[Delivery]:
+        """Entries already delivered to this consumer and not acked, oldest first; trimmed
+        entries are acked and skipped."""
+        reply = self.client.xreadgroup(GROUP, self.name, {self.stream: "0"}, count=count)
+        found = []
+        for _stream, entries in reply or []:
+            for entry_id, raw in entries:
+                delivery = Delivery(self.stream, entry_id.decode(), _fields(raw))
+                if delivery.fields:
+                    found.append(delivery)
+                else:
+                    self.done(delivery)
+        for delivery in found:
+            delivery.deliveries = self.delivery_count(delivery.entry_id)
+        return found
+
+    def claim_idle(self, min_idle_ms: int, count: int | None = 10) -> int:
+        """Take over entries pending longer than ``min_idle_ms`` at any consumer (each
+        counts one more delivery): up to ``count``, or all of them when None. Returns how
+        many were taken."""
+        claimed, cursor = 0, "0-0"
+        while True:
+            batch = 100 if count is None else count - claimed
+            cursor, entries = self.client.xautoclaim(
+                self.stream, GROUP, self.name, min_idle_ms, cursor, count=batch
+            )[:2]
+            claimed += len(entries)
+            if cursor in (b"0-0", "0-0") or (count is not None and claimed >= count):
+                break
+        if claimed and min_idle_ms > 0:
+            self.metrics.inc("redeliveries_total", claimed)
+        return claimed
+
+    def reclaim(self, min_idle_ms: int, count: int = 10) -> list[Delivery]:
+        """Claim idle entries of other consumers and return them with their fields."""
+        if not self.claim_idle(min_idle_ms, count):
+            return []
+        return self.read_own_pending(count)
+
+    def delivery_count(self, entry_id: str) -> int:
+        """How many times the entry was delivered (1 if it is no longer pending)."""
+        rows = self.client.xpending_range(self.stream, GROUP, entry_id, entry_id, 1)
+        return int(rows[0]["times_delivered"]) if rows else 1
+
+    def retry(self, delivery: Delivery) -> None:
+        """Deliver the entry to this consumer again (counts a delivery)."""
+        self.client.xclaim(self.stream, GROUP, self.name, 0, [delivery.entry_id])
+        delivery.deliveries = self.delivery_count(delivery.entry_id)
+
+    def done(self, delivery: Delivery) -> None:
+        """Acknowledge and delete the entry (call only after its result is durable)."""
+        pipe = self.client.pipeline(transaction=True)
+        pipe.xack(self.stream, GROUP, delivery.entry_id)
+        pipe.xdel(self.stream, delivery.entry_id)
+        pipe.execute()
+
+    def give_back(self, delivery: Delivery) -> None:
+        """Return unfinished work: re-append the entry as new and drop this delivery."""
+        pipe = self.client.pipeline(transaction=True)
+        pipe.xadd(self.stream, delivery.fields)
+        pipe.xack(self.stream, GROUP, delivery.entry_id)
+        pipe.xdel(self.stream, delivery.entry_id)
+        pipe.execute()
+
+    def dead_letter(self, delivery: Delivery, code: str, message: str, **about: str) -> None:
+        """Move the entry to the dead-letter stream with its error (payload not copied)."""
+        record = {
+            "stream": self.stream,
+            "entry": delivery.entry_id,
+            "deliveries": str(delivery.deliveries),
+            "code": code,
+            "message": message,
+            "ts_ns": str(time.time_ns()),
+            "consumer": self.name,
+            **about,
+        }
+        pipe = self.client.pipeline(transaction=True)
+        pipe.xadd(DEAD_LETTER_STREAM, record, maxlen=DEAD_LETTER_MAXLEN, approximate=True)
+        pipe.xack(self.stream, GROUP, delivery.entry_id)
+        pipe.xdel(self.stream, delivery.entry_id)
+        self.metrics.inc("dead_letters_total", pipe=pipe)
+        pipe.execute()

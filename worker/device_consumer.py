@@ -1,0 +1,267 @@
+"""Live device streams: one owner per device, results written strictly in sequence order.
+
+Usage (inside the worker, one thread)::
+
+    devices = DeviceConsumer(client, store, owner="w1", lease_ms=5000, max_deliveries=3,
+                             decode=make_frame_decoder("independent", "itoh"), stop=stop)
+    while not stop.is_set():
+        devices.poll()        # True when it processed something
+    devices.release_all()
+
+For each device in the ``devices`` set the worker tries to take the lease; the
+owner first takes over every pending entry of the stream (a previous owner's
+unfinished frames), then reads new ones, and handles them one by one in stream
+order. Per frame: decode, write ``devices/<id>/<seq:012d>.exr`` durably, then in
+one Lua step (only while the lease is still ours) record the sequence, point
+``device:<id>:latest`` at the result and append a ``frame`` event to
+``events:<id>``, then XACK. A redelivered entry at or before the recorded one is
+acked without a second result or event. A frame that keeps failing goes to the
+dead letters after ``max_deliveries`` attempts with a ``failed`` event.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import redis
+
+from models.errors import McamError
+from worker.deliveries import Delivery, StreamConsumer, entry_order
+from worker.device_state import DeviceState, FrameDecoder
+from worker.frame_message import FrameMessage
+from worker.job_processor import RETRY_BACKOFF_S, error_of
+from worker.lease import Lease
+from worker.metrics import Metrics
+from worker.outputs import encode_exr_result
+from worker.redis_keys import (
+    DEVICES_SET,
+    events_stream,
+    frame_stream,
+    last_sequence_key,
+    latest_key,
+    lease_key,
+)
+from worker.result_store import ResultStore
+
+log = logging.getLogger(__name__)
+
+#: Frames read from one device per poll before looking at the other devices.
+BATCH = 16
+#: The events stream of a device keeps about this many entries.
+EVENTS_MAXLEN = 1000
+
+_COMMIT = """
+if redis.call('GET', KEYS[1]) ~= ARGV[1] then return 0 end
+redis.call('HSET', KEYS[2], 'seq', ARGV[2], 'entry', ARGV[3])
+if ARGV[4] ~= '' then redis.call('SET', KEYS[3], ARGV[4]) end
+local event = {}
+for i = 6, #ARGV do event[#event + 1] = ARGV[i] end
+redis.call('XADD', KEYS[4], 'MAXLEN', '~', ARGV[5], '*', unpack(event))
+return 1
+"""
+
+
+class LeaseLost(Exception):
+    """Another worker owns the device now; stop processing its stream."""
+
+
+def result_key(device: str, sequence: int) -> str:
+    """Result-store key of a device frame's EXR."""
+    return f"devices/{device}/{sequence:012d}.exr"
+
+
+class DeviceConsumer:
+    """Owns device streams through leases and reconstructs their frames in order."""
+
+    def __init__(
+        self,
+        client: redis.Redis,
+        store: ResultStore,
+        *,
+        owner: str,
+        lease_ms: int,
+        max_deliveries: int,
+        decode: FrameDecoder,
+        stop: threading.Event,
+    ) -> None:
+        self.client = client
+        self.store = store
+        self.owner = owner
+        self.max_deliveries = max_deliveries
+        self.decode = decode
+        self.stop = stop
+        self.lease = Lease(client, owner, lease_ms)
+        self.metrics = Metrics(client)
+        self.states: dict[str, DeviceState] = {}
+        self._consumers: dict[str, StreamConsumer] = {}
+        self._commit = client.register_script(_COMMIT)
+
+    def poll(self) -> bool:
+        """Refresh leases, then handle up to :data:`BATCH` frames per owned device."""
+        busy = False
+        for device in sorted(d.decode() for d in self.client.smembers(DEVICES_SET)):
+            if self.stop.is_set():
+                break
+            if not self._hold(device):
+                continue
+            try:
+                busy |= self._drain(device)
+            except LeaseLost:
+                self._forget(device)
+        return busy
+
+    def release_all(self) -> None:
+        """Give up every lease (graceful shutdown); unacked frames stay pending."""
+        for device in list(self.states):
+            self.lease.release(device)
+            self._forget(device)
+
+    def _hold(self, device: str) -> bool:
+        if device in self.states:
+            if self.lease.renew(device):
+                return True
+            self._forget(device)
+        if not self.lease.acquire(device):
+            return False
+        self._take_over(device)
+        return True
+
+    def _take_over(self, device: str) -> None:
+        consumer = StreamConsumer(
+            self.client, frame_stream(device), self.owner, max_deliveries=self.max_deliveries
+        )
+        consumer.claim_idle(0, count=None)
+        raw = self.client.hgetall(last_sequence_key(device))
+        self.states[device] = DeviceState(
+            device,
+            last_sequence=int(raw[b"seq"]) if b"seq" in raw else None,
+            last_entry=raw[b"entry"].decode() if b"entry" in raw else None,
+        )
+        self._consumers[device] = consumer
+        log.info("worker %s owns device %s", self.owner, device)
+
+    def _forget(self, device: str) -> None:
+        self.states.pop(device, None)
+        self._consumers.pop(device, None)
+
+    def _drain(self, device: str) -> bool:
+        consumer = self._consumers[device]
+        deliveries = consumer.read_own_pending(BATCH) or consumer.read_new(
+            block_ms=None, count=BATCH
+        )
+        for delivery in deliveries:
+            if self.stop.is_set():
+                break
+            self._handle(device, consumer, delivery)
+            if not self.lease.renew(device):
+                raise LeaseLost(device)
+        return bool(deliveries)
+
+    def _handle(self, device: str, consumer: StreamConsumer, delivery: Delivery) -> None:
+        state = self.states[device]
+        if state.last_entry is not None and entry_order(delivery.entry_id) <= entry_order(
+            state.last_entry
+        ):
+            consumer.done(delivery)
+            return
+        while True:
+            try:
+                self._reconstruct(device, state, delivery)
+                consumer.done(delivery)
+                return
+            except LeaseLost:
+                raise
+            except Exception as exc:
+                if not isinstance(exc, McamError):
+                    log.exception("frame %s of %s failed", delivery.entry_id, device)
+                if delivery.deliveries >= self.max_deliveries:
+                    self._give_up(device, state, consumer, delivery, exc)
+                    return
+                time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))
+                consumer.retry(delivery)
+
+    def _reconstruct(self, device: str, state: DeviceState, delivery: Delivery) -> None:
+        message = FrameMessage.from_fields(delivery.fields)
+        if (
+            state.last_sequence is not None
+            and message.sequence <= state.last_sequence
+            and not message.discont
+        ):
+            stale = _event("stale", message)
+            self._record(device, state, delivery, state.last_sequence, "", stale)
+            return
+        frame = self.decode(state, message)
+        start = time.perf_counter_ns()
+        data = encode_exr_result(message.codes, frame.winding, message.params, frame.info, {})
+        key = result_key(device, message.sequence)
+        self.store.write(key, data)
+        encode_ns = time.perf_counter_ns() - start
+        event = _event("frame", message, key=key, decode_ns=frame.timings_ns.get("decode", 0))
+        self._record(device, state, delivery, message.sequence, key, event)
+        state.frames += 1
+        pipe = self.client.pipeline(transaction=False)
+        self.metrics.observe("decode_seconds", frame.timings_ns.get("decode", 0) / 1e9, pipe=pipe)
+        self.metrics.observe("encode_seconds", encode_ns / 1e9, pipe=pipe)
+        self.metrics.inc("frames_processed_total", pipe=pipe, device=device)
+        pipe.execute()
+
+    def _record(
+        self,
+        device: str,
+        state: DeviceState,
+        delivery: Delivery,
+        sequence: int,
+        key: str,
+        event: dict[str, str],
+    ) -> None:
+        """Atomically, while we hold the lease: record ``sequence`` as the newest done frame,
+        point ``latest`` at ``key`` (unless empty) and publish ``event``."""
+        args: list[Any] = [self.owner, sequence, delivery.entry_id, key, EVENTS_MAXLEN]
+        for name, value in event.items():
+            args += [name, value]
+        keys = [
+            lease_key(device),
+            last_sequence_key(device),
+            latest_key(device),
+            events_stream(device),
+        ]
+        if not self._commit(keys=keys, args=args):
+            raise LeaseLost(device)
+        state.last_sequence = sequence
+        state.last_entry = delivery.entry_id
+
+    def _give_up(
+        self,
+        device: str,
+        state: DeviceState,
+        consumer: StreamConsumer,
+        delivery: Delivery,
+        exc: Exception,
+    ) -> None:
+        error = error_of(exc)
+        sequence = delivery.fields.get("seq", b"-1").decode()
+        event = {
+            "type": "failed",
+            "sequence": sequence,
+            "code": error.code,
+            "message": error.message,
+        }
+        sequence_number = int(sequence) if sequence.lstrip("-").isdigit() else -1
+        last = state.last_sequence if state.last_sequence is not None else -1
+        self._record(device, state, delivery, max(sequence_number, last), "", event)
+        consumer.dead_letter(delivery, error.code, error.message, device=device, sequence=sequence)
+
+
+def _event(kind: str, message: FrameMessage, **extra: Any) -> dict[str, str]:
+    event = {
+        "type": kind,
+        "sequence": str(message.sequence),
+        "timestamp_ns": str(message.timestamp_ns),
+        "written_ns": str(time.time_ns()),
+        "discont": "1" if message.discont else "0",
+    }
+    event.update({name: str(value) for name, value in extra.items()})
+    return event

@@ -1,0 +1,262 @@
+"""Running one job from the jobs stream: state, decoding, durable results, retries.
+
+Usage (inside the worker)::
+
+    processor = JobProcessor(client, store, max_deliveries=3, stop=stop_event)
+    processor.handle(consumer, delivery)      # never raises for a job's own failure
+
+Each job kind has a handler ``handler(ctx: JobContext, codes) -> JobOutcome``
+named in :data:`HANDLERS` as ``"module:function"`` and imported on first use;
+``video`` is provided by ``worker/video_jobs.py``. A handler writes its files
+with ``ctx.write(name, data)``, reports progress with ``ctx.progress(n)``,
+calls ``ctx.check()`` between steps (raises when the job was cancelled) and, if
+it runs long, ``ctx.check_stop()`` (raises when the worker is stopping: the job
+is handed back to the queue). Results are keyed by job id (``jobs/<id>/...``), so a
+redelivered job overwrites identical files and never duplicates them.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import redis
+from numpy.typing import NDArray
+
+from models.decoders.registry import get_decoder
+from models.errors import McamError
+from worker.deliveries import Delivery, StreamConsumer
+from worker.job_store import JobStore
+from worker.jobs import JobError, JobNotFoundError, JobRecord, JobState
+from worker.metrics import Metrics
+from worker.outputs import OUTPUT_NAMES, encode_outputs
+from worker.queue import entry_codes
+from worker.result_store import ResultStore
+
+log = logging.getLogger(__name__)
+
+#: Job kind -> "module:function" of its handler.
+HANDLERS: dict[str, str] = {
+    "reconstruction": "worker.job_processor:reconstruct_job",
+    "video": "worker.video_jobs:run_video_job",
+}
+#: Pause before retrying a failed job in place, doubled per delivery (s).
+RETRY_BACKOFF_S = 0.05
+
+
+class JobCancelled(Exception):
+    """The job was cancelled while it ran."""
+
+
+class ShutdownRequested(Exception):
+    """The worker is stopping; the job is handed back to the queue."""
+
+
+@dataclass
+class JobOutcome:
+    """What a handler produced: result keys by output name, stage timings (ns), facts."""
+
+    results: dict[str, str]
+    timings_ns: dict[str, int]
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class JobContext:
+    """What a handler may use while it runs one job."""
+
+    record: JobRecord
+    jobs: JobStore
+    store: ResultStore
+    stop: threading.Event
+
+    def check(self) -> None:
+        """Raise :class:`JobCancelled` when the job was cancelled."""
+        if self.jobs.load(self.record.id).state is JobState.CANCELLED:
+            raise JobCancelled
+
+    def check_stop(self) -> None:
+        """Raise :class:`ShutdownRequested` when the worker is stopping (long handlers call
+        this between frames; the job goes back to the queue and resumes elsewhere)."""
+        if self.stop.is_set():
+            raise ShutdownRequested
+
+    def progress(self, frames_done: int) -> None:
+        """Record ``frames_done`` of ``frames_total`` frames."""
+        total = max(self.record.frames_total, 1)
+        self.jobs.update(
+            self.record.id, frames_done=frames_done, progress=min(frames_done / total, 1.0)
+        )
+
+    def key(self, name: str) -> str:
+        """The result-store key of output file ``name`` of this job."""
+        return f"jobs/{self.record.id}/{name}"
+
+    def write(self, name: str, data: bytes) -> str:
+        """Write output file ``name`` durably; returns its key."""
+        key = self.key(name)
+        self.store.write(key, data)
+        return key
+
+
+JobHandler = Callable[[JobContext, NDArray[np.unsignedinteger]], JobOutcome]
+
+
+def reconstruct_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:
+    """Decode one frame with the job's decoder; write the EXR and the winding map."""
+    record = ctx.record
+    result = get_decoder(record.decoder).decode(codes, record.params)
+    ctx.check()
+    start = time.perf_counter_ns()
+    files = encode_outputs(codes, result.winding, record.params, result.info, record.options)
+    results = {name: ctx.write(OUTPUT_NAMES[name], data) for name, data in files.items()}
+    ctx.progress(1)
+    return JobOutcome(
+        results=results,
+        timings_ns={"decode": result.timings_ns["total"], "encode": time.perf_counter_ns() - start},
+        info=result.info,
+    )
+
+
+def load_handler(kind: str) -> JobHandler:
+    """The handler of job kind ``kind`` (McamError when this installation has none)."""
+    target = HANDLERS.get(kind)
+    if target is None:
+        raise McamError(f"unknown job kind {kind!r}")
+    module_name, _, name = target.partition(":")
+    try:
+        return getattr(importlib.import_module(module_name), name)
+    except (ModuleNotFoundError, AttributeError):
+        raise McamError(f"this worker cannot run {kind} jobs ({target} is missing)") from None
+
+
+def error_of(exc: BaseException) -> JobError:
+    """A job error from an exception: the McamError code, else ``internal_error``."""
+    if isinstance(exc, McamError):
+        return JobError(code=exc.code, message=exc.message)
+    return JobError(code="internal_error", message=f"{type(exc).__name__}: {exc}")
+
+
+class JobProcessor:
+    """Runs jobs handed to a consumer, with in-place retries and dead-lettering."""
+
+    def __init__(
+        self,
+        client: redis.Redis,
+        store: ResultStore,
+        *,
+        max_deliveries: int,
+        stop: threading.Event,
+    ) -> None:
+        self.jobs = JobStore(client)
+        self.metrics = Metrics(client)
+        self.store = store
+        self.max_deliveries = max_deliveries
+        self.stop = stop
+
+    def handle(self, consumer: StreamConsumer, delivery: Delivery) -> None:
+        """Process one entry to a final outcome: done, failed (dead letter) or handed back."""
+        try:
+            record = self.jobs.load(delivery.text("job"))
+        except (KeyError, UnicodeDecodeError, JobNotFoundError) as exc:
+            consumer.dead_letter(delivery, "not_found", f"entry names no known job: {exc}")
+            return
+        while True:
+            if delivery.deliveries > self.max_deliveries:
+                self._fail(
+                    consumer,
+                    delivery,
+                    record,
+                    JobError(
+                        code="worker_lost",
+                        message=f"delivered {delivery.deliveries} times without finishing "
+                        "(workers stopped while running it)",
+                    ),
+                )
+                return
+            try:
+                self._run(consumer, delivery, record)
+                return
+            except ShutdownRequested:
+                self.jobs.transition(record.id, JobState.QUEUED, (JobState.RUNNING,))
+                consumer.give_back(delivery)
+                return
+            except JobCancelled:
+                consumer.done(delivery)
+                return
+            except Exception as exc:
+                if not isinstance(exc, McamError):
+                    log.exception("job %s failed (delivery %d)", record.id, delivery.deliveries)
+                if delivery.deliveries >= self.max_deliveries:
+                    self._fail(consumer, delivery, record, error_of(exc))
+                    return
+                time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))
+                consumer.retry(delivery)
+                record = self.jobs.load(record.id)
+
+    def _run(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
+        if record.state.finished:
+            consumer.done(delivery)
+            return
+        now = time.time_ns()
+        started = record.started_ns or now
+        changed, _ = self.jobs.transition(
+            record.id,
+            JobState.RUNNING,
+            (JobState.QUEUED, JobState.RUNNING),
+            started_ns=started,
+            attempts=record.attempts + 1,
+        )
+        if not changed:
+            consumer.done(delivery)
+            return
+        ctx = JobContext(record, self.jobs, self.store, self.stop)
+        outcome = load_handler(record.kind)(ctx, entry_codes(delivery.fields))
+        finished = time.time_ns()
+        timings = {
+            "queue_wait": started - record.created_ns,
+            **outcome.timings_ns,
+            "total": finished - record.created_ns,
+        }
+        changed, _ = self.jobs.transition(
+            record.id,
+            JobState.SUCCEEDED,
+            (JobState.RUNNING,),
+            finished_ns=finished,
+            timings_ns=timings,
+            results=outcome.results,
+            info=outcome.info,
+            progress=1.0,
+            frames_done=record.frames_total,
+        )
+        consumer.done(delivery)
+        if changed:
+            self._observe(timings, JobState.SUCCEEDED)
+
+    def _fail(
+        self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError
+    ) -> None:
+        changed, _ = self.jobs.transition(
+            record.id,
+            JobState.FAILED,
+            (JobState.QUEUED, JobState.RUNNING),
+            finished_ns=time.time_ns(),
+            error=error,
+        )
+        consumer.dead_letter(delivery, error.code, error.message, job=record.id)
+        if changed:
+            self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
+
+    def _observe(self, timings_ns: dict[str, int], state: JobState) -> None:
+        pipe = self.metrics.client.pipeline(transaction=False)
+        for stage in ("queue_wait", "decode", "encode", "total"):
+            if stage in timings_ns:
+                self.metrics.observe(f"{stage}_seconds", timings_ns[stage] / 1e9, pipe=pipe)
+        self.metrics.inc("jobs_processed_total", pipe=pipe, state=state.value)
+        pipe.execute()

@@ -1,0 +1,78 @@
+"""Result files of one decoded frame: the HDR EXR and the winding-number map.
+
+Usage::
+
+    files = encode_outputs(codes, result.winding, params, result.info, options)
+    # {"exr": EXR bytes, "winding": .npy bytes (int64)}
+
+Options (from the job): ``scene_referred`` (default true: x / gain when the gain
+is known, else wrap units x) and ``half`` (default false: float32 EXR).
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from models.formation import SensorParams, reconstruct
+from models.hdr_io import encode_exr
+
+#: Result-store key suffixes of a job's outputs.
+OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy"}
+
+
+def exr_attributes(params: SensorParams, info: dict[str, Any]) -> dict[str, str]:
+    """EXR header attributes recording how the frame was encoded and decoded."""
+    attributes = {
+        "encoding": params.encoding,
+        "alpha": repr(params.alpha),
+        "bits": str(params.bits),
+        "decoder": str(info.get("decoder", "")),
+        "decoderVersion": str(info.get("version", "")),
+    }
+    if params.gain is not None:
+        attributes["gain"] = repr(params.gain)
+    return attributes
+
+
+def encode_exr_result(
+    codes: NDArray[Any],
+    winding: NDArray[np.integer],
+    params: SensorParams,
+    info: dict[str, Any],
+    options: dict[str, Any],
+) -> bytes:
+    """The reconstruction as EXR bytes (raises OutputOverflowError if it does not fit)."""
+    half = bool(options.get("half", False))
+    x_hat = reconstruct(
+        codes,
+        winding,
+        params,
+        np.float16 if half else np.float32,
+        scene_referred=bool(options.get("scene_referred", True)),
+    )
+    return encode_exr(x_hat, exr_attributes(params, info), half=half)
+
+
+def encode_winding(winding: NDArray[np.integer]) -> bytes:
+    """The winding map as ``.npy`` bytes (int64, the frame's shape)."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.asarray(winding, dtype=np.int64), allow_pickle=False)
+    return buffer.getvalue()
+
+
+def encode_outputs(
+    codes: NDArray[Any],
+    winding: NDArray[np.integer],
+    params: SensorParams,
+    info: dict[str, Any],
+    options: dict[str, Any],
+) -> dict[str, bytes]:
+    """Both outputs of a frame, by output name (``exr``, ``winding``)."""
+    return {
+        "exr": encode_exr_result(codes, winding, params, info, options),
+        "winding": encode_winding(winding),
+    }

@@ -1,0 +1,224 @@
+"""The worker process: job consumers, the device-stream consumer, heartbeats, shutdown.
+
+Usage::
+
+    worker = Worker(WorkerConfig(redis_url="unix:///.../redis.sock", data_dir=Path("data")))
+    exit_code = worker.run()     # blocks; SIGTERM / SIGINT stop it gracefully
+
+Threads: ``concurrency`` job consumers on the ``jobs`` stream (each its own
+consumer in the ``workers`` group: reclaim entries idle > ``claim_idle_ms``, else
+read new ones), one device consumer (leases + in-order frames, see
+``worker/device_consumer.py``), and the main thread, which writes this worker's
+heartbeat to the ``workers`` hash every ``heartbeat_s`` and purges expired
+results. On SIGTERM the consumers finish the job or frame in hand (a long video
+job hands itself back to the queue), leases are released and the heartbeat is
+removed. A second signal exits at once; unacked work is then reclaimed by others.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+
+import redis
+
+from worker.deliveries import StreamConsumer
+from worker.device_consumer import DeviceConsumer
+from worker.device_state import make_frame_decoder
+from worker.embedded_redis import connect
+from worker.job_processor import JobProcessor
+from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
+from worker.result_store import RESULTS_DIR, ResultStore
+
+log = logging.getLogger(__name__)
+
+#: How long a consumer blocks waiting for new entries (ms); bounds shutdown latency.
+BLOCK_MS = 1000
+#: Pause of the device consumer when no device had frames (s).
+DEVICE_IDLE_S = 0.02
+#: Pause after a Redis connection error before trying again (s).
+RECONNECT_S = 1.0
+#: Purge expired results this often (s).
+PURGE_EVERY_S = 300.0
+#: Heartbeats older than this many heartbeat periods are removed by any worker.
+STALE_HEARTBEATS = 30
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    """Everything a worker needs; the CLI fills it from the ``MCAM_*`` settings.
+
+    Times: ``claim_idle_ms`` / ``lease_ms`` in ms, ``heartbeat_s`` / ``retention_s`` in s.
+    ``decoder`` and ``frame_mode`` apply to live device frames (jobs name their own).
+    """
+
+    redis_url: str
+    data_dir: Path
+    concurrency: int = 1
+    decoder: str = "itoh"
+    frame_mode: str = "independent"
+    claim_idle_ms: int = 30_000
+    max_deliveries: int = 3
+    lease_ms: int = 5_000
+    heartbeat_s: float = 2.0
+    retention_s: float = 7 * 24 * 3600.0
+    devices: bool = True
+
+
+def new_worker_id() -> str:
+    """A unique, readable worker id: host, pid and a random suffix."""
+    return f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+
+
+class Worker:
+    """One worker process (see the module docstring)."""
+
+    def __init__(self, config: WorkerConfig, worker_id: str | None = None) -> None:
+        self.config = config
+        self.id = worker_id or new_worker_id()
+        self.client: redis.Redis = connect(config.redis_url)
+        self.store = ResultStore(Path(config.data_dir) / RESULTS_DIR, config.retention_s)
+        self.stop = threading.Event()
+        self.jobs_done = 0
+        self.started_ns = time.time_ns()
+        self._devices: DeviceConsumer | None = None
+
+    def request_stop(self, *_args: object) -> None:
+        """Ask every loop to finish its current item and exit (a second call exits now)."""
+        if self.stop.is_set():
+            log.warning("worker %s: second stop signal, exiting now", self.id)
+            os._exit(1)
+        log.info("worker %s stopping", self.id)
+        self.stop.set()
+
+    def run(self) -> int:
+        """Run until stopped; returns the process exit code."""
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, self._on_signal)
+            signal.signal(signal.SIGINT, self._on_signal)
+        threads = [
+            threading.Thread(target=self._job_loop, args=(i,), name=f"jobs-{i}", daemon=True)
+            for i in range(self.config.concurrency)
+        ]
+        if self.config.devices:
+            threads.append(threading.Thread(target=self._device_loop, name="devices", daemon=True))
+        for thread in threads:
+            thread.start()
+        log.info("worker %s running (%d job threads)", self.id, self.config.concurrency)
+        self._heartbeat_loop()
+        for thread in threads:
+            thread.join()
+        self._forget_heartbeat()
+        self.client.close()
+        return 0
+
+    def _on_signal(self, signum: int, _frame: FrameType | None) -> None:
+        self.request_stop()
+
+    def _resilient(self, step: Callable[[], None]) -> None:
+        """Run ``step`` until stopped, surviving Redis outages and unexpected errors."""
+        while not self.stop.is_set():
+            try:
+                step()
+            except redis.exceptions.ConnectionError as exc:
+                log.warning("worker %s: Redis unreachable (%s); retrying", self.id, exc)
+                self.stop.wait(RECONNECT_S)
+            except Exception:
+                log.exception("worker %s: unexpected error; continuing", self.id)
+                self.stop.wait(RECONNECT_S)
+
+    def _job_loop(self, index: int) -> None:
+        processor = JobProcessor(
+            self.client, self.store, max_deliveries=self.config.max_deliveries, stop=self.stop
+        )
+        consumer: StreamConsumer | None = None
+
+        def step() -> None:
+            nonlocal consumer
+            if consumer is None:
+                consumer = StreamConsumer(
+                    self.client,
+                    JOBS_STREAM,
+                    f"{self.id}-j{index}",
+                    max_deliveries=self.config.max_deliveries,
+                )
+            deliveries = consumer.read_own_pending(1) or consumer.reclaim(
+                self.config.claim_idle_ms, count=1
+            )
+            if not deliveries and not self.stop.is_set():
+                deliveries = consumer.read_new(block_ms=BLOCK_MS, count=1)
+            for delivery in deliveries:
+                processor.handle(consumer, delivery)
+                self.jobs_done += 1
+
+        self._resilient(step)
+
+    def _device_loop(self) -> None:
+        decode = make_frame_decoder(self.config.frame_mode, self.config.decoder)
+        devices = DeviceConsumer(
+            self.client,
+            self.store,
+            owner=self.id,
+            lease_ms=self.config.lease_ms,
+            max_deliveries=self.config.max_deliveries,
+            decode=decode,
+            stop=self.stop,
+        )
+        self._devices = devices
+
+        def step() -> None:
+            if not devices.poll():
+                self.stop.wait(DEVICE_IDLE_S)
+
+        self._resilient(step)
+        try:
+            devices.release_all()
+        except redis.exceptions.ConnectionError:
+            log.warning("worker %s: could not release device leases (they will lapse)", self.id)
+
+    def _heartbeat_loop(self) -> None:
+        last_purge = 0.0
+        while not self.stop.is_set():
+            try:
+                self._beat()
+                if time.monotonic() - last_purge > PURGE_EVERY_S:
+                    last_purge = time.monotonic()
+                    removed = self.store.purge_expired()
+                    if removed:
+                        log.info("worker %s purged %d expired results", self.id, removed)
+            except redis.exceptions.ConnectionError as exc:
+                log.warning("worker %s: heartbeat failed (%s)", self.id, exc)
+            self.stop.wait(self.config.heartbeat_s)
+
+    def _beat(self) -> None:
+        now = time.time_ns()
+        beat = {
+            "ts_ns": now,
+            "started_ns": self.started_ns,
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "concurrency": self.config.concurrency,
+            "jobs_done": self.jobs_done,
+            "devices": sorted(list(self._devices.states)) if self._devices else [],
+        }
+        self.client.hset(WORKERS_HEARTBEAT, self.id, json.dumps(beat))
+        stale_ns = STALE_HEARTBEATS * self.config.heartbeat_s * 1e9
+        for worker_id, raw in self.client.hgetall(WORKERS_HEARTBEAT).items():
+            if now - int(json.loads(raw).get("ts_ns", 0)) > stale_ns:
+                self.client.hdel(WORKERS_HEARTBEAT, worker_id)
+
+    def _forget_heartbeat(self) -> None:
+        try:
+            self.client.hdel(WORKERS_HEARTBEAT, self.id)
+        except redis.exceptions.ConnectionError:
+            log.warning("worker %s: could not remove its heartbeat", self.id)
