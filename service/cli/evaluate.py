@@ -1,0 +1,66 @@
+"""``mcam evaluate``: quality metrics of a reconstruction against a reference image."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+from models.frames import read_winding
+from models.hdr_io import read_hdr
+from models.metrics import evaluate
+
+#: Display names and units of the metrics in the table.
+LABELS: dict[str, tuple[str, str]] = {
+    "winding_accuracy": ("winding accuracy", "fraction of pixels"),
+    "psnr": ("PSNR (linear)", "dB"),
+    "pu21_psnr": ("PU21-PSNR", "dB"),
+    "ssim": ("SSIM (Reinhard)", ""),
+    "ms_ssim": ("MS-SSIM (Reinhard)", ""),
+    "hdr_flip": ("HDR-FLIP", "mean error"),
+}
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``evaluate`` command."""
+    parser = subparsers.add_parser(
+        "evaluate",
+        help="compare a reconstruction with a reference HDR image",
+        description="Print winding accuracy, PSNR, PU21-PSNR, SSIM, MS-SSIM (and HDR-FLIP "
+        "when installed) of an HDR image against a reference of the same scale.",
+    )
+    parser.add_argument("image", help="the reconstruction: .exr, .hdr or .pic")
+    parser.add_argument("--reference", required=True, help="reference HDR image, same scale")
+    parser.add_argument("--winding", metavar="W.png", help="decoded W map (mcam reconstruct)")
+    parser.add_argument(
+        "--winding-reference", metavar="W.png", help="true W map (mcam simulate --ground-truth)"
+    )
+    parser.add_argument("--no-flip", action="store_true", help="skip HDR-FLIP (slow)")
+    parser.add_argument("--json", action="store_true", help="print JSON (an infinite PSNR is null)")
+    parser.set_defaults(func=run)
+
+
+def format_table(results: dict[str, float]) -> str:
+    """The metrics as aligned text rows: name, value, unit."""
+    rows = [(*LABELS.get(name, (name, "")), value) for name, value in results.items()]
+    width = max(len(label) for label, _, _ in rows)
+    return "\n".join(
+        f"{label:<{width}}  {value:>10.4f}  {unit}".rstrip() for label, unit, value in rows
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read both images (and W maps), compute the metrics, print them."""
+    estimate = read_hdr(args.image)
+    reference = read_hdr(args.reference)
+    winding = read_winding(args.winding) if args.winding else None
+    winding_ref = read_winding(args.winding_reference) if args.winding_reference else None
+    results = evaluate(
+        estimate.pixels, reference.pixels, winding, winding_ref, flip=not args.no_flip
+    )
+    if args.json:
+        print(json.dumps({k: v if math.isfinite(v) else None for k, v in results.items()}))
+    else:
+        print(format_table(results))
+    return 0

@@ -1,0 +1,41 @@
+"""Shared command-line pieces: the sensor-parameter flags and the EXR attributes they become."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from models.formation import ENCODINGS, SensorParams
+
+#: Flags that set (simulate) or override (reconstruct) a frame's sensor parameters.
+SENSOR_FLAGS: tuple[str, ...] = ("encoding", "alpha", "bits", "gain")
+
+
+def add_sensor_flags(parser: argparse.ArgumentParser, description: str) -> None:
+    """Add ``--encoding --alpha --bits --gain`` (each None unless given) in their own group."""
+    group = parser.add_argument_group("sensor parameters", description)
+    group.add_argument("--encoding", choices=ENCODINGS, help="how the pixel wraps")
+    group.add_argument(
+        "--alpha", type=float, help="mantissa base (> 1): one more wrap per factor alpha"
+    )
+    group.add_argument("--bits", type=int, help="code bit depth, 1..16")
+    group.add_argument(
+        "--gain", type=float, help="scene irradiance to wrap units: x = gain * scene (> 0)"
+    )
+
+
+def sensor_values(args: argparse.Namespace) -> dict[str, Any]:
+    """The sensor flags as a mapping, None where not given."""
+    return {name: getattr(args, name) for name in SENSOR_FLAGS}
+
+
+def params_attributes(params: SensorParams) -> dict[str, str]:
+    """EXR string attributes recording a frame's encoding, alpha, bits and (known) gain."""
+    attributes = {
+        "encoding": params.encoding,
+        "alpha": repr(params.alpha),
+        "bits": str(params.bits),
+    }
+    if params.gain is not None:
+        attributes["gain"] = repr(params.gain)
+    return attributes
