@@ -1,0 +1,105 @@
+"""On-the-fly training pairs ``(m, W)``, made with models.formation only.
+
+A batch mixes random crops of the 14 training HDRIs (random 1x/2x downscale,
+wrapping around the panorama seam) and seeded synthetic scenes; each crop gets
+random flips and 90-degree rotations, a random exposure (overexposed fraction
+0.05..0.35), a random ``max_wraps`` and optionally read noise. Grayscale.
+Everything is seeded by ``(seed, step)`` so a resumed run sees the same data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from models.errors import InvalidInputError
+from models.formation import SensorParams, dequantize, simulate
+from models.scenes import TRAIN_SCENES, load_hdri_gray, synthetic_scene
+from models.training.networks import NUM_CLASSES
+
+OVEREXPOSED_RANGE = (0.05, 0.35)
+
+
+@dataclass(frozen=True)
+class PairConfig:
+    """What the sampler draws: encoding, crop size (px), batch size and noise range."""
+
+    encoding: str
+    crop: int = 64
+    batch: int = 8
+    max_read_noise: float = 0.0
+    synthetic_fraction: float = 0.5
+    bits: int = 8
+
+
+@cache
+def _train_scenes() -> tuple[NDArray[np.float64], ...]:
+    return tuple(load_hdri_gray(name) for name in TRAIN_SCENES)
+
+
+def _hdri_crop(rng: np.random.Generator, size: int) -> NDArray[np.float64]:
+    """A random ``size x size`` crop of a training HDRI, at 1x or 2x downscale."""
+    scene = _train_scenes()[int(rng.integers(len(TRAIN_SCENES)))]
+    factor = int(rng.integers(1, 3))
+    span = size * factor
+    top = int(rng.integers(0, scene.shape[0] - span + 1))
+    rows = np.roll(scene[top : top + span], -int(rng.integers(scene.shape[1])), axis=1)
+    crop = rows[:, :span]
+    return crop.reshape(size, factor, size, factor).mean(axis=(1, 3))
+
+
+def _augment(rng: np.random.Generator, scene: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Random horizontal/vertical flips and a 90-degree rotation."""
+    if rng.uniform() < 0.5:
+        scene = scene[:, ::-1]
+    if rng.uniform() < 0.5:
+        scene = scene[::-1]
+    return np.ascontiguousarray(np.rot90(scene, int(rng.integers(4))))
+
+
+def _max_wraps(rng: np.random.Generator, encoding: str) -> float:
+    """Modulo: 2..16 wraps; mantissa: 2..4096 (W <= 13 at alpha 2), both < NUM_CLASSES."""
+    if encoding == "modulo":
+        return float(rng.uniform(2.0, NUM_CLASSES - 1))
+    return float(2.0 ** rng.uniform(1.0, 12.0))
+
+
+def sample_pair(
+    rng: np.random.Generator, config: PairConfig
+) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+    """One training pair: ``m`` (float32, crop x crop) and true ``W`` (int64)."""
+    while True:
+        if rng.uniform() < config.synthetic_fraction:
+            scene = synthetic_scene(int(rng.integers(2**31)), config.crop)
+        else:
+            scene = _hdri_crop(rng, config.crop)
+        noise = rng.uniform(0.0, config.max_read_noise) if rng.uniform() < 0.5 else 0.0
+        params = SensorParams(
+            encoding=config.encoding,  # type: ignore[arg-type]
+            bits=config.bits,
+            max_wraps=_max_wraps(rng, config.encoding),
+            read_noise=noise,
+            seed=int(rng.integers(2**31)),
+        )
+        augmented = _augment(rng, scene)
+        overexposed = rng.uniform(*OVEREXPOSED_RANGE)
+        try:
+            frame = simulate(augmented, params, overexposed=overexposed)
+        except InvalidInputError:
+            continue
+        winding = np.minimum(frame.winding, NUM_CLASSES - 1)
+        return dequantize(frame.codes, config.bits).astype(np.float32), winding
+
+
+def sample_batch(
+    seed: int, step: int, config: PairConfig
+) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+    """Batch for ``step``: ``m`` as ``N x 1 x H x W`` float32 and ``W`` as ``N x 1 x H x W``."""
+    rng = np.random.default_rng([seed, step])
+    pairs = [sample_pair(rng, config) for _ in range(config.batch)]
+    m = np.stack([p[0] for p in pairs])[:, None]
+    winding = np.stack([p[1] for p in pairs])[:, None]
+    return m, winding

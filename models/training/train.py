@@ -1,0 +1,177 @@
+"""Seeded, resumable CPU training of the MantissaCam nets in the paper's three stages.
+
+Stage 1 trains the edge net alone (BCE against the true wrap edges); stage 2 the
+winding net on the true edges; stage 3 both end to end (winding loss + 0.1 edge
+BCE). Batches depend only on ``(seed, step)``; a checkpoint is written every
+``checkpoint_every`` steps under ``runs/<name>/`` and a restarted run resumes from
+it. Losses go to ``runs/<name>/log.jsonl``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from models.training.data import PairConfig, sample_batch
+from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, wrap_edges
+
+RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
+LOSSES = ("ce", "mse")
+STAGE_LR = (2e-3, 2e-3, 5e-4)
+EDGE_WEIGHT = 0.1
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. ``stage_steps``: optimizer steps of stages 1, 2 and 3."""
+
+    tier: str = "small"
+    encoding: str = "mantissa"
+    loss: str = "ce"
+    stage_steps: tuple[int, int, int] = (500, 3500, 2000)
+    crop: int = 64
+    batch: int = 8
+    max_read_noise: float = 0.0
+    seed: int = 0
+    threads: int = 1
+    checkpoint_every: int = 100
+    log_every: int = 20
+    runs_dir: Path = field(default=RUNS_DIR, compare=False)
+
+    @property
+    def name(self) -> str:
+        noise = "-noise" if self.max_read_noise > 0 else ""
+        return f"mantissanet-{self.tier}-{self.encoding}{noise}"
+
+    @property
+    def run_dir(self) -> Path:
+        return self.runs_dir / self.name
+
+    @property
+    def total_steps(self) -> int:
+        return sum(self.stage_steps)
+
+    def stage(self, step: int) -> int:
+        """Stage (1, 2 or 3) of global step ``step``."""
+        first, second, _ = self.stage_steps
+        return 1 if step < first else 2 if step < first + second else 3
+
+    def learning_rate(self, step: int) -> float:
+        """Per-stage rate with a cosine decay to 5% over each stage."""
+        stage = self.stage(step)
+        start = sum(self.stage_steps[: stage - 1])
+        progress = (step - start) / max(self.stage_steps[stage - 1], 1)
+        return STAGE_LR[stage - 1] * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def build_model(config: TrainConfig) -> MantissaNet:
+    """The seeded, freshly initialised net of the run's tier and loss."""
+    torch.manual_seed(config.seed)
+    model = MantissaNet(TIERS[config.tier])
+    if config.loss == "mse":
+        model.winding.head = torch.nn.Conv2d(TIERS[config.tier].widths[0], 1, 1)
+    return model
+
+
+def winding_loss(logits: Tensor, winding: Tensor, loss: str) -> Tensor:
+    """Cross-entropy over W classes, or MSE on W (the paper's) for a 1-channel output."""
+    if loss == "mse":
+        return F.mse_loss(logits, winding.float())
+    return F.cross_entropy(logits, winding[:, 0])
+
+
+def predicted_winding(logits: Tensor, loss: str) -> Tensor:
+    """Integer W from the net's output: argmax of the classes, or the rounded regression."""
+    if loss == "mse":
+        return logits.round().clamp(0, NUM_CLASSES - 1)[:, 0].long()
+    return logits.argmax(dim=1)
+
+
+def step_losses(
+    model: MantissaNet, m: Tensor, winding: Tensor, stage: int, loss: str
+) -> tuple[Tensor, dict[str, float]]:
+    """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy)."""
+    truth = wrap_edges(winding)
+    if stage == 1:
+        edge_bce = F.binary_cross_entropy(model.edge(m).clamp(1e-4, 1 - 1e-4), truth)
+        return edge_bce, {"edge_bce": edge_bce.item()}
+    if stage == 2:
+        logits = model.winding(m, truth)
+        total = winding_loss(logits, winding, loss)
+        parts: dict[str, float] = {}
+    else:
+        logits, edges = model(m)
+        edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
+        total = winding_loss(logits, winding, loss) + EDGE_WEIGHT * edge_bce
+        parts = {"edge_bce": edge_bce.item()}
+    accuracy = (predicted_winding(logits, loss) == winding[:, 0]).float().mean()
+    return total, {**parts, "accuracy": accuracy.item()}
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Write atomically (temporary file, then rename)."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint written by :func:`train` (model, optimizer, step, wall_s, config)."""
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None = None) -> Path:
+    """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records."""
+    if config.loss not in LOSSES or config.tier not in TIERS:
+        raise ValueError(f"loss must be one of {LOSSES} and tier one of {tuple(TIERS)}")
+    torch.set_num_threads(config.threads)
+    config.run_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint = config.run_dir / "checkpoint.pt"
+    model = build_model(config)
+    optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])
+    step, wall_s = 0, 0.0
+    if checkpoint.exists():
+        state = load_checkpoint(checkpoint)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, wall_s = state["step"], state["wall_s"]
+    pairs = PairConfig(config.encoding, config.crop, config.batch, config.max_read_noise)
+    model.train()
+    started = time.monotonic() - wall_s
+    with (config.run_dir / "log.jsonl").open("a") as log:
+        while step < config.total_steps:
+            m_np, w_np = sample_batch(config.seed, step, pairs)
+            stage = config.stage(step)
+            for group in optimizer.param_groups:
+                group["lr"] = config.learning_rate(step)
+            loss, parts = step_losses(
+                model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss
+            )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            step += 1
+            if step % config.log_every == 0 or step == config.total_steps:
+                record = {"step": step, "stage": stage, "loss": loss.item(), **parts,
+                          "lr": config.learning_rate(step - 1),
+                          "wall_s": round(time.monotonic() - started, 1)}  # fmt: skip
+                log.write(json.dumps(record) + "\n")
+                log.flush()
+                if report:
+                    report(record)
+            if step % config.checkpoint_every == 0 or step == config.total_steps:
+                save_checkpoint(checkpoint, {
+                    "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                    "step": step, "wall_s": time.monotonic() - started,
+                    "config": {**asdict(config), "runs_dir": str(config.runs_dir)},
+                })  # fmt: skip
+    return checkpoint
