@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 from fastapi import Response
 from numpy.typing import NDArray
 
 from models.errors import UnsupportedFormatError
 from models.frames import encode_frame
+from worker.outputs import encode_winding
 
 MEDIA_TYPES: dict[str, str] = {
     "png": "image/png",
@@ -23,9 +22,7 @@ def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
     """A W map file: ``npy`` (int64, any W) or 16-bit ``png``/``tiff`` (0 <= W <= 65535)."""
     w = np.asarray(winding, dtype=np.int64)
     if fmt == "npy":
-        buffer = io.BytesIO()
-        np.save(buffer, w, allow_pickle=False)
-        return buffer.getvalue()
+        return encode_winding(w)
     if w.max() > np.iinfo(np.uint16).max or w.min() < 0:
         raise UnsupportedFormatError(
             f"W reaches {int(w.max())}, beyond a 16-bit {fmt.upper()}; ask for format=npy"

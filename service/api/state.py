@@ -15,10 +15,7 @@ from service.core.config import Settings
 from service.core.security import KeyRing, RateLimiter
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.queue import JobQueue
-from worker.result_store import ResultStore
-
-#: Sub-folder of the data dir holding the result store (shared with the workers).
-RESULTS_DIR = "results"
+from worker.result_store import RESULTS_DIR, ResultStore
 
 
 @dataclass

@@ -65,7 +65,10 @@ class ReconstructionFields(SensorFields):
     width: int | None = Field(None, ge=1, le=1 << 16, description="raw frames: pixels per row")
     height: int | None = Field(None, ge=1, le=1 << 16, description="raw frames: rows")
     channels: int | None = Field(None, ge=1, le=4, description="raw frames: codes per pixel")
-    scene_referred: bool = Field(False, description="divide the result by the gain (if known)")
+    scene_referred: bool = Field(
+        True, description="divide the result by the gain when known (false: wrap units)"
+    )
+    half: bool = Field(False, description="write a half-float EXR (default float32)")
 
 
 class SimulateFields(SensorFields):
@@ -137,8 +140,9 @@ def merge_fields(model: type[Model], query: BaseModel, upload: Upload) -> Model:
         raise RequestValidationError(exc.errors()) from None
 
 
-def sniff_frame_format(upload: Upload, declared: str | None) -> str:
-    """The frame format: declared, else the file name's suffix, else the leading bytes."""
+def sniff_frame_format(upload: Upload, declared: str | None, raw_size: bool) -> str:
+    """The frame format: declared, else the file name's suffix, else the leading bytes,
+    else ``raw`` when a raw frame size (``raw_size``) was given."""
     if declared:
         return declared
     if upload.filename and "." in upload.filename:
@@ -148,6 +152,8 @@ def sniff_frame_format(upload: Upload, declared: str | None) -> str:
     for magic, fmt in _MAGIC:
         if upload.data.startswith(magic):
             return fmt
+    if raw_size:
+        return "raw"
     raise UnsupportedFormatError(
         "cannot tell the frame's format: send a .png, .tiff or .npy file, or raw codes with "
         "format=raw, width, height, bits and encoding"

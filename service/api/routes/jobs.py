@@ -50,7 +50,7 @@ def finished_record(state: ServiceState, job_id: str) -> JobRecord:
 
 def wrap_units(record: JobRecord, pixels: NDArray[np.float64]) -> NDArray[np.float64]:
     """The EXR's pixels in wrap units (undo the scene-referred division by the gain)."""
-    if record.options.get("scene_referred") and record.params.gain is not None:
+    if record.options.get("scene_referred", True) and record.params.gain is not None:
         return pixels * record.params.gain
     return pixels
 

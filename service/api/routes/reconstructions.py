@@ -38,7 +38,8 @@ def read_wrapped_frame(
     upload: Upload, fields: ReconstructionFields, max_pixels: int
 ) -> WrappedFrame:
     """The codes and parameters of the uploaded frame (file, or raw codes + fields)."""
-    fmt = sniff_frame_format(upload, fields.format)
+    raw_size = fields.width is not None and fields.height is not None
+    fmt = sniff_frame_format(upload, fields.format, raw_size)
     overrides = fields.sensor_overrides()
     if fmt != "raw":
         frame = decode_frame(upload.data, fmt, overrides, max_pixels)
@@ -77,7 +78,7 @@ def submit(
         frame.codes,
         frame.params,
         decoder,
-        {"scene_referred": fields.scene_referred},
+        {"scene_referred": fields.scene_referred, "half": fields.half},
     )
     url = f"/v1/jobs/{record.id}"
     if wait_s > 0:

@@ -1,0 +1,54 @@
+"""``mcam api``: run the REST API and the web viewer (no worker) with uvicorn.
+
+With ``MCAM_REDIS_URL`` unset it starts the embedded Redis in the data dir;
+jobs then need a worker on the same data dir (``mcam worker``) or use
+``mcam serve``, which runs everything in one command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+import uvicorn
+
+from service.core.config import Settings, get_settings
+from service.core.security import KEY_FILE_NAME, KeyRing
+from service.main import create_app
+
+
+def settings_with(settings: Settings, **updates: Any) -> Settings:
+    """``settings`` with the given (non-None) values replaced, validated."""
+    given = {name: value for name, value in updates.items() if value is not None}
+    return Settings.model_validate({**settings.model_dump(), **given})
+
+
+def announce(settings: Settings, new_key: str | None) -> None:
+    """Print where the API listens and, once, a newly generated API key."""
+    print(f"MantissaCam API on http://{settings.host}:{settings.port}/ (docs: /docs)")
+    if new_key is not None:
+        print(
+            f"generated API key (stored in {settings.data_dir / KEY_FILE_NAME}): {new_key}\n"
+            f"use it as: Authorization: Bearer {new_key}"
+        )
+    sys.stdout.flush()
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser(
+        "api",
+        help="run the REST API and web viewer",
+        description="Run the REST API and web viewer (workers run separately: mcam worker).",
+    )
+    parser.add_argument("--host", help="listen address (default: MCAM_HOST or 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="listen port (default: MCAM_PORT or 8000)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = settings_with(get_settings(), host=args.host, port=args.port)
+    _, new_key = KeyRing.from_settings(settings)
+    announce(settings, new_key)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    return 0

@@ -1,0 +1,178 @@
+"""POST /v1/reconstructions against a live API, a real Redis and a real worker."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import httpx
+import numpy as np
+import pytest
+
+from models.frames import encode_frame
+from tests.service.conftest import PARAMS, READ_KEY, SUBMIT_KEY, frame_png, npy_bytes
+from worker.runner import Worker
+
+Client = Callable[[str], httpx.Client]
+
+
+def test_prefer_wait_returns_the_finished_job(client: Client, worker: Worker) -> None:
+    data, _ = frame_png()
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": ("frame.png", data, "image/png")},
+        data={"decoder": "itoh"},
+        headers={"Prefer": "wait=20"},
+    )
+    assert reply.status_code == 200, reply.text
+    job = reply.json()
+    assert job["state"] == "succeeded"
+    assert job["decoder"] == "itoh"
+    assert set(job["timings_ns"]) >= {"decode", "encode"}
+    assert job["links"]["result"] == f"/v1/jobs/{job['id']}/result"
+    assert reply.headers["Location"] == f"/v1/jobs/{job['id']}"
+
+
+def test_without_prefer_the_job_is_accepted(client: Client) -> None:
+    data, _ = frame_png()
+    reply = client(SUBMIT_KEY).post(
+        "/v1/reconstructions", files={"file": ("f.png", data)}, data={"quality": "fast"}
+    )
+    assert reply.status_code == 202, reply.text
+    body = reply.json()
+    assert body["url"] == f"/v1/jobs/{body['id']}" and body["state"] == "queued"
+
+
+def test_raw_body_with_query_parameters(client: Client, worker: Worker) -> None:
+    _, codes = frame_png()
+    reply = client().post(
+        "/v1/reconstructions",
+        content=codes.tobytes(),
+        params={"width": 64, "height": 64, "bits": 8, "encoding": "mantissa", "alpha": 2},
+        headers={"Content-Type": "application/octet-stream", "Prefer": "wait=20"},
+    )
+    assert reply.status_code == 200, reply.text
+    assert reply.json()["params"]["bits"] == 8
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "status", "code"),
+    [
+        (
+            {"content": b"\x89PNG\r\n\x1a\nbroken", "params": {"format": "png"}},
+            422,
+            "invalid_input",
+        ),
+        ({"content": b"hello", "params": {}}, 415, "unsupported_format"),
+        (
+            {"content": bytes(100), "params": {"format": "raw", "width": 8, "height": 8}},
+            422,
+            "missing_parameter",
+        ),
+        (
+            {
+                "content": bytes(63),
+                "params": {
+                    "format": "raw",
+                    "width": 8,
+                    "height": 8,
+                    "bits": 8,
+                    "encoding": "modulo",
+                },
+            },
+            422,
+            "invalid_input",
+        ),
+    ],
+)
+def test_bad_raw_uploads(client: Client, kwargs: dict, status: int, code: str) -> None:
+    reply = client().post(
+        "/v1/reconstructions", headers={"Content-Type": "application/octet-stream"}, **kwargs
+    )
+    assert reply.status_code == status, reply.text
+    assert reply.json()["code"] == code
+
+
+def test_codes_above_bit_depth_are_refused(client: Client) -> None:
+    codes = np.full((8, 8), 300, np.uint16)
+    reply = client().post(
+        "/v1/reconstructions",
+        content=codes.tobytes(),
+        params={"format": "raw", "width": 8, "height": 8, "bits": 16, "encoding": "modulo"},
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    assert reply.status_code == 202
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": ("f.npy", npy_bytes(codes))},
+        data={"bits": "8", "encoding": "modulo"},
+    )
+    assert reply.status_code == 422
+    assert "2^8" in reply.json()["message"]
+
+
+def test_float_codes_are_refused(client: Client) -> None:
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": ("f.npy", npy_bytes(np.zeros((8, 8), np.float32)))},
+        data={"bits": "8", "encoding": "modulo"},
+    )
+    assert reply.status_code == 422
+    assert "dtype" in reply.json()["message"]
+
+
+def test_missing_parameters_name_the_flags(client: Client) -> None:
+    reply = client().post(
+        "/v1/reconstructions", files={"file": ("f.npy", npy_bytes(np.zeros((8, 8), np.uint8)))}
+    )
+    assert reply.status_code == 422
+    body = reply.json()
+    assert body["code"] == "missing_parameter" and "--encoding" in body["message"]
+
+
+def test_truncated_png_is_a_clear_422(client: Client) -> None:
+    data, _ = frame_png()
+    reply = client().post("/v1/reconstructions", files={"file": ("f.png", data[: len(data) // 2])})
+    assert reply.status_code == 422
+    assert "truncated" in reply.json()["message"]
+
+
+def test_too_many_pixels_is_413_before_decoding(client: Client) -> None:
+    bomb = encode_frame(np.zeros((1024, 1024), np.uint8), PARAMS, "png")
+    assert len(bomb) < 20_000  # a small file that would expand to a large image
+    reply = client().post("/v1/reconstructions", files={"file": ("bomb.png", bomb)})
+    assert reply.status_code == 413
+    assert reply.json()["code"] == "image_too_large"
+
+
+@pytest.mark.parametrize(
+    ("fields", "fragment"),
+    [
+        ({"decoder": "nope"}, "unknown decoder"),
+        ({"decoder": "itoh", "quality": "fast"}, "either decoder or quality"),
+        ({"quality": "ultra"}, "quality"),
+        ({"bits": "twelve"}, "bits"),
+        ({"alpha": "0.5"}, "alpha"),
+        ({"colour": "red"}, "colour"),
+    ],
+)
+def test_bad_form_fields(client: Client, fields: dict[str, str], fragment: str) -> None:
+    data, _ = frame_png()
+    reply = client().post("/v1/reconstructions", files={"file": ("f.png", data)}, data=fields)
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["code"] in ("invalid_input", "missing_parameter")
+    assert fragment in reply.json()["message"]
+
+
+def test_missing_file_field_and_wrong_content_type(client: Client) -> None:
+    reply = client().post("/v1/reconstructions", data={"bits": "8"}, files={"other": ("a", b"x")})
+    assert reply.status_code == 422 and "'file'" in reply.json()["message"]
+    reply = client().post(
+        "/v1/reconstructions", content=b"{}", headers={"Content-Type": "application/json"}
+    )
+    assert reply.status_code == 415 and reply.json()["code"] == "unsupported_format"
+
+
+def test_read_only_key_cannot_submit(client: Client) -> None:
+    data, _ = frame_png()
+    reply = client(READ_KEY).post("/v1/reconstructions", files={"file": ("f.png", data)})
+    assert reply.status_code == 403 and reply.json()["code"] == "forbidden"

@@ -1,0 +1,69 @@
+"""Tests of ``mcam evaluate`` through the real console script."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from models.hdr_io import read_hdr, write_exr
+from models.metrics import evaluate
+from tests.service.cli.conftest import assert_one_line_error, run_mcam
+
+
+def test_evaluate_json_matches_the_metrics_module(pipeline: Path) -> None:
+    result = run_mcam(
+        "evaluate", "hdr.exr", "--reference", "reference.exr", "--winding", "W.png",
+        "--winding-reference", "W_true.png", "--json", "--no-flip",
+        cwd=pipeline,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    printed = json.loads(result.stdout)
+    expected = evaluate(
+        read_hdr(pipeline / "hdr.exr").pixels,
+        read_hdr(pipeline / "reference.exr").pixels,
+        flip=False,
+    )
+    assert printed["winding_accuracy"] == 1.0
+    for name, value in expected.items():
+        assert printed[name] == value
+    assert printed["psnr"] > 40.0
+
+
+def test_evaluate_table_and_identical_images(pipeline: Path) -> None:
+    table = run_mcam("evaluate", "hdr.exr", "--reference", "reference.exr", cwd=pipeline)
+    assert table.returncode == 0, table.stderr
+    lines = table.stdout.splitlines()
+    assert lines[0].startswith("PSNR (linear)")
+    assert lines[0].endswith("dB")
+    assert any(line.startswith("PU21-PSNR") for line in lines)
+    same = run_mcam(
+        "evaluate", "reference.exr", "--reference", "reference.exr", "--json", "--no-flip",
+        cwd=pipeline,
+    )  # fmt: skip
+    assert json.loads(same.stdout)["psnr"] is None
+
+
+def test_evaluate_bad_input(tmp_path: Path, pipeline: Path) -> None:
+    write_exr(tmp_path / "small.exr", np.ones((5, 5)))
+    assert_one_line_error(
+        run_mcam("evaluate", pipeline / "hdr.exr", "--reference", "small.exr", cwd=tmp_path),
+        "shape",
+    )
+    assert_one_line_error(
+        run_mcam(
+            "evaluate",
+            pipeline / "hdr.exr",
+            "--reference",
+            pipeline / "reference.exr",
+            "--winding",
+            pipeline / "W.png",
+            cwd=tmp_path,
+        ),  # fmt: skip
+        "winding",
+    )
+    assert_one_line_error(
+        run_mcam("evaluate", "absent.exr", "--reference", "small.exr", cwd=tmp_path),
+        "no such file",
+    )

@@ -1,0 +1,99 @@
+"""Tests of ``mcam reconstruct`` through the real console script."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from models.formation import SensorParams, simulate
+from models.frames import read_winding, write_frame
+from models.hdr_io import read_hdr
+from tests.service.cli.conftest import assert_one_line_error, blob_scene, run_mcam
+
+
+def test_itoh_recovers_the_smooth_scene(pipeline: Path) -> None:
+    """Every W right, and x_hat within the 8-bit mantissa bound of the reference."""
+    np.testing.assert_array_equal(
+        read_winding(pipeline / "W.png"), read_winding(pipeline / "W_true.png")
+    )
+    image = read_hdr(pipeline / "hdr.exr")
+    reference = read_hdr(pipeline / "reference.exr").pixels
+    assert image.pixels.shape == reference.shape
+    gain = float(image.attributes["gain"])
+    x = reference * gain
+    bound = np.where(x < 1.0, 2.0**-9, x * (2.0 ** (2.0**-9) - 1.0)) / gain
+    assert np.all(np.abs(image.pixels - reference) <= bound * (1 + 1e-5) + 1e-7)
+
+
+def test_exr_attributes_record_the_decode(pipeline: Path) -> None:
+    attributes = read_hdr(pipeline / "hdr.exr").attributes
+    assert attributes["encoding"] == "mantissa"
+    assert attributes["alpha"] == "2.0"
+    assert attributes["bits"] == "8"
+    assert attributes["decoder"] == "itoh"
+    assert attributes["decoderVersion"]
+    assert "scene-referred" in attributes["comments"]
+    assert "capDate" in attributes
+    assert "decoder itoh" in (pipeline / "reconstruct.out").read_text()
+
+
+def test_flags_fill_in_a_bare_npy_and_half_output(tmp_path: Path) -> None:
+    """An npy frame has no stored params: the flags supply them; without gain, x is written."""
+    params = SensorParams(encoding="modulo", bits=10, gain=1.0)
+    frame = simulate(blob_scene(size=32, peak=6.0), params)
+    np_path = tmp_path / "bare.npy"
+    write_frame(np_path, frame.codes, None)
+    result = run_mcam(
+        "reconstruct", np_path, "-o", "x.exr", "--encoding", "modulo", "--bits", "10", "--half",
+        "--decoder", "herraez",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    image = read_hdr(tmp_path / "x.exr")
+    assert "gain" not in image.attributes
+    assert "wrap units" in image.attributes["comments"]
+    np.testing.assert_allclose(image.pixels, frame.irradiance, atol=2.0**-11 + 6.0 * 2.0**-11)
+
+
+def test_list_decoders(tmp_path: Path) -> None:
+    result = run_mcam("reconstruct", "--list-decoders", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    names = [line.split()[0] for line in result.stdout.splitlines()]
+    assert {"itoh", "herraez"} <= set(names)
+    assert "least-squares" in result.stdout
+
+
+def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
+    np.save(tmp_path / "bare.npy", np.zeros((8, 8), np.uint8))
+    np.save(tmp_path / "float.npy", np.zeros((8, 8), np.float32))
+    missing = run_mcam("reconstruct", "bare.npy", "-o", "x.exr", cwd=tmp_path)
+    assert_one_line_error(missing, "--encoding", "--bits")
+    assert_one_line_error(
+        run_mcam("reconstruct", "nope.png", "-o", "x.exr", cwd=tmp_path), "no such file", "nope.png"
+    )
+    floats = run_mcam(
+        "reconstruct", "float.npy", "-o", "x.exr", "--encoding", "modulo", "--bits", "8",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(floats, "integers", "float32")
+    assert_one_line_error(
+        run_mcam(
+            "reconstruct",
+            pipeline / "wrapped.png",
+            "-o",
+            "x.exr",
+            "--decoder",
+            "magic",
+            cwd=tmp_path,
+        ),  # fmt: skip
+        "unknown decoder",
+        "itoh",
+    )
+    assert_one_line_error(run_mcam("reconstruct", cwd=tmp_path), "--list-decoders")
+    overflow = run_mcam(
+        "reconstruct", pipeline / "wrapped.png", "-o", "x.exr", "--gain", "1e-3", "--half",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(overflow, "float16")
+    assert not (tmp_path / "x.exr").exists()

@@ -1,0 +1,77 @@
+"""Tests of ``mcam simulate`` through the real console script."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from models.formation import reconstruct
+from models.frames import read_frame, read_winding
+from models.hdr_io import read_hdr, write_exr
+from tests.service.cli.conftest import assert_one_line_error, blob_scene, run_mcam
+
+
+def test_simulate_writes_frame_ground_truth_and_reference(pipeline: Path) -> None:
+    frame = read_frame(pipeline / "wrapped.png")
+    assert frame.codes.shape == (64, 64)
+    assert frame.codes.dtype == np.uint8
+    assert (frame.params.encoding, frame.params.alpha, frame.params.bits) == ("mantissa", 2.0, 8)
+    scene = read_hdr(pipeline / "scene.exr").pixels
+    # --overexposed 0.2: a fifth of the pixels reach x >= 1.
+    assert (
+        np.mean(scene * frame.params.gain >= 1.0) == np.float64(0.2).round(2)
+        or abs(np.mean(scene * frame.params.gain >= 1.0) - 0.2) < 1.0 / scene.size + 1e-12
+    )
+    winding = read_winding(pipeline / "W_true.png")
+    assert winding.min() == 0
+    assert winding.max() >= 3
+    reference = read_hdr(pipeline / "reference.exr")
+    np.testing.assert_allclose(reference.pixels, scene, rtol=1e-6)
+    assert reference.attributes["encoding"] == "mantissa"
+    assert float(reference.attributes["gain"]) == frame.params.gain
+    assert "wrote wrapped.png" in (pipeline / "simulate.out").read_text()
+
+
+def test_true_winding_inverts_the_frame(pipeline: Path) -> None:
+    """Codes + the true W give the reference back within half a quantization bin."""
+    frame = read_frame(pipeline / "wrapped.png")
+    winding = read_winding(pipeline / "W_true.png")
+    x_hat = reconstruct(frame.codes, winding, frame.params, scene_referred=True)
+    reference = read_hdr(pipeline / "reference.exr").pixels
+    x = reference * frame.params.gain
+    bound = np.where(x < 1.0, 2.0**-9, x * (2.0 ** (2.0**-9) - 1.0)) / frame.params.gain
+    assert np.all(np.abs(x_hat - reference) <= bound * (1 + 1e-5) + 1e-7)
+
+
+def test_simulate_rgb_tiff_with_noise_and_max_wraps(tmp_path: Path) -> None:
+    write_exr(tmp_path / "rgb.exr", blob_scene(size=24, rgb=True))
+    result = run_mcam(
+        "simulate", "rgb.exr", "-o", "rgb.tiff", "--encoding", "modulo", "--bits", "12",
+        "--gain", "0.5", "--max-wraps", "16", "--read-noise", "0.001", "--seed", "3",
+        "--reference-out", "ref.exr",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    frame = read_frame(tmp_path / "rgb.tiff")
+    assert frame.codes.shape == (24, 24, 3)
+    assert frame.params.max_wraps == 16.0
+    assert frame.params.seed == 3
+    # the reference is what the sensor saw: x clipped at max_wraps, back in scene units
+    assert read_hdr(tmp_path / "ref.exr").pixels.max() == 16.0 / 0.5
+
+
+def test_simulate_bad_input(tmp_path: Path) -> None:
+    write_exr(tmp_path / "rgb.exr", blob_scene(size=16, rgb=True))
+    assert_one_line_error(
+        run_mcam("simulate", "missing.exr", "-o", "w.png", cwd=tmp_path), "no such file"
+    )
+    assert_one_line_error(
+        run_mcam("simulate", "rgb.exr", "-o", "w.png", "--gain", "1", cwd=tmp_path), ".tiff"
+    )
+    assert_one_line_error(
+        run_mcam("simulate", "rgb.exr", "-o", "w.jpg", cwd=tmp_path), "unsupported"
+    )
+    assert_one_line_error(
+        run_mcam("simulate", "rgb.exr", "-o", "w.tiff", "--alpha", "0.5", cwd=tmp_path), "alpha"
+    )

@@ -1,0 +1,152 @@
+"""Real parts for the API tests: a redis-server, uvicorn on 127.0.0.1, a worker, HTTP clients."""
+
+from __future__ import annotations
+
+import io
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+from fastapi import FastAPI
+
+from models.formation import SensorParams, simulate
+from models.frames import encode_frame
+from models.hdr_io import encode_exr
+from service.core.config import Settings
+from service.main import create_app
+from worker.embedded_redis import EmbeddedRedis
+from worker.runner import Worker, WorkerConfig
+
+FULL_KEY = "full-key-0123456789abcdef"
+READ_KEY = "read-key-0123456789abcdef"
+SUBMIT_KEY = "submit-key-0123456789abcdef"
+PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8, gain=1.0)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def serve(app: FastAPI) -> Iterator[str]:
+    """Run ``app`` under uvicorn on 127.0.0.1 in a thread; yields its base URL."""
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.02)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(15)
+
+
+@contextmanager
+def running_worker(settings: Settings) -> Iterator[Worker]:
+    """A real worker (job consumers only) in a thread, on the settings' Redis and data dir."""
+    assert settings.redis_url is not None
+    worker = Worker(
+        WorkerConfig(
+            redis_url=settings.redis_url,
+            data_dir=settings.data_dir,
+            heartbeat_s=settings.heartbeat_s,
+            devices=False,
+        )
+    )
+    thread = threading.Thread(target=worker.run, daemon=True)
+    thread.start()
+    try:
+        yield worker
+    finally:
+        worker.request_stop()
+        thread.join(15)
+
+
+@pytest.fixture
+def redis_url(tmp_path: Path) -> Iterator[str]:
+    with EmbeddedRedis(tmp_path / "redis-home") as url:
+        yield url
+
+
+def make_settings(tmp_path: Path, redis_url: str | None, **overrides: object) -> Settings:
+    values: dict[str, object] = {
+        "data_dir": tmp_path / "data",
+        "redis_url": redis_url,
+        "api_keys": f"{FULL_KEY},{READ_KEY}:read,{SUBMIT_KEY}:submit",
+        "max_upload_bytes": 2_000_000,
+        "max_pixels": 512 * 512,
+        "heartbeat_s": 0.5,
+        "default_decoder": "itoh",
+        **overrides,
+    }
+    return Settings(_env_file=None, **values)  # type: ignore[call-arg]
+
+
+@pytest.fixture
+def settings(tmp_path: Path, redis_url: str) -> Settings:
+    return make_settings(tmp_path, redis_url)
+
+
+@pytest.fixture
+def api(settings: Settings) -> Iterator[str]:
+    with serve(create_app(settings)) as url:
+        yield url
+
+
+@pytest.fixture
+def worker(settings: Settings) -> Iterator[Worker]:
+    with running_worker(settings) as running:
+        yield running
+
+
+@pytest.fixture
+def client(api: str) -> Iterator[Callable[[str], httpx.Client]]:
+    """``client(key)``: an HTTP client for the live API with that Bearer key."""
+    opened: list[httpx.Client] = []
+
+    def make(key: str = FULL_KEY) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {key}"} if key else {}
+        opened.append(httpx.Client(base_url=api, headers=headers, timeout=30))
+        return opened[-1]
+
+    yield make
+    for http in opened:
+        http.close()
+
+
+def scene(size: int = 64) -> np.ndarray:
+    """A smooth HDR ramp (1e-2 .. 30 wrap units) with a bright disc: a few wraps."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    values = 0.01 * np.power(3000.0, x) * (1 + 0.2 * y)
+    disc = (x - 0.3) ** 2 + (y - 0.6) ** 2 < 0.02
+    return np.where(disc, values * 4, values)
+
+
+def exr_bytes(size: int = 64) -> bytes:
+    return encode_exr(scene(size))
+
+
+def frame_png(size: int = 64, params: SensorParams = PARAMS) -> tuple[bytes, np.ndarray]:
+    """A wrapped frame as a PNG (params embedded) and its codes."""
+    frame = simulate(scene(size), params)
+    return encode_frame(frame.codes, frame.params, "png"), frame.codes
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
