@@ -15,7 +15,7 @@ shape mismatches with :class:`InvalidInputError`.
   range 1 (Wang et al. 2004). MS-SSIM uses the 5-scale weights of Wang et al.
   (2003) with 2 x 2 average downsampling; an image too small for 5 scales (the
   coarsest must still be >= 11 px, i.e. min side >= 176) uses as many scales
-  as fit with the first weights renormalized to sum to 1. Negative
+  as fit with the first weights renormalized to sum to 1 (one scale is SSIM). Negative
   contrast-structure terms are clamped to 0 before the fractional powers.
 - ``hdr_flip``: mean HDR-FLIP error (NVIDIA), only when the optional
   ``flip-evaluator`` package is installed, else ``None``.
@@ -198,7 +198,8 @@ def ms_ssim_ldr(a: ArrayLike, b: ArrayLike, data_range: float = 1.0) -> float:
     a64, b64 = _check_planes(a, b)
     scales = ms_ssim_scales(a64.shape)
     weights = np.array(MS_SSIM_WEIGHTS[:scales])
-    weights /= weights.sum()
+    if scales < len(MS_SSIM_WEIGHTS):
+        weights /= weights.sum()
     terms = []
     for scale in range(scales):
         lum, cs = _ssim_maps(a64, b64, data_range)
