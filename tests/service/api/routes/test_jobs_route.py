@@ -1,0 +1,119 @@
+"""/v1/jobs/{id}: state, results (data files and previews), cancel; against real parts."""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from models.decoders.registry import get_decoder
+from models.frames import decode_frame
+from models.hdr_io import read_hdr
+from tests.service.conftest import PARAMS, READ_KEY, SUBMIT_KEY, frame_png
+from worker.runner import Worker
+
+Client = Callable[[str], httpx.Client]
+
+
+def finished_job(http: httpx.Client, **fields: str) -> dict:
+    data, _ = frame_png()
+    reply = http.post(
+        "/v1/reconstructions",
+        files={"file": ("frame.png", data)},
+        data={"decoder": "itoh", **fields},
+        headers={"Prefer": "wait=30"},
+    )
+    assert reply.status_code == 200, reply.text
+    return reply.json()
+
+
+def test_results_match_the_in_process_decoder(client: Client, worker: Worker) -> None:
+    http = client()
+    job = finished_job(http)
+    assert http.get(f"/v1/jobs/{job['id']}").json()["state"] == "succeeded"
+    _, codes = frame_png()
+    expected = get_decoder("itoh").decode(codes, PARAMS)
+    exr = http.get(f"/v1/jobs/{job['id']}/result")
+    assert exr.status_code == 200 and exr.headers["content-type"] == "image/x-exr"
+    x_hat = read_hdr(exr.content).pixels
+    np.testing.assert_allclose(x_hat, expected.irradiance, rtol=1e-6)
+    winding = http.get(f"/v1/jobs/{job['id']}/result", params={"part": "winding"})
+    np.testing.assert_array_equal(np.load(io.BytesIO(winding.content)), expected.winding)
+
+
+def test_codes_part_gives_back_the_uploaded_codes(client: Client, worker: Worker) -> None:
+    http = client()
+    job = finished_job(http)
+    reply = http.get(f"/v1/jobs/{job['id']}/result", params={"part": "codes", "format": "tiff"})
+    assert reply.status_code == 200
+    _, codes = frame_png()
+    np.testing.assert_array_equal(decode_frame(reply.content, "tiff").codes, codes)
+
+
+def test_previews_and_histogram(client: Client, worker: Worker) -> None:
+    http = client(READ_KEY)
+    job = finished_job(client())
+    url = f"/v1/jobs/{job['id']}/result"
+    dark = Image.open(io.BytesIO(http.get(url, params={"format": "png", "exposure": -6}).content))
+    bright = Image.open(io.BytesIO(http.get(url, params={"format": "png", "exposure": 2}).content))
+    assert dark.size == (64, 64) and dark.mode == "L"
+    assert np.asarray(dark).mean() < np.asarray(bright).mean()
+    w_png = Image.open(
+        io.BytesIO(http.get(url, params={"part": "winding", "format": "png"}).content)
+    )
+    assert w_png.mode == "RGB" and w_png.size == (64, 64)
+    histogram = http.get(url, params={"part": "histogram"}).json()
+    assert len(histogram["counts"]) == len(histogram["log10_edges"]) - 1
+    assert sum(histogram["counts"]) + histogram["zero_pixels"] == 64 * 64
+
+
+@pytest.mark.parametrize(
+    ("params", "status"),
+    [
+        ({"part": "histogram", "format": "png"}, 422),
+        ({"part": "image", "format": "npy"}, 422),
+        ({"part": "volume"}, 422),
+        ({"exposure": "99"}, 422),
+        ({"format": "gif"}, 422),
+    ],
+)
+def test_bad_result_queries(client: Client, worker: Worker, params: dict, status: int) -> None:
+    job = finished_job(client())
+    reply = client().get(f"/v1/jobs/{job['id']}/result", params=params)
+    assert reply.status_code == status, reply.text
+    assert reply.json()["code"] == "invalid_input"
+
+
+def test_queued_job_has_no_result_and_can_be_cancelled(client: Client) -> None:
+    data, _ = frame_png()
+    job = client(SUBMIT_KEY).post("/v1/reconstructions", files={"file": ("f.png", data)}).json()
+    reply = client().get(f"/v1/jobs/{job['id']}/result")
+    assert reply.status_code == 409 and reply.json()["code"] == "job_not_finished"
+    cancelled = client(SUBMIT_KEY).delete(f"/v1/jobs/{job['id']}")
+    assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
+    assert client(SUBMIT_KEY).delete(f"/v1/jobs/{job['id']}").status_code == 200
+    assert client(READ_KEY).delete(f"/v1/jobs/{job['id']}").status_code == 403
+    assert "cancelled" in client().get(f"/v1/jobs/{job['id']}/result").json()["message"]
+
+
+def test_finished_job_cannot_be_cancelled(client: Client, worker: Worker) -> None:
+    job = finished_job(client())
+    reply = client().delete(f"/v1/jobs/{job['id']}")
+    assert reply.status_code == 409 and reply.json()["code"] == "job_finished"
+
+
+@pytest.mark.parametrize("job_id", ["0" * 32, "..%2F..%2Fetc%2Fpasswd", "ABC", "0" * 31 + "g"])
+def test_unknown_or_malformed_ids_are_404(client: Client, job_id: str) -> None:
+    for path in (f"/v1/jobs/{job_id}", f"/v1/jobs/{job_id}/result"):
+        reply = client().get(path)
+        assert reply.status_code == 404, path
+        assert reply.json()["code"] == "not_found"
+
+
+def test_submit_only_key_cannot_read(client: Client) -> None:
+    reply = client(SUBMIT_KEY).get(f"/v1/jobs/{'0' * 32}")
+    assert reply.status_code == 403

@@ -1,0 +1,115 @@
+"""POST /v1/simulate over real HTTP: EXR in, wrapped frame (or W) out, every bad input."""
+
+from __future__ import annotations
+
+import io
+import json
+from collections.abc import Callable
+
+import httpx
+import numpy as np
+import OpenEXR
+import pytest
+import tifffile
+
+from models.formation import SensorParams, simulate
+from models.frames import decode_frame
+from models.hdr_io import encode_exr
+from tests.service.conftest import READ_KEY, exr_bytes, scene
+
+Client = Callable[[str], httpx.Client]
+FIELDS = {"encoding": "mantissa", "alpha": "2", "bits": "12", "gain": "1"}
+
+
+def expected_frame(bits: int = 12):
+    return simulate(scene(), SensorParams(encoding="mantissa", alpha=2.0, bits=bits, gain=1.0))
+
+
+def test_exr_to_png_frame_with_params(client: Client) -> None:
+    reply = client().post("/v1/simulate", files={"file": ("s.exr", exr_bytes())}, data=FIELDS)
+    assert reply.status_code == 200, reply.text
+    assert reply.headers["content-type"] == "image/png"
+    frame = decode_frame(reply.content, "png")
+    np.testing.assert_array_equal(frame.codes, expected_frame().codes)
+    assert frame.params.bits == 12 and frame.params.gain == 1.0
+    assert json.loads(reply.headers["X-Mcam-Params"])["alpha"] == 2.0
+
+
+@pytest.mark.parametrize("fmt", ["npy", "tiff"])
+def test_other_formats_and_winding(client: Client, fmt: str) -> None:
+    http = client()
+    files = {"file": ("s.exr", exr_bytes())}
+    frame = http.post("/v1/simulate", files=files, data={**FIELDS, "format": fmt})
+    assert frame.status_code == 200
+    winding = http.post(
+        "/v1/simulate", files=files, data={**FIELDS, "format": fmt, "part": "winding"}
+    )
+    read = np.load if fmt == "npy" else tifffile.imread
+    np.testing.assert_array_equal(read(io.BytesIO(frame.content)), expected_frame().codes)
+    np.testing.assert_array_equal(read(io.BytesIO(winding.content)), expected_frame().winding)
+
+
+def test_raw_exr_body_with_query_parameters(client: Client) -> None:
+    reply = client().post(
+        "/v1/simulate",
+        content=exr_bytes(),
+        params={**FIELDS, "bits": 8, "format": "npy"},
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    assert reply.status_code == 200, reply.text
+    np.testing.assert_array_equal(np.load(io.BytesIO(reply.content)), expected_frame(8).codes)
+
+
+def test_overexposed_sets_the_gain(client: Client) -> None:
+    reply = client().post(
+        "/v1/simulate",
+        files={"file": ("s.exr", exr_bytes())},
+        data={"encoding": "modulo", "bits": "8", "overexposed": "0.25"},
+    )
+    assert reply.status_code == 200, reply.text
+    assert json.loads(reply.headers["X-Mcam-Params"])["gain"] > 0
+
+
+def nan_exr() -> bytes:
+    values = scene()
+    values[3, 3] = np.nan
+    buffer = io.BytesIO()
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, {"Y": values.astype(np.float32)}).write(buffer)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("data", "fields", "status", "code"),
+    [
+        (b"GIF89a not an hdr", FIELDS, 415, "unsupported_format"),
+        (exr_bytes()[:200], FIELDS, 422, "invalid_input"),
+        (exr_bytes(), {**FIELDS, "overexposed": "0.1"}, 422, "invalid_input"),
+        (exr_bytes(), {**FIELDS, "bits": "17"}, 422, "invalid_input"),
+        (exr_bytes(), {**FIELDS, "format": "jpeg"}, 422, "invalid_input"),
+        (encode_exr(np.ones((600, 600))), FIELDS, 413, "image_too_large"),
+        (encode_exr(-scene()), FIELDS, 422, "invalid_input"),
+    ],
+)
+def test_bad_inputs(client: Client, data: bytes, fields: dict, status: int, code: str) -> None:
+    reply = client().post("/v1/simulate", files={"file": ("s.exr", data)}, data=fields)
+    assert reply.status_code == status, reply.text
+    assert reply.json()["code"] == code
+    assert reply.json()["message"]
+
+
+def test_nan_pixels_are_refused(client: Client) -> None:
+    reply = client().post("/v1/simulate", files={"file": ("s.exr", nan_exr())}, data=FIELDS)
+    assert reply.status_code == 422 and "NaN" in reply.json()["message"]
+
+
+def test_clip_negative_allows_negative_pixels(client: Client) -> None:
+    values = scene()
+    values[0, 0] = -1.0
+    data = {**FIELDS, "clip_negative": "true"}
+    reply = client().post("/v1/simulate", files={"file": ("s.exr", encode_exr(values))}, data=data)
+    assert reply.status_code == 200, reply.text
+
+
+def test_needs_the_submit_scope(client: Client) -> None:
+    reply = client(READ_KEY).post("/v1/simulate", files={"file": ("s.exr", exr_bytes())})
+    assert reply.status_code == 403
