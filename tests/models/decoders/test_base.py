@@ -1,0 +1,121 @@
+"""The decoder interface (models/decoders/base.py): shape checks, anchoring, dispatch."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from models.decoders.base import (
+    ANCHOR_PERCENTILE,
+    Decoder,
+    anchor_winding,
+    check_frame_shape,
+)
+from models.decoders.classical import ItohDecoder
+from models.errors import InvalidInputError, OutputOverflowError
+from models.formation import SensorParams, encode
+
+MODULO = SensorParams(encoding="modulo", bits=8)
+
+
+class ConstantDecoder(Decoder):
+    """Predicts one winding number everywhere and reports the plane's mean m."""
+
+    name = "constant"
+
+    def __init__(self, winding: int) -> None:
+        self.winding = winding
+
+    def predict_winding(self, m: np.ndarray, params: SensorParams) -> np.ndarray:
+        return np.full(m.shape, self.winding, np.int64)
+
+    def explain_winding(
+        self, m: np.ndarray, params: SensorParams
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        return self.predict_winding(m, params), {"mean_m": float(m.mean())}
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (2, 5), (3, 2, 1), (4, 4, 3)])
+def test_frames_of_2x2_and_more_with_1_or_3_channels_pass(shape: tuple[int, ...]) -> None:
+    check_frame_shape(np.zeros(shape, np.uint8))
+
+
+@pytest.mark.parametrize(
+    ("shape", "message"),
+    [
+        ((5,), "H x W or H x W x 3"),
+        ((2, 2, 2, 2), "H x W or H x W x 3"),
+        ((4, 4, 2), "1 or 3 channels"),
+        ((1, 9), "1 x 9 frame has no neighbours"),
+        ((9, 1, 3), "9 x 1 frame"),
+    ],
+)
+def test_frames_a_decoder_cannot_unwrap_are_rejected(shape: tuple[int, ...], message: str) -> None:
+    with pytest.raises(InvalidInputError, match=message):
+        check_frame_shape(np.zeros(shape, np.uint8))
+
+
+def test_anchor_shifts_the_darkest_pixels_to_zero() -> None:
+    relative = np.array([[-3, -3, -2], [-1, 0, 4]])
+    assert np.array_equal(anchor_winding(relative, MODULO), relative + 3)
+
+
+def test_anchor_ignores_rare_outliers_and_clamps_them_to_zero() -> None:
+    relative = np.full((100, 100), 5, np.int64)
+    relative[:, 50:] = 7
+    outliers = int(relative.size * ANCHOR_PERCENTILE / 100) - 1
+    relative.flat[:outliers] = -40
+    anchored = anchor_winding(relative, MODULO)
+    assert anchored.flat[outliers] == 0
+    assert anchored.max() == 2
+    assert np.all(anchored.flat[:outliers] == 0)
+
+
+def test_anchor_clamps_to_max_winding() -> None:
+    relative = np.arange(12).reshape(3, 4)
+    assert anchor_winding(relative, MODULO.model_copy(update={"max_wraps": 4.0})).max() == 4
+    assert not anchor_winding(relative, SensorParams(encoding="clip")).any()
+
+
+def test_decoder_is_abstract() -> None:
+    with pytest.raises(TypeError):
+        Decoder()  # type: ignore[abstract]
+
+
+def test_single_channel_stack_keeps_its_shape() -> None:
+    frame = encode(np.linspace(0, 3, 64).reshape(8, 8, 1), MODULO)
+    result = ItohDecoder().decode(frame.codes, MODULO)
+    assert result.winding.shape == (8, 8, 1)
+    assert np.array_equal(result.winding, frame.winding)
+
+
+def test_explanations_are_reported_per_channel() -> None:
+    codes = np.zeros((4, 4, 3), np.uint8)
+    codes[..., 1] = 128
+    info = ConstantDecoder(0).decode(codes, MODULO).info
+    assert info["decoder"] == "constant"
+    assert [c["mean_m"] for c in info["channels"]] == [0.5 / 256, 128.5 / 256, 0.5 / 256]
+    single = ConstantDecoder(0).decode(codes[..., 1], MODULO).info
+    assert single["details"] == {"mean_m": 128.5 / 256}
+
+
+def test_inversion_uses_predicted_winding() -> None:
+    codes = np.full((3, 3), 64, np.uint8)
+    result = ConstantDecoder(2).decode(codes, SensorParams(encoding="mantissa", alpha=2.0))
+    assert np.allclose(result.irradiance, 2.0 ** (2 + 64.5 / 256 - 1))
+
+
+def test_clip_frames_skip_prediction() -> None:
+    result = ConstantDecoder(7).decode(
+        np.full((3, 3), 255, np.uint8), SensorParams(encoding="clip")
+    )
+    assert not result.winding.any()
+    assert "details" not in result.info
+
+
+def test_absurd_winding_is_an_overflow_error_not_inf() -> None:
+    params = SensorParams(encoding="mantissa", alpha=2.0)
+    with pytest.raises(OutputOverflowError, match="9 pixels"):
+        ConstantDecoder(5000).decode(np.zeros((3, 3), np.uint8), params)
