@@ -81,6 +81,7 @@ class AdaptiveDecoder(Decoder):
         pixels: Counter[str] = Counter()
         tiles: list[Tile] = []
         absolute: list[tuple[Tile, NDArray[np.int64]]] = []
+        trusted = np.zeros(m.shape, bool)
         for region in analysis.tiles:
             rows = slice(region.row, region.row + region.height)
             cols = slice(region.col, region.col + region.width)
@@ -96,6 +97,7 @@ class AdaptiveDecoder(Decoder):
                 relative = self._decode_with_context(hard, m, rows, cols, params)
             tile = Tile(rows, cols, relative)
             tiles.append(tile)
+            trusted[rows, cols] = route in (PASS_THROUGH, INTEGRATION)
             if route == hard.name and hard.name != CLASSICAL_FALLBACK:
                 absolute.append((tile, relative))
             pixels[route] += region.height * region.width
@@ -104,7 +106,7 @@ class AdaptiveDecoder(Decoder):
             winding += _network_offset(winding, absolute)
             winding = np.maximum(winding, 0)
         else:
-            winding = anchor_winding(winding, params)
+            winding = anchor_winding(winding, params, trusted)
         reason = f"{difficulty} wraps; quality {self.quality}"
         return _clamp(winding, params), _report(pixels, reason)
 

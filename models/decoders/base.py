@@ -53,15 +53,22 @@ def check_frame_shape(codes: NDArray[Any]) -> None:
         )
 
 
-def anchor_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
+def anchor_winding(
+    relative: NDArray[np.int64],
+    params: SensorParams,
+    trusted: NDArray[np.bool_] | None = None,
+) -> NDArray[np.int64]:
     """Fix the unknown constant of an unwrapping: the darkest pixels get W = 0.
 
     Unwrapping recovers W only up to a global offset. The exposure is set for the
     dark detail, so the darkest pixels never wrap: we shift W so that its
     lower-tail value (the ``ANCHOR_PERCENTILE`` percentile, robust to a few
     isolated errors) is 0, then clamp to [0, max_winding] (W >= 0 since x >= 0).
+    ``trusted`` (optional) restricts that percentile to pixels whose relative W
+    is known to be exact, so a region of guesses cannot move the anchor.
     """
-    offset = int(np.floor(np.percentile(relative, ANCHOR_PERCENTILE)))
+    basis = relative if trusted is None or not trusted.any() else relative[trusted]
+    offset = int(np.floor(np.percentile(basis, ANCHOR_PERCENTILE)))
     winding = np.maximum(relative - offset, 0)
     top = max_winding(params)
     return winding if top is None else np.minimum(winding, top)

@@ -1,0 +1,88 @@
+"""Tests of models/decoders/adaptive.py: routing per tile and a consistent global W."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.decoders import get_decoder
+from models.decoders.adaptive import (
+    INTEGRATION,
+    PASS_THROUGH,
+    QUALITIES,
+    AdaptiveDecoder,
+    specs,
+)
+from models.formation import SensorParams, encode
+
+MODULO = SensorParams(encoding="modulo", bits=8)
+MANTISSA = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+
+
+def blob(size: int, peak: float, center: tuple[float, float], sigma: float) -> np.ndarray:
+    rows, cols = np.mgrid[0:size, 0:size]
+    r2 = (rows - center[0]) ** 2 + (cols - center[1]) ** 2
+    return peak * np.exp(-r2 / (2 * sigma**2))
+
+
+def test_specs_offer_each_quality() -> None:
+    names = [spec.name for spec in specs()]
+    assert names == ["auto", "auto-fast", "auto-balanced", "auto-best"]
+    assert all(spec.kind == "adaptive" for spec in specs())
+
+
+def test_rejects_unknown_quality() -> None:
+    with pytest.raises(ValueError, match="quality"):
+        AdaptiveDecoder("ultra")
+
+
+@pytest.mark.parametrize("params", [MODULO, MANTISSA])
+def test_unwrapped_frame_is_passed_through(params: SensorParams) -> None:
+    frame = encode(0.05 + blob(128, 0.9, (64, 64), 30), params)
+    result = get_decoder("auto").decode(frame.codes, params)
+    assert not result.winding.any()
+    assert result.info["details"]["routes"] == {PASS_THROUGH: 1.0}
+    np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+@pytest.mark.parametrize("params", [MODULO, MANTISSA])
+def test_smooth_frame_is_integrated_exactly(params: SensorParams) -> None:
+    shape = blob(256, 1.0, (128, 128), 45)
+    x = 20.0 * shape if params.encoding == "modulo" else 0.5 * 2.0 ** (20.0 * shape)
+    frame = encode(x, params)
+    assert frame.winding.max() == 20
+    result = get_decoder("auto").decode(frame.codes, params)
+    assert result.info["details"]["routes"] == {INTEGRATION: 1.0}
+    np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+def test_mostly_dark_frame_runs_the_hard_decoder_on_few_tiles() -> None:
+    """A dark frame with one small hard spot: most pixels need no decoding at all."""
+    x = np.full((256, 256), 0.2)
+    rng = np.random.default_rng(0)
+    x[100:140, 150:190] += rng.uniform(0, 3, (40, 40))
+    frame = encode(x, MODULO)
+    result = AdaptiveDecoder("fast").decode(frame.codes, MODULO)
+    routes = result.info["details"]["routes"]
+    assert routes[PASS_THROUGH] >= 0.8
+    assert sum(v for k, v in routes.items() if k not in (PASS_THROUGH, INTEGRATION)) <= 0.2
+    dark = np.ones(x.shape, bool)
+    dark[84:156, 134:206] = False
+    np.testing.assert_array_equal(result.winding[dark], frame.winding[dark])
+
+
+@pytest.mark.parametrize("quality", QUALITIES)
+def test_mixed_frame_is_globally_consistent(quality: str) -> None:
+    """Two smooth bright blobs on a dark floor, tiles of every kind: W right everywhere."""
+    x = 0.1 + blob(256, 12.0, (70, 70), 30) + blob(256, 8.0, (180, 190), 25)
+    frame = encode(x, MODULO)
+    result = AdaptiveDecoder(quality, tile=64).decode(frame.codes, MODULO)
+    np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+def test_rgb_frames_report_each_channel() -> None:
+    x = np.stack([blob(64, 3.0 * k + 0.5, (32, 32), 12) for k in range(3)], axis=2)
+    frame = encode(x, MODULO)
+    result = get_decoder("auto").decode(frame.codes, MODULO)
+    assert len(result.info["channels"]) == 3
+    np.testing.assert_array_equal(result.winding, frame.winding)
