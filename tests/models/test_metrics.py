@@ -147,6 +147,13 @@ def test_ms_ssim_properties() -> None:
     assert ms_ssim_ldr(a, b) == pytest.approx(ms_ssim_ldr(b, a), rel=1e-12)
 
 
+@pytest.mark.parametrize(("sigma", "expected"), [(0.05, 0.98988556), (0.2, 0.89189771)])
+def test_ms_ssim_matches_pytorch_msssim(sigma: float, expected: float) -> None:
+    """Values computed once with pytorch-msssim 1.0.0 (float64 tensors, data_range 1)."""
+    a = _texture((256, 256))
+    assert ms_ssim_ldr(a, _noisy(a, sigma)) == pytest.approx(expected, abs=1e-6)
+
+
 def test_ms_ssim_uses_as_many_scales_as_fit() -> None:
     assert ms_ssim_scales((256, 256)) == 5
     assert ms_ssim_scales((176, 300)) == 5
