@@ -50,7 +50,7 @@ class TrainConfig:
     @property
     def name(self) -> str:
         noise = "-noise" if self.max_read_noise > 0 else ""
-        return f"mantissanet-{self.tier}-{self.encoding}{noise}"
+        return f"mantissanet-{self.tier}{noise}-{self.encoding}"
 
     @property
     def run_dir(self) -> Path:

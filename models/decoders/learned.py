@@ -1,0 +1,206 @@
+"""Learned decoders run with onnxruntime: ``mantissanet-<tier>`` and ``unmodnet``.
+
+Models are discovered from the JSON model cards in ``models/onnx/``; a decoder
+picks the card of the frame's encoding. Each ONNX session is created once (per
+decoder instance and encoding) and reused; intra-op threads come from the
+environment variable ``MCAM_WORKER_THREADS`` (default 2).
+
+A frame is padded (reflected) to the net's multiple; frames larger than the
+card's tile size are cut into overlapping tiles. W is global, so tiles are not
+blended: each tile's integer offset is set by the median difference to the
+already decoded pixels of its overlap, and only new pixels are written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+from numpy.typing import NDArray
+
+from models.decoders.base import Decoder, anchor_winding
+from models.decoders.registry import DecoderSpec
+from models.errors import InvalidInputError
+from models.formation import SensorParams, max_winding
+
+ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
+THREADS_ENV = "MCAM_WORKER_THREADS"
+DEFAULT_THREADS = 2
+#: Overlap between neighbouring tiles, in pixels (a multiple of the net's multiple).
+OVERLAP = 64
+
+
+def worker_threads() -> int:
+    """Intra-op threads for onnxruntime: ``MCAM_WORKER_THREADS`` or 2."""
+    raw = os.environ.get(THREADS_ENV, str(DEFAULT_THREADS))
+    if not raw.isdigit() or int(raw) < 1:
+        raise InvalidInputError(f"{THREADS_ENV} must be a positive integer, got {raw!r}")
+    return int(raw)
+
+
+def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:
+    """Every model card (``*.json``) whose ONNX file exists, sorted by file name."""
+    cards = []
+    for path in sorted(onnx_dir.glob("*.json")):
+        card = json.loads(path.read_text())
+        if (onnx_dir / card["file"]).exists():
+            cards.append({**card, "path": str(onnx_dir / card["file"])})
+    return cards
+
+
+def make_session(path: str, threads: int) -> ort.InferenceSession:
+    """A CPU onnxruntime session with ``threads`` intra-op threads."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+
+
+def pad_to_multiple(m: NDArray[np.float32], multiple: int) -> NDArray[np.float32]:
+    """Reflect-pad (edge-pad when too small to reflect) bottom/right to a multiple."""
+    pad = [(0, -size % multiple) for size in m.shape]
+    mode = "reflect" if all(p[1] < s for p, s in zip(pad, m.shape, strict=True)) else "edge"
+    return np.pad(m, pad, mode=mode)
+
+
+def tile_starts(size: int, tile: int, overlap: int) -> list[int]:
+    """Start offsets of tiles of ``tile`` px covering ``size`` px with >= ``overlap`` overlap."""
+    if size <= tile:
+        return [0]
+    stride = tile - overlap
+    starts = list(range(0, size - tile, stride))
+    return [*starts, size - tile]
+
+
+def tiles(shape: tuple[int, int], tile: int, overlap: int) -> Iterator[tuple[slice, slice]]:
+    """Row and column slices of overlapping tiles in raster order."""
+    for top in tile_starts(shape[0], tile, overlap):
+        for left in tile_starts(shape[1], tile, overlap):
+            yield slice(top, min(top + tile, shape[0])), slice(left, min(left + tile, shape[1]))
+
+
+def stitch_overlapping(
+    shape: tuple[int, int], tile: int, overlap: int, predict: Any
+) -> NDArray[np.int64]:
+    """Run ``predict(rows, cols) -> W`` per tile and stitch with integer offsets.
+
+    Each tile is shifted by the median of (its W - the decoded W) over the
+    pixels already written; then only unwritten pixels are filled.
+    """
+    winding = np.zeros(shape, np.int64)
+    written = np.zeros(shape, bool)
+    for rows, cols in tiles(shape, tile, overlap):
+        predicted = predict(rows, cols)
+        seen = written[rows, cols]
+        if seen.any():
+            offset = np.median(predicted[seen] - winding[rows, cols][seen])
+            predicted = predicted - int(np.round(offset))
+        winding[rows, cols] = np.where(seen, winding[rows, cols], predicted)
+        written[rows, cols] = True
+    return winding
+
+
+class OnnxWindingModel:
+    """One ONNX file (``m -> W``) with its card; the session is created on first use."""
+
+    def __init__(self, card: dict[str, Any]) -> None:
+        self.card = card
+        self._session: ort.InferenceSession | None = None
+
+    @property
+    def session(self) -> ort.InferenceSession:
+        if self._session is None:
+            self._session = make_session(self.card["path"], worker_threads())
+        return self._session
+
+    def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
+        """W (int64, H x W) for a map of m no larger than the tile."""
+        padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))
+        out = self.session.run(None, {"m": padded[None, None]})[0]
+        return out[0, 0, : m.shape[0], : m.shape[1]].astype(np.int64)
+
+    def predict(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
+        """W for a frame of any size: tiled with reconciled offsets when large."""
+        tile = int(self.card["tile"])
+        if max(m.shape) <= tile:
+            return self.run(m)
+        return stitch_overlapping(m.shape, tile, OVERLAP, lambda r, c: self.run(m[r, c]))
+
+
+def finish_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
+    """Anchor (darkest pixels W = 0) and clamp to the encoding's largest W."""
+    winding = anchor_winding(relative, params)
+    top = max_winding(params)
+    return winding if top is None else np.minimum(winding, top)
+
+
+class LearnedDecoder(Decoder):
+    """A learned decoder with one ONNX model per encoding (the frame's encoding picks it)."""
+
+    def __init__(self, name: str, cards: list[dict[str, Any]]) -> None:
+        self.name = name  # type: ignore[misc]
+        self.models = {card["encoding"]: OnnxWindingModel(card) for card in cards}
+        self.version = ",".join(sorted(card["sha256"][:12] for card in cards))
+
+    def model_for(self, params: SensorParams) -> OnnxWindingModel:
+        """The model trained for ``params.encoding``; a clear error when there is none."""
+        if params.encoding not in self.models:
+            raise InvalidInputError(
+                f"decoder {self.name!r} has no model for the {params.encoding!r} encoding; "
+                f"it supports: {', '.join(sorted(self.models))}"
+            )
+        return self.models[params.encoding]
+
+    def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+        return finish_winding(self.model_for(params).predict(m), params)
+
+
+def describe(name: str, cards: list[dict[str, Any]]) -> str:
+    """One-line description of a learned decoder from its cards."""
+    card = cards[0]
+    encodings = "/".join(sorted(c["encoding"] for c in cards))
+    return (
+        f"{card['family']} {card.get('tier', '')} learned decoder ({encodings}), "
+        f"{card['parameters']} parameters, {card['gflops_256']} GFLOPs at 256x256"
+    )
+
+
+def figures(cards: list[dict[str, Any]]) -> dict[str, Any]:
+    """Measured facts from the cards, per encoding (val-256 metrics, size, cost)."""
+    return {
+        card["encoding"]: {
+            "parameters": card["parameters"],
+            "gflops_256": card["gflops_256"],
+            "val256": card.get("val256", {}),
+        }
+        for card in cards
+    }
+
+
+@cache
+def _grouped_cards() -> dict[str, list[dict[str, Any]]]:
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for card in load_cards():
+        groups.setdefault(card["decoder"], []).append(card)
+    return groups
+
+
+def specs() -> list[DecoderSpec]:
+    """One spec per learned decoder found in ``models/onnx`` (none when no models ship)."""
+    return [
+        DecoderSpec(
+            name=name,
+            kind="learned",
+            description=describe(name, cards),
+            factory=lambda name=name, cards=cards: LearnedDecoder(name, cards),
+            figures=figures(cards),
+        )
+        for name, cards in _grouped_cards().items()
+    ]

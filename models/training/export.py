@@ -1,0 +1,129 @@
+"""Export a trained run to ONNX (dynamic H and W) and write its model card.
+
+The exported graph maps ``m`` (``1 x 1 x H x W`` float32, H and W multiples of
+:data:`MULTIPLE`) to ``winding`` (``1 x 1 x H x W`` int64): the argmax (or the
+rounded regression) is inside the graph. The card (JSON, next to the .onnx) is
+what the runtime discovers; :func:`models.decoders.learned.specs` reads it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from torch.utils.flop_counter import FlopCounterMode
+
+from models.scenes import TRAIN_SCENES
+from models.training.networks import MULTIPLE, NUM_CLASSES, MantissaNet, parameter_count
+from models.training.train import TrainConfig, build_model, load_checkpoint
+
+ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
+OPSET = 17
+TILE = 256
+
+
+class WindingGraph(nn.Module):
+    """Inference graph: ``m -> W`` (int64), argmax or rounded regression inside."""
+
+    def __init__(self, model: MantissaNet, loss: str) -> None:
+        super().__init__()
+        self.model = model
+        self.loss = loss
+
+    def forward(self, m: Tensor) -> Tensor:
+        logits, _ = self.model(m)
+        if self.loss == "mse":
+            return logits.round().clamp(0, NUM_CLASSES - 1).long()
+        return logits.argmax(dim=1, keepdim=True)
+
+
+def gflops_at(model: nn.Module, size: int = TILE) -> float:
+    """GFLOPs (2 per multiply-add) of one ``size x size`` forward pass."""
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        model(torch.rand(1, 1, size, size))
+    return counter.get_total_flops() / 1e9
+
+
+def export_onnx(module: nn.Module, path: Path) -> None:
+    """Export ``module`` (m -> winding) with dynamic batch, height and width."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    axes = {0: "batch", 2: "height", 3: "width"}
+    torch.onnx.export(
+        module.eval(),
+        (torch.rand(1, 1, 64, 64),),
+        str(path),
+        input_names=["m"],
+        output_names=["winding"],
+        dynamic_axes={"m": axes, "winding": axes},
+        opset_version=OPSET,
+        dynamo=False,
+    )
+
+
+def sha256_of(path: Path) -> str:
+    """Hex sha256 of a file."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def trained_model(checkpoint: Path) -> tuple[MantissaNet, TrainConfig, dict[str, Any]]:
+    """The eval-mode model of a checkpoint, its config and the raw checkpoint state."""
+    state = load_checkpoint(checkpoint)
+    raw = dict(state["config"])
+    raw["stage_steps"] = tuple(raw["stage_steps"])
+    raw["runs_dir"] = Path(raw["runs_dir"])
+    config = TrainConfig(**raw)
+    model = build_model(config)
+    model.load_state_dict(state["model"])
+    return model.eval(), config, state
+
+
+def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]:
+    """The card's ``training`` section: data, steps, wall time, settings."""
+    return {
+        "scenes": list(TRAIN_SCENES),
+        "synthetic_fraction": 0.5,
+        "steps": state["step"],
+        "planned_stage_steps": list(config.stage_steps),
+        "wall_s": round(state["wall_s"], 1),
+        "crop": config.crop,
+        "batch": config.batch,
+        "loss": config.loss,
+        "max_read_noise": config.max_read_noise,
+        "seed": config.seed,
+        "threads": config.threads,
+        "device": "cpu",
+        "alpha": 2.0,
+        "bits": 8,
+    }
+
+
+def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
+    """Export a run's checkpoint to ``<onnx_dir>/<name>.onnx`` and write the card; returns it."""
+    model, config, state = trained_model(checkpoint)
+    graph = WindingGraph(model, config.loss)
+    onnx_path = onnx_dir / f"{config.name}.onnx"
+    export_onnx(graph, onnx_path)
+    card = {
+        "name": config.name,
+        "decoder": config.name.removesuffix(f"-{config.encoding}"),
+        "family": "mantissanet",
+        "tier": config.tier,
+        "encoding": config.encoding,
+        "noise_aware": config.max_read_noise > 0,
+        "file": onnx_path.name,
+        "sha256": sha256_of(onnx_path),
+        "multiple": MULTIPLE,
+        "tile": TILE,
+        "parameters": parameter_count(model),
+        "gflops_256": round(gflops_at(graph), 3),
+        "training": training_facts(config, state),
+        "exported_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    card_path = onnx_path.with_suffix(".json")
+    card_path.write_text(json.dumps(card, indent=2) + "\n")
+    return card_path

@@ -1,0 +1,56 @@
+"""Tests of models/training/export.py: ONNX matches PyTorch; the card is complete."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from models.formation import dequantize
+from models.scenes import val256_frames
+from models.training.export import WindingGraph, export_run, sha256_of
+from models.training.train import TrainConfig, train
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("export")
+    config = TrainConfig(tier="tiny", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=root)
+    checkpoint = train(config)
+    return checkpoint, export_run(checkpoint, root / "onnx")
+
+
+def torch_winding(checkpoint: Path, m: np.ndarray) -> np.ndarray:
+    from models.training.export import trained_model
+
+    model, config, _ = trained_model(checkpoint)
+    with torch.no_grad():
+        return WindingGraph(model, config.loss)(torch.from_numpy(m)).numpy()
+
+
+def test_card_describes_the_file(exported: tuple[Path, Path]) -> None:
+    _, card_path = exported
+    card = json.loads(card_path.read_text())
+    onnx_path = card_path.parent / card["file"]
+    assert card["sha256"] == sha256_of(onnx_path)
+    assert card["decoder"] == "mantissanet-tiny" and card["encoding"] == "mantissa"
+    assert card["parameters"] > 1000 and card["gflops_256"] > 0
+    assert card["training"]["steps"] == 3 and "forest" not in card["training"]["scenes"]
+
+
+@pytest.mark.parametrize("source", ["random", "real"])
+def test_onnxruntime_agrees_with_pytorch(exported: tuple[Path, Path], source: str) -> None:
+    checkpoint, card_path = exported
+    if source == "random":
+        m = np.random.default_rng(0).random((1, 1, 48, 80), dtype=np.float32)
+    else:
+        frame = val256_frames("mantissa")[0]
+        m = dequantize(frame.codes, 8).astype(np.float32)[None, None, :128, :96]
+    session = ort.InferenceSession(str(card_path.with_suffix(".onnx")))
+    onnx_w = session.run(None, {"m": m})[0]
+    assert onnx_w.shape == m.shape and onnx_w.dtype == np.int64
+    assert (onnx_w == torch_winding(checkpoint, m)).mean() > 0.999
