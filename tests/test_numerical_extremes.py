@@ -1,0 +1,154 @@
+"""Numerical stability at the extremes, through the whole pipeline (issue 7).
+
+Each row of :data:`EXTREMES` is one extreme case and what the system must do
+with it: ``finite`` (every decoder returns finite W and x_hat, never NaN/inf),
+``exact`` (finite, and W equals the truth), or an error class (a clear
+:class:`McamError`, never a crash). Every installed decoder runs every row.
+
+| case | what the system does |
+|---|---|
+| 1e-12 .. 1e30 dynamic range, mantissa alpha 2 | decodes exactly (u peaks near 101) |
+| 1e-12 .. 1e30, modulo | rejected at encoding: W would pass int64 |
+| alpha 1.01, 1e6 range | decodes (u up to ~1390 wraps), finite |
+| alpha 100, 1e30 range | decodes exactly (u peaks near 16) |
+| bits 1, 2, 12, 16 on a ramp | finite at every bit depth |
+| all-dark frame (all codes 0) | W = 0 everywhere, auto passes it through |
+| every code at the maximum | W = 0 everywhere, auto passes it through |
+| all-wrapped (uniform random codes) | finite, W >= 0 |
+| random codes, alpha 1000 | finite or a clear output-overflow error |
+| 1 x 1 and 1 x N frames | a clear error: spatial decoders need 2 x 2 |
+| codes >= 2^bits, float codes | a clear invalid-input error |
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from models.decoders import available_decoders, get_decoder
+from models.errors import InvalidInputError, McamError, OutputOverflowError
+from models.formation import SensorParams, encode, quantize
+
+SIZE = 32
+EXACT_SIZE = 160
+
+
+@dataclass(frozen=True)
+class Extreme:
+    """One extreme case: a frame builder and the expected outcome."""
+
+    name: str
+    build: Callable[[], tuple[np.ndarray, np.ndarray | None, SensorParams]]
+    expect: str | type[McamError]
+
+
+def log_ramp(
+    low: float, high: float, params: SensorParams, size: int = SIZE
+) -> tuple[np.ndarray, np.ndarray, SensorParams]:
+    """A smooth diagonal ramp in log space from ``low`` to ``high`` (wrap units).
+
+    At ``EXACT_SIZE`` the 42-decade ramp steps less than half a wrap per pixel.
+    """
+    rows, cols = np.mgrid[0:size, 0:size]
+    t = (rows + cols) / (2 * size - 2)
+    frame = encode(low * (high / low) ** t, params)
+    return frame.codes, frame.winding, params
+
+
+def constant_codes(code: int, bits: int) -> tuple[np.ndarray, None, SensorParams]:
+    params = SensorParams(encoding="modulo", bits=bits)
+    return np.full((SIZE, SIZE), code, params.code_dtype), None, params
+
+
+def random_codes(params: SensorParams) -> tuple[np.ndarray, None, SensorParams]:
+    m = np.random.default_rng(7).random((SIZE, SIZE))
+    return quantize(m, params.bits), None, params
+
+
+def mantissa(alpha: float = 2.0, bits: int = 8) -> SensorParams:
+    return SensorParams(encoding="mantissa", alpha=alpha, bits=bits)
+
+
+def modulo_huge() -> tuple[np.ndarray, np.ndarray, SensorParams]:
+    return log_ramp(1e-12, 1e30, SensorParams(encoding="modulo"))
+
+
+EXTREMES: tuple[Extreme, ...] = (
+    Extreme(
+        "range 1e-12..1e30 mantissa",
+        lambda: log_ramp(1e-12, 1e30, mantissa(), EXACT_SIZE),
+        "exact",
+    ),
+    Extreme("range 1e-12..1e30 modulo", modulo_huge, InvalidInputError),
+    Extreme("alpha 1.01", lambda: log_ramp(1e-3, 1e6, mantissa(alpha=1.01)), "finite"),
+    Extreme(
+        "alpha 100",
+        lambda: log_ramp(1e-12, 1e30, mantissa(alpha=100.0), EXACT_SIZE),
+        "exact",
+    ),
+    *(
+        Extreme(f"bits {b}", lambda b=b: log_ramp(1e-3, 1e3, mantissa(bits=b)), "finite")
+        for b in (1, 2, 12, 16)
+    ),
+    Extreme("all dark", lambda: constant_codes(0, 8), "zero"),
+    Extreme("every code at max 8-bit", lambda: constant_codes(255, 8), "zero"),
+    Extreme("every code at max 16-bit", lambda: constant_codes(65535, 16), "zero"),
+    Extreme("all wrapped", lambda: random_codes(SensorParams(encoding="modulo")), "finite"),
+    Extreme("random codes alpha 1000", lambda: random_codes(mantissa(alpha=1000.0)), "finite"),
+)
+DECODERS = [spec.name for spec in available_decoders()]
+
+
+def run(decoder: str, case: Extreme) -> None:
+    if isinstance(case.expect, type):
+        with pytest.raises(case.expect) as caught:
+            codes, _, params = case.build()
+            get_decoder(decoder).decode(codes, params)
+        assert caught.value.message
+        return
+    codes, truth, params = case.build()
+    try:
+        result = get_decoder(decoder).decode(codes, params)
+    except OutputOverflowError as exc:
+        assert case.name == "random codes alpha 1000", exc.message
+        assert "exceed" in exc.message
+        return
+    assert np.isfinite(result.irradiance).all()
+    assert (result.winding >= 0).all()
+    if case.expect == "zero":
+        assert not result.winding.any()
+    if case.expect == "exact" and truth is not None:
+        np.testing.assert_array_equal(result.winding, truth)
+
+
+@pytest.mark.parametrize("case", EXTREMES, ids=[c.name for c in EXTREMES])
+@pytest.mark.parametrize("decoder", DECODERS)
+def test_extreme(decoder: str, case: Extreme) -> None:
+    if case.expect == "exact" and not decoder.startswith(("itoh", "herraez", "graphcut", "auto")):
+        pytest.skip("exactness on a synthetic log ramp is only claimed for classical and auto")
+    run(decoder, case)
+
+
+@pytest.mark.parametrize("decoder", DECODERS)
+@pytest.mark.parametrize("shape", [(1, 1), (1, 40), (40, 1)])
+def test_degenerate_shapes_are_clear_errors(decoder: str, shape: tuple[int, int]) -> None:
+    with pytest.raises(InvalidInputError, match="2 x 2"):
+        get_decoder(decoder).decode(np.zeros(shape, np.uint8), SensorParams())
+
+
+@pytest.mark.parametrize("decoder", DECODERS)
+def test_bad_codes_are_clear_errors(decoder: str) -> None:
+    with pytest.raises(InvalidInputError, match="2\\^4"):
+        get_decoder(decoder).decode(np.full((8, 8), 16, np.uint8), SensorParams(bits=4))
+    with pytest.raises(InvalidInputError, match="integers"):
+        get_decoder(decoder).decode(np.zeros((8, 8), np.float32), SensorParams())
+
+
+@pytest.mark.parametrize("case", ["all dark", "every code at max 8-bit"])
+def test_auto_passes_unwrapped_frames_through(case: str) -> None:
+    codes, _, params = next(c for c in EXTREMES if c.name == case).build()
+    routes = get_decoder("auto").decode(codes, params).info["details"]["routes"]
+    assert routes == {"pass-through": 1.0}
