@@ -17,11 +17,11 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-import OpenEXR
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
 from models.formation import SensorParams, luminance, simulate
+from models.hdr_io import read_hdr
 
 HDRI_DIR = Path(__file__).resolve().parent / "data" / "hdri"
 VAL_SCENES: tuple[str, ...] = ("forest", "lobby", "venice")
@@ -48,24 +48,13 @@ class ValFrame(NamedTuple):
     params: SensorParams
 
 
-def _read_exr_rgb(path: Path) -> NDArray[np.float64]:
-    """The RGB channels of an EXR file as float64 ``H x W x 3`` (no validation)."""
-    with OpenEXR.File(str(path)) as exr:
-        channels = exr.channels()
-        if "RGB" in channels:
-            return np.asarray(channels["RGB"].pixels, np.float64)
-        return np.stack([np.asarray(channels[c].pixels, np.float64) for c in "RGB"], axis=2)
-
-
 @cache
 def _load_hdri(name: str) -> tuple[NDArray[np.float64], int]:
     if name not in SCENE_NAMES:
         raise InvalidInputError(f"unknown scene {name!r}; choose one of: {', '.join(SCENE_NAMES)}")
-    rgb = _read_exr_rgb(HDRI_DIR / f"{name}.exr")
-    negative = rgb < 0
-    rgb = np.where(negative, 0.0, rgb)
-    rgb.setflags(write=False)
-    return rgb, int(negative.sum())
+    image = read_hdr(HDRI_DIR / f"{name}.exr", clip_negative=True)
+    image.pixels.setflags(write=False)
+    return image.pixels, image.negatives_clipped
 
 
 def load_hdri(name: str) -> NDArray[np.float64]:
