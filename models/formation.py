@@ -155,7 +155,9 @@ def exposure_gain(scene: NDArray[np.floating], overexposed: float) -> float:
             f"the scene is too dark to set the exposure: the brightest {overexposed:.0%} "
             "of pixels have zero luminance; give an explicit gain instead"
         )
-    return 1.0 / level
+    gain = 1.0 / level
+    # 1 / level can round down (49 * (1 / 49) < 1): one ulp up keeps the quantile pixel at x >= 1.
+    return gain if level * gain >= 1.0 else float(np.nextafter(gain, np.inf))
 
 
 def to_unwrapped(x: NDArray[np.floating], params: SensorParams) -> NDArray[np.float64]:

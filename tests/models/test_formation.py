@@ -212,6 +212,19 @@ def test_exposure_gain_overexposes_exactly_the_requested_fraction(
     assert frame.params.gain == exposure_gain(scene, k / n)
 
 
+@PROPERTY
+@given(k=st.integers(1, 400), seed=st.integers(0, 2**32 - 1), scale=st.floats(1e-6, 1e6))
+def test_the_pixel_at_the_exposure_quantile_reaches_saturation(
+    k: int, seed: int, scale: float
+) -> None:
+    """With 5k + 1 pixels the 80 % quantile is a pixel value: that pixel must reach x >= 1."""
+    n = 5 * k + 1
+    scene = (np.random.default_rng(seed).permutation(n) + 1.0).reshape(1, n) * scale
+    frame = simulate(scene, SensorParams(encoding="modulo"), overexposed=0.2)
+    level = np.quantile(scene, 0.8)
+    assert np.array_equal(frame.irradiance >= 1.0, scene >= level)
+
+
 def test_exposure_of_rgb_uses_rec709_luminance() -> None:
     scene = np.zeros((2, 2, 3))
     scene[..., 1] = [[1.0, 2.0], [3.0, 4.0]]
