@@ -38,11 +38,29 @@ def assert_one_line_error(result: subprocess.CompletedProcess[str], *fragments: 
         assert fragment in lines[0]
 
 
-def blob_scene(size: int = 64, peak: float = 100.0, rgb: bool = False) -> np.ndarray:
-    """A smooth Gaussian blob on a dim floor: neighbours differ by well under half a wrap."""
+def blob_scene(
+    size: int = 64, peak: float = 1000.0, halving: float = 3.0, rgb: bool = False
+) -> np.ndarray:
+    """A smooth blob ``peak * 2^(-r / halving)`` on a dim floor (r: pixels from the centre).
+
+    Its log falls by ``1 / halving`` octaves per pixel, so with the issue's exposure a
+    mantissa frame (alpha 2) wraps up to 6 times while neighbours differ by < 1/2 wrap.
+    """
     yy, xx = np.mgrid[0:size, 0:size] - (size - 1) / 2.0
-    luma = 0.05 + peak * np.exp(-(xx**2 + yy**2) / (2.0 * (size / 5.0) ** 2))
+    luma = 1e-3 + peak * 2.0 ** (-np.hypot(xx, yy) / halving)
     return np.stack([luma, luma * 0.7, luma * 0.4], axis=2) if rgb else luma
+
+
+def mantissa_tolerance(reference: np.ndarray, gain: float, bits: int, alpha: float) -> np.ndarray:
+    """Largest error of a mantissa reconstruction with the right W, in scene units.
+
+    Half a code bin: ``2^-(bits+1)`` in x below saturation, a factor
+    ``alpha^(2^-(bits+1))`` above; plus float32 rounding of both stored images.
+    """
+    x = reference * gain
+    half_bin = 2.0 ** -(bits + 1)
+    bound = np.where(x < 1.0, half_bin, x * (alpha**half_bin - 1.0)) / gain
+    return bound + 2.0**-22 * reference
 
 
 @pytest.fixture(scope="session")

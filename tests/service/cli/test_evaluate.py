@@ -63,7 +63,3 @@ def test_evaluate_bad_input(tmp_path: Path, pipeline: Path) -> None:
         ),  # fmt: skip
         "winding",
     )
-    assert_one_line_error(
-        run_mcam("evaluate", "absent.exr", "--reference", "small.exr", cwd=tmp_path),
-        "no such file",
-    )

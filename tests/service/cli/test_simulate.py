@@ -9,7 +9,12 @@ import numpy as np
 from models.formation import reconstruct
 from models.frames import read_frame, read_winding
 from models.hdr_io import read_hdr, write_exr
-from tests.service.cli.conftest import assert_one_line_error, blob_scene, run_mcam
+from tests.service.cli.conftest import (
+    assert_one_line_error,
+    blob_scene,
+    mantissa_tolerance,
+    run_mcam,
+)
 
 
 def test_simulate_writes_frame_ground_truth_and_reference(pipeline: Path) -> None:
@@ -19,13 +24,10 @@ def test_simulate_writes_frame_ground_truth_and_reference(pipeline: Path) -> Non
     assert (frame.params.encoding, frame.params.alpha, frame.params.bits) == ("mantissa", 2.0, 8)
     scene = read_hdr(pipeline / "scene.exr").pixels
     # --overexposed 0.2: a fifth of the pixels reach x >= 1.
-    assert (
-        np.mean(scene * frame.params.gain >= 1.0) == np.float64(0.2).round(2)
-        or abs(np.mean(scene * frame.params.gain >= 1.0) - 0.2) < 1.0 / scene.size + 1e-12
-    )
+    assert abs(np.mean(scene * frame.params.gain >= 1.0) - 0.2) <= 2.0 / scene.size
     winding = read_winding(pipeline / "W_true.png")
     assert winding.min() == 0
-    assert winding.max() >= 3
+    assert winding.max() >= 5
     reference = read_hdr(pipeline / "reference.exr")
     np.testing.assert_allclose(reference.pixels, scene, rtol=1e-6)
     assert reference.attributes["encoding"] == "mantissa"
@@ -39,9 +41,8 @@ def test_true_winding_inverts_the_frame(pipeline: Path) -> None:
     winding = read_winding(pipeline / "W_true.png")
     x_hat = reconstruct(frame.codes, winding, frame.params, scene_referred=True)
     reference = read_hdr(pipeline / "reference.exr").pixels
-    x = reference * frame.params.gain
-    bound = np.where(x < 1.0, 2.0**-9, x * (2.0 ** (2.0**-9) - 1.0)) / frame.params.gain
-    assert np.all(np.abs(x_hat - reference) <= bound * (1 + 1e-5) + 1e-7)
+    tolerance = mantissa_tolerance(reference, frame.params.gain, bits=8, alpha=2.0)
+    assert np.all(np.abs(x_hat - reference) <= tolerance)
 
 
 def test_simulate_rgb_tiff_with_noise_and_max_wraps(tmp_path: Path) -> None:
@@ -64,13 +65,7 @@ def test_simulate_rgb_tiff_with_noise_and_max_wraps(tmp_path: Path) -> None:
 def test_simulate_bad_input(tmp_path: Path) -> None:
     write_exr(tmp_path / "rgb.exr", blob_scene(size=16, rgb=True))
     assert_one_line_error(
-        run_mcam("simulate", "missing.exr", "-o", "w.png", cwd=tmp_path), "no such file"
-    )
-    assert_one_line_error(
         run_mcam("simulate", "rgb.exr", "-o", "w.png", "--gain", "1", cwd=tmp_path), ".tiff"
-    )
-    assert_one_line_error(
-        run_mcam("simulate", "rgb.exr", "-o", "w.jpg", cwd=tmp_path), "unsupported"
     )
     assert_one_line_error(
         run_mcam("simulate", "rgb.exr", "-o", "w.tiff", "--alpha", "0.5", cwd=tmp_path), "alpha"
