@@ -120,7 +120,7 @@ def client(api: str) -> Iterator[Callable[[str], httpx.Client]]:
 
     def make(key: str = FULL_KEY) -> httpx.Client:
         headers = {"Authorization": f"Bearer {key}"} if key else {}
-        opened.append(httpx.Client(base_url=api, headers=headers, timeout=30))
+        opened.append(httpx.Client(base_url=api, headers=headers, timeout=60))
         return opened[-1]
 
     yield make

@@ -1,0 +1,53 @@
+"""/health/live and /health/ready: decoders, Redis and worker heartbeats, really checked."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import httpx
+
+from service.core.config import Settings
+from service.main import create_app
+from tests.service.conftest import FULL_KEY, make_settings, running_worker, serve
+from worker.embedded_redis import EmbeddedRedis
+
+
+def wait_ready(url: str, want: int, timeout_s: float = 10.0) -> httpx.Response:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        reply = httpx.get(f"{url}/health/ready")
+        if reply.status_code == want or time.monotonic() > deadline:
+            return reply
+        time.sleep(0.1)
+
+
+def test_live(api: str) -> None:
+    assert httpx.get(f"{api}/health/live").json() == {"status": "ok"}
+
+
+def test_ready_needs_a_worker_heartbeat(api: str, settings: Settings) -> None:
+    reply = httpx.get(f"{api}/health/ready")
+    assert reply.status_code == 503
+    body = reply.json()
+    assert body["checks"] == {"decoders": True, "queue": True, "workers": False}
+    assert "mcam worker" in body["detail"]["workers"]
+    with running_worker(settings):
+        ready = wait_ready(api, 200)
+        assert ready.status_code == 200 and ready.json()["workers"] == 1
+    assert wait_ready(api, 503).status_code == 503  # the worker removed its heartbeat
+
+
+def test_ready_reports_redis_down_and_unknown_default_decoder(tmp_path: Path) -> None:
+    embedded = EmbeddedRedis(tmp_path / "r")
+    url = embedded.start()
+    settings = make_settings(tmp_path, url, default_decoder="missing")
+    with serve(create_app(settings)) as api:
+        embedded.stop()
+        body = httpx.get(f"{api}/health/ready").json()
+        assert body["checks"]["queue"] is False and body["checks"]["decoders"] is False
+        assert httpx.get(f"{api}/health/live").status_code == 200
+        jobs = httpx.get(
+            f"{api}/v1/jobs/{'0' * 32}", headers={"Authorization": f"Bearer {FULL_KEY}"}
+        )
+        assert jobs.status_code == 503 and jobs.json()["code"] == "queue_unavailable"

@@ -1,0 +1,54 @@
+"""Upload size limit: 413 from Content-Length up front, and while a chunked body streams."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import httpx
+
+Client = Callable[[str], httpx.Client]
+LIMIT = 2_000_000  # the test settings' max_upload_bytes
+
+
+def test_declared_length_over_the_limit(client: Client) -> None:
+    reply = client().post(
+        "/v1/reconstructions",
+        content=bytes(LIMIT + 1),
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    assert reply.status_code == 413
+    assert reply.json()["code"] == "image_too_large"
+
+
+def test_streamed_body_is_cut_off_at_the_limit(client: Client) -> None:
+    sent = 0
+
+    def chunks() -> Iterator[bytes]:
+        nonlocal sent
+        for _ in range(40):
+            sent += 100_000
+            yield bytes(100_000)
+
+    reply = client().post(
+        "/v1/reconstructions",
+        content=chunks(),
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    assert reply.status_code == 413
+    assert reply.json()["code"] == "image_too_large"
+
+
+def test_streamed_multipart_over_the_limit(client: Client) -> None:
+    def chunks() -> Iterator[bytes]:
+        boundary = b"--b\r\n"
+        yield boundary + b'Content-Disposition: form-data; name="file"; filename="f.npy"\r\n\r\n'
+        for _ in range(30):
+            yield bytes(100_000)
+        yield b"\r\n--b--\r\n"
+
+    reply = client().post(
+        "/v1/reconstructions",
+        content=chunks(),
+        headers={"Content-Type": "multipart/form-data; boundary=b"},
+    )
+    assert reply.status_code == 413

@@ -1,0 +1,42 @@
+"""Authentication and rate limiting over real HTTP (two API processes share the limit)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import httpx
+
+from service.main import create_app
+from tests.service.conftest import FULL_KEY, make_settings, serve
+
+
+def test_missing_wrong_and_malformed_keys_are_401(api: str) -> None:
+    for headers in ({}, {"Authorization": "Bearer nope"}, {"Authorization": f"Basic {FULL_KEY}"}):
+        reply = httpx.get(f"{api}/v1/decoders", headers=headers)
+        assert reply.status_code == 401
+        assert reply.json()["code"] == "unauthorized"
+        assert reply.headers["WWW-Authenticate"] == "Bearer"
+
+
+def test_rate_limit_is_shared_by_api_processes(tmp_path: Path, redis_url: str) -> None:
+    settings = make_settings(tmp_path, redis_url, rate_limit_per_minute=4)
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    with serve(create_app(settings)) as first, serve(create_app(settings)) as second:
+        codes = [
+            httpx.get(f"{url}/v1/decoders", headers=headers).status_code
+            for url in (first, second, first, second)
+        ]
+        assert codes == [200, 200, 200, 200]
+        limited = httpx.get(f"{second}/v1/decoders", headers=headers)
+        assert limited.status_code == 429
+        assert limited.json()["code"] == "rate_limited"
+        assert 1 <= int(limited.headers["Retry-After"]) <= 60
+        assert httpx.get(f"{first}/health/live").status_code == 200  # ops endpoints: no key
+
+
+def test_generated_key_works(tmp_path: Path, redis_url: str) -> None:
+    settings = make_settings(tmp_path, redis_url, api_keys=None)
+    with serve(create_app(settings)) as url:
+        key = (settings.data_dir / "api_keys").read_text().strip()
+        reply = httpx.get(f"{url}/v1/decoders", headers={"Authorization": f"Bearer {key}"})
+        assert reply.status_code == 200

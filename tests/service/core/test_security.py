@@ -1,0 +1,76 @@
+"""API keys, the key file, and the Redis-backed rate limit (real redis-server)."""
+
+from __future__ import annotations
+
+import stat
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from service.core.config import Settings
+from service.core.security import (
+    ApiKey,
+    ApiKeyConfigError,
+    KeyRing,
+    RateLimiter,
+    ensure_key_file,
+    key_id,
+    parse_api_keys,
+)
+from worker.embedded_redis import connect
+
+
+def test_parse_scopes() -> None:
+    keys = parse_api_keys("alpha, beta:read,\ngamma:submit,beta:submit")
+    assert keys == {
+        "alpha": frozenset({"read", "submit"}),
+        "beta": frozenset({"read", "submit"}),
+        "gamma": frozenset({"submit"}),
+    }
+
+
+@pytest.mark.parametrize("text", ["key:admin", ":read", "two words"])
+def test_malformed_entries(text: str) -> None:
+    with pytest.raises(ApiKeyConfigError):
+        parse_api_keys(text)
+
+
+@given(st.text(alphabet="abcdefXYZ0123456789_-", min_size=1, max_size=40))
+def test_any_plain_key_authenticates_only_itself(secret: str) -> None:
+    ring = KeyRing(parse_api_keys(secret))
+    assert ring.authenticate(secret) == ApiKey(key_id(secret), frozenset({"read", "submit"}))
+    assert ring.authenticate(secret + "x") is None
+
+
+def test_key_file_is_generated_once_with_mode_0600(tmp_path: Path) -> None:
+    path, first = ensure_key_file(tmp_path)
+    assert first is not None and path.read_text().strip() == first
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    again, second = ensure_key_file(tmp_path)
+    assert again == path and second is None and path.read_text().strip() == first
+
+
+def test_keyring_from_settings(tmp_path: Path) -> None:
+    ring, new = KeyRing.from_settings(Settings(_env_file=None, data_dir=tmp_path))
+    assert new is not None and ring.authenticate(new) is not None
+    ring, again = KeyRing.from_settings(Settings(_env_file=None, data_dir=tmp_path))
+    assert again is None and ring.authenticate(new) is not None
+    ring, none = KeyRing.from_settings(
+        Settings(_env_file=None, data_dir=tmp_path / "x", api_keys="k1:read")
+    )
+    assert none is None and ring.authenticate("k1") == ApiKey(key_id("k1"), frozenset({"read"}))
+    assert not (tmp_path / "x" / "api_keys").exists()
+
+
+def test_rate_limit_counts_per_key_and_window(redis_url: str) -> None:
+    limiter = RateLimiter(connect(redis_url), per_minute=3)
+    key, other = ApiKey("a" * 16, frozenset()), ApiKey("b" * 16, frozenset())
+    now = 6000.0 + 15.0
+    assert [limiter.retry_after(key, now) for _ in range(3)] == [None, None, None]
+    assert limiter.retry_after(key, now) == 45
+    assert limiter.retry_after(other, now) is None
+    assert limiter.retry_after(key, now + 45) is None  # the next window
+    shared = RateLimiter(connect(redis_url), per_minute=3)  # another API process
+    assert shared.retry_after(key, now) == 45

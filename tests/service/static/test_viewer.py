@@ -1,0 +1,73 @@
+"""The web viewer end to end in headless Debian chromium (Playwright, no browser download).
+
+Real uvicorn on 127.0.0.1, real Redis, a real worker: upload an HDR image, simulate,
+reconstruct, watch the job, move the exposure slider, download the EXR. The
+screenshot is kept in ``artifacts/`` (gitignored) for people to look at.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from models.hdr_io import read_hdr
+from tests.service.conftest import FULL_KEY, exr_bytes
+from worker.runner import Worker
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+ARTIFACTS = Path(__file__).resolve().parents[3] / "artifacts"
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        CHROMIUM is None,
+        reason="Debian chromium is not installed "
+        "(apt-get install -y chromium); the browser test needs it",
+    ),
+]
+
+
+def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Path) -> None:
+    sync_api = pytest.importorskip("playwright.sync_api")
+    scene = tmp_path / "scene.exr"
+    scene.write_bytes(exr_bytes(128))
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"]
+        )
+        page = browser.new_page(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{api}/")
+        page.fill("#api-key", FULL_KEY)
+        page.click("#key-form button")
+        page.wait_for_selector("#decoder option[value=itoh]", state="attached")
+        assert page.evaluate("localStorage.getItem('mcam-api-key')") == FULL_KEY
+        page.check("input[name=kind][value=hdr]")
+        page.set_input_files("#file", str(scene))
+        page.select_option("#encoding", "mantissa")
+        page.fill("#alpha", "2")
+        page.fill("#bits", "8")
+        page.click("#run")
+        page.wait_for_function("!document.getElementById('download').disabled", timeout=60_000)
+        assert "succeeded" in page.inner_text("#status")
+        for image in ("#img-codes", "#img-winding", "#img-hdr"):
+            assert page.evaluate(f"document.querySelector('{image}').naturalWidth") == 128
+        before = page.get_attribute("#img-hdr", "src")
+        page.fill("#exposure", "-4")
+        page.dispatch_event("#exposure", "input")
+        page.wait_for_function(f"document.getElementById('img-hdr').src !== '{before}'")
+        assert page.inner_text("#ev-value") == "-4"
+        with page.expect_download() as download:
+            page.click("#download")
+        exr = tmp_path / "result.exr"
+        download.value.save_as(exr)
+        assert read_hdr(exr).pixels.shape == (128, 128)
+        shot = tmp_path / "viewer.png"
+        page.screenshot(path=str(shot), full_page=True)
+        browser.close()
+    ARTIFACTS.mkdir(exist_ok=True)
+    shutil.copy(shot, ARTIFACTS / "viewer.png")
+    assert errors == []

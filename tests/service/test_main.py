@@ -1,0 +1,87 @@
+"""The app factory: routers, the OpenAPI document, and schemathesis against that document."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import httpx
+import pytest
+import schemathesis
+from hypothesis import HealthCheck, given, settings
+from schemathesis.specs.openapi.checks import positive_data_acceptance
+
+from service.core.config import Settings
+from service.main import ROUTERS, create_app
+from tests.service.conftest import FULL_KEY, make_settings, running_worker, serve
+
+#: The API of issue 4, exactly.
+OPERATIONS = {
+    ("post", "/v1/simulate"),
+    ("post", "/v1/reconstructions"),
+    ("get", "/v1/jobs/{job_id}"),
+    ("get", "/v1/jobs/{job_id}/result"),
+    ("delete", "/v1/jobs/{job_id}"),
+    ("get", "/v1/decoders"),
+    ("get", "/health/live"),
+    ("get", "/health/ready"),
+    ("get", "/metrics"),
+}
+
+
+def test_every_router_module_exposes_a_router() -> None:
+    for name in ROUTERS:
+        assert hasattr(importlib.import_module(name), "router"), name
+
+
+def test_openapi_lists_exactly_the_api(settings: Settings) -> None:
+    document = create_app(settings).openapi()
+    found = {(method, path) for path, item in document["paths"].items() for method in item}
+    assert found == OPERATIONS
+    upload = document["paths"]["/v1/reconstructions"]["post"]["requestBody"]["content"]
+    assert set(upload) == {"multipart/form-data", "application/octet-stream"}
+    form = upload["multipart/form-data"]["schema"]
+    assert form["required"] == ["file"] and {"encoding", "bits", "decoder", "quality"} <= set(
+        form["properties"]
+    )
+
+
+def test_unknown_routes_and_methods_are_json(api: str) -> None:
+    missing = httpx.get(f"{api}/v2/nothing")
+    assert missing.status_code == 404 and missing.json()["code"] == "not_found"
+    wrong = httpx.put(f"{api}/v1/decoders")
+    assert wrong.status_code == 405 and wrong.json()["code"] == "method_not_allowed"
+
+
+def test_viewer_is_served_at_the_root(api: str) -> None:
+    page = httpx.get(f"{api}/")
+    assert page.status_code == 200 and "<html" in page.text.lower()
+
+
+@pytest.mark.slow
+def test_schemathesis_against_the_openapi_document(tmp_path: Path, redis_url: str) -> None:
+    """Schema-valid and schema-invalid requests never give a 500 and match the document.
+
+    Random bytes are schema-valid uploads yet not images, so rejecting them is right:
+    the positive-data-acceptance check is left out."""
+    config = make_settings(tmp_path, redis_url, rate_limit_per_minute=1_000_000)
+    with serve(create_app(config)) as base, running_worker(config):
+        schema = schemathesis.openapi.from_url(f"{base}/openapi.json")
+        for result in schema.get_all_operations():
+            operation = result.ok()
+
+            @settings(
+                max_examples=20,
+                deadline=None,
+                database=None,
+                suppress_health_check=list(HealthCheck),
+            )
+            @given(case=operation.as_strategy())
+            def check(case: schemathesis.Case) -> None:
+                case.call_and_validate(
+                    base_url=base,
+                    headers={"Authorization": f"Bearer {FULL_KEY}"},
+                    excluded_checks=[positive_data_acceptance],
+                )
+
+            check()
