@@ -1,0 +1,89 @@
+"""docker/: the compose file and the Dockerfile agree with the settings module and the CLI.
+
+No Docker engine runs here, so the files are checked as data: every ``MCAM_*``
+variable is a real setting with a value it accepts, and every command exists.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from service.core.config import Settings
+
+DOCKER = Path(__file__).resolve().parents[2] / "docker"
+PREFIX = "MCAM_"
+
+
+def compose() -> dict[str, Any]:
+    return yaml.safe_load((DOCKER / "compose.yaml").read_text())
+
+
+def mcam_environment() -> list[tuple[str, str, str]]:
+    """(service, variable, value) for every MCAM_* variable the compose file sets."""
+    found = []
+    for name, service in compose()["services"].items():
+        for variable, value in (service.get("environment") or {}).items():
+            if variable.startswith(PREFIX):
+                found.append((name, variable, str(value)))
+    return found
+
+
+def dockerfile_environment() -> dict[str, str]:
+    text = (DOCKER / "Dockerfile").read_text()
+    return dict(re.findall(r"\b(MCAM_[A-Z_]+)=(\S+)", text))
+
+
+def test_every_mcam_variable_is_a_setting() -> None:
+    variables = {v for _, v, _ in mcam_environment()} | set(dockerfile_environment())
+    assert len(variables) >= 8
+    unknown = {v for v in variables if v[len(PREFIX) :].lower() not in Settings.model_fields}
+    assert unknown == set()
+
+
+@pytest.mark.parametrize(("service", "variable", "value"), mcam_environment())
+def test_each_value_is_accepted(service: str, variable: str, value: str) -> None:
+    if value.startswith("${"):
+        return  # supplied by the operator at `docker compose up`
+    field = variable[len(PREFIX) :].lower()
+    Settings.model_validate({"data_dir": "/data", field: value})
+
+
+def test_services_and_persistence() -> None:
+    data = compose()
+    services = data["services"]
+    assert {"redis", "api", "worker-1", "worker-2", "simulator", "device"} <= set(services)
+    assert "--appendonly" in services["redis"]["command"]
+    assert any(v.startswith("redis-data:") for v in services["redis"]["volumes"])
+    for name in ("api", "worker-1", "worker-2"):
+        assert services[name]["environment"]["MCAM_REDIS_URL"] == "redis://redis:6379/0"
+        assert "mcam-data:/data" in services[name]["volumes"], name
+
+
+def test_commands_are_mcam_commands() -> None:
+    from service.cli.main import build_parser
+
+    parser = build_parser()
+    commands = {
+        service["command"][1]
+        for service in compose()["services"].values()
+        if service.get("command", [""])[0] == "mcam"
+    }
+    assert commands == {"api", "worker", "simulate-device", "device"}
+    choices = next(a for a in parser._actions if a.dest == "command").choices
+    missing = commands - set(choices)
+    assert missing == set(), f"compose runs mcam commands that do not exist: {missing}"
+
+
+def test_dockerfile_is_slim_non_root_with_health_check() -> None:
+    text = (DOCKER / "Dockerfile").read_text()
+    assert re.search(r"^FROM python:3\.11-slim", text, re.M)
+    user = re.search(r"^USER (\S+)", text, re.M)
+    assert user is not None and user.group(1) not in ("root", "0")
+    assert "/health/live" in text and "HEALTHCHECK" in text
+    assert 'CMD ["mcam", "serve"]' in text
+    assert dockerfile_environment()["MCAM_DATA_DIR"] == "/data"
