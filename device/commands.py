@@ -1,0 +1,152 @@
+"""Control commands as plain mappings (API JSON, Redis stream fields) <-> control packets.
+
+A command is ``{"command": NAME, ...arguments}`` with NAME one of
+:data:`COMMANDS`. The API validates a request with :func:`parse_command`, writes
+:func:`command_fields` to ``control:<device>``, and the daemon turns each entry
+back into a packet with :func:`parse_command` before writing it to the camera.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+
+from device.link_protocol import (
+    BracketPacket,
+    ControlPacket,
+    EncodingPacket,
+    ExposurePacket,
+    FrameRatePacket,
+    StartPacket,
+    StopPacket,
+)
+from models.errors import InvalidInputError
+
+_STRICT = ConfigDict(extra="forbid", frozen=True)
+
+
+class StartCommand(BaseModel):
+    """Start streaming."""
+
+    model_config = _STRICT
+    command: Literal["start"]
+
+
+class StopCommand(BaseModel):
+    """Stop streaming."""
+
+    model_config = _STRICT
+    command: Literal["stop"]
+
+
+class ExposureCommand(BaseModel):
+    """Analog gain (wrap units per scene unit at the reference integration) and integration (ns)."""
+
+    model_config = _STRICT
+    command: Literal["set_exposure"]
+    gain: float = Field(gt=0, le=1e9, allow_inf_nan=False)
+    integration_ns: int = Field(1_000_000, gt=0, lt=1 << 63)
+
+
+class EncodingCommand(BaseModel):
+    """In-pixel encoding, its alpha (mantissa only) and code bits."""
+
+    model_config = _STRICT
+    command: Literal["set_encoding"]
+    encoding: Literal["modulo", "mantissa", "clip"]
+    bits: int = Field(8, ge=1, le=16)
+    alpha: float = Field(2.0, gt=1.0, le=1e6, allow_inf_nan=False)
+
+
+class FrameRateCommand(BaseModel):
+    """Frames per second."""
+
+    model_config = _STRICT
+    command: Literal["set_frame_rate"]
+    fps: float = Field(gt=0, le=10_000, allow_inf_nan=False)
+
+
+class BracketCommand(BaseModel):
+    """Bracketed reference capture: ``count`` clipped images, gain times ``ratio`` each."""
+
+    model_config = _STRICT
+    command: Literal["bracket"]
+    count: int = Field(5, ge=2, le=16)
+    base_gain: float = Field(0.0, ge=0, le=1e9, allow_inf_nan=False)
+    ratio: float = Field(2.0, gt=1.0, le=64, allow_inf_nan=False)
+
+
+Command = Annotated[
+    StartCommand | StopCommand | ExposureCommand | EncodingCommand | FrameRateCommand
+    | BracketCommand,
+    Field(discriminator="command"),
+]
+COMMANDS: tuple[str, ...] = (
+    "start", "stop", "set_exposure", "set_encoding", "set_frame_rate", "bracket",
+)
+_ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
+
+
+def validate_command(values: dict[str, Any]) -> Command:
+    """Check a command mapping; :class:`InvalidInputError` says which field is wrong."""
+    try:
+        return _ADAPTER.validate_python(values)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in err['loc']) or 'command'}: {err['msg']}"
+            for err in exc.errors()
+        )
+        raise InvalidInputError(
+            f"invalid device command: {problems} (commands: {', '.join(COMMANDS)})"
+        ) from None
+
+
+def to_packet(command: Command) -> ControlPacket:
+    """The control packet carrying a validated command."""
+    match command:
+        case StartCommand():
+            return StartPacket()
+        case StopCommand():
+            return StopPacket()
+        case ExposureCommand():
+            return ExposurePacket(command.gain, command.integration_ns)
+        case EncodingCommand():
+            return EncodingPacket(command.encoding, command.bits, command.alpha)
+        case FrameRateCommand():
+            return FrameRatePacket(command.fps)
+        case BracketCommand():
+            return BracketPacket(command.count, command.base_gain, command.ratio)
+    raise InvalidInputError(f"unknown command {command!r}")
+
+
+def to_command(packet: ControlPacket) -> Command:
+    """The validated command a control packet carries (the device's check of its input)."""
+    fields: dict[str, Any] = {
+        key: value for key, value in vars(packet).items() if key != "type"
+    }
+    name = {
+        StartPacket: "start", StopPacket: "stop", ExposurePacket: "set_exposure",
+        EncodingPacket: "set_encoding", FrameRatePacket: "set_frame_rate",
+        BracketPacket: "bracket",
+    }[type(packet)]
+    return validate_command({"command": name, **fields})
+
+
+def parse_command(values: dict[str, Any]) -> ControlPacket:
+    """Validate a command mapping and return its control packet."""
+    return to_packet(validate_command(values))
+
+
+def command_fields(command: Command) -> dict[str, str]:
+    """Redis stream fields of a command (all values as strings)."""
+    return {key: str(value) for key, value in command.model_dump().items()}
+
+
+def fields_to_command(fields: dict[bytes | str, bytes | str]) -> Command:
+    """Parse the fields of a ``control:<device>`` stream entry."""
+    text = {
+        (k.decode() if isinstance(k, bytes) else k): (v.decode() if isinstance(v, bytes) else v)
+        for k, v in fields.items()
+    }
+    return validate_command(text)

@@ -1,0 +1,184 @@
+"""Incremental mcam-link v1 parser: bytes in, verified packets out.
+
+The parser never trusts a length beyond ``max_payload``, resynchronises on the
+next signature after garbage, holds at most one maximal packet plus one read
+chunk, and counts every packet it throws away by cause:
+
+- ``bad_header``: a signature followed by a header whose checksum is wrong;
+- ``oversize``: a header claiming a payload larger than ``max_payload``;
+- ``bad_crc``: a complete packet whose CRC-32 does not match;
+- ``truncated``: a packet cut short (the next packet's header starts inside it,
+  the link closed, or it waited longer than the partial-packet timeout);
+- ``unknown_type``: CRC ok but the type byte is not a v1 packet type;
+- ``malformed``: CRC ok but the payload contradicts its header.
+
+Bytes skipped while hunting for a signature are counted in ``garbage_bytes``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+from device.link_protocol import (
+    CRC_SIZE,
+    DEFAULT_MAX_PAYLOAD,
+    HEADER_SIZE,
+    SIGNATURE,
+    Packet,
+    ProtocolError,
+    decode_payload,
+    is_known_type,
+    packet_crc_ok,
+    unpack_header,
+)
+
+DROP_CAUSES: tuple[str, ...] = (
+    "bad_header", "oversize", "bad_crc", "truncated", "unknown_type", "malformed",
+)
+#: Feed input in slices of at most this many bytes so the buffer stays bounded.
+_SLICE = 64 * 1024
+
+
+class LinkParser:
+    """Feed it bytes as they arrive; it returns the complete, verified packets.
+
+    ``partial_timeout_s``: a partial packet older than this is dropped as
+    truncated by :meth:`expire` (the reader calls it when a read times out), so a
+    short read never blocks the stream forever.
+    """
+
+    def __init__(self, max_payload: int = DEFAULT_MAX_PAYLOAD,
+                 partial_timeout_s: float = 1.0) -> None:
+        if max_payload <= 0:
+            raise ValueError(f"max_payload must be positive, got {max_payload}")
+        self.max_payload = max_payload
+        self.partial_timeout_s = partial_timeout_s
+        self.drops: Counter[str] = Counter({cause: 0 for cause in DROP_CAUSES})
+        self.garbage_bytes = 0
+        self.packets_ok = 0
+        self._buf = bytearray()
+        self._partial_since: float | None = None
+
+    @property
+    def max_packet(self) -> int:
+        """Largest packet accepted, in bytes."""
+        return HEADER_SIZE + self.max_payload + CRC_SIZE
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held waiting for the rest of a packet."""
+        return len(self._buf)
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Packet]:
+        """Add received bytes; return every packet completed by them, in order."""
+        out: list[Packet] = []
+        view = memoryview(data)
+        for start in range(0, len(view), _SLICE):
+            self._buf += view[start : start + _SLICE]
+            out.extend(self._drain())
+        self._start_wait_clock()
+        return out
+
+    def _start_wait_clock(self) -> None:
+        if self._buf and self._partial_since is None:
+            self._partial_since = time.monotonic()
+
+    def expire(self, now: float | None = None) -> list[Packet]:
+        """Give up on a partial packet that has waited longer than the timeout.
+
+        It is counted as truncated and the hunt resumes one byte later, so
+        complete packets buffered behind it are returned, not lost.
+        """
+        if self._partial_since is None:
+            return []
+        now = time.monotonic() if now is None else now
+        if now - self._partial_since < self.partial_timeout_s:
+            return []
+        if self._buf.startswith(SIGNATURE) and len(self._buf) >= HEADER_SIZE:
+            self._drop("truncated")
+        else:
+            self.garbage_bytes += len(self._buf)
+            self._skip(len(self._buf))
+        out = self._drain()
+        self._start_wait_clock()
+        return out
+
+    def reset(self) -> None:
+        """Forget buffered bytes (the link closed); a started packet counts as truncated."""
+        if self._buf.startswith(SIGNATURE) and len(self._buf) >= HEADER_SIZE:
+            self.drops["truncated"] += 1
+        else:
+            self.garbage_bytes += len(self._buf)
+        self._buf.clear()
+        self._partial_since = None
+
+    def _skip(self, n: int) -> None:
+        del self._buf[:n]
+        self._partial_since = None
+
+    def _drain(self) -> list[Packet]:
+        out: list[Packet] = []
+        while True:
+            at = self._buf.find(SIGNATURE)
+            if at < 0:
+                keep = len(SIGNATURE) - 1
+                n = max(0, len(self._buf) - keep)
+                self.garbage_bytes += n
+                self._skip(n)
+                return out
+            if at:
+                self.garbage_bytes += at
+                self._skip(at)
+            if len(self._buf) < HEADER_SIZE:
+                return out
+            ptype, length, header_ok = unpack_header(bytes(self._buf[:HEADER_SIZE]))
+            if not header_ok:
+                self._drop("bad_header")
+                continue
+            if length > self.max_payload:
+                self._drop("oversize")
+                continue
+            end = HEADER_SIZE + length + CRC_SIZE
+            if len(self._buf) < end:
+                return out
+            packet = self._verify(ptype, end)
+            if packet is not None:
+                out.append(packet)
+
+    def _verify(self, ptype: int, end: int) -> Packet | None:
+        """Check and decode the complete candidate packet in ``buf[:end]``."""
+        raw = memoryview(self._buf)[:end]
+        try:
+            crc_ok = packet_crc_ok(raw)
+        finally:
+            raw.release()
+        if not crc_ok:
+            self._drop("truncated" if self._next_header_before(end) else "bad_crc")
+            return None
+        payload = bytes(self._buf[HEADER_SIZE : end - CRC_SIZE])
+        self._skip(end)
+        if not is_known_type(ptype):
+            self.drops["unknown_type"] += 1
+            return None
+        try:
+            packet = decode_payload(ptype, payload)
+        except ProtocolError:
+            self.drops["malformed"] += 1
+            return None
+        self.packets_ok += 1
+        return packet
+
+    def _next_header_before(self, end: int) -> bool:
+        """Whether a signature with a valid header starts inside ``buf[1:end]``."""
+        at = self._buf.find(SIGNATURE, 1, end)
+        while 0 < at and at + HEADER_SIZE <= len(self._buf):
+            if unpack_header(bytes(self._buf[at : at + HEADER_SIZE]))[2]:
+                return True
+            at = self._buf.find(SIGNATURE, at + 1, end)
+        return False
+
+    def _drop(self, cause: str) -> None:
+        """Count a rejected candidate and resume the signature hunt one byte later."""
+        self.drops[cause] += 1
+        self._skip(1)

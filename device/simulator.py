@@ -1,0 +1,243 @@
+"""A virtual SCAMP-5: renders a scene sequence, encodes it in-pixel, streams mcam-link v1.
+
+Every frame goes through :func:`models.formation.simulate` (modulo by default,
+like the prototype; mantissa or clip on request) with shot and read noise,
+seeded per sequence number so :meth:`VirtualScamp5.ground_truth` re-renders
+exactly what was sent. Control packets from the host change the settings,
+start/stop the stream, or trigger a bracketed reference capture: one packet of
+the wrapped frame (bracket index 0) and ``count`` clipped images whose gain
+doubles (by ``ratio``) each time, all of the same scene instant.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+
+from device.commands import BracketCommand, to_command
+from device.faults import Faults
+from device.link_parser import LinkParser
+from device.link_protocol import (
+    FLAG_BRACKET,
+    BracketPacket,
+    DataPacket,
+    EncodingPacket,
+    ExposurePacket,
+    FrameRatePacket,
+    StartPacket,
+    StopPacket,
+    encode_data,
+)
+from device.scenes import ProceduralScene, SceneSequence
+from device.sim_link import Endpoint
+from models.errors import InvalidInputError
+from models.formation import SensorFrame, SensorParams, simulate
+
+#: Integration time at which the exposure gain is the analog gain (ns).
+REFERENCE_INTEGRATION_NS = 1_000_000
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """What the host can change: encoding, exposure, frame rate, streaming on/off."""
+
+    encoding: str = "modulo"
+    alpha: float = 2.0
+    bits: int = 8
+    gain: float = 1.0
+    integration_ns: int = REFERENCE_INTEGRATION_NS
+    fps: float = 30.0
+    running: bool = True
+    read_noise: float = 0.002
+    full_well: float | None = 20_000.0
+
+    @property
+    def exposure_gain(self) -> float:
+        """Wrap units per scene unit: analog gain x integration / reference integration."""
+        return self.gain * self.integration_ns / REFERENCE_INTEGRATION_NS
+
+
+@dataclass(frozen=True)
+class SentFrame:
+    """What the device did with one sequence number (for tests and benches)."""
+
+    index: int
+    params: SensorParams
+    intact: bool
+    bracket_index: int = 0
+    bracket_count: int = 0
+
+
+class VirtualScamp5:
+    """The virtual camera. Call :meth:`step` yourself, or :meth:`start` a streaming thread.
+
+    ``history``: how many sent sequence numbers to remember for
+    :meth:`ground_truth` (0 keeps none).
+    """
+
+    def __init__(self, endpoint: Endpoint, scene: SceneSequence | None = None,
+                 settings: CameraSettings | None = None, faults: Faults | None = None,
+                 seed: int = 0, history: int = 0, max_frames: int | None = None) -> None:
+        self.endpoint = endpoint
+        self.scene = scene if scene is not None else ProceduralScene()
+        self.settings = settings or CameraSettings()
+        self.faults = faults or Faults()
+        self.seed = seed
+        self.max_frames = max_frames
+        self.sequence = 0
+        self.frame_index = 0
+        self.frames_captured = 0
+        self.packets_sent = 0
+        self.packets_unsent = 0
+        self.controls_received: list[object] = []
+        self.sent: OrderedDict[int, SentFrame] = OrderedDict()
+        self._history = history
+        self._bracket: BracketCommand | None = None
+        self._parser = LinkParser(max_payload=64)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.lock = threading.Lock()
+
+    # ---- rendering ----
+    def params_for(self, sequence: int, encoding: str | None = None,
+                   gain: float | None = None) -> SensorParams:
+        """Sensor parameters (noise seeded by ``sequence``) for the current settings."""
+        s = self.settings
+        return SensorParams(
+            encoding=encoding or s.encoding, alpha=s.alpha, bits=s.bits,
+            gain=gain if gain is not None else s.exposure_gain,
+            read_noise=s.read_noise, full_well=s.full_well, seed=self.seed * 1_000_003 + sequence,
+        )
+
+    def render(self, index: int, params: SensorParams) -> SensorFrame:
+        """The frame the sensor produces for scene ``index`` with ``params``."""
+        return simulate(self.scene.render(index), params)
+
+    def ground_truth(self, sequence: int) -> SensorFrame:
+        """Re-render the frame sent as ``sequence`` (needs ``history``)."""
+        record = self.sent.get(sequence)
+        if record is None:
+            raise InvalidInputError(f"sequence {sequence} is not in the simulator's history")
+        return self.render(record.index, record.params)
+
+    # ---- control ----
+    def handle_input(self) -> None:
+        """Read host -> device bytes and obey every valid control packet in them."""
+        for packet in self._parser.feed(self.endpoint.read()):
+            try:
+                command = to_command(packet)  # type: ignore[arg-type]
+            except (InvalidInputError, KeyError):
+                continue
+            self.controls_received.append(packet)
+            self.apply(packet, command)
+
+    def apply(self, packet: object, command: object) -> None:
+        """Change the settings as a (validated) control packet asks."""
+        s = self.settings
+        match packet:
+            case StartPacket():
+                s = replace(s, running=True)
+            case StopPacket():
+                s = replace(s, running=False)
+            case ExposurePacket(gain=gain, integration_ns=integration):
+                s = replace(s, gain=gain, integration_ns=integration)
+            case EncodingPacket(encoding=encoding, bits=bits, alpha=alpha):
+                s = replace(s, encoding=encoding, bits=bits, alpha=alpha)
+            case FrameRatePacket(fps=fps):
+                s = replace(s, fps=fps)
+            case BracketPacket():
+                assert isinstance(command, BracketCommand)
+                self._bracket = command
+        self.settings = s
+
+    # ---- sending ----
+    def _send(self, packet: DataPacket, record: SentFrame) -> None:
+        data, intact = self.faults.apply(encode_data(packet))
+        count = self.packets_sent + self.packets_unsent
+        if self.faults.disconnect_now(count):
+            self.endpoint.disconnect()
+            time.sleep(self.faults.disconnect_s)
+            self.endpoint.reconnect()
+        if self.faults.stall_now(count) and data:
+            half = len(data) // 2
+            delivered = self.endpoint.write(data[:half])
+            time.sleep(self.faults.stall_s)
+            delivered = self.endpoint.write(data[half:]) and delivered
+        else:
+            delivered = self.endpoint.write(data) if data else True
+        if delivered:
+            self.packets_sent += 1
+        else:
+            self.packets_unsent += 1
+        if self._history:
+            self.sent[packet.sequence] = replace(record, intact=intact and delivered)
+            while len(self.sent) > self._history:
+                self.sent.popitem(last=False)
+
+    def _capture(self, params: SensorParams, flags: int = 0, bracket_index: int = 0,
+                  bracket_count: int = 0) -> None:
+        frame = self.render(self.frame_index, params)
+        packet = DataPacket(
+            sequence=self.sequence, timestamp_ns=time.monotonic_ns(), encoding=params.encoding,
+            alpha=params.alpha, bits=params.bits, gain=float(params.gain or 0.0),
+            codes=frame.codes, flags=flags, bracket_index=bracket_index,
+            bracket_count=bracket_count,
+        )
+        record = SentFrame(self.frame_index, params, True, bracket_index, bracket_count)
+        self._send(packet, record)
+        self.sequence += 1
+
+    def capture_frame(self) -> None:
+        """Expose, encode and send one frame, then advance the scene."""
+        self._capture(self.params_for(self.sequence))
+        self.frame_index += 1
+        self.frames_captured += 1
+
+    def capture_bracket(self, command: BracketCommand) -> None:
+        """Send the wrapped frame and ``count`` clipped exposures of the current scene."""
+        gain = self.settings.exposure_gain
+        base = command.base_gain or gain / command.ratio ** (command.count - 1)
+        total = command.count + 1
+        self._capture(self.params_for(self.sequence), FLAG_BRACKET, 0, total)
+        for i in range(command.count):
+            params = self.params_for(self.sequence, "clip", base * command.ratio**i)
+            self._capture(params, FLAG_BRACKET, i + 1, total)
+        self.frame_index += 1
+
+    def step(self) -> None:
+        """One tick: obey control input, then capture a bracket or a frame if running."""
+        with self.lock:
+            self.handle_input()
+            if self._bracket is not None:
+                command, self._bracket = self._bracket, None
+                self.capture_bracket(command)
+            elif self.settings.running and not self.done():
+                self.capture_frame()
+
+    # ---- streaming thread ----
+    def done(self) -> bool:
+        """Whether ``max_frames`` regular frames have been captured."""
+        return self.max_frames is not None and self.frames_captured >= self.max_frames
+
+    def run(self) -> None:
+        """Tick at the set frame rate until :meth:`stop`."""
+        next_tick = time.monotonic()
+        while not self._stop.is_set():
+            self.step()
+            next_tick = max(next_tick + 1.0 / self.settings.fps, time.monotonic() - 0.1)
+            self._stop.wait(max(0.0, next_tick - time.monotonic()))
+
+    def start(self) -> VirtualScamp5:
+        """Run :meth:`run` in a daemon thread."""
+        self._thread = threading.Thread(target=self.run, name="virtual-scamp5", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the thread and close the link."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        self.endpoint.close()
