@@ -1,0 +1,247 @@
+"""Speed against accuracy: every decoder, ``auto`` at each quality, and tile sizes.
+
+``python -m bench.tradeoff`` measures, on 2 cores (onnxruntime threads from
+``MCAM_WORKER_THREADS``, default 2):
+
+- ``val-256``: the fixed val-256 protocol (mantissa, 8 bits, overexposed 0.2);
+- ``large-512`` / ``large-1024``: seeded synthetic scenes at 512 and 1024 px;
+- ``mostly-dark``: val-256 crops exposed so that only 1% of pixels wrap, plus
+  unwrapped crops (realistic for streaming: most tiles need nothing);
+
+for each decoder: PSNR and PU21-PSNR against the true irradiance, winding
+accuracy, ms/frame (median of repeats) and frames/s. It marks the Pareto front
+(no other point is both faster and more accurate), measures the machine's peak
+GFLOP/s with a float32 matrix multiply and reports each network's achieved
+GFLOP/s against it, prints Markdown tables and writes JSON and a PNG plot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models import metrics
+from models.decoders import Decoder, available_decoders, get_decoder
+from models.decoders.adaptive import QUALITIES, AdaptiveDecoder
+from models.formation import SensorParams, simulate
+from models.scenes import (
+    VAL256_BITS,
+    VAL256_MAX_WRAPS,
+    VAL256_OVEREXPOSED,
+    ValFrame,
+    synthetic_scene,
+    val256_frames,
+    val256_scenes,
+)
+
+RESULTS = Path(__file__).resolve().parent / "results"
+VAL_PARAMS = SensorParams(encoding="mantissa", bits=VAL256_BITS, max_wraps=VAL256_MAX_WRAPS)
+TILE_SIZES = (32, 64, 128)
+
+
+def frames_at(scene: np.ndarray, overexposed: float | None, gain: float | None) -> ValFrame:
+    """One mantissa frame of ``scene`` at the val-256 settings and the given exposure."""
+    params = VAL_PARAMS.model_copy(update={"gain": gain})
+    frame = simulate(scene, params, overexposed=overexposed)
+    return ValFrame(frame.codes, frame.winding, frame.irradiance, frame.params)
+
+
+def large_frames(size: int, count: int) -> list[ValFrame]:
+    """Seeded synthetic scenes at ``size`` px, exposed like val-256."""
+    scenes = [synthetic_scene(1000 + k, size) for k in range(count)]
+    return [frames_at(scene, VAL256_OVEREXPOSED, None) for scene in scenes]
+
+
+def mostly_dark_frames(count: int) -> list[ValFrame]:
+    """Val crops where 1% of pixels wrap, and as many where none does (gain below 1/max)."""
+    crops = [scene[:256, :256] for _, scene in val256_scenes()][:count]
+    wrapped = [frames_at(crop, 0.01, None) for crop in crops]
+    unwrapped = [frames_at(crop, None, 0.9 / float(crop.max())) for crop in crops]
+    return wrapped + unwrapped
+
+
+def median_ms(run: Callable[[], Any], repeats: int) -> float:
+    """Median wall time of ``run`` in ms over ``repeats`` calls (after one warm-up)."""
+    run()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter_ns()
+        run()
+        times.append((time.perf_counter_ns() - start) / 1e6)
+    return float(np.median(times))
+
+
+def measure(decoder: Decoder, frames: list[ValFrame], repeats: int) -> dict[str, float]:
+    """Mean accuracy and median ms/frame of one decoder on a frame set."""
+    psnr, pu21, accuracy, ms = [], [], [], []
+    for frame in frames:
+        result = decoder.decode(frame.codes, frame.params)
+        psnr.append(metrics.psnr(result.irradiance, frame.x))
+        pu21.append(metrics.pu21_psnr(result.irradiance, frame.x))
+        accuracy.append(metrics.winding_accuracy(result.winding, frame.winding))
+        ms.append(median_ms(lambda f=frame: decoder.decode(f.codes, f.params), repeats))
+    finite = [p for p in psnr if np.isfinite(p)]
+    mean_ms = float(np.mean(ms))
+    return {
+        "psnr_db": float(np.mean(finite)) if finite else float("inf"),
+        "pu21_psnr_db": float(np.mean([p for p in pu21 if np.isfinite(p)] or [float("inf")])),
+        "winding_accuracy": float(np.mean(accuracy)),
+        "ms_per_frame": mean_ms,
+        "frames_per_s": 1000.0 / mean_ms,
+        "exact_frames": int(sum(1 for p in psnr if not np.isfinite(p))),
+    }
+
+
+def pareto(rows: list[dict[str, Any]]) -> None:
+    """Mark rows no other row beats on both ms/frame and PSNR."""
+    for row in rows:
+        row["pareto"] = not any(
+            other is not row
+            and other["ms_per_frame"] <= row["ms_per_frame"]
+            and other["psnr_db"] >= row["psnr_db"]
+            and (other["ms_per_frame"], other["psnr_db"]) != (row["ms_per_frame"], row["psnr_db"])
+            for other in rows
+        )
+
+
+def peak_gflops(size: int = 2048, repeats: int = 5) -> float:
+    """Measured float32 matrix-multiply throughput of this machine in GFLOP/s."""
+    rng = np.random.default_rng(0)
+    a = rng.random((size, size), dtype=np.float32)
+    b = rng.random((size, size), dtype=np.float32)
+    best = min(median_ms(lambda: a @ b, 1) for _ in range(repeats))
+    return 2 * size**3 / (best / 1000) / 1e9
+
+
+def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
+    """Every installed decoder (or the named ones), plus ``auto`` at other tile sizes."""
+    chosen = [(s.name, get_decoder(s.name)) for s in available_decoders() if s.name != "auto"]
+    if names:
+        chosen = [(n, d) for n, d in chosen if n in names]
+    tiles = [
+        (f"auto-{q}-tile{t}", AdaptiveDecoder(q, tile=t)) for q in QUALITIES for t in TILE_SIZES
+        if t != 64
+    ]
+    return chosen + ([] if names else tiles)
+
+
+def gflops_of(name: str) -> float | None:
+    """GFLOPs per 256x256 frame from the decoder's model card, if it is a network."""
+    for spec in available_decoders():
+        if spec.name == name and "gflops_256" in spec.figures:
+            return float(spec.figures["gflops_256"])
+    return None
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    sets = {"val-256": val256_frames("mantissa")[: args.frames]}
+    if not args.quick:
+        sets["large-512"] = large_frames(512, 2)
+        sets["large-1024"] = large_frames(1024, 1)
+    sets["mostly-dark"] = mostly_dark_frames(args.dark)
+    peak = peak_gflops()
+    table: dict[str, list[dict[str, Any]]] = {}
+    for set_name, frames in sets.items():
+        rows = []
+        for name, decoder in candidates(args.decoders):
+            if set_name != "val-256" and "tile" in name:
+                continue
+            row = {"decoder": name, **measure(decoder, frames, args.repeats)}
+            flops = gflops_of(name)
+            if flops is not None:
+                pixels = frames[0].codes.size / 256**2
+                row["gflops_per_s"] = flops * pixels / (row["ms_per_frame"] / 1000)
+                row["fraction_of_peak"] = row["gflops_per_s"] / peak
+            rows.append(row)
+        pareto(rows)
+        table[set_name] = rows
+    return {
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "machine": {"cpu": platform.processor() or platform.machine(), "cores": 2},
+        "peak_gflops_per_s": peak,
+        "repeats": args.repeats,
+        "sets": {name: len(frames) for name, frames in sets.items()},
+        "results": table,
+    }
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The report as Markdown tables, one per frame set."""
+    lines = [f"Peak float32 matmul: {report['peak_gflops_per_s']:.1f} GFLOP/s ({report['date']})"]
+    for set_name, rows in report["results"].items():
+        lines += [
+            "",
+            f"### {set_name} ({report['sets'][set_name]} frames)",
+            "",
+            "| decoder | PSNR dB | PU21-PSNR dB | W acc | ms/frame | frames/s "
+            "| GFLOP/s (% peak) | Pareto |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for r in sorted(rows, key=lambda r: r["ms_per_frame"]):
+            flops = (
+                f"{r['gflops_per_s']:.1f} ({100 * r['fraction_of_peak']:.0f}%)"
+                if "gflops_per_s" in r
+                else "-"
+            )
+            lines.append(
+                f"| {r['decoder']} | {r['psnr_db']:.2f} | {r['pu21_psnr_db']:.2f} | "
+                f"{100 * r['winding_accuracy']:.2f}% | {r['ms_per_frame']:.2f} | "
+                f"{r['frames_per_s']:.1f} | {flops} | {'*' if r['pareto'] else ''} |"
+            )
+    return "\n".join(lines)
+
+
+def plot(report: dict[str, Any], path: Path) -> None:
+    """PSNR and PU21-PSNR against ms/frame on val-256, Pareto front joined."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = report["results"]["val-256"]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    panels = (("psnr_db", "PSNR"), ("pu21_psnr_db", "PU21-PSNR"))
+    for ax, (key, label) in zip(axes, panels, strict=True):
+        for r in rows:
+            ax.scatter(r["ms_per_frame"], r[key], color="C1" if r["pareto"] else "C0")
+            ax.annotate(r["decoder"], (r["ms_per_frame"], r[key]), fontsize=7)
+        front = sorted((r for r in rows if r["pareto"]), key=lambda r: r["ms_per_frame"])
+        ax.plot([r["ms_per_frame"] for r in front], [r[key] for r in front], "C1--")
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per 256x256 frame (2 cores)")
+        ax.set_ylabel(f"{label} (dB)")
+        ax.grid(True, alpha=0.3)
+    fig.suptitle(f"val-256 speed/accuracy trade-off, {report['date'][:10]}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=24, help="val-256 frames to use")
+    parser.add_argument("--dark", type=int, default=3, help="mostly-dark crops per kind")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--decoders", nargs="*", help="only these decoders")
+    parser.add_argument("--quick", action="store_true", help="skip the 512/1024 sets")
+    parser.add_argument("--out", type=Path, default=RESULTS / "tradeoff.json")
+    parser.add_argument("--plot", type=Path, default=RESULTS / "tradeoff.png")
+    args = parser.parse_args(argv)
+    report = run(args)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2))
+    args.out.with_suffix(".md").write_text(markdown(report) + "\n")
+    plot(report, args.plot)
+    print(markdown(report))
+
+
+if __name__ == "__main__":
+    main()
