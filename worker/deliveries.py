@@ -8,7 +8,7 @@ Usage::
         consumer.done(delivery)               # XACK + XDEL in one transaction
 
 Entries of a dead consumer stay pending; :meth:`reclaim` takes those idle longer
-than ``min_idle_ms`` (XAUTOCLAIM, which counts a delivery). Entries trimmed away
+than ``min_idle_ms`` (XPENDING IDLE + XCLAIM, counting a delivery). Entries trimmed away
 while pending (a full device stream) come back without fields and are acked.
 """
 
@@ -74,34 +74,44 @@ class StreamConsumer:
         ]
 
     def read_own_pending(self, count: int = 100) -> list[Delivery]:
-        """Entries already delivered to this consumer and not acked, oldest first; trimmed
-        entries are acked and skipped."""
-        reply = self.client.xreadgroup(GROUP, self.name, {self.stream: "0"}, count=count)
+        """Entries delivered to this consumer and not acked, oldest first (reading them
+        does not count a delivery); entries trimmed away meanwhile are acked and skipped."""
+        rows = self.client.xpending_range(self.stream, GROUP, "-", "+", count, self.name)
         found = []
-        for _stream, entries in reply or []:
-            for entry_id, raw in entries:
-                delivery = Delivery(self.stream, entry_id.decode(), _fields(raw))
-                if delivery.fields:
-                    found.append(delivery)
-                else:
-                    self.done(delivery)
-        for delivery in found:
-            delivery.deliveries = self.delivery_count(delivery.entry_id)
+        for row in rows:
+            entry_id = row["message_id"].decode()
+            entries = self.client.xrange(self.stream, entry_id, entry_id, count=1)
+            delivery = Delivery(
+                self.stream,
+                entry_id,
+                _fields(entries[0][1] if entries else None),
+                int(row["times_delivered"]),
+            )
+            if delivery.fields:
+                found.append(delivery)
+            else:
+                self.done(delivery)
         return found
 
     def claim_idle(self, min_idle_ms: int, count: int | None = 10) -> int:
         """Take over entries pending longer than ``min_idle_ms`` at any consumer (each
         counts one more delivery): up to ``count``, or all of them when None. Returns how
-        many were taken."""
-        claimed, cursor = 0, "0-0"
-        while True:
-            batch = 100 if count is None else count - claimed
-            cursor, entries = self.client.xautoclaim(
-                self.stream, GROUP, self.name, min_idle_ms, cursor, count=batch
-            )[:2]
-            claimed += len(entries)
-            if cursor in (b"0-0", "0-0") or (count is not None and claimed >= count):
-                break
+        many were taken (XCLAIM re-checks the idle time, so two claimers never both win)."""
+        rows = self.client.xpending_range(
+            self.stream, GROUP, "-", "+", count or 10_000, idle=min_idle_ms or None
+        )
+        claimed = 0
+        for row in rows:
+            won = self.client.xclaim(
+                self.stream,
+                GROUP,
+                self.name,
+                min_idle_ms,
+                [row["message_id"]],
+                retrycount=int(row["times_delivered"]) + 1,
+                justid=True,
+            )
+            claimed += len(won)
         if claimed and min_idle_ms > 0:
             self.metrics.inc("redeliveries_total", claimed)
         return claimed
@@ -112,15 +122,18 @@ class StreamConsumer:
             return []
         return self.read_own_pending(count)
 
-    def delivery_count(self, entry_id: str) -> int:
-        """How many times the entry was delivered (1 if it is no longer pending)."""
-        rows = self.client.xpending_range(self.stream, GROUP, entry_id, entry_id, 1)
-        return int(rows[0]["times_delivered"]) if rows else 1
-
     def retry(self, delivery: Delivery) -> None:
         """Deliver the entry to this consumer again (counts a delivery)."""
-        self.client.xclaim(self.stream, GROUP, self.name, 0, [delivery.entry_id])
-        delivery.deliveries = self.delivery_count(delivery.entry_id)
+        delivery.deliveries += 1
+        self.client.xclaim(
+            self.stream,
+            GROUP,
+            self.name,
+            0,
+            [delivery.entry_id],
+            retrycount=delivery.deliveries,
+            justid=True,
+        )
 
     def done(self, delivery: Delivery) -> None:
         """Acknowledge and delete the entry (call only after its result is durable)."""

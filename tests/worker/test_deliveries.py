@@ -1,0 +1,76 @@
+"""StreamConsumer: reclaiming a stopped consumer's entries, retries, dead letters, trims."""
+
+from __future__ import annotations
+
+import time
+
+import redis
+
+from worker.deliveries import StreamConsumer, entry_order
+from worker.metrics import read_metrics
+from worker.queue import GROUP
+from worker.redis_keys import DEAD_LETTER_STREAM
+
+
+def consumer(client: redis.Redis, name: str) -> StreamConsumer:
+    return StreamConsumer(client, "s", name, max_deliveries=3)
+
+
+def test_read_done_removes_entry(client: redis.Redis) -> None:
+    alice = consumer(client, "alice")
+    client.xadd("s", {"n": "1"})
+    [delivery] = alice.read_new(block_ms=None)
+    assert delivery.fields == {"n": b"1"} and delivery.deliveries == 1
+    alice.done(delivery)
+    assert client.xlen("s") == 0 and client.xpending("s", GROUP)["pending"] == 0
+
+
+def test_idle_entries_are_reclaimed_with_delivery_count(client: redis.Redis) -> None:
+    alice, bob = consumer(client, "alice"), consumer(client, "bob")
+    client.xadd("s", {"n": "1"})
+    [first] = alice.read_new(block_ms=None)
+    assert bob.reclaim(min_idle_ms=60_000) == []
+    time.sleep(0.05)
+    [again] = bob.reclaim(min_idle_ms=10)
+    assert again.entry_id == first.entry_id and again.deliveries == 2
+    bob.retry(again)
+    assert again.deliveries == 3
+    redeliveries = {f.name: f for f in read_metrics(client)}["redeliveries_total"]
+    assert redeliveries.samples[0].value == 1
+
+
+def test_dead_letter_keeps_error_not_payload(client: redis.Redis) -> None:
+    alice = consumer(client, "alice")
+    client.xadd("s", {"codes": b"\x00" * 100, "job": "j"})
+    [delivery] = alice.read_new(block_ms=None)
+    alice.dead_letter(delivery, "output_overflow", "too bright", job="j")
+    [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
+    assert letter[b"code"] == b"output_overflow" and letter[b"job"] == b"j"
+    assert b"codes" not in letter
+    assert client.xlen("s") == 0 and client.xpending("s", GROUP)["pending"] == 0
+
+
+def test_trimmed_pending_entries_are_acked(client: redis.Redis) -> None:
+    alice, bob = consumer(client, "alice"), consumer(client, "bob")
+    for n in range(3):
+        client.xadd("s", {"n": str(n)})
+    alice.read_new(block_ms=None, count=3)
+    client.xtrim("s", maxlen=1, approximate=False)
+    bob.claim_idle(0, count=None)
+    [kept] = bob.read_own_pending()
+    assert kept.fields == {"n": b"2"}
+    assert client.xpending("s", GROUP)["pending"] == 1
+
+
+def test_give_back_requeues_as_new_entry(client: redis.Redis) -> None:
+    alice = consumer(client, "alice")
+    client.xadd("s", {"n": "1"})
+    [delivery] = alice.read_new(block_ms=None)
+    alice.give_back(delivery)
+    [again] = alice.read_new(block_ms=None)
+    assert again.fields == {"n": b"1"} and again.entry_id != delivery.entry_id
+    assert entry_order(again.entry_id) > entry_order(delivery.entry_id)
+
+
+def test_entry_order() -> None:
+    assert entry_order("10-2") > entry_order("9-99") > entry_order("9-1")

@@ -1,0 +1,71 @@
+"""JobStore: records as per-field hashes, atomic state transitions, state counts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import redis
+
+from models.formation import SensorParams
+from worker.job_store import JobStore
+from worker.jobs import JobError, JobNotFoundError, JobState
+from worker.queue import JobQueue
+from worker.redis_keys import job_done_channel
+
+PARAMS = SensorParams(encoding="modulo", bits=8)
+
+
+@pytest.fixture
+def job_id(queue: JobQueue) -> str:
+    return queue.submit("reconstruction", np.zeros((4, 4), np.uint8), PARAMS, "itoh").id
+
+
+def test_transition_checks_current_state(client: redis.Redis, job_id: str) -> None:
+    store = JobStore(client)
+    assert store.transition(job_id, JobState.RUNNING, [JobState.QUEUED], attempts=1) == (
+        True,
+        JobState.QUEUED,
+    )
+    assert store.transition(job_id, JobState.RUNNING, [JobState.QUEUED]) == (
+        False,
+        JobState.RUNNING,
+    )
+    record = store.load(job_id)
+    assert record.state is JobState.RUNNING and record.attempts == 1
+    assert store.states()["running"] == 1 and store.states()["queued"] == 0
+
+
+def test_transition_of_missing_job(client: redis.Redis) -> None:
+    assert JobStore(client).transition("a" * 32, JobState.RUNNING, [JobState.QUEUED]) == (
+        False,
+        None,
+    )
+
+
+def test_update_keeps_state_and_other_fields(client: redis.Redis, job_id: str) -> None:
+    store = JobStore(client)
+    store.update(job_id, progress=0.5, frames_done=3, timings_ns={"decode": 7})
+    store.transition(job_id, JobState.CANCELLED, [JobState.QUEUED])
+    store.update(job_id, info={"note": "x"})
+    record = store.load(job_id)
+    assert record.state is JobState.CANCELLED
+    assert (record.progress, record.frames_done, record.timings_ns) == (0.5, 3, {"decode": 7})
+    assert record.info == {"note": "x"}
+    with pytest.raises(ValueError, match="transition"):
+        store.update(job_id, state=JobState.QUEUED)
+
+
+def test_finished_transition_announces(client: redis.Redis, job_id: str) -> None:
+    pubsub = client.pubsub(ignore_subscribe_messages=True)
+    pubsub.subscribe(job_done_channel(job_id))
+    error = JobError(code="output_overflow", message="too bright")
+    JobStore(client).transition(job_id, JobState.FAILED, [JobState.QUEUED], error=error)
+    messages = [pubsub.get_message(timeout=1) for _ in range(3)]
+    assert [m["data"] for m in messages if m is not None] == [b"failed"]
+    assert JobStore(client).load(job_id).error == error
+    pubsub.close()
+
+
+def test_load_rejects_bad_ids(client: redis.Redis) -> None:
+    with pytest.raises(JobNotFoundError, match="32 hexadecimal"):
+        JobStore(client).load("job:1")

@@ -1,0 +1,147 @@
+"""JobQueue and publish_frame: submission, reject-when-full, drop-oldest, cancel, wait, stats."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import redis
+
+from models.errors import InvalidInputError
+from models.formation import SensorParams
+from worker.frame_message import FrameMessage
+from worker.job_store import JobStore
+from worker.jobs import JobNotFoundError, JobState
+from worker.metrics import read_metrics
+from worker.queue import GROUP, JobQueue, QueueFullError, entry_codes, publish_frame
+from worker.redis_keys import JOBS_STREAM, frame_stream
+
+PARAMS = SensorParams(encoding="modulo", bits=8)
+CODES = np.arange(64, dtype=np.uint8).reshape(8, 8)
+
+
+def test_submit_stores_record_and_raw_codes(queue: JobQueue, client: redis.Redis) -> None:
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh", {"half": True})
+    assert record.state is JobState.QUEUED and len(record.id) == 32
+    assert queue.get(record.id) == record
+    [(_entry_id, fields)] = client.xrange(JOBS_STREAM)
+    fields = {k.decode(): v for k, v in fields.items()}
+    assert fields["job"].decode() == record.id
+    assert fields["codes"] == CODES.tobytes()
+    np.testing.assert_array_equal(entry_codes(fields), CODES)
+    assert queue.stats()["jobs_by_state"]["queued"] == 1
+
+
+def test_video_jobs_count_frames(queue: JobQueue) -> None:
+    clip = np.zeros((5, 8, 8), np.uint8)
+    record = queue.submit("video", clip, PARAMS, "itoh", {"mode": "temporal"})
+    assert record.kind == "video" and record.frames_total == 5
+
+
+def test_int_codes_are_stored_as_sensor_dtype(queue: JobQueue, client: redis.Redis) -> None:
+    queue.submit("reconstruction", CODES.astype(np.int64), PARAMS, "itoh")
+    fields = {k.decode(): v for k, v in client.xrange(JOBS_STREAM)[0][1].items()}
+    assert entry_codes(fields).dtype == np.uint8
+
+
+@pytest.mark.parametrize(
+    ("kind", "codes", "decoder", "message"),
+    [
+        ("reconstruction", CODES.astype(np.float32), "itoh", "integers"),
+        ("reconstruction", CODES.astype(np.uint16) + 300, "itoh", r"codes are >= 2\^8"),
+        ("reconstruction", np.zeros((2, 2, 2, 2), np.uint8), "itoh", "H x W"),
+        ("video", CODES, "itoh", "T x H x W"),
+        ("reconstruction", CODES, "no-such-decoder", "unknown decoder"),
+        ("sculpture", CODES, "itoh", "unknown job kind"),
+        ("reconstruction", np.zeros((0, 4), np.uint8), "itoh", "empty"),
+    ],
+)
+def test_bad_submissions_rejected(
+    queue: JobQueue, client: redis.Redis, kind: str, codes: np.ndarray, decoder: str, message: str
+) -> None:
+    with pytest.raises(InvalidInputError, match=message):
+        queue.submit(kind, codes, PARAMS, decoder)
+    assert client.xlen(JOBS_STREAM) == 0
+
+
+def test_full_jobs_stream_rejects_and_counts(client: redis.Redis) -> None:
+    queue = JobQueue(client, maxlen=2, max_deliveries=3, claim_idle_ms=1000)
+    queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    with pytest.raises(QueueFullError) as info:
+        queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    assert info.value.code == "queue_full" and info.value.http_status == 503
+    assert client.xlen(JOBS_STREAM) == 2
+    assert queue.stats()["jobs_by_state"]["queued"] == 2
+    rejected = {f.name: f for f in read_metrics(client)}["jobs_rejected_total"]
+    assert rejected.samples[0].value == 1
+
+
+def test_full_device_stream_drops_oldest_and_counts(client: redis.Redis, queue: JobQueue) -> None:
+    dropped = [
+        publish_frame(client, FrameMessage("cam-1", seq, seq * 10, CODES, PARAMS), maxlen=5)
+        for seq in range(8)
+    ]
+    assert dropped == [0, 0, 0, 0, 0, 1, 1, 1]
+    kept = [FrameMessage.from_fields(f).sequence for _id, f in client.xrange(frame_stream("cam-1"))]
+    assert kept == [3, 4, 5, 6, 7]
+    stats = queue.stats()
+    assert stats["frames_dropped"] == {"cam-1": 3}
+    assert stats["devices"]["cam-1"]["depth"] == 5
+    assert stats["devices"]["cam-1"]["frames_dropped"] == 3
+
+
+def test_publish_frame_rejects_bad_device_id(client: redis.Redis) -> None:
+    with pytest.raises(InvalidInputError, match="device id"):
+        publish_frame(client, FrameMessage("../x", 0, 0, CODES, PARAMS), maxlen=5)
+
+
+def test_get_unknown_and_malformed_ids(queue: JobQueue) -> None:
+    with pytest.raises(JobNotFoundError):
+        queue.get("0" * 32)
+    with pytest.raises(JobNotFoundError):
+        queue.get("../../etc/passwd")
+    with pytest.raises(JobNotFoundError):
+        queue.cancel("f" * 32)
+
+
+def test_cancel_queued_job_and_finished_job_unchanged(queue: JobQueue) -> None:
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    cancelled = queue.cancel(record.id)
+    assert cancelled.state is JobState.CANCELLED and cancelled.finished_ns is not None
+    assert queue.cancel(record.id) == cancelled
+    assert queue.stats()["jobs_by_state"] == {
+        "queued": 0,
+        "running": 0,
+        "succeeded": 0,
+        "failed": 0,
+        "cancelled": 1,
+    }
+
+
+def test_wait_returns_at_timeout_or_when_finished(queue: JobQueue, client: redis.Redis) -> None:
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    start = time.monotonic()
+    assert queue.wait(record.id, 0.3).state is JobState.QUEUED
+    assert time.monotonic() - start >= 0.3
+    finisher = threading.Timer(
+        0.2,
+        lambda: JobStore(client).transition(
+            record.id, JobState.SUCCEEDED, (JobState.QUEUED,), progress=1.0
+        ),
+    )
+    finisher.start()
+    waited = queue.wait(record.id, 30)
+    finisher.join()
+    assert waited.state is JobState.SUCCEEDED and waited.progress == 1.0
+
+
+def test_stats_shape(queue: JobQueue, client: redis.Redis) -> None:
+    queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    client.xreadgroup(GROUP, "c", {JOBS_STREAM: ">"})
+    stats = queue.stats()
+    assert stats["stream_depth"] == 1 and stats["pending"] == 1
+    assert stats["dead_letters"] == 0 and stats["devices"] == {}
+    assert queue.workers(max_age_s=10) == {}

@@ -1,0 +1,106 @@
+"""ResultStore: atomic durable writes, keys that can never escape the root, retention."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from worker.result_store import (
+    InvalidKeyError,
+    ResultNotFoundError,
+    ResultStore,
+    validate_key,
+)
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> ResultStore:
+    return ResultStore(tmp_path / "results", retention_s=60.0)
+
+
+def test_write_read_roundtrip(store: ResultStore) -> None:
+    path = store.write("jobs/abc/result.exr", b"\x00\x01payload")
+    assert path == store.root / "jobs" / "abc" / "result.exr"
+    assert store.exists("jobs/abc/result.exr")
+    assert store.read("jobs/abc/result.exr") == b"\x00\x01payload"
+
+
+def test_write_replaces_and_leaves_no_temp_files(store: ResultStore) -> None:
+    store.write("a/b.bin", b"first")
+    store.write("a/b.bin", b"second")
+    assert store.read("a/b.bin") == b"second"
+    assert sorted(p.name for p in (store.root / "a").iterdir()) == ["b.bin"]
+
+
+def test_read_missing_is_not_found(store: ResultStore) -> None:
+    with pytest.raises(ResultNotFoundError) as info:
+        store.read("jobs/none/result.exr")
+    assert info.value.http_status == 404
+    assert not store.exists("jobs/none/result.exr")
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "",
+        "/etc/passwd",
+        "../x",
+        "a/../../x",
+        "a//b",
+        "a/./b",
+        "a\\b",
+        "a b",
+        "a/b/",
+        "~",
+        "x.tmp",
+        "é",
+        "a\x00b",
+        "a" * 600,
+    ],
+)
+def test_unsafe_keys_rejected(store: ResultStore, key: str) -> None:
+    with pytest.raises(InvalidKeyError):
+        store.path(key)
+    with pytest.raises(InvalidKeyError):
+        store.write(key, b"x")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text(min_size=1, max_size=40))
+def test_any_accepted_key_stays_inside_root(key: str) -> None:
+    root = Path("/srv/results")
+    try:
+        validate_key(key)
+    except InvalidKeyError:
+        return
+    resolved = (root / key).resolve()
+    assert resolved.is_relative_to(root) and resolved != root
+
+
+def test_purge_expired_removes_old_files_and_empty_folders(store: ResultStore) -> None:
+    old = store.write("jobs/old/result.exr", b"old")
+    store.write("jobs/new/result.exr", b"new")
+    past = time.time() - 3600
+    os.utime(old, (past, past))
+    assert store.purge_expired() == 1
+    assert not store.exists("jobs/old/result.exr")
+    assert not (store.root / "jobs" / "old").exists()
+    assert store.read("jobs/new/result.exr") == b"new"
+    assert store.purge_expired(now_s=time.time() + 120) == 1
+    assert list(store.root.iterdir()) == []
+
+
+def test_retention_must_be_positive(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="retention_s"):
+        ResultStore(tmp_path, retention_s=0)
+
+
+def test_delete(store: ResultStore) -> None:
+    store.write("k", b"v")
+    assert store.delete("k") is True
+    assert store.delete("k") is False
