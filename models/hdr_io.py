@@ -8,7 +8,8 @@ compression leaves some), and the clipped count is reported.
 
 The Radiance reader handles new-style run-length-encoded and flat scanlines;
 an RGBE pixel decodes at its mantissa bin centre, ``(m + 0.5) * 2^(e - 136)``,
-as Radiance's own ``colr_color`` does.
+as Radiance's own ``colr_color`` does. Header variables (``FORMAT``,
+``EXPOSURE``, ...) are returned as attributes; ``EXPOSURE`` is not divided out.
 """
 
 from __future__ import annotations
