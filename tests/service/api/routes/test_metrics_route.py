@@ -28,7 +28,7 @@ def test_metrics_after_one_job(client: Client, worker: Worker) -> None:
         "/v1/reconstructions", files={"file": ("f.png", data)}, headers={"Prefer": "wait=30"}
     )
     assert job.status_code == 200
-    reply = httpx.get(f"{http.base_url}metrics")
+    reply = httpx.get(f"{str(http.base_url).rstrip('/')}/metrics")
     assert reply.status_code == 200 and reply.headers["content-type"].startswith("text/plain")
     values = samples(reply.text)
     for name in (

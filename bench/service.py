@@ -1,0 +1,230 @@
+"""Throughput and latency of 256x256 reconstructions through the real API.
+
+Run as ``python -m bench.service``. Starts a private redis-server, the API
+(uvicorn, own process) and one worker (own process) on 127.0.0.1, then submits
+wrapped frames with ``Prefer: wait`` from 1, 4 and 16 concurrent clients. Reports
+jobs/s, p50/p99 request latency (ms), lost requests (any job not succeeded),
+and the overhead of the API + queue path over calling the decoder in-process:
+``(p50 latency at 1 client - in-process decode time) / in-process decode time``.
+Prints a table and writes ``bench/results/service.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from models.decoders.registry import get_decoder
+from models.formation import SensorParams, simulate
+from models.frames import encode_frame
+from worker.embedded_redis import EmbeddedRedis
+
+RESULTS = Path(__file__).parent / "results" / "service.json"
+CLIENTS = (1, 4, 16)
+SIZE = 256
+KEY = "bench-key-0123456789abcdef"
+PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8, gain=1.0)
+
+
+def test_frame(size: int = SIZE) -> tuple[bytes, np.ndarray]:
+    """A seeded smooth HDR ramp with a bright disc, encoded: PNG bytes and codes."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    scene = 0.01 * np.power(3000.0, x) * (1 + 0.2 * y)
+    scene = np.where((x - 0.3) ** 2 + (y - 0.6) ** 2 < 0.02, scene * 4, scene)
+    frame = simulate(scene, PARAMS)
+    return encode_frame(frame.codes, frame.params, "png"), frame.codes
+
+
+def in_process_ms(decoder: str, codes: np.ndarray, repeats: int) -> float:
+    """Median wall time of ``decode`` in this process (ms), after one warm-up call."""
+    dec = get_decoder(decoder)
+    dec.decode(codes, PARAMS)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        dec.decode(codes, PARAMS)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times) * 1e3)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def process(command: list[str], env: dict[str, str]):  # type: ignore[no-untyped-def]
+    child = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        yield child
+    finally:
+        child.terminate()
+        try:
+            child.wait(30)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+
+
+def wait_ready(url: str, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{url}/health/ready", timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError(f"the service at {url} did not become ready in {timeout_s:.0f} s")
+
+
+def one_job(http: httpx.Client, data: bytes, decoder: str) -> tuple[float, bool]:
+    """Submit and wait; returns (latency s, succeeded)."""
+    start = time.perf_counter()
+    reply = http.post(
+        "/v1/reconstructions",
+        files={"file": ("frame.png", data, "image/png")},
+        data={"decoder": decoder},
+        headers={"Prefer": "wait=60"},
+    )
+    job = reply.json()
+    while reply.status_code == 202:
+        reply = http.get(f"/v1/jobs/{job['id']}")
+        job = reply.json()
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            break
+        time.sleep(0.01)
+    return time.perf_counter() - start, job.get("state") == "succeeded"
+
+
+def run_level(url: str, clients: int, jobs: int, data: bytes, decoder: str) -> dict[str, Any]:
+    """``jobs`` requests from ``clients`` concurrent clients."""
+    with ExitStack() as stack:
+        pool = [
+            stack.enter_context(
+                httpx.Client(base_url=url, headers={"Authorization": f"Bearer {KEY}"}, timeout=120)
+            )
+            for _ in range(clients)
+        ]
+        start = time.perf_counter()
+        with ThreadPoolExecutor(clients) as executor:
+            outcomes = list(
+                executor.map(lambda i: one_job(pool[i % clients], data, decoder), range(jobs))
+            )
+        elapsed = time.perf_counter() - start
+    latencies = np.array([latency for latency, _ in outcomes]) * 1e3
+    return {
+        "clients": clients,
+        "jobs": jobs,
+        "jobs_per_s": jobs / elapsed,
+        "p50_ms": float(np.percentile(latencies, 50)),
+        "p99_ms": float(np.percentile(latencies, 99)),
+        "lost": sum(1 for _, ok in outcomes if not ok),
+    }
+
+
+def service_env(data_dir: Path, redis_url: str, port: int, decoder: str) -> dict[str, str]:
+    return {
+        **os.environ,
+        "MCAM_DATA_DIR": str(data_dir),
+        "MCAM_REDIS_URL": redis_url,
+        "MCAM_API_KEYS": KEY,
+        "MCAM_HOST": "127.0.0.1",
+        "MCAM_PORT": str(port),
+        "MCAM_DEFAULT_DECODER": decoder,
+        "MCAM_RATE_LIMIT_PER_MINUTE": "1000000",
+        "MCAM_HEARTBEAT_S": "0.5",
+    }
+
+
+def measure(decoder: str, jobs_per_client: int) -> dict[str, Any]:
+    data, codes = test_frame()
+    decode_ms = in_process_ms(decoder, codes, repeats=20)
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    with tempfile.TemporaryDirectory(prefix="mcam-bench-") as tmp:
+        with EmbeddedRedis(Path(tmp) / "redis") as redis_url:
+            env = service_env(Path(tmp) / "data", redis_url, port, decoder)
+            api = [
+                sys.executable,
+                "-m",
+                "uvicorn",
+                "service.main:create_app",
+                "--factory",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--log-level",
+                "warning",
+            ]
+            worker = [
+                sys.executable,
+                "-m",
+                "service.cli.main",
+                "worker",
+                "--no-devices",
+                "--log-level",
+                "WARNING",
+            ]
+            with process(api, env), process(worker, env):
+                wait_ready(url)
+                run_level(url, 1, 3, data, decoder)  # warm-up: decoder load, connections
+                levels = [
+                    run_level(url, n, max(jobs_per_client * n, 10), data, decoder) for n in CLIENTS
+                ]
+    single = levels[0]
+    return {
+        "decoder": decoder,
+        "size": f"{SIZE}x{SIZE}",
+        "in_process_decode_ms": decode_ms,
+        "overhead_ms": single["p50_ms"] - decode_ms,
+        "overhead_pct": 100.0 * (single["p50_ms"] - decode_ms) / decode_ms,
+        "levels": levels,
+        "lost_total": sum(level["lost"] for level in levels),
+        "cpu_count": os.cpu_count(),
+    }
+
+
+def print_table(result: dict[str, Any]) -> None:
+    print(
+        f"decoder {result['decoder']} at {result['size']}: in-process decode "
+        f"{result['in_process_decode_ms']:.1f} ms; API+queue overhead at 1 client "
+        f"{result['overhead_ms']:.1f} ms ({result['overhead_pct']:.0f}% of decode)"
+    )
+    print(f"{'clients':>7} {'jobs':>5} {'jobs/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'lost':>5}")
+    for level in result["levels"]:
+        print(
+            f"{level['clients']:>7} {level['jobs']:>5} {level['jobs_per_s']:>8.1f} "
+            f"{level['p50_ms']:>8.1f} {level['p99_ms']:>8.1f} {level['lost']:>5}"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--decoder", default="itoh", help="decoder to benchmark (default itoh)")
+    parser.add_argument("--jobs-per-client", type=int, default=5)
+    args = parser.parse_args(argv)
+    result = measure(args.decoder, args.jobs_per_client)
+    print_table(result)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(result, indent=2) + "\n")
+    return 1 if result["lost_total"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
