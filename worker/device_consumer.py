@@ -220,7 +220,7 @@ class DeviceConsumer:
         """Atomically, while we hold the lease: record ``sequence`` as the newest done frame,
         point ``latest`` at ``key`` (unless empty) and publish ``event``."""
         args: list[Any] = [self.owner, sequence, delivery.entry_id, key, EVENTS_MAXLEN]
-        for name, value in event.items():
+        for name, value in {**event, "worker": self.owner}.items():
             args += [name, value]
         keys = [
             lease_key(device),

@@ -26,6 +26,8 @@ from models.errors import McamError
 RESULTS_DIR = "results"
 _KEY = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 _TMP_SUFFIX = ".tmp"
+#: A temp file this old (s) belongs to a writer that died mid-write.
+TMP_MAX_AGE_S = 3600.0
 
 
 class InvalidKeyError(McamError):
@@ -108,6 +110,15 @@ class ResultStore:
         _fsync_dir(final.parent)
         return final
 
+    def keys(self, prefix: str = "") -> list[str]:
+        """Every stored key under folder ``prefix`` (sorted; temp files excluded)."""
+        base = self.path(prefix) if prefix else self.root
+        return sorted(
+            str(path.relative_to(self.root))
+            for path in base.rglob("*")
+            if path.is_file() and not path.name.endswith(_TMP_SUFFIX)
+        )
+
     def delete(self, key: str) -> bool:
         """Remove the result under ``key``; returns whether there was one."""
         try:
@@ -117,15 +128,18 @@ class ResultStore:
             return False
 
     def purge_expired(self, now_s: float | None = None) -> int:
-        """Delete results (and stale temp files) older than the retention time; empty
-        folders go too. Returns the number of files deleted."""
-        cutoff = (time.time() if now_s is None else now_s) - self.retention_s
+        """Delete results older than the retention time, and temp files a writer left
+        when it died (older than an hour); empty folders go too. Returns how many files."""
+        now = time.time() if now_s is None else now_s
+        cutoff = now - self.retention_s
+        tmp_cutoff = now - min(self.retention_s, TMP_MAX_AGE_S)
         removed = 0
         for folder, _dirs, files in os.walk(self.root, topdown=False):
             for name in files:
                 file = Path(folder, name)
+                limit = tmp_cutoff if name.endswith(_TMP_SUFFIX) else cutoff
                 try:
-                    if file.stat().st_mtime < cutoff:
+                    if file.stat().st_mtime < limit:
                         file.unlink()
                         removed += 1
                 except FileNotFoundError:

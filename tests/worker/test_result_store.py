@@ -95,6 +95,18 @@ def test_purge_expired_removes_old_files_and_empty_folders(store: ResultStore) -
     assert list(store.root.iterdir()) == []
 
 
+def test_purge_removes_temp_files_of_dead_writers(store: ResultStore) -> None:
+    store.write("jobs/a/result.exr", b"ok")
+    leftover = store.root / "jobs" / "a" / ".result.exr.123.456.tmp"
+    leftover.write_bytes(b"half")
+    assert store.keys() == ["jobs/a/result.exr"]
+    assert store.purge_expired() == 0
+    past = time.time() - 2 * 3600
+    os.utime(leftover, (past, past))
+    assert store.purge_expired() == 1
+    assert store.keys("jobs") == ["jobs/a/result.exr"]
+
+
 def test_retention_must_be_positive(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="retention_s"):
         ResultStore(tmp_path, retention_s=0)

@@ -1,0 +1,242 @@
+"""The worker process end to end: real ``mcam worker`` processes on a real redis-server.
+
+Crash (SIGKILL mid-job), Redis restart, dead letters, graceful SIGTERM, cancellation,
+and per-device ordering through two workers with a takeover.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import redis
+
+from models.formation import SensorFrame, SensorParams
+from worker.embedded_redis import EmbeddedRedis, connect
+from worker.frame_message import FrameMessage
+from worker.jobs import JobState
+from worker.lease import Lease
+from worker.metrics import read_metrics
+from worker.queue import JobQueue, publish_frame
+from worker.redis_keys import (
+    DEAD_LETTER_STREAM,
+    JOBS_STREAM,
+    WORKERS_HEARTBEAT,
+    events_stream,
+    latest_key,
+)
+from worker.result_store import RESULTS_DIR, ResultStore
+
+#: Mantissa with a huge alpha: a ramp of 16 wraps decodes fine but overflows float32.
+OVERFLOW = SensorParams(encoding="mantissa", alpha=1e6, bits=8)
+
+
+def overflowing_codes(size: int = 64) -> np.ndarray:
+    """Codes whose unwrapped values climb to ~16 wraps (x ~ 1e90: beyond float32)."""
+    u = np.tile(np.linspace(0.0, 16.0, size), (size, 1))
+    return np.floor((u - np.floor(u)) * 256).astype(np.uint8)
+
+
+def exr_pixels(data: bytes) -> np.ndarray:
+    with OpenEXR.File(io.BytesIO(data)) as exr:
+        return np.asarray(exr.channels()["Y"].pixels, dtype=np.float64)
+
+
+def result_files(data_dir: Path) -> list[str]:
+    """Stored results (a worker killed mid-write may leave a hidden temp file: not a result)."""
+    return ResultStore(data_dir / RESULTS_DIR, retention_s=3600).keys()
+
+
+def test_job_runs_and_cancelled_job_is_skipped(
+    queue: JobQueue, workers, data_dir: Path, make_frame, wait_until, finished
+) -> None:
+    frame: SensorFrame = make_frame()
+    skipped = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    queue.cancel(skipped.id)
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    workers.start()
+    record = finished(queue, job.id)
+    assert record.state is JobState.SUCCEEDED, record.error
+    assert record.attempts == 1 and record.progress == 1.0
+    assert set(record.timings_ns) == {"queue_wait", "decode", "encode", "total"}
+    assert all(value > 0 for value in record.timings_ns.values())
+    assert record.timings_ns["total"] >= record.timings_ns["queue_wait"]
+    exr = (data_dir / RESULTS_DIR / record.results["exr"]).read_bytes()
+    np.testing.assert_allclose(exr_pixels(exr), frame.irradiance, rtol=2**-8, atol=2**-8)
+    winding = np.load(data_dir / RESULTS_DIR / record.results["winding"])
+    np.testing.assert_array_equal(winding, frame.winding)
+    assert result_files(data_dir) == sorted(record.results.values())
+    assert queue.get(skipped.id).state is JobState.CANCELLED
+    wait_until(lambda: queue.stats()["stream_depth"] == 0, 10, "entries acked and deleted")
+    assert len(queue.workers(max_age_s=10)) == 1
+
+
+def test_sigkill_mid_job_completes_on_another_worker_once(
+    queue: JobQueue, client: redis.Redis, workers, data_dir: Path, make_frame, wait_until, finished
+) -> None:
+    frame: SensorFrame = make_frame(size=1024)
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    first = workers.start()
+    wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
+    first.send_signal(signal.SIGSTOP)
+    assert queue.get(job.id).state is JobState.RUNNING, "the job finished before the kill"
+    first.send_signal(signal.SIGKILL)
+    first.wait(10)
+    assert client.xpending(JOBS_STREAM, "workers")["pending"] == 1
+    workers.start()
+    record = finished(queue, job.id)
+    assert record.state is JobState.SUCCEEDED, record.error
+    assert record.attempts == 2
+    assert result_files(data_dir) == sorted(record.results.values())
+    wait_until(lambda: client.xlen(JOBS_STREAM) == 0, 10, "the entry acked and deleted")
+    assert client.xlen(DEAD_LETTER_STREAM) == 0
+    redelivered = {f.name: f for f in read_metrics(client)}["redeliveries_total"]
+    assert redelivered.samples[0].value == 1
+
+
+def test_failing_job_goes_to_dead_letters_after_max_deliveries(
+    queue: JobQueue, client: redis.Redis, workers, data_dir: Path, wait_until, finished
+) -> None:
+    job = queue.submit("reconstruction", overflowing_codes(), OVERFLOW, "itoh")
+    workers.start()
+    record = finished(queue, job.id)
+    assert record.state is JobState.FAILED
+    assert record.error is not None and record.error.code == "output_overflow"
+    assert record.attempts == 3
+    [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
+    assert letter[b"job"].decode() == job.id and letter[b"deliveries"] == b"3"
+    assert letter[b"code"] == b"output_overflow"
+    wait_until(lambda: client.xlen(JOBS_STREAM) == 0, 10, "the entry dead-lettered")
+    assert result_files(data_dir) == []
+    stats = queue.stats()
+    assert stats["dead_letters"] == 1 and stats["jobs_by_state"]["failed"] == 1
+
+
+def test_accepted_jobs_survive_a_redis_restart(
+    embedded: EmbeddedRedis, workers, make_frame, finished
+) -> None:
+    frame: SensorFrame = make_frame()
+    client = connect(embedded.url)
+    queue = JobQueue(client, maxlen=100, max_deliveries=3, claim_idle_ms=1000)
+    accepted = [queue.submit("reconstruction", frame.codes, frame.params, "itoh") for _ in range(3)]
+    assert embedded.pid is not None
+    os.kill(embedded.pid, signal.SIGKILL)
+    embedded.stop()
+    embedded.start()
+    client = connect(embedded.url)
+    queue = JobQueue(client, maxlen=100, max_deliveries=3, claim_idle_ms=1000)
+    assert [queue.get(job.id).state for job in accepted] == [JobState.QUEUED] * 3
+    worker = workers.start()
+    for job in accepted:
+        assert finished(queue, job.id).state is JobState.SUCCEEDED
+    embedded.stop()
+    embedded.start()
+    queue = JobQueue(connect(embedded.url), maxlen=100, max_deliveries=3, claim_idle_ms=1000)
+    late = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    assert finished(queue, late.id).state is JobState.SUCCEEDED
+    assert worker.poll() is None
+
+
+def test_sigterm_finishes_the_job_in_hand(
+    queue: JobQueue, client: redis.Redis, workers, make_frame, wait_until, finished
+) -> None:
+    frame: SensorFrame = make_frame(size=1024)
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    worker = workers.start()
+    wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
+    worker.send_signal(signal.SIGTERM)
+    assert worker.wait(60) == 0
+    assert queue.get(job.id).state is JobState.SUCCEEDED
+    assert client.hlen(WORKERS_HEARTBEAT) == 0
+    assert client.xpending(JOBS_STREAM, "workers")["pending"] == 0
+
+
+def frame_events(client: redis.Redis, device: str) -> list[dict[str, str]]:
+    return [
+        {k.decode(): v.decode() for k, v in fields.items()}
+        for _id, fields in client.xrange(events_stream(device))
+    ]
+
+
+def publish(client: redis.Redis, device: str, frame: SensorFrame, sequences: range) -> None:
+    for seq in sequences:
+        message = FrameMessage(device, seq, seq * 1000, frame.codes, frame.params)
+        assert publish_frame(client, message, maxlen=1000) == 0
+
+
+def test_device_frames_in_order_through_two_workers_with_takeover(
+    client: redis.Redis,
+    workers,
+    data_dir: Path,
+    make_frame,
+    wait_until: Callable[..., object],
+) -> None:
+    frame: SensorFrame = make_frame()
+    device = "cam-1"
+    started = [workers.start(), workers.start()]
+    publish(client, device, frame, range(100))
+    wait_until(lambda: len(frame_events(client, device)) >= 30, 60, "30 frames")
+    owner = Lease(client, "probe", 1000).holder(device)
+    assert owner is not None
+    victim = next(p for p in started if f"-{p.pid}-" in owner)
+    victim.send_signal(signal.SIGKILL)
+    victim.wait(10)
+    publish(client, device, frame, range(100, 200))
+    wait_until(
+        lambda: (e := frame_events(client, device)) and e[-1]["sequence"] == "199",
+        90,
+        "frame 199",
+    )
+    events = frame_events(client, device)
+    assert [e["type"] for e in events] == ["frame"] * 200
+    assert [int(e["sequence"]) for e in events] == list(range(200))
+    assert len({e["worker"] for e in events}) == 2
+    expected = [f"devices/{device}/{seq:012d}.exr" for seq in range(200)]
+    assert result_files(data_dir) == expected
+    assert client.get(latest_key(device)).decode() == expected[-1]
+    wait_until(lambda: client.xlen(f"frames:{device}") == 0, 10, "frames acked and deleted")
+
+
+def test_failing_device_frame_is_dead_lettered_and_order_kept(
+    client: redis.Redis, workers, data_dir: Path, make_frame, wait_until
+) -> None:
+    frame: SensorFrame = make_frame()
+    device = "cam-2"
+    workers.start()
+    publish(client, device, frame, range(2))
+    bad = FrameMessage(device, 2, 2000, overflowing_codes(), OVERFLOW)
+    publish_frame(client, bad, maxlen=1000)
+    publish(client, device, frame, range(3, 5))
+    wait_until(lambda: len(frame_events(client, device)) >= 5, 60, "5 events")
+    events = frame_events(client, device)
+    assert [(e["type"], int(e["sequence"])) for e in events] == [
+        ("frame", 0),
+        ("frame", 1),
+        ("failed", 2),
+        ("frame", 3),
+        ("frame", 4),
+    ]
+    assert events[2]["code"] == "output_overflow"
+    [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
+    assert letter[b"device"] == device.encode() and letter[b"sequence"] == b"2"
+    assert letter[b"deliveries"] == b"3"
+    assert len(result_files(data_dir)) == 4
+
+
+def test_repeated_sequence_is_not_written_twice(
+    client: redis.Redis, workers, data_dir: Path, make_frame, wait_until
+) -> None:
+    frame: SensorFrame = make_frame()
+    device = "cam-3"
+    workers.start()
+    publish(client, device, frame, range(3))
+    publish(client, device, frame, range(1, 2))
+    wait_until(lambda: len(frame_events(client, device)) >= 4, 60, "4 events")
+    types = [(e["type"], int(e["sequence"])) for e in frame_events(client, device)]
+    assert types == [("frame", 0), ("frame", 1), ("frame", 2), ("stale", 1)]
+    assert len(result_files(data_dir)) == 3
