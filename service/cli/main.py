@@ -19,6 +19,9 @@ COMMANDS: tuple[str, ...] = (
     "service.cli.simulate",
     "service.cli.reconstruct",
     "service.cli.evaluate",
+    "service.cli.api",
+    "service.cli.worker",
+    "service.cli.serve",
 )
 
 
