@@ -131,11 +131,15 @@ async def read_upload(request: Request) -> Upload:
     return upload
 
 
-def merge_fields(model: type[Model], query: BaseModel, upload: Upload) -> Model:
-    """Query parameters updated by the form fields, validated as ``model`` (422 if bad)."""
+async def read_upload_fields(
+    request: Request, model: type[Model], query: BaseModel
+) -> tuple[Upload, Model]:
+    """The upload, and the query parameters updated by its form fields, validated as
+    ``model`` (422 if bad)."""
+    upload = await read_upload(request)
     values = {**query.model_dump(exclude_unset=True), **upload.fields}
     try:
-        return model.model_validate(values)
+        return upload, model.model_validate(values)
     except ValidationError as exc:
         raise RequestValidationError(exc.errors()) from None
 

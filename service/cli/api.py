@@ -35,14 +35,19 @@ def announce(settings: Settings, new_key: str | None) -> None:
     sys.stdout.flush()
 
 
+def add_listen_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--host`` and ``--port`` (defaults from the settings), for every command that listens."""
+    parser.add_argument("--host", help="listen address (default: MCAM_HOST or 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="listen port (default: MCAM_PORT or 8000)")
+
+
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "api",
         help="run the REST API and web viewer",
         description="Run the REST API and web viewer (workers run separately: mcam worker).",
     )
-    parser.add_argument("--host", help="listen address (default: MCAM_HOST or 127.0.0.1)")
-    parser.add_argument("--port", type=int, help="listen port (default: MCAM_PORT or 8000)")
+    add_listen_arguments(parser)
     parser.set_defaults(func=run)
 
 

@@ -18,8 +18,7 @@ from service.api.state import ServiceState
 from service.api.uploads import (
     ReconstructionFields,
     Upload,
-    merge_fields,
-    read_upload,
+    read_upload_fields,
     sniff_frame_format,
 )
 
@@ -116,7 +115,6 @@ async def post_reconstruction(
     ] = None,
 ) -> Response:
     """Queue a wrapped frame; the job's state is at ``GET /v1/jobs/{id}``."""
-    upload = await read_upload(request)
-    fields = merge_fields(ReconstructionFields, query, upload)
+    upload, fields = await read_upload_fields(request, ReconstructionFields, query)
     wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
     return await run_in_threadpool(submit, state, upload, fields, wait_s)

@@ -13,7 +13,7 @@ from models.hdr_io import read_hdr
 from service.api.deps import SettingsDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, winding_bytes
 from service.api.schemas import UPLOAD_ERRORS, upload_body
-from service.api.uploads import SimulateFields, Upload, merge_fields, read_upload
+from service.api.uploads import SimulateFields, Upload, read_upload_fields
 from service.core.config import Settings
 
 router = APIRouter(prefix="/v1", tags=["simulate"])
@@ -62,6 +62,5 @@ async def post_simulate(
     _: SubmitKey,
 ) -> Response:
     """Encode an HDR image with the given sensor parameters (form fields or query)."""
-    upload = await read_upload(request)
-    fields = merge_fields(SimulateFields, query, upload)
+    upload, fields = await read_upload_fields(request, SimulateFields, query)
     return await run_in_threadpool(simulate_upload, upload, fields, settings)
