@@ -49,9 +49,9 @@ def start_worker(redis_url: str, data_dir: str, args: argparse.Namespace) -> sub
     """The worker child process, pointed at the same Redis and data dir (its own session:
     a terminal's Ctrl-C reaches only us, and we stop it once, gracefully)."""
     command = [sys.executable, "-m", "service.cli.main", "worker"]
-    if args.concurrency:
+    if args.concurrency is not None:
         command += ["--concurrency", str(args.concurrency)]
-    if args.threads:
+    if args.threads is not None:
         command += ["--threads", str(args.threads)]
     env = {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": data_dir}
     return subprocess.Popen(command, env=env, start_new_session=True)

@@ -72,8 +72,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 def run(args: argparse.Namespace) -> int:
     settings = get_settings()
-    concurrency = args.concurrency or settings.worker_concurrency
-    threads = args.threads or settings.worker_threads
+    concurrency = settings.worker_concurrency if args.concurrency is None else args.concurrency
+    threads = settings.worker_threads if args.threads is None else args.threads
     if concurrency < 1 or threads < 1:
         raise McamError("--concurrency and --threads must be at least 1")
     logging.basicConfig(

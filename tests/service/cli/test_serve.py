@@ -1,0 +1,121 @@
+"""``mcam serve`` as a real process: embedded Redis + worker + API, then a clean stop."""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from models.formation import SensorParams, simulate
+from worker.embedded_redis import EmbeddedRedis, connect
+from worker.redis_keys import WORKERS_HEARTBEAT
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def read_until(process: subprocess.Popen[str], pattern: str, timeout_s: float) -> list[str]:
+    """stdout lines up to the first one matching ``pattern``."""
+    deadline = time.monotonic() + timeout_s
+    lines: list[str] = []
+    assert process.stdout is not None
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()
+        if not line:
+            pytest.fail(f"mcam serve exited ({process.poll()}): {''.join(lines)}")
+        lines.append(line)
+        if re.search(pattern, line):
+            return lines
+    pytest.fail(f"no {pattern!r} within {timeout_s}s: {''.join(lines)}")
+
+
+def wait_ready(base: str, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"{base}/health/ready", timeout=5).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    pytest.fail("the service never became ready")
+
+
+def npy_frame() -> tuple[bytes, SensorParams]:
+    y, x = np.mgrid[0:64, 0:64] / 64
+    frame = simulate(0.2 + 6 * x * y, SensorParams(encoding="modulo", bits=8))
+    buffer = io.BytesIO()
+    np.save(buffer, frame.codes)
+    return buffer.getvalue(), frame.params
+
+
+def test_serve_runs_everything_and_stops_cleanly(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
+    env.update({"MCAM_DATA_DIR": str(data_dir), "MCAM_HEARTBEAT_S": "0.5"})
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "service.cli.main",
+            "serve",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+        ],
+        cwd=tmp_path,
+        env={**env, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        lines = read_until(process, r"^use it as: Authorization: Bearer ", 90)
+        banner = "".join(lines)
+        assert f"http://127.0.0.1:{port}/" in banner
+        key = lines[-1].split("Bearer ", 1)[1].strip()
+        key_file = data_dir / "api_keys"
+        assert key_file.read_text().strip() == key
+        assert stat.S_IMODE(key_file.stat().st_mode) == 0o600
+        base = f"http://127.0.0.1:{port}"
+        wait_ready(base)
+        data, params = npy_frame()
+        reply = httpx.post(
+            f"{base}/v1/reconstructions",
+            files={"file": ("frame.npy", data, "application/octet-stream")},
+            data={"encoding": params.encoding, "bits": str(params.bits), "decoder": "itoh"},
+            headers={"Authorization": f"Bearer {key}", "Prefer": "wait=30"},
+            timeout=60,
+        )
+        assert reply.status_code == 200, reply.text
+        assert reply.json()["state"] == "succeeded"
+        redis_socket = EmbeddedRedis(data_dir).socket
+        beats = connect(f"unix://{redis_socket}").hgetall(WORKERS_HEARTBEAT)
+        [worker_pid] = [int(v.split(b'"pid": ')[1].split(b",")[0]) for v in beats.values()]
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(60) == 0
+        assert not redis_socket.exists()
+        with pytest.raises(ProcessLookupError):
+            os.kill(worker_pid, 0)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
