@@ -82,8 +82,7 @@ class ExrScene:
             raise InvalidInputError("give at least one HDR image for the scene")
         from models.hdr_io import read_hdr
 
-        self.images = [luminance(np.asarray(read_hdr(Path(p))[0], np.float64))
-                       for p in paths]
+        self.images = [luminance(read_hdr(Path(p), clip_negative=True).pixels) for p in paths]
         small = [img.shape for img in self.images if min(img.shape) < size]
         if small:
             raise InvalidInputError(

@@ -105,11 +105,12 @@ class VirtualScamp5:
                    gain: float | None = None) -> SensorParams:
         """Sensor parameters (noise seeded by ``sequence``) for the current settings."""
         s = self.settings
-        return SensorParams(
-            encoding=encoding or s.encoding, alpha=s.alpha, bits=s.bits,
-            gain=gain if gain is not None else s.exposure_gain,
-            read_noise=s.read_noise, full_well=s.full_well, seed=self.seed * 1_000_003 + sequence,
-        )
+        return SensorParams.parse({
+            "encoding": encoding or s.encoding, "alpha": s.alpha, "bits": s.bits,
+            "gain": gain if gain is not None else s.exposure_gain,
+            "read_noise": s.read_noise, "full_well": s.full_well,
+            "seed": self.seed * 1_000_003 + sequence,
+        })
 
     def render(self, index: int, params: SensorParams) -> SensorFrame:
         """The frame the sensor produces for scene ``index`` with ``params``."""

@@ -22,6 +22,8 @@ COMMANDS: tuple[str, ...] = (
     "service.cli.api",
     "service.cli.worker",
     "service.cli.serve",
+    "service.cli.device",
+    "service.cli.simulate_device",
 )
 
 

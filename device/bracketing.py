@@ -1,0 +1,138 @@
+"""Bracketed reference capture: merge clipped exposures into a reference HDR, store the pair.
+
+The camera sends a bracket as consecutive data packets flagged ``FLAG_BRACKET``:
+index 0 is the wrapped frame, indices 1..n are conventional (``clip``) images
+whose gain grows by a constant ratio. :func:`merge_exposures` is a
+Debevec-style merge for a linear sensor: each exposure's estimate of the scene
+``z / gain`` is weighted by a hat function of its code value ``z`` that is zero
+for dark and saturated samples. :class:`BracketCollector` assembles the packets
+and :func:`save_pair` writes ``data_dir/datasets/<device>/<sequence>/`` with
+``wrapped.png`` (codes + params), ``reference.exr`` (scene-referred irradiance,
+the wrapped frame's ``x`` is ``gain * reference``) and ``meta.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from device.link_protocol import FLAG_BRACKET, DataPacket
+from models.errors import InvalidInputError
+from models.formation import SensorParams, dequantize
+from models.frames import write_frame
+from models.hdr_io import write_exr
+
+#: Hat weight support in normalised code units: samples below are dark, above saturated.
+DARK_LEVEL = 0.02
+SATURATION_LEVEL = 0.95
+
+
+def hat_weight(z: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Debevec hat weight of normalised codes ``z`` in [0, 1]: 0 outside (dark, saturated)."""
+    middle = (DARK_LEVEL + SATURATION_LEVEL) / 2
+    half = (SATURATION_LEVEL - DARK_LEVEL) / 2
+    return np.clip(1.0 - np.abs(z - middle) / half, 0.0, None)
+
+
+def merge_exposures(
+    codes: Sequence[NDArray[np.unsignedinteger]], gains: Sequence[float], bits: int
+) -> NDArray[np.float64]:
+    """Scene-referred irradiance from clipped exposures (``x = gain * scene``, clipped at 1).
+
+    Pixels with no usable sample take the darkest exposure's value where it is
+    saturated (a lower bound) and the brightest exposure's value elsewhere.
+    """
+    if len(codes) != len(gains) or len(codes) < 2:
+        raise InvalidInputError("a bracket needs at least two exposures, each with its gain")
+    if any(g <= 0 for g in gains):
+        raise InvalidInputError(f"bracket gains must be positive, got {list(gains)}")
+    order = np.argsort(gains)
+    z = np.stack([dequantize(codes[i], bits) for i in order])
+    g = np.asarray(gains, np.float64)[order].reshape(-1, *([1] * (z.ndim - 1)))
+    weights = hat_weight(z)
+    estimates = z / g
+    total = weights.sum(axis=0)
+    merged = (weights * estimates).sum(axis=0) / np.where(total > 0, total, 1.0)
+    fallback = np.where(z[0] >= SATURATION_LEVEL, estimates[0], estimates[-1])
+    return np.where(total > 0, merged, fallback)
+
+
+@dataclass
+class Bracket:
+    """A complete bracket: the wrapped frame and the clipped exposures."""
+
+    wrapped: DataPacket
+    exposures: list[DataPacket]
+
+    def reference(self) -> NDArray[np.float64]:
+        """The merged scene-referred reference HDR."""
+        bits = {p.bits for p in self.exposures}
+        if len(bits) != 1:
+            raise InvalidInputError(f"bracket exposures mix bit depths {sorted(bits)}")
+        return merge_exposures([p.codes for p in self.exposures],
+                               [p.gain for p in self.exposures], bits.pop())
+
+
+class BracketCollector:
+    """Assembles bracket packets; a gap or an interruption abandons the bracket."""
+
+    def __init__(self) -> None:
+        self._packets: list[DataPacket] = []
+        self.abandoned = 0
+
+    def add(self, packet: DataPacket) -> Bracket | None:
+        """Take one data packet; return a bracket when this packet completes one."""
+        if not packet.flags & FLAG_BRACKET:
+            return None
+        expected = len(self._packets)
+        if packet.bracket_index == 0:
+            self._abandon()
+            self._packets = [packet]
+        elif (expected and packet.bracket_index == expected
+              and packet.sequence == self._packets[-1].sequence + 1):
+            self._packets.append(packet)
+        else:
+            self._abandon()
+            return None
+        if len(self._packets) == packet.bracket_count:
+            wrapped, *exposures = self._packets
+            self._packets = []
+            return Bracket(wrapped, exposures)
+        return None
+
+    def interrupt(self) -> None:
+        """The link broke: an unfinished bracket cannot complete."""
+        self._abandon()
+
+    def _abandon(self) -> None:
+        if self._packets:
+            self.abandoned += 1
+        self._packets = []
+
+
+def save_pair(root: Path, device: str, bracket: Bracket) -> Path:
+    """Write the (wrapped frame, reference HDR) pair; return its folder."""
+    wrapped = bracket.wrapped
+    params = SensorParams(encoding=wrapped.encoding, alpha=wrapped.alpha, bits=wrapped.bits,
+                          gain=wrapped.gain or None)
+    folder = Path(root) / "datasets" / device / f"{wrapped.sequence:010d}"
+    folder.mkdir(parents=True, exist_ok=True)
+    write_frame(folder / "wrapped.png", wrapped.codes, params)
+    write_exr(folder / "reference.exr", bracket.reference(),
+              {"comments": "bracketed reference, scene-referred; x = gain * value"})
+    meta = {
+        "device": device,
+        "sequence": wrapped.sequence,
+        "timestamp_ns": wrapped.timestamp_ns,
+        "params": params.model_dump(),
+        "exposure_gains": [p.gain for p in bracket.exposures],
+        "merge": {"weights": "hat", "dark_level": DARK_LEVEL,
+                  "saturation_level": SATURATION_LEVEL},
+    }
+    (folder / "meta.json").write_text(json.dumps(meta, indent=2))
+    return folder

@@ -1,0 +1,216 @@
+"""The device daemon: read mcam-link v1 from a camera port, publish frames to Redis.
+
+Opens any pyserial URL (``/dev/ttyACM0``, a pty path, ``socket://``,
+``rfc2217://``, ``loop://``) and reconnects with exponential backoff when it
+goes away. Every valid data packet becomes a :class:`FrameMessage` on
+``frames:<device>``; the first frame after a (re)connect or a sequence gap
+carries ``discont``. Bracket packets are merged into a reference HDR and stored
+as a training pair instead of being streamed. Control commands from
+``control:<device>`` are written to the camera as control packets.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import redis
+import serial
+
+from device.bracketing import BracketCollector, save_pair
+from device.commands import Command, to_packet
+from device.health import DeviceHealth
+from device.link_parser import DROP_CAUSES, LinkParser
+from device.link_protocol import DEFAULT_MAX_PAYLOAD, FLAG_BRACKET, DataPacket, encode_control
+from device.publisher import FramePublisher
+from models.errors import McamError
+from models.formation import SensorParams
+from worker.frame_message import FrameMessage
+from worker.redis_keys import validate_device_id
+
+log = logging.getLogger(__name__)
+
+PortOpener = Callable[[], Any]
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    """Daemon settings. Times in seconds, sizes in bytes or frames."""
+
+    port: str
+    device: str
+    frames_maxlen: int = 256
+    queue_size: int = 64
+    max_payload: int = DEFAULT_MAX_PAYLOAD
+    read_timeout_s: float = 0.05
+    partial_timeout_s: float = 1.0
+    backoff_initial_s: float = 0.05
+    backoff_max_s: float = 2.0
+    data_dir: Path | None = None
+
+
+def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
+    """Open ``url`` with pyserial (any URL :func:`serial.serial_for_url` knows)."""
+    return lambda: serial.serial_for_url(url, timeout=read_timeout_s, write_timeout=1.0)
+
+
+class DeviceDaemon:
+    """One camera link. :meth:`run` blocks until :meth:`stop`; :meth:`start` uses a thread."""
+
+    def __init__(self, config: DaemonConfig, client: redis.Redis,
+                 opener: PortOpener | None = None) -> None:
+        self.config = config
+        self.device = validate_device_id(config.device)
+        self.health = DeviceHealth(self.device, config.port)
+        self.publisher = FramePublisher(client, self.device, self.health, self.send_command,
+                                        config.frames_maxlen, config.queue_size)
+        self.opener = opener or serial_opener(config.port, config.read_timeout_s)
+        self.brackets = BracketCollector()
+        self._parser = self._new_parser()
+        self._parser_base: Counter[str] = Counter()
+        self._outbox: queue.Queue[bytes] = queue.Queue(maxsize=64)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_sequence: int | None = None
+        self._discont = True
+        self._connected_once = False
+
+    def _new_parser(self) -> LinkParser:
+        return LinkParser(self.config.max_payload, self.config.partial_timeout_s)
+
+    # ---- control ----
+    def send_command(self, command: Command) -> None:
+        """Queue a command for the camera (dropped, counted, if 64 are already waiting)."""
+        try:
+            self._outbox.put_nowait(encode_control(to_packet(command)))
+        except queue.Full:
+            self.health.add("control_rejected")
+
+    def _flush_outbox(self, port: Any) -> None:
+        while True:
+            try:
+                data = self._outbox.get_nowait()
+            except queue.Empty:
+                return
+            port.write(data)
+            self.health.add("control_sent")
+
+    # ---- frames ----
+    def _on_data(self, packet: DataPacket) -> None:
+        expected = None if self._last_sequence is None else self._last_sequence + 1
+        if expected is not None and packet.sequence != expected:
+            self.health.add("sequence_gaps")
+            self.health.add("frames_missing", max(0, packet.sequence - expected))
+            self._discont = True
+            self.brackets.interrupt()
+        self._last_sequence = packet.sequence
+        self.health.frame_received(packet.sequence, {
+            "encoding": packet.encoding, "alpha": packet.alpha, "bits": packet.bits,
+            "gain": packet.gain, "width": int(packet.codes.shape[1]),
+            "height": int(packet.codes.shape[0]),
+        })
+        if packet.flags & FLAG_BRACKET:
+            self._on_bracket_packet(packet)
+            return
+        params = SensorParams(encoding=packet.encoding, alpha=packet.alpha, bits=packet.bits,
+                              gain=packet.gain or None)
+        self.publisher.offer(FrameMessage(self.device, packet.sequence, packet.timestamp_ns,
+                                          packet.codes, params, self._discont))
+        self._discont = False
+
+    def _on_bracket_packet(self, packet: DataPacket) -> None:
+        bracket = self.brackets.add(packet)
+        self.health.set("brackets_incomplete", self.brackets.abandoned)
+        if bracket is None or self.config.data_dir is None:
+            return
+        try:
+            folder = save_pair(self.config.data_dir, self.device, bracket)
+        except (McamError, OSError) as exc:
+            log.warning("bracket at sequence %d not saved: %s", packet.sequence, exc)
+            return
+        self.health.add("brackets_saved")
+        log.info("bracketed reference pair saved in %s", folder)
+
+    def _feed(self, data: bytes) -> None:
+        packets = self._parser.feed(data) if data else self._parser.expire()
+        for packet in packets:
+            if isinstance(packet, DataPacket):
+                self._on_data(packet)
+        self.health.set_parser_counts(self._parser.drops, self._parser.garbage_bytes,
+                                      self._parser_base)
+
+    # ---- the link ----
+    def _open(self) -> Any | None:
+        """Open the port, retrying with exponential backoff; None if stopped meanwhile."""
+        delay = self.config.backoff_initial_s
+        while not self._stop.is_set():
+            try:
+                port = self.opener()
+            except (serial.SerialException, OSError, ValueError) as exc:
+                log.debug("cannot open %s: %s", self.config.port, exc)
+                self._stop.wait(delay)
+                delay = min(delay * 2, self.config.backoff_max_s)
+                continue
+            if self._connected_once:
+                self.health.add("reconnects")
+            self._connected_once = True
+            self.health.state = "connected"
+            return port
+        return None
+
+    def _pump(self, port: Any) -> None:
+        """Read the open port until it fails or the daemon stops."""
+        while not self._stop.is_set():
+            self._flush_outbox(port)
+            waiting = port.in_waiting
+            self._feed(port.read(min(max(waiting, 1), 1 << 20)))
+
+    def _link_lost(self) -> None:
+        """Forget partial packets and sequence state: the next frame starts a new run."""
+        self._parser.reset()
+        self._parser_base.update({cause: self._parser.drops[cause] for cause in DROP_CAUSES})
+        self._parser_base["garbage_bytes"] += self._parser.garbage_bytes
+        self._parser = self._new_parser()
+        self._last_sequence = None
+        self._discont = True
+        self.brackets.interrupt()
+        self.health.state = "disconnected"
+
+    def run(self) -> None:
+        """Read, parse and publish until :meth:`stop`, reconnecting as needed."""
+        self.publisher.start()
+        try:
+            while not self._stop.is_set():
+                port = self._open()
+                if port is None:
+                    break
+                try:
+                    self._pump(port)
+                except (serial.SerialException, OSError) as exc:
+                    log.warning("link %s lost: %s", self.config.port, exc)
+                finally:
+                    with contextlib.suppress(Exception):
+                        port.close()
+                    self._link_lost()
+        finally:
+            self.publisher.stop()
+
+    def start(self) -> DeviceDaemon:
+        """Run in a daemon thread."""
+        self._thread = threading.Thread(target=self.run, name=f"daemon-{self.device}",
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop reading, publish what is queued, close the port."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=timeout_s)

@@ -1,0 +1,99 @@
+"""Per-device health counters of the daemon, published as the ``device:<id>:health`` hash.
+
+Fields (all strings in Redis): ``state`` (connecting / connected / disconnected),
+``port``, ``frames_ok`` (published), ``frames_received`` (valid data packets),
+``dropped_<cause>`` for every parser cause plus ``queue_full`` and
+``redis_unavailable``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
+(sequence numbers never received), ``reconnects``, ``last_frame_ns`` (host
+wall clock, ns since the epoch), ``last_sequence``, ``fps`` (measured over the
+last frames), ``brackets_saved``, ``brackets_incomplete``, ``control_sent``,
+``control_rejected``, ``settings`` (JSON: encoding, alpha, bits, gain, width,
+height of the newest frame), ``updated_ns``.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import Counter, deque
+from typing import Any
+
+from device.link_parser import DROP_CAUSES
+
+#: Drop causes on the host side of the link, after the parser's.
+PUBLISH_DROP_CAUSES: tuple[str, ...] = ("queue_full", "redis_unavailable")
+ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + PUBLISH_DROP_CAUSES
+_COUNTERS: tuple[str, ...] = (
+    "frames_ok", "frames_received", "garbage_bytes", "sequence_gaps", "frames_missing",
+    "reconnects", "brackets_saved", "brackets_incomplete", "control_sent", "control_rejected",
+) + tuple(f"dropped_{cause}" for cause in ALL_DROP_CAUSES)
+
+
+class DeviceHealth:
+    """Thread-safe counters and gauges of one device link."""
+
+    def __init__(self, device: str, port: str, fps_window: int = 30) -> None:
+        self.device = device
+        self.port = port
+        self.state = "connecting"
+        self.counts: Counter[str] = Counter({name: 0 for name in _COUNTERS})
+        self.last_frame_ns = 0
+        self.last_sequence = -1
+        self.settings: dict[str, Any] = {}
+        self._arrivals: deque[float] = deque(maxlen=fps_window)
+        self._lock = threading.Lock()
+
+    def add(self, name: str, n: int = 1) -> None:
+        """Increase counter ``name`` by ``n``."""
+        with self._lock:
+            self.counts[name] += n
+
+    def set(self, name: str, value: int) -> None:
+        """Set counter ``name`` (for counts kept elsewhere)."""
+        with self._lock:
+            self.counts[name] = value
+
+    def set_parser_counts(self, drops: Counter[str], garbage_bytes: int,
+                          base: Counter[str]) -> None:
+        """Counters of the current parser, on top of those of parsers before a reconnect."""
+        with self._lock:
+            for cause in DROP_CAUSES:
+                self.counts[f"dropped_{cause}"] = base[cause] + drops[cause]
+            self.counts["garbage_bytes"] = base["garbage_bytes"] + garbage_bytes
+
+    def frame_received(self, sequence: int, settings: dict[str, Any]) -> None:
+        """Record a valid data packet's arrival (for fps and last-frame gauges)."""
+        with self._lock:
+            self.counts["frames_received"] += 1
+            self.last_sequence = sequence
+            self.last_frame_ns = time.time_ns()
+            self.settings = settings
+            self._arrivals.append(time.monotonic())
+
+    @property
+    def fps(self) -> float:
+        """Frames per second over the last arrivals (0 with fewer than two, or if stale)."""
+        with self._lock:
+            if len(self._arrivals) < 2 or time.monotonic() - self._arrivals[-1] > 5.0:
+                return 0.0
+            span = self._arrivals[-1] - self._arrivals[0]
+            return (len(self._arrivals) - 1) / span if span > 0 else 0.0
+
+    def dropped(self) -> int:
+        """Frames dropped for any cause."""
+        with self._lock:
+            return sum(self.counts[f"dropped_{cause}"] for cause in ALL_DROP_CAUSES)
+
+    def to_fields(self) -> dict[str, str]:
+        """The Redis hash fields."""
+        fps = self.fps
+        with self._lock:
+            fields = {name: str(value) for name, value in self.counts.items()}
+            fields.update(
+                device=self.device, port=self.port, state=self.state,
+                last_frame_ns=str(self.last_frame_ns), last_sequence=str(self.last_sequence),
+                fps=f"{fps:.3f}", settings=json.dumps(self.settings),
+                updated_ns=str(time.time_ns()),
+            )
+        return fields

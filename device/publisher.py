@@ -1,0 +1,144 @@
+"""The daemon's Redis side: a bounded frame queue drained into ``frames:<device>``.
+
+The link reader calls :meth:`FramePublisher.offer`, which never blocks: a full
+queue drops the frame (``queue_full``). A thread XADDs each frame with an
+approximate MAXLEN, keeps the device in the ``devices`` set, writes the health
+hash, and reads ``control:<device>`` for commands to forward to the camera.
+While Redis is unreachable, queued frames are dropped (``redis_unavailable``)
+and the connection is retried with backoff; the link keeps being read. After
+any drop the next published frame carries ``discont`` (temporal state broke).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import threading
+import time
+from collections.abc import Callable
+
+import redis
+
+from device.commands import Command, fields_to_command
+from device.health import DeviceHealth
+from models.errors import InvalidInputError
+from worker.frame_message import FrameMessage
+from worker.redis_keys import DEVICES_SET, control_stream, frame_stream, health_key
+
+#: Seconds between health hash writes and control stream polls.
+HEALTH_INTERVAL_S = 0.25
+#: Longest wait between Redis reconnection attempts (s).
+MAX_REDIS_BACKOFF_S = 2.0
+
+
+class FramePublisher:
+    """Publishes frames and health of one device; hands control commands to ``on_command``."""
+
+    def __init__(self, client: redis.Redis, device: str, health: DeviceHealth,
+                 on_command: Callable[[Command], None], frames_maxlen: int = 256,
+                 queue_size: int = 64) -> None:
+        self.client = client
+        self.device = device
+        self.health = health
+        self.on_command = on_command
+        self.frames_maxlen = frames_maxlen
+        self._queue: queue.Queue[FrameMessage] = queue.Queue(maxsize=queue_size)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._discont = False
+        self._redis_ok = True
+        self._retry_at = 0.0
+        self._backoff = 0.05
+        self._control_id = f"{time.time_ns() // 1_000_000}-0"  # commands sent from now on
+        self._next_health = 0.0
+
+    def offer(self, message: FrameMessage) -> None:
+        """Queue a frame for publishing; drop it (counted) if the queue is full."""
+        try:
+            self._queue.put_nowait(message)
+        except queue.Full:
+            self.health.add("dropped_queue_full")
+            self._discont = True
+
+    def start(self) -> FramePublisher:
+        """Run the publishing loop in a daemon thread."""
+        self._thread = threading.Thread(target=self.run, name=f"publish-{self.device}",
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Publish what is queued (while Redis answers), then stop."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=timeout_s)
+
+    def run(self) -> None:
+        """Loop until stopped and the queue is empty."""
+        while not (self._stop.is_set() and self._queue.empty()):
+            try:
+                message = self._queue.get(timeout=0.05)
+            except queue.Empty:
+                message = None
+            if message is not None:
+                self._publish(message)
+            if time.monotonic() >= self._next_health:
+                self._housekeeping()
+        self._housekeeping()
+
+    def _redis(self, action: Callable[[], object]) -> bool:
+        """Run a Redis action unless Redis is known down; mark it down on failure."""
+        if not self._redis_ok and time.monotonic() < self._retry_at:
+            return False
+        try:
+            action()
+        except (redis.ConnectionError, redis.TimeoutError, OSError):
+            self._redis_ok = False
+            self._retry_at = time.monotonic() + self._backoff
+            self._backoff = min(self._backoff * 2, MAX_REDIS_BACKOFF_S)
+            return False
+        self._redis_ok = True
+        self._backoff = 0.05
+        return True
+
+    def _publish(self, message: FrameMessage) -> None:
+        if self._discont and not message.discont:
+            message = dataclasses.replace(message, discont=True)
+
+        def xadd() -> None:
+            pipe = self.client.pipeline(transaction=False)
+            pipe.xadd(frame_stream(self.device), message.to_fields(),
+                      maxlen=self.frames_maxlen, approximate=True)
+            pipe.sadd(DEVICES_SET, self.device)
+            pipe.execute()
+
+        if self._redis(xadd):
+            self._discont = False
+            self.health.add("frames_ok")
+        else:
+            self.health.add("dropped_redis_unavailable")
+            self._discont = True
+
+    def _housekeeping(self) -> None:
+        """Write the health hash and forward new control commands."""
+        self._next_health = time.monotonic() + HEALTH_INTERVAL_S
+        fields = self.health.to_fields()
+
+        def write_health() -> None:
+            pipe = self.client.pipeline(transaction=False)
+            pipe.hset(health_key(self.device), mapping=fields)
+            pipe.sadd(DEVICES_SET, self.device)
+            pipe.execute()
+
+        if self._redis(write_health):
+            self._redis(self._read_control)
+
+    def _read_control(self) -> None:
+        reply = self.client.xread({control_stream(self.device): self._control_id}, count=16)
+        for _, entries in reply or []:
+            for entry_id, fields in entries:
+                self._control_id = entry_id
+                try:
+                    self.on_command(fields_to_command(fields))
+                except InvalidInputError:
+                    self.health.add("control_rejected")

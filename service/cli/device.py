@@ -1,0 +1,62 @@
+"""``mcam device``: run the daemon of one camera link (mcam-link v1 -> Redis frame stream).
+
+Usage::
+
+    mcam device --port /dev/ttyACM0 --device-id rig1
+    mcam device --port socket://10.0.0.7:5555 --device-id rig2
+    MCAM_REDIS_URL=redis://queue:6379 mcam device --port /tmp/mcam-pty-x/scamp5 --device-id sim
+
+Without ``MCAM_REDIS_URL`` it uses the embedded Redis of the data dir (started
+by ``mcam serve`` or ``mcam api``). Bracketed reference pairs go to
+``<data dir>/datasets/<device>/``. SIGTERM / Ctrl-C stop it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+
+from device.daemon import DaemonConfig, DeviceDaemon
+from service.cli.worker import redis_url_for
+from service.core.config import get_settings
+from worker.embedded_redis import connect
+from worker.redis_keys import validate_device_id
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser(
+        "device",
+        help="run the daemon of a camera link",
+        description="Read mcam-link v1 packets from a camera port and publish frames to Redis.",
+    )
+    parser.add_argument("--port", required=True,
+                        help="pyserial URL: /dev/ttyACM0, a pty path, socket://HOST:PORT, "
+                             "rfc2217://HOST:PORT, loop://")
+    parser.add_argument("--device-id", required=True, help="1-64 letters, digits, '_' or '-'")
+    parser.add_argument("--log-level", default="INFO", help="logging level (default: INFO)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = get_settings()
+    device = validate_device_id(args.device_id)
+    logging.basicConfig(
+        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    client = connect(redis_url_for(settings), timeout_s=1.0)
+    config = DaemonConfig(port=args.port, device=device, frames_maxlen=settings.frames_maxlen,
+                          data_dir=settings.data_dir)
+    daemon = DeviceDaemon(config, client)
+    stopped = threading.Event()
+
+    def stop(_signum: int, _frame: object) -> None:
+        stopped.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    daemon.start()
+    stopped.wait()
+    daemon.stop()
+    return 0

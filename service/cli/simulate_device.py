@@ -1,0 +1,88 @@
+"""``mcam simulate-device``: a virtual SCAMP-5 streaming mcam-link v1.
+
+Usage::
+
+    mcam simulate-device --port pty                 # prints the pty path to give `mcam device`
+    mcam simulate-device --port socket://127.0.0.1:5555 --encoding mantissa --alpha 2
+    mcam simulate-device --port pty:/tmp/scamp5 --exr scene.exr --corrupt-bytes 0.01
+
+The first line on stdout is the URL for ``mcam device --port``. It runs until
+``--frames`` frames are sent (then keeps answering control packets) or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from device.faults import Faults
+from device.scenes import ExrScene, ProceduralScene, SceneSequence
+from device.sim_link import open_endpoint
+from device.simulator import CameraSettings, VirtualScamp5
+from models.errors import InvalidInputError
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = subparsers.add_parser(
+        "simulate-device",
+        help="run a virtual SCAMP-5 camera",
+        description="Render an HDR scene sequence, encode it in-pixel and stream mcam-link v1.",
+    )
+    parser.add_argument("--port", default="pty",
+                        help="pty, pty:SYMLINK, socket://HOST:PORT (server) or loop://")
+    parser.add_argument("--exr", type=Path, action="append",
+                        help="HDR image(s) to pan across (default: a procedural scene)")
+    parser.add_argument("--fps", type=float, default=30.0, help="frames per second")
+    parser.add_argument("--frames", type=int, help="stop streaming after this many frames")
+    parser.add_argument("--encoding", choices=("modulo", "mantissa", "clip"), default="modulo")
+    parser.add_argument("--alpha", type=float, default=2.0, help="mantissa base (default 2)")
+    parser.add_argument("--bits", type=int, default=8, help="code bits (default 8)")
+    parser.add_argument("--gain", type=float, default=1.0, help="wrap units per scene unit")
+    parser.add_argument("--read-noise", type=float, default=0.002, help="sigma in wraps")
+    parser.add_argument("--seed", type=int, default=0)
+    faults = parser.add_argument_group("fault injection")
+    faults.add_argument("--corrupt-bytes", type=float, default=0.0,
+                        help="fraction of bytes overwritten, in bursts")
+    faults.add_argument("--burst-len", type=int, default=256, help="bytes per corrupt burst")
+    faults.add_argument("--drop", type=float, default=0.0, help="fraction of packets not sent")
+    faults.add_argument("--truncate", type=float, default=0.0, help="fraction cut in half")
+    faults.add_argument("--oversize", type=float, default=0.0,
+                        help="fraction preceded by a bogus 16 MiB length header")
+    faults.add_argument("--stall-every", type=int, default=0, help="stall every N-th packet")
+    faults.add_argument("--stall-s", type=float, default=0.2, help="stall length in seconds")
+    faults.add_argument("--disconnect-every", type=int, default=0,
+                        help="unplug the link every N-th packet")
+    faults.add_argument("--disconnect-s", type=float, default=0.5, help="how long it stays out")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.fps <= 0:
+        raise InvalidInputError(f"--fps must be positive, got {args.fps}")
+    scene: SceneSequence = ExrScene(args.exr) if args.exr else ProceduralScene()
+    settings = CameraSettings(encoding=args.encoding, alpha=args.alpha, bits=args.bits,
+                              gain=args.gain, fps=args.fps, read_noise=args.read_noise)
+    try:
+        faults = Faults(corrupt_bytes=args.corrupt_bytes, burst_len=args.burst_len,
+                        drop_packets=args.drop, truncate_packets=args.truncate,
+                        oversize_packets=args.oversize, stall_every=args.stall_every,
+                        stall_s=args.stall_s, disconnect_every=args.disconnect_every,
+                        disconnect_s=args.disconnect_s, seed=args.seed)
+    except ValueError as exc:
+        raise InvalidInputError(str(exc)) from None
+    camera = VirtualScamp5(open_endpoint(args.port), scene, settings, faults, seed=args.seed,
+                           max_frames=args.frames)
+    camera.params_for(0)
+    print(camera.endpoint.url, flush=True)
+    stopped = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    signal.signal(signal.SIGINT, lambda *_: stopped.set())
+    camera.start()
+    stopped.wait()
+    camera.stop()
+    print(f"sent {camera.packets_sent} packets ({camera.packets_unsent} undelivered)",
+          file=sys.stderr)
+    return 0

