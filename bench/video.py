@@ -1,0 +1,155 @@
+"""Independent vs temporal decoding on the synthetic video clips (``python -m bench.video``).
+
+For each clip of :mod:`models.video_clips`, each encoding and each spatial decoder:
+mean PSNR and PU21-PSNR per frame, winding accuracy, temporal consistency, wrap
+flicker (:mod:`models.video_metrics`) and the decode time per frame in ms, for the
+``independent`` and ``temporal`` modes of :mod:`worker.temporal`, plus the share
+of pixels each temporal path took. Prints a table and writes
+``bench/results/video.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.decoders.registry import available_decoders
+from models.video_clips import CLIP_KINDS, DEFAULT_FRAMES, VIDEO_ENCODINGS, ClipEncoding, make_clip
+from models.video_metrics import clip_metrics
+from worker.temporal import MODES, PATHS, StreamDecoder, StreamState, TemporalConfig
+
+RESULTS = Path(__file__).resolve().parent / "results" / "video.json"
+#: Decoders benchmarked unless named on the command line: the fast spatial ones.
+DEFAULT_DECODERS: tuple[str, ...] = ("itoh", "herraez")
+COLUMNS = ("psnr", "pu21_psnr", "winding_accuracy", "temporal_consistency", "wrap_flicker")
+
+
+def run_mode(enc: ClipEncoding, decoder: StreamDecoder) -> dict[str, Any]:
+    """Decode a clip in one mode; its metrics, ms/frame, keyframes and path shares."""
+    state = StreamState()
+    winding, irradiance, paths = [], [], []
+    keyframes = 0
+    start = time.perf_counter_ns()
+    for codes in enc.codes:
+        frame = decoder.decode(codes, enc.params, state)
+        winding.append(frame.winding)
+        irradiance.append(frame.irradiance)
+        paths.append(frame.paths)
+        keyframes += frame.keyframe is not None
+    elapsed = time.perf_counter_ns() - start
+    row: dict[str, Any] = clip_metrics(
+        np.stack(irradiance), enc.irradiance, np.stack(winding), enc.winding
+    )
+    row["ms_per_frame"] = elapsed / len(enc.codes) / 1e6
+    row["keyframes"] = keyframes
+    row["paths"] = {p: float(np.mean([frame[p] for frame in paths])) for p in PATHS}
+    return row
+
+
+def run(
+    clips: tuple[str, ...],
+    encodings: tuple[str, ...],
+    decoders: tuple[str, ...],
+    frames: int,
+    config: TemporalConfig,
+) -> list[dict[str, Any]]:
+    """Every (clip, encoding, decoder, mode) row."""
+    rows = []
+    for kind in clips:
+        clip = make_clip(kind, frames=frames, encodings=encodings)
+        for encoding, enc in clip.encodings.items():
+            for name in decoders:
+                for mode in MODES:
+                    row = run_mode(enc, StreamDecoder(mode, name, config))
+                    rows.append(
+                        {"clip": kind, "encoding": encoding, "decoder": name, "mode": mode, **row}
+                    )
+                    print_row(rows[-1])
+    return rows
+
+
+def print_row(row: dict[str, Any]) -> None:
+    """One table line."""
+    print(
+        f"{row['clip']:13s} {row['encoding']:8s} {row['decoder']:9s} {row['mode']:11s} "
+        f"{row['psnr']:7.2f} {row['pu21_psnr']:7.2f} {row['winding_accuracy']:7.4f} "
+        f"{row['temporal_consistency']:8.5f} {row['wrap_flicker']:8.5f} "
+        f"{row['ms_per_frame']:7.1f} {row['paths']['local']:6.3f} {row['paths']['spatial']:6.3f}",
+        flush=True,
+    )
+
+
+def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per (clip, encoding, decoder): temporal vs independent ratios and differences."""
+    pairs: dict[tuple[str, str, str], dict[str, dict[str, Any]]] = {}
+    for row in rows:
+        pairs.setdefault((row["clip"], row["encoding"], row["decoder"]), {})[row["mode"]] = row
+    summary = []
+    for (clip, encoding, decoder), modes in pairs.items():
+        ind, tem = modes["independent"], modes["temporal"]
+        summary.append(
+            {
+                "clip": clip,
+                "encoding": encoding,
+                "decoder": decoder,
+                "flicker_reduction": ind["wrap_flicker"] / max(tem["wrap_flicker"], 1e-12),
+                "psnr_gain_db": tem["psnr"] - ind["psnr"],
+                "pu21_psnr_gain_db": tem["pu21_psnr"] - ind["pu21_psnr"],
+                "cost_ratio": tem["ms_per_frame"] / ind["ms_per_frame"],
+            }
+        )
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark, print the table, write the JSON."""
+    parser = argparse.ArgumentParser(prog="python -m bench.video", description=__doc__)
+    parser.add_argument("--clips", default=",".join(CLIP_KINDS))
+    parser.add_argument("--encodings", default=",".join(VIDEO_ENCODINGS))
+    parser.add_argument("--decoders", default=",".join(DEFAULT_DECODERS),
+                        help="comma-separated, or 'all' for every installed decoder")
+    parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES)
+    parser.add_argument("--keyframe-interval", type=int, default=TemporalConfig.keyframe_interval)
+    parser.add_argument("--output", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    decoders = (
+        tuple(spec.name for spec in available_decoders())
+        if args.decoders == "all"
+        else tuple(args.decoders.split(","))
+    )
+    config = TemporalConfig(keyframe_interval=args.keyframe_interval)
+    print(
+        f"{'clip':13s} {'encoding':8s} {'decoder':9s} {'mode':11s} {'PSNR':>7s} {'PU21':>7s} "
+        f"{'W acc':>7s} {'tcons':>8s} {'flicker':>8s} {'ms/fr':>7s} {'local':>6s} {'spat':>6s}"
+    )
+    rows = run(
+        tuple(args.clips.split(",")), tuple(args.encodings.split(",")), decoders,
+        args.frames, config,
+    )
+    summary = summarize(rows)
+    print()
+    print(f"{'clip':13s} {'encoding':8s} {'decoder':9s} {'flicker /':>9s} {'dPSNR':>7s} "
+          f"{'dPU21':>7s} {'cost x':>7s}")
+    for item in summary:
+        print(
+            f"{item['clip']:13s} {item['encoding']:8s} {item['decoder']:9s} "
+            f"{item['flicker_reduction']:9.1f} {item['psnr_gain_db']:7.2f} "
+            f"{item['pu21_psnr_gain_db']:7.2f} {item['cost_ratio']:7.2f}"
+        )
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(
+        json.dumps(
+            {"frames": args.frames, "config": config.__dict__, "rows": rows, "summary": summary},
+            indent=2,
+        )
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,413 @@
+"""Decoding a wrapped video: frame by frame (``independent``) or along time (``temporal``).
+
+``independent`` runs a spatial decoder (:func:`models.decoders.get_decoder`) on each
+frame, as the paper does. ``temporal`` unwraps each pixel along time from the
+previous frame's unwrapped value ``u_{t-1} = W_{t-1} + m_{t-1}`` (wraps):
+
+    W_t = round(u_{t-1} - m_t)
+
+which is exact when the pixel's true change ``|u_t - u_{t-1}|`` is below half a wrap.
+
+The rule, per pixel (and channel)
+---------------------------------
+A pixel is *safe* when every previous value within ``motion_radius`` pixels (a
+``(2r+1)^2`` window, so that motion up to ``r`` px/frame stays decidable) gives the
+same ``W_t`` with at least ``margin`` wraps to spare: ``|W_t + m_t - u_{t-1}(q)| <=
+0.5 - margin`` for every q in the window. Safe pixels keep the temporal answer.
+Unsafe pixels fall back to the spatial decoder:
+
+- few unsafe pixels (their ``tile`` x ``tile`` tiles, padded by ``tile_pad``, cover
+  at most ``local_area`` of the frame): the spatial decoder runs on those crops only
+  (the *local* path), and each crop's unknown constant is set to the most common
+  difference to the temporal answer on the crop's safe pixels;
+- more: one full spatial decode of the frame, aligned the same way (*spatial* path).
+  Where a spatial prediction exists (crop or full) and disagrees with a safe
+  temporal answer, the spatial one wins when it is *confident* (its ``u`` is within
+  half a wrap of all four neighbours) and the temporal one is not.
+
+Whole frames are decoded spatially (*keyframes*) for: the first frame of a stream,
+a frame flagged DISCONT (device reconnect), a sequence gap, a change of shape or
+sensor parameters, and every ``keyframe_interval`` frames (0: never) so that errors
+cannot persist. A periodic keyframe keeps the stream's constant: its spatial
+answer is shifted by the most common difference to the temporal answer on safe
+pixels, so a scene that is bright everywhere (where "darkest pixels have W = 0" is
+wrong) keeps its tracked winding numbers.
+
+Failure modes
+-------------
+- Aliasing: a true change above half a wrap within one frame (a fast edge, a light
+  switched on) that happens to land within the safe band gives a wrong W silently;
+  the window check catches motion up to ``motion_radius`` px/frame, not more.
+  Errors persist until a crop or keyframe decodes the pixel again.
+- Fallback quality: unsafe pixels are only as right as the spatial decoder (and a
+  crop sees less context than the full frame).
+- A wrong constant at a first/DISCONT keyframe (the anchor rule failing) persists
+  through periodic keyframes until the next DISCONT.
+
+A :class:`StreamState` holds what the method remembers (previous ``u``, frame
+index, last keyframe, sequence number); the worker keeps one per device stream.
+Every :class:`FrameDecode` reports the fraction of pixels that took each path.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import maximum_filter, minimum_filter
+
+from models.decoders.base import Decoder, check_frame_shape
+from models.decoders.registry import get_decoder
+from models.errors import InvalidInputError
+from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
+
+MODES: tuple[str, ...] = ("independent", "temporal")
+PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
+
+
+@dataclass(frozen=True)
+class TemporalConfig:
+    """Knobs of the temporal rule (see the module docstring). ``margin`` in wraps,
+    ``motion_radius``, ``tile`` and ``tile_pad`` in pixels, ``keyframe_interval`` in
+    frames (0: no periodic keyframes), ``local_area`` a fraction of the frame."""
+
+    margin: float = 0.1
+    motion_radius: int = 1
+    still: float = 0.05
+    keyframe_interval: int = 30
+    local_area: float = 0.25
+    tile: int = 32
+    tile_pad: int = 8
+
+    def __post_init__(self) -> None:
+        checks = {
+            "margin must be in [0, 0.5)": 0.0 <= self.margin < 0.5,
+            "still must be in [0, 0.5]": 0.0 <= self.still <= 0.5,
+            "motion_radius must be >= 0": self.motion_radius >= 0,
+            "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
+            "local_area must be in [0, 1]": 0.0 <= self.local_area <= 1.0,
+            "tile must be >= 2": self.tile >= 2,
+            "tile_pad must be >= 0": self.tile_pad >= 0,
+        }
+        problems = [text for text, ok in checks.items() if not ok]
+        if problems:
+            raise InvalidInputError(f"invalid temporal settings: {'; '.join(problems)}")
+
+
+@dataclass
+class StreamState:
+    """What temporal decoding remembers about one stream.
+
+    ``u``: the previous frame's unwrapped values (H x W x C, wraps); ``params``: its
+    sensor parameters; ``frames``: frames decoded so far; ``last_keyframe``: index of
+    the last keyframe; ``sequence``: the previous frame's device sequence number.
+    """
+
+    u: NDArray[np.float64] | None = None
+    params: SensorParams | None = None
+    frames: int = 0
+    last_keyframe: int = -1
+    sequence: int | None = None
+
+    def reset(self) -> None:
+        """Forget the stream: the next frame is a keyframe."""
+        self.u, self.params, self.sequence = None, None, None
+
+
+@dataclass
+class FrameDecode:
+    """One decoded video frame.
+
+    ``winding`` (int64) and ``irradiance`` (x_hat, wrap units) have the codes' shape;
+    ``keyframe`` is why the frame was decoded whole (``first``, ``discont``, ``gap``,
+    ``params``, ``periodic``, ``independent``) or None; ``paths`` the fraction of
+    pixels per path (:data:`PATHS`); ``timings_ns`` wall time in ns.
+    """
+
+    winding: NDArray[np.int64]
+    irradiance: NDArray[np.float64]
+    keyframe: str | None
+    paths: dict[str, float]
+    timings_ns: dict[str, int] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-friendly facts about the frame (no arrays)."""
+        return {"keyframe": self.keyframe, "paths": self.paths, "timings_ns": self.timings_ns}
+
+
+def _planes(codes: NDArray[Any], params: SensorParams) -> NDArray[np.float64]:
+    """``m`` of a frame as H x W x C (one plane per channel)."""
+    codes = np.asarray(codes)
+    check_frame_shape(codes)
+    m = dequantize(codes, params.bits)
+    return m[:, :, None] if m.ndim == 2 else m
+
+
+def _stream_key(params: SensorParams) -> dict[str, Any]:
+    """The parameters that must stay fixed within a stream (noise seeds may vary)."""
+    return params.model_dump(exclude={"seed"})
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The temporal answer for a frame (arrays H x W x C, or H x W for one channel).
+
+    ``winding``: ``round(u_{t-1} - m_t)``; ``safe``: where it is kept; ``lowest`` /
+    ``highest``: the range of W that motion within ``motion_radius`` allows (a
+    fallback answer is clipped into it).
+    """
+
+    winding: NDArray[np.int64]
+    safe: NDArray[np.bool_]
+    lowest: NDArray[np.int64]
+    highest: NDArray[np.int64]
+
+    def channel(self, c: int) -> Prediction:
+        """The prediction of channel ``c`` (H x W arrays)."""
+        return Prediction(
+            self.winding[:, :, c], self.safe[:, :, c], self.lowest[:, :, c], self.highest[:, :, c]
+        )
+
+
+def temporal_prediction(
+    m: NDArray[np.float64], prev_u: NDArray[np.float64], config: TemporalConfig
+) -> Prediction:
+    """Predict W of the frame ``m`` (H x W x C) from the previous ``u`` (see module doc)."""
+    winding = np.rint(prev_u - m)
+    u = winding + m
+    change = np.abs(u - prev_u)
+    limit = 0.5 - config.margin
+    safe = change <= limit
+    lo, hi = prev_u, prev_u
+    if config.motion_radius > 0:
+        window = (2 * config.motion_radius + 1, 2 * config.motion_radius + 1, 1)
+        lo = minimum_filter(prev_u, size=window, mode="nearest")
+        hi = maximum_filter(prev_u, size=window, mode="nearest")
+        still = maximum_filter(change, size=window, mode="nearest") <= config.still
+        safe &= still | ((u - lo <= limit) & (hi - u <= limit))
+    return Prediction(
+        winding.astype(np.int64),
+        safe,
+        np.ceil(lo - 0.5 - m).astype(np.int64),
+        np.floor(hi + 0.5 - m).astype(np.int64),
+    )
+
+
+def common_offset(target: NDArray[np.int64], relative: NDArray[np.int64]) -> int:
+    """The most common ``target - relative`` (aligns a spatial answer's constant)."""
+    diff = (target - relative).ravel()
+    low = int(diff.min())
+    return int(np.argmax(np.bincount(diff - low))) + low
+
+
+def locally_smooth(u: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Pixels (H x W) whose ``u`` is within half a wrap of each 4-neighbour."""
+    smooth = np.ones(u.shape, bool)
+    step_y = np.abs(np.diff(u, axis=0)) < 0.5
+    step_x = np.abs(np.diff(u, axis=1)) < 0.5
+    smooth[1:] &= step_y
+    smooth[:-1] &= step_y
+    smooth[:, 1:] &= step_x
+    smooth[:, :-1] &= step_x
+    return smooth
+
+
+def merge_spatial(
+    m: NDArray[np.float64], prediction: Prediction, spatial: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]] | None:
+    """Combine one channel's temporal and spatial W (H x W) as the module doc says.
+
+    Returns the merged W and where the spatial answer was taken, or None when no
+    pixel is safe (nothing to align the spatial constant to).
+    """
+    temporal, safe = prediction.winding, prediction.safe
+    if not safe.any():
+        return None
+    aligned = spatial + common_offset(temporal[safe], spatial[safe])
+    aligned = np.clip(aligned, prediction.lowest, np.maximum(prediction.highest, 0))
+    confident = locally_smooth(aligned + m) & ~locally_smooth(temporal + m)
+    take = ~safe | ((temporal != aligned) & confident)
+    return np.where(take, aligned, temporal), take
+
+
+class StreamDecoder:
+    """Decodes frames of one or many streams in ``mode`` with spatial decoder ``decoder``."""
+
+    def __init__(
+        self, mode: str, decoder: str | Decoder, config: TemporalConfig | None = None
+    ) -> None:
+        if mode not in MODES:
+            raise InvalidInputError(f"unknown mode {mode!r}; choose one of: {', '.join(MODES)}")
+        self.mode = mode
+        self.spatial = get_decoder(decoder) if isinstance(decoder, str) else decoder
+        self.config = config or TemporalConfig()
+
+    def decode(
+        self,
+        codes: NDArray[Any],
+        params: SensorParams,
+        state: StreamState,
+        *,
+        sequence: int | None = None,
+        discont: bool = False,
+    ) -> FrameDecode:
+        """Decode the next frame of the stream ``state`` (which is updated)."""
+        start = time.perf_counter_ns()
+        m = _planes(codes, params)
+        keyframe = self.keyframe_reason(state, m, params, sequence, discont)
+        if keyframe is None:
+            winding, paths = self._temporal_step(m, params, state)
+        else:
+            winding, paths = self._keyframe_step(m, params, state, keyframe)
+        limit = max_winding(params)
+        winding = np.clip(winding, 0, limit)
+        u = winding + m
+        state.u, state.params, state.sequence = u, params, sequence
+        if keyframe is not None:
+            state.last_keyframe = state.frames
+        state.frames += 1
+        squeeze = np.asarray(codes).ndim == 2
+        irradiance = from_unwrapped(u[:, :, 0] if squeeze else u, params)
+        return FrameDecode(
+            winding=winding[:, :, 0] if squeeze else winding,
+            irradiance=irradiance,
+            keyframe=keyframe,
+            paths=paths,
+            timings_ns={"total": time.perf_counter_ns() - start},
+        )
+
+    def keyframe_reason(
+        self,
+        state: StreamState,
+        m: NDArray[np.float64],
+        params: SensorParams,
+        sequence: int | None,
+        discont: bool,
+    ) -> str | None:
+        """Why this frame must be decoded whole, or None for a temporal step."""
+        if self.mode == "independent" or params.encoding == "clip":
+            return "independent"
+        if state.u is None or state.params is None:
+            return "first"
+        if discont:
+            return "discont"
+        if sequence is not None and state.sequence is not None and sequence != state.sequence + 1:
+            return "gap"
+        if state.u.shape != m.shape or _stream_key(state.params) != _stream_key(params):
+            return "params"
+        interval = self.config.keyframe_interval
+        if interval and state.frames - state.last_keyframe >= interval:
+            return "periodic"
+        return None
+
+    def _spatial_planes(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+        if params.encoding == "clip":
+            return np.zeros(m.shape, np.int64)
+        return np.stack(
+            [self.spatial.predict_winding(m[:, :, c], params) for c in range(m.shape[2])], axis=2
+        ).astype(np.int64)
+
+    def _keyframe_step(
+        self, m: NDArray[np.float64], params: SensorParams, state: StreamState, reason: str
+    ) -> tuple[NDArray[np.int64], dict[str, float]]:
+        spatial = self._spatial_planes(m, params)
+        if reason == "periodic" and state.u is not None:
+            prediction = temporal_prediction(m, state.u, self.config)
+            for c in range(m.shape[2]):
+                keep = prediction.safe[:, :, c]
+                if keep.any():
+                    temporal = prediction.winding[:, :, c]
+                    offset = common_offset(temporal[keep], spatial[:, :, c][keep])
+                    spatial[:, :, c] = np.maximum(spatial[:, :, c] + offset, 0)
+        return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}
+
+    def _temporal_step(
+        self, m: NDArray[np.float64], params: SensorParams, state: StreamState
+    ) -> tuple[NDArray[np.int64], dict[str, float]]:
+        assert state.u is not None
+        prediction = temporal_prediction(m, state.u, self.config)
+        winding = prediction.winding.copy()
+        local = np.zeros(m.shape, bool)
+        spatial = np.zeros(m.shape, bool)
+        for c in range(m.shape[2]):
+            plane, channel = m[:, :, c], prediction.channel(c)
+            if channel.safe.all():
+                continue
+            crops = self._crops(~channel.safe)
+            area = sum((ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in crops)
+            fixed = None
+            if area <= self.config.local_area * plane.size:
+                fixed = self._local_fix(plane, channel, params, crops)
+            if fixed is not None:
+                winding[:, :, c], local[:, :, c] = fixed
+                continue
+            whole = self.spatial.predict_winding(plane, params).astype(np.int64)
+            merged = merge_spatial(plane, channel, whole)
+            winding[:, :, c], spatial[:, :, c] = merged or (whole, np.ones(whole.shape, bool))
+        size = float(m.size)
+        used_local, used_spatial = local.sum() / size, spatial.sum() / size
+        return winding, {
+            "temporal": 1.0 - used_local - used_spatial,
+            "local": float(used_local),
+            "spatial": float(used_spatial),
+        }
+
+    def _crops(self, unsafe: NDArray[np.bool_]) -> list[tuple[slice, slice]]:
+        """Padded crops around the ``tile`` x ``tile`` tiles that hold unsafe pixels."""
+        tile, pad = self.config.tile, self.config.tile_pad
+        height, width = unsafe.shape
+        rows, cols = -(-height // tile), -(-width // tile)
+        padded = np.zeros((rows * tile, cols * tile), bool)
+        padded[:height, :width] = unsafe
+        busy = padded.reshape(rows, tile, cols, tile).any(axis=(1, 3))
+        crops = []
+        for ty, tx in np.argwhere(busy):
+            y0, x0 = max(ty * tile - pad, 0), max(tx * tile - pad, 0)
+            y1, x1 = min((ty + 1) * tile + pad, height), min((tx + 1) * tile + pad, width)
+            crops.append((slice(int(y0), int(y1)), slice(int(x0), int(x1))))
+        return crops
+
+    def _local_fix(
+        self,
+        m: NDArray[np.float64],
+        prediction: Prediction,
+        params: SensorParams,
+        crops: list[tuple[slice, slice]],
+    ) -> tuple[NDArray[np.int64], NDArray[np.bool_]] | None:
+        """Spatially decode each crop of one channel and merge it; None if a crop has
+        no safe pixel to align to."""
+        winding = prediction.winding.copy()
+        took = np.zeros(m.shape, bool)
+        for ys, xs in crops:
+            if ys.stop - ys.start < 2 or xs.stop - xs.start < 2:
+                return None
+            relative = self.spatial.predict_winding(m[ys, xs], params).astype(np.int64)
+            crop = Prediction(
+                prediction.winding[ys, xs],
+                prediction.safe[ys, xs],
+                prediction.lowest[ys, xs],
+                prediction.highest[ys, xs],
+            )
+            merged = merge_spatial(m[ys, xs], crop, relative)
+            if merged is None:
+                return None
+            crop_w, crop_took = merged
+            winding[ys, xs] = np.where(crop_took, crop_w, winding[ys, xs])
+            took[ys, xs] |= crop_took
+        return winding, took
+
+
+def decode_frames(
+    frames: Iterable[NDArray[Any]],
+    params: SensorParams,
+    decoder: StreamDecoder,
+    state: StreamState | None = None,
+) -> Iterator[FrameDecode]:
+    """Decode a sequence of frames (codes, DN) of one stream, in order."""
+    state = state or StreamState()
+    for codes in frames:
+        yield decoder.decode(codes, params, state)
