@@ -156,6 +156,22 @@ def test_sigterm_finishes_the_job_in_hand(
     assert client.xpending(JOBS_STREAM, "workers")["pending"] == 0
 
 
+def test_cancel_while_running_is_honoured(
+    queue: JobQueue, client: redis.Redis, workers, make_frame, wait_until
+) -> None:
+    frame: SensorFrame = make_frame(size=1024)
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    worker = workers.start()
+    wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
+    worker.send_signal(signal.SIGSTOP)
+    assert queue.cancel(job.id).state is JobState.CANCELLED
+    worker.send_signal(signal.SIGCONT)
+    wait_until(lambda: client.xlen(JOBS_STREAM) == 0, 60, "the cancelled entry acked")
+    record = queue.get(job.id)
+    assert record.state is JobState.CANCELLED and record.results == {}
+    assert client.xlen(DEAD_LETTER_STREAM) == 0
+
+
 def frame_events(client: redis.Redis, device: str) -> list[dict[str, str]]:
     return [
         {k.decode(): v.decode() for k, v in fields.items()}

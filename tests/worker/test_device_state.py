@@ -1,0 +1,44 @@
+"""The live-frame decoding hook: independent and temporal modes on per-device state."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.errors import InvalidInputError
+from worker.device_state import DeviceState, make_frame_decoder
+from worker.frame_message import FrameMessage
+
+
+def messages(make_frame, count: int) -> list[FrameMessage]:
+    frames = [make_frame(peak=5.0 + 0.05 * t) for t in range(count)]
+    return [FrameMessage("cam", t, t * 1000, f.codes, f.params) for t, f in enumerate(frames)]
+
+
+@pytest.mark.parametrize("mode", ["independent", "temporal"])
+def test_modes_decode_a_slow_clip_exactly(make_frame, mode: str) -> None:
+    decode = make_frame_decoder(mode, "itoh")
+    state = DeviceState("cam")
+    for t, message in enumerate(messages(make_frame, 4)):
+        frame = decode(state, message)
+        truth = make_frame(peak=5.0 + 0.05 * t).winding
+        np.testing.assert_array_equal(frame.winding, truth)
+        assert frame.info["decoder"] == "itoh" and frame.timings_ns["decode"] > 0
+    assert (state.temporal is None) == (mode == "independent")
+
+
+def test_temporal_state_starts_with_a_keyframe(make_frame) -> None:
+    decode = make_frame_decoder("temporal", "itoh")
+    clip = messages(make_frame, 3)
+    state = DeviceState("cam")
+    kinds = [decode(state, message).info["keyframe"] for message in clip]
+    assert kinds[0] == "first" and kinds[1:] == [None, None]
+    fresh = DeviceState("cam")
+    assert decode(fresh, clip[2]).info["keyframe"] == "first"
+
+
+def test_unknown_mode_and_decoder() -> None:
+    with pytest.raises(InvalidInputError, match="frame mode"):
+        make_frame_decoder("psychic", "itoh")
+    with pytest.raises(InvalidInputError, match="unknown decoder"):
+        make_frame_decoder("independent", "nope")
