@@ -92,8 +92,8 @@ def wait_ready(url: str, timeout_s: float = 60.0) -> None:
     raise RuntimeError(f"the service at {url} did not become ready in {timeout_s:.0f} s")
 
 
-def one_job(http: httpx.Client, data: bytes, decoder: str) -> tuple[float, bool]:
-    """Submit and wait; returns (latency s, succeeded)."""
+def one_job(http: httpx.Client, data: bytes, decoder: str) -> tuple[float, dict[str, Any]]:
+    """Submit and wait; returns (latency s, the job's final record)."""
     start = time.perf_counter()
     reply = http.post(
         "/v1/reconstructions",
@@ -108,7 +108,21 @@ def one_job(http: httpx.Client, data: bytes, decoder: str) -> tuple[float, bool]
         if job["state"] in ("succeeded", "failed", "cancelled"):
             break
         time.sleep(0.01)
-    return time.perf_counter() - start, job.get("state") == "succeeded"
+    return time.perf_counter() - start, job
+
+
+def median_stages(done: list[tuple[float, dict[str, Any]]]) -> dict[str, float]:
+    """Median worker stage times (ms) and ``api_http``: request latency minus the job's
+    total (HTTP, upload parsing, submit and the wait notification)."""
+    if not done:
+        return {}
+    stages = {
+        stage: float(np.median([job["timings_ns"].get(stage, 0) for _, job in done]) / 1e6)
+        for stage in ("queue_wait", "decode", "encode", "total")
+    }
+    api = [latency - job["timings_ns"]["total"] / 1e9 for latency, job in done]
+    stages["api_http"] = float(np.median(api) * 1e3)
+    return stages
 
 
 def run_level(url: str, clients: int, jobs: int, data: bytes, decoder: str) -> dict[str, Any]:
@@ -127,13 +141,15 @@ def run_level(url: str, clients: int, jobs: int, data: bytes, decoder: str) -> d
             )
         elapsed = time.perf_counter() - start
     latencies = np.array([latency for latency, _ in outcomes]) * 1e3
+    done = [(latency, job) for latency, job in outcomes if job.get("state") == "succeeded"]
     return {
         "clients": clients,
         "jobs": jobs,
         "jobs_per_s": jobs / elapsed,
         "p50_ms": float(np.percentile(latencies, 50)),
         "p99_ms": float(np.percentile(latencies, 99)),
-        "lost": sum(1 for _, ok in outcomes if not ok),
+        "lost": jobs - len(done),
+        "median_stage_ms": median_stages(done),
     }
 
 
@@ -206,11 +222,15 @@ def print_table(result: dict[str, Any]) -> None:
         f"{result['in_process_decode_ms']:.1f} ms; API+queue overhead at 1 client "
         f"{result['overhead_ms']:.1f} ms ({result['overhead_pct']:.0f}% of decode)"
     )
-    print(f"{'clients':>7} {'jobs':>5} {'jobs/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'lost':>5}")
+    print(
+        f"{'clients':>7} {'jobs':>5} {'jobs/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'lost':>5}"
+        "  median stages (ms; api_http = latency - worker total)"
+    )
     for level in result["levels"]:
+        stages = "  ".join(f"{k} {v:.1f}" for k, v in level["median_stage_ms"].items())
         print(
             f"{level['clients']:>7} {level['jobs']:>5} {level['jobs_per_s']:>8.1f} "
-            f"{level['p50_ms']:>8.1f} {level['p99_ms']:>8.1f} {level['lost']:>5}"
+            f"{level['p50_ms']:>8.1f} {level['p99_ms']:>8.1f} {level['lost']:>5}  {stages}"
         )
 
 
