@@ -1,0 +1,252 @@
+"""Accuracy and speed of every decoder on the val-256 protocol.
+
+``python -m bench.accuracy`` decodes the val-256 frames (:func:`models.scenes.val256_frames`:
+24 grayscale 256 x 256 crops of the validation scenes, overexposed 0.2, max_wraps 16,
+8 bits) with every installed decoder, for both encodings, and reports the mean over
+frames of winding accuracy, PSNR, PU21-PSNR, SSIM and MS-SSIM
+(:func:`models.metrics.evaluate` against the exact irradiance ``x``, wrap units) and the
+median wall time per frame in ms (onnxruntime on ``MCAM_WORKER_THREADS`` = 2 threads).
+
+A second table gives PSNR against read noise (sigma in wraps) for the best
+``mantissanet`` tier on mantissa frames, trained without and with noise
+(``<tier>-noise``), next to ``itoh``; missing models are named.
+
+It prints Markdown and writes ``bench/results/accuracy.json`` and ``.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import RESULTS, machine, utc_now, versions, write_report
+from models import metrics
+from models.decoders import Decoder, available_decoders, get_decoder
+from models.errors import McamError
+from models.scenes import (
+    VAL256_BITS,
+    VAL256_MAX_WRAPS,
+    VAL256_OVEREXPOSED,
+    VAL256_SIZE,
+    ValFrame,
+    val256_frames,
+)
+
+ENCODINGS = ("modulo", "mantissa")
+NOISE_LEVELS = (0.0, 0.005, 0.01, 0.02)
+METRICS = ("winding_accuracy", "psnr", "pu21_psnr", "ssim", "ms_ssim")
+#: Threads for onnxruntime (the learned decoders read MCAM_WORKER_THREADS).
+THREADS = 2
+#: The classical reference shown beside the networks in the noise table.
+NOISE_REFERENCE = "itoh"
+
+
+def timed_decode(decoder: Decoder, frame: ValFrame) -> tuple[Any, float]:
+    """Decode one frame; returns the result and the wall time in ms."""
+    start = time.perf_counter_ns()
+    result = decoder.decode(frame.codes, frame.params)
+    return result, (time.perf_counter_ns() - start) / 1e6
+
+
+def mean_metrics(per_frame: list[dict[str, float]]) -> dict[str, float | int]:
+    """Mean of each metric over frames; an exact frame (PSNR inf) is counted apart."""
+    summary: dict[str, float | int] = {}
+    for key in METRICS:
+        values = [row[key] for row in per_frame if key in row and np.isfinite(row[key])]
+        summary[key] = float(np.mean(values)) if values else float("nan")
+    summary["exact_frames"] = sum(1 for row in per_frame if not np.isfinite(row["psnr"]))
+    return summary
+
+
+def measure(
+    decoder: Decoder, frames: list[ValFrame], repeats: int, time_frames: int
+) -> dict[str, Any]:
+    """Metrics over ``frames`` and the median ms/frame.
+
+    Every frame is decoded once for the metrics (timed too); the first
+    ``time_frames`` frames are decoded ``repeats - 1`` more times. One untimed
+    warm-up decode comes first (it creates ONNX sessions).
+    """
+    decoder.decode(frames[0].codes, frames[0].params)
+    per_frame, times = [], []
+    for frame in frames:
+        result, ms = timed_decode(decoder, frame)
+        times.append(ms)
+        per_frame.append(
+            metrics.evaluate(result.irradiance, frame.x, result.winding, frame.winding, flip=False)
+        )
+    for frame in frames[:time_frames]:
+        times += [timed_decode(decoder, frame)[1] for _ in range(repeats - 1)]
+    return {
+        **mean_metrics(per_frame),
+        "ms_per_frame": float(np.median(times)),
+        "timed_runs": len(times),
+        "frames": len(frames),
+    }
+
+
+def bench_row(name: str, encoding: str, frames: list[ValFrame], args: argparse.Namespace) -> dict:
+    """One table row; a decoder that cannot run an encoding gets ``missing`` and why."""
+    spec = {s.name: s for s in available_decoders()}.get(name)
+    row: dict[str, Any] = {"decoder": name, "kind": spec.kind if spec else None}
+    row["encoding"] = encoding
+    try:
+        row.update(measure(get_decoder(name), frames, args.repeats, args.time_frames))
+    except McamError as exc:
+        row["missing"] = exc.message
+    return row
+
+
+def noise_candidates(rows: list[dict[str, Any]]) -> tuple[list[str], list[str]]:
+    """The decoders of the noise table (best mantissanet tier on mantissa frames, its
+    noise-aware twin, the classical reference) and the ones that are not installed."""
+    installed = {s.name for s in available_decoders()}
+    tiers = [
+        r
+        for r in rows
+        if r["decoder"].startswith("mantissanet-")
+        and not r["decoder"].endswith("-noise")
+        and r["encoding"] == "mantissa"
+        and "psnr" in r
+    ]
+    if not tiers:
+        return [NOISE_REFERENCE], ["mantissanet-<best tier>", "mantissanet-<best tier>-noise"]
+    best = max(tiers, key=lambda r: r["psnr"])["decoder"]
+    wanted = [best, f"{best.removesuffix('-int8')}-noise", NOISE_REFERENCE]
+    return [n for n in wanted if n in installed], [n for n in wanted if n not in installed]
+
+
+def noise_table(rows: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, Any]:
+    """PSNR and winding accuracy against read noise on mantissa frames."""
+    names, missing = noise_candidates(rows)
+    results = []
+    for level in args.noise_levels:
+        frames = val256_frames("mantissa", read_noise=level)[: args.frames]
+        for name in names:
+            row = bench_row(name, "mantissa", frames, args)
+            results.append({"read_noise": level, **row})
+    return {
+        "encoding": "mantissa",
+        "levels": list(args.noise_levels),
+        "decoders": names,
+        "missing": missing,
+        "results": results,
+    }
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The whole benchmark as a JSON-ready report."""
+    os.environ.setdefault("MCAM_WORKER_THREADS", str(THREADS))
+    names = args.decoders or [spec.name for spec in available_decoders()]
+    rows = []
+    for encoding in ENCODINGS:
+        frames = val256_frames(encoding)[: args.frames]
+        rows += [bench_row(name, encoding, frames, args) for name in names]
+    return {
+        "benchmark": "accuracy",
+        "date": utc_now(),
+        "machine": machine(),
+        "threads": int(os.environ["MCAM_WORKER_THREADS"]),
+        "versions": versions(),
+        "protocol": {
+            "name": "val-256",
+            "frames": len(frames),
+            "size": VAL256_SIZE,
+            "overexposed": VAL256_OVEREXPOSED,
+            "max_wraps": VAL256_MAX_WRAPS,
+            "bits": VAL256_BITS,
+            "repeats": args.repeats,
+            "timed_frames": min(args.time_frames, len(frames)),
+        },
+        "results": rows,
+        "noise": noise_table(rows, args),
+    }
+
+
+def _cell(row: dict[str, Any], key: str, scale: float = 1.0, digits: int = 2) -> str:
+    value = row.get(key)
+    if value is None or not np.isfinite(value):
+        return "-"
+    return f"{value * scale:.{digits}f}"
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The report as two Markdown tables with a header line (date, machine)."""
+    proto, host = report["protocol"], report["machine"]
+    lines = [
+        f"val-256 ({proto['frames']} frames of {proto['size']}x{proto['size']}, overexposed "
+        f"{proto['overexposed']}, max_wraps {proto['max_wraps']:g}, {proto['bits']} bits), "
+        f"{report['date']}, {host['cpu']} ({host['cores']} cores), {report['threads']} threads",
+        "",
+        "| decoder | kind | encoding | W acc % | PSNR dB | PU21-PSNR dB | SSIM | MS-SSIM "
+        "| ms/frame |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in report["results"]:
+        head = f"| {row['decoder']} | {row['kind']} | {row['encoding']} |"
+        if "missing" in row:
+            lines.append(f"{head} n/a: {row['missing']} | | | | | |")
+            continue
+        lines.append(
+            f"{head} {_cell(row, 'winding_accuracy', 100)} | {_cell(row, 'psnr')} | "
+            f"{_cell(row, 'pu21_psnr')} | {_cell(row, 'ssim', digits=4)} | "
+            f"{_cell(row, 'ms_ssim', digits=4)} | {_cell(row, 'ms_per_frame', digits=1)} |"
+        )
+    noise = report["noise"]
+    lines += ["", f"PSNR dB (W acc %) against read noise, {noise['encoding']} frames:", ""]
+    lines += ["| decoder | " + " | ".join(f"{v:g}" for v in noise["levels"]) + " |"]
+    lines += ["|---|" + "---|" * len(noise["levels"])]
+    for name in noise["decoders"]:
+        cells = [
+            f"{_cell(r, 'psnr')} ({_cell(r, 'winding_accuracy', 100, 1)})"
+            if "missing" not in r
+            else "n/a"
+            for r in noise["results"]
+            if r["decoder"] == name
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if noise["missing"]:
+        lines += ["", f"Not installed, so not in the noise table: {', '.join(noise['missing'])}."]
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--decoders", nargs="+", help="only these decoders (default: all)")
+    parser.add_argument("--frames", type=int, default=24, help="first N val-256 frames")
+    parser.add_argument("--repeats", type=int, default=3, help="timed decodes per timed frame")
+    parser.add_argument("--time-frames", type=int, default=4, help="frames timed repeatedly")
+    parser.add_argument(
+        "--noise-levels",
+        type=float,
+        nargs="*",
+        default=list(NOISE_LEVELS),
+        help="read noise sigmas (wraps) of the noise table; none skips it",
+    )
+    parser.add_argument("--out", type=Path, default=RESULTS / "accuracy.json")
+    args = parser.parse_args(argv)
+    if args.frames < 1 or args.repeats < 1 or args.time_frames < 0:
+        parser.error("--frames and --repeats must be >= 1, --time-frames >= 0")
+    installed = {spec.name for spec in available_decoders()}
+    unknown = sorted(set(args.decoders or []) - installed)
+    if unknown:
+        parser.error(f"unknown decoders {', '.join(unknown)}; installed: {', '.join(installed)}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    report = run(args)
+    table = markdown(report)
+    write_report(report, table, args.out)
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,118 @@
+"""Tests of bench/accuracy.py and bench/__init__.py: helpers and a tiny real run
+(2 val-256 frames, no timings asserted)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench import accuracy, json_safe, machine, versions
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_smoke_run_as_a_module_writes_json_and_markdown(tmp_path: Path) -> None:
+    out = tmp_path / "accuracy.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "bench.accuracy", "--decoders", "itoh", "graphcut",
+         "--frames", "2", "--repeats", "2", "--time-frames", "1", "--noise-levels", "0",
+         "--out", str(out)],
+        cwd=ROOT, capture_output=True, text=True, timeout=280, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    report = json.loads(out.read_text())
+    rows = report["results"]
+    assert [(r["decoder"], r["encoding"]) for r in rows] == [
+        ("itoh", "modulo"),
+        ("graphcut", "modulo"),
+        ("itoh", "mantissa"),
+        ("graphcut", "mantissa"),
+    ]
+    for row in rows:
+        assert row["frames"] == 2
+        assert row["timed_runs"] == 3
+        assert 0.0 <= row["winding_accuracy"] <= 1.0
+        assert 0.0 < row["ssim"] <= 1.0
+        assert row["ms_per_frame"] > 0.0
+        assert row["psnr"] > 0.0 and row["pu21_psnr"] > 0.0
+    assert report["protocol"]["frames"] == 2
+    assert report["machine"]["cores"] >= 1
+    assert report["noise"]["decoders"] == ["itoh"]
+    assert [r["read_noise"] for r in report["noise"]["results"]] == [0.0]
+    assert out.with_suffix(".md").read_text().strip() == done.stdout.strip()
+    assert "| graphcut | classical | mantissa |" in done.stdout
+
+
+def test_unknown_decoder_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        accuracy.parse_args(["--decoders", "no-such-decoder"])
+    assert exc.value.code == 2
+    assert "unknown decoders no-such-decoder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flags", [["--frames", "0"], ["--repeats", "0"]])
+def test_counts_must_be_positive(flags: list[str]) -> None:
+    with pytest.raises(SystemExit):
+        accuracy.parse_args(flags)
+
+
+def test_mean_metrics_counts_exact_frames_apart() -> None:
+    frames = [
+        {"winding_accuracy": 1.0, "psnr": math.inf, "pu21_psnr": math.inf, "ssim": 1.0},
+        {"winding_accuracy": 0.5, "psnr": 20.0, "pu21_psnr": 30.0, "ssim": 0.5},
+    ]
+    summary = accuracy.mean_metrics(frames)
+    assert summary["psnr"] == 20.0
+    assert summary["winding_accuracy"] == 0.75
+    assert summary["exact_frames"] == 1
+    assert math.isnan(summary["ms_ssim"])
+
+
+def test_noise_candidates_pick_the_best_tier_and_name_missing_twins() -> None:
+    rows = [
+        {"decoder": "itoh", "encoding": "mantissa", "psnr": 10.0},
+        {"decoder": "mantissanet-tiny", "encoding": "mantissa", "psnr": 30.0},
+        {"decoder": "mantissanet-base", "encoding": "mantissa", "psnr": 35.0},
+        {"decoder": "mantissanet-base", "encoding": "modulo", "psnr": 50.0},
+        {"decoder": "mantissanet-huge", "encoding": "mantissa", "missing": "no model"},
+    ]
+    names, missing = accuracy.noise_candidates(rows)
+    assert names == ["itoh"]
+    assert missing == ["mantissanet-base", "mantissanet-base-noise"]
+    assert accuracy.noise_candidates(rows[:1])[1] == [
+        "mantissanet-<best tier>",
+        "mantissanet-<best tier>-noise",
+    ]
+
+
+def test_markdown_shows_missing_rows() -> None:
+    report = {
+        "date": "2026-01-01T00:00:00+00:00",
+        "machine": {"cpu": "cpu", "cores": 2},
+        "threads": 2,
+        "protocol": {"frames": 1, "size": 256, "overexposed": 0.2, "max_wraps": 16, "bits": 8},
+        "results": [
+            {"decoder": "x", "kind": "learned", "encoding": "modulo", "missing": "no model"}
+        ],
+        "noise": {"encoding": "mantissa", "levels": [0.0], "decoders": [], "missing": ["y"]},
+    }
+    text = accuracy.markdown(report)
+    assert "| x | learned | modulo | n/a: no model |" in text
+    assert "Not installed, so not in the noise table: y." in text
+
+
+def test_json_safe_replaces_non_finite_floats() -> None:
+    assert json_safe({"a": [math.inf, 1.0, (math.nan,)], "b": "s"}) == {
+        "a": [None, 1.0, [None]],
+        "b": "s",
+    }
+
+
+def test_machine_and_versions_are_recorded() -> None:
+    assert machine()["cpu"]
+    assert versions()["PyMaxflow"]
