@@ -1,0 +1,163 @@
+"""The incremental parser: fuzzed with hypothesis (and atheris when installed), plus one test
+per drop cause. The fuzz knows every valid packet it wrote and checks the parser emits exactly
+the intact ones, in order, and nothing else."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from device import link_protocol as lp
+from device.link_parser import LinkParser
+
+MAX_PAYLOAD = 4096
+
+
+def small_data(seq: int, h: int, w: int, bits: int) -> lp.DataPacket:
+    codes = np.random.default_rng(seq).integers(0, 1 << bits, (h, w))
+    return lp.DataPacket(seq, seq * 1000, "mantissa", 2.0, bits, 1.0,
+                         codes.astype(np.uint8 if bits <= 8 else np.uint16))
+
+
+PACKETS = st.one_of(
+    st.builds(small_data, st.integers(0, 10_000), st.integers(1, 8), st.integers(1, 8),
+              st.integers(1, 16)),
+    st.sampled_from([lp.StartPacket(), lp.StopPacket(), lp.FrameRatePacket(25.0),
+                     lp.EncodingPacket("modulo", 8, 2.0), lp.BracketPacket()]),
+)
+
+
+@st.composite
+def damaged(draw: st.DrawFn) -> tuple[bytes, bool]:
+    """A segment of the stream and whether it is an intact packet."""
+    kind = draw(st.sampled_from(["intact", "intact", "garbage", "flip", "cut", "fake"]))
+    if kind == "garbage":
+        return draw(st.binary(min_size=1, max_size=300)), False
+    if kind == "fake":
+        length = draw(st.integers(0, (1 << 24) - 1))
+        return lp.pack_header(draw(st.integers(0, 255)), length) + draw(st.binary(max_size=64)), \
+            False
+    wire = lp.encode_packet(draw(PACKETS))
+    if kind == "intact":
+        return wire, True
+    if kind == "cut":
+        return wire[: draw(st.integers(1, len(wire) - 1))], False
+    data = bytearray(wire)
+    for _ in range(draw(st.integers(1, 4))):
+        i = draw(st.integers(0, len(data) - 1))
+        data[i] ^= draw(st.integers(1, 255))
+    return bytes(data), False
+
+
+def run_parser(stream: bytes, chunks: list[int]) -> tuple[list[lp.Packet], LinkParser]:
+    parser = LinkParser(max_payload=MAX_PAYLOAD)
+    out: list[lp.Packet] = []
+    pos = 0
+    for size in chunks:
+        out += parser.feed(stream[pos : pos + size])
+        pos += size
+    out += parser.feed(stream[pos:])
+    while parser.buffered:
+        out += parser.expire(now=math.inf)
+    return out, parser
+
+
+def same(a: lp.Packet, b: lp.Packet) -> bool:
+    return lp.encode_packet(a) == lp.encode_packet(b)
+
+
+@given(segments=st.lists(damaged(), max_size=25),
+       chunks=st.lists(st.integers(1, 700), max_size=40))
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_fuzz_emits_exactly_the_intact_packets(segments: list[tuple[bytes, bool]],
+                                               chunks: list[int]) -> None:
+    stream = b"".join(data for data, _ in segments)
+    intact = [data for data, ok in segments if ok]
+    out, parser = run_parser(stream, chunks)
+    assert [lp.encode_packet(p) for p in out] == intact
+    assert parser.buffered == 0
+    assert parser.packets_ok == len(intact)
+
+
+@given(stream=st.binary(max_size=5000), chunk=st.integers(1, 600))
+@settings(max_examples=200, deadline=None)
+def test_fuzz_random_bytes_never_raise_and_stay_bounded(stream: bytes, chunk: int) -> None:
+    parser = LinkParser(max_payload=MAX_PAYLOAD)
+    for start in range(0, len(stream), chunk):
+        for packet in parser.feed(stream[start : start + chunk]):
+            assert lp.packet_crc_ok(lp.encode_packet(packet))
+        assert parser.buffered <= parser.max_packet + 64 * 1024
+
+
+def test_resynchronises_after_garbage_and_counts_it() -> None:
+    good = lp.encode_packet(small_data(1, 4, 4, 8))
+    out, parser = run_parser(b"\x00\xa5M" + b"junk" * 10 + good + b"\xa5" + good, [7, 1, 100])
+    assert len(out) == 2 and all(same(p, small_data(1, 4, 4, 8)) for p in out)
+    assert parser.garbage_bytes == 3 + 40 + 1
+    assert sum(parser.drops.values()) == 0
+
+
+@pytest.mark.parametrize(("mangle", "cause"), [
+    (lambda w: w[:5] + bytes([w[5] ^ 1]) + w[6:], "bad_header"),
+    (lambda w: w[:20] + bytes([w[20] ^ 1]) + w[21:], "bad_crc"),
+    (lambda w: w[:-1] + bytes([w[-1] ^ 1]), "bad_crc"),
+    (lambda w: lp.pack_header(lp.PacketType.DATA, MAX_PAYLOAD + 1) + w[8:], "oversize"),
+    (lambda w: w[: len(w) // 2], "truncated"),
+    (lambda w: lp.frame_packet(0x42, w[8:-4]), "unknown_type"),
+    (lambda w: lp.frame_packet(lp.PacketType.DATA, w[8:-5]), "malformed"),
+])
+def test_each_drop_cause_is_counted_and_the_next_packet_survives(mangle, cause: str) -> None:
+    wire = lp.encode_packet(small_data(3, 5, 5, 8))
+    out, parser = run_parser(mangle(wire) + wire, [])
+    assert [lp.encode_packet(p) for p in out] == [wire]
+    assert parser.drops[cause] == 1
+    assert sum(parser.drops.values()) == 1
+
+
+def test_byte_by_byte_feeding_equals_one_feed() -> None:
+    wires = [lp.encode_packet(small_data(i, 3, 7, 12)) for i in range(3)]
+    stream = b"xx".join(wires)
+    parser = LinkParser(MAX_PAYLOAD)
+    out = [p for byte in stream for p in parser.feed(bytes([byte]))]
+    assert [lp.encode_packet(p) for p in out] == wires
+
+
+def test_partial_packet_waits_then_expires_as_truncated() -> None:
+    wire = lp.encode_packet(small_data(4, 6, 6, 8))
+    parser = LinkParser(MAX_PAYLOAD, partial_timeout_s=0.5)
+    assert parser.feed(wire[:30]) == []
+    assert parser.expire() == []  # not yet timed out
+    assert parser.buffered == 30
+    assert parser.expire(now=math.inf) == []
+    assert parser.drops["truncated"] == 1
+    assert parser.buffered < len(lp.SIGNATURE)  # only a possible signature start is kept
+
+
+def test_reset_counts_a_started_packet_as_truncated() -> None:
+    parser = LinkParser(MAX_PAYLOAD)
+    parser.feed(lp.encode_packet(lp.StartPacket())[:-2])
+    parser.reset()
+    assert parser.drops["truncated"] == 1 and parser.buffered == 0
+
+
+def test_bad_max_payload_is_rejected() -> None:
+    with pytest.raises(ValueError, match="positive"):
+        LinkParser(max_payload=0)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("atheris") is None, reason="atheris not installed")
+def test_atheris_fuzz_bounded_run() -> None:
+    harness = Path(__file__).with_name("atheris_link_parser.py")
+    result = subprocess.run([sys.executable, str(harness), "-runs=4000", "-seed=1"],
+                            capture_output=True, text=True, timeout=120,
+                            cwd=Path(__file__).parents[2])
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "Done 4000 runs" in result.stderr
