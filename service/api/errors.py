@@ -88,6 +88,14 @@ async def redis_error(_: Request, exc: Exception) -> JSONResponse:
     )
 
 
+async def internal_error(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("internal error on %s %s", request.method, request.url.path, exc_info=exc)
+    return JSONResponse(
+        error_body("internal_error", "an internal error occurred; it has been logged"),
+        status_code=500,
+    )
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Register the JSON error handlers on ``app``."""
     app.add_exception_handler(McamError, mcam_error)
@@ -95,3 +103,4 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(HTTPException, http_error)
     app.add_exception_handler(redis.exceptions.ConnectionError, redis_error)
     app.add_exception_handler(redis.exceptions.TimeoutError, redis_error)
+    app.add_exception_handler(Exception, internal_error)

@@ -130,7 +130,8 @@ class RequestTimer:
         try:
             await self.app(scope, receive, timed_send)
         finally:
-            route = getattr(scope.get("route"), "path", "unmatched")
+            route = getattr(scope.get("route"), "path", None)
+            route = "unmatched" if route is None else route or "/"
             self.histogram.labels(scope["method"], route, str(status)).observe(
                 time.perf_counter() - start
             )

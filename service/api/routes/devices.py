@@ -1,0 +1,153 @@
+"""``/v1/devices``: camera links (health from the daemons), control commands, the newest
+reconstruction, and a server-sent event stream of what happens to a device's frames."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from typing import Annotated, Any, Literal
+
+import redis
+from fastapi import APIRouter, Body, Header, Query, Response
+from fastapi.responses import StreamingResponse
+
+from device.commands import Command, command_fields
+from device.health import ALL_DROP_CAUSES
+from models.hdr_io import read_hdr
+from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.downloads import download
+from service.api.errors import ApiError
+from service.api.previews import tonemap_png
+from service.api.schemas import AUTH_ERRORS, error_response
+from service.api.state import ServiceState
+from worker.redis_keys import (
+    DEVICES_SET,
+    control_stream,
+    events_stream,
+    health_key,
+    latest_key,
+    validate_device_id,
+)
+
+router = APIRouter(prefix="/v1/devices", tags=["devices"])
+DEVICE_ERRORS = {**AUTH_ERRORS, 404: error_response("no such device")}
+#: Control stream bound (commands are small and consumed at once by the daemon).
+CONTROL_MAXLEN = 1000
+#: How long one events poll blocks before a keep-alive comment (ms).
+EVENTS_BLOCK_MS = 1000
+
+
+def _text(value: bytes | str) -> str:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def _number(value: str) -> Any:
+    try:
+        return int(value)
+    except ValueError:
+        try:
+            return float(value)
+        except ValueError:
+            return value
+
+
+def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
+    """A device's health hash as JSON: counters as numbers, drops grouped by cause."""
+    fields = {_text(k): _text(v) for k, v in client.hgetall(health_key(device)).items()}
+    view: dict[str, Any] = {"id": device, "dropped": {}}
+    for name, value in fields.items():
+        if name.startswith("dropped_") and name[len("dropped_"):] in ALL_DROP_CAUSES:
+            view["dropped"][name[len("dropped_"):]] = int(value)
+        elif name == "settings":
+            view["settings"] = json.loads(value or "{}")
+        else:
+            view[name] = _number(value) if name not in ("device", "port", "state") else value
+    latest = client.get(latest_key(device))
+    view["latest_result"] = _text(latest) if latest else None
+    return view
+
+
+def known_device(state: ServiceState, device: str) -> str:
+    """``device`` if valid and registered by a daemon; 404 otherwise."""
+    validate_device_id(device)
+    if not state.client.sismember(DEVICES_SET, device):
+        raise ApiError(404, "not_found", f"no device {device!r}; GET /v1/devices lists them")
+    return device
+
+
+@router.get("", responses=AUTH_ERRORS, summary="List devices with their health")
+def list_devices(state: StateDep, _key: ReadKey) -> dict[str, list[dict[str, Any]]]:
+    devices = sorted(_text(d) for d in state.client.smembers(DEVICES_SET))
+    return {"devices": [device_view(state.client, d) for d in devices]}
+
+
+@router.get("/{device_id}", responses=DEVICE_ERRORS, summary="One device's health and settings")
+def get_device(device_id: str, state: StateDep, _key: ReadKey) -> dict[str, Any]:
+    return device_view(state.client, known_device(state, device_id))
+
+
+@router.post("/{device_id}/control", status_code=202, responses=DEVICE_ERRORS,
+             summary="Send a control command to the camera (via its daemon)")
+def control(device_id: str, command: Annotated[Command, Body()], state: StateDep,
+            _key: SubmitKey) -> dict[str, Any]:
+    device = known_device(state, device_id)
+    entry = state.client.xadd(control_stream(device), command_fields(command),
+                              maxlen=CONTROL_MAXLEN, approximate=True)
+    return {"device": device, "entry": _text(entry), "command": command.model_dump()}
+
+
+@router.get("/{device_id}/frames/latest", responses=DEVICE_ERRORS,
+            summary="The newest reconstructed frame: EXR, or a tonemapped PNG preview")
+def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
+                 format: Literal["exr", "png"] = "exr",
+                 exposure: Annotated[float, Query(ge=-30, le=30)] = 0.0) -> Response:
+    device = known_device(state, device_id)
+    key = state.client.get(latest_key(device))
+    if not key:
+        raise ApiError(404, "not_found", f"device {device!r} has no reconstructed frame yet")
+    exr = state.store.read(_text(key))
+    stem = f"{device}-latest"
+    if format == "exr":
+        return download(exr, "exr", stem)
+    pixels = read_hdr(exr, name="the stored result").pixels
+    return download(tonemap_png(pixels, exposure), "png", stem)
+
+
+def _event_lines(client: redis.Redis, device: str, since: str, limit: int | None) -> Iterator[str]:
+    """Server-sent events from ``events:<device>``, after entry ``since``."""
+    sent = 0
+    stream = events_stream(device)
+    last = since
+    yield "retry: 2000\n\n"
+    while limit is None or sent < limit:
+        reply = client.xread({stream: last}, count=64, block=EVENTS_BLOCK_MS)
+        if not reply:
+            yield ": keep-alive\n\n"
+            continue
+        for _, entries in reply:
+            for entry_id, fields in entries:
+                last = _text(entry_id)
+                data = {_text(k): _text(v) for k, v in fields.items()}
+                yield f"id: {last}\nevent: {data.get('type', 'message')}\n" \
+                      f"data: {json.dumps(data)}\n\n"
+                sent += 1
+                if limit is not None and sent >= limit:
+                    return
+
+
+@router.get("/{device_id}/events", responses=DEVICE_ERRORS,
+            summary="Server-sent events: frame reconstructed, failed, drop, reconnect",
+            response_class=StreamingResponse)
+def events(device_id: str, state: StateDep, _key: ReadKey,
+           since: Annotated[str, Query(pattern=r"^(\$|0|\d+-\d+)$")] = "$",
+           limit: Annotated[int | None, Query(ge=1, le=100_000)] = None,
+           last_event_id: Annotated[str | None, Header(pattern=r"^\d+-\d+$")] = None,
+           ) -> StreamingResponse:
+    device = known_device(state, device_id)
+    start = last_event_id or since
+    if start == "$":
+        newest = state.client.xrevrange(events_stream(device), count=1)
+        start = _text(newest[0][0]) if newest else "0"
+    return StreamingResponse(_event_lines(state.client, device, start, limit),
+                             media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache"})
