@@ -102,6 +102,22 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
     }
 
 
+def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) -> dict[str, Any]:
+    """Measure the card's model on val-256 (onnxruntime) and store the means in the card."""
+    from models.decoders.learned import LearnedDecoder, load_cards
+    from models.training.validate import val256_metrics
+
+    card = json.loads(card_path.read_text())
+    cards = [c for c in load_cards(card_path.parent) if c["file"] == card["file"]]
+    decoder = LearnedDecoder(card["decoder"], cards)
+    card["val256"] = {
+        f"read_noise_{noise:g}": val256_metrics(decoder, card["encoding"], noise)
+        for noise in read_noises
+    }
+    card_path.write_text(json.dumps(card, indent=2) + "\n")
+    return card
+
+
 def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
     """Export a run's checkpoint to ``<onnx_dir>/<name>.onnx`` and write the card; returns it."""
     model, config, state = trained_model(checkpoint)

@@ -2,7 +2,9 @@
 
 Stage 1 trains the edge net alone (BCE against the true wrap edges); stage 2 the
 winding net on the true edges; stage 3 both end to end (winding loss + 0.1 edge
-BCE). Batches depend only on ``(seed, step)``; a checkpoint is written every
+BCE); an optional stage 4 continues end to end on larger crops (``large_crop``,
+a quarter of the batch) so the net sees the context of a full frame. Batches depend
+only on ``(seed, step)``; a checkpoint is written every
 ``checkpoint_every`` steps under ``runs/<name>/`` and a restarted run resumes from
 it. Losses go to ``runs/<name>/log.jsonl``.
 """
@@ -26,19 +28,20 @@ from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, wrap_edges
 
 RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
 LOSSES = ("ce", "mse")
-STAGE_LR = (2e-3, 2e-3, 5e-4)
+STAGE_LR = (2e-3, 2e-3, 5e-4, 3e-4)
 EDGE_WEIGHT = 0.1
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. ``stage_steps``: optimizer steps of stages 1, 2 and 3."""
+    """One training run. ``stage_steps``: optimizer steps of stages 1, 2, 3 (and 4)."""
 
     tier: str = "small"
     encoding: str = "mantissa"
     loss: str = "ce"
-    stage_steps: tuple[int, int, int] = (500, 3500, 2000)
+    stage_steps: tuple[int, ...] = (500, 3500, 2000)
     crop: int = 64
+    large_crop: int = 128
     batch: int = 8
     max_read_noise: float = 0.0
     seed: int = 0
@@ -61,9 +64,9 @@ class TrainConfig:
         return sum(self.stage_steps)
 
     def stage(self, step: int) -> int:
-        """Stage (1, 2 or 3) of global step ``step``."""
-        first, second, _ = self.stage_steps
-        return 1 if step < first else 2 if step < first + second else 3
+        """Stage (1 to 4) of global step ``step``."""
+        ends = [sum(self.stage_steps[: i + 1]) for i in range(len(self.stage_steps))]
+        return next((i + 1 for i, end in enumerate(ends) if step < end), len(ends))
 
     def learning_rate(self, step: int) -> float:
         """Per-stage rate with a cosine decay to 5% over each stage."""
@@ -145,12 +148,15 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
         optimizer.load_state_dict(state["optimizer"])
         step, wall_s = state["step"], state["wall_s"]
     pairs = PairConfig(config.encoding, config.crop, config.batch, config.max_read_noise)
+    large = PairConfig(
+        config.encoding, config.large_crop, max(config.batch // 4, 1), config.max_read_noise
+    )
     model.train()
     started = time.monotonic() - wall_s
     with (config.run_dir / "log.jsonl").open("a") as log:
         while step < config.total_steps:
-            m_np, w_np = sample_batch(config.seed, step, pairs)
             stage = config.stage(step)
+            m_np, w_np = sample_batch(config.seed, step, large if stage == 4 else pairs)
             for group in optimizer.param_groups:
                 group["lr"] = config.learning_rate(step)
             loss, parts = step_losses(

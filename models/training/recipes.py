@@ -1,0 +1,14 @@
+"""The training recipes of the shipped models: ``mcam train all`` reruns exactly these."""
+
+from __future__ import annotations
+
+from models.training.train import TrainConfig
+
+#: Stage steps of the shipped small tier: edge net, winding net on true edges,
+#: end to end on 64 px crops, end to end on 128 px crops.
+SMALL_STAGES = (500, 3500, 2000, 4000)
+
+SHIPPED: tuple[TrainConfig, ...] = (
+    TrainConfig(tier="small", encoding="mantissa", stage_steps=SMALL_STAGES),
+    TrainConfig(tier="small", encoding="modulo", stage_steps=SMALL_STAGES),
+)
