@@ -23,12 +23,20 @@ from device.commands import Command, fields_to_command
 from device.health import DeviceHealth
 from models.errors import InvalidInputError
 from worker.frame_message import FrameMessage
-from worker.redis_keys import DEVICES_SET, control_stream, frame_stream, health_key
+from worker.redis_keys import (
+    DEVICES_SET,
+    control_stream,
+    events_stream,
+    frame_stream,
+    health_key,
+)
 
 #: Seconds between health hash writes and control stream polls.
 HEALTH_INTERVAL_S = 0.25
 #: Longest wait between Redis reconnection attempts (s).
 MAX_REDIS_BACKOFF_S = 2.0
+#: The events stream keeps about this many entries (the worker appends frame events too).
+EVENTS_MAXLEN = 1000
 
 
 class FramePublisher:
@@ -51,6 +59,7 @@ class FramePublisher:
         self._backoff = 0.05
         self._control_id = f"{time.time_ns() // 1_000_000}-0"  # commands sent from now on
         self._next_health = 0.0
+        self._reported = {"dropped": 0, "reconnects": 0}
 
     def offer(self, message: FrameMessage) -> None:
         """Queue a frame for publishing; drop it (counted) if the queue is full."""
@@ -119,19 +128,38 @@ class FramePublisher:
             self.health.add("dropped_redis_unavailable")
             self._discont = True
 
+    def _new_events(self) -> list[dict[str, str]]:
+        """``drop`` / ``reconnect`` events for counters that grew since the last report."""
+        now = {"dropped": self.health.dropped(), "reconnects": self.health.counts["reconnects"]}
+        events = []
+        if now["dropped"] > self._reported["dropped"]:
+            events.append({"type": "drop", "dropped": str(now["dropped"]),
+                           "new": str(now["dropped"] - self._reported["dropped"])})
+        if now["reconnects"] > self._reported["reconnects"]:
+            events.append({"type": "reconnect", "reconnects": str(now["reconnects"])})
+        self._reported = now
+        return events
+
     def _housekeeping(self) -> None:
-        """Write the health hash and forward new control commands."""
+        """Write the health hash and link events, and forward new control commands."""
         self._next_health = time.monotonic() + HEALTH_INTERVAL_S
         fields = self.health.to_fields()
+        reported = dict(self._reported)
+        events = self._new_events()
 
         def write_health() -> None:
             pipe = self.client.pipeline(transaction=False)
             pipe.hset(health_key(self.device), mapping=fields)
             pipe.sadd(DEVICES_SET, self.device)
+            for event in events:
+                pipe.xadd(events_stream(self.device), {**event, "written_ns": fields["updated_ns"]},
+                          maxlen=EVENTS_MAXLEN, approximate=True)
             pipe.execute()
 
         if self._redis(write_health):
             self._redis(self._read_control)
+        else:
+            self._reported = reported
 
     def _read_control(self) -> None:
         reply = self.client.xread({control_stream(self.device): self._control_id}, count=16)

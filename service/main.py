@@ -33,6 +33,7 @@ ROUTERS: tuple[str, ...] = (
     "service.api.routes.decoders",
     "service.api.routes.health",
     "service.api.routes.metrics",
+    "service.api.routes.devices",
 )
 STATIC_DIR = Path(__file__).parent / "static"
 API_VERSION = "1.0.0"

@@ -1,0 +1,79 @@
+"""``/v1/devices``: a virtual camera on a real pty, the real daemon, a real worker, real HTTP."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from device.daemon import DaemonConfig, DeviceDaemon
+from device.sim_link import PtyEndpoint
+from device.simulator import CameraSettings, VirtualScamp5
+from models.hdr_io import read_hdr
+from service.core.config import Settings
+from tests.device.conftest import wait_for
+from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY
+from worker.embedded_redis import connect
+from worker.runner import Worker, WorkerConfig
+
+
+@pytest.fixture
+def camera(settings: Settings, tmp_path: Path) -> Iterator[VirtualScamp5]:
+    """A streaming virtual camera, its daemon and a device-consuming worker."""
+    assert settings.redis_url is not None
+    cam = VirtualScamp5(PtyEndpoint(tmp_path / "scamp5"), settings=CameraSettings(fps=20),
+                        seed=1, max_frames=15)
+    daemon = DeviceDaemon(DaemonConfig(port=cam.endpoint.url, device="cam1",
+                                       data_dir=settings.data_dir),
+                          connect(settings.redis_url, timeout_s=1.0))
+    worker = Worker(WorkerConfig(redis_url=settings.redis_url, data_dir=settings.data_dir,
+                                 heartbeat_s=0.5, lease_ms=2000))
+    thread = threading.Thread(target=worker.run, daemon=True)
+    daemon.start()
+    cam.start()
+    thread.start()
+    yield cam
+    cam.stop()
+    daemon.stop()
+    worker.request_stop()
+    thread.join(15)
+
+
+def test_devices_health_control_latest_and_events(
+    camera: VirtualScamp5, client: Callable[[str], httpx.Client]
+) -> None:
+    http = client(FULL_KEY)
+    assert wait_for(lambda: any(d["frames_ok"] >= 5 for d in
+                                http.get("/v1/devices").json()["devices"]), 30)
+    listing = http.get("/v1/devices").json()["devices"]
+    assert [d["id"] for d in listing] == ["cam1"]
+    one = http.get("/v1/devices/cam1").json()
+    assert one["settings"]["width"] == 256 and one["settings"]["encoding"] == "modulo"
+    assert set(one["dropped"]) >= {"bad_crc", "queue_full", "redis_unavailable"}
+    assert http.get("/v1/devices/nope").status_code == 404
+    assert http.get("/v1/devices/bad!id").json()["code"] == "invalid_input"
+
+    command = {"command": "set_frame_rate", "fps": 50}
+    assert client(READ_KEY).post("/v1/devices/cam1/control", json=command).status_code == 403
+    assert client("").post("/v1/devices/cam1/control", json=command).status_code == 401
+    reply = client(SUBMIT_KEY).post("/v1/devices/cam1/control", json=command)
+    assert reply.status_code == 202 and reply.json()["command"]["fps"] == 50
+    assert wait_for(lambda: camera.settings.fps == 50, 10)
+    bad = http.post("/v1/devices/cam1/control", json={"command": "set_frame_rate", "fps": -1})
+    assert bad.status_code == 422
+    assert http.post("/v1/devices/cam1/control", json={"command": "fly"}).status_code == 422
+
+    assert wait_for(lambda: http.get("/v1/devices/cam1/frames/latest").status_code == 200, 60)
+    exr = http.get("/v1/devices/cam1/frames/latest")
+    assert read_hdr(exr.content).pixels.shape == (256, 256)
+    png = http.get("/v1/devices/cam1/frames/latest", params={"format": "png", "exposure": -2})
+    assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
+
+    with http.stream("GET", "/v1/devices/cam1/events",
+                     params={"since": "0", "limit": 2}) as events:
+        assert events.headers["content-type"].startswith("text/event-stream")
+        body = "".join(events.iter_text())
+    assert body.count("event: frame") == 2 and '"sequence": "0"' in body
