@@ -113,6 +113,12 @@ class DeviceConsumer:
                 self._forget(device)
         return busy
 
+    def renew_all(self) -> None:
+        """Extend the leases of every owned device (the heartbeat calls this, so a frame
+        that decodes for longer than the lease does not lose it)."""
+        for device in list(self.states):
+            self.lease.renew(device)
+
     def release_all(self) -> None:
         """Give up every lease (graceful shutdown); unacked frames stay pending."""
         for device in list(self.states):
@@ -206,6 +212,8 @@ class DeviceConsumer:
         self.metrics.observe("decode_seconds", frame.timings_ns.get("decode", 0) / 1e9, pipe=pipe)
         self.metrics.observe("encode_seconds", encode_ns / 1e9, pipe=pipe)
         self.metrics.inc("frames_processed_total", pipe=pipe, device=device)
+        waited_ms = time.time_ns() // 1_000_000 - entry_order(delivery.entry_id)[0]
+        self.metrics.observe("queue_wait_seconds", max(waited_ms, 0) / 1e3, pipe=pipe)
         pipe.execute()
 
     def _record(

@@ -9,10 +9,11 @@ Threads: ``concurrency`` job consumers on the ``jobs`` stream (each its own
 consumer in the ``workers`` group: reclaim entries idle > ``claim_idle_ms``, else
 read new ones), one device consumer (leases + in-order frames, see
 ``worker/device_consumer.py``), and the main thread, which writes this worker's
-heartbeat to the ``workers`` hash every ``heartbeat_s`` and purges expired
-results. On SIGTERM the consumers finish the job or frame in hand (a long video
-job hands itself back to the queue), leases are released and the heartbeat is
-removed. A second signal exits at once; unacked work is then reclaimed by others.
+heartbeat to the ``workers`` hash every ``heartbeat_s``, renews its device leases
+(so ``heartbeat_s`` must be shorter than ``lease_ms``) and purges expired results.
+On SIGTERM the consumers finish the job or frame in hand (a long video job hands
+itself back to the queue), leases are released and the heartbeat is removed. A
+second signal exits at once; unacked work is then reclaimed by others.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from types import FrameType
 
 import redis
 
+from models.errors import McamError
 from worker.deliveries import StreamConsumer
 from worker.device_consumer import DeviceConsumer
 from worker.device_state import make_frame_decoder
@@ -73,6 +75,16 @@ class WorkerConfig:
     heartbeat_s: float = 2.0
     retention_s: float = 7 * 24 * 3600.0
     devices: bool = True
+
+    def __post_init__(self) -> None:
+        if self.concurrency < 1:
+            raise McamError(f"concurrency must be at least 1, got {self.concurrency}")
+        if self.heartbeat_s * 1000 >= self.lease_ms:
+            raise McamError(
+                f"the heartbeat ({self.heartbeat_s} s) renews device leases and must be shorter "
+                f"than the lease ({self.lease_ms} ms): lower MCAM_HEARTBEAT_S or raise "
+                "MCAM_DEVICE_LEASE_MS"
+            )
 
 
 def new_worker_id() -> str:
@@ -191,6 +203,8 @@ class Worker:
         while not self.stop.is_set():
             try:
                 self._beat()
+                if self._devices is not None:
+                    self._devices.renew_all()
                 if time.monotonic() - last_purge > PURGE_EVERY_S:
                     last_purge = time.monotonic()
                     removed = self.store.purge_expired()

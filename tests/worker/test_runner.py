@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import OpenEXR
+import pytest
 import redis
 
+from models.errors import McamError
 from models.formation import SensorFrame, SensorParams
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
@@ -31,6 +33,7 @@ from worker.redis_keys import (
     latest_key,
 )
 from worker.result_store import RESULTS_DIR, ResultStore
+from worker.runner import WorkerConfig
 
 #: Mantissa with a huge alpha: a ramp of 16 wraps decodes fine but overflows float32.
 OVERFLOW = SensorParams(encoding="mantissa", alpha=1e6, bits=8)
@@ -256,3 +259,10 @@ def test_repeated_sequence_is_not_written_twice(
     types = [(e["type"], int(e["sequence"])) for e in frame_events(client, device)]
     assert types == [("frame", 0), ("frame", 1), ("frame", 2), ("stale", 1)]
     assert len(result_files(data_dir)) == 3
+
+
+def test_worker_config_checks_heartbeat_against_lease(tmp_path: Path) -> None:
+    with pytest.raises(McamError, match="shorter than the lease"):
+        WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, heartbeat_s=5.0, lease_ms=5000)
+    with pytest.raises(McamError, match="at least 1"):
+        WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, concurrency=0)
