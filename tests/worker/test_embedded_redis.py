@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from models.errors import McamError
-from worker.embedded_redis import EmbeddedRedis, connect
+from worker.embedded_redis import EmbeddedRedis, RedisStartError, connect
 
 
 def test_start_serves_unix_socket_and_stop_cleans_up(tmp_path: Path) -> None:
@@ -63,3 +66,34 @@ def test_connect_rejects_unknown_schemes(url: str) -> None:
 def test_connect_accepts_tcp_urls_without_connecting() -> None:
     assert connect("redis://127.0.0.1:1/0").connection_pool.connection_kwargs["port"] == 1
     assert connect("rediss://127.0.0.1:1").connection_pool.connection_kwargs["port"] == 1
+
+
+def test_second_server_on_the_same_data_dir_is_refused(tmp_path: Path) -> None:
+    with EmbeddedRedis(tmp_path):
+        with pytest.raises(RedisStartError, match="already serves"):
+            EmbeddedRedis(tmp_path).start()
+
+
+def test_server_stops_when_its_parent_is_killed(tmp_path: Path) -> None:
+    script = (
+        "import sys, time; from pathlib import Path; from worker.embedded_redis import "
+        "EmbeddedRedis; s = EmbeddedRedis(Path(sys.argv[1])); s.start(); "
+        "print(s.pid, flush=True); time.sleep(120)"
+    )
+    parent = subprocess.Popen(
+        [sys.executable, "-c", script, str(tmp_path)], stdout=subprocess.PIPE, text=True
+    )
+    assert parent.stdout is not None
+    server_pid = int(parent.stdout.readline())
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(server_pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        pytest.fail("the embedded redis-server outlived its parent")
+    parent.stdout.close()
