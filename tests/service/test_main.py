@@ -15,7 +15,7 @@ from service.core.config import Settings
 from service.main import ROUTERS, create_app
 from tests.service.conftest import FULL_KEY, make_settings, running_worker, serve
 
-#: The API of issue 4, exactly.
+#: The API of issue 4 (teammates' routers add devices and videos).
 OPERATIONS = {
     ("post", "/v1/simulate"),
     ("post", "/v1/reconstructions"),
@@ -34,10 +34,11 @@ def test_every_router_module_exposes_a_router() -> None:
         assert hasattr(importlib.import_module(name), "router"), name
 
 
-def test_openapi_lists_exactly_the_api(settings: Settings) -> None:
+def test_openapi_lists_the_api(settings: Settings) -> None:
     document = create_app(settings).openapi()
     found = {(method, path) for path, item in document["paths"].items() for method in item}
-    assert found == OPERATIONS
+    assert OPERATIONS <= found
+    assert all(path.startswith(("/v1/", "/health/", "/metrics")) for _, path in found)
     upload = document["paths"]["/v1/reconstructions"]["post"]["requestBody"]["content"]
     assert set(upload) == {"multipart/form-data", "application/octet-stream"}
     form = upload["multipart/form-data"]["schema"]
@@ -60,7 +61,8 @@ def test_viewer_is_served_at_the_root(api: str) -> None:
 
 @pytest.mark.slow
 def test_schemathesis_against_the_openapi_document(tmp_path: Path, redis_url: str) -> None:
-    """Schema-valid and schema-invalid requests never give a 500 and match the document.
+    """Schema-valid and schema-invalid requests to this issue's operations never give a 500
+    and match the document.
 
     Random bytes are schema-valid uploads yet not images, so rejecting them is right:
     the positive-data-acceptance check is left out."""
@@ -69,6 +71,8 @@ def test_schemathesis_against_the_openapi_document(tmp_path: Path, redis_url: st
         schema = schemathesis.openapi.from_url(f"{base}/openapi.json")
         for result in schema.get_all_operations():
             operation = result.ok()
+            if (operation.method.lower(), operation.path) not in OPERATIONS:
+                continue  # the devices/videos owners test theirs (some stream forever)
 
             @settings(
                 max_examples=20,
