@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
+from models.decoders.registry import available_decoders
 from service.api.body_limit import BodyLimitMiddleware
 from service.api.errors import install_error_handlers
 from service.api.state import ServiceState, open_state
@@ -50,6 +51,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         state = await run_in_threadpool(open_state, settings, keyring)
         app.state.mcam = state
+        await run_in_threadpool(available_decoders)  # import the providers before requests
         try:
             yield
         finally:
