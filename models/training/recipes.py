@@ -6,7 +6,7 @@ from models.training.train import TrainConfig
 
 #: Stage steps of the shipped small tier: edge net, winding net on true edges,
 #: end to end on 64 px crops, end to end on 128 px crops.
-SMALL_STAGES = (500, 3500, 2000, 4000)
+SMALL_STAGES = (500, 3500, 2000, 2000)
 
 SHIPPED: tuple[TrainConfig, ...] = (
     TrainConfig(tier="small", encoding="mantissa", stage_steps=SMALL_STAGES),

@@ -1,0 +1,120 @@
+"""Tests of models/decoders/learned.py: shipped ONNX decoders, tiling, sessions, errors."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models import scenes
+from models.decoders import learned
+from models.decoders.registry import available_decoders, get_decoder
+from models.errors import InvalidInputError
+from models.formation import SensorParams, simulate
+from models.scenes import synthetic_scene, val256_frames
+
+
+def test_shipped_cards_name_existing_files_with_their_hash() -> None:
+    cards = learned.load_cards()
+    assert {c["encoding"] for c in cards if c["decoder"] == "mantissanet-small"} == {
+        "mantissa",
+        "modulo",
+    }
+    for card in cards:
+        digest = hashlib.sha256((learned.ONNX_DIR / card["file"]).read_bytes()).hexdigest()
+        assert digest == card["sha256"]
+        assert "forest" not in card["training"]["scenes"]
+
+
+def test_registry_offers_the_learned_decoders_with_figures() -> None:
+    specs = {s.name: s for s in available_decoders()}
+    spec = specs["mantissanet-small"]
+    assert spec.kind == "learned"
+    assert set(spec.figures) == {"mantissa", "modulo"}
+
+
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+def test_beats_not_unwrapping_on_one_crop_of_each_validation_scene(encoding: str) -> None:
+    frames = val256_frames(encoding)[:: scenes.VAL256_CROPS_PER_SCENE]
+    decoded, unwrapped = [], []
+    for frame in frames:
+        result = get_decoder("mantissanet-small").decode(frame.codes, frame.params)
+        assert result.winding.shape == frame.codes.shape and result.winding.dtype == np.int64
+        assert result.winding.min() >= 0 and np.isfinite(result.irradiance).all()
+        decoded.append((result.winding == frame.winding).mean())
+        unwrapped.append((frame.winding == 0).mean())
+    assert np.mean(decoded) > np.mean(unwrapped)
+
+
+def test_sessions_are_created_once_per_encoding() -> None:
+    decoder = get_decoder("mantissanet-small")
+    frame = val256_frames("mantissa")[0]
+    decoder.decode(frame.codes[:32, :32], frame.params)
+    session = decoder.models["mantissa"].session
+    decoder.decode(frame.codes[:48, :40], frame.params)
+    assert decoder.models["mantissa"].session is session
+
+
+def test_large_odd_frames_are_tiled_into_one_consistent_map() -> None:
+    scene = synthetic_scene(3, 160)
+    big = np.tile(scene, (2, 3))[:300, :430]
+    frame = simulate(big, SensorParams(encoding="mantissa", max_wraps=16), overexposed=0.2)
+    result = get_decoder("mantissanet-small").decode(frame.codes, frame.params)
+    assert result.winding.shape == (300, 430)
+    assert result.winding.min() == 0 and result.winding.max() <= 5
+
+
+def test_a_missing_encoding_model_is_a_clear_error() -> None:
+    cards = [c for c in learned.load_cards() if c["encoding"] == "mantissa"]
+    decoder = learned.LearnedDecoder("mantissanet-small", cards[:1])
+    codes = np.zeros((16, 16), np.uint8)
+    with pytest.raises(InvalidInputError, match="no model for the 'modulo' encoding"):
+        decoder.decode(codes, SensorParams(encoding="modulo"))
+
+
+def test_thread_setting_is_validated(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(learned.THREADS_ENV, "3")
+    assert learned.worker_threads() == 3
+    monkeypatch.setenv(learned.THREADS_ENV, "zero")
+    with pytest.raises(InvalidInputError, match="MCAM_WORKER_THREADS"):
+        learned.worker_threads()
+
+
+@settings(max_examples=30, deadline=None)
+@given(h=st.integers(1, 70), w=st.integers(1, 70), multiple=st.sampled_from([8, 16]))
+def test_padding_reaches_the_multiple_and_keeps_the_frame(h: int, w: int, multiple: int) -> None:
+    m = np.random.default_rng(h * w).random((h, w)).astype(np.float32)
+    padded = learned.pad_to_multiple(m, multiple)
+    assert padded.shape[0] % multiple == 0 and padded.shape[1] % multiple == 0
+    np.testing.assert_array_equal(padded[:h, :w], m)
+
+
+@settings(max_examples=40, deadline=None)
+@given(size=st.integers(1, 1200), tile=st.sampled_from([128, 256]))
+def test_tiles_cover_the_frame_with_the_overlap(size: int, tile: int) -> None:
+    starts = learned.tile_starts(size, tile, 64)
+    covered = np.zeros(size, bool)
+    for start in starts:
+        covered[start : start + tile] = True
+    assert covered.all() and starts[0] == 0
+    assert all(b - a <= tile - 64 for a, b in zip(starts, starts[1:], strict=False))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 1000))
+def test_stitching_removes_per_tile_offsets(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    truth = np.cumsum(rng.integers(0, 2, size=(300, 500)), axis=1) // 40
+    offsets: dict[tuple[int, int], int] = {}
+
+    def predict(rows: slice, cols: slice) -> np.ndarray:
+        key = (rows.start, cols.start)
+        offsets.setdefault(key, int(rng.integers(-5, 6)))
+        return truth[rows, cols] + offsets[key]
+
+    stitched = learned.stitch_overlapping(truth.shape, 128, 64, predict)
+    difference = stitched - truth
+    assert (difference == difference.flat[0]).all()
