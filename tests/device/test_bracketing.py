@@ -45,7 +45,11 @@ def test_noisy_merge_accuracy_on_a_ramp() -> None:
     scene = np.geomspace(0.05, 14.0, 256 * 64).reshape(64, 256)
     codes = [clipped(scene, g, read_noise=0.002, full_well=20_000.0) for g in GAINS]
     relative = np.abs(merge_exposures(codes, GAINS, 8) - scene) / scene
-    assert np.median(relative) < 0.01 and np.quantile(relative, 0.99) < 0.05
+    # Stated accuracy with noise: above 1/4 of the brightest exposure's saturation, median
+    # < 1 % and 99th percentile < 3 %; below it (z < 0.25 everywhere) 99th percentile < 10 %.
+    bright = scene >= 0.25
+    assert np.median(relative[bright]) < 0.01 and np.quantile(relative[bright], 0.99) < 0.03
+    assert np.quantile(relative[~bright], 0.99) < 0.10
 
 
 def test_unusable_pixels_fall_back_to_the_extreme_exposures() -> None:
