@@ -48,6 +48,8 @@ log = logging.getLogger(__name__)
 BLOCK_MS = 1000
 #: Pause of the device consumer when no device had frames (s).
 DEVICE_IDLE_S = 0.02
+#: Pause of the device consumer while it owns no device (s): new devices start within it.
+NO_DEVICE_IDLE_S = 0.25
 #: Pause after a Redis connection error before trying again (s).
 RECONNECT_S = 1.0
 #: Purge expired results this often (s).
@@ -190,7 +192,7 @@ class Worker:
 
         def step() -> None:
             if not devices.poll():
-                self.stop.wait(DEVICE_IDLE_S)
+                self.stop.wait(DEVICE_IDLE_S if devices.states else NO_DEVICE_IDLE_S)
 
         self._resilient(step)
         try:
