@@ -23,6 +23,7 @@ from device.scenes import ExrScene, ProceduralScene, SceneSequence
 from device.sim_link import open_endpoint
 from device.simulator import CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
+from models.formation import SensorParams
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -73,9 +74,10 @@ def run(args: argparse.Namespace) -> int:
                         disconnect_s=args.disconnect_s, seed=args.seed)
     except ValueError as exc:
         raise InvalidInputError(str(exc)) from None
+    SensorParams.parse({"encoding": args.encoding, "alpha": args.alpha, "bits": args.bits,
+                        "gain": args.gain, "read_noise": args.read_noise})
     camera = VirtualScamp5(open_endpoint(args.port), scene, settings, faults, seed=args.seed,
                            max_frames=args.frames)
-    camera.params_for(0)
     print(camera.endpoint.url, flush=True)
     stopped = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())

@@ -1,0 +1,62 @@
+"""``mcam simulate-device`` and ``mcam device`` as real processes, wired by a pty path."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import redis
+
+from tests.device.conftest import health, stream_frames, wait_for
+from worker.embedded_redis import EmbeddedRedis
+
+MCAM = Path(sys.executable).parent / "mcam"
+
+
+def env_for(redis_url: str, data_dir: Path) -> dict[str, str]:
+    return {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": str(data_dir)}
+
+
+def test_simulate_device_feeds_mcam_device(redis_server: EmbeddedRedis, client: redis.Redis,
+                                           tmp_path: Path) -> None:
+    env = env_for(redis_server.url, tmp_path / "data")
+    camera = subprocess.Popen(
+        [MCAM, "simulate-device", "--port", f"pty:{tmp_path / 'cam'}", "--frames", "12",
+         "--fps", "30", "--encoding", "mantissa", "--alpha", "4"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    daemon = None
+    try:
+        assert camera.stdout is not None
+        url = camera.stdout.readline().strip()
+        assert url == str(tmp_path / "cam") and Path(url).exists()
+        daemon = subprocess.Popen([MCAM, "device", "--port", url, "--device-id", "rig-1"],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                  env=env, cwd=tmp_path)
+        assert wait_for(lambda: health(client, "rig-1").get("frames_ok", "0") != "0", 60)
+        frames = stream_frames(client, "rig-1")
+        assert frames[0].discont and frames[0].params.encoding == "mantissa"
+        assert frames[0].params.alpha == 4.0 and frames[0].codes.shape == (256, 256)
+    finally:
+        for process in (daemon, camera):
+            if process is not None:
+                process.send_signal(signal.SIGTERM)
+    assert daemon is not None and daemon.wait(20) == 0
+    assert camera.wait(20) == 0
+
+
+def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_path: Path) -> None:
+    env = env_for(redis_server.url, tmp_path / "data")
+    result = subprocess.run([MCAM, "device", "--port", "loop://", "--device-id", "no spaces"],
+                            capture_output=True, text=True, env=env, timeout=60)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "mcam device: error: invalid device id 'no spaces': use 1-64 letters, digits, '_' or '-'"]
+    result = subprocess.run([MCAM, "simulate-device", "--port", "/dev/ttyS0"],
+                            capture_output=True, text=True, env=env, timeout=60)
+    assert result.returncode == 2 and "unsupported simulator port" in result.stderr
+    result = subprocess.run([MCAM, "simulate-device", "--bits", "40"],
+                            capture_output=True, text=True, env=env, timeout=60)
+    assert result.returncode == 2 and "bits" in result.stderr
