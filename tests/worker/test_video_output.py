@@ -1,0 +1,171 @@
+"""Tests of worker/video_output.py: HDR10 HEVC, SDR preview and EXR sequence, read back."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+
+import av
+import numpy as np
+import pytest
+from av.sidedata.sidedata import Type
+from hypothesis import given
+from hypothesis import strategies as st
+
+from models.errors import InvalidInputError
+from models.hdr_io import read_hdr
+from worker.video_output import (
+    BT709_TO_BT2020,
+    LUMA_OFFSET,
+    LUMA_SCALE,
+    REFERENCE_WHITE,
+    Hdr10Settings,
+    exr_sequence_zip,
+    pq_decode,
+    pq_encode,
+    sdr_frames,
+    write_hdr10,
+    write_sdr_preview,
+)
+
+FRAMES = 6
+
+
+def grey_clip(height: int = 64, width: int = 96) -> list[np.ndarray]:
+    """An achromatic clip from deep shadow (0.001) to far above reference white (40)."""
+    ramp = np.geomspace(1e-3, 40.0, height * width).reshape(height, width)
+    return [ramp * (1.0 + 0.05 * t) for t in range(FRAMES)]
+
+
+def hdr10_bytes(frames: list[np.ndarray], settings: Hdr10Settings) -> tuple[bytes, object]:
+    buffer = io.BytesIO()
+    levels = write_hdr10(frames, buffer, settings)
+    return buffer.getvalue(), levels
+
+
+@given(st.floats(0.0, 10_000.0))
+def test_pq_round_trip(nits: float) -> None:
+    assert pq_decode(pq_encode(np.array(nits))) == pytest.approx(nits, rel=1e-9, abs=1e-9)
+
+
+def test_pq_reference_values() -> None:
+    """ST 2084: 10000 cd/m^2 -> 1.0; 100 cd/m^2 -> 0.5081 (BT.2100 table); monotone."""
+    assert pq_encode(np.array(10_000.0)) == pytest.approx(1.0)
+    assert pq_encode(np.array(100.0)) == pytest.approx(0.5081, abs=1e-4)
+    assert pq_encode(np.array(20_000.0)) == pytest.approx(1.0)
+    assert np.all(np.diff(pq_encode(np.geomspace(1e-3, 1e4, 100))) > 0)
+
+
+def test_grey_stays_grey_in_bt2020() -> None:
+    np.testing.assert_allclose(BT709_TO_BT2020.sum(axis=1), 1.0, atol=1e-12)
+
+
+def test_hdr10_file_tags_metadata_and_frame_count() -> None:
+    data, levels = hdr10_bytes(grey_clip(), Hdr10Settings())
+    with av.open(io.BytesIO(data)) as container:
+        stream = container.streams.video[0]
+        context = stream.codec_context
+        assert context.name == "hevc"
+        assert context.pix_fmt == "yuv420p10le"
+        assert context.color_trc == av.video.reformatter.ColorTrc.SMPTE2084
+        assert context.color_primaries == av.video.reformatter.ColorPrimaries.BT2020
+        assert context.colorspace == av.video.reformatter.Colorspace.BT2020
+        frames = list(container.decode(stream))
+    assert len(frames) == FRAMES
+    first = frames[0]
+    assert first.format.name == "yuv420p10le"
+    kinds = {side.type for side in first.side_data}
+    assert Type.MASTERING_DISPLAY_METADATA in kinds and Type.CONTENT_LIGHT_LEVEL in kinds
+    light = next(bytes(s) for s in first.side_data if s.type == Type.CONTENT_LIGHT_LEVEL)
+    max_cll, max_fall = np.frombuffer(light[:8], "<u4")
+    assert (max_cll, max_fall) == (levels.max_cll, levels.max_fall)
+    assert levels.max_cll == 10_000  # 40 x 1.25 x 203 cd/m^2 clipped at the PQ peak
+
+
+def test_hdr10_first_frame_inverts_to_the_reconstruction() -> None:
+    """Lossless HEVC of a grey clip: decoding Y', inverting PQ and the exposure scaling
+    returns x within the 10-bit quantization of the PQ signal. Y' is rounded to
+    1/876 of the signal (limited range), so the signal is off by at most h = 0.5/876
+    and the luminance lies in [PQ^-1(E - h), PQ^-1(E + h)]: a relative bound that
+    follows PQ's slope (about 0.5% mid-range). Chroma of grey is exactly 512."""
+    frames = grey_clip()
+    data, _ = hdr10_bytes(frames, Hdr10Settings(lossless=True))
+    with av.open(io.BytesIO(data)) as container:
+        planes = next(container.decode(video=0)).to_ndarray()
+    height, width = frames[0].shape
+    luma, chroma = planes[:height].astype(np.float64), planes[height:]
+    assert np.all(chroma == 512)
+    decoded = pq_decode((luma - LUMA_OFFSET) / LUMA_SCALE) / REFERENCE_WHITE
+    signal, h = pq_encode(frames[0] * REFERENCE_WHITE), 0.5 / LUMA_SCALE
+    low, high = pq_decode(signal - h) / REFERENCE_WHITE, pq_decode(signal + h) / REFERENCE_WHITE
+    assert np.all(decoded >= low * (1 - 1e-9)) and np.all(decoded <= high * (1 + 1e-9))
+    relative = np.abs(decoded / frames[0] - 1)
+    assert relative[frames[0] > 0.1].max() < 0.01
+
+
+def test_white_level_scales_luminance() -> None:
+    frames = [np.full((64, 64), 2.0)] * 2
+    _, levels = hdr10_bytes(frames, Hdr10Settings(white_level=2.0, reference_white=100.0))
+    assert levels.max_cll == levels.max_fall == 100
+
+
+def test_odd_sizes_are_padded() -> None:
+    data, _ = hdr10_bytes([np.full((65, 67, 3), 0.5)] * 2, Hdr10Settings())
+    with av.open(io.BytesIO(data)) as container:
+        stream = container.streams.video[0]
+        assert (stream.codec_context.width, stream.codec_context.height) == (68, 66)
+
+
+def test_hdr10_refuses_frames_libx265_cannot_take() -> None:
+    with pytest.raises(InvalidInputError, match="at least 64 x 64"):
+        write_hdr10([np.ones((48, 48))] * 2, io.BytesIO())
+
+
+def test_sdr_preview_reads_back() -> None:
+    frames = grey_clip()
+    buffer = io.BytesIO()
+    write_sdr_preview(frames, buffer, fps=24)
+    buffer.seek(0)
+    with av.open(buffer) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "h264"
+        decoded = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
+    assert len(decoded) == FRAMES
+    expected = sdr_frames(frames)[0].astype(int)
+    assert np.abs(decoded[0].astype(int) - expected).mean() < 3
+
+
+def test_sdr_tonemap_keeps_order_and_range() -> None:
+    image = sdr_frames(grey_clip())[0][:, :, 0].ravel()
+    assert np.all(np.diff(image.astype(int)) >= 0) and image[0] < 10 and image[-1] > 200
+
+
+def test_exr_sequence_zip_round_trip() -> None:
+    frames = [np.random.default_rng(t).uniform(0, 20, (6, 5, 3)) for t in range(3)]
+    buffer = io.BytesIO()
+    exr_sequence_zip(frames, buffer)
+    with zipfile.ZipFile(buffer) as archive:
+        names = archive.namelist()
+        assert names == ["frame_00000.exr", "frame_00001.exr", "frame_00002.exr"]
+        for name, frame in zip(names, frames, strict=True):
+            image = read_hdr(archive.read(name))
+            np.testing.assert_array_equal(image.pixels, frame.astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    "frames",
+    [[], [np.ones((4, 4)), np.ones((4, 6))], [np.full((4, 4), np.nan)], [-np.ones((4, 4))],
+     [np.ones((4, 4, 2))]],
+    ids=["empty", "mixed-shapes", "nan", "negative", "two-channels"],
+)
+def test_bad_clips_are_refused(frames: list[np.ndarray]) -> None:
+    with pytest.raises(InvalidInputError):
+        write_hdr10(frames, io.BytesIO())
+
+
+@pytest.mark.parametrize(
+    "settings", [{"fps": 0}, {"white_level": -1}, {"mastering_peak": 20_000}]
+)
+def test_bad_settings_are_refused(settings: dict) -> None:
+    with pytest.raises(InvalidInputError):
+        Hdr10Settings(**settings)

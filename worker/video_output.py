@@ -1,0 +1,303 @@
+"""Video files of reconstructed clips: HDR10 HEVC, an SDR H.264 preview, an EXR sequence.
+
+Frames are linear reconstructions ``x_hat`` (wrap units), ``H x W`` (grey) or
+``H x W x 3`` (Rec.709 primaries), all of one clip.
+
+HDR10 (:func:`write_hdr10`): absolute luminance ``L = x / white_level *
+reference_white`` cd/m^2 (default: ``x = 1``, a conventional pixel's saturation,
+is the BT.2408 reference white of 203 cd/m^2), converted to BT.2020 primaries,
+PQ-encoded (SMPTE ST 2084, clipped at 10000 cd/m^2), turned into BT.2020
+non-constant-luminance Y'CbCr, 10-bit limited range, chroma averaged over 2 x 2
+(4:2:0), and encoded with libx265 as HEVC Main10 in MP4 (``hvc1``). The colour tags
+(primaries bt2020, transfer smpte2084, matrix bt2020nc, limited range) are set on
+the codec context and in the bitstream (x265-params), with mastering-display (P3-D65
+primaries, ``mastering_peak`` cd/m^2) and content-light-level (MaxCLL / MaxFALL
+measured from the frames) SEI metadata. Odd sizes are padded by repeating the last
+row / column; sides below ``MIN_HDR10_SIDE`` are refused (libx265 crashes on them).
+
+The SDR preview (:func:`write_sdr_preview`) is Reinhard-tonemapped (one key for the
+whole clip, from its middle frame, so the preview does not pump), sRGB-encoded,
+8-bit 4:2:0 H.264. The EXR sequence (:func:`exr_sequence_zip`) is a zip of one
+float32 (or half) EXR per frame, ``frame_00000.exr`` ..., in wrap units.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import IO, Any
+
+import av
+import numpy as np
+from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTrc
+from numpy.typing import NDArray
+
+from models.errors import InvalidInputError
+from models.hdr_io import encode_exr
+from models.metrics import reinhard
+
+#: ITU-R BT.2408 reference (diffuse) white, cd/m^2.
+REFERENCE_WHITE = 203.0
+PQ_PEAK = 10_000.0
+_PQ_M1, _PQ_M2 = 2610 / 16384, 2523 / 4096 * 128
+_PQ_C1, _PQ_C2, _PQ_C3 = 3424 / 4096, 2413 / 4096 * 32, 2392 / 4096 * 32
+#: Linear Rec.709 RGB to linear BT.2020 RGB (ITU-R BT.2087).
+BT709_TO_BT2020 = np.array(
+    [[0.6274, 0.3293, 0.0433], [0.0691, 0.9195, 0.0114], [0.0164, 0.0880, 0.8956]]
+)
+BT2020_KR, BT2020_KB = 0.2627, 0.0593
+#: 10-bit limited ("video") range: Y' in [64, 940], Cb/Cr in [64, 960] around 512.
+LUMA_OFFSET, LUMA_SCALE, CHROMA_OFFSET, CHROMA_SCALE = 64, 876, 512, 896
+#: libx265 corrupts its heap on frames smaller than this (pixels per side, measured).
+MIN_HDR10_SIDE = 64
+#: Mastering display: P3-D65 primaries in x265's units of 0.00002.
+MASTERING_PRIMARIES = "G(13250,34500)B(7500,3000)R(34000,16000)WP(15635,16450)"
+
+Target = str | IO[bytes]
+Progress = Callable[[int], None]
+
+
+@dataclass(frozen=True)
+class Hdr10Settings:
+    """HDR10 encoding choices. ``white_level``: the ``x`` (wrap units) shown at
+    ``reference_white`` cd/m^2; ``mastering_peak`` / ``mastering_floor`` in cd/m^2;
+    ``crf``: x265 quality (lower is better); ``lossless``: x265 lossless mode."""
+
+    fps: float = 30.0
+    white_level: float = 1.0
+    reference_white: float = REFERENCE_WHITE
+    mastering_peak: float = 1000.0
+    mastering_floor: float = 0.0001
+    crf: int = 16
+    preset: str = "fast"
+    lossless: bool = False
+
+    def __post_init__(self) -> None:
+        if not (self.fps > 0 and self.white_level > 0 and self.reference_white > 0):
+            raise InvalidInputError("fps, white_level and reference_white must be positive")
+        if not 0 < self.mastering_floor < self.mastering_peak <= PQ_PEAK:
+            raise InvalidInputError(
+                f"mastering luminance must satisfy 0 < floor < peak <= {PQ_PEAK:g} cd/m^2"
+            )
+
+
+@dataclass(frozen=True)
+class LightLevels:
+    """Content light levels in cd/m^2: MaxCLL (brightest pixel, max of R, G, B) and
+    MaxFALL (the largest frame-average of max(R, G, B)), both clipped to 10000."""
+
+    max_cll: int
+    max_fall: int
+
+
+def pq_encode(nits: NDArray[np.floating]) -> NDArray[np.float64]:
+    """SMPTE ST 2084 inverse EOTF: absolute luminance (cd/m^2) to the PQ signal in [0, 1]."""
+    y = np.clip(np.asarray(nits, np.float64) / PQ_PEAK, 0.0, 1.0) ** _PQ_M1
+    return ((_PQ_C1 + _PQ_C2 * y) / (1.0 + _PQ_C3 * y)) ** _PQ_M2
+
+
+def pq_decode(signal: NDArray[np.floating]) -> NDArray[np.float64]:
+    """SMPTE ST 2084 EOTF: PQ signal in [0, 1] to absolute luminance (cd/m^2)."""
+    e = np.clip(np.asarray(signal, np.float64), 0.0, 1.0) ** (1.0 / _PQ_M2)
+    return PQ_PEAK * (np.maximum(e - _PQ_C1, 0.0) / (_PQ_C2 - _PQ_C3 * e)) ** (1.0 / _PQ_M1)
+
+
+def as_rgb(frame: NDArray[np.floating]) -> NDArray[np.float64]:
+    """A frame as ``H x W x 3`` float64 (grey repeated), checked finite and non-negative."""
+    arr = np.asarray(frame, np.float64)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim == 2:
+        arr = np.repeat(arr[:, :, None], 3, axis=2)
+    if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise InvalidInputError(f"a video frame is H x W or H x W x 3, got shape {arr.shape}")
+    if not np.isfinite(arr).all() or (arr < 0).any():
+        raise InvalidInputError("video frames must be finite and non-negative")
+    return arr
+
+
+def pad_even(image: NDArray[Any]) -> NDArray[Any]:
+    """Repeat the last row / column so both sides are even (4:2:0 needs it)."""
+    pad = [(0, image.shape[0] % 2), (0, image.shape[1] % 2)] + [(0, 0)] * (image.ndim - 2)
+    return np.pad(image, pad, mode="edge") if any(p[1] for p in pad[:2]) else image
+
+
+def to_nits(frame: NDArray[np.floating], settings: Hdr10Settings) -> NDArray[np.float64]:
+    """Absolute luminance in BT.2020 primaries (``H x W x 3``, cd/m^2) of a frame."""
+    rgb = as_rgb(frame) @ BT709_TO_BT2020.T
+    return np.maximum(rgb, 0.0) * (settings.reference_white / settings.white_level)
+
+
+def light_levels(frames: Sequence[NDArray[np.floating]], settings: Hdr10Settings) -> LightLevels:
+    """MaxCLL and MaxFALL of a clip (see :class:`LightLevels`)."""
+    cll, fall = 0.0, 0.0
+    for frame in frames:
+        brightest = np.minimum(to_nits(frame, settings).max(axis=2), PQ_PEAK)
+        cll, fall = max(cll, float(brightest.max())), max(fall, float(brightest.mean()))
+    return LightLevels(int(np.ceil(cll)), int(np.ceil(fall)))
+
+
+def hdr10_yuv(
+    frame: NDArray[np.floating], settings: Hdr10Settings
+) -> list[NDArray[np.uint16]]:
+    """One frame as 10-bit limited-range planes: Y (H x W), Cb and Cr (H/2 x W/2)."""
+    signal = pad_even(pq_encode(to_nits(frame, settings)))
+    r, g, b = signal[:, :, 0], signal[:, :, 1], signal[:, :, 2]
+    y = BT2020_KR * r + (1.0 - BT2020_KR - BT2020_KB) * g + BT2020_KB * b
+    cb = (b - y) / (2.0 * (1.0 - BT2020_KB))
+    cr = (r - y) / (2.0 * (1.0 - BT2020_KR))
+    height, width = y.shape
+
+    def subsample(c: NDArray[np.float64]) -> NDArray[np.float64]:
+        return c.reshape(height // 2, 2, width // 2, 2).mean(axis=(1, 3))
+
+    luma = np.rint(LUMA_OFFSET + LUMA_SCALE * y).astype(np.uint16)
+    chroma = [np.rint(CHROMA_OFFSET + CHROMA_SCALE * subsample(c)).astype(np.uint16)
+              for c in (cb, cr)]
+    return [luma, *chroma]
+
+
+def yuv_frame(planes: list[NDArray[np.uint16]]) -> av.VideoFrame:
+    """A yuv420p10le frame holding the planes (rows copied into FFmpeg's padded lines)."""
+    height, width = planes[0].shape
+    video = av.VideoFrame(width, height, "yuv420p10le")
+    for target, plane in zip(video.planes, planes, strict=True):
+        padded = np.zeros((plane.shape[0], target.line_size // 2), np.uint16)
+        padded[:, : plane.shape[1]] = plane
+        target.update(padded.astype("<u2").tobytes())
+    video.color_primaries = ColorPrimaries.BT2020
+    video.color_trc = ColorTrc.SMPTE2084
+    video.colorspace = Colorspace.BT2020
+    video.color_range = ColorRange.MPEG
+    return video
+
+
+def x265_params(settings: Hdr10Settings, levels: LightLevels) -> str:
+    """The x265-params string: HDR10 signalling, colour tags, mastering and light levels."""
+    peak = int(round(settings.mastering_peak * 10_000))
+    floor = max(int(round(settings.mastering_floor * 10_000)), 1)
+    params = [
+        "hdr10=1",
+        "hdr10-opt=1",
+        "repeat-headers=1",
+        "colorprim=bt2020",
+        "transfer=smpte2084",
+        "colormatrix=bt2020nc",
+        "range=limited",
+        f"master-display={MASTERING_PRIMARIES}L({peak},{floor})",
+        f"max-cll={levels.max_cll},{levels.max_fall}",
+        "log-level=error",
+    ]
+    if settings.lossless:
+        params.append("lossless=1")
+    return ":".join(params)
+
+
+def _check_clip(frames: Sequence[NDArray[np.floating]]) -> tuple[int, int]:
+    """Even-padded (height, width) of a non-empty clip whose frames all share one shape."""
+    if len(frames) == 0:
+        raise InvalidInputError("the clip has no frames; give at least one")
+    shapes = {np.shape(frame) for frame in frames}
+    if len(shapes) != 1:
+        raise InvalidInputError(f"all frames of a clip must have one shape, got {sorted(shapes)}")
+    height, width = np.shape(frames[0])[:2]
+    return height + height % 2, width + width % 2
+
+
+def write_hdr10(
+    frames: Sequence[NDArray[np.floating]],
+    target: Target,
+    settings: Hdr10Settings | None = None,
+    progress: Progress | None = None,
+) -> LightLevels:
+    """Encode a clip as HDR10 HEVC Main10 MP4 to a path or binary file; returns its light
+    levels. ``progress(n)`` is called after each of the n frames written."""
+    settings = settings or Hdr10Settings()
+    height, width = _check_clip(frames)
+    if min(height, width) < MIN_HDR10_SIDE:
+        raise InvalidInputError(
+            f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels, "
+            f"got {height} x {width}; ask for the EXR sequence for smaller frames"
+        )
+    levels = light_levels(frames, settings)
+    with av.open(target, mode="w", format="mp4") as container:
+        stream = container.add_stream("libx265", rate=_rate(settings.fps))
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p10le"
+        stream.codec_tag = "hvc1"
+        context = stream.codec_context
+        context.color_primaries = ColorPrimaries.BT2020
+        context.color_trc = ColorTrc.SMPTE2084
+        context.colorspace = Colorspace.BT2020
+        context.color_range = ColorRange.MPEG
+        stream.options = {
+            "crf": str(settings.crf),
+            "preset": settings.preset,
+            "x265-params": x265_params(settings, levels),
+        }
+        for index, frame in enumerate(frames):
+            container.mux(stream.encode(yuv_frame(hdr10_yuv(frame, settings))))
+            if progress:
+                progress(index + 1)
+        container.mux(stream.encode(None))
+    return levels
+
+
+def _rate(fps: float) -> Any:
+    """A frame rate PyAV accepts (an exact fraction)."""
+    from fractions import Fraction
+
+    return Fraction(fps).limit_denominator(1001)
+
+
+def sdr_frames(frames: Sequence[NDArray[np.floating]]) -> list[NDArray[np.uint8]]:
+    """8-bit sRGB previews: Reinhard on luminance keyed on the middle frame, colour kept."""
+    key = as_rgb(frames[len(frames) // 2])
+    out = []
+    for frame in frames:
+        rgb = as_rgb(frame)
+        lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
+        tone = reinhard(rgb, key)
+        scaled = np.clip(rgb * (tone / np.maximum(lum, 1e-12))[:, :, None], 0.0, 1.0)
+        srgb = np.where(scaled <= 0.0031308, 12.92 * scaled, 1.055 * scaled ** (1 / 2.4) - 0.055)
+        out.append(pad_even(np.rint(srgb * 255).astype(np.uint8)))
+    return out
+
+
+def write_sdr_preview(
+    frames: Sequence[NDArray[np.floating]],
+    target: Target,
+    fps: float = 30.0,
+    crf: int = 20,
+    progress: Progress | None = None,
+) -> None:
+    """Encode the tonemapped clip as 8-bit H.264 (yuv420p, BT.709 tags) MP4."""
+    height, width = _check_clip(frames)
+    with av.open(target, mode="w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=_rate(fps))
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+        stream.options = {"crf": str(crf), "preset": "fast"}
+        context = stream.codec_context
+        context.color_primaries = ColorPrimaries.BT709
+        context.color_trc = ColorTrc.IEC61966_2_1
+        context.colorspace = Colorspace.ITU709
+        context.color_range = ColorRange.MPEG
+        for index, image in enumerate(sdr_frames(frames)):
+            video = av.VideoFrame.from_ndarray(image, format="rgb24").reformat(
+                format="yuv420p", dst_colorspace=Colorspace.ITU709, dst_color_range=ColorRange.MPEG
+            )
+            container.mux(stream.encode(video))
+            if progress:
+                progress(index + 1)
+        container.mux(stream.encode(None))
+
+
+def exr_sequence_zip(
+    frames: Sequence[NDArray[np.floating]], target: Target, *, half: bool = False
+) -> None:
+    """A zip of one EXR per frame (``frame_00000.exr``, ...), values in wrap units."""
+    _check_clip(frames)
+    with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
+        for index, frame in enumerate(frames):
+            data = encode_exr(frame, {"frameIndex": str(index)}, half=half)
+            archive.writestr(f"frame_{index:05d}.exr", data)
