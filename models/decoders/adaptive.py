@@ -11,8 +11,9 @@ Per tile (see :mod:`models.scene_analysis`), cheapest first:
 
 A frame with no residue at all is integrated whole. Tiles are stitched into one
 consistent W by :mod:`models.tile_reconcile`; the global offset then comes from
-the network's absolute prediction where a network ran, else from the anchoring
-rule (darkest pixels W = 0). The route of every pixel is reported.
+the anchoring rule (darkest pixels W = 0), taken over the tiles known to be exact
+(pass-through, integration) when there are any. The route of every pixel is
+reported.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from numpy.typing import NDArray
 
 from models.decoders.base import Decoder, anchor_winding
 from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
-from models.formation import SensorParams, max_winding
+from models.formation import SensorParams
 from models.scene_analysis import RegionAnalysis, analyse, neighbour_jumps
 from models.tile_reconcile import Tile, integrate_jumps, stitch
 
@@ -76,11 +77,10 @@ class AdaptiveDecoder(Decoder):
             return np.zeros(m.shape, np.int64), _report({PASS_THROUGH: m.size}, "no wrap edge")
         if difficulty == "smooth":
             winding = anchor_winding(integrate_jumps(along_cols, along_rows), params)
-            return _clamp(winding, params), _report({INTEGRATION: m.size}, "no residue")
+            return winding, _report({INTEGRATION: m.size}, "no residue")
         hard = self.hard_tile_decoder()
         pixels: Counter[str] = Counter()
         tiles: list[Tile] = []
-        absolute: list[tuple[Tile, NDArray[np.int64]]] = []
         trusted = np.zeros(m.shape, bool)
         for region in analysis.tiles:
             rows = slice(region.row, region.row + region.height)
@@ -98,17 +98,11 @@ class AdaptiveDecoder(Decoder):
             tile = Tile(rows, cols, relative)
             tiles.append(tile)
             trusted[rows, cols] = route in (PASS_THROUGH, INTEGRATION)
-            if route == hard.name and hard.name != CLASSICAL_FALLBACK:
-                absolute.append((tile, relative))
             pixels[route] += region.height * region.width
         winding = stitch(tiles, m.shape, along_cols, along_rows)
-        if absolute:
-            winding += _network_offset(winding, absolute)
-            winding = np.maximum(winding, 0)
-        else:
-            winding = anchor_winding(winding, params, trusted)
+        winding = anchor_winding(winding, params, trusted)
         reason = f"{difficulty} wraps; quality {self.quality}"
-        return _clamp(winding, params), _report(pixels, reason)
+        return winding, _report(pixels, reason)
 
     def _decode_with_context(
         self,
@@ -132,22 +126,6 @@ def _route(region: RegionAnalysis, hard_name: str) -> str:
     if region.difficulty == "smooth":
         return INTEGRATION
     return hard_name
-
-
-def _network_offset(
-    winding: NDArray[np.int64], absolute: list[tuple[Tile, NDArray[np.int64]]]
-) -> int:
-    """The global offset on which the network's absolute predictions agree most."""
-    votes = np.concatenate(
-        [(predicted - winding[tile.rows, tile.cols]).ravel() for tile, predicted in absolute]
-    )
-    values, counts = np.unique(votes, return_counts=True)
-    return int(values[np.argmax(counts)])
-
-
-def _clamp(winding: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
-    bound = max_winding(params)
-    return winding if bound is None else np.minimum(winding, bound)
 
 
 def _report(pixels: Counter[str] | dict[str, int], reason: str) -> dict[str, Any]:
