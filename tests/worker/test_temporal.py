@@ -1,0 +1,168 @@
+"""Tests of worker/temporal.py: temporal unwrapping, its fallbacks and keyframes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models.decoders.registry import get_decoder
+from models.errors import InvalidInputError
+from models.formation import SensorParams, encode
+from worker.temporal import (
+    StreamDecoder,
+    StreamState,
+    TemporalConfig,
+    decode_frames,
+    temporal_prediction,
+)
+
+SIZE = 64
+PARAMS = SensorParams(encoding="mantissa", bits=8, alpha=2.0)
+
+
+def blob(scale: float, shift: float = 0.0) -> np.ndarray:
+    """A smooth bright blob (up to 8 * scale wraps of x) on a dim floor: Itoh is exact on it."""
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] - SIZE / 2
+    return 0.05 + 8.0 * scale * np.exp(-((yy - shift) ** 2 + xx**2) / 20.0**2)
+
+
+def slow_clip(frames: int = 12) -> list[np.ndarray]:
+    """The blob brightening by 3% and drifting 0.5 px per frame."""
+    return [blob(1.03**t, 0.5 * t) for t in range(frames)]
+
+
+def encoded(x: np.ndarray, params: SensorParams = PARAMS):
+    return encode(x, params)
+
+
+@pytest.fixture
+def temporal() -> StreamDecoder:
+    return StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=0))
+
+
+def test_exact_on_a_slowly_varying_clip(temporal: StreamDecoder) -> None:
+    state = StreamState()
+    for t, x in enumerate(slow_clip()):
+        frame = encoded(x)
+        result = temporal.decode(frame.codes, PARAMS, state)
+        np.testing.assert_array_equal(result.winding, frame.winding)
+        assert result.keyframe == ("first" if t == 0 else None)
+        if t:
+            assert result.paths["temporal"] > 0.99
+    assert state.frames == 12 and state.last_keyframe == 0
+
+
+def test_falls_back_on_a_fast_change_and_stays_correct(temporal: StreamDecoder) -> None:
+    """Half a wrap of change in one frame (x times sqrt 2 where the log part rules) is
+    unsafe: those pixels go to the spatial decoder, and W is still exact."""
+    state = StreamState()
+    temporal.decode(encoded(blob(1.0)).codes, PARAMS, state)
+    jump = encoded(blob(np.sqrt(2.0)))
+    result = temporal.decode(jump.codes, PARAMS, state)
+    assert result.keyframe is None
+    assert result.paths["local"] + result.paths["spatial"] > 0.05
+    np.testing.assert_array_equal(result.winding, jump.winding)
+
+
+def test_discont_forces_a_keyframe(temporal: StreamDecoder) -> None:
+    """After a reconnect the scene is 4 stops brighter: temporally ambiguous, but the
+    DISCONT keyframe decodes it spatially and exactly."""
+    state = StreamState()
+    temporal.decode(encoded(blob(1.0)).codes, PARAMS, state, sequence=1)
+    brighter = encoded(blob(16.0))
+    result = temporal.decode(brighter.codes, PARAMS, state, sequence=2, discont=True)
+    assert result.keyframe == "discont" and result.paths["spatial"] == 1.0
+    np.testing.assert_array_equal(result.winding, brighter.winding)
+
+
+def test_sequence_gap_and_parameter_change_force_keyframes(temporal: StreamDecoder) -> None:
+    state = StreamState()
+    codes = encoded(blob(1.0)).codes
+    assert temporal.decode(codes, PARAMS, state, sequence=5).keyframe == "first"
+    assert temporal.decode(codes, PARAMS, state, sequence=6).keyframe is None
+    assert temporal.decode(codes, PARAMS, state, sequence=9).keyframe == "gap"
+    other = PARAMS.model_copy(update={"alpha": 3.0})
+    assert temporal.decode(codes, other, state, sequence=10).keyframe == "params"
+    noisy_seed = other.model_copy(update={"seed": 7})
+    assert temporal.decode(codes, noisy_seed, state, sequence=11).keyframe is None
+    state.reset()
+    assert temporal.decode(codes, PARAMS, state).keyframe == "first"
+
+
+def test_periodic_keyframes_keep_the_stream_constant() -> None:
+    """Every 4th frame is decoded spatially; its constant follows the tracked W."""
+    decoder = StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=4))
+    frames = [encoded(x) for x in slow_clip(9)]
+    results = list(decode_frames([f.codes for f in frames], PARAMS, decoder))
+    assert [r.keyframe for r in results] == ["first", None, None, None, "periodic"] + [None] * 3 + [
+        "periodic"
+    ]
+    for result, frame in zip(results, frames, strict=True):
+        np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+def test_independent_mode_is_the_spatial_decoder() -> None:
+    frame = encoded(blob(2.0))
+    result = StreamDecoder("independent", "itoh").decode(frame.codes, PARAMS, StreamState())
+    expected = get_decoder("itoh").decode(frame.codes, PARAMS)
+    np.testing.assert_array_equal(result.winding, expected.winding)
+    np.testing.assert_allclose(result.irradiance, expected.irradiance)
+    assert result.keyframe == "independent" and result.paths["spatial"] == 1.0
+
+
+def test_colour_frames_keep_their_shape(temporal: StreamDecoder) -> None:
+    state = StreamState()
+    for x in slow_clip(3):
+        rgb = np.stack([x, 0.5 * x, 0.25 * x], axis=2)
+        frame = encoded(rgb)
+        result = temporal.decode(frame.codes, PARAMS, state)
+        assert result.winding.shape == result.irradiance.shape == (SIZE, SIZE, 3)
+        np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    prev=st.floats(0.0, 20.0),
+    change=st.floats(-0.39, 0.39),
+    radius=st.integers(0, 2),
+)
+def test_prediction_is_exact_below_the_margin(prev: float, change: float, radius: int) -> None:
+    """Any change smaller than half a wrap minus the margin is unwrapped exactly and safe
+    (a uniform frame: every neighbour agrees)."""
+    u_now = prev + change
+    m = np.full((3, 3, 1), u_now - np.floor(u_now))
+    prediction = temporal_prediction(m, np.full((3, 3, 1), prev), TemporalConfig(
+        motion_radius=radius))
+    assert np.all(prediction.winding == np.floor(u_now)) and prediction.safe.all()
+
+
+def test_prediction_flags_edges_near_moving_content() -> None:
+    """A one-wrap step in the previous frame next to changed pixels is unsafe in its window."""
+    prev = np.zeros((5, 5, 1))
+    prev[:, 3:] = 1.0
+    m = np.full((5, 5, 1), 0.2)
+    prediction = temporal_prediction(m, prev, TemporalConfig(motion_radius=1, still=0.05))
+    assert not prediction.safe[:, 2:4].any() and prediction.safe[:, 0].all()
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [{"margin": 0.5}, {"motion_radius": -1}, {"keyframe_interval": -2}, {"local_area": 2.0},
+     {"tile": 1}, {"still": 0.7}],
+)
+def test_bad_settings_are_refused(bad: dict) -> None:
+    with pytest.raises(InvalidInputError, match="invalid temporal settings"):
+        TemporalConfig(**bad)
+
+
+def test_bad_mode_decoder_and_frame_are_refused(temporal: StreamDecoder) -> None:
+    with pytest.raises(InvalidInputError, match="unknown mode"):
+        StreamDecoder("magic", "itoh")
+    with pytest.raises(InvalidInputError, match="unknown decoder"):
+        StreamDecoder("temporal", "nope")
+    with pytest.raises(InvalidInputError):
+        temporal.decode(np.zeros(5, np.uint8), PARAMS, StreamState())
+    with pytest.raises(InvalidInputError):
+        temporal.decode(np.full((4, 4), 300, np.uint16), PARAMS, StreamState())
