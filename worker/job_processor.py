@@ -188,7 +188,7 @@ class JobProcessor:
                 consumer.give_back(delivery)
                 return
             except JobCancelled:
-                consumer.done(delivery)
+                self._finish(consumer, delivery, record.id)
                 return
             except Exception as exc:
                 if not isinstance(exc, McamError):
@@ -202,7 +202,7 @@ class JobProcessor:
 
     def _run(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
         if record.state.finished:
-            consumer.done(delivery)
+            self._finish(consumer, delivery, record.id)
             return
         now = time.time_ns()
         started = record.started_ns or now
@@ -214,7 +214,7 @@ class JobProcessor:
             attempts=record.attempts + 1,
         )
         if not changed:
-            consumer.done(delivery)
+            self._finish(consumer, delivery, record.id)
             return
         ctx = JobContext(record, self.jobs, self.store, self.stop)
         outcome = load_handler(record.kind)(ctx, entry_codes(delivery.fields))
@@ -235,9 +235,14 @@ class JobProcessor:
             progress=1.0,
             frames_done=record.frames_total,
         )
-        consumer.done(delivery)
+        self._finish(consumer, delivery, record.id)
         if changed:
             self._observe(timings, JobState.SUCCEEDED)
+
+    def _finish(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
+        """The job is final: its record expires with its results; drop the entry."""
+        self.jobs.expire(job_id, self.store.retention_s)
+        consumer.done(delivery)
 
     def _fail(
         self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError
@@ -250,6 +255,7 @@ class JobProcessor:
             error=error,
         )
         consumer.dead_letter(delivery, error.code, error.message, job=record.id)
+        self.jobs.expire(record.id, self.store.retention_s)
         if changed:
             self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
 

@@ -90,8 +90,14 @@ class JobStore:
             self.client.publish(job_done_channel(job_id), to.value)
         return bool(changed), JobState(json.loads(previous)) if previous else None
 
+    def expire(self, job_id: str, seconds: float) -> None:
+        """Let a finished job's record expire (with its results) after ``seconds``."""
+        self.client.expire(job_key(job_id), max(int(seconds), 1))
+
     def states(self) -> dict[str, int]:
-        """Number of job records per state (every state listed, zeros included)."""
+        """Jobs per state (every state listed, zeros included): queued and running count
+        current jobs; finished states count every job that ended so, including records
+        since expired by retention."""
         raw = self.client.hgetall(JOB_STATES)
         counts = {k.decode(): int(v) for k, v in raw.items()}
         return {state.value: max(counts.get(state.value, 0), 0) for state in JobState}

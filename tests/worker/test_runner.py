@@ -56,7 +56,7 @@ def result_files(data_dir: Path) -> list[str]:
 
 
 def test_job_runs_and_cancelled_job_is_skipped(
-    queue: JobQueue, workers, data_dir: Path, make_frame, wait_until, finished
+    queue: JobQueue, client: redis.Redis, workers, data_dir: Path, make_frame, wait_until, finished
 ) -> None:
     frame: SensorFrame = make_frame()
     skipped = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
@@ -75,6 +75,9 @@ def test_job_runs_and_cancelled_job_is_skipped(
     np.testing.assert_array_equal(winding, frame.winding)
     assert result_files(data_dir) == sorted(record.results.values())
     assert queue.get(skipped.id).state is JobState.CANCELLED
+    retention_s = 7 * 24 * 3600
+    assert 0 < client.ttl(f"job:{job.id}") <= retention_s
+    assert 0 < client.ttl(f"job:{skipped.id}") <= retention_s
     wait_until(lambda: queue.stats()["stream_depth"] == 0, 10, "entries acked and deleted")
     assert len(queue.workers(max_age_s=10)) == 1
 
