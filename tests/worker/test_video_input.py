@@ -1,0 +1,131 @@
+"""Tests of worker/video_input.py: multi-page TIFF, T x H x W[x3] .npy, zip of PNGs."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+
+import numpy as np
+import pytest
+import tifffile
+
+from models.errors import (
+    ImageTooLargeError,
+    InvalidInputError,
+    MissingParameterError,
+    UnsupportedFormatError,
+)
+from models.formation import SensorParams
+from models.frames import encode_frame
+from worker.video_input import decode_video, read_video, video_format
+
+PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+FLAGS = {"encoding": "mantissa", "alpha": 2.0, "bits": 8}
+
+
+def codes(frames: int = 4, channels: int | None = None) -> np.ndarray:
+    shape = (frames, 6, 5) if channels is None else (frames, 6, 5, channels)
+    return np.random.default_rng(frames).integers(0, 256, shape).astype(np.uint8)
+
+
+def tiff_bytes(video: np.ndarray, params: SensorParams | None = PARAMS) -> bytes:
+    buffer = io.BytesIO()
+    rgb = video.ndim == 4
+    tifffile.imwrite(
+        buffer, video, photometric="rgb" if rgb else "minisblack",
+        description=params.model_dump_json() if params else None, metadata=None,
+    )
+    return buffer.getvalue()
+
+
+def npy_bytes(video: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, video)
+    return buffer.getvalue()
+
+
+def zip_bytes(video: np.ndarray, names: list[str] | None = None) -> bytes:
+    buffer = io.BytesIO()
+    names = names or [f"frame_{t}.png" for t in range(len(video))]
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("notes.txt", "not a frame")
+        for name, frame in zip(names, video, strict=True):
+            archive.writestr(name, encode_frame(frame, PARAMS, "png"))
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("channels", [None, 3])
+def test_multipage_tiff_round_trip(channels: int | None) -> None:
+    video = codes(4, channels)
+    result = decode_video(tiff_bytes(video), "tiff")
+    np.testing.assert_array_equal(result.codes, video)
+    assert result.params == PARAMS and result.frames == 4
+
+
+def test_npy_round_trip_needs_parameters() -> None:
+    video = codes(3, 3)
+    with pytest.raises(MissingParameterError):
+        decode_video(npy_bytes(video), "npy")
+    result = decode_video(npy_bytes(video), "npy", FLAGS)
+    np.testing.assert_array_equal(result.codes, video)
+
+
+def test_zip_of_pngs_in_natural_order() -> None:
+    video = codes(12)
+    names = [f"clip/frame_{t}.png" for t in range(12)]
+    result = decode_video(zip_bytes(video, names), "zip")
+    np.testing.assert_array_equal(result.codes, video)
+    assert result.params == PARAMS
+
+
+def test_overrides_win_over_stored_parameters() -> None:
+    result = decode_video(tiff_bytes(codes()), "tif", {"alpha": 4.0, "bits": None})
+    assert result.params.alpha == 4.0 and result.params.bits == 8
+
+
+def test_read_video_from_a_path(tmp_path) -> None:
+    path = tmp_path / "clip.npy"
+    path.write_bytes(npy_bytes(codes()))
+    assert read_video(path, FLAGS).frames == 4
+
+
+def test_limits_are_checked() -> None:
+    with pytest.raises(ImageTooLargeError, match="frames"):
+        decode_video(npy_bytes(codes(5)), "npy", FLAGS, max_frames=4)
+    with pytest.raises(ImageTooLargeError, match="pixels"):
+        decode_video(tiff_bytes(codes()), "tiff", max_pixels=29)
+    with pytest.raises(ImageTooLargeError, match="frames"):
+        decode_video(zip_bytes(codes(5)), "zip", max_frames=4)
+
+
+@pytest.mark.parametrize(
+    ("data", "fmt", "error"),
+    [
+        (npy_bytes(codes()[0]), "npy", InvalidInputError),
+        (npy_bytes(codes().astype(np.float32)), "npy", InvalidInputError),
+        (npy_bytes(codes().astype(np.uint16) * 300), "npy", InvalidInputError),
+        (tiff_bytes(codes())[:200], "tiff", InvalidInputError),
+        (b"not a zip", "zip", InvalidInputError),
+        (zip_bytes(codes(0), []), "zip", InvalidInputError),
+        (npy_bytes(codes()), "mp4", UnsupportedFormatError),
+    ],
+    ids=["one-frame", "float", "too-many-bits", "truncated", "not-zip", "no-png", "suffix"],
+)
+def test_bad_videos_are_refused(data: bytes, fmt: str, error: type[Exception]) -> None:
+    with pytest.raises(error):
+        decode_video(data, fmt, FLAGS)
+
+
+def test_zip_frames_must_match() -> None:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("a.png", encode_frame(codes()[0], PARAMS, "png"))
+        archive.writestr("b.png", encode_frame(codes()[0][:4], PARAMS, "png"))
+    with pytest.raises(InvalidInputError, match="differs"):
+        decode_video(buffer.getvalue(), "zip")
+
+
+def test_format_names() -> None:
+    assert [video_format(n) for n in ("a.TIF", "b.tiff", "c.npy", "zip")] == [
+        "tiff", "tiff", "npy", "zip"
+    ]

@@ -1,0 +1,188 @@
+"""Wrapped videos: a sequence of frames of sensor codes (DN) with their parameters.
+
+Formats
+-------
+- ``tiff``: a multi-page TIFF, one frame per page (``H x W`` or ``H x W x C``); the
+  parameters as JSON in the first page's ImageDescription (as :mod:`models.frames`
+  writes it).
+- ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
+- ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in file-name order
+  (``frame_2.png`` before ``frame_10.png``); parameters from the first frame's text
+  chunk. Entries that are not ``.png`` (folders, ``__MACOSX``) are ignored.
+
+The frame count (``max_frames``) and the pixels per frame (``max_pixels``) are
+checked from headers before pixel data is decoded. Caller overrides (flags, form
+fields) win over stored parameters, as for single frames.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tifffile
+from numpy.typing import NDArray
+
+from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
+from models.formation import SensorParams, validate_codes
+from models.frames import check_pixel_count, decode_frame, decoding, merge_params
+
+VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
+_ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
+
+
+@dataclass(frozen=True)
+class WrappedVideo:
+    """Codes ``T x H x W`` (or ``T x H x W x C``, DN, the params' dtype) and their params."""
+
+    codes: NDArray[np.unsignedinteger]
+    params: SensorParams
+
+    @property
+    def frames(self) -> int:
+        """Number of frames T."""
+        return int(self.codes.shape[0])
+
+
+def video_format(name: str | os.PathLike[str]) -> str:
+    """The video format (one of :data:`VIDEO_FORMATS`) of a file name, suffix or format name."""
+    key = str(name).lower().rsplit(".", 1)[-1]
+    if key not in _ALIASES:
+        raise UnsupportedFormatError(
+            f"unsupported wrapped-video format {str(name)!r}; use a multi-page .tiff, "
+            "a .npy of shape T x H x W[x C], or a .zip of PNG frames"
+        )
+    return _ALIASES[key]
+
+
+def check_frame_count(count: int, max_frames: int | None) -> None:
+    """Refuse an empty video or one longer than ``max_frames``."""
+    if count < 1:
+        raise InvalidInputError("the video has no frames; send at least one frame")
+    if max_frames is not None and count > max_frames:
+        raise ImageTooLargeError(
+            f"the video has {count} frames, above the limit of {max_frames}; send a shorter "
+            "clip or raise the limit (MCAM_MAX_VIDEO_FRAMES)"
+        )
+
+
+def _tiff_params(description: str | None) -> dict[str, Any]:
+    """Our parameters from a TIFF description; {} for text other software wrote."""
+    try:
+        values = json.loads(description or "")
+    except json.JSONDecodeError:
+        return {}
+    if not isinstance(values, dict) or not set(values) <= set(SensorParams.model_fields):
+        return {}
+    return values
+
+
+def _read_tiff(
+    data: bytes, max_pixels: int | None, max_frames: int | None
+) -> tuple[NDArray[Any], dict[str, Any]]:
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        pages = tif.pages
+        check_frame_count(len(pages), max_frames)
+        first = pages.first
+        check_pixel_count(int(first.imagewidth), int(first.imagelength), max_pixels)
+        shape = first.shape
+        frames = []
+        for page in pages:
+            if page.shape != shape:
+                raise InvalidInputError(
+                    f"all pages of a video have one shape; page {len(frames)} is {page.shape}, "
+                    f"the first {shape}"
+                )
+            frames.append(page.asarray())
+        return np.stack(frames), _tiff_params(first.description)
+
+
+def _read_npy(
+    data: bytes, max_pixels: int | None, max_frames: int | None
+) -> tuple[NDArray[Any], dict[str, Any]]:
+    buffer = io.BytesIO(data)
+    version = np.lib.format.read_magic(buffer)
+    header = (
+        np.lib.format.read_array_header_1_0
+        if version == (1, 0)
+        else np.lib.format.read_array_header_2_0
+    )
+    shape, _, _ = header(buffer)
+    if len(shape) not in (3, 4):
+        raise InvalidInputError(
+            f"a wrapped video is an array T x H x W or T x H x W x C, got shape {shape}; "
+            "send a single frame as a frame, not a video"
+        )
+    check_frame_count(shape[0], max_frames)
+    check_pixel_count(shape[2], shape[1], max_pixels)
+    buffer.seek(0)
+    return np.load(buffer, allow_pickle=False), {}
+
+
+def _natural_key(name: str) -> list[Any]:
+    """Sort key putting ``frame_2`` before ``frame_10``."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def _read_zip(
+    data: bytes, overrides: dict[str, Any] | None, max_pixels: int | None, max_frames: int | None
+) -> WrappedVideo:
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        names = sorted(
+            (
+                info.filename
+                for info in archive.infolist()
+                if not info.is_dir()
+                and info.filename.lower().endswith(".png")
+                and not info.filename.startswith("__MACOSX/")
+            ),
+            key=_natural_key,
+        )
+        check_frame_count(len(names), max_frames)
+        frames = [decode_frame(archive.read(names[0]), "png", overrides, max_pixels)]
+        for name in names[1:]:
+            frame = decode_frame(archive.read(name), "png", overrides, max_pixels)
+            if frame.codes.shape != frames[0].codes.shape or frame.params != frames[0].params:
+                raise InvalidInputError(
+                    f"{name} differs from {names[0]} in size or parameters; all frames of a "
+                    "video share one size and one set of sensor parameters"
+                )
+            frames.append(frame)
+    return WrappedVideo(np.stack([f.codes for f in frames]), frames[0].params)
+
+
+def decode_video(
+    data: bytes,
+    fmt: str,
+    overrides: dict[str, Any] | None = None,
+    max_pixels: int | None = None,
+    max_frames: int | None = None,
+) -> WrappedVideo:
+    """Decode a wrapped video's bytes; ``overrides`` fill in or replace stored params."""
+    fmt = video_format(fmt)
+    with decoding(f"the {fmt.upper()} video"):
+        if fmt == "zip":
+            return _read_zip(data, overrides, max_pixels, max_frames)
+        reader = _read_tiff if fmt == "tiff" else _read_npy
+        codes, stored = reader(data, max_pixels, max_frames)
+    params = merge_params(stored, overrides)
+    codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
+    return WrappedVideo(codes, params)
+
+
+def read_video(
+    path: str | os.PathLike[str],
+    overrides: dict[str, Any] | None = None,
+    max_pixels: int | None = None,
+    max_frames: int | None = None,
+) -> WrappedVideo:
+    """Read a wrapped-video file; the format follows the file's suffix."""
+    fmt = video_format(path)
+    return decode_video(Path(path).read_bytes(), fmt, overrides, max_pixels, max_frames)
