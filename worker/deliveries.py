@@ -135,6 +135,11 @@ class StreamConsumer:
             justid=True,
         )
 
+    def touch(self, delivery: Delivery) -> None:
+        """Reset the entry's idle time (no delivery counted) so that a long job is not
+        reclaimed from this live consumer."""
+        self.client.xclaim(self.stream, GROUP, self.name, 0, [delivery.entry_id], justid=True)
+
     def done(self, delivery: Delivery) -> None:
         """Acknowledge and delete the entry (call only after its result is durable)."""
         pipe = self.client.pipeline(transaction=True)

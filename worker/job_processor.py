@@ -161,7 +161,8 @@ class JobProcessor:
         self.stop = stop
 
     def handle(self, consumer: StreamConsumer, delivery: Delivery) -> None:
-        """Process one entry to a final outcome: done, failed (dead letter) or handed back."""
+        """Process one entry to a final outcome: done, failed (dead letter) or handed back.
+        A lost Redis connection propagates (the entry stays pending and is handled again)."""
         try:
             record = self.jobs.load(delivery.text("job"))
         except (KeyError, UnicodeDecodeError, JobNotFoundError) as exc:
@@ -190,6 +191,8 @@ class JobProcessor:
             except JobCancelled:
                 self._finish(consumer, delivery, record.id)
                 return
+            except redis.exceptions.ConnectionError:
+                raise
             except Exception as exc:
                 if not isinstance(exc, McamError):
                     log.exception("job %s failed (delivery %d)", record.id, delivery.deliveries)

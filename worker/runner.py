@@ -10,7 +10,9 @@ consumer in the ``workers`` group: reclaim entries idle > ``claim_idle_ms``, els
 read new ones), one device consumer (leases + in-order frames, see
 ``worker/device_consumer.py``), and the main thread, which writes this worker's
 heartbeat to the ``workers`` hash every ``heartbeat_s``, renews its device leases
-(so ``heartbeat_s`` must be shorter than ``lease_ms``) and purges expired results.
+(so ``heartbeat_s`` must be shorter than ``lease_ms``), keeps its in-flight jobs
+from looking idle (so long jobs are not reclaimed from a live worker) and purges
+expired results.
 On SIGTERM the consumers finish the job or frame in hand (a long video job hands
 itself back to the queue), leases are released and the heartbeat is removed. A
 second signal exits at once; unacked work is then reclaimed by others.
@@ -34,7 +36,7 @@ from types import FrameType
 import redis
 
 from models.errors import McamError
-from worker.deliveries import StreamConsumer
+from worker.deliveries import Delivery, StreamConsumer
 from worker.device_consumer import DeviceConsumer
 from worker.device_state import make_frame_decoder
 from worker.embedded_redis import connect
@@ -81,11 +83,12 @@ class WorkerConfig:
     def __post_init__(self) -> None:
         if self.concurrency < 1:
             raise McamError(f"concurrency must be at least 1, got {self.concurrency}")
-        if self.heartbeat_s * 1000 >= self.lease_ms:
+        if self.heartbeat_s * 1000 >= min(self.lease_ms, self.claim_idle_ms):
             raise McamError(
-                f"the heartbeat ({self.heartbeat_s} s) renews device leases and must be shorter "
-                f"than the lease ({self.lease_ms} ms): lower MCAM_HEARTBEAT_S or raise "
-                "MCAM_DEVICE_LEASE_MS"
+                f"the heartbeat ({self.heartbeat_s} s) renews device leases and in-flight jobs: "
+                f"it must be shorter than the lease ({self.lease_ms} ms) and the claim idle time "
+                f"({self.claim_idle_ms} ms); lower MCAM_HEARTBEAT_S or raise "
+                "MCAM_DEVICE_LEASE_MS / MCAM_CLAIM_IDLE_MS"
             )
 
 
@@ -106,6 +109,7 @@ class Worker:
         self.jobs_done = 0
         self.started_ns = time.time_ns()
         self._devices: DeviceConsumer | None = None
+        self._in_flight: dict[int, tuple[StreamConsumer, Delivery]] = {}
 
     def request_stop(self, *_args: object) -> None:
         """Ask every loop to finish its current item and exit (a second call exits now)."""
@@ -172,7 +176,11 @@ class Worker:
             if not deliveries and not self.stop.is_set():
                 deliveries = consumer.read_new(block_ms=BLOCK_MS, count=1)
             for delivery in deliveries:
-                processor.handle(consumer, delivery)
+                self._in_flight[index] = (consumer, delivery)
+                try:
+                    processor.handle(consumer, delivery)
+                finally:
+                    self._in_flight.pop(index, None)
                 self.jobs_done += 1
 
         self._resilient(step)
@@ -205,6 +213,8 @@ class Worker:
         while not self.stop.is_set():
             try:
                 self._beat()
+                for consumer, delivery in list(self._in_flight.values()):
+                    consumer.touch(delivery)
                 if self._devices is not None:
                     self._devices.renew_all()
                 if time.monotonic() - last_purge > PURGE_EVERY_S:

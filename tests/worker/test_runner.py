@@ -105,6 +105,19 @@ def test_sigkill_mid_job_completes_on_another_worker_once(
     assert redelivered.samples[0].value == 1
 
 
+def test_long_job_is_not_reclaimed_from_a_live_worker(
+    queue: JobQueue, client: redis.Redis, workers, make_frame, finished
+) -> None:
+    frame: SensorFrame = make_frame(size=1536)
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    workers.start(MCAM_CLAIM_IDLE_MS="500", MCAM_HEARTBEAT_S="0.1")
+    workers.start(MCAM_CLAIM_IDLE_MS="500", MCAM_HEARTBEAT_S="0.1")
+    record = finished(queue, job.id)
+    assert record.state is JobState.SUCCEEDED and record.attempts == 1
+    redelivered = {f.name: f for f in read_metrics(client)}["redeliveries_total"]
+    assert redelivered.samples[0].value == 0
+
+
 def test_failing_job_goes_to_dead_letters_after_max_deliveries(
     queue: JobQueue, client: redis.Redis, workers, data_dir: Path, wait_until, finished
 ) -> None:
@@ -265,7 +278,9 @@ def test_repeated_sequence_is_not_written_twice(
 
 
 def test_worker_config_checks_heartbeat_against_lease(tmp_path: Path) -> None:
-    with pytest.raises(McamError, match="shorter than the lease"):
+    with pytest.raises(McamError, match="must be shorter than the lease"):
+        WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, heartbeat_s=1.0, claim_idle_ms=500)
+    with pytest.raises(McamError, match="must be shorter than the lease"):
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, heartbeat_s=5.0, lease_ms=5000)
     with pytest.raises(McamError, match="at least 1"):
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, concurrency=0)
