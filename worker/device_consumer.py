@@ -178,7 +178,7 @@ class DeviceConsumer:
                 self._reconstruct(device, state, delivery)
                 consumer.done(delivery)
                 return
-            except LeaseLost:
+            except (LeaseLost, redis.exceptions.ConnectionError):
                 raise
             except Exception as exc:
                 if not isinstance(exc, McamError):
