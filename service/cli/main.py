@@ -24,6 +24,7 @@ COMMANDS: tuple[str, ...] = (
     "service.cli.serve",
     "service.cli.device",
     "service.cli.simulate_device",
+    "service.cli.train",
 )
 
 

@@ -1,0 +1,101 @@
+"""``mcam train``: train, export and measure the learned decoders (needs the ``train`` extra).
+
+``mcam train all`` reruns the recipes of the shipped models (resumable: rerun it
+after an interruption), exports them to ``models/onnx`` and measures val-256.
+``mcam train run`` trains one configuration; ``mcam train export`` exports a run.
+PyTorch is imported only when a command runs, so the runtime never needs it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from models.errors import InvalidInputError
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``train`` command and its ``all`` / ``run`` / ``export`` actions."""
+    parser = subparsers.add_parser(
+        "train",
+        help="train and export the learned decoders (CPU is fine, slow; resumable)",
+        description="Train MantissaCam winding nets in three (+1) stages, export ONNX + cards.",
+    )
+    actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    every = actions.add_parser("all", help="reproduce every shipped model (train, export, val)")
+    every.add_argument("--no-val", action="store_true", help="skip the val-256 measurement")
+    every.set_defaults(func=run)
+    one = actions.add_parser("run", help="train one configuration (resumes its checkpoint)")
+    one.add_argument("--tier", default="small", choices=("tiny", "small", "base"))
+    one.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))
+    one.add_argument("--loss", default="ce", choices=("ce", "mse"))
+    one.add_argument(
+        "--stages", default="500,3500,2000,2000", help="steps per stage, comma separated"
+    )
+    one.add_argument("--crop", type=int, default=64, help="training crop (px, multiple of 16)")
+    one.add_argument("--batch", type=int, default=8)
+    one.add_argument("--read-noise", type=float, default=0.0, help="max read noise (wrap units)")
+    one.add_argument("--seed", type=int, default=0)
+    one.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
+    one.add_argument("--runs-dir", type=Path, help="checkpoints and logs (default: runs/)")
+    one.set_defaults(func=run)
+    export = actions.add_parser("export", help="export a run's checkpoint to ONNX + card")
+    export.add_argument("checkpoint", type=Path, help="runs/<name>/checkpoint.pt")
+    export.add_argument("--onnx-dir", type=Path, help="output folder (default: models/onnx)")
+    export.add_argument("--no-val", action="store_true", help="skip the val-256 measurement")
+    export.set_defaults(func=run)
+
+
+def parse_stages(text: str) -> tuple[int, ...]:
+    """``"500,3500,2000"`` -> ``(500, 3500, 2000)``; 3 or 4 non-negative integers."""
+    parts = text.split(",")
+    if len(parts) not in (3, 4) or not all(p.strip().isdigit() for p in parts):
+        raise InvalidInputError(
+            f"--stages takes 3 or 4 comma-separated step counts (e.g. 500,3500,2000), got {text!r}"
+        )
+    return tuple(int(p) for p in parts)
+
+
+def print_progress(record: dict[str, Any]) -> None:
+    """One line per logged step."""
+    parts = " ".join(
+        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items()
+    )
+    print(parts, flush=True)
+
+
+def export_and_measure(checkpoint: Path, onnx_dir: Path | None, measure: bool) -> None:
+    """Export a checkpoint, optionally add val-256 metrics, print the card."""
+    from models.training.export import ONNX_DIR, add_val256, export_run
+
+    card_path = export_run(checkpoint, onnx_dir or ONNX_DIR)
+    card = add_val256(card_path) if measure else json.loads(card_path.read_text())
+    print(json.dumps({"card": str(card_path), **{k: card[k] for k in card if k != "training"}}))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Dispatch the action; imports the torch-based training code lazily."""
+    from models.training.recipes import SHIPPED
+    from models.training.train import RUNS_DIR, TrainConfig, train
+
+    if args.action == "export":
+        if not args.checkpoint.exists():
+            raise FileNotFoundError(2, "no such checkpoint", str(args.checkpoint))
+        export_and_measure(args.checkpoint, args.onnx_dir, not args.no_val)
+        return 0
+    if args.action == "all":
+        for config in SHIPPED:
+            export_and_measure(train(config, print_progress), None, not args.no_val)
+        return 0
+    if args.crop % 16 or args.crop < 32:
+        raise InvalidInputError(f"--crop must be a multiple of 16 and >= 32, got {args.crop}")
+    config = TrainConfig(
+        tier=args.tier, encoding=args.encoding, loss=args.loss,
+        stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
+        max_read_noise=args.read_noise, seed=args.seed, threads=args.threads,
+        runs_dir=args.runs_dir or RUNS_DIR,
+    )  # fmt: skip
+    print(f"checkpoint: {train(config, print_progress)}")
+    return 0

@@ -1,0 +1,38 @@
+"""Tests of ``mcam train`` (service/cli/train.py) through the real console script."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import onnxruntime as ort
+
+from tests.service.cli.conftest import assert_one_line_error, run_mcam
+
+
+def test_train_run_then_export_makes_a_working_onnx_model(tmp_path: Path) -> None:
+    trained = run_mcam(
+        "train", "run", "--tier", "tiny", "--stages", "1,1,1", "--crop", "32", "--batch", "2",
+        "--runs-dir", tmp_path / "runs", cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr
+    assert "stage=3" in trained.stdout
+    checkpoint = tmp_path / "runs" / "mantissanet-tiny-mantissa" / "checkpoint.pt"
+    exported = run_mcam(
+        "train", "export", checkpoint, "--onnx-dir", tmp_path / "onnx", "--no-val", cwd=tmp_path
+    )
+    assert exported.returncode == 0, exported.stderr
+    card = json.loads(exported.stdout.strip().splitlines()[-1])
+    assert card["decoder"] == "mantissanet-tiny" and card["encoding"] == "mantissa"
+    session = ort.InferenceSession(str(tmp_path / "onnx" / card["file"]))
+    assert [i.name for i in session.get_inputs()] == ["m"]
+
+
+def test_bad_stage_list_is_one_clear_line(tmp_path: Path) -> None:
+    result = run_mcam("train", "run", "--stages", "10,x", cwd=tmp_path)
+    assert_one_line_error(result, "--stages", "10,x")
+
+
+def test_missing_checkpoint_is_one_clear_line(tmp_path: Path) -> None:
+    result = run_mcam("train", "export", tmp_path / "nothing.pt", cwd=tmp_path)
+    assert_one_line_error(result, "nothing.pt")
