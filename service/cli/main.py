@@ -25,6 +25,7 @@ COMMANDS: tuple[str, ...] = (
     "service.cli.device",
     "service.cli.simulate_device",
     "service.cli.train",
+    "service.cli.video",
 )
 
 

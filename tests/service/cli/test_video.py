@@ -1,0 +1,62 @@
+"""Tests of ``mcam video`` through the real console script."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import av
+import numpy as np
+
+from models.formation import SensorParams, encode
+from models.hdr_io import read_hdr
+from tests.service.cli.conftest import assert_one_line_error, mantissa_tolerance, run_mcam
+
+FLAGS = ("--encoding", "mantissa", "--alpha", "2", "--bits", "8")
+FRAMES, SIZE = 8, 64
+
+
+def slow_clip() -> list[np.ndarray]:
+    """A smooth blob (x up to ~9) brightening 3% per frame: exact for itoh and temporally."""
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] - SIZE / 2
+    base = 0.05 + 8.0 * np.exp(-(yy**2 + xx**2) / 20.0**2)
+    return [base * 1.03**t for t in range(FRAMES)]
+
+
+def test_video_writes_hdr10_preview_and_exr_frames(tmp_path: Path) -> None:
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+    truth = slow_clip()
+    np.save(tmp_path / "wrapped.npy", np.stack([encode(x, params).codes for x in truth]))
+    result = run_mcam(
+        "video", "wrapped.npy", "-o", "clip.mp4", "--mode", "temporal", *FLAGS,
+        "--preview", "sdr.mp4", "--exr", "frames.zip",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert f"decode   [{'#' * 30}] {FRAMES}/{FRAMES} frames" in result.stderr
+    assert f"{FRAMES} frames, mode temporal" in result.stdout
+    with av.open(str(tmp_path / "clip.mp4")) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "hevc"
+        assert sum(1 for _ in container.decode(stream)) == FRAMES
+    with av.open(str(tmp_path / "sdr.mp4")) as container:
+        assert container.streams.video[0].codec_context.name == "h264"
+    with zipfile.ZipFile(tmp_path / "frames.zip") as archive:
+        names = archive.namelist()
+        assert len(names) == FRAMES
+        for name, x in zip(names, truth, strict=True):
+            pixels = read_hdr(archive.read(name)).pixels
+            bound = mantissa_tolerance(x, 1.0, bits=8, alpha=2.0)
+            assert np.all(np.abs(pixels - x) <= bound)
+
+
+def test_video_refuses_an_unknown_output(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 8, 8), np.uint8))
+    result = run_mcam("video", "wrapped.npy", "-o", "clip.avi", *FLAGS, cwd=tmp_path)
+    assert_one_line_error(result, "clip.avi", ".mp4")
+
+
+def test_video_needs_parameters(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 8, 8), np.uint8))
+    result = run_mcam("video", "wrapped.npy", "-o", "frames.zip", cwd=tmp_path)
+    assert_one_line_error(result, "--encoding")
