@@ -8,22 +8,26 @@ Usage (inside the worker, one thread)::
         devices.poll()        # True when it processed something
     devices.release_all()
 
-For each device in the ``devices`` set the worker tries to take the lease; the
-owner first takes over every pending entry of the stream (a previous owner's
-unfinished frames), then reads new ones, and handles them one by one in stream
-order. Per frame: decode, write ``devices/<id>/<seq:012d>.exr`` durably, then in
-one Lua step (only while the lease is still ours) record the sequence, point
-``device:<id>:latest`` at the result and append a ``frame`` event to
-``events:<id>``, then XACK. A redelivered entry at or before the recorded one is
-acked without a second result or event. A frame that keeps failing goes to the
-dead letters after ``max_deliveries`` attempts with a ``failed`` event.
+For each device in the ``devices`` set the worker tries to take the lease (a
+worker owning more than ``ceil(devices / live device workers)`` hands one over,
+so devices spread over the workers). The owner first takes over every pending
+entry of the stream (a previous owner's unfinished frames), then reads new ones,
+and handles them one by one in stream order. Per frame: decode, write
+``devices/<id>/<seq:012d>.exr`` durably, then in one Lua step (only while the
+lease is still ours) record the sequence, point ``device:<id>:latest`` at the
+result and append a ``frame`` event to ``events:<id>``, then XACK. A redelivered
+entry at or before the recorded one is acked without a second result or event.
+A frame that keeps failing goes to the dead letters after ``max_deliveries``
+attempts with a ``failed`` event.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import redis
@@ -50,6 +54,8 @@ log = logging.getLogger(__name__)
 
 #: Frames read from one device per poll before looking at the other devices.
 BATCH = 16
+#: After handing a device over, do not take it back for this many lease times.
+HAND_OVER_REST = 4
 #: The events stream of a device keeps about this many entries.
 EVENTS_MAXLEN = 1000
 
@@ -86,6 +92,7 @@ class DeviceConsumer:
         max_deliveries: int,
         decode: FrameDecoder,
         stop: threading.Event,
+        peers: Callable[[], int] = lambda: 1,
     ) -> None:
         self.client = client
         self.store = store
@@ -98,20 +105,45 @@ class DeviceConsumer:
         self.states: dict[str, DeviceState] = {}
         self._consumers: dict[str, StreamConsumer] = {}
         self._commit = client.register_script(_COMMIT)
+        self.peers = peers
+        self._peers_seen = (1, -math.inf)
+        self._resting: dict[str, float] = {}
 
     def poll(self) -> bool:
-        """Refresh leases, then handle up to :data:`BATCH` frames per owned device."""
+        """Refresh leases, then handle up to :data:`BATCH` frames per owned device; then
+        hand one device over if this worker owns more than its fair share."""
         busy = False
-        for device in sorted(d.decode() for d in self.client.smembers(DEVICES_SET)):
+        devices = sorted(d.decode() for d in self.client.smembers(DEVICES_SET))
+        now = time.monotonic()
+        for device in devices:
             if self.stop.is_set():
                 break
+            if device not in self.states and self._resting.get(device, 0.0) > now:
+                continue
             if not self._hold(device):
                 continue
             try:
                 busy |= self._drain(device)
             except LeaseLost:
                 self._forget(device)
+        if len(self.states) > self._fair_share(len(devices)):
+            self._hand_over(max(self.states))
         return busy
+
+    def _fair_share(self, devices: int) -> int:
+        """``ceil(devices / live device workers)``; the worker count is re-read each second."""
+        count, when = self._peers_seen
+        if time.monotonic() - when > 1.0:
+            count = max(self.peers(), 1)
+            self._peers_seen = (count, time.monotonic())
+        return math.ceil(devices / count)
+
+    def _hand_over(self, device: str) -> None:
+        """Release a device for another worker, and leave it alone for a few leases."""
+        self.lease.release(device)
+        self._forget(device)
+        self._resting[device] = time.monotonic() + HAND_OVER_REST * self.lease.ttl_ms / 1000
+        log.info("worker %s hands device %s over (more than its share)", self.owner, device)
 
     def renew_all(self) -> None:
         """Extend the leases of every owned device (the heartbeat calls this, so a frame

@@ -195,6 +195,7 @@ class Worker:
             max_deliveries=self.config.max_deliveries,
             decode=decode,
             stop=self.stop,
+            peers=self._device_workers,
         )
         self._devices = devices
 
@@ -236,12 +237,24 @@ class Worker:
             "concurrency": self.config.concurrency,
             "jobs_done": self.jobs_done,
             "devices": sorted(list(self._devices.states)) if self._devices else [],
+            "device_consumer": self.config.devices,
         }
         self.client.hset(WORKERS_HEARTBEAT, self.id, json.dumps(beat))
         stale_ns = STALE_HEARTBEATS * self.config.heartbeat_s * 1e9
         for worker_id, raw in self.client.hgetall(WORKERS_HEARTBEAT).items():
             if now - int(json.loads(raw).get("ts_ns", 0)) > stale_ns:
                 self.client.hdel(WORKERS_HEARTBEAT, worker_id)
+
+    def _device_workers(self) -> int:
+        """Workers consuming device streams whose heartbeat is fresh (3 periods)."""
+        now = time.time_ns()
+        beats = [json.loads(raw) for raw in self.client.hvals(WORKERS_HEARTBEAT)]
+        return sum(
+            1
+            for beat in beats
+            if beat.get("device_consumer")
+            and now - beat["ts_ns"] < 3 * self.config.heartbeat_s * 1e9
+        )
 
     def _forget_heartbeat(self) -> None:
         try:

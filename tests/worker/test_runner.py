@@ -284,3 +284,28 @@ def test_worker_config_checks_heartbeat_against_lease(tmp_path: Path) -> None:
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, heartbeat_s=5.0, lease_ms=5000)
     with pytest.raises(McamError, match="at least 1"):
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, concurrency=0)
+
+
+def test_devices_spread_over_workers(
+    client: redis.Redis, workers, data_dir: Path, make_frame, wait_until
+) -> None:
+    frame: SensorFrame = make_frame()
+    devices = ["cam-a", "cam-b"]
+    workers.start()
+    for device in devices:
+        publish(client, device, frame, range(2))
+    lease = Lease(client, "probe", 1000)
+    wait_until(lambda: all(lease.holder(d) for d in devices), 60, "both devices owned")
+    workers.start()
+    wait_until(lambda: len({lease.holder(d) for d in devices}) == 2, 60, "one device per worker")
+    for device in devices:
+        publish(client, device, frame, range(2, 6))
+    for device in devices:
+        wait_until(
+            lambda d=device: (
+                [int(e["sequence"]) for e in frame_events(client, d)] == list(range(6))
+            ),
+            60,
+            f"frames 0..5 of {device} in order",
+        )
+    assert len(result_files(data_dir)) == 12
