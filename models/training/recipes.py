@@ -8,6 +8,9 @@ from models.training.train import TrainConfig
 #: end to end on 64 px crops, end to end on 128 px crops.
 SMALL_STAGES = (500, 3500, 2000, 2000)
 
+#: The tier also shipped as an int8 QDQ model.
+INT8_TIER = "small"
+
 SHIPPED: tuple[TrainConfig, ...] = (
     TrainConfig(tier="small", encoding="mantissa", stage_steps=SMALL_STAGES),
     TrainConfig(tier="small", encoding="modulo", stage_steps=SMALL_STAGES),

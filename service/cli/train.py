@@ -1,7 +1,8 @@
 """``mcam train``: train, export and measure the learned decoders (needs the ``train`` extra).
 
 ``mcam train all`` reruns the recipes of the shipped models (resumable: rerun it
-after an interruption), exports them to ``models/onnx`` and measures val-256.
+after an interruption), exports them to ``models/onnx`` (plus the int8 QDQ version
+of one tier) and measures val-256.
 ``mcam train run`` trains one configuration; ``mcam train export`` exports a run.
 PyTorch is imported only when a command runs, so the runtime never needs it.
 """
@@ -66,18 +67,31 @@ def print_progress(record: dict[str, Any]) -> None:
     print(parts, flush=True)
 
 
-def export_and_measure(checkpoint: Path, onnx_dir: Path | None, measure: bool) -> None:
-    """Export a checkpoint, optionally add val-256 metrics, print the card."""
-    from models.training.export import ONNX_DIR, add_val256, export_run
+def measure_and_show(card_path: Path, measure: bool) -> None:
+    """Optionally add val-256 metrics to a card; print it (without the training section)."""
+    from models.training.export import add_val256
 
-    card_path = export_run(checkpoint, onnx_dir or ONNX_DIR)
     card = add_val256(card_path) if measure else json.loads(card_path.read_text())
     print(json.dumps({"card": str(card_path), **{k: card[k] for k in card if k != "training"}}))
 
 
+def export_and_measure(
+    checkpoint: Path, onnx_dir: Path | None, measure: bool, int8: bool = False
+) -> None:
+    """Export a checkpoint (and its int8 QDQ version), measure, print the cards."""
+    from models.training.export import ONNX_DIR, export_run
+
+    card_path = export_run(checkpoint, onnx_dir or ONNX_DIR)
+    measure_and_show(card_path, measure)
+    if int8:
+        from models.training.quantize import quantize_card
+
+        measure_and_show(quantize_card(card_path), measure)
+
+
 def run(args: argparse.Namespace) -> int:
     """Dispatch the action; imports the torch-based training code lazily."""
-    from models.training.recipes import SHIPPED
+    from models.training.recipes import INT8_TIER, SHIPPED
     from models.training.train import RUNS_DIR, TrainConfig, train
 
     if args.action == "export":
@@ -87,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.action == "all":
         for config in SHIPPED:
-            export_and_measure(train(config, print_progress), None, not args.no_val)
+            checkpoint = train(config, print_progress)
+            export_and_measure(checkpoint, None, not args.no_val, int8=config.tier == INT8_TIER)
         return 0
     if args.crop % 16 or args.crop < 32:
         raise InvalidInputError(f"--crop must be a multiple of 16 and >= 32, got {args.crop}")

@@ -12,16 +12,7 @@ import torch
 
 from models.formation import dequantize
 from models.scenes import val256_frames
-from models.training.export import WindingGraph, export_run, sha256_of
-from models.training.train import TrainConfig, train
-
-
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    root = tmp_path_factory.mktemp("export")
-    config = TrainConfig(tier="tiny", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=root)
-    checkpoint = train(config)
-    return checkpoint, export_run(checkpoint, root / "onnx")
+from models.training.export import WindingGraph, sha256_of
 
 
 def torch_winding(checkpoint: Path, m: np.ndarray) -> np.ndarray:
