@@ -7,8 +7,9 @@ Usage::
 With ``MCAM_REDIS_URL`` unset it starts the private redis-server in the data dir
 (``worker/embedded_redis.py``); the worker runs as a child process (``mcam
 worker``) and the API (``service.main:create_app``) under uvicorn in this
-process. It prints the URL and, on first start, the generated API key. Ctrl-C or
-SIGTERM stops the API, then the worker (gracefully), then the embedded Redis.
+process. It prints the URL and, on first start, the generated API key. A worker
+that dies is restarted (with backoff). Ctrl-C or SIGTERM stops the API, then the
+worker (gracefully), then the embedded Redis.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from types import FrameType
 
 import uvicorn
@@ -30,6 +32,9 @@ from worker.embedded_redis import EmbeddedRedis, terminate_with_parent
 
 #: How long the worker may take to finish its in-flight work on shutdown (s).
 WORKER_STOP_S = 30.0
+#: Backoff before restarting a worker that died: first and longest wait (s).
+RESTART_MIN_S = 1.0
+RESTART_MAX_S = 30.0
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -45,29 +50,68 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.set_defaults(func=run)
 
 
-def start_worker(redis_url: str, data_dir: str, args: argparse.Namespace) -> subprocess.Popen:
-    """The worker child process, pointed at the same Redis and data dir (its own session:
-    a terminal's Ctrl-C reaches only us, and we stop it once, gracefully)."""
+def worker_command(args: argparse.Namespace) -> list[str]:
+    """``mcam worker`` with serve's worker flags."""
     command = [sys.executable, "-m", "service.cli.main", "worker"]
     if args.concurrency is not None:
         command += ["--concurrency", str(args.concurrency)]
     if args.threads is not None:
         command += ["--threads", str(args.threads)]
-    env = {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": data_dir}
-    return subprocess.Popen(
-        command, env=env, start_new_session=True, preexec_fn=terminate_with_parent
-    )
+    return command
 
 
-def stop_worker(process: subprocess.Popen) -> None:
-    """SIGTERM, wait for in-flight work, then kill if it hangs."""
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(WORKER_STOP_S)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+class WorkerSupervisor:
+    """Keeps one worker child running on the given Redis and data dir: restarts it (with
+    backoff) if it dies, stops it gracefully at the end. The child runs in its own session
+    (a terminal's Ctrl-C reaches only us) and gets SIGTERM if we die."""
+
+    def __init__(self, command: list[str], redis_url: str, data_dir: str) -> None:
+        self.command = command
+        self.env = {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": data_dir}
+        self.process: subprocess.Popen[bytes] | None = None
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="worker-watch", daemon=True)
+
+    def start(self) -> WorkerSupervisor:
+        self.process = self._spawn()
+        self._thread.start()
+        return self
+
+    def _spawn(self) -> subprocess.Popen[bytes]:
+        return subprocess.Popen(
+            self.command, env=self.env, start_new_session=True, preexec_fn=terminate_with_parent
+        )
+
+    def _watch(self) -> None:
+        backoff = RESTART_MIN_S
+        while not self._stopping.wait(1.0):
+            if self.process is None or self.process.poll() is None:
+                backoff = RESTART_MIN_S
+                continue
+            print(
+                f"mcam serve: the worker exited ({self.process.returncode}); "
+                f"restarting in {backoff:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+            if self._stopping.wait(backoff):
+                return
+            self.process = self._spawn()
+            backoff = min(backoff * 2, RESTART_MAX_S)
+
+    def stop(self) -> None:
+        """SIGTERM the worker, wait for its in-flight work, kill it if it hangs."""
+        self._stopping.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        process = self.process
+        if process is not None and process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(WORKER_STOP_S)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
 
 
 def _interrupt(_signum: int, _frame: FrameType | None) -> None:
@@ -77,13 +121,15 @@ def _interrupt(_signum: int, _frame: FrameType | None) -> None:
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
     embedded = EmbeddedRedis(settings.data_dir) if settings.redis_url is None else None
-    worker: subprocess.Popen | None = None
+    worker: WorkerSupervisor | None = None
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         if embedded is not None:
             settings = settings_with(settings, redis_url=embedded.start())
         _, new_key = KeyRing.from_settings(settings)
-        worker = start_worker(str(settings.redis_url), str(settings.data_dir.resolve()), args)
+        worker = WorkerSupervisor(
+            worker_command(args), str(settings.redis_url), str(settings.data_dir.resolve())
+        ).start()
         announce(settings, new_key)
         uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     except KeyboardInterrupt:
@@ -91,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if worker is not None:
-            stop_worker(worker)
+            worker.stop()
         if embedded is not None:
             embedded.stop()
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import os
 import re
 import signal
@@ -16,6 +17,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+import redis
 
 from models.formation import SensorParams, simulate
 from worker.embedded_redis import EmbeddedRedis, connect
@@ -65,7 +67,12 @@ def npy_frame() -> tuple[bytes, SensorParams]:
     return buffer.getvalue(), frame.params
 
 
-def test_serve_runs_everything_and_stops_cleanly(tmp_path: Path) -> None:
+def worker_pids(client: redis.Redis) -> set[int]:
+    """Pids of the workers that have a heartbeat."""
+    return {json.loads(beat)["pid"] for beat in client.hvals(WORKERS_HEARTBEAT)}
+
+
+def test_serve_runs_everything_restarts_a_dead_worker_and_stops_cleanly(tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
@@ -108,8 +115,13 @@ def test_serve_runs_everything_and_stops_cleanly(tmp_path: Path) -> None:
         assert reply.status_code == 200, reply.text
         assert reply.json()["state"] == "succeeded"
         redis_socket = EmbeddedRedis(data_dir).socket
-        beats = connect(f"unix://{redis_socket}").hgetall(WORKERS_HEARTBEAT)
-        [worker_pid] = [int(v.split(b'"pid": ')[1].split(b",")[0]) for v in beats.values()]
+        client = connect(f"unix://{redis_socket}")
+        [first_pid] = worker_pids(client)
+        os.kill(first_pid, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while not worker_pids(client) - {first_pid} and time.monotonic() < deadline:
+            time.sleep(0.1)
+        [worker_pid] = worker_pids(client) - {first_pid}
         process.send_signal(signal.SIGTERM)
         assert process.wait(60) == 0
         assert not redis_socket.exists()
