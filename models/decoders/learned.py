@@ -1,5 +1,9 @@
 """Learned decoders run with onnxruntime: ``mantissanet-<tier>`` and ``unmodnet``.
 
+``mantissanet-*`` predicts W in one pass; ``unmodnet`` starts from W = 0 and adds
+the pixels its net says roll over once more, pass by pass (at most the card's
+``max_passes``, 15).
+
 Models are discovered from the JSON model cards in ``models/onnx/``; a decoder
 picks the card of the frame's encoding. Each ONNX session is created once (per
 decoder instance and encoding) and reused; intra-op threads come from the
@@ -134,6 +138,26 @@ class OnnxWindingModel:
         return stitch_overlapping(m.shape, tile, OVERLAP, lambda r, c: self.run(m[r, c]))
 
 
+class OnnxRolloverModel(OnnxWindingModel):
+    """UnModNet (``(m, W) -> rollover``): W grows by the predicted rollovers, pass by pass,
+    until no pixel rolls over or ``max_passes`` is reached."""
+
+    def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
+        padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))[None, None]
+        winding = np.zeros_like(padded)
+        for _ in range(int(self.card["max_passes"])):
+            rollover = self.session.run(None, {"m": padded, "winding": winding})[0]
+            if not rollover[0, 0, : m.shape[0], : m.shape[1]].any():
+                break
+            winding += rollover.astype(np.float32)
+        return winding[0, 0, : m.shape[0], : m.shape[1]].astype(np.int64)
+
+
+def onnx_model(card: dict[str, Any]) -> OnnxWindingModel:
+    """The runtime wrapper of a card: one-pass winding net, or iterative UnModNet."""
+    return OnnxRolloverModel(card) if card["family"] == "unmodnet" else OnnxWindingModel(card)
+
+
 def finish_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
     """Anchor (darkest pixels W = 0) and clamp to the encoding's largest W."""
     winding = anchor_winding(relative, params)
@@ -146,7 +170,7 @@ class LearnedDecoder(Decoder):
 
     def __init__(self, name: str, cards: list[dict[str, Any]]) -> None:
         self.name = name  # type: ignore[misc]
-        self.models = {card["encoding"]: OnnxWindingModel(card) for card in cards}
+        self.models = {card["encoding"]: onnx_model(card) for card in cards}
         self.version = ",".join(sorted(card["sha256"][:12] for card in cards))
 
     def model_for(self, params: SensorParams) -> OnnxWindingModel:

@@ -19,12 +19,20 @@ from torch import Tensor, nn
 from torch.utils.flop_counter import FlopCounterMode
 
 from models.scenes import TRAIN_SCENES
-from models.training.networks import MULTIPLE, NUM_CLASSES, MantissaNet, parameter_count
+from models.training.networks import (
+    MULTIPLE,
+    NUM_CLASSES,
+    MantissaNet,
+    UnModNet,
+    parameter_count,
+)
 from models.training.train import TrainConfig, build_model, load_checkpoint
 
 ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 OPSET = 17
 TILE = 256
+#: UnModNet's default number of unwrapping passes at inference.
+MAX_PASSES = 15
 
 
 class WindingGraph(nn.Module):
@@ -42,24 +50,45 @@ class WindingGraph(nn.Module):
         return logits.argmax(dim=1, keepdim=True)
 
 
-def gflops_at(model: nn.Module, size: int = TILE) -> float:
+class RolloverGraph(nn.Module):
+    """UnModNet inference pass: ``(m, winding) -> rollover`` (int64 0/1)."""
+
+    def __init__(self, model: UnModNet) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, m: Tensor, winding: Tensor) -> Tensor:
+        logits, _ = self.model(m, winding)
+        return (logits > 0).long()
+
+
+def graph_inputs(module: nn.Module, size: int) -> tuple[Tensor, ...]:
+    """Example inputs of an inference graph at ``size x size``."""
+    m = torch.rand(1, 1, size, size)
+    return (m, torch.zeros_like(m)) if isinstance(module, RolloverGraph) else (m,)
+
+
+def gflops_at(module: nn.Module, size: int = TILE) -> float:
     """GFLOPs (2 per multiply-add) of one ``size x size`` forward pass."""
     with FlopCounterMode(display=False) as counter, torch.no_grad():
-        model(torch.rand(1, 1, size, size))
+        module(*graph_inputs(module, size))
     return counter.get_total_flops() / 1e9
 
 
 def export_onnx(module: nn.Module, path: Path) -> None:
-    """Export ``module`` (m -> winding) with dynamic batch, height and width."""
+    """Export an inference graph with dynamic batch, height and width."""
     path.parent.mkdir(parents=True, exist_ok=True)
     axes = {0: "batch", 2: "height", 3: "width"}
+    inputs = graph_inputs(module, 64)
+    names = ["m", "winding"][: len(inputs)]
+    output = "rollover" if isinstance(module, RolloverGraph) else "winding"
     torch.onnx.export(
         module.eval(),
-        (torch.rand(1, 1, 64, 64),),
+        inputs,
         str(path),
-        input_names=["m"],
-        output_names=["winding"],
-        dynamic_axes={"m": axes, "winding": axes},
+        input_names=names,
+        output_names=[output],
+        dynamic_axes={name: axes for name in [*names, output]},
         opset_version=OPSET,
         dynamo=False,
     )
@@ -70,7 +99,9 @@ def sha256_of(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def trained_model(checkpoint: Path) -> tuple[MantissaNet, TrainConfig, dict[str, Any]]:
+def trained_model(
+    checkpoint: Path,
+) -> tuple[MantissaNet | UnModNet, TrainConfig, dict[str, Any]]:
     """The eval-mode model of a checkpoint, its config and the raw checkpoint state."""
     state = load_checkpoint(checkpoint)
     raw = dict(state["config"])
@@ -121,13 +152,14 @@ def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) ->
 def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
     """Export a run's checkpoint to ``<onnx_dir>/<name>.onnx`` and write the card; returns it."""
     model, config, state = trained_model(checkpoint)
-    graph = WindingGraph(model, config.loss)
+    unmodnet = isinstance(model, UnModNet)
+    graph = RolloverGraph(model) if unmodnet else WindingGraph(model, config.loss)
     onnx_path = onnx_dir / f"{config.name}.onnx"
     export_onnx(graph, onnx_path)
     card = {
         "name": config.name,
-        "decoder": config.name.removesuffix(f"-{config.encoding}"),
-        "family": "mantissanet",
+        "decoder": "unmodnet" if unmodnet else config.name.removesuffix(f"-{config.encoding}"),
+        "family": config.family,
         "tier": config.tier,
         "encoding": config.encoding,
         "noise_aware": config.max_read_noise > 0,
@@ -137,6 +169,7 @@ def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
         "tile": TILE,
         "parameters": parameter_count(model),
         "gflops_256": round(gflops_at(graph), 3),
+        **({"max_passes": MAX_PASSES, "gflops_per": "pass"} if unmodnet else {}),
         "training": training_facts(config, state),
         "exported_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }

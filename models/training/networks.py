@@ -234,6 +234,25 @@ class UnModMaskNet(nn.Module):
         return self.tail(self.attention(self.body(x)))
 
 
+class UnModNet(nn.Module):
+    """UnModNet: the edge net + the rollover net, applied iteratively at inference.
+
+    ``forward(m, winding)`` gives the rollover logits of the state ``m + winding``
+    and the edge map; the runtime adds 1 to W where the logit is > 0, until no
+    pixel rolls over (at most 15 passes).
+    """
+
+    def __init__(self, tier: Tier) -> None:
+        super().__init__()
+        self.tier = tier
+        self.edge = EdgeNet(tier.edge_width, tier.edge_blocks)
+        self.mask = UnModMaskNet(tier.edge_width, tier.edge_blocks)
+
+    def forward(self, m: Tensor, winding: Tensor) -> tuple[Tensor, Tensor]:
+        edges = self.edge(m)
+        return self.mask(m + winding, edges), edges
+
+
 def wrap_edges(winding: Tensor) -> Tensor:
     """Ground-truth wrap edges (float 0/1): pixels whose W differs from a 4-neighbour."""
     w = winding.float()

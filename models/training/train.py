@@ -24,10 +24,11 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from models.training.data import PairConfig, sample_batch
-from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, wrap_edges
+from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, UnModNet, wrap_edges
 
 RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
 LOSSES = ("ce", "mse")
+FAMILIES = ("mantissanet", "unmodnet")
 STAGE_LR = (2e-3, 2e-3, 5e-4, 3e-4)
 EDGE_WEIGHT = 0.1
 
@@ -36,6 +37,7 @@ EDGE_WEIGHT = 0.1
 class TrainConfig:
     """One training run. ``stage_steps``: optimizer steps of stages 1, 2, 3 (and 4)."""
 
+    family: str = "mantissanet"
     tier: str = "small"
     encoding: str = "mantissa"
     loss: str = "ce"
@@ -53,7 +55,7 @@ class TrainConfig:
     @property
     def name(self) -> str:
         noise = "-noise" if self.max_read_noise > 0 else ""
-        return f"mantissanet-{self.tier}{noise}-{self.encoding}"
+        return f"{self.family}-{self.tier}{noise}-{self.encoding}"
 
     @property
     def run_dir(self) -> Path:
@@ -76,9 +78,11 @@ class TrainConfig:
         return STAGE_LR[stage - 1] * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
-def build_model(config: TrainConfig) -> MantissaNet:
-    """The seeded, freshly initialised net of the run's tier and loss."""
+def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
+    """The seeded, freshly initialised net of the run's family, tier and loss."""
     torch.manual_seed(config.seed)
+    if config.family == "unmodnet":
+        return UnModNet(TIERS[config.tier])
     model = MantissaNet(TIERS[config.tier])
     if config.loss == "mse":
         model.winding.head = torch.nn.Conv2d(TIERS[config.tier].widths[0], 1, 1)
@@ -99,14 +103,36 @@ def predicted_winding(logits: Tensor, loss: str) -> Tensor:
     return logits.argmax(dim=1)
 
 
+def rollover_losses(
+    model: UnModNet, m: Tensor, winding: Tensor, edges: Tensor, generator: torch.Generator
+) -> tuple[Tensor, Tensor]:
+    """UnModNet's pass loss: from a random partial state ``min(W, k)``, BCE of the logit
+    that a pixel rolls over once more (``W > k``); returns (loss, accuracy)."""
+    top = winding.amax(dim=(1, 2, 3), keepdim=True).float()
+    k = torch.floor(torch.rand(top.shape, generator=generator) * (top + 1)).long()
+    target = (winding > k).float()
+    logits = model.mask(m + torch.minimum(winding, k).float(), edges)
+    accuracy = ((logits > 0).float() == target).float().mean()
+    return F.binary_cross_entropy_with_logits(logits, target), accuracy
+
+
 def step_losses(
-    model: MantissaNet, m: Tensor, winding: Tensor, stage: int, loss: str
+    model: MantissaNet | UnModNet, m: Tensor, winding: Tensor, stage: int, loss: str, step: int = 0
 ) -> tuple[Tensor, dict[str, float]]:
     """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy)."""
     truth = wrap_edges(winding)
     if stage == 1:
         edge_bce = F.binary_cross_entropy(model.edge(m).clamp(1e-4, 1 - 1e-4), truth)
         return edge_bce, {"edge_bce": edge_bce.item()}
+    if isinstance(model, UnModNet):
+        edges = truth if stage == 2 else model.edge(m)
+        generator = torch.Generator().manual_seed(step)
+        total, accuracy = rollover_losses(model, m, winding, edges, generator)
+        if stage == 2:
+            return total, {"accuracy": accuracy.item()}
+        edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
+        total = total + EDGE_WEIGHT * edge_bce
+        return total, {"edge_bce": edge_bce.item(), "accuracy": accuracy.item()}
     if stage == 2:
         logits = model.winding(m, truth)
         total = winding_loss(logits, winding, loss)
@@ -134,8 +160,10 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None = None) -> Path:
     """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records."""
-    if config.loss not in LOSSES or config.tier not in TIERS:
-        raise ValueError(f"loss must be one of {LOSSES} and tier one of {tuple(TIERS)}")
+    if config.loss not in LOSSES or config.tier not in TIERS or config.family not in FAMILIES:
+        raise ValueError(
+            f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
+        )
     torch.set_num_threads(config.threads)
     config.run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint = config.run_dir / "checkpoint.pt"
@@ -160,7 +188,7 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
             for group in optimizer.param_groups:
                 group["lr"] = config.learning_rate(step)
             loss, parts = step_losses(
-                model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss
+                model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss, step
             )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
