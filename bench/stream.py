@@ -1,0 +1,208 @@
+"""Live streaming benchmark: camera link -> daemon -> Redis -> worker(s), 256 x 256 frames.
+
+Run as ``python -m bench.stream [--frames N] [--workers 1 2]``. Measures
+
+1. parse only: :class:`LinkParser` on pre-encoded packets in memory (frames/s, one core);
+2. link path: a writer process floods a real pty with pre-encoded packets, the daemon (this
+   process) parses and XADDs them to a real redis-server: sustained frames/s and the
+   daemon's CPU time per frame (this process's rusage: reader + publisher threads);
+3. end to end with 1 and 2 ``mcam worker`` processes (itoh): throughput when flooded, and
+   latency from the packet leaving the camera to the EXR on disk (event ``written_ns``
+   minus the packet's timestamp, both wall clock) when paced below capacity;
+4. the decoder's own speed in-process (decode + EXR encode) for comparison.
+
+Frames are rendered once by the virtual SCAMP-5 (modulo, procedural scene) so rendering
+cost is not measured. Prints a Markdown table, writes ``bench/results/stream.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import RESULTS, machine, utc_now, versions, write_report
+from device.daemon import DaemonConfig, DeviceDaemon
+from device.link_parser import LinkParser
+from device.link_protocol import DataPacket, encode_data
+from device.sim_link import LoopEndpoint, PtyEndpoint
+from device.simulator import VirtualScamp5
+from models.decoders.registry import get_decoder
+from models.formation import SensorParams
+from worker.embedded_redis import EmbeddedRedis, connect
+from worker.outputs import encode_exr_result
+from worker.redis_keys import DEVICES_SET, events_stream, frame_stream
+
+DECODER = "itoh"
+DISTINCT = 16
+
+
+def template_packets() -> list[DataPacket]:
+    """``DISTINCT`` rendered frames of the virtual camera (modulo, gain 1)."""
+    camera = VirtualScamp5(LoopEndpoint())
+    out = []
+    for index in range(DISTINCT):
+        params = camera.params_for(index)
+        frame = camera.render(index, params)
+        out.append(DataPacket(index, 0, "modulo", 2.0, 8, float(params.gain or 1.0),
+                              frame.codes))
+    return out
+
+
+def stream_bytes(templates: list[DataPacket], count: int, stamp: bool) -> list[bytes]:
+    """``count`` packets with sequence 0..count-1 (timestamps now, if ``stamp``)."""
+    return [encode_data(replace(templates[i % len(templates)], sequence=i,
+                                timestamp_ns=time.time_ns() if stamp else 0))
+            for i in range(count)]
+
+
+def bench_parse(packets: list[bytes]) -> dict[str, float]:
+    data = b"".join(packets)
+    parser = LinkParser()
+    start = time.perf_counter()
+    out = [p for i in range(0, len(data), 4096) for p in parser.feed(data[i : i + 4096])]
+    seconds = time.perf_counter() - start
+    assert len(out) == len(packets)
+    return {"frames": len(out), "frames_per_s": len(out) / seconds, "mb_per_s":
+            len(data) / seconds / 1e6}
+
+
+def _writer(endpoint: PtyEndpoint, templates: list[DataPacket], count: int,
+            fps: float | None) -> None:
+    """Child process: write ``count`` packets, stamped at send time, optionally paced."""
+    next_t = time.monotonic()
+    for i in range(count):
+        packet = replace(templates[i % len(templates)], sequence=i, timestamp_ns=time.time_ns())
+        endpoint.write(encode_data(packet))
+        if fps:
+            next_t += 1.0 / fps
+            time.sleep(max(0.0, next_t - time.monotonic()))
+
+
+def run_link(url: str, device: str, count: int, templates: list[DataPacket],
+             fps: float | None, workdir: Path, wait_events: bool) -> dict[str, Any]:
+    """Stream ``count`` packets through a pty and the daemon; return timings."""
+    client = connect(url, timeout_s=2.0)
+    endpoint = PtyEndpoint(workdir / f"{device}.pty")
+    daemon = DeviceDaemon(DaemonConfig(port=endpoint.url, device=device, frames_maxlen=10_000,
+                                       queue_size=256), client).start()
+    time.sleep(0.3)  # let the daemon open the port
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    start = time.perf_counter()
+    writer = mp.get_context("fork").Process(target=_writer,
+                                            args=(endpoint, templates, count, fps))
+    writer.start()
+    deadline = time.monotonic() + 300
+    while daemon.health.counts["frames_ok"] < count and time.monotonic() < deadline:
+        if not writer.is_alive() and daemon.publisher._queue.empty():
+            time.sleep(0.5)
+            if daemon.health.counts["frames_ok"] < count:
+                break
+        time.sleep(0.002)
+    published_s = time.perf_counter() - start
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    ok = daemon.health.counts["frames_ok"]
+    result: dict[str, Any] = {
+        "frames_sent": count, "frames_published": ok,
+        "dropped": daemon.health.dropped(),
+        "publish_frames_per_s": ok / published_s,
+        "daemon_cpu_ms_per_frame": 1e3 * ((cpu1.ru_utime - cpu0.ru_utime)
+                                          + (cpu1.ru_stime - cpu0.ru_stime)) / max(ok, 1),
+    }
+    if wait_events:
+        while client.xlen(events_stream(device)) < ok and time.monotonic() < deadline:
+            time.sleep(0.01)
+        done_s = time.perf_counter() - start
+        events = [{k.decode(): v.decode() for k, v in f.items()}
+                  for _, f in client.xrange(events_stream(device))]
+        frames = [e for e in events if e.get("type") == "frame"]
+        latency = np.array([(int(e["written_ns"]) - int(e["timestamp_ns"])) / 1e6
+                            for e in frames])
+        result.update({
+            "frames_reconstructed": len(frames),
+            "end_to_end_frames_per_s": len(frames) / done_s,
+            "latency_ms_p50": float(np.median(latency)) if len(latency) else None,
+            "latency_ms_p99": float(np.quantile(latency, 0.99)) if len(latency) else None,
+        })
+    writer.join(10)
+    daemon.stop()
+    endpoint.close()
+    client.xtrim(frame_stream(device), maxlen=0)  # free the memory, keep the stream
+    client.srem(DEVICES_SET, device)
+    return result
+
+
+def bench_decoder(templates: list[DataPacket], repeat: int = 20) -> dict[str, float]:
+    """The decoder alone (decode + EXR encode), in-process, frames/s."""
+    decoder = get_decoder(DECODER)
+    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
+    start = time.perf_counter()
+    for i in range(repeat):
+        codes = templates[i % len(templates)].codes
+        result = decoder.decode(codes, params)
+        encode_exr_result(codes, result.winding, params, {}, {})
+    return {"frames_per_s": repeat / (time.perf_counter() - start)}
+
+
+def start_workers(n: int, url: str, data_dir: Path) -> list[subprocess.Popen[bytes]]:
+    env = {**os.environ, "MCAM_REDIS_URL": url, "MCAM_DATA_DIR": str(data_dir)}
+    mcam = Path(sys.executable).parent / "mcam"
+    return [subprocess.Popen([mcam, "worker", "--decoder", DECODER, "--threads", "1",
+                              "--log-level", "WARNING"], env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            for _ in range(n)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.stream", description=__doc__)
+    parser.add_argument("--frames", type=int, default=300, help="frames per link run")
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--latency-fps", type=float, default=5.0,
+                        help="paced rate for the latency runs")
+    args = parser.parse_args(argv)
+    templates = template_packets()
+    rows: dict[str, Any] = {"parse_only": bench_parse(stream_bytes(templates, args.frames,
+                                                                     False)),
+                            "decoder_in_process": bench_decoder(templates)}
+    with tempfile.TemporaryDirectory(prefix="mcam-bench-") as tmp:
+        workdir = Path(tmp)
+        with EmbeddedRedis(workdir / "redis") as url:
+            rows["link_path"] = run_link(url, "bench0", args.frames, templates, None, workdir,
+                                         False)
+            for n in args.workers:
+                workers = start_workers(n, url, workdir / f"data{n}")
+                time.sleep(2.0)
+                rows[f"e2e_{n}_workers_flood"] = run_link(url, f"flood{n}", args.frames,
+                                                          templates, None, workdir, True)
+                rows[f"e2e_{n}_workers_paced"] = run_link(
+                    url, f"paced{n}", max(20, args.frames // 6), templates, args.latency_fps,
+                    workdir, True)
+                for worker in workers:
+                    worker.terminate()
+                for worker in workers:
+                    worker.wait(30)
+    report = {"date": utc_now(), "machine": machine(), "versions": versions(),
+              "decoder": DECODER, "frame": "256x256 8-bit modulo", "results": rows}
+    lines = ["| run | metric | value |", "|---|---|---|"]
+    for name, values in rows.items():
+        for metric, value in values.items():
+            shown = f"{value:.3f}" if isinstance(value, float) else str(value)
+            lines.append(f"| {name} | {metric} | {shown} |")
+    markdown = "\n".join(lines)
+    print(markdown)
+    write_report(report, markdown, RESULTS / "stream.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
