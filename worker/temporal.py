@@ -16,14 +16,16 @@ same ``W_t`` with at least ``margin`` wraps to spare: ``|W_t + m_t - u_{t-1}(q)|
 0.5 - margin`` for every q in the window. Safe pixels keep the temporal answer.
 Unsafe pixels fall back to the spatial decoder:
 
-- few unsafe pixels (their ``tile`` x ``tile`` tiles, padded by ``tile_pad``, cover
-  at most ``local_area`` of the frame): the spatial decoder runs on those crops only
-  (the *local* path), and each crop's unknown constant is set to the most common
-  difference to the temporal answer on the crop's safe pixels;
-- more: one full spatial decode of the frame, aligned the same way (*spatial* path).
-  Where a spatial prediction exists (crop or full) and disagrees with a safe
-  temporal answer, the spatial one wins when it is *confident* (its ``u`` is within
-  half a wrap of all four neighbours) and the temporal one is not.
+- few unsafe pixels (at most ``local_limit`` of the frame): a cheap local fix, no
+  spatial decoder: each unsafe pixel takes the W (within the range motion allows)
+  that brings its ``u`` closest to a settled 8-neighbour's ``u`` (the best-matching
+  neighbour decides, as in quality-guided unwrapping), growing inwards from the
+  safe pixels for up to ``local_passes`` passes (the *local* path);
+- more: one full spatial decode of the frame, its unknown constant set to the most
+  common difference to the temporal answer on safe pixels (*spatial* path). There,
+  where the spatial answer disagrees with a safe temporal one, the spatial one wins
+  when it is *confident* (its ``u`` is within half a wrap of all four neighbours)
+  and the temporal one is not.
 
 Whole frames are decoded spatially (*keyframes*) for: the first frame of a stream,
 a frame flagged DISCONT (device reconnect), a sequence gap, a change of shape or
@@ -58,7 +60,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import maximum_filter, minimum_filter
 
 from models.decoders.base import Decoder, check_frame_shape
 from models.decoders.registry import get_decoder
@@ -72,16 +73,15 @@ PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
 @dataclass(frozen=True)
 class TemporalConfig:
     """Knobs of the temporal rule (see the module docstring). ``margin`` in wraps,
-    ``motion_radius``, ``tile`` and ``tile_pad`` in pixels, ``keyframe_interval`` in
-    frames (0: no periodic keyframes), ``local_area`` a fraction of the frame."""
+    ``still`` in wraps, ``motion_radius`` in pixels, ``keyframe_interval`` in frames
+    (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels."""
 
     margin: float = 0.1
     motion_radius: int = 1
     still: float = 0.05
     keyframe_interval: int = 30
-    local_area: float = 0.25
-    tile: int = 32
-    tile_pad: int = 8
+    local_limit: float = 0.1
+    local_passes: int = 4
 
     def __post_init__(self) -> None:
         checks = {
@@ -89,9 +89,8 @@ class TemporalConfig:
             "still must be in [0, 0.5]": 0.0 <= self.still <= 0.5,
             "motion_radius must be >= 0": self.motion_radius >= 0,
             "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
-            "local_area must be in [0, 1]": 0.0 <= self.local_area <= 1.0,
-            "tile must be >= 2": self.tile >= 2,
-            "tile_pad must be >= 0": self.tile_pad >= 0,
+            "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
+            "local_passes must be >= 1": self.local_passes >= 1,
         }
         problems = [text for text, ok in checks.items() if not ok]
         if problems:
@@ -156,21 +155,54 @@ def _stream_key(params: SensorParams) -> dict[str, Any]:
 class Prediction:
     """The temporal answer for a frame (arrays H x W x C, or H x W for one channel).
 
-    ``winding``: ``round(u_{t-1} - m_t)``; ``safe``: where it is kept; ``lowest`` /
-    ``highest``: the range of W that motion within ``motion_radius`` allows (a
-    fallback answer is clipped into it).
+    ``winding``: ``round(u_{t-1} - m_t)``; ``safe``: where it is kept; ``lo`` / ``hi``:
+    the least / greatest previous ``u`` within ``motion_radius``; ``m``: the frame.
     """
 
     winding: NDArray[np.int64]
     safe: NDArray[np.bool_]
-    lowest: NDArray[np.int64]
-    highest: NDArray[np.int64]
+    lo: NDArray[np.float64]
+    hi: NDArray[np.float64]
+    m: NDArray[np.float64]
 
     def channel(self, c: int) -> Prediction:
         """The prediction of channel ``c`` (H x W arrays)."""
-        return Prediction(
-            self.winding[:, :, c], self.safe[:, :, c], self.lowest[:, :, c], self.highest[:, :, c]
-        )
+        return Prediction(*(part[:, :, c] for part in self._parts()))
+
+    def crop(self, index: Any) -> Prediction:
+        """The prediction at ``index`` (a boolean mask or an index tuple of the arrays)."""
+        return Prediction(*(part[index] for part in self._parts()))
+
+    def _parts(self) -> tuple[NDArray[Any], ...]:
+        return (self.winding, self.safe, self.lo, self.hi, self.m)
+
+    def bounds(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The range of W that motion within ``motion_radius`` allows: ``W + m`` within
+        half a wrap of ``[lo, hi]`` (W >= 0); a fallback answer is clipped into it."""
+        lowest = np.ceil(self.lo - 0.5 - self.m)
+        highest = np.maximum(np.floor(self.hi + 0.5 - self.m), 0)
+        return lowest.astype(np.int64), highest.astype(np.int64)
+
+
+def _edge_padded(values: NDArray, radius: int, axis: int) -> NDArray:
+    """``values`` with its first / last ``radius`` lines along ``axis`` repeated outwards."""
+    first = np.take(values, [0] * radius, axis=axis)
+    last = np.take(values, [values.shape[axis] - 1] * radius, axis=axis)
+    return np.concatenate([first, values, last], axis=axis)
+
+
+def window_extreme(values: NDArray[np.float64], radius: int, pick: np.ufunc) -> NDArray:
+    """Min or max (``pick``) over the ``(2r+1)^2`` window of each pixel of an H x W x C
+    array, edges repeated (separable, by shifted slices: cheaper than a filter call)."""
+    out = values
+    for axis in (0, 1):
+        size = out.shape[axis]
+        padded = _edge_padded(out, radius, axis)
+        lines = [slice(None)] * padded.ndim
+        for start in range(2 * radius + 1):
+            lines[axis] = slice(start, start + size)
+            out = padded[tuple(lines)] if start == 0 else pick(out, padded[tuple(lines)])
+    return out
 
 
 def temporal_prediction(
@@ -184,17 +216,11 @@ def temporal_prediction(
     safe = change <= limit
     lo, hi = prev_u, prev_u
     if config.motion_radius > 0:
-        window = (2 * config.motion_radius + 1, 2 * config.motion_radius + 1, 1)
-        lo = minimum_filter(prev_u, size=window, mode="nearest")
-        hi = maximum_filter(prev_u, size=window, mode="nearest")
-        still = maximum_filter(change, size=window, mode="nearest") <= config.still
+        lo = window_extreme(prev_u, config.motion_radius, np.minimum)
+        hi = window_extreme(prev_u, config.motion_radius, np.maximum)
+        still = window_extreme(change, config.motion_radius, np.maximum) <= config.still
         safe &= still | ((u - lo <= limit) & (hi - u <= limit))
-    return Prediction(
-        winding.astype(np.int64),
-        safe,
-        np.ceil(lo - 0.5 - m).astype(np.int64),
-        np.floor(hi + 0.5 - m).astype(np.int64),
-    )
+    return Prediction(winding.astype(np.int64), safe, lo, hi, m)
 
 
 def common_offset(target: NDArray[np.int64], relative: NDArray[np.int64]) -> int:
@@ -217,7 +243,7 @@ def locally_smooth(u: NDArray[np.float64]) -> NDArray[np.bool_]:
 
 
 def merge_spatial(
-    m: NDArray[np.float64], prediction: Prediction, spatial: NDArray[np.int64]
+    prediction: Prediction, spatial: NDArray[np.int64]
 ) -> tuple[NDArray[np.int64], NDArray[np.bool_]] | None:
     """Combine one channel's temporal and spatial W (H x W) as the module doc says.
 
@@ -228,10 +254,47 @@ def merge_spatial(
     if not safe.any():
         return None
     aligned = spatial + common_offset(temporal[safe], spatial[safe])
-    aligned = np.clip(aligned, prediction.lowest, np.maximum(prediction.highest, 0))
+    aligned = np.clip(aligned, *prediction.bounds())
+    m = prediction.m
     confident = locally_smooth(aligned + m) & ~locally_smooth(temporal + m)
     take = ~safe | ((temporal != aligned) & confident)
     return np.where(take, aligned, temporal), take
+
+
+_NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+
+
+def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
+    """One channel's W with its unsafe pixels set from their best-matching settled
+    8-neighbour (see module doc); pixels never reached keep the temporal answer."""
+    winding = prediction.winding.copy()
+    width = winding.shape[1] + 2
+    settled = np.pad(prediction.safe, 1).ravel()
+    u = np.pad(winding + prediction.m, 1).ravel()
+    rows, cols = np.nonzero(~prediction.safe)
+    unsafe = prediction.crop((rows, cols))
+    lowest, highest = unsafe.bounds()
+    m_open = unsafe.m
+    where = (rows + 1) * width + cols + 1
+    offsets = [dy * width + dx for dy, dx in _NEIGHBOURS]
+    for _ in range(passes):
+        best = np.full(where.shape, np.inf)
+        choice = np.zeros(where.shape, np.int64)
+        for offset in offsets:
+            other = u[where + offset]
+            candidate = np.clip(np.rint(other - m_open), lowest, highest)
+            distance = np.abs(other - candidate - m_open)
+            better = settled[where + offset] & (distance < best)
+            best[better], choice[better] = distance[better], candidate[better]
+        done = np.isfinite(best)
+        u[where[done]] = choice[done] + m_open[done]
+        settled[where[done]] = True
+        winding.ravel()[where[done] - width - 1 - 2 * (where[done] // width - 1)] = choice[done]
+        keep = ~done
+        if not keep.any() or keep.all():
+            break
+        where, lowest, highest, m_open = where[keep], lowest[keep], highest[keep], m_open[keep]
+    return winding
 
 
 class StreamDecoder:
@@ -337,16 +400,13 @@ class StreamDecoder:
             plane, channel = m[:, :, c], prediction.channel(c)
             if channel.safe.all():
                 continue
-            crops = self._crops(~channel.safe)
-            area = sum((ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in crops)
-            fixed = None
-            if area <= self.config.local_area * plane.size:
-                fixed = self._local_fix(plane, channel, params, crops)
-            if fixed is not None:
-                winding[:, :, c], local[:, :, c] = fixed
+            unsafe = ~channel.safe
+            if unsafe.mean() <= self.config.local_limit:
+                fixed = neighbour_fix(channel, self.config.local_passes)
+                winding[:, :, c], local[:, :, c] = fixed, unsafe
                 continue
             whole = self.spatial.predict_winding(plane, params).astype(np.int64)
-            merged = merge_spatial(plane, channel, whole)
+            merged = merge_spatial(channel, whole)
             winding[:, :, c], spatial[:, :, c] = merged or (whole, np.ones(whole.shape, bool))
         size = float(m.size)
         used_local, used_spatial = local.sum() / size, spatial.sum() / size
@@ -355,50 +415,6 @@ class StreamDecoder:
             "local": float(used_local),
             "spatial": float(used_spatial),
         }
-
-    def _crops(self, unsafe: NDArray[np.bool_]) -> list[tuple[slice, slice]]:
-        """Padded crops around the ``tile`` x ``tile`` tiles that hold unsafe pixels."""
-        tile, pad = self.config.tile, self.config.tile_pad
-        height, width = unsafe.shape
-        rows, cols = -(-height // tile), -(-width // tile)
-        padded = np.zeros((rows * tile, cols * tile), bool)
-        padded[:height, :width] = unsafe
-        busy = padded.reshape(rows, tile, cols, tile).any(axis=(1, 3))
-        crops = []
-        for ty, tx in np.argwhere(busy):
-            y0, x0 = max(ty * tile - pad, 0), max(tx * tile - pad, 0)
-            y1, x1 = min((ty + 1) * tile + pad, height), min((tx + 1) * tile + pad, width)
-            crops.append((slice(int(y0), int(y1)), slice(int(x0), int(x1))))
-        return crops
-
-    def _local_fix(
-        self,
-        m: NDArray[np.float64],
-        prediction: Prediction,
-        params: SensorParams,
-        crops: list[tuple[slice, slice]],
-    ) -> tuple[NDArray[np.int64], NDArray[np.bool_]] | None:
-        """Spatially decode each crop of one channel and merge it; None if a crop has
-        no safe pixel to align to."""
-        winding = prediction.winding.copy()
-        took = np.zeros(m.shape, bool)
-        for ys, xs in crops:
-            if ys.stop - ys.start < 2 or xs.stop - xs.start < 2:
-                return None
-            relative = self.spatial.predict_winding(m[ys, xs], params).astype(np.int64)
-            crop = Prediction(
-                prediction.winding[ys, xs],
-                prediction.safe[ys, xs],
-                prediction.lowest[ys, xs],
-                prediction.highest[ys, xs],
-            )
-            merged = merge_spatial(m[ys, xs], crop, relative)
-            if merged is None:
-                return None
-            crop_w, crop_took = merged
-            winding[ys, xs] = np.where(crop_took, crop_w, winding[ys, xs])
-            took[ys, xs] |= crop_took
-        return winding, took
 
 
 def decode_frames(

@@ -11,10 +11,12 @@ from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode
 from worker.temporal import (
+    Prediction,
     StreamDecoder,
     StreamState,
     TemporalConfig,
     decode_frames,
+    neighbour_fix,
     temporal_prediction,
 )
 
@@ -149,8 +151,8 @@ def test_prediction_flags_edges_near_moving_content() -> None:
 
 @pytest.mark.parametrize(
     "bad",
-    [{"margin": 0.5}, {"motion_radius": -1}, {"keyframe_interval": -2}, {"local_area": 2.0},
-     {"tile": 1}, {"still": 0.7}],
+    [{"margin": 0.5}, {"motion_radius": -1}, {"keyframe_interval": -2}, {"local_limit": 2.0},
+     {"local_passes": 0}, {"still": 0.7}],
 )
 def test_bad_settings_are_refused(bad: dict) -> None:
     with pytest.raises(InvalidInputError, match="invalid temporal settings"):
@@ -166,3 +168,19 @@ def test_bad_mode_decoder_and_frame_are_refused(temporal: StreamDecoder) -> None
         temporal.decode(np.zeros(5, np.uint8), PARAMS, StreamState())
     with pytest.raises(InvalidInputError):
         temporal.decode(np.full((4, 4), 300, np.uint16), PARAMS, StreamState())
+
+
+def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:
+    """Pixels marked unsafe in a smooth, wrapping ramp take W from settled neighbours,
+    even a 3 x 3 block (filled over two passes), and match the truth."""
+    u = np.add.outer(np.linspace(0, 3, 12), np.linspace(0, 2, 10))[:, :, None]
+    m = u - np.floor(u)
+    prediction = temporal_prediction(m, u, TemporalConfig(motion_radius=0))
+    wrong = prediction.winding.copy()
+    safe = prediction.safe.copy()
+    wrong[4:7, 4:7] += 2
+    safe[4:7, 4:7] = False
+    safe[0, 9] = False
+    damaged = Prediction(wrong, safe, prediction.lo, prediction.hi + 3, m)
+    fixed = neighbour_fix(damaged.channel(0), passes=2)
+    np.testing.assert_array_equal(fixed, np.floor(u[:, :, 0]))
