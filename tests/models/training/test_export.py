@@ -12,12 +12,17 @@ import torch
 
 from models.formation import dequantize
 from models.scenes import val256_frames
-from models.training.export import WindingGraph, sha256_of
+from models.training.export import (
+    RolloverGraph,
+    WindingGraph,
+    export_run,
+    sha256_of,
+    trained_model,
+)
+from models.training.train import TrainConfig, train
 
 
 def torch_winding(checkpoint: Path, m: np.ndarray) -> np.ndarray:
-    from models.training.export import trained_model
-
     model, config, _ = trained_model(checkpoint)
     with torch.no_grad():
         return WindingGraph(model, config.loss)(torch.from_numpy(m)).numpy()
@@ -45,3 +50,21 @@ def test_onnxruntime_agrees_with_pytorch(exported: tuple[Path, Path], source: st
     onnx_w = session.run(None, {"m": m})[0]
     assert onnx_w.shape == m.shape and onnx_w.dtype == np.int64
     assert (onnx_w == torch_winding(checkpoint, m)).mean() > 0.999
+
+
+def test_unmodnet_exports_one_rollover_pass_matching_pytorch(tmp_path: Path) -> None:
+    config = TrainConfig(
+        family="unmodnet", tier="tiny", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
+    )
+    card_path = export_run(train(config), tmp_path / "onnx")
+    card = json.loads(card_path.read_text())
+    assert card["decoder"] == "unmodnet" and card["max_passes"] == 15
+    m = np.random.default_rng(2).random((1, 1, 32, 48), dtype=np.float32)
+    winding = np.ones_like(m)
+    session = ort.InferenceSession(str(card_path.with_suffix(".onnx")))
+    onnx_out = session.run(None, {"m": m, "winding": winding})[0]
+    model, _, _ = trained_model(tmp_path / config.name / "checkpoint.pt")
+    with torch.no_grad():
+        torch_out = RolloverGraph(model)(torch.from_numpy(m), torch.from_numpy(winding)).numpy()
+    assert onnx_out.shape == m.shape and set(np.unique(onnx_out)) <= {0, 1}
+    assert (onnx_out == torch_out).mean() > 0.999
