@@ -2,8 +2,10 @@
 
 The exported graph maps ``m`` (``1 x 1 x H x W`` float32, H and W multiples of
 :data:`MULTIPLE`) to ``winding`` (``1 x 1 x H x W`` int64): the argmax (or the
-rounded regression) is inside the graph. The card (JSON, next to the .onnx) is
-what the runtime discovers; :func:`models.decoders.learned.specs` reads it.
+rounded regression) is inside the graph. An UnModNet run exports one pass,
+``(m, winding) -> rollover`` (int64 0/1), that the runtime repeats. The card
+(JSON, next to the .onnx) is what the runtime discovers; :func:`models.decoders.learned.specs`
+reads it.
 """
 
 from __future__ import annotations
