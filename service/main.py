@@ -35,6 +35,7 @@ ROUTERS: tuple[str, ...] = (
     "service.api.routes.health",
     "service.api.routes.metrics",
     "service.api.routes.devices",
+    "service.api.routes.videos",
 )
 STATIC_DIR = Path(__file__).parent / "static"
 API_VERSION = "1.0.0"

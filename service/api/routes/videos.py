@@ -1,0 +1,162 @@
+"""``POST /v1/videos``: queue a wrapped video; ``GET /v1/videos/{id}/result``: its files.
+
+The upload is a multi-page TIFF, a ``.npy`` of shape T x H x W[x C] or a zip of PNG
+frames (see ``worker/video_input.py``). The job (``GET /v1/jobs/{id}``) reports
+progress as frames decoded of frames total; when it succeeded its outputs are
+downloaded by name: ``hdr10`` (HEVC Main10 PQ MP4), ``sdr`` (H.264 preview MP4),
+``exr_zip`` (one EXR per frame).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import JSONResponse
+from pydantic import Field
+from starlette.concurrency import run_in_threadpool
+
+from models.errors import InvalidInputError, UnsupportedFormatError
+from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.routes.jobs import JOB_ERRORS, finished_record
+from service.api.schemas import UPLOAD_ERRORS, JobAccepted, error_response, upload_body
+from service.api.state import ServiceState
+from service.api.uploads import SensorFields, Upload, read_upload_fields
+from worker.temporal import TemporalConfig
+from worker.video_input import decode_video
+from worker.video_jobs import VIDEO_FILES, video_options
+from worker.video_output import MIN_HDR10_SIDE, REFERENCE_WHITE
+from worker.video_pipeline import OUTPUTS
+
+router = APIRouter(prefix="/v1/videos", tags=["videos"])
+
+_MAGIC: tuple[tuple[bytes, str], ...] = (
+    (b"II*\x00", "tiff"),
+    (b"MM\x00*", "tiff"),
+    (b"\x93NUMPY", "npy"),
+    (b"PK\x03\x04", "zip"),
+)
+_MEDIA = {"hdr10": "video/mp4", "sdr": "video/mp4", "exr_zip": "application/zip"}
+
+
+class VideoFields(SensorFields):
+    """Parameters of ``POST /v1/videos``."""
+
+    decoder: str | None = Field(None, description="spatial decoder (GET /v1/decoders)")
+    mode: Literal["independent", "temporal"] = Field(
+        "temporal", description="frame by frame, or unwrapped along time with fallbacks"
+    )
+    outputs: str = Field(
+        ",".join(OUTPUTS), description=f"comma-separated subset of {', '.join(OUTPUTS)}"
+    )
+    fps: float = Field(30.0, gt=0, le=1000, description="frame rate of the videos")
+    white_level: float = Field(
+        1.0, gt=0, description="x (wrap units) shown at the reference white"
+    )
+    reference_white: float = Field(
+        REFERENCE_WHITE, gt=0, le=10_000, description="cd/m^2 (default: ITU-R BT.2408)"
+    )
+    keyframe_interval: int = Field(
+        TemporalConfig.keyframe_interval, ge=0, description="temporal: spatial keyframe period"
+    )
+    half: bool = Field(False, description="EXR frames as half floats")
+    format: Literal["tiff", "npy", "zip"] | None = Field(
+        None, description="video file format; default: from the file name or its first bytes"
+    )
+
+
+def sniff_video_format(upload: Upload, declared: str | None) -> str:
+    """The video format: declared, else the file name's suffix, else the leading bytes."""
+    if declared:
+        return declared
+    if upload.filename and "." in upload.filename:
+        suffix = upload.filename.rsplit(".", 1)[-1].lower()
+        if suffix in ("tif", "tiff", "npy", "zip"):
+            return "tiff" if suffix == "tif" else suffix
+    for magic, fmt in _MAGIC:
+        if upload.data.startswith(magic):
+            return fmt
+    raise UnsupportedFormatError(
+        "cannot tell the video's format: send a multi-page .tiff, a .npy (T x H x W[x C]) "
+        "or a .zip of PNG frames"
+    )
+
+
+def submit(state: ServiceState, upload: Upload, fields: VideoFields) -> Response:
+    """Decode the upload, check the options and queue the job."""
+    settings = state.settings
+    fmt = sniff_video_format(upload, fields.format)
+    video = decode_video(
+        upload.data, fmt, fields.sensor_overrides(), settings.max_pixels, settings.max_video_frames
+    )
+    decoder = fields.decoder or settings.default_decoder
+    options = {
+        "mode": fields.mode,
+        "outputs": [name.strip() for name in fields.outputs.split(",") if name.strip()],
+        "fps": fields.fps,
+        "white_level": fields.white_level,
+        "reference_white": fields.reference_white,
+        "keyframe_interval": fields.keyframe_interval,
+        "half": fields.half,
+    }
+    video_options(decoder, options)
+    if "hdr10" in options["outputs"] and min(video.codes.shape[1:3]) < MIN_HDR10_SIDE:
+        raise InvalidInputError(
+            f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels; "
+            "ask for outputs=exr_zip,sdr"
+        )
+    record = state.queue.submit("video", video.codes, video.params, decoder, options)
+    url = f"/v1/jobs/{record.id}"
+    accepted = JobAccepted(id=record.id, url=url, state=record.state)
+    return JSONResponse(
+        accepted.model_dump(mode="json"), status_code=202, headers={"Location": url}
+    )
+
+
+@router.post(
+    "",
+    summary="Decode a wrapped video into HDR10 / SDR / EXR-sequence files (asynchronous job)",
+    status_code=202,
+    response_model=JobAccepted,
+    responses={202: {"model": JobAccepted, "description": "queued"}, **UPLOAD_ERRORS},
+    openapi_extra=upload_body(VideoFields, "a wrapped video (.tiff pages, .npy, .zip of PNGs)"),
+)
+async def post_video(
+    request: Request, query: Annotated[VideoFields, Query()], state: StateDep, _: SubmitKey
+) -> Response:
+    """Queue a wrapped video; poll ``GET /v1/jobs/{id}`` for progress (frames done)."""
+    upload, fields = await read_upload_fields(request, VideoFields, query)
+    return await run_in_threadpool(submit, state, upload, fields)
+
+
+@router.get(
+    "/{job_id}/result",
+    summary="A finished video job's file: hdr10, sdr or exr_zip",
+    response_class=Response,
+    responses={
+        200: {"content": {"video/mp4": {}, "application/zip": {}}},
+        409: error_response("the job has not succeeded, or did not make that output"),
+        **JOB_ERRORS,
+    },
+)
+def get_video_result(
+    job_id: str,
+    state: StateDep,
+    _: ReadKey,
+    output: Annotated[
+        Literal["hdr10", "sdr", "exr_zip"], Query(description="which file")
+    ] = "hdr10",
+) -> Response:
+    """The output file of a succeeded video job."""
+    record = finished_record(state, job_id)
+    if record.kind != "video" or output not in record.results:
+        raise InvalidInputError(
+            f"job {job_id} has no {output!r} output; it made: {', '.join(record.results)}"
+        )
+    data = state.store.read(record.results[output])
+    name = VIDEO_FILES[output]
+    return Response(
+        data,
+        media_type=_MEDIA[output],
+        headers={"Content-Disposition": f'attachment; filename="{job_id}-{name}"'},
+    )

@@ -1,0 +1,110 @@
+"""POST /v1/videos against a live API, a real Redis and a real worker, files read back."""
+
+from __future__ import annotations
+
+import io
+import time
+import zipfile
+from collections.abc import Callable
+
+import av
+import httpx
+import numpy as np
+
+from models.formation import SensorParams, encode
+from models.frames import encode_frame
+from models.hdr_io import read_hdr
+from tests.service.conftest import npy_bytes
+from worker.runner import Worker
+
+Client = Callable[[str], httpx.Client]
+FRAMES, SIZE = 30, 64
+PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+FLAGS = {"encoding": "mantissa", "alpha": "2", "bits": "8"}
+
+
+def slow_clip() -> list[np.ndarray]:
+    """A smooth blob (x up to ~9 wraps) brightening 2% per frame."""
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] - SIZE / 2
+    base = 0.05 + 8.0 * np.exp(-(yy**2 + xx**2) / 20.0**2)
+    return [base * 1.02**t for t in range(FRAMES)]
+
+
+def wait_for(http: httpx.Client, job_id: str, timeout_s: float = 120.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = http.get(f"/v1/jobs/{job_id}").json()
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            return job
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} did not finish in {timeout_s} s")
+
+
+def test_thirty_frame_video_end_to_end(client: Client, worker: Worker) -> None:
+    truth = slow_clip()
+    codes = np.stack([encode(x, PARAMS).codes for x in truth])
+    http = client()
+    reply = http.post(
+        "/v1/videos",
+        files={"file": ("clip.npy", npy_bytes(codes))},
+        data={**FLAGS, "mode": "temporal", "decoder": "itoh"},
+    )
+    assert reply.status_code == 202, reply.text
+    job = wait_for(http, reply.json()["id"])
+    assert job["state"] == "succeeded", job
+    assert job["kind"] == "video"
+    assert job["frames_done"] == job["frames_total"] == FRAMES and job["progress"] == 1.0
+    assert job["info"]["keyframes"] == 1 and job["info"]["paths"]["temporal"] > 0.9
+    hdr10 = http.get(f"/v1/videos/{job['id']}/result", params={"output": "hdr10"})
+    assert hdr10.status_code == 200 and hdr10.headers["content-type"] == "video/mp4"
+    with av.open(io.BytesIO(hdr10.content)) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "hevc"
+        assert stream.codec_context.pix_fmt == "yuv420p10le"
+        assert sum(1 for _ in container.decode(stream)) == FRAMES
+    sdr = http.get(f"/v1/videos/{job['id']}/result", params={"output": "sdr"})
+    with av.open(io.BytesIO(sdr.content)) as container:
+        assert container.streams.video[0].codec_context.name == "h264"
+    exr = http.get(f"/v1/videos/{job['id']}/result", params={"output": "exr_zip"})
+    with zipfile.ZipFile(io.BytesIO(exr.content)) as archive:
+        names = archive.namelist()
+        assert len(names) == FRAMES
+        for name, x in zip(names, truth, strict=True):
+            pixels = read_hdr(archive.read(name)).pixels
+            half_bin = 2.0**-9
+            bound = np.where(x < 1, half_bin, x * (2.0**half_bin - 1)) + 1e-6 * x
+            assert np.all(np.abs(pixels - x) <= bound), name
+
+
+def test_zip_of_pngs_independent_exr_only(client: Client, worker: Worker) -> None:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for t, x in enumerate(slow_clip()[:4]):
+            archive.writestr(f"f{t}.png", encode_frame(encode(x, PARAMS).codes, PARAMS, "png"))
+    http = client()
+    reply = http.post(
+        "/v1/videos",
+        content=buffer.getvalue(),
+        params={"mode": "independent", "outputs": "exr_zip"},
+        headers={"Content-Type": "application/octet-stream"},
+    )
+    assert reply.status_code == 202, reply.text
+    job = wait_for(http, reply.json()["id"])
+    assert job["state"] == "succeeded" and set(job["results"]) == {"exr_zip"}
+    missing = http.get(f"/v1/videos/{job['id']}/result", params={"output": "hdr10"})
+    assert missing.status_code == 422 and "exr_zip" in missing.json()["message"]
+
+
+def test_bad_uploads_are_refused(client: Client) -> None:
+    http = client()
+    small = npy_bytes(np.zeros((3, 16, 16), np.uint8))
+    cases = [
+        ({"file": ("a.npy", small)}, {**FLAGS}, 422, "64 x 64"),
+        ({"file": ("a.npy", small)}, {**FLAGS, "outputs": "gif"}, 422, "gif"),
+        ({"file": ("a.bin", b"hello")}, {**FLAGS}, 415, "format"),
+        ({"file": ("a.npy", small)}, {"outputs": "exr_zip"}, 422, "--encoding"),
+    ]
+    for files, data, status, fragment in cases:
+        reply = http.post("/v1/videos", files=files, data=data)
+        assert reply.status_code == status, reply.text
+        assert fragment in reply.text

@@ -1,0 +1,97 @@
+"""The worker's ``video`` jobs: T wrapped frames in, HDR10 / SDR / EXR-sequence files out.
+
+``run_video_job`` is the handler :mod:`worker.job_processor` names for job kind
+``video``. The job record carries the spatial decoder and the sensor parameters;
+its ``options`` (see :func:`video_options`) pick the decoding mode, the outputs
+and the exposure scaling. Frames are decoded as one stream (the first frame is a
+keyframe); progress counts decoded frames; the job checks for cancellation and for
+worker shutdown after every frame (a stopped job is redone from its first frame by
+the next worker, so temporal state never spans workers).
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from models.errors import InvalidInputError
+from worker.job_processor import JobContext, JobOutcome
+from worker.temporal import TemporalConfig
+from worker.video_input import WrappedVideo
+from worker.video_output import REFERENCE_WHITE, Hdr10Settings
+from worker.video_pipeline import OUTPUTS, VideoOptions, decode_video_frames, write_outputs
+
+#: Result file name of each output.
+VIDEO_FILES: dict[str, str] = {
+    "hdr10": "video-hdr10.mp4",
+    "sdr": "video-sdr.mp4",
+    "exr_zip": "frames-exr.zip",
+}
+#: The options a video job takes, with their defaults.
+DEFAULT_OPTIONS: dict[str, Any] = {
+    "mode": "temporal",
+    "outputs": list(OUTPUTS),
+    "fps": 30.0,
+    "white_level": 1.0,
+    "reference_white": REFERENCE_WHITE,
+    "keyframe_interval": TemporalConfig.keyframe_interval,
+    "half": False,
+}
+
+
+def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, list[str]]:
+    """The decode/render options and the outputs of a job (unknown options refused)."""
+    unknown = set(options) - set(DEFAULT_OPTIONS)
+    if unknown:
+        raise InvalidInputError(f"unknown video options {sorted(unknown)}")
+    values = DEFAULT_OPTIONS | options
+    outputs = list(values["outputs"])
+    bad = [name for name in outputs if name not in OUTPUTS]
+    if bad or not outputs:
+        raise InvalidInputError(
+            f"video outputs must be a non-empty subset of {', '.join(OUTPUTS)}, got {outputs}"
+        )
+    return (
+        VideoOptions(
+            mode=values["mode"],
+            decoder=decoder,
+            temporal=TemporalConfig(keyframe_interval=int(values["keyframe_interval"])),
+            hdr10=Hdr10Settings(
+                fps=float(values["fps"]),
+                white_level=float(values["white_level"]),
+                reference_white=float(values["reference_white"]),
+            ),
+            half=bool(values["half"]),
+        ),
+        outputs,
+    )
+
+
+def run_video_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:
+    """Decode the job's frames, write its outputs to the result store."""
+    record = ctx.record
+    options, outputs = video_options(record.decoder, record.options)
+    video = WrappedVideo(codes, record.params)
+
+    def progress(stage: str, done: int, _total: int) -> None:
+        if stage == "decode":
+            ctx.progress(done)
+            ctx.check()
+            ctx.check_stop()
+
+    start = time.perf_counter_ns()
+    decoded = decode_video_frames(video, options, progress)
+    decoded_ns = time.perf_counter_ns()
+    buffers = {name: io.BytesIO() for name in outputs}
+    facts = write_outputs(decoded, video, dict(buffers), options)
+    ctx.check()
+    results = {name: ctx.write(VIDEO_FILES[name], buffers[name].getvalue()) for name in outputs}
+    return JobOutcome(
+        results=results,
+        timings_ns={"decode": decoded_ns - start, "encode": time.perf_counter_ns() - decoded_ns},
+        info={"mode": options.mode, "decoder": record.decoder, **decoded.summary(), **facts},
+    )
