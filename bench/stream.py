@@ -2,7 +2,8 @@
 
 Run as ``python -m bench.stream [--frames N] [--workers 1 2]``. Measures
 
-1. parse only: :class:`LinkParser` on pre-encoded packets in memory (frames/s, one core);
+1. parse only: :class:`LinkParser` on pre-encoded packets in memory (frames/s, one core),
+   and parse + publish (XADD to a real redis-server) in one thread: CPU ms per frame;
 2. link path: a writer process floods a real pty with pre-encoded packets, the daemon (this
    process) parses and XADDs them to a real redis-server: sustained frames/s and the
    daemon's CPU time per frame (this process's rusage: reader + publisher threads);
@@ -40,6 +41,7 @@ from device.simulator import VirtualScamp5
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams
 from worker.embedded_redis import EmbeddedRedis, connect
+from worker.frame_message import FrameMessage
 from worker.outputs import encode_exr_result
 from worker.redis_keys import DEVICES_SET, events_stream, frame_stream
 
@@ -75,6 +77,30 @@ def bench_parse(packets: list[bytes]) -> dict[str, float]:
     assert len(out) == len(packets)
     return {"frames": len(out), "frames_per_s": len(out) / seconds, "mb_per_s":
             len(data) / seconds / 1e6}
+
+
+def bench_parse_publish(url: str, packets: list[bytes]) -> dict[str, float]:
+    """Parse + FrameMessage + XADD in one thread, the daemon's per-frame work without the
+    pty reads and thread hand-offs: CPU ms per frame and frames/s of CPU on one core."""
+    client = connect(url, timeout_s=2.0)
+    data = b"".join(packets)
+    parser = LinkParser()
+    cpu = time.process_time()
+    published = 0
+    for i in range(0, len(data), 4096):
+        for packet in parser.feed(data[i : i + 4096]):
+            assert isinstance(packet, DataPacket)
+            params = SensorParams(encoding=packet.encoding, alpha=packet.alpha,
+                                  bits=packet.bits, gain=packet.gain)
+            message = FrameMessage("bench-pp", packet.sequence, packet.timestamp_ns,
+                                   packet.codes, params)
+            client.xadd(frame_stream("bench-pp"), message.to_fields(), maxlen=256,
+                        approximate=True)
+            published += 1
+    seconds = time.process_time() - cpu
+    client.delete(frame_stream("bench-pp"))
+    return {"frames": published, "cpu_ms_per_frame": 1e3 * seconds / published,
+            "frames_per_cpu_s": published / seconds}
 
 
 def _writer(endpoint: PtyEndpoint, templates: list[DataPacket], count: int,
@@ -177,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="mcam-bench-") as tmp:
         workdir = Path(tmp)
         with EmbeddedRedis(workdir / "redis") as url:
+            rows["parse_publish_one_thread"] = bench_parse_publish(
+                url, stream_bytes(templates, args.frames, False))
             rows["link_path"] = run_link(url, "bench0", args.frames, templates, None, workdir,
                                          False)
             for n in args.workers:
