@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -77,3 +78,30 @@ def test_devices_health_control_latest_and_events(
         assert events.headers["content-type"].startswith("text/event-stream")
         body = "".join(events.iter_text())
     assert body.count("event: frame") == 2 and '"sequence": "0"' in body
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium is not installed")
+def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) -> None:
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM,
+                                             args=["--no-sandbox", "--disable-gpu"])
+        page = browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{api}/")
+        page.fill("#api-key", FULL_KEY)
+        page.click("#key-form button")
+        page.wait_for_function("localStorage.getItem('mcam-api-key') !== null")
+        page.click("#live-refresh")
+        page.wait_for_selector("#live-device option[value=cam1]", state="attached")
+        page.select_option("#live-device", "cam1")
+        page.wait_for_function(
+            "document.getElementById('live-frame').naturalWidth === 256", timeout=60_000)
+        assert "frames" in page.inner_text("#live-status")
+        browser.close()
+    assert errors == []
