@@ -118,8 +118,8 @@ class BracketCollector:
 def save_pair(root: Path, device: str, bracket: Bracket) -> Path:
     """Write the (wrapped frame, reference HDR) pair; return its folder."""
     wrapped = bracket.wrapped
-    params = SensorParams(encoding=wrapped.encoding, alpha=wrapped.alpha, bits=wrapped.bits,
-                          gain=wrapped.gain or None)
+    params = SensorParams.parse({"encoding": wrapped.encoding, "alpha": wrapped.alpha,
+                                 "bits": wrapped.bits, "gain": wrapped.gain or None})
     folder = Path(root) / "datasets" / device / f"{wrapped.sequence:010d}"
     folder.mkdir(parents=True, exist_ok=True)
     write_frame(folder / "wrapped.png", wrapped.codes, params)

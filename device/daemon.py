@@ -119,8 +119,8 @@ class DeviceDaemon:
         if packet.flags & FLAG_BRACKET:
             self._on_bracket_packet(packet)
             return
-        params = SensorParams(encoding=packet.encoding, alpha=packet.alpha, bits=packet.bits,
-                              gain=packet.gain or None)
+        params = SensorParams.parse({"encoding": packet.encoding, "alpha": packet.alpha,
+                                     "bits": packet.bits, "gain": packet.gain or None})
         self.publisher.offer(FrameMessage(self.device, packet.sequence, packet.timestamp_ns,
                                           packet.codes, params, self._discont))
         self._discont = False

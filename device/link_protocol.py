@@ -19,6 +19,7 @@ header followed by the codes, row-major, 8-bit or 16-bit little-endian.
 from __future__ import annotations
 
 import enum
+import math
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -52,6 +53,8 @@ MAX_PAYLOAD_FIELD = (1 << 24) - 1
 #: Default parser limit: a 256 x 256 16-bit frame plus its data header, with headroom.
 DEFAULT_MAX_PAYLOAD = DATA_HEADER_SIZE + 512 * 512 * 2
 
+#: Largest alpha a data header may carry (as :class:`models.formation.SensorParams`).
+MAX_ALPHA = 1e6
 #: Data header ``data_type`` of an image of sensor codes (the SCAMP-5 analog-register image).
 DATA_TYPE_CODES = 3
 #: Data header flag bits.
@@ -240,6 +243,9 @@ def decode_data(payload: bytes | memoryview) -> DataPacket:
         raise ProtocolError(f"unsupported data version {version} / data type {dtype_id}")
     if enc not in ENCODING_NAMES or not 1 <= bits <= 16 or width == 0 or height == 0:
         raise ProtocolError(f"bad data header: encoding {enc}, bits {bits}, {width}x{height}")
+    if not (1.0 < alpha <= MAX_ALPHA and 0.0 <= gain < math.inf):
+        raise ProtocolError(f"bad data header: alpha {alpha} (must be in (1, {MAX_ALPHA}]), "
+                            f"gain {gain} (must be finite, >= 0)")
     itemsize = 1 if bits <= 8 else 2
     if len(payload) - DATA_HEADER_SIZE != width * height * itemsize:
         raise ProtocolError(

@@ -7,6 +7,8 @@ hash, and reads ``control:<device>`` for commands to forward to the camera.
 While Redis is unreachable, queued frames are dropped (``redis_unavailable``)
 and the connection is retried with backoff; the link keeps being read. After
 any drop the next published frame carries ``discont`` (temporal state broke).
+Growing drop and reconnect counters are also appended to ``events:<device>`` as
+``drop`` / ``reconnect`` events for the API's server-sent events.
 """
 
 from __future__ import annotations
@@ -96,12 +98,13 @@ class FramePublisher:
         self._housekeeping()
 
     def _redis(self, action: Callable[[], object]) -> bool:
-        """Run a Redis action unless Redis is known down; mark it down on failure."""
+        """Run a Redis action unless Redis is known down; mark it down on any Redis error
+        (unreachable, loading, out of memory, read-only replica...)."""
         if not self._redis_ok and time.monotonic() < self._retry_at:
             return False
         try:
             action()
-        except (redis.ConnectionError, redis.TimeoutError, OSError):
+        except (redis.RedisError, OSError):
             self._redis_ok = False
             self._retry_at = time.monotonic() + self._backoff
             self._backoff = min(self._backoff * 2, MAX_REDIS_BACKOFF_S)
