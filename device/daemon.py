@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import queue
+import select
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -38,6 +39,8 @@ from worker.redis_keys import validate_device_id
 log = logging.getLogger(__name__)
 
 PortOpener = Callable[[], Any]
+#: Most bytes taken from the port in one read.
+MAX_READ = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -57,8 +60,14 @@ class DaemonConfig:
 
 
 def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
-    """Open ``url`` with pyserial (any URL :func:`serial.serial_for_url` knows)."""
-    return lambda: serial.serial_for_url(url, timeout=read_timeout_s, write_timeout=1.0)
+    """Open ``url`` with pyserial (any URL :func:`serial.serial_for_url` knows).
+
+    ``socket://`` ports are opened non-blocking (timeout 0): their ``in_waiting`` only
+    says whether data is there, not how much, so the reader waits with ``select``
+    and then takes everything available in one read.
+    """
+    timeout = 0 if url.startswith("socket://") else read_timeout_s
+    return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=1.0)
 
 
 class DeviceDaemon:
@@ -169,8 +178,14 @@ class DeviceDaemon:
         """Read the open port until it fails or the daemon stops."""
         while not self._stop.is_set():
             self._flush_outbox(port)
-            waiting = port.in_waiting
-            self._feed(port.read(min(max(waiting, 1), 1 << 20)))
+            self._feed(self._read_chunk(port))
+
+    def _read_chunk(self, port: Any) -> bytes:
+        """What the port has now, waiting up to the read timeout for the first byte."""
+        if port.timeout == 0:
+            select.select([port.fileno()], [], [], self.config.read_timeout_s)
+            return bytes(port.read(MAX_READ))
+        return bytes(port.read(min(max(port.in_waiting, 1), MAX_READ)))
 
     def _link_lost(self) -> None:
         """Forget partial packets and sequence state: the next frame starts a new run."""

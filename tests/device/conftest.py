@@ -12,7 +12,7 @@ import redis
 
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.faults import Faults
-from device.sim_link import PtyEndpoint
+from device.sim_link import Endpoint, PtyEndpoint
 from device.simulator import CameraSettings, VirtualScamp5
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
@@ -57,10 +57,11 @@ class Link:
 
     def __init__(self, client: redis.Redis, tmp_path: Path, frames: int,
                  faults: Faults | None = None, settings: CameraSettings | None = None,
-                 device: str = "cam1") -> None:
+                 device: str = "cam1", endpoint: Endpoint | None = None) -> None:
         self.device = device
         self.camera = VirtualScamp5(
-            PtyEndpoint(tmp_path / "scamp5"), settings=settings or CameraSettings(fps=200),
+            endpoint or PtyEndpoint(tmp_path / "scamp5"),
+            settings=settings or CameraSettings(fps=200),
             faults=faults, seed=7, history=1000, max_frames=frames,
         )
         config = DaemonConfig(port=self.camera.endpoint.url, device=device, frames_maxlen=1000,

@@ -9,6 +9,7 @@ import numpy as np
 import redis
 
 from device.faults import Faults
+from device.sim_link import TcpEndpoint
 from tests.device.conftest import health, stream_frames, wait_for
 from worker.embedded_redis import EmbeddedRedis
 from worker.redis_keys import DEVICES_SET, control_stream
@@ -74,6 +75,31 @@ def test_disconnect_mid_stream_reconnects_and_marks_discont(link, client: redis.
         for prev, frame in zip(frames, frames[1:], strict=False):
             if frame.sequence == prev.sequence + 1 and frame.sequence not in (14, 29):
                 assert not frame.discont
+            np.testing.assert_array_equal(frame.codes,
+                                          run.camera.ground_truth(frame.sequence).codes)
+
+
+def test_drops_stalls_and_bogus_lengths(link, client: redis.Redis) -> None:
+    faults = Faults(drop_packets=0.1, oversize_packets=0.2, stall_every=7, stall_s=0.2, seed=5)
+    with link(40, faults=faults) as run:
+        finish_clean(run, 40)
+        lost = {seq for seq, sent in run.camera.sent.items() if not sent.intact}
+        assert lost, "some packets should have been dropped"
+        assert {f.sequence for f in stream_frames(client, "cam1")} == set(run.camera.sent) - lost
+        counts = run.daemon.health.counts
+        assert counts["frames_missing"] == len(lost)
+        assert counts["dropped_oversize"] > 0 and counts["dropped_truncated"] == 0
+
+
+def test_tcp_link_reconnects(link, client: redis.Redis) -> None:
+    faults = Faults(disconnect_every=12, disconnect_s=0.3)
+    with link(30, faults=faults, endpoint=TcpEndpoint()) as run:
+        assert run.daemon.config.port.startswith("socket://127.0.0.1:")
+        finish_clean(run, 30)
+        frames = stream_frames(client, "cam1")
+        assert run.daemon.health.counts["reconnects"] >= 1
+        assert next(f for f in frames if f.sequence >= 11).discont
+        for frame in frames:
             np.testing.assert_array_equal(frame.codes,
                                           run.camera.ground_truth(frame.sequence).codes)
 
