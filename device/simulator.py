@@ -16,20 +16,19 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 
-from device.commands import BracketCommand, to_command
+from device.commands import (
+    BracketCommand,
+    Command,
+    EncodingCommand,
+    ExposureCommand,
+    FrameRateCommand,
+    StartCommand,
+    StopCommand,
+    to_command,
+)
 from device.faults import Faults
 from device.link_parser import LinkParser
-from device.link_protocol import (
-    FLAG_BRACKET,
-    BracketPacket,
-    DataPacket,
-    EncodingPacket,
-    ExposurePacket,
-    FrameRatePacket,
-    StartPacket,
-    StopPacket,
-    encode_data,
-)
+from device.link_protocol import FLAG_BRACKET, DataPacket, encode_data
 from device.scenes import ProceduralScene, SceneSequence
 from device.sim_link import Endpoint
 from models.errors import InvalidInputError
@@ -91,7 +90,6 @@ class VirtualScamp5:
         self.frames_captured = 0
         self.packets_sent = 0
         self.packets_unsent = 0
-        self.controls_received: list[object] = []
         self.sent: OrderedDict[int, SentFrame] = OrderedDict()
         self._history = history
         self._bracket: BracketCommand | None = None
@@ -127,29 +125,29 @@ class VirtualScamp5:
     def handle_input(self) -> None:
         """Read host -> device bytes and obey every valid control packet in them."""
         for packet in self._parser.feed(self.endpoint.read()):
+            if isinstance(packet, DataPacket):
+                continue  # a host does not send images
             try:
-                command = to_command(packet)  # type: ignore[arg-type]
-            except (InvalidInputError, KeyError):
-                continue
-            self.controls_received.append(packet)
-            self.apply(packet, command)
+                command = to_command(packet)
+            except InvalidInputError:
+                continue  # out-of-range values: a device ignores the packet
+            self.apply(command)
 
-    def apply(self, packet: object, command: object) -> None:
-        """Change the settings as a (validated) control packet asks."""
+    def apply(self, command: Command) -> None:
+        """Change the settings as a validated control command asks."""
         s = self.settings
-        match packet:
-            case StartPacket():
+        match command:
+            case StartCommand():
                 s = replace(s, running=True)
-            case StopPacket():
+            case StopCommand():
                 s = replace(s, running=False)
-            case ExposurePacket(gain=gain, integration_ns=integration):
-                s = replace(s, gain=gain, integration_ns=integration)
-            case EncodingPacket(encoding=encoding, bits=bits, alpha=alpha):
-                s = replace(s, encoding=encoding, bits=bits, alpha=alpha)
-            case FrameRatePacket(fps=fps):
-                s = replace(s, fps=fps)
-            case BracketPacket():
-                assert isinstance(command, BracketCommand)
+            case ExposureCommand():
+                s = replace(s, gain=command.gain, integration_ns=command.integration_ns)
+            case EncodingCommand():
+                s = replace(s, encoding=command.encoding, bits=command.bits, alpha=command.alpha)
+            case FrameRateCommand():
+                s = replace(s, fps=command.fps)
+            case BracketCommand():
                 self._bracket = command
         self.settings = s
 
