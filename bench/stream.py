@@ -7,9 +7,11 @@ Run as ``python -m bench.stream [--frames N] [--workers 1 2]``. Measures
 2. link path: a writer process floods a real pty with pre-encoded packets, the daemon (this
    process) parses and XADDs them to a real redis-server: sustained frames/s and the
    daemon's CPU time per frame (this process's rusage: reader + publisher threads);
-3. end to end with 1 and 2 ``mcam worker`` processes (itoh): throughput when flooded, and
-   latency from the packet leaving the camera to the EXR on disk (event ``written_ns``
-   minus the packet's timestamp, both wall clock) when paced below capacity;
+3. end to end with 1 and 2 ``mcam worker`` processes (itoh): throughput when flooded (one
+   device, and as many devices as workers: a device stream is owned by one worker at a
+   time, so a second worker only helps with a second device), and latency from the packet
+   leaving the camera to the EXR on disk (event ``written_ns`` minus the packet's
+   timestamp, both wall clock) when paced below capacity;
 4. the decoder's own speed in-process (decode + EXR encode) for comparison.
 
 Frames are rendered once by the virtual SCAMP-5 (modulo, procedural scene) so rendering
@@ -115,43 +117,55 @@ def _writer(endpoint: PtyEndpoint, templates: list[DataPacket], count: int,
             time.sleep(max(0.0, next_t - time.monotonic()))
 
 
-def run_link(url: str, device: str, count: int, templates: list[DataPacket],
+def run_link(url: str, devices: list[str], count: int, templates: list[DataPacket],
              fps: float | None, workdir: Path, wait_events: bool) -> dict[str, Any]:
-    """Stream ``count`` packets through a pty and the daemon; return timings."""
+    """Stream ``count`` packets per device through one pty and daemon each; return timings
+    summed over the devices (latency percentiles over all frames)."""
     client = connect(url, timeout_s=2.0)
-    endpoint = PtyEndpoint(workdir / f"{device}.pty")
-    daemon = DeviceDaemon(DaemonConfig(port=endpoint.url, device=device, frames_maxlen=10_000,
-                                       queue_size=256), client).start()
-    time.sleep(0.3)  # let the daemon open the port
+    endpoints = [PtyEndpoint(workdir / f"{device}.pty") for device in devices]
+    daemons = [DeviceDaemon(DaemonConfig(port=endpoint.url, device=device, frames_maxlen=10_000,
+                                         queue_size=256), client).start()
+               for device, endpoint in zip(devices, endpoints, strict=True)]
+    time.sleep(0.3)  # let the daemons open their ports
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     start = time.perf_counter()
-    writer = mp.get_context("fork").Process(target=_writer,
-                                            args=(endpoint, templates, count, fps))
-    writer.start()
+    writers = [mp.get_context("fork").Process(target=_writer,
+                                              args=(endpoint, templates, count, fps))
+               for endpoint in endpoints]
+    for writer in writers:
+        writer.start()
     deadline = time.monotonic() + 300
-    while daemon.health.counts["frames_ok"] < count and time.monotonic() < deadline:
-        if not writer.is_alive() and daemon.publisher._queue.empty():
+    total = count * len(devices)
+
+    def published() -> int:
+        return sum(daemon.health.counts["frames_ok"] for daemon in daemons)
+
+    while published() < total and time.monotonic() < deadline:
+        if not any(w.is_alive() for w in writers) and all(
+                d.publisher._queue.empty() for d in daemons):
             time.sleep(0.5)
-            if daemon.health.counts["frames_ok"] < count:
+            if published() < total:
                 break
         time.sleep(0.02)
     published_s = time.perf_counter() - start
     cpu1 = resource.getrusage(resource.RUSAGE_SELF)
-    ok = daemon.health.counts["frames_ok"]
+    ok = published()
     result: dict[str, Any] = {
-        "frames_sent": count, "frames_published": ok,
-        "dropped": daemon.health.dropped(),
+        "devices": len(devices), "frames_sent": total, "frames_published": ok,
+        "dropped": sum(daemon.health.dropped() for daemon in daemons),
         "publish_frames_per_s": ok / published_s,
         "daemon_cpu_ms_per_frame": 1e3 * ((cpu1.ru_utime - cpu0.ru_utime)
                                           + (cpu1.ru_stime - cpu0.ru_stime)) / max(ok, 1),
     }
     if wait_events:
-        while client.xlen(events_stream(device)) < ok and time.monotonic() < deadline:
+        streams = [events_stream(device) for device in devices]
+        while (sum(client.xlen(s) for s in streams) < ok
+               and time.monotonic() < deadline):
             time.sleep(0.01)
         done_s = time.perf_counter() - start
-        events = [{k.decode(): v.decode() for k, v in f.items()}
-                  for _, f in client.xrange(events_stream(device))]
-        frames = [e for e in events if e.get("type") == "frame"]
+        frames = [e for s in streams for e in (
+            {k.decode(): v.decode() for k, v in f.items()} for _, f in client.xrange(s))
+            if e.get("type") == "frame"]
         latency = np.array([(int(e["written_ns"]) - int(e["timestamp_ns"])) / 1e6
                             for e in frames])
         result.update({
@@ -160,11 +174,13 @@ def run_link(url: str, device: str, count: int, templates: list[DataPacket],
             "latency_ms_p50": float(np.median(latency)) if len(latency) else None,
             "latency_ms_p99": float(np.quantile(latency, 0.99)) if len(latency) else None,
         })
-    writer.join(10)
-    daemon.stop()
-    endpoint.close()
-    client.xtrim(frame_stream(device), maxlen=0)  # free the memory, keep the stream
-    client.srem(DEVICES_SET, device)
+    for writer, daemon, endpoint, device in zip(writers, daemons, endpoints, devices,
+                                                strict=True):
+        writer.join(10)
+        daemon.stop()
+        endpoint.close()
+        client.xtrim(frame_stream(device), maxlen=0)  # free the memory, keep the stream
+        client.srem(DEVICES_SET, device)
     return result
 
 
@@ -205,15 +221,17 @@ def main(argv: list[str] | None = None) -> int:
         with EmbeddedRedis(workdir / "redis") as url:
             rows["parse_publish_one_thread"] = bench_parse_publish(
                 url, stream_bytes(templates, args.frames, False))
-            rows["link_path"] = run_link(url, "bench0", args.frames, templates, None, workdir,
+            rows["link_path"] = run_link(url, ["bench0"], args.frames, templates, None, workdir,
                                          False)
             for n in args.workers:
                 workers = start_workers(n, url, workdir / f"data{n}")
                 time.sleep(2.0)
-                rows[f"e2e_{n}_workers_flood"] = run_link(url, f"flood{n}", args.frames,
-                                                          templates, None, workdir, True)
-                rows[f"e2e_{n}_workers_paced"] = run_link(
-                    url, f"paced{n}", max(20, args.frames // 6), templates, args.latency_fps,
+                for n_devices in sorted({1, n}):
+                    names = [f"flood{n}w{n_devices}d{k}" for k in range(n_devices)]
+                    rows[f"e2e_{n}w_{n_devices}dev_flood"] = run_link(
+                        url, names, args.frames // n_devices, templates, None, workdir, True)
+                rows[f"e2e_{n}w_paced"] = run_link(
+                    url, [f"paced{n}"], max(20, args.frames // 6), templates, args.latency_fps,
                     workdir, True)
                 for worker in workers:
                     worker.terminate()
