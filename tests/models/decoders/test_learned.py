@@ -118,3 +118,13 @@ def test_stitching_removes_per_tile_offsets(seed: int) -> None:
     stitched = learned.stitch_overlapping(truth.shape, 128, 64, predict)
     difference = stitched - truth
     assert (difference == difference.flat[0]).all()
+
+
+def test_unmodnet_unwraps_iteratively_within_its_pass_limit() -> None:
+    decoder = get_decoder("unmodnet")
+    frame = val256_frames("mantissa")[scenes.VAL256_CROPS_PER_SCENE]
+    result = decoder.decode(frame.codes[:128, :128], frame.params)
+    card = decoder.models["mantissa"].card
+    assert card["family"] == "unmodnet" and card["max_passes"] == 15
+    assert 0 <= result.winding.min() and result.winding.max() <= 5
+    assert (result.winding == frame.winding[:128, :128]).mean() > 0.5
