@@ -80,7 +80,7 @@ class TemporalConfig:
     motion_radius: int = 1
     still: float = 0.05
     keyframe_interval: int = 30
-    local_limit: float = 0.1
+    local_limit: float = 0.5
     local_passes: int = 4
 
     def __post_init__(self) -> None:
