@@ -150,8 +150,13 @@ class DeviceDaemon:
     def _feed(self, data: bytes) -> None:
         packets = self._parser.feed(data) if data else self._parser.expire()
         for packet in packets:
-            if isinstance(packet, DataPacket):
+            if not isinstance(packet, DataPacket):
+                continue  # control packets only travel host -> device
+            try:
                 self._on_data(packet)
+            except McamError as exc:
+                log.warning("frame %d rejected: %s", packet.sequence, exc.message)
+                self.health.add("dropped_rejected")
         self.health.set_parser_counts(self._parser.drops, self._parser.garbage_bytes,
                                       self._parser_base)
 

@@ -2,8 +2,8 @@
 
 Fields (all strings in Redis): ``state`` (connecting / connected / disconnected),
 ``port``, ``frames_ok`` (published), ``frames_received`` (valid data packets),
-``dropped_<cause>`` for every parser cause plus ``queue_full`` and
-``redis_unavailable``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
+``dropped_<cause>`` for every parser cause plus ``queue_full``,
+``redis_unavailable`` and ``rejected``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
 (sequence numbers never received), ``reconnects``, ``last_frame_ns`` (host
 wall clock, ns since the epoch), ``last_sequence``, ``fps`` (measured over the
 last frames), ``brackets_saved``, ``brackets_incomplete``, ``control_sent``,
@@ -21,9 +21,10 @@ from typing import Any
 
 from device.link_parser import DROP_CAUSES
 
-#: Drop causes on the host side of the link, after the parser's.
-PUBLISH_DROP_CAUSES: tuple[str, ...] = ("queue_full", "redis_unavailable")
-ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + PUBLISH_DROP_CAUSES
+#: Drop causes on the host side of the link, after the parser's: publish queue full, Redis
+#: unreachable, or a frame whose header the formation model rejects.
+HOST_DROP_CAUSES: tuple[str, ...] = ("queue_full", "redis_unavailable", "rejected")
+ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + HOST_DROP_CAUSES
 _COUNTERS: tuple[str, ...] = (
     "frames_ok", "frames_received", "garbage_bytes", "sequence_gaps", "frames_missing",
     "reconnects", "brackets_saved", "brackets_incomplete", "control_sent", "control_rejected",
