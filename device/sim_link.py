@@ -63,8 +63,10 @@ class PtyEndpoint:
     """
 
     def __init__(self, link_path: Path | None = None) -> None:
+        self._own_dir: Path | None = None
         if link_path is None:
-            link_path = Path(tempfile.mkdtemp(prefix="mcam-pty-")) / "scamp5"
+            self._own_dir = Path(tempfile.mkdtemp(prefix="mcam-pty-"))
+            link_path = self._own_dir / "scamp5"
         self.link_path = Path(link_path)
         self.url = str(self.link_path)
         self._master = -1
@@ -111,8 +113,11 @@ class PtyEndpoint:
             return b""
 
     def close(self) -> None:
-        """Disconnect for good."""
+        """Disconnect for good (and remove the temporary folder of the symlink, if ours)."""
         self.disconnect()
+        if self._own_dir is not None:
+            with contextlib.suppress(OSError):
+                self._own_dir.rmdir()
 
 
 class TcpEndpoint:
