@@ -12,6 +12,7 @@ is known, else wrap units x) and ``half`` (default false: float32 EXR).
 from __future__ import annotations
 
 import io
+import json
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,9 @@ def exr_attributes(params: SensorParams, info: dict[str, Any]) -> dict[str, str]
     }
     if params.gain is not None:
         attributes["gain"] = repr(params.gain)
+    routing = {key: info[key] for key in ("details", "channels") if key in info}
+    if routing:
+        attributes["routing"] = json.dumps(routing, sort_keys=True)
     return attributes
 
 

@@ -36,7 +36,9 @@ class Settings(BaseSettings):
     max_prefer_wait_s: float = Field(
         60.0, ge=0, description="longest 'Prefer: wait=N' a request may block for its job"
     )
-    default_decoder: str = "itoh"
+    default_decoder: str = Field(
+        "auto", description="decoder when a request names neither decoder nor quality"
+    )
     worker_concurrency: int = Field(1, ge=1, description="jobs decoded at once per worker")
     worker_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")
     jobs_maxlen: int = Field(10_000, gt=0, description="jobs stream bound; submits beyond it: 503")

@@ -1,0 +1,35 @@
+"""Tests of worker/outputs.py: the EXR and W-map results of one decoded frame."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+
+from models.decoders import get_decoder
+from models.formation import SensorParams, encode
+from models.hdr_io import read_hdr
+from worker.outputs import encode_outputs, exr_attributes
+
+PARAMS = SensorParams(encoding="modulo", bits=8, gain=2.0)
+
+
+def test_outputs_hold_the_reconstruction_and_w() -> None:
+    rows, cols = np.mgrid[0:64, 0:64]
+    frame = encode(4.0 * np.exp(-((rows - 32) ** 2 + (cols - 32) ** 2) / 400), PARAMS)
+    result = get_decoder("auto").decode(frame.codes, PARAMS)
+    files = encode_outputs(frame.codes, result.winding, PARAMS, result.info, {})
+    np.testing.assert_array_equal(np.load(io.BytesIO(files["winding"])), frame.winding)
+    image = read_hdr(files["exr"])
+    expected = (frame.winding + (frame.codes + 0.5) / 256) / PARAMS.gain
+    np.testing.assert_allclose(image.pixels, expected, rtol=1e-6)
+    assert image.attributes["decoder"] == "auto-balanced"
+    routing = json.loads(image.attributes["routing"])
+    assert routing["details"]["routes"] == {"integration": 1.0}
+
+
+def test_attributes_without_routing_or_gain() -> None:
+    attributes = exr_attributes(SensorParams(), {"decoder": "itoh", "version": "1"})
+    assert attributes["decoder"] == "itoh"
+    assert "routing" not in attributes and "gain" not in attributes
