@@ -12,7 +12,7 @@ from device.faults import Faults
 from device.sim_link import TcpEndpoint
 from tests.device.conftest import health, stream_frames, wait_for
 from worker.embedded_redis import EmbeddedRedis
-from worker.redis_keys import DEVICES_SET, control_stream
+from worker.redis_keys import DEVICES_SET, control_stream, events_stream
 
 
 def finish_clean(link, frames: int) -> None:
@@ -20,8 +20,15 @@ def finish_clean(link, frames: int) -> None:
     assert wait_for(lambda: link.camera.done(), 60)
     link.camera.faults = Faults()
     link.camera.max_frames = frames + 1
+    assert wait_for(lambda: link.camera.done(), 30)
     assert wait_for(lambda: link.daemon.health.last_sequence == link.camera.sequence - 1, 30)
-    assert wait_for(lambda: link.daemon.publisher._queue.empty(), 10)
+    last = link.camera.sequence - 1
+    client = link.daemon.publisher.client
+    assert wait_for(lambda: stream_frames(client, "cam1")[-1].sequence == last, 10)
+
+
+def event_types(client: redis.Redis) -> set[str]:
+    return {fields[b"type"].decode() for _, fields in client.xrange(events_stream("cam1"))}
 
 
 def test_frames_arrive_in_order_with_correct_content(link, client: redis.Redis) -> None:
@@ -59,6 +66,7 @@ def test_corrupted_bytes_drop_exactly_the_damaged_packets(link, client: redis.Re
         parser_drops = sum(counts[f"dropped_{c}"] for c in
                            ("bad_header", "bad_crc", "truncated", "oversize"))
         assert 0 < parser_drops <= len(damaged)
+        assert wait_for(lambda: "drop" in event_types(client), 5)
 
 
 def test_disconnect_mid_stream_reconnects_and_marks_discont(link, client: redis.Redis) -> None:
@@ -67,6 +75,7 @@ def test_disconnect_mid_stream_reconnects_and_marks_discont(link, client: redis.
         finish_clean(run, 40)
         frames = stream_frames(client, "cam1")
         assert run.daemon.health.counts["reconnects"] >= 2
+        assert wait_for(lambda: "reconnect" in event_types(client), 5)
         sequences = [f.sequence for f in frames]
         assert sequences == sorted(set(sequences))
         for cut in (14, 29):
