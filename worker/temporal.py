@@ -19,8 +19,10 @@ Unsafe pixels fall back to the spatial decoder:
 - few unsafe pixels (at most ``local_limit`` of the frame): a cheap local fix, no
   spatial decoder: each unsafe pixel takes the W (within the range motion allows)
   that brings its ``u`` closest to a settled 8-neighbour's ``u`` (the best-matching
-  neighbour decides, as in quality-guided unwrapping), growing inwards from the
-  safe pixels for up to ``local_passes`` passes (the *local* path);
+  neighbour decides, as in quality-guided unwrapping), unless its own temporal
+  answer is closer than the best match divided by ``SELF_WEIGHT`` (so a static
+  edge does not flip with noise), growing inwards from the safe pixels for up to
+  ``local_passes`` passes (the *local* path);
 - more: one full spatial decode of the frame, its unknown constant set to the most
   common difference to the temporal answer on safe pixels (*spatial* path). There,
   where the spatial answer disagrees with a safe temporal one, the spatial one wins
@@ -156,7 +158,8 @@ class Prediction:
     """The temporal answer for a frame (arrays H x W x C, or H x W for one channel).
 
     ``winding``: ``round(u_{t-1} - m_t)``; ``safe``: where it is kept; ``lo`` / ``hi``:
-    the least / greatest previous ``u`` within ``motion_radius``; ``m``: the frame.
+    the least / greatest previous ``u`` within ``motion_radius``; ``m``: the frame;
+    ``change``: ``|W_t + m_t - u_{t-1}|`` of the pixel itself (wraps).
     """
 
     winding: NDArray[np.int64]
@@ -164,6 +167,7 @@ class Prediction:
     lo: NDArray[np.float64]
     hi: NDArray[np.float64]
     m: NDArray[np.float64]
+    change: NDArray[np.float64]
 
     def channel(self, c: int) -> Prediction:
         """The prediction of channel ``c`` (H x W arrays)."""
@@ -174,7 +178,7 @@ class Prediction:
         return Prediction(*(part[index] for part in self._parts()))
 
     def _parts(self) -> tuple[NDArray[Any], ...]:
-        return (self.winding, self.safe, self.lo, self.hi, self.m)
+        return (self.winding, self.safe, self.lo, self.hi, self.m, self.change)
 
     def bounds(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """The range of W that motion within ``motion_radius`` allows: ``W + m`` within
@@ -220,7 +224,7 @@ def temporal_prediction(
         hi = window_extreme(prev_u, config.motion_radius, np.maximum)
         still = window_extreme(change, config.motion_radius, np.maximum) <= config.still
         safe &= still | ((u - lo <= limit) & (hi - u <= limit))
-    return Prediction(winding.astype(np.int64), safe, lo, hi, m)
+    return Prediction(winding.astype(np.int64), safe, lo, hi, m, change)
 
 
 def common_offset(target: NDArray[np.int64], relative: NDArray[np.int64]) -> int:
@@ -261,12 +265,16 @@ def merge_spatial(
     return np.where(take, aligned, temporal), take
 
 
+#: The pixel's own temporal answer competes with its neighbours at this many times its
+#: change (a neighbour must match more than twice as well to overrule it).
+SELF_WEIGHT = 2.0
 _NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
 
 
 def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
     """One channel's W with its unsafe pixels set from their best-matching settled
-    8-neighbour (see module doc); pixels never reached keep the temporal answer."""
+    8-neighbour or their own temporal answer (see module doc); pixels no settled
+    neighbour reaches keep the temporal answer."""
     winding = prediction.winding.copy()
     width = winding.shape[1] + 2
     settled = np.pad(prediction.safe, 1).ravel()
@@ -277,9 +285,9 @@ def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
     m_open = unsafe.m
     where = (rows + 1) * width + cols + 1
     offsets = [dy * width + dx for dy, dx in _NEIGHBOURS]
+    own_cost, own = SELF_WEIGHT * unsafe.change, unsafe.winding
     for _ in range(passes):
-        best = np.full(where.shape, np.inf)
-        choice = np.zeros(where.shape, np.int64)
+        best, choice = np.full(where.shape, np.inf), np.zeros(where.shape, np.int64)
         for offset in offsets:
             other = u[where + offset]
             candidate = np.clip(np.rint(other - m_open), lowest, highest)
@@ -287,6 +295,7 @@ def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
             better = settled[where + offset] & (distance < best)
             best[better], choice[better] = distance[better], candidate[better]
         done = np.isfinite(best)
+        choice = np.where(done & (own_cost <= best), own, choice)
         u[where[done]] = choice[done] + m_open[done]
         settled[where[done]] = True
         winding.ravel()[where[done] - width - 1 - 2 * (where[done] // width - 1)] = choice[done]
@@ -294,6 +303,7 @@ def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
         if not keep.any() or keep.all():
             break
         where, lowest, highest, m_open = where[keep], lowest[keep], highest[keep], m_open[keep]
+        own_cost, own = own_cost[keep], own[keep]
     return winding
 
 

@@ -181,6 +181,6 @@ def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:
     wrong[4:7, 4:7] += 2
     safe[4:7, 4:7] = False
     safe[0, 9] = False
-    damaged = Prediction(wrong, safe, prediction.lo, prediction.hi + 3, m)
+    damaged = Prediction(wrong, safe, prediction.lo, prediction.hi + 3, m, np.abs(wrong + m - u))
     fixed = neighbour_fix(damaged.channel(0), passes=2)
     np.testing.assert_array_equal(fixed, np.floor(u[:, :, 0]))
