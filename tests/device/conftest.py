@@ -57,7 +57,8 @@ class Link:
 
     def __init__(self, client: redis.Redis, tmp_path: Path, frames: int,
                  faults: Faults | None = None, settings: CameraSettings | None = None,
-                 device: str = "cam1", endpoint: Endpoint | None = None) -> None:
+                 device: str = "cam1", endpoint: Endpoint | None = None,
+                 partial_timeout_s: float = 1.0) -> None:
         self.device = device
         self.camera = VirtualScamp5(
             endpoint or PtyEndpoint(tmp_path / "scamp5"),
@@ -66,7 +67,7 @@ class Link:
         )
         config = DaemonConfig(port=self.camera.endpoint.url, device=device, frames_maxlen=1000,
                               queue_size=1000, data_dir=tmp_path / "data",
-                              backoff_max_s=0.2)
+                              backoff_max_s=0.2, partial_timeout_s=partial_timeout_s)
         self.daemon = DeviceDaemon(config, client)
 
     def __enter__(self) -> Link:

@@ -100,6 +100,16 @@ def test_drops_stalls_and_bogus_lengths(link, client: redis.Redis) -> None:
         assert counts["dropped_oversize"] > 0 and counts["dropped_truncated"] == 0
 
 
+def test_a_stall_longer_than_the_partial_timeout_drops_only_that_packet(
+        link, client: redis.Redis) -> None:
+    faults = Faults(stall_every=5, stall_s=0.6)
+    with link(15, faults=faults, partial_timeout_s=0.2) as run:
+        finish_clean(run, 15)
+        published = {f.sequence for f in stream_frames(client, "cam1")}
+        assert published == set(range(16)) - {4, 9, 14}
+        assert run.daemon.health.counts["dropped_truncated"] == 3
+
+
 def test_tcp_link_reconnects(link, client: redis.Redis) -> None:
     faults = Faults(disconnect_every=12, disconnect_s=0.3)
     with link(30, faults=faults, endpoint=TcpEndpoint()) as run:
