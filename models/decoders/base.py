@@ -18,8 +18,10 @@ from numpy.typing import NDArray
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
 
-#: Lower-tail percentile of the relative winding map used as the W = 0 anchor.
-ANCHOR_PERCENTILE = 0.1
+#: Lower-tail percentile of the relative winding map used as the W = 0 anchor. The
+#: exposure leaves most pixels unwrapped (overexposed <= 0.35 in practice), so the 5th
+#: percentile lies deep in the W = 0 population yet ignores up to 5% of wrong pixels.
+ANCHOR_PERCENTILE = 5.0
 
 
 @dataclass
@@ -68,7 +70,7 @@ def anchor_winding(
     is known to be exact, so a region of guesses cannot move the anchor.
     """
     basis = relative if trusted is None or not trusted.any() else relative[trusted]
-    offset = int(np.floor(np.percentile(basis, ANCHOR_PERCENTILE)))
+    offset = int(np.percentile(basis, ANCHOR_PERCENTILE, method="higher"))
     winding = np.maximum(relative - offset, 0)
     top = max_winding(params)
     return winding if top is None else np.minimum(winding, top)

@@ -68,7 +68,7 @@ def test_anchor_ignores_rare_outliers_and_clamps_them_to_zero() -> None:
     outliers = int(relative.size * ANCHOR_PERCENTILE / 100) - 1
     relative.flat[:outliers] = -40
     anchored = anchor_winding(relative, MODULO)
-    assert anchored.flat[outliers] == 0
+    assert anchored.flat[outliers:].min() == 0
     assert anchored.max() == 2
     assert np.all(anchored.flat[:outliers] == 0)
 
