@@ -21,7 +21,7 @@ from device.link_protocol import (
     StartPacket,
     StopPacket,
 )
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, describe_validation_error
 
 _STRICT = ConfigDict(extra="forbid", frozen=True)
 
@@ -93,10 +93,7 @@ def validate_command(values: dict[str, Any]) -> Command:
     try:
         return _ADAPTER.validate_python(values)
     except ValidationError as exc:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or 'command'}: {err['msg']}"
-            for err in exc.errors()
-        )
+        problems = describe_validation_error(exc, "command")
         raise InvalidInputError(
             f"invalid device command: {problems} (commands: {', '.join(COMMANDS)})"
         ) from None

@@ -6,6 +6,8 @@ the CLI) and a human message that says what was wrong and what to do about it.
 
 from __future__ import annotations
 
+from pydantic import ValidationError
+
 
 class McamError(ValueError):
     """Base class: a caller's mistake or an impossible request, never a bug."""
@@ -48,3 +50,10 @@ class ImageTooLargeError(McamError):
 
     code = "image_too_large"
     http_status = 413
+
+
+def describe_validation_error(exc: ValidationError, subject: str) -> str:
+    """One line naming each invalid field of a pydantic error (``field: problem; ...``)."""
+    return "; ".join(
+        f"{'.'.join(str(p) for p in err['loc']) or subject}: {err['msg']}" for err in exc.errors()
+    )

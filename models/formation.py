@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from models.errors import InvalidInputError, OutputOverflowError
+from models.errors import InvalidInputError, OutputOverflowError, describe_validation_error
 
 Encoding = Literal["modulo", "mantissa", "clip"]
 ENCODINGS: tuple[str, ...] = ("modulo", "mantissa", "clip")
@@ -73,10 +73,7 @@ class SensorParams(BaseModel):
         try:
             return cls.model_validate(values)
         except ValidationError as exc:
-            problems = "; ".join(
-                f"{'.'.join(str(p) for p in err['loc']) or 'parameters'}: {err['msg']}"
-                for err in exc.errors()
-            )
+            problems = describe_validation_error(exc, "parameters")
             raise InvalidInputError(f"invalid sensor parameters: {problems}") from None
 
     @property
