@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
 from worker.jobs import JobRecord, JobState
@@ -22,6 +23,15 @@ class JobAccepted(BaseModel):
     id: str
     url: str
     state: JobState
+
+
+def accepted_response(record: JobRecord) -> JSONResponse:
+    """202 with the queued job's id and URL (also in ``Location``)."""
+    url = f"/v1/jobs/{record.id}"
+    accepted = JobAccepted(id=record.id, url=url, state=record.state)
+    return JSONResponse(
+        accepted.model_dump(mode="json"), status_code=202, headers={"Location": url}
+    )
 
 
 class JobView(JobRecord):

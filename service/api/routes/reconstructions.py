@@ -13,7 +13,14 @@ from models.decoders.base import check_frame_shape
 from models.errors import InvalidInputError, MissingParameterError
 from models.frames import WrappedFrame, check_pixel_count, decode_frame, decode_raw, merge_params
 from service.api.deps import StateDep, SubmitKey
-from service.api.schemas import UPLOAD_ERRORS, JobAccepted, JobView, job_view, upload_body
+from service.api.schemas import (
+    UPLOAD_ERRORS,
+    JobAccepted,
+    JobView,
+    accepted_response,
+    job_view,
+    upload_body,
+)
 from service.api.state import ServiceState
 from service.api.uploads import (
     ReconstructionFields,
@@ -87,10 +94,7 @@ def submit(
                 job_view(record).model_dump(mode="json"),
                 headers={"Location": url, "Preference-Applied": f"wait={wait_s:g}"},
             )
-    accepted = JobAccepted(id=record.id, url=url, state=record.state)
-    return JSONResponse(
-        accepted.model_dump(mode="json"), status_code=202, headers={"Location": url}
-    )
+    return accepted_response(record)
 
 
 @router.post(

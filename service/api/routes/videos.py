@@ -12,14 +12,19 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
-from fastapi.responses import JSONResponse
 from pydantic import Field
 from starlette.concurrency import run_in_threadpool
 
 from models.errors import InvalidInputError, UnsupportedFormatError
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.routes.jobs import JOB_ERRORS, finished_record
-from service.api.schemas import UPLOAD_ERRORS, JobAccepted, error_response, upload_body
+from service.api.schemas import (
+    UPLOAD_ERRORS,
+    JobAccepted,
+    accepted_response,
+    error_response,
+    upload_body,
+)
 from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
 from worker.temporal import TemporalConfig
@@ -106,11 +111,7 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields) -> Response
             "ask for outputs=exr_zip,sdr"
         )
     record = state.queue.submit("video", video.codes, video.params, decoder, options)
-    url = f"/v1/jobs/{record.id}"
-    accepted = JobAccepted(id=record.id, url=url, state=record.state)
-    return JSONResponse(
-        accepted.model_dump(mode="json"), status_code=202, headers={"Location": url}
-    )
+    return accepted_response(record)
 
 
 @router.post(
