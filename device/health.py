@@ -2,7 +2,8 @@
 
 Fields (all strings in Redis): ``state`` (connecting / connected / disconnected),
 ``port``, ``frames_ok`` (published), ``frames_received`` (valid data packets),
-``dropped_<cause>`` for every parser cause plus ``queue_full``,
+``dropped_<cause>`` for every parser cause plus ``queue_full`` (the daemon's own
+queue), ``stream_full`` (oldest frames evicted from the Redis stream unread),
 ``redis_unavailable`` and ``rejected``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
 (sequence numbers never received), ``reconnects``, ``last_frame_ns`` (host
 wall clock, ns since the epoch), ``last_sequence``, ``fps`` (measured over the
@@ -23,7 +24,7 @@ from device.link_parser import DROP_CAUSES
 
 #: Drop causes on the host side of the link, after the parser's: publish queue full, Redis
 #: unreachable, or a frame whose header the formation model rejects.
-HOST_DROP_CAUSES: tuple[str, ...] = ("queue_full", "redis_unavailable", "rejected")
+HOST_DROP_CAUSES: tuple[str, ...] = ("queue_full", "stream_full", "redis_unavailable", "rejected")
 ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + HOST_DROP_CAUSES
 _COUNTERS: tuple[str, ...] = (
     "frames_ok", "frames_received", "garbage_bytes", "sequence_gaps", "frames_missing",

@@ -1,8 +1,9 @@
 """The daemon's Redis side: a bounded frame queue drained into ``frames:<device>``.
 
 The link reader calls :meth:`FramePublisher.offer`, which never blocks: a full
-queue drops the frame (``queue_full``). A thread XADDs each frame with an
-approximate MAXLEN, keeps the device in the ``devices`` set, writes the health
+queue drops the frame (``queue_full``). A thread publishes each frame with
+:func:`worker.queue.publish_frame` (which registers the device; when the stream is
+full the oldest unread frames are evicted, counted as ``stream_full``), writes the health
 hash, and reads ``control:<device>`` for commands to forward to the camera.
 While Redis is unreachable, queued frames are dropped (``redis_unavailable``)
 and the connection is retried with backoff; the link keeps being read. After
@@ -25,11 +26,11 @@ from device.commands import Command, fields_to_command
 from device.health import DeviceHealth
 from models.errors import InvalidInputError
 from worker.frame_message import FrameMessage
+from worker.queue import publish_frame
 from worker.redis_keys import (
     DEVICES_SET,
     control_stream,
     events_stream,
-    frame_stream,
     health_key,
 )
 
@@ -118,11 +119,9 @@ class FramePublisher:
             message = dataclasses.replace(message, discont=True)
 
         def xadd() -> None:
-            pipe = self.client.pipeline(transaction=False)
-            pipe.xadd(frame_stream(self.device), message.to_fields(),
-                      maxlen=self.frames_maxlen, approximate=True)
-            pipe.sadd(DEVICES_SET, self.device)
-            pipe.execute()
+            evicted = publish_frame(self.client, message, maxlen=self.frames_maxlen)
+            if evicted:
+                self.health.add("dropped_stream_full", evicted)
 
         if self._redis(xadd):
             self._discont = False
