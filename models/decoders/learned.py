@@ -193,6 +193,7 @@ def describe(name: str, cards: list[dict[str, Any]]) -> str:
     return (
         f"{card['family']} {card.get('tier', '')} learned decoder ({encodings}), "
         f"{card['parameters']} parameters, {card['gflops_256']} GFLOPs at 256x256"
+        + (f" per pass (up to {card['max_passes']} passes)" if "max_passes" in card else "")
     )
 
 
