@@ -15,7 +15,8 @@ entry of the stream (a previous owner's unfinished frames), then reads new ones,
 and handles them one by one in stream order. Per frame: decode, write
 ``devices/<id>/<seq:012d>.exr`` durably, then in one Lua step (only while the
 lease is still ours) record the sequence, point ``device:<id>:latest`` at the
-result and append a ``frame`` event to ``events:<id>``, then XACK. A redelivered
+result and append a ``frame`` event to ``events:<id>``, then XACK. Frames also go
+to the device's live recording, if one is running (``worker/recordings.py``). A redelivered
 entry at or before the recorded one is acked without a second result or event.
 A frame that keeps failing goes to the dead letters after ``max_deliveries``
 attempts with a ``failed`` event.
@@ -40,6 +41,7 @@ from worker.job_processor import RETRY_BACKOFF_S, error_of
 from worker.lease import Lease
 from worker.metrics import Metrics
 from worker.outputs import encode_exr_result
+from worker.recordings import Recorder
 from worker.redis_keys import (
     DEVICES_SET,
     events_stream,
@@ -103,6 +105,7 @@ class DeviceConsumer:
         self.lease = Lease(client, owner, lease_ms)
         self.metrics = Metrics(client)
         self.states: dict[str, DeviceState] = {}
+        self.recorder = Recorder(client, store, max_deliveries=max_deliveries)
         self._consumers: dict[str, StreamConsumer] = {}
         self._commit = client.register_script(_COMMIT)
         self.peers = peers
@@ -124,6 +127,7 @@ class DeviceConsumer:
                 continue
             try:
                 busy |= self._drain(device)
+                self.recorder.finish_if_stopping(device)
             except LeaseLost:
                 self._forget(device)
         if len(self.states) > self._fair_share(len(devices)):
@@ -236,6 +240,7 @@ class DeviceConsumer:
         data = encode_exr_result(message.codes, frame.winding, message.params, frame.info, {})
         key = result_key(device, message.sequence)
         self.store.write(key, data)
+        self.recorder.add_frame(message, delivery.entry_id)
         encode_ns = time.perf_counter_ns() - start
         event = _event("frame", message, key=key, decode_ns=frame.timings_ns.get("decode", 0))
         self._record(device, state, delivery, message.sequence, key, event)

@@ -80,3 +80,8 @@ def last_sequence_key(device: str) -> str:
 def rate_limit_key(key_id: str, window: int) -> str:
     """Counter of one API key's requests in one rate-limit window (key id: a hash, never a key)."""
     return f"ratelimit:{key_id}:{window}"
+
+
+def recording_key(device: str) -> str:
+    """Hash of the device's current (or last) live recording (see ``worker/recordings.py``)."""
+    return f"device:{validate_device_id(device)}:recording"

@@ -22,7 +22,7 @@ from models.errors import InvalidInputError
 from worker.job_processor import JobContext, JobOutcome
 from worker.temporal import TemporalConfig
 from worker.video_input import WrappedVideo
-from worker.video_output import REFERENCE_WHITE, Hdr10Settings
+from worker.video_output import MIN_HDR10_SIDE, REFERENCE_WHITE, Hdr10Settings
 from worker.video_pipeline import OUTPUTS, VideoOptions, decode_video_frames, write_outputs
 
 #: Result file name of each output.
@@ -40,6 +40,7 @@ DEFAULT_OPTIONS: dict[str, Any] = {
     "reference_white": REFERENCE_WHITE,
     "keyframe_interval": TemporalConfig.keyframe_interval,
     "half": False,
+    "keyframes": [],
 }
 
 
@@ -66,9 +67,19 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
                 reference_white=float(values["reference_white"]),
             ),
             half=bool(values["half"]),
+            keyframes=frozenset(int(i) for i in values["keyframes"]),
         ),
         outputs,
     )
+
+
+def check_hdr10_size(outputs: list[str], shape: tuple[int, ...]) -> None:
+    """Refuse an HDR10 output for frames (T x H x W[x C]) smaller than the encoder takes."""
+    if "hdr10" in outputs and min(shape[1:3]) < MIN_HDR10_SIDE:
+        raise InvalidInputError(
+            f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels; "
+            "ask for outputs=exr_zip,sdr"
+        )
 
 
 def run_video_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:

@@ -41,13 +41,16 @@ StageProgress = Callable[[str, int, int], None]
 @dataclass(frozen=True)
 class VideoOptions:
     """How to decode and render a video: ``mode`` and spatial ``decoder``, the temporal
-    knobs, HDR10 settings (frame rate, exposure scaling) and half-float EXRs."""
+    knobs, HDR10 settings (frame rate, exposure scaling) and half-float EXRs.
+    ``keyframes``: indices of frames decoded as after a DISCONT (a live recording's
+    reconnects and sequence gaps)."""
 
     mode: str = "temporal"
     decoder: str = "itoh"
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     hdr10: Hdr10Settings = field(default_factory=Hdr10Settings)
     half: bool = False
+    keyframes: frozenset[int] = frozenset()
 
 
 @dataclass
@@ -79,7 +82,7 @@ def decode_video_frames(
     state = StreamState()
     decoded = DecodedVideo([], [], [])
     for index, codes in enumerate(video.codes):
-        frame = decoder.decode(codes, video.params, state)
+        frame = decoder.decode(codes, video.params, state, discont=index in options.keyframes)
         decoded.irradiance.append(frame.irradiance)
         decoded.winding.append(frame.winding)
         decoded.frames.append(frame.summary())

@@ -1,0 +1,159 @@
+"""Live recordings (``worker/recordings.py``) on a real redis-server and a real result store."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import redis
+
+from models.formation import SensorFrame
+from worker.frame_message import FrameMessage
+from worker.queue import JobQueue, entry_codes
+from worker.recordings import (
+    Recorder,
+    frame_key,
+    load_recording,
+    request_stop,
+    start_recording,
+)
+from worker.redis_keys import JOBS_STREAM
+from worker.result_store import ResultStore
+from worker.video_input import WrappedVideo
+from worker.video_jobs import video_options
+from worker.video_pipeline import decode_video_frames
+
+OPTIONS = {"mode": "temporal", "outputs": ["exr_zip"]}
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> ResultStore:
+    return ResultStore(tmp_path / "results", retention_s=3600)
+
+
+@pytest.fixture
+def recorder(client: redis.Redis, store: ResultStore) -> Recorder:
+    return Recorder(client, store, max_deliveries=3)
+
+
+def message(frame: SensorFrame, sequence: int, discont: bool = False) -> FrameMessage:
+    return FrameMessage("cam1", sequence, sequence * 1000, frame.codes, frame.params, discont)
+
+
+def frames(make_frame, count: int) -> list[SensorFrame]:  # type: ignore[no-untyped-def]
+    return [make_frame(peak=4.0 + 0.05 * i) for i in range(count)]
+
+
+def start(client: redis.Redis, max_frames: int = 100, options: dict | None = None):  # type: ignore[no-untyped-def]
+    recording = start_recording(
+        client, "cam1", decoder="itoh", options=options or OPTIONS, max_frames=max_frames
+    )
+    assert recording is not None and recording.state == "recording"
+    return recording
+
+
+def queued_codes(client: redis.Redis, job_id: str) -> np.ndarray:
+    for _, fields in client.xrange(JOBS_STREAM):
+        if fields[b"job"].decode() == job_id:
+            return entry_codes({k.decode(): v for k, v in fields.items()})
+    raise AssertionError(f"job {job_id} not on the jobs stream")
+
+
+def test_frames_recorded_in_order_then_stopped_into_a_video_job(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, store: ResultStore, make_frame
+) -> None:
+    clip = frames(make_frame, 6)
+    recording = start(client)
+    assert start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=5) is None
+    for i, frame in enumerate(clip[:3]):
+        recorder.add_frame(message(frame, 10 + i), f"1000-{i}")
+    recorder.add_frame(message(clip[2], 12), "1000-2")  # redelivered: not recorded twice
+    recorder.add_frame(message(clip[3], 0, discont=True), "1000-3")  # camera reconnected
+    recorder.add_frame(message(clip[4], 5), "1000-4")  # sequence gap
+    recorder.add_frame(message(clip[5], 6), "1000-5")
+    assert load_recording(client, "cam1").frames == 6
+    assert store.exists(frame_key(recording.id, 5))
+
+    recorder.finish_if_stopping("cam1")  # not asked to stop: nothing happens
+    assert load_recording(client, "cam1").state == "recording"
+    assert request_stop(client, "cam1").state == "stopping"
+    recorder.add_frame(message(clip[0], 7), "1000-6")  # after the stop: not recorded
+    recorder.finish_if_stopping("cam1")
+
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.reason == "requested" and done.frames == 6
+    assert done.keyframes == [3, 4]
+    job = queue.get(done.job)
+    assert job.kind == "video" and job.frames_total == 6 and job.decoder == "itoh"
+    assert job.options["keyframes"] == [3, 4] and job.options["outputs"] == ["exr_zip"]
+    codes = queued_codes(client, done.job)
+    np.testing.assert_array_equal(codes, np.stack([f.codes for f in clip]))
+    assert store.keys("recordings") == []  # the frames live on in the job entry only
+
+    options, _ = video_options(job.decoder, job.options)
+    decoded = decode_video_frames(WrappedVideo(codes, job.params), options)
+    reasons = [frame["keyframe"] for frame in decoded.frames]
+    assert reasons[0] == "first" and reasons[3] == reasons[4] == "discont"
+    assert reasons[1] is None and reasons[5] is None
+    assert start(client).id != recording.id  # a finished recording makes room for a new one
+
+
+def test_max_frames_ends_the_recording(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    start(client, max_frames=3)
+    for i, frame in enumerate(frames(make_frame, 5)):
+        recorder.add_frame(message(frame, i), f"2000-{i}")
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.reason == "max_frames" and done.frames == 3
+    assert queue.get(done.job).frames_total == 3
+    assert request_stop(client, "cam1").job == done.job  # stopping again: the same job
+
+
+def test_changed_sensor_parameters_end_the_recording(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    start(client)
+    first, second = frames(make_frame, 2)
+    recorder.add_frame(message(first, 0), "3000-0")
+    noisy = first.params.model_copy(update={"seed": 99})  # a new noise seed is fine
+    recorder.add_frame(FrameMessage("cam1", 1, 0, second.codes, noisy), "3000-1")
+    brighter = first.params.model_copy(update={"gain": 2.0})
+    recorder.add_frame(FrameMessage("cam1", 2, 0, second.codes, brighter), "3000-2")
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.reason == "params_changed" and done.frames == 2
+    assert queue.get(done.job).params.gain == first.params.gain
+
+
+def test_stop_without_frames_fails_with_a_reason(
+    client: redis.Redis, recorder: Recorder, store: ResultStore
+) -> None:
+    assert request_stop(client, "cam1") is None  # never recorded
+    start(client)
+    request_stop(client, "cam1")
+    recorder.finish_if_stopping("cam1")
+    failed = load_recording(client, "cam1")
+    assert failed.state == "failed" and failed.job is None
+    assert "no frames were recorded" in failed.error
+
+
+def test_hdr10_of_small_frames_fails_with_a_reason(
+    client: redis.Redis, recorder: Recorder, make_frame
+) -> None:
+    start(client, options={"mode": "temporal", "outputs": ["hdr10"]})
+    recorder.add_frame(message(make_frame(size=32), 0), "4000-0")
+    request_stop(client, "cam1")
+    recorder.finish_if_stopping("cam1")
+    failed = load_recording(client, "cam1")
+    assert failed.state == "failed" and "HDR10 video needs frames" in failed.error
+
+
+def test_frames_without_a_recording_are_ignored(
+    client: redis.Redis, recorder: Recorder, store: ResultStore, make_frame
+) -> None:
+    recorder.add_frame(message(make_frame(), 0), "5000-0")
+    recorder.finish_if_stopping("cam1")
+    assert load_recording(client, "cam1") is None and store.keys() == []
+    with pytest.raises(ValueError, match="max_frames"):
+        start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=0)

@@ -1,0 +1,283 @@
+"""Live recordings: a device's frames, as its worker handles them, collected into a video job.
+
+Usage (API: writes the intent, reads the record)::
+
+    record = start_recording(client, "cam1", decoder="itoh", options={...}, max_frames=300)
+    record = request_stop(client, "cam1")    # state "stopping"; the worker submits the job
+    record = load_recording(client, "cam1")  # None if the device never recorded
+
+Usage (worker: the device stream's single owner, frames in sequence order)::
+
+    recorder = Recorder(client, store, max_deliveries=3)
+    recorder.add_frame(message, entry_id)   # each reconstructed frame, before it is committed
+    recorder.finish_if_stopping("cam1")     # every poll, frames or not
+
+The record is the hash ``device:<id>:recording``; its ``state`` goes ``recording`` ->
+``stopping`` (asked by the API) -> ``submitted`` (the video job is queued, its id in
+``job``) or ``failed`` (``error`` says why). A recording also ends by itself after
+``max_frames`` frames, or when the camera's sensor parameters (other than the noise
+seed) or frame shape change: the frames so far become the video. Each recorded
+frame's codes (DN) are stored as ``recordings/<recording id>/<index:06d>.npy`` in the
+result store until the job is queued. A frame flagged DISCONT, or one after a
+sequence gap, is listed in ``keyframes`` (its index in the video), which the video
+job decodes as a keyframe. A redelivered frame (stream entry at or before
+``last_entry``) is not recorded twice; a new owner of the device goes on recording.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import redis
+
+from models.errors import InvalidInputError, McamError
+from models.formation import SensorParams
+from worker.deliveries import entry_order
+from worker.frame_message import FrameMessage
+from worker.queue import JobQueue
+from worker.redis_keys import recording_key
+from worker.result_store import ResultStore
+from worker.video_jobs import check_hdr10_size
+
+#: States of a recording that still collects frames or waits for its video job.
+ACTIVE_STATES = ("recording", "stopping")
+#: Bound of the jobs stream for recorded videos: a recording already accepted is not
+#: lost to a full queue (its frames exist nowhere else).
+RECORDING_QUEUE_MAXLEN = 1 << 30
+
+_START = """
+local state = redis.call('HGET', KEYS[1], 'state')
+if state == 'recording' or state == 'stopping' then return 0 end
+redis.call('DEL', KEYS[1])
+redis.call('HSET', KEYS[1], unpack(ARGV))
+return 1
+"""
+
+_STOP = """
+if redis.call('HGET', KEYS[1], 'state') ~= 'recording' then return 0 end
+redis.call('HSET', KEYS[1], 'state', 'stopping', 'reason', 'requested', 'stopped_ns', ARGV[1])
+return 1
+"""
+
+_UPDATE = """
+if redis.call('HGET', KEYS[1], 'id') ~= ARGV[1] then return 0 end
+local state = redis.call('HGET', KEYS[1], 'state')
+if ARGV[2] ~= '' and state ~= ARGV[2] then return 0 end
+if ARGV[3] ~= '' and redis.call('HGET', KEYS[1], 'frames') ~= ARGV[3] then return 0 end
+local fields = {}
+for i = 4, #ARGV do fields[#fields + 1] = ARGV[i] end
+redis.call('HSET', KEYS[1], unpack(fields))
+return 1
+"""
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One recording of a device (times in ns since the epoch; ``keyframes``: frame indices)."""
+
+    id: str
+    device: str
+    state: str
+    decoder: str
+    options: dict[str, Any]
+    max_frames: int
+    frames: int = 0
+    started_ns: int = 0
+    stopped_ns: int | None = None
+    reason: str | None = None
+    keyframes: list[int] = field(default_factory=list)
+    params: str = ""
+    shape: str = ""
+    first_sequence: int | None = None
+    last_sequence: int | None = None
+    last_entry: str | None = None
+    job: str | None = None
+    error: str | None = None
+
+    @classmethod
+    def from_hash(cls, raw: dict[bytes, bytes]) -> Recording:
+        """Parse the Redis hash of a recording."""
+        get = {k.decode(): v.decode() for k, v in raw.items()}
+        return cls(
+            id=get["id"],
+            device=get["device"],
+            state=get["state"],
+            decoder=get["decoder"],
+            options=json.loads(get["options"]),
+            max_frames=int(get["max_frames"]),
+            frames=int(get.get("frames", "0")),
+            started_ns=int(get.get("started_ns", "0")),
+            stopped_ns=int(get["stopped_ns"]) if get.get("stopped_ns") else None,
+            reason=get.get("reason") or None,
+            keyframes=[int(i) for i in get.get("keyframes", "").split(",") if i],
+            params=get.get("params", ""),
+            shape=get.get("shape", ""),
+            first_sequence=int(get["first_sequence"]) if get.get("first_sequence") else None,
+            last_sequence=int(get["last_sequence"]) if get.get("last_sequence") else None,
+            last_entry=get.get("last_entry") or None,
+            job=get.get("job") or None,
+            error=get.get("error") or None,
+        )
+
+    def view(self) -> dict[str, Any]:
+        """The recording as JSON for the API (frame codes and stream cursors left out)."""
+        return {
+            "id": self.id,
+            "device": self.device,
+            "state": self.state,
+            "frames": self.frames,
+            "max_frames": self.max_frames,
+            "decoder": self.decoder,
+            "options": self.options,
+            "keyframes": self.keyframes,
+            "first_sequence": self.first_sequence,
+            "last_sequence": self.last_sequence,
+            "started_ns": self.started_ns,
+            "stopped_ns": self.stopped_ns,
+            "reason": self.reason,
+            "job": self.job,
+            "job_url": f"/v1/jobs/{self.job}" if self.job else None,
+            "error": self.error,
+        }
+
+
+def frame_key(recording_id: str, index: int) -> str:
+    """Result-store key of a recorded frame's codes (.npy)."""
+    return f"recordings/{recording_id}/{index:06d}.npy"
+
+
+def load_recording(client: redis.Redis, device: str) -> Recording | None:
+    """The device's current or last recording; None if it never recorded."""
+    raw = client.hgetall(recording_key(device))
+    return Recording.from_hash(raw) if raw else None
+
+
+def start_recording(
+    client: redis.Redis, device: str, *, decoder: str, options: dict[str, Any], max_frames: int
+) -> Recording | None:
+    """Start a recording (options: those of a video job); None if one is already active."""
+    if max_frames < 1:
+        raise InvalidInputError(f"max_frames must be at least 1, got {max_frames}")
+    fields = {
+        "id": uuid.uuid4().hex,
+        "device": device,
+        "state": "recording",
+        "decoder": decoder,
+        "options": json.dumps(options),
+        "max_frames": str(max_frames),
+        "frames": "0",
+        "started_ns": str(time.time_ns()),
+    }
+    args = [item for pair in fields.items() for item in pair]
+    if not client.register_script(_START)(keys=[recording_key(device)], args=args):
+        return None
+    return load_recording(client, device)
+
+
+def request_stop(client: redis.Redis, device: str) -> Recording | None:
+    """Ask the worker to end the device's recording; returns the record (None: never any)."""
+    client.register_script(_STOP)(keys=[recording_key(device)], args=[time.time_ns()])
+    return load_recording(client, device)
+
+
+def _params_key(params: SensorParams) -> str:
+    """The parameters that must stay fixed within a recording (noise seeds may vary)."""
+    return params.model_dump_json(exclude={"seed"})
+
+
+def _npy(codes: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, codes)
+    return buffer.getvalue()
+
+
+class Recorder:
+    """The worker's side: appends frames to active recordings and queues their video jobs."""
+
+    def __init__(self, client: redis.Redis, store: ResultStore, *, max_deliveries: int) -> None:
+        self.client = client
+        self.store = store
+        self.queue = JobQueue(
+            client, maxlen=RECORDING_QUEUE_MAXLEN, max_deliveries=max_deliveries,
+            claim_idle_ms=1,
+        )
+        self._update = client.register_script(_UPDATE)
+
+    def _set(
+        self, recording: Recording, fields: dict[str, Any], *, state: str = "",
+        frames: int | None = None,
+    ) -> bool:
+        """Write ``fields`` if the record is still ``recording`` (same id, ``state`` and
+        ``frames`` when given)."""
+        args: list[Any] = [recording.id, state, "" if frames is None else frames]
+        args += [item for pair in fields.items() for item in pair]
+        return bool(self._update(keys=[recording_key(recording.device)], args=args))
+
+    def add_frame(self, message: FrameMessage, entry_id: str) -> None:
+        """Record a reconstructed frame if the device's recording is collecting frames."""
+        recording = load_recording(self.client, message.device)
+        if recording is None or recording.state != "recording":
+            return
+        if recording.last_entry and entry_order(entry_id) <= entry_order(recording.last_entry):
+            return
+        index = recording.frames
+        params, shape = _params_key(message.params), ",".join(map(str, message.codes.shape))
+        update: dict[str, Any] = {"last_entry": entry_id, "last_sequence": message.sequence}
+        if index == 0:
+            update |= {
+                "params": message.params.model_dump_json(),
+                "shape": shape,
+                "first_sequence": message.sequence,
+            }
+        elif (params, shape) != (_params_key(SensorParams.model_validate_json(recording.params)),
+                                 recording.shape):
+            self._finish(recording, "params_changed")
+            return
+        elif message.discont or message.sequence != (recording.last_sequence or 0) + 1:
+            update["keyframes"] = ",".join(map(str, [*recording.keyframes, index]))
+        self.store.write(frame_key(recording.id, index), _npy(message.codes))
+        update["frames"] = index + 1
+        if not self._set(recording, update, state="recording", frames=index):
+            return
+        if index + 1 >= recording.max_frames:
+            self._finish(load_recording(self.client, message.device) or recording, "max_frames")
+
+    def finish_if_stopping(self, device: str) -> None:
+        """Queue the video job of a recording the API asked to stop."""
+        if self.client.hget(recording_key(device), "state") != b"stopping":
+            return
+        recording = load_recording(self.client, device)
+        if recording is not None:
+            self._finish(recording, recording.reason or "requested")
+
+    def _finish(self, recording: Recording, reason: str) -> None:
+        """Assemble the recorded frames (T x H x W codes), queue the video job, note its id."""
+        done = {"reason": reason, "stopped_ns": recording.stopped_ns or time.time_ns()}
+        try:
+            job = self._submit(recording)
+        except McamError as exc:
+            self._set(recording, {**done, "state": "failed", "error": exc.message})
+        else:
+            self._set(recording, {**done, "state": "submitted", "job": job})
+        for key in self.store.keys(f"recordings/{recording.id}"):
+            self.store.delete(key)
+
+    def _submit(self, recording: Recording) -> str:
+        if recording.frames == 0:
+            raise InvalidInputError(
+                "no frames were recorded: is the camera streaming (GET /v1/devices/{id}) "
+                "and a worker running?"
+            )
+        codes = np.stack(
+            [np.load(self.store.path(frame_key(recording.id, i))) for i in range(recording.frames)]
+        )
+        check_hdr10_size(recording.options.get("outputs", []), codes.shape)
+        options = {**recording.options, "keyframes": recording.keyframes}
+        params = SensorParams.model_validate_json(recording.params)
+        return self.queue.submit("video", codes, params, recording.decoder, options).id
