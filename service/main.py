@@ -36,6 +36,7 @@ ROUTERS: tuple[str, ...] = (
     "service.api.routes.metrics",
     "service.api.routes.devices",
     "service.api.routes.videos",
+    "service.api.routes.recordings",
 )
 STATIC_DIR = Path(__file__).parent / "static"
 API_VERSION = "1.0.0"

@@ -8,6 +8,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
 from worker.jobs import JobRecord, JobState
+from worker.queue import JobQueue
 
 
 class ErrorBody(BaseModel):
@@ -32,6 +33,19 @@ def accepted_response(record: JobRecord) -> JSONResponse:
     return JSONResponse(
         accepted.model_dump(mode="json"), status_code=202, headers={"Location": url}
     )
+
+
+def job_response(queue: JobQueue, record: JobRecord, wait_s: float) -> JSONResponse:
+    """200 with the job if it finishes within ``wait_s`` (``Prefer: wait``), else 202."""
+    if wait_s > 0:
+        record = queue.wait(record.id, wait_s)
+        if record.state.finished:
+            return JSONResponse(
+                job_view(record).model_dump(mode="json"),
+                headers={"Location": f"/v1/jobs/{record.id}",
+                         "Preference-Applied": f"wait={wait_s:g}"},
+            )
+    return accepted_response(record)
 
 
 class JobView(JobRecord):

@@ -6,7 +6,6 @@ import re
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
-from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from models.decoders.base import check_frame_shape
@@ -17,8 +16,7 @@ from service.api.schemas import (
     UPLOAD_ERRORS,
     JobAccepted,
     JobView,
-    accepted_response,
-    job_view,
+    job_response,
     upload_body,
 )
 from service.api.state import ServiceState
@@ -86,15 +84,7 @@ def submit(
         decoder,
         {"scene_referred": fields.scene_referred, "half": fields.half},
     )
-    url = f"/v1/jobs/{record.id}"
-    if wait_s > 0:
-        record = state.queue.wait(record.id, wait_s)
-        if record.state.finished:
-            return JSONResponse(
-                job_view(record).model_dump(mode="json"),
-                headers={"Location": url, "Preference-Applied": f"wait={wait_s:g}"},
-            )
-    return accepted_response(record)
+    return job_response(state.queue, record, wait_s)
 
 
 @router.post(

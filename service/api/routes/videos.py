@@ -9,10 +9,10 @@ downloaded by name: ``hdr10`` (HEVC Main10 PQ MP4), ``sdr`` (H.264 preview MP4),
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Request, Response
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from models.errors import InvalidInputError, UnsupportedFormatError
@@ -29,8 +29,8 @@ from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
 from worker.temporal import TemporalConfig
 from worker.video_input import decode_video
-from worker.video_jobs import VIDEO_FILES, video_options
-from worker.video_output import MIN_HDR10_SIDE, REFERENCE_WHITE
+from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
+from worker.video_output import REFERENCE_WHITE
 from worker.video_pipeline import OUTPUTS
 
 router = APIRouter(prefix="/v1/videos", tags=["videos"])
@@ -44,8 +44,10 @@ _MAGIC: tuple[tuple[bytes, str], ...] = (
 _MEDIA = {"hdr10": "video/mp4", "sdr": "video/mp4", "exr_zip": "application/zip"}
 
 
-class VideoFields(SensorFields):
-    """Parameters of ``POST /v1/videos``."""
+class VideoOptionFields(BaseModel):
+    """How a video is decoded and rendered (uploads and live recordings)."""
+
+    model_config = ConfigDict(extra="forbid")
 
     decoder: str | None = Field(None, description="spatial decoder (GET /v1/decoders)")
     mode: Literal["independent", "temporal"] = Field(
@@ -65,6 +67,23 @@ class VideoFields(SensorFields):
         TemporalConfig.keyframe_interval, ge=0, description="temporal: spatial keyframe period"
     )
     half: bool = Field(False, description="EXR frames as half floats")
+
+    def video_job_options(self) -> dict[str, Any]:
+        """The options of the video job (see ``worker.video_jobs.video_options``)."""
+        return {
+            "mode": self.mode,
+            "outputs": [name.strip() for name in self.outputs.split(",") if name.strip()],
+            "fps": self.fps,
+            "white_level": self.white_level,
+            "reference_white": self.reference_white,
+            "keyframe_interval": self.keyframe_interval,
+            "half": self.half,
+        }
+
+
+class VideoFields(SensorFields, VideoOptionFields):
+    """Parameters of ``POST /v1/videos``."""
+
     format: Literal["tiff", "npy", "zip"] | None = Field(
         None, description="video file format; default: from the file name or its first bytes"
     )
@@ -95,21 +114,9 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields) -> Response
         upload.data, fmt, fields.sensor_overrides(), settings.max_pixels, settings.max_video_frames
     )
     decoder = fields.decoder or settings.default_decoder
-    options = {
-        "mode": fields.mode,
-        "outputs": [name.strip() for name in fields.outputs.split(",") if name.strip()],
-        "fps": fields.fps,
-        "white_level": fields.white_level,
-        "reference_white": fields.reference_white,
-        "keyframe_interval": fields.keyframe_interval,
-        "half": fields.half,
-    }
+    options = fields.video_job_options()
     video_options(decoder, options)
-    if "hdr10" in options["outputs"] and min(video.codes.shape[1:3]) < MIN_HDR10_SIDE:
-        raise InvalidInputError(
-            f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels; "
-            "ask for outputs=exr_zip,sdr"
-        )
+    check_hdr10_size(options["outputs"], video.codes.shape)
     record = state.queue.submit("video", video.codes, video.params, decoder, options)
     return accepted_response(record)
 

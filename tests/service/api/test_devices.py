@@ -3,44 +3,25 @@
 from __future__ import annotations
 
 import shutil
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
 import pytest
 
-from device.daemon import DaemonConfig, DeviceDaemon
-from device.sim_link import PtyEndpoint
-from device.simulator import CameraSettings, VirtualScamp5
+from device.simulator import VirtualScamp5
 from models.hdr_io import read_hdr
 from service.core.config import Settings
 from tests.device.conftest import wait_for
+from tests.service.api.conftest import live_camera
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY
-from worker.embedded_redis import connect
-from worker.runner import Worker, WorkerConfig
 
 
 @pytest.fixture
 def camera(settings: Settings, tmp_path: Path) -> Iterator[VirtualScamp5]:
     """A streaming virtual camera, its daemon and a device-consuming worker."""
-    assert settings.redis_url is not None
-    cam = VirtualScamp5(PtyEndpoint(tmp_path / "scamp5"), settings=CameraSettings(fps=20),
-                        seed=1, max_frames=15)
-    daemon = DeviceDaemon(DaemonConfig(port=cam.endpoint.url, device="cam1",
-                                       data_dir=settings.data_dir),
-                          connect(settings.redis_url, timeout_s=1.0))
-    worker = Worker(WorkerConfig(redis_url=settings.redis_url, data_dir=settings.data_dir,
-                                 heartbeat_s=0.5, lease_ms=2000))
-    thread = threading.Thread(target=worker.run, daemon=True)
-    daemon.start()
-    cam.start()
-    thread.start()
-    yield cam
-    cam.stop()
-    daemon.stop()
-    worker.request_stop()
-    thread.join(15)
+    with live_camera(settings, tmp_path, fps=20, seed=1, max_frames=15) as cam:
+        yield cam
 
 
 def test_devices_health_control_latest_and_events(

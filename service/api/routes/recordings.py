@@ -1,0 +1,178 @@
+"""``/v1/devices/{id}/recordings``: record a live device stream into a video job.
+
+``POST`` with ``action=start`` (and the video options of ``POST /v1/videos``, plus
+``max_frames``) starts a recording; the worker that owns the device stream stores
+each frame it reconstructs. ``action=stop`` ends it: the worker queues the video
+job and the answer is that job (202, or 200 with the finished job under
+``Prefer: wait=N``); its files come from ``GET /v1/videos/{job}/result``. Fields
+come as JSON, form fields or query parameters. ``GET`` shows the current (or last)
+recording with its frame count. See ``worker/recordings.py``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Header, Request, Response
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import Field, ValidationError
+from starlette.concurrency import run_in_threadpool
+
+from models.decoders.registry import available_decoders
+from models.errors import InvalidInputError
+from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.errors import ApiError
+from service.api.routes.devices import DEVICE_ERRORS, known_device
+from service.api.routes.reconstructions import prefer_wait_s
+from service.api.routes.videos import VideoOptionFields
+from service.api.schemas import JobAccepted, JobView, error_response, job_response
+from service.api.state import ServiceState
+from worker.recordings import (
+    Recording,
+    load_recording,
+    request_stop,
+    start_recording,
+)
+from worker.video_jobs import video_options
+
+router = APIRouter(prefix="/v1/devices", tags=["recordings"])
+#: How long a stop waits for the worker to queue the video job (s) before answering 202.
+STOP_WAIT_S = 10.0
+RECORDING_ERRORS = {**DEVICE_ERRORS, 409: error_response("a recording is (not) running")}
+
+
+class RecordingFields(VideoOptionFields):
+    """Fields of ``POST /v1/devices/{id}/recordings`` (video options apply to ``start``)."""
+
+    action: Literal["start", "stop"] = Field(description="start or stop the recording")
+    max_frames: int = Field(300, ge=1, description="the recording stops by itself after these")
+
+
+async def read_fields(request: Request) -> RecordingFields:
+    """The fields from the query, updated by a JSON or form body (422 if bad)."""
+    values: dict[str, Any] = dict(request.query_params)
+    media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media == "application/json":
+        try:
+            body = await request.json()
+        except ValueError:
+            raise InvalidInputError("the JSON body is malformed; send an object") from None
+        if not isinstance(body, dict):
+            raise InvalidInputError("the JSON body must be an object, e.g. {\"action\": \"start\"}")
+        values |= body
+    elif media in ("application/x-www-form-urlencoded", "multipart/form-data"):
+        async with request.form() as form:
+            values |= {name: value for name, value in form.items() if isinstance(value, str)}
+    try:
+        return RecordingFields.model_validate(values)
+    except ValidationError as exc:
+        raise RequestValidationError(exc.errors()) from None
+
+
+def _recording_response(recording: Recording, status: int) -> JSONResponse:
+    return JSONResponse(
+        recording.view(), status_code=status,
+        headers={"Location": f"/v1/devices/{recording.device}/recordings"},
+    )
+
+
+def start(state: ServiceState, device: str, fields: RecordingFields) -> Response:
+    """Check the options and write the recording's record (409 if one is running)."""
+    limit = state.settings.max_video_frames
+    if fields.max_frames > limit:
+        raise InvalidInputError(f"max_frames {fields.max_frames} is above this server's {limit}")
+    decoder = fields.decoder or state.settings.default_decoder
+    names = [spec.name for spec in available_decoders()]
+    if decoder not in names:
+        raise InvalidInputError(f"unknown decoder {decoder!r}; choose one of: {', '.join(names)}")
+    options = fields.video_job_options()
+    video_options(decoder, options)
+    recording = start_recording(
+        state.client, device, decoder=decoder, options=options, max_frames=fields.max_frames
+    )
+    if recording is None:
+        raise ApiError(
+            409, "recording_running",
+            f"device {device!r} is already recording; stop it first (action=stop)",
+        )
+    return _recording_response(recording, 201)
+
+
+def _wait_for_job(state: ServiceState, device: str, recording: Recording) -> Recording:
+    """The recording once the worker queued its job or failed (or as it is after a while)."""
+    deadline = time.monotonic() + STOP_WAIT_S
+    while recording.state == "stopping" and time.monotonic() < deadline:
+        time.sleep(0.05)
+        recording = load_recording(state.client, device) or recording
+    return recording
+
+
+def stop(state: ServiceState, device: str, wait_s: float) -> Response:
+    """End the recording and answer with its video job."""
+    recording = request_stop(state.client, device)
+    if recording is None:
+        raise ApiError(
+            409, "no_recording", f"device {device!r} is not recording; start one (action=start)"
+        )
+    recording = _wait_for_job(state, device, recording)
+    if recording.state == "failed":
+        raise ApiError(409, "recording_failed", f"recording {recording.id} failed: "
+                       f"{recording.error}")
+    if recording.job is None:
+        return _recording_response(recording, 202)
+    return job_response(state.queue, state.queue.get(recording.job), wait_s)
+
+
+@router.post(
+    "/{device_id}/recordings",
+    summary="Start or stop recording a live device stream into a video job",
+    status_code=201,
+    responses={
+        200: {"model": JobView, "description": "stopped; the job finished within Prefer: wait"},
+        201: {"description": "recording started (the recording)"},
+        202: {"model": JobAccepted, "description": "stopped; the video job is queued"},
+        **RECORDING_ERRORS,
+    },
+    openapi_extra={
+        "requestBody": {
+            "required": False,
+            "content": {
+                "application/json": {"schema": RecordingFields.model_json_schema()},
+                "application/x-www-form-urlencoded": {
+                    "schema": RecordingFields.model_json_schema()
+                },
+            },
+        }
+    },
+)
+async def post_recording(
+    device_id: str,
+    request: Request,
+    state: StateDep,
+    _: SubmitKey,
+    prefer: Annotated[
+        str | None, Header(description="stop: `wait=N` answers 200 with the finished job")
+    ] = None,
+) -> Response:
+    """``action=start`` (with video options) or ``action=stop``."""
+    device = await run_in_threadpool(known_device, state, device_id)
+    fields = await read_fields(request)
+    if fields.action == "start":
+        return await run_in_threadpool(start, state, device, fields)
+    wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
+    return await run_in_threadpool(stop, state, device, wait_s)
+
+
+@router.get(
+    "/{device_id}/recordings",
+    summary="The device's current (or last) recording: state, frames so far, video job",
+    responses={404: error_response("no such device, or it never recorded"), **DEVICE_ERRORS},
+)
+def get_recording(device_id: str, state: StateDep, _: ReadKey) -> dict[str, Any]:
+    device = known_device(state, device_id)
+    recording = load_recording(state.client, device)
+    if recording is None:
+        raise ApiError(404, "not_found", f"device {device!r} has not recorded; POST action=start")
+    return recording.view()

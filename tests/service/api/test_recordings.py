@@ -1,0 +1,125 @@
+"""``/v1/devices/{id}/recordings``: a virtual camera on a real pty, the real daemon, a real
+worker (device frames and jobs), real HTTP; the recorded video's files read back."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import av
+import httpx
+import numpy as np
+import pytest
+
+from device.simulator import VirtualScamp5
+from models.formation import reconstruct
+from models.hdr_io import read_hdr
+from service.core.config import Settings
+from tests.device.conftest import wait_for
+from tests.service.api.conftest import live_camera
+from tests.service.conftest import FULL_KEY, READ_KEY
+
+Client = Callable[[str], httpx.Client]
+FRAMES = 30
+URL = "/v1/devices/cam1/recordings"
+
+
+@pytest.fixture
+def camera(settings: Settings, tmp_path: Path) -> Iterator[VirtualScamp5]:
+    with live_camera(settings, tmp_path, fps=30, seed=3, history=1000) as cam:
+        yield cam
+
+
+def recording(http: httpx.Client) -> dict:
+    reply = http.get(URL)
+    assert reply.status_code == 200, reply.text
+    return reply.json()
+
+
+def test_thirty_frame_live_recording_into_hdr10_and_exr(
+    camera: VirtualScamp5, client: Client
+) -> None:
+    http = client(FULL_KEY)
+    assert wait_for(lambda: http.get("/v1/devices/cam1").status_code == 200, 30)
+    start = {"action": "start", "max_frames": FRAMES, "mode": "temporal", "decoder": "itoh"}
+    reply = http.post(URL, json=start)
+    assert reply.status_code == 201, reply.text
+    assert reply.json()["state"] == "recording" and reply.headers["location"] == URL
+    again = http.post(URL, json=start)
+    assert again.status_code == 409 and again.json()["code"] == "recording_running"
+
+    assert wait_for(lambda: recording(http)["state"] != "recording", 40)
+    done = recording(http)
+    assert done["state"] == "submitted" and done["reason"] == "max_frames", done
+    assert done["frames"] == FRAMES and done["keyframes"] == []
+    assert done["last_sequence"] - done["first_sequence"] == FRAMES - 1
+
+    stop = http.post(URL, data={"action": "stop"}, headers={"Prefer": "wait=60"})
+    assert stop.status_code == 200, stop.text
+    job = stop.json()
+    assert job["id"] == done["job"] and job["state"] == "succeeded", job
+    assert job["kind"] == "video" and job["frames_done"] == FRAMES
+    assert job["info"]["keyframes"] >= 1 and job["info"]["paths"]["temporal"] > 0.5
+
+    hdr10 = http.get(f"/v1/videos/{job['id']}/result", params={"output": "hdr10"})
+    assert hdr10.status_code == 200
+    with av.open(io.BytesIO(hdr10.content)) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "hevc"
+        assert sum(1 for _ in container.decode(stream)) == FRAMES
+    exr = http.get(f"/v1/videos/{job['id']}/result", params={"output": "exr_zip"})
+    with zipfile.ZipFile(io.BytesIO(exr.content)) as archive:
+        names = archive.namelist()
+        assert len(names) == FRAMES
+        for offset in (0, FRAMES // 2, FRAMES - 1):
+            truth = camera.ground_truth(done["first_sequence"] + offset)
+            gain = truth.params.gain or 1.0
+            x_hat = read_hdr(archive.read(names[offset])).pixels * gain
+            x_exact_w = reconstruct(truth.codes, truth.winding, truth.params)
+            exact_w = np.abs(x_hat - x_exact_w) < 0.5
+            assert exact_w.mean() >= 0.99, f"frame {offset}: W wrong on {1 - exact_w.mean():.2%}"
+            relative = np.abs(x_hat - truth.irradiance) / truth.irradiance
+            assert np.median(relative) < 0.01
+
+
+def test_stop_mid_stream_and_bad_requests(camera: VirtualScamp5, client: Client) -> None:
+    http = client(FULL_KEY)
+    assert wait_for(lambda: http.get("/v1/devices/cam1").status_code == 200, 30)
+    assert http.get(URL).status_code == 404
+    nothing = http.post(URL, json={"action": "stop"})
+    assert nothing.status_code == 409 and nothing.json()["code"] == "no_recording"
+    bad = [
+        ({"json": {"action": "fly"}}, 422, "action"),
+        ({"json": {"mode": "temporal"}}, 422, "action"),
+        ({"json": {"action": "start", "max_frames": 100_000}}, 422, "max_frames"),
+        ({"json": {"action": "start", "max_frames": 0}}, 422, "max_frames"),
+        ({"json": {"action": "start", "decoder": "nope"}}, 422, "unknown decoder"),
+        ({"json": {"action": "start", "outputs": "gif"}}, 422, "gif"),
+        ({"json": {"action": "start", "colour": "red"}}, 422, "colour"),
+        ({"json": ["start"]}, 422, "object"),
+        ({"content": b"{no", "headers": {"Content-Type": "application/json"}}, 422, "JSON"),
+    ]
+    for request, status, fragment in bad:
+        reply = http.post(URL, **request)
+        assert reply.status_code == status, reply.text
+        assert fragment in reply.text and reply.json()["code"] == "invalid_input"
+    assert http.post("/v1/devices/nope/recordings", json={"action": "start"}).status_code == 404
+    assert http.post("/v1/devices/bad!id/recordings", json={"action": "start"}).status_code == 422
+    assert client(READ_KEY).post(URL, json={"action": "start"}).status_code == 403
+    assert client("").get(URL).status_code == 401
+
+    fields = {"action": "start", "outputs": "exr_zip", "mode": "independent"}
+    started = http.post(URL, params=fields)
+    assert started.status_code == 201, started.text
+    assert wait_for(lambda: recording(http)["frames"] >= 3, 30)
+    stopped = http.post(URL, params={"action": "stop"})
+    assert stopped.status_code == 202, stopped.text
+    record = recording(http)
+    assert record["state"] == "submitted" and record["reason"] == "requested"
+    assert stopped.json()["id"] == record["job"]
+    assert stopped.headers["location"] == record["job_url"]
+    job = http.get(record["job_url"]).json()
+    assert job["frames_total"] == record["frames"] >= 3
+    assert job["options"]["mode"] == "independent" and job["options"]["outputs"] == ["exr_zip"]
