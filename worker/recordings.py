@@ -213,8 +213,8 @@ class Recorder:
         self, recording: Recording, fields: dict[str, Any], *, state: str = "",
         frames: int | None = None,
     ) -> bool:
-        """Write ``fields`` if the record is still ``recording`` (same id, ``state`` and
-        ``frames`` when given)."""
+        """Write ``fields`` if the record is still this recording (same id), in ``state``
+        with ``frames`` frames when those are given; returns whether it wrote."""
         args: list[Any] = [recording.id, state, "" if frames is None else frames]
         args += [item for pair in fields.items() for item in pair]
         return bool(self._update(keys=[recording_key(recording.device)], args=args))

@@ -132,7 +132,11 @@ def stop(state: ServiceState, device: str, wait_s: float) -> Response:
     responses={
         200: {"model": JobView, "description": "stopped; the job finished within Prefer: wait"},
         201: {"description": "recording started (the recording)"},
-        202: {"model": JobAccepted, "description": "stopped; the video job is queued"},
+        202: {
+            "model": JobAccepted,
+            "description": "stopped; the video job is queued (or, when no worker has "
+            f"queued it within {STOP_WAIT_S:g} s, the recording, still stopping)",
+        },
         **RECORDING_ERRORS,
     },
     openapi_extra={
