@@ -28,7 +28,7 @@ URL = "/v1/devices/cam1/recordings"
 
 @pytest.fixture
 def camera(settings: Settings, tmp_path: Path) -> Iterator[VirtualScamp5]:
-    with live_camera(settings, tmp_path, fps=30, seed=3, history=1000) as cam:
+    with live_camera(settings, tmp_path, fps=15, seed=3, history=1000) as cam:
         yield cam
 
 
