@@ -13,7 +13,7 @@ from models.decoders.adaptive import (
     AdaptiveDecoder,
     specs,
 )
-from models.formation import SensorParams, encode
+from models.formation import SensorParams, encode, quantize
 
 MODULO = SensorParams(encoding="modulo", bits=8)
 MANTISSA = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
@@ -86,3 +86,12 @@ def test_rgb_frames_report_each_channel() -> None:
     result = get_decoder("auto").decode(frame.codes, MODULO)
     assert len(result.info["channels"]) == 3
     np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+def test_best_sends_frames_with_residues_whole_to_the_hard_decoder() -> None:
+    m_codes = quantize(np.random.default_rng(2).random((64, 64)), 8)
+    decoder = AdaptiveDecoder("best")
+    result = decoder.decode(m_codes, MODULO)
+    assert result.info["details"]["routes"] == {decoder.hard_tile_decoder().name: 1.0}
+    alone = decoder.hard_tile_decoder().decode(m_codes, MODULO)
+    np.testing.assert_array_equal(result.winding, alone.winding)
