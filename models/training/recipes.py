@@ -11,6 +11,9 @@ SMALL_STAGES = (500, 3500, 2000, 2000)
 #: The tier also shipped as an int8 QDQ model.
 INT8_TIER = "small"
 
+#: Stage steps of the shipped tiny tier (shorter: trained last, in the time left).
+TINY_STAGES = (300, 1500, 700, 500)
+
 #: UnModNet baseline (tiny width, fits CPU training): edge net, rollover net on true
 #: edges, end to end.
 UNMODNET_STAGES = (200, 800, 300)
@@ -18,6 +21,8 @@ UNMODNET_STAGES = (200, 800, 300)
 SHIPPED: tuple[TrainConfig, ...] = (
     TrainConfig(tier="small", encoding="mantissa", stage_steps=SMALL_STAGES),
     TrainConfig(tier="small", encoding="modulo", stage_steps=SMALL_STAGES),
+    TrainConfig(tier="tiny", encoding="mantissa", stage_steps=TINY_STAGES),
+    TrainConfig(tier="tiny", encoding="modulo", stage_steps=TINY_STAGES),
     TrainConfig(family="unmodnet", tier="tiny", encoding="mantissa", stage_steps=UNMODNET_STAGES),
     TrainConfig(family="unmodnet", tier="tiny", encoding="modulo", stage_steps=UNMODNET_STAGES),
 )
