@@ -59,11 +59,12 @@ class AdaptiveDecoder(Decoder):
         self.margin = margin
         self.name = f"auto-{quality}"
 
-    def hard_tile_decoder(self) -> Decoder:
-        """The decoder for tiles with residues: the quality's tier, else the classical fallback."""
+    def hard_tile_decoder(self, params: SensorParams) -> Decoder:
+        """The decoder for tiles with residues: the quality's first installed tier that
+        supports the frame's encoding, else the classical fallback."""
         installed = {spec.name for spec in available_decoders()}
         for name in TIER_LADDER[self.quality]:
-            if name in installed:
+            if name in installed and get_decoder(name).supports(params):
                 return get_decoder(name)
         return get_decoder(CLASSICAL_FALLBACK)
 
@@ -81,7 +82,7 @@ class AdaptiveDecoder(Decoder):
         if difficulty == "smooth":
             winding = anchor_winding(integrate_jumps(along_cols, along_rows), params)
             return winding, _report({INTEGRATION: m.size}, "no residue")
-        hard = self.hard_tile_decoder()
+        hard = self.hard_tile_decoder(params)
         if self.quality == "best":
             reason = f"{difficulty} wraps; quality best decodes whole frames"
             return hard.predict_winding(m, params), _report({hard.name: m.size}, reason)

@@ -119,6 +119,10 @@ class Decoder(ABC):
             info=info,
         )
 
+    def supports(self, params: SensorParams) -> bool:
+        """Whether this decoder can decode frames with these parameters (all, by default)."""
+        return True
+
     def explain_winding(
         self, m: NDArray[np.float64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:

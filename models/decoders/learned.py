@@ -173,6 +173,9 @@ class LearnedDecoder(Decoder):
         self.models = {card["encoding"]: onnx_model(card) for card in cards}
         self.version = ",".join(sorted(card["sha256"][:12] for card in cards))
 
+    def supports(self, params: SensorParams) -> bool:
+        return params.encoding in self.models
+
     def model_for(self, params: SensorParams) -> OnnxWindingModel:
         """The model trained for ``params.encoding``; a clear error when there is none."""
         if params.encoding not in self.models:

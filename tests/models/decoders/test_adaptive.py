@@ -92,6 +92,6 @@ def test_best_sends_frames_with_residues_whole_to_the_hard_decoder() -> None:
     m_codes = quantize(np.random.default_rng(2).random((64, 64)), 8)
     decoder = AdaptiveDecoder("best")
     result = decoder.decode(m_codes, MODULO)
-    assert result.info["details"]["routes"] == {decoder.hard_tile_decoder().name: 1.0}
-    alone = decoder.hard_tile_decoder().decode(m_codes, MODULO)
+    assert result.info["details"]["routes"] == {decoder.hard_tile_decoder(MODULO).name: 1.0}
+    alone = decoder.hard_tile_decoder(MODULO).decode(m_codes, MODULO)
     np.testing.assert_array_equal(result.winding, alone.winding)
