@@ -146,7 +146,7 @@ def synthetic_scene(seed: int, size: int = 128) -> NDArray[np.float64]:
     scene = np.full((size, size), rng.lognormal(0.0, 1.0))
     r_min, r_max = 1.5, size / 2
     for _ in range(int(rng.integers(30, 120))):
-        radius = (r_min ** -2 - rng.uniform() * (r_min ** -2 - r_max ** -2)) ** -0.5
+        radius = (r_min**-2 - rng.uniform() * (r_min**-2 - r_max**-2)) ** -0.5
         cy, cx = rng.uniform(-radius, size + radius, 2)
         ys, xs, mask = _disk_mask(size, cy, cx, radius)
         if not mask.any():
