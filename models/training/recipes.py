@@ -23,6 +23,7 @@ SHIPPED: tuple[TrainConfig, ...] = (
     TrainConfig(tier="small", encoding="modulo", stage_steps=SMALL_STAGES),
     TrainConfig(tier="tiny", encoding="mantissa", stage_steps=TINY_STAGES),
     TrainConfig(tier="tiny", encoding="modulo", stage_steps=TINY_STAGES),
+    TrainConfig(tier="tiny", encoding="mantissa", stage_steps=TINY_STAGES, max_read_noise=0.02),
     TrainConfig(family="unmodnet", tier="tiny", encoding="mantissa", stage_steps=UNMODNET_STAGES),
     TrainConfig(family="unmodnet", tier="tiny", encoding="modulo", stage_steps=UNMODNET_STAGES),
 )
