@@ -18,16 +18,14 @@ GFLOP/s against it, prints Markdown tables and writes JSON and a PNG plot.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import time
 from collections.abc import Callable
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bench import RESULTS, machine, utc_now, versions, write_report
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.decoders.adaptive import QUALITIES, AdaptiveDecoder
@@ -42,7 +40,6 @@ from models.scenes import (
     val256_scenes,
 )
 
-RESULTS = Path(__file__).resolve().parent / "results"
 VAL_PARAMS = SensorParams(encoding="mantissa", bits=VAL256_BITS, max_wraps=VAL256_MAX_WRAPS)
 TILE_SIZES = (32, 64, 128)
 
@@ -164,8 +161,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         pareto(rows)
         table[set_name] = rows
     return {
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": 2},
+        "date": utc_now(),
+        "machine": machine(),
+        "versions": versions(),
         "peak_gflops_per_s": peak,
         "repeats": args.repeats,
         "sets": {name: len(frames) for name, frames in sets.items()},
@@ -236,9 +234,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--plot", type=Path, default=RESULTS / "tradeoff.png")
     args = parser.parse_args(argv)
     report = run(args)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2))
-    args.out.with_suffix(".md").write_text(markdown(report) + "\n")
+    write_report(report, markdown(report), args.out)
     plot(report, args.plot)
     print(markdown(report))
 
