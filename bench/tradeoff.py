@@ -131,11 +131,21 @@ def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
 
 
 def gflops_of(name: str) -> float | None:
-    """GFLOPs per 256x256 frame from the decoder's model card, if it is a network."""
+    """GFLOPs per 256x256 mantissa frame from the decoder's model card, if it is a network
+    (for unmodnet: per pass)."""
     for spec in available_decoders():
-        if spec.name == name and "gflops_256" in spec.figures:
-            return float(spec.figures["gflops_256"])
+        if spec.name == name:
+            flops = spec.figures.get(VAL_PARAMS.encoding, {}).get("gflops_256")
+            return None if flops is None else float(flops)
     return None
+
+
+def add_throughput(row: dict[str, Any], pixels: int, peak: float) -> None:
+    """Achieved GFLOP/s of a network row, and its fraction of the machine's peak."""
+    flops = gflops_of(row["decoder"])
+    if flops is not None:
+        row["gflops_per_s"] = flops * pixels / 256**2 / (row["ms_per_frame"] / 1000)
+        row["fraction_of_peak"] = row["gflops_per_s"] / peak
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -152,11 +162,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if set_name != "val-256" and "tile" in name:
                 continue
             row = {"decoder": name, **measure(decoder, frames, args.repeats)}
-            flops = gflops_of(name)
-            if flops is not None:
-                pixels = frames[0].codes.size / 256**2
-                row["gflops_per_s"] = flops * pixels / (row["ms_per_frame"] / 1000)
-                row["fraction_of_peak"] = row["gflops_per_s"] / peak
+            add_throughput(row, frames[0].codes.size, peak)
             rows.append(row)
         pareto(rows)
         table[set_name] = rows
