@@ -19,6 +19,7 @@ with it: ``finite`` (every decoder returns finite W and x_hat, never NaN/inf),
 | random codes, alpha 1000 | finite or a clear output-overflow error |
 | 1 x 1 and 1 x N frames | a clear error: spatial decoders need 2 x 2 |
 | codes >= 2^bits, float codes | a clear invalid-input error |
+| an encoding the decoder has no model for | a clear invalid-input error naming it |
 """
 
 from __future__ import annotations
@@ -111,6 +112,10 @@ def run(decoder: str, case: Extreme) -> None:
         assert caught.value.message
         return
     codes, truth, params = case.build()
+    if not get_decoder(decoder).supports(params):
+        with pytest.raises(InvalidInputError, match=params.encoding):
+            get_decoder(decoder).decode(codes, params)
+        return
     try:
         result = get_decoder(decoder).decode(codes, params)
     except OutputOverflowError as exc:
