@@ -58,11 +58,14 @@ class RegionAnalysis:
 
 @dataclass(frozen=True)
 class FrameAnalysis:
-    """The whole frame's figures, its tiles, and the bound on W (None if unbounded)."""
+    """The whole frame's figures, its tiles, the bound on W (None if unbounded), and the
+    neighbour jumps they were computed from (see :func:`neighbour_jumps`)."""
 
     frame: RegionAnalysis
     tiles: tuple[RegionAnalysis, ...]
     max_winding: int | None
+    along_cols: NDArray[np.int64]
+    along_rows: NDArray[np.int64]
 
     @property
     def itoh_likely(self) -> bool:
@@ -135,4 +138,10 @@ def analyse(m: NDArray[np.floating], params: SensorParams, tile: int = 64) -> Fr
         for c in range(0, width, tile)
     )
     frame = _region(0, 0, along_cols, along_rows, residues, (height, width))
-    return FrameAnalysis(frame=frame, tiles=tiles, max_winding=max_winding(params))
+    return FrameAnalysis(
+        frame=frame,
+        tiles=tiles,
+        max_winding=max_winding(params),
+        along_cols=along_cols,
+        along_rows=along_rows,
+    )

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from models.decoders.base import Decoder, anchor_winding
 from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
 from models.formation import SensorParams
-from models.scene_analysis import RegionAnalysis, analyse, neighbour_jumps
+from models.scene_analysis import RegionAnalysis, analyse
 from models.tile_reconcile import Tile, integrate_jumps, stitch
 
 QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
@@ -75,7 +75,7 @@ class AdaptiveDecoder(Decoder):
         self, m: NDArray[np.float64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         analysis = analyse(m, params, self.tile)
-        along_cols, along_rows = neighbour_jumps(m)
+        along_cols, along_rows = analysis.along_cols, analysis.along_rows
         difficulty = analysis.frame.difficulty
         if difficulty == "none":
             return np.zeros(m.shape, np.int64), _report({PASS_THROUGH: m.size}, "no wrap edge")

@@ -103,3 +103,12 @@ def test_residues_are_integer_circulations(seed: int) -> None:
     assert int(circulation.sum()) == int(
         cols[0, :].sum() + rows[:, -1].sum() - cols[-1, :].sum() - rows[:, 0].sum()
     )
+
+
+def test_analysis_carries_the_jumps_it_counted() -> None:
+    m = np.random.default_rng(2).random((20, 30))
+    result = analyse(m, MODULO, tile=8)
+    cols, rows = neighbour_jumps(m)
+    np.testing.assert_array_equal(result.along_cols, cols)
+    np.testing.assert_array_equal(result.along_rows, rows)
+    assert result.frame.wrap_edges == np.count_nonzero(cols) + np.count_nonzero(rows)
