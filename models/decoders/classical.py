@@ -29,21 +29,22 @@ def wrap_difference(d: NDArray[np.float64]) -> NDArray[np.float64]:
     return d - np.round(d)
 
 
-def least_squares_unwrap(m: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Least-squares unwrapping (Ghiglia & Romero 1994): ``u`` up to a constant, in wraps.
+def integrate_gradient(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The surface whose forward differences best fit ``(dx, dy)`` in least squares.
 
-    The wrapped forward differences of ``m`` are the estimated gradient of ``u``;
-    the ``u`` whose gradient fits them best solves a Poisson equation with
-    Neumann boundaries, diagonalised by the type-II DCT.
+    ``dx[:, :-1]`` and ``dy[:-1, :]`` are the differences to the right and lower
+    neighbours (the last column / row is ignored). The normal equations are a
+    Poisson equation with Neumann boundaries, diagonalised by the type-II DCT
+    (Ghiglia & Romero 1994). Returns the surface up to a constant (mean 0).
     """
-    rows, cols = m.shape
-    dx = np.zeros_like(m)
-    dy = np.zeros_like(m)
-    dx[:, :-1] = wrap_difference(np.diff(m, axis=1))
-    dy[:-1, :] = wrap_difference(np.diff(m, axis=0))
-    divergence = dx + dy
-    divergence[:, 1:] -= dx[:, :-1]
-    divergence[1:, :] -= dy[:-1, :]
+    rows, cols = dx.shape
+    gx = np.zeros((rows, cols))
+    gy = np.zeros((rows, cols))
+    gx[:, :-1] = dx[:, :-1]
+    gy[:-1, :] = dy[:-1, :]
+    divergence = gx + gy
+    divergence[:, 1:] -= gx[:, :-1]
+    divergence[1:, :] -= gy[:-1, :]
     eigen = (
         2.0 * np.cos(np.pi * np.arange(rows) / rows)[:, None]
         + 2.0 * np.cos(np.pi * np.arange(cols) / cols)[None, :]
@@ -53,6 +54,19 @@ def least_squares_unwrap(m: NDArray[np.float64]) -> NDArray[np.float64]:
     spectrum = dctn(divergence, type=2, norm="ortho") / eigen
     spectrum[0, 0] = 0.0
     return idctn(spectrum, type=2, norm="ortho")
+
+
+def least_squares_unwrap(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Least-squares unwrapping: ``u`` up to a constant, in wraps.
+
+    The wrapped forward differences of ``m`` are the estimated gradient of ``u``;
+    :func:`integrate_gradient` finds the ``u`` that fits them best.
+    """
+    dx = np.zeros_like(m)
+    dy = np.zeros_like(m)
+    dx[:, :-1] = wrap_difference(np.diff(m, axis=1))
+    dy[:-1, :] = wrap_difference(np.diff(m, axis=0))
+    return integrate_gradient(dx, dy)
 
 
 def reliability_unwrap(m: NDArray[np.float64]) -> NDArray[np.float64]:

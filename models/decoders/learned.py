@@ -1,6 +1,7 @@
 """Learned decoders run with onnxruntime: ``mantissanet-<tier>`` and ``unmodnet``.
 
-``mantissanet-*`` predicts W in one pass; ``unmodnet`` starts from W = 0 and adds
+``mantissanet-*`` predicts W in one pass (or, for a net trained on the
+per-neighbour jumps of W, the jumps, integrated into W); ``unmodnet`` starts from W = 0 and adds
 the pixels its net says roll over once more, pass by pass (at most the card's
 ``max_passes``, 15).
 
@@ -29,6 +30,7 @@ import onnxruntime as ort
 from numpy.typing import NDArray
 
 from models.decoders.base import Decoder, anchor_winding
+from models.decoders.classical import integrate_gradient
 from models.decoders.registry import DecoderSpec
 from models.errors import InvalidInputError
 from models.formation import SensorParams, max_winding
@@ -153,9 +155,31 @@ class OnnxRolloverModel(OnnxWindingModel):
         return winding[0, 0, : m.shape[0], : m.shape[1]].astype(np.int64)
 
 
+def winding_from_jumps(jumps: NDArray[np.floating]) -> NDArray[np.int64]:
+    """Relative W (minimum 0) from per-neighbour jumps (``2 x H x W``: to the right and
+    to the lower neighbour, in wraps): their least-squares integral, rounded."""
+    relative = integrate_gradient(jumps[0].astype(np.float64), jumps[1].astype(np.float64))
+    return np.round(relative - relative.min()).astype(np.int64)
+
+
+class OnnxJumpsModel(OnnxWindingModel):
+    """A winding net trained on per-neighbour jumps (``m -> jumps``, 2 channels): W is
+    integrated from the predicted jumps (relative; anchored later)."""
+
+    def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
+        padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))
+        jumps = self.session.run(None, {"m": padded[None, None]})[0][0]
+        return winding_from_jumps(jumps[:, : m.shape[0], : m.shape[1]])
+
+
 def onnx_model(card: dict[str, Any]) -> OnnxWindingModel:
-    """The runtime wrapper of a card: one-pass winding net, or iterative UnModNet."""
-    return OnnxRolloverModel(card) if card["family"] == "unmodnet" else OnnxWindingModel(card)
+    """The runtime wrapper of a card: one-pass winding net (W or jumps), or iterative
+    UnModNet."""
+    if card["family"] == "unmodnet":
+        return OnnxRolloverModel(card)
+    if card.get("output") == "jumps":
+        return OnnxJumpsModel(card)
+    return OnnxWindingModel(card)
 
 
 def finish_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:

@@ -38,7 +38,9 @@ MAX_PASSES = 15
 
 
 class WindingGraph(nn.Module):
-    """Inference graph: ``m -> W`` (int64), argmax or rounded regression inside."""
+    """Inference graph: ``m -> W`` (int64, argmax or rounded regression inside), or for the
+    ``jumps`` loss ``m -> jumps`` (float32, 2 channels: to the right and lower neighbour),
+    which the runtime integrates into W."""
 
     def __init__(self, model: MantissaNet, loss: str) -> None:
         super().__init__()
@@ -49,6 +51,8 @@ class WindingGraph(nn.Module):
         logits, _ = self.model(m)
         if self.loss == "mse":
             return logits.round().clamp(0, NUM_CLASSES - 1).long()
+        if self.loss == "jumps":
+            return logits
         return logits.argmax(dim=1, keepdim=True)
 
 
@@ -167,6 +171,7 @@ def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
         "noise_aware": config.max_read_noise > 0,
         "file": onnx_path.name,
         "sha256": sha256_of(onnx_path),
+        "output": "jumps" if config.loss == "jumps" else "winding",
         "multiple": MULTIPLE,
         "tile": TILE,
         "parameters": parameter_count(model),

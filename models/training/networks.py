@@ -205,11 +205,11 @@ class WindingNet(nn.Module):
 class MantissaNet(nn.Module):
     """Edge net + winding net end to end: ``m -> (W logits, edge map)``."""
 
-    def __init__(self, tier: Tier) -> None:
+    def __init__(self, tier: Tier, outputs: int = NUM_CLASSES) -> None:
         super().__init__()
         self.tier = tier
         self.edge = EdgeNet(tier.edge_width, tier.edge_blocks)
-        self.winding = WindingNet(tier)
+        self.winding = WindingNet(tier, outputs)
 
     def forward(self, m: Tensor) -> tuple[Tensor, Tensor]:
         edges = self.edge(m)

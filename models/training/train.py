@@ -27,7 +27,11 @@ from models.training.data import PairConfig, sample_batch
 from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, UnModNet, wrap_edges
 
 RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
-LOSSES = ("ce", "mse")
+#: Winding losses: cross-entropy over W classes, MSE on W (the paper's), or MSE on the
+#: per-neighbour jumps of W (integrated into W at inference).
+LOSSES = ("ce", "mse", "jumps")
+#: Output channels of the winding head per loss.
+HEAD_OUTPUTS = {"ce": NUM_CLASSES, "mse": 1, "jumps": 2}
 FAMILIES = ("mantissanet", "unmodnet")
 STAGE_LR = (2e-3, 2e-3, 5e-4, 3e-4)
 EDGE_WEIGHT = 0.1
@@ -55,7 +59,8 @@ class TrainConfig:
     @property
     def name(self) -> str:
         noise = "-noise" if self.max_read_noise > 0 else ""
-        return f"{self.family}-{self.tier}{noise}-{self.encoding}"
+        loss = "" if self.loss == "ce" else f"-{self.loss}"
+        return f"{self.family}-{self.tier}{noise}{loss}-{self.encoding}"
 
     @property
     def run_dir(self) -> Path:
@@ -83,24 +88,47 @@ def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
     torch.manual_seed(config.seed)
     if config.family == "unmodnet":
         return UnModNet(TIERS[config.tier])
-    model = MantissaNet(TIERS[config.tier])
-    if config.loss == "mse":
-        model.winding.head = torch.nn.Conv2d(TIERS[config.tier].widths[0], 1, 1)
-    return model
+    return MantissaNet(TIERS[config.tier], HEAD_OUTPUTS[config.loss])
 
 
-def winding_loss(logits: Tensor, winding: Tensor, loss: str) -> Tensor:
-    """Cross-entropy over W classes, or MSE on W (the paper's) for a 1-channel output."""
+def winding_jumps(winding: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-neighbour jumps of W (float): along columns (``N x 1 x H x W-1``) and rows."""
+    w = winding.float()
+    return w[:, :, :, 1:] - w[:, :, :, :-1], w[:, :, 1:] - w[:, :, :-1]
+
+
+def jumps_loss(output: Tensor, winding: Tensor) -> Tensor:
+    """MSE of the predicted jumps (channel 0: to the right neighbour, 1: to the one below)."""
+    along_cols, along_rows = winding_jumps(winding)
+    return 0.5 * (
+        F.mse_loss(output[:, :1, :, :-1], along_cols) + F.mse_loss(output[:, 1:, :-1], along_rows)
+    )
+
+
+def winding_loss(output: Tensor, winding: Tensor, loss: str) -> Tensor:
+    """Cross-entropy over W classes, MSE on W (the paper's), or MSE on the W jumps."""
     if loss == "mse":
-        return F.mse_loss(logits, winding.float())
-    return F.cross_entropy(logits, winding[:, 0])
+        return F.mse_loss(output, winding.float())
+    if loss == "jumps":
+        return jumps_loss(output, winding)
+    return F.cross_entropy(output, winding[:, 0])
 
 
-def predicted_winding(logits: Tensor, loss: str) -> Tensor:
-    """Integer W from the net's output: argmax of the classes, or the rounded regression."""
+def prediction_accuracy(output: Tensor, winding: Tensor, loss: str) -> Tensor:
+    """Fraction right: pixels whose W is right (``ce``, ``mse``), or neighbour jumps whose
+    rounded value is right (``jumps``: W itself needs the integration done at inference)."""
+    if loss == "jumps":
+        along_cols, along_rows = winding_jumps(winding)
+        right = torch.cat([
+            (output[:, :1, :, :-1].round() == along_cols).flatten(),
+            (output[:, 1:, :-1].round() == along_rows).flatten(),
+        ])  # fmt: skip
+        return right.float().mean()
     if loss == "mse":
-        return logits.round().clamp(0, NUM_CLASSES - 1)[:, 0].long()
-    return logits.argmax(dim=1)
+        predicted = output.round().clamp(0, NUM_CLASSES - 1)[:, 0].long()
+    else:
+        predicted = output.argmax(dim=1)
+    return (predicted == winding[:, 0]).float().mean()
 
 
 def rollover_losses(
@@ -142,7 +170,7 @@ def step_losses(
         edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
         total = winding_loss(logits, winding, loss) + EDGE_WEIGHT * edge_bce
         parts = {"edge_bce": edge_bce.item()}
-    accuracy = (predicted_winding(logits, loss) == winding[:, 0]).float().mean()
+    accuracy = prediction_accuracy(logits, winding, loss)
     return total, {**parts, "accuracy": accuracy.item()}
 
 

@@ -31,7 +31,7 @@ def register(subparsers: Any) -> None:
     one = actions.add_parser("run", help="train one configuration (resumes its checkpoint)")
     one.add_argument("--tier", default="small", choices=("tiny", "small", "base"))
     one.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))
-    one.add_argument("--loss", default="ce", choices=("ce", "mse"))
+    one.add_argument("--loss", default="ce", choices=("ce", "mse", "jumps"))
     one.add_argument(
         "--stages", default="500,3500,2000,2000", help="steps per stage, comma separated"
     )

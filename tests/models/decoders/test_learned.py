@@ -128,3 +128,21 @@ def test_unmodnet_unwraps_iteratively_within_its_pass_limit() -> None:
     assert card["family"] == "unmodnet" and card["max_passes"] == 15
     assert 0 <= result.winding.min() and result.winding.max() <= 5
     assert (result.winding == frame.winding[:128, :128]).mean() > 0.5
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(2, 40), st.integers(2, 40), st.integers(0, 2**31 - 1))
+def test_exact_jumps_integrate_back_to_the_winding(rows: int, cols: int, seed: int) -> None:
+    winding = np.random.default_rng(seed).integers(0, 17, (rows, cols))
+    jumps = np.zeros((2, rows, cols))
+    jumps[0, :, :-1] = np.diff(winding, axis=1)
+    jumps[1, :-1, :] = np.diff(winding, axis=0)
+    np.testing.assert_array_equal(learned.winding_from_jumps(jumps), winding - winding.min())
+
+
+def test_noisy_jumps_round_to_the_winding() -> None:
+    winding = np.repeat(np.arange(8), 8)[None, :].repeat(16, axis=0)
+    jumps = np.zeros((2, *winding.shape))
+    jumps[0, :, :-1] = np.diff(winding, axis=1)
+    jumps += np.random.default_rng(1).normal(0, 0.1, jumps.shape)
+    np.testing.assert_array_equal(learned.winding_from_jumps(jumps), winding)

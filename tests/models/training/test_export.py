@@ -10,6 +10,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
+from models.decoders.learned import onnx_model
 from models.formation import dequantize
 from models.scenes import val256_frames
 from models.training.export import (
@@ -68,3 +69,21 @@ def test_unmodnet_exports_one_rollover_pass_matching_pytorch(tmp_path: Path) -> 
         torch_out = RolloverGraph(model)(torch.from_numpy(m), torch.from_numpy(winding)).numpy()
     assert onnx_out.shape == m.shape and set(np.unique(onnx_out)) <= {0, 1}
     assert (onnx_out == torch_out).mean() > 0.999
+
+
+def test_jumps_model_exports_jumps_that_the_runtime_integrates(tmp_path: Path) -> None:
+    config = TrainConfig(
+        tier="tiny", loss="jumps", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
+    )
+    card_path = export_run(train(config), tmp_path / "onnx")
+    card = json.loads(card_path.read_text())
+    assert card["output"] == "jumps" and card["decoder"] == "mantissanet-tiny-jumps"
+    m = np.random.default_rng(3).random((1, 1, 48, 64), dtype=np.float32)
+    session = ort.InferenceSession(str(card_path.with_suffix(".onnx")))
+    jumps = session.run(None, {"m": m})[0]
+    assert jumps.shape == (1, 2, 48, 64) and jumps.dtype == np.float32
+    np.testing.assert_allclose(jumps, torch_winding(tmp_path / config.name / "checkpoint.pt", m),
+                               atol=1e-4)  # fmt: skip
+    card["path"] = str(card_path.with_suffix(".onnx"))
+    winding = onnx_model(card).run(m[0, 0].astype(np.float64))
+    assert winding.shape == (48, 64) and winding.dtype == np.int64 and winding.min() == 0

@@ -8,7 +8,15 @@ from pathlib import Path
 import pytest
 import torch
 
-from models.training.train import TrainConfig, load_checkpoint, train
+from models.training.train import (
+    HEAD_OUTPUTS,
+    TrainConfig,
+    load_checkpoint,
+    prediction_accuracy,
+    train,
+    winding_jumps,
+    winding_loss,
+)
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -40,3 +48,27 @@ def test_resumed_run_equals_an_uninterrupted_one(tmp_path: Path) -> None:
 def test_unknown_loss_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="loss must be one of"):
         train(TrainConfig(loss="l1", runs_dir=tmp_path))
+
+
+@pytest.mark.parametrize("loss", ["mse", "jumps"])
+def test_every_loss_trains_and_names_its_run(tmp_path: Path, loss: str) -> None:
+    config = TrainConfig(
+        tier="tiny", loss=loss, stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
+    )
+    assert config.name == f"mantissanet-tiny-{loss}-mantissa"
+    state = load_checkpoint(train(config))
+    head = state["model"]["winding.head.weight"]
+    assert head.shape[0] == HEAD_OUTPUTS[loss]
+
+
+def test_jumps_loss_is_zero_for_the_true_jumps_and_counts_them_right() -> None:
+    winding = torch.tensor([[0, 0, 2], [0, 1, 3], [1, 1, 3]]).reshape(1, 1, 3, 3)
+    along_cols, along_rows = winding_jumps(winding)
+    output = torch.zeros(1, 2, 3, 3)
+    output[:, :1, :, :-1] = along_cols
+    output[:, 1:, :-1] = along_rows
+    assert winding_loss(output, winding, "jumps").item() == 0.0
+    assert prediction_accuracy(output, winding, "jumps").item() == 1.0
+    output[0, 0, 0, 1] += 1.0
+    assert winding_loss(output, winding, "jumps").item() > 0.0
+    assert prediction_accuracy(output, winding, "jumps").item() == pytest.approx(11 / 12)
