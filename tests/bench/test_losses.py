@@ -1,0 +1,28 @@
+"""Tests of bench/losses.py: a 3-step study of the three losses end to end (no timings)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bench import losses
+
+
+def test_study_trains_exports_and_measures_every_loss(tmp_path: Path) -> None:
+    out = tmp_path / "losses.json"
+    losses.main(["--stages", "1,1,1", "--frames", "1", "--runs-dir", str(tmp_path / "runs"),
+                 "--out", str(out)])  # fmt: skip
+    report = json.loads(out.read_text())
+    assert [row["loss"] for row in report["results"]] == ["ce", "mse", "jumps"]
+    for row in report["results"]:
+        assert 0.0 <= row["read_noise_0"]["winding_accuracy"] <= 1.0
+        assert (tmp_path / "runs" / "loss-study" / f"{row['run']}.onnx").exists()
+    assert report["best"] in {"ce", "mse", "jumps"}
+    assert "| jumps |" in out.with_suffix(".md").read_text()
+
+
+def test_bad_stages_are_refused_with_the_format() -> None:
+    with pytest.raises(SystemExit):
+        losses.parse_args(["--stages", "10,x"])
