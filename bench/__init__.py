@@ -83,6 +83,13 @@ def json_safe(value: Any) -> Any:
     return value
 
 
+def publish(report: dict[str, Any], markdown: str, out: Path) -> int:
+    """Write the report (JSON + Markdown), print the Markdown table; exit code 0."""
+    write_report(report, markdown, out)
+    print(markdown)
+    return 0
+
+
 def write_report(report: dict[str, Any], markdown: str, out: Path) -> None:
     """Write ``report`` as JSON to ``out`` and ``markdown`` next to it (``.md``)."""
     out.parent.mkdir(parents=True, exist_ok=True)

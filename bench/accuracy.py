@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, machine, utc_now, versions, write_report
+from bench import RESULTS, machine, publish, utc_now, versions
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.errors import McamError
@@ -242,10 +242,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     report = run(args)
-    table = markdown(report)
-    write_report(report, table, args.out)
-    print(table)
-    return 0
+    return publish(report, markdown(report), args.out)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench import RESULTS, machine, utc_now, versions, write_report
+from bench import RESULTS, machine, publish, utc_now, versions
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.training.export import export_run
 from models.training.recipes import TINY_STAGES
@@ -111,10 +111,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     report = run(args)
-    table = markdown(report)
-    write_report(report, table, args.out)
-    print(table)
-    return 0
+    return publish(report, markdown(report), args.out)
 
 
 if __name__ == "__main__":
