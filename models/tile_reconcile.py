@@ -43,9 +43,10 @@ def _border_vote(
 ) -> tuple[int, float]:
     """Most common implied offset between two facing pixel lines, and its share of votes."""
     votes = left - jumps - right
-    values, counts = np.unique(votes, return_counts=True)
+    lowest = int(votes.min())
+    counts = np.bincount(votes - lowest)
     best = int(np.argmax(counts))
-    return int(values[best]), float(counts[best] / votes.size)
+    return best + lowest, float(counts[best] / votes.size)
 
 
 def _borders(

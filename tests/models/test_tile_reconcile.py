@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from models.formation import SensorParams, split_unwrapped
 from models.scene_analysis import neighbour_jumps
-from models.tile_reconcile import Tile, integrate_jumps, stitch
+from models.tile_reconcile import Tile, _border_vote, integrate_jumps, stitch
 
 MODULO = SensorParams(encoding="modulo")
 
@@ -79,3 +79,17 @@ def test_a_minority_of_bad_border_pixels_is_outvoted() -> None:
     assert set(np.flatnonzero(error[:, 20])) == set(bad_rows)
     error[bad_rows, 20] = 0
     assert not error.any()
+
+
+@given(
+    st.lists(st.integers(-5, 5), min_size=1, max_size=40),
+    st.integers(-1000, 1000),
+)
+def test_border_vote_is_the_smallest_most_common_offset(votes: list[int], shift: int) -> None:
+    left = np.array(votes, np.int64) + shift
+    jumps = np.zeros_like(left)
+    right = np.full_like(left, shift)
+    delta, support = _border_vote(left, right, jumps)
+    values, counts = np.unique(votes, return_counts=True)
+    assert delta == values[np.argmax(counts)]
+    assert support == counts.max() / len(votes)

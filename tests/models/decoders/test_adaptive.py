@@ -62,7 +62,7 @@ def test_mostly_dark_frame_runs_the_hard_decoder_on_few_tiles() -> None:
     rng = np.random.default_rng(0)
     x[100:140, 150:190] += rng.uniform(0, 3, (40, 40))
     frame = encode(x, MODULO)
-    result = AdaptiveDecoder("fast").decode(frame.codes, MODULO)
+    result = AdaptiveDecoder("fast", tile=64).decode(frame.codes, MODULO)
     routes = result.info["details"]["routes"]
     assert routes[PASS_THROUGH] >= 0.8
     assert sum(v for k, v in routes.items() if k not in (PASS_THROUGH, INTEGRATION)) <= 0.2
