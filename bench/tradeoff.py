@@ -18,6 +18,7 @@ GFLOP/s against it, prints Markdown tables and writes JSON and a PNG plot.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +29,7 @@ import numpy as np
 from bench import RESULTS, machine, utc_now, versions, write_report
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
-from models.decoders.adaptive import QUALITIES, AdaptiveDecoder
+from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
 from models.formation import SensorParams, simulate
 from models.scenes import (
     VAL256_BITS,
@@ -124,10 +125,31 @@ def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
     if names:
         chosen = [(n, d) for n, d in chosen if n in names]
     tiles = [
-        (f"auto-{q}-tile{t}", AdaptiveDecoder(q, tile=t)) for q in QUALITIES for t in TILE_SIZES
-        if t != 64
+        (f"auto-{q}-tile{t}", AdaptiveDecoder(q, tile=t))
+        for q in QUALITIES
+        for t in TILE_SIZES
+        if t != DEFAULT_TILE
     ]
     return chosen + ([] if names else tiles)
+
+
+def speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``auto`` against always running a network: for each auto row and each network row
+    at most as accurate (W accuracy), how many times faster auto is."""
+    networks = [r for r in rows if "gflops_per_s" in r]
+    return [
+        {
+            "auto": auto["decoder"],
+            "network": net["decoder"],
+            "speedup": net["ms_per_frame"] / auto["ms_per_frame"],
+            "auto_winding_accuracy": auto["winding_accuracy"],
+            "network_winding_accuracy": net["winding_accuracy"],
+        }
+        for auto in rows
+        if auto["decoder"].startswith("auto")
+        for net in networks
+        if net["winding_accuracy"] <= auto["winding_accuracy"]
+    ]
 
 
 def gflops_of(name: str) -> float | None:
@@ -166,20 +188,33 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             rows.append(row)
         pareto(rows)
         table[set_name] = rows
+    dark_speedups = speedups(table["mostly-dark"])
     return {
         "date": utc_now(),
         "machine": machine(),
         "versions": versions(),
+        "load_average": os.getloadavg(),
         "peak_gflops_per_s": peak,
         "repeats": args.repeats,
         "sets": {name: len(frames) for name, frames in sets.items()},
         "results": table,
+        "mostly_dark_speedups": dark_speedups,
     }
+
+
+def header(report: dict[str, Any]) -> str:
+    """A report's first Markdown line: the measured peak, the load average when it was
+    taken (other processes share the cores) and the date."""
+    load = ", ".join(f"{v:.1f}" for v in report["load_average"])
+    return (
+        f"Peak float32 matmul: {report['peak_gflops_per_s']:.1f} GFLOP/s; load average {load} "
+        f"on {report['machine']['cores']} cores ({report['date']})"
+    )
 
 
 def markdown(report: dict[str, Any]) -> str:
     """The report as Markdown tables, one per frame set."""
-    lines = [f"Peak float32 matmul: {report['peak_gflops_per_s']:.1f} GFLOP/s ({report['date']})"]
+    lines = [header(report)]
     for set_name, rows in report["results"].items():
         lines += [
             "",
@@ -200,6 +235,18 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{100 * r['winding_accuracy']:.2f}% | {r['ms_per_frame']:.2f} | "
                 f"{r['frames_per_s']:.1f} | {flops} | {'*' if r['pareto'] else ''} |"
             )
+    lines += [
+        "",
+        "### mostly-dark: auto against always running a network at most as accurate",
+        "",
+        "| auto | network | speed-up | auto W acc | network W acc |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {s['auto']} | {s['network']} | {s['speedup']:.2f}x | "
+        f"{100 * s['auto_winding_accuracy']:.2f}% | {100 * s['network_winding_accuracy']:.2f}% |"
+        for s in report["mostly_dark_speedups"]
+    ]
     return "\n".join(lines)
 
 

@@ -60,12 +60,22 @@ def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:
     return cards
 
 
-def make_session(path: str, threads: int) -> ort.InferenceSession:
-    """A CPU onnxruntime session with ``threads`` intra-op threads."""
+def make_session(
+    path: str, threads: int, profile_prefix: str | None = None
+) -> ort.InferenceSession:
+    """A CPU onnxruntime session with ``threads`` intra-op threads (profiling to files
+    starting with ``profile_prefix`` when given).
+
+    Idle intra-op threads sleep instead of spinning: on shared cores a spinning thread
+    steals the core from the one doing the work (measured by ``python -m bench.profile``)."""
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    if profile_prefix is not None:
+        options.enable_profiling = True
+        options.profile_file_prefix = profile_prefix
     return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
 
 
