@@ -11,6 +11,7 @@ of pixels each temporal path took. Prints a table and writes
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -144,7 +145,12 @@ def main(argv: list[str] | None = None) -> int:
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(
         json.dumps(
-            {"frames": args.frames, "config": config.__dict__, "rows": rows, "summary": summary},
+            {
+                "frames": args.frames,
+                "config": dataclasses.asdict(config),
+                "rows": rows,
+                "summary": summary,
+            },
             indent=2,
         )
     )

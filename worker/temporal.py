@@ -8,10 +8,24 @@ previous frame's unwrapped value ``u_{t-1} = W_{t-1} + m_{t-1}`` (wraps):
 
 which is exact when the pixel's true change ``|u_t - u_{t-1}|`` is below half a wrap.
 
+Motion compensation
+-------------------
+On a pan or zoom the content moves by pixels per frame, so at a moving edge the
+same pixel of the previous frame shows other content and the rule aliases (it
+lost 5-17 dB against per-frame decoding on the pan/zoom clip). So ``u_{t-1}`` is
+first moved onto the current frame by :func:`worker.motion.compensate` (a global
+shift of up to ``motion.search`` px plus a one-pixel refinement per block, matched
+on texture, which a brightness change leaves alone), and the rule and the checks
+below compare each pixel with where its content was. Pixels whose content
+entered the frame (no source in the previous frame) are unsafe and unbounded: the
+fallback decides them. ``TemporalConfig.motion`` holds the knobs (``search = 0``
+turns compensation off: the previous frame is used as it is).
+
 The rule, per pixel (and channel)
 ---------------------------------
-A pixel is *safe* when every previous value within ``motion_radius`` pixels (a
-``(2r+1)^2`` window, so that motion up to ``r`` px/frame stays decidable) gives the
+A pixel is *safe* when every (motion-compensated) previous value within
+``motion_radius`` pixels (a ``(2r+1)^2`` window, so that motion up to ``r`` px/frame
+beyond what compensation followed stays decidable) gives the
 same ``W_t`` with at least ``margin`` wraps to spare: ``|W_t + m_t - u_{t-1}(q)| <=
 0.5 - margin`` for every q in the window. Safe pixels keep the temporal answer.
 Unsafe pixels fall back to the spatial decoder:
@@ -41,8 +55,10 @@ Failure modes
 -------------
 - Aliasing: a true change above half a wrap within one frame (a fast edge, a light
   switched on) that happens to land within the safe band gives a wrong W silently;
-  the window check catches motion up to ``motion_radius`` px/frame, not more.
-  Errors persist until a crop or keyframe decodes the pixel again.
+  the window check catches motion up to ``motion_radius`` px/frame beyond what
+  compensation followed, not more (see :mod:`worker.motion` for what it misses:
+  fast local motion, a fast zoom's corners). Errors persist until the local fix
+  or a keyframe decodes the pixel again.
 - Fallback quality: unsafe pixels are only as right as the spatial decoder (and a
   crop sees less context than the full frame).
 - A wrong constant at a first/DISCONT keyframe (the anchor rule failing) persists
@@ -67,6 +83,7 @@ from models.decoders.base import Decoder, check_frame_shape
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
+from worker.motion import MotionConfig, compensate, misfit
 
 MODES: tuple[str, ...] = ("independent", "temporal")
 PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
@@ -76,7 +93,8 @@ PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
 class TemporalConfig:
     """Knobs of the temporal rule (see the module docstring). ``margin`` in wraps,
     ``still`` in wraps, ``motion_radius`` in pixels, ``keyframe_interval`` in frames
-    (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels."""
+    (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels,
+    ``motion`` the motion compensation's knobs (:class:`worker.motion.MotionConfig`)."""
 
     margin: float = 0.1
     motion_radius: int = 1
@@ -84,6 +102,7 @@ class TemporalConfig:
     keyframe_interval: int = 30
     local_limit: float = 0.5
     local_passes: int = 4
+    motion: MotionConfig = MotionConfig()
 
     def __post_init__(self) -> None:
         checks = {
@@ -209,13 +228,21 @@ def window_extreme(values: NDArray[np.float64], radius: int, pick: np.ufunc) -> 
     return out
 
 
+#: ``hi`` of pixels nothing predicts (content entering the frame): no upper bound on W.
+UNBOUNDED = 2.0**40
+
+
 def temporal_prediction(
-    m: NDArray[np.float64], prev_u: NDArray[np.float64], config: TemporalConfig
+    m: NDArray[np.float64],
+    prev_u: NDArray[np.float64],
+    config: TemporalConfig,
+    inside: NDArray[np.bool_] | None = None,
 ) -> Prediction:
-    """Predict W of the frame ``m`` (H x W x C) from the previous ``u`` (see module doc)."""
+    """Predict W of the frame ``m`` (H x W x C) from the previous ``u`` moved onto it
+    (see module doc); pixels outside ``inside`` (H x W) are unpredicted: unsafe, unbounded."""
     winding = np.rint(prev_u - m)
     u = winding + m
-    change = np.abs(u - prev_u)
+    change = misfit(prev_u, m)
     limit = 0.5 - config.margin
     safe = change <= limit
     lo, hi = prev_u, prev_u
@@ -224,6 +251,11 @@ def temporal_prediction(
         hi = window_extreme(prev_u, config.motion_radius, np.maximum)
         still = window_extreme(change, config.motion_radius, np.maximum) <= config.still
         safe &= still | ((u - lo <= limit) & (hi - u <= limit))
+    if inside is not None and not inside.all():
+        outside = np.broadcast_to(~inside[:, :, None], m.shape)
+        safe = safe & ~outside
+        lo, hi = np.where(outside, 0.0, lo), np.where(outside, UNBOUNDED, hi)
+        change = np.where(outside, 0.5, change)
     return Prediction(winding.astype(np.int64), safe, lo, hi, m, change)
 
 
@@ -377,6 +409,11 @@ class StreamDecoder:
             return "periodic"
         return None
 
+    def predict(self, m: NDArray[np.float64], prev_u: NDArray[np.float64]) -> Prediction:
+        """The temporal answer for ``m`` from ``prev_u`` moved onto it (:mod:`worker.motion`)."""
+        moved = compensate(prev_u, m, self.config.motion)
+        return temporal_prediction(m, moved.u, self.config, moved.inside)
+
     def _spatial_planes(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         if params.encoding == "clip":
             return np.zeros(m.shape, np.int64)
@@ -389,7 +426,7 @@ class StreamDecoder:
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
         spatial = self._spatial_planes(m, params)
         if reason == "periodic" and state.u is not None:
-            prediction = temporal_prediction(m, state.u, self.config)
+            prediction = self.predict(m, state.u)
             for c in range(m.shape[2]):
                 keep = prediction.safe[:, :, c]
                 if keep.any():
@@ -402,7 +439,7 @@ class StreamDecoder:
         self, m: NDArray[np.float64], params: SensorParams, state: StreamState
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
         assert state.u is not None
-        prediction = temporal_prediction(m, state.u, self.config)
+        prediction = self.predict(m, state.u)
         winding = prediction.winding.copy()
         local = np.zeros(m.shape, bool)
         spatial = np.zeros(m.shape, bool)

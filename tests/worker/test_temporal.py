@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode
+from tests.worker.panning import PAN_PARAMS, pan_clip
+from worker.motion import MotionConfig
 from worker.temporal import (
     Prediction,
     StreamDecoder,
@@ -52,8 +54,44 @@ def test_exact_on_a_slowly_varying_clip(temporal: StreamDecoder) -> None:
         np.testing.assert_array_equal(result.winding, frame.winding)
         assert result.keyframe == ("first" if t == 0 else None)
         if t:
-            assert result.paths["temporal"] > 0.99
+            assert result.paths["temporal"] > 0.95 and result.paths["spatial"] == 0.0
     assert state.frames == 12 and state.last_keyframe == 0
+
+
+@pytest.mark.parametrize("size", [(64, 64), (37, 53)])
+def test_exact_on_a_slowly_panning_clip_only_with_motion_compensation(
+    size: tuple[int, int],
+) -> None:
+    """A 2 px/frame pan over steep smooth content: with motion compensation every frame
+    is exact with no spatial decode; the plain per-pixel rule gets some W wrong."""
+    frames = pan_clip(10, size=size)
+    compensated = StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=0))
+    results = list(decode_frames([f.codes for f in frames], PAN_PARAMS, compensated))
+    for result, frame in zip(results, frames, strict=True):
+        assert result.winding.shape == size
+        np.testing.assert_array_equal(result.winding, frame.winding)
+    assert all(r.paths["spatial"] == 0.0 for r in results[1:])
+    plain = StreamDecoder(
+        "temporal", "itoh", TemporalConfig(keyframe_interval=0, motion=MotionConfig(search=0))
+    )
+    wrong = sum(
+        int((result.winding != frame.winding).sum())
+        for result, frame in zip(
+            decode_frames([f.codes for f in frames], PAN_PARAMS, plain), frames, strict=True
+        )
+    )
+    assert wrong > 0
+
+
+def test_discont_during_a_pan_keyframes_and_stays_exact() -> None:
+    """A DISCONT mid-pan is decoded spatially; the pan is tracked again right after."""
+    frames = pan_clip(6)
+    decoder = StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=0))
+    state = StreamState()
+    for t, frame in enumerate(frames):
+        result = decoder.decode(frame.codes, PAN_PARAMS, state, sequence=t, discont=t == 3)
+        assert result.keyframe == {0: "first", 3: "discont"}.get(t)
+        np.testing.assert_array_equal(result.winding, frame.winding)
 
 
 def test_falls_back_on_a_fast_change_and_stays_correct(temporal: StreamDecoder) -> None:
@@ -169,6 +207,15 @@ def test_bad_mode_decoder_and_frame_are_refused(temporal: StreamDecoder) -> None
         temporal.decode(np.zeros(5, np.uint8), PARAMS, StreamState())
     with pytest.raises(InvalidInputError):
         temporal.decode(np.full((4, 4), 300, np.uint16), PARAMS, StreamState())
+
+
+@pytest.mark.parametrize("shape", [(1, 9), (9, 1)])
+def test_one_pixel_wide_frames_get_a_clear_error(temporal: StreamDecoder, shape: tuple) -> None:
+    """A 1 x N frame has no neighbours to unwrap against, in either mode."""
+    state = StreamState()
+    with pytest.raises(InvalidInputError, match="no neighbours"):
+        temporal.decode(np.zeros(shape, np.uint8), PARAMS, state)
+    assert state.u is None
 
 
 def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:
