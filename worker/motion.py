@@ -63,7 +63,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.classical import wrap_difference
-from models.errors import InvalidInputError
+from worker.config_checks import refuse_invalid
 
 #: Integer displacements of the block refinement around the global shift, as (dy, dx).
 _STEPS = ((-1, 0), (0, -1), (0, 0), (0, 1), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1))
@@ -84,16 +84,16 @@ class MotionConfig:
     accept: float = 0.1
 
     def __post_init__(self) -> None:
-        checks = {
-            "motion search must be >= 0": self.search >= 0,
-            "motion block must be an even number >= 2": self.block >= 2 and self.block % 2 == 0,
-            "motion stride must be >= 1": self.stride >= 1,
-            "motion switch must be in (0, 1]": 0.0 < self.switch <= 1.0,
-            "motion accept must be in (0, 0.5]": 0.0 < self.accept <= 0.5,
-        }
-        problems = [text for text, ok in checks.items() if not ok]
-        if problems:
-            raise InvalidInputError(f"invalid motion settings: {'; '.join(problems)}")
+        refuse_invalid(
+            "motion",
+            {
+                "motion search must be >= 0": self.search >= 0,
+                "motion block must be an even number >= 2": self.block >= 2 and self.block % 2 == 0,
+                "motion stride must be >= 1": self.stride >= 1,
+                "motion switch must be in (0, 1]": 0.0 < self.switch <= 1.0,
+                "motion accept must be in (0, 0.5]": 0.0 < self.accept <= 0.5,
+            },
+        )
 
 
 @dataclass(frozen=True)

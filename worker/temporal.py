@@ -21,6 +21,11 @@ entered the frame (no source in the previous frame) are unsafe and unbounded: th
 fallback decides them. ``TemporalConfig.motion`` holds the knobs (``search = 0``
 turns compensation off: the previous frame is used as it is).
 
+Before that, a global brightness change is undone: ``u_{t-1}`` is brightened by
+the gain that best explains ``m_t`` (:mod:`worker.brightness`; under a sunrise
+ramp a bright modulo pixel moves by more than half a wrap per frame).
+``TemporalConfig.brightness`` holds its knobs (``search = 0`` turns it off).
+
 The rule, per pixel (and channel)
 ---------------------------------
 A pixel is *safe* when every (motion-compensated) previous value within
@@ -49,7 +54,11 @@ sensor parameters, and every ``keyframe_interval`` frames (0: never) so that err
 cannot persist. A periodic keyframe keeps the stream's constant: its spatial
 answer is shifted by the most common difference to the temporal answer on safe
 pixels, so a scene that is bright everywhere (where "darkest pixels have W = 0" is
-wrong) keeps its tracked winding numbers.
+wrong) keeps its tracked winding numbers. Unsafe pixels then take the spatial
+answer; where it disagrees with a safe tracked one, each connected region of
+disagreement takes the answer that makes fewer jumps across its boundary
+(:func:`worker.region_vote.region_vote`), so neither a spatial decoder's wrong
+region nor a tracked one survives the keyframe.
 
 Failure modes
 -------------
@@ -83,7 +92,10 @@ from models.decoders.base import Decoder, check_frame_shape
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
+from worker.brightness import BrightnessConfig, brighten, frame_gain
+from worker.config_checks import refuse_invalid
 from worker.motion import MotionConfig, compensate, misfit
+from worker.region_vote import region_vote
 
 MODES: tuple[str, ...] = ("independent", "temporal")
 PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
@@ -94,7 +106,8 @@ class TemporalConfig:
     """Knobs of the temporal rule (see the module docstring). ``margin`` in wraps,
     ``still`` in wraps, ``motion_radius`` in pixels, ``keyframe_interval`` in frames
     (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels,
-    ``motion`` the motion compensation's knobs (:class:`worker.motion.MotionConfig`)."""
+    ``motion`` / ``brightness`` the knobs of motion and brightness compensation
+    (:class:`worker.motion.MotionConfig`, :class:`worker.brightness.BrightnessConfig`)."""
 
     margin: float = 0.1
     motion_radius: int = 1
@@ -103,19 +116,20 @@ class TemporalConfig:
     local_limit: float = 0.5
     local_passes: int = 4
     motion: MotionConfig = MotionConfig()
+    brightness: BrightnessConfig = BrightnessConfig()
 
     def __post_init__(self) -> None:
-        checks = {
-            "margin must be in [0, 0.5)": 0.0 <= self.margin < 0.5,
-            "still must be in [0, 0.5]": 0.0 <= self.still <= 0.5,
-            "motion_radius must be >= 0": self.motion_radius >= 0,
-            "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
-            "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
-            "local_passes must be >= 1": self.local_passes >= 1,
-        }
-        problems = [text for text, ok in checks.items() if not ok]
-        if problems:
-            raise InvalidInputError(f"invalid temporal settings: {'; '.join(problems)}")
+        refuse_invalid(
+            "temporal",
+            {
+                "margin must be in [0, 0.5)": 0.0 <= self.margin < 0.5,
+                "still must be in [0, 0.5]": 0.0 <= self.still <= 0.5,
+                "motion_radius must be >= 0": self.motion_radius >= 0,
+                "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
+                "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
+                "local_passes must be >= 1": self.local_passes >= 1,
+            },
+        )
 
 
 @dataclass
@@ -409,9 +423,13 @@ class StreamDecoder:
             return "periodic"
         return None
 
-    def predict(self, m: NDArray[np.float64], prev_u: NDArray[np.float64]) -> Prediction:
-        """The temporal answer for ``m`` from ``prev_u`` moved onto it (:mod:`worker.motion`)."""
-        moved = compensate(prev_u, m, self.config.motion)
+    def predict(
+        self, m: NDArray[np.float64], prev_u: NDArray[np.float64], params: SensorParams
+    ) -> Prediction:
+        """The temporal answer for ``m`` from ``prev_u``, brightened by the frame's gain
+        (:mod:`worker.brightness`) and moved onto it (:mod:`worker.motion`)."""
+        gain = frame_gain(prev_u, m, params, self.config.brightness)
+        moved = compensate(brighten(prev_u, gain, params), m, self.config.motion)
         return temporal_prediction(m, moved.u, self.config, moved.inside)
 
     def _spatial_planes(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
@@ -425,21 +443,28 @@ class StreamDecoder:
         self, m: NDArray[np.float64], params: SensorParams, state: StreamState, reason: str
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
         spatial = self._spatial_planes(m, params)
-        if reason == "periodic" and state.u is not None:
-            prediction = self.predict(m, state.u)
-            for c in range(m.shape[2]):
-                keep = prediction.safe[:, :, c]
-                if keep.any():
-                    temporal = prediction.winding[:, :, c]
-                    offset = common_offset(temporal[keep], spatial[:, :, c][keep])
-                    spatial[:, :, c] = np.maximum(spatial[:, :, c] + offset, 0)
-        return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}
+        if reason != "periodic" or state.u is None:
+            return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}
+        prediction = self.predict(m, state.u, params)
+        taken = np.ones(m.shape, bool)
+        for c in range(m.shape[2]):
+            keep = prediction.safe[:, :, c]
+            if not keep.any():
+                continue
+            temporal = prediction.winding[:, :, c]
+            offset = common_offset(temporal[keep], spatial[:, :, c][keep])
+            aligned = np.maximum(spatial[:, :, c] + offset, 0)
+            tracked = np.where(keep, temporal, aligned)
+            spatial[:, :, c], taken[:, :, c] = region_vote(tracked, aligned, m[:, :, c])
+            taken[:, :, c] |= ~keep
+        share = float(taken.mean())
+        return spatial, {"temporal": 1.0 - share, "local": 0.0, "spatial": share}
 
     def _temporal_step(
         self, m: NDArray[np.float64], params: SensorParams, state: StreamState
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
         assert state.u is not None
-        prediction = self.predict(m, state.u)
+        prediction = self.predict(m, state.u, params)
         winding = prediction.winding.copy()
         local = np.zeros(m.shape, bool)
         spatial = np.zeros(m.shape, bool)

@@ -11,6 +11,7 @@ from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode
 from tests.worker.panning import PAN_PARAMS, pan_clip
+from worker.brightness import BrightnessConfig
 from worker.motion import MotionConfig
 from worker.temporal import (
     Prediction,
@@ -95,15 +96,35 @@ def test_discont_during_a_pan_keyframes_and_stays_exact() -> None:
 
 
 def test_falls_back_on_a_fast_change_and_stays_correct(temporal: StreamDecoder) -> None:
-    """Half a wrap of change in one frame (x times sqrt 2 where the log part rules) is
-    unsafe: those pixels go to the spatial decoder, and W is still exact."""
+    """A light switched on in one corner (x up by 0.5 on a dim floor: up to half a wrap
+    of change in one frame, not a global gain) is unsafe: those pixels take the
+    fallback, and W is still exact."""
     state = StreamState()
     temporal.decode(encoded(blob(1.0)).codes, PARAMS, state)
-    jump = encoded(blob(np.sqrt(2.0)))
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] - SIZE / 2
+    light = 0.5 * np.exp(-((yy - 18) ** 2 + (xx + 18) ** 2) / 8.0**2)
+    jump = encoded(blob(1.0) + light)
     result = temporal.decode(jump.codes, PARAMS, state)
     assert result.keyframe is None
-    assert result.paths["local"] + result.paths["spatial"] > 0.05
+    assert result.paths["local"] + result.paths["spatial"] > 0.02
     np.testing.assert_array_equal(result.winding, jump.winding)
+
+
+def test_a_global_brightness_jump_is_followed_without_fallback(temporal: StreamDecoder) -> None:
+    """x times sqrt 2 everywhere (half a wrap where the log part rules): the brightness
+    gain explains it, so no pixel needs the fallback, and W is exact; with the gain
+    estimate off, the same frame needs the fallback."""
+    state = StreamState()
+    temporal.decode(encoded(blob(1.0)).codes, PARAMS, state)
+    brighter = encoded(np.sqrt(2.0) * blob(1.0))
+    result = temporal.decode(brighter.codes, PARAMS, state)
+    assert result.paths["temporal"] == 1.0
+    np.testing.assert_array_equal(result.winding, brighter.winding)
+    plain = StreamDecoder("temporal", "itoh", TemporalConfig(
+        keyframe_interval=0, brightness=BrightnessConfig(search=0.0)))
+    state = StreamState()
+    plain.decode(encoded(blob(1.0)).codes, PARAMS, state)
+    assert plain.decode(brighter.codes, PARAMS, state).paths["temporal"] < 0.95
 
 
 def test_discont_forces_a_keyframe(temporal: StreamDecoder) -> None:
