@@ -131,6 +131,7 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
         "batch": config.batch,
         "loss": config.loss,
         "max_read_noise": config.max_read_noise,
+        "init_from": config.init_from,
         "seed": config.seed,
         "threads": config.threads,
         "device": "cpu",

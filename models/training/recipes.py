@@ -8,6 +8,10 @@ from models.training.train import TrainConfig
 #: end to end on 64 px crops, end to end on 128 px crops.
 SMALL_STAGES = (500, 3500, 2000, 2000)
 
+#: Noise-aware small tier: the finished small model, continued end to end on large
+#: crops with read noise (stage 4 only).
+SMALL_NOISE_STAGES = (0, 0, 0, 2000)
+
 #: The tier also shipped as an int8 QDQ model.
 INT8_TIER = "small"
 
@@ -24,6 +28,10 @@ SHIPPED: tuple[TrainConfig, ...] = (
     TrainConfig(tier="tiny", encoding="mantissa", stage_steps=TINY_STAGES),
     TrainConfig(tier="tiny", encoding="modulo", stage_steps=TINY_STAGES),
     TrainConfig(tier="tiny", encoding="mantissa", stage_steps=TINY_STAGES, max_read_noise=0.02),
+    TrainConfig(
+        tier="small", encoding="mantissa", stage_steps=SMALL_NOISE_STAGES, max_read_noise=0.02,
+        init_from="mantissanet-small-mantissa",
+    ),
     TrainConfig(family="unmodnet", tier="tiny", encoding="mantissa", stage_steps=UNMODNET_STAGES),
     TrainConfig(family="unmodnet", tier="tiny", encoding="modulo", stage_steps=UNMODNET_STAGES),
 )

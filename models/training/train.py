@@ -7,6 +7,9 @@ a quarter of the batch) so the net sees the context of a full frame. Batches dep
 only on ``(seed, step)``; a checkpoint is written every
 ``checkpoint_every`` steps under ``runs/<name>/`` and a restarted run resumes from
 it. Losses go to ``runs/<name>/log.jsonl``.
+
+A run may start from another run's trained weights (``init_from``, e.g. a
+noise-aware fine-tune of a finished model); stages with 0 steps are skipped.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ class TrainConfig:
     large_crop: int = 128
     batch: int = 8
     max_read_noise: float = 0.0
+    init_from: str | None = None
     seed: int = 0
     threads: int = 1
     checkpoint_every: int = 100
@@ -186,6 +190,28 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
+def run_state(
+    config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+    step: int, wall_s: float,
+) -> dict[str, Any]:
+    """What a checkpoint holds: weights, optimizer state, step, wall time (s), config."""
+    return {
+        "model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+        "wall_s": wall_s, "config": {**asdict(config), "runs_dir": str(config.runs_dir)},
+    }  # fmt: skip
+
+
+def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
+    """The finished weights of the run ``config.init_from`` (same runs folder)."""
+    source = config.runs_dir / str(config.init_from) / "checkpoint.pt"
+    if not source.exists():
+        raise FileNotFoundError(
+            f"{config.name} starts from {source}, which does not exist: train "
+            f"{config.init_from} first (mcam train all trains the recipes in order)"
+        )
+    return load_checkpoint(source)["model"]
+
+
 def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None = None) -> Path:
     """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records."""
     if config.loss not in LOSSES or config.tier not in TIERS or config.family not in FAMILIES:
@@ -203,6 +229,8 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         step, wall_s = state["step"], state["wall_s"]
+    elif config.init_from:
+        model.load_state_dict(initial_weights(config))
     pairs = PairConfig(config.encoding, config.crop, config.batch, config.max_read_noise)
     large = PairConfig(
         config.encoding, config.large_crop, max(config.batch // 4, 1), config.max_read_noise
@@ -231,9 +259,8 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
                 if report:
                     report(record)
             if step % config.checkpoint_every == 0 or step == config.total_steps:
-                save_checkpoint(checkpoint, {
-                    "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                    "step": step, "wall_s": time.monotonic() - started,
-                    "config": {**asdict(config), "runs_dir": str(config.runs_dir)},
-                })  # fmt: skip
+                elapsed = time.monotonic() - started
+                save_checkpoint(checkpoint, run_state(config, model, optimizer, step, elapsed))
+    if not checkpoint.exists():
+        save_checkpoint(checkpoint, run_state(config, model, optimizer, step, wall_s))
     return checkpoint

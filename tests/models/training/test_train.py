@@ -72,3 +72,22 @@ def test_jumps_loss_is_zero_for_the_true_jumps_and_counts_them_right() -> None:
     output[0, 0, 0, 1] += 1.0
     assert winding_loss(output, winding, "jumps").item() > 0.0
     assert prediction_accuracy(output, winding, "jumps").item() == pytest.approx(11 / 12)
+
+
+def test_a_run_can_start_from_another_runs_weights(tmp_path: Path) -> None:
+    source = train(tiny_config(tmp_path, (1, 1, 1)))
+    config = TrainConfig(
+        tier="tiny", stage_steps=(0, 0, 0, 0), crop=32, batch=2, runs_dir=tmp_path,
+        max_read_noise=0.02, init_from="mantissanet-tiny-mantissa",
+    )  # fmt: skip
+    started = load_checkpoint(train(config))
+    assert config.name == "mantissanet-tiny-noise-mantissa" and started["step"] == 0
+    for key, value in load_checkpoint(source)["model"].items():
+        torch.testing.assert_close(started["model"][key], value)
+
+
+def test_a_missing_initial_run_is_named_in_the_error(tmp_path: Path) -> None:
+    config = TrainConfig(tier="tiny", stage_steps=(0, 0, 0, 1), runs_dir=tmp_path,
+                         init_from="mantissanet-nothing")  # fmt: skip
+    with pytest.raises(FileNotFoundError, match="train mantissanet-nothing first"):
+        train(config)
