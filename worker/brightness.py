@@ -41,7 +41,7 @@ class BrightnessConfig:
     0 disables it), ``stride`` in pixels, ``switch`` the relative misfit to beat."""
 
     search: float = 0.5
-    step: float = 0.01
+    step: float = 0.02
     stride: int = 8
     switch: float = 0.8
 

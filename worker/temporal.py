@@ -21,9 +21,11 @@ entered the frame (no source in the previous frame) are unsafe and unbounded: th
 fallback decides them. ``TemporalConfig.motion`` holds the knobs (``search = 0``
 turns compensation off: the previous frame is used as it is).
 
-Before that, a global brightness change is undone: ``u_{t-1}`` is brightened by
+Then a global brightness change is undone: the moved ``u_{t-1}`` is brightened by
 the gain that best explains ``m_t`` (:mod:`worker.brightness`; under a sunrise
-ramp a bright modulo pixel moves by more than half a wrap per frame).
+ramp a bright modulo pixel moves by more than half a wrap per frame). Motion is
+estimated first because texture matching does not mind a brightness change,
+while a gain fitted to unaligned content can match by accident.
 ``TemporalConfig.brightness`` holds its knobs (``search = 0`` turns it off).
 
 The rule, per pixel (and channel)
@@ -426,11 +428,11 @@ class StreamDecoder:
     def predict(
         self, m: NDArray[np.float64], prev_u: NDArray[np.float64], params: SensorParams
     ) -> Prediction:
-        """The temporal answer for ``m`` from ``prev_u``, brightened by the frame's gain
-        (:mod:`worker.brightness`) and moved onto it (:mod:`worker.motion`)."""
-        gain = frame_gain(prev_u, m, params, self.config.brightness)
-        moved = compensate(brighten(prev_u, gain, params), m, self.config.motion)
-        return temporal_prediction(m, moved.u, self.config, moved.inside)
+        """The temporal answer for ``m`` from ``prev_u`` moved onto it (:mod:`worker.motion`)
+        and brightened by the frame's gain (:mod:`worker.brightness`)."""
+        moved = compensate(prev_u, m, self.config.motion)
+        gain = frame_gain(moved.u, m, params, self.config.brightness)
+        return temporal_prediction(m, brighten(moved.u, gain, params), self.config, moved.inside)
 
     def _spatial_planes(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         if params.encoding == "clip":

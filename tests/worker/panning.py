@@ -21,11 +21,12 @@ def smooth_scene(rows: int = 64, cols: int = 128, scale: float = 3.0, seed: int 
 
 
 def pan_clip(
-    frames: int, speed: int = 2, size: tuple[int, int] = (64, 64)
+    frames: int, speed: int = 2, size: tuple[int, int] = (64, 64), gain: float = 1.0
 ) -> list[SensorFrame]:
-    """``frames`` noiseless modulo frames of a ``size`` view panning right by ``speed`` px/frame."""
+    """``frames`` noiseless modulo frames of a ``size`` view panning right by ``speed``
+    px/frame while the light grows by ``gain`` per frame."""
     scene = smooth_scene()
     return [
-        encode(np.roll(scene, -speed * t, axis=1)[: size[0], : size[1]], PAN_PARAMS)
+        encode(gain**t * np.roll(scene, -speed * t, axis=1)[: size[0], : size[1]], PAN_PARAMS)
         for t in range(frames)
     ]

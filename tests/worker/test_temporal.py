@@ -84,6 +84,21 @@ def test_exact_on_a_slowly_panning_clip_only_with_motion_compensation(
     assert wrong > 0
 
 
+def test_a_pan_under_a_brightness_ramp_needs_both_compensations() -> None:
+    """2 px/frame pan while the light grows 5% per frame (up to 0.2 wraps per frame on
+    top of the pan's change): exact with motion and brightness compensation, wrong
+    with the gain estimate off."""
+    frames = pan_clip(8, gain=1.05)
+    codes = [f.codes for f in frames]
+    both = StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=0))
+    for result, frame in zip(decode_frames(codes, PAN_PARAMS, both), frames, strict=True):
+        np.testing.assert_array_equal(result.winding, frame.winding)
+    motion_only = StreamDecoder("temporal", "itoh", TemporalConfig(
+        keyframe_interval=0, brightness=BrightnessConfig(search=0.0)))
+    results = decode_frames(codes, PAN_PARAMS, motion_only)
+    assert any((r.winding != f.winding).any() for r, f in zip(results, frames, strict=True))
+
+
 def test_discont_during_a_pan_keyframes_and_stays_exact() -> None:
     """A DISCONT mid-pan is decoded spatially; the pan is tracked again right after."""
     frames = pan_clip(6)

@@ -1,0 +1,39 @@
+"""Tests of bench/video.py: the summary's ratios and targets, and a tiny end-to-end run
+(no timings asserted)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bench import video
+
+
+def mode_row(mode: str, flicker: float, psnr: float, ms: float) -> dict:
+    return {"clip": "sunrise", "encoding": "modulo", "decoder": "itoh", "mode": mode,
+            "wrap_flicker": flicker, "psnr": psnr, "pu21_psnr": psnr + 1.0, "ms_per_frame": ms}
+
+
+def test_summary_compares_the_two_modes_and_names_the_targets_met() -> None:
+    rows = [mode_row("independent", 0.1, 20.0, 10.0), mode_row("temporal", 0.005, 21.5, 12.0)]
+    (item,) = video.summarize(rows)
+    assert item["flicker_reduction"] == pytest.approx(20.0)
+    assert item["psnr_gain_db"] == pytest.approx(1.5)
+    assert item["cost_ratio"] == pytest.approx(1.2)
+    assert item["targets_met"] == {"flicker_10x": True, "psnr_gain": True, "cheaper": False}
+    table = video.markdown_table([item], [[1.0, 1.0, 1.0], [2.0, 2.0, 2.0]])
+    assert "| sunrise | modulo | itoh |" in table and "flicker_10x, psnr_gain |" in table
+
+
+def test_tiny_run_writes_json_and_markdown(tmp_path: Path) -> None:
+    out = tmp_path / "video.json"
+    video.main(["--clips", "static_noise", "--encodings", "modulo", "--decoders", "itoh",
+                "--frames", "3", "--output", str(out)])  # fmt: skip
+    report = json.loads(out.read_text())
+    assert [row["mode"] for row in report["rows"]] == ["independent", "temporal"]
+    assert report["rows"][1]["keyframes"] == 1
+    assert report["config"]["motion"]["search"] > 0
+    assert len(report["load_average"]) == 2
+    assert "| static_noise | modulo | itoh |" in out.with_suffix(".md").read_text()
