@@ -12,8 +12,13 @@ SMALL_STAGES = (500, 3500, 2000, 2000)
 #: crops with read noise (stage 4 only).
 SMALL_NOISE_STAGES = (0, 0, 0, 2000)
 
-#: The tier also shipped as an int8 QDQ model.
+#: The tier also shipped as an int8 QDQ model (its plain, not noise-aware, models).
 INT8_TIER = "small"
+
+
+def quantized(config: TrainConfig) -> bool:
+    """Whether ``mcam train all`` also ships an int8 QDQ version of this run."""
+    return config.tier == INT8_TIER and config.max_read_noise == 0
 
 #: Stage steps of the shipped tiny tier (shorter: trained last, in the time left).
 TINY_STAGES = (300, 1500, 700, 500)

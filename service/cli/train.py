@@ -92,7 +92,7 @@ def export_and_measure(
 
 def run(args: argparse.Namespace) -> int:
     """Dispatch the action; imports the torch-based training code lazily."""
-    from models.training.recipes import INT8_TIER, SHIPPED
+    from models.training.recipes import SHIPPED, quantized
     from models.training.train import RUNS_DIR, TrainConfig, train
 
     if args.action == "export":
@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     if args.action == "all":
         for config in SHIPPED:
             checkpoint = train(config, print_progress)
-            export_and_measure(checkpoint, None, not args.no_val, int8=config.tier == INT8_TIER)
+            export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
         return 0
     if args.crop % 16 or args.crop < 32:
         raise InvalidInputError(f"--crop must be a multiple of 16 and >= 32, got {args.crop}")

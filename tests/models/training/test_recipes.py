@@ -1,0 +1,24 @@
+"""Tests of models/training/recipes.py: the shipped recipes are trainable in order."""
+
+from __future__ import annotations
+
+from models.training.recipes import SHIPPED, quantized
+from models.training.train import TrainConfig
+
+
+def test_every_run_that_starts_from_another_comes_after_it() -> None:
+    names = [config.name for config in SHIPPED]
+    for index, config in enumerate(SHIPPED):
+        if config.init_from:
+            assert config.init_from in names[:index], config.name
+
+
+def test_run_names_are_unique() -> None:
+    names = [config.name for config in SHIPPED]
+    assert len(names) == len(set(names))
+
+
+def test_only_plain_small_models_are_quantized() -> None:
+    assert quantized(TrainConfig(tier="small"))
+    assert not quantized(TrainConfig(tier="small", max_read_noise=0.02))
+    assert not quantized(TrainConfig(tier="tiny"))
