@@ -46,6 +46,26 @@ THREADS = 2
 NOISE_REFERENCE = "itoh"
 
 
+#: Recall is reported per true W up to this value; larger W are pooled into "N+".
+RECALL_TOP = 5
+
+
+def winding_recall(pairs: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float | None]:
+    """Fraction of pixels decoded with the right W, per true W (0 .. ``RECALL_TOP``+),
+    over ``(estimated W, true W)`` pairs; None for a W no pixel has."""
+    hits = np.zeros(RECALL_TOP + 1)
+    counts = np.zeros(RECALL_TOP + 1)
+    for estimate, truth in pairs:
+        classes = np.minimum(truth, RECALL_TOP).ravel()
+        counts += np.bincount(classes, minlength=RECALL_TOP + 1)
+        hits += np.bincount(classes[(estimate == truth).ravel()], minlength=RECALL_TOP + 1)
+    labels = [str(w) for w in range(RECALL_TOP)] + [f"{RECALL_TOP}+"]
+    return {
+        label: (float(hit / count) if count else None)
+        for label, hit, count in zip(labels, hits, counts, strict=True)
+    }
+
+
 def timed_decode(decoder: Decoder, frame: ValFrame) -> tuple[Any, float]:
     """Decode one frame; returns the result and the wall time in ms."""
     start = time.perf_counter_ns()
@@ -73,17 +93,19 @@ def measure(
     warm-up decode comes first (it creates ONNX sessions).
     """
     decoder.decode(frames[0].codes, frames[0].params)
-    per_frame, times = [], []
+    per_frame, times, windings = [], [], []
     for frame in frames:
         result, ms = timed_decode(decoder, frame)
         times.append(ms)
         per_frame.append(
             metrics.evaluate(result.irradiance, frame.x, result.winding, frame.winding, flip=False)
         )
+        windings.append((result.winding, frame.winding))
     for frame in frames[:time_frames]:
         times += [timed_decode(decoder, frame)[1] for _ in range(repeats - 1)]
     return {
         **mean_metrics(per_frame),
+        "recall_by_winding": winding_recall(windings),
         "ms_per_frame": float(np.median(times)),
         "timed_runs": len(times),
         "frames": len(frames),
@@ -197,6 +219,7 @@ def markdown(report: dict[str, Any]) -> str:
             f"{_cell(row, 'pu21_psnr')} | {_cell(row, 'ssim', digits=4)} | "
             f"{_cell(row, 'ms_ssim', digits=4)} | {_cell(row, 'ms_per_frame', digits=1)} |"
         )
+    lines += recall_table(report["results"])
     noise = report["noise"]
     lines += ["", f"PSNR dB (W acc %) against read noise, {noise['encoding']} frames:", ""]
     lines += ["| decoder | " + " | ".join(f"{v:g}" for v in noise["levels"]) + " |"]
@@ -213,6 +236,24 @@ def markdown(report: dict[str, Any]) -> str:
     if noise["missing"]:
         lines += ["", f"Not installed, so not in the noise table: {', '.join(noise['missing'])}."]
     return "\n".join(lines)
+
+
+def recall_table(rows: list[dict[str, Any]]) -> list[str]:
+    """Markdown lines: the share of pixels with the right W, per true W, per decoder."""
+    measured = [row for row in rows if "recall_by_winding" in row]
+    if not measured:
+        return []
+    labels = list(measured[0]["recall_by_winding"])
+    lines = ["", "Right W (%) by true W:", "",
+             "| decoder | encoding | " + " | ".join(f"W={w}" for w in labels) + " |",
+             "|---|---|" + "---|" * len(labels)]  # fmt: skip
+    for row in measured:
+        cells = [
+            "-" if value is None else f"{100 * value:.1f}"
+            for value in row["recall_by_winding"].values()
+        ]
+        lines.append(f"| {row['decoder']} | {row['encoding']} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

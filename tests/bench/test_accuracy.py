@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench import accuracy, json_safe, machine, versions
@@ -116,3 +117,11 @@ def test_json_safe_replaces_non_finite_floats() -> None:
 def test_machine_and_versions_are_recorded() -> None:
     assert machine()["cpu"]
     assert versions()["PyMaxflow"]
+
+
+def test_winding_recall_counts_right_pixels_per_true_winding() -> None:
+    truth = np.array([[0, 0, 1, 1], [2, 6, 7, 0]])
+    estimate = np.array([[0, 1, 1, 0], [2, 6, 5, 0]])
+    recall = accuracy.winding_recall([(estimate, truth)])
+    assert recall["0"] == 2 / 3 and recall["1"] == 0.5 and recall["2"] == 1.0
+    assert recall["3"] is None and recall["5+"] == 0.5
