@@ -76,16 +76,17 @@ def frame_gain(
     m: NDArray[np.float64],
     params: SensorParams,
     config: BrightnessConfig,
-) -> float:
+) -> tuple[float, float]:
     """The global gain ``k`` from the previous frame's ``u`` to the current ``m`` (both
-    H x W x C; see module doc); 1.0 when no gain explains ``m`` clearly better."""
-    count = int(round(config.search / config.step))
-    if count == 0 or params.encoding == "clip":
-        return 1.0
+    H x W x C; see module doc), 1.0 when no gain explains ``m`` clearly better; and the
+    mean misfit (wraps) of the sampled pixels with that gain."""
+    count = int(round(config.search / config.step)) if params.encoding != "clip" else 0
     stops = config.step * np.arange(-count, count + 1)
     gains = 2.0 ** stops[np.argsort(np.abs(stops), kind="stable")]
     x = from_unwrapped(prev_u[:: config.stride, :: config.stride].ravel(), params)
     sample_m = m[:: config.stride, :: config.stride].ravel()
     costs = misfit(_unwrapped_at(gains[:, None] * x[None], params), sample_m[None]).mean(axis=1)
     best = int(np.argmin(costs))
-    return float(gains[best]) if costs[best] < config.switch * costs[0] else 1.0
+    if costs[best] < config.switch * costs[0]:
+        return float(gains[best]), float(costs[best])
+    return 1.0, float(costs[0])

@@ -25,7 +25,10 @@ Then a global brightness change is undone: the moved ``u_{t-1}`` is brightened b
 the gain that best explains ``m_t`` (:mod:`worker.brightness`; under a sunrise
 ramp a bright modulo pixel moves by more than half a wrap per frame). Motion is
 estimated first because texture matching does not mind a brightness change,
-while a gain fitted to unaligned content can match by accident.
+while a gain fitted to unaligned content can match by accident. A move is then
+kept only if, with its gain, it predicts ``m_t`` better than the unmoved frame
+does (mean misfit below ``motion.switch`` times the unmoved one's): on smooth,
+noisy content texture barely pins the shift, and a wrong one would alias.
 ``TemporalConfig.brightness`` holds its knobs (``search = 0`` turns it off).
 
 The rule, per pixel (and channel)
@@ -43,7 +46,7 @@ Unsafe pixels fall back to the spatial decoder:
   neighbour decides, as in quality-guided unwrapping), unless its own temporal
   answer is closer than the best match divided by ``SELF_WEIGHT`` (so a static
   edge does not flip with noise), growing inwards from the safe pixels for up to
-  ``local_passes`` passes (the *local* path);
+  ``local_passes`` passes (the *local* path; :mod:`worker.temporal_fallback`);
 - more: one full spatial decode of the frame, its unknown constant set to the most
   common difference to the temporal answer on safe pixels (*spatial* path). There,
   where the spatial answer disagrees with a safe temporal one, the spatial one wins
@@ -96,8 +99,9 @@ from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
 from worker.brightness import BrightnessConfig, brighten, frame_gain
 from worker.config_checks import refuse_invalid
-from worker.motion import MotionConfig, compensate, misfit
+from worker.motion import Compensated, MotionConfig, compensate, misfit
 from worker.region_vote import region_vote
+from worker.temporal_fallback import common_offset, merge_spatial, neighbour_fix
 
 MODES: tuple[str, ...] = ("independent", "temporal")
 PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
@@ -275,86 +279,6 @@ def temporal_prediction(
     return Prediction(winding.astype(np.int64), safe, lo, hi, m, change)
 
 
-def common_offset(target: NDArray[np.int64], relative: NDArray[np.int64]) -> int:
-    """The most common ``target - relative`` (aligns a spatial answer's constant)."""
-    diff = (target - relative).ravel()
-    low = int(diff.min())
-    return int(np.argmax(np.bincount(diff - low))) + low
-
-
-def locally_smooth(u: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Pixels (H x W) whose ``u`` is within half a wrap of each 4-neighbour."""
-    smooth = np.ones(u.shape, bool)
-    step_y = np.abs(np.diff(u, axis=0)) < 0.5
-    step_x = np.abs(np.diff(u, axis=1)) < 0.5
-    smooth[1:] &= step_y
-    smooth[:-1] &= step_y
-    smooth[:, 1:] &= step_x
-    smooth[:, :-1] &= step_x
-    return smooth
-
-
-def merge_spatial(
-    prediction: Prediction, spatial: NDArray[np.int64]
-) -> tuple[NDArray[np.int64], NDArray[np.bool_]] | None:
-    """Combine one channel's temporal and spatial W (H x W) as the module doc says.
-
-    Returns the merged W and where the spatial answer was taken, or None when no
-    pixel is safe (nothing to align the spatial constant to).
-    """
-    temporal, safe = prediction.winding, prediction.safe
-    if not safe.any():
-        return None
-    aligned = spatial + common_offset(temporal[safe], spatial[safe])
-    aligned = np.clip(aligned, *prediction.bounds())
-    m = prediction.m
-    confident = locally_smooth(aligned + m) & ~locally_smooth(temporal + m)
-    take = ~safe | ((temporal != aligned) & confident)
-    return np.where(take, aligned, temporal), take
-
-
-#: The pixel's own temporal answer competes with its neighbours at this many times its
-#: change (a neighbour must match more than twice as well to overrule it).
-SELF_WEIGHT = 2.0
-_NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-
-
-def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
-    """One channel's W with its unsafe pixels set from their best-matching settled
-    8-neighbour or their own temporal answer (see module doc); pixels no settled
-    neighbour reaches keep the temporal answer."""
-    winding = prediction.winding.copy()
-    width = winding.shape[1] + 2
-    settled = np.pad(prediction.safe, 1).ravel()
-    u = np.pad(winding + prediction.m, 1).ravel()
-    rows, cols = np.nonzero(~prediction.safe)
-    unsafe = prediction.crop((rows, cols))
-    lowest, highest = unsafe.bounds()
-    m_open = unsafe.m
-    where = (rows + 1) * width + cols + 1
-    offsets = [dy * width + dx for dy, dx in _NEIGHBOURS]
-    own_cost, own = SELF_WEIGHT * unsafe.change, unsafe.winding
-    for _ in range(passes):
-        best, choice = np.full(where.shape, np.inf), np.zeros(where.shape, np.int64)
-        for offset in offsets:
-            other = u[where + offset]
-            candidate = np.clip(np.rint(other - m_open), lowest, highest)
-            distance = np.abs(other - candidate - m_open)
-            better = settled[where + offset] & (distance < best)
-            best[better], choice[better] = distance[better], candidate[better]
-        done = np.isfinite(best)
-        choice = np.where(done & (own_cost <= best), own, choice)
-        u[where[done]] = choice[done] + m_open[done]
-        settled[where[done]] = True
-        winding.ravel()[where[done] - width - 1 - 2 * (where[done] // width - 1)] = choice[done]
-        keep = ~done
-        if not keep.any() or keep.all():
-            break
-        where, lowest, highest, m_open = where[keep], lowest[keep], highest[keep], m_open[keep]
-        own_cost, own = own_cost[keep], own[keep]
-    return winding
-
-
 class StreamDecoder:
     """Decodes frames of one or many streams in ``mode`` with spatial decoder ``decoder``."""
 
@@ -429,9 +353,15 @@ class StreamDecoder:
         self, m: NDArray[np.float64], prev_u: NDArray[np.float64], params: SensorParams
     ) -> Prediction:
         """The temporal answer for ``m`` from ``prev_u`` moved onto it (:mod:`worker.motion`)
-        and brightened by the frame's gain (:mod:`worker.brightness`)."""
+        and brightened by the frame's gain (:mod:`worker.brightness`); the move is kept
+        only if it predicts ``m`` better than the unmoved ``prev_u`` (module doc)."""
         moved = compensate(prev_u, m, self.config.motion)
-        gain = frame_gain(moved.u, m, params, self.config.brightness)
+        gain, cost = frame_gain(moved.u, m, params, self.config.brightness)
+        if moved.shift != (0, 0):
+            still_gain, still_cost = frame_gain(prev_u, m, params, self.config.brightness)
+            if not cost < self.config.motion.switch * still_cost:
+                moved = Compensated(prev_u, np.ones(m.shape[:2], bool), (0, 0), 0.0)
+                gain = still_gain
         return temporal_prediction(m, brighten(moved.u, gain, params), self.config, moved.inside)
 
     def _spatial_planes(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:

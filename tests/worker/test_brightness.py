@@ -32,20 +32,22 @@ def test_a_global_gain_is_found(params: SensorParams, stops: float) -> None:
     prev_u, _ = planes(scene, params)
     now_u, now_m = planes(scene * 2.0**stops, params)
     config = BrightnessConfig()
-    gain = frame_gain(prev_u, now_m, params, config)
+    gain, cost = frame_gain(prev_u, now_m, params, config)
     assert np.log2(gain) == pytest.approx(stops, abs=config.step)
     predicted = brighten(prev_u, gain, params)
     assert np.abs(predicted - now_u).max() < 0.1
+    unchanged = frame_gain(prev_u, now_m, params, BrightnessConfig(search=0.0))
+    assert unchanged[0] == 1.0 and cost < config.switch * unchanged[1]
 
 
 @pytest.mark.parametrize("params", [MODULO, MANTISSA], ids=["modulo", "mantissa"])
 def test_no_change_or_no_search_gives_gain_one(params: SensorParams) -> None:
     u, m = planes(smooth_scene(64, 64), params)
-    assert frame_gain(u, m, params, BrightnessConfig()) == 1.0
+    assert frame_gain(u, m, params, BrightnessConfig()) == (1.0, pytest.approx(0.0, abs=1e-3))
     _, brighter = planes(1.2 * smooth_scene(64, 64), params)
-    assert frame_gain(u, brighter, params, BrightnessConfig(search=0.0)) == 1.0
+    assert frame_gain(u, brighter, params, BrightnessConfig(search=0.0))[0] == 1.0
     clip = SensorParams(encoding="clip")
-    assert frame_gain(u, m, clip, BrightnessConfig()) == 1.0
+    assert frame_gain(np.minimum(u, 1.0), m, clip, BrightnessConfig())[0] == 1.0
 
 
 @settings(max_examples=40, deadline=None)
@@ -63,7 +65,7 @@ def test_brighten_is_the_formation_model_at_the_gained_exposure(x: float, gain: 
 def test_tiny_and_colour_frames_do_not_crash(shape: tuple[int, ...]) -> None:
     u = np.full(shape, 1.3)
     m = np.full(shape, 0.3)
-    assert frame_gain(u, m, MODULO, BrightnessConfig()) == 1.0
+    assert frame_gain(u, m, MODULO, BrightnessConfig())[0] == 1.0
     assert brighten(u, 1.5, MODULO).shape == shape
 
 

@@ -1,0 +1,58 @@
+"""Tests of worker/temporal_fallback.py: the local and spatial fallbacks of temporal decoding."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from worker.temporal import Prediction, TemporalConfig, temporal_prediction
+from worker.temporal_fallback import common_offset, locally_smooth, merge_spatial, neighbour_fix
+
+
+def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:
+    """Pixels marked unsafe in a smooth, wrapping ramp take W from settled neighbours,
+    even a 3 x 3 block (filled over two passes), and match the truth."""
+    u = np.add.outer(np.linspace(0, 3, 12), np.linspace(0, 2, 10))[:, :, None]
+    m = u - np.floor(u)
+    prediction = temporal_prediction(m, u, TemporalConfig(motion_radius=0))
+    wrong = prediction.winding.copy()
+    safe = prediction.safe.copy()
+    wrong[4:7, 4:7] += 2
+    safe[4:7, 4:7] = False
+    safe[0, 9] = False
+    damaged = Prediction(wrong, safe, prediction.lo, prediction.hi + 3, m, np.abs(wrong + m - u))
+    fixed = neighbour_fix(damaged.channel(0), passes=2)
+    np.testing.assert_array_equal(fixed, np.floor(u[:, :, 0]))
+
+
+def test_common_offset_is_the_most_frequent_difference() -> None:
+    target = np.array([5, 5, 5, 2, 9])
+    relative = np.array([1, 1, 1, 1, 1])
+    assert common_offset(target, relative) == 4
+    assert common_offset(np.array([-3]), np.array([0])) == -3
+
+
+def test_locally_smooth_marks_pixels_next_to_a_jump() -> None:
+    u = np.zeros((4, 5))
+    u[:, 3:] = 1.0
+    smooth = locally_smooth(u)
+    assert not smooth[:, 2:4].any() and smooth[:, :2].all() and smooth[:, 4].all()
+
+
+def test_merge_spatial_aligns_the_constant_and_fills_unsafe_pixels() -> None:
+    """The spatial answer (off by a constant 3) is aligned to the safe tracked pixels
+    and fills the unsafe ones; with no safe pixel there is nothing to align to."""
+    u = np.add.outer(np.linspace(0, 3, 12), np.linspace(0, 2, 10))[:, :, None]
+    m = u - np.floor(u)
+    prediction = temporal_prediction(m, u, TemporalConfig(motion_radius=0)).channel(0)
+    safe = prediction.safe.copy()
+    safe[2:5, 2:5] = False
+    damaged = Prediction(prediction.winding, safe, prediction.lo, prediction.hi + 3, m[:, :, 0],
+                         prediction.change)
+    merged = merge_spatial(damaged, np.floor(u[:, :, 0]).astype(np.int64) - 3)
+    assert merged is not None
+    winding, taken = merged
+    np.testing.assert_array_equal(winding, np.floor(u[:, :, 0]))
+    assert taken[2:5, 2:5].all()
+    none_safe = Prediction(prediction.winding, np.zeros_like(safe), prediction.lo,
+                           prediction.hi, m[:, :, 0], prediction.change)
+    assert merge_spatial(none_safe, prediction.winding) is None
