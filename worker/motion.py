@@ -40,9 +40,10 @@ Estimate
 Cost per frame: the texture of both frames, ``(2 search + 1)^2`` comparisons of
 ``(H / stride) (W / stride)`` pixels, and when the camera moved nine comparisons
 of a quarter of the frame and one gather; numpy-vectorised in float32 (no Python
-loop over pixels or blocks). Measured on a 256 x 256 frame, 2 shared cores: about
-1.3 ms on a still frame and 3.5 ms on a pan (best of 40), against 7-8 ms for the
-cheapest spatial decoder (itoh).
+loop over pixels or blocks). Measured on a 256 x 256 frame, 2 shared cores (best
+of 40): 0.8-1.3 ms on a still frame and 2.7-3.5 ms on a pan, against 6-8 ms for
+the cheapest spatial decoder (itoh); a whole temporal step on a pan is then about
+1.5x itoh's cost (0.9x on a still frame), and 0.1-0.4x that of the others.
 
 Failure modes
 -------------
