@@ -34,7 +34,8 @@ from models.scene_analysis import RegionAnalysis, analyse
 from models.tile_reconcile import Tile, integrate_jumps, stitch
 
 QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
-#: Network tiers tried in order for each quality level; the first installed one runs.
+#: Network tiers tried in order for each quality level; the first installed one runs
+#: (``best`` first picks by the measured PSNR in the model cards: :func:`most_accurate_net`).
 TIER_LADDER: dict[str, tuple[str, ...]] = {
     "fast": ("mantissanet-tiny", "mantissanet-small", "mantissanet-base"),
     "balanced": ("mantissanet-small", "mantissanet-base", "mantissanet-tiny"),
@@ -49,6 +50,25 @@ CLASSICAL_FALLBACK = "itoh"
 DEFAULT_TILE = 64
 PASS_THROUGH = "pass-through"
 INTEGRATION = "integration"
+
+
+def measured_psnr(spec: DecoderSpec, encoding: str) -> float | None:
+    """The val-256 PSNR (dB, no read noise) on ``encoding`` from a decoder's model cards."""
+    val256 = spec.figures.get(encoding, {}).get("val256", {})
+    psnr = val256.get("read_noise_0", {}).get("psnr")
+    return float(psnr) if psnr is not None else None
+
+
+def most_accurate_net(params: SensorParams) -> str | None:
+    """The installed ``mantissanet-*`` decoder with the highest measured val-256 PSNR on
+    the frame's encoding (None when no card states one)."""
+    scored = [
+        (psnr, spec.name)
+        for spec in available_decoders()
+        if spec.name.startswith("mantissanet-")
+        and (psnr := measured_psnr(spec, params.encoding)) is not None
+    ]
+    return max(scored)[1] if scored else None
 
 
 class AdaptiveDecoder(Decoder):
@@ -67,8 +87,12 @@ class AdaptiveDecoder(Decoder):
         self.name = f"auto-{quality}"
 
     def hard_tile_decoder(self, params: SensorParams) -> Decoder:
-        """The decoder for tiles with residues: the quality's first installed tier that
-        supports the frame's encoding, else the classical fallback."""
+        """The decoder for tiles with residues: at ``best`` the installed winding net with
+        the highest measured val-256 PSNR on the frame's encoding; otherwise (or when no
+        card has that figure) the quality's first installed tier that supports the
+        encoding; else the classical fallback."""
+        if self.quality == "best" and (name := most_accurate_net(params)):
+            return get_decoder(name)
         installed = {spec.name for spec in available_decoders()}
         for name in TIER_LADDER[self.quality]:
             if name in installed and get_decoder(name).supports(params):

@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.decoders import get_decoder
+from models.decoders import available_decoders, get_decoder
 from models.decoders.adaptive import (
     INTEGRATION,
     PASS_THROUGH,
     QUALITIES,
     AdaptiveDecoder,
+    measured_psnr,
     specs,
 )
 from models.formation import SensorParams, encode, quantize
@@ -95,3 +96,18 @@ def test_best_sends_frames_with_residues_whole_to_the_hard_decoder() -> None:
     assert result.info["details"]["routes"] == {decoder.hard_tile_decoder(MODULO).name: 1.0}
     alone = decoder.hard_tile_decoder(MODULO).decode(m_codes, MODULO)
     np.testing.assert_array_equal(result.winding, alone.winding)
+
+
+@pytest.mark.parametrize("params", [MODULO, MANTISSA], ids=["modulo", "mantissa"])
+def test_best_uses_the_net_with_the_highest_measured_psnr(params: SensorParams) -> None:
+    measured = {
+        spec.name: measured_psnr(spec, params.encoding)
+        for spec in available_decoders()
+        if spec.name.startswith("mantissanet-")
+    }
+    scored = {name: psnr for name, psnr in measured.items() if psnr is not None}
+    if not scored:
+        pytest.skip("no shipped model card states a val-256 PSNR")
+    chosen = AdaptiveDecoder("best").hard_tile_decoder(params)
+    assert chosen.name == max(scored, key=scored.__getitem__)
+    assert chosen.supports(params)
