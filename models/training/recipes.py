@@ -8,6 +8,9 @@ from models.training.train import TrainConfig
 #: end to end on 64 px crops, end to end on 128 px crops.
 SMALL_STAGES = (500, 3500, 2000, 2000)
 
+#: Stage steps of the shipped base tier (mantissa only; short: trained in 26 minutes).
+BASE_STAGES = (300, 900, 300, 300)
+
 #: Noise-aware small tier: the finished small model, continued end to end on large
 #: crops with read noise (stage 4 only).
 SMALL_NOISE_STAGES = (0, 0, 0, 2000)
@@ -30,6 +33,7 @@ UNMODNET_STAGES = (200, 800, 300)
 SHIPPED: tuple[TrainConfig, ...] = (
     TrainConfig(tier="small", encoding="mantissa", stage_steps=SMALL_STAGES),
     TrainConfig(tier="small", encoding="modulo", stage_steps=SMALL_STAGES),
+    TrainConfig(tier="base", encoding="mantissa", stage_steps=BASE_STAGES),
     TrainConfig(tier="tiny", encoding="mantissa", stage_steps=TINY_STAGES),
     TrainConfig(tier="tiny", encoding="modulo", stage_steps=TINY_STAGES),
     TrainConfig(tier="tiny", encoding="mantissa", stage_steps=TINY_STAGES, max_read_noise=0.02),
