@@ -28,9 +28,13 @@ def _jumps(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64
 
 
 def region_vote(
-    tracked: NDArray[np.int64], spatial: NDArray[np.int64], m: NDArray[np.float64]
+    tracked: NDArray[np.int64],
+    spatial: NDArray[np.int64],
+    m: NDArray[np.float64],
+    eligible: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """Merge one channel's tracked and spatial W (H x W) region by region (module doc).
+    """Merge one channel's tracked and spatial W (H x W) region by region (module doc);
+    with ``eligible`` (H x W), only regions that touch an eligible pixel may switch.
 
     Returns the merged W and where the spatial answer was taken.
     """
@@ -54,5 +58,7 @@ def region_vote(
             votes += np.bincount(own[boundary], weights=gain[boundary], minlength=count + 1)
     take = votes > 0
     take[0] = False
+    if eligible is not None:
+        take &= np.bincount(labels[eligible], minlength=count + 1) > 0
     taken = take[labels]
     return np.where(taken, spatial, tracked), taken

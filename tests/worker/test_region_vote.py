@@ -53,3 +53,16 @@ def test_agreeing_answers_of_any_shape_come_back_unchanged(shape: tuple[int, int
     other.flat[0] += 1
     merged, taken = region_vote(winding, other, m)
     assert merged.shape == taken.shape == shape
+
+
+def test_only_regions_touching_an_eligible_pixel_may_switch() -> None:
+    truth, m = ramp()
+    tracked = truth.copy()
+    tracked[12:16, 2:9] -= 1
+    tracked[2:4, 18:22] += 2
+    eligible = np.zeros(truth.shape, bool)
+    eligible[13, 5] = True
+    merged, taken = region_vote(tracked, truth, m, eligible)
+    np.testing.assert_array_equal(merged[12:16, 2:9], truth[12:16, 2:9])
+    np.testing.assert_array_equal(merged[2:4, 18:22], tracked[2:4, 18:22])
+    assert taken.sum() == 4 * 7
