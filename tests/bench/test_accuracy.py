@@ -78,13 +78,13 @@ def test_noise_candidates_pick_the_best_tier_and_name_missing_twins() -> None:
     rows = [
         {"decoder": "itoh", "encoding": "mantissa", "psnr": 10.0},
         {"decoder": "mantissanet-tiny", "encoding": "mantissa", "psnr": 30.0},
-        {"decoder": "mantissanet-base", "encoding": "mantissa", "psnr": 35.0},
-        {"decoder": "mantissanet-base", "encoding": "modulo", "psnr": 50.0},
+        {"decoder": "mantissanet-xl", "encoding": "mantissa", "psnr": 35.0},
+        {"decoder": "mantissanet-xl", "encoding": "modulo", "psnr": 50.0},
         {"decoder": "mantissanet-huge", "encoding": "mantissa", "missing": "no model"},
     ]
     names, missing = accuracy.noise_candidates(rows)
     assert names == ["itoh"]
-    assert missing == ["mantissanet-base", "mantissanet-base-noise"]
+    assert missing == ["mantissanet-xl", "mantissanet-xl-noise"]
     assert accuracy.noise_candidates(rows[:1])[1] == [
         "mantissanet-<best tier>",
         "mantissanet-<best tier>-noise",
