@@ -31,7 +31,7 @@ import numpy as np
 import redis
 from numpy.typing import NDArray
 
-from models.decoders.registry import available_decoders
+from models.decoders.registry import resolve
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams, validate_codes
 from worker.frame_message import FrameMessage
@@ -118,11 +118,7 @@ def _check_submission(
     if codes.ndim not in want_ndim:
         layout = "H x W or H x W x C" if kind == "reconstruction" else "T x H x W or T x H x W x C"
         raise InvalidInputError(f"a {kind} job takes {layout} codes, got shape {codes.shape}")
-    names = [spec.name for spec in available_decoders()]
-    if decoder not in names:
-        raise InvalidInputError(
-            f"unknown decoder {decoder!r}; choose one of: {', '.join(names) or '(none installed)'}"
-        )
+    resolve(decoder)
     return codes
 
 

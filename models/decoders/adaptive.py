@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from models.decoders.base import Decoder, anchor_winding
 from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
 from models.formation import SensorParams
-from models.scene_analysis import RegionAnalysis, analyse
+from models.scene_analysis import FrameAnalysis, RegionAnalysis, analyse
 from models.tile_reconcile import Tile, integrate_jumps, stitch
 
 QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
@@ -105,7 +105,43 @@ class AdaptiveDecoder(Decoder):
     def explain_winding(
         self, m: NDArray[np.float64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
-        analysis = analyse(m, params, self.tile)
+        return self.explain_analysed(m, params, analyse(m, params, self.tile))
+
+    def network_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
+        """Pixels the hard-tile decoder will see for a frame with this analysis: none
+        without residues, the whole frame at ``best``, else every hard tile with its
+        context margin."""
+        if analysis.frame.difficulty in ("none", "smooth"):
+            return 0
+        if self.quality == "best":
+            return shape[0] * shape[1]
+        return sum(
+            self._window_pixels(region, shape)
+            for region in analysis.tiles
+            if region.difficulty not in ("none", "smooth")
+        )
+
+    def _window_pixels(self, region: RegionAnalysis, shape: tuple[int, int]) -> int:
+        """Area of a tile grown by the context margin, clipped to the frame."""
+        rows, cols = self._window(
+            slice(region.row, region.row + region.height),
+            slice(region.col, region.col + region.width),
+            shape,
+        )
+        return (rows.stop - rows.start) * (cols.stop - cols.start)
+
+    def _window(
+        self, rows: slice, cols: slice, shape: tuple[int, ...]
+    ) -> tuple[slice, slice]:
+        """The tile ``rows x cols`` grown by the context margin, clipped to the frame."""
+        top, left = max(rows.start - self.margin, 0), max(cols.start - self.margin, 0)
+        bottom = min(rows.stop + self.margin, shape[0])
+        return slice(top, bottom), slice(left, min(cols.stop + self.margin, shape[1]))
+
+    def explain_analysed(
+        self, m: NDArray[np.float64], params: SensorParams, analysis: FrameAnalysis
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """Decode ``m`` given its scene analysis (tiles of ``self.tile`` px)."""
         along_cols, along_rows = analysis.along_cols, analysis.along_rows
         difficulty = analysis.frame.difficulty
         if difficulty == "none":
@@ -151,10 +187,9 @@ class AdaptiveDecoder(Decoder):
         params: SensorParams,
     ) -> NDArray[np.int64]:
         """Run ``decoder`` on the tile grown by the margin, then crop back to the tile."""
-        top, left = max(rows.start - self.margin, 0), max(cols.start - self.margin, 0)
-        bottom = min(rows.stop + self.margin, m.shape[0])
-        right = min(cols.stop + self.margin, m.shape[1])
-        window = decoder.predict_winding(m[top:bottom, left:right], params)
+        window_rows, window_cols = self._window(rows, cols, m.shape)
+        window = decoder.predict_winding(m[window_rows, window_cols], params)
+        top, left = window_rows.start, window_cols.start
         return window[rows.start - top : rows.stop - top, cols.start - left : cols.stop - left]
 
 

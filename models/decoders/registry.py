@@ -2,7 +2,9 @@
 
 Each decoder module exposes ``specs() -> list[DecoderSpec]``; the registry
 collects them from :data:`PROVIDERS` in order. A provider whose optional
-files are missing (e.g. no ONNX models) simply offers no specs.
+files are missing (e.g. no ONNX models) simply offers no specs. A provider may
+also resolve parametrized names (``resolve(name) -> DecoderSpec | None``, e.g.
+``auto-40ms``) and describe them in ``NAME_PATTERNS``.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cache
+from types import ModuleType
 from typing import Any
 
 from models.decoders.base import Decoder
@@ -22,6 +25,7 @@ PROVIDERS: tuple[str, ...] = (
     "models.decoders.graphcut",
     "models.decoders.learned",
     "models.decoders.adaptive",
+    "models.decoders.budget",
 )
 
 
@@ -38,18 +42,20 @@ class DecoderSpec:
 
 
 @cache
-def _specs() -> dict[str, DecoderSpec]:
-    found: dict[str, DecoderSpec] = {}
+def _providers() -> tuple[ModuleType, ...]:
+    found = []
     for module_name in PROVIDERS:
         try:
-            module = importlib.import_module(module_name)
+            found.append(importlib.import_module(module_name))
         except ModuleNotFoundError as exc:
             if exc.name != module_name:
                 raise
-            continue
-        for spec in module.specs():
-            found[spec.name] = spec
-    return found
+    return tuple(found)
+
+
+@cache
+def _specs() -> dict[str, DecoderSpec]:
+    return {spec.name: spec for module in _providers() for spec in module.specs()}
 
 
 def available_decoders() -> list[DecoderSpec]:
@@ -57,12 +63,26 @@ def available_decoders() -> list[DecoderSpec]:
     return list(_specs().values())
 
 
+def name_patterns() -> list[str]:
+    """Descriptions of the parametrized decoder names the providers resolve."""
+    return [text for module in _providers() for text in getattr(module, "NAME_PATTERNS", ())]
+
+
+def resolve(name: str) -> DecoderSpec:
+    """The spec of decoder ``name`` (listed, or parametrized); a clear error lists the
+    valid names."""
+    specs = _specs()
+    if name in specs:
+        return specs[name]
+    for module in _providers():
+        resolver = getattr(module, "resolve", None)
+        if resolver is not None and (spec := resolver(name)) is not None:
+            return spec
+    choices = ", ".join([*specs, *name_patterns()]) or "(none installed)"
+    raise InvalidInputError(f"unknown decoder {name!r}; choose one of: {choices}")
+
+
 @cache
 def get_decoder(name: str) -> Decoder:
     """The shared instance of decoder ``name``; a clear error lists the valid names."""
-    specs = _specs()
-    if name not in specs:
-        raise InvalidInputError(
-            f"unknown decoder {name!r}; choose one of: {', '.join(specs) or '(none installed)'}"
-        )
-    return specs[name].factory()
+    return resolve(name).factory()

@@ -59,6 +59,11 @@ class ReconstructionFields(SensorFields):
     quality: Literal[QUALITIES] | None = Field(  # type: ignore[valid-type]
         None, description="instead of decoder: the adaptive decoder at this quality"
     )
+    latency_ms: float | None = Field(
+        None, ge=0.1, le=600_000,
+        description="instead of decoder or quality: the most accurate adaptive routing "
+        "predicted to find W within this many ms (decoder auto-<N>ms)",
+    )  # fmt: skip
     format: Literal["png", "tiff", "npy", "raw"] | None = Field(
         None, description="frame file format; default: from the file name or its first bytes"
     )

@@ -62,11 +62,17 @@ def read_wrapped_frame(
 
 
 def choose_decoder(fields: ReconstructionFields, default: str) -> str:
-    """``decoder``, or the adaptive decoder at ``quality``, else the configured default."""
-    if fields.decoder and fields.quality:
-        raise InvalidInputError("give either decoder or quality, not both")
+    """``decoder``, the adaptive decoder at ``quality`` or within ``latency_ms``, else the
+    configured default."""
+    given = [name for name in ("decoder", "quality", "latency_ms") if getattr(fields, name)]
+    if len(given) > 1:
+        raise InvalidInputError(
+            f"give one of decoder, quality and latency_ms, not {' and '.join(given)}"
+        )
     if fields.quality:
         return f"auto-{fields.quality}"
+    if fields.latency_ms:
+        return f"auto-{fields.latency_ms:g}ms"
     return fields.decoder or default
 
 

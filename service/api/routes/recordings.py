@@ -20,7 +20,7 @@ from fastapi.responses import JSONResponse
 from pydantic import Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from models.decoders.registry import available_decoders
+from models.decoders.registry import resolve
 from models.errors import InvalidInputError
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.errors import ApiError
@@ -84,9 +84,7 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
     if fields.max_frames > limit:
         raise InvalidInputError(f"max_frames {fields.max_frames} is above this server's {limit}")
     decoder = fields.decoder or state.settings.default_decoder
-    names = [spec.name for spec in available_decoders()]
-    if decoder not in names:
-        raise InvalidInputError(f"unknown decoder {decoder!r}; choose one of: {', '.join(names)}")
+    resolve(decoder)
     options = fields.video_job_options()
     video_options(decoder, options)
     recording = start_recording(

@@ -42,6 +42,20 @@ def test_without_prefer_the_job_is_accepted(client: Client) -> None:
     assert body["url"] == f"/v1/jobs/{body['id']}" and body["state"] == "queued"
 
 
+def test_a_latency_budget_picks_a_routing_and_reports_it(client: Client, worker: Worker) -> None:
+    data, _ = frame_png()
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": ("frame.png", data, "image/png")},
+        data={"latency_ms": "5000"},
+        headers={"Prefer": "wait=60"},
+    )
+    assert reply.status_code == 200, reply.text
+    job = reply.json()
+    assert job["state"] == "succeeded" and job["decoder"] == "auto-5000ms"
+    assert job["info"]["details"]["budget"]["budget_ms"] == 5000.0
+
+
 def test_raw_body_with_query_parameters(client: Client, worker: Worker) -> None:
     _, codes = frame_png()
     reply = client().post(
@@ -148,7 +162,9 @@ def test_too_many_pixels_is_413_before_decoding(client: Client) -> None:
     ("fields", "fragment"),
     [
         ({"decoder": "nope"}, "unknown decoder"),
-        ({"decoder": "itoh", "quality": "fast"}, "either decoder or quality"),
+        ({"decoder": "itoh", "quality": "fast"}, "not decoder and quality"),
+        ({"quality": "fast", "latency_ms": "40"}, "not quality and latency_ms"),
+        ({"latency_ms": "0"}, "latency_ms"),
         ({"quality": "ultra"}, "quality"),
         ({"bits": "twelve"}, "bits"),
         ({"alpha": "0.5"}, "alpha"),
