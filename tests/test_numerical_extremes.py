@@ -101,7 +101,8 @@ EXTREMES: tuple[Extreme, ...] = (
     Extreme("all wrapped", lambda: random_codes(SensorParams(encoding="modulo")), "finite"),
     Extreme("random codes alpha 1000", lambda: random_codes(mantissa(alpha=1000.0)), "finite"),
 )
-DECODERS = [spec.name for spec in available_decoders()]
+#: Every installed decoder, plus a latency-budgeted auto (resolved from its name).
+DECODERS = [spec.name for spec in available_decoders()] + ["auto-50ms"]
 
 
 def run(decoder: str, case: Extreme) -> None:
