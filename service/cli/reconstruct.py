@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from models.decoders import available_decoders, get_decoder
+from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError
 from models.frames import frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
@@ -38,6 +39,8 @@ def list_decoders() -> int:
     width = max((len(spec.name) for spec in specs), default=0)
     for spec in specs:
         print(f"{spec.name:<{width}}  {spec.kind:<10}  {spec.description}")
+    for pattern in name_patterns():
+        print(f"also: {pattern}")
     return 0
 
 

@@ -66,6 +66,16 @@ def test_list_decoders(tmp_path: Path) -> None:
     names = [line.split()[0] for line in result.stdout.splitlines()]
     assert {"itoh", "herraez"} <= set(names)
     assert "least-squares" in result.stdout
+    assert "also: auto-<N>ms" in result.stdout
+
+
+def test_reconstruct_within_a_latency_budget(tmp_path: Path, pipeline: Path) -> None:
+    out = tmp_path / "budget.exr"
+    result = run_mcam("reconstruct", str(pipeline / "wrapped.png"), "-o", str(out),
+                      "--decoder", "auto-5000ms",
+                      cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert out.exists()
 
 
 def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
