@@ -12,7 +12,11 @@ Per tile (see :mod:`models.scene_analysis`), cheapest first:
 A frame with no residue at all is integrated whole. At quality ``best`` a frame
 with any residue goes whole to the network: per-tile routing trusts tiles whose
 borders may cross sharp edges (jumps over half a wrap that leave no residue),
-which measured about 2 points of winding accuracy below the network alone.
+which measured about 2 points of winding accuracy below the network alone. At the
+other qualities, a frame whose hard tiles with their margins cover at least its own
+area also goes whole to the network: one call is cheaper (val-256 mantissa, auto-fast:
+54 ms against 74 ms median, interleaved at load 1; 20.78 dB against 20.66, W accuracy
+84.70% against 85.26%).
 Otherwise tiles are stitched into one consistent W by :mod:`models.tile_reconcile`;
 the global offset then comes from the anchoring rule (darkest pixels W = 0), taken
 over the tiles known to be exact (pass-through, integration) when there are any.
@@ -152,6 +156,9 @@ class AdaptiveDecoder(Decoder):
         hard = self.hard_tile_decoder(params)
         if self.quality == "best":
             reason = f"{difficulty} wraps; quality best decodes whole frames"
+            return hard.predict_winding(m, params), _report({hard.name: m.size}, reason)
+        if self.network_pixels(analysis, m.shape) >= m.size:
+            reason = f"{difficulty} wraps; the hard tiles with their margins cover the frame"
             return hard.predict_winding(m, params), _report({hard.name: m.size}, reason)
         pixels: Counter[str] = Counter()
         tiles: list[Tile] = []

@@ -111,3 +111,14 @@ def test_best_uses_the_net_with_the_highest_measured_psnr(params: SensorParams) 
     chosen = AdaptiveDecoder("best").hard_tile_decoder(params)
     assert chosen.name == max(scored, key=scored.__getitem__)
     assert chosen.supports(params)
+
+
+@pytest.mark.parametrize("quality", ["fast", "balanced"])
+def test_hard_tiles_covering_the_frame_make_one_whole_frame_call(quality: str) -> None:
+    m_codes = quantize(np.random.default_rng(2).random((128, 128)), 8)
+    decoder = AdaptiveDecoder(quality)
+    result = decoder.decode(m_codes, MODULO)
+    hard = decoder.hard_tile_decoder(MODULO)
+    assert result.info["details"]["routes"] == {hard.name: 1.0}
+    assert "cover the frame" in result.info["details"]["reason"]
+    np.testing.assert_array_equal(result.winding, hard.decode(m_codes, MODULO).winding)
