@@ -127,6 +127,8 @@ def test_failing_job_goes_to_dead_letters_after_max_deliveries(
     assert record.state is JobState.FAILED
     assert record.error is not None and record.error.code == "output_overflow"
     assert record.attempts == 3
+    # The record turns FAILED first, then the entry moves to the dead letters.
+    wait_until(lambda: client.xlen(DEAD_LETTER_STREAM), 10, "the dead letter")
     [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
     assert letter[b"job"].decode() == job.id and letter[b"deliveries"] == b"3"
     assert letter[b"code"] == b"output_overflow"
