@@ -59,12 +59,27 @@ def ns_per_pixel(name: str, encoding: str) -> float:
     return float(np.median(times)) / m.size
 
 
+def adaptive(quality: str) -> AdaptiveDecoder:
+    """The shared ``auto-<quality>`` decoder."""
+    decoder = get_decoder(f"auto-{quality}")
+    assert isinstance(decoder, AdaptiveDecoder)
+    return decoder
+
+
+def check_budget(budget_ms: float) -> None:
+    """Refuse a budget outside :data:`BUDGET_RANGE_MS` with a clear error."""
+    low, high = BUDGET_RANGE_MS
+    if not low <= budget_ms <= high:
+        raise InvalidInputError(
+            f"a latency budget must be {low:g} to {high:g} ms, got {budget_ms:g}"
+        )
+
+
 def predicted_ms(
     quality: str, analysis: FrameAnalysis, shape: tuple[int, int], params: SensorParams
 ) -> float:
     """Predicted W time (ms, without the analysis) of ``auto-<quality>`` on this frame."""
-    decoder = get_decoder(f"auto-{quality}")
-    assert isinstance(decoder, AdaptiveDecoder)
+    decoder = adaptive(quality)
     pixels = decoder.network_pixels(analysis, shape)
     if pixels == 0:
         return 0.0
@@ -76,11 +91,7 @@ class BudgetDecoder(Decoder):
     """``auto`` at the most accurate quality predicted to fit ``budget_ms``."""
 
     def __init__(self, budget_ms: float) -> None:
-        low, high = BUDGET_RANGE_MS
-        if not low <= budget_ms <= high:
-            raise InvalidInputError(
-                f"a latency budget must be {low:g} to {high:g} ms, got {budget_ms:g}"
-            )
+        check_budget(budget_ms)
         self.budget_ms = budget_ms
         self.name = f"auto-{budget_ms:g}ms"  # type: ignore[misc]
 
@@ -105,9 +116,7 @@ class BudgetDecoder(Decoder):
             reason = f"no quality of auto is predicted within {self.budget_ms:g} ms"
             info: dict[str, Any] = {"routes": {CLASSICAL: 1.0}, "reason": reason}
         else:
-            decoder = get_decoder(f"auto-{chosen}")
-            assert isinstance(decoder, AdaptiveDecoder)
-            winding, info = decoder.explain_analysed(m, params, analysis)
+            winding, info = adaptive(chosen).explain_analysed(m, params, analysis)
         info["budget"] = {
             "budget_ms": self.budget_ms,
             "chosen": chosen,
@@ -123,7 +132,7 @@ def resolve(name: str) -> DecoderSpec | None:
     if match is None:
         return None
     budget_ms = float(match.group(1))
-    BudgetDecoder(budget_ms)
+    check_budget(budget_ms)
     return DecoderSpec(
         name=name,
         kind="adaptive",

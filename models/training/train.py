@@ -32,9 +32,9 @@ from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, UnModNet, 
 RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
 #: Winding losses: cross-entropy over W classes, MSE on W (the paper's), or MSE on the
 #: per-neighbour jumps of W (integrated into W at inference).
-LOSSES = ("ce", "mse", "jumps")
-#: Output channels of the winding head per loss.
+#: Output channels of the winding head, per loss.
 HEAD_OUTPUTS = {"ce": NUM_CLASSES, "mse": 1, "jumps": 2}
+LOSSES = tuple(HEAD_OUTPUTS)
 FAMILIES = ("mantissanet", "unmodnet")
 STAGE_LR = (2e-3, 2e-3, 5e-4, 3e-4)
 EDGE_WEIGHT = 0.1
