@@ -356,3 +356,42 @@ def max_winding(params: SensorParams) -> int | None:
         return None
     u_max = to_unwrapped(np.array(params.max_wraps), params)
     return int(np.floor(u_max + params.read_noise * 6))
+
+
+def saturation_point(params: SensorParams) -> float | None:
+    """``u(max_wraps)``: the unwrapped value of a clipped pixel; None when nothing clips.
+
+    A pixel at ``x >= max_wraps`` stores ``m_sat = frac(u_sat)`` (plus read noise), so a
+    clipped region is a plateau at one known code whose W is known from the parameters.
+    """
+    if params.encoding == "clip" or params.max_wraps is None:
+        return None
+    return float(to_unwrapped(np.array(params.max_wraps), params))
+
+
+def saturation_candidates(m: NDArray[np.floating], params: SensorParams) -> NDArray[np.bool_]:
+    """Pixels whose ``m`` could be a clipped pixel's: codes within ``ceil(3 sigma)`` codes of
+    read noise of the clip code ``quantize(frac(u_sat))``, around the wrap circle (only the
+    clip code itself without noise). All False when nothing clips.
+
+    Dark or mid-range pixels can read the same code; a decoder decides which are clipped.
+    """
+    m = np.asarray(m, dtype=np.float64)
+    u_sat = saturation_point(params)
+    if u_sat is None:
+        return np.zeros(m.shape, bool)
+    levels = params.levels
+    clip_code = int(quantize(np.array(u_sat % 1.0), params.bits))
+    codes = np.clip(np.floor(m * levels), 0, levels - 1).astype(np.int64)
+    distance = np.abs(codes - clip_code)
+    distance = np.minimum(distance, levels - distance)
+    return distance <= np.ceil(3.0 * params.read_noise * levels)
+
+
+def saturated_winding(m: NDArray[np.floating], params: SensorParams) -> NDArray[np.int64]:
+    """W of clipped pixels: the count that puts ``W + m`` nearest ``u_sat`` (read noise can
+    leave a clipped pixel just below a wrap, e.g. ``m = 0.99`` and ``W = u_sat - 1``)."""
+    u_sat = saturation_point(params)
+    if u_sat is None:
+        raise InvalidInputError("these parameters clip nothing (no max_wraps); no saturated W")
+    return np.round(u_sat - np.asarray(m, dtype=np.float64)).astype(np.int64)
