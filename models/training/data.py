@@ -8,8 +8,11 @@ Everything is seeded by ``(seed, step)`` so a resumed run sees the same data.
 
 Saturation-aware pairs (``saturation=True``) add a second input channel, the
 pixels whose code could be a clipped pixel's (:func:`models.formation.saturation_candidates`),
-and label the truly clipped ones :data:`SATURATED` instead of their W; half of them
-set ``max_wraps`` inside the crop's bright range so that clipped plateaus are common.
+and label the truly clipped ones :data:`SATURATED` instead of their W. Half of them
+set ``max_wraps`` inside the crop's bright range so that clipped plateaus are common;
+half put the clip level on a whole wrap (clip code 0, like ``max_wraps = 16``) and half
+paint black patches (code 0 too), so the net learns that a plateau at the clip code can
+be dark as well as clipped.
 """
 
 from __future__ import annotations
@@ -25,7 +28,9 @@ from models.formation import (
     SensorParams,
     dequantize,
     exposure_gain,
+    from_unwrapped,
     saturation_candidates,
+    saturation_point,
     simulate,
 )
 from models.scenes import TRAIN_SCENES, load_hdri_gray, synthetic_scene
@@ -36,6 +41,10 @@ OVEREXPOSED_RANGE = (0.05, 0.35)
 SATURATED = NUM_CLASSES
 #: Quantile range, among a crop's wrapped pixels, of the clip level drawn to make plateaus.
 CLIP_QUANTILES = (0.5, 0.99)
+#: Black patches: how many, their size (fraction of the crop side) and their dimming.
+BLACK_PATCHES = (1, 4)
+BLACK_SIZE = (0.05, 0.3)
+BLACK_DIMMING = (1e-6, 1e-4)
 
 
 @dataclass(frozen=True)
@@ -122,6 +131,28 @@ def _clipping(
     return params.model_copy(update={"gain": gain, "max_wraps": level})
 
 
+def _whole_wrap(rng: np.random.Generator, params: SensorParams) -> SensorParams:
+    """Half the time, ``max_wraps`` raised to the next whole wrap of ``u`` (clip code 0)."""
+    u_sat = saturation_point(params)
+    if u_sat is None or rng.uniform() < 0.5:
+        return params
+    level = float(from_unwrapped(np.array(max(np.ceil(u_sat), 1.0)), params))
+    return params.model_copy(update={"max_wraps": level})
+
+
+def _black_patches(rng: np.random.Generator, scene: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Half the time, a few rectangles of the scene dimmed to black (codes 0)."""
+    if rng.uniform() < 0.5:
+        return scene
+    scene = scene.copy()
+    size = scene.shape[0]
+    for _ in range(int(rng.integers(*BLACK_PATCHES))):
+        h, w = (np.maximum(rng.uniform(*BLACK_SIZE, 2) * size, 1)).astype(int)
+        top, left = rng.integers(0, size - h + 1), rng.integers(0, size - w + 1)
+        scene[top : top + h, left : left + w] *= rng.uniform(*BLACK_DIMMING)
+    return scene
+
+
 def sample_pair(
     rng: np.random.Generator, config: PairConfig
 ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
@@ -136,7 +167,8 @@ def sample_pair(
         augmented = _augment(rng, scene)
         overexposed = rng.uniform(*OVEREXPOSED_RANGE)
         if config.saturation:
-            params = _clipping(rng, params, augmented, overexposed)
+            augmented = _black_patches(rng, augmented)
+            params = _whole_wrap(rng, _clipping(rng, params, augmented, overexposed))
         try:
             frame = simulate(
                 augmented, params, overexposed=None if params.gain else overexposed
