@@ -3,9 +3,7 @@
 ``mantissanet-*`` predicts W in one pass (or, for a net trained on the
 per-neighbour jumps of W, the jumps, integrated into W); ``unmodnet`` starts from W = 0 and adds
 the pixels its net says roll over once more, pass by pass (at most the card's
-``max_passes``, 15). A saturation-aware net (card ``"saturation": true``) also gets
-the pixels whose code could be a clipped pixel's and says which of them are clipped;
-those take the W that the parameters' ``max_wraps`` gives them.
+``max_passes``, 15).
 
 Models are discovered from the JSON model cards in ``models/onnx/``; a decoder
 picks the card of the frame's encoding. Each ONNX session is created once (per
@@ -35,12 +33,7 @@ from models.decoders.base import Decoder, anchor_winding
 from models.decoders.classical import integrate_gradient
 from models.decoders.registry import DecoderSpec
 from models.errors import InvalidInputError
-from models.formation import (
-    SensorParams,
-    max_winding,
-    saturated_winding,
-    saturation_candidates,
-)
+from models.formation import SensorParams, max_winding
 
 ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 THREADS_ENV = "MCAM_WORKER_THREADS"
@@ -131,8 +124,7 @@ def stitch_overlapping(
 
 
 class OnnxWindingModel:
-    """One ONNX file (``m -> W``, or ``(m, saturated) -> (W, clipped)``) with its card; the
-    session is created on first use."""
+    """One ONNX file (``m -> W``) with its card; the session is created on first use."""
 
     def __init__(self, card: dict[str, Any]) -> None:
         self.card = card
@@ -144,38 +136,26 @@ class OnnxWindingModel:
             self._session = make_session(self.card["path"], worker_threads())
         return self._session
 
-    def padded(self, values: NDArray[np.floating]) -> NDArray[np.float32]:
-        """``values`` as the net's ``1 x 1 x H' x W'`` float32 input, padded to its multiple."""
-        return pad_to_multiple(values.astype(np.float32), int(self.card["multiple"]))[None, None]
-
-    def run(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+    def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
         """W (int64, H x W) for a map of m no larger than the tile."""
-        rows, cols = m.shape
-        if not self.card.get("saturation"):
-            return self.session.run(None, {"m": self.padded(m)})[0][0, 0, :rows, :cols]
-        candidates = saturation_candidates(m, params)
-        feed = {"m": self.padded(m), "saturated": self.padded(candidates)}
-        winding, clipped = (out[0, 0, :rows, :cols] for out in self.session.run(None, feed))
-        if not clipped.any():
-            return winding
-        return np.where(clipped.astype(bool), saturated_winding(m, params), winding)
+        padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))
+        out = self.session.run(None, {"m": padded[None, None]})[0]
+        return out[0, 0, : m.shape[0], : m.shape[1]].astype(np.int64)
 
-    def predict(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+    def predict(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
         """W for a frame of any size: tiled with reconciled offsets when large."""
         tile = int(self.card["tile"])
         if max(m.shape) <= tile:
-            return self.run(m, params)
-        return stitch_overlapping(
-            m.shape, tile, OVERLAP, lambda r, c: self.run(m[r, c], params)
-        )
+            return self.run(m)
+        return stitch_overlapping(m.shape, tile, OVERLAP, lambda r, c: self.run(m[r, c]))
 
 
 class OnnxRolloverModel(OnnxWindingModel):
     """UnModNet (``(m, W) -> rollover``): W grows by the predicted rollovers, pass by pass,
     until no pixel rolls over or ``max_passes`` is reached."""
 
-    def run(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        padded = self.padded(m)
+    def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
+        padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))[None, None]
         winding = np.zeros_like(padded)
         for _ in range(int(self.card["max_passes"])):
             rollover = self.session.run(None, {"m": padded, "winding": winding})[0]
@@ -196,8 +176,9 @@ class OnnxJumpsModel(OnnxWindingModel):
     """A winding net trained on per-neighbour jumps (``m -> jumps``, 2 channels): W is
     integrated from the predicted jumps (relative; anchored later)."""
 
-    def run(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        jumps = self.session.run(None, {"m": self.padded(m)})[0][0]
+    def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
+        padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))
+        jumps = self.session.run(None, {"m": padded[None, None]})[0][0]
         return winding_from_jumps(jumps[:, : m.shape[0], : m.shape[1]])
 
 
@@ -239,7 +220,7 @@ class LearnedDecoder(Decoder):
         return self.models[params.encoding]
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        return finish_winding(self.model_for(params).predict(m, params), params)
+        return finish_winding(self.model_for(params).predict(m), params)
 
 
 def describe(name: str, cards: list[dict[str, Any]]) -> str:

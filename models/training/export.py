@@ -2,10 +2,8 @@
 
 The exported graph maps ``m`` (``1 x 1 x H x W`` float32, H and W multiples of
 :data:`MULTIPLE`) to ``winding`` (``1 x 1 x H x W`` int64): the argmax (or the
-rounded regression) is inside the graph. A saturation-aware net maps
-``(m, saturated)`` (the candidates, float 0/1) to ``winding`` and ``clipped`` (int64
-0/1: the net's "clipped" class won on a candidate pixel). An UnModNet run exports one
-pass, ``(m, winding) -> rollover`` (int64 0/1), that the runtime repeats. The card
+rounded regression) is inside the graph. An UnModNet run exports one pass,
+``(m, winding) -> rollover`` (int64 0/1), that the runtime repeats. The card
 (JSON, next to the .onnx) is what the runtime discovers; :func:`models.decoders.learned.specs`
 reads it.
 """
@@ -44,9 +42,6 @@ class WindingGraph(nn.Module):
     ``jumps`` loss ``m -> jumps`` (float32, 2 channels: to the right and lower neighbour),
     which the runtime integrates into W."""
 
-    input_names = ("m",)
-    output_names = ("winding",)
-
     def __init__(self, model: MantissaNet, loss: str) -> None:
         super().__init__()
         self.model = model
@@ -61,30 +56,8 @@ class WindingGraph(nn.Module):
         return logits.argmax(dim=1, keepdim=True)
 
 
-class SaturationWindingGraph(nn.Module):
-    """Saturation-aware inference graph: ``(m, saturated) -> (winding, clipped)``, both
-    int64; ``winding`` is the best of the W classes, ``clipped`` is 1 where the "clipped"
-    class beats them all on a candidate pixel."""
-
-    input_names = ("m", "saturated")
-    output_names = ("winding", "clipped")
-
-    def __init__(self, model: MantissaNet) -> None:
-        super().__init__()
-        self.model = model
-
-    def forward(self, m: Tensor, saturated: Tensor) -> tuple[Tensor, Tensor]:
-        logits, _ = self.model(torch.cat([m, saturated], dim=1))
-        best = logits.argmax(dim=1, keepdim=True)
-        clipped = (best == NUM_CLASSES) & (saturated > 0.5)
-        return logits[:, :NUM_CLASSES].argmax(dim=1, keepdim=True), clipped.long()
-
-
 class RolloverGraph(nn.Module):
     """UnModNet inference pass: ``(m, winding) -> rollover`` (int64 0/1)."""
-
-    input_names = ("m", "winding")
-    output_names = ("rollover",)
 
     def __init__(self, model: UnModNet) -> None:
         super().__init__()
@@ -98,8 +71,6 @@ class RolloverGraph(nn.Module):
 def graph_inputs(module: nn.Module, size: int) -> tuple[Tensor, ...]:
     """Example inputs of an inference graph at ``size x size``."""
     m = torch.rand(1, 1, size, size)
-    if isinstance(module, SaturationWindingGraph):
-        return m, (torch.rand(1, 1, size, size) < 0.05).float()
     return (m, torch.zeros_like(m)) if isinstance(module, RolloverGraph) else (m,)
 
 
@@ -114,14 +85,16 @@ def export_onnx(module: nn.Module, path: Path) -> None:
     """Export an inference graph with dynamic batch, height and width."""
     path.parent.mkdir(parents=True, exist_ok=True)
     axes = {0: "batch", 2: "height", 3: "width"}
-    names, outputs = list(module.input_names), list(module.output_names)
+    inputs = graph_inputs(module, 64)
+    names = ["m", "winding"][: len(inputs)]
+    output = "rollover" if isinstance(module, RolloverGraph) else "winding"
     torch.onnx.export(
         module.eval(),
-        graph_inputs(module, 64),
+        inputs,
         str(path),
         input_names=names,
-        output_names=outputs,
-        dynamic_axes={name: axes for name in [*names, *outputs]},
+        output_names=[output],
+        dynamic_axes={name: axes for name in [*names, output]},
         opset_version=OPSET,
         dynamo=False,
     )
@@ -158,7 +131,6 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
         "batch": config.batch,
         "loss": config.loss,
         "max_read_noise": config.max_read_noise,
-        "saturation": config.saturation,
         "init_from": config.init_from,
         "seed": config.seed,
         "threads": config.threads,
@@ -184,20 +156,11 @@ def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) ->
     return card
 
 
-def inference_graph(model: MantissaNet | UnModNet, config: TrainConfig) -> nn.Module:
-    """The graph the runtime runs for a trained model of ``config``."""
-    if isinstance(model, UnModNet):
-        return RolloverGraph(model)
-    if config.saturation:
-        return SaturationWindingGraph(model)
-    return WindingGraph(model, config.loss)
-
-
 def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
     """Export a run's checkpoint to ``<onnx_dir>/<name>.onnx`` and write the card; returns it."""
     model, config, state = trained_model(checkpoint)
     unmodnet = isinstance(model, UnModNet)
-    graph = inference_graph(model, config)
+    graph = RolloverGraph(model) if unmodnet else WindingGraph(model, config.loss)
     onnx_path = onnx_dir / f"{config.name}.onnx"
     export_onnx(graph, onnx_path)
     card = {
@@ -210,7 +173,6 @@ def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
         "file": onnx_path.name,
         "sha256": sha256_of(onnx_path),
         "output": "jumps" if config.loss == "jumps" else "winding",
-        "saturation": config.saturation,
         "multiple": MULTIPLE,
         "tile": TILE,
         "parameters": parameter_count(model),

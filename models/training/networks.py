@@ -1,9 +1,7 @@
 """The PyTorch networks: wrap-edge net, MantissaCam winding net (tiers), UnModNet mask net.
 
 All nets take ``m`` (wrapped values in [0, 1), ``N x 1 x H x W``, float32) with
-``H`` and ``W`` multiples of :data:`MULTIPLE`; the runtime pads to it. A
-saturation-aware winding net also takes the saturation candidates (0/1) as a second
-input channel and has one more output class, "clipped".
+``H`` and ``W`` multiples of :data:`MULTIPLE`; the runtime pads to it.
 """
 
 from __future__ import annotations
@@ -142,9 +140,9 @@ class AttentionGate(nn.Module):
         return skip * self.psi(self.skip(skip) + self.gate(gate))
 
 
-def stem(c_out: int, c_in: int = 1) -> nn.Sequential:
-    """7x7 convolution, instance norm, ReLU."""
-    return nn.Sequential(nn.Conv2d(c_in, c_out, 7, 1, 3), nn.InstanceNorm2d(c_out), nn.ReLU())
+def stem(c_out: int) -> nn.Sequential:
+    """7x7 convolution, instance norm, ReLU on a single-channel map."""
+    return nn.Sequential(nn.Conv2d(1, c_out, 7, 1, 3), nn.InstanceNorm2d(c_out), nn.ReLU())
 
 
 class EdgeNet(nn.Module):
@@ -172,14 +170,13 @@ class WindingNet(nn.Module):
 
     Features of ``m`` and of the edge map (7x7 conv + InstanceNorm + ReLU; non-local
     block on the edge branch), concatenated, squeeze-excitation, then an attention
-    U-Net with 4 strided downsamplings and residual bottleneck blocks. ``inputs``
-    channels feed the ``m`` branch (``m``, and the saturation candidates when 2).
+    U-Net with 4 strided downsamplings and residual bottleneck blocks.
     """
 
-    def __init__(self, tier: Tier, outputs: int = NUM_CLASSES, inputs: int = 1) -> None:
+    def __init__(self, tier: Tier, outputs: int = NUM_CLASSES) -> None:
         super().__init__()
         w = tier.widths
-        self.m_branch = stem(tier.stem, inputs)
+        self.m_branch = stem(tier.stem)
         self.edge_branch = nn.Sequential(stem(tier.stem), RegionNonLocal(tier.stem))
         self.se = SqueezeExcitation(2 * tier.stem)
         self.enter = conv_bn_relu(2 * tier.stem, w[0])
@@ -191,8 +188,8 @@ class WindingNet(nn.Module):
         self.merge = nn.ModuleList(conv_bn_relu(w[i] + w[i + 1], w[i]) for i in range(4))
         self.head = nn.Conv2d(w[0], outputs, 1)
 
-    def forward(self, inputs: Tensor, edges: Tensor) -> Tensor:
-        x = torch.cat([self.m_branch(inputs), self.edge_branch(edges)], dim=1)
+    def forward(self, m: Tensor, edges: Tensor) -> Tensor:
+        x = torch.cat([self.m_branch(m), self.edge_branch(edges)], dim=1)
         x = self.encode[0](self.enter(self.se(x)))
         skips = [x]
         for level in range(4):
@@ -206,18 +203,17 @@ class WindingNet(nn.Module):
 
 
 class MantissaNet(nn.Module):
-    """Edge net + winding net end to end: ``inputs -> (W logits, edge map)``; the edge
-    net sees channel 0 (``m``) only."""
+    """Edge net + winding net end to end: ``m -> (W logits, edge map)``."""
 
-    def __init__(self, tier: Tier, outputs: int = NUM_CLASSES, inputs: int = 1) -> None:
+    def __init__(self, tier: Tier, outputs: int = NUM_CLASSES) -> None:
         super().__init__()
         self.tier = tier
         self.edge = EdgeNet(tier.edge_width, tier.edge_blocks)
-        self.winding = WindingNet(tier, outputs, inputs)
+        self.winding = WindingNet(tier, outputs)
 
-    def forward(self, inputs: Tensor) -> tuple[Tensor, Tensor]:
-        edges = self.edge(inputs[:, :1])
-        return self.winding(inputs, edges), edges
+    def forward(self, m: Tensor) -> tuple[Tensor, Tensor]:
+        edges = self.edge(m)
+        return self.winding(m, edges), edges
 
 
 class UnModMaskNet(nn.Module):

@@ -9,9 +9,7 @@ only on ``(seed, step)``; a checkpoint is written every
 it. Losses go to ``runs/<name>/log.jsonl``.
 
 A run may start from another run's trained weights (``init_from``, e.g. a
-noise-aware fine-tune of a finished model); stages with 0 steps are skipped. A
-saturation-aware run (``saturation``) may start from a plain one: its extra input
-channel and its "clipped" class start at zero weight (see :func:`widen_for_saturation`).
+noise-aware fine-tune of a finished model); stages with 0 steps are skipped.
 """
 
 from __future__ import annotations
@@ -55,7 +53,6 @@ class TrainConfig:
     large_crop: int = 128
     batch: int = 8
     max_read_noise: float = 0.0
-    saturation: bool = False
     init_from: str | None = None
     seed: int = 0
     threads: int = 1
@@ -67,23 +64,11 @@ class TrainConfig:
     def name(self) -> str:
         noise = "-noise" if self.max_read_noise > 0 else ""
         loss = "" if self.loss == "ce" else f"-{self.loss}"
-        sat = "-sat" if self.saturation else ""
-        return f"{self.family}-{self.tier}{noise}{sat}{loss}-{self.encoding}"
+        return f"{self.family}-{self.tier}{noise}{loss}-{self.encoding}"
 
     @property
     def run_dir(self) -> Path:
         return self.runs_dir / self.name
-
-    def pairs(self, large: bool = False) -> PairConfig:
-        """What the sampler draws for this run: small crops, or the large crops of stage 4
-        (a quarter of the batch)."""
-        return PairConfig(
-            self.encoding,
-            self.large_crop if large else self.crop,
-            max(self.batch // 4, 1) if large else self.batch,
-            self.max_read_noise,
-            saturation=self.saturation,
-        )
 
     @property
     def total_steps(self) -> int:
@@ -107,8 +92,7 @@ def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
     torch.manual_seed(config.seed)
     if config.family == "unmodnet":
         return UnModNet(TIERS[config.tier])
-    extra = 1 if config.saturation else 0
-    return MantissaNet(TIERS[config.tier], HEAD_OUTPUTS[config.loss] + extra, 1 + extra)
+    return MantissaNet(TIERS[config.tier], HEAD_OUTPUTS[config.loss])
 
 
 def winding_jumps(winding: Tensor) -> tuple[Tensor, Tensor]:
@@ -170,7 +154,7 @@ def step_losses(
     """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy)."""
     truth = wrap_edges(winding)
     if stage == 1:
-        edge_bce = F.binary_cross_entropy(model.edge(m[:, :1]).clamp(1e-4, 1 - 1e-4), truth)
+        edge_bce = F.binary_cross_entropy(model.edge(m).clamp(1e-4, 1 - 1e-4), truth)
         return edge_bce, {"edge_bce": edge_bce.item()}
     if isinstance(model, UnModNet):
         edges = truth if stage == 2 else model.edge(m)
@@ -217,34 +201,15 @@ def run_state(
     }  # fmt: skip
 
 
-def widen_for_saturation(weights: dict[str, Tensor], model: torch.nn.Module) -> dict[str, Tensor]:
-    """A plain winding net's weights fitted to ``model``'s saturation-aware shapes: the
-    candidates' input channel gets zero weights and the "clipped" class a zero-weight,
-    strongly negative logit, so the widened net first predicts exactly what the plain one
-    did."""
-    target = model.state_dict()
-    widened = dict(weights)
-    stem_key = "winding.m_branch.0.weight"
-    head_w, head_b = "winding.head.weight", "winding.head.bias"
-    if weights[stem_key].shape != target[stem_key].shape:
-        widened[stem_key] = torch.cat([weights[stem_key], torch.zeros_like(weights[stem_key])], 1)
-    if weights[head_w].shape != target[head_w].shape:
-        widened[head_w] = torch.cat([weights[head_w], torch.zeros_like(weights[head_w][:1])])
-        widened[head_b] = torch.cat([weights[head_b], torch.full((1,), -10.0)])
-    return widened
-
-
-def initial_weights(config: TrainConfig, model: torch.nn.Module) -> dict[str, Tensor]:
-    """The finished weights of the run ``config.init_from`` (same runs folder), widened
-    when this run is saturation-aware and that one is not."""
+def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
+    """The finished weights of the run ``config.init_from`` (same runs folder)."""
     source = config.runs_dir / str(config.init_from) / "checkpoint.pt"
     if not source.exists():
         raise FileNotFoundError(
             f"{config.name} starts from {source}, which does not exist: train "
             f"{config.init_from} first (mcam train all trains the recipes in order)"
         )
-    weights = load_checkpoint(source)["model"]
-    return widen_for_saturation(weights, model) if config.saturation else weights
+    return load_checkpoint(source)["model"]
 
 
 def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None = None) -> Path:
@@ -253,8 +218,6 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
         raise ValueError(
             f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
         )
-    if config.saturation and (config.family, config.loss) != ("mantissanet", "ce"):
-        raise ValueError("saturation-aware training needs a mantissanet with the ce loss")
     torch.set_num_threads(config.threads)
     config.run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint = config.run_dir / "checkpoint.pt"
@@ -267,8 +230,11 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
         optimizer.load_state_dict(state["optimizer"])
         step, wall_s = state["step"], state["wall_s"]
     elif config.init_from:
-        model.load_state_dict(initial_weights(config, model))
-    pairs, large = config.pairs(), config.pairs(large=True)
+        model.load_state_dict(initial_weights(config))
+    pairs = PairConfig(config.encoding, config.crop, config.batch, config.max_read_noise)
+    large = PairConfig(
+        config.encoding, config.large_crop, max(config.batch // 4, 1), config.max_read_noise
+    )
     model.train()
     started = time.monotonic() - wall_s
     with (config.run_dir / "log.jsonl").open("a") as log:

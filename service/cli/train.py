@@ -38,10 +38,6 @@ def register(subparsers: Any) -> None:
     one.add_argument("--crop", type=int, default=64, help="training crop (px, multiple of 16)")
     one.add_argument("--batch", type=int, default=8)
     one.add_argument("--read-noise", type=float, default=0.0, help="max read noise (wrap units)")
-    one.add_argument(
-        "--saturation", action="store_true",
-        help="saturation-aware net: also told which codes could be clipped, learns which are",
-    )  # fmt: skip
     one.add_argument("--init-from", help="start from this finished run's weights (a run name)")
     one.add_argument("--seed", type=int, default=0)
     one.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
@@ -114,8 +110,7 @@ def run(args: argparse.Namespace) -> int:
     config = TrainConfig(
         tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
-        max_read_noise=args.read_noise, saturation=args.saturation, init_from=args.init_from,
-        seed=args.seed,
+        max_read_noise=args.read_noise, init_from=args.init_from, seed=args.seed,
         threads=args.threads,
         runs_dir=args.runs_dir or RUNS_DIR,
     )  # fmt: skip

@@ -20,9 +20,6 @@ from models.formation import (
     max_winding,
     quantize,
     reconstruct,
-    saturated_winding,
-    saturation_candidates,
-    saturation_point,
     simulate,
     split_unwrapped,
     to_unwrapped,
@@ -296,46 +293,6 @@ def test_max_wraps_clips_x_and_bounds_w(encoding: str, top: int) -> None:
     assert frame.irradiance.max() == 16.0
     assert frame.winding.max() == top
     assert max_winding(params) == top
-
-
-@settings(max_examples=100, deadline=None)
-@given(
-    encoding=st.sampled_from(["modulo", "mantissa"]),
-    max_wraps=st.floats(1.001, 1e4),
-    bits=st.integers(4, 16),
-    noise=st.sampled_from([0.0, 0.002, 0.01]),
-    seed=st.integers(0, 2**16),
-)
-def test_clipped_pixels_are_candidates_and_get_their_true_winding(
-    encoding: str, max_wraps: float, bits: int, noise: float, seed: int
-) -> None:
-    params = SensorParams(
-        encoding=encoding, bits=bits, max_wraps=max_wraps, read_noise=noise, seed=seed
-    )
-    frame = encode(np.full(64, max_wraps * 10), params)
-    m = dequantize(frame.codes, bits)
-    candidates = saturation_candidates(m, params)
-    assert candidates.mean() > 0.95
-    np.testing.assert_array_equal(
-        saturated_winding(m, params)[candidates], frame.winding[candidates]
-    )
-
-
-def test_saturation_candidates_are_the_clip_code_only_without_noise() -> None:
-    params = SensorParams(encoding="mantissa", max_wraps=16.0)
-    assert saturation_point(params) == 5.0
-    codes = np.arange(256, dtype=np.uint8)
-    assert np.flatnonzero(saturation_candidates(dequantize(codes, 8), params)).tolist() == [0]
-
-
-@pytest.mark.parametrize(
-    "params", [SensorParams(max_wraps=None), SensorParams(encoding="clip", max_wraps=4.0)]
-)
-def test_nothing_is_a_saturation_candidate_when_nothing_clips(params: SensorParams) -> None:
-    assert saturation_point(params) is None
-    assert not saturation_candidates(np.linspace(0, 0.99, 50), params).any()
-    with pytest.raises(InvalidInputError, match="clip nothing"):
-        saturated_winding(np.zeros(3), params)
 
 
 @PROPERTY

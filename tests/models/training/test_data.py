@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from models.formation import SensorParams, to_unwrapped
-from models.training.data import SATURATED, PairConfig, sample_batch
+from models.training.data import PairConfig, sample_batch
 from models.training.networks import NUM_CLASSES
 
 
@@ -33,19 +33,3 @@ def test_batches_depend_only_on_seed_and_step() -> None:
 def test_mantissa_training_winding_stays_below_the_class_count() -> None:
     params = SensorParams(encoding="mantissa")
     assert float(to_unwrapped(np.array(2.0**12), params)) < NUM_CLASSES
-
-
-def test_saturation_pairs_label_clipped_candidates_only() -> None:
-    inputs, target = sample_batch(1, 0, PairConfig("mantissa", crop=32, batch=16, saturation=True))
-    assert inputs.shape == (16, 2, 32, 32) and target.shape == (16, 1, 32, 32)
-    candidates = inputs[:, 1:] == 1
-    assert set(np.unique(inputs[:, 1])) <= {0.0, 1.0}
-    assert (target == SATURATED).any()
-    assert candidates[target == SATURATED].all()
-    assert (target[~candidates] < NUM_CLASSES).all()
-
-
-def test_plain_pairs_are_unchanged_by_the_saturation_option() -> None:
-    plain = sample_batch(2, 3, PairConfig("modulo", crop=32, batch=4))
-    aware = sample_batch(2, 3, PairConfig("modulo", crop=32, batch=4, saturation=True))
-    assert plain[0].shape[1] == 1 and aware[0].shape[1] == 2

@@ -11,17 +11,16 @@ import pytest
 import torch
 
 from models.decoders.learned import onnx_model
-from models.formation import SensorParams, dequantize
+from models.formation import dequantize
 from models.scenes import val256_frames
 from models.training.export import (
     RolloverGraph,
-    SaturationWindingGraph,
     WindingGraph,
     export_run,
     sha256_of,
     trained_model,
 )
-from models.training.train import TrainConfig, load_checkpoint, save_checkpoint, train
+from models.training.train import TrainConfig, train
 
 
 def torch_winding(checkpoint: Path, m: np.ndarray) -> np.ndarray:
@@ -86,43 +85,5 @@ def test_jumps_model_exports_jumps_that_the_runtime_integrates(tmp_path: Path) -
     np.testing.assert_allclose(jumps, torch_winding(tmp_path / config.name / "checkpoint.pt", m),
                                atol=1e-4)  # fmt: skip
     card["path"] = str(card_path.with_suffix(".onnx"))
-    winding = onnx_model(card).run(m[0, 0].astype(np.float64), SensorParams())
+    winding = onnx_model(card).run(m[0, 0].astype(np.float64))
     assert winding.shape == (48, 64) and winding.dtype == np.int64 and winding.min() == 0
-
-
-def test_saturation_aware_model_exports_clipped_pixels_matching_pytorch(tmp_path: Path) -> None:
-    config = TrainConfig(
-        tier="tiny", saturation=True, stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
-    )
-    card_path = export_run(train(config), tmp_path / "onnx")
-    card = json.loads(card_path.read_text())
-    assert card["saturation"] and card["decoder"] == "mantissanet-tiny-sat"
-    m = np.random.default_rng(4).random((1, 1, 32, 48), dtype=np.float32)
-    saturated = (m < 0.3).astype(np.float32)
-    session = ort.InferenceSession(str(card_path.with_suffix(".onnx")))
-    onnx_w, onnx_clipped = session.run(None, {"m": m, "saturated": saturated})
-    model, _, _ = trained_model(tmp_path / config.name / "checkpoint.pt")
-    with torch.no_grad():
-        torch_w, torch_clipped = SaturationWindingGraph(model)(
-            torch.from_numpy(m), torch.from_numpy(saturated)
-        )
-    assert onnx_w.shape == onnx_clipped.shape == m.shape
-    assert (onnx_w == torch_w.numpy()).mean() > 0.999
-    assert (onnx_clipped == torch_clipped.numpy()).mean() > 0.999
-    assert not onnx_clipped[saturated == 0].any()
-
-
-def test_runtime_gives_clipped_pixels_the_saturated_winding(tmp_path: Path) -> None:
-    config = TrainConfig(
-        tier="tiny", saturation=True, stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
-    )
-    checkpoint = train(config)
-    state = load_checkpoint(checkpoint)
-    state["model"]["winding.head.bias"][-1] = 1e4
-    save_checkpoint(checkpoint, state)
-    card_path = export_run(checkpoint, tmp_path / "onnx")
-    card = {**json.loads(card_path.read_text()), "path": str(card_path.with_suffix(".onnx"))}
-    codes = np.where(np.arange(32 * 48).reshape(32, 48) % 3 == 0, 0, 200).astype(np.uint8)
-    winding = onnx_model(card).run(dequantize(codes, 8), SensorParams(max_wraps=16.0))
-    assert (winding[codes == 0] == 5).all()
-    assert (winding[codes == 200] < 17).all()

@@ -11,11 +11,9 @@ import torch
 from models.training.train import (
     HEAD_OUTPUTS,
     TrainConfig,
-    build_model,
     load_checkpoint,
     prediction_accuracy,
     train,
-    widen_for_saturation,
     winding_jumps,
     winding_loss,
 )
@@ -92,26 +90,4 @@ def test_a_missing_initial_run_is_named_in_the_error(tmp_path: Path) -> None:
     config = TrainConfig(tier="tiny", stage_steps=(0, 0, 0, 1), runs_dir=tmp_path,
                          init_from="mantissanet-nothing")  # fmt: skip
     with pytest.raises(FileNotFoundError, match="train mantissanet-nothing first"):
-        train(config)
-
-
-def test_widened_net_predicts_what_the_plain_net_did(tmp_path: Path) -> None:
-    plain_config = tiny_config(tmp_path, (1, 1, 1))
-    plain = build_model(plain_config)
-    plain.load_state_dict(load_checkpoint(train(plain_config))["model"])
-    aware_config = TrainConfig(tier="tiny", saturation=True, runs_dir=tmp_path)
-    aware = build_model(aware_config)
-    aware.load_state_dict(widen_for_saturation(plain.state_dict(), aware))
-    m = torch.rand(2, 1, 32, 32)
-    candidates = (torch.rand(2, 1, 32, 32) < 0.3).float()
-    with torch.no_grad():
-        plain_logits, _ = plain.eval()(m)
-        aware_logits, _ = aware.eval()(torch.cat([m, candidates], dim=1))
-    torch.testing.assert_close(aware_logits[:, :-1], plain_logits)
-    assert (aware_logits.argmax(dim=1) == plain_logits.argmax(dim=1)).all()
-
-
-def test_saturation_needs_a_mantissanet_with_the_ce_loss(tmp_path: Path) -> None:
-    config = TrainConfig(tier="tiny", loss="mse", saturation=True, runs_dir=tmp_path)
-    with pytest.raises(ValueError, match="saturation-aware"):
         train(config)
