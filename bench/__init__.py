@@ -10,6 +10,7 @@ import math
 import os
 import platform
 import subprocess
+from collections.abc import Callable
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -95,3 +96,18 @@ def write_report(report: dict[str, Any], markdown: str, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n")
     out.with_suffix(".md").write_text(markdown + "\n")
+
+
+def entry_point(
+    parse_args: Callable[[list[str] | None], Any],
+    run: Callable[[Any], dict[str, Any]],
+    markdown: Callable[[dict[str, Any]], str],
+) -> Callable[[list[str] | None], int]:
+    """A benchmark's ``main(argv)``: parse (the arguments carry ``out``), run, publish."""
+
+    def main(argv: list[str] | None = None) -> int:
+        args = parse_args(argv)
+        report = run(args)
+        return publish(report, markdown(report), args.out)
+
+    return main

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, machine, publish, utc_now, versions
+from bench import RESULTS, entry_point, machine, utc_now, versions
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.errors import McamError
@@ -280,10 +280,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    report = run(args)
-    return publish(report, markdown(report), args.out)
+main = entry_point(parse_args, run, markdown)
 
 
 if __name__ == "__main__":

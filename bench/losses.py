@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench import RESULTS, machine, publish, utc_now, versions
+from bench import RESULTS, entry_point, machine, utc_now, versions
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.training.export import export_run
 from models.training.recipes import TINY_STAGES
@@ -108,10 +108,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    report = run(args)
-    return publish(report, markdown(report), args.out)
+main = entry_point(parse_args, run, markdown)
 
 
 if __name__ == "__main__":
