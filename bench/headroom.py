@@ -34,7 +34,7 @@ from scipy.sparse.csgraph import connected_components
 from bench import RESULTS, entry_point, machine, utc_now, versions
 from models.decoders import get_decoder
 from models.decoders.adaptive import most_accurate_net
-from models.formation import dequantize, from_unwrapped, to_unwrapped
+from models.formation import SensorParams, dequantize, from_unwrapped, to_unwrapped
 from models.metrics import psnr, winding_accuracy
 from models.scenes import ValFrame, val256_frames
 
@@ -60,11 +60,16 @@ def reachable(u: NDArray[np.float64], winding: NDArray[np.int64]) -> NDArray[np.
     return np.isin(labels, np.unique(labels[winding == 0]))
 
 
+def clipped(frame: ValFrame) -> NDArray[np.bool_]:
+    """Pixels at or above ``max_wraps`` (none when the frame's parameters clip nothing)."""
+    top = frame.params.max_wraps
+    return np.zeros(frame.x.shape, bool) if top is None else frame.x >= top
+
+
 def groups(frame: ValFrame, reach: NDArray[np.bool_]) -> dict[str, NDArray[np.bool_]]:
     """The pixel groups whose true W is put back, one at a time."""
-    assert frame.params.max_wraps is not None
     return {
-        "clipped": frame.x >= frame.params.max_wraps,
+        "clipped": clipped(frame),
         "high_w": frame.winding >= HIGH_W,
         "low_w": frame.winding < HIGH_W,
         "reachable": reach,
@@ -113,11 +118,10 @@ def encoding_report(encoding: str, decoders: list[str], frames: int | None) -> d
     """Reachable shares and every decoder's PSNR headroom on one encoding's val-256."""
     chosen = val256_frames(encoding)[:frames]
     reach = [reachable(to_unwrapped(f.x, f.params), f.winding) for f in chosen]
-    clipped = np.mean([np.mean(f.x >= (f.params.max_wraps or np.inf)) for f in chosen])
     return {
         "encoding": encoding,
         "frames": len(chosen),
-        "clipped_share": float(clipped),
+        "clipped_share": float(np.mean([clipped(f).mean() for f in chosen])),
         "reachable": reachable_share(chosen, reach),
         "decoders": [decoder_row(name, chosen, reach) for name in decoders],
     }
@@ -125,8 +129,6 @@ def encoding_report(encoding: str, decoders: list[str], frames: int | None) -> d
 
 def default_decoders(encoding: str) -> list[str]:
     """``itoh`` and the most accurate installed winding net for ``encoding``."""
-    from models.formation import SensorParams
-
     best = most_accurate_net(SensorParams(encoding=encoding))  # type: ignore[arg-type]
     return ["itoh", *([best] if best else [])]
 
