@@ -30,6 +30,7 @@ import numpy as np
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams, simulate
 from models.frames import encode_frame
+from models.timing import median_ns
 from worker.embedded_redis import EmbeddedRedis
 
 RESULTS = Path(__file__).parent / "results" / "service.json"
@@ -51,13 +52,7 @@ def test_frame(size: int = SIZE) -> tuple[bytes, np.ndarray]:
 def in_process_ms(decoder: str, codes: np.ndarray, repeats: int) -> float:
     """Median wall time of ``decode`` in this process (ms), after one warm-up call."""
     dec = get_decoder(decoder)
-    dec.decode(codes, PARAMS)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        dec.decode(codes, PARAMS)
-        times.append(time.perf_counter() - start)
-    return float(np.median(times) * 1e3)
+    return median_ns(lambda: dec.decode(codes, PARAMS), repeats) / 1e6
 
 
 def free_port() -> int:

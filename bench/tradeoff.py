@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -40,6 +39,7 @@ from models.scenes import (
     val256_frames,
     val256_scenes,
 )
+from models.timing import median_ns
 
 VAL_PARAMS = SensorParams(encoding="mantissa", bits=VAL256_BITS, max_wraps=VAL256_MAX_WRAPS)
 TILE_SIZES = (32, 64, 128)
@@ -68,13 +68,7 @@ def mostly_dark_frames(count: int) -> list[ValFrame]:
 
 def median_ms(run: Callable[[], Any], repeats: int) -> float:
     """Median wall time of ``run`` in ms over ``repeats`` calls (after one warm-up)."""
-    run()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter_ns()
-        run()
-        times.append((time.perf_counter_ns() - start) / 1e6)
-    return float(np.median(times))
+    return median_ns(run, repeats) / 1e6
 
 
 def measure(decoder: Decoder, frames: list[ValFrame], repeats: int) -> dict[str, float]:

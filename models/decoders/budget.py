@@ -32,6 +32,7 @@ from models.decoders.registry import DecoderSpec, get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 from models.scene_analysis import FrameAnalysis, analyse
+from models.timing import median_ns
 
 NAME = re.compile(r"auto-(\d+(?:\.\d+)?)ms")
 NAME_PATTERNS = ("auto-<N>ms (the most accurate quality predicted to decode within N ms)",)
@@ -50,13 +51,7 @@ def ns_per_pixel(name: str, encoding: str) -> float:
     decoder = get_decoder(name)
     params = SensorParams(encoding=encoding)  # type: ignore[arg-type]
     m = np.random.default_rng(0).random((CALIBRATION_SIZE, CALIBRATION_SIZE))
-    decoder.predict_winding(m, params)
-    times = []
-    for _ in range(CALIBRATION_RUNS):
-        start = time.perf_counter_ns()
-        decoder.predict_winding(m, params)
-        times.append(time.perf_counter_ns() - start)
-    return float(np.median(times)) / m.size
+    return median_ns(lambda: decoder.predict_winding(m, params), CALIBRATION_RUNS) / m.size
 
 
 def adaptive(quality: str) -> AdaptiveDecoder:
