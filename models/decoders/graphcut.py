@@ -59,8 +59,8 @@ def _check_settings(p: float, jumps: tuple[int, ...], max_moves: int, start: str
         raise InvalidInputError(f"start must be 'itoh' or 'zeros', got {start!r}")
     if not (np.isfinite(p) and 0.0 < p <= 4.0):
         raise InvalidInputError(f"the clique exponent p must be in (0, 4], got {p}")
-    if not jumps or any(int(s) != s or s < 1 for s in jumps):
-        raise InvalidInputError(f"jump sizes must be positive integers, got {jumps}")
+    if not jumps or any(int(s) != s or s == 0 for s in jumps):
+        raise InvalidInputError(f"jump sizes must be non-zero integers, got {jumps}")
     if max_moves < 1:
         raise InvalidInputError(f"max_moves must be at least 1, got {max_moves}")
 
@@ -88,10 +88,47 @@ def _differences(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[n
     return u[:, 1:] - u[:, :-1], u[1:, :] - u[:-1, :]
 
 
-def clique_energy(u: NDArray[np.float64], p: float) -> float:
-    """``E = sum |u_j - u_i| ** p`` over horizontal and vertical neighbour pairs."""
+#: Per-pair weights of the clique energy: (to the right neighbour, H x W-1; to the lower
+#: neighbour, H-1 x W). None weighs every pair 1.
+PairWeights = tuple[NDArray[np.float64], NDArray[np.float64]] | None
+
+
+def clique_energy(u: NDArray[np.float64], p: float, weights: PairWeights = None) -> float:
+    """``E = sum w |u_j - u_i| ** p`` over horizontal and vertical neighbour pairs."""
     right, down = _differences(u)
-    return float(np.sum(np.abs(right) ** p) + np.sum(np.abs(down) ** p))
+    if weights is None:
+        return float(np.sum(np.abs(right) ** p) + np.sum(np.abs(down) ** p))
+    return float(np.sum(weights[0] * np.abs(right) ** p) + np.sum(weights[1] * np.abs(down) ** p))
+
+
+@dataclass(frozen=True)
+class PumaEnergy:
+    """The energy PUMA minimises over integer ``K`` (``u = K + m``):
+
+    ``sum w_ij |u_j - u_i| ** p + prior_weight * sum |K - prior|``
+
+    ``weights`` (see :data:`PairWeights`) weighs each neighbour pair; ``prior`` (int
+    H x W, optional) pulls ``K`` towards a known guess. Without a prior the energy does
+    not change when ``K`` shifts by a constant.
+    """
+
+    p: float = 1.0
+    weights: PairWeights = None
+    prior: NDArray[np.int64] | None = None
+    prior_weight: float = 0.0
+
+    def __call__(self, winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
+        energy = clique_energy(winding + m, self.p, self.weights)
+        if self.prior is not None:
+            energy += self.prior_weight * float(np.abs(winding - self.prior).sum())
+        return energy
+
+    def prior_move_cost(self, winding: NDArray[np.int64], jump: int) -> NDArray[np.float64]:
+        """Change of the prior term per pixel if that pixel's ``K`` grows by ``jump``."""
+        if self.prior is None:
+            return np.zeros(winding.shape)
+        offset = winding - self.prior
+        return self.prior_weight * (np.abs(offset + jump) - np.abs(offset)).astype(np.float64)
 
 
 def _move_terms(
@@ -110,24 +147,70 @@ def _move_terms(
     return down - base, np.maximum(up + down - 2.0 * base, 0.0)
 
 
-def _best_move(u: NDArray[np.float64], jump: int, p: float) -> NDArray[np.bool_]:
+def _best_move(
+    winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
+) -> NDArray[np.bool_]:
     """The pixels whose K should grow by ``jump``: the minimum cut of one binary move."""
-    right, down = _differences(u)
-    c_right, w_right = _move_terms(right, jump, p)
-    c_down, w_down = _move_terms(down, jump, p)
-    unary = np.zeros(u.shape)
+    right, down = _differences(winding + m)
+    c_right, w_right = _move_terms(right, jump, energy.p)
+    c_down, w_down = _move_terms(down, jump, energy.p)
+    if energy.weights is not None:
+        c_right, w_right = c_right * energy.weights[0], w_right * energy.weights[0]
+        c_down, w_down = c_down * energy.weights[1], w_down * energy.weights[1]
+    unary = energy.prior_move_cost(winding, jump)
     unary[:, :-1] += c_right
     unary[:, 1:] -= c_right
     unary[:-1, :] += c_down
     unary[1:, :] -= c_down
     graph = maxflow.GraphFloat()
-    nodes = graph.add_grid_nodes(u.shape)
+    nodes = graph.add_grid_nodes(winding.shape)
     graph.add_grid_edges(nodes, np.pad(w_right, ((0, 0), (0, 1))), _RIGHT, symmetric=False)
     graph.add_grid_edges(nodes, np.pad(w_down, ((0, 1), (0, 0))), _DOWN, symmetric=False)
     # Source capacity is paid when delta = 1 (sink side), sink capacity when delta = 0.
     graph.add_grid_tedges(nodes, np.maximum(unary, 0.0), np.maximum(-unary, 0.0))
     graph.maxflow()
     return graph.get_grid_segments(nodes)
+
+
+def minimise(
+    m: NDArray[np.float64],
+    winding: NDArray[np.int64],
+    energy: PumaEnergy,
+    jumps: tuple[int, ...],
+    max_moves: int,
+) -> PumaResult:
+    """PUMA's binary moves from ``winding`` (absolute K, not normalised).
+
+    The jump sizes are tried in turn, cyclically; a move is kept when it lowers the
+    energy. It stops once every jump size in a row failed, or after ``max_moves``
+    min-cuts.
+    """
+    energies = [energy(winding, m)]
+    moves = 0
+    failed = 0
+    while failed < len(jumps) and moves < max_moves:
+        jump = jumps[moves % len(jumps)]
+        moves += 1
+        candidate = winding + jump * _best_move(winding, m, jump, energy).astype(np.int64)
+        value = energy(candidate, m)
+        if value >= energies[-1] - _REL_TOL * abs(energies[-1]):
+            failed += 1
+            continue
+        failed = 0
+        winding = candidate
+        energies.append(value)
+    return PumaResult(winding, energies, moves)
+
+
+def check_start(start: NDArray[np.integer], shape: tuple[int, ...]) -> NDArray[np.int64]:
+    """A start (or prior) winding map as int64 of ``shape``, or a clear error."""
+    winding = np.asarray(start)
+    if winding.shape != shape or winding.dtype.kind not in "iu":
+        raise InvalidInputError(
+            f"the start winding map must be integers of shape {shape}, "
+            f"got {winding.dtype} {winding.shape}"
+        )
+    return winding.astype(np.int64)
 
 
 def puma_unwrap(
@@ -139,35 +222,15 @@ def puma_unwrap(
 ) -> PumaResult:
     """Unwrap ``m`` (H x W, wrap units in [0, 1)) by PUMA; relative ``K``, min 0.
 
-    ``jumps`` is the schedule of jump sizes (each run to convergence in turn);
-    ``max_moves`` bounds the total number of min-cuts; ``start`` is the first ``K``
-    (integers, same shape as ``m``; all zeros when None).
+    ``jumps`` are the jump sizes (tried in turn, see :func:`minimise`); ``max_moves``
+    bounds the total number of min-cuts; ``start`` is the first ``K`` (integers, same
+    shape as ``m``; all zeros when None).
     """
     _check_settings(p, jumps, max_moves, "zeros")
     m = _check_wrapped(m)
-    if start is None:
-        winding = np.zeros(m.shape, np.int64)
-    else:
-        winding = np.asarray(start)
-        if winding.shape != m.shape or winding.dtype.kind not in "iu":
-            raise InvalidInputError(
-                f"the start winding map must be integers of shape {m.shape}, "
-                f"got {winding.dtype} {winding.shape}"
-            )
-        winding = winding.astype(np.int64)
-    energies = [clique_energy(winding + m, p)]
-    moves = 0
-    for jump in jumps:
-        while moves < max_moves:
-            moves += 1
-            step = _best_move(winding + m, jump, p)
-            candidate = winding + jump * step.astype(np.int64)
-            energy = clique_energy(candidate + m, p)
-            if energy >= energies[-1] * (1.0 - _REL_TOL):
-                break
-            winding = candidate
-            energies.append(energy)
-    return PumaResult(winding - winding.min(), energies, moves)
+    winding = np.zeros(m.shape, np.int64) if start is None else check_start(start, m.shape)
+    result = minimise(m, winding, PumaEnergy(p), jumps, max_moves)
+    return PumaResult(result.winding - result.winding.min(), result.energies, result.moves)
 
 
 class GraphCutDecoder(Decoder):

@@ -24,6 +24,7 @@ PROVIDERS: tuple[str, ...] = (
     "models.decoders.classical",
     "models.decoders.graphcut",
     "models.decoders.learned",
+    "models.decoders.guided_puma",
     "models.decoders.adaptive",
     "models.decoders.budget",
 )

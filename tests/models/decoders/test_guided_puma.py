@@ -1,0 +1,144 @@
+"""Tests of models/decoders/guided_puma.py: a decoder's W refined by guided PUMA."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from numpy.typing import NDArray
+
+from models.decoders.base import Decoder
+from models.decoders.graphcut import PumaEnergy, minimise
+from models.decoders.guided_puma import (
+    RESIDUE_WEIGHT,
+    GuidedPumaDecoder,
+    pair_weights,
+    residue_pixels,
+)
+from models.decoders.registry import available_decoders, resolve
+from models.errors import InvalidInputError
+from models.formation import SensorParams, encode
+
+
+def _hill(size: int = 96, peak: float = 24.0) -> np.ndarray:
+    """A smooth scene (wrap units) from 0.1 to ``peak``: several wraps, no aliasing."""
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    return 0.1 + peak * np.exp(-((xx - 0.5) ** 2 + (yy - 0.45) ** 2) / 0.05)
+
+
+class CappedGuide(Decoder):
+    """A guide that is right up to ``cap`` wraps and never counts higher (as the nets):
+    the frame's true W capped, so the refinement has whole rings to put back."""
+
+    name = "capped"  # type: ignore[assignment]
+
+    def __init__(self, truth: NDArray[np.int64], cap: int) -> None:
+        self.truth = truth
+        self.cap = cap
+
+    def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+        return np.minimum(self.truth, self.cap)
+
+
+@pytest.mark.parametrize(("encoding", "peak"), [("modulo", 8.0), ("mantissa", 24.0)])
+def test_rings_the_guide_missed_are_put_back(encoding: str, peak: float) -> None:
+    params = SensorParams(encoding=encoding, max_wraps=64)
+    frame = encode(_hill(peak=peak), params)
+    assert frame.winding.max() >= 4
+    result = GuidedPumaDecoder(CappedGuide(frame.winding, 2)).decode(frame.codes, params)
+    np.testing.assert_array_equal(result.winding, frame.winding)
+    details = result.info["details"]
+    assert details["guide"] == "capped"
+    assert details["changed_fraction"] == pytest.approx(np.mean(frame.winding > 2))
+
+
+def test_a_right_guide_is_kept_on_a_smooth_scene() -> None:
+    params = SensorParams(encoding="mantissa", max_wraps=64)
+    frame = encode(_hill(), params)
+    result = GuidedPumaDecoder(CappedGuide(frame.winding, 99)).decode(frame.codes, params)
+    np.testing.assert_array_equal(result.winding, frame.winding)
+    assert result.info["details"]["changed_fraction"] == 0.0
+
+
+def _square_with_rough_border(side: int, size: int = 128) -> tuple[np.ndarray, np.ndarray]:
+    """A flat square 3 wraps above a flat surround, its border a 4-px band of rough
+    texture (true steps up to 0.8 wrap: residues all along it); and the interior mask."""
+    scene = np.full((size, size), 0.3)
+    low, high = (size - side) // 2, (size + side) // 2
+    scene[low:high, low:high] = 3.3
+    band = np.zeros((size, size), bool)
+    band[low - 2 : high + 2, low - 2 : high + 2] = True
+    band[low + 2 : high - 2, low + 2 : high - 2] = False
+    scene[band] += 0.8 * np.random.default_rng(5).random(int(band.sum()))
+    interior = np.zeros((size, size), bool)
+    interior[low + 2 : high - 2, low + 2 : high - 2] = True
+    return scene, interior
+
+
+@pytest.mark.parametrize(("side", "kept"), [(16, False), (64, True)])
+def test_border_against_area_rule(side: int, kept: bool) -> None:
+    """A right guide on a region bounded by residues is kept when the region is large
+    (prior lam * area above RESIDUE_WEIGHT * border, side > 40 px) and overridden by the
+    smaller jump when it is small (the documented failure mode)."""
+    scene, interior = _square_with_rough_border(side)
+    params = SensorParams(encoding="modulo", max_wraps=16)
+    frame = encode(scene, params)
+    result = GuidedPumaDecoder(CappedGuide(frame.winding, 99)).decode(frame.codes, params)
+    right = np.array_equal(result.winding[interior], frame.winding[interior])
+    assert right == kept
+
+
+def test_residues_and_their_weights() -> None:
+    m = np.zeros((8, 8))
+    # A loop that climbs 0 -> 0.3 -> 0.6 -> 0.9 and falls back to 0: one wrap jump
+    # around it, so its circulation is non-zero (a residue).
+    m[2:4, 2:4] = [[0.0, 0.3], [0.9, 0.6]]
+    assert not residue_pixels(np.zeros((8, 8))).any()
+    near = residue_pixels(m, reach=0)
+    assert near[2:4, 2:4].all()
+    assert not near[6:, 6:].any()
+    assert residue_pixels(m, reach=1).sum() > near.sum()
+    right, down = pair_weights(m)
+    assert right.shape == (8, 7) and down.shape == (7, 8)
+    assert right[2, 2] == RESIDUE_WEIGHT and right[7, 6] == 1.0 and down[6, 7] == 1.0
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    m=arrays(np.float64, (2, 2), elements=st.floats(0.0, 0.999)),
+    prior=arrays(np.int64, (2, 2), elements=st.integers(0, 2)),
+    weight=st.floats(0.01, 2.0),
+)
+def test_moves_reach_the_global_minimum(m: np.ndarray, prior: np.ndarray, weight: float) -> None:
+    """The guided energy is convex in K: +1/-1 moves from the prior reach the minimum
+    a brute-force search finds (K in -2..4 per pixel covers it)."""
+    energy = PumaEnergy(1.0, (np.full((2, 1), 0.3), np.ones((1, 2))), prior, weight)
+    result = minimise(m, prior.copy(), energy, (1, -1), 100)
+    brute = min(
+        energy(np.array(k).reshape(2, 2), m) for k in itertools.product(range(-2, 5), repeat=4)
+    )
+    assert result.energies[-1] == pytest.approx(brute, abs=1e-9)
+    assert all(b < a for a, b in itertools.pairwise(result.energies))
+
+
+def test_registry_lists_the_refined_tiers_and_resolves_any_guide() -> None:
+    names = {spec.name for spec in available_decoders()}
+    refined = {name for name in names if name.endswith("+puma")}
+    assert all(name.removesuffix("+puma") in names for name in refined)
+    spec = resolve("itoh+puma")
+    assert spec.kind == "refined"
+    decoder = spec.factory()
+    assert decoder.name == "itoh+puma"
+    frame = encode(_hill(48, 6.0), SensorParams(encoding="mantissa"))
+    result = decoder.decode(frame.codes, SensorParams(encoding="mantissa"))
+    np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+@pytest.mark.parametrize("name", ["nonsense+puma", "+puma"])
+def test_unknown_guides_are_a_clear_error(name: str) -> None:
+    with pytest.raises(InvalidInputError, match="unknown decoder"):
+        resolve(name)
