@@ -131,7 +131,8 @@ def noise_candidates(rows: list[dict[str, Any]]) -> tuple[list[str], list[str]]:
     tiers = [
         r
         for r in rows
-        if r["decoder"].startswith("mantissanet-")
+        if r["kind"] == "learned"
+        and r["decoder"].startswith("mantissanet-")
         and not r["decoder"].endswith("-noise")
         and r["encoding"] == "mantissa"
         and "psnr" in r

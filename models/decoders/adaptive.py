@@ -6,7 +6,8 @@ Per tile (see :mod:`models.scene_analysis`), cheapest first:
 2. wrap edges but no residue -> exact path integration of the neighbour jumps
    (every classical unwrapper agrees there; O(pixels));
 3. residues (the Itoh condition fails somewhere) -> the network tier chosen by
-   the quality level, run on the tile plus a context margin; without any learned
+   the quality level, run on the tile plus a context margin (at ``best``: the most
+   accurate net refined by :mod:`models.decoders.guided_puma`); without any learned
    decoder installed, the classical ``itoh`` decoder stands in.
 
 A frame with no residue at all is integrated whole. At quality ``best`` a frame
@@ -32,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.base import Decoder, anchor_winding
+from models.decoders.guided_puma import SUFFIX as REFINED
 from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
 from models.formation import SensorParams
 from models.scene_analysis import FrameAnalysis, RegionAnalysis, analyse
@@ -92,11 +94,12 @@ class AdaptiveDecoder(Decoder):
 
     def hard_tile_decoder(self, params: SensorParams) -> Decoder:
         """The decoder for tiles with residues: at ``best`` the installed winding net with
-        the highest measured val-256 PSNR on the frame's encoding; otherwise (or when no
-        card has that figure) the quality's first installed tier that supports the
-        encoding; else the classical fallback."""
+        the highest measured val-256 PSNR on the frame's encoding, refined by guided
+        graph-cut unwrapping (``<net>+puma``); otherwise (or when no card has that
+        figure) the quality's first installed tier that supports the encoding; else the
+        classical fallback."""
         if self.quality == "best" and (name := most_accurate_net(params)):
-            return get_decoder(name)
+            return get_decoder(f"{name}{REFINED}")
         installed = {spec.name for spec in available_decoders()}
         for name in TIER_LADDER[self.quality]:
             if name in installed and get_decoder(name).supports(params):

@@ -76,11 +76,12 @@ def test_mean_metrics_counts_exact_frames_apart() -> None:
 
 def test_noise_candidates_pick_the_best_tier_and_name_missing_twins() -> None:
     rows = [
-        {"decoder": "itoh", "encoding": "mantissa", "psnr": 10.0},
-        {"decoder": "mantissanet-tiny", "encoding": "mantissa", "psnr": 30.0},
-        {"decoder": "mantissanet-xl", "encoding": "mantissa", "psnr": 35.0},
-        {"decoder": "mantissanet-xl", "encoding": "modulo", "psnr": 50.0},
-        {"decoder": "mantissanet-huge", "encoding": "mantissa", "missing": "no model"},
+        {"decoder": "itoh", "kind": "classical", "encoding": "mantissa", "psnr": 10.0},
+        {"decoder": "mantissanet-tiny", "kind": "learned", "encoding": "mantissa", "psnr": 30.0},
+        {"decoder": "mantissanet-xl", "kind": "learned", "encoding": "mantissa", "psnr": 35.0},
+        {"decoder": "mantissanet-xl+puma", "kind": "refined", "encoding": "mantissa", "psnr": 40},
+        {"decoder": "mantissanet-xl", "kind": "learned", "encoding": "modulo", "psnr": 50.0},
+        {"decoder": "mantissanet-huge", "kind": None, "encoding": "mantissa", "missing": "none"},
     ]
     names, missing = accuracy.noise_candidates(rows)
     assert names == ["itoh"]
