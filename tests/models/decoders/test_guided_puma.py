@@ -15,6 +15,7 @@ from models.decoders.base import Decoder
 from models.decoders.graphcut import PumaEnergy, minimise
 from models.decoders.guided_puma import (
     RESIDUE_WEIGHT,
+    WINDOW,
     GuidedPumaDecoder,
     pair_weights,
     residue_pixels,
@@ -54,6 +55,14 @@ def test_rings_the_guide_missed_are_put_back(encoding: str, peak: float) -> None
     details = result.info["details"]
     assert details["guide"] == "capped"
     assert details["changed_fraction"] == pytest.approx(np.mean(frame.winding > 2))
+
+
+def test_frames_larger_than_a_window_are_refined_in_stitched_windows() -> None:
+    params = SensorParams(encoding="mantissa", max_wraps=64)
+    frame = encode(_hill(size=WINDOW + 44), params)
+    result = GuidedPumaDecoder(CappedGuide(frame.winding, 2)).decode(frame.codes, params)
+    np.testing.assert_array_equal(result.winding, frame.winding)
+    assert result.info["details"]["windows"] == 4
 
 
 def test_a_right_guide_is_kept_on_a_smooth_scene() -> None:
