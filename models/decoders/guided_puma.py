@@ -139,7 +139,8 @@ def _spec(guide_name: str) -> DecoderSpec:
         kind="refined",
         description=(
             f"{guide_name}, refined by guided graph-cut unwrapping (PUMA with the "
-            "decoder's W as prior; fixes whole regions left a wrap off; ~0.5 s/frame extra)"
+            "decoder's W as prior; fixes whole regions left a wrap off; "
+            "0.5-1 s more per 256x256 frame)"
         ),
         factory=lambda: GuidedPumaDecoder(get_decoder(guide_name)),
     )
