@@ -128,7 +128,7 @@ class PumaEnergy:
         if self.prior is None:
             return np.zeros(winding.shape)
         offset = winding - self.prior
-        return self.prior_weight * (np.abs(offset + jump) - np.abs(offset)).astype(np.float64)
+        return self.prior_weight * (np.abs(offset + jump) - np.abs(offset))
 
 
 def _move_terms(
@@ -202,8 +202,8 @@ def minimise(
     return PumaResult(winding, energies, moves)
 
 
-def check_start(start: NDArray[np.integer], shape: tuple[int, ...]) -> NDArray[np.int64]:
-    """A start (or prior) winding map as int64 of ``shape``, or a clear error."""
+def _check_start(start: NDArray[np.integer], shape: tuple[int, ...]) -> NDArray[np.int64]:
+    """A start winding map as int64 of ``shape``, or a clear error."""
     winding = np.asarray(start)
     if winding.shape != shape or winding.dtype.kind not in "iu":
         raise InvalidInputError(
@@ -228,7 +228,7 @@ def puma_unwrap(
     """
     _check_settings(p, jumps, max_moves, "zeros")
     m = _check_wrapped(m)
-    winding = np.zeros(m.shape, np.int64) if start is None else check_start(start, m.shape)
+    winding = np.zeros(m.shape, np.int64) if start is None else _check_start(start, m.shape)
     result = minimise(m, winding, PumaEnergy(p), jumps, max_moves)
     return PumaResult(result.winding - result.winding.min(), result.energies, result.moves)
 
