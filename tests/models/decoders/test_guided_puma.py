@@ -15,6 +15,7 @@ from models.decoders.base import Decoder
 from models.decoders.graphcut import PumaEnergy, minimise
 from models.decoders.guided_puma import (
     RESIDUE_WEIGHT,
+    WHOLE_FRAME_PIXELS,
     WINDOW,
     GuidedPumaDecoder,
     pair_weights,
@@ -25,10 +26,12 @@ from models.errors import InvalidInputError
 from models.formation import SensorParams, encode
 
 
-def _hill(size: int = 96, peak: float = 24.0) -> np.ndarray:
-    """A smooth scene (wrap units) from 0.1 to ``peak``: several wraps, no aliasing."""
-    yy, xx = np.mgrid[0:size, 0:size] / size
-    return 0.1 + peak * np.exp(-((xx - 0.5) ** 2 + (yy - 0.45) ** 2) / 0.05)
+def _hill(size: int = 96, peak: float = 24.0, width: int | None = None) -> np.ndarray:
+    """A smooth scene (wrap units) from 0.1 to ``peak``, ``size`` rows by ``width``
+    (default ``size``) columns: several wraps, no aliasing."""
+    yy, xx = np.mgrid[0:size, 0 : width or size] / size
+    centre = 0.5 * (width or size) / size
+    return 0.1 + peak * np.exp(-((xx - centre) ** 2 + (yy - 0.45) ** 2) / 0.05)
 
 
 class CappedGuide(Decoder):
@@ -57,12 +60,33 @@ def test_rings_the_guide_missed_are_put_back(encoding: str, peak: float) -> None
     assert details["changed_fraction"] == pytest.approx(np.mean(frame.winding > 2))
 
 
-def test_frames_larger_than_a_window_are_refined_in_stitched_windows() -> None:
+@pytest.mark.parametrize(
+    ("height", "width", "windows"),
+    [
+        (WINDOW + 44, WINDOW + 44, 1),
+        (WINDOW + 44, WHOLE_FRAME_PIXELS // (WINDOW + 44) + 1, 10),
+    ],
+)
+def test_frames_are_refined_whole_up_to_a_size_then_in_stitched_windows(
+    height: int, width: int, windows: int
+) -> None:
     params = SensorParams(encoding="mantissa", max_wraps=64)
-    frame = encode(_hill(size=WINDOW + 44), params)
+    frame = encode(_hill(size=height, width=width), params)
     result = GuidedPumaDecoder(CappedGuide(frame.winding, 2)).decode(frame.codes, params)
     np.testing.assert_array_equal(result.winding, frame.winding)
-    assert result.info["details"]["windows"] == 4
+    assert result.info["details"]["windows"] == windows
+
+
+def test_a_move_budget_stops_the_refinement_early() -> None:
+    params = SensorParams(encoding="mantissa", max_wraps=64)
+    frame = encode(_hill(), params)
+    capped = CappedGuide(frame.winding, 2)
+    full = GuidedPumaDecoder(capped).decode(frame.codes, params)
+    one = GuidedPumaDecoder(capped, max_moves=1).decode(frame.codes, params)
+    assert full.info["details"]["moves"] > 1
+    assert one.info["details"]["moves"] == 1
+    right_after_one = np.mean(one.winding == frame.winding)
+    assert np.mean(np.minimum(frame.winding, 2) == frame.winding) < right_after_one < 1.0
 
 
 def test_a_right_guide_is_kept_on_a_smooth_scene() -> None:
