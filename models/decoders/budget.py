@@ -3,17 +3,20 @@
 The scene analysis runs once per frame. For each quality of ``auto``, ``best``
 first, the winding-prediction time is predicted as the analysis time plus the
 pixels its network would see (:meth:`AdaptiveDecoder.network_pixels`) times that
-network's cost per pixel; the first quality predicted within the budget decodes
-the frame. When none fits, ``itoh`` (one DCT solve per frame) decodes it if that
-is predicted to fit, else the quickest option runs and the report says the budget
-was not met. The inversion from W to irradiance is not part of the budget.
+network's cost per pixel, plus, when the quality refines a frame with residues,
+the frame's pixels times the refinement's cost per pixel. The first quality
+predicted within the budget decodes the frame. When none fits, ``itoh`` (one DCT
+solve per frame) decodes it if that is predicted to fit, else the quickest option
+runs and the report says the budget was not met. The inversion from W to
+irradiance is not part of the budget.
 
 Costs per pixel (ns) are measured once per process on this machine, by timing
-each candidate decoder on a 256 x 256 frame, so predictions follow the hardware
-and the thread settings. Pass-through and exact integration are treated as free
-(about a millisecond per 256 x 256 frame, inside the analysis time's order). The
-choice, every option's predicted ms and whether the budget was met are reported
-with the routes (``GET /v1/jobs/{id}``, the EXR header).
+each candidate on a seeded synthetic 256 x 256 frame exposed like val-256 (random
+codes are the refinement's worst case, not a typical frame), so predictions follow
+the hardware and the thread settings. Pass-through and exact integration are
+treated as free (about a millisecond per 256 x 256 frame, inside the analysis
+time's order). The choice, every option's predicted ms and whether the budget was
+met are reported with the routes (``GET /v1/jobs/{id}``, the EXR header).
 """
 
 from __future__ import annotations
@@ -30,8 +33,9 @@ from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
 from models.decoders.base import Decoder
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.errors import InvalidInputError
-from models.formation import SensorParams
+from models.formation import SensorParams, dequantize, simulate
 from models.scene_analysis import FrameAnalysis, analyse
+from models.scenes import VAL256_BITS, VAL256_MAX_WRAPS, VAL256_OVEREXPOSED, synthetic_scene
 from models.timing import median_ns
 
 NAME = re.compile(r"auto-(\d+(?:\.\d+)?)ms")
@@ -41,17 +45,43 @@ BUDGET_RANGE_MS = (0.1, 600_000.0)
 #: Tried when no quality of ``auto`` is predicted to fit.
 CLASSICAL = "itoh"
 CALIBRATION_SIZE = 256
+CALIBRATION_SEED = 0
 CALIBRATION_RUNS = 3
 
 
 @cache
+def calibration_frame(encoding: str) -> tuple[NDArray[np.float64], SensorParams]:
+    """Stored values ``m`` (wrap units) of a seeded synthetic 256 x 256 scene exposed
+    as val-256 is, and its sensor parameters."""
+    params = SensorParams(
+        encoding=encoding,  # type: ignore[arg-type]
+        bits=VAL256_BITS,
+        max_wraps=VAL256_MAX_WRAPS,
+    )
+    scene = synthetic_scene(CALIBRATION_SEED, CALIBRATION_SIZE)
+    frame = simulate(scene, params, overexposed=VAL256_OVEREXPOSED)
+    return dequantize(frame.codes, params.bits), frame.params
+
+
+@cache
 def ns_per_pixel(name: str, encoding: str) -> float:
-    """Median time per pixel (ns) of decoder ``name`` predicting W on a seeded
-    256 x 256 frame of ``encoding``, after one warm-up run; measured once."""
+    """Median time per pixel (ns) of decoder ``name`` predicting W on the calibration
+    frame of ``encoding``, after one warm-up run; measured once."""
     decoder = get_decoder(name)
-    params = SensorParams(encoding=encoding)  # type: ignore[arg-type]
-    m = np.random.default_rng(0).random((CALIBRATION_SIZE, CALIBRATION_SIZE))
+    m, params = calibration_frame(encoding)
     return median_ns(lambda: decoder.predict_winding(m, params), CALIBRATION_RUNS) / m.size
+
+
+@cache
+def refinement_ns_per_pixel(quality: str, encoding: str) -> float:
+    """Median time per pixel (ns) of ``auto-<quality>``'s refinement (0 when it has
+    none) on the calibration frame, guided by the hard-tile decoder's W; measured once."""
+    m, params = calibration_frame(encoding)
+    refiner = adaptive(quality).refiner(params)
+    if refiner is None:
+        return 0.0
+    guide = refiner.guide.predict_winding(m, params)
+    return median_ns(lambda: refiner.refine(m, guide, params), CALIBRATION_RUNS) / m.size
 
 
 def adaptive(quality: str) -> AdaptiveDecoder:
@@ -79,7 +109,9 @@ def predicted_ms(
     if pixels == 0:
         return 0.0
     hard = decoder.hard_tile_decoder(params)
-    return pixels * ns_per_pixel(hard.name, params.encoding) / 1e6
+    network_ns = pixels * ns_per_pixel(hard.name, params.encoding)
+    refinement_ns = shape[0] * shape[1] * refinement_ns_per_pixel(quality, params.encoding)
+    return (network_ns + refinement_ns) / 1e6
 
 
 class BudgetDecoder(Decoder):

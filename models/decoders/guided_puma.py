@@ -40,6 +40,7 @@ when ``lam`` is too small.
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import numpy as np
@@ -55,9 +56,11 @@ from models.formation import SensorParams, max_winding
 from models.scene_analysis import neighbour_jumps, residue_map
 
 SUFFIX = "+puma"
+NAME = re.compile(r"(?P<guide>.+)\+puma(?P<moves>[1-9][0-9]*)?")
 NAME_PATTERNS = (
     "<decoder>+puma (the decoder's W refined by guided graph-cut unwrapping, "
     "e.g. mantissanet-small+puma)",
+    "<decoder>+puma<K> (the same with at most K min-cuts, e.g. mantissanet-small+puma2)",
 )
 #: ``lam``: prior weight per pixel and wrap of disagreement with the guide.
 PRIOR_WEIGHT = 0.01
@@ -108,7 +111,7 @@ class GuidedPumaDecoder(Decoder):
         self.guide = guide
         self.prior_weight = prior_weight
         self.max_moves = max_moves
-        self.name = f"{guide.name}{SUFFIX}"  # type: ignore[misc]
+        self.name = refined_name(guide.name, max_moves)  # type: ignore[misc]
         self.version = guide.version
 
     def supports(self, params: SensorParams) -> bool:
@@ -151,26 +154,35 @@ class GuidedPumaDecoder(Decoder):
         return winding, facts
 
 
-def _spec(guide_name: str) -> DecoderSpec:
+def refined_name(guide_name: str, max_moves: int = MAX_MOVES) -> str:
+    """``<guide>+puma``, with the move budget appended when it is not the default."""
+    return f"{guide_name}{SUFFIX}{max_moves if max_moves != MAX_MOVES else ''}"
+
+
+def _spec(guide_name: str, max_moves: int = MAX_MOVES) -> DecoderSpec:
+    budget = "" if max_moves == MAX_MOVES else f", at most {max_moves} min-cuts"
     return DecoderSpec(
-        name=f"{guide_name}{SUFFIX}",
+        name=refined_name(guide_name, max_moves),
         kind="refined",
         description=(
             f"{guide_name}, refined by guided graph-cut unwrapping (PUMA with the "
-            "decoder's W as prior; fixes whole regions left a wrap off; "
+            f"decoder's W as prior{budget}; fixes whole regions left a wrap off; "
             "about 0.1 s more per 256x256 frame)"
         ),
-        factory=lambda: GuidedPumaDecoder(get_decoder(guide_name)),
+        factory=lambda: GuidedPumaDecoder(get_decoder(guide_name), max_moves=max_moves),
     )
 
 
 def resolve(name: str) -> DecoderSpec | None:
-    """The spec of ``<decoder>+puma`` when ``<decoder>`` is a known decoder."""
-    if not name.endswith(SUFFIX) or len(name) == len(SUFFIX):
+    """The spec of ``<decoder>+puma`` or ``<decoder>+puma<K>`` when ``<decoder>`` is a
+    known decoder (a clear error otherwise); None for any other name."""
+    match = NAME.fullmatch(name)
+    if match is None:
         return None
-    guide_name = name[: -len(SUFFIX)]
+    guide_name = match.group("guide")
     resolve_guide(guide_name)
-    return _spec(guide_name)
+    moves = match.group("moves")
+    return _spec(guide_name, int(moves) if moves else MAX_MOVES)
 
 
 def specs() -> list[DecoderSpec]:

@@ -10,10 +10,12 @@ from models.decoders.adaptive import (
     INTEGRATION,
     PASS_THROUGH,
     QUALITIES,
+    REFINEMENT,
     AdaptiveDecoder,
     measured_psnr,
     specs,
 )
+from models.decoders.guided_puma import MAX_MOVES
 from models.formation import SensorParams, encode, quantize
 
 MODULO = SensorParams(encoding="modulo", bits=8)
@@ -89,13 +91,38 @@ def test_rgb_frames_report_each_channel() -> None:
     np.testing.assert_array_equal(result.winding, frame.winding)
 
 
-def test_best_sends_frames_with_residues_whole_to_the_hard_decoder() -> None:
+def test_best_sends_frames_with_residues_whole_to_the_refined_hard_decoder() -> None:
     m_codes = quantize(np.random.default_rng(2).random((64, 64)), 8)
     decoder = AdaptiveDecoder("best")
     result = decoder.decode(m_codes, MODULO)
-    assert result.info["details"]["routes"] == {decoder.hard_tile_decoder(MODULO).name: 1.0}
-    alone = decoder.hard_tile_decoder(MODULO).decode(m_codes, MODULO)
+    details = result.info["details"]
+    assert details["routes"] == {decoder.hard_tile_decoder(MODULO).name: 1.0}
+    refiner = decoder.refiner(MODULO)
+    assert refiner is not None
+    assert details["refinement"]["decoder"] == refiner.name
+    alone = refiner.decode(m_codes, MODULO)
     np.testing.assert_array_equal(result.winding, alone.winding)
+
+
+def test_each_quality_refines_within_its_min_cut_budget() -> None:
+    assert AdaptiveDecoder("fast").refiner(MODULO) is None
+    for quality, moves in (("balanced", REFINEMENT["balanced"]), ("best", MAX_MOVES)):
+        decoder = AdaptiveDecoder(quality)
+        refiner = decoder.refiner(MODULO)
+        assert refiner is not None
+        assert refiner.max_moves == moves
+        assert refiner.guide.name == decoder.hard_tile_decoder(MODULO).name
+
+
+def test_balanced_refines_a_tiled_frame_whole_from_the_stitched_w() -> None:
+    """A dark frame with one rough spot: tiles are routed, then the whole frame refined."""
+    x = np.full((256, 256), 0.2)
+    x[100:140, 150:190] += np.random.default_rng(0).uniform(0, 3, (40, 40))
+    frame = encode(x, MODULO)
+    details = AdaptiveDecoder("balanced").decode(frame.codes, MODULO).info["details"]
+    assert details["routes"][PASS_THROUGH] >= 0.8
+    assert details["refinement"]["windows"] == 1
+    assert details["refinement"]["moves"] <= REFINEMENT["balanced"]
 
 
 @pytest.mark.parametrize("params", [MODULO, MANTISSA], ids=["modulo", "mantissa"])
@@ -108,9 +135,13 @@ def test_best_uses_the_refined_net_with_the_highest_measured_psnr(params: Sensor
     scored = {name: psnr for name, psnr in measured.items() if psnr is not None}
     if not scored:
         pytest.skip("no shipped model card states a val-256 PSNR")
-    chosen = AdaptiveDecoder("best").hard_tile_decoder(params)
-    assert chosen.name == max(scored, key=scored.__getitem__) + "+puma"
+    decoder = AdaptiveDecoder("best")
+    chosen = decoder.hard_tile_decoder(params)
+    assert chosen.name == max(scored, key=scored.__getitem__)
     assert chosen.supports(params)
+    refiner = decoder.refiner(params)
+    assert refiner is not None
+    assert refiner.name == chosen.name + "+puma"
 
 
 @pytest.mark.parametrize("quality", ["fast", "balanced"])
@@ -121,4 +152,5 @@ def test_hard_tiles_covering_the_frame_make_one_whole_frame_call(quality: str) -
     hard = decoder.hard_tile_decoder(MODULO)
     assert result.info["details"]["routes"] == {hard.name: 1.0}
     assert "cover the frame" in result.info["details"]["reason"]
-    np.testing.assert_array_equal(result.winding, hard.decode(m_codes, MODULO).winding)
+    alone = decoder.refiner(MODULO) or hard
+    np.testing.assert_array_equal(result.winding, alone.decode(m_codes, MODULO).winding)

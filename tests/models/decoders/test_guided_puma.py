@@ -171,7 +171,16 @@ def test_registry_lists_the_refined_tiers_and_resolves_any_guide() -> None:
     np.testing.assert_array_equal(result.winding, frame.winding)
 
 
-@pytest.mark.parametrize("name", ["nonsense+puma", "+puma"])
+def test_a_move_budget_in_the_name_bounds_the_min_cuts() -> None:
+    params = SensorParams(encoding="mantissa", max_wraps=64)
+    frame = encode(_hill(peak=24.0), params)
+    decoder = resolve("itoh+puma1").factory()
+    assert isinstance(decoder, GuidedPumaDecoder)
+    assert (decoder.name, decoder.max_moves) == ("itoh+puma1", 1)
+    assert decoder.decode(frame.codes, params).info["details"]["moves"] == 1
+
+
+@pytest.mark.parametrize("name", ["nonsense+puma", "+puma", "nonsense+puma2", "itoh+puma0"])
 def test_unknown_guides_are_a_clear_error(name: str) -> None:
     with pytest.raises(InvalidInputError, match="unknown decoder"):
         resolve(name)
