@@ -6,9 +6,11 @@ Per tile (see :mod:`models.scene_analysis`), cheapest first:
 2. wrap edges but no residue -> exact path integration of the neighbour jumps
    (every classical unwrapper agrees there; O(pixels));
 3. residues (the Itoh condition fails somewhere) -> the network tier chosen by
-   the quality level (at ``best`` the most accurate one installed), run on the tile
-   plus a context margin; without any learned decoder installed, the classical
-   ``itoh`` decoder stands in.
+   the quality level (at ``best`` the most accurate one installed), one call per
+   group of touching hard tiles, on the group's bounding box plus a context margin
+   (one call per tile measured slower and less accurate: val-256 mantissa,
+   auto-fast 43 -> 32 ms/frame, 20.78 -> 21.31 dB); without any learned decoder
+   installed, the classical ``itoh`` decoder stands in.
 
 A frame with residues is then refined whole by guided graph-cut unwrapping
 (:mod:`models.decoders.guided_puma`) from the stitched W, within a min-cut budget
@@ -38,6 +40,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from models.decoders.base import Decoder, anchor_winding
 from models.decoders.guided_puma import MAX_MOVES, GuidedPumaDecoder, refined_name
@@ -144,26 +147,41 @@ class AdaptiveDecoder(Decoder):
 
     def network_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
         """Pixels the hard-tile decoder will see for a frame with this analysis: none
-        without residues, the whole frame at ``best``, else every hard tile with its
-        context margin."""
+        without residues, the whole frame at ``best``, else the windows of the groups
+        of hard tiles (:meth:`hard_windows`)."""
         if analysis.frame.difficulty in ("none", "smooth"):
             return 0
         if self.quality == "best":
             return shape[0] * shape[1]
         return sum(
-            self._window_pixels(region, shape)
-            for region in analysis.tiles
-            if region.difficulty not in ("none", "smooth")
+            (rows.stop - rows.start) * (cols.stop - cols.start)
+            for rows, cols, _ in self.hard_windows(analysis, shape)
         )
 
-    def _window_pixels(self, region: RegionAnalysis, shape: tuple[int, int]) -> int:
-        """Area of a tile grown by the context margin, clipped to the frame."""
-        rows, cols = self._window(
-            slice(region.row, region.row + region.height),
-            slice(region.col, region.col + region.width),
-            shape,
-        )
-        return (rows.stop - rows.start) * (cols.stop - cols.start)
+    def hard_windows(
+        self, analysis: FrameAnalysis, shape: tuple[int, ...]
+    ) -> list[tuple[slice, slice, list[RegionAnalysis]]]:
+        """The groups of hard tiles (touching tiles, diagonals included), each with one
+        window for the network: the group's bounding box grown by the context margin,
+        clipped to the frame. One call per group sees more context than one per tile
+        and repeats no margin between neighbouring tiles."""
+        hard = [region for region in analysis.tiles if _is_hard(region)]
+        row_index = {row: k for k, row in enumerate(sorted({t.row for t in analysis.tiles}))}
+        col_index = {col: k for k, col in enumerate(sorted({t.col for t in analysis.tiles}))}
+        grid = np.zeros((len(row_index), len(col_index)), np.int32)
+        for region in hard:
+            grid[row_index[region.row], col_index[region.col]] = 1
+        labels, _ = ndimage.label(grid, structure=np.ones((3, 3), int))
+        groups: dict[int, list[RegionAnalysis]] = {}
+        for region in hard:
+            label = int(labels[row_index[region.row], col_index[region.col]])
+            groups.setdefault(label, []).append(region)
+        windows = []
+        for members in groups.values():
+            rows = slice(min(t.row for t in members), max(t.row + t.height for t in members))
+            cols = slice(min(t.col for t in members), max(t.col + t.width for t in members))
+            windows.append((*self._window(rows, cols, shape), members))
+        return windows
 
     def _window(
         self, rows: slice, cols: slice, shape: tuple[int, ...]
@@ -210,48 +228,39 @@ class AdaptiveDecoder(Decoder):
         tiles: list[Tile] = []
         trusted = np.zeros(m.shape, bool)
         for region in analysis.tiles:
+            if _is_hard(region):
+                continue
             rows = slice(region.row, region.row + region.height)
             cols = slice(region.col, region.col + region.width)
-            route = _route(region, hard.name)
-            if route == PASS_THROUGH:
-                relative = np.zeros((region.height, region.width), np.int64)
-            elif route == INTEGRATION:
+            if region.difficulty == "none":
+                route, relative = PASS_THROUGH, np.zeros((region.height, region.width), np.int64)
+            else:
+                route = INTEGRATION
                 relative = integrate_jumps(
                     along_cols[rows, cols.start : cols.stop - 1],
                     along_rows[rows.start : rows.stop - 1, cols],
                 )
-            else:
-                relative = self._decode_with_context(hard, m, rows, cols, params)
-            tile = Tile(rows, cols, relative)
-            tiles.append(tile)
-            trusted[rows, cols] = route in (PASS_THROUGH, INTEGRATION)
+            tiles.append(Tile(rows, cols, relative))
+            trusted[rows, cols] = True
             pixels[route] += region.height * region.width
+        for window_rows, window_cols, members in self.hard_windows(analysis, m.shape):
+            window = hard.predict_winding(m[window_rows, window_cols], params)
+            for region in members:
+                top, left = region.row - window_rows.start, region.col - window_cols.start
+                relative = window[top : top + region.height, left : left + region.width]
+                rows = slice(region.row, region.row + region.height)
+                cols = slice(region.col, region.col + region.width)
+                tiles.append(Tile(rows, cols, relative))
+                pixels[hard.name] += region.height * region.width
         winding = stitch(tiles, m.shape, along_cols, along_rows)
         winding = anchor_winding(winding, params, trusted)
         reason = f"{difficulty} wraps; quality {self.quality}"
         return winding, _report(pixels, reason)
 
-    def _decode_with_context(
-        self,
-        decoder: Decoder,
-        m: NDArray[np.float64],
-        rows: slice,
-        cols: slice,
-        params: SensorParams,
-    ) -> NDArray[np.int64]:
-        """Run ``decoder`` on the tile grown by the margin, then crop back to the tile."""
-        window_rows, window_cols = self._window(rows, cols, m.shape)
-        window = decoder.predict_winding(m[window_rows, window_cols], params)
-        top, left = window_rows.start, window_cols.start
-        return window[rows.start - top : rows.stop - top, cols.start - left : cols.stop - left]
 
-
-def _route(region: RegionAnalysis, hard_name: str) -> str:
-    if region.difficulty == "none":
-        return PASS_THROUGH
-    if region.difficulty == "smooth":
-        return INTEGRATION
-    return hard_name
+def _is_hard(region: RegionAnalysis) -> bool:
+    """Residues in the tile: the hard-tile decoder decides it."""
+    return region.difficulty not in ("none", "smooth")
 
 
 def _report(pixels: Counter[str] | dict[str, int], reason: str) -> dict[str, Any]:

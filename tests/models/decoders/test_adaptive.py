@@ -17,6 +17,7 @@ from models.decoders.adaptive import (
 )
 from models.decoders.guided_puma import MAX_MOVES
 from models.formation import SensorParams, encode, quantize
+from models.scene_analysis import analyse
 
 MODULO = SensorParams(encoding="modulo", bits=8)
 MANTISSA = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
@@ -154,3 +155,35 @@ def test_hard_tiles_covering_the_frame_make_one_whole_frame_call(quality: str) -
     assert "cover the frame" in result.info["details"]["reason"]
     alone = decoder.refiner(MODULO) or hard
     np.testing.assert_array_equal(result.winding, alone.decode(m_codes, MODULO).winding)
+
+
+def _rough_spots(*corners: tuple[int, int]) -> np.ndarray:
+    """A dark 256 x 256 frame with a 20 px rough (residue-rich) spot at each corner."""
+    x = np.full((256, 256), 0.2)
+    rng = np.random.default_rng(0)
+    for row, col in corners:
+        x[row : row + 20, col : col + 20] += rng.uniform(0, 3, (20, 20))
+    return encode(x, MODULO).codes
+
+
+def test_touching_hard_tiles_share_one_network_window() -> None:
+    """Spots in two diagonal tiles: one window over both, with the context margin."""
+    decoder = AdaptiveDecoder("fast", tile=64, margin=16)
+    m = _rough_spots((20, 20), (84, 84)) / 255.0
+    windows = decoder.hard_windows(analyse(m, MODULO, 64), m.shape)
+    assert len(windows) == 1
+    rows, cols, members = windows[0]
+    assert (rows, cols) == (slice(0, 144), slice(0, 144))
+    assert sorted((t.row, t.col) for t in members) == [(0, 0), (64, 64)]
+
+
+def test_separate_hard_tiles_get_separate_windows() -> None:
+    decoder = AdaptiveDecoder("fast", tile=64, margin=16)
+    m = _rough_spots((20, 20), (200, 200)) / 255.0
+    analysis = analyse(m, MODULO, 64)
+    windows = decoder.hard_windows(analysis, m.shape)
+    assert [(rows, cols) for rows, cols, _ in windows] == [
+        (slice(0, 80), slice(0, 80)),
+        (slice(176, 256), slice(176, 256)),
+    ]
+    assert decoder.network_pixels(analysis, m.shape) == 2 * 80 * 80
