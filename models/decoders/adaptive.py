@@ -18,6 +18,8 @@ per quality (:data:`REFINEMENT`: none at ``fast``, two at ``balanced``, until it
 converges at ``best``). Refining the whole frame rather than each network window
 lets it see across tile borders: on val-256 (mantissa) balanced measured 21.65 dB
 with two cuts per network window, against 23.51 dB refined whole (best: 23.52).
+Frames refined in windows (over 512x512) skip the windows that hold no
+network-decoded pixel.
 
 A frame with no residue at all is integrated whole. At quality ``best`` a frame
 with any residue goes whole to the network: per-tile routing trusts tiles whose
@@ -202,28 +204,28 @@ class AdaptiveDecoder(Decoder):
         if difficulty == "smooth":
             winding = anchor_winding(integrate_jumps(along_cols, along_rows), params)
             return winding, _report({INTEGRATION: m.size}, "no residue")
-        winding, report = self._decode_hard(m, params, analysis)
+        winding, report, doubtful = self._decode_hard(m, params, analysis)
         refiner = self.refiner(params)
         if refiner is not None:
-            winding, facts = refiner.refine(m, winding, params)
+            winding, facts = refiner.refine(m, winding, params, doubtful)
             report["refinement"] = {"decoder": refiner.name, **facts}
         return winding, report
 
     def _decode_hard(
         self, m: NDArray[np.float64], params: SensorParams, analysis: FrameAnalysis
-    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+    ) -> tuple[NDArray[np.int64], dict[str, Any], NDArray[np.bool_] | None]:
         """W of a frame with residues, before refinement: the hard-tile decoder on the
         whole frame (at ``best``, or when its windows would cover the frame), else
-        per tile, stitched."""
+        per tile, stitched; the report; and the pixels the network decided (None: all)."""
         along_cols, along_rows = analysis.along_cols, analysis.along_rows
         difficulty = analysis.frame.difficulty
         hard = self.hard_tile_decoder(params)
         if self.quality == "best":
             reason = f"{difficulty} wraps; quality best decodes whole frames"
-            return hard.predict_winding(m, params), _report({hard.name: m.size}, reason)
+            return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
         if self.network_pixels(analysis, m.shape) >= m.size:
             reason = f"{difficulty} wraps; the hard tiles with their margins cover the frame"
-            return hard.predict_winding(m, params), _report({hard.name: m.size}, reason)
+            return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
         pixels: Counter[str] = Counter()
         tiles: list[Tile] = []
         trusted = np.zeros(m.shape, bool)
@@ -255,7 +257,7 @@ class AdaptiveDecoder(Decoder):
         winding = stitch(tiles, m.shape, along_cols, along_rows)
         winding = anchor_winding(winding, params, trusted)
         reason = f"{difficulty} wraps; quality {self.quality}"
-        return winding, _report(pixels, reason)
+        return winding, _report(pixels, reason), ~trusted
 
 
 def _is_hard(region: RegionAnalysis) -> bool:

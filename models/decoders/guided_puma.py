@@ -129,14 +129,24 @@ class GuidedPumaDecoder(Decoder):
         return winding, {"guide": self.guide.name, "guide_details": details, **facts}
 
     def refine(
-        self, m: NDArray[np.float64], guide: NDArray[np.int64], params: SensorParams
+        self,
+        m: NDArray[np.float64],
+        guide: NDArray[np.int64],
+        params: SensorParams,
+        doubtful: NDArray[np.bool_] | None = None,
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         """``guide`` (int W, H x W) refined on ``m``: W clipped to the encoding's range,
-        and facts (windows, min-cuts made, fraction of pixels changed)."""
+        and facts (windows refined, min-cuts made, fraction of pixels changed).
+
+        ``doubtful`` (bool, H x W; None: everywhere) marks the pixels whose guide may
+        be wrong: a window (of a frame refined in windows) without any keeps the guide.
+        """
         moves: list[int] = []
 
         def refine_window(rows: slice, cols: slice) -> NDArray[np.int64]:
             window, prior = m[rows, cols], guide[rows, cols]
+            if doubtful is not None and not doubtful[rows, cols].any():
+                return prior
             energy = PumaEnergy(1.0, pair_weights(window), prior, self.prior_weight)
             result = minimise(window, prior, energy, JUMPS, self.max_moves)
             moves.append(result.moves)

@@ -184,3 +184,17 @@ def test_a_move_budget_in_the_name_bounds_the_min_cuts() -> None:
 def test_unknown_guides_are_a_clear_error(name: str) -> None:
     with pytest.raises(InvalidInputError, match="unknown decoder"):
         resolve(name)
+
+
+def test_windows_without_doubtful_pixels_keep_the_guide() -> None:
+    params = SensorParams(encoding="mantissa", max_wraps=64)
+    height, width = WINDOW + 44, WHOLE_FRAME_PIXELS // (WINDOW + 44) + 1
+    frame = encode(_hill(size=height, width=width), params)
+    decoder = GuidedPumaDecoder(CappedGuide(frame.winding, 2))
+    m = frame.codes / 255.0
+    guide = np.minimum(frame.winding, 2)
+    doubtful = np.zeros(m.shape, bool)
+    doubtful[:8, :8] = True
+    winding, facts = decoder.refine(m, guide, params, doubtful)
+    assert facts["windows"] == 1
+    np.testing.assert_array_equal(winding[:, WINDOW:], guide[:, WINDOW:])
