@@ -70,6 +70,15 @@ CLASSICAL_FALLBACK = "itoh"
 #: send more pixels to the network on frames with scattered hard spots (1024x1024 synthetic:
 #: 27% vs 8% of pixels, balanced 1.2 s vs 0.56 s per frame, 98.8% vs 99.7%), so 64 stays.
 DEFAULT_TILE = 64
+#: Touching hard tiles share a network window within blocks of this many tiles a side
+#: (4 x 64 px: the nets' 256-px val size). Measured (W accuracy, fast / balanced):
+#: val-256 86.8 / 90.4% at every size; 512x512 (2 frames) 97.6 / 99.3% with one tile
+#: per window, 98.1 / 99.4% at 4, but 68.3 / 69.7% unbounded and 98.1 / 68.7% at 2:
+#: there the spanning tree of :mod:`models.tile_reconcile` followed one wrong border
+#: and put 60% of a frame one wrap high. (Offsets at the least L1 disagreement with
+#: every border vote fixed that but lost 9-12 points on val-256, where border votes
+#: cross aliased edges, so the tree stays.)
+GROUP_TILES = 4
 PASS_THROUGH = "pass-through"
 INTEGRATION = "integration"
 
@@ -99,13 +108,18 @@ class AdaptiveDecoder(Decoder):
     name = "auto"
 
     def __init__(
-        self, quality: str = "balanced", tile: int = DEFAULT_TILE, margin: int = 16
+        self,
+        quality: str = "balanced",
+        tile: int = DEFAULT_TILE,
+        margin: int = 16,
+        group: int = GROUP_TILES,
     ) -> None:
         if quality not in QUALITIES:
             raise ValueError(f"quality must be one of {QUALITIES}, got {quality!r}")
         self.quality = quality
         self.tile = tile
         self.margin = margin
+        self.group = group
         self.name = f"auto-{quality}"
 
     def hard_tile_decoder(self, params: SensorParams) -> Decoder:
@@ -174,10 +188,11 @@ class AdaptiveDecoder(Decoder):
         for region in hard:
             grid[row_index[region.row], col_index[region.col]] = 1
         labels, _ = ndimage.label(grid, structure=np.ones((3, 3), int))
-        groups: dict[int, list[RegionAnalysis]] = {}
+        groups: dict[tuple[int, int, int], list[RegionAnalysis]] = {}
         for region in hard:
-            label = int(labels[row_index[region.row], col_index[region.col]])
-            groups.setdefault(label, []).append(region)
+            row, col = row_index[region.row], col_index[region.col]
+            key = (int(labels[row, col]), row // self.group, col // self.group)
+            groups.setdefault(key, []).append(region)
         windows = []
         for members in groups.values():
             rows = slice(min(t.row for t in members), max(t.row + t.height for t in members))
