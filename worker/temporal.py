@@ -64,6 +64,15 @@ Unsafe pixels fall back to the spatial decoder:
   when it is *confident* (its ``u`` is within half a wrap of all four neighbours)
   and the temporal one is not.
 
+Last, a frame where any pixel fell back (and a periodic keyframe) is refined by
+guided graph-cut unwrapping (:mod:`models.decoders.guided_puma`, at most
+``refine_moves`` min-cuts) from the merged answer: a region whose W disagrees with
+the codes along most of its border (a fallback seam, an error carried in with the
+content) is moved by whole wraps. On the pan/zoom clip (mantissa) it took temporal
+decoding from 18.81 to 21.51 dB with itoh (independent: 19.73) and from 19.00 to
+20.08 dB with mantissanet-tiny (independent: 19.78), and cut wrap flicker by a further
+1.5-2x, for about 50 ms per refined 256x256 frame.
+
 Whole frames are decoded spatially (*keyframes*) for: the first frame of a stream,
 a frame flagged DISCONT (device reconnect), a sequence gap, a change of shape or
 sensor parameters, and every ``keyframe_interval`` frames (0: never) so that errors
@@ -105,6 +114,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.base import Decoder, check_frame_shape
+from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
@@ -124,6 +134,7 @@ class TemporalConfig:
     """Knobs of the temporal rule (see the module docstring). ``margin`` in wraps,
     ``still`` in wraps, ``motion_radius`` in pixels, ``keyframe_interval`` in frames
     (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels,
+    ``refine_moves`` the min-cuts of the final refinement (0: none),
     ``motion`` / ``brightness`` / ``crop`` the knobs of motion and brightness
     compensation and of the crop vote (:class:`worker.motion.MotionConfig`,
     :class:`worker.brightness.BrightnessConfig`, :class:`worker.crop_vote.CropConfig`)."""
@@ -134,6 +145,7 @@ class TemporalConfig:
     keyframe_interval: int = 30
     local_limit: float = 0.5
     local_passes: int = 4
+    refine_moves: int = 2
     motion: MotionConfig = MotionConfig()
     brightness: BrightnessConfig = BrightnessConfig()
     crop: CropConfig = CropConfig()
@@ -148,6 +160,7 @@ class TemporalConfig:
                 "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
                 "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
                 "local_passes must be >= 1": self.local_passes >= 1,
+                "refine_moves must be >= 0": self.refine_moves >= 0,
             },
         )
 
@@ -304,6 +317,8 @@ class StreamDecoder:
         self.mode = mode
         self.spatial = get_decoder(decoder) if isinstance(decoder, str) else decoder
         self.config = config or TemporalConfig()
+        moves = self.config.refine_moves
+        self.refiner = GuidedPumaDecoder(self.spatial, max_moves=moves) if moves else None
 
     def decode(
         self,
@@ -322,6 +337,12 @@ class StreamDecoder:
             winding, paths = self._temporal_step(m, params, state)
         else:
             winding, paths = self._keyframe_step(m, params, state, keyframe)
+        timings = {}
+        if self.refiner is not None and keyframe in (None, "periodic") and paths["temporal"] < 1:
+            refine_start = time.perf_counter_ns()
+            for c in range(m.shape[2]):
+                winding[:, :, c] = self.refiner.refine(m[:, :, c], winding[:, :, c], params)[0]
+            timings["refine"] = time.perf_counter_ns() - refine_start
         limit = max_winding(params)
         winding = np.clip(winding, 0, limit)
         u = winding + m
@@ -336,7 +357,7 @@ class StreamDecoder:
             irradiance=irradiance,
             keyframe=keyframe,
             paths=paths,
-            timings_ns={"total": time.perf_counter_ns() - start},
+            timings_ns={**timings, "total": time.perf_counter_ns() - start},
         )
 
     def keyframe_reason(

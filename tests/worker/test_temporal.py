@@ -64,24 +64,32 @@ def test_exact_on_a_slowly_panning_clip_only_with_motion_compensation(
     size: tuple[int, int],
 ) -> None:
     """A 2 px/frame pan over steep smooth content: with motion compensation every frame
-    is exact with no spatial decode; the plain per-pixel rule gets some W wrong."""
+    is exact with no spatial decode; the plain per-pixel rule gets some W wrong, and
+    the final refinement puts them right."""
     frames = pan_clip(10, size=size)
-    compensated = StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=0))
+    compensated = StreamDecoder(
+        "temporal", "itoh", TemporalConfig(keyframe_interval=0, refine_moves=0)
+    )
     results = list(decode_frames([f.codes for f in frames], PAN_PARAMS, compensated))
     for result, frame in zip(results, frames, strict=True):
         assert result.winding.shape == size
         np.testing.assert_array_equal(result.winding, frame.winding)
     assert all(r.paths["spatial"] == 0.0 for r in results[1:])
-    plain = StreamDecoder(
-        "temporal", "itoh", TemporalConfig(keyframe_interval=0, motion=MotionConfig(search=0))
-    )
-    wrong = sum(
-        int((result.winding != frame.winding).sum())
-        for result, frame in zip(
-            decode_frames([f.codes for f in frames], PAN_PARAMS, plain), frames, strict=True
+
+    def wrong_pixels(refine_moves: int) -> int:
+        config = TemporalConfig(
+            keyframe_interval=0, motion=MotionConfig(search=0), refine_moves=refine_moves
         )
-    )
-    assert wrong > 0
+        decoded = decode_frames([f.codes for f in frames], PAN_PARAMS, StreamDecoder(
+            "temporal", "itoh", config
+        ))
+        return sum(
+            int((result.winding != frame.winding).sum())
+            for result, frame in zip(decoded, frames, strict=True)
+        )
+
+    assert wrong_pixels(0) > 0
+    assert wrong_pixels(2) == 0
 
 
 def test_a_pan_under_a_brightness_ramp_needs_both_compensations() -> None:
@@ -94,7 +102,7 @@ def test_a_pan_under_a_brightness_ramp_needs_both_compensations() -> None:
     for result, frame in zip(decode_frames(codes, PAN_PARAMS, both), frames, strict=True):
         np.testing.assert_array_equal(result.winding, frame.winding)
     motion_only = StreamDecoder("temporal", "itoh", TemporalConfig(
-        keyframe_interval=0, brightness=BrightnessConfig(search=0.0)))
+        keyframe_interval=0, brightness=BrightnessConfig(search=0.0), refine_moves=0))
     results = decode_frames(codes, PAN_PARAMS, motion_only)
     assert any((r.winding != f.winding).any() for r, f in zip(results, frames, strict=True))
 
@@ -159,11 +167,12 @@ def spot_frames(pan: int, frames: int = 5) -> list:
 def test_on_a_pan_unsafe_clusters_are_re_decoded_on_crops() -> None:
     """During a pan, the clusters of unsafe pixels around a fast spot are decoded again
     on crops (spatial share > 0 on temporal frames) and fewer W are wrong than with the
-    local fix alone; on a still camera the crop vote does not run."""
+    local fix alone (both without the final refinement); on a still camera the crop
+    vote does not run."""
     wrong = {}
     for pan in (2, 0):
         for crop in (CropConfig(limit=1.0), CropConfig(min_cluster=0)):
-            config = TemporalConfig(keyframe_interval=0, crop=crop)
+            config = TemporalConfig(keyframe_interval=0, crop=crop, refine_moves=0)
             decoder, state = StreamDecoder("temporal", "itoh", config), StreamState()
             wrong[pan, crop.min_cluster] = 0
             for t, frame in enumerate(spot_frames(pan)):
@@ -277,7 +286,7 @@ def test_prediction_flags_edges_near_moving_content() -> None:
 @pytest.mark.parametrize(
     "bad",
     [{"margin": 0.5}, {"motion_radius": -1}, {"keyframe_interval": -2}, {"local_limit": 2.0},
-     {"local_passes": 0}, {"still": 0.7}],
+     {"local_passes": 0}, {"still": 0.7}, {"refine_moves": -1}],
 )
 def test_bad_settings_are_refused(bad: dict) -> None:
     with pytest.raises(InvalidInputError, match="invalid temporal settings"):
