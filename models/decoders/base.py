@@ -55,6 +55,17 @@ def check_frame_shape(codes: NDArray[Any]) -> None:
         )
 
 
+def integer_percentile(values: NDArray[np.integer], percentile: float) -> int:
+    """``np.percentile(values, percentile, method="higher")`` of integers, by counting:
+    the value at sorted index ``ceil((n - 1) * percentile / 100)``. Winding numbers span
+    few values, so a histogram is 5-10x cheaper than numpy's partition."""
+    flat = np.asarray(values).ravel()
+    lowest = int(flat.min())
+    counts = np.bincount(flat - lowest)
+    index = int(np.ceil((flat.size - 1) * percentile / 100.0))
+    return lowest + int(np.searchsorted(np.cumsum(counts), index, side="right"))
+
+
 def anchor_winding(
     relative: NDArray[np.int64],
     params: SensorParams,
@@ -70,7 +81,7 @@ def anchor_winding(
     is known to be exact, so a region of guesses cannot move the anchor.
     """
     basis = relative if trusted is None or not trusted.any() else relative[trusted]
-    offset = int(np.percentile(basis, ANCHOR_PERCENTILE, method="higher"))
+    offset = integer_percentile(basis, ANCHOR_PERCENTILE)
     winding = np.maximum(relative - offset, 0)
     top = max_winding(params)
     return winding if top is None else np.minimum(winding, top)

@@ -6,12 +6,16 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from models.decoders.base import (
     ANCHOR_PERCENTILE,
     Decoder,
     anchor_winding,
     check_frame_shape,
+    integer_percentile,
 )
 from models.decoders.classical import ItohDecoder
 from models.errors import InvalidInputError, OutputOverflowError
@@ -119,3 +123,12 @@ def test_absurd_winding_is_an_overflow_error_not_inf() -> None:
     params = SensorParams(encoding="mantissa", alpha=2.0)
     with pytest.raises(OutputOverflowError, match="9 pixels"):
         ConstantDecoder(5000).decode(np.zeros((3, 3), np.uint8), params)
+
+
+@given(
+    arrays(np.int64, st.integers(1, 300), elements=st.integers(-40, 40)),
+    st.floats(0.0, 100.0),
+)
+def test_integer_percentile_matches_numpy_higher(values: np.ndarray, percentile: float) -> None:
+    expected = np.percentile(values, percentile, method="higher")
+    assert integer_percentile(values, percentile) == expected
