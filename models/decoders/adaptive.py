@@ -123,11 +123,11 @@ class AdaptiveDecoder(Decoder):
         self.name = f"auto-{quality}"
 
     def hard_tile_decoder(self, params: SensorParams) -> Decoder:
-        """The decoder for tiles with residues: a winding net refined within the
-        quality's min-cut budget (:data:`REFINEMENT`). The net is, at ``best``, the
-        installed one with the highest measured val-256 PSNR on the frame's encoding;
-        otherwise (or when no card has that figure) the quality's first installed tier
-        that supports the encoding. Without one, the classical fallback."""
+        """The decoder for tiles with residues (its answer is refined afterwards, see
+        :meth:`refiner`): at ``best`` the installed winding net with the highest
+        measured val-256 PSNR on the frame's encoding; otherwise (or when no card has
+        that figure) the quality's first installed tier that supports the encoding;
+        without one, the classical fallback."""
         net = most_accurate_net(params) if self.quality == "best" else None
         if net is None:
             installed = {spec.name for spec in available_decoders()}
