@@ -226,6 +226,14 @@ class AdaptiveDecoder(Decoder):
             report["refinement"] = {"decoder": refiner.name, **facts}
         return winding, report
 
+    def unrefined_winding(
+        self, m: NDArray[np.float64], params: SensorParams, analysis: FrameAnalysis
+    ) -> tuple[NDArray[np.int64], NDArray[np.bool_] | None]:
+        """W of a frame with residues before refinement, and the pixels the network
+        decided (None: all); what :meth:`refiner` starts from."""
+        winding, _, doubtful = self._decode_hard(m, params, analysis)
+        return winding, doubtful
+
     def _decode_hard(
         self, m: NDArray[np.float64], params: SensorParams, analysis: FrameAnalysis
     ) -> tuple[NDArray[np.int64], dict[str, Any], NDArray[np.bool_] | None]:

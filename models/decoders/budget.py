@@ -13,7 +13,9 @@ irradiance is not part of the budget.
 Costs per pixel (ns) are measured once per process on this machine, by timing
 each candidate on a seeded synthetic 256 x 256 frame exposed like val-256 (random
 codes are the refinement's worst case, not a typical frame), so predictions follow
-the hardware and the thread settings. Pass-through and exact integration are
+the hardware and the thread settings; the refinement is also timed on a 512 x 512
+frame, used for frames larger than 256 x 256 (its cost per pixel grows with the
+frame). Pass-through and exact integration are
 treated as free (about a millisecond per 256 x 256 frame, inside the analysis
 time's order). The choice, every option's predicted ms and whether the budget was
 met are reported with the routes (``GET /v1/jobs/{id}``, the EXR header).
@@ -45,20 +47,30 @@ BUDGET_RANGE_MS = (0.1, 600_000.0)
 #: Tried when no quality of ``auto`` is predicted to fit.
 CLASSICAL = "itoh"
 CALIBRATION_SIZE = 256
+#: The refinement's cost per pixel grows with the frame (longer borders, more flow per
+#: min-cut): it is calibrated at each of these sides (px), and a frame uses the smallest
+#: at least as large as itself, else the largest. Measured on the synthetic 512 and 1024
+#: px frames of bench.tradeoff, predicted (actual): best 4.5 s (3.6 s) and 18 s (13 s),
+#: balanced 0.70 s (0.59 s) and 2.2 s (0.82 s: frames over 512 px are refined in windows,
+#: and only where the network decided, which a whole 512-px frame does not show).
+#: Calibrated at 256 px only, best was predicted at about 2.5 s for the 13 s.
+REFINEMENT_CALIBRATION_SIZES = (256, 512)
 CALIBRATION_SEED = 0
 CALIBRATION_RUNS = 3
 
 
 @cache
-def calibration_frame(encoding: str) -> tuple[NDArray[np.float64], SensorParams]:
-    """Stored values ``m`` (wrap units) of a seeded synthetic 256 x 256 scene exposed
-    as val-256 is, and its sensor parameters."""
+def calibration_frame(
+    encoding: str, size: int = CALIBRATION_SIZE
+) -> tuple[NDArray[np.float64], SensorParams]:
+    """Stored values ``m`` (wrap units) of a seeded synthetic ``size`` x ``size`` scene
+    exposed as val-256 is, and its sensor parameters."""
     params = SensorParams(
         encoding=encoding,  # type: ignore[arg-type]
         bits=VAL256_BITS,
         max_wraps=VAL256_MAX_WRAPS,
     )
-    scene = synthetic_scene(CALIBRATION_SEED, CALIBRATION_SIZE)
+    scene = synthetic_scene(CALIBRATION_SEED, size)
     frame = simulate(scene, params, overexposed=VAL256_OVEREXPOSED)
     return dequantize(frame.codes, params.bits), frame.params
 
@@ -73,15 +85,34 @@ def ns_per_pixel(name: str, encoding: str) -> float:
 
 
 @cache
-def refinement_ns_per_pixel(quality: str, encoding: str) -> float:
-    """Median time per pixel (ns) of ``auto-<quality>``'s refinement (0 when it has
-    none) on the calibration frame, guided by the hard-tile decoder's W; measured once."""
-    m, params = calibration_frame(encoding)
-    refiner = adaptive(quality).refiner(params)
+def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION_SIZE) -> float:
+    """Time per pixel (ns) of ``auto-<quality>``'s refinement (0 when it has none) on
+    the ``size``-px calibration frame, from the W and the doubtful pixels that
+    ``auto-<quality>`` hands it there; measured once: the median of
+    :data:`CALIBRATION_RUNS` at 256 px, one run at larger sizes (a converged
+    refinement of a 512x512 frame takes seconds)."""
+    m, params = calibration_frame(encoding, size)
+    decoder = adaptive(quality)
+    refiner = decoder.refiner(params)
     if refiner is None:
         return 0.0
-    guide = refiner.guide.predict_winding(m, params)
-    return median_ns(lambda: refiner.refine(m, guide, params), CALIBRATION_RUNS) / m.size
+    guide, doubtful = decoder.unrefined_winding(m, params, analyse(m, params, decoder.tile))
+
+    def refine() -> None:
+        refiner.refine(m, guide, params, doubtful)
+
+    if size == CALIBRATION_SIZE:
+        return median_ns(refine, CALIBRATION_RUNS) / m.size
+    start = time.perf_counter_ns()
+    refine()
+    return (time.perf_counter_ns() - start) / m.size
+
+
+def refinement_size(shape: tuple[int, int]) -> int:
+    """The refinement calibration side (px) for a frame of ``shape``."""
+    pixels = shape[0] * shape[1]
+    fitting = [size for size in REFINEMENT_CALIBRATION_SIZES if size * size >= pixels]
+    return fitting[0] if fitting else REFINEMENT_CALIBRATION_SIZES[-1]
 
 
 def adaptive(quality: str) -> AdaptiveDecoder:
@@ -110,7 +141,8 @@ def predicted_ms(
         return 0.0
     hard = decoder.hard_tile_decoder(params)
     network_ns = pixels * ns_per_pixel(hard.name, params.encoding)
-    refinement_ns = shape[0] * shape[1] * refinement_ns_per_pixel(quality, params.encoding)
+    per_pixel = refinement_ns_per_pixel(quality, params.encoding, refinement_size(shape))
+    refinement_ns = shape[0] * shape[1] * per_pixel
     return (network_ns + refinement_ns) / 1e6
 
 

@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from models.decoders import get_decoder
-from models.decoders.budget import BudgetDecoder, ns_per_pixel, predicted_ms, resolve
+from models.decoders.budget import (
+    BudgetDecoder,
+    ns_per_pixel,
+    predicted_ms,
+    refinement_ns_per_pixel,
+    refinement_size,
+    resolve,
+)
 from models.decoders.registry import name_patterns
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, quantize
@@ -74,3 +81,14 @@ def test_a_frame_without_wraps_costs_no_network_time() -> None:
 
 def test_costs_per_pixel_are_measured_and_positive() -> None:
     assert ns_per_pixel("itoh", "modulo") > 0.0
+
+
+def test_refinement_costs_are_calibrated_by_frame_size() -> None:
+    assert refinement_ns_per_pixel("fast", "modulo") == 0.0
+    assert refinement_ns_per_pixel("balanced", "modulo") > 0.0
+    assert [refinement_size(s) for s in ((64, 64), (256, 256), (300, 300), (2048, 2048))] == [
+        256,
+        256,
+        512,
+        512,
+    ]
