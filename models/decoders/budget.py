@@ -15,10 +15,10 @@ each candidate on a seeded synthetic 256 x 256 frame exposed like val-256 (rando
 codes are the refinement's worst case, not a typical frame), so predictions follow
 the hardware and the thread settings; the refinement is also timed on a 512 x 512
 frame, used for frames larger than 256 x 256 (its cost per pixel grows with the
-frame). Pass-through and exact integration are
-treated as free (about a millisecond per 256 x 256 frame, inside the analysis
-time's order). The choice, every option's predicted ms and whether the budget was
-met are reported with the routes (``GET /v1/jobs/{id}``, the EXR header).
+frame). Pass-through and exact integration are treated as free (about a
+millisecond per 256 x 256 frame, inside the analysis time's order). The choice,
+every option's predicted ms and whether the budget was met are reported with the
+routes (``GET /v1/jobs/{id}``, the EXR header).
 """
 
 from __future__ import annotations

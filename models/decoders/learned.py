@@ -33,7 +33,7 @@ from models.decoders.base import Decoder, anchor_winding
 from models.decoders.classical import integrate_gradient
 from models.decoders.registry import DecoderSpec
 from models.errors import InvalidInputError
-from models.formation import SensorParams, max_winding
+from models.formation import SensorParams
 
 ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 THREADS_ENV = "MCAM_WORKER_THREADS"
@@ -192,13 +192,6 @@ def onnx_model(card: dict[str, Any]) -> OnnxWindingModel:
     return OnnxWindingModel(card)
 
 
-def finish_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
-    """Anchor (darkest pixels W = 0) and clamp to the encoding's largest W."""
-    winding = anchor_winding(relative, params)
-    top = max_winding(params)
-    return winding if top is None else np.minimum(winding, top)
-
-
 class LearnedDecoder(Decoder):
     """A learned decoder with one ONNX model per encoding (the frame's encoding picks it)."""
 
@@ -220,7 +213,7 @@ class LearnedDecoder(Decoder):
         return self.models[params.encoding]
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        return finish_winding(self.model_for(params).predict(m), params)
+        return anchor_winding(self.model_for(params).predict(m), params)
 
 
 def describe(name: str, cards: list[dict[str, Any]]) -> str:
