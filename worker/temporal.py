@@ -69,8 +69,8 @@ frame is refined by guided graph-cut unwrapping (:mod:`models.decoders.guided_pu
 at most ``refine_moves`` min-cuts) from the merged answer: a region whose W disagrees
 with the codes along most of its border (a fallback seam, an error carried in with
 the content) is moved by whole wraps. On the pan/zoom clip (mantissa) it took
-temporal decoding from 18.81 to 21.52 dB with itoh (independent: 19.73) and from
-19.00 to 20.47 dB with mantissanet-tiny (independent: 19.78), for 40-60 ms per
+temporal decoding from 18.81 to 21.51 dB with itoh (independent: 19.73) and from
+19.00 to 20.08 dB with mantissanet-tiny (independent: 19.78), for 40-60 ms per
 256x256 frame. On a still camera it is not run: refined there too, the sunrise clip
 lost 4.5 dB with herraez (34.76 -> 30.21 dB), and every frame cost 20-50 ms more.
 

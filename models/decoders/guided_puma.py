@@ -56,7 +56,7 @@ from models.formation import SensorParams, max_winding
 from models.scene_analysis import neighbour_jumps, residue_map
 
 SUFFIX = "+puma"
-NAME = re.compile(r"(?P<guide>.+)\+puma(?P<moves>[1-9][0-9]*)?")
+NAME = re.compile(rf"(?P<guide>.+){re.escape(SUFFIX)}(?P<moves>[1-9][0-9]*)?")
 NAME_PATTERNS = (
     "<decoder>+puma (the decoder's W refined by guided graph-cut unwrapping, "
     "e.g. mantissanet-small+puma)",
