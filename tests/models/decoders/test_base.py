@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -129,6 +129,7 @@ def test_absurd_winding_is_an_overflow_error_not_inf() -> None:
     arrays(np.int64, st.integers(1, 300), elements=st.integers(-40, 40)),
     st.floats(0.0, 100.0),
 )
+@example(np.array([0] + [1] * 51), 5e-324)
 def test_integer_percentile_matches_numpy_higher(values: np.ndarray, percentile: float) -> None:
     expected = np.percentile(values, percentile, method="higher")
     assert integer_percentile(values, percentile) == expected
