@@ -256,6 +256,21 @@ def from_unwrapped(
     return np.where(above, np.exp(log_x), u).astype(dtype)
 
 
+def unwrapped_noise_sigma(u: NDArray[np.floating], params: SensorParams) -> NDArray[np.float64]:
+    """Standard deviation (wraps) of ``u`` at unwrapped value ``u`` from the params' noise:
+    read noise plus shot noise (``sqrt(x / full_well)`` in ``x``) carried through ``u(x)``
+    (``du/dx`` is 1 below saturation and ``1 / (x ln alpha)`` above it for mantissa)."""
+    u = np.asarray(u, dtype=np.float64)
+    if not params.full_well:
+        return np.full(u.shape, params.read_noise)
+    x = np.maximum(from_unwrapped(np.maximum(u, 0.0), params), 0.0)
+    shot = np.sqrt(x / params.full_well)
+    if params.encoding == "mantissa":
+        above = x >= 1.0
+        shot = np.where(above, shot / (np.where(above, x, 1.0) * np.log(params.alpha)), shot)
+    return np.sqrt(params.read_noise**2 + shot**2)
+
+
 def apply_shot_noise(
     x: NDArray[np.float64], full_well: float, rng: np.random.Generator
 ) -> NDArray[np.float64]:

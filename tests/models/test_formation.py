@@ -23,6 +23,7 @@ from models.formation import (
     simulate,
     split_unwrapped,
     to_unwrapped,
+    unwrapped_noise_sigma,
     validate_codes,
     validate_irradiance,
 )
@@ -284,6 +285,22 @@ def test_shot_noise_variance_is_x_over_full_well() -> None:
     frame = encode(np.full((128, 128), 2.0), params)
     u_noisy = frame.winding + dequantize(frame.codes, params.bits)
     assert np.var(u_noisy) == pytest.approx(2.0 / 400.0, rel=0.05)
+
+
+@pytest.mark.parametrize(
+    ("encoding", "x"), [("modulo", 2.0), ("mantissa", 0.5), ("mantissa", 8.0)]
+)
+def test_unwrapped_noise_sigma_matches_simulated_noise(encoding: str, x: float) -> None:
+    params = SensorParams(encoding=encoding, bits=16, full_well=400.0, read_noise=0.01, seed=3)
+    frame = encode(np.full((128, 128), x), params)
+    u_noisy = frame.winding + dequantize(frame.codes, params.bits)
+    u = to_unwrapped(np.array(x), params)
+    assert float(unwrapped_noise_sigma(u, params)) == pytest.approx(np.std(u_noisy), rel=0.05)
+
+
+def test_unwrapped_noise_sigma_without_full_well_is_the_read_noise() -> None:
+    params = SensorParams(read_noise=0.02)
+    np.testing.assert_array_equal(unwrapped_noise_sigma(np.array([0.0, 3.0]), params), 0.02)
 
 
 @pytest.mark.parametrize(("encoding", "top"), [("modulo", 16), ("mantissa", 5)])
