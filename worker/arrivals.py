@@ -100,9 +100,14 @@ def refine_arrivals(
     ``m``: the frame (wraps); ``winding``: the tracked W; ``change``: each pixel's
     misfit to the previous frame (wraps). Returns the W and where it was refined.
     """
-    noise = unwrapped_noise_sigma(winding + m, params)
-    changed = change > np.maximum(config.change, NOISE_SIGMAS * noise)
     merged, taken = winding.copy(), np.zeros(winding.shape, bool)
+    changed = change > config.change
+    if changed.sum() < max(config.min_cluster, 1):
+        return merged, taken
+    noise = unwrapped_noise_sigma(merged[changed] + m[changed], params)
+    changed[changed] = change[changed] > NOISE_SIGMAS * noise
+    if changed.sum() < max(config.min_cluster, 1):
+        return merged, taken
     for box in cluster_boxes(changed, config.crops()):
         unchanged = ~changed[box]
         around = ndimage.binary_dilation(changed[box], iterations=REACH)
