@@ -23,7 +23,9 @@ Each such cluster's bounding box (widened by ``margin`` px, see
 min-cuts) from the tracked W: a region whose W disagrees with the codes along its
 border (the rings of a light all left at the old W) is moved by whole wraps. The
 crop's constant is aligned to the tracked answer on its unchanged pixels, and
-only pixels within ``margin`` px of a changed one take the refined W.
+only pixels within ``REACH`` px of a changed one take the refined W (the rest of
+the crop is context: graph cuts there would move real edges steeper than half a
+wrap).
 
 Failure modes: content that arrives with a sharp edge steeper than half a wrap
 (a lamp switched on behind a hard shade) cannot be unwrapped from its border, so

@@ -74,12 +74,12 @@ temporal decoding from 18.81 to 21.51 dB with itoh (independent: 19.73) and from
 256x256 frame. On a still camera it is not run: refined there too, the sunrise clip
 lost 4.5 dB with herraez (34.76 -> 30.21 dB), and every frame cost 20-50 ms more.
 
-On a still camera, clusters of safe pixels whose misfit is far above their sensor
-noise (a light moving faster than ``motion_radius``, a lamp switched on) are
-refined by guided graph cuts on a crop around them instead
-(:mod:`worker.arrivals`, ``arrival`` holds its knobs): on the moving-light clip it
-cut wrap flicker from 6-16x to 18-32x less than independent decoding and raised
-PU21-PSNR by 0.3-0.5 dB with mantissanet-tiny; on the sunrise clip (mantissa) it
+Otherwise (a still camera, or nothing fell back), clusters of safe pixels whose
+misfit is far above their sensor noise (a light moving faster than
+``motion_radius``, a lamp switched on) are refined by guided graph cuts on a crop
+around them (:mod:`worker.arrivals`, ``arrival`` holds its knobs): on the
+moving-light clip it cut wrap flicker from 6-16x to 11.6-32x less than independent
+decoding and raised PU21-PSNR by 0.3-0.5 dB with the networks; on the sunrise clip (mantissa) it
 took mantissanet-tiny from 28.0 to 35.2 dB, where wraps sweep faster than half a
 wrap per frame.
 
