@@ -231,6 +231,7 @@ class JobProcessor:
             record.id,
             JobState.SUCCEEDED,
             (JobState.RUNNING,),
+            expire_s=self.store.retention_s,
             finished_ns=finished,
             timings_ns=timings,
             results=outcome.results,
@@ -243,7 +244,8 @@ class JobProcessor:
             self._observe(timings, JobState.SUCCEEDED)
 
     def _finish(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
-        """The job is final: its record expires with its results; drop the entry."""
+        """The job is final: its record expires with its results (set again here for
+        jobs the API cancelled, whose transition carried no expiry); drop the entry."""
         self.jobs.expire(job_id, self.store.retention_s)
         consumer.done(delivery)
 
@@ -254,13 +256,15 @@ class JobProcessor:
             record.id,
             JobState.FAILED,
             (JobState.QUEUED, JobState.RUNNING),
+            expire_s=self.store.retention_s,
             finished_ns=time.time_ns(),
             error=error,
         )
         consumer.dead_letter(delivery, error.code, error.message, job=record.id)
-        self.jobs.expire(record.id, self.store.retention_s)
         if changed:
             self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
+        else:
+            self.jobs.expire(record.id, self.store.retention_s)
 
     def _observe(self, timings_ns: dict[str, int], state: JobState) -> None:
         pipe = self.metrics.client.pipeline(transaction=False)

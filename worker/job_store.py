@@ -33,9 +33,11 @@ for i = 3, 2 + tonumber(ARGV[2]) do
 end
 if not allowed then return {0, current} end
 redis.call('HSET', KEYS[1], 'state', ARGV[1])
-for i = 3 + tonumber(ARGV[2]), #ARGV, 2 do
+local ttl = tonumber(ARGV[3 + tonumber(ARGV[2])])
+for i = 4 + tonumber(ARGV[2]), #ARGV, 2 do
   redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1])
 end
+if ttl > 0 then redis.call('EXPIRE', KEYS[1], ttl) end
 redis.call('HINCRBY', KEYS[2], cjson.decode(current), -1)
 redis.call('HINCRBY', KEYS[2], cjson.decode(ARGV[1]), 1)
 return {1, current}
@@ -74,17 +76,25 @@ class JobStore:
         self.client.hset(job_key(job_id), mapping=encode_fields(values))
 
     def transition(
-        self, job_id: str, to: JobState, allowed_from: Iterable[JobState], **fields: Any
+        self,
+        job_id: str,
+        to: JobState,
+        allowed_from: Iterable[JobState],
+        expire_s: float | None = None,
+        **fields: Any,
     ) -> tuple[bool, JobState | None]:
         """Move to state ``to`` if the current state is in ``allowed_from`` and set
-        ``fields`` with it, atomically. Returns (changed, previous state or None if
-        the record does not exist). Finished states notify waiters."""
+        ``fields`` with it, atomically; with ``expire_s``, the record expires that many
+        seconds later, set in the same step (no reader sees a finished job that would
+        never expire). Returns (changed, previous state or None if the record does not
+        exist). Finished states notify waiters."""
         allowed = [json.dumps(state.value) for state in allowed_from]
         values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
         pairs = [item for pair in encode_fields(values).items() for item in pair]
+        ttl = max(int(expire_s), 1) if expire_s is not None else 0
         changed, previous = self._transition(
             keys=[job_key(job_id), JOB_STATES],
-            args=[json.dumps(to.value), len(allowed), *allowed, *pairs],
+            args=[json.dumps(to.value), len(allowed), *allowed, ttl, *pairs],
         )
         if changed and to.finished:
             self.client.publish(job_done_channel(job_id), to.value)

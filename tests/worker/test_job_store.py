@@ -42,6 +42,27 @@ def test_transition_of_missing_job(client: redis.Redis) -> None:
     )
 
 
+def test_a_finishing_transition_sets_the_expiry_in_the_same_step(
+    client: redis.Redis, job_id: str
+) -> None:
+    store = JobStore(client)
+    store.transition(job_id, JobState.RUNNING, [JobState.QUEUED])
+    assert client.ttl(f"job:{job_id}") == -1
+    changed, _ = store.transition(
+        job_id, JobState.SUCCEEDED, [JobState.RUNNING], expire_s=3600, progress=1.0
+    )
+    assert changed
+    assert 3590 <= client.ttl(f"job:{job_id}") <= 3600
+    assert store.load(job_id).progress == 1.0
+
+
+def test_a_refused_transition_sets_no_expiry(client: redis.Redis, job_id: str) -> None:
+    store = JobStore(client)
+    changed, previous = store.transition(job_id, JobState.SUCCEEDED, [JobState.RUNNING], 60)
+    assert (changed, previous) == (False, JobState.QUEUED)
+    assert client.ttl(f"job:{job_id}") == -1
+
+
 def test_update_keeps_state_and_other_fields(client: redis.Redis, job_id: str) -> None:
     store = JobStore(client)
     store.update(job_id, progress=0.5, frames_done=3, timings_ns={"decode": 7})
