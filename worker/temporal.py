@@ -331,10 +331,15 @@ class StreamDecoder:
         self.spatial = get_decoder(decoder) if isinstance(decoder, str) else decoder
         self.config = config or TemporalConfig()
         moves = self.config.refine_moves
-        self.refiner = GuidedPumaDecoder(self.spatial, max_moves=moves) if moves else None
+        # Pixel moves only (region_moves=0): the temporal and arrival refinements were
+        # tuned and measured by bench.video (2026-11-24) before region moves existed;
+        # region moves here are not measured yet.
+        self.refiner = (
+            GuidedPumaDecoder(self.spatial, max_moves=moves, region_moves=0) if moves else None
+        )
         arrival = self.config.arrival
         self.arrival_refiner = (
-            GuidedPumaDecoder(self.spatial, max_moves=arrival.moves)
+            GuidedPumaDecoder(self.spatial, max_moves=arrival.moves, region_moves=0)
             if arrival.min_cluster
             else None
         )

@@ -59,9 +59,11 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
     "balanced": ("mantissanet-small", "mantissanet-base", "mantissanet-tiny"),
     "best": ("mantissanet-base", "mantissanet-small", "mantissanet-tiny"),
 }
-#: Min-cuts of guided PUMA after the network per quality (0: none). Measured on val-256
-#: (mantissa, whole frames): small 22.17 dB; +1 cut 22.77; +2 cuts 23.51 (about 20 ms
-#: more); converged 23.52 (about 90 ms more).
+#: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
+#: refinement starts with its region moves). Measured on val-256 (mantissa,
+#: bench.tradeoff 2026-11-25): balanced 23.72 dB in 69 ms, best 23.52 dB in 112 ms;
+#: stopped after two pixel cuts from the stitched W, balanced lands closer to the truth
+#: than best's converged energy minimum (also on 512x512 and 1024x1024 frames).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"

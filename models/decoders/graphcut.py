@@ -23,6 +23,7 @@ slower; the same minimum when ``p >= 1``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -170,10 +171,25 @@ def _pair_capacities(
     return np.maximum(b, 0.0) + a_neg, np.maximum(c, 0.0) + b_neg, a_neg - b_neg
 
 
-def _best_move(
+@dataclass(frozen=True)
+class MoveCapacities:
+    """One binary move as an s-t graph on the pixel grid.
+
+    ``unary`` (H x W): a pixel's cost of moving, paid from the source when positive
+    and to the sink when negative; ``right`` / ``down``: (forward, backward) edge
+    capacities to the right (H x W-1) and lower (H-1 x W) neighbour. The move's
+    energy change is ``sum unary[moved] + cut`` (see :func:`_pair_capacities`).
+    """
+
+    unary: NDArray[np.float64]
+    right: tuple[NDArray[np.float64], NDArray[np.float64]]
+    down: tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+def move_capacities(
     winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
-) -> NDArray[np.bool_]:
-    """The pixels whose K should grow by ``jump``: the minimum cut of one binary move."""
+) -> MoveCapacities:
+    """The s-t graph of the move that adds ``jump`` to a subset of ``winding``."""
     right, down = _differences(winding + m)
     c_right, w_right = _move_terms(right, jump, energy.p)
     c_down, w_down = _move_terms(down, jump, energy.p)
@@ -187,16 +203,34 @@ def _best_move(
     unary[:, 1:] -= shift_right
     unary[:-1, :] += shift_down
     unary[1:, :] -= shift_down
+    return MoveCapacities(unary, (forward_right, backward_right), (forward_down, backward_down))
+
+
+#: A move solver: ``(winding, m, jump, energy) -> moved`` (bool H x W), the pixels whose
+#: K grows by ``jump`` in the best move it can find.
+MoveSolver = Callable[[NDArray[np.int64], NDArray[np.float64], int, PumaEnergy], NDArray[np.bool_]]
+
+
+def best_pixel_move(
+    winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
+) -> NDArray[np.bool_]:
+    """The pixels whose K should grow by ``jump``: the minimum cut of one binary move
+    over every pixel (the exact best move)."""
+    capacities = move_capacities(winding, m, jump, energy)
     graph = maxflow.GraphFloat()
     nodes = graph.add_grid_nodes(winding.shape)
-    for capacities, pad, structure in (
+    (forward_right, backward_right), (forward_down, backward_down) = (
+        capacities.right, capacities.down
+    )
+    for edges, pad, structure in (
         (forward_right, ((0, 0), (0, 1)), _RIGHT),
         (backward_right, ((0, 0), (1, 0)), _LEFT),
         (forward_down, ((0, 1), (0, 0)), _DOWN),
         (backward_down, ((1, 0), (0, 0)), _UP),
     ):
-        graph.add_grid_edges(nodes, np.pad(capacities, pad), structure, symmetric=False)
+        graph.add_grid_edges(nodes, np.pad(edges, pad), structure, symmetric=False)
     # Source capacity is paid when delta = 1 (sink side), sink capacity when delta = 0.
+    unary = capacities.unary
     graph.add_grid_tedges(nodes, np.maximum(unary, 0.0), np.maximum(-unary, 0.0))
     graph.maxflow()
     return graph.get_grid_segments(nodes)
@@ -208,12 +242,13 @@ def minimise(
     energy: PumaEnergy,
     jumps: tuple[int, ...],
     max_moves: int,
+    solver: MoveSolver = best_pixel_move,
 ) -> PumaResult:
     """PUMA's binary moves from ``winding`` (absolute K, not normalised).
 
-    The jump sizes are tried in turn, cyclically; a move is kept when it lowers the
-    energy. It stops once every jump size in a row failed, or after ``max_moves``
-    min-cuts.
+    The jump sizes are tried in turn, cyclically; each move is found by ``solver``
+    (one min-cut) and kept when it lowers the energy. It stops once every jump size
+    in a row failed, or after ``max_moves`` min-cuts.
     """
     energies = [energy(winding, m)]
     moves = 0
@@ -221,7 +256,7 @@ def minimise(
     while failed < len(jumps) and moves < max_moves:
         jump = jumps[moves % len(jumps)]
         moves += 1
-        candidate = winding + jump * _best_move(winding, m, jump, energy).astype(np.int64)
+        candidate = winding + jump * solver(winding, m, jump, energy).astype(np.int64)
         value = energy(candidate, m)
         if value >= energies[-1] - _REL_TOL * abs(energies[-1]):
             failed += 1

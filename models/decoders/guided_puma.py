@@ -24,13 +24,16 @@ from ``K = K_guide`` (the guide decoder's W), with
 Both terms are convex, so PUMA's +1/-1 binary moves (one min-cut each) reach the
 global minimum of a frame of up to :data:`WHOLE_FRAME_PIXELS`; larger frames are
 refined in overlapping :data:`WINDOW`-px windows stitched with integer offsets.
-One min-cut costs about 15 ms at 256x256, but up to 3 s at 1024x1024 when the
-guide is wrong in large regions (the max-flow then pushes a lot of flow around
-long borders). Measured (mantissanet-small guide, bench.accuracy and
-bench.tradeoff): val-256 22.17 -> 23.52 dB for about 90 ms more per frame;
-mostly-dark frames 23.4 -> 46.1 dB; 512x512 frames 27.9 -> 36.3 dB (itoh 36.3).
-Most of the gain comes from the first +1 and -1 moves: ``max_moves=2`` gives
-23.51 dB on val-256 for 20 ms more than the net.
+The first :data:`REGION_MOVES` moves are region moves
+(:mod:`models.decoders.region_moves`): each consistent region of the guide moves
+whole, on a graph 3-70x smaller than the pixel grid, so the pixel moves that follow
+start near the minimum and need fewer, cheaper cuts. A pixel cut costs about 20 ms at
+256x256 (2 quiet AMD EPYC cores), a region cut about a third of that.
+Measured on val-256 (mantissanet-small guide, 2026-11-25): 22.17 -> 23.52 dB; the
+converged pixel refinement took about 6 cuts and 106 ms, 2 region + 2 pixel cuts
+reach the same 23.52 dB in 43 ms (``max_moves=2``, what ``auto`` runs at balanced).
+Earlier runs (bench.tradeoff): mostly-dark frames 23.4 -> 46.1 dB; 512x512 frames
+27.9 -> 36.3 dB (itoh 36.3).
 
 Failure modes: a region the guide got wrong whose border is all near residues
 (foliage against the sky) keeps the guide's answer; a large region bounded by a
@@ -50,6 +53,7 @@ from scipy import ndimage
 from models.decoders.base import Decoder
 from models.decoders.graphcut import PairWeights, PumaEnergy, minimise
 from models.decoders.learned import load_cards, stitch_overlapping
+from models.decoders.region_moves import best_region_move
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_guide
 from models.formation import SensorParams, max_winding
@@ -73,6 +77,14 @@ RESIDUE_REACH = 1
 MAX_MOVES = 100
 #: Moves tried in turn: grow K by one wrap, shrink it by one.
 JUMPS = (1, -1)
+#: Region moves (:mod:`models.decoders.region_moves`) made before the pixel moves: they
+#: shift the guide's wrong regions whole at a third of a pixel cut's cost, so the pixel
+#: moves start near the minimum. Measured on val-256 (both encodings, small and tiny
+#: guides): 2 region + 2 pixel cuts reach the converged pixel refinement's PSNR within
+#: 0.01 dB in 40-50 ms, where pixel cuts alone need about 6 cuts and 106-131 ms;
+#: region moves alone stop short where a wrong region joins a right one across an
+#: aliased edge (tiny guide: 22.0 dB against 23.3).
+REGION_MOVES = 2
 #: Frames of up to this many pixels are refined whole. Measured with the small guide:
 #: 512x512 whole 3.6 s / 36.34 dB against 6.8 s / 34.32 dB in 256-px windows (the
 #: windows' stitching loses regions); 1024x1024 whole 17 s against 13 s in windows,
@@ -106,11 +118,16 @@ class GuidedPumaDecoder(Decoder):
     """A guide decoder's W, refined by the guided PUMA energy (module docstring)."""
 
     def __init__(
-        self, guide: Decoder, prior_weight: float = PRIOR_WEIGHT, max_moves: int = MAX_MOVES
+        self,
+        guide: Decoder,
+        prior_weight: float = PRIOR_WEIGHT,
+        max_moves: int = MAX_MOVES,
+        region_moves: int = REGION_MOVES,
     ) -> None:
         self.guide = guide
         self.prior_weight = prior_weight
         self.max_moves = max_moves
+        self.region_moves = region_moves
         self.name = refined_name(guide.name, max_moves)  # type: ignore[misc]
         self.version = guide.version
 
@@ -136,19 +153,27 @@ class GuidedPumaDecoder(Decoder):
         doubtful: NDArray[np.bool_] | None = None,
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         """``guide`` (int W, H x W) refined on ``m``: W clipped to the encoding's range,
-        and facts (windows refined, min-cuts made, fraction of pixels changed).
+        and facts (windows refined, region and pixel min-cuts made, fraction of pixels
+        changed). Up to ``region_moves`` region cuts come first, then pixel cuts up to
+        the ``max_moves`` budget.
 
         ``doubtful`` (bool, H x W; None: everywhere) marks the pixels whose guide may
         be wrong: a window (of a frame refined in windows) without any keeps the guide.
         """
         moves: list[int] = []
+        region_cuts: list[int] = []
 
         def refine_window(rows: slice, cols: slice) -> NDArray[np.int64]:
             window, prior = m[rows, cols], guide[rows, cols]
             if doubtful is not None and not doubtful[rows, cols].any():
                 return prior
             energy = PumaEnergy(1.0, pair_weights(window), prior, self.prior_weight)
-            result = minimise(window, prior, energy, JUMPS, self.max_moves)
+            start = prior
+            if self.region_moves:
+                first = minimise(window, prior, energy, JUMPS, self.region_moves, best_region_move)
+                start = first.winding
+                region_cuts.append(first.moves)
+            result = minimise(window, start, energy, JUMPS, self.max_moves)
             moves.append(result.moves)
             return result.winding
 
@@ -158,6 +183,7 @@ class GuidedPumaDecoder(Decoder):
         winding = np.clip(refined, 0, top if top is not None else None)
         facts = {
             "windows": len(moves),
+            "region_moves": sum(region_cuts),
             "moves": sum(moves),
             "changed_fraction": float(np.mean(winding != guide)),
         }

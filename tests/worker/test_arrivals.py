@@ -23,7 +23,7 @@ def light(cy: float, cx: float, peak: float = 3.6) -> np.ndarray:
 
 
 def refiner() -> GuidedPumaDecoder:
-    return GuidedPumaDecoder(get_decoder("itoh"), max_moves=8)
+    return GuidedPumaDecoder(get_decoder("itoh"), max_moves=8, region_moves=0)
 
 
 def test_a_light_left_at_its_old_winding_is_unwrapped() -> None:

@@ -81,12 +81,27 @@ def test_a_move_budget_stops_the_refinement_early() -> None:
     params = SensorParams(encoding="mantissa", max_wraps=64)
     frame = encode(_hill(), params)
     capped = CappedGuide(frame.winding, 2)
-    full = GuidedPumaDecoder(capped).decode(frame.codes, params)
-    one = GuidedPumaDecoder(capped, max_moves=1).decode(frame.codes, params)
+    full = GuidedPumaDecoder(capped, region_moves=0).decode(frame.codes, params)
+    one = GuidedPumaDecoder(capped, max_moves=1, region_moves=0).decode(frame.codes, params)
     assert full.info["details"]["moves"] > 1
     assert one.info["details"]["moves"] == 1
+    assert one.info["details"]["region_moves"] == 0
     right_after_one = np.mean(one.winding == frame.winding)
     assert np.mean(np.minimum(frame.winding, 2) == frame.winding) < right_after_one < 1.0
+
+
+def test_region_moves_come_first_and_are_counted_apart() -> None:
+    """The capped guide misses three rings, each a consistent region: the first region
+    cut puts one back whole, so fewer pixel cuts remain than without the region phase."""
+    params = SensorParams(encoding="mantissa", max_wraps=64)
+    frame = encode(_hill(), params)
+    capped = CappedGuide(frame.winding, 2)
+    hybrid = GuidedPumaDecoder(capped).decode(frame.codes, params)
+    pixels_only = GuidedPumaDecoder(capped, region_moves=0).decode(frame.codes, params)
+    np.testing.assert_array_equal(hybrid.winding, frame.winding)
+    np.testing.assert_array_equal(pixels_only.winding, frame.winding)
+    assert hybrid.info["details"]["region_moves"] == 2
+    assert hybrid.info["details"]["moves"] < pixels_only.info["details"]["moves"]
 
 
 def test_a_right_guide_is_kept_on_a_smooth_scene() -> None:

@@ -1,0 +1,110 @@
+"""Tests of models/decoders/region_moves.py: PUMA moves over consistent regions."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
+from models.decoders.guided_puma import pair_weights
+from models.decoders.region_moves import (
+    CONSISTENT_STEP,
+    best_region_move,
+    consistent_regions,
+)
+
+
+def test_a_smooth_ramp_is_one_region() -> None:
+    u = np.add.outer(np.arange(6) * 0.3, np.arange(8) * 0.2)
+    count, labels = consistent_regions(u, None)
+    assert count == 1
+    assert labels.shape == (6, 8)
+    assert labels.dtype == np.int64
+
+
+def test_a_step_of_half_a_wrap_or_more_splits_regions() -> None:
+    u = np.zeros((4, 6))
+    u[:, 3:] += CONSISTENT_STEP
+    count, labels = consistent_regions(u, None)
+    assert count == 2
+    assert len(np.unique(labels[:, :3])) == 1 and len(np.unique(labels[:, 3:])) == 1
+    assert labels[0, 0] != labels[0, 5]
+
+
+def test_down_weighted_pairs_do_not_join_pixels() -> None:
+    u = np.zeros((3, 3))
+    right = np.ones((3, 2))
+    down = np.ones((2, 3))
+    right[1, :] = 0.1
+    down[:, 1] = 0.1
+    count, labels = consistent_regions(u, (right, down))
+    # The centre pixel's four pairs are all down-weighted: it is a region of its own.
+    assert np.sum(labels == labels[1, 1]) == 1
+    assert count == 2
+
+
+ROUGH = (slice(2, 6), slice(2, 6))
+
+
+def _wrapped_scene(seed: int, size: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``m`` of a smooth hill (peak 3.7 wraps) with a rough patch at :data:`ROUGH`
+    (residues), its true W, and a guide that never counts above 2 (one wrap short on
+    the hill's top)."""
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    u = 0.2 + 3.5 * np.exp(-((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.08)
+    u[ROUGH] += 0.8 * np.random.default_rng(seed).random((4, 4))
+    truth = np.floor(u).astype(np.int64)
+    return u - truth, truth, np.minimum(truth, 2)
+
+
+def test_regions_move_whole_and_the_energy_falls() -> None:
+    m, _, guide = _wrapped_scene(0)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01)
+    moved = best_region_move(guide, m, 1, energy)
+    assert moved.shape == m.shape and moved.dtype == bool
+    assert moved.any()
+    _, labels = consistent_regions(guide + m, energy.weights)
+    for label in np.unique(labels):
+        assert len(np.unique(moved[labels == label])) == 1
+    assert energy(guide + moved, m) < energy(guide, m)
+
+
+def test_refinement_with_region_moves_restores_the_missing_wrap() -> None:
+    m, truth, guide = _wrapped_scene(1)
+    assert np.any(truth > guide)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01)
+    result = minimise(m, guide, energy, (1, -1), 20, best_region_move)
+    smooth = np.ones(m.shape, bool)
+    smooth[ROUGH] = False
+    np.testing.assert_array_equal(result.winding[smooth], truth[smooth])
+    assert result.energies[-1] < result.energies[0]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    m=arrays(np.float64, (2, 3), elements=st.floats(0.0, 0.999)),
+    winding=arrays(np.int64, (2, 3), elements=st.integers(0, 2)),
+    prior=arrays(np.int64, (2, 3), elements=st.integers(0, 2)),
+    weight=st.floats(0.01, 2.0),
+    jump=st.sampled_from([1, -1]),
+)
+def test_the_region_cut_is_the_best_region_labelling(
+    m: np.ndarray, winding: np.ndarray, prior: np.ndarray, weight: float, jump: int
+) -> None:
+    """Brute force over every subset of regions: the contracted cut finds the least
+    energy among moves that keep regions whole, and the pixel cut (exact over all
+    labellings) is never worse."""
+    energy = PumaEnergy(1.0, pair_weights(m), prior, weight)
+    count, labels = consistent_regions(winding + m, energy.weights)
+    best = min(
+        energy(winding + jump * np.isin(labels, np.flatnonzero(subset)), m)
+        for subset in itertools.product([False, True], repeat=count)
+    )
+    region = energy(winding + jump * best_region_move(winding, m, jump, energy), m)
+    pixel = energy(winding + jump * best_pixel_move(winding, m, jump, energy), m)
+    assert region <= best + 1e-9
+    assert pixel <= region + 1e-9
