@@ -239,9 +239,11 @@ class JobProcessor:
             progress=1.0,
             frames_done=record.frames_total,
         )
-        self._finish(consumer, delivery, record.id)
         if changed:
+            consumer.done(delivery)
             self._observe(timings, JobState.SUCCEEDED)
+        else:
+            self._finish(consumer, delivery, record.id)
 
     def _finish(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
         """The job is final: its record expires with its results (set again here for

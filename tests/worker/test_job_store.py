@@ -58,7 +58,9 @@ def test_a_finishing_transition_sets_the_expiry_in_the_same_step(
 
 def test_a_refused_transition_sets_no_expiry(client: redis.Redis, job_id: str) -> None:
     store = JobStore(client)
-    changed, previous = store.transition(job_id, JobState.SUCCEEDED, [JobState.RUNNING], 60)
+    changed, previous = store.transition(
+        job_id, JobState.SUCCEEDED, [JobState.RUNNING], expire_s=60
+    )
     assert (changed, previous) == (False, JobState.QUEUED)
     assert client.ttl(f"job:{job_id}") == -1
 
