@@ -61,9 +61,13 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 }
 #: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
 #: refinement starts with its region moves). Measured on val-256 (mantissa,
-#: bench.tradeoff 2026-11-25): balanced 23.72 dB in 69 ms, best 23.52 dB in 112 ms;
-#: stopped after two pixel cuts from the stitched W, balanced lands closer to the truth
-#: than best's converged energy minimum (also on 512x512 and 1024x1024 frames).
+#: bench.tradeoff 2026-11-25): balanced 23.72 dB in 69 ms, best 23.52 dB in 112 ms.
+#: The route, not the budget, makes that difference: balanced's stitched W refined to
+#: convergence measured 23.69 dB, best's whole-frame W with two cuts 23.52 dB. The two
+#: routes differ on 7 of 24 frames, by 1.6-2.2 dB either way (a region one wrap off),
+#: and best wins on the mostly-dark set (46.12 against 45.97 dB). Neither fewer jumps
+#: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
+#: one, so best keeps the route that is never below the best single decoder.
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
