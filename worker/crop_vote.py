@@ -12,7 +12,7 @@ frame's border); the crop's constant is aligned to the fixed answer on the crop'
 safe pixels (:func:`worker.temporal_fallback.common_offset`) and its W clipped into
 the range motion allows (:meth:`worker.temporal.Prediction.bounds`); then each
 region where the two disagree and that touches an unsafe pixel takes the answer
-with fewer jumps across its boundary (:func:`worker.region_vote.region_vote`, as
+with fewer jumps across its boundary (:func:`models.decoders.region_vote.region_vote`, as
 at a keyframe). Largest clusters first, crops are decoded while their total area
 stays within ``limit`` of the frame, so the step stays cheaper than a full
 spatial decode.
@@ -29,7 +29,7 @@ flicker rose 5-8x) but also keeps out the right answer for content that moved
 much further than motion compensation followed (a fast light: only its rim is
 fixed); a spatial decoder sees less context on a crop than on the frame; a cluster
 with no safe pixel in its crop is left as fixed; the vote's own failure modes
-(:mod:`worker.region_vote`).
+(:mod:`models.decoders.region_vote`).
 """
 
 from __future__ import annotations
@@ -42,8 +42,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from models.decoders.region_vote import region_vote
 from worker.config_checks import refuse_invalid
-from worker.region_vote import region_vote
 from worker.temporal_fallback import common_offset
 
 if TYPE_CHECKING:

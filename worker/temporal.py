@@ -92,7 +92,7 @@ pixels, so a scene that is bright everywhere (where "darkest pixels have W = 0" 
 wrong) keeps its tracked winding numbers. Unsafe pixels then take the spatial
 answer; where it disagrees with a safe tracked one, each connected region of
 disagreement takes the answer that makes fewer jumps across its boundary
-(:func:`worker.region_vote.region_vote`), so neither a spatial decoder's wrong
+(:func:`models.decoders.region_vote.region_vote`), so neither a spatial decoder's wrong
 region nor a tracked one survives the keyframe.
 
 Failure modes
@@ -125,6 +125,7 @@ from numpy.typing import NDArray
 
 from models.decoders.base import Decoder, check_frame_shape
 from models.decoders.guided_puma import GuidedPumaDecoder
+from models.decoders.region_vote import region_vote
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
@@ -133,7 +134,6 @@ from worker.brightness import BrightnessConfig, brighten, frame_gain
 from worker.config_checks import refuse_invalid
 from worker.crop_vote import CropConfig, crop_vote
 from worker.motion import Compensated, MotionConfig, compensate, misfit
-from worker.region_vote import region_vote
 from worker.temporal_fallback import common_offset, merge_spatial, neighbour_fix
 
 MODES: tuple[str, ...] = ("independent", "temporal")

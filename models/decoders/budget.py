@@ -4,7 +4,8 @@ The scene analysis runs once per frame. For each quality of ``auto``, ``best``
 first, the winding-prediction time is predicted as the analysis time plus the
 pixels its network would see (:meth:`AdaptiveDecoder.network_pixels`) times that
 network's cost per pixel, plus, when the quality refines a frame with residues,
-the frame's pixels times the refinement's cost per pixel. The first quality
+the frame's pixels times the refinement's cost per pixel (at ``fast``, the cost per
+pixel of the small-region check's ``itoh`` decode instead). The first quality
 predicted within the budget decodes the frame. When none fits, ``itoh`` (one DCT
 solve per frame) decodes it if that is predicted to fit, else the quickest option
 runs and the report says the budget was not met. The inversion from W to
@@ -31,7 +32,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
+from models.decoders.adaptive import (
+    DEFAULT_TILE,
+    QUALITIES,
+    SMALL_REGION_CHECK,
+    AdaptiveDecoder,
+)
 from models.decoders.base import Decoder
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.errors import InvalidInputError
@@ -142,6 +148,8 @@ def predicted_ms(
     hard = decoder.hard_tile_decoder(params)
     network_ns = pixels * ns_per_pixel(hard.name, params.encoding)
     per_pixel = refinement_ns_per_pixel(quality, params.encoding, refinement_size(shape))
+    if decoder.checks_small_regions(params):
+        per_pixel += ns_per_pixel(SMALL_REGION_CHECK, params.encoding)
     refinement_ns = shape[0] * shape[1] * per_pixel
     return (network_ns + refinement_ns) / 1e6
 

@@ -11,12 +11,14 @@ from models.decoders.adaptive import (
     PASS_THROUGH,
     QUALITIES,
     REFINEMENT,
+    SMALL_REGION_CHECK,
+    SMALL_REGION_FRACTION,
     AdaptiveDecoder,
     measured_psnr,
     specs,
 )
 from models.decoders.guided_puma import MAX_MOVES
-from models.formation import SensorParams, encode, quantize
+from models.formation import SensorParams, dequantize, encode, quantize
 from models.scene_analysis import analyse
 
 MODULO = SensorParams(encoding="modulo", bits=8)
@@ -115,6 +117,45 @@ def test_each_quality_refines_within_its_min_cut_budget() -> None:
         assert refiner.guide.name == decoder.hard_tile_decoder(MODULO).name
 
 
+def smooth_mantissa_frame(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """W and m of a smooth mantissa blob that itoh decodes exactly (5 wraps at the top)."""
+    frame = encode(0.5 * 2.0 ** (5.0 * blob(size, 1.0, (size / 2, size / 2), size / 5)), MANTISSA)
+    m = dequantize(frame.codes, MANTISSA.bits)
+    np.testing.assert_array_equal(get_decoder("itoh").predict_winding(m, MANTISSA), frame.winding)
+    return frame.winding, m
+
+
+def test_fast_sets_small_false_regions_to_the_itoh_answer() -> None:
+    truth, m = smooth_mantissa_frame(128)
+    winding = truth.copy()
+    winding[10:16, 20:26] += 1
+    winding[60:64, 90:93] -= 1
+    checked, facts = AdaptiveDecoder("fast").check_small_regions(m, winding, MANTISSA)
+    np.testing.assert_array_equal(checked, truth)
+    assert facts == {"decoder": SMALL_REGION_CHECK, "changed_fraction": (36 + 12) / m.size}
+
+
+def test_fast_keeps_regions_larger_than_the_checked_fraction() -> None:
+    truth, m = smooth_mantissa_frame(128)
+    side = int(np.ceil(np.sqrt(SMALL_REGION_FRACTION * m.size))) + 1
+    winding = truth.copy()
+    winding[30 : 30 + side, 30 : 30 + side] += 1
+    checked, facts = AdaptiveDecoder("fast").check_small_regions(m, winding, MANTISSA)
+    np.testing.assert_array_equal(checked, winding)
+    assert facts["changed_fraction"] == 0.0
+
+
+def test_only_the_unrefined_quality_checks_small_regions_and_reports_it() -> None:
+    codes = quantize(np.random.default_rng(2).random((64, 64)), 8)
+    for quality in QUALITIES:
+        decoder = AdaptiveDecoder(quality)
+        details = decoder.decode(codes, MODULO).info["details"]
+        checks = REFINEMENT[quality] == 0
+        assert decoder.checks_small_regions(MODULO) is checks
+        assert ("small_regions" in details) is checks
+        assert ("refinement" in details) is not checks
+
+
 def test_balanced_refines_a_tiled_frame_whole_from_the_stitched_w() -> None:
     """A dark frame with one rough spot: tiles are routed, then the whole frame refined."""
     x = np.full((256, 256), 0.2)
@@ -153,8 +194,10 @@ def test_hard_tiles_covering_the_frame_make_one_whole_frame_call(quality: str) -
     hard = decoder.hard_tile_decoder(MODULO)
     assert result.info["details"]["routes"] == {hard.name: 1.0}
     assert "cover the frame" in result.info["details"]["reason"]
-    alone = decoder.refiner(MODULO) or hard
-    np.testing.assert_array_equal(result.winding, alone.decode(m_codes, MODULO).winding)
+    expected = (decoder.refiner(MODULO) or hard).decode(m_codes, MODULO).winding
+    if decoder.checks_small_regions(MODULO):
+        expected, _ = decoder.check_small_regions(dequantize(m_codes, 8), expected, MODULO)
+    np.testing.assert_array_equal(result.winding, expected)
 
 
 def _rough_spots(*corners: tuple[int, int]) -> np.ndarray:

@@ -1,11 +1,11 @@
-"""Tests of worker/region_vote.py: merging tracked and spatial W region by region."""
+"""Tests of models/decoders/region_vote.py: merging two W answers region by region."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from worker.region_vote import region_vote
+from models.decoders.region_vote import region_vote
 
 
 def ramp() -> tuple[np.ndarray, np.ndarray]:
@@ -66,3 +66,14 @@ def test_only_regions_touching_an_eligible_pixel_may_switch() -> None:
     np.testing.assert_array_equal(merged[12:16, 2:9], truth[12:16, 2:9])
     np.testing.assert_array_equal(merged[2:4, 18:22], tracked[2:4, 18:22])
     assert taken.sum() == 4 * 7
+
+
+def test_regions_larger_than_max_region_keep_the_kept_answer() -> None:
+    truth, m = ramp()
+    kept = truth.copy()
+    kept[12:16, 2:9] -= 1
+    kept[2:4, 18:22] += 2
+    merged, taken = region_vote(kept, truth, m, max_region=8)
+    np.testing.assert_array_equal(merged[2:4, 18:22], truth[2:4, 18:22])
+    np.testing.assert_array_equal(merged[12:16, 2:9], kept[12:16, 2:9])
+    assert taken.sum() == 2 * 4

@@ -1,0 +1,73 @@
+"""Merging two W answers region by region: keep one, or take the other's.
+
+Where two decoders disagree, replacing one answer wholesale keeps the other's
+errors. So the pixels where ``kept`` and ``candidate`` disagree are split into
+4-connected regions, and each region takes the answer that makes fewer *jumps*
+(neighbouring ``u`` more than half a wrap apart) across its boundary with the
+pixels around it, taken as ``kept``. A region ``candidate`` got wrong is bounded by
+jumps it created; a region ``kept`` got wrong is bounded by the jumps of its wrong
+wrap. Ties keep ``kept``.
+
+Uses: a temporal keyframe merges the tracked answer (kept) with a fresh spatial one
+(:mod:`worker.temporal`, :mod:`worker.crop_vote`); ``auto`` at quality ``fast``
+checks a network's small regions against ``itoh`` (:mod:`models.decoders.adaptive`,
+``max_region``: a jump count favours the smoothest answer, right for a network's
+small false wraps on a dark frame but not for large regions bounded by steep true
+edges, where the network's context is the better evidence).
+
+Failure modes: a real edge steeper than half a wrap along a region's boundary
+counts as a jump for either answer (it can tip a vote the wrong way); two
+adjacent regions are each judged against the other's ``kept`` answer.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+
+def _jumps(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """1.0 where ``a`` and ``b`` (u, wraps) are more than half a wrap apart, else 0.0."""
+    return (np.abs(a - b) > 0.5).astype(np.float64)
+
+
+def region_vote(
+    kept: NDArray[np.int64],
+    candidate: NDArray[np.int64],
+    m: NDArray[np.float64],
+    eligible: NDArray[np.bool_] | None = None,
+    max_region: int | None = None,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Merge one channel's ``kept`` and ``candidate`` W (H x W) region by region (module
+    doc). With ``eligible`` (H x W), only regions that touch an eligible pixel may
+    switch; with ``max_region``, only regions of at most that many pixels.
+
+    Returns the merged W and where the candidate's answer was taken.
+    """
+    differ = kept != candidate
+    if not differ.any():
+        return kept, differ
+    labels, count = ndimage.label(differ)
+    u_kept, u_candidate = kept + m, candidate + m
+    votes = np.zeros(count + 1)
+    for axis in (0, 1):
+        near = [slice(None)] * 2
+        far = [slice(None)] * 2
+        near[axis], far[axis] = slice(None, -1), slice(1, None)
+        pair = (tuple(near), tuple(far))
+        for side, other in (pair, pair[::-1]):
+            own, across = labels[side], labels[other]
+            boundary = own != across
+            gain = _jumps(u_kept[side], u_kept[other]) - _jumps(
+                u_candidate[side], u_kept[other]
+            )
+            votes += np.bincount(own[boundary], weights=gain[boundary], minlength=count + 1)
+    take = votes > 0
+    take[0] = False
+    if eligible is not None:
+        take &= np.bincount(labels[eligible], minlength=count + 1) > 0
+    if max_region is not None:
+        take &= np.bincount(labels.ravel(), minlength=count + 1) <= max_region
+    taken = take[labels]
+    return np.where(taken, candidate, kept), taken
