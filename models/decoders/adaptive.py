@@ -71,7 +71,9 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 #: routes differ on 7 of 24 frames, by 1.6-2.2 dB either way (a region one wrap off),
 #: and best wins on the mostly-dark set (46.12 against 45.97 dB). Neither fewer jumps
 #: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
-#: one, so best keeps the route that is never below the best single decoder.
+#: one, so best keeps its route: it equals its net's converged refinement
+#: (small+puma, 23.52 dB), 0.04 dB below tiny+puma since the tiny net was retrained,
+#: because :func:`most_accurate_net` ranks nets by their own PSNR, not the refined one.
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
