@@ -65,15 +65,16 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 }
 #: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
 #: refinement starts with its region moves). Measured on val-256 (mantissa,
-#: bench.tradeoff 2026-11-25): balanced 23.72 dB in 69 ms, best 23.52 dB in 112 ms.
+#: bench.tradeoff 2026-11-25): balanced 23.72 dB in 69 ms, best 23.52 dB in 112 ms
+#: (before best picked its net by refined PSNR).
 #: The route, not the budget, makes that difference: balanced's stitched W refined to
 #: convergence measured 23.69 dB, best's whole-frame W with two cuts 23.52 dB. The two
 #: routes differ on 7 of 24 frames, by 1.6-2.2 dB either way (a region one wrap off),
 #: and best wins on the mostly-dark set (46.12 against 45.97 dB). Neither fewer jumps
 #: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
-#: one, so best keeps its route: it equals its net's converged refinement
-#: (small+puma, 23.52 dB), 0.04 dB below tiny+puma since the tiny net was retrained,
-#: because :func:`most_accurate_net` ranks nets by their own PSNR, not the refined one.
+#: one, so best keeps its route: it equals its net's converged refinement, and
+#: :func:`most_accurate_net` picks the net whose refinement measured best
+#: (tiny-noise+puma, 23.63 dB; ranked by the nets' own PSNR it ran small+puma, 23.52).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
@@ -107,23 +108,30 @@ PASS_THROUGH = "pass-through"
 INTEGRATION = "integration"
 
 
-def measured_psnr(spec: DecoderSpec, encoding: str) -> float | None:
-    """The val-256 PSNR (dB, no read noise) on ``encoding`` from a decoder's model cards."""
-    val256 = spec.figures.get(encoding, {}).get("val256", {})
+def measured_psnr(spec: DecoderSpec, encoding: str, refined: bool = False) -> float | None:
+    """The val-256 PSNR (dB, no read noise) on ``encoding`` from a decoder's model cards;
+    with ``refined``, that of ``<decoder>+puma`` (guided PUMA to convergence)."""
+    val256 = spec.figures.get(encoding, {}).get("val256_refined" if refined else "val256", {})
     psnr = val256.get("read_noise_0", {}).get("psnr")
     return float(psnr) if psnr is not None else None
 
 
 def most_accurate_net(params: SensorParams) -> str | None:
-    """The installed ``mantissanet-*`` decoder with the highest measured val-256 PSNR on
-    the frame's encoding (None when no card states one)."""
-    scored = [
-        (psnr, spec.name)
-        for spec in available_decoders()
-        if spec.name.startswith("mantissanet-")
-        and (psnr := measured_psnr(spec, params.encoding)) is not None
-    ]
-    return max(scored)[1] if scored else None
+    """The installed ``mantissanet-*`` decoder whose refinement (``<net>+puma``, what
+    ``best`` runs) measured the highest val-256 PSNR on the frame's encoding; ranked by
+    the nets' own PSNR when no card states a refined one (None when no card states either).
+    The two rankings differ: on mantissa the tiny net alone is 0.5 dB below the small
+    one, refined it is above."""
+    nets = [spec for spec in available_decoders() if spec.name.startswith("mantissanet-")]
+    for refined in (True, False):
+        scored = [
+            (psnr, spec.name)
+            for spec in nets
+            if (psnr := measured_psnr(spec, params.encoding, refined)) is not None
+        ]
+        if scored:
+            return max(scored)[1]
+    return None
 
 
 class AdaptiveDecoder(Decoder):

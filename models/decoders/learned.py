@@ -234,6 +234,7 @@ def figures(cards: list[dict[str, Any]]) -> dict[str, Any]:
             "parameters": card["parameters"],
             "gflops_256": card["gflops_256"],
             "val256": card.get("val256", {}),
+            "val256_refined": card.get("val256_refined", {}),
         }
         for card in cards
     }

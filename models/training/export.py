@@ -141,7 +141,11 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
 
 
 def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) -> dict[str, Any]:
-    """Measure the card's model on val-256 (onnxruntime) and store the means in the card."""
+    """Measure the card's model on val-256 (onnxruntime) and store the means in the card:
+    ``val256`` per read noise and, for winding nets, ``val256_refined``: the same at no
+    read noise after guided PUMA to convergence (``<decoder>+puma``, what ``auto`` at
+    ``best`` runs)."""
+    from models.decoders.guided_puma import GuidedPumaDecoder
     from models.decoders.learned import LearnedDecoder, load_cards
     from models.training.validate import val256_metrics
 
@@ -152,6 +156,9 @@ def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) ->
         f"read_noise_{noise:g}": val256_metrics(decoder, card["encoding"], noise)
         for noise in read_noises
     }
+    if card["family"] == "mantissanet":
+        refined = GuidedPumaDecoder(decoder)
+        card["val256_refined"] = {"read_noise_0": val256_metrics(refined, card["encoding"])}
     card_path.write_text(json.dumps(card, indent=2) + "\n")
     return card
 

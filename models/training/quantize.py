@@ -63,7 +63,7 @@ def quantize_card(card_path: Path, batches: int = 32) -> Path:
     finally:
         prepared.unlink(missing_ok=True)
     quantized = {
-        **{k: v for k, v in card.items() if k != "val256"},
+        **{k: v for k, v in card.items() if k not in ("val256", "val256_refined")},
         "name": target.stem,
         "decoder": card["decoder"] + "-int8",
         "tier": card["tier"] + "-int8",

@@ -3,7 +3,8 @@
 ``mcam train all`` reruns the recipes of the shipped models (resumable: rerun it
 after an interruption), exports them to ``models/onnx`` (plus the int8 QDQ version
 of one tier) and measures val-256.
-``mcam train run`` trains one configuration; ``mcam train export`` exports a run.
+``mcam train run`` trains one configuration; ``mcam train export`` exports a run;
+``mcam train measure`` re-measures shipped cards on val-256.
 PyTorch is imported only when a command runs, so the runtime never needs it.
 """
 
@@ -18,7 +19,7 @@ from models.errors import InvalidInputError
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``train`` command and its ``all`` / ``run`` / ``export`` actions."""
+    """Add the ``train`` command and its ``all`` / ``run`` / ``export`` / ``measure`` actions."""
     parser = subparsers.add_parser(
         "train",
         help="train and export the learned decoders (CPU is fine, slow; resumable)",
@@ -48,6 +49,9 @@ def register(subparsers: Any) -> None:
     export.add_argument("--onnx-dir", type=Path, help="output folder (default: models/onnx)")
     export.add_argument("--no-val", action="store_true", help="skip the val-256 measurement")
     export.set_defaults(func=run)
+    measure = actions.add_parser("measure", help="re-measure model cards on val-256")
+    measure.add_argument("cards", type=Path, nargs="+", help="models/onnx/<name>.json")
+    measure.set_defaults(func=run)
 
 
 def parse_stages(text: str) -> tuple[int, ...]:
@@ -99,6 +103,12 @@ def run(args: argparse.Namespace) -> int:
         if not args.checkpoint.exists():
             raise FileNotFoundError(2, "no such checkpoint", str(args.checkpoint))
         export_and_measure(args.checkpoint, args.onnx_dir, not args.no_val)
+        return 0
+    if args.action == "measure":
+        for card_path in args.cards:
+            if not card_path.exists():
+                raise FileNotFoundError(2, "no such model card", str(card_path))
+            measure_and_show(card_path, measure=True)
         return 0
     if args.action == "all":
         for config in SHIPPED:

@@ -26,6 +26,15 @@ def test_train_run_then_export_makes_a_working_onnx_model(tmp_path: Path) -> Non
     assert card["decoder"] == "mantissanet-tiny" and card["encoding"] == "mantissa"
     session = ort.InferenceSession(str(tmp_path / "onnx" / card["file"]))
     assert [i.name for i in session.get_inputs()] == ["m"]
+    card_path = tmp_path / "onnx" / f"{card['name']}.json"
+    measured = run_mcam("train", "measure", card_path, cwd=tmp_path)
+    assert measured.returncode == 0, measured.stderr
+    stored = json.loads(card_path.read_text())
+    plain = stored["val256"]["read_noise_0"]
+    refined = stored["val256_refined"]["read_noise_0"]
+    assert set(stored["val256"]) == {"read_noise_0", "read_noise_0.01"}
+    assert 0 < plain["psnr"] < 100 and 0 < refined["psnr"] < 100
+    assert refined["winding_accuracy"] > plain["winding_accuracy"]
 
 
 def test_bad_stage_list_is_one_clear_line(tmp_path: Path) -> None:
@@ -36,3 +45,8 @@ def test_bad_stage_list_is_one_clear_line(tmp_path: Path) -> None:
 def test_missing_checkpoint_is_one_clear_line(tmp_path: Path) -> None:
     result = run_mcam("train", "export", tmp_path / "nothing.pt", cwd=tmp_path)
     assert_one_line_error(result, "nothing.pt")
+
+
+def test_missing_model_card_is_one_clear_line(tmp_path: Path) -> None:
+    result = run_mcam("train", "measure", tmp_path / "nothing.json", cwd=tmp_path)
+    assert_one_line_error(result, "nothing.json")
