@@ -247,6 +247,28 @@ def test_periodic_keyframes_keep_the_stream_constant() -> None:
         np.testing.assert_array_equal(result.winding, frame.winding)
 
 
+@pytest.mark.parametrize("interval", [0, 3])
+def test_a_periodic_keyframe_votes_out_a_tracked_error(interval: int) -> None:
+    """A patch of the tracked u one wrap high (a carried error) stays wrong without
+    periodic keyframes; the keyframe's region vote gives it the spatial answer."""
+    decoder = StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=interval))
+    frames = [encoded(x) for x in slow_clip(4)]
+    state = StreamState()
+    for frame in frames[:2]:
+        decoder.decode(frame.codes, PARAMS, state)
+    assert state.u is not None
+    state.u[28:36, 28:36] += 1.0
+    decoder.decode(frames[2].codes, PARAMS, state)
+    result = decoder.decode(frames[3].codes, PARAMS, state)
+    wrong = int((result.winding != frames[3].winding).sum())
+    assert sum(result.paths.values()) == pytest.approx(1.0)
+    if interval:
+        assert result.keyframe == "periodic" and wrong == 0
+        assert result.paths["spatial"] == pytest.approx(64 / SIZE**2)
+    else:
+        assert result.keyframe is None and wrong == 64
+
+
 def test_independent_mode_is_the_spatial_decoder() -> None:
     frame = encoded(blob(2.0))
     result = StreamDecoder("independent", "itoh").decode(frame.codes, PARAMS, StreamState())
