@@ -30,6 +30,7 @@ def register(subparsers: Any) -> None:
     every.add_argument("--no-val", action="store_true", help="skip the val-256 measurement")
     every.set_defaults(func=run)
     one = actions.add_parser("run", help="train one configuration (resumes its checkpoint)")
+    one.add_argument("--family", default="mantissanet", choices=("mantissanet", "unmodnet"))
     one.add_argument("--tier", default="small", choices=("tiny", "small", "base"))
     one.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))
     one.add_argument("--loss", default="ce", choices=("ce", "mse", "jumps"))
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     if args.crop % 16 or args.crop < 32:
         raise InvalidInputError(f"--crop must be a multiple of 16 and >= 32, got {args.crop}")
     config = TrainConfig(
-        tier=args.tier, encoding=args.encoding, loss=args.loss,
+        family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
         max_read_noise=args.read_noise, init_from=args.init_from, seed=args.seed,
         threads=args.threads,

@@ -37,6 +37,15 @@ def test_train_run_then_export_makes_a_working_onnx_model(tmp_path: Path) -> Non
     assert refined["winding_accuracy"] > plain["winding_accuracy"]
 
 
+def test_train_run_trains_the_unmodnet_family(tmp_path: Path) -> None:
+    trained = run_mcam(
+        "train", "run", "--family", "unmodnet", "--tier", "tiny", "--stages", "1,1,1",
+        "--crop", "32", "--batch", "2", "--runs-dir", tmp_path / "runs", cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr
+    assert (tmp_path / "runs" / "unmodnet-tiny-mantissa" / "checkpoint.pt").exists()
+
+
 def test_bad_stage_list_is_one_clear_line(tmp_path: Path) -> None:
     result = run_mcam("train", "run", "--stages", "10,x", cwd=tmp_path)
     assert_one_line_error(result, "--stages", "10,x")
