@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.flop_counter import FlopCounterMode
 
+from models.decoders.learned import ONNX_DIR
 from models.scenes import TRAIN_SCENES
 from models.training.networks import (
     MULTIPLE,
@@ -30,7 +31,6 @@ from models.training.networks import (
 )
 from models.training.train import TrainConfig, build_model, load_checkpoint
 
-ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 OPSET = 17
 TILE = 256
 #: UnModNet's default number of unwrapping passes at inference.

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+
+from models.decoders.learned import ONNX_DIR
 from models.training.recipes import SHIPPED, quantized
 from models.training.train import TrainConfig
 
@@ -22,3 +25,15 @@ def test_only_plain_small_models_are_quantized() -> None:
     assert quantized(TrainConfig(tier="small"))
     assert not quantized(TrainConfig(tier="small", max_read_noise=0.02))
     assert not quantized(TrainConfig(tier="tiny"))
+
+
+def test_every_shipped_card_was_trained_by_its_recipe() -> None:
+    """``mcam train all`` reproduces the shipped models: each card records the stage
+    steps, read noise and starting run of its recipe."""
+    for config in SHIPPED:
+        card_path = ONNX_DIR / f"{config.name}.json"
+        assert card_path.exists(), f"no shipped card for recipe {config.name}"
+        training = json.loads(card_path.read_text())["training"]
+        assert tuple(training["planned_stage_steps"]) == config.stage_steps, config.name
+        assert training["max_read_noise"] == config.max_read_noise, config.name
+        assert training.get("init_from") == config.init_from, config.name
