@@ -443,7 +443,7 @@ class StreamDecoder:
         spatial = self._spatial_planes(m, params)
         if reason != "periodic" or state.u is None:
             return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}
-        tracked, local, fell_back = self._tracked(m, params, state)
+        tracked, local, fell_back = self._tracked(m, params, state, spatial)
         for c in range(m.shape[2]):
             offset = common_offset(tracked[:, :, c], spatial[:, :, c])
             aligned = np.maximum(spatial[:, :, c] + offset, 0)
@@ -459,10 +459,15 @@ class StreamDecoder:
         return winding, path_shares(local, spatial)
 
     def _tracked(
-        self, m: NDArray[np.float64], params: SensorParams, state: StreamState
+        self,
+        m: NDArray[np.float64],
+        params: SensorParams,
+        state: StreamState,
+        whole_frame: NDArray[np.int64] | None = None,
     ) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
         """The temporal rule's W for ``m`` and where it took the local and the spatial
-        fallback (module doc)."""
+        fallback (module doc). ``whole_frame``: the frame's spatial W (H x W x C) when a
+        keyframe already decoded it, so the whole-frame fallback does not decode it again."""
         assert state.u is not None
         prediction, shift = self.predict(m, state.u, params)
         crop = self.config.crop if shift != (0, 0) else CropConfig(min_cluster=0)
@@ -482,7 +487,11 @@ class StreamDecoder:
                 )
                 winding[:, :, c], local[:, :, c], spatial[:, :, c] = fixed, unsafe & ~took, took
                 continue
-            whole = self.spatial.predict_winding(plane, params).astype(np.int64)
+            whole = (
+                whole_frame[:, :, c]
+                if whole_frame is not None
+                else self.spatial.predict_winding(plane, params).astype(np.int64)
+            )
             merged = merge_spatial(channel, whole)
             winding[:, :, c], spatial[:, :, c] = merged or (whole, np.ones(whole.shape, bool))
         if self.refiner is not None and shift != (0, 0) and (local | spatial).any():

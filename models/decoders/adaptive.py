@@ -74,7 +74,8 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 #: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
 #: one, so best keeps its route: it equals its net's converged refinement, and
 #: :func:`most_accurate_net` picks the net whose refinement measured best
-#: (tiny-noise+puma, 23.63 dB; ranked by the nets' own PSNR it ran small+puma, 23.52).
+#: (tiny-noise+puma, 23.63 dB; ranked by the nets' own PSNR it would run small+puma,
+#: 23.60 dB with the small net retrained, 23.52 before).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
@@ -120,8 +121,8 @@ def most_accurate_net(params: SensorParams) -> str | None:
     """The installed ``mantissanet-*`` decoder whose refinement (``<net>+puma``, what
     ``best`` runs) measured the highest val-256 PSNR on the frame's encoding; ranked by
     the nets' own PSNR when no card states a refined one (None when no card states either).
-    The two rankings differ: on mantissa the tiny net alone is 0.5 dB below the small
-    one, refined it is above."""
+    The two rankings differ: on mantissa the tiny noise-aware net alone is 1.1 dB below
+    the small one, refined it is 0.03 dB above."""
     nets = [spec for spec in available_decoders() if spec.name.startswith("mantissanet-")]
     for refined in (True, False):
         scored = [

@@ -5,7 +5,7 @@ from __future__ import annotations
 from models.training.train import TrainConfig
 
 #: Stage steps of the shipped small tier: edge net, winding net on true edges,
-#: end to end on 64 px crops, end to end on 128 px crops. About 32 minutes per model
+#: end to end on 64 px crops, end to end on 128 px crops. About 31 minutes per model
 #: on one quiet EPYC core (2026-11-25). val-256 mantissa alone / refined by guided
 #: PUMA: the earlier (500, 3500, 2000, 2000) 22.17 / 23.52 dB, (600, 7000, 2000, 1000)
 #: 22.35 / 23.61 dB, this recipe 22.80 / 23.60 dB.
