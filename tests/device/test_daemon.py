@@ -16,9 +16,12 @@ from worker.redis_keys import DEVICES_SET, control_stream, events_stream
 
 
 def finish_clean(link, frames: int) -> None:
-    """Turn the faults off and send one more intact frame, so a trailing loss shows as a gap."""
+    """Turn the faults off and send one more intact frame, so a trailing loss shows as a gap.
+    The frame waits until the daemon is connected: sent while a disconnect fault still
+    has the link down, it would be lost for good."""
     assert wait_for(lambda: link.camera.done(), 60)
     link.camera.faults = Faults()
+    assert wait_for(lambda: link.daemon.health.state == "connected", 30)
     link.camera.max_frames = frames + 1
     assert wait_for(lambda: link.camera.done(), 30)
     assert wait_for(lambda: link.daemon.health.last_sequence == link.camera.sequence - 1, 30)
