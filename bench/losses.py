@@ -1,6 +1,7 @@
-"""Which winding loss measures best: cross-entropy over W classes, MSE on W, MSE on jumps.
+"""Which winding loss measures best: cross-entropy over W classes (plain or weighted by the
+PSNR cost of a wrong W), MSE on W, MSE on jumps.
 
-``python -m bench.losses`` trains (or resumes) the same net three times, differing
+``python -m bench.losses`` trains (or resumes) the same net once per loss, differing
 only in the winding loss -- the ``tiny`` tier, one encoding, the shipped tiny
 recipe's stages and seed -- exports each to ONNX and measures it through the
 runtime decoder on val-256 (read noise 0 and 0.01). Needs the ``train`` extra;

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import SensorParams, dequantize, simulate
+from models.formation import SensorParams, dequantize, from_unwrapped, simulate
 from models.scenes import TRAIN_SCENES, load_hdri_gray, synthetic_scene
 from models.training.networks import NUM_CLASSES
 
@@ -41,9 +41,10 @@ def _train_scenes() -> tuple[NDArray[np.float64], ...]:
 
 
 def _hdri_crop(rng: np.random.Generator, size: int) -> NDArray[np.float64]:
-    """A random ``size x size`` crop of a training HDRI, at 1x or 2x downscale."""
+    """A random ``size x size`` crop of a training HDRI, at 1x or 2x downscale (1x only
+    when the panorama, 256 px tall, has no room for 2x)."""
     scene = _train_scenes()[int(rng.integers(len(TRAIN_SCENES)))]
-    factor = int(rng.integers(1, 3))
+    factor = int(rng.integers(1, min(2, scene.shape[0] // size) + 1))
     span = size * factor
     top = int(rng.integers(0, scene.shape[0] - span + 1))
     rows = np.roll(scene[top : top + span], -int(rng.integers(scene.shape[1])), axis=1)
@@ -103,3 +104,20 @@ def sample_batch(
     m = np.stack([p[0] for p in pairs])[:, None]
     winding = np.stack([p[1] for p in pairs])[:, None]
     return m, winding
+
+
+def psnr_weights(
+    m: NDArray[np.float32], winding: NDArray[np.int64], encoding: str
+) -> NDArray[np.float32]:
+    """Per-pixel cost of a one-wrap mistake under linear-HDR PSNR, mean 1 in each crop.
+
+    The cost is ``(x(W + 1 + m) - x(W + m))^2`` with ``x`` in wrap units (the training
+    alpha, 2). Each crop is normalised on its own: the mean PSNR over frames moves with
+    each frame's *relative* squared error, so a frame's peak cancels out. On mantissa
+    frames a wrong W at ``x = 8`` costs about 100x one at ``x < 1``: the few bright
+    pixels decide the PSNR. Inputs and output are ``N x 1 x H x W``.
+    """
+    params = SensorParams(encoding=encoding)  # type: ignore[arg-type]
+    u = winding.astype(np.float64) + m
+    cost = (from_unwrapped(u + 1.0, params) - from_unwrapped(u, params)) ** 2
+    return (cost / cost.mean(axis=(1, 2, 3), keepdims=True)).astype(np.float32)

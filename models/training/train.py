@@ -22,18 +22,21 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
+from numpy.typing import NDArray
 from torch import Tensor
 from torch.nn import functional as F
 
-from models.training.data import PairConfig, sample_batch
+from models.training.data import PairConfig, psnr_weights, sample_batch
 from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, UnModNet, wrap_edges
 
 RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
-#: Winding losses: cross-entropy over W classes, MSE on W (the paper's), or MSE on the
+#: Winding losses: cross-entropy over W classes, the same weighted by what a wrong W
+#: costs in linear-HDR PSNR (``ce-psnr``), MSE on W (the paper's), or MSE on the
 #: per-neighbour jumps of W (integrated into W at inference).
 #: Output channels of the winding head, per loss.
-HEAD_OUTPUTS = {"ce": NUM_CLASSES, "mse": 1, "jumps": 2}
+HEAD_OUTPUTS = {"ce": NUM_CLASSES, "ce-psnr": NUM_CLASSES, "mse": 1, "jumps": 2}
 LOSSES = tuple(HEAD_OUTPUTS)
 FAMILIES = ("mantissanet", "unmodnet")
 STAGE_LR = (2e-3, 2e-3, 5e-4, 3e-4)
@@ -42,7 +45,12 @@ EDGE_WEIGHT = 0.1
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. ``stage_steps``: optimizer steps of stages 1, 2, 3 (and 4)."""
+    """One training run. ``stage_steps``: optimizer steps of stages 1, 2, 3 (and 4).
+
+    ``psnr_share`` (``ce-psnr`` only): each pixel's cross-entropy is weighted by
+    ``1 - psnr_share + psnr_share * psnr_weight``, the weight from
+    :func:`models.training.data.psnr_weights` (mean 1).
+    """
 
     family: str = "mantissanet"
     tier: str = "small"
@@ -53,6 +61,7 @@ class TrainConfig:
     large_crop: int = 128
     batch: int = 8
     max_read_noise: float = 0.0
+    psnr_share: float = 0.5
     init_from: str | None = None
     seed: int = 0
     threads: int = 1
@@ -109,8 +118,16 @@ def jumps_loss(output: Tensor, winding: Tensor) -> Tensor:
     )
 
 
-def winding_loss(output: Tensor, winding: Tensor, loss: str) -> Tensor:
-    """Cross-entropy over W classes, MSE on W (the paper's), or MSE on the W jumps."""
+def winding_loss(
+    output: Tensor, winding: Tensor, loss: str, weights: Tensor | None = None
+) -> Tensor:
+    """Cross-entropy over W classes (per-pixel ``weights`` for ``ce-psnr``), MSE on W
+    (the paper's), or MSE on the W jumps."""
+    if loss == "ce-psnr":
+        if weights is None:
+            raise ValueError("the ce-psnr loss needs per-pixel weights")
+        per_pixel = F.cross_entropy(output, winding[:, 0], reduction="none")
+        return (per_pixel * weights[:, 0]).mean()
     if loss == "mse":
         return F.mse_loss(output, winding.float())
     if loss == "jumps":
@@ -149,9 +166,11 @@ def rollover_losses(
 
 
 def step_losses(
-    model: MantissaNet | UnModNet, m: Tensor, winding: Tensor, stage: int, loss: str, step: int = 0
+    model: MantissaNet | UnModNet, m: Tensor, winding: Tensor, stage: int, loss: str,
+    step: int = 0, weights: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy)."""
+    """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy);
+    ``weights`` are the per-pixel winding-loss weights of ``ce-psnr``."""
     truth = wrap_edges(winding)
     if stage == 1:
         edge_bce = F.binary_cross_entropy(model.edge(m).clamp(1e-4, 1 - 1e-4), truth)
@@ -167,15 +186,25 @@ def step_losses(
         return total, {"edge_bce": edge_bce.item(), "accuracy": accuracy.item()}
     if stage == 2:
         logits = model.winding(m, truth)
-        total = winding_loss(logits, winding, loss)
+        total = winding_loss(logits, winding, loss, weights)
         parts: dict[str, float] = {}
     else:
         logits, edges = model(m)
         edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
-        total = winding_loss(logits, winding, loss) + EDGE_WEIGHT * edge_bce
+        total = winding_loss(logits, winding, loss, weights) + EDGE_WEIGHT * edge_bce
         parts = {"edge_bce": edge_bce.item()}
     accuracy = prediction_accuracy(logits, winding, loss)
     return total, {**parts, "accuracy": accuracy.item()}
+
+
+def loss_weights(
+    config: TrainConfig, m: NDArray[np.float32], winding: NDArray[np.int64]
+) -> Tensor | None:
+    """Per-pixel winding-loss weights of a batch (``ce-psnr`` only, else None)."""
+    if config.loss != "ce-psnr":
+        return None
+    psnr = psnr_weights(m, winding, config.encoding)
+    return torch.from_numpy(1.0 - config.psnr_share + config.psnr_share * psnr)
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -218,6 +247,8 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
         raise ValueError(
             f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
         )
+    if not 0.0 <= config.psnr_share <= 1.0:
+        raise ValueError(f"psnr_share must be within 0..1, got {config.psnr_share}")
     torch.set_num_threads(config.threads)
     config.run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint = config.run_dir / "checkpoint.pt"
@@ -244,7 +275,8 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
             for group in optimizer.param_groups:
                 group["lr"] = config.learning_rate(step)
             loss, parts = step_losses(
-                model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss, step
+                model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss, step,
+                loss_weights(config, m_np, w_np),
             )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -17,6 +17,10 @@ from typing import Any
 
 from models.errors import InvalidInputError
 
+#: The winding losses of ``models.training.train.LOSSES`` (named here so that parsing
+#: the command line does not import torch; a test keeps the two equal).
+LOSS_CHOICES = ("ce", "ce-psnr", "mse", "jumps")
+
 
 def register(subparsers: Any) -> None:
     """Add the ``train`` command and its ``all`` / ``run`` / ``export`` / ``measure`` actions."""
@@ -33,9 +37,13 @@ def register(subparsers: Any) -> None:
     one.add_argument("--family", default="mantissanet", choices=("mantissanet", "unmodnet"))
     one.add_argument("--tier", default="small", choices=("tiny", "small", "base"))
     one.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))
-    one.add_argument("--loss", default="ce", choices=("ce", "mse", "jumps"))
+    one.add_argument("--loss", default="ce", choices=LOSS_CHOICES)
     one.add_argument(
         "--stages", default="500,3500,2000,2000", help="steps per stage, comma separated"
+    )
+    one.add_argument(
+        "--psnr-share", type=float, default=0.5,
+        help="ce-psnr only: share of the PSNR-cost weight in each pixel's loss (0..1)",
     )
     one.add_argument("--crop", type=int, default=64, help="training crop (px, multiple of 16)")
     one.add_argument("--batch", type=int, default=8)
@@ -121,8 +129,8 @@ def run(args: argparse.Namespace) -> int:
     config = TrainConfig(
         family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
-        max_read_noise=args.read_noise, init_from=args.init_from, seed=args.seed,
-        threads=args.threads,
+        max_read_noise=args.read_noise, psnr_share=args.psnr_share,
+        init_from=args.init_from, seed=args.seed, threads=args.threads,
         runs_dir=args.runs_dir or RUNS_DIR,
     )  # fmt: skip
     print(f"checkpoint: {train(config, print_progress)}")

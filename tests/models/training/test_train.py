@@ -50,7 +50,12 @@ def test_unknown_loss_is_refused(tmp_path: Path) -> None:
         train(TrainConfig(loss="l1", runs_dir=tmp_path))
 
 
-@pytest.mark.parametrize("loss", ["mse", "jumps"])
+def test_psnr_share_outside_zero_to_one_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="psnr_share must be within 0..1"):
+        train(TrainConfig(loss="ce-psnr", psnr_share=1.5, runs_dir=tmp_path))
+
+
+@pytest.mark.parametrize("loss", ["ce-psnr", "mse", "jumps"])
 def test_every_loss_trains_and_names_its_run(tmp_path: Path, loss: str) -> None:
     config = TrainConfig(
         tier="tiny", loss=loss, stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
@@ -91,3 +96,15 @@ def test_a_missing_initial_run_is_named_in_the_error(tmp_path: Path) -> None:
                          init_from="mantissanet-nothing")  # fmt: skip
     with pytest.raises(FileNotFoundError, match="train mantissanet-nothing first"):
         train(config)
+
+
+def test_psnr_weighted_ce_is_ce_under_unit_weights_and_needs_weights() -> None:
+    logits = torch.randn(2, HEAD_OUTPUTS["ce"], 4, 4, generator=torch.Generator().manual_seed(0))
+    winding = torch.randint(0, HEAD_OUTPUTS["ce"], (2, 1, 4, 4))
+    ones = torch.ones(2, 1, 4, 4)
+    plain = winding_loss(logits, winding, "ce")
+    torch.testing.assert_close(winding_loss(logits, winding, "ce-psnr", ones), plain)
+    doubled = winding_loss(logits, winding, "ce-psnr", 2 * ones)
+    torch.testing.assert_close(doubled, 2 * plain)
+    with pytest.raises(ValueError, match="needs per-pixel weights"):
+        winding_loss(logits, winding, "ce-psnr")

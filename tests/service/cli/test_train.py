@@ -7,6 +7,8 @@ from pathlib import Path
 
 import onnxruntime as ort
 
+from models.training.train import LOSSES
+from service.cli.train import LOSS_CHOICES
 from tests.service.cli.conftest import assert_one_line_error, run_mcam
 
 
@@ -59,3 +61,7 @@ def test_missing_checkpoint_is_one_clear_line(tmp_path: Path) -> None:
 def test_missing_model_card_is_one_clear_line(tmp_path: Path) -> None:
     result = run_mcam("train", "measure", tmp_path / "nothing.json", cwd=tmp_path)
     assert_one_line_error(result, "nothing.json")
+
+
+def test_the_command_line_offers_every_training_loss() -> None:
+    assert LOSS_CHOICES == LOSSES
