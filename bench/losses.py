@@ -1,5 +1,5 @@
-"""Which winding loss measures best: cross-entropy over W classes (plain or weighted by the
-PSNR cost of a wrong W), MSE on W, MSE on jumps.
+"""Which winding loss measures best: cross-entropy over W classes (alone or plus the
+expected PSNR loss), MSE on W, MSE on jumps.
 
 ``python -m bench.losses`` trains (or resumes) the same net once per loss, differing
 only in the winding loss -- the ``tiny`` tier, one encoding, the shipped tiny

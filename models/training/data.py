@@ -106,18 +106,21 @@ def sample_batch(
     return m, winding
 
 
-def psnr_weights(
+
+def class_errors(
     m: NDArray[np.float32], winding: NDArray[np.int64], encoding: str
 ) -> NDArray[np.float32]:
-    """Per-pixel cost of a one-wrap mistake under linear-HDR PSNR, mean 1 in each crop.
+    """Squared irradiance error of answering each W class, relative to each crop's peak.
 
-    The cost is ``(x(W + 1 + m) - x(W + m))^2`` with ``x`` in wrap units (the training
-    alpha, 2). Each crop is normalised on its own: the mean PSNR over frames moves with
-    each frame's *relative* squared error, so a frame's peak cancels out. On mantissa
-    frames a wrong W at ``x = 8`` costs about 100x one at ``x < 1``: the few bright
-    pixels decide the PSNR. Inputs and output are ``N x 1 x H x W``.
+    ``((x(k + m) - x(W + m)) / peak)^2`` for every class ``k`` (``N x NUM_CLASSES x H x W``
+    from ``N x 1 x H x W`` inputs), with ``x`` in wrap units (the training alpha, 2) and
+    ``peak`` the crop's largest true ``x``, as the PSNR metric scales it. On mantissa
+    frames one wrap too many at ``x = 8`` costs 64, at ``x = 0.5`` about 0.8: the few
+    bright pixels decide the PSNR, and a far-too-high W on a dark pixel ruins it.
     """
     params = SensorParams(encoding=encoding)  # type: ignore[arg-type]
-    u = winding.astype(np.float64) + m
-    cost = (from_unwrapped(u + 1.0, params) - from_unwrapped(u, params)) ** 2
-    return (cost / cost.mean(axis=(1, 2, 3), keepdims=True)).astype(np.float32)
+    classes = np.arange(NUM_CLASSES, dtype=np.float64).reshape(1, -1, 1, 1)
+    truth = from_unwrapped(winding.astype(np.float64) + m, params)
+    answers = from_unwrapped(classes + m, params)
+    peak = np.maximum(truth.max(axis=(1, 2, 3), keepdims=True), 1e-3)
+    return (((answers - truth) / peak) ** 2).astype(np.float32)

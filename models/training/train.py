@@ -28,15 +28,17 @@ from numpy.typing import NDArray
 from torch import Tensor
 from torch.nn import functional as F
 
-from models.training.data import PairConfig, psnr_weights, sample_batch
+from models.training.data import PairConfig, class_errors, sample_batch
 from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, UnModNet, wrap_edges
 
 RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
-#: Winding losses: cross-entropy over W classes, the same weighted by what a wrong W
-#: costs in linear-HDR PSNR (``ce-psnr``), MSE on W (the paper's), or MSE on the
-#: per-neighbour jumps of W (integrated into W at inference).
+#: Winding losses: cross-entropy over W classes, the same plus the expected PSNR loss
+#: (``ce-risk``), MSE on W (the paper's), or MSE on the per-neighbour jumps of W
+#: (integrated into W at inference).
 #: Output channels of the winding head, per loss.
-HEAD_OUTPUTS = {"ce": NUM_CLASSES, "ce-psnr": NUM_CLASSES, "mse": 1, "jumps": 2}
+HEAD_OUTPUTS = {"ce": NUM_CLASSES, "ce-risk": NUM_CLASSES, "mse": 1, "jumps": 2}
+#: ``ce-risk``: the expected relative MSE of a crop is floored here (60 dB PSNR).
+RISK_FLOOR = 1e-6
 LOSSES = tuple(HEAD_OUTPUTS)
 FAMILIES = ("mantissanet", "unmodnet")
 STAGE_LR = (2e-3, 2e-3, 5e-4, 3e-4)
@@ -47,9 +49,8 @@ EDGE_WEIGHT = 0.1
 class TrainConfig:
     """One training run. ``stage_steps``: optimizer steps of stages 1, 2, 3 (and 4).
 
-    ``psnr_share`` (``ce-psnr`` only): each pixel's cross-entropy is weighted by
-    ``1 - psnr_share + psnr_share * psnr_weight``, the weight from
-    :func:`models.training.data.psnr_weights` (mean 1).
+    ``risk_weight`` (``ce-risk`` only): weight of the expected-PSNR term, see
+    :func:`winding_loss`.
     """
 
     family: str = "mantissanet"
@@ -61,7 +62,7 @@ class TrainConfig:
     large_crop: int = 128
     batch: int = 8
     max_read_noise: float = 0.0
-    psnr_share: float = 0.5
+    risk_weight: float = 0.5
     init_from: str | None = None
     seed: int = 0
     threads: int = 1
@@ -118,16 +119,27 @@ def jumps_loss(output: Tensor, winding: Tensor) -> Tensor:
     )
 
 
+def expected_log_mse(logits: Tensor, errors: Tensor) -> Tensor:
+    """Mean over crops of ``ln(E[MSE] + RISK_FLOOR)``: the expected relative squared error
+    of each crop under the predicted class probabilities (``errors`` from
+    :func:`models.training.data.class_errors`). Mean PSNR over frames is
+    ``-10 log10 MSE`` per frame, so this is its differentiable stand-in."""
+    risk = (logits.softmax(dim=1) * errors).sum(dim=1).mean(dim=(1, 2))
+    return torch.log(risk + RISK_FLOOR).mean()
+
+
 def winding_loss(
-    output: Tensor, winding: Tensor, loss: str, weights: Tensor | None = None
+    output: Tensor, winding: Tensor, loss: str, errors: Tensor | None = None,
+    risk_weight: float = 0.5,
 ) -> Tensor:
-    """Cross-entropy over W classes (per-pixel ``weights`` for ``ce-psnr``), MSE on W
-    (the paper's), or MSE on the W jumps."""
-    if loss == "ce-psnr":
-        if weights is None:
-            raise ValueError("the ce-psnr loss needs per-pixel weights")
-        per_pixel = F.cross_entropy(output, winding[:, 0], reduction="none")
-        return (per_pixel * weights[:, 0]).mean()
+    """Cross-entropy over W classes (``ce-risk`` adds ``risk_weight`` x the expected
+    log-MSE, from the per-class ``errors``), MSE on W (the paper's), or MSE on the W
+    jumps."""
+    if loss == "ce-risk":
+        if errors is None:
+            raise ValueError("the ce-risk loss needs the per-class errors of the batch")
+        cross_entropy = F.cross_entropy(output, winding[:, 0])
+        return cross_entropy + risk_weight * expected_log_mse(output, errors)
     if loss == "mse":
         return F.mse_loss(output, winding.float())
     if loss == "jumps":
@@ -167,10 +179,10 @@ def rollover_losses(
 
 def step_losses(
     model: MantissaNet | UnModNet, m: Tensor, winding: Tensor, stage: int, loss: str,
-    step: int = 0, weights: Tensor | None = None,
+    step: int = 0, errors: Tensor | None = None, risk_weight: float = 0.5,
 ) -> tuple[Tensor, dict[str, float]]:
     """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy);
-    ``weights`` are the per-pixel winding-loss weights of ``ce-psnr``."""
+    ``errors`` are the per-class errors that ``ce-risk`` needs."""
     truth = wrap_edges(winding)
     if stage == 1:
         edge_bce = F.binary_cross_entropy(model.edge(m).clamp(1e-4, 1 - 1e-4), truth)
@@ -186,25 +198,24 @@ def step_losses(
         return total, {"edge_bce": edge_bce.item(), "accuracy": accuracy.item()}
     if stage == 2:
         logits = model.winding(m, truth)
-        total = winding_loss(logits, winding, loss, weights)
+        total = winding_loss(logits, winding, loss, errors, risk_weight)
         parts: dict[str, float] = {}
     else:
         logits, edges = model(m)
         edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
-        total = winding_loss(logits, winding, loss, weights) + EDGE_WEIGHT * edge_bce
+        total = winding_loss(logits, winding, loss, errors, risk_weight) + EDGE_WEIGHT * edge_bce
         parts = {"edge_bce": edge_bce.item()}
     accuracy = prediction_accuracy(logits, winding, loss)
     return total, {**parts, "accuracy": accuracy.item()}
 
 
-def loss_weights(
+def loss_errors(
     config: TrainConfig, m: NDArray[np.float32], winding: NDArray[np.int64]
 ) -> Tensor | None:
-    """Per-pixel winding-loss weights of a batch (``ce-psnr`` only, else None)."""
-    if config.loss != "ce-psnr":
+    """Per-class errors of a batch (``ce-risk`` only, else None)."""
+    if config.loss != "ce-risk":
         return None
-    psnr = psnr_weights(m, winding, config.encoding)
-    return torch.from_numpy(1.0 - config.psnr_share + config.psnr_share * psnr)
+    return torch.from_numpy(class_errors(m, winding, config.encoding))
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -247,8 +258,8 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
         raise ValueError(
             f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
         )
-    if not 0.0 <= config.psnr_share <= 1.0:
-        raise ValueError(f"psnr_share must be within 0..1, got {config.psnr_share}")
+    if not config.risk_weight >= 0.0:
+        raise ValueError(f"risk_weight must be >= 0, got {config.risk_weight}")
     torch.set_num_threads(config.threads)
     config.run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint = config.run_dir / "checkpoint.pt"
@@ -276,7 +287,7 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
                 group["lr"] = config.learning_rate(step)
             loss, parts = step_losses(
                 model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss, step,
-                loss_weights(config, m_np, w_np),
+                loss_errors(config, m_np, w_np), config.risk_weight,
             )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -19,7 +19,7 @@ from models.errors import InvalidInputError
 
 #: The winding losses of ``models.training.train.LOSSES`` (named here so that parsing
 #: the command line does not import torch; a test keeps the two equal).
-LOSS_CHOICES = ("ce", "ce-psnr", "mse", "jumps")
+LOSS_CHOICES = ("ce", "ce-risk", "mse", "jumps")
 
 
 def register(subparsers: Any) -> None:
@@ -42,8 +42,8 @@ def register(subparsers: Any) -> None:
         "--stages", default="500,3500,2000,2000", help="steps per stage, comma separated"
     )
     one.add_argument(
-        "--psnr-share", type=float, default=0.5,
-        help="ce-psnr only: share of the PSNR-cost weight in each pixel's loss (0..1)",
+        "--risk-weight", type=float, default=0.5,
+        help="ce-risk only: weight of the expected log-MSE term (>= 0)",
     )
     one.add_argument("--crop", type=int, default=64, help="training crop (px, multiple of 16)")
     one.add_argument("--batch", type=int, default=8)
@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     config = TrainConfig(
         family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
-        max_read_noise=args.read_noise, psnr_share=args.psnr_share,
+        max_read_noise=args.read_noise, risk_weight=args.risk_weight,
         init_from=args.init_from, seed=args.seed, threads=args.threads,
         runs_dir=args.runs_dir or RUNS_DIR,
     )  # fmt: skip

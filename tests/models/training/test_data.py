@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from models.formation import SensorParams, to_unwrapped
-from models.training.data import PairConfig, psnr_weights, sample_batch
+from models.training.data import PairConfig, class_errors, sample_batch
 from models.training.networks import NUM_CLASSES
 
 
@@ -45,28 +45,33 @@ def test_crops_as_tall_as_the_panoramas_come_from_them_at_full_scale() -> None:
     assert m.shape == winding.shape == (4, 1, 256, 256)
 
 
+
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**31), crops=st.integers(1, 3), size=st.integers(1, 9))
-def test_psnr_weights_have_mean_one_per_crop_and_grow_with_w(
-    seed: int, crops: int, size: int
+@given(
+    seed=st.integers(0, 2**31), crops=st.integers(1, 3), size=st.integers(1, 9),
+    encoding=st.sampled_from(["mantissa", "modulo"]),
+)  # fmt: skip
+def test_class_errors_vanish_at_the_true_w_and_grow_away_from_it(
+    seed: int, crops: int, size: int, encoding: str
 ) -> None:
     rng = np.random.default_rng(seed)
     m = rng.uniform(0.0, 1.0, (crops, 1, size, size)).astype(np.float32)
     winding = rng.integers(0, NUM_CLASSES, (crops, 1, size, size))
-    weights = psnr_weights(m, winding, "mantissa")
-    assert weights.shape == m.shape and weights.dtype == np.float32
-    assert np.all(np.isfinite(weights)) and np.all(weights > 0)
-    np.testing.assert_allclose(weights.mean(axis=(1, 2, 3)), 1.0, rtol=1e-5)
-    u = winding + m.astype(np.float64)
-    order = np.argsort(u[0].ravel())
-    assert np.all(np.diff(weights[0].ravel()[order]) >= -1e-5)
+    errors = class_errors(m, winding, encoding)
+    assert errors.shape == (crops, NUM_CLASSES, size, size) and errors.dtype == np.float32
+    assert np.all(np.isfinite(errors)) and np.all(errors >= 0)
+    np.testing.assert_array_equal(np.take_along_axis(errors, winding, axis=1), 0.0)
+    below = np.arange(NUM_CLASSES).reshape(1, -1, 1, 1) < winding
+    steps = np.diff(errors, axis=1)
+    assert np.all(steps[below[:, :-1]] <= 0) and np.all(steps[~below[:, :-1]] >= 0)
 
 
-def test_psnr_weights_follow_the_irradiance_step_of_one_wrap() -> None:
-    # Mantissa at alpha 2: one wrap more at u = 3.5 (x = 2^2.5) costs x; at u = 0.5
-    # it costs 2^0.5 - 0.5. Modulo: every wrong wrap costs 1, so the weights are flat.
-    m = np.full((1, 1, 1, 2), 0.5, np.float32)
-    winding = np.array([0, 3]).reshape(1, 1, 1, 2)
-    weights = psnr_weights(m, winding, "mantissa")[0, 0, 0]
-    assert weights[1] / weights[0] == pytest.approx((2**2.5 / (2**0.5 - 0.5)) ** 2, rel=1e-5)
-    np.testing.assert_array_equal(psnr_weights(m, winding, "modulo"), 1.0)
+def test_class_errors_are_relative_squared_irradiance_errors() -> None:
+    # Mantissa at alpha 2, true W = 3 at m = 0.5 (x = 2^2.5, the crop's peak): W = 4
+    # answers twice the truth, W = 2 half of it; modulo errors are (k - W)^2 / peak^2.
+    m = np.full((1, 1, 1, 1), 0.5, np.float32)
+    winding = np.full((1, 1, 1, 1), 3)
+    mantissa = class_errors(m, winding, "mantissa")[0, :, 0, 0]
+    assert mantissa[4] == pytest.approx(1.0) and mantissa[2] == pytest.approx(0.25)
+    modulo = class_errors(m, winding, "modulo")[0, :, 0, 0]
+    assert modulo[5] == pytest.approx(4 / 3.5**2)

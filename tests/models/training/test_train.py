@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -10,7 +11,9 @@ import torch
 
 from models.training.train import (
     HEAD_OUTPUTS,
+    RISK_FLOOR,
     TrainConfig,
+    expected_log_mse,
     load_checkpoint,
     prediction_accuracy,
     train,
@@ -50,12 +53,12 @@ def test_unknown_loss_is_refused(tmp_path: Path) -> None:
         train(TrainConfig(loss="l1", runs_dir=tmp_path))
 
 
-def test_psnr_share_outside_zero_to_one_is_refused(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="psnr_share must be within 0..1"):
-        train(TrainConfig(loss="ce-psnr", psnr_share=1.5, runs_dir=tmp_path))
+def test_negative_risk_weight_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="risk_weight must be >= 0"):
+        train(TrainConfig(loss="ce-risk", risk_weight=-1.0, runs_dir=tmp_path))
 
 
-@pytest.mark.parametrize("loss", ["ce-psnr", "mse", "jumps"])
+@pytest.mark.parametrize("loss", ["ce-risk", "mse", "jumps"])
 def test_every_loss_trains_and_names_its_run(tmp_path: Path, loss: str) -> None:
     config = TrainConfig(
         tier="tiny", loss=loss, stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
@@ -98,13 +101,22 @@ def test_a_missing_initial_run_is_named_in_the_error(tmp_path: Path) -> None:
         train(config)
 
 
-def test_psnr_weighted_ce_is_ce_under_unit_weights_and_needs_weights() -> None:
+
+def test_ce_risk_adds_the_expected_log_mse_and_needs_the_errors() -> None:
     logits = torch.randn(2, HEAD_OUTPUTS["ce"], 4, 4, generator=torch.Generator().manual_seed(0))
     winding = torch.randint(0, HEAD_OUTPUTS["ce"], (2, 1, 4, 4))
-    ones = torch.ones(2, 1, 4, 4)
     plain = winding_loss(logits, winding, "ce")
-    torch.testing.assert_close(winding_loss(logits, winding, "ce-psnr", ones), plain)
-    doubled = winding_loss(logits, winding, "ce-psnr", 2 * ones)
-    torch.testing.assert_close(doubled, 2 * plain)
-    with pytest.raises(ValueError, match="needs per-pixel weights"):
-        winding_loss(logits, winding, "ce-psnr")
+    errors = torch.zeros(2, HEAD_OUTPUTS["ce"], 4, 4)
+    floor = math.log(RISK_FLOOR)
+    torch.testing.assert_close(winding_loss(logits, winding, "ce-risk", errors, 2.0),
+                               plain + 2.0 * floor)  # fmt: skip
+    with pytest.raises(ValueError, match="needs the per-class errors"):
+        winding_loss(logits, winding, "ce-risk")
+
+
+def test_expected_log_mse_is_the_log_of_the_probability_weighted_error() -> None:
+    # Two classes, one pixel: p = (0.75, 0.25) on errors (0, 8) expects an MSE of 2.
+    logits = torch.log(torch.tensor([0.75, 0.25])).reshape(1, 2, 1, 1)
+    errors = torch.tensor([0.0, 8.0]).reshape(1, 2, 1, 1)
+    expected = math.log(2.0 + RISK_FLOOR)
+    assert expected_log_mse(logits, errors).item() == pytest.approx(expected, rel=1e-6)
