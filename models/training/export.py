@@ -130,6 +130,7 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
         "crop": config.crop,
         "batch": config.batch,
         "loss": config.loss,
+        **({"risk_weight": config.risk_weight} if config.loss == "ce-risk" else {}),
         "max_read_noise": config.max_read_noise,
         "init_from": config.init_from,
         "seed": config.seed,
@@ -172,7 +173,7 @@ def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
     export_onnx(graph, onnx_path)
     card = {
         "name": config.name,
-        "decoder": "unmodnet" if unmodnet else config.name.removesuffix(f"-{config.encoding}"),
+        "decoder": config.decoder,
         "family": config.family,
         "tier": config.tier,
         "encoding": config.encoding,

@@ -20,6 +20,8 @@ from models.errors import InvalidInputError
 #: The winding losses of ``models.training.train.LOSSES`` (named here so that parsing
 #: the command line does not import torch; a test keeps the two equal).
 LOSS_CHOICES = ("ce", "ce-risk", "mse", "jumps")
+#: ``models.training.train.RISK_WEIGHT``, for the same reason.
+RISK_WEIGHT = 0.1
 
 
 def register(subparsers: Any) -> None:
@@ -42,7 +44,7 @@ def register(subparsers: Any) -> None:
         "--stages", default="500,3500,2000,2000", help="steps per stage, comma separated"
     )
     one.add_argument(
-        "--risk-weight", type=float, default=0.5,
+        "--risk-weight", type=float, default=RISK_WEIGHT,
         help="ce-risk only: weight of the expected log-MSE term (>= 0)",
     )
     one.add_argument("--crop", type=int, default=64, help="training crop (px, multiple of 16)")

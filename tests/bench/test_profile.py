@@ -75,8 +75,10 @@ def test_tiny_run_writes_json_and_markdown(tmp_path: Path) -> None:
     )
     report = json.loads(out.read_text())
     (result,) = report["profiles"]
-    assert result["model"] == "mantissanet-tiny-mantissa"
+    (card,) = [c for c in load_cards() if c["decoder"] == "mantissanet-tiny"
+               and c["encoding"] == "mantissa"]  # fmt: skip
+    assert result["model"] == card["name"]
     assert 0.5 * result["card_gflops_256"] < result["conv_gflops"] <= result["card_gflops_256"]
     assert sum(row["share"] for row in result["ops"]) == pytest.approx(1.0)
-    assert len(report["levers"]["mantissanet-tiny-mantissa"]) == len(profile.LEVERS)
+    assert len(report["levers"][card["name"]]) == len(profile.LEVERS)
     assert "| convolution |" in out.with_suffix(".md").read_text()

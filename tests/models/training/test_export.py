@@ -77,7 +77,8 @@ def test_jumps_model_exports_jumps_that_the_runtime_integrates(tmp_path: Path) -
     )
     card_path = export_run(train(config), tmp_path / "onnx")
     card = json.loads(card_path.read_text())
-    assert card["output"] == "jumps" and card["decoder"] == "mantissanet-tiny-jumps"
+    assert card["output"] == "jumps" and card["decoder"] == "mantissanet-tiny"
+    assert card["training"]["loss"] == "jumps"
     m = np.random.default_rng(3).random((1, 1, 48, 64), dtype=np.float32)
     session = ort.InferenceSession(str(card_path.with_suffix(".onnx")))
     jumps = session.run(None, {"m": m})[0]

@@ -29,7 +29,7 @@ def test_only_plain_small_models_are_quantized() -> None:
 
 def test_every_shipped_card_was_trained_by_its_recipe() -> None:
     """``mcam train all`` reproduces the shipped models: each card records the stage
-    steps, read noise and starting run of its recipe."""
+    steps, read noise, starting run and loss of its recipe."""
     for config in SHIPPED:
         card_path = ONNX_DIR / f"{config.name}.json"
         assert card_path.exists(), f"no shipped card for recipe {config.name}"
@@ -37,3 +37,4 @@ def test_every_shipped_card_was_trained_by_its_recipe() -> None:
         assert tuple(training["planned_stage_steps"]) == config.stage_steps, config.name
         assert training["max_read_noise"] == config.max_read_noise, config.name
         assert training.get("init_from") == config.init_from, config.name
+        assert training["loss"] == config.loss, config.name

@@ -64,6 +64,7 @@ def test_every_loss_trains_and_names_its_run(tmp_path: Path, loss: str) -> None:
         tier="tiny", loss=loss, stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
     )
     assert config.name == f"mantissanet-tiny-{loss}-mantissa"
+    assert config.decoder == "mantissanet-tiny"
     state = load_checkpoint(train(config))
     head = state["model"]["winding.head.weight"]
     assert head.shape[0] == HEAD_OUTPUTS[loss]

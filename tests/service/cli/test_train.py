@@ -7,8 +7,8 @@ from pathlib import Path
 
 import onnxruntime as ort
 
-from models.training.train import LOSSES
-from service.cli.train import LOSS_CHOICES
+from models.training import train
+from service.cli.train import LOSS_CHOICES, RISK_WEIGHT
 from tests.service.cli.conftest import assert_one_line_error, run_mcam
 
 
@@ -63,5 +63,6 @@ def test_missing_model_card_is_one_clear_line(tmp_path: Path) -> None:
     assert_one_line_error(result, "nothing.json")
 
 
-def test_the_command_line_offers_every_training_loss() -> None:
-    assert LOSS_CHOICES == LOSSES
+def test_the_command_line_offers_every_training_loss_and_its_defaults() -> None:
+    assert LOSS_CHOICES == train.LOSSES
+    assert RISK_WEIGHT == train.RISK_WEIGHT
