@@ -73,9 +73,9 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 #: and best wins on the mostly-dark set (46.12 against 45.97 dB). Neither fewer jumps
 #: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
 #: one, so best keeps its route: it equals its net's converged refinement, and
-#: :func:`most_accurate_net` picks the net whose refinement measured best
-#: (tiny-noise+puma, 23.63 dB; ranked by the nets' own PSNR it would run small+puma,
-#: 23.60 dB with the small net retrained, 23.52 before).
+#: :func:`most_accurate_net` picks the net whose refinement measured best (tiny+puma,
+#: 23.88 dB, since the tiny net was trained with ce-risk; before, tiny-noise+puma at
+#: 23.63 dB; ranked by the nets' own PSNR it would run small+puma, 23.60 dB).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
@@ -121,8 +121,8 @@ def most_accurate_net(params: SensorParams) -> str | None:
     """The installed ``mantissanet-*`` decoder whose refinement (``<net>+puma``, what
     ``best`` runs) measured the highest val-256 PSNR on the frame's encoding; ranked by
     the nets' own PSNR when no card states a refined one (None when no card states either).
-    The two rankings differ: on mantissa the tiny noise-aware net alone is 1.1 dB below
-    the small one, refined it is 0.03 dB above."""
+    The two rankings differ: on mantissa the tiny net alone is 0.7 dB below the small
+    one, refined it is 0.28 dB above."""
     nets = [spec for spec in available_decoders() if spec.name.startswith("mantissanet-")]
     for refined in (True, False):
         scored = [
