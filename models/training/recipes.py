@@ -43,7 +43,9 @@ UNMODNET_STAGES = (600, 2400, 900)
 #: frames, worse on 1), seed 1 21.74 / 23.40 against 21.46 / 23.47: +0.3..+0.5 dB alone,
 #: no reliable gain refined. Not kept elsewhere: the small recipe with ce-risk 22.28 /
 #: 23.55 against ce 22.80 / 23.60 (its int8 version 20.22 against 21.75), the noise-aware
-#: tiny 21.70 / 23.35 against 21.70 / 23.63; the modulo nets and the base tier use ce.
+#: tiny 21.70 / 23.35 against 21.70 / 23.63, the tiny modulo net 22.06 / 23.25 against
+#: 21.78 / 22.93 but with less W right (87.1 against 88.0%) and PU21 25.70 against
+#: 25.86 dB (one seed, not shipped); the modulo nets and the base tier use ce.
 TINY_MANTISSA_LOSS = "ce-risk"
 
 SHIPPED: tuple[TrainConfig, ...] = (
