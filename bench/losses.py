@@ -5,8 +5,9 @@ expected PSNR loss), MSE on W, MSE on jumps.
 only in the winding loss -- the ``tiny`` tier, one encoding, the shipped tiny
 recipe's stages and seed -- exports each to ONNX and measures it through the
 runtime decoder on val-256 (read noise 0 and 0.01). Needs the ``train`` extra;
-a run already trained under ``runs/`` is reused (the CE run is the shipped tiny
-model's run). Prints a Markdown table and writes ``bench/results/losses.json``.
+a run already trained under ``runs/`` is reused (the shipped tiny models' runs:
+``ce-risk`` on mantissa, ``ce`` on modulo). Prints a Markdown table and writes
+``bench/results/losses.json``.
 """
 
 from __future__ import annotations
