@@ -51,6 +51,8 @@ BT2020_KR, BT2020_KB = 0.2627, 0.0593
 LUMA_OFFSET, LUMA_SCALE, CHROMA_OFFSET, CHROMA_SCALE = 64, 876, 512, 896
 #: libx265 corrupts its heap on frames smaller than this (pixels per side, measured).
 MIN_HDR10_SIDE = 64
+#: x265's B-frame delay with b-pyramid (frames): shorter clips need B-frames off (see below).
+X265_BFRAME_DELAY = 2
 #: Mastering display: P3-D65 primaries in x265's units of 0.00002.
 MASTERING_PRIMARIES = "G(13250,34500)B(7500,3000)R(34000,16000)WP(15635,16450)"
 
@@ -173,8 +175,13 @@ def yuv_frame(planes: list[NDArray[np.uint16]]) -> av.VideoFrame:
     return video
 
 
-def x265_params(settings: Hdr10Settings, levels: LightLevels) -> str:
-    """The x265-params string: HDR10 signalling, colour tags, mastering and light levels."""
+def x265_params(settings: Hdr10Settings, levels: LightLevels, frame_count: int) -> str:
+    """The x265-params string: HDR10 signalling, colour tags, mastering and light levels.
+
+    A clip of at most ``X265_BFRAME_DELAY`` frames is encoded without B-frames: x265 derives
+    the decode timestamps of its first packets from the pts of frame number
+    ``X265_BFRAME_DELAY``, and when that frame never comes it hands out uninitialised dts
+    values, which the MP4 muxer then refuses at random."""
     peak = int(round(settings.mastering_peak * 10_000))
     floor = max(int(round(settings.mastering_floor * 10_000)), 1)
     params = [
@@ -191,6 +198,8 @@ def x265_params(settings: Hdr10Settings, levels: LightLevels) -> str:
     ]
     if settings.lossless:
         params.append("lossless=1")
+    if frame_count <= X265_BFRAME_DELAY:
+        params.append("bframes=0")
     return ":".join(params)
 
 
@@ -222,25 +231,39 @@ def write_hdr10(
         )
     levels = light_levels(frames, settings)
     with av.open(target, mode="w", format="mp4") as container:
-        stream = container.add_stream("libx265", rate=_rate(settings.fps))
-        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p10le"
-        stream.codec_tag = "hvc1"
-        context = stream.codec_context
-        context.color_primaries = ColorPrimaries.BT2020
-        context.color_trc = ColorTrc.SMPTE2084
-        context.colorspace = Colorspace.BT2020
-        context.color_range = ColorRange.MPEG
-        stream.options = {
-            "crf": str(settings.crf),
-            "preset": settings.preset,
-            "x265-params": x265_params(settings, levels),
-        }
+        stream = add_hdr10_stream(container, settings, levels, (height, width), len(frames))
         for index, frame in enumerate(frames):
             container.mux(stream.encode(yuv_frame(hdr10_yuv(frame, settings))))
             if progress:
                 progress(index + 1)
         container.mux(stream.encode(None))
     return levels
+
+
+def add_hdr10_stream(
+    container: av.container.OutputContainer,
+    settings: Hdr10Settings,
+    levels: LightLevels,
+    size: tuple[int, int],
+    frame_count: int,
+) -> av.VideoStream:
+    """Add the libx265 HEVC Main10 stream of an HDR10 clip of ``frame_count`` frames of
+    ``size`` (even height, width in pixels) to an MP4 container, colour tags on its context."""
+    stream = container.add_stream("libx265", rate=_rate(settings.fps))
+    stream.height, stream.width = size
+    stream.pix_fmt = "yuv420p10le"
+    stream.codec_tag = "hvc1"
+    context = stream.codec_context
+    context.color_primaries = ColorPrimaries.BT2020
+    context.color_trc = ColorTrc.SMPTE2084
+    context.colorspace = Colorspace.BT2020
+    context.color_range = ColorRange.MPEG
+    stream.options = {
+        "crf": str(settings.crf),
+        "preset": settings.preset,
+        "x265-params": x265_params(settings, levels, frame_count),
+    }
+    return stream
 
 
 def _rate(fps: float) -> Any:

@@ -20,12 +20,16 @@ from worker.video_output import (
     LUMA_SCALE,
     REFERENCE_WHITE,
     Hdr10Settings,
+    add_hdr10_stream,
     exr_sequence_zip,
+    hdr10_yuv,
+    light_levels,
     pq_decode,
     pq_encode,
     sdr_frames,
     write_hdr10,
     write_sdr_preview,
+    yuv_frame,
 )
 
 FRAMES = 6
@@ -114,6 +118,26 @@ def test_odd_sizes_are_padded() -> None:
     with av.open(io.BytesIO(data)) as container:
         stream = container.streams.video[0]
         assert (stream.codec_context.width, stream.codec_context.height) == (68, 66)
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 6])
+def test_encoder_packets_carry_sane_decode_timestamps(count: int) -> None:
+    """x265 hands out uninitialised dts for clips shorter than its B-frame delay unless
+    B-frames are off (the MP4 muxer then fails at random): every packet's dts must rise,
+    stay at or below its pts and lie within the clip's few frames of delay."""
+    settings = Hdr10Settings()
+    frames = [np.full((64, 64), 0.5 + 0.1 * t) for t in range(count)]
+    with av.open(io.BytesIO(), mode="w", format="mp4") as container:
+        stream = add_hdr10_stream(
+            container, settings, light_levels(frames, settings), (64, 64), count
+        )
+        packets = [p for f in frames for p in stream.encode(yuv_frame(hdr10_yuv(f, settings)))]
+        packets += stream.encode(None)
+        assert len(packets) == count
+        dts = [p.dts for p in packets]
+        assert dts == sorted(dts) and all(-count <= t < count for t in dts)
+        assert all(p.dts <= p.pts for p in packets)
+        container.mux(packets)
 
 
 def test_hdr10_refuses_frames_libx265_cannot_take() -> None:
