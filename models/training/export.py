@@ -1,11 +1,11 @@
 """Export a trained run to ONNX (dynamic H and W) and write its model card.
 
-The exported graph maps ``m`` (``1 x 1 x H x W`` float32, H and W multiples of
-:data:`MULTIPLE`) to ``winding`` (``1 x 1 x H x W`` int64): the argmax (or the
-rounded regression) is inside the graph. An UnModNet run exports one pass,
-``(m, winding) -> rollover`` (int64 0/1), that the runtime repeats. The card
-(JSON, next to the .onnx) is what the runtime discovers; :func:`models.decoders.learned.specs`
-reads it.
+The exported graph maps ``m`` (``1 x 1 x H x W`` float32, H and W multiples of the
+card's ``multiple``, :func:`models.training.networks.multiple`) to ``winding``
+(``1 x 1 x H x W`` int64): the argmax (or the rounded regression) is inside the graph.
+An UnModNet run exports one pass, ``(m, winding) -> rollover`` (int64 0/1), that the
+runtime repeats. The card (JSON, next to the .onnx) is what the runtime discovers;
+:func:`models.decoders.learned.specs` reads it.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from models.training.networks import (
     NUM_CLASSES,
     MantissaNet,
     UnModNet,
+    multiple,
     parameter_count,
 )
 from models.training.train import TrainConfig, build_model, load_checkpoint
@@ -181,7 +182,7 @@ def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR) -> Path:
         "file": onnx_path.name,
         "sha256": sha256_of(onnx_path),
         "output": "jumps" if config.loss == "jumps" else "winding",
-        "multiple": MULTIPLE,
+        "multiple": MULTIPLE if unmodnet else multiple(model.tier),
         "tile": TILE,
         "parameters": parameter_count(model),
         "gflops_256": round(gflops_at(graph), 3),

@@ -1,7 +1,13 @@
 """The PyTorch networks: wrap-edge net, MantissaCam winding net (tiers), UnModNet mask net.
 
 All nets take ``m`` (wrapped values in [0, 1), ``N x 1 x H x W``, float32) with
-``H`` and ``W`` multiples of :data:`MULTIPLE`; the runtime pads to it.
+``H`` and ``W`` multiples of :data:`MULTIPLE` (times the tier's ``unshuffle``, see
+:func:`multiple`); the runtime pads to it.
+
+A tier with ``unshuffle = 2`` runs the whole net at half resolution: ``m`` and its
+Laplacian are rearranged space-to-depth (each 2 x 2 block becomes 4 channels), and the
+outputs depth-to-space back, so every pixel keeps its own prediction while no layer
+runs at full resolution, where the narrow layers are memory bound (``bench.profile``).
 """
 
 from __future__ import annotations
@@ -30,13 +36,30 @@ class Tier:
     depth: int
     edge_width: int
     edge_blocks: int
+    unshuffle: int = 1
 
 
 TIERS: dict[str, Tier] = {
     "tiny": Tier("tiny", 8, (8, 16, 24, 32, 32), 1, 8, 2),
     "small": Tier("small", 12, (16, 24, 32, 48, 64), 1, 12, 3),
     "base": Tier("base", 16, (24, 32, 48, 64, 96), 2, 16, 4),
+    "small-s2d": Tier("small-s2d", 12, (16, 24, 32, 48, 64), 1, 12, 3, unshuffle=2),
 }
+
+
+def space_to_depth(x: Tensor, factor: int) -> Tensor:
+    """Each ``factor x factor`` block to ``factor**2`` channels (identity for 1)."""
+    return x if factor == 1 else F.pixel_unshuffle(x, factor)
+
+
+def depth_to_space(x: Tensor, factor: int) -> Tensor:
+    """The inverse of :func:`space_to_depth`."""
+    return x if factor == 1 else F.pixel_shuffle(x, factor)
+
+
+def multiple(tier: Tier) -> int:
+    """Height and width of an input must be a multiple of this (pixels)."""
+    return MULTIPLE * tier.unshuffle
 
 
 def abs_laplacian(m: Tensor) -> Tensor:
@@ -140,29 +163,32 @@ class AttentionGate(nn.Module):
         return skip * self.psi(self.skip(skip) + self.gate(gate))
 
 
-def stem(c_out: int) -> nn.Sequential:
-    """7x7 convolution, instance norm, ReLU on a single-channel map."""
-    return nn.Sequential(nn.Conv2d(1, c_out, 7, 1, 3), nn.InstanceNorm2d(c_out), nn.ReLU())
+def stem(c_out: int, c_in: int = 1) -> nn.Sequential:
+    """7x7 convolution, instance norm, ReLU on a ``c_in``-channel map."""
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 7, 1, 3), nn.InstanceNorm2d(c_out), nn.ReLU())
 
 
 class EdgeNet(nn.Module):
     """UnModNet's modulo edge separator: wrap-edge probability from ``[m, |Laplacian m|]``.
 
     Output = ``clamp(|Laplacian m| + tanh(residual), 0, 1)``: the net corrects the
-    Laplacian, which already peaks at wrap edges and at real (texture) edges.
+    Laplacian, which already peaks at wrap edges and at real (texture) edges. With
+    ``unshuffle = f`` the residual is computed at 1/f resolution (module docstring).
     """
 
-    def __init__(self, width: int, blocks: int) -> None:
+    def __init__(self, width: int, blocks: int, unshuffle: int = 1) -> None:
         super().__init__()
-        self.head = conv_bn_relu(2, width)
+        self.unshuffle = unshuffle
+        self.head = conv_bn_relu(2 * unshuffle**2, width)
         self.body = nn.Sequential(*(ResidualBlock(width) for _ in range(blocks)))
         self.attention = RegionNonLocal(width)
-        self.tail = nn.Conv2d(width, 1, 3, 1, 1)
+        self.tail = nn.Conv2d(width, unshuffle**2, 3, 1, 1)
 
     def forward(self, m: Tensor) -> Tensor:
         lap = abs_laplacian(m)
-        features = self.attention(self.body(self.head(torch.cat([m, lap], dim=1))))
-        return (lap + torch.tanh(self.tail(features))).clamp(0.0, 1.0)
+        x = space_to_depth(torch.cat([m, lap], dim=1), self.unshuffle)
+        residual = self.tail(self.attention(self.body(self.head(x))))
+        return (lap + torch.tanh(depth_to_space(residual, self.unshuffle))).clamp(0.0, 1.0)
 
 
 class WindingNet(nn.Module):
@@ -176,8 +202,10 @@ class WindingNet(nn.Module):
     def __init__(self, tier: Tier, outputs: int = NUM_CLASSES) -> None:
         super().__init__()
         w = tier.widths
-        self.m_branch = stem(tier.stem)
-        self.edge_branch = nn.Sequential(stem(tier.stem), RegionNonLocal(tier.stem))
+        self.unshuffle = tier.unshuffle
+        inputs = tier.unshuffle**2
+        self.m_branch = stem(tier.stem, inputs)
+        self.edge_branch = nn.Sequential(stem(tier.stem, inputs), RegionNonLocal(tier.stem))
         self.se = SqueezeExcitation(2 * tier.stem)
         self.enter = conv_bn_relu(2 * tier.stem, w[0])
         self.down = nn.ModuleList(conv_bn_relu(w[i], w[i + 1], 2) for i in range(4))
@@ -186,9 +214,10 @@ class WindingNet(nn.Module):
         )
         self.gates = nn.ModuleList(AttentionGate(w[i], w[i + 1]) for i in range(4))
         self.merge = nn.ModuleList(conv_bn_relu(w[i] + w[i + 1], w[i]) for i in range(4))
-        self.head = nn.Conv2d(w[0], outputs, 1)
+        self.head = nn.Conv2d(w[0], outputs * inputs, 1)
 
     def forward(self, m: Tensor, edges: Tensor) -> Tensor:
+        m, edges = (space_to_depth(t, self.unshuffle) for t in (m, edges))
         x = torch.cat([self.m_branch(m), self.edge_branch(edges)], dim=1)
         x = self.encode[0](self.enter(self.se(x)))
         skips = [x]
@@ -199,7 +228,7 @@ class WindingNet(nn.Module):
             skip = skips[level]
             up = F.interpolate(x, size=skip.shape[2:], mode="nearest")
             x = self.merge[level](torch.cat([self.gates[level](skip, up), up], dim=1))
-        return self.head(x)
+        return depth_to_space(self.head(x), self.unshuffle)
 
 
 class MantissaNet(nn.Module):
@@ -208,7 +237,7 @@ class MantissaNet(nn.Module):
     def __init__(self, tier: Tier, outputs: int = NUM_CLASSES) -> None:
         super().__init__()
         self.tier = tier
-        self.edge = EdgeNet(tier.edge_width, tier.edge_blocks)
+        self.edge = EdgeNet(tier.edge_width, tier.edge_blocks, tier.unshuffle)
         self.winding = WindingNet(tier, outputs)
 
     def forward(self, m: Tensor) -> tuple[Tensor, Tensor]:

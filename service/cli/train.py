@@ -20,6 +20,8 @@ from models.errors import InvalidInputError
 #: The winding losses of ``models.training.train.LOSSES`` (named here so that parsing
 #: the command line does not import torch; a test keeps the two equal).
 LOSS_CHOICES = ("ce", "ce-risk", "mse", "jumps")
+#: The tiers of ``models.training.networks.TIERS`` (likewise kept equal by a test).
+TIER_CHOICES = ("tiny", "small", "base", "small-s2d")
 #: ``models.training.train.RISK_WEIGHT``, for the same reason.
 RISK_WEIGHT = 0.1
 
@@ -37,7 +39,7 @@ def register(subparsers: Any) -> None:
     every.set_defaults(func=run)
     one = actions.add_parser("run", help="train one configuration (resumes its checkpoint)")
     one.add_argument("--family", default="mantissanet", choices=("mantissanet", "unmodnet"))
-    one.add_argument("--tier", default="small", choices=("tiny", "small", "base"))
+    one.add_argument("--tier", default="small", choices=TIER_CHOICES)
     one.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))
     one.add_argument("--loss", default="ce", choices=LOSS_CHOICES)
     one.add_argument(

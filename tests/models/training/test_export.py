@@ -71,6 +71,21 @@ def test_unmodnet_exports_one_rollover_pass_matching_pytorch(tmp_path: Path) -> 
     assert (onnx_out == torch_out).mean() > 0.999
 
 
+def test_half_resolution_tier_exports_its_multiple_and_decodes_any_size(tmp_path: Path) -> None:
+    config = TrainConfig(
+        tier="small-s2d", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
+    )
+    checkpoint = train(config)
+    card_path = export_run(checkpoint, tmp_path / "onnx")
+    card = json.loads(card_path.read_text())
+    assert card["decoder"] == "mantissanet-small-s2d" and card["multiple"] == 32
+    m = np.random.default_rng(3).random((1, 1, 64, 96), dtype=np.float32)
+    session = ort.InferenceSession(str(card_path.with_suffix(".onnx")))
+    assert (session.run(None, {"m": m})[0] == torch_winding(checkpoint, m)).mean() > 0.999
+    model = onnx_model({**card, "path": str(card_path.with_suffix(".onnx"))})
+    assert model.predict(m[0, 0, :50, :70].astype(np.float64)).shape == (50, 70)
+
+
 def test_jumps_model_exports_jumps_that_the_runtime_integrates(tmp_path: Path) -> None:
     config = TrainConfig(
         tier="tiny", loss="jumps", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path

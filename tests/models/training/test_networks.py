@@ -13,10 +13,11 @@ from models.training import networks as nets
 def test_every_tier_maps_m_to_logits_and_edges(tier: str) -> None:
     torch.manual_seed(0)
     model = nets.MantissaNet(nets.TIERS[tier]).eval()
+    height, width = 2 * nets.multiple(nets.TIERS[tier]), 3 * nets.multiple(nets.TIERS[tier])
     with torch.no_grad():
-        logits, edges = model(torch.rand(2, 1, 32, 48))
-    assert logits.shape == (2, nets.NUM_CLASSES, 32, 48)
-    assert edges.shape == (2, 1, 32, 48)
+        logits, edges = model(torch.rand(2, 1, height, width))
+    assert logits.shape == (2, nets.NUM_CLASSES, height, width)
+    assert edges.shape == (2, 1, height, width)
     assert edges.min() >= 0 and edges.max() <= 1
     assert torch.isfinite(logits).all()
 
@@ -26,6 +27,28 @@ def test_tiers_grow_in_parameters() -> None:
         nets.parameter_count(nets.MantissaNet(nets.TIERS[t])) for t in ("tiny", "small", "base")
     ]
     assert counts == sorted(counts) and counts[0] > 1000
+
+
+@pytest.mark.parametrize("factor", [1, 2, 4])
+def test_space_to_depth_round_trips_and_keeps_each_block_together(factor: int) -> None:
+    x = torch.arange(2 * 3 * 8 * 12, dtype=torch.float32).reshape(2, 3, 8, 12)
+    packed = nets.space_to_depth(x, factor)
+    assert packed.shape == (2, 3 * factor**2, 8 // factor, 12 // factor)
+    assert torch.equal(nets.depth_to_space(packed, factor), x)
+    block = x[0, 0, :factor, :factor].flatten()
+    assert torch.equal(packed[0, : factor**2, 0, 0], block)
+
+
+def test_a_half_resolution_tier_keeps_one_prediction_per_pixel() -> None:
+    """An unshuffled tier's output differs between the 4 pixels of a 2 x 2 block."""
+    torch.manual_seed(0)
+    tier = next(t for t in nets.TIERS.values() if t.unshuffle == 2)
+    model = nets.MantissaNet(tier).eval()
+    with torch.no_grad():
+        logits, edges = model(torch.rand(1, 1, 64, 64))
+    blocks = nets.space_to_depth(logits[:, :1], 2)[0]
+    assert (blocks[0] != blocks[1]).float().mean() > 0.9
+    assert nets.multiple(tier) == 2 * nets.MULTIPLE
 
 
 def test_abs_laplacian_is_zero_on_flat_and_one_at_a_wrap_jump() -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import onnxruntime as ort
 
 from models.training import train
-from service.cli.train import LOSS_CHOICES, RISK_WEIGHT
+from service.cli.train import LOSS_CHOICES, RISK_WEIGHT, TIER_CHOICES
 from tests.service.cli.conftest import assert_one_line_error, run_mcam
 
 
@@ -63,6 +63,7 @@ def test_missing_model_card_is_one_clear_line(tmp_path: Path) -> None:
     assert_one_line_error(result, "nothing.json")
 
 
-def test_the_command_line_offers_every_training_loss_and_its_defaults() -> None:
+def test_the_command_line_offers_every_training_loss_tier_and_default() -> None:
     assert LOSS_CHOICES == train.LOSSES
+    assert TIER_CHOICES == tuple(train.TIERS)
     assert RISK_WEIGHT == train.RISK_WEIGHT
