@@ -71,7 +71,11 @@ class Link:
         self.daemon = DeviceDaemon(config, client)
 
     def __enter__(self) -> Link:
+        """Start the daemon, then the camera once the daemon holds the port (opening a
+        serial port flushes what it had buffered: a camera started first could lose its
+        first frames under load)."""
         self.daemon.start()
+        assert wait_for(lambda: self.daemon.health.state == "connected", 30)
         self.camera.start()
         return self
 
