@@ -57,12 +57,22 @@ from models.tile_reconcile import Tile, integrate_jumps, stitch
 
 QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
 #: Network tiers tried in order for each quality level; the first installed one runs
-#: (``best`` first picks by the measured PSNR in the model cards: :func:`most_accurate_net`).
+#: (``balanced`` and ``best`` first pick by the measured PSNR in the model cards, see
+#: :data:`NET_BY_PSNR`). ``fast`` runs the half-resolution small net: on val-256 (auto-fast,
+#: 2026-11-25, one core busy) mantissa 21.38 dB in 17.9 ms against tiny's 21.50 dB in
+#: 28.3 ms, modulo 22.13 against 22.10 dB.
 TIER_LADDER: dict[str, tuple[str, ...]] = {
-    "fast": ("mantissanet-tiny", "mantissanet-small", "mantissanet-base"),
-    "balanced": ("mantissanet-small", "mantissanet-base", "mantissanet-tiny"),
+    "fast": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
+    "balanced": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
     "best": ("mantissanet-base", "mantissanet-small", "mantissanet-tiny"),
 }
+#: Qualities that pick the net whose refinement (``<net>+puma``) measured the highest
+#: val-256 PSNR on the frame's encoding, among nets of at most this many GFLOPs per
+#: 256x256 frame (None: any). Measured (auto-balanced, val-256, 2026-11-25): mantissa
+#: with tiny 23.93 dB, small-s2d 23.75, small 23.63; modulo with small-s2d 23.70, small
+#: 23.37, tiny 23.35: the same order as the cards' refined PSNR, so balanced follows them
+#: too, capped below the base tier's 8 GFLOPs.
+NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
 #: refinement starts with its region moves). Measured on val-256 (mantissa,
 #: bench.tradeoff 2026-11-25): balanced 23.72 dB in 69 ms, best 23.52 dB in 112 ms
@@ -117,13 +127,25 @@ def measured_psnr(spec: DecoderSpec, encoding: str, refined: bool = False) -> fl
     return float(psnr) if psnr is not None else None
 
 
-def most_accurate_net(params: SensorParams) -> str | None:
-    """The installed ``mantissanet-*`` decoder whose refinement (``<net>+puma``, what
-    ``best`` runs) measured the highest val-256 PSNR on the frame's encoding; ranked by
-    the nets' own PSNR when no card states a refined one (None when no card states either).
-    The two rankings differ: on mantissa the tiny net alone is 0.7 dB below the small
-    one, refined it is 0.28 dB above."""
-    nets = [spec for spec in available_decoders() if spec.name.startswith("mantissanet-")]
+def net_gflops(spec: DecoderSpec, encoding: str) -> float:
+    """GFLOPs per 256x256 frame of a learned decoder's model for ``encoding`` (from its
+    card; infinite when it has no model for that encoding)."""
+    return float(spec.figures.get(encoding, {}).get("gflops_256", np.inf))
+
+
+def most_accurate_net(params: SensorParams, max_gflops: float | None = None) -> str | None:
+    """The installed ``mantissanet-*`` decoder (of at most ``max_gflops`` per 256x256
+    frame, when given) whose refinement (``<net>+puma``, what ``best`` runs) measured the
+    highest val-256 PSNR on the frame's encoding; ranked by the nets' own PSNR when no
+    card states a refined one (None when no card states either). The two rankings
+    differ: on mantissa the tiny net alone is 0.7 dB below the small one, refined it is
+    0.28 dB above."""
+    nets = [
+        spec
+        for spec in available_decoders()
+        if spec.name.startswith("mantissanet-")
+        and (max_gflops is None or net_gflops(spec, params.encoding) <= max_gflops)
+    ]
     for refined in (True, False):
         scored = [
             (psnr, spec.name)
@@ -157,11 +179,14 @@ class AdaptiveDecoder(Decoder):
 
     def hard_tile_decoder(self, params: SensorParams) -> Decoder:
         """The decoder for tiles with residues (its answer is refined afterwards, see
-        :meth:`refiner`): at ``best`` the installed winding net with the highest
-        measured val-256 PSNR on the frame's encoding; otherwise (or when no card has
-        that figure) the quality's first installed tier that supports the encoding;
-        without one, the classical fallback."""
-        net = most_accurate_net(params) if self.quality == "best" else None
+        :meth:`refiner`): at ``balanced`` and ``best`` the installed winding net (within
+        the quality's cost cap, :data:`NET_BY_PSNR`) with the highest measured refined
+        val-256 PSNR on the frame's encoding; otherwise (or when no card has that
+        figure) the quality's first installed tier that supports the encoding; without
+        one, the classical fallback."""
+        net = None
+        if self.quality in NET_BY_PSNR:
+            net = most_accurate_net(params, NET_BY_PSNR[self.quality])
         if net is None:
             installed = {spec.name for spec in available_decoders()}
             net = next(

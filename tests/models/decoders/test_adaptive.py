@@ -8,6 +8,7 @@ import pytest
 from models.decoders import available_decoders, get_decoder
 from models.decoders.adaptive import (
     INTEGRATION,
+    NET_BY_PSNR,
     PASS_THROUGH,
     QUALITIES,
     REFINEMENT,
@@ -15,6 +16,8 @@ from models.decoders.adaptive import (
     SMALL_REGION_FRACTION,
     AdaptiveDecoder,
     measured_psnr,
+    most_accurate_net,
+    net_gflops,
     specs,
 )
 from models.decoders.guided_puma import MAX_MOVES
@@ -167,10 +170,20 @@ def test_balanced_refines_a_tiled_frame_whole_from_the_stitched_w() -> None:
     assert details["refinement"]["moves"] <= REFINEMENT["balanced"]
 
 
+@pytest.mark.parametrize("quality", sorted(NET_BY_PSNR))
 @pytest.mark.parametrize("params", [MODULO, MANTISSA], ids=["modulo", "mantissa"])
-def test_best_uses_the_refined_net_with_the_highest_measured_psnr(params: SensorParams) -> None:
-    """Ranked by the cards' refined PSNR (what best runs), else by the nets' own."""
-    nets = [spec for spec in available_decoders() if spec.name.startswith("mantissanet-")]
+def test_balanced_and_best_use_the_refined_net_with_the_highest_measured_psnr(
+    params: SensorParams, quality: str
+) -> None:
+    """Ranked by the cards' refined PSNR (what best runs), else by the nets' own, among
+    the nets within the quality's GFLOPs cap."""
+    cap = NET_BY_PSNR[quality]
+    nets = [
+        spec
+        for spec in available_decoders()
+        if spec.name.startswith("mantissanet-")
+        and (cap is None or net_gflops(spec, params.encoding) <= cap)
+    ]
     refined = {spec.name: measured_psnr(spec, params.encoding, refined=True) for spec in nets}
     plain = {spec.name: measured_psnr(spec, params.encoding) for spec in nets}
     scored = {n: p for n, p in refined.items() if p is not None} or {
@@ -178,13 +191,24 @@ def test_best_uses_the_refined_net_with_the_highest_measured_psnr(params: Sensor
     }
     if not scored:
         pytest.skip("no shipped model card states a val-256 PSNR")
-    decoder = AdaptiveDecoder("best")
+    decoder = AdaptiveDecoder(quality)
     chosen = decoder.hard_tile_decoder(params)
     assert chosen.name == max(scored, key=scored.__getitem__)
     assert chosen.supports(params)
     refiner = decoder.refiner(params)
     assert refiner is not None
-    assert refiner.name == chosen.name + "+puma"
+    assert refiner.guide.name == chosen.name
+
+
+def test_the_cost_cap_leaves_out_expensive_nets() -> None:
+    expensive = [
+        spec.name
+        for spec in available_decoders()
+        if spec.name.startswith("mantissanet-") and net_gflops(spec, "mantissa") > 4.0
+    ]
+    chosen = {most_accurate_net(MANTISSA, cap) for cap in (0.0, 4.0)}
+    assert chosen.isdisjoint(expensive)
+    assert most_accurate_net(MANTISSA, 0.0) is None
 
 
 @pytest.mark.parametrize("quality", ["fast", "balanced"])
