@@ -218,6 +218,11 @@ class WindingNet(nn.Module):
         self.head = nn.Conv2d(w[0], outputs * inputs, 1)
 
     def forward(self, m: Tensor, edges: Tensor) -> Tensor:
+        return depth_to_space(self.block_logits(m, edges), self.unshuffle)
+
+    def block_logits(self, m: Tensor, edges: Tensor) -> Tensor:
+        """Logits at the net's working resolution (``outputs x unshuffle**2`` channels,
+        laid out as :func:`depth_to_space` expects)."""
         m, edges = (space_to_depth(t, self.unshuffle) for t in (m, edges))
         x = torch.cat([self.m_branch(m), self.edge_branch(edges)], dim=1)
         x = self.encode[0](self.enter(self.se(x)))
@@ -229,7 +234,7 @@ class WindingNet(nn.Module):
             skip = skips[level]
             up = F.interpolate(x, size=skip.shape[2:], mode="nearest")
             x = self.merge[level](torch.cat([self.gates[level](skip, up), up], dim=1))
-        return depth_to_space(self.head(x), self.unshuffle)
+        return self.head(x)
 
 
 class MantissaNet(nn.Module):
@@ -244,6 +249,18 @@ class MantissaNet(nn.Module):
     def forward(self, m: Tensor) -> tuple[Tensor, Tensor]:
         edges = self.edge(m)
         return self.winding(m, edges), edges
+
+    def classes(self, m: Tensor) -> Tensor:
+        """The most likely W class per pixel (int64, ``N x 1 x H x W``). A half-resolution
+        tier takes the argmax before moving depth to space: 4 channels to rearrange
+        instead of ``4 x NUM_CLASSES``."""
+        factor = self.tier.unshuffle
+        logits = self.winding.block_logits(m, self.edge(m))
+        if factor == 1:
+            return logits.argmax(dim=1, keepdim=True)
+        n, channels, height, width = logits.shape
+        blocks = logits.reshape(n, channels // factor**2, factor**2, height, width)
+        return depth_to_space(blocks.argmax(dim=1).float(), factor).long()
 
 
 class UnModMaskNet(nn.Module):

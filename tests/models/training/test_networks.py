@@ -51,6 +51,19 @@ def test_a_half_resolution_tier_keeps_one_prediction_per_pixel() -> None:
     assert nets.multiple(tier) == 2 * nets.MULTIPLE
 
 
+@pytest.mark.parametrize("tier", sorted(nets.TIERS))
+def test_classes_are_the_argmax_of_the_logits(tier: str) -> None:
+    torch.manual_seed(1)
+    model = nets.MantissaNet(nets.TIERS[tier]).eval()
+    size = 2 * nets.multiple(nets.TIERS[tier])
+    m = torch.rand(2, 1, size, size + nets.multiple(nets.TIERS[tier]))
+    with torch.no_grad():
+        logits, _ = model(m)
+        classes = model.classes(m)
+    assert classes.dtype == torch.int64 and classes.shape == (2, 1, *m.shape[2:])
+    assert torch.equal(classes, logits.argmax(dim=1, keepdim=True))
+
+
 def test_abs_laplacian_is_zero_on_flat_and_one_at_a_wrap_jump() -> None:
     m = torch.zeros(1, 1, 8, 8)
     assert nets.abs_laplacian(m).abs().max() == 0
