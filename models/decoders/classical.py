@@ -79,10 +79,14 @@ def relative_winding(u_relative: NDArray[np.float64], m: NDArray[np.float64]) ->
     """Integer W up to a global offset from an unwrapping ``u + c`` (unknown real ``c``).
 
     ``u_relative - m`` is an integer plus ``c``; the fractional part of ``c`` is
-    the circular mean of ``u_relative - m`` over the frame.
+    the circular mean of ``u_relative - m`` over the frame. The angles, reduced to
+    [-pi, pi] in float64 first, are summed in float32 (about 1e-7 rad apart from
+    float64): numpy's float32 sine and cosine are vectorised, and this took 1.1 of
+    itoh's 2.6 ms at 256x256 as a complex exponential.
     """
     offsets = u_relative - m
-    fraction = np.angle(np.mean(np.exp(2j * np.pi * offsets))) / (2.0 * np.pi)
+    angles = (2.0 * np.pi * (offsets - np.rint(offsets))).astype(np.float32)
+    fraction = np.arctan2(np.sin(angles).mean(), np.cos(angles).mean()) / (2.0 * np.pi)
     return np.rint(offsets - fraction).astype(np.int64)
 
 
