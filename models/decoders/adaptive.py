@@ -58,9 +58,11 @@ from models.tile_reconcile import Tile, integrate_jumps, stitch
 QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
 #: Network tiers tried in order for each quality level; the first installed one runs
 #: (``balanced`` and ``best`` first pick by the measured PSNR in the model cards, see
-#: :data:`NET_BY_PSNR`). ``fast`` runs the half-resolution small net: on val-256 (auto-fast,
-#: 2026-11-25, one core busy) mantissa 21.38 dB in 17.9 ms against tiny's 21.50 dB in
-#: 28.3 ms, modulo 22.13 against 22.10 dB.
+#: :data:`NET_BY_PSNR`). ``fast`` runs the half-resolution small net: on val-256
+#: (auto-fast, 2026-11-25, interleaved with one core busy) mantissa 21.38 dB in 17.9 ms
+#: against tiny's 21.50 dB in 28.3 ms, modulo 22.13 against 22.10 dB; 12.3 ms on a quiet
+#: machine. A tiny net at half resolution was 1-2 ms faster still but 0.1 (mantissa) to
+#: 0.9 dB (modulo) less accurate.
 TIER_LADDER: dict[str, tuple[str, ...]] = {
     "fast": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
     "balanced": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
@@ -74,11 +76,12 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 #: too, capped below the base tier's 8 GFLOPs.
 NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
-#: refinement starts with its region moves). Measured on val-256 (mantissa,
-#: bench.tradeoff 2026-11-25): balanced 23.72 dB in 69 ms, best 23.52 dB in 112 ms
-#: (before best picked its net by refined PSNR).
-#: The route, not the budget, makes that difference: balanced's stitched W refined to
-#: convergence measured 23.69 dB, best's whole-frame W with two cuts 23.52 dB. The two
+#: refinement starts with its region moves). Measured on val-256 (bench.tradeoff,
+#: 2026-11-25 13:30 UTC, mantissa): balanced 23.93 dB in 62 ms, best 23.88 dB in 111 ms
+#: (modulo, bench.accuracy: 23.70 against 23.36 dB). Earlier, with the small net in
+#: both: balanced 23.72 dB, best 23.52 dB. The route, not the budget, makes that
+#: difference: balanced's stitched W refined to convergence measured 23.69 dB, best's
+#: whole-frame W with two cuts 23.52 dB (both with the small net). The two
 #: routes differ on 7 of 24 frames, by 1.6-2.2 dB either way (a region one wrap off),
 #: and best wins on the mostly-dark set (46.12 against 45.97 dB). Neither fewer jumps
 #: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
