@@ -43,6 +43,15 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 30.0) -> bool:
     return condition()
 
 
+def start_streaming(daemon: DeviceDaemon, camera: VirtualScamp5) -> None:
+    """Start the daemon, then the camera once the daemon holds the port: opening a serial
+    port flushes what it had buffered, so a camera started first could lose its first
+    frames under load."""
+    daemon.start()
+    assert wait_for(lambda: daemon.health.state == "connected", 30)
+    camera.start()
+
+
 def stream_frames(client: redis.Redis, device: str) -> list[FrameMessage]:
     """Every frame on the device's stream, oldest first."""
     return [FrameMessage.from_fields(fields) for _, fields in client.xrange(frame_stream(device))]
@@ -71,12 +80,7 @@ class Link:
         self.daemon = DeviceDaemon(config, client)
 
     def __enter__(self) -> Link:
-        """Start the daemon, then the camera once the daemon holds the port (opening a
-        serial port flushes what it had buffered: a camera started first could lose its
-        first frames under load)."""
-        self.daemon.start()
-        assert wait_for(lambda: self.daemon.health.state == "connected", 30)
-        self.camera.start()
+        start_streaming(self.daemon, self.camera)
         return self
 
     def __exit__(self, *exc: object) -> None:

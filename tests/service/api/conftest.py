@@ -12,7 +12,7 @@ from device.daemon import DaemonConfig, DeviceDaemon
 from device.sim_link import PtyEndpoint
 from device.simulator import CameraSettings, VirtualScamp5
 from service.core.config import Settings
-from tests.device.conftest import wait_for
+from tests.device.conftest import start_streaming
 from worker.embedded_redis import connect
 from worker.runner import Worker, WorkerConfig
 
@@ -21,10 +21,7 @@ from worker.runner import Worker, WorkerConfig
 def live_camera(settings: Settings, tmp_path: Path, *, fps: float, seed: int,
                 max_frames: int | None = None, history: int = 0) -> Iterator[VirtualScamp5]:
     """Device ``cam1`` streaming 256 x 256 modulo frames at ``fps``, read by its daemon and
-    decoded (itoh) by a worker; all stopped on exit.
-
-    The camera starts once the daemon holds the port: opening a serial port flushes what
-    it had buffered, so under load a camera started first lost its frame 0."""
+    decoded (itoh) by a worker; all stopped on exit."""
     assert settings.redis_url is not None
     cam = VirtualScamp5(PtyEndpoint(tmp_path / "scamp5"), settings=CameraSettings(fps=fps),
                         seed=seed, history=history, max_frames=max_frames)
@@ -34,9 +31,7 @@ def live_camera(settings: Settings, tmp_path: Path, *, fps: float, seed: int,
     worker = Worker(WorkerConfig(redis_url=settings.redis_url, data_dir=settings.data_dir,
                                  decoder="itoh", heartbeat_s=0.5, lease_ms=2000))
     thread = threading.Thread(target=worker.run, daemon=True)
-    daemon.start()
-    assert wait_for(lambda: daemon.health.state == "connected", 30)
-    cam.start()
+    start_streaming(daemon, cam)
     thread.start()
     try:
         yield cam
