@@ -51,8 +51,8 @@ def damaged(draw: st.DrawFn) -> tuple[bytes, bool]:
     if kind == "cut":
         return wire[: draw(st.integers(1, len(wire) - 1))], False
     data = bytearray(wire)
-    for _ in range(draw(st.integers(1, 4))):
-        i = draw(st.integers(0, len(data) - 1))
+    # Distinct positions: flipping one byte twice by the same value would restore it.
+    for i in draw(st.sets(st.integers(0, len(data) - 1), min_size=1, max_size=4)):
         data[i] ^= draw(st.integers(1, 255))
     return bytes(data), False
 
