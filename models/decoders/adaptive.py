@@ -24,10 +24,7 @@ checked against ``itoh`` instead (:meth:`AdaptiveDecoder.check_small_regions`): 
 removes the net's false wraps at steep edges of dark frames for the cost of one
 itoh decode (2.7 ms at 256x256).
 
-A frame with no residue at all is integrated whole. Below ``best``, a frame whose
-hardest tile is ``sparse`` goes whole to ``itoh`` (:data:`SPARSE_FRAME_DECODER`): on
-such frames it measured as accurate as every network, for a fraction of the cost.
-At quality ``best`` a frame
+A frame with no residue at all is integrated whole. At quality ``best`` a frame
 with any residue goes whole to the network: per-tile routing trusts tiles whose
 borders may cross sharp edges (jumps over half a wrap that leave no residue),
 which measured about 2 points of winding accuracy below the network alone. At the
@@ -39,6 +36,17 @@ Otherwise tiles are stitched into one consistent W by :mod:`models.tile_reconcil
 the global offset then comes from the anchoring rule (darkest pixels W = 0), taken
 over the tiles known to be exact (pass-through, integration) when there are any.
 The route of every pixel is reported.
+
+Tried and dropped (2026-11-25): sending a frame whose hardest tile is ``sparse``
+whole to ``itoh`` (below ``best``). On 190 such seeded synthetic frames it measured as
+accurate as the nets (32.23 dB against auto-fast's 32.22) and auto-fast ran the
+mostly-dark set in 1.9 instead of 9.7 ms, but on real scenes itoh leaves whole regions
+a wrap off behind aliased edges that make no residue: 14 sparse-only crops of the
+training scenes 44.8 against 49.6 dB (auto-fast), and the sparse-only frames of the
+pan/zoom clip (city) 17.0 against 22.6 dB at fast, 19.9 against 24.9 dB (mantissa)
+and 29.7 against 36.7 dB (modulo) at balanced, refined or not. The networks see
+those edges from context. Refining itoh's answer on crops around the residues
+instead cost as much as the network windows (11-13 ms) and fixed no region.
 """
 
 from __future__ import annotations
@@ -93,21 +101,6 @@ NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: 23.88 dB, since the tiny net was trained with ce-risk; before, tiny-noise+puma at
 #: 23.63 dB; ranked by the nets' own PSNR it would run small+puma, 23.60 dB).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
-#: Below ``best``, a frame whose hardest tile is ``sparse`` (residues, but wrap edges on
-#: at most :data:`models.scene_analysis.DENSE_EDGE_DENSITY` of its neighbour pairs) goes
-#: whole to this classical decoder rather than to a network; its refinement still follows
-#: :data:`REFINEMENT`. Measured (2026-11-25) on the 190 such frames among 240 seeded
-#: synthetic 256x256 frames (40 scenes x overexposed 0.005 / 0.02 / 0.05 x both
-#: encodings; no val scene), PSNR / W right / median ms: itoh 32.23 dB / 99.06% / 2.4;
-#: herraez 32.23 / 99.07% / 8.8; small-s2d 31.90 / 98.51% / 9.1; tiny 31.75 / 97.84% /
-#: 15.5; small 32.10 / 98.77% / 25.3; auto-fast with the nets in windows 32.22 / 98.94%
-#: / 13.5. Refined by two cuts: itoh+puma 32.23 / 99.08% / 27 ms, tiny+puma 32.23 /
-#: 99.05% / 49 ms. On bench.tradeoff's sets auto-fast kept its accuracy (mostly-dark
-#: 44.89 dB, 512x512 36.32, 1024x1024 38.17) in 1.9 instead of 9.7 ms, 9.4 instead of
-#: 60 ms and 69 instead of 106 ms; every val-256 frame has a dense tile. At ``best``
-#: such a frame still goes whole to the network (mostly-dark: tiny+puma 46.06 dB,
-#: itoh+puma 45.89).
-SPARSE_FRAME_DECODER = "itoh"
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
 #: Without refinement, regions where the stitched W disagrees with this decoder's take
@@ -222,34 +215,13 @@ class AdaptiveDecoder(Decoder):
             return get_decoder(CLASSICAL_FALLBACK)
         return get_decoder(net)
 
-    def sparse_only(self, analysis: FrameAnalysis) -> bool:
-        """Whether a frame goes whole to :data:`SPARSE_FRAME_DECODER`: it has residues
-        but no dense tile, and the quality is below ``best``."""
-        return (
-            self.quality != "best"
-            and analysis.frame.difficulty in ("sparse", "dense")
-            and not any(region.difficulty == "dense" for region in analysis.tiles)
-        )
-
-    def residue_decoder(
-        self, params: SensorParams, analysis: FrameAnalysis | None = None
-    ) -> Decoder:
-        """The decoder of a frame's residues: :data:`SPARSE_FRAME_DECODER` when the
-        frame's ``analysis`` shows no dense tile (:meth:`sparse_only`), else (and
-        without an analysis) :meth:`hard_tile_decoder`."""
-        if analysis is not None and self.sparse_only(analysis):
-            return get_decoder(SPARSE_FRAME_DECODER)
-        return self.hard_tile_decoder(params)
-
-    def refiner(
-        self, params: SensorParams, analysis: FrameAnalysis | None = None
-    ) -> GuidedPumaDecoder | None:
-        """Guided PUMA with the quality's min-cut budget around the residue decoder
-        (:meth:`residue_decoder`), or None when the quality refines nothing."""
+    def refiner(self, params: SensorParams) -> GuidedPumaDecoder | None:
+        """Guided PUMA with the quality's min-cut budget around the hard-tile decoder,
+        or None when the quality refines nothing."""
         moves = REFINEMENT[self.quality]
         if not moves:
             return None
-        refined = get_decoder(refined_name(self.residue_decoder(params, analysis).name, moves))
+        refined = get_decoder(refined_name(self.hard_tile_decoder(params).name, moves))
         assert isinstance(refined, GuidedPumaDecoder)
         return refined
 
@@ -261,14 +233,13 @@ class AdaptiveDecoder(Decoder):
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         return self.explain_analysed(m, params, analyse(m, params, self.tile))
 
-    def residue_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
-        """Pixels the residue decoder (:meth:`residue_decoder`) will see for a frame
-        with this analysis: none without residues, the whole frame at ``best`` or when
-        it has no dense tile, else the windows of the groups of hard tiles
-        (:meth:`hard_windows`)."""
+    def network_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
+        """Pixels the hard-tile decoder will see for a frame with this analysis: none
+        without residues, the whole frame at ``best``, else the windows of the groups
+        of hard tiles (:meth:`hard_windows`)."""
         if analysis.frame.difficulty in ("none", "smooth"):
             return 0
-        if self.quality == "best" or self.sparse_only(analysis):
+        if self.quality == "best":
             return shape[0] * shape[1]
         return sum(
             (rows.stop - rows.start) * (cols.stop - cols.start)
@@ -320,23 +291,21 @@ class AdaptiveDecoder(Decoder):
         if difficulty == "smooth":
             winding = anchor_winding(integrate_jumps(along_cols, along_rows), params)
             return winding, _report({INTEGRATION: m.size}, "no residue")
-        winding, report, doubtful = self._decode_residues(m, params, analysis)
-        refiner = self.refiner(params, analysis)
+        winding, report, doubtful = self._decode_hard(m, params, analysis)
+        refiner = self.refiner(params)
         if refiner is not None:
             winding, facts = refiner.refine(m, winding, params, doubtful)
             report["refinement"] = {"decoder": refiner.name, **facts}
-        elif self.checks_small_regions(params, analysis):
+        elif self.checks_small_regions(params):
             winding, report["small_regions"] = self.check_small_regions(m, winding, params)
         return winding, report
 
-    def checks_small_regions(
-        self, params: SensorParams, analysis: FrameAnalysis | None = None
-    ) -> bool:
+    def checks_small_regions(self, params: SensorParams) -> bool:
         """Whether frames with residues get :meth:`check_small_regions`: when the quality
-        refines nothing and the residues are not already decoded by that decoder."""
+        refines nothing and the hard tiles are not already decoded by that decoder."""
         return (
             not REFINEMENT[self.quality]
-            and self.residue_decoder(params, analysis).name != SMALL_REGION_CHECK
+            and self.hard_tile_decoder(params).name != SMALL_REGION_CHECK
         )
 
     def check_small_regions(
@@ -356,23 +325,8 @@ class AdaptiveDecoder(Decoder):
     ) -> tuple[NDArray[np.int64], NDArray[np.bool_] | None]:
         """W of a frame with residues before refinement, and the pixels the network
         decided (None: all); what :meth:`refiner` starts from."""
-        winding, _, doubtful = self._decode_residues(m, params, analysis)
+        winding, _, doubtful = self._decode_hard(m, params, analysis)
         return winding, doubtful
-
-    def _decode_residues(
-        self, m: NDArray[np.float64], params: SensorParams, analysis: FrameAnalysis
-    ) -> tuple[NDArray[np.int64], dict[str, Any], NDArray[np.bool_] | None]:
-        """W of a frame with residues before refinement, the report, and the pixels
-        the residue decoder decided (None: all): :data:`SPARSE_FRAME_DECODER` on the
-        whole of a frame without dense tiles, else :meth:`_decode_hard`."""
-        if not self.sparse_only(analysis):
-            return self._decode_hard(m, params, analysis)
-        decoder = get_decoder(SPARSE_FRAME_DECODER)
-        reason = (
-            f"sparse wraps, no dense tile; {decoder.name} measured as accurate as the "
-            "networks on such frames"
-        )
-        return decoder.predict_winding(m, params), _report({decoder.name: m.size}, reason), None
 
     def _decode_hard(
         self, m: NDArray[np.float64], params: SensorParams, analysis: FrameAnalysis
@@ -386,7 +340,7 @@ class AdaptiveDecoder(Decoder):
         if self.quality == "best":
             reason = f"{difficulty} wraps; quality best decodes whole frames"
             return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
-        if self.residue_pixels(analysis, m.shape) >= m.size:
+        if self.network_pixels(analysis, m.shape) >= m.size:
             reason = f"{difficulty} wraps; the hard tiles with their margins cover the frame"
             return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
         pixels: Counter[str] = Counter()

@@ -2,11 +2,10 @@
 
 The scene analysis runs once per frame. For each quality of ``auto``, ``best``
 first, the winding-prediction time is predicted as the analysis time plus the
-pixels its residue decoder would see (:meth:`AdaptiveDecoder.residue_pixels`)
-times that decoder's cost per pixel (a network's, or ``itoh``'s on frames without
-dense tiles), plus, when the quality refines a frame with residues, the frame's
-pixels times the refinement's cost per pixel (at ``fast``, the cost per pixel of
-the small-region check's ``itoh`` decode instead, when it runs). The first quality
+pixels its network would see (:meth:`AdaptiveDecoder.network_pixels`) times that
+network's cost per pixel, plus, when the quality refines a frame with residues,
+the frame's pixels times the refinement's cost per pixel (at ``fast``, the cost per
+pixel of the small-region check's ``itoh`` decode instead). The first quality
 predicted within the budget decodes the frame. When none fits, ``itoh`` (one DCT
 solve per frame) decodes it if that is predicted to fit, else the quickest option
 runs and the report says the budget was not met. The inversion from W to
@@ -143,16 +142,16 @@ def predicted_ms(
 ) -> float:
     """Predicted W time (ms, without the analysis) of ``auto-<quality>`` on this frame."""
     decoder = adaptive(quality)
-    pixels = decoder.residue_pixels(analysis, shape)
+    pixels = decoder.network_pixels(analysis, shape)
     if pixels == 0:
         return 0.0
-    residues = decoder.residue_decoder(params, analysis)
-    residues_ns = pixels * ns_per_pixel(residues.name, params.encoding)
+    hard = decoder.hard_tile_decoder(params)
+    network_ns = pixels * ns_per_pixel(hard.name, params.encoding)
     per_pixel = refinement_ns_per_pixel(quality, params.encoding, refinement_size(shape))
-    if decoder.checks_small_regions(params, analysis):
+    if decoder.checks_small_regions(params):
         per_pixel += ns_per_pixel(SMALL_REGION_CHECK, params.encoding)
     refinement_ns = shape[0] * shape[1] * per_pixel
-    return (residues_ns + refinement_ns) / 1e6
+    return (network_ns + refinement_ns) / 1e6
 
 
 class BudgetDecoder(Decoder):

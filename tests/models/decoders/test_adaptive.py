@@ -14,7 +14,6 @@ from models.decoders.adaptive import (
     REFINEMENT,
     SMALL_REGION_CHECK,
     SMALL_REGION_FRACTION,
-    SPARSE_FRAME_DECODER,
     AdaptiveDecoder,
     measured_psnr,
     most_accurate_net,
@@ -160,44 +159,6 @@ def test_only_the_unrefined_quality_checks_small_regions_and_reports_it() -> Non
         assert ("refinement" in details) is not checks
 
 
-def sparse_frame() -> tuple[np.ndarray, np.ndarray]:
-    """Codes and W of a dark modulo frame with one 6 px rough spot: residues, no dense tile."""
-    x = np.full((128, 128), 0.2)
-    x[60:66, 30:36] += np.random.default_rng(1).uniform(0, 3, (6, 6))
-    frame = encode(x, MODULO)
-    kinds = {t.difficulty for t in analyse(dequantize(frame.codes, 8), MODULO).tiles}
-    assert "sparse" in kinds and "dense" not in kinds
-    return frame.codes, frame.winding
-
-
-@pytest.mark.parametrize("quality", ["fast", "balanced"])
-def test_a_frame_without_dense_tiles_goes_whole_to_the_classical_decoder(quality: str) -> None:
-    codes, truth = sparse_frame()
-    decoder = AdaptiveDecoder(quality)
-    result = decoder.decode(codes, MODULO)
-    details = result.info["details"]
-    assert details["routes"] == {SPARSE_FRAME_DECODER: 1.0}
-    assert "no dense tile" in details["reason"]
-    analysis = analyse(dequantize(codes, 8), MODULO)
-    assert decoder.residue_pixels(analysis, codes.shape) == codes.size
-    assert not decoder.checks_small_regions(MODULO, analysis)
-    refiner = decoder.refiner(MODULO, analysis)
-    sparse = get_decoder(SPARSE_FRAME_DECODER)
-    assert refiner is None or refiner.guide.name == sparse.name
-    expected = (refiner or sparse).decode(codes, MODULO).winding
-    np.testing.assert_array_equal(result.winding, expected)
-    far = np.ones(truth.shape, bool)
-    far[50:76, 20:46] = False
-    np.testing.assert_array_equal(result.winding[far], truth[far])
-
-
-def test_best_sends_a_frame_without_dense_tiles_to_the_network() -> None:
-    codes, _ = sparse_frame()
-    decoder = AdaptiveDecoder("best")
-    details = decoder.decode(codes, MODULO).info["details"]
-    assert details["routes"] == {decoder.hard_tile_decoder(MODULO).name: 1.0}
-
-
 def test_balanced_refines_a_tiled_frame_whole_from_the_stitched_w() -> None:
     """A dark frame with one rough spot: tiles are routed, then the whole frame refined."""
     x = np.full((256, 256), 0.2)
@@ -293,4 +254,4 @@ def test_separate_hard_tiles_get_separate_windows() -> None:
         (slice(0, 80), slice(0, 80)),
         (slice(176, 256), slice(176, 256)),
     ]
-    assert decoder.residue_pixels(analysis, m.shape) == 2 * 80 * 80
+    assert decoder.network_pixels(analysis, m.shape) == 2 * 80 * 80
