@@ -38,15 +38,25 @@ class _Border:
     support: float
 
 
+def most_common(values: NDArray[np.int64]) -> tuple[int, float]:
+    """The smallest of the most common integers in ``values``, and its share of them."""
+    lowest = int(values.min())
+    counts = np.bincount(values.ravel() - lowest)
+    best = int(np.argmax(counts))
+    return best + lowest, float(counts[best] / values.size)
+
+
+def common_offset(target: NDArray[np.int64], relative: NDArray[np.int64]) -> int:
+    """The most common ``target - relative``: the integer that aligns a W known up to a
+    constant (``relative``) with ``target`` on the same pixels."""
+    return most_common(target - relative)[0]
+
+
 def _border_vote(
     left: NDArray[np.int64], right: NDArray[np.int64], jumps: NDArray[np.int64]
 ) -> tuple[int, float]:
     """Most common implied offset between two facing pixel lines, and its share of votes."""
-    votes = left - jumps - right
-    lowest = int(votes.min())
-    counts = np.bincount(votes - lowest)
-    best = int(np.argmax(counts))
-    return best + lowest, float(counts[best] / votes.size)
+    return most_common(left - jumps - right)
 
 
 def _borders(

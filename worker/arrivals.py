@@ -45,9 +45,9 @@ from scipy import ndimage
 
 from models.decoders.guided_puma import GuidedPumaDecoder
 from models.formation import SensorParams, unwrapped_noise_sigma
+from models.tile_reconcile import common_offset
 from worker.config_checks import refuse_invalid
 from worker.crop_vote import CropConfig, cluster_boxes
-from worker.temporal_fallback import common_offset
 
 #: A pixel has changed when its misfit exceeds this many sigmas of its sensor noise.
 NOISE_SIGMAS = 6.0

@@ -9,7 +9,7 @@ connected cluster of unsafe pixels (grown by ``GROW`` px) of at least
 ``min_cluster`` unsafe pixels is decoded again by the spatial decoder on its
 bounding box widened by ``margin`` px (and to ``MIN_SIDE`` px a side, cut at the
 frame's border); the crop's constant is aligned to the fixed answer on the crop's
-safe pixels (:func:`worker.temporal_fallback.common_offset`) and its W clipped into
+safe pixels (:func:`models.tile_reconcile.common_offset`) and its W clipped into
 the range motion allows (:meth:`worker.temporal.Prediction.bounds`); then each
 region where the two disagree and that touches an unsafe pixel takes the answer
 with fewer jumps across its boundary (:func:`models.decoders.region_vote.region_vote`, as
@@ -43,8 +43,8 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from models.decoders.region_vote import region_vote
+from models.tile_reconcile import common_offset
 from worker.config_checks import refuse_invalid
-from worker.temporal_fallback import common_offset
 
 if TYPE_CHECKING:
     from worker.temporal import Prediction

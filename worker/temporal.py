@@ -135,12 +135,13 @@ from models.decoders.region_vote import region_vote
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
+from models.tile_reconcile import common_offset
 from worker.arrivals import ArrivalConfig, refine_arrivals
 from worker.brightness import BrightnessConfig, brighten, frame_gain
 from worker.config_checks import refuse_invalid
 from worker.crop_vote import CropConfig, crop_vote
 from worker.motion import Compensated, MotionConfig, compensate, misfit
-from worker.temporal_fallback import common_offset, merge_spatial, neighbour_fix
+from worker.temporal_fallback import merge_spatial, neighbour_fix
 
 MODES: tuple[str, ...] = ("independent", "temporal")
 PATHS: tuple[str, ...] = ("temporal", "local", "spatial")

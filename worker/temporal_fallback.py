@@ -4,8 +4,9 @@
 (:func:`neighbour_fix`: each unsafe pixel takes the W that best matches a settled
 8-neighbour, or keeps its own temporal answer) and the *spatial* path
 (:func:`merge_spatial`: a full spatial decode aligned to the tracked answer by
-:func:`common_offset`, winning where it is :func:`locally_smooth` and the tracked
-answer is not). Arrays are one channel, H x W; ``u`` and ``m`` in wraps.
+:func:`models.tile_reconcile.common_offset`, winning where it is
+:func:`locally_smooth` and the tracked answer is not). Arrays are one channel,
+H x W; ``u`` and ``m`` in wraps.
 """
 
 from __future__ import annotations
@@ -15,15 +16,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from models.tile_reconcile import common_offset
+
 if TYPE_CHECKING:
     from worker.temporal import Prediction
-
-
-def common_offset(target: NDArray[np.int64], relative: NDArray[np.int64]) -> int:
-    """The most common ``target - relative`` (aligns a spatial answer's constant)."""
-    diff = (target - relative).ravel()
-    low = int(diff.min())
-    return int(np.argmax(np.bincount(diff - low))) + low
 
 
 def locally_smooth(u: NDArray[np.float64]) -> NDArray[np.bool_]:

@@ -58,6 +58,7 @@ from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_guide
 from models.formation import SensorParams, max_winding
 from models.scene_analysis import neighbour_jumps, residue_map
+from models.tile_reconcile import common_offset
 
 SUFFIX = "+puma"
 NAME = re.compile(rf"(?P<guide>.+){re.escape(SUFFIX)}(?P<moves>[1-9][0-9]*)?")
@@ -94,6 +95,15 @@ WHOLE_FRAME_PIXELS = 512 * 512
 #: integer offsets.
 WINDOW = 256
 WINDOW_OVERLAP = 64
+#: Given the pixels whose guide may be wrong (``doubtful``), only boxes around them are
+#: refined: each connected group of doubtful pixels grown by this many px of context.
+#: Measured with auto-balanced (2026-11-25, one core busy), refining the whole frame
+#: against boxes with 16 / 32 px of context: the same PSNR and W to 0.01 on the
+#: mostly-dark set (45.99 dB; 42 -> 25 ms), 512x512 (36.52 dB; 312 -> 158 / 234 ms), 12
+#: val-256 frames and 15 frames of the pan/zoom clip (whole frames mostly: 80-85 ms).
+DOUBTFUL_CONTEXT = 32
+#: The counts a refinement reports (summed over its boxes), besides the changed fraction.
+REFINEMENT_COUNTS = ("windows", "region_moves", "moves")
 
 
 def residue_pixels(m: NDArray[np.float64], reach: int = RESIDUE_REACH) -> NDArray[np.bool_]:
@@ -158,15 +168,36 @@ class GuidedPumaDecoder(Decoder):
         the ``max_moves`` budget.
 
         ``doubtful`` (bool, H x W; None: everywhere) marks the pixels whose guide may
-        be wrong: a window (of a frame refined in windows) without any keeps the guide.
+        be wrong; the others keep the guide. Each connected group of them is refined on
+        its own box, grown by :data:`DOUBTFUL_CONTEXT` px of context, whose constant is
+        aligned to the guide on the box's other pixels.
         """
+        if doubtful is None or doubtful.all():
+            return self._refine_frame(m, guide, params)
+        winding = guide.copy()
+        boxes: list[dict[str, Any]] = []
+        grown = ndimage.binary_dilation(doubtful, iterations=DOUBTFUL_CONTEXT)
+        for box in ndimage.find_objects(ndimage.label(grown)[0]):
+            refined, facts = self._refine_frame(m[box], guide[box], params)
+            trusted = ~doubtful[box]
+            if trusted.any():
+                refined = refined + common_offset(guide[box][trusted], refined[trusted])
+            top = max_winding(params)
+            refined = np.clip(refined, 0, top if top is not None else None)
+            winding[box] = np.where(doubtful[box], refined, guide[box])
+            boxes.append(facts)
+        totals = {key: sum(facts[key] for facts in boxes) for key in REFINEMENT_COUNTS}
+        return winding, {**totals, "changed_fraction": float(np.mean(winding != guide))}
+
+    def _refine_frame(
+        self, m: NDArray[np.float64], guide: NDArray[np.int64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """:meth:`refine` everywhere: whole, or in overlapping windows when large."""
         moves: list[int] = []
         region_cuts: list[int] = []
 
         def refine_window(rows: slice, cols: slice) -> NDArray[np.int64]:
             window, prior = m[rows, cols], guide[rows, cols]
-            if doubtful is not None and not doubtful[rows, cols].any():
-                return prior
             energy = PumaEnergy(1.0, pair_weights(window), prior, self.prior_weight)
             start = prior
             if self.region_moves:

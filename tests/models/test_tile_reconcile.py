@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from models.formation import SensorParams, split_unwrapped
 from models.scene_analysis import neighbour_jumps
-from models.tile_reconcile import Tile, _border_vote, integrate_jumps, stitch
+from models.tile_reconcile import Tile, _border_vote, common_offset, integrate_jumps, stitch
 
 MODULO = SensorParams(encoding="modulo")
 
@@ -93,3 +93,19 @@ def test_border_vote_is_the_smallest_most_common_offset(votes: list[int], shift:
     values, counts = np.unique(votes, return_counts=True)
     assert delta == values[np.argmax(counts)]
     assert support == counts.max() / len(votes)
+
+
+def test_common_offset_is_the_most_frequent_difference() -> None:
+    target = np.array([5, 5, 5, 2, 9])
+    relative = np.array([1, 1, 1, 1, 1])
+    assert common_offset(target, relative) == 4
+    assert common_offset(np.array([-3]), np.array([0])) == -3
+
+
+@given(st.integers(-50, 50), st.integers(0, 2**31 - 1))
+def test_common_offset_aligns_a_shifted_map_with_a_few_errors(shift: int, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    target = rng.integers(0, 8, (16, 16))
+    relative = target - shift
+    relative[rng.random(target.shape) < 0.2] += 1
+    assert common_offset(target, relative) == shift

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from worker.temporal import Prediction, TemporalConfig, temporal_prediction
-from worker.temporal_fallback import common_offset, locally_smooth, merge_spatial, neighbour_fix
+from worker.temporal_fallback import locally_smooth, merge_spatial, neighbour_fix
 
 
 def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:
@@ -22,13 +22,6 @@ def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:
     damaged = Prediction(wrong, safe, prediction.lo, prediction.hi + 3, m, np.abs(wrong + m - u))
     fixed = neighbour_fix(damaged.channel(0), passes=2)
     np.testing.assert_array_equal(fixed, np.floor(u[:, :, 0]))
-
-
-def test_common_offset_is_the_most_frequent_difference() -> None:
-    target = np.array([5, 5, 5, 2, 9])
-    relative = np.array([1, 1, 1, 1, 1])
-    assert common_offset(target, relative) == 4
-    assert common_offset(np.array([-3]), np.array([0])) == -3
 
 
 def test_locally_smooth_marks_pixels_next_to_a_jump() -> None:

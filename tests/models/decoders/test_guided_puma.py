@@ -213,3 +213,39 @@ def test_windows_without_doubtful_pixels_keep_the_guide() -> None:
     winding, facts = decoder.refine(m, guide, params, doubtful)
     assert facts["windows"] == 1
     np.testing.assert_array_equal(winding[:, WINDOW:], guide[:, WINDOW:])
+
+
+PARAMS = SensorParams(encoding="mantissa", max_wraps=64)
+
+
+def _two_hills() -> tuple[np.ndarray, np.ndarray, np.ndarray, GuidedPumaDecoder]:
+    """A 96 x 256 mantissa frame with two hills of several wraps, 128 px apart: its true
+    W, its m, a guide capped at 2 wraps, and the refinement around that guide."""
+    scene = np.concatenate([_hill(size=96, width=128), _hill(size=96, width=128)], axis=1)
+    frame = encode(scene, PARAMS)
+    decoder = GuidedPumaDecoder(CappedGuide(frame.winding, 2))
+    return frame.winding, frame.codes / 255.0, np.minimum(frame.winding, 2), decoder
+
+
+def test_only_boxes_around_doubtful_pixels_are_refined() -> None:
+    """Each group of doubtful pixels is refined on its own box; the rest keeps the guide."""
+    truth, m, guide, decoder = _two_hills()
+    left = np.zeros(m.shape, bool)
+    left[:, :128] = truth[:, :128] > 0
+    winding, facts = decoder.refine(m, guide, PARAMS, left)
+    np.testing.assert_array_equal(winding[:, :128], truth[:, :128])
+    np.testing.assert_array_equal(winding[:, 128:], guide[:, 128:])
+    assert facts["windows"] == 1
+    winding, facts = decoder.refine(m, guide, PARAMS, truth > 2)
+    np.testing.assert_array_equal(winding, truth)
+    assert facts["windows"] == 2
+    assert facts["changed_fraction"] == pytest.approx(np.mean(truth > 2))
+
+
+def test_no_doubtful_pixel_keeps_the_guide_and_all_doubtful_refines_whole() -> None:
+    _, m, guide, decoder = _two_hills()
+    kept, facts = decoder.refine(m, guide, PARAMS, np.zeros(m.shape, bool))
+    np.testing.assert_array_equal(kept, guide)
+    assert facts == {"windows": 0, "region_moves": 0, "moves": 0, "changed_fraction": 0.0}
+    whole, _ = decoder.refine(m, guide, PARAMS, np.ones(m.shape, bool))
+    np.testing.assert_array_equal(whole, decoder.refine(m, guide, PARAMS)[0])
