@@ -19,6 +19,23 @@ def test_pareto_marks_only_undominated_rows() -> None:
     assert [r["pareto"] for r in rows] == [True, True, False, True]
 
 
+def test_speedups_compare_auto_with_networks_alone_or_refined_at_most_as_accurate() -> None:
+    rows = [
+        {"decoder": "auto-fast", "ms_per_frame": 2.0, "winding_accuracy": 0.99, "psnr_db": 40.0},
+        {"decoder": "net", "gflops_per_s": 1.0, "ms_per_frame": 10.0, "winding_accuracy": 0.9,
+         "psnr_db": 20.0},
+        {"decoder": "net+puma", "ms_per_frame": 60.0, "winding_accuracy": 0.98, "psnr_db": 45.0},
+        {"decoder": "better+puma", "ms_per_frame": 80.0, "winding_accuracy": 0.995,
+         "psnr_db": 46.0},
+        {"decoder": "itoh", "ms_per_frame": 1.0, "winding_accuracy": 0.5, "psnr_db": 10.0},
+    ]  # fmt: skip
+    found = {s["network"]: s for s in tradeoff.speedups(rows)}
+    assert set(found) == {"net", "net+puma"}
+    assert found["net+puma"]["speedup"] == 30.0
+    assert found["net+puma"]["network_psnr_db"] == 45.0
+    assert found["net"]["auto_psnr_db"] == 40.0
+
+
 def test_quick_run_writes_json_markdown_and_plot(tmp_path: Path) -> None:
     out = tmp_path / "tradeoff.json"
     plot = tmp_path / "tradeoff.png"
