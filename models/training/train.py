@@ -9,7 +9,9 @@ only on ``(seed, step)``; a checkpoint is written every
 it. Losses go to ``runs/<name>/log.jsonl``.
 
 A run may start from another run's trained weights (``init_from``, e.g. a
-noise-aware fine-tune of a finished model); stages with 0 steps are skipped.
+noise-aware fine-tune of a finished model, or a model trained in two runs); stages
+with 0 steps are skipped. ``label`` tells apart runs that would share a name (the
+first of two runs of one model).
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ class TrainConfig:
     """One training run. ``stage_steps``: optimizer steps of stages 1, 2, 3 (and 4).
 
     ``risk_weight`` (``ce-risk`` only): weight of the expected-PSNR term, see
-    :func:`winding_loss`.
+    :func:`winding_loss`. ``label``: a tag in the run name (``-<label>`` before the
+    encoding), for a run that is a step towards another rather than a model.
     """
 
     family: str = "mantissanet"
@@ -68,6 +71,7 @@ class TrainConfig:
     max_read_noise: float = 0.0
     risk_weight: float = RISK_WEIGHT
     init_from: str | None = None
+    label: str = ""
     seed: int = 0
     threads: int = 1
     checkpoint_every: int = 100
@@ -78,7 +82,8 @@ class TrainConfig:
     def name(self) -> str:
         noise = "-noise" if self.max_read_noise > 0 else ""
         loss = "" if self.loss == "ce" else f"-{self.loss}"
-        return f"{self.family}-{self.tier}{noise}{loss}-{self.encoding}"
+        label = f"-{self.label}" if self.label else ""
+        return f"{self.family}-{self.tier}{noise}{loss}{label}-{self.encoding}"
 
     @property
     def decoder(self) -> str:

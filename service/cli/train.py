@@ -53,6 +53,9 @@ def register(subparsers: Any) -> None:
     one.add_argument("--batch", type=int, default=8)
     one.add_argument("--read-noise", type=float, default=0.0, help="max read noise (wrap units)")
     one.add_argument("--init-from", help="start from this finished run's weights (a run name)")
+    one.add_argument(
+        "--label", default="", help="a tag in the run name (a run towards another model)"
+    )
     one.add_argument("--seed", type=int, default=0)
     one.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
     one.add_argument("--runs-dir", type=Path, help="checkpoints and logs (default: runs/)")
@@ -109,7 +112,7 @@ def export_and_measure(
 
 def run(args: argparse.Namespace) -> int:
     """Dispatch the action; imports the torch-based training code lazily."""
-    from models.training.recipes import SHIPPED, quantized
+    from models.training.recipes import SHIPPED, exported, quantized
     from models.training.train import RUNS_DIR, TrainConfig, train
 
     if args.action == "export":
@@ -126,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
     if args.action == "all":
         for config in SHIPPED:
             checkpoint = train(config, print_progress)
-            export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
+            if exported(config):
+                export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
         return 0
     if args.crop % 16 or args.crop < 32:
         raise InvalidInputError(f"--crop must be a multiple of 16 and >= 32, got {args.crop}")
@@ -134,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
         max_read_noise=args.read_noise, risk_weight=args.risk_weight,
-        init_from=args.init_from, seed=args.seed, threads=args.threads,
+        init_from=args.init_from, label=args.label, seed=args.seed, threads=args.threads,
         runs_dir=args.runs_dir or RUNS_DIR,
     )  # fmt: skip
     print(f"checkpoint: {train(config, print_progress)}")

@@ -70,6 +70,13 @@ def test_every_loss_trains_and_names_its_run(tmp_path: Path, loss: str) -> None:
     assert head.shape[0] == HEAD_OUTPUTS[loss]
 
 
+def test_a_label_names_the_run_but_not_the_decoder() -> None:
+    config = TrainConfig(tier="small-s2d", encoding="modulo", label="part1")
+    assert config.name == "mantissanet-small-s2d-part1-modulo"
+    assert config.decoder == "mantissanet-small-s2d"
+    assert TrainConfig(tier="small-s2d").name == "mantissanet-small-s2d-mantissa"
+
+
 def test_jumps_loss_is_zero_for_the_true_jumps_and_counts_them_right() -> None:
     winding = torch.tensor([[0, 0, 2], [0, 1, 3], [1, 1, 3]]).reshape(1, 1, 3, 3)
     along_cols, along_rows = winding_jumps(winding)
