@@ -27,8 +27,9 @@ refined in overlapping :data:`WINDOW`-px windows stitched with integer offsets.
 The first :data:`REGION_MOVES` moves are region moves
 (:mod:`models.decoders.region_moves`): each consistent region of the guide moves
 whole, on a graph 3-70x smaller than the pixel grid, so the pixel moves that follow
-start near the minimum and need fewer, cheaper cuts. A pixel cut costs about 20 ms at
-256x256 (2 quiet AMD EPYC cores), a region cut about a third of that.
+start near the minimum and need fewer, cheaper cuts. From the tiny net's W on val-256
+(2 quiet AMD EPYC cores, 2026-11-25), a pixel cut costs 14.5 ms at 256x256 and a region
+cut 4.3 ms (medians).
 Measured on val-256 (mantissanet-small guide, 2026-11-25): 22.17 -> 23.52 dB; the
 converged pixel refinement took about 6 cuts and 106 ms, 2 region + 2 pixel cuts
 reach the same 23.52 dB in 43 ms (``max_moves=2``, what ``auto`` runs at balanced).
