@@ -177,13 +177,13 @@ class GuidedPumaDecoder(Decoder):
             return self._refine_frame(m, guide, params)
         winding = guide.copy()
         boxes: list[dict[str, Any]] = []
+        top = max_winding(params)
         grown = ndimage.binary_dilation(doubtful, iterations=DOUBTFUL_CONTEXT)
         for box in ndimage.find_objects(ndimage.label(grown)[0]):
             refined, facts = self._refine_frame(m[box], guide[box], params)
             trusted = ~doubtful[box]
             if trusted.any():
                 refined = refined + common_offset(guide[box][trusted], refined[trusted])
-            top = max_winding(params)
             refined = np.clip(refined, 0, top if top is not None else None)
             winding[box] = np.where(doubtful[box], refined, guide[box])
             boxes.append(facts)
