@@ -1,7 +1,7 @@
 """Speed against accuracy: every decoder, ``auto`` at each quality, and tile sizes.
 
 ``python -m bench.tradeoff`` measures, on 2 cores (onnxruntime threads from
-``MCAM_WORKER_THREADS``, default 2):
+``MCAM_WORKER_THREADS``, default 2; idle threads spin with ``MCAM_ORT_SPIN=1``):
 
 - ``val-256``: the fixed val-256 protocol (mantissa, 8 bits, overexposed 0.2);
 - ``large-512`` / ``large-1024``: seeded synthetic scenes at 512 and 1024 px;
@@ -29,6 +29,7 @@ from bench import RESULTS, machine, utc_now, versions, write_report
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
+from models.decoders.learned import ort_spinning, worker_threads
 from models.formation import SensorParams, simulate
 from models.scenes import (
     VAL256_BITS,
@@ -193,6 +194,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "load_average": os.getloadavg(),
         "peak_gflops_per_s": peak,
         "repeats": args.repeats,
+        "ort_threads": worker_threads(),
+        "ort_spinning": ort_spinning(),
         "sets": {name: len(frames) for name, frames in sets.items()},
         "results": table,
         "mostly_dark_speedups": dark_speedups,

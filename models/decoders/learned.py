@@ -8,7 +8,8 @@ the pixels its net says roll over once more, pass by pass (at most the card's
 Models are discovered from the JSON model cards in ``models/onnx/``; a decoder
 picks the card of the frame's encoding. Each ONNX session is created once (per
 decoder instance and encoding) and reused; intra-op threads come from the
-environment variable ``MCAM_WORKER_THREADS`` (default 2).
+environment variable ``MCAM_WORKER_THREADS`` (default 2), and ``MCAM_ORT_SPIN=1``
+lets idle intra-op threads spin (see :func:`make_session`).
 
 A frame is padded (reflected) to the net's multiple; frames larger than the
 card's tile size are cut into overlapping tiles. W is global, so tiles are not
@@ -38,6 +39,7 @@ from models.formation import SensorParams
 ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 THREADS_ENV = "MCAM_WORKER_THREADS"
 DEFAULT_THREADS = 2
+SPIN_ENV = "MCAM_ORT_SPIN"
 #: Overlap between neighbouring tiles, in pixels (a multiple of the net's multiple).
 OVERLAP = 64
 
@@ -48,6 +50,15 @@ def worker_threads() -> int:
     if not raw.isdigit() or int(raw) < 1:
         raise InvalidInputError(f"{THREADS_ENV} must be a positive integer, got {raw!r}")
     return int(raw)
+
+
+def ort_spinning() -> bool:
+    """Whether idle onnxruntime intra-op threads spin: ``MCAM_ORT_SPIN`` is ``1`` (``0``
+    or unset: they sleep)."""
+    raw = os.environ.get(SPIN_ENV, "0")
+    if raw not in ("0", "1"):
+        raise InvalidInputError(f"{SPIN_ENV} must be 0 or 1, got {raw!r}")
+    return raw == "1"
 
 
 def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:
@@ -66,13 +77,19 @@ def make_session(
     """A CPU onnxruntime session with ``threads`` intra-op threads (profiling to files
     starting with ``profile_prefix`` when given).
 
-    Idle intra-op threads sleep instead of spinning: on shared cores a spinning thread
-    steals the core from the one doing the work (measured by ``python -m bench.profile``)."""
+    Idle intra-op threads sleep unless ``MCAM_ORT_SPIN=1`` (:func:`ort_spinning`).
+    Spinning pays only on cores nothing else uses. Measured on val-256 (2026-11-25, 2
+    AMD EPYC cores, 2 threads), sleeping against spinning: quiet, mantissanet-small-s2d
+    9.5 against 8.3 ms and auto-fast 11.9 against 10.7 ms; with the other core busy,
+    10.8 against 17.6 ms and 14.3 against 21.3 ms (a spinning thread steals the core
+    from the one doing the work)."""
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.add_session_config_entry(
+        "session.intra_op.allow_spinning", "1" if ort_spinning() else "0"
+    )
     if profile_prefix is not None:
         options.enable_profiling = True
         options.profile_file_prefix = profile_prefix

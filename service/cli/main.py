@@ -2,8 +2,9 @@
 
 Each command lives in its own module exposing ``register(subparsers)``, which
 adds a sub-parser whose ``func`` default runs the command and returns an exit
-code. Errors that are the caller's (:class:`McamError`) print one clear line
-and exit 2; they never show a traceback.
+code. Errors that are the caller's (:class:`McamError`, a missing file, an
+``MCAM_*`` setting that does not parse) print one clear line and exit 2; they never
+show a traceback.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+
+from pydantic import ValidationError
 
 from models.errors import McamError
 
@@ -40,6 +43,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def settings_problems(exc: ValidationError) -> str:
+    """One line naming each ``MCAM_*`` setting that could not be read, and why."""
+    problems = [
+        f"MCAM_{'.'.join(str(part) for part in error['loc']).upper()}="
+        f"{error.get('input')!r}: {error['msg']}"
+        for error in exc.errors()
+    ]
+    return "invalid settings (environment or .env): " + "; ".join(problems)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run the command, map caller errors to exit code 2."""
     args = build_parser().parse_args(argv)
@@ -50,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except FileNotFoundError as exc:
         print(f"mcam {args.command}: error: no such file: {exc.filename}", file=sys.stderr)
+        return 2
+    except ValidationError as exc:
+        print(f"mcam {args.command}: error: {settings_problems(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -36,10 +36,12 @@ def redis_url_for(settings: Settings) -> str:
     return embedded.url
 
 
-def set_thread_limits(threads: int) -> None:
-    """Intra-op threads for onnxruntime and numerical libraries, set before decoders load."""
+def set_thread_limits(threads: int, spin: bool = False) -> None:
+    """Intra-op threads for onnxruntime and numerical libraries, and whether onnxruntime's
+    idle threads spin (``MCAM_ORT_SPIN``), set before decoders load."""
     for name in ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS"):
         os.environ[name] = str(threads)
+    os.environ["MCAM_ORT_SPIN"] = "1" if spin else "0"
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -79,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    set_thread_limits(threads)
+    set_thread_limits(threads, settings.ort_spin)
     from worker.runner import Worker, WorkerConfig
 
     config = WorkerConfig(

@@ -41,6 +41,11 @@ class Settings(BaseSettings):
     )
     worker_concurrency: int = Field(1, ge=1, description="jobs decoded at once per worker")
     worker_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")
+    ort_spin: bool = Field(
+        False,
+        description="idle onnxruntime threads spin: faster on cores nothing else uses, "
+        "much slower on shared ones",
+    )
     jobs_maxlen: int = Field(10_000, gt=0, description="jobs stream bound; submits beyond it: 503")
     frames_maxlen: int = Field(256, gt=0, description="per-device frame stream bound (drop oldest)")
     claim_idle_ms: int = Field(30_000, gt=0, description="reclaim entries pending this long")

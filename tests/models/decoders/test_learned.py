@@ -83,6 +83,23 @@ def test_thread_setting_is_validated(monkeypatch: pytest.MonkeyPatch) -> None:
         learned.worker_threads()
 
 
+def test_spin_setting_is_validated_and_reaches_the_session(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    path = next(card["path"] for card in learned.load_cards())
+    for raw, spinning in (("1", True), ("0", False)):
+        monkeypatch.setenv(learned.SPIN_ENV, raw)
+        assert learned.ort_spinning() is spinning
+        options = learned.make_session(path, 1).get_session_options()
+        entry = options.get_session_config_entry("session.intra_op.allow_spinning")
+        assert entry == raw
+    monkeypatch.delenv(learned.SPIN_ENV)
+    assert learned.ort_spinning() is False
+    monkeypatch.setenv(learned.SPIN_ENV, "yes")
+    with pytest.raises(InvalidInputError, match="MCAM_ORT_SPIN must be 0 or 1"):
+        learned.ort_spinning()
+
+
 @settings(max_examples=30, deadline=None)
 @given(h=st.integers(1, 70), w=st.integers(1, 70), multiple=st.sampled_from([8, 16]))
 def test_padding_reaches_the_multiple_and_keeps_the_frame(h: int, w: int, multiple: int) -> None:

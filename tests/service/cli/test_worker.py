@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.redis_keys import WORKERS_HEARTBEAT
 
@@ -58,3 +60,37 @@ def test_worker_finds_the_embedded_redis_and_stops_on_sigterm(tmp_path: Path) ->
         assert process.wait(30) == 0
         assert client.hlen(WORKERS_HEARTBEAT) == 0
         process.communicate()
+
+
+def test_worker_rejects_a_spin_setting_it_cannot_read(tmp_path: Path) -> None:
+    process = mcam("worker", env={"MCAM_DATA_DIR": str(tmp_path), "MCAM_ORT_SPIN": "often"})
+    _out, err = process.communicate(timeout=60)
+    assert process.returncode == 2
+    assert "MCAM_ORT_SPIN='often'" in err and "Traceback" not in err
+
+
+def test_thread_limits_carry_the_spin_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    from models.decoders.learned import ort_spinning, worker_threads
+    from service.cli.worker import set_thread_limits
+
+    for name in ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS", "MCAM_ORT_SPIN"):
+        monkeypatch.delenv(name, raising=False)
+    set_thread_limits(3, spin=True)
+    assert worker_threads() == 3 and ort_spinning()
+    set_thread_limits(1)
+    assert worker_threads() == 1 and not ort_spinning()
+
+
+def test_every_unreadable_setting_is_named_in_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    from pydantic import ValidationError
+
+    from service.cli.main import settings_problems
+    from service.core.config import Settings
+
+    monkeypatch.setenv("MCAM_PORT", "abc")
+    monkeypatch.setenv("MCAM_WORKER_THREADS", "0")
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    line = settings_problems(caught.value)
+    assert "\n" not in line
+    assert "MCAM_PORT='abc'" in line and "MCAM_WORKER_THREADS='0'" in line
