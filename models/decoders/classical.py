@@ -36,10 +36,15 @@ def integrate_gradient(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> NDAr
     neighbours (the last column / row is ignored). The normal equations are a
     Poisson equation with Neumann boundaries, diagonalised by the type-II DCT
     (Ghiglia & Romero 1994). Returns the surface up to a constant (mean 0).
+
+    The transforms run in float32: 0.53 instead of 1.01 ms at 256x256, and the W that
+    :func:`relative_winding` rounds from the surface changed on 4 pixels of the 60
+    benchmark frames (val-256 in both encodings, mostly-dark, 512 and 1024 px), pixels
+    whose ``u - m`` lies within 1e-5 wraps of a half-integer, where either W fits.
     """
     rows, cols = dx.shape
-    gx = np.zeros((rows, cols))
-    gy = np.zeros((rows, cols))
+    gx = np.zeros((rows, cols), np.float32)
+    gy = np.zeros((rows, cols), np.float32)
     gx[:, :-1] = dx[:, :-1]
     gy[:-1, :] = dy[:-1, :]
     divergence = gx + gy
@@ -49,11 +54,11 @@ def integrate_gradient(dx: NDArray[np.float64], dy: NDArray[np.float64]) -> NDAr
         2.0 * np.cos(np.pi * np.arange(rows) / rows)[:, None]
         + 2.0 * np.cos(np.pi * np.arange(cols) / cols)[None, :]
         - 4.0
-    )
+    ).astype(np.float32)
     eigen[0, 0] = 1.0
     spectrum = dctn(divergence, type=2, norm="ortho") / eigen
     spectrum[0, 0] = 0.0
-    return idctn(spectrum, type=2, norm="ortho")
+    return idctn(spectrum, type=2, norm="ortho").astype(np.float64)
 
 
 def least_squares_unwrap(m: NDArray[np.float64]) -> NDArray[np.float64]:

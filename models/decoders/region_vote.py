@@ -27,9 +27,9 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 
-def _jumps(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """1.0 where ``a`` and ``b`` (u, wraps) are more than half a wrap apart, else 0.0."""
-    return (np.abs(a - b) > 0.5).astype(np.float64)
+def _jumps(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.int64]:
+    """1 where ``a`` and ``b`` (u, wraps) are more than half a wrap apart, else 0."""
+    return (np.abs(a - b) > 0.5).astype(np.int64)
 
 
 def region_vote(
@@ -50,19 +50,18 @@ def region_vote(
         return kept, differ
     labels, count = ndimage.label(differ)
     u_kept, u_candidate = kept + m, candidate + m
-    votes = np.zeros(count + 1)
-    for axis in (0, 1):
-        near = [slice(None)] * 2
-        far = [slice(None)] * 2
-        near[axis], far[axis] = slice(None, -1), slice(1, None)
-        pair = (tuple(near), tuple(far))
-        for side, other in (pair, pair[::-1]):
-            own, across = labels[side], labels[other]
-            boundary = own != across
-            gain = _jumps(u_kept[side], u_kept[other]) - _jumps(
-                u_candidate[side], u_kept[other]
-            )
-            votes += np.bincount(own[boundary], weights=gain[boundary], minlength=count + 1)
+    votes = np.zeros(count + 1, np.int64)
+    for near, far in (
+        ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+        ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+    ):
+        boundary = labels[near] != labels[far]
+        own = (labels[near][boundary], labels[far][boundary])
+        kept_u = (u_kept[near][boundary], u_kept[far][boundary])
+        candidate_u = (u_candidate[near][boundary], u_candidate[far][boundary])
+        for side, other in ((0, 1), (1, 0)):
+            gain = _jumps(kept_u[side], kept_u[other]) - _jumps(candidate_u[side], kept_u[other])
+            votes += np.bincount(own[side], weights=gain, minlength=count + 1).astype(np.int64)
     take = votes > 0
     take[0] = False
     if eligible is not None:
