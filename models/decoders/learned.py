@@ -40,6 +40,12 @@ ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 THREADS_ENV = "MCAM_WORKER_THREADS"
 DEFAULT_THREADS = 2
 SPIN_ENV = "MCAM_ORT_SPIN"
+#: The spellings of ``MCAM_ORT_SPIN`` (those pydantic reads as booleans, so the
+#: worker's settings and the models agree).
+SPIN_WORDS = {
+    **dict.fromkeys(("1", "on", "t", "true", "y", "yes"), True),
+    **dict.fromkeys(("0", "off", "f", "false", "n", "no"), False),
+}
 #: Overlap between neighbouring tiles, in pixels (a multiple of the net's multiple).
 OVERLAP = 64
 
@@ -53,12 +59,13 @@ def worker_threads() -> int:
 
 
 def ort_spinning() -> bool:
-    """Whether idle onnxruntime intra-op threads spin: ``MCAM_ORT_SPIN`` is ``1`` (``0``
-    or unset: they sleep)."""
+    """Whether idle onnxruntime intra-op threads spin: ``MCAM_ORT_SPIN`` is ``1`` (or
+    ``true``, ``yes``, ``on``); unset or ``0``: they sleep."""
     raw = os.environ.get(SPIN_ENV, "0")
-    if raw not in ("0", "1"):
-        raise InvalidInputError(f"{SPIN_ENV} must be 0 or 1, got {raw!r}")
-    return raw == "1"
+    spinning = SPIN_WORDS.get(raw.strip().lower())
+    if spinning is None:
+        raise InvalidInputError(f"{SPIN_ENV} must be 0 or 1 (or true / false), got {raw!r}")
+    return spinning
 
 
 def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:

@@ -95,7 +95,10 @@ def test_spin_setting_is_validated_and_reaches_the_session(
         assert entry == raw
     monkeypatch.delenv(learned.SPIN_ENV)
     assert learned.ort_spinning() is False
-    monkeypatch.setenv(learned.SPIN_ENV, "yes")
+    for raw, spinning in (("TRUE", True), ("off", False)):
+        monkeypatch.setenv(learned.SPIN_ENV, raw)
+        assert learned.ort_spinning() is spinning
+    monkeypatch.setenv(learned.SPIN_ENV, "maybe")
     with pytest.raises(InvalidInputError, match="MCAM_ORT_SPIN must be 0 or 1"):
         learned.ort_spinning()
 
