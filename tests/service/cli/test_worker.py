@@ -94,3 +94,14 @@ def test_every_unreadable_setting_is_named_in_one_line(monkeypatch: pytest.Monke
     line = settings_problems(caught.value)
     assert "\n" not in line
     assert "MCAM_PORT='abc'" in line and "MCAM_WORKER_THREADS='0'" in line
+
+
+def test_the_settings_and_the_models_read_the_spin_words_alike(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from models.decoders.learned import SPIN_WORDS, ort_spinning
+    from service.core.config import Settings
+
+    for word, spinning in SPIN_WORDS.items():
+        monkeypatch.setenv("MCAM_ORT_SPIN", word)
+        assert Settings().ort_spin is spinning is ort_spinning(), word
