@@ -254,13 +254,12 @@ def resolve(name: str) -> DecoderSpec | None:
 
 
 def specs() -> list[DecoderSpec]:
-    """The refined version of each installed plain (float, not noise-aware) winding-net
-    tier, ``mantissanet-<tier>+puma``; other guides resolve by name."""
+    """The refined version of each installed float winding net (noise-aware ones
+    included: ``auto`` at best may run one), ``mantissanet-<tier>+puma``; other guides
+    resolve by name."""
     tiers = dict.fromkeys(
         card["decoder"]
         for card in load_cards()
-        if card["family"] == "mantissanet"
-        and not card["noise_aware"]
-        and "quantization" not in card
+        if card["family"] == "mantissanet" and "quantization" not in card
     )
     return [_spec(name) for name in tiers]
