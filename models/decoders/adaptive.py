@@ -88,7 +88,7 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
 #: refinement starts with its region moves). Measured on val-256 (bench.tradeoff,
-#: 2026-11-25 13:30 UTC, mantissa): balanced 23.93 dB in 62 ms, best 23.88 dB in 111 ms
+#: 2026-11-25 16:31 UTC, mantissa): balanced 23.93 dB in 49 ms, best 23.99 dB in 93 ms
 #: (modulo, bench.accuracy: 23.70 against 23.36 dB). Earlier, with the small net in
 #: both: balanced 23.72 dB, best 23.52 dB. The route, not the budget, makes that
 #: difference: balanced's stitched W refined to convergence measured 23.69 dB, best's
@@ -97,9 +97,10 @@ NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: and best wins on the mostly-dark set (46.12 against 45.97 dB). Neither fewer jumps
 #: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
 #: one, so best keeps its route: it equals its net's converged refinement, and
-#: :func:`most_accurate_net` picks the net whose refinement measured best (tiny+puma,
-#: 23.88 dB, since the tiny net was trained with ce-risk; before, tiny-noise+puma at
-#: 23.63 dB; ranked by the nets' own PSNR it would run small+puma, 23.60 dB).
+#: :func:`most_accurate_net` picks the net whose refinement measured best (on mantissa
+#: base-noise+puma, 23.99 dB, since the base net was trained longer; before, tiny+puma at
+#: 23.88 dB and tiny-noise+puma at 23.63 dB; ranked by the nets' own PSNR it would run
+#: base-noise+puma too).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
