@@ -34,7 +34,7 @@ BASE_STAGES = SMALL_STAGES
 #: The second run continues end to end like small-s2d's (:data:`SMALL_S2D_MORE_STAGES`):
 #: 37 minutes on one core. val-256 mantissa 23.06 / 23.94 dB, 91.0% W, SSIM 0.869 (the
 #: most W right of any tier; refined, the most accurate single decoder).
-BASE_MORE_STAGES = (0, 0, 8000, 4000)
+BASE_MORE_STAGES = SMALL_S2D_MORE_STAGES
 
 #: Noise-aware small tier: the finished small model, continued end to end on large
 #: crops with read noise (stage 4 only).
