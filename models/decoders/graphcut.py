@@ -103,30 +103,37 @@ def clique_energy(u: NDArray[np.float64], p: float, weights: PairWeights = None)
 class PumaEnergy:
     """The energy PUMA minimises over integer ``K`` (``u = K + m``):
 
-    ``sum w_ij |u_j - u_i| ** p + prior_weight * sum |K - prior|``
+    ``sum w_ij |u_j - u_i| ** p + prior_weight * sum c(K - prior)``
 
     ``weights`` (see :data:`PairWeights`) weighs each neighbour pair; ``prior`` (int
-    H x W, optional) pulls ``K`` towards a known guess. Without a prior the energy does
-    not change when ``K`` shifts by a constant.
+    H x W, optional) pulls ``K`` towards a known guess, at ``c(d) = -d`` per pixel below
+    it and ``c(d) = above_factor * d`` above it (convex for ``above_factor >= 0``, so
+    the moves still reach the global minimum). Without a prior the energy does not
+    change when ``K`` shifts by a constant.
     """
 
     p: float = 1.0
     weights: PairWeights = None
     prior: NDArray[np.int64] | None = None
     prior_weight: float = 0.0
+    above_factor: float = 1.0
 
     def __call__(self, winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
         energy = clique_energy(winding + m, self.p, self.weights)
         if self.prior is not None:
-            energy += self.prior_weight * float(np.abs(winding - self.prior).sum())
+            energy += self.prior_weight * float(self._prior_cost(winding - self.prior).sum())
         return energy
+
+    def _prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:
+        """``c(K - prior)`` per pixel, in units of ``prior_weight``."""
+        return np.where(offset > 0, self.above_factor * offset, -offset)
 
     def prior_move_cost(self, winding: NDArray[np.int64], jump: int) -> NDArray[np.float64]:
         """Change of the prior term per pixel if that pixel's ``K`` grows by ``jump``."""
         if self.prior is None:
             return np.zeros(winding.shape)
         offset = winding - self.prior
-        return self.prior_weight * (np.abs(offset + jump) - np.abs(offset))
+        return self.prior_weight * (self._prior_cost(offset + jump) - self._prior_cost(offset))
 
 
 def _move_terms(

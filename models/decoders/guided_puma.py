@@ -8,18 +8,37 @@ smooth. PUMA alone (:mod:`models.decoders.graphcut`) removes such jumps, but on
 real scenes it also removes the true jumps at steep edges, which the nets get
 right from context. The refinement keeps both kinds of evidence, minimising
 
-    E(K) = sum over neighbour pairs of w_ij |u_j - u_i| + lam * sum |K - K_guide|
+    E(K) = sum over neighbour pairs of w_ij |u_j - u_i| + lam * sum c(K - K_guide)
 
 from ``K = K_guide`` (the guide decoder's W), with
 
-- ``w_ij = 1`` where the codes are unambiguous, and :data:`RESIDUE_WEIGHT` on pairs
-  within :data:`RESIDUE_REACH` pixels of a residue (a 2x2 loop whose wrap jumps do
-  not sum to zero: the Itoh condition fails there, so the guide decides);
+- ``w_ij`` the pair's reliability: ``exp(-(D_i + D_j) / RELIABILITY_SCALE)`` from the
+  :func:`curvature` ``D`` of its pixels (Herraez's second differences: about 0 where
+  the codes are smooth, large across steps, where the wrapped difference is least
+  likely to be the true one), times :data:`RESIDUE_WEIGHT` on pairs within
+  :data:`RESIDUE_REACH` pixels of a residue (a 2x2 loop whose wrap jumps do not sum
+  to zero: the Itoh condition fails there, so the guide decides);
 - a small ``lam`` (:data:`PRIOR_WEIGHT`): the guide's W is evidence about regions,
   not independent pixels. A region of area ``A`` whose border has ``L`` unambiguous
   pairs that disagree with the codes changes when ``L > lam * A`` (a disc of radius
   ``R`` when ``R < 2 / lam``), while a large region bounded by steep edges keeps the
-  guide's answer.
+  guide's answer;
+- ``c(d) = -d`` below the guide and :data:`ABOVE_FACTOR` ``* d`` above it: the nets
+  under-count (they never predict W >= 3), so raising a region costs half as much
+  as lowering it.
+
+The reliability factor and the cheaper rise were measured together (2026-11-25,
+``auto`` at best / balanced, mean PSNR; 6-10 frames per clip of the video set, 14
+training-scene crops per exposure): modulo val-256 23.36 -> 23.87 / 23.70 -> 24.00 dB;
+mantissa val-256 23.99 -> 23.92 / 23.93 -> 23.60 dB (four venice frames, bright
+clouds the nets under-count, lose 0.6-2.7 dB at balanced); the pan/zoom frames (a
+sky reached only through its cloud contours) 40.9 -> 45.6 / 24.6 -> 30.9 dB
+(mantissa) and 30.5 -> 40.3 / 30.5 -> 37.9 dB (modulo); the static noisy clip +1.3
+dB at best; training-scene crops (mantissa, best) +0.14 to +0.38 dB; mostly-dark
+frames -0.14 to -0.2 dB. The same time per frame. Either change alone measured less:
+the reliability factor alone lost as much on mantissa val-256 and lost 0.2-1.0 dB on
+the pan/zoom frames; the cheaper rise alone took 25-30% more time per frame for
+smaller gains (pan/zoom at best +2.7 dB, modulo val-256 at best +0.18 dB).
 
 Both terms are convex, so PUMA's +1/-1 binary moves (one min-cut each) reach the
 global minimum of a frame of up to :data:`WHOLE_FRAME_PIXELS`; larger frames are
@@ -37,9 +56,10 @@ Earlier runs (bench.tradeoff): mostly-dark frames 23.4 -> 46.1 dB; 512x512 frame
 27.9 -> 36.3 dB (itoh 36.3).
 
 Failure modes: a region the guide got wrong whose border is all near residues
-(foliage against the sky) keeps the guide's answer; a large region bounded by a
-smooth-looking aliased edge (a jump of about one wrap everywhere along it) shifts
-when ``lam`` is too small.
+(foliage against the sky) keeps the guide's answer; so does a bright, textured region
+the guide under-counts (clouds round the sun), whose high curvature weakens its pairs;
+a large region bounded by a smooth-looking aliased edge (a jump of about one wrap
+everywhere along it) shifts when ``lam`` is too small.
 """
 
 from __future__ import annotations
@@ -52,6 +72,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from models.decoders.base import Decoder
+from models.decoders.classical import wrap_difference
 from models.decoders.graphcut import PairWeights, PumaEnergy, minimise
 from models.decoders.learned import load_cards, stitch_overlapping
 from models.decoders.region_moves import best_region_move
@@ -70,10 +91,24 @@ NAME_PATTERNS = (
 )
 #: ``lam``: prior weight per pixel and wrap of disagreement with the guide.
 PRIOR_WEIGHT = 0.01
+#: The prior's cost per wrap above the guide, as a fraction of its cost per wrap below
+#: (:class:`models.decoders.graphcut.PumaEnergy`): the winding nets under-count W.
+ABOVE_FACTOR = 0.5
 #: Weight of neighbour pairs near a residue (where the codes do not decide W).
 RESIDUE_WEIGHT = 0.1
 #: Pairs touching a pixel within this many pixels of a residue get RESIDUE_WEIGHT.
 RESIDUE_REACH = 1
+#: Scale (wraps) of the reliability factor ``exp(-(D_i + D_j) / scale)`` of each pair
+#: (:func:`pair_weights`).
+RELIABILITY_SCALE = 1.5
+#: The (before, after) neighbours of each line through a pixel, as slices of the frame
+#: padded by one: along rows, along columns and along both diagonals.
+_OPPOSITE_NEIGHBOURS = (
+    ((slice(1, -1), slice(None, -2)), (slice(1, -1), slice(2, None))),
+    ((slice(None, -2), slice(1, -1)), (slice(2, None), slice(1, -1))),
+    ((slice(None, -2), slice(None, -2)), (slice(2, None), slice(2, None))),
+    ((slice(None, -2), slice(2, None)), (slice(2, None), slice(None, -2))),
+)
 #: Bound on min-cuts per frame (one +1 or -1 move each; a guide short by k wraps needs
 #: about 2k, real val-256 frames 4-9).
 MAX_MOVES = 100
@@ -117,11 +152,31 @@ def residue_pixels(m: NDArray[np.float64], reach: int = RESIDUE_REACH) -> NDArra
     return ndimage.binary_dilation(near, iterations=reach) if reach > 0 and near.any() else near
 
 
+def curvature(m: NDArray[np.float64]) -> NDArray[np.float32]:
+    """Herraez's second-difference measure per pixel (H x W, wraps): the root sum of
+    squares of the wrapped second differences along rows, columns and both diagonals.
+    About 0 where ``m`` is smooth (noise, gentle gradients, clean wrap contours), large
+    at steps and aliased edges, where a neighbour's wrapped difference is least likely
+    to be the true one. Border pixels see their missing neighbour as themselves."""
+    padded = np.pad(m.astype(np.float32), 1, mode="edge")
+    centre = padded[1:-1, 1:-1]
+    total = np.zeros(m.shape, np.float32)
+    for before, after in _OPPOSITE_NEIGHBOURS:
+        step = wrap_difference(padded[before] - centre) - wrap_difference(centre - padded[after])
+        total += step * step
+    return np.sqrt(total)
+
+
 def pair_weights(m: NDArray[np.float64]) -> PairWeights:
-    """1 for pairs away from residues, :data:`RESIDUE_WEIGHT` for pairs touching one."""
+    """Each neighbour pair's weight: ``exp(-(D_i + D_j) / RELIABILITY_SCALE)`` from the
+    :func:`curvature` ``D`` of its two pixels, times :data:`RESIDUE_WEIGHT` for pairs
+    touching a residue."""
     near = residue_pixels(m)
-    right = np.where(near[:, 1:] | near[:, :-1], RESIDUE_WEIGHT, 1.0)
-    down = np.where(near[1:] | near[:-1], RESIDUE_WEIGHT, 1.0)
+    reliable = curvature(m).astype(np.float64)
+    right = np.exp(-(reliable[:, 1:] + reliable[:, :-1]) / RELIABILITY_SCALE)
+    down = np.exp(-(reliable[1:] + reliable[:-1]) / RELIABILITY_SCALE)
+    right = np.where(near[:, 1:] | near[:, :-1], RESIDUE_WEIGHT * right, right)
+    down = np.where(near[1:] | near[:-1], RESIDUE_WEIGHT * down, down)
     return right, down
 
 
@@ -199,7 +254,9 @@ class GuidedPumaDecoder(Decoder):
 
         def refine_window(rows: slice, cols: slice) -> NDArray[np.int64]:
             window, prior = m[rows, cols], guide[rows, cols]
-            energy = PumaEnergy(1.0, pair_weights(window), prior, self.prior_weight)
+            energy = PumaEnergy(
+                1.0, pair_weights(window), prior, self.prior_weight, ABOVE_FACTOR
+            )
             start = prior
             if self.region_moves:
                 first = minimise(window, prior, energy, JUMPS, self.region_moves, best_region_move)

@@ -34,20 +34,23 @@ from models.decoders.graphcut import PairWeights, PumaEnergy, move_capacities
 #: Neighbours are in one region when ``|u_j - u_i|`` is below this (wrap units): the
 #: Itoh condition under the current K.
 CONSISTENT_STEP = 0.5
+#: ... and their pair's weight is above this: the codes decide the pair (it is not next
+#: to a residue nor across a sharp step; see :func:`models.decoders.guided_puma.pair_weights`).
+LINK_WEIGHT = 0.5
 
 
 def consistent_regions(
     u: NDArray[np.float64], weights: PairWeights
 ) -> tuple[int, NDArray[np.int64]]:
     """Label the regions of ``u`` (H x W, wrap units): 4-neighbours are joined when
-    their pair has full weight (``weights`` >= 1, or no weights) and they differ by less
-    than :data:`CONSISTENT_STEP`. Returns (number of regions, labels H x W)."""
+    their pair's weight is above :data:`LINK_WEIGHT` (or there are no weights) and they
+    differ by less than :data:`CONSISTENT_STEP`. Returns (number of regions, labels H x W)."""
     height, width = u.shape
     right = np.abs(np.diff(u, axis=1)) < CONSISTENT_STEP
     down = np.abs(np.diff(u, axis=0)) < CONSISTENT_STEP
     if weights is not None:
-        right &= weights[0] >= 1.0
-        down &= weights[1] >= 1.0
+        right &= weights[0] > LINK_WEIGHT
+        down &= weights[1] > LINK_WEIGHT
     index = np.arange(height * width, dtype=np.int32).reshape(height, width)
     first = np.concatenate([index[:, :-1][right], index[:-1][down]])
     second = np.concatenate([index[:, 1:][right], index[1:][down]])

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from models.decoders.graphcut import GraphCutDecoder, clique_energy, puma_unwrap
+from models.decoders.graphcut import GraphCutDecoder, PumaEnergy, clique_energy, puma_unwrap
 from models.decoders.registry import available_decoders, get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, encode
@@ -145,3 +145,21 @@ def test_bad_start_maps_are_rejected(start: np.ndarray) -> None:
 def test_decode_rejects_a_frame_without_neighbours() -> None:
     with pytest.raises(InvalidInputError, match="no neighbours"):
         GraphCutDecoder().decode(np.zeros((1, 9), np.uint8), SensorParams())
+
+
+@pytest.mark.parametrize("above", [0.0, 0.5, 1.0, 2.0])
+def test_the_prior_costs_above_factor_per_wrap_above_the_guess(above: float) -> None:
+    """Each wrap below the prior costs prior_weight, each wrap above it above_factor
+    times that; a move's cost per pixel is the difference of the two."""
+    prior = np.array([[2, 2, 2]])
+    energy = PumaEnergy(1.0, None, prior, 0.1, above)
+    flat = np.zeros((1, 3))
+    winding = np.array([[0, 2, 5]])
+    prior_term = energy(winding, flat) - clique_energy(winding + flat, 1.0)
+    assert prior_term == pytest.approx(0.1 * (2 + 3 * above))
+    np.testing.assert_allclose(
+        energy.prior_move_cost(winding, 1), 0.1 * np.array([[-1.0, above, above]])
+    )
+    np.testing.assert_allclose(
+        energy.prior_move_cost(winding, -1), 0.1 * np.array([[1.0, 1.0, -above]])
+    )
