@@ -81,15 +81,17 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 }
 #: Qualities that pick the net whose refinement (``<net>+puma``) measured the highest
 #: val-256 PSNR on the frame's encoding, among nets of at most this many GFLOPs per
-#: 256x256 frame (None: any). Measured (auto-balanced, val-256, 2026-11-25): mantissa
-#: with tiny 23.93 dB, small-s2d 23.75, small 23.63; modulo with small-s2d 23.70, small
-#: 23.37, tiny 23.35: the same order as the cards' refined PSNR, so balanced follows them
-#: too, capped below the base tier's 8 GFLOPs.
+#: 256x256 frame (None: any). Measured (auto-balanced, val-256, 2026-11-25, before guided
+#: PUMA weighed pairs by reliability): mantissa with tiny 23.93 dB, small-s2d 23.75, small
+#: 23.63; modulo with small-s2d 23.70, small 23.37, tiny 23.35: the same order as the
+#: cards' refined PSNR, so balanced follows them too, capped below the base tier's 8
+#: GFLOPs. Since that change the cards rank small-s2d first on both encodings, so
+#: balanced and best both run it.
 NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
-#: refinement starts with its region moves). Measured on val-256 (bench.tradeoff,
-#: 2026-11-25 16:31 UTC, mantissa): balanced 23.93 dB in 49 ms, best 23.99 dB in 93 ms
-#: (modulo, bench.accuracy: 23.70 against 23.36 dB). Earlier, with the small net in
+#: refinement starts with its region moves). Measured on val-256 (bench.accuracy,
+#: 2026-11-25 17:38 UTC, both with the small-s2d net): mantissa balanced 24.02 dB in 52
+#: ms, best 24.30 dB in 69 ms; modulo 24.00 against 23.87 dB. Earlier, with the small net in
 #: both: balanced 23.72 dB, best 23.52 dB. The route, not the budget, makes that
 #: difference: balanced's stitched W refined to convergence measured 23.69 dB, best's
 #: whole-frame W with two cuts 23.52 dB (both with the small net). The two
@@ -98,9 +100,9 @@ NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: per frame (23.55 dB) nor a region vote between the two (23.48 dB) picks the right
 #: one, so best keeps its route: it equals its net's converged refinement, and
 #: :func:`most_accurate_net` picks the net whose refinement measured best (on mantissa
-#: base-noise+puma, 23.99 dB, since the base net was trained longer; before, tiny+puma at
-#: 23.88 dB and tiny-noise+puma at 23.63 dB; ranked by the nets' own PSNR it would run
-#: base-noise+puma too).
+#: small-s2d+puma, 24.30 dB, since guided PUMA weighs pairs by reliability; before that
+#: base-noise+puma at 23.99 dB, and before the base net was trained longer tiny+puma at
+#: 23.88 dB; ranked by the nets' own PSNR it would run base-noise+puma, 23.92 dB).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"

@@ -27,18 +27,21 @@ from ``K = K_guide`` (the guide decoder's W), with
   under-count (they never predict W >= 3), so raising a region costs half as much
   as lowering it.
 
-The reliability factor and the cheaper rise were measured together (2026-11-25,
-``auto`` at best / balanced, mean PSNR; 6-10 frames per clip of the video set, 14
-training-scene crops per exposure): modulo val-256 23.36 -> 23.87 / 23.70 -> 24.00 dB;
-mantissa val-256 23.99 -> 23.92 / 23.93 -> 23.60 dB (four venice frames, bright
-clouds the nets under-count, lose 0.6-2.7 dB at balanced); the pan/zoom frames (a
-sky reached only through its cloud contours) 40.9 -> 45.6 / 24.6 -> 30.9 dB
-(mantissa) and 30.5 -> 40.3 / 30.5 -> 37.9 dB (modulo); the static noisy clip +1.3
-dB at best; training-scene crops (mantissa, best) +0.14 to +0.38 dB; mostly-dark
-frames -0.14 to -0.2 dB. The same time per frame. Either change alone measured less:
-the reliability factor alone lost as much on mantissa val-256 and lost 0.2-1.0 dB on
-the pan/zoom frames; the cheaper rise alone took 25-30% more time per frame for
-smaller gains (pan/zoom at best +2.7 dB, modulo val-256 at best +0.18 dB).
+The reliability factor and the cheaper rise were measured together (2026-11-25, mean
+PSNR; 6-10 frames per clip of the video set, 14 training-scene crops per exposure).
+Every net's refinement gains on val-256 (the cards' ``val256_refined``): mantissa
+small-s2d 23.87 -> 24.30 dB, tiny 23.88 -> 24.13, small 23.60 -> 24.10, base 23.94 ->
+24.09, base-noise 23.99 -> 23.92; modulo small-s2d 23.36 -> 23.87, small 23.28 -> 23.70.
+Small-s2d thus became the net ``auto`` refines at best and balanced: mantissa best
+23.99 -> 24.30 dB, balanced 23.93 -> 24.02; modulo 23.36 -> 23.87 and 23.70 -> 24.00;
+the pan/zoom frames (a sky reached only through its cloud contours) 24.6 -> 37.6 dB at
+balanced (mantissa); the static noisy clip +1.3 dB at best; mostly-dark frames 46.17 ->
+45.30 dB at best and 45.99 -> 45.59 at balanced (small-s2d's guide is worse there than
+base-noise's). With the nets ``auto`` used before, each change alone measured less: the
+reliability factor alone lost 0.35 dB at balanced on mantissa val-256 (four venice
+frames, bright clouds the tiny net under-counts, lost 0.6-2.7 dB) and 0.2-1.0 dB on the
+pan/zoom frames; the cheaper rise alone took 25-30% more time per frame for smaller
+gains (pan/zoom at best +2.7 dB, modulo val-256 at best +0.18 dB).
 
 Both terms are convex, so PUMA's +1/-1 binary moves (one min-cut each) reach the
 global minimum of a frame of up to :data:`WHOLE_FRAME_PIXELS`; larger frames are
