@@ -125,8 +125,9 @@ class PumaEnergy:
         return energy
 
     def _prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:
-        """``c(K - prior)`` per pixel, in units of ``prior_weight``."""
-        return np.where(offset > 0, self.above_factor * offset, -offset)
+        """``c(K - prior)`` per pixel, in units of ``prior_weight``: ``max(-d, above * d)``,
+        which is ``c`` for any ``above_factor >= 0``."""
+        return np.maximum(-offset, self.above_factor * offset)
 
     def prior_move_cost(self, winding: NDArray[np.int64], jump: int) -> NDArray[np.float64]:
         """Change of the prior term per pixel if that pixel's ``K`` grows by ``jump``."""

@@ -15,6 +15,7 @@ import sys
 
 from pydantic import ValidationError
 
+from models.allocator import keep_freed_memory
 from models.errors import McamError
 
 #: Command modules, in the order ``mcam --help`` lists them.
@@ -54,7 +55,9 @@ def settings_problems(exc: ValidationError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Parse arguments, run the command, map caller errors to exit code 2."""
+    """Parse arguments, run the command, map caller errors to exit code 2. Freed memory
+    stays in the process for reuse (:func:`models.allocator.keep_freed_memory`)."""
+    keep_freed_memory()
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
