@@ -5,7 +5,11 @@ glibc's malloc serves every block above 128 KiB with its own ``mmap`` and unmaps
 is free. A 256x256 float64 map is 512 KiB, so each temporary of the refinement, the
 scene analysis or the temporal step faults its pages in afresh: on this project's
 2-core VMs ``np.maximum(g, h - 1)`` on 256x256 maps took 360 us instead of 22 us
-(2026-11-25), and auto at best 75-83 ms a val-256 frame instead of 63-65 ms.
+(2026-11-25). glibc raises its mmap threshold by itself after such frees, so how much
+this costs depends on what the process ran before: auto at best took 75-83 ms a
+val-256 frame after itoh, fast and balanced had run in the same process (as in a
+worker) and 62-65 ms with the thresholds set, while a fresh process that runs only
+best measured 63-66 ms either way. The networks' own times did not change.
 
 :func:`keep_freed_memory` raises both thresholds (``mallopt``), so such blocks come from
 the heap and stay there once freed: a process keeps up to :data:`TRIM_THRESHOLD_BYTES`

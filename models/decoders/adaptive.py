@@ -122,6 +122,9 @@ SMALL_REGION_FRACTION = 0.015
 #: fast 87.0% vs 85.3%, balanced 89.9% vs 88.0%; modulo: 87.4% vs 80.2%, 89.4% vs 86.6%) but
 #: send more pixels to the network on frames with scattered hard spots (1024x1024 synthetic:
 #: 27% vs 8% of pixels, balanced 1.2 s vs 0.56 s per frame, 98.8% vs 99.7%), so 64 stays.
+#: Again after guided PUMA weighed pairs by reliability (balanced, 2026-11-25): 128 px
+#: 24.30 against 24.02 dB on val-256 mantissa, but 23.85 against 24.00 on modulo, 597
+#: against 174 ms at 512x512 and 1.00 against 0.22 s at 1024x1024.
 DEFAULT_TILE = 64
 #: Touching hard tiles share a network window within blocks of this many tiles a side
 #: (4 x 64 px: the nets' 256-px val size). Measured (W accuracy, fast / balanced):
