@@ -24,7 +24,7 @@ from models.decoders.guided_puma import (
 )
 from models.decoders.registry import available_decoders, resolve
 from models.errors import InvalidInputError
-from models.formation import SensorParams, encode
+from models.formation import SensorParams, dequantize, encode
 
 
 def _hill(size: int = 96, peak: float = 24.0, width: int | None = None) -> np.ndarray:
@@ -59,6 +59,42 @@ def test_rings_the_guide_missed_are_put_back(encoding: str, peak: float) -> None
     details = result.info["details"]
     assert details["guide"] == "capped"
     assert details["changed_fraction"] == pytest.approx(np.mean(frame.winding > 2))
+
+
+class LoweredGuide(Decoder):
+    """A guide one wrap short on the first ``rows`` rows (a sky the net put at W = 0)."""
+
+    name = "lowered"  # type: ignore[assignment]
+
+    def __init__(self, truth: NDArray[np.int64], rows: int) -> None:
+        self.guess = truth.copy()
+        self.guess[:rows] = np.maximum(self.guess[:rows] - 1, 0)
+
+    def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
+        return self.guess.copy()
+
+
+def test_a_sky_behind_a_sharp_edge_is_raised_through_its_smooth_side() -> None:
+    """The pan/zoom case: a sky one wrap up (x 1.45) meets dark ground (x 0.1) along a
+    sharp edge that looks like a 0.35-wrap step, and only a smooth ramp on one side shows
+    the wrap. With every pair weighing 1 the wrong sky has the lower energy (fewer
+    unwrapped jumps across the long sharp edge); weighted by reliability the true one
+    has, and the refinement raises the sky the guide left at W = 0."""
+    size, sky, band = 64, 20, 32
+    scene = np.full((size, size), 0.1)
+    scene[:sky] = 1.45 + 0.05 * np.sin(np.arange(size) / 3.0)[None, :]
+    scene[sky : 2 * sky + 1, :band] = np.linspace(1.45, 0.1, sky + 1)[:, None]
+    params = SensorParams(encoding="modulo", max_wraps=16)
+    frame = encode(scene, params)
+    m = dequantize(frame.codes, params.bits)
+    guide = LoweredGuide(frame.winding, sky)
+    wrong = guide.predict_winding(m, params)
+    unit, weighted = PumaEnergy(1.0), PumaEnergy(1.0, pair_weights(m))
+    assert unit(wrong, m) < unit(frame.winding, m)
+    assert weighted(frame.winding, m) < weighted(wrong, m)
+    result = GuidedPumaDecoder(guide).decode(frame.codes, params)
+    np.testing.assert_array_equal(result.winding[:sky], frame.winding[:sky])
+    assert np.mean(result.winding == frame.winding) > 0.999
 
 
 @pytest.mark.parametrize(
