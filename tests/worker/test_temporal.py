@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.scenes import ProceduralScene
+from models.decoders.base import Decoder
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, simulate
@@ -267,6 +268,38 @@ def test_a_periodic_keyframe_votes_out_a_tracked_error(interval: int) -> None:
         assert result.paths["spatial"] == pytest.approx(64 / SIZE**2)
     else:
         assert result.keyframe is None and wrong == 64
+
+
+class UnderCounting(Decoder):
+    """A spatial decoder that never counts above one wrap (as the nets at high W)."""
+
+    name = "under-counting"  # type: ignore[assignment]
+
+    def predict_winding(self, m: np.ndarray, params: SensorParams) -> np.ndarray:
+        return np.minimum(get_decoder("itoh").predict_winding(m, params), 1)
+
+
+@pytest.mark.parametrize("refine", [True, False])
+def test_anchoring_keyframes_are_refined_periodic_ones_are_not(refine: bool) -> None:
+    """The first frame's spatial answer, missing the blob's top wraps, is refined to the
+    truth (and the stream keeps it) unless refine_keyframes is off; a DISCONT keyframe
+    is refined too, independent mode never."""
+    config = TemporalConfig(keyframe_interval=0, refine_keyframes=refine)
+    decoder = StreamDecoder("temporal", UnderCounting(), config)
+    frames = [encoded(x) for x in slow_clip(3)]
+    assert frames[0].winding.max() >= 3
+    state = StreamState()
+    first = decoder.decode(frames[0].codes, PARAMS, state)
+    second = decoder.decode(frames[1].codes, PARAMS, state)
+    reconnect = decoder.decode(frames[2].codes, PARAMS, state, discont=True)
+    assert (first.keyframe, second.keyframe, reconnect.keyframe) == ("first", None, "discont")
+    for result, frame in zip((first, second, reconnect), frames, strict=True):
+        if refine:
+            np.testing.assert_array_equal(result.winding, frame.winding)
+        else:
+            assert result.winding.max() <= 2 and np.any(result.winding != frame.winding)
+    alone = StreamDecoder("independent", UnderCounting(), config)
+    assert alone.decode(frames[0].codes, PARAMS, StreamState()).winding.max() == 1
 
 
 def test_independent_mode_is_the_spatial_decoder() -> None:
