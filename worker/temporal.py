@@ -461,25 +461,12 @@ class StreamDecoder:
             [self.spatial.predict_winding(m[:, :, c], params) for c in range(m.shape[2])], axis=2
         ).astype(np.int64)
 
-    def _refined_planes(
-        self, m: NDArray[np.float64], spatial: NDArray[np.int64], params: SensorParams
-    ) -> NDArray[np.int64]:
-        """Each plane of the spatial answer refined by guided PUMA to convergence."""
-        assert self.keyframe_refiner is not None
-        return np.stack(
-            [
-                self.keyframe_refiner.refine(m[:, :, c], spatial[:, :, c], params)[0]
-                for c in range(m.shape[2])
-            ],
-            axis=2,
-        )
-
     def _keyframe_step(
         self, m: NDArray[np.float64], params: SensorParams, state: StreamState, reason: str
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
         spatial = self._spatial_planes(m, params)
         if reason in ANCHOR_KEYFRAMES and self.keyframe_refiner is not None:
-            spatial = self._refined_planes(m, spatial, params)
+            spatial = refined_planes(self.keyframe_refiner, m, spatial, params)
         if reason != "periodic" or state.u is None:
             return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}
         tracked, local, fell_back = self._tracked(m, params, state, spatial)
@@ -534,8 +521,7 @@ class StreamDecoder:
             merged = merge_spatial(channel, whole)
             winding[:, :, c], spatial[:, :, c] = merged or (whole, np.ones(whole.shape, bool))
         if self.refiner is not None and shift != (0, 0) and (local | spatial).any():
-            for c in range(m.shape[2]):
-                winding[:, :, c] = self.refiner.refine(m[:, :, c], winding[:, :, c], params)[0]
+            winding = refined_planes(self.refiner, m, winding, params)
         elif self.arrival_refiner is not None:
             for c in range(m.shape[2]):
                 winding[:, :, c], took = refine_arrivals(
@@ -545,6 +531,19 @@ class StreamDecoder:
                 local[:, :, c] &= ~took
                 spatial[:, :, c] |= took
         return winding, local, spatial
+
+
+def refined_planes(
+    refiner: GuidedPumaDecoder,
+    m: NDArray[np.float64],
+    winding: NDArray[np.int64],
+    params: SensorParams,
+) -> NDArray[np.int64]:
+    """Each plane of ``winding`` (H x W x C) refined by ``refiner`` on its plane of ``m``."""
+    return np.stack(
+        [refiner.refine(m[:, :, c], winding[:, :, c], params)[0] for c in range(m.shape[2])],
+        axis=2,
+    )
 
 
 def path_shares(local: NDArray[np.bool_], spatial: NDArray[np.bool_]) -> dict[str, float]:
