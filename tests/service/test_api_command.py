@@ -87,7 +87,6 @@ def test_accepted_jobs_survive_api_and_redis_restarts(tmp_path: Path) -> None:
         assert job["state"] == "queued"
         stop(api)
         redis.stop()
-        time.sleep(1.1)  # the AOF is fsynced every second (it was flushed on shutdown)
         assert redis.start() == redis_url
         api = start_api(tmp_path / "data", port, **env)
         wait_live(url, api)

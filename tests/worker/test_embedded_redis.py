@@ -21,7 +21,7 @@ def test_start_serves_unix_socket_and_stop_cleans_up(tmp_path: Path) -> None:
     assert url.startswith("unix://") and server.socket.exists()
     assert connect(url).ping()
     config = (tmp_path / "redis" / "redis.conf").read_text()
-    assert "appendonly yes" in config and "appendfsync everysec" in config and "port 0" in config
+    assert "appendonly yes" in config and "appendfsync always" in config and "port 0" in config
     pid = server.pid
     assert pid is not None
     server.stop()

@@ -64,13 +64,21 @@ def test_keyring_from_settings(tmp_path: Path) -> None:
     assert not (tmp_path / "x" / "api_keys").exists()
 
 
-def test_rate_limit_counts_per_key_and_window(redis_url: str) -> None:
+def test_rate_limit_counts_per_key_in_a_sliding_minute(redis_url: str) -> None:
     limiter = RateLimiter(connect(redis_url), per_minute=3)
     key, other = ApiKey("a" * 16, frozenset()), ApiKey("b" * 16, frozenset())
-    now = 6000.0 + 15.0
-    assert [limiter.retry_after(key, now) for _ in range(3)] == [None, None, None]
-    assert limiter.retry_after(key, now) == 45
-    assert limiter.retry_after(other, now) is None
-    assert limiter.retry_after(key, now + 45) is None  # the next window
+    start = 6000.0 + 55.0  # five seconds before a minute boundary: no fixed window helps
+    assert [limiter.retry_after(key, start + dt) for dt in (0, 10, 20)] == [None] * 3
+    assert limiter.retry_after(key, start + 21) == 39  # until the first request is 60 s old
+    assert limiter.retry_after(other, start + 21) is None
     shared = RateLimiter(connect(redis_url), per_minute=3)  # another API process
-    assert shared.retry_after(key, now) == 45
+    assert shared.retry_after(key, start + 59.5) == 1
+    assert shared.retry_after(key, start + 60) is None  # the first request left the window
+    assert limiter.retry_after(key, start + 60.5) == 10  # rejected requests were not logged
+
+
+def test_rate_limit_uses_the_redis_clock_by_default(redis_url: str) -> None:
+    limiter = RateLimiter(connect(redis_url), per_minute=2)
+    key = ApiKey("c" * 16, frozenset())
+    assert [limiter.retry_after(key) for _ in range(2)] == [None, None]
+    assert limiter.retry_after(key) in (59, 60)
