@@ -24,16 +24,18 @@ def test_simulate_device_feeds_mcam_device(redis_server: EmbeddedRedis, client: 
                                            tmp_path: Path) -> None:
     env = env_for(redis_server.url, tmp_path / "data")
     camera = subprocess.Popen(
-        [MCAM, "simulate-device", "--port", f"pty:{tmp_path / 'cam'}", "--frames", "12",
-         "--fps", "30", "--encoding", "mantissa", "--alpha", "4"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+        [MCAM, "simulate-device", "--port", f"pty:{tmp_path / 'cam'}", "--fps", "30",
+         "--encoding", "mantissa", "--alpha", "4"],
+        stdout=subprocess.PIPE, stderr=(tmp_path / "camera.log").open("w"), text=True, env=env,
+        cwd=tmp_path)
     daemon = None
     try:
         assert camera.stdout is not None
         url = camera.stdout.readline().strip()
         assert url == str(tmp_path / "cam") and Path(url).exists()
         daemon = subprocess.Popen([MCAM, "device", "--port", url, "--device-id", "rig-1"],
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                  stdout=subprocess.DEVNULL,
+                                  stderr=(tmp_path / "daemon.log").open("w"), text=True,
                                   env=env, cwd=tmp_path)
         assert wait_for(lambda: health(client, "rig-1").get("frames_ok", "0") != "0", 60)
         frames = stream_frames(client, "rig-1")

@@ -105,8 +105,8 @@ def test_drops_stalls_and_bogus_lengths(link, client: redis.Redis) -> None:
 
 def test_a_stall_longer_than_the_partial_timeout_drops_only_that_packet(
         link, client: redis.Redis) -> None:
-    faults = Faults(stall_every=5, stall_s=0.6)
-    with link(15, faults=faults, partial_timeout_s=0.2) as run:
+    faults = Faults(stall_every=5, stall_s=2.0)
+    with link(15, faults=faults, partial_timeout_s=0.7) as run:
         finish_clean(run, 15)
         published = {f.sequence for f in stream_frames(client, "cam1")}
         assert published == set(range(16)) - {4, 9, 14}
@@ -161,8 +161,8 @@ def test_control_stream_commands_reach_the_camera(link, client: redis.Redis) -> 
         assert frames and all(f.params.encoding == "mantissa" and f.params.alpha == 4.0
                               and f.params.bits == 10 and f.codes.dtype == np.uint16
                               for f in frames)
-        assert run.daemon.health.counts["control_rejected"] == 1
-        assert run.daemon.health.counts["control_sent"] == 3
+        counts = run.daemon.health.counts  # counted after the write the camera obeys
+        assert wait_for(lambda: counts["control_sent"] == 3 and counts["control_rejected"] == 1, 5)
 
 
 def test_bracketed_capture_stores_a_reference_pair(link, client: redis.Redis,

@@ -91,6 +91,7 @@ def make_settings(tmp_path: Path, redis_url: str | None, **overrides: object) ->
         "max_pixels": 512 * 512,
         "heartbeat_s": 0.5,
         "default_decoder": "itoh",
+        "rate_limit_per_minute": 1_000_000,  # tests that poll must not be limited on slow CI
         **overrides,
     }
     return Settings(_env_file=None, **values)  # type: ignore[call-arg]
@@ -150,3 +151,14 @@ def npy_bytes(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, array)
     return buffer.getvalue()
+
+
+def finished_job(http: httpx.Client, job_id: str, timeout_s: float = 120.0) -> dict:
+    """The job's JSON once it succeeded, failed or was cancelled (polled every 0.1 s)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = http.get(f"/v1/jobs/{job_id}").json()
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            return job
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} did not finish in {timeout_s} s")

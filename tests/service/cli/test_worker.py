@@ -74,7 +74,8 @@ def test_thread_limits_carry_the_spin_setting(monkeypatch: pytest.MonkeyPatch) -
     from service.cli.worker import set_thread_limits
 
     for name in ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS", "MCAM_ORT_SPIN"):
-        monkeypatch.delenv(name, raising=False)
+        monkeypatch.setenv(name, "")  # so that monkeypatch restores what the test changes
+        monkeypatch.delenv(name)
     set_thread_limits(3, spin=True)
     assert worker_threads() == 3 and ort_spinning()
     set_thread_limits(1)

@@ -53,8 +53,12 @@ def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Pa
         page.click("#run")
         page.wait_for_function("!document.getElementById('download').disabled", timeout=60_000)
         assert "succeeded" in page.inner_text("#status")
-        for image in ("#img-codes", "#img-winding", "#img-hdr"):
-            assert page.evaluate(f"document.querySelector('{image}').naturalWidth") == 128
+        page.wait_for_function(  # blob images decode asynchronously
+            "['img-codes', 'img-winding', 'img-hdr'].every(id => {"
+            " const image = document.getElementById(id);"
+            " return image.complete && image.naturalWidth === 128; })",
+            timeout=30_000,
+        )
         before = page.get_attribute("#img-hdr", "src")
         page.fill("#exposure", "-4")
         page.dispatch_event("#exposure", "input")

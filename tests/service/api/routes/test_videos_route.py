@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import time
 import zipfile
 from collections.abc import Callable
 
@@ -14,7 +13,7 @@ import numpy as np
 from models.formation import SensorParams, encode
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
-from tests.service.conftest import npy_bytes
+from tests.service.conftest import finished_job, npy_bytes
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
@@ -30,16 +29,6 @@ def slow_clip() -> list[np.ndarray]:
     return [base * 1.02**t for t in range(FRAMES)]
 
 
-def wait_for(http: httpx.Client, job_id: str, timeout_s: float = 120.0) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        job = http.get(f"/v1/jobs/{job_id}").json()
-        if job["state"] in ("succeeded", "failed", "cancelled"):
-            return job
-        time.sleep(0.1)
-    raise AssertionError(f"job {job_id} did not finish in {timeout_s} s")
-
-
 def test_thirty_frame_video_end_to_end(client: Client, worker: Worker) -> None:
     truth = slow_clip()
     codes = np.stack([encode(x, PARAMS).codes for x in truth])
@@ -50,7 +39,7 @@ def test_thirty_frame_video_end_to_end(client: Client, worker: Worker) -> None:
         data={**FLAGS, "mode": "temporal", "decoder": "itoh"},
     )
     assert reply.status_code == 202, reply.text
-    job = wait_for(http, reply.json()["id"])
+    job = finished_job(http, reply.json()["id"])
     assert job["state"] == "succeeded", job
     assert job["kind"] == "video"
     assert job["frames_done"] == job["frames_total"] == FRAMES and job["progress"] == 1.0
@@ -89,7 +78,7 @@ def test_zip_of_pngs_independent_exr_only(client: Client, worker: Worker) -> Non
         headers={"Content-Type": "application/octet-stream"},
     )
     assert reply.status_code == 202, reply.text
-    job = wait_for(http, reply.json()["id"])
+    job = finished_job(http, reply.json()["id"])
     assert job["state"] == "succeeded" and set(job["results"]) == {"exr_zip"}
     missing = http.get(f"/v1/videos/{job['id']}/result", params={"output": "hdr10"})
     assert missing.status_code == 422 and "exr_zip" in missing.json()["message"]
