@@ -13,6 +13,8 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -36,6 +38,18 @@ def start_api(data_dir: Path, port: int, **env: str) -> subprocess.Popen[str]:
     )
 
 
+@contextmanager
+def running_api(data_dir: Path, port: int, **env: str) -> Iterator[subprocess.Popen[str]]:
+    """:func:`start_api`, killed on the way out if the test left it running."""
+    process = start_api(data_dir, port, **env)
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate(timeout=30)
+
+
 def wait_live(url: str, process: subprocess.Popen[str]) -> None:
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and process.poll() is None:
@@ -44,7 +58,9 @@ def wait_live(url: str, process: subprocess.Popen[str]) -> None:
                 return
         except httpx.HTTPError:
             time.sleep(0.1)
-    raise AssertionError(f"mcam api did not come up: {process.communicate(timeout=5)[0]}")
+    if process.poll() is None:
+        process.kill()
+    raise AssertionError(f"mcam api did not come up: {process.communicate(timeout=30)[0]}")
 
 
 def stop(process: subprocess.Popen[str]) -> str:
@@ -56,17 +72,17 @@ def stop(process: subprocess.Popen[str]) -> str:
 def test_embedded_default_generates_prints_and_reuses_a_key(tmp_path: Path) -> None:
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    first = start_api(tmp_path, port)
-    wait_live(url, first)
-    key = (tmp_path / "api_keys").read_text().strip()
-    reply = httpx.get(f"{url}/v1/decoders", headers={"Authorization": f"Bearer {key}"})
-    assert reply.status_code == 200
-    assert (tmp_path / "redis" / "appendonly.aof").exists()  # the private redis-server ran
-    output = stop(first)
+    with running_api(tmp_path, port) as first:
+        wait_live(url, first)
+        key = (tmp_path / "api_keys").read_text().strip()
+        reply = httpx.get(f"{url}/v1/decoders", headers={"Authorization": f"Bearer {key}"})
+        assert reply.status_code == 200
+        assert (tmp_path / "redis" / "appendonly.aof").exists()  # the private redis-server ran
+        output = stop(first)
     assert key in output and f"http://127.0.0.1:{port}/" in output
-    second = start_api(tmp_path, port)
-    wait_live(url, second)
-    assert key not in stop(second)  # printed once, on first start only
+    with running_api(tmp_path, port) as second:
+        wait_live(url, second)
+        assert key not in stop(second)  # printed once, on first start only
     assert (tmp_path / "api_keys").read_text().strip() == key
 
 
@@ -108,8 +124,8 @@ def test_accepted_jobs_survive_api_and_redis_restarts(tmp_path: Path) -> None:
 
 def test_printed_key_line_format(tmp_path: Path) -> None:
     port = free_port()
-    process = start_api(tmp_path, port, MCAM_API_KEYS="k-0123456789")
-    wait_live(f"http://127.0.0.1:{port}", process)
-    output = stop(process)
+    with running_api(tmp_path, port, MCAM_API_KEYS="k-0123456789") as process:
+        wait_live(f"http://127.0.0.1:{port}", process)
+        output = stop(process)
     assert re.search(r"MantissaCam API on http://127\.0\.0\.1:\d+/", output)
     assert "generated API key" not in output and not (tmp_path / "api_keys").exists()

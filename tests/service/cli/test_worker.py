@@ -51,13 +51,18 @@ def test_worker_finds_the_embedded_redis_and_stops_on_sigterm(tmp_path: Path) ->
             "2",
             env={"MCAM_DATA_DIR": str(tmp_path), "MCAM_HEARTBEAT_S": "0.2"},
         )
-        deadline = time.monotonic() + 60
-        while not client.hlen(WORKERS_HEARTBEAT) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        [beat] = client.hvals(WORKERS_HEARTBEAT)
-        assert b'"concurrency": 2' in beat
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(30) == 0
+        try:
+            deadline = time.monotonic() + 60
+            while not client.hlen(WORKERS_HEARTBEAT) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            [beat] = client.hvals(WORKERS_HEARTBEAT)
+            assert b'"concurrency": 2' in beat
+            process.send_signal(signal.SIGTERM)
+            assert process.wait(30) == 0
+        finally:
+            if process.poll() is None:  # a failed check must not leave it reconnecting
+                process.kill()
+                process.wait(30)
         assert client.hlen(WORKERS_HEARTBEAT) == 0
         process.communicate()
 
