@@ -44,8 +44,8 @@ FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
 #: PNG text-chunk keyword holding the parameters as JSON.
 PNG_KEYWORD = "mantissacam"
 _ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
-#: Parameters a frame cannot be decoded without, and the flag that supplies each.
-_REQUIRED_FLAGS = {"encoding": "--encoding", "bits": "--bits"}
+#: Parameters a frame cannot be decoded without, with an example value of each.
+_REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
 
 
@@ -211,20 +211,22 @@ _READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}
 def merge_params(stored: dict[str, Any], overrides: dict[str, Any] | None) -> SensorParams:
     """Stored parameters updated by ``overrides`` (None values ignored), checked complete.
 
-    Raises :class:`MissingParameterError` naming the flags to add when the
-    encoding, the bit depth or (for mantissa) alpha is known from neither.
+    Raises :class:`MissingParameterError` naming the parameters to give (as
+    command-line flags and as HTTP form fields) when the encoding, the bit depth or
+    (for mantissa) alpha is known from neither.
     """
     given = {key: value for key, value in (overrides or {}).items() if value is not None}
     merged = {key: value for key, value in stored.items() if value is not None} | given
-    needed = dict(_REQUIRED_FLAGS)
+    needed = dict(_REQUIRED)
     if merged.get("encoding") == "mantissa":
-        needed["alpha"] = "--alpha"
+        needed["alpha"] = "2"
     missing = [key for key in needed if key not in merged]
     if missing:
+        flags = " ".join(f"--{key} {needed[key]}" for key in missing)
+        fields = ", ".join(f"{key}={needed[key]}" for key in missing)
         raise MissingParameterError(
-            f"the frame does not store its {', '.join(missing)}; "
-            f"add {' '.join(needed[key] for key in missing)} (e.g. --encoding mantissa "
-            "--alpha 2 --bits 8)"
+            f"the frame does not store its {', '.join(missing)}; give them as parameters "
+            f"(command line: {flags}; HTTP: the form fields {fields})"
         )
     return SensorParams.parse(merged)
 

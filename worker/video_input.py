@@ -145,6 +145,11 @@ def _read_zip(
             ),
             key=_natural_key,
         )
+        if not names:
+            raise InvalidInputError(
+                f"the zip holds no .png frame ({len(archive.infolist())} other entries); a "
+                "wrapped video as a zip is one PNG of codes per frame, named in frame order"
+            )
         check_frame_count(len(names), max_frames)
         frames = [decode_frame(archive.read(names[0]), "png", overrides, max_pixels)]
         for name in names[1:]:

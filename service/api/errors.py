@@ -60,10 +60,24 @@ async def mcam_error(_: Request, exc: Exception) -> JSONResponse:
     return JSONResponse(error_body(exc.code, exc.message), status_code=exc.http_status)
 
 
+def _problem(error: dict[str, Any]) -> dict[str, str]:
+    """One validation error as ``{"field", "message"}``; a body that is not JSON at all
+    is named as such (FastAPI reports it at the character offset where parsing failed)."""
+    if error.get("type") == "json_invalid":
+        reason = error.get("ctx", {}).get("error", "not JSON")
+        offset = error["loc"][-1]
+        return {
+            "field": "body",
+            "message": f"not valid JSON ({reason} at character {offset}); send a JSON "
+            "object with the header 'Content-Type: application/json'",
+        }
+    return {"field": _location(error["loc"]), "message": error["msg"]}
+
+
 async def validation_error(_: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
-    problems = [f"{_location(err['loc'])}: {err['msg']}" for err in exc.errors()]
-    details = [{"field": _location(err["loc"]), "message": err["msg"]} for err in exc.errors()]
+    details = [_problem(err) for err in exc.errors()]
+    problems = [f"{detail['field']}: {detail['message']}" for detail in details]
     return JSONResponse(
         error_body("invalid_input", "invalid request: " + "; ".join(problems), details=details),
         status_code=422,

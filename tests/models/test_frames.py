@@ -156,12 +156,13 @@ def test_overrides_win_and_none_is_ignored() -> None:
 
 
 @pytest.mark.parametrize("fmt", FRAME_FORMATS)
-def test_missing_params_name_the_flags(fmt: str) -> None:
+def test_missing_params_name_the_flags_and_fields(fmt: str) -> None:
     data = encode_frame(random_codes((4, 4), 8), None, fmt)
-    with pytest.raises(MissingParameterError, match="--encoding --bits") as err:
+    with pytest.raises(MissingParameterError, match="--encoding mantissa --bits 8") as err:
         decode_frame(data, fmt)
     assert err.value.code == "missing_parameter"
-    with pytest.raises(MissingParameterError, match="add --alpha"):
+    assert "form fields encoding=mantissa, bits=8" in str(err.value)
+    with pytest.raises(MissingParameterError, match="--alpha 2; HTTP: the form fields alpha=2"):
         decode_frame(data, fmt, {"encoding": "mantissa", "bits": 8})
     frame = decode_frame(data, fmt, {"encoding": "modulo", "bits": 8})
     assert frame.params.encoding == "modulo"

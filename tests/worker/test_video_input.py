@@ -129,3 +129,11 @@ def test_format_names() -> None:
     assert [video_format(n) for n in ("a.TIF", "b.tiff", "c.npy", "zip")] == [
         "tiff", "tiff", "npy", "zip"
     ]
+
+
+def test_zip_without_pngs_says_what_it_holds() -> None:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("notes.txt", "frames to follow")
+    with pytest.raises(InvalidInputError, match=r"no \.png frame \(1 other entries\)"):
+        decode_video(buffer.getvalue(), "zip", FLAGS)

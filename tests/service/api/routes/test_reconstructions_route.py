@@ -134,13 +134,14 @@ def test_float_codes_are_refused(client: Client) -> None:
     assert "dtype" in reply.json()["message"]
 
 
-def test_missing_parameters_name_the_flags(client: Client) -> None:
+def test_missing_parameters_name_the_form_fields(client: Client) -> None:
     reply = client().post(
         "/v1/reconstructions", files={"file": ("f.npy", npy_bytes(np.zeros((8, 8), np.uint8)))}
     )
     assert reply.status_code == 422
     body = reply.json()
-    assert body["code"] == "missing_parameter" and "--encoding" in body["message"]
+    assert body["code"] == "missing_parameter"
+    assert "form fields encoding=mantissa, bits=8" in body["message"]
 
 
 def test_truncated_png_is_a_clear_422(client: Client) -> None:
