@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 
 from pydantic import ValidationError
 
@@ -54,6 +55,22 @@ def settings_problems(exc: ValidationError) -> str:
     return "invalid settings (environment or .env): " + "; ".join(problems)
 
 
+def file_problem(exc: OSError) -> str:
+    """One line for a file the command could not read or write, saying what to change."""
+    if exc.filename is None:
+        return exc.strerror or str(exc)
+    path = Path(exc.filename)
+    if isinstance(exc, FileNotFoundError):
+        if not path.parent.exists():
+            return f"no such folder: {path.parent} (for {path}); create it or choose another path"
+        return f"no such file: {path}"
+    if isinstance(exc, IsADirectoryError):
+        return f"{path} is a folder; give the path of a file (in it or elsewhere)"
+    if isinstance(exc, PermissionError):
+        return f"permission denied: {path}; choose a path you may read or write"
+    return f"cannot use {path}: {exc.strerror or exc}"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run the command, map caller errors to exit code 2. Freed memory
     stays in the process for reuse (:func:`models.allocator.keep_freed_memory`)."""
@@ -64,8 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     except McamError as exc:
         print(f"mcam {args.command}: error: {exc.message}", file=sys.stderr)
         return 2
-    except FileNotFoundError as exc:
-        print(f"mcam {args.command}: error: no such file: {exc.filename}", file=sys.stderr)
+    except OSError as exc:
+        print(f"mcam {args.command}: error: {file_problem(exc)}", file=sys.stderr)
         return 2
     except ValidationError as exc:
         print(f"mcam {args.command}: error: {settings_problems(exc)}", file=sys.stderr)

@@ -1,0 +1,46 @@
+"""service/cli/main.py: a file the command cannot read or write is one clear line, exit 2."""
+
+from __future__ import annotations
+
+import errno
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.cli.main import file_problem, main
+
+FLAGS = ("--encoding", "mantissa", "--alpha", "2", "--bits", "8")
+
+
+@pytest.mark.parametrize(
+    ("error", "expected"),
+    [
+        (FileNotFoundError(errno.ENOENT, "No such file", "/no/such/dir/x.exr"), "no such folder"),
+        (IsADirectoryError(errno.EISDIR, "Is a directory", "/tmp"), "is a folder"),
+        (PermissionError(errno.EACCES, "Permission denied", "/root/x"), "permission denied"),
+        (OSError(errno.EIO, "Input/output error", "/proc/version"), "cannot use /proc/version"),
+        (OSError(errno.EADDRINUSE, "Address already in use"), "Address already in use"),
+    ],
+    ids=["missing-folder", "folder", "permission", "io", "no-file-name"],
+)
+def test_file_problem_says_what_to_change(error: OSError, expected: str) -> None:
+    line = file_problem(error)
+    assert expected in line and "\n" not in line
+
+
+def test_missing_input_file_is_named(tmp_path: Path) -> None:
+    error = FileNotFoundError(errno.ENOENT, "No such file", str(tmp_path / "nope.png"))
+    assert file_problem(error) == f"no such file: {tmp_path / 'nope.png'}"
+
+
+@pytest.mark.parametrize("output", [".", "missing/x.exr"], ids=["a-folder", "no-folder"])
+def test_unwritable_output_exits_2_without_a_traceback(
+    tmp_path: Path, output: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    np.save(tmp_path / "frame.npy", np.zeros((8, 8), np.uint8))
+    assert main(["reconstruct", "frame.npy", "-o", output, "--decoder", "itoh", *FLAGS]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mcam reconstruct: error: ") and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
