@@ -133,7 +133,7 @@ def encode_frame(codes: NDArray[Any], params: SensorParams | None, fmt: str) -> 
         if arr.ndim == 3:
             raise UnsupportedFormatError(
                 f"PNG frames are grayscale, got {arr.shape[2]} channels; "
-                "write colour frames as .tiff (or convert the scene to gray)"
+                "write colour frames as .tiff (or encode luminance: mcam simulate --gray)"
             )
         info = PngImagePlugin.PngInfo()
         if text is not None:

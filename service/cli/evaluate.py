@@ -9,6 +9,7 @@ from typing import Any
 
 from models.frames import read_winding
 from models.hdr_io import read_hdr
+from service.cli.options import add_clip_negative_flag
 
 #: Display names and units of the metrics in the table.
 LABELS: dict[str, tuple[str, str]] = {
@@ -35,6 +36,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--winding-reference", metavar="W.png", help="true W map (mcam simulate --ground-truth)"
     )
+    add_clip_negative_flag(parser)
     parser.add_argument("--no-flip", action="store_true", help="skip HDR-FLIP (slow)")
     parser.add_argument("--json", action="store_true", help="print JSON (an infinite PSNR is null)")
     parser.set_defaults(func=run)
@@ -54,8 +56,8 @@ def run(args: argparse.Namespace) -> int:
     # imported here: scipy.ndimage would add ~0.4 s to the start of every mcam command
     from models.metrics import evaluate
 
-    estimate = read_hdr(args.image)
-    reference = read_hdr(args.reference)
+    estimate = read_hdr(args.image, clip_negative=args.clip_negative)
+    reference = read_hdr(args.reference, clip_negative=args.clip_negative)
     winding = read_winding(args.winding) if args.winding else None
     winding_ref = read_winding(args.winding_reference) if args.winding_reference else None
     results = evaluate(

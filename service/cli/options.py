@@ -24,6 +24,16 @@ def add_sensor_flags(parser: argparse.ArgumentParser, description: str) -> None:
     )
 
 
+def add_clip_negative_flag(parser: argparse.ArgumentParser) -> None:
+    """``--clip-negative``: read HDR images with their negative values set to 0."""
+    parser.add_argument(
+        "--clip-negative",
+        action="store_true",
+        help="set negative values of the HDR images read (lossy EXR) to 0 instead of "
+        "refusing them",
+    )
+
+
 def sensor_values(args: argparse.Namespace) -> dict[str, Any]:
     """The sensor flags as a mapping, None where not given."""
     return {name: getattr(args, name) for name in SENSOR_FLAGS}

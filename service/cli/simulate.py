@@ -8,7 +8,12 @@ from typing import Any
 from models.formation import SensorParams, simulate
 from models.frames import frame_format, write_frame, write_winding
 from models.hdr_io import read_hdr, write_exr
-from service.cli.options import add_sensor_flags, params_attributes, sensor_values
+from service.cli.options import (
+    add_clip_negative_flag,
+    add_sensor_flags,
+    params_attributes,
+    sensor_values,
+)
 
 
 def register(subparsers: Any) -> None:
@@ -32,11 +37,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--full-well", type=float, help="electrons at x = 1, for shot noise")
     parser.add_argument("--seed", type=int, help="noise seed")
     parser.add_argument("--gray", action="store_true", help="encode Rec.709 luminance of RGB")
-    parser.add_argument(
-        "--clip-negative",
-        action="store_true",
-        help="set negative scene values (lossy EXR) to 0 instead of refusing them",
-    )
+    add_clip_negative_flag(parser)
     parser.add_argument("--ground-truth", metavar="W.png", help="also write the true W map")
     parser.add_argument(
         "--reference-out",

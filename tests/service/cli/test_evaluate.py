@@ -63,3 +63,17 @@ def test_evaluate_bad_input(tmp_path: Path, pipeline: Path) -> None:
         ),  # fmt: skip
         "winding",
     )
+
+
+def test_evaluate_clips_negative_values_when_asked(tmp_path: Path, pipeline: Path) -> None:
+    lossy = np.ones((8, 8))
+    lossy[0, 0] = -0.5  # a lossy codec's undershoot
+    write_exr(tmp_path / "lossy.exr", lossy)
+    refused = run_mcam("evaluate", "lossy.exr", "--reference", "lossy.exr", cwd=tmp_path)
+    assert_one_line_error(refused, "negative", "--clip-negative")
+    clipped = run_mcam(
+        "evaluate", "lossy.exr", "--reference", "lossy.exr", "--clip-negative", "--no-flip",
+        "--json", cwd=tmp_path,
+    )  # fmt: skip
+    assert clipped.returncode == 0, clipped.stderr
+    assert json.loads(clipped.stdout)["psnr"] is None  # identical after clipping: infinite
