@@ -41,6 +41,9 @@ log = logging.getLogger(__name__)
 PortOpener = Callable[[], Any]
 #: Most bytes taken from the port in one read.
 MAX_READ = 1 << 20
+#: While the port stays closed, a warning every this many failed attempts (about a
+#: minute at the longest backoff); the others are logged at debug level.
+WARN_EVERY = 30
 
 
 @dataclass(frozen=True)
@@ -164,20 +167,38 @@ class DeviceDaemon:
     def _open(self) -> Any | None:
         """Open the port, retrying with exponential backoff; None if stopped meanwhile."""
         delay = self.config.backoff_initial_s
+        failures = 0
         while not self._stop.is_set():
             try:
                 port = self.opener()
             except (serial.SerialException, OSError, ValueError) as exc:
-                log.debug("cannot open %s: %s", self.config.port, exc)
+                failures += 1
+                self._port_failed(exc, failures)
                 self._stop.wait(delay)
                 delay = min(delay * 2, self.config.backoff_max_s)
                 continue
+            if failures:
+                log.info("opened %s after %d failed attempts", self.config.port, failures)
             if self._connected_once:
                 self.health.add("reconnects")
             self._connected_once = True
             self.health.state = "connected"
+            self.health.port_error = ""
             return port
         return None
+
+    def _port_failed(self, exc: Exception, failures: int) -> None:
+        """Record why the port did not open; warn on the first failure of an outage and
+        then every :data:`WARN_EVERY` attempts, so a wrong ``--port`` is seen at once."""
+        reason = str(exc) or type(exc).__name__
+        self.health.port_error = reason
+        if failures == 1 or failures % WARN_EVERY == 0:
+            log.warning(
+                "cannot open %s (%s); retrying every %.1f s at most (attempt %d)",
+                self.config.port, reason, self.config.backoff_max_s, failures,
+            )
+        else:
+            log.debug("cannot open %s: %s", self.config.port, reason)
 
     def _pump(self, port: Any) -> None:
         """Read the open port until it fails or the daemon stops."""

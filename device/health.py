@@ -1,7 +1,8 @@
 """Per-device health counters of the daemon, published as the ``device:<id>:health`` hash.
 
 Fields (all strings in Redis): ``state`` (connecting / connected / disconnected),
-``port``, ``frames_ok`` (published), ``frames_received`` (valid data packets),
+``port``, ``port_error`` (why the port last failed to open; empty once it is open),
+``frames_ok`` (published), ``frames_received`` (valid data packets),
 ``dropped_<cause>`` for every parser cause plus ``queue_full`` (the daemon's own
 queue), ``stream_full`` (oldest frames evicted from the Redis stream unread),
 ``redis_unavailable`` and ``rejected``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
@@ -39,6 +40,7 @@ class DeviceHealth:
         self.device = device
         self.port = port
         self.state = "connecting"
+        self.port_error = ""
         self.counts: Counter[str] = Counter({name: 0 for name in _COUNTERS})
         self.last_frame_ns = 0
         self.last_sequence = -1
@@ -94,6 +96,7 @@ class DeviceHealth:
             fields = {name: str(value) for name, value in self.counts.items()}
             fields.update(
                 device=self.device, port=self.port, state=self.state,
+                port_error=self.port_error,
                 last_frame_ns=str(self.last_frame_ns), last_sequence=str(self.last_sequence),
                 fps=f"{fps:.3f}", settings=json.dumps(self.settings),
                 updated_ns=str(time.time_ns()),

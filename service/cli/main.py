@@ -59,7 +59,8 @@ def file_problem(exc: OSError) -> str:
     """One line for a file the command could not read or write, saying what to change."""
     if exc.filename is None:
         return exc.strerror or str(exc)
-    path = Path(exc.filename)
+    # Of a link or rename, the path being created (the second) is the one to fix.
+    path = Path(exc.filename2 if exc.filename2 is not None else exc.filename)
     if isinstance(exc, FileNotFoundError):
         if not path.parent.exists():
             return f"no such folder: {path.parent} (for {path}); create it or choose another path"

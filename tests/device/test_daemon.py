@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
+import pytest
 import redis
 
+from device.daemon import DaemonConfig, DeviceDaemon
 from device.faults import Faults
 from device.sim_link import TcpEndpoint
 from tests.device.conftest import health, stream_frames, wait_for
@@ -187,3 +190,22 @@ def test_bracketed_capture_stores_a_reference_pair(link, client: redis.Redis,
     assert meta["exposure_gains"] == [1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0]
     assert not any(f.sequence >= wrapped_seq and f.sequence < wrapped_seq + 6
                    for f in stream_frames(client, "cam1"))
+
+
+def test_a_port_that_will_not_open_is_reported(
+        client: redis.Redis, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    missing = tmp_path / "no-such-tty"
+    config = DaemonConfig(port=str(missing), device="cam1", backoff_max_s=0.05)
+    with caplog.at_level(logging.WARNING, logger="device.daemon"):
+        daemon = DeviceDaemon(config, client).start()
+        try:
+            assert wait_for(lambda: health(client, "cam1").get("port_error", ""), 10)
+            assert wait_for(lambda: daemon.health.counts["reconnects"] == 0
+                            and len(caplog.records) >= 1, 5)
+        finally:
+            daemon.stop()
+    fields = health(client, "cam1")
+    assert fields["state"] == "connecting" and str(missing) in fields["port_error"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warnings and f"cannot open {missing}" in warnings[0]
+    assert len(warnings) < 5  # one per outage, then every WARN_EVERY attempts

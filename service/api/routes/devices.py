@@ -51,6 +51,10 @@ def _number(value: str) -> Any:
             return value
 
 
+#: Health fields that stay text (the others are numbers).
+_TEXT_FIELDS = ("device", "port", "state", "port_error")
+
+
 def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
     """A device's health hash as JSON: counters as numbers, drops grouped by cause."""
     fields = {_text(k): _text(v) for k, v in client.hgetall(health_key(device)).items()}
@@ -61,7 +65,7 @@ def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
         elif name == "settings":
             view["settings"] = json.loads(value or "{}")
         else:
-            view[name] = _number(value) if name not in ("device", "port", "state") else value
+            view[name] = value if name in _TEXT_FIELDS else _number(value)
     latest = client.get(latest_key(device))
     view["latest_result"] = _text(latest) if latest else None
     return view

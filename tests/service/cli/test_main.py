@@ -29,6 +29,13 @@ def test_file_problem_says_what_to_change(error: OSError, expected: str) -> None
     assert expected in line and "\n" not in line
 
 
+def test_a_link_names_the_path_it_creates(tmp_path: Path) -> None:
+    link = tmp_path / "missing" / "cam"
+    with pytest.raises(FileNotFoundError) as caught:
+        link.symlink_to("/dev/null")
+    assert file_problem(caught.value).startswith(f"no such folder: {link.parent}")
+
+
 def test_missing_input_file_is_named(tmp_path: Path) -> None:
     error = FileNotFoundError(errno.ENOENT, "No such file", str(tmp_path / "nope.png"))
     assert file_problem(error) == f"no such file: {tmp_path / 'nope.png'}"
