@@ -133,7 +133,8 @@ def encode_frame(codes: NDArray[Any], params: SensorParams | None, fmt: str) -> 
         if arr.ndim == 3:
             raise UnsupportedFormatError(
                 f"PNG frames are grayscale, got {arr.shape[2]} channels; "
-                "write colour frames as .tiff (or encode luminance: mcam simulate --gray)"
+                "ask for TIFF (a .tiff file, or format=tiff over HTTP) or for luminance only "
+                "(--gray, or gray=true over HTTP)"
             )
         info = PngImagePlugin.PngInfo()
         if text is not None:

@@ -113,3 +113,14 @@ def test_clip_negative_allows_negative_pixels(client: Client) -> None:
 def test_needs_the_submit_scope(client: Client) -> None:
     reply = client(READ_KEY).post("/v1/simulate", files={"file": ("s.exr", exr_bytes())})
     assert reply.status_code == 403
+
+
+def test_colour_scene_as_png_names_the_http_fields(client: Client) -> None:
+    colour = np.repeat(scene()[:, :, None], 3, axis=2)
+    files = {"file": ("s.exr", encode_exr(colour))}
+    reply = client().post("/v1/simulate", files=files, data=FIELDS)
+    assert reply.status_code == 415
+    assert "format=tiff" in reply.json()["message"] and "gray=true" in reply.json()["message"]
+    gray = client().post("/v1/simulate", files=files, data={**FIELDS, "gray": "true"})
+    assert gray.status_code == 200
+    assert decode_frame(gray.content, "png").codes.shape == (64, 64)
