@@ -10,7 +10,7 @@ connected cluster of unsafe pixels (grown by ``GROW`` px) of at least
 bounding box widened by ``margin`` px (and to ``MIN_SIDE`` px a side, cut at the
 frame's border); the crop's constant is aligned to the fixed answer on the crop's
 safe pixels (:func:`models.tile_reconcile.common_offset`) and its W clipped into
-the range motion allows (:meth:`worker.temporal.Prediction.bounds`); then each
+the range motion allows (:meth:`worker.temporal_rule.Prediction.bounds`); then each
 region where the two disagree and that touches an unsafe pixel takes the answer
 with fewer jumps across its boundary (:func:`models.decoders.region_vote.region_vote`, as
 at a keyframe). Largest clusters first, crops are decoded while their total area
@@ -36,7 +36,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,9 +44,7 @@ from scipy import ndimage
 from models.decoders.region_vote import region_vote
 from models.tile_reconcile import common_offset
 from worker.config_checks import refuse_invalid
-
-if TYPE_CHECKING:
-    from worker.temporal import Prediction
+from worker.temporal_rule import Prediction
 
 #: Unsafe pixels closer than this many px to each other form one cluster.
 GROW = 2

@@ -33,6 +33,7 @@ noisy content texture barely pins the shift, and a wrong one would alias.
 
 The rule, per pixel (and channel)
 ---------------------------------
+(Computed by :mod:`worker.temporal_rule`; this module runs the stream around it.)
 A pixel is *safe* when every (motion-compensated) previous value within
 ``motion_radius`` pixels (a ``(2r+1)^2`` window, so that motion up to ``r`` px/frame
 beyond what compensation followed stays decidable) gives the
@@ -154,8 +155,9 @@ from worker.arrivals import ArrivalConfig, refine_arrivals
 from worker.brightness import BrightnessConfig, brighten, frame_gain
 from worker.config_checks import refuse_invalid
 from worker.crop_vote import CropConfig, crop_vote
-from worker.motion import Compensated, MotionConfig, compensate, misfit
+from worker.motion import Compensated, MotionConfig, compensate
 from worker.temporal_fallback import merge_spatial, neighbour_fix
+from worker.temporal_rule import Prediction, temporal_prediction
 
 MODES: tuple[str, ...] = ("independent", "temporal")
 PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
@@ -257,93 +259,6 @@ def _planes(codes: NDArray[Any], params: SensorParams) -> NDArray[np.float64]:
 def _stream_key(params: SensorParams) -> dict[str, Any]:
     """The parameters that must stay fixed within a stream (noise seeds may vary)."""
     return params.model_dump(exclude={"seed"})
-
-
-@dataclass(frozen=True)
-class Prediction:
-    """The temporal answer for a frame (arrays H x W x C, or H x W for one channel).
-
-    ``winding``: ``round(u_{t-1} - m_t)``; ``safe``: where it is kept; ``lo`` / ``hi``:
-    the least / greatest previous ``u`` within ``motion_radius``; ``m``: the frame;
-    ``change``: ``|W_t + m_t - u_{t-1}|`` of the pixel itself (wraps).
-    """
-
-    winding: NDArray[np.int64]
-    safe: NDArray[np.bool_]
-    lo: NDArray[np.float64]
-    hi: NDArray[np.float64]
-    m: NDArray[np.float64]
-    change: NDArray[np.float64]
-
-    def channel(self, c: int) -> Prediction:
-        """The prediction of channel ``c`` (H x W arrays)."""
-        return Prediction(*(part[:, :, c] for part in self._parts()))
-
-    def crop(self, index: Any) -> Prediction:
-        """The prediction at ``index`` (a boolean mask or an index tuple of the arrays)."""
-        return Prediction(*(part[index] for part in self._parts()))
-
-    def _parts(self) -> tuple[NDArray[Any], ...]:
-        return (self.winding, self.safe, self.lo, self.hi, self.m, self.change)
-
-    def bounds(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """The range of W that motion within ``motion_radius`` allows: ``W + m`` within
-        half a wrap of ``[lo, hi]`` (W >= 0); a fallback answer is clipped into it."""
-        lowest = np.ceil(self.lo - 0.5 - self.m)
-        highest = np.maximum(np.floor(self.hi + 0.5 - self.m), 0)
-        return lowest.astype(np.int64), highest.astype(np.int64)
-
-
-def _edge_padded(values: NDArray, radius: int, axis: int) -> NDArray:
-    """``values`` with its first / last ``radius`` lines along ``axis`` repeated outwards."""
-    first = np.take(values, [0] * radius, axis=axis)
-    last = np.take(values, [values.shape[axis] - 1] * radius, axis=axis)
-    return np.concatenate([first, values, last], axis=axis)
-
-
-def window_extreme(values: NDArray[np.float64], radius: int, pick: np.ufunc) -> NDArray:
-    """Min or max (``pick``) over the ``(2r+1)^2`` window of each pixel of an H x W x C
-    array, edges repeated (separable, by shifted slices: cheaper than a filter call)."""
-    out = values
-    for axis in (0, 1):
-        size = out.shape[axis]
-        padded = _edge_padded(out, radius, axis)
-        lines = [slice(None)] * padded.ndim
-        for start in range(2 * radius + 1):
-            lines[axis] = slice(start, start + size)
-            out = padded[tuple(lines)] if start == 0 else pick(out, padded[tuple(lines)])
-    return out
-
-
-#: ``hi`` of pixels nothing predicts (content entering the frame): no upper bound on W.
-UNBOUNDED = 2.0**40
-
-
-def temporal_prediction(
-    m: NDArray[np.float64],
-    prev_u: NDArray[np.float64],
-    config: TemporalConfig,
-    inside: NDArray[np.bool_] | None = None,
-) -> Prediction:
-    """Predict W of the frame ``m`` (H x W x C) from the previous ``u`` moved onto it
-    (see module doc); pixels outside ``inside`` (H x W) are unpredicted: unsafe, unbounded."""
-    winding = np.rint(prev_u - m)
-    u = winding + m
-    change = misfit(prev_u, m)
-    limit = 0.5 - config.margin
-    safe = change <= limit
-    lo, hi = prev_u, prev_u
-    if config.motion_radius > 0:
-        lo = window_extreme(prev_u, config.motion_radius, np.minimum)
-        hi = window_extreme(prev_u, config.motion_radius, np.maximum)
-        still = window_extreme(change, config.motion_radius, np.maximum) <= config.still
-        safe &= still | ((u - lo <= limit) & (hi - u <= limit))
-    if inside is not None and not inside.all():
-        outside = np.broadcast_to(~inside[:, :, None], m.shape)
-        safe = safe & ~outside
-        lo, hi = np.where(outside, 0.0, lo), np.where(outside, UNBOUNDED, hi)
-        change = np.where(outside, 0.5, change)
-    return Prediction(winding.astype(np.int64), safe, lo, hi, m, change)
 
 
 class StreamDecoder:

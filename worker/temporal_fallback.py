@@ -11,15 +11,11 @@ H x W; ``u`` and ``m`` in wraps.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from numpy.typing import NDArray
 
 from models.tile_reconcile import common_offset
-
-if TYPE_CHECKING:
-    from worker.temporal import Prediction
+from worker.temporal_rule import Prediction
 
 
 def locally_smooth(u: NDArray[np.float64]) -> NDArray[np.bool_]:

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from device.scenes import ProceduralScene
 from models.decoders.base import Decoder
@@ -16,13 +14,7 @@ from tests.worker.panning import PAN_PARAMS, pan_clip, smooth_scene
 from worker.brightness import BrightnessConfig
 from worker.crop_vote import CropConfig
 from worker.motion import MotionConfig
-from worker.temporal import (
-    StreamDecoder,
-    StreamState,
-    TemporalConfig,
-    decode_frames,
-    temporal_prediction,
-)
+from worker.temporal import StreamDecoder, StreamState, TemporalConfig, decode_frames
 
 SIZE = 64
 PARAMS = SensorParams(encoding="mantissa", bits=8, alpha=2.0)
@@ -319,31 +311,6 @@ def test_colour_frames_keep_their_shape(temporal: StreamDecoder) -> None:
         result = temporal.decode(frame.codes, PARAMS, state)
         assert result.winding.shape == result.irradiance.shape == (SIZE, SIZE, 3)
         np.testing.assert_array_equal(result.winding, frame.winding)
-
-
-@settings(max_examples=50, deadline=None)
-@given(
-    prev=st.floats(0.0, 20.0),
-    change=st.floats(-0.39, 0.39),
-    radius=st.integers(0, 2),
-)
-def test_prediction_is_exact_below_the_margin(prev: float, change: float, radius: int) -> None:
-    """Any change smaller than half a wrap minus the margin is unwrapped exactly and safe
-    (a uniform frame: every neighbour agrees)."""
-    u_now = prev + change
-    m = np.full((3, 3, 1), u_now - np.floor(u_now))
-    prediction = temporal_prediction(m, np.full((3, 3, 1), prev), TemporalConfig(
-        motion_radius=radius))
-    assert np.all(prediction.winding == np.floor(u_now)) and prediction.safe.all()
-
-
-def test_prediction_flags_edges_near_moving_content() -> None:
-    """A one-wrap step in the previous frame next to changed pixels is unsafe in its window."""
-    prev = np.zeros((5, 5, 1))
-    prev[:, 3:] = 1.0
-    m = np.full((5, 5, 1), 0.2)
-    prediction = temporal_prediction(m, prev, TemporalConfig(motion_radius=1, still=0.05))
-    assert not prediction.safe[:, 2:4].any() and prediction.safe[:, 0].all()
 
 
 @pytest.mark.parametrize(
