@@ -36,15 +36,17 @@ JOB_ERRORS = {**AUTH_ERRORS, 404: error_response("no such job (or expired)")}
 
 
 def finished_record(state: ServiceState, job_id: str) -> JobRecord:
-    """The job's record if it succeeded; 409 saying why there is no result otherwise."""
+    """The job's record if it succeeded; otherwise 409 saying why there is no result, with
+    code ``job_not_finished`` (queued or running: poll again) or ``job_failed`` /
+    ``job_cancelled`` (there never will be one: do not poll)."""
     record = state.queue.get(job_id)
     if record.state == JobState.SUCCEEDED:
         return record
     if record.state.finished:
         reason = f": {record.error.message}" if record.error else ""
         message = f"job {job_id} {record.state.value}{reason}; it has no result"
-    else:
-        message = f"job {job_id} is {record.state.value}; poll its state until it succeeded"
+        raise ApiError(409, f"job_{record.state.value}", message)
+    message = f"job {job_id} is {record.state.value}; poll its state until it succeeded"
     raise ApiError(409, "job_not_finished", message)
 
 
@@ -108,7 +110,10 @@ def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
             "content": {**{m: {} for m in MEDIA_TYPES.values()}, "application/json": {}},
             "description": "the file (png: an 8-bit preview) or the histogram JSON",
         },
-        409: error_response("the job has not succeeded"),
+        409: error_response(
+            "the job has not succeeded: job_not_finished (poll again), job_failed or "
+            "job_cancelled (no result will come)"
+        ),
         **JOB_ERRORS,
     },
 )

@@ -97,7 +97,9 @@ def test_queued_job_has_no_result_and_can_be_cancelled(client: Client) -> None:
     assert cancelled.status_code == 200 and cancelled.json()["state"] == "cancelled"
     assert client(SUBMIT_KEY).delete(f"/v1/jobs/{job['id']}").status_code == 200
     assert client(READ_KEY).delete(f"/v1/jobs/{job['id']}").status_code == 403
-    assert "cancelled" in client().get(f"/v1/jobs/{job['id']}/result").json()["message"]
+    gone = client().get(f"/v1/jobs/{job['id']}/result")
+    assert gone.status_code == 409 and gone.json()["code"] == "job_cancelled"
+    assert "cancelled" in gone.json()["message"]
 
 
 def test_finished_job_cannot_be_cancelled(client: Client, worker: Worker) -> None:
@@ -117,3 +119,20 @@ def test_unknown_or_malformed_ids_are_404(client: Client, job_id: str) -> None:
 def test_submit_only_key_cannot_read(client: Client) -> None:
     reply = client(SUBMIT_KEY).get(f"/v1/jobs/{'0' * 32}")
     assert reply.status_code == 403
+
+
+def test_a_failed_job_says_no_result_will_come(client: Client, worker: Worker) -> None:
+    u = np.tile(np.linspace(0.0, 16.0, 64), (64, 1))  # ~16 wraps at alpha 1e6: beyond float32
+    codes = np.floor((u - np.floor(u)) * 256).astype(np.uint8)
+    buffer = io.BytesIO()
+    np.save(buffer, codes)
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": ("overflow.npy", buffer.getvalue())},
+        data={"decoder": "itoh", "encoding": "mantissa", "alpha": "1e6", "bits": "8"},
+        headers={"Prefer": "wait=30"},
+    )
+    assert reply.json()["state"] == "failed", reply.text
+    result = client().get(f"/v1/jobs/{reply.json()['id']}/result")
+    assert result.status_code == 409 and result.json()["code"] == "job_failed"
+    assert "no result" in result.json()["message"]
