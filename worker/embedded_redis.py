@@ -61,6 +61,21 @@ def connect(url: str, *, timeout_s: float = 10.0) -> redis.Redis:
     )
 
 
+def durability_problem(client: redis.Redis) -> str | None:
+    """Why accepted jobs and frames could be lost if this Redis crashed (it does not
+    write an append-only file fsynced before each reply), or None. None too when the
+    server does not let clients read its configuration (managed services)."""
+    try:
+        config = client.config_get("append*")
+    except redis.exceptions.RedisError:
+        return None
+    if config.get("appendonly") != "yes":
+        return "it keeps no append-only file (appendonly no)"
+    if config.get("appendfsync") != "always":
+        return f"it fsyncs its append-only file {config.get('appendfsync')!r}, not 'always'"
+    return None
+
+
 def terminate_with_parent() -> None:
     """In a child before exec: get SIGTERM when the parent dies (Linux), so a killed
     ``mcam serve`` never leaves a server or worker behind. Elsewhere: no effect."""

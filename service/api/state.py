@@ -7,15 +7,18 @@ data dir itself (the embedded default when the API runs alone).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import redis
 
 from service.core.config import Settings
 from service.core.security import KeyRing, RateLimiter
-from worker.embedded_redis import EmbeddedRedis, connect
+from worker.embedded_redis import EmbeddedRedis, connect, durability_problem
 from worker.queue import JobQueue
 from worker.result_store import RESULTS_DIR, ResultStore
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -57,6 +60,14 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
         embedded = EmbeddedRedis(settings.data_dir)
         url = embedded.start()
     client = connect(url)
+    problem = durability_problem(client)
+    if problem is not None:
+        log.warning(
+            "Redis at %s may lose accepted jobs in a crash: %s; set appendonly yes and "
+            "appendfsync always",
+            url,
+            problem,
+        )
     return ServiceState(
         settings=settings,
         client=client,

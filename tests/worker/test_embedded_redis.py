@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from models.errors import McamError
-from worker.embedded_redis import EmbeddedRedis, RedisStartError, connect
+from worker.embedded_redis import EmbeddedRedis, RedisStartError, connect, durability_problem
 
 
 def test_start_serves_unix_socket_and_stop_cleans_up(tmp_path: Path) -> None:
@@ -97,3 +97,14 @@ def test_server_stops_when_its_parent_is_killed(tmp_path: Path) -> None:
     else:
         pytest.fail("the embedded redis-server outlived its parent")
     parent.stdout.close()
+
+
+def test_durability_problem_names_a_redis_that_could_lose_accepted_jobs(tmp_path: Path) -> None:
+    with EmbeddedRedis(tmp_path) as url:
+        client = connect(url)
+        assert durability_problem(client) is None  # the embedded default is durable
+        client.config_set("appendfsync", "everysec")
+        assert "'everysec', not 'always'" in (durability_problem(client) or "")
+        client.config_set("appendonly", "no")
+        assert "no append-only file" in (durability_problem(client) or "")
+    assert durability_problem(connect(url, timeout_s=1.0)) is None  # unreachable: no claim
