@@ -81,4 +81,4 @@ def test_rate_limit_uses_the_redis_clock_by_default(redis_url: str) -> None:
     limiter = RateLimiter(connect(redis_url), per_minute=2)
     key = ApiKey("c" * 16, frozenset())
     assert [limiter.retry_after(key) for _ in range(2)] == [None, None]
-    assert limiter.retry_after(key) in (59, 60)
+    assert 55 <= (limiter.retry_after(key) or 0) <= 60  # a slow machine may take seconds
