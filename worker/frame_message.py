@@ -64,5 +64,10 @@ class FrameMessage:
                 params=SensorParams.model_validate(json.loads(get["params"])),
                 discont=get.get("discont", b"0") == b"1",
             )
-        except (KeyError, ValueError, TypeError) as exc:
+        except KeyError as exc:
+            raise InvalidInputError(
+                f"malformed frame message: no field {exc}; entries carry "
+                "device, seq, ts_ns, shape, dtype, params and codes"
+            ) from None
+        except (ValueError, TypeError) as exc:
             raise InvalidInputError(f"malformed frame message: {exc}") from None
