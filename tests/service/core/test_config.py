@@ -1,0 +1,51 @@
+"""Tests of service/core/config.py: MCAM_* settings from the environment and .env."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from service.core.config import Settings
+
+
+@pytest.fixture(autouse=True)
+def clean_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """No MCAM_* variable of the caller leaks in; .env is looked for in an empty folder."""
+    for name in [n for n in os.environ if n.startswith("MCAM_")]:
+        monkeypatch.delenv(name)
+    monkeypatch.chdir(tmp_path)
+
+
+def test_defaults_are_the_embedded_local_service() -> None:
+    settings = Settings()
+    assert settings.data_dir == Path("data") and settings.redis_url is None
+    assert (settings.host, settings.port) == ("127.0.0.1", 8000)
+    assert settings.default_decoder == "auto" and settings.rate_limit_per_minute == 600
+
+
+def test_environment_and_dotenv_override_with_the_prefix(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    (tmp_path / ".env").write_text("MCAM_PORT=9001\nMCAM_WORKER_THREADS=4\nOTHER=1\n")
+    monkeypatch.setenv("MCAM_PORT", "9002")  # the environment wins over .env
+    monkeypatch.setenv("MCAM_REDIS_URL", "redis://cache:6379/0")
+    settings = Settings()
+    assert settings.port == 9002 and settings.worker_threads == 4
+    assert settings.redis_url == "redis://cache:6379/0"
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [("MCAM_PORT", "70000"), ("MCAM_WORKER_THREADS", "0"), ("MCAM_HEARTBEAT_S", "-1"),
+     ("MCAM_RATE_LIMIT_PER_MINUTE", "many")],
+)
+def test_unreadable_values_name_their_setting(
+    monkeypatch: pytest.MonkeyPatch, name: str, value: str
+) -> None:
+    monkeypatch.setenv(name, value)
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    assert caught.value.errors()[0]["loc"] == (name.removeprefix("MCAM_").lower(),)
