@@ -151,7 +151,6 @@ class RateLimiter:
     so every API process shares the budget (no burst of twice the limit at a window edge)."""
 
     def __init__(self, client: redis.Redis, per_minute: int) -> None:
-        self.client = client
         self.per_minute = per_minute
         self._check = client.register_script(_SLIDING_WINDOW)
 

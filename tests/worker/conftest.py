@@ -31,6 +31,13 @@ WORKER_ENV = {
 }
 
 
+def overflowing_codes(size: int = 64) -> np.ndarray:
+    """8-bit codes whose unwrapped values climb to ~16 wraps: at mantissa alpha 1e6,
+    x ~ 1e90, beyond float32 (the decode fails with output_overflow)."""
+    u = np.tile(np.linspace(0.0, 16.0, size), (size, 1))
+    return np.floor((u - np.floor(u)) * 256).astype(np.uint8)
+
+
 def ramp_frame(size: int = 64, peak: float = 6.0, params: SensorParams = PARAMS) -> SensorFrame:
     """A smooth scene wrapping several times (itoh decodes it exactly)."""
     y, x = np.mgrid[0:size, 0:size] / size

@@ -19,6 +19,7 @@ import redis
 
 from models.errors import McamError
 from models.formation import SensorFrame, SensorParams
+from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
 from worker.jobs import JobState
@@ -41,12 +42,6 @@ OVERFLOW = SensorParams(encoding="mantissa", alpha=1e6, bits=8)
 #: 0.5 s a frame (itoh: 0.05 s), so a loaded machine cannot finish the job before the
 #: test sees it running.
 SLOW_DECODER = "herraez"
-
-
-def overflowing_codes(size: int = 64) -> np.ndarray:
-    """Codes whose unwrapped values climb to ~16 wraps (x ~ 1e90: beyond float32)."""
-    u = np.tile(np.linspace(0.0, 16.0, size), (size, 1))
-    return np.floor((u - np.floor(u)) * 256).astype(np.uint8)
 
 
 def exr_pixels(data: bytes) -> np.ndarray:

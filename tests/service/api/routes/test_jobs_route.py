@@ -14,12 +14,13 @@ from models.decoders.registry import get_decoder
 from models.frames import decode_frame
 from models.hdr_io import read_hdr
 from tests.service.conftest import PARAMS, READ_KEY, SUBMIT_KEY, frame_png
+from tests.worker.conftest import overflowing_codes
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
 
 
-def finished_job(http: httpx.Client, **fields: str) -> dict:
+def reconstructed_job(http: httpx.Client, **fields: str) -> dict:
     data, _ = frame_png()
     reply = http.post(
         "/v1/reconstructions",
@@ -33,7 +34,7 @@ def finished_job(http: httpx.Client, **fields: str) -> dict:
 
 def test_results_match_the_in_process_decoder(client: Client, worker: Worker) -> None:
     http = client()
-    job = finished_job(http)
+    job = reconstructed_job(http)
     assert http.get(f"/v1/jobs/{job['id']}").json()["state"] == "succeeded"
     _, codes = frame_png()
     expected = get_decoder("itoh").decode(codes, PARAMS)
@@ -47,7 +48,7 @@ def test_results_match_the_in_process_decoder(client: Client, worker: Worker) ->
 
 def test_codes_part_gives_back_the_uploaded_codes(client: Client, worker: Worker) -> None:
     http = client()
-    job = finished_job(http)
+    job = reconstructed_job(http)
     reply = http.get(f"/v1/jobs/{job['id']}/result", params={"part": "codes", "format": "tiff"})
     assert reply.status_code == 200
     _, codes = frame_png()
@@ -56,7 +57,7 @@ def test_codes_part_gives_back_the_uploaded_codes(client: Client, worker: Worker
 
 def test_previews_and_histogram(client: Client, worker: Worker) -> None:
     http = client(READ_KEY)
-    job = finished_job(client())
+    job = reconstructed_job(client())
     url = f"/v1/jobs/{job['id']}/result"
     dark = Image.open(io.BytesIO(http.get(url, params={"format": "png", "exposure": -6}).content))
     bright = Image.open(io.BytesIO(http.get(url, params={"format": "png", "exposure": 2}).content))
@@ -82,7 +83,7 @@ def test_previews_and_histogram(client: Client, worker: Worker) -> None:
     ],
 )
 def test_bad_result_queries(client: Client, worker: Worker, params: dict, status: int) -> None:
-    job = finished_job(client())
+    job = reconstructed_job(client())
     reply = client().get(f"/v1/jobs/{job['id']}/result", params=params)
     assert reply.status_code == status, reply.text
     assert reply.json()["code"] == "invalid_input"
@@ -103,7 +104,7 @@ def test_queued_job_has_no_result_and_can_be_cancelled(client: Client) -> None:
 
 
 def test_finished_job_cannot_be_cancelled(client: Client, worker: Worker) -> None:
-    job = finished_job(client())
+    job = reconstructed_job(client())
     reply = client().delete(f"/v1/jobs/{job['id']}")
     assert reply.status_code == 409 and reply.json()["code"] == "job_finished"
 
@@ -122,10 +123,8 @@ def test_submit_only_key_cannot_read(client: Client) -> None:
 
 
 def test_a_failed_job_says_no_result_will_come(client: Client, worker: Worker) -> None:
-    u = np.tile(np.linspace(0.0, 16.0, 64), (64, 1))  # ~16 wraps at alpha 1e6: beyond float32
-    codes = np.floor((u - np.floor(u)) * 256).astype(np.uint8)
     buffer = io.BytesIO()
-    np.save(buffer, codes)
+    np.save(buffer, overflowing_codes())
     reply = client().post(
         "/v1/reconstructions",
         files={"file": ("overflow.npy", buffer.getvalue())},
