@@ -217,16 +217,21 @@ def best_pixel_move(
     winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
 ) -> NDArray[np.bool_]:
     """The pixels whose K should grow by ``jump``: the minimum cut of one binary move
-    over every pixel (the exact best move).
+    over every pixel (the exact best move)."""
+    return cut_pixels(move_capacities(winding, m, jump, energy))
+
+
+def cut_pixels(capacities: MoveCapacities) -> NDArray[np.bool_]:
+    """The pixels (H x W) on the moving side of the minimum cut of ``capacities``.
 
     Each neighbour pair is one edge with its capacity in both directions
     (``add_edges``): at 256x256 that built the graph in 1.9 instead of 6.2 ms and cut it
     in 8.9 instead of 15.5 ms, against a grid edge per direction (``add_grid_edges``,
     which adds a zero-capacity reverse arc to each), with the same cut."""
-    capacities = move_capacities(winding, m, jump, energy)
+    shape = capacities.unary.shape
     graph = maxflow.GraphFloat()
-    nodes = np.arange(winding.size).reshape(winding.shape)
-    graph.add_nodes(winding.size)
+    nodes = np.arange(capacities.unary.size).reshape(shape)
+    graph.add_nodes(capacities.unary.size)
     (forward_right, backward_right), (forward_down, backward_down) = (
         capacities.right, capacities.down
     )

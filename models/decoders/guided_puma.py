@@ -52,6 +52,13 @@ whole, on a graph 3-70x smaller than the pixel grid, so the pixel moves that fol
 start near the minimum and need fewer, cheaper cuts. From the tiny net's W on val-256
 (2 quiet AMD EPYC cores, 2026-11-25), a pixel cut costs 14.5 ms at 256x256 and a region
 cut 4.3 ms (medians).
+A refinement with region moves and a budget below :data:`MAX_MOVES` (``auto`` at
+``balanced``) cuts its pixel moves on a narrow band around the pixels that can gain
+(:mod:`models.decoders.band_moves`): its two pixel cuts took 12-25% less time on
+val-256 with the same W. Without region moves first the pixel cuts must move whole
+regions, which a band cannot: the temporal refinement (two pixel cuts, no region
+moves) lost 1.9 dB on the pan/zoom clip with mantissanet-tiny (bench.video), so it
+keeps full cuts.
 Measured on val-256 (mantissanet-small guide, 2026-11-25): 22.17 -> 23.52 dB; the
 converged pixel refinement took about 6 cuts and 106 ms, 2 region + 2 pixel cuts
 reach the same 23.52 dB in 43 ms (``max_moves=2``, what ``auto`` runs at balanced).
@@ -74,9 +81,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from models.decoders.band_moves import best_band_move
 from models.decoders.base import Decoder
 from models.decoders.classical import wrap_difference
-from models.decoders.graphcut import PairWeights, PumaEnergy, minimise
+from models.decoders.graphcut import PairWeights, PumaEnergy, best_pixel_move, minimise
 from models.decoders.learned import load_cards, stitch_overlapping
 from models.decoders.region_moves import best_region_move
 from models.decoders.registry import DecoderSpec, get_decoder
@@ -197,6 +205,8 @@ class GuidedPumaDecoder(Decoder):
         self.prior_weight = prior_weight
         self.max_moves = max_moves
         self.region_moves = region_moves
+        budgeted = bool(region_moves) and max_moves < MAX_MOVES
+        self.pixel_move = best_band_move if budgeted else best_pixel_move
         self.name = refined_name(guide.name, max_moves)  # type: ignore[misc]
         self.version = guide.version
 
@@ -265,7 +275,7 @@ class GuidedPumaDecoder(Decoder):
                 first = minimise(window, prior, energy, JUMPS, self.region_moves, best_region_move)
                 start = first.winding
                 region_cuts.append(first.moves)
-            result = minimise(window, start, energy, JUMPS, self.max_moves)
+            result = minimise(window, start, energy, JUMPS, self.max_moves, self.pixel_move)
             moves.append(result.moves)
             return result.winding
 

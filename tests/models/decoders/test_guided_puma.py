@@ -11,8 +11,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from numpy.typing import NDArray
 
+from models.decoders.band_moves import best_band_move
 from models.decoders.base import Decoder
-from models.decoders.graphcut import PumaEnergy, minimise
+from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import (
     RESIDUE_WEIGHT,
     WHOLE_FRAME_PIXELS,
@@ -125,6 +126,20 @@ def test_a_move_budget_stops_the_refinement_early() -> None:
     assert one.info["details"]["region_moves"] == 0
     right_after_one = np.mean(one.winding == frame.winding)
     assert np.mean(np.minimum(frame.winding, 2) == frame.winding) < right_after_one < 1.0
+
+
+def test_budgeted_refinements_after_region_moves_cut_on_a_band() -> None:
+    """Band moves finish a budgeted refinement that starts with region moves, and it
+    still reaches the true W; without region moves (whole regions left for the pixel
+    cuts) or run to convergence, the pixel cuts are full ones."""
+    params = SensorParams(encoding="mantissa", max_wraps=64)
+    frame = encode(_hill(), params)
+    capped = CappedGuide(frame.winding, 2)
+    assert GuidedPumaDecoder(capped).pixel_move is best_pixel_move
+    assert GuidedPumaDecoder(capped, max_moves=2, region_moves=0).pixel_move is best_pixel_move
+    banded = GuidedPumaDecoder(capped, max_moves=4)
+    assert banded.pixel_move is best_band_move
+    np.testing.assert_array_equal(banded.decode(frame.codes, params).winding, frame.winding)
 
 
 def test_region_moves_come_first_and_are_counted_apart() -> None:

@@ -1,0 +1,130 @@
+"""Tests of models/decoders/band_moves.py: PUMA pixel moves cut on a narrow band."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from models.decoders import band_moves
+from models.decoders.band_moves import band_of, band_seeds, best_band_move, cut_band
+from models.decoders.graphcut import (
+    PumaEnergy,
+    best_pixel_move,
+    cut_pixels,
+    minimise,
+    move_capacities,
+)
+from models.decoders.guided_puma import pair_weights
+
+
+def _hill(size: int, short_by: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``m`` of a smooth hill (peak 3.7 wraps), its true W and a guide that counts at
+    most ``3 - short_by`` (a wrap short on the hill's top)."""
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    u = 0.2 + 3.5 * np.exp(-((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.08)
+    truth = np.floor(u).astype(np.int64)
+    return u - truth, truth, np.minimum(truth, 3 - short_by)
+
+
+def test_the_move_is_a_boolean_map_of_the_frame() -> None:
+    m, _, guide = _hill(24)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01)
+    moved = best_band_move(guide, m, 1, energy)
+    assert moved.shape == m.shape and moved.dtype == bool
+    assert energy(guide + moved, m) < energy(guide, m)
+
+
+def test_seeds_are_the_ends_of_jumps() -> None:
+    m = np.full((4, 6), 0.3)
+    winding = np.zeros((4, 6), np.int64)
+    winding[:, 3:] = 1  # u jumps by a wrap between columns 2 and 3
+    seeds = band_seeds(winding, m, np.zeros(m.shape))
+    expected = np.zeros(m.shape, bool)
+    expected[:, 2:4] = True
+    np.testing.assert_array_equal(seeds, expected)
+
+
+def test_seeds_include_pixels_that_gain_by_moving_alone() -> None:
+    unary = np.zeros((3, 3))
+    unary[1, 1] = -0.01
+    seeds = band_seeds(np.zeros((3, 3), np.int64), np.full((3, 3), 0.5), unary)
+    assert seeds.sum() == 1 and seeds[1, 1]
+
+
+def test_the_band_reaches_its_distance_in_every_direction() -> None:
+    seeds = np.zeros((11, 11), bool)
+    seeds[5, 5] = True
+    band = band_of(seeds, 2)
+    expected = np.zeros((11, 11), bool)
+    expected[3:8, 3:8] = True
+    np.testing.assert_array_equal(band, expected)
+    np.testing.assert_array_equal(band_of(seeds, 0), seeds)
+
+
+def test_a_frame_that_agrees_with_its_guide_does_not_move() -> None:
+    m = np.tile(np.linspace(0.1, 0.4, 8), (6, 1))
+    guide = np.zeros(m.shape, np.int64)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01)
+    for jump in (1, -1):
+        assert not best_band_move(guide, m, jump, energy).any()
+
+
+def test_a_band_over_the_whole_frame_is_the_pixel_cut() -> None:
+    m, _, guide = _hill(20)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01)
+    capacities = move_capacities(guide, m, 1, energy)
+    np.testing.assert_array_equal(
+        cut_band(capacities, np.ones(m.shape, bool)), cut_pixels(capacities)
+    )
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    m=arrays(np.float64, (3, 4), elements=st.floats(0.0, 0.999)),
+    winding=arrays(np.int64, (3, 4), elements=st.integers(0, 2)),
+    prior=arrays(np.int64, (3, 4), elements=st.integers(0, 2)),
+    band=arrays(bool, (3, 4)),
+    weight=st.floats(0.01, 2.0),
+    jump=st.sampled_from([1, -1]),
+)
+def test_the_band_cut_is_the_best_move_that_keeps_the_outside(
+    m: np.ndarray,
+    winding: np.ndarray,
+    prior: np.ndarray,
+    band: np.ndarray,
+    weight: float,
+    jump: int,
+) -> None:
+    """Brute force over every subset of the band: the cut finds the least energy among
+    moves that leave the pixels outside it alone, and moves nothing outside."""
+    energy = PumaEnergy(1.0, pair_weights(m), prior, weight, above_factor=0.5)
+    inside = np.flatnonzero(band)
+    best = energy(winding, m)
+    for subset in itertools.product([False, True], repeat=inside.size):
+        moved = np.zeros(m.size, bool)
+        moved[inside[np.array(subset, bool)]] = True
+        best = min(best, energy(winding + jump * moved.reshape(m.shape), m))
+    moved = cut_band(move_capacities(winding, m, jump, energy), band)
+    assert not moved[~band].any()
+    assert energy(winding + jump * moved, m) <= best + 1e-9
+
+
+@pytest.mark.parametrize("reach", [1, 3, band_moves.BAND_REACH])
+def test_converged_band_moves_reach_the_pixel_moves_minimum(
+    reach: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Run to convergence, band moves stop only where the full pixel cut finds nothing
+    either: the same (global) minimum of the convex energy, even with a band too
+    narrow to move the hill's top whole."""
+    monkeypatch.setattr(band_moves, "BAND_REACH", reach)
+    m, truth, guide = _hill(48, short_by=2)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
+    pixel = minimise(m, guide, energy, (1, -1), 100, best_pixel_move)
+    band = minimise(m, guide, energy, (1, -1), 100, best_band_move)
+    assert band.energies[-1] == pytest.approx(pixel.energies[-1], rel=1e-9, abs=1e-9)
+    np.testing.assert_array_equal(band.winding, truth)
