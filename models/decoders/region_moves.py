@@ -19,6 +19,11 @@ net's (pixel moves 23.31), where a wrong region joins a right one across an alia
 edge and cannot be split. So two region moves come first and pixel moves finish:
 the converged pixel refinement's PSNR within 0.01 dB for both nets and both
 encodings, in 40-50 ms instead of 106-131 ms.
+
+Since 2026-11-25 (evening) the regions are labelled on a doubled pixel grid and the
+pixel pairs along each border are summed into one edge: auto-balanced's two region
+cuts on val-256 took 23.8 -> 17.4 ms (mantissa) and 18.8 -> 15.7 ms (modulo) with the
+same W on all 48 frames.
 """
 
 from __future__ import annotations
@@ -26,8 +31,7 @@ from __future__ import annotations
 import maxflow
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy import ndimage
 
 from models.decoders.graphcut import PairWeights, PumaEnergy, move_capacities
 
@@ -51,14 +55,15 @@ def consistent_regions(
     if weights is not None:
         right &= weights[0] > LINK_WEIGHT
         down &= weights[1] > LINK_WEIGHT
-    index = np.arange(height * width, dtype=np.int32).reshape(height, width)
-    first = np.concatenate([index[:, :-1][right], index[:-1][down]])
-    second = np.concatenate([index[:, 1:][right], index[1:][down]])
-    links = coo_matrix(
-        (np.ones(first.size, np.int8), (first, second)), shape=(height * width,) * 2
-    )
-    count, labels = connected_components(links, directed=False)
-    return int(count), labels.reshape(height, width).astype(np.int64)
+    # Pixels sit at the even points of a grid twice as fine, each link between them:
+    # 4-connected components of that grid are the regions, in raster order of their
+    # first pixel (0.8 ms faster at 256x256 than a sparse graph's components).
+    grid = np.zeros((2 * height - 1, 2 * width - 1), bool)
+    grid[::2, ::2] = True
+    grid[::2, 1::2] = right
+    grid[1::2, ::2] = down
+    labels, count = ndimage.label(grid)
+    return int(count), labels[::2, ::2].astype(np.int64) - 1
 
 
 def best_region_move(
@@ -77,11 +82,35 @@ def best_region_move(
     # Pairs inside a region cost nothing when the region moves whole, and their
     # t-link shifts cancel in the region's unary sum.
     between = (tails != heads) & ((forward > 0.0) | (backward > 0.0))
+    tails, heads, forward, backward = merge_parallel_edges(
+        tails[between], heads[between], forward[between], backward[between], count
+    )
     graph = maxflow.GraphFloat()
     nodes = graph.add_nodes(count)
-    graph.add_edges(
-        nodes[tails[between]], nodes[heads[between]], forward[between], backward[between]
-    )
+    graph.add_edges(nodes[tails], nodes[heads], forward, backward)
     graph.add_grid_tedges(nodes, np.maximum(unary, 0.0), np.maximum(-unary, 0.0))
     graph.maxflow()
     return graph.get_grid_segments(nodes)[labels]
+
+
+def merge_parallel_edges(
+    tails: NDArray[np.int64],
+    heads: NDArray[np.int64],
+    forward: NDArray[np.float64],
+    backward: NDArray[np.float64],
+    count: int,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """One edge per pair of the ``count`` nodes: the pixel pairs along a border between
+    two regions, each an edge ``tail -> head`` of capacity ``forward`` (``backward`` the
+    other way), summed into one edge from the lower node to the higher. The cut is the
+    same; the graph has 2-3x fewer edges on val-256 and cuts faster."""
+    swap = tails > heads
+    low, high = np.where(swap, heads, tails), np.where(swap, tails, heads)
+    up, down = np.where(swap, backward, forward), np.where(swap, forward, backward)
+    keys, index = np.unique(low * count + high, return_inverse=True)
+    return (
+        keys // count,
+        keys % count,
+        np.bincount(index, up, minlength=keys.size),
+        np.bincount(index, down, minlength=keys.size),
+    )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -15,6 +16,7 @@ from models.decoders.region_moves import (
     CONSISTENT_STEP,
     best_region_move,
     consistent_regions,
+    merge_parallel_edges,
 )
 
 
@@ -108,3 +110,44 @@ def test_the_region_cut_is_the_best_region_labelling(
     pixel = energy(winding + jump * best_pixel_move(winding, m, jump, energy), m)
     assert region <= best + 1e-9
     assert pixel <= region + 1e-9
+
+
+def _cut_cost(
+    edges: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], sink: np.ndarray
+) -> float:
+    """What the edges cost when the nodes in ``sink`` are cut from the others."""
+    tails, heads, forward, backward = edges
+    return float(
+        np.sum(forward * (~sink[tails] & sink[heads]))
+        + np.sum(backward * (sink[tails] & ~sink[heads]))
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    pairs=st.lists(
+        st.tuples(st.integers(0, 4), st.integers(0, 4), st.floats(0, 3), st.floats(0, 3)),
+        min_size=1,
+        max_size=12,
+    ).filter(lambda pairs: all(tail != head for tail, head, _, _ in pairs)),
+    sink=arrays(bool, 5),
+)
+def test_merged_parallel_edges_cost_the_same_for_every_cut(
+    pairs: list[tuple[int, int, float, float]], sink: np.ndarray
+) -> None:
+    tails, heads, forward, backward = (np.array(column) for column in zip(*pairs, strict=True))
+    merged = merge_parallel_edges(tails, heads, forward, backward, 5)
+    assert np.all(merged[0] < merged[1])
+    assert len(set(zip(merged[0], merged[1], strict=True))) == merged[0].size
+    assert _cut_cost(merged, sink) == pytest.approx(
+        _cut_cost((tails, heads, forward, backward), sink), abs=1e-9
+    )
+
+
+def test_regions_of_a_single_row_and_a_single_pixel() -> None:
+    u = np.array([[0.1, 0.2, 0.9, 1.0]])
+    count, labels = consistent_regions(u, None)
+    assert count == 2
+    np.testing.assert_array_equal(labels, [[0, 0, 1, 1]])
+    count, labels = consistent_regions(np.zeros((1, 1)), None)
+    assert count == 1 and labels.tolist() == [[0]]
