@@ -109,14 +109,14 @@ JobHandler = Callable[[JobContext, NDArray[np.unsignedinteger]], JobOutcome]
 
 
 def reconstruct_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:
-    """Decode one frame with the job's decoder; write the EXR and the winding map."""
+    """Decode one frame with the job's decoder; write the EXR and the winding map. (Its
+    progress is set with its final state: a write per job fewer, each an fsync.)"""
     record = ctx.record
     result = get_decoder(record.decoder).decode(codes, record.params)
     ctx.check()
     start = time.perf_counter_ns()
     files = encode_outputs(codes, result.winding, record.params, result.info, record.options)
     results = {name: ctx.write(OUTPUT_NAMES[name], data) for name, data in files.items()}
-    ctx.progress(1)
     return JobOutcome(
         results=results,
         timings_ns={"decode": result.timings_ns["total"], "encode": time.perf_counter_ns() - start},
