@@ -176,16 +176,20 @@ class OnnxWindingModel:
 
 class OnnxRolloverModel(OnnxWindingModel):
     """UnModNet (``(m, W) -> rollover``): W grows by the predicted rollovers, pass by pass,
-    until no pixel rolls over or ``max_passes`` is reached."""
+    until no pixel rolls over or ``max_passes`` is reached. A pass rolls only pixels that
+    rolled in the previous one: the true sets ``W > k`` are nested, and without that the
+    nets kept rolling bright regions on (val-256 at 15 passes, the tiny nets of
+    2026-11-25 05:41: mantissa 18.91 -> 19.21 dB, modulo 18.75 -> 18.87 dB)."""
 
     def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
         padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))[None, None]
         winding = np.zeros_like(padded)
+        rolling = np.ones(padded.shape, bool)
         for _ in range(int(self.card["max_passes"])):
-            rollover = self.session.run(None, {"m": padded, "winding": winding})[0]
-            if not rollover[0, 0, : m.shape[0], : m.shape[1]].any():
+            rolling &= self.session.run(None, {"m": padded, "winding": winding})[0] > 0
+            if not rolling[0, 0, : m.shape[0], : m.shape[1]].any():
                 break
-            winding += rollover.astype(np.float32)
+            winding += rolling
         return winding[0, 0, : m.shape[0], : m.shape[1]].astype(np.int64)
 
 

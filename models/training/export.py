@@ -133,6 +133,11 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
         "loss": config.loss,
         **({"risk_weight": config.risk_weight} if config.loss == "ce-risk" else {}),
         "max_read_noise": config.max_read_noise,
+        **(
+            {"own_states": config.own_states, "own_passes": config.own_passes}
+            if config.family == "unmodnet"
+            else {}
+        ),
         "init_from": config.init_from,
         "seed": config.seed,
         "threads": config.threads,

@@ -263,36 +263,36 @@ class MantissaNet(nn.Module):
 
 
 class UnModMaskNet(nn.Module):
-    """UnModNet's rollover net: logit that a pixel rolls over one more wrap.
+    """UnModNet's rollover net: the logit that a pixel rolls over one more wrap, from the
+    current partial unwrapping ``u`` (scaled by ``1 / NUM_CLASSES``) and the edge map,
+    by the winding net's attention U-Net with one output.
 
-    Input: the current partial unwrapping ``u`` scaled by 1/16, and the edge map.
+    Measured (val-256, 2026-11-25): the earlier rollover net, residual blocks of the
+    edge net's width, saw too little of the frame to tell which side of a wrap edge
+    rolls: its first pass found almost no rollover (80.1% W, as W = 0 everywhere).
     """
 
-    def __init__(self, width: int, blocks: int) -> None:
+    def __init__(self, tier: Tier) -> None:
         super().__init__()
-        self.head = conv_bn_relu(2, width)
-        self.body = nn.Sequential(*(ResidualBlock(width) for _ in range(blocks)))
-        self.attention = RegionNonLocal(width)
-        self.tail = nn.Conv2d(width, 1, 3, 1, 1)
+        self.net = WindingNet(tier, outputs=1)
 
     def forward(self, u: Tensor, edges: Tensor) -> Tensor:
-        x = self.head(torch.cat([u / NUM_CLASSES, edges], dim=1))
-        return self.tail(self.attention(self.body(x)))
+        return self.net(u / NUM_CLASSES, edges)
 
 
 class UnModNet(nn.Module):
     """UnModNet: the edge net + the rollover net, applied iteratively at inference.
 
     ``forward(m, winding)`` gives the rollover logits of the state ``m + winding``
-    and the edge map; the runtime adds 1 to W where the logit is > 0, until no
-    pixel rolls over (at most 15 passes).
+    and the edge map; the runtime adds 1 to W where the logit is > 0 (each pass only
+    inside the previous pass's rollovers), until no pixel rolls over (at most 15 passes).
     """
 
     def __init__(self, tier: Tier) -> None:
         super().__init__()
         self.tier = tier
         self.edge = EdgeNet(tier.edge_width, tier.edge_blocks)
-        self.mask = UnModMaskNet(tier.edge_width, tier.edge_blocks)
+        self.mask = UnModMaskNet(tier)
 
     def forward(self, m: Tensor, winding: Tensor) -> tuple[Tensor, Tensor]:
         edges = self.edge(m)

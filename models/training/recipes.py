@@ -63,11 +63,40 @@ def exported(config: TrainConfig) -> bool:
 #: val-256 mantissa; this recipe 21.63 dB / 88.9% with plain ce.
 TINY_STAGES = (600, 5000, 2000, 1000)
 
-#: UnModNet baseline (tiny width, fits CPU training): edge net, rollover net on true
-#: edges, end to end; under 3 minutes per model on one quiet core. val-256 mantissa:
-#: the earlier (200, 800, 300) 17.59 dB / 77.4% W; this recipe 18.91 dB / 80.1%;
-#: (2000, 8000, 3000) 16.92 dB / 82.6% W (more passes, and the PSNR falls), not shipped.
-UNMODNET_STAGES = (600, 2400, 900)
+#: UnModNet baseline, in three runs per encoding (tiny tier widths; the rollover net is
+#: the tiny winding net's U-Net with one output). First: edge net, rollover net on true
+#: edges, end to end, from random ``min(W, k)`` states: 5 minutes a model on one core
+#: (2026-11-25). Its first pass finds the rollovers (val-256 mantissa 85.4% W) but later
+#: passes over-count bright regions (15 passes: 8.2 dB). Second and third: end to end from
+#: the model's own rolled-out states (``own_states`` of the batches, up to ``own_passes``
+#: passes), 4 and 6 minutes. The earlier residual rollover net, (600, 2400, 900) steps:
+#: 18.91 dB / 80.1% W, about W = 0 everywhere.
+UNMODNET_STAGES = (300, 2000, 800)
+UNMODNET_OWN_STAGES = (0, 0, 1500)
+#: Labels of the first two runs of the UnModNet chain.
+UNMODNET_RUNS = ("part1", "part2")
+
+
+def unmodnet_chain(encoding: str) -> tuple[TrainConfig, ...]:
+    """The three runs of one UnModNet model (see :data:`UNMODNET_STAGES`)."""
+    first, second = UNMODNET_RUNS
+    return (
+        TrainConfig(
+            family="unmodnet", tier="tiny", encoding=encoding, stage_steps=UNMODNET_STAGES,
+            label=first,
+        ),
+        TrainConfig(
+            family="unmodnet", tier="tiny", encoding=encoding,
+            stage_steps=UNMODNET_OWN_STAGES, own_states=0.5, own_passes=4,
+            init_from=f"unmodnet-tiny-{first}-{encoding}", label=second,
+        ),
+        TrainConfig(
+            family="unmodnet", tier="tiny", encoding=encoding,
+            stage_steps=UNMODNET_OWN_STAGES, own_states=0.7, own_passes=8,
+            init_from=f"unmodnet-tiny-{second}-{encoding}",
+        ),
+    )  # fmt: skip
+
 
 #: Loss of the shipped tiny mantissa net: cross-entropy plus 0.1 x the expected log-MSE
 #: (``ce-risk``). Measured on val-256 mantissa (net alone / refined by guided PUMA, dB):
@@ -109,6 +138,6 @@ SHIPPED: tuple[TrainConfig, ...] = (
         tier="small", encoding="mantissa", stage_steps=SMALL_NOISE_STAGES, max_read_noise=0.02,
         init_from="mantissanet-small-mantissa",
     ),
-    TrainConfig(family="unmodnet", tier="tiny", encoding="mantissa", stage_steps=UNMODNET_STAGES),
-    TrainConfig(family="unmodnet", tier="tiny", encoding="modulo", stage_steps=UNMODNET_STAGES),
+    *unmodnet_chain("mantissa"),
+    *unmodnet_chain("modulo"),
 )

@@ -56,7 +56,9 @@ class TrainConfig:
     """One training run. ``stage_steps``: optimizer steps of stages 1, 2, 3 (and 4).
 
     ``risk_weight`` (``ce-risk`` only): weight of the expected-PSNR term, see
-    :func:`winding_loss`. ``label``: a tag in the run name (``-<label>`` before the
+    :func:`winding_loss`. ``own_states`` / ``own_passes`` (``unmodnet`` only): the fraction
+    of batches trained from the model's own state after up to that many passes, see
+    :func:`rollover_losses`. ``label``: a tag in the run name (``-<label>`` before the
     encoding), for a run that is a step towards another rather than a model.
     """
 
@@ -70,6 +72,8 @@ class TrainConfig:
     batch: int = 8
     max_read_noise: float = 0.0
     risk_weight: float = RISK_WEIGHT
+    own_states: float = 0.0
+    own_passes: int = 4
     init_from: str | None = None
     label: str = ""
     seed: int = 0
@@ -182,15 +186,46 @@ def prediction_accuracy(output: Tensor, winding: Tensor, loss: str) -> Tensor:
     return (predicted == winding[:, 0]).float().mean()
 
 
+def rolled_out_state(
+    model: UnModNet, m: Tensor, edges: Tensor, passes: int
+) -> Tensor:
+    """The partial W the model itself reaches from zero in ``passes`` passes, each pass
+    rolling only inside the previous one's rollovers (as the runtime does), no gradient."""
+    with torch.no_grad():
+        state = torch.zeros_like(m)
+        active = torch.ones_like(m, dtype=torch.bool)
+        for _ in range(passes):
+            active = (model.mask(m + state, edges.detach()) > 0) & active
+            state = state + active.float()
+    return state
+
+
 def rollover_losses(
-    model: UnModNet, m: Tensor, winding: Tensor, edges: Tensor, generator: torch.Generator
+    model: UnModNet,
+    m: Tensor,
+    winding: Tensor,
+    edges: Tensor,
+    generator: torch.Generator,
+    own_states: float = 0.0,
+    own_passes: int = 4,
 ) -> tuple[Tensor, Tensor]:
-    """UnModNet's pass loss: from a random partial state ``min(W, k)``, BCE of the logit
-    that a pixel rolls over once more (``W > k``); returns (loss, accuracy)."""
+    """UnModNet's pass loss: from a partial state, BCE of the logit that a pixel rolls
+    over once more (``W > state``); returns (loss, accuracy).
+
+    The state is a random ``min(W, k)`` (``k`` up to the crop's top W) or, for a fraction
+    ``own_states`` of the batches, the model's own state after 1 to ``own_passes``
+    passes (:func:`rolled_out_state`): at inference each pass starts from the previous
+    passes' answer, mistakes included, and from ``min(W, k)`` alone the net never learns
+    to stop where it over-counted (val-256 mantissa at 15 passes: 18.2 -> 8.3 dB from
+    pass 3 on, against 21.0 dB at 3 passes after training on its own states)."""
     top = winding.amax(dim=(1, 2, 3), keepdim=True).float()
     k = torch.floor(torch.rand(top.shape, generator=generator) * (top + 1)).long()
-    target = (winding > k).float()
-    logits = model.mask(m + torch.minimum(winding, k).float(), edges)
+    state = torch.minimum(winding, k).float()
+    if own_states and torch.rand((), generator=generator).item() < own_states:
+        passes = int(torch.randint(1, own_passes + 1, (), generator=generator).item())
+        state = rolled_out_state(model, m, edges, passes)
+    target = (winding.float() > state).float()
+    logits = model.mask(m + state, edges)
     accuracy = ((logits > 0).float() == target).float().mean()
     return F.binary_cross_entropy_with_logits(logits, target), accuracy
 
@@ -198,6 +233,7 @@ def rollover_losses(
 def step_losses(
     model: MantissaNet | UnModNet, m: Tensor, winding: Tensor, stage: int, loss: str,
     step: int = 0, errors: Tensor | None = None, risk_weight: float = RISK_WEIGHT,
+    own_states: float = 0.0, own_passes: int = 4,
 ) -> tuple[Tensor, dict[str, float]]:
     """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy);
     ``errors`` are the per-class errors that ``ce-risk`` needs."""
@@ -208,7 +244,9 @@ def step_losses(
     if isinstance(model, UnModNet):
         edges = truth if stage == 2 else model.edge(m)
         generator = torch.Generator().manual_seed(step)
-        total, accuracy = rollover_losses(model, m, winding, edges, generator)
+        total, accuracy = rollover_losses(
+            model, m, winding, edges, generator, own_states, own_passes
+        )
         if stage == 2:
             return total, {"accuracy": accuracy.item()}
         edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
@@ -306,6 +344,7 @@ def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None =
             loss, parts = step_losses(
                 model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss, step,
                 loss_errors(config, m_np, w_np), config.risk_weight,
+                config.own_states, config.own_passes,
             )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -20,7 +20,7 @@ from models.training.export import (
     sha256_of,
     trained_model,
 )
-from models.training.train import TrainConfig, train
+from models.training.train import TrainConfig, rolled_out_state, train
 
 
 def torch_winding(checkpoint: Path, m: np.ndarray) -> np.ndarray:
@@ -69,6 +69,25 @@ def test_unmodnet_exports_one_rollover_pass_matching_pytorch(tmp_path: Path) -> 
         torch_out = RolloverGraph(model)(torch.from_numpy(m), torch.from_numpy(winding)).numpy()
     assert onnx_out.shape == m.shape and set(np.unique(onnx_out)) <= {0, 1}
     assert (onnx_out == torch_out).mean() > 0.999
+
+
+def test_the_iterative_runtime_rolls_like_the_trained_model(tmp_path: Path) -> None:
+    """The runtime's passes (each inside the previous pass's rollovers) reach the state
+    that training rolls out with the same model: ONNX and PyTorch agree on W."""
+    config = TrainConfig(
+        family="unmodnet", tier="tiny", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path
+    )
+    card = json.loads(export_run(train(config), tmp_path / "onnx").read_text())
+    card["path"] = str(tmp_path / "onnx" / card["file"])
+    m = np.random.default_rng(3).random((32, 48))
+    runtime = onnx_model(card)
+    model, _, _ = trained_model(tmp_path / config.name / "checkpoint.pt")
+    m_torch = torch.from_numpy(m.astype(np.float32))[None, None]
+    for passes in (1, 2, 5):
+        runtime.card["max_passes"] = passes
+        with torch.no_grad():
+            expected = rolled_out_state(model, m_torch, model.edge(m_torch), passes)
+        np.testing.assert_array_equal(runtime.run(m), expected[0, 0].numpy().astype(np.int64))
 
 
 def test_half_resolution_tier_exports_its_multiple_and_decodes_any_size(tmp_path: Path) -> None:

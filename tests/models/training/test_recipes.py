@@ -22,12 +22,18 @@ def test_run_names_are_unique() -> None:
 
 
 def test_a_labelled_run_is_a_step_towards_a_later_one_and_not_exported() -> None:
+    """A labelled run is not exported, and the runs that start from it (directly or
+    through other labelled runs) end in an exported one."""
     for index, config in enumerate(SHIPPED):
         if config.label:
             assert not exported(config)
             assert config.label in config.name
-            later = [c for c in SHIPPED[index + 1 :] if c.init_from == config.name]
-            assert [c for c in later if exported(c)], config.name
+            reached, steps = {config.name}, []
+            for later in SHIPPED[index + 1 :]:
+                if later.init_from in reached:
+                    reached.add(later.name)
+                    steps.append(later)
+            assert [c for c in steps if exported(c)], config.name
 
 
 def test_only_plain_small_models_are_quantized() -> None:
@@ -47,3 +53,4 @@ def test_every_shipped_card_was_trained_by_its_recipe() -> None:
         assert training["max_read_noise"] == config.max_read_noise, config.name
         assert training.get("init_from") == config.init_from, config.name
         assert training["loss"] == config.loss, config.name
+        assert training.get("own_states", 0.0) == config.own_states, config.name

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from models.training.networks import TIERS, UnModNet
 from models.training.train import (
     HEAD_OUTPUTS,
     RISK_FLOOR,
@@ -16,6 +17,8 @@ from models.training.train import (
     expected_log_mse,
     load_checkpoint,
     prediction_accuracy,
+    rolled_out_state,
+    rollover_losses,
     train,
     winding_jumps,
     winding_loss,
@@ -128,3 +131,45 @@ def test_expected_log_mse_is_the_log_of_the_probability_weighted_error() -> None
     errors = torch.tensor([0.0, 8.0]).reshape(1, 2, 1, 1)
     expected = math.log(2.0 + RISK_FLOOR)
     assert expected_log_mse(logits, errors).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_rolled_out_passes_stay_inside_the_previous_ones() -> None:
+    torch.manual_seed(0)
+    model = UnModNet(TIERS["tiny"]).eval()
+    m = torch.rand(2, 1, 32, 32)
+    edges = model.edge(m)
+    states = [rolled_out_state(model, m, edges, passes) for passes in range(4)]
+    assert not states[0].any()
+    for before, after in zip(states, states[1:], strict=False):
+        grew = after - before
+        assert set(grew.unique().tolist()) <= {0.0, 1.0}
+    for previous, before, after in zip(states, states[1:], states[2:], strict=False):
+        assert torch.all((after - before) <= (before - previous))
+
+
+def test_own_states_train_from_the_models_answer() -> None:
+    """With ``own_states = 1`` every batch starts from the model's own rolled-out state,
+    so the targets are where the true W is above that state; with 0 the random
+    ``min(W, k)`` states are used and the generator draws the same numbers as before."""
+    torch.manual_seed(0)
+    model = UnModNet(TIERS["tiny"]).eval()
+    m = torch.rand(2, 1, 32, 32)
+    winding = torch.randint(0, 3, (2, 1, 32, 32))
+    edges = model.edge(m)
+    plain = rollover_losses(model, m, winding, edges, torch.Generator().manual_seed(5))
+    again = rollover_losses(model, m, winding, edges, torch.Generator().manual_seed(5), 0.0)
+    assert torch.equal(plain[0], again[0])
+    own_loss, own_accuracy = rollover_losses(
+        model, m, winding, edges, torch.Generator().manual_seed(5), 1.0, 3
+    )
+    assert torch.isfinite(own_loss) and 0.0 <= float(own_accuracy) <= 1.0
+    assert not torch.equal(own_loss, plain[0])
+
+
+def test_unmodnet_trains_on_its_own_states(tmp_path: Path) -> None:
+    config = TrainConfig(
+        family="unmodnet", tier="tiny", stage_steps=(1, 2, 2), crop=32, batch=2,
+        runs_dir=tmp_path, own_states=1.0, own_passes=2, log_every=1,
+    )  # fmt: skip
+    checkpoint = train(config)
+    assert load_checkpoint(checkpoint)["step"] == 5
