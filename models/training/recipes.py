@@ -63,39 +63,39 @@ def exported(config: TrainConfig) -> bool:
 #: val-256 mantissa; this recipe 21.63 dB / 88.9% with plain ce.
 TINY_STAGES = (600, 5000, 2000, 1000)
 
-#: UnModNet baseline, in three runs per encoding (tiny tier widths; the rollover net is
-#: the tiny winding net's U-Net with one output). First: edge net, rollover net on true
-#: edges, end to end, from random ``min(W, k)`` states: 5 minutes a model on one core
-#: (2026-11-25). Its first pass finds the rollovers (val-256 mantissa 85.4% W) but later
-#: passes over-count bright regions (15 passes: 8.2 dB). Second and third: end to end from
-#: the model's own rolled-out states (``own_states`` of the batches, up to ``own_passes``
-#: passes), 4 and 6 minutes. The earlier residual rollover net, (600, 2400, 900) steps:
-#: 18.91 dB / 80.1% W, about W = 0 everywhere.
-UNMODNET_STAGES = (300, 2000, 800)
-UNMODNET_OWN_STAGES = (0, 0, 1500)
-#: Labels of the first two runs of the UnModNet chain.
-UNMODNET_RUNS = ("part1", "part2")
+#: UnModNet baseline: per encoding a chain of runs, each from the previous one's weights
+#: (tiny tier widths; the rollover net is the tiny winding net's U-Net with one output).
+#: Each entry: stage steps, ``own_states``, ``own_passes``. First: edge net, rollover net
+#: on true edges, end to end, from random ``min(W, k)`` states, 5 minutes a model on one
+#: core (2026-11-25); its first pass finds the rollovers (val-256 mantissa 85.4% W) but
+#: later passes over-count bright regions (15 passes: 8.2 dB). Then end to end from the
+#: model's own rolled-out states (``own_states`` of the batches, up to ``own_passes``
+#: passes) on 64-px crops, 4 and 6 minutes (15 passes: mantissa 20.20 dB, modulo 19.73),
+#: then on 128-px crops (stage 4), 2 minutes for 600 steps (20.88 / 20.87 dB). The earlier
+#: residual rollover net, (600, 2400, 900) steps: 18.91 dB / 80.1% W, about W = 0
+#: everywhere.
+UNMODNET_CHAIN: tuple[tuple[tuple[int, ...], float, int], ...] = (
+    ((300, 2000, 800), 0.0, 4),
+    ((0, 0, 1500), 0.5, 4),
+    ((0, 0, 1500), 0.7, 8),
+    ((0, 0, 0, 600), 0.7, 8),
+)
 
 
 def unmodnet_chain(encoding: str) -> tuple[TrainConfig, ...]:
-    """The three runs of one UnModNet model (see :data:`UNMODNET_STAGES`)."""
-    first, second = UNMODNET_RUNS
-    return (
-        TrainConfig(
-            family="unmodnet", tier="tiny", encoding=encoding, stage_steps=UNMODNET_STAGES,
-            label=first,
-        ),
-        TrainConfig(
-            family="unmodnet", tier="tiny", encoding=encoding,
-            stage_steps=UNMODNET_OWN_STAGES, own_states=0.5, own_passes=4,
-            init_from=f"unmodnet-tiny-{first}-{encoding}", label=second,
-        ),
-        TrainConfig(
-            family="unmodnet", tier="tiny", encoding=encoding,
-            stage_steps=UNMODNET_OWN_STAGES, own_states=0.7, own_passes=8,
-            init_from=f"unmodnet-tiny-{second}-{encoding}",
-        ),
-    )  # fmt: skip
+    """The runs of one UnModNet model (:data:`UNMODNET_CHAIN`): ``part1``, ``part2``, ...
+    and the last, unlabelled one, which ships."""
+    runs = []
+    previous = None
+    for index, (steps, own_states, own_passes) in enumerate(UNMODNET_CHAIN):
+        label = f"part{index + 1}" if index + 1 < len(UNMODNET_CHAIN) else ""
+        config = TrainConfig(
+            family="unmodnet", tier="tiny", encoding=encoding, stage_steps=steps,
+            own_states=own_states, own_passes=own_passes, init_from=previous, label=label,
+        )  # fmt: skip
+        runs.append(config)
+        previous = config.name
+    return tuple(runs)
 
 
 #: Loss of the shipped tiny mantissa net: cross-entropy plus 0.1 x the expected log-MSE
