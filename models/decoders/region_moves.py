@@ -28,12 +28,11 @@ same W on all 48 frames.
 
 from __future__ import annotations
 
-import maxflow
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from models.decoders.graphcut import PairWeights, PumaEnergy, move_capacities
+from models.decoders.graphcut import Edges, PairWeights, PumaEnergy, min_cut, move_capacities
 
 #: Neighbours are in one region when ``|u_j - u_i|`` is below this (wrap units): the
 #: Itoh condition under the current K.
@@ -82,15 +81,10 @@ def best_region_move(
     # Pairs inside a region cost nothing when the region moves whole, and their
     # t-link shifts cancel in the region's unary sum.
     between = (tails != heads) & ((forward > 0.0) | (backward > 0.0))
-    tails, heads, forward, backward = merge_parallel_edges(
+    edges = merge_parallel_edges(
         tails[between], heads[between], forward[between], backward[between], count
     )
-    graph = maxflow.GraphFloat()
-    nodes = graph.add_nodes(count)
-    graph.add_edges(nodes[tails], nodes[heads], forward, backward)
-    graph.add_grid_tedges(nodes, np.maximum(unary, 0.0), np.maximum(-unary, 0.0))
-    graph.maxflow()
-    return graph.get_grid_segments(nodes)[labels]
+    return min_cut(unary, [edges])[labels]
 
 
 def merge_parallel_edges(
@@ -99,7 +93,7 @@ def merge_parallel_edges(
     forward: NDArray[np.float64],
     backward: NDArray[np.float64],
     count: int,
-) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+) -> Edges:
     """One edge per pair of the ``count`` nodes: the pixel pairs along a border between
     two regions, each an edge ``tail -> head`` of capacity ``forward`` (``backward`` the
     other way), summed into one edge from the lower node to the higher. The cut is the
