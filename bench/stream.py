@@ -11,8 +11,13 @@ Run as ``python -m bench.stream [--frames N] [--workers 1 2]``. Measures
    device, and as many devices as workers: a device stream is owned by one worker at a
    time, so a second worker only helps with a second device), and latency from the packet
    leaving the camera to the EXR on disk (event ``written_ns`` minus the packet's
-   timestamp, both wall clock) when paced below capacity;
+   timestamp, both wall clock) when paced below capacity. A run ends when every device's
+   last frame is recorded; frames reconstructed are the EXRs in the result store, and the
+   latency percentiles cover the frames still in the events stream (its newest ~1000);
 4. the decoder's own speed in-process (decode + EXR encode) for comparison.
+
+``--exr-compression`` sets the workers' ``MCAM_STREAM_EXR_COMPRESSION`` and the in-process
+encoding alike (default: the workers' default, ``worker.outputs.STREAM_EXR_COMPRESSION``).
 
 Frames are rendered once by the virtual SCAMP-5 (modulo, procedural scene) so rendering
 cost is not measured. Prints a Markdown table, writes ``bench/results/stream.json``.
@@ -42,10 +47,12 @@ from device.sim_link import LoopEndpoint, PtyEndpoint
 from device.simulator import VirtualScamp5
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams
+from models.hdr_io import EXR_COMPRESSIONS
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
-from worker.outputs import encode_exr_result
-from worker.redis_keys import DEVICES_SET, events_stream, frame_stream
+from worker.outputs import STREAM_EXR_COMPRESSION, encode_exr_result
+from worker.redis_keys import DEVICES_SET, events_stream, frame_stream, last_sequence_key
+from worker.result_store import RESULTS_DIR
 
 DECODER = "itoh"
 DISTINCT = 16
@@ -117,10 +124,22 @@ def _writer(endpoint: PtyEndpoint, templates: list[DataPacket], count: int,
             time.sleep(max(0.0, next_t - time.monotonic()))
 
 
+def recorded_all(client: Any, devices: list[str], count: int) -> bool:
+    """Whether every device's worker recorded its last frame (sequence ``count - 1``)."""
+    last = [client.hget(last_sequence_key(device), "seq") for device in devices]
+    return all(seq is not None and int(seq) >= count - 1 for seq in last)
+
+
+def stored_frames(results: Path, devices: list[str]) -> int:
+    """The device frames' EXRs in a worker's result store."""
+    return sum(len(list((results / "devices" / device).glob("*.exr"))) for device in devices)
+
+
 def run_link(url: str, devices: list[str], count: int, templates: list[DataPacket],
-             fps: float | None, workdir: Path, wait_events: bool) -> dict[str, Any]:
+             fps: float | None, workdir: Path, results: Path | None) -> dict[str, Any]:
     """Stream ``count`` packets per device through one pty and daemon each; return timings
-    summed over the devices (latency percentiles over all frames)."""
+    summed over the devices (latency percentiles over the frames in the events streams).
+    With ``results`` (the workers' result store), wait for the workers to reconstruct."""
     client = connect(url, timeout_s=2.0)
     endpoints = [PtyEndpoint(workdir / f"{device}.pty") for device in devices]
     daemons = [DeviceDaemon(DaemonConfig(port=endpoint.url, device=device, frames_maxlen=10_000,
@@ -157,10 +176,9 @@ def run_link(url: str, devices: list[str], count: int, templates: list[DataPacke
         "daemon_cpu_ms_per_frame": 1e3 * ((cpu1.ru_utime - cpu0.ru_utime)
                                           + (cpu1.ru_stime - cpu0.ru_stime)) / max(ok, 1),
     }
-    if wait_events:
+    if results is not None:
         streams = [events_stream(device) for device in devices]
-        while (sum(client.xlen(s) for s in streams) < ok
-               and time.monotonic() < deadline):
+        while not recorded_all(client, devices, count) and time.monotonic() < deadline:
             time.sleep(0.01)
         done_s = time.perf_counter() - start
         frames = [e for s in streams for e in (
@@ -168,9 +186,10 @@ def run_link(url: str, devices: list[str], count: int, templates: list[DataPacke
             if e.get("type") == "frame"]
         latency = np.array([(int(e["written_ns"]) - int(e["timestamp_ns"])) / 1e6
                             for e in frames])
+        reconstructed = stored_frames(results, devices)
         result.update({
-            "frames_reconstructed": len(frames),
-            "end_to_end_frames_per_s": len(frames) / done_s,
+            "frames_reconstructed": reconstructed,
+            "end_to_end_frames_per_s": reconstructed / done_s,
             "latency_ms_p50": float(np.median(latency)) if len(latency) else None,
             "latency_ms_p99": float(np.quantile(latency, 0.99)) if len(latency) else None,
         })
@@ -184,20 +203,25 @@ def run_link(url: str, devices: list[str], count: int, templates: list[DataPacke
     return result
 
 
-def bench_decoder(templates: list[DataPacket], repeat: int = 20) -> dict[str, float]:
-    """The decoder alone (decode + EXR encode), in-process, frames/s."""
+def bench_decoder(
+    templates: list[DataPacket], compression: str, repeat: int = 20
+) -> dict[str, float]:
+    """The decoder alone (decode + EXR encode as ``compression``), in-process, frames/s."""
     decoder = get_decoder(DECODER)
     params = SensorParams(encoding="modulo", bits=8, gain=1.0)
     start = time.perf_counter()
     for i in range(repeat):
         codes = templates[i % len(templates)].codes
         result = decoder.decode(codes, params)
-        encode_exr_result(codes, result.winding, params, {}, {})
+        encode_exr_result(codes, result.winding, params, {}, {"exr_compression": compression})
     return {"frames_per_s": repeat / (time.perf_counter() - start)}
 
 
-def start_workers(n: int, url: str, data_dir: Path) -> list[subprocess.Popen[bytes]]:
-    env = {**os.environ, "MCAM_REDIS_URL": url, "MCAM_DATA_DIR": str(data_dir)}
+def start_workers(
+    n: int, url: str, data_dir: Path, compression: str
+) -> list[subprocess.Popen[bytes]]:
+    env = {**os.environ, "MCAM_REDIS_URL": url, "MCAM_DATA_DIR": str(data_dir),
+           "MCAM_STREAM_EXR_COMPRESSION": compression}
     mcam = Path(sys.executable).parent / "mcam"
     return [subprocess.Popen([mcam, "worker", "--decoder", DECODER, "--threads", "1",
                               "--log-level", "WARNING"], env=env,
@@ -211,34 +235,39 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--latency-fps", type=float, default=5.0,
                         help="paced rate for the latency runs")
+    parser.add_argument("--exr-compression", choices=tuple(EXR_COMPRESSIONS),
+                        default=STREAM_EXR_COMPRESSION, help="of the device frames' EXRs")
     args = parser.parse_args(argv)
     templates = template_packets()
     rows: dict[str, Any] = {"parse_only": bench_parse(stream_bytes(templates, args.frames,
                                                                      False)),
-                            "decoder_in_process": bench_decoder(templates)}
+                            "decoder_in_process": bench_decoder(templates,
+                                                                args.exr_compression)}
     with tempfile.TemporaryDirectory(prefix="mcam-bench-") as tmp:
         workdir = Path(tmp)
         with EmbeddedRedis(workdir / "redis") as url:
             rows["parse_publish_one_thread"] = bench_parse_publish(
                 url, stream_bytes(templates, args.frames, False))
             rows["link_path"] = run_link(url, ["bench0"], args.frames, templates, None, workdir,
-                                         False)
+                                         None)
             for n in args.workers:
-                workers = start_workers(n, url, workdir / f"data{n}")
+                workers = start_workers(n, url, workdir / f"data{n}", args.exr_compression)
+                results = workdir / f"data{n}" / RESULTS_DIR
                 time.sleep(2.0)
                 for n_devices in sorted({1, n}):
                     names = [f"flood{n}w{n_devices}d{k}" for k in range(n_devices)]
                     rows[f"e2e_{n}w_{n_devices}dev_flood"] = run_link(
-                        url, names, args.frames // n_devices, templates, None, workdir, True)
+                        url, names, args.frames // n_devices, templates, None, workdir, results)
                 rows[f"e2e_{n}w_paced"] = run_link(
                     url, [f"paced{n}"], max(20, args.frames // 6), templates, args.latency_fps,
-                    workdir, True)
+                    workdir, results)
                 for worker in workers:
                     worker.terminate()
                 for worker in workers:
                     worker.wait(30)
     report = {"date": utc_now(), "machine": machine(), "versions": versions(),
-              "decoder": DECODER, "frame": "256x256 8-bit modulo", "results": rows}
+              "decoder": DECODER, "frame": "256x256 8-bit modulo",
+              "exr_compression": args.exr_compression, "results": rows}
     lines = ["| run | metric | value |", "|---|---|---|"]
     for name, values in rows.items():
         for metric, value in values.items():

@@ -13,8 +13,9 @@ worker owning more than ``ceil(devices / live device workers)`` hands one over,
 so devices spread over the workers). The owner first takes over every pending
 entry of the stream (a previous owner's unfinished frames), then reads new ones,
 and handles them one by one in stream order. Per frame: decode, write
-``devices/<id>/<seq:012d>.exr`` durably, then in one Lua step (only while the
-lease is still ours) record the sequence, point ``device:<id>:latest`` at the
+``devices/<id>/<seq:012d>.exr`` durably (compressed as ``exr_compression`` says:
+:data:`worker.outputs.STREAM_EXR_COMPRESSION` by default), then in one Lua step
+(only while the lease is still ours) record the sequence, point ``device:<id>:latest`` at the
 result and append a ``frame`` event to ``events:<id>``, then XACK. Frames also go
 to the device's live recording, if one is running (``worker/recordings.py``). A redelivered
 entry at or before the recorded one is acked without a second result or event.
@@ -40,7 +41,7 @@ from worker.frame_message import FrameMessage
 from worker.job_processor import RETRY_BACKOFF_S, error_of
 from worker.lease import Lease
 from worker.metrics import Metrics
-from worker.outputs import encode_exr_result
+from worker.outputs import STREAM_EXR_COMPRESSION, encode_exr_result
 from worker.recordings import Recorder
 from worker.redis_keys import (
     DEVICES_SET,
@@ -95,8 +96,10 @@ class DeviceConsumer:
         decode: FrameDecoder,
         stop: threading.Event,
         peers: Callable[[], int] = lambda: 1,
+        exr_compression: str = STREAM_EXR_COMPRESSION,
     ) -> None:
         self.client = client
+        self.exr_options = {"exr_compression": exr_compression}
         self.store = store
         self.owner = owner
         self.max_deliveries = max_deliveries
@@ -237,7 +240,9 @@ class DeviceConsumer:
             return
         frame = self.decode(state, message)
         start = time.perf_counter_ns()
-        data = encode_exr_result(message.codes, frame.winding, message.params, frame.info, {})
+        data = encode_exr_result(
+            message.codes, frame.winding, message.params, frame.info, self.exr_options
+        )
         key = result_key(device, message.sequence)
         self.store.write(key, data)
         self.recorder.add_frame(message, delivery.entry_id)

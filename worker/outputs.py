@@ -6,7 +6,8 @@ Usage::
     # {"exr": EXR bytes, "winding": .npy bytes (int64)}
 
 Options (from the job): ``scene_referred`` (default true: x / gain when the gain
-is known, else wrap units x) and ``half`` (default false: float32 EXR).
+is known, else wrap units x), ``half`` (default false: float32 EXR) and
+``exr_compression`` (default ``zip``; see :data:`models.hdr_io.EXR_COMPRESSIONS`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,11 @@ from models.hdr_io import encode_exr
 
 #: Result-store key suffixes of a job's outputs.
 OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy"}
+#: EXR compression of live device frames (``MCAM_STREAM_EXR_COMPRESSION``). A stream's
+#: frames are written at frame rate into the result store, where ZIP cost the worker a
+#: third of its time (bench.stream, itoh) to save 14% of the disk; uploads and video jobs,
+#: whose files travel to clients, default to ``zip``.
+STREAM_EXR_COMPRESSION = "none"
 
 
 def exr_attributes(params: SensorParams, info: dict[str, Any]) -> dict[str, str]:
@@ -58,7 +64,12 @@ def encode_exr_result(
         np.float16 if half else np.float32,
         scene_referred=bool(options.get("scene_referred", True)),
     )
-    return encode_exr(x_hat, exr_attributes(params, info), half=half)
+    return encode_exr(
+        x_hat,
+        exr_attributes(params, info),
+        half=half,
+        compression=str(options.get("exr_compression", "zip")),
+    )
 
 
 def encode_winding(winding: NDArray[np.integer]) -> bytes:

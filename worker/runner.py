@@ -36,11 +36,13 @@ from types import FrameType
 import redis
 
 from models.errors import McamError
+from models.hdr_io import EXR_COMPRESSIONS
 from worker.deliveries import Delivery, StreamConsumer
 from worker.device_consumer import DeviceConsumer
 from worker.device_state import make_frame_decoder
 from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor
+from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
 from worker.result_store import RESULTS_DIR, ResultStore
 
@@ -65,7 +67,8 @@ class WorkerConfig:
     """Everything a worker needs; the CLI fills it from the ``MCAM_*`` settings.
 
     Times: ``claim_idle_ms`` / ``lease_ms`` in ms, ``heartbeat_s`` / ``retention_s`` in s.
-    ``decoder`` and ``frame_mode`` apply to live device frames (jobs name their own).
+    ``decoder``, ``frame_mode`` and ``stream_exr_compression`` apply to live device frames
+    (jobs name their own).
     """
 
     redis_url: str
@@ -79,10 +82,16 @@ class WorkerConfig:
     heartbeat_s: float = 2.0
     retention_s: float = 7 * 24 * 3600.0
     devices: bool = True
+    stream_exr_compression: str = STREAM_EXR_COMPRESSION
 
     def __post_init__(self) -> None:
         if self.concurrency < 1:
             raise McamError(f"concurrency must be at least 1, got {self.concurrency}")
+        if self.stream_exr_compression not in EXR_COMPRESSIONS:
+            raise McamError(
+                f"unknown stream EXR compression {self.stream_exr_compression!r}; set "
+                f"MCAM_STREAM_EXR_COMPRESSION to one of: {', '.join(EXR_COMPRESSIONS)}"
+            )
         if self.heartbeat_s * 1000 >= min(self.lease_ms, self.claim_idle_ms):
             raise McamError(
                 f"the heartbeat ({self.heartbeat_s} s) renews device leases and in-flight jobs: "
@@ -196,6 +205,7 @@ class Worker:
             decode=decode,
             stop=self.stop,
             peers=self._device_workers,
+            exr_compression=self.config.stream_exr_compression,
         )
         self._devices = devices
 

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
+from models.hdr_io import EXR_COMPRESSIONS
 from worker.job_processor import JobContext, JobOutcome
 from worker.temporal import TemporalConfig
 from worker.video_input import WrappedVideo
@@ -40,6 +41,7 @@ DEFAULT_OPTIONS: dict[str, Any] = {
     "reference_white": REFERENCE_WHITE,
     "keyframe_interval": TemporalConfig.keyframe_interval,
     "half": False,
+    "exr_compression": "zip",
     "keyframes": [],
 }
 
@@ -56,6 +58,11 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
         raise InvalidInputError(
             f"video outputs must be a non-empty subset of {', '.join(OUTPUTS)}, got {outputs}"
         )
+    if values["exr_compression"] not in EXR_COMPRESSIONS:
+        raise InvalidInputError(
+            f"exr_compression must be one of {', '.join(EXR_COMPRESSIONS)}, "
+            f"got {values['exr_compression']!r}"
+        )
     return (
         VideoOptions(
             mode=values["mode"],
@@ -67,6 +74,7 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
                 reference_white=float(values["reference_white"]),
             ),
             half=bool(values["half"]),
+            exr_compression=str(values["exr_compression"]),
             keyframes=frozenset(int(i) for i in values["keyframes"]),
         ),
         outputs,

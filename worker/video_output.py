@@ -316,11 +316,18 @@ def write_sdr_preview(
 
 
 def exr_sequence_zip(
-    frames: Sequence[NDArray[np.floating]], target: Target, *, half: bool = False
+    frames: Sequence[NDArray[np.floating]],
+    target: Target,
+    *,
+    half: bool = False,
+    compression: str = "zip",
 ) -> None:
-    """A zip of one EXR per frame (``frame_00000.exr``, ...), values in wrap units."""
+    """A zip of one EXR per frame (``frame_00000.exr``, ...), values in wrap units, each
+    compressed as ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`)."""
     _check_clip(frames)
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
         for index, frame in enumerate(frames):
-            data = encode_exr(frame, {"frameIndex": str(index)}, half=half)
+            data = encode_exr(
+                frame, {"frameIndex": str(index)}, half=half, compression=compression
+            )
             archive.writestr(f"frame_{index:05d}.exr", data)

@@ -41,7 +41,8 @@ StageProgress = Callable[[str, int, int], None]
 @dataclass(frozen=True)
 class VideoOptions:
     """How to decode and render a video: ``mode`` and spatial ``decoder``, the temporal
-    knobs, HDR10 settings (frame rate, exposure scaling) and half-float EXRs.
+    knobs, HDR10 settings (frame rate, exposure scaling), half-float EXRs and their
+    compression (:data:`models.hdr_io.EXR_COMPRESSIONS`).
     ``keyframes``: indices of frames decoded as after a DISCONT (a live recording's
     reconnects and sequence gaps)."""
 
@@ -50,6 +51,7 @@ class VideoOptions:
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     hdr10: Hdr10Settings = field(default_factory=Hdr10Settings)
     half: bool = False
+    exr_compression: str = "zip"
     keyframes: frozenset[int] = frozenset()
 
 
@@ -121,6 +123,8 @@ def write_outputs(
         else:
             gain = video.params.gain
             frames = decoded.irradiance if gain is None else [x / gain for x in decoded.irradiance]
-            exr_sequence_zip(frames, target, half=options.half)
+            exr_sequence_zip(
+                frames, target, half=options.half, compression=options.exr_compression
+            )
             step(total)
     return facts

@@ -20,6 +20,7 @@ from starlette.datastructures import UploadFile
 from models.decoders.adaptive import QUALITIES
 from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
 from models.formation import SensorParams
+from models.hdr_io import EXR_COMPRESSIONS
 
 Model = TypeVar("Model", bound=BaseModel)
 #: Leading bytes of the frame file formats we accept.
@@ -74,6 +75,9 @@ class ReconstructionFields(SensorFields):
         True, description="divide the result by the gain when known (false: wrap units)"
     )
     half: bool = Field(False, description="write a half-float EXR (default float32)")
+    exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
+        "zip", description="lossless EXR compression: zip (smaller) or none (faster)"
+    )
 
 
 class SimulateFields(SensorFields):

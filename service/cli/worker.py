@@ -96,5 +96,6 @@ def run(args: argparse.Namespace) -> int:
         heartbeat_s=settings.heartbeat_s,
         retention_s=settings.result_retention_s,
         devices=not args.no_devices,
+        stream_exr_compression=settings.stream_exr_compression,
     )
     return Worker(config).run()

@@ -8,9 +8,13 @@ from __future__ import annotations
 
 from functools import cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from models.hdr_io import EXR_COMPRESSIONS
+from worker.outputs import STREAM_EXR_COMPRESSION
 
 
 class Settings(BaseSettings):
@@ -52,6 +56,10 @@ class Settings(BaseSettings):
     max_deliveries: int = Field(3, ge=1, description="then the entry goes to the dead letters")
     device_lease_ms: int = Field(5_000, gt=0, description="one worker owns a device stream")
     heartbeat_s: float = Field(2.0, gt=0)
+    stream_exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
+        STREAM_EXR_COMPRESSION,
+        description="EXR compression of live device frames: none (fastest) or zip (smaller)",
+    )
     result_retention_s: float = Field(7 * 24 * 3600.0, gt=0)
 
 

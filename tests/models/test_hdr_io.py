@@ -19,7 +19,14 @@ from models.errors import (
     OutputOverflowError,
     UnsupportedFormatError,
 )
-from models.hdr_io import HdrImage, encode_exr, read_hdr, rgbe_to_float, write_exr
+from models.hdr_io import (
+    EXR_COMPRESSIONS,
+    HdrImage,
+    encode_exr,
+    read_hdr,
+    rgbe_to_float,
+    write_exr,
+)
 
 HDRI = Path(__file__).resolve().parents[2] / "models" / "data" / "hdri" / "lab.exr"
 RADIANCE_HEADER = b"#?RADIANCE\n# made by hand\nFORMAT=32-bit_rle_rgbe\nEXPOSURE=1.0\n\n"
@@ -116,6 +123,38 @@ def test_exr_half_round_trip_within_half_precision(values: np.ndarray) -> None:
     back = read_hdr(encode_exr(values, half=True)).pixels
     np.testing.assert_allclose(back, values, rtol=2.0**-11, atol=2.0**-24)
     np.testing.assert_array_equal(back, values.astype(np.float16))
+
+
+def exr_compression_of(data: bytes) -> object:
+    """The compression an EXR file's header names."""
+    return OpenEXR.File(io.BytesIO(data), header_only=True).header()["compression"]
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    arrays(np.float64, (5, 7), elements=st.floats(0, 3e38, allow_subnormal=False)),
+    st.sampled_from(sorted(EXR_COMPRESSIONS)),
+)
+def test_every_compression_is_lossless_and_named_in_the_header(
+    values: np.ndarray, compression: str
+) -> None:
+    data = encode_exr(values, compression=compression)
+    assert exr_compression_of(data) == EXR_COMPRESSIONS[compression]
+    np.testing.assert_array_equal(read_hdr(data).pixels, values.astype(np.float32))
+
+
+def test_uncompressed_exr_is_larger_and_written_to_files(tmp_path: Path) -> None:
+    rgb = smooth_rgb()
+    write_exr(tmp_path / "plain.exr", rgb, compression="none")
+    plain = (tmp_path / "plain.exr").read_bytes()
+    assert exr_compression_of(plain) == OpenEXR.NO_COMPRESSION
+    assert len(plain) > len(encode_exr(rgb))
+    np.testing.assert_array_equal(read_hdr(plain).pixels, rgb.astype(np.float32))
+
+
+def test_unknown_compression_names_the_choices() -> None:
+    with pytest.raises(InvalidInputError, match="unknown EXR compression 'lzw'.*zip, none"):
+        encode_exr(np.ones((2, 2)), compression="lzw")
 
 
 def test_half_and_float32_overflow_are_errors() -> None:

@@ -6,10 +6,11 @@ import io
 import json
 
 import numpy as np
+import OpenEXR
 
 from models.decoders import get_decoder
 from models.formation import SensorParams, encode
-from models.hdr_io import read_hdr
+from models.hdr_io import EXR_COMPRESSIONS, read_hdr
 from worker.outputs import encode_outputs, exr_attributes
 
 PARAMS = SensorParams(encoding="modulo", bits=8, gain=2.0)
@@ -27,6 +28,21 @@ def test_outputs_hold_the_reconstruction_and_w() -> None:
     assert image.attributes["decoder"] == "auto-balanced"
     routing = json.loads(image.attributes["routing"])
     assert routing["details"]["routes"] == {"integration": 1.0}
+
+
+def test_the_exr_compression_option_reaches_the_file() -> None:
+    frame = encode(np.linspace(0.0, 5.0, 48).reshape(6, 8), PARAMS)
+    result = get_decoder("itoh").decode(frame.codes, PARAMS)
+    files = {
+        name: encode_outputs(
+            frame.codes, result.winding, PARAMS, result.info, {"exr_compression": name}
+        )["exr"]
+        for name in EXR_COMPRESSIONS
+    }
+    for name, data in files.items():
+        header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
+        assert header["compression"] == EXR_COMPRESSIONS[name]
+    np.testing.assert_array_equal(read_hdr(files["none"]).pixels, read_hdr(files["zip"]).pixels)
 
 
 def test_attributes_without_routing_or_gain() -> None:

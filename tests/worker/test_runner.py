@@ -54,6 +54,12 @@ def result_files(data_dir: Path) -> list[str]:
     return ResultStore(data_dir / RESULTS_DIR, retention_s=3600).keys()
 
 
+def stored_compression(data_dir: Path, key: str) -> object:
+    """The compression named in a stored EXR's header."""
+    path = data_dir / RESULTS_DIR / key
+    return OpenEXR.File(str(path), header_only=True).header()["compression"]
+
+
 def test_job_runs_and_cancelled_job_is_skipped(
     queue: JobQueue, client: redis.Redis, workers, data_dir: Path, make_frame, wait_until, finished
 ) -> None:
@@ -275,7 +281,23 @@ def test_repeated_sequence_is_not_written_twice(
     wait_until(lambda: len(frame_events(client, device)) >= 4, 60, "4 events")
     types = [(e["type"], int(e["sequence"])) for e in frame_events(client, device)]
     assert types == [("frame", 0), ("frame", 1), ("frame", 2), ("stale", 1)]
-    assert len(result_files(data_dir)) == 3
+    keys = result_files(data_dir)
+    assert len(keys) == 3
+    # By default a stream's frames are stored uncompressed (worker.outputs).
+    assert {stored_compression(data_dir, key) for key in keys} == {OpenEXR.NO_COMPRESSION}
+
+
+def test_stream_frames_are_zip_compressed_when_configured(
+    client: redis.Redis, workers, data_dir: Path, make_frame, wait_until
+) -> None:
+    frame: SensorFrame = make_frame()
+    device = "cam-zip"
+    workers.start(MCAM_STREAM_EXR_COMPRESSION="zip")
+    publish(client, device, frame, range(2))
+    wait_until(lambda: len(frame_events(client, device)) >= 2, 60, "2 frames")
+    keys = result_files(data_dir)
+    assert len(keys) == 2
+    assert {stored_compression(data_dir, key) for key in keys} == {OpenEXR.ZIP_COMPRESSION}
 
 
 def test_worker_config_checks_heartbeat_against_lease(tmp_path: Path) -> None:
@@ -285,6 +307,8 @@ def test_worker_config_checks_heartbeat_against_lease(tmp_path: Path) -> None:
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, heartbeat_s=5.0, lease_ms=5000)
     with pytest.raises(McamError, match="at least 1"):
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, concurrency=0)
+    with pytest.raises(McamError, match="MCAM_STREAM_EXR_COMPRESSION to one of: zip, none"):
+        WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, stream_exr_compression="lzw")
 
 
 def test_devices_spread_over_workers(

@@ -7,13 +7,14 @@ import zipfile
 
 import av
 import numpy as np
+import OpenEXR
 import pytest
 from av.sidedata.sidedata import Type
 from hypothesis import given
 from hypothesis import strategies as st
 
 from models.errors import InvalidInputError
-from models.hdr_io import read_hdr
+from models.hdr_io import EXR_COMPRESSIONS, read_hdr
 from worker.video_output import (
     BT709_TO_BT2020,
     LUMA_OFFSET,
@@ -164,16 +165,20 @@ def test_sdr_tonemap_keeps_order_and_range() -> None:
     assert np.all(np.diff(image.astype(int)) >= 0) and image[0] < 10 and image[-1] > 200
 
 
-def test_exr_sequence_zip_round_trip() -> None:
+@pytest.mark.parametrize("compression", sorted(EXR_COMPRESSIONS))
+def test_exr_sequence_zip_round_trip(compression: str) -> None:
     frames = [np.random.default_rng(t).uniform(0, 20, (6, 5, 3)) for t in range(3)]
     buffer = io.BytesIO()
-    exr_sequence_zip(frames, buffer)
+    exr_sequence_zip(frames, buffer, compression=compression)
     with zipfile.ZipFile(buffer) as archive:
         names = archive.namelist()
         assert names == ["frame_00000.exr", "frame_00001.exr", "frame_00002.exr"]
         for name, frame in zip(names, frames, strict=True):
-            image = read_hdr(archive.read(name))
+            data = archive.read(name)
+            image = read_hdr(data)
             np.testing.assert_array_equal(image.pixels, frame.astype(np.float32))
+            header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
+            assert header["compression"] == EXR_COMPRESSIONS[compression]
 
 
 @pytest.mark.parametrize(

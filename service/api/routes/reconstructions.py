@@ -88,7 +88,11 @@ def submit(
         frame.codes,
         frame.params,
         decoder,
-        {"scene_referred": fields.scene_referred, "half": fields.half},
+        {
+            "scene_referred": fields.scene_referred,
+            "half": fields.half,
+            "exr_compression": fields.exr_compression,
+        },
     )
     return job_response(state.queue, record, wait_s)
 

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from models.errors import InvalidInputError, UnsupportedFormatError
+from models.hdr_io import EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.routes.jobs import JOB_ERRORS, finished_record
 from service.api.schemas import (
@@ -67,6 +68,9 @@ class VideoOptionFields(BaseModel):
         TemporalConfig.keyframe_interval, ge=0, description="temporal: spatial keyframe period"
     )
     half: bool = Field(False, description="EXR frames as half floats")
+    exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
+        "zip", description="lossless compression of the EXR frames: zip (smaller) or none"
+    )
 
     def video_job_options(self) -> dict[str, Any]:
         """The options of the video job (see ``worker.video_jobs.video_options``)."""
@@ -78,6 +82,7 @@ class VideoOptionFields(BaseModel):
             "reference_white": self.reference_white,
             "keyframe_interval": self.keyframe_interval,
             "half": self.half,
+            "exr_compression": self.exr_compression,
         }
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 
 from models.formation import SensorParams, simulate
 from models.frames import read_winding, write_frame
@@ -49,10 +50,12 @@ def test_flags_fill_in_a_bare_npy_and_half_output(tmp_path: Path) -> None:
     write_frame(np_path, frame.codes, None)
     result = run_mcam(
         "reconstruct", np_path, "-o", "x.exr", "--encoding", "modulo", "--bits", "10", "--half",
-        "--decoder", "herraez",
+        "--decoder", "herraez", "--exr-compression", "none",
         cwd=tmp_path,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
+    header = OpenEXR.File(str(tmp_path / "x.exr"), header_only=True).header()
+    assert header["compression"] == OpenEXR.NO_COMPRESSION
     image = read_hdr(tmp_path / "x.exr")
     assert "gain" not in image.attributes
     assert "wrap units" in image.attributes["comments"]

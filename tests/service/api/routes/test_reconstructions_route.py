@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable
 
 import httpx
 import numpy as np
+import OpenEXR
 import pytest
 
 from models.frames import encode_frame
+from models.hdr_io import read_hdr
 from tests.service.conftest import PARAMS, READ_KEY, SUBMIT_KEY, frame_png, npy_bytes
 from worker.runner import Worker
 
@@ -54,6 +57,32 @@ def test_a_latency_budget_picks_a_routing_and_reports_it(client: Client, worker:
     job = reply.json()
     assert job["state"] == "succeeded" and job["decoder"] == "auto-5000ms"
     assert job["info"]["details"]["budget"]["budget_ms"] == 5000.0
+
+
+def test_exr_compression_is_a_choice_of_the_request(client: Client, worker: Worker) -> None:
+    data, _ = frame_png()
+    results = {}
+    for compression in ("zip", "none"):
+        reply = client().post(
+            "/v1/reconstructions",
+            files={"file": ("frame.png", data, "image/png")},
+            data={"decoder": "itoh", "exr_compression": compression},
+            headers={"Prefer": "wait=20"},
+        )
+        assert reply.status_code == 200, reply.text
+        result = client().get(reply.json()["links"]["result"])
+        assert result.status_code == 200
+        results[compression] = result.content
+    headers = {
+        name: OpenEXR.File(io.BytesIO(content), header_only=True).header()
+        for name, content in results.items()
+    }
+    assert headers["zip"]["compression"] == OpenEXR.ZIP_COMPRESSION
+    assert headers["none"]["compression"] == OpenEXR.NO_COMPRESSION
+    assert len(results["none"]) > len(results["zip"])
+    np.testing.assert_array_equal(
+        read_hdr(results["none"]).pixels, read_hdr(results["zip"]).pixels
+    )
 
 
 def test_raw_body_with_query_parameters(client: Client, worker: Worker) -> None:
@@ -170,6 +199,7 @@ def test_too_many_pixels_is_413_before_decoding(client: Client) -> None:
         ({"bits": "twelve"}, "bits"),
         ({"alpha": "0.5"}, "alpha"),
         ({"colour": "red"}, "colour"),
+        ({"exr_compression": "lzw"}, "exr_compression"),
     ],
 )
 def test_bad_form_fields(client: Client, fields: dict[str, str], fragment: str) -> None:

@@ -9,6 +9,7 @@ from collections.abc import Callable
 import av
 import httpx
 import numpy as np
+import OpenEXR
 
 from models.formation import SensorParams, encode
 from models.frames import encode_frame
@@ -74,12 +75,19 @@ def test_zip_of_pngs_independent_exr_only(client: Client, worker: Worker) -> Non
     reply = http.post(
         "/v1/videos",
         content=buffer.getvalue(),
-        params={"mode": "independent", "outputs": "exr_zip"},
+        params={"mode": "independent", "outputs": "exr_zip", "exr_compression": "none"},
         headers={"Content-Type": "application/octet-stream"},
     )
     assert reply.status_code == 202, reply.text
     job = finished_job(http, reply.json()["id"])
     assert job["state"] == "succeeded" and set(job["results"]) == {"exr_zip"}
+    frames = http.get(f"/v1/videos/{job['id']}/result", params={"output": "exr_zip"})
+    with zipfile.ZipFile(io.BytesIO(frames.content)) as archive:
+        headers = [
+            OpenEXR.File(io.BytesIO(archive.read(name)), header_only=True).header()
+            for name in archive.namelist()
+        ]
+    assert [h["compression"] for h in headers] == [OpenEXR.NO_COMPRESSION] * 4
     missing = http.get(f"/v1/videos/{job['id']}/result", params={"output": "hdr10"})
     assert missing.status_code == 422 and "exr_zip" in missing.json()["message"]
 
@@ -90,6 +98,7 @@ def test_bad_uploads_are_refused(client: Client) -> None:
     cases = [
         ({"file": ("a.npy", small)}, {**FLAGS}, 422, "64 x 64"),
         ({"file": ("a.npy", small)}, {**FLAGS, "outputs": "gif"}, 422, "gif"),
+        ({"file": ("a.npy", small)}, {**FLAGS, "exr_compression": "lzw"}, 422, "exr_compression"),
         ({"file": ("a.bin", b"hello")}, {**FLAGS}, 415, "format"),
         ({"file": ("a.npy", small)}, {"outputs": "exr_zip"}, 422, "--encoding"),
     ]
