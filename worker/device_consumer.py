@@ -15,8 +15,10 @@ entry of the stream (a previous owner's unfinished frames), then reads new ones,
 and handles them one by one in stream order. Per frame: decode, write
 ``devices/<id>/<seq:012d>.exr`` durably (compressed as ``exr_compression`` says:
 :data:`worker.outputs.STREAM_EXR_COMPRESSION` by default), then in one Lua step
-(only while the lease is still ours) record the sequence, point ``device:<id>:latest`` at the
-result and append a ``frame`` event to ``events:<id>``, then XACK. Frames also go
+(only while the lease is still ours) record the sequence, point ``device:<id>:latest`` at
+the result, append a ``frame`` event to ``events:<id>``, extend the lease and XACK (and
+delete) the entry: one round trip a frame instead of three (each write waits for Redis's
+fsync, about 0.3 ms here). Frames also go
 to the device's live recording, if one is running (``worker/recordings.py``). A redelivered
 entry at or before the recorded one is acked without a second result or event.
 A frame that keeps failing goes to the dead letters after ``max_deliveries``
@@ -35,7 +37,7 @@ from typing import Any
 import redis
 
 from models.errors import McamError
-from worker.deliveries import Delivery, StreamConsumer, entry_order
+from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order
 from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
 from worker.job_processor import RETRY_BACKOFF_S, error_of
@@ -62,13 +64,18 @@ HAND_OVER_REST = 4
 #: The events stream of a device keeps about this many entries.
 EVENTS_MAXLEN = 1000
 
+#: KEYS: lease, last sequence, latest, events, frames. ARGV: owner, sequence, entry id,
+#: result key ('' for none), events bound, lease ms, consumer group, then event fields.
 _COMMIT = """
 if redis.call('GET', KEYS[1]) ~= ARGV[1] then return 0 end
+redis.call('PEXPIRE', KEYS[1], ARGV[6])
 redis.call('HSET', KEYS[2], 'seq', ARGV[2], 'entry', ARGV[3])
 if ARGV[4] ~= '' then redis.call('SET', KEYS[3], ARGV[4]) end
 local event = {}
-for i = 6, #ARGV do event[#event + 1] = ARGV[i] end
+for i = 8, #ARGV do event[#event + 1] = ARGV[i] end
 redis.call('XADD', KEYS[4], 'MAXLEN', '~', ARGV[5], '*', unpack(event))
+redis.call('XACK', KEYS[5], ARGV[7], ARGV[3])
+redis.call('XDEL', KEYS[5], ARGV[3])
 return 1
 """
 
@@ -201,8 +208,6 @@ class DeviceConsumer:
             if self.stop.is_set():
                 break
             self._handle(device, consumer, delivery)
-            if not self.lease.renew(device):
-                raise LeaseLost(device)
         return bool(deliveries)
 
     def _handle(self, device: str, consumer: StreamConsumer, delivery: Delivery) -> None:
@@ -215,7 +220,6 @@ class DeviceConsumer:
         while True:
             try:
                 self._reconstruct(device, state, delivery)
-                consumer.done(delivery)
                 return
             except (LeaseLost, redis.exceptions.ConnectionError):
                 raise
@@ -267,9 +271,12 @@ class DeviceConsumer:
         key: str,
         event: dict[str, str],
     ) -> None:
-        """Atomically, while we hold the lease: record ``sequence`` as the newest done frame,
-        point ``latest`` at ``key`` (unless empty) and publish ``event``."""
-        args: list[Any] = [self.owner, sequence, delivery.entry_id, key, EVENTS_MAXLEN]
+        """Atomically, while we hold the lease (raises :class:`LeaseLost` otherwise): record
+        ``sequence`` as the newest done frame, point ``latest`` at ``key`` (unless empty),
+        publish ``event``, extend the lease and acknowledge and delete the entry."""
+        args: list[Any] = [
+            self.owner, sequence, delivery.entry_id, key, EVENTS_MAXLEN, self.lease.ttl_ms, GROUP,
+        ]  # fmt: skip
         for name, value in {**event, "worker": self.owner}.items():
             args += [name, value]
         keys = [
@@ -277,6 +284,7 @@ class DeviceConsumer:
             last_sequence_key(device),
             latest_key(device),
             events_stream(device),
+            frame_stream(device),
         ]
         if not self._commit(keys=keys, args=args):
             raise LeaseLost(device)

@@ -20,6 +20,7 @@ import redis
 from models.errors import McamError
 from models.formation import SensorFrame, SensorParams
 from tests.worker.conftest import overflowing_codes
+from worker.deliveries import GROUP
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
 from worker.jobs import JobState
@@ -31,6 +32,7 @@ from worker.redis_keys import (
     JOBS_STREAM,
     WORKERS_HEARTBEAT,
     events_stream,
+    frame_stream,
     latest_key,
 )
 from worker.result_store import RESULTS_DIR, ResultStore
@@ -283,6 +285,9 @@ def test_repeated_sequence_is_not_written_twice(
     assert types == [("frame", 0), ("frame", 1), ("frame", 2), ("stale", 1)]
     keys = result_files(data_dir)
     assert len(keys) == 3
+    # Recording a frame acknowledges and deletes its entry in the same step.
+    assert client.xlen(frame_stream(device)) == 0
+    assert client.xpending(frame_stream(device), GROUP)["pending"] == 0
     # By default a stream's frames are stored uncompressed (worker.outputs).
     assert {stored_compression(data_dir, key) for key in keys} == {OpenEXR.NO_COMPRESSION}
 
