@@ -204,7 +204,7 @@ def run_link(url: str, devices: list[str], count: int, templates: list[DataPacke
 
 
 def bench_decoder(
-    templates: list[DataPacket], compression: str, repeat: int = 20
+    templates: list[DataPacket], compression: str, repeat: int = 100
 ) -> dict[str, float]:
     """The decoder alone (decode + EXR encode as ``compression``), in-process, frames/s."""
     decoder = get_decoder(DECODER)
