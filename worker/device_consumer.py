@@ -17,8 +17,8 @@ and handles them one by one in stream order. Per frame: decode, write
 :data:`worker.outputs.STREAM_EXR_COMPRESSION` by default), then in one Lua step
 (only while the lease is still ours) record the sequence, point ``device:<id>:latest`` at
 the result, append a ``frame`` event to ``events:<id>``, extend the lease and XACK (and
-delete) the entry: one round trip a frame instead of three (each write waits for Redis's
-fsync, about 0.3 ms here). Frames also go
+delete) the entry: one round trip where there were three (record, ack, renew; each
+write waits for Redis's fsync, about 0.3 ms here). Frames also go
 to the device's live recording, if one is running (``worker/recordings.py``). A redelivered
 entry at or before the recorded one is acked without a second result or event.
 A frame that keeps failing goes to the dead letters after ``max_deliveries``
