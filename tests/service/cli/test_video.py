@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import io
 import zipfile
 from pathlib import Path
 
 import av
 import numpy as np
+import OpenEXR
 
 from models.formation import SensorParams, encode
 from models.hdr_io import read_hdr
@@ -29,7 +31,7 @@ def test_video_writes_hdr10_preview_and_exr_frames(tmp_path: Path) -> None:
     np.save(tmp_path / "wrapped.npy", np.stack([encode(x, params).codes for x in truth]))
     result = run_mcam(
         "video", "wrapped.npy", "-o", "clip.mp4", "--mode", "temporal", *FLAGS,
-        "--preview", "sdr.mp4", "--exr", "frames.zip",
+        "--preview", "sdr.mp4", "--exr", "frames.zip", "--exr-compression", "none",
         cwd=tmp_path,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
@@ -45,7 +47,10 @@ def test_video_writes_hdr10_preview_and_exr_frames(tmp_path: Path) -> None:
         names = archive.namelist()
         assert len(names) == FRAMES
         for name, x in zip(names, truth, strict=True):
-            pixels = read_hdr(archive.read(name)).pixels
+            data = archive.read(name)
+            header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
+            assert header["compression"] == OpenEXR.NO_COMPRESSION
+            pixels = read_hdr(data).pixels
             bound = mantissa_tolerance(x, 1.0, bits=8, alpha=2.0)
             assert np.all(np.abs(pixels - x) <= bound)
 
