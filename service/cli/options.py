@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from models.formation import ENCODINGS, SensorParams
+from models.hdr_io import EXR_COMPRESSIONS
 
 #: Flags that set (simulate) or override (reconstruct) a frame's sensor parameters.
 SENSOR_FLAGS: tuple[str, ...] = ("encoding", "alpha", "bits", "gain")
@@ -31,6 +32,16 @@ def add_clip_negative_flag(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="set negative values of the HDR images read (lossy EXR) to 0 instead of "
         "refusing them",
+    )
+
+
+def add_exr_compression_flag(parser: argparse.ArgumentParser) -> None:
+    """``--exr-compression``: how the command's EXR files are compressed (lossless)."""
+    parser.add_argument(
+        "--exr-compression",
+        choices=tuple(EXR_COMPRESSIONS),
+        default="zip",
+        help="lossless EXR compression: zip (smaller, default) or none (faster)",
     )
 
 

@@ -9,8 +9,13 @@ from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError
 from models.frames import frame_format, read_frame, write_winding
-from models.hdr_io import EXR_COMPRESSIONS, write_exr
-from service.cli.options import add_sensor_flags, params_attributes, sensor_values
+from models.hdr_io import write_exr
+from service.cli.options import (
+    add_exr_compression_flag,
+    add_sensor_flags,
+    params_attributes,
+    sensor_values,
+)
 
 
 def register(subparsers: Any) -> None:
@@ -29,12 +34,7 @@ def register(subparsers: Any) -> None:
     )
     add_sensor_flags(parser, "fill in or override the parameters stored in the frame")
     parser.add_argument("--half", action="store_true", help="write half floats (float16)")
-    parser.add_argument(
-        "--exr-compression",
-        choices=tuple(EXR_COMPRESSIONS),
-        default="zip",
-        help="lossless EXR compression: zip (smaller, default) or none (faster)",
-    )
+    add_exr_compression_flag(parser)
     parser.add_argument("--winding-out", metavar="W.png", help="also write the decoded W map")
     parser.set_defaults(func=run)
 

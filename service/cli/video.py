@@ -9,8 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from models.errors import UnsupportedFormatError
-from models.hdr_io import EXR_COMPRESSIONS
-from service.cli.options import add_sensor_flags, sensor_values
+from service.cli.options import add_exr_compression_flag, add_sensor_flags, sensor_values
 from worker.temporal import MODES, TemporalConfig
 from worker.video_input import read_video
 from worker.video_output import REFERENCE_WHITE, Hdr10Settings
@@ -50,12 +49,7 @@ def register(subparsers: Any) -> None:
         help="temporal mode: decode every Nth frame spatially (0: never)",
     )
     parser.add_argument("--half", action="store_true", help="EXR frames as half floats")
-    parser.add_argument(
-        "--exr-compression",
-        choices=tuple(EXR_COMPRESSIONS),
-        default="zip",
-        help="lossless compression of the EXR frames: zip (smaller, default) or none (faster)",
-    )
+    add_exr_compression_flag(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_sensor_flags(parser, "fill in or override the parameters stored in the video")
     parser.set_defaults(func=run)
