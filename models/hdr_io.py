@@ -43,6 +43,9 @@ EXR_COMPRESSIONS: dict[str, Any] = {
     "zip": OpenEXR.ZIP_COMPRESSION,
     "none": OpenEXR.NO_COMPRESSION,
 }
+#: The compression of EXR files unless a caller chooses another: files that travel to
+#: users (a live stream's stored frames default to ``worker.outputs.STREAM_EXR_COMPRESSION``).
+DEFAULT_EXR_COMPRESSION = "zip"
 
 
 @dataclass
@@ -231,7 +234,7 @@ def encode_exr(
     attributes: dict[str, str] | None = None,
     *,
     half: bool = False,
-    compression: str = "zip",
+    compression: str = DEFAULT_EXR_COMPRESSION,
 ) -> bytes:
     """An OpenEXR file (float32 or half) of ``H x W`` (channel Y) or ``H x W x 3`` (R,G,B),
     compressed as one of :data:`EXR_COMPRESSIONS`.
@@ -277,7 +280,7 @@ def write_exr(
     attributes: dict[str, str] | None = None,
     *,
     half: bool = False,
-    compression: str = "zip",
+    compression: str = DEFAULT_EXR_COMPRESSION,
 ) -> None:
     """Write :func:`encode_exr`'s bytes to ``path``."""
     Path(path).write_bytes(encode_exr(pixels, attributes, half=half, compression=compression))

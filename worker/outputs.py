@@ -7,7 +7,7 @@ Usage::
 
 Options (from the job): ``scene_referred`` (default true: x / gain when the gain
 is known, else wrap units x), ``half`` (default false: float32 EXR) and
-``exr_compression`` (default ``zip``; see :data:`models.hdr_io.EXR_COMPRESSIONS`).
+``exr_compression`` (default :data:`models.hdr_io.DEFAULT_EXR_COMPRESSION`, ``zip``).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.formation import SensorParams, reconstruct
-from models.hdr_io import encode_exr
+from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 
 #: Result-store key suffixes of a job's outputs.
 OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy"}
@@ -68,7 +68,7 @@ def encode_exr_result(
         x_hat,
         exr_attributes(params, info),
         half=half,
-        compression=str(options.get("exr_compression", "zip")),
+        compression=str(options.get("exr_compression", DEFAULT_EXR_COMPRESSION)),
     )
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.hdr_io import EXR_COMPRESSIONS
+from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from worker.job_processor import JobContext, JobOutcome
 from worker.temporal import TemporalConfig
 from worker.video_input import WrappedVideo
@@ -41,7 +41,7 @@ DEFAULT_OPTIONS: dict[str, Any] = {
     "reference_white": REFERENCE_WHITE,
     "keyframe_interval": TemporalConfig.keyframe_interval,
     "half": False,
-    "exr_compression": "zip",
+    "exr_compression": DEFAULT_EXR_COMPRESSION,
     "keyframes": [],
 }
 

@@ -34,7 +34,7 @@ from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTr
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.hdr_io import encode_exr
+from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 from models.metrics import reinhard
 
 #: ITU-R BT.2408 reference (diffuse) white, cd/m^2.
@@ -320,7 +320,7 @@ def exr_sequence_zip(
     target: Target,
     *,
     half: bool = False,
-    compression: str = "zip",
+    compression: str = DEFAULT_EXR_COMPRESSION,
 ) -> None:
     """A zip of one EXR per frame (``frame_00000.exr``, ...), values in wrap units, each
     compressed as ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`)."""

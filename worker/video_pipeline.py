@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
+from models.hdr_io import DEFAULT_EXR_COMPRESSION
 from worker.temporal import StreamDecoder, StreamState, TemporalConfig
 from worker.video_input import WrappedVideo
 from worker.video_output import (
@@ -51,7 +52,7 @@ class VideoOptions:
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     hdr10: Hdr10Settings = field(default_factory=Hdr10Settings)
     half: bool = False
-    exr_compression: str = "zip"
+    exr_compression: str = DEFAULT_EXR_COMPRESSION
     keyframes: frozenset[int] = frozenset()
 
 

@@ -20,7 +20,7 @@ from starlette.datastructures import UploadFile
 from models.decoders.adaptive import QUALITIES
 from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
 from models.formation import SensorParams
-from models.hdr_io import EXR_COMPRESSIONS
+from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 
 Model = TypeVar("Model", bound=BaseModel)
 #: Leading bytes of the frame file formats we accept.
@@ -76,7 +76,8 @@ class ReconstructionFields(SensorFields):
     )
     half: bool = Field(False, description="write a half-float EXR (default float32)")
     exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
-        "zip", description="lossless EXR compression: zip (smaller) or none (faster)"
+        DEFAULT_EXR_COMPRESSION,
+        description="lossless EXR compression: zip (smaller) or none (faster)",
     )
 
 

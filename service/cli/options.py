@@ -6,7 +6,7 @@ import argparse
 from typing import Any
 
 from models.formation import ENCODINGS, SensorParams
-from models.hdr_io import EXR_COMPRESSIONS
+from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 
 #: Flags that set (simulate) or override (reconstruct) a frame's sensor parameters.
 SENSOR_FLAGS: tuple[str, ...] = ("encoding", "alpha", "bits", "gain")
@@ -40,7 +40,7 @@ def add_exr_compression_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--exr-compression",
         choices=tuple(EXR_COMPRESSIONS),
-        default="zip",
+        default=DEFAULT_EXR_COMPRESSION,
         help="lossless EXR compression: zip (smaller, default) or none (faster)",
     )
 

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from models.errors import InvalidInputError, UnsupportedFormatError
-from models.hdr_io import EXR_COMPRESSIONS
+from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.routes.jobs import JOB_ERRORS, finished_record
 from service.api.schemas import (
@@ -69,7 +69,8 @@ class VideoOptionFields(BaseModel):
     )
     half: bool = Field(False, description="EXR frames as half floats")
     exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
-        "zip", description="lossless compression of the EXR frames: zip (smaller) or none"
+        DEFAULT_EXR_COMPRESSION,
+        description="lossless compression of the EXR frames: zip (smaller) or none",
     )
 
     def video_job_options(self) -> dict[str, Any]:

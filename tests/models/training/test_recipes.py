@@ -54,3 +54,5 @@ def test_every_shipped_card_was_trained_by_its_recipe() -> None:
         assert training.get("init_from") == config.init_from, config.name
         assert training["loss"] == config.loss, config.name
         assert training.get("own_states", 0.0) == config.own_states, config.name
+        if config.family == "unmodnet":
+            assert training["own_passes"] == config.own_passes, config.name
