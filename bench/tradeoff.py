@@ -13,13 +13,20 @@ accuracy, ms/frame (median of repeats) and frames/s. It marks the Pareto front
 (no other point is both faster and more accurate), measures the machine's peak
 GFLOP/s with a float32 matrix multiply and reports each network's achieved
 GFLOP/s against it, prints Markdown tables and writes JSON and a PNG plot.
+
+Latency budgets: ``auto-<N>ms`` for each of :data:`BUDGETS_MS` is measured like any
+decoder, plus the share of frames it decoded within its budget and the qualities it
+chose; and per set, the budget's cost model (:mod:`models.decoders.budget`) is checked
+against each quality of ``auto``: predicted over measured ms, frame by frame.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+from collections import Counter
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +36,11 @@ from bench import RESULTS, machine, utc_now, versions, write_report
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
+from models.decoders.budget import BudgetDecoder, predicted_ms
+from models.decoders.budget import adaptive as budget_adaptive
 from models.decoders.learned import ort_spinning, worker_threads
-from models.formation import SensorParams, simulate
+from models.formation import SensorParams, dequantize, simulate
+from models.scene_analysis import analyse
 from models.scenes import (
     VAL256_BITS,
     VAL256_MAX_WRAPS,
@@ -44,6 +54,8 @@ from models.timing import median_ns
 
 VAL_PARAMS = SensorParams(encoding="mantissa", bits=VAL256_BITS, max_wraps=VAL256_MAX_WRAPS)
 TILE_SIZES = (32, 64, 128)
+#: Latency budgets (ms per frame) whose ``auto-<N>ms`` decoders are measured.
+BUDGETS_MS = (20, 60, 120)
 
 
 def frames_at(scene: np.ndarray, overexposed: float | None, gain: float | None) -> ValFrame:
@@ -72,24 +84,60 @@ def median_ms(run: Callable[[], Any], repeats: int) -> float:
     return median_ns(run, repeats) / 1e6
 
 
-def measure(decoder: Decoder, frames: list[ValFrame], repeats: int) -> dict[str, float]:
-    """Mean accuracy and median ms/frame of one decoder on a frame set."""
-    psnr, pu21, accuracy, ms = [], [], [], []
+def measure(decoder: Decoder, frames: list[ValFrame], repeats: int) -> dict[str, Any]:
+    """Mean accuracy and median ms/frame of one decoder on a frame set; for a latency
+    budget (``auto-<N>ms``) also the share of frames decoded within it and the
+    qualities it chose."""
+    psnr, pu21, accuracy, ms, chosen = [], [], [], [], []
     for frame in frames:
         result = decoder.decode(frame.codes, frame.params)
         psnr.append(metrics.psnr(result.irradiance, frame.x))
         pu21.append(metrics.pu21_psnr(result.irradiance, frame.x))
         accuracy.append(metrics.winding_accuracy(result.winding, frame.winding))
         ms.append(median_ms(lambda f=frame: decoder.decode(f.codes, f.params), repeats))
+        if isinstance(decoder, BudgetDecoder):
+            chosen.append(result.info["details"]["budget"]["chosen"])
     finite = [p for p in psnr if np.isfinite(p)]
     mean_ms = float(np.mean(ms))
-    return {
+    row: dict[str, Any] = {
         "psnr_db": float(np.mean(finite)) if finite else float("inf"),
         "pu21_psnr_db": float(np.mean([p for p in pu21 if np.isfinite(p)] or [float("inf")])),
         "winding_accuracy": float(np.mean(accuracy)),
         "ms_per_frame": mean_ms,
         "frames_per_s": 1000.0 / mean_ms,
         "exact_frames": int(sum(1 for p in psnr if not np.isfinite(p))),
+    }
+    if isinstance(decoder, BudgetDecoder):
+        row["within_budget"] = float(np.mean([t <= decoder.budget_ms for t in ms]))
+        row["chosen"] = dict(Counter(chosen))
+    return row
+
+
+def prediction_ratios(frames: list[ValFrame], repeats: int) -> dict[str, dict[str, float]]:
+    """How well the latency-budget cost model (:func:`models.decoders.budget.predicted_ms`)
+    predicts each quality of ``auto``: per quality, the geometric mean, least and
+    greatest ratio of predicted to measured ms (median of ``repeats``) of the W
+    prediction after the scene analysis, over the frames with residues."""
+    ratios: dict[str, list[float]] = {quality: [] for quality in QUALITIES}
+    for frame in frames:
+        m = dequantize(frame.codes, frame.params.bits)
+        analysis = analyse(m, frame.params, DEFAULT_TILE)
+        for quality in QUALITIES:
+            predicted = predicted_ms(quality, analysis, m.shape, frame.params)
+            if predicted == 0.0:
+                continue
+            decode = partial(budget_adaptive(quality).explain_analysed, m, frame.params, analysis)
+            measured = median_ms(decode, repeats)
+            ratios[quality].append(predicted / measured)
+    return {
+        quality: {
+            "geometric_mean": float(np.exp(np.mean(np.log(values)))),
+            "min": float(np.min(values)),
+            "max": float(np.max(values)),
+            "frames": len(values),
+        }
+        for quality, values in ratios.items()
+        if values
     }
 
 
@@ -115,17 +163,17 @@ def peak_gflops(size: int = 2048, repeats: int = 5) -> float:
 
 
 def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
-    """Every installed decoder (or the named ones), plus ``auto`` at other tile sizes."""
-    chosen = [(s.name, get_decoder(s.name)) for s in available_decoders() if s.name != "auto"]
-    if names:
-        chosen = [(n, d) for n, d in chosen if n in names]
-    tiles = [
+    """Every installed decoder, ``auto`` at other tile sizes and the latency budgets of
+    :data:`BUDGETS_MS` (or only the named ones)."""
+    every = [(s.name, get_decoder(s.name)) for s in available_decoders() if s.name != "auto"]
+    every += [
         (f"auto-{q}-tile{t}", AdaptiveDecoder(q, tile=t))
         for q in QUALITIES
         for t in TILE_SIZES
         if t != DEFAULT_TILE
     ]
-    return chosen + ([] if names else tiles)
+    every += [(f"auto-{b:g}ms", get_decoder(f"auto-{b:g}ms")) for b in BUDGETS_MS]
+    return [(n, d) for n, d in every if not names or n in names]
 
 
 def speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -176,6 +224,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     sets["mostly-dark"] = mostly_dark_frames(args.dark)
     peak = peak_gflops()
     table: dict[str, list[dict[str, Any]]] = {}
+    predictions: dict[str, dict[str, dict[str, float]]] = {}
     for set_name, frames in sets.items():
         rows = []
         for name, decoder in candidates(args.decoders):
@@ -186,6 +235,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             rows.append(row)
         pareto(rows)
         table[set_name] = rows
+        repeats = args.repeats if frames[0].codes.size <= 256**2 else 1
+        predictions[set_name] = prediction_ratios(frames, repeats)
     dark_speedups = speedups(table["mostly-dark"])
     return {
         "date": utc_now(),
@@ -199,6 +250,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "sets": {name: len(frames) for name, frames in sets.items()},
         "results": table,
         "mostly_dark_speedups": dark_speedups,
+        "latency_predictions": predictions,
     }
 
 
@@ -216,14 +268,11 @@ def markdown(report: dict[str, Any]) -> str:
     """The report as Markdown tables, one per frame set."""
     lines = [header(report)]
     for set_name, rows in report["results"].items():
-        lines += [
-            "",
-            f"### {set_name} ({report['sets'][set_name]} frames)",
-            "",
-            "| decoder | PSNR dB | PU21-PSNR dB | W acc | ms/frame | frames/s "
-            "| GFLOP/s (% peak) | Pareto |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
+        lines += table_head(
+            f"{set_name} ({report['sets'][set_name]} frames)",
+            ("decoder", "PSNR dB", "PU21-PSNR dB", "W acc", "ms/frame", "frames/s",
+             "GFLOP/s (% peak)", "Pareto"),
+        )
         for r in sorted(rows, key=lambda r: r["ms_per_frame"]):
             flops = (
                 f"{r['gflops_per_s']:.1f} ({100 * r['fraction_of_peak']:.0f}%)"
@@ -235,14 +284,13 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{100 * r['winding_accuracy']:.2f}% | {r['ms_per_frame']:.2f} | "
                 f"{r['frames_per_s']:.1f} | {flops} | {'*' if r['pareto'] else ''} |"
             )
-    lines += [
-        "",
-        "### mostly-dark: auto against always running a network (alone or refined) at most "
-        "as accurate",
-        "",
-        "| auto | network | speed-up | auto W acc | network W acc | auto PSNR | network PSNR |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    lines += budget_lines(report)
+    lines += table_head(
+        "mostly-dark: auto against always running a network (alone or refined) at most as "
+        "accurate",
+        ("auto", "network", "speed-up", "auto W acc", "network W acc", "auto PSNR",
+         "network PSNR"),
+    )
     lines += [
         f"| {s['auto']} | {s['network']} | {s['speedup']:.2f}x | "
         f"{100 * s['auto_winding_accuracy']:.2f}% | {100 * s['network_winding_accuracy']:.2f}% "
@@ -250,6 +298,42 @@ def markdown(report: dict[str, Any]) -> str:
         for s in report["mostly_dark_speedups"]
     ]
     return "\n".join(lines)
+
+
+def table_head(title: str, columns: tuple[str, ...]) -> list[str]:
+    """The Markdown lines that open a table: a blank line, its title (a level-3
+    heading), a blank line, the column names and the separator."""
+    return ["", f"### {title}", "", f"| {' | '.join(columns)} |", "|---" * len(columns) + "|"]
+
+
+def budget_lines(report: dict[str, Any]) -> list[str]:
+    """Markdown tables of the latency budgets: what each ``auto-<N>ms`` chose and how
+    many frames it decoded within its budget, and the cost model's predicted / measured
+    ms per quality of ``auto``."""
+    lines = table_head(
+        "Latency budgets (`auto-<N>ms`): frames decoded within the budget",
+        ("set", "decoder", "within budget", "chosen", "ms/frame", "PSNR dB"),
+    )
+    for set_name, rows in report["results"].items():
+        lines += [
+            f"| {set_name} | {r['decoder']} | {100 * r['within_budget']:.0f}% | "
+            + ", ".join(f"{name} {count}" for name, count in r["chosen"].items())
+            + f" | {r['ms_per_frame']:.1f} | {r['psnr_db']:.2f} |"
+            for r in rows
+            if "within_budget" in r
+        ]
+    lines += table_head(
+        "Latency cost model: predicted / measured ms of each quality of `auto` (after the "
+        "scene analysis; frames with residues)",
+        ("set", "quality", "geometric mean", "least", "greatest", "frames"),
+    )
+    for set_name, qualities in report["latency_predictions"].items():
+        lines += [
+            f"| {set_name} | {quality} | {r['geometric_mean']:.2f} | {r['min']:.2f} | "
+            f"{r['max']:.2f} | {r['frames']} |"
+            for quality, r in qualities.items()
+        ]
+    return lines
 
 
 def plot(report: dict[str, Any], path: Path) -> None:

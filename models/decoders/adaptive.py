@@ -239,18 +239,42 @@ class AdaptiveDecoder(Decoder):
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         return self.explain_analysed(m, params, analyse(m, params, self.tile))
 
-    def network_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
-        """Pixels the hard-tile decoder will see for a frame with this analysis: none
-        without residues, the whole frame at ``best``, else the windows of the groups
-        of hard tiles (:meth:`hard_windows`)."""
+    def network_calls(
+        self, analysis: FrameAnalysis, shape: tuple[int, int]
+    ) -> list[tuple[int, int]]:
+        """The shape of each call the hard-tile decoder will get for a frame with this
+        analysis: none without residues, one call on the whole frame at ``best`` or when
+        the windows would cover the frame, else one per window of a group of hard tiles
+        (:meth:`hard_windows`)."""
         if analysis.frame.difficulty in ("none", "smooth"):
-            return 0
+            return []
         if self.quality == "best":
-            return shape[0] * shape[1]
-        return sum(
-            (rows.stop - rows.start) * (cols.stop - cols.start)
+            return [shape]
+        windows = [
+            (rows.stop - rows.start, cols.stop - cols.start)
             for rows, cols, _ in self.hard_windows(analysis, shape)
-        )
+        ]
+        return [shape] if sum(h * w for h, w in windows) >= shape[0] * shape[1] else windows
+
+    def network_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
+        """Pixels the hard-tile decoder will see for a frame with this analysis (over all
+        :meth:`network_calls`)."""
+        return sum(h * w for h, w in self.network_calls(analysis, shape))
+
+    def doubtful_pixels(
+        self, analysis: FrameAnalysis, shape: tuple[int, int]
+    ) -> NDArray[np.bool_] | None:
+        """The pixels the network decides (bool, ``shape``; None: the whole frame), which
+        the refinement revisits: those of the hard tiles of a routed frame."""
+        calls = self.network_calls(analysis, shape)
+        if not calls or calls == [shape]:
+            return None
+        doubtful = np.zeros(shape, bool)
+        for region in analysis.tiles:
+            if _is_hard(region):
+                doubtful[region.row : region.row + region.height,
+                         region.col : region.col + region.width] = True
+        return doubtful
 
     def hard_windows(
         self, analysis: FrameAnalysis, shape: tuple[int, ...]
@@ -346,7 +370,7 @@ class AdaptiveDecoder(Decoder):
         if self.quality == "best":
             reason = f"{difficulty} wraps; quality best decodes whole frames"
             return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
-        if self.network_pixels(analysis, m.shape) >= m.size:
+        if self.network_calls(analysis, m.shape) == [m.shape]:
             reason = f"{difficulty} wraps; the hard tiles with their margins cover the frame"
             return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
         pixels: Counter[str] = Counter()

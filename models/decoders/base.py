@@ -144,6 +144,13 @@ class Decoder(ABC):
         """
         return self.predict_winding(m, params), {}
 
+    def run_pixels(self, shape: tuple[int, int], params: SensorParams) -> list[int]:
+        """Pixels of each run :meth:`predict_winding` makes on a channel of ``shape``: the
+        unit of work whose fixed and per-pixel cost a latency budget predicts
+        (:mod:`models.decoders.budget`). One run of the channel, unless the decoder
+        splits it."""
+        return [shape[0] * shape[1]]
+
     @abstractmethod
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         """Winding numbers (int64, H x W) for one channel of wrapped values m in [0, 1)."""

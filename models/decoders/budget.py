@@ -1,44 +1,57 @@
 """``auto-<N>ms``: the most accurate routing predicted to decode a frame within N ms.
 
 The scene analysis runs once per frame. For each quality of ``auto``, ``best``
-first, the winding-prediction time is predicted as the analysis time plus the
-pixels its network would see (:meth:`AdaptiveDecoder.network_pixels`) times that
-network's cost per pixel, plus, when the quality refines a frame with residues,
-the frame's pixels times the refinement's cost per pixel (at ``fast``, the cost per
-pixel of the small-region check's ``itoh`` decode instead). The first quality
-predicted within the budget decodes the frame. When none fits, ``itoh`` (one DCT
-solve per frame) decodes it if that is predicted to fit, else the quickest option
-runs and the report says the budget was not met. The inversion from W to
-irradiance is not part of the budget.
+first, the winding-prediction time is predicted (:func:`predicted_ms`) as the
+analysis time plus
 
-Costs per pixel (ns) are measured once per process on this machine, by timing
-each candidate on a seeded synthetic 256 x 256 frame exposed like val-256 (random
-codes are the refinement's worst case, not a typical frame), so predictions follow
-the hardware and the thread settings; the refinement is also timed on a 512 x 512
-frame, used for frames larger than 256 x 256 (its cost per pixel grows with the
-frame). Pass-through and exact integration are treated as free (about a
-millisecond per 256 x 256 frame, inside the analysis time's order). The choice,
-every option's predicted ms and whether the budget was met are reported with the
-routes (``GET /v1/jobs/{id}``, the EXR header).
+- the network's calls (:meth:`AdaptiveDecoder.network_calls`: the whole frame, or
+  one window per group of hard tiles), each split into the runs the decoder makes
+  (:meth:`Decoder.run_pixels`), at a fixed cost per run plus a cost per pixel;
+- when the quality refines, its cost per pixel times the pixels of the boxes it
+  refines (:func:`models.decoders.guided_puma.refinement_boxes` of the network's
+  pixels; the whole frame when the network decoded all of it); at ``fast``, the small
+  -region check's cost per pixel of the frame instead;
+- the rest (tile integration, stitching, anchoring), per pixel of the frame.
+
+The first quality predicted within the budget decodes the frame. When none fits,
+``itoh`` (one DCT solve per frame) decodes it if that is predicted to fit, else the
+quickest option runs. The inversion from W to irradiance is not part of the budget.
+
+Costs are measured once per process on this machine, by timing each stage on a
+seeded synthetic 256 x 256 frame exposed like val-256 (and its top-left quarter, for
+the fixed cost of a run), so predictions follow the hardware and the thread
+settings; the refinement is also timed on a 512 x 512 frame, used for frames larger
+than 256 x 256 (its cost per pixel grows with the frame). Pass-through and exact
+integration tiles cost nothing beyond the rest. The predictions are then scaled by
+the process's running measured / predicted ratio (:class:`SpeedFactor`), which
+follows load on the cores. The choice, every option's predicted ms, the measured ms
+and whether the budget was met are reported with the routes (``GET /v1/jobs/{id}``,
+the EXR header).
+
+Measured (2026-11-26, AMD EPYC, 2 cores; predicted / measured ms of each quality
+after the analysis, frame by frame): the cost per pixel of the network and of a
+whole-frame refinement, as before, predicted ``fast`` at 0.44-0.87, ``balanced`` at
+0.65-2.38 (mostly-dark frames 2.4: it charged the whole frame's refinement) and
+``best`` at 1.2-1.6; the model above ``fast`` at 0.99-1.11, ``balanced`` at
+1.04-1.33, ``best`` at 1.27-1.64 (a converged refinement's cost varies by frame: on
+the safe side). bench.tradeoff reports these ratios and the share of frames each
+budget met.
 """
 
 from __future__ import annotations
 
 import re
 import time
+from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from models.decoders.adaptive import (
-    DEFAULT_TILE,
-    QUALITIES,
-    SMALL_REGION_CHECK,
-    AdaptiveDecoder,
-)
+from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
 from models.decoders.base import Decoder
+from models.decoders.guided_puma import box_pixels, refinement_boxes
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, simulate
@@ -63,6 +76,11 @@ CALIBRATION_SIZE = 256
 REFINEMENT_CALIBRATION_SIZES = (256, 512)
 CALIBRATION_SEED = 0
 CALIBRATION_RUNS = 3
+#: Weight of the latest decode in the running measured / predicted factor
+#: (:class:`SpeedFactor`), its bounds, and the shortest prediction (ms) it learns from.
+SPEED_WEIGHT = 0.2
+SPEED_RANGE = (0.25, 4.0)
+SPEED_MIN_MS = 1.0
 
 
 @cache
@@ -81,18 +99,55 @@ def calibration_frame(
     return dequantize(frame.codes, params.bits), frame.params
 
 
+@dataclass(frozen=True)
+class CallCost:
+    """A decoder's measured time for one call: ``call_ns`` fixed, plus ``pixel_ns`` per
+    pixel of its input."""
+
+    call_ns: float
+    pixel_ns: float
+
+    def ns(self, pixels: int) -> float:
+        """Predicted time (ns) of one call on ``pixels`` pixels."""
+        return self.call_ns + self.pixel_ns * pixels
+
+
 @cache
-def ns_per_pixel(name: str, encoding: str) -> float:
-    """Median time per pixel (ns) of decoder ``name`` predicting W on the calibration
-    frame of ``encoding``, after one warm-up run; measured once."""
+def call_cost(name: str, encoding: str) -> CallCost:
+    """Decoder ``name``'s :class:`CallCost` predicting W, fitted through its median
+    times on the calibration frame of ``encoding`` and on that frame's top-left
+    quarter (a network call has a fixed cost, padding and session overhead, that a
+    cost per pixel alone charges small windows too little); measured once."""
     decoder = get_decoder(name)
     m, params = calibration_frame(encoding)
-    return median_ns(lambda: decoder.predict_winding(m, params), CALIBRATION_RUNS) / m.size
+    quarter = m[: m.shape[0] // 2, : m.shape[1] // 2]
+    whole_ns, quarter_ns = (
+        median_ns(lambda frame=frame: decoder.predict_winding(frame, params), CALIBRATION_RUNS)
+        for frame in (m, quarter)
+    )
+    pixel_ns = max(whole_ns - quarter_ns, 0.0) / (m.size - quarter.size)
+    return CallCost(max(quarter_ns - pixel_ns * quarter.size, 0.0), pixel_ns)
+
+
+@cache
+def check_ns_per_pixel(quality: str, encoding: str) -> float:
+    """Time per pixel (ns) of ``auto-<quality>``'s small-region check
+    (:meth:`AdaptiveDecoder.check_small_regions`, an itoh decode and a region vote) on
+    the calibration frame; 0 when the quality does not check. Measured once."""
+    m, params = calibration_frame(encoding)
+    decoder = adaptive(quality)
+    if not decoder.checks_small_regions(params):
+        return 0.0
+    guide, _ = decoder.unrefined_winding(m, params, analyse(m, params, decoder.tile))
+    return median_ns(lambda: decoder.check_small_regions(m, guide, params), CALIBRATION_RUNS) / (
+        m.size
+    )
 
 
 @cache
 def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION_SIZE) -> float:
-    """Time per pixel (ns) of ``auto-<quality>``'s refinement (0 when it has none) on
+    """Time per refined pixel (ns: per pixel of the boxes it refines, see
+    :func:`refined_pixels`) of ``auto-<quality>``'s refinement (0 when it has none) on
     the ``size``-px calibration frame, from the W and the doubtful pixels that
     ``auto-<quality>`` hands it there; measured once: the median of
     :data:`CALIBRATION_RUNS` at 256 px, one run at larger sizes (a converged
@@ -107,11 +162,18 @@ def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION
     def refine() -> None:
         refiner.refine(m, guide, params, doubtful)
 
+    pixels = refined_pixels(doubtful, m.size)
     if size == CALIBRATION_SIZE:
-        return median_ns(refine, CALIBRATION_RUNS) / m.size
+        return median_ns(refine, CALIBRATION_RUNS) / pixels
     start = time.perf_counter_ns()
     refine()
-    return (time.perf_counter_ns() - start) / m.size
+    return (time.perf_counter_ns() - start) / pixels
+
+
+def refined_pixels(doubtful: NDArray[np.bool_] | None, frame_pixels: int) -> int:
+    """Pixels a refinement handed these doubtful pixels works on: the whole frame when
+    None, else its boxes around them (:func:`refinement_boxes`)."""
+    return frame_pixels if doubtful is None else box_pixels(refinement_boxes(doubtful))
 
 
 def refinement_size(shape: tuple[int, int]) -> int:
@@ -137,21 +199,74 @@ def check_budget(budget_ms: float) -> None:
         )
 
 
+@cache
+def overhead_ns_per_pixel(quality: str, encoding: str) -> float:
+    """What :func:`stage_ns` leaves out of ``auto-<quality>``'s time on the calibration
+    frame (tile integration, stitching, anchoring), per pixel (ns, at least 0);
+    measured once."""
+    m, params = calibration_frame(encoding)
+    decoder = adaptive(quality)
+    analysis = analyse(m, params, decoder.tile)
+    total = median_ns(lambda: decoder.explain_analysed(m, params, analysis), CALIBRATION_RUNS)
+    return max(total - stage_ns(quality, analysis, m.shape, params), 0.0) / m.size
+
+
 def predicted_ms(
     quality: str, analysis: FrameAnalysis, shape: tuple[int, int], params: SensorParams
 ) -> float:
-    """Predicted W time (ms, without the analysis) of ``auto-<quality>`` on this frame."""
-    decoder = adaptive(quality)
-    pixels = decoder.network_pixels(analysis, shape)
-    if pixels == 0:
+    """Predicted W time (ms, without the analysis) of ``auto-<quality>`` on this frame:
+    its stages (:func:`stage_ns`) and the rest, per pixel (:func:`overhead_ns_per_pixel`)."""
+    if analysis.frame.difficulty in ("none", "smooth"):
         return 0.0
+    overhead_ns = shape[0] * shape[1] * overhead_ns_per_pixel(quality, params.encoding)
+    return (stage_ns(quality, analysis, shape, params) + overhead_ns) / 1e6
+
+
+def stage_ns(
+    quality: str, analysis: FrameAnalysis, shape: tuple[int, int], params: SensorParams
+) -> float:
+    """Predicted time (ns) of ``auto-<quality>``'s costly stages on a frame with residues:
+    its network calls (:meth:`AdaptiveDecoder.network_calls`), then its refinement of
+    the boxes around the network's pixels, or its small-region check of the frame."""
+    decoder = adaptive(quality)
+    calls = decoder.network_calls(analysis, shape)
     hard = decoder.hard_tile_decoder(params)
-    network_ns = pixels * ns_per_pixel(hard.name, params.encoding)
-    per_pixel = refinement_ns_per_pixel(quality, params.encoding, refinement_size(shape))
-    if decoder.checks_small_regions(params):
-        per_pixel += ns_per_pixel(SMALL_REGION_CHECK, params.encoding)
-    refinement_ns = shape[0] * shape[1] * per_pixel
-    return (network_ns + refinement_ns) / 1e6
+    cost = call_cost(hard.name, params.encoding)
+    total_ns = sum(
+        cost.ns(pixels) for call in calls for pixels in hard.run_pixels(call, params)
+    )
+    frame_pixels = shape[0] * shape[1]
+    if decoder.refiner(params) is not None:
+        pixels = refined_pixels(decoder.doubtful_pixels(analysis, shape), frame_pixels)
+        total_ns += pixels * refinement_ns_per_pixel(
+            quality, params.encoding, refinement_size(shape)
+        )
+    else:
+        total_ns += frame_pixels * check_ns_per_pixel(quality, params.encoding)
+    return total_ns
+
+
+class SpeedFactor:
+    """This process's measured / predicted time, as a running geometric mean over the
+    frames a latency budget decoded: the costs per pixel are measured once, but other
+    load on the cores comes and goes (and one noisy calibration run would otherwise
+    skew every prediction for the life of the process). Predictions are scaled by it."""
+
+    def __init__(self) -> None:
+        self.value = 1.0
+
+    def update(self, predicted_ms: float, measured_ms: float) -> None:
+        """Fold in one decode: ``predicted_ms`` (unscaled) and ``measured_ms``; decodes
+        predicted under :data:`SPEED_MIN_MS` are too short to time and are skipped."""
+        if predicted_ms < SPEED_MIN_MS or measured_ms <= 0.0:
+            return
+        ratio = min(max(measured_ms / predicted_ms, SPEED_RANGE[0]), SPEED_RANGE[1])
+        log_value = (1 - SPEED_WEIGHT) * np.log(self.value) + SPEED_WEIGHT * np.log(ratio)
+        self.value = float(np.clip(np.exp(log_value), *SPEED_RANGE))
+
+
+#: The running correction shared by every ``auto-<N>ms`` decoder of this process.
+SPEED = SpeedFactor()
 
 
 class BudgetDecoder(Decoder):
@@ -171,11 +286,13 @@ class BudgetDecoder(Decoder):
         start = time.perf_counter_ns()
         analysis = analyse(m, params, DEFAULT_TILE)
         analysis_ms = (time.perf_counter_ns() - start) / 1e6
-        options = {
+        model = {
             quality: analysis_ms + predicted_ms(quality, analysis, m.shape, params)
             for quality in reversed(QUALITIES)
         }
-        options[CLASSICAL] = ns_per_pixel(CLASSICAL, params.encoding) * m.size / 1e6
+        model[CLASSICAL] = call_cost(CLASSICAL, params.encoding).ns(m.size) / 1e6
+        speed = SPEED.value
+        options = {name: ms * speed for name, ms in model.items()}
         fitting = [name for name, ms in options.items() if ms <= self.budget_ms]
         chosen = fitting[0] if fitting else min(options, key=options.__getitem__)
         if chosen == CLASSICAL:
@@ -184,11 +301,16 @@ class BudgetDecoder(Decoder):
             info: dict[str, Any] = {"routes": {CLASSICAL: 1.0}, "reason": reason}
         else:
             winding, info = adaptive(chosen).explain_analysed(m, params, analysis)
+        measured_ms = (time.perf_counter_ns() - start) / 1e6
+        SPEED.update(model[chosen], measured_ms)
         info["budget"] = {
             "budget_ms": self.budget_ms,
             "chosen": chosen,
-            "met": bool(fitting),
+            "predicted_to_fit": bool(fitting),
             "predicted_ms": {name: round(ms, 2) for name, ms in options.items()},
+            "speed_factor": round(speed, 3),
+            "measured_ms": round(measured_ms, 2),
+            "met": measured_ms <= self.budget_ms,
         }
         return winding, info
 

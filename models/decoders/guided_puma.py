@@ -163,6 +163,18 @@ def residue_pixels(m: NDArray[np.float64], reach: int = RESIDUE_REACH) -> NDArra
     return ndimage.binary_dilation(near, iterations=reach) if reach > 0 and near.any() else near
 
 
+def refinement_boxes(doubtful: NDArray[np.bool_]) -> list[tuple[slice, slice]]:
+    """The boxes :meth:`GuidedPumaDecoder.refine` refines for these doubtful pixels (bool,
+    H x W): one per connected group of them grown by :data:`DOUBTFUL_CONTEXT` px."""
+    grown = ndimage.binary_dilation(doubtful, iterations=DOUBTFUL_CONTEXT)
+    return [box for box in ndimage.find_objects(ndimage.label(grown)[0]) if box is not None]
+
+
+def box_pixels(boxes: list[tuple[slice, slice]]) -> int:
+    """Pixels in ``boxes`` (row and column slices with explicit bounds)."""
+    return sum((rows.stop - rows.start) * (cols.stop - cols.start) for rows, cols in boxes)
+
+
 def curvature(m: NDArray[np.float64]) -> NDArray[np.float32]:
     """Herraez's second-difference measure per pixel (H x W, wraps): the root sum of
     squares of the wrapped second differences along rows, columns and both diagonals.
@@ -246,8 +258,7 @@ class GuidedPumaDecoder(Decoder):
         winding = guide.copy()
         boxes: list[dict[str, Any]] = []
         top = max_winding(params)
-        grown = ndimage.binary_dilation(doubtful, iterations=DOUBTFUL_CONTEXT)
-        for box in ndimage.find_objects(ndimage.label(grown)[0]):
+        for box in refinement_boxes(doubtful):
             refined, facts = self._refine_frame(m[box], guide[box], params)
             trusted = ~doubtful[box]
             if trusted.any():

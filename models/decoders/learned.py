@@ -48,6 +48,15 @@ SPIN_WORDS = {
 }
 #: Overlap between neighbouring tiles, in pixels (a multiple of the net's multiple).
 OVERLAP = 64
+#: A frame is run whole when its longer side is at most the card's ``tile`` plus this
+#: many px; larger ones are tiled. Tiled, a frame just over the tile took 2-4 runs of a
+#: whole tile (the windows of ``auto``'s hard tiles are 288 px when four tiles wide).
+#: Measured on the 512x512 frames of bench.tradeoff (2026-11-26, three alternating
+#: rounds, medians): auto-fast 67 -> 55 ms, auto-balanced 150 -> 136 ms, the same W.
+#: Tiles of 320 px for every larger frame too measured about even on W accuracy over
+#: the nets (-7.8 to +3.4 points per net and frame set: which tile border lands on a
+#: hard spot changes), so larger frames keep the card's tile.
+WHOLE_RUN_SLACK = OVERLAP
 
 
 def worker_threads() -> int:
@@ -167,11 +176,27 @@ class OnnxWindingModel:
         return out[0, 0, : m.shape[0], : m.shape[1]].astype(np.int64)
 
     def predict(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
-        """W for a frame of any size: tiled with reconciled offsets when large."""
-        tile = int(self.card["tile"])
-        if max(m.shape) <= tile:
+        """W for a frame of any size: tiled with reconciled offsets when large (see
+        :data:`WHOLE_RUN_SLACK`)."""
+        if max(m.shape) <= self.run_tile:
             return self.run(m)
+        tile = int(self.card["tile"])
         return stitch_overlapping(m.shape, tile, OVERLAP, lambda r, c: self.run(m[r, c]))
+
+    @property
+    def run_tile(self) -> int:
+        """The longest side (px) of a frame run whole."""
+        return int(self.card["tile"]) + WHOLE_RUN_SLACK
+
+    def run_pixels(self, shape: tuple[int, int]) -> list[int]:
+        """Pixels of each run :meth:`predict` makes on a frame of ``shape`` (each tile
+        padded to the net's multiple)."""
+        multiple = int(self.card["multiple"])
+        runs = [shape] if max(shape) <= self.run_tile else [
+            (rows.stop - rows.start, cols.stop - cols.start)
+            for rows, cols in tiles(shape, int(self.card["tile"]), OVERLAP)
+        ]
+        return [-(-h // multiple) * multiple * (-(-w // multiple) * multiple) for h, w in runs]
 
 
 class OnnxRolloverModel(OnnxWindingModel):
@@ -242,6 +267,9 @@ class LearnedDecoder(Decoder):
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         return anchor_winding(self.model_for(params).predict(m), params)
+
+    def run_pixels(self, shape: tuple[int, int], params: SensorParams) -> list[int]:
+        return self.model_for(params).run_pixels(shape)
 
 
 def describe(name: str, cards: list[dict[str, Any]]) -> str:

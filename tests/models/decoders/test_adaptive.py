@@ -255,3 +255,19 @@ def test_separate_hard_tiles_get_separate_windows() -> None:
         (slice(176, 256), slice(176, 256)),
     ]
     assert decoder.network_pixels(analysis, m.shape) == 2 * 80 * 80
+
+
+def test_network_calls_and_doubtful_pixels_are_what_decoding_uses() -> None:
+    """The budget's cost model sees the windows the router runs and the pixels it hands
+    the refinement."""
+    decoder = AdaptiveDecoder("balanced", tile=64, margin=16)
+    m = _rough_spots((20, 20), (200, 200)) / 255.0
+    analysis = analyse(m, MODULO, 64)
+    assert decoder.network_calls(analysis, m.shape) == [(80, 80), (80, 80)]
+    _, doubtful = decoder.unrefined_winding(m, MODULO, analysis)
+    np.testing.assert_array_equal(decoder.doubtful_pixels(analysis, m.shape), doubtful)
+    best = AdaptiveDecoder("best", tile=64)
+    assert best.network_calls(analysis, m.shape) == [(256, 256)]
+    assert best.doubtful_pixels(analysis, m.shape) is None
+    flat = np.full((64, 64), 0.3)
+    assert decoder.network_calls(analyse(flat, MODULO, 64), flat.shape) == []

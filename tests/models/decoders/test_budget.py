@@ -5,15 +5,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from models.decoders import get_decoder
 from models.decoders.budget import (
+    SPEED_RANGE,
     BudgetDecoder,
-    ns_per_pixel,
+    SpeedFactor,
+    call_cost,
     predicted_ms,
+    refined_pixels,
     refinement_ns_per_pixel,
     refinement_size,
     resolve,
+    stage_ns,
 )
 from models.decoders.registry import name_patterns
 from models.errors import InvalidInputError
@@ -52,7 +58,8 @@ def test_a_generous_budget_decodes_like_auto_best() -> None:
     codes = hard_frame()
     result = get_decoder("auto-600000ms").decode(codes, MODULO)
     budget = result.info["details"]["budget"]
-    assert budget["chosen"] == "best" and budget["met"] is True
+    assert budget["chosen"] == "best" and budget["predicted_to_fit"] is True
+    assert budget["met"] is True and 0.0 < budget["measured_ms"] <= 600000
     assert set(budget["predicted_ms"]) == {"best", "balanced", "fast", "itoh"}
     best = get_decoder("auto-best").decode(codes, MODULO)
     np.testing.assert_array_equal(result.winding, best.winding)
@@ -62,7 +69,7 @@ def test_an_impossible_budget_runs_the_quickest_option_and_says_so() -> None:
     """0.1 ms is below even itoh's time for a 256x256 frame (about 2 ms)."""
     result = get_decoder("auto-0.1ms").decode(hard_frame(256), MODULO)
     budget = result.info["details"]["budget"]
-    assert budget["met"] is False
+    assert budget["met"] is False and budget["predicted_to_fit"] is False
     predicted = budget["predicted_ms"]
     assert predicted[budget["chosen"]] == min(predicted.values())
     assert np.isfinite(result.irradiance).all()
@@ -80,8 +87,56 @@ def test_a_frame_without_wraps_costs_no_network_time() -> None:
     np.testing.assert_array_equal(result.winding, frame.winding)
 
 
-def test_costs_per_pixel_are_measured_and_positive() -> None:
-    assert ns_per_pixel("itoh", "modulo") > 0.0
+def test_call_costs_are_measured_and_grow_with_the_pixels() -> None:
+    for name in ("itoh", "mantissanet-small-s2d"):
+        cost = call_cost(name, "modulo")
+        assert cost.call_ns >= 0.0 and cost.pixel_ns > 0.0
+        assert cost.ns(256 * 256) > cost.ns(64 * 64)
+
+
+def test_a_routed_frame_is_charged_the_refinement_of_its_boxes_only() -> None:
+    """Two rough corners of a dark frame: balanced refines two boxes round them, and the
+    prediction charges those, not the whole frame."""
+    x = np.full((256, 256), 0.2)
+    rng = np.random.default_rng(0)
+    for row, col in ((20, 20), (200, 200)):
+        x[row : row + 20, col : col + 20] += rng.uniform(0, 3, (20, 20))
+    codes = encode(x, MODULO).codes
+    m = codes / 256.0
+    analysis = analyse(m, MODULO, 64)
+    decoder = get_decoder("auto-balanced")
+    doubtful = decoder.doubtful_pixels(analysis, m.shape)
+    assert doubtful is not None
+    boxes = refined_pixels(doubtful, m.size)
+    assert 0 < boxes < m.size and refined_pixels(None, m.size) == m.size
+    per_pixel = refinement_ns_per_pixel("balanced", "modulo")
+    whole_frame = stage_ns("best", analysis, m.shape, MODULO)
+    assert stage_ns("balanced", analysis, m.shape, MODULO) >= boxes * per_pixel
+    assert stage_ns("balanced", analysis, m.shape, MODULO) < whole_frame
+
+
+def test_the_speed_factor_follows_measurements_within_its_bounds() -> None:
+    speed = SpeedFactor()
+    speed.update(10.0, 20.0)
+    assert 1.0 < speed.value < 2.0
+    before = speed.value
+    speed.update(0.5, 100.0)
+    assert speed.value == before
+    for _ in range(100):
+        speed.update(10.0, 1000.0)
+    assert speed.value == pytest.approx(SPEED_RANGE[1]) and speed.value <= SPEED_RANGE[1]
+
+
+@given(
+    pairs=st.lists(
+        st.tuples(st.floats(0.0, 1e6), st.floats(0.0, 1e6)), min_size=1, max_size=30
+    )
+)
+def test_the_speed_factor_stays_finite_and_bounded(pairs: list[tuple[float, float]]) -> None:
+    speed = SpeedFactor()
+    for predicted, measured in pairs:
+        speed.update(predicted, measured)
+        assert SPEED_RANGE[0] <= speed.value <= SPEED_RANGE[1]
 
 
 def test_refinement_costs_are_calibrated_by_frame_size() -> None:

@@ -166,3 +166,28 @@ def test_noisy_jumps_round_to_the_winding() -> None:
     jumps[0, :, :-1] = np.diff(winding, axis=1)
     jumps += np.random.default_rng(1).normal(0, 0.1, jumps.shape)
     np.testing.assert_array_equal(learned.winding_from_jumps(jumps), winding)
+
+
+@settings(max_examples=15, deadline=None)
+@given(rows=st.integers(2, 700), cols=st.integers(2, 700))
+def test_run_pixels_counts_the_runs_predict_makes(rows: int, cols: int) -> None:
+    """What the latency budget charges a net for a frame: one entry per ONNX run, each
+    the run's padded size; frames up to the tile plus the slack run whole."""
+    decoder = get_decoder("mantissanet-small-s2d")
+    model = decoder.models["mantissa"]
+    calls: list[tuple[int, ...]] = []
+    real_run = model.run
+
+    def counted(m: np.ndarray) -> np.ndarray:
+        calls.append(m.shape)
+        return real_run(m)
+
+    model.run = counted  # type: ignore[method-assign]
+    try:
+        model.predict(np.zeros((rows, cols)))
+    finally:
+        model.run = real_run  # type: ignore[method-assign]
+    pixels = decoder.run_pixels((rows, cols), SensorParams(encoding="mantissa"))
+    step = int(model.card["multiple"])
+    assert pixels == [-(-h // step) * step * (-(-w // step) * step) for h, w in calls]
+    assert (len(pixels) == 1) == (max(rows, cols) <= model.run_tile)
