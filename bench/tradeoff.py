@@ -178,8 +178,8 @@ def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
 
 def speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """``auto`` against always running a network, alone or refined (``<net>+puma``): for
-    each auto row and each such row at most as accurate (W accuracy), how many times
-    faster auto is, and both PSNRs."""
+    each auto row (but the latency budgets, which mix qualities) and each such row at
+    most as accurate (W accuracy), how many times faster auto is, and both PSNRs."""
     networks = [r for r in rows if "gflops_per_s" in r or r["decoder"].endswith("+puma")]
     return [
         {
@@ -192,7 +192,7 @@ def speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "network_psnr_db": net["psnr_db"],
         }
         for auto in rows
-        if auto["decoder"].startswith("auto")
+        if auto["decoder"].startswith("auto") and "within_budget" not in auto
         for net in networks
         if net["winding_accuracy"] <= auto["winding_accuracy"]
     ]

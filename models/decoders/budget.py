@@ -23,10 +23,10 @@ the fixed cost of a run), so predictions follow the hardware and the thread
 settings; the refinement is also timed on a 512 x 512 frame, used for frames larger
 than 256 x 256 (its cost per pixel grows with the frame). Pass-through and exact
 integration tiles cost nothing beyond the rest. The predictions are then scaled by
-the process's running measured / predicted ratio (:class:`SpeedFactor`), which
-follows load on the cores. The choice, every option's predicted ms, the measured ms
-and whether the budget was met are reported with the routes (``GET /v1/jobs/{id}``,
-the EXR header).
+the process's running measured / predicted ratio of each option
+(:class:`SpeedFactors`), which follows load on the cores and each option's own bias.
+The choice, every option's predicted ms, the measured ms and whether the budget was
+met are reported with the routes (``GET /v1/jobs/{id}``, the EXR header).
 
 Measured (2026-11-26, AMD EPYC, 2 cores; predicted / measured ms of each quality
 after the analysis, frame by frame): the cost per pixel of the network and of a
@@ -57,7 +57,7 @@ from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, simulate
 from models.scene_analysis import FrameAnalysis, analyse
 from models.scenes import VAL256_BITS, VAL256_MAX_WRAPS, VAL256_OVEREXPOSED, synthetic_scene
-from models.timing import median_ns
+from models.timing import fastest_ns
 
 NAME = re.compile(r"auto-(\d+(?:\.\d+)?)ms")
 NAME_PATTERNS = ("auto-<N>ms (the most accurate quality predicted to decode within N ms)",)
@@ -75,9 +75,13 @@ CALIBRATION_SIZE = 256
 #: Calibrated at 256 px only, best was predicted at about 2.5 s for the 13 s.
 REFINEMENT_CALIBRATION_SIZES = (256, 512)
 CALIBRATION_SEED = 0
-CALIBRATION_RUNS = 3
-#: Weight of the latest decode in the running measured / predicted factor
-#: (:class:`SpeedFactor`), its bounds, and the shortest prediction (ms) it learns from.
+#: Timed runs per calibration (after a warm-up); the least time is kept: the cost
+#: without interference. A calibration that caught other load would make an option
+#: look too dear to be chosen, and an option never chosen never corrects its factor
+#: (:class:`SpeedFactors`), while one predicted too cheap runs and learns its cost.
+CALIBRATION_RUNS = 5
+#: Weight of the latest decode in the running measured / predicted factors
+#: (:class:`SpeedFactors`), its bounds, and the shortest prediction (ms) it learns from.
 SPEED_WEIGHT = 0.2
 SPEED_RANGE = (0.25, 4.0)
 SPEED_MIN_MS = 1.0
@@ -114,15 +118,16 @@ class CallCost:
 
 @cache
 def call_cost(name: str, encoding: str) -> CallCost:
-    """Decoder ``name``'s :class:`CallCost` predicting W, fitted through its median
-    times on the calibration frame of ``encoding`` and on that frame's top-left
-    quarter (a network call has a fixed cost, padding and session overhead, that a
-    cost per pixel alone charges small windows too little); measured once."""
+    """Decoder ``name``'s :class:`CallCost` predicting W, fitted through its least times
+    (:data:`CALIBRATION_RUNS`) on the calibration frame of ``encoding`` and on that
+    frame's top-left quarter (a network call has a fixed cost, padding and session
+    overhead, that a cost per pixel alone charges small windows too little); measured
+    once."""
     decoder = get_decoder(name)
     m, params = calibration_frame(encoding)
     quarter = m[: m.shape[0] // 2, : m.shape[1] // 2]
     whole_ns, quarter_ns = (
-        median_ns(lambda frame=frame: decoder.predict_winding(frame, params), CALIBRATION_RUNS)
+        fastest_ns(lambda frame=frame: decoder.predict_winding(frame, params), CALIBRATION_RUNS)
         for frame in (m, quarter)
     )
     pixel_ns = max(whole_ns - quarter_ns, 0.0) / (m.size - quarter.size)
@@ -139,7 +144,7 @@ def check_ns_per_pixel(quality: str, encoding: str) -> float:
     if not decoder.checks_small_regions(params):
         return 0.0
     guide, _ = decoder.unrefined_winding(m, params, analyse(m, params, decoder.tile))
-    return median_ns(lambda: decoder.check_small_regions(m, guide, params), CALIBRATION_RUNS) / (
+    return fastest_ns(lambda: decoder.check_small_regions(m, guide, params), CALIBRATION_RUNS) / (
         m.size
     )
 
@@ -149,7 +154,7 @@ def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION
     """Time per refined pixel (ns: per pixel of the boxes it refines, see
     :func:`refined_pixels`) of ``auto-<quality>``'s refinement (0 when it has none) on
     the ``size``-px calibration frame, from the W and the doubtful pixels that
-    ``auto-<quality>`` hands it there; measured once: the median of
+    ``auto-<quality>`` hands it there; measured once: the least of
     :data:`CALIBRATION_RUNS` at 256 px, one run at larger sizes (a converged
     refinement of a 512x512 frame takes seconds)."""
     m, params = calibration_frame(encoding, size)
@@ -164,7 +169,7 @@ def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION
 
     pixels = refined_pixels(doubtful, m.size)
     if size == CALIBRATION_SIZE:
-        return median_ns(refine, CALIBRATION_RUNS) / pixels
+        return fastest_ns(refine, CALIBRATION_RUNS) / pixels
     start = time.perf_counter_ns()
     refine()
     return (time.perf_counter_ns() - start) / pixels
@@ -207,7 +212,7 @@ def overhead_ns_per_pixel(quality: str, encoding: str) -> float:
     m, params = calibration_frame(encoding)
     decoder = adaptive(quality)
     analysis = analyse(m, params, decoder.tile)
-    total = median_ns(lambda: decoder.explain_analysed(m, params, analysis), CALIBRATION_RUNS)
+    total = fastest_ns(lambda: decoder.explain_analysed(m, params, analysis), CALIBRATION_RUNS)
     return max(total - stage_ns(quality, analysis, m.shape, params), 0.0) / m.size
 
 
@@ -246,27 +251,36 @@ def stage_ns(
     return total_ns
 
 
-class SpeedFactor:
-    """This process's measured / predicted time, as a running geometric mean over the
-    frames a latency budget decoded: the costs per pixel are measured once, but other
-    load on the cores comes and goes (and one noisy calibration run would otherwise
-    skew every prediction for the life of the process). Predictions are scaled by it."""
+class SpeedFactors:
+    """This process's measured / predicted time of each option (a quality of ``auto``,
+    or ``itoh``), as a running geometric mean over the frames a latency budget decoded
+    with it (1 until it has run): the costs are measured once, but other load on the
+    cores comes and goes, one noisy calibration run would otherwise skew the
+    predictions for the life of the process, and each option's cost model errs its own
+    way (itoh's DCT grows faster than its pixels). Predictions are scaled by them."""
 
     def __init__(self) -> None:
-        self.value = 1.0
+        self.values: dict[str, float] = {}
 
-    def update(self, predicted_ms: float, measured_ms: float) -> None:
-        """Fold in one decode: ``predicted_ms`` (unscaled) and ``measured_ms``; decodes
-        predicted under :data:`SPEED_MIN_MS` are too short to time and are skipped."""
+    def value(self, option: str) -> float:
+        """The factor of ``option`` (1 until it has run)."""
+        return self.values.get(option, 1.0)
+
+    def update(self, option: str, predicted_ms: float, measured_ms: float) -> None:
+        """Fold in one decode by ``option``: ``predicted_ms`` (unscaled) and
+        ``measured_ms``; decodes predicted under :data:`SPEED_MIN_MS` are too short to
+        time and are skipped."""
         if predicted_ms < SPEED_MIN_MS or measured_ms <= 0.0:
             return
         ratio = min(max(measured_ms / predicted_ms, SPEED_RANGE[0]), SPEED_RANGE[1])
-        log_value = (1 - SPEED_WEIGHT) * np.log(self.value) + SPEED_WEIGHT * np.log(ratio)
-        self.value = float(np.clip(np.exp(log_value), *SPEED_RANGE))
+        log_value = (1 - SPEED_WEIGHT) * np.log(self.value(option)) + SPEED_WEIGHT * np.log(
+            ratio
+        )
+        self.values[option] = float(np.clip(np.exp(log_value), *SPEED_RANGE))
 
 
-#: The running correction shared by every ``auto-<N>ms`` decoder of this process.
-SPEED = SpeedFactor()
+#: The running corrections shared by every ``auto-<N>ms`` decoder of this process.
+SPEED = SpeedFactors()
 
 
 class BudgetDecoder(Decoder):
@@ -283,26 +297,28 @@ class BudgetDecoder(Decoder):
     def explain_winding(
         self, m: NDArray[np.float64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """W from the most accurate option predicted to fit, and the facts: the choice,
+        each option's predicted ms, the factor applied, the measured ms (from the
+        analysis to the W; a process's first frame of a size also pays the cost
+        calibration) and whether the budget was met."""
         start = time.perf_counter_ns()
         analysis = analyse(m, params, DEFAULT_TILE)
         analysis_ms = (time.perf_counter_ns() - start) / 1e6
-        model = {
-            quality: analysis_ms + predicted_ms(quality, analysis, m.shape, params)
-            for quality in reversed(QUALITIES)
-        }
-        model[CLASSICAL] = call_cost(CLASSICAL, params.encoding).ns(m.size) / 1e6
-        speed = SPEED.value
-        options = {name: ms * speed for name, ms in model.items()}
+        model = unscaled_options(analysis, analysis_ms, m.shape, params)
+        options = {name: ms * SPEED.value(name) for name, ms in model.items()}
         fitting = [name for name, ms in options.items() if ms <= self.budget_ms]
         chosen = fitting[0] if fitting else min(options, key=options.__getitem__)
+        decode_start = time.perf_counter_ns()
         if chosen == CLASSICAL:
             winding = get_decoder(CLASSICAL).predict_winding(m, params)
             reason = f"no quality of auto is predicted within {self.budget_ms:g} ms"
             info: dict[str, Any] = {"routes": {CLASSICAL: 1.0}, "reason": reason}
         else:
             winding, info = adaptive(chosen).explain_analysed(m, params, analysis)
-        measured_ms = (time.perf_counter_ns() - start) / 1e6
-        SPEED.update(model[chosen], measured_ms)
+        done = time.perf_counter_ns()
+        speed = SPEED.value(chosen)
+        SPEED.update(chosen, model[chosen], analysis_ms + (done - decode_start) / 1e6)
+        measured_ms = (done - start) / 1e6
         info["budget"] = {
             "budget_ms": self.budget_ms,
             "chosen": chosen,
@@ -313,6 +329,21 @@ class BudgetDecoder(Decoder):
             "met": measured_ms <= self.budget_ms,
         }
         return winding, info
+
+
+def unscaled_options(
+    analysis: FrameAnalysis, analysis_ms: float, shape: tuple[int, int], params: SensorParams
+) -> dict[str, float]:
+    """Each option's predicted ms for a frame, before :data:`SPEED`: the qualities of
+    ``auto``, most accurate first, then :data:`CLASSICAL`; each includes the analysis
+    time already spent."""
+    options = {
+        quality: analysis_ms + predicted_ms(quality, analysis, shape, params)
+        for quality in reversed(QUALITIES)
+    }
+    pixels = shape[0] * shape[1]
+    options[CLASSICAL] = analysis_ms + call_cost(CLASSICAL, params.encoding).ns(pixels) / 1e6
+    return options
 
 
 def resolve(name: str) -> DecoderSpec | None:

@@ -8,11 +8,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from models.decoders import get_decoder
+from models.decoders import budget, get_decoder
 from models.decoders.budget import (
     SPEED_RANGE,
     BudgetDecoder,
-    SpeedFactor,
+    SpeedFactors,
     call_cost,
     predicted_ms,
     refined_pixels,
@@ -115,16 +115,18 @@ def test_a_routed_frame_is_charged_the_refinement_of_its_boxes_only() -> None:
     assert stage_ns("balanced", analysis, m.shape, MODULO) < whole_frame
 
 
-def test_the_speed_factor_follows_measurements_within_its_bounds() -> None:
-    speed = SpeedFactor()
-    speed.update(10.0, 20.0)
-    assert 1.0 < speed.value < 2.0
-    before = speed.value
-    speed.update(0.5, 100.0)
-    assert speed.value == before
+def test_speed_factors_follow_each_option_within_their_bounds() -> None:
+    speed = SpeedFactors()
+    assert speed.value("fast") == 1.0
+    speed.update("fast", 10.0, 20.0)
+    assert 1.0 < speed.value("fast") < 2.0 and speed.value("itoh") == 1.0
+    before = speed.value("fast")
+    speed.update("fast", 0.5, 100.0)
+    assert speed.value("fast") == before
     for _ in range(100):
-        speed.update(10.0, 1000.0)
-    assert speed.value == pytest.approx(SPEED_RANGE[1]) and speed.value <= SPEED_RANGE[1]
+        speed.update("fast", 10.0, 1000.0)
+    assert speed.value("fast") == pytest.approx(SPEED_RANGE[1])
+    assert speed.value("fast") <= SPEED_RANGE[1]
 
 
 @given(
@@ -132,11 +134,21 @@ def test_the_speed_factor_follows_measurements_within_its_bounds() -> None:
         st.tuples(st.floats(0.0, 1e6), st.floats(0.0, 1e6)), min_size=1, max_size=30
     )
 )
-def test_the_speed_factor_stays_finite_and_bounded(pairs: list[tuple[float, float]]) -> None:
-    speed = SpeedFactor()
+def test_speed_factors_stay_finite_and_bounded(pairs: list[tuple[float, float]]) -> None:
+    speed = SpeedFactors()
     for predicted, measured in pairs:
-        speed.update(predicted, measured)
-        assert SPEED_RANGE[0] <= speed.value <= SPEED_RANGE[1]
+        speed.update("balanced", predicted, measured)
+        assert SPEED_RANGE[0] <= speed.value("balanced") <= SPEED_RANGE[1]
+
+
+def test_a_budget_reports_the_factor_it_used_and_learns_from_the_decode() -> None:
+    decoder = BudgetDecoder(600000)
+    before = budget.SPEED.value("best")
+    result = decoder.decode(hard_frame(256), MODULO)
+    facts = result.info["details"]["budget"]
+    assert facts["speed_factor"] == round(before, 3)
+    assert facts["chosen"] == "best" and facts["predicted_ms"]["best"] > budget.SPEED_MIN_MS
+    assert budget.SPEED.value("best") != before
 
 
 def test_refinement_costs_are_calibrated_by_frame_size() -> None:
