@@ -81,10 +81,17 @@ CALIBRATION_SEED = 0
 #: (:class:`SpeedFactors`), while one predicted too cheap runs and learns its cost.
 CALIBRATION_RUNS = 5
 #: Weight of the latest decode in the running measured / predicted factors
-#: (:class:`SpeedFactors`), its bounds, and the shortest prediction (ms) it learns from.
+#: (:class:`SpeedFactors`), their bounds, and the shortest prediction (ms) they learn from.
 SPEED_WEIGHT = 0.2
 SPEED_RANGE = (0.25, 4.0)
 SPEED_MIN_MS = 1.0
+#: Spreads (standard deviations of the log ratio) added to the mean factor: about 84%
+#: of frames within the predicted time if the ratio is log-normal. With the mean alone,
+#: auto-20ms met its budget on 54% of the val-256 frames (bench.tradeoff, 2026-11-26
+#: 02:28 UTC), choosing fast, whose 16-21 ms straddle the budget, on 22 of 24.
+SPEED_SPREADS = 1.0
+#: The log ratio's spread assumed before an option has run (about 15%).
+SPEED_PRIOR_SPREAD = 0.15
 
 
 @cache
@@ -253,18 +260,24 @@ def stage_ns(
 
 class SpeedFactors:
     """This process's measured / predicted time of each option (a quality of ``auto``,
-    or ``itoh``), as a running geometric mean over the frames a latency budget decoded
-    with it (1 until it has run): the costs are measured once, but other load on the
-    cores comes and goes, one noisy calibration run would otherwise skew the
-    predictions for the life of the process, and each option's cost model errs its own
-    way (itoh's DCT grows faster than its pixels). Predictions are scaled by them."""
+    or ``itoh``): the running mean and spread of its logarithm over the frames a
+    latency budget decoded with that option. The costs are measured once, but other
+    load on the cores comes and goes, one noisy calibration run would otherwise skew
+    the predictions for the life of the process, and each option's cost model errs its
+    own way (itoh's DCT grows faster than its pixels). A prediction is scaled by its
+    option's :meth:`value`: the mean ratio times :data:`SPEED_SPREADS` spreads, so that
+    a budget is met on most frames rather than on half of them when an option's time
+    sits at the budget."""
 
     def __init__(self) -> None:
-        self.values: dict[str, float] = {}
+        #: Per option: (mean, variance) of log(measured / predicted).
+        self.moments: dict[str, tuple[float, float]] = {}
 
     def value(self, option: str) -> float:
-        """The factor of ``option`` (1 until it has run)."""
-        return self.values.get(option, 1.0)
+        """The factor of ``option``: ``exp(mean + SPEED_SPREADS * spread)`` of its log
+        ratio (a prior spread of :data:`SPEED_PRIOR_SPREAD` around 1 until it has run)."""
+        mean, variance = self.moments.get(option, (0.0, SPEED_PRIOR_SPREAD**2))
+        return float(np.clip(np.exp(mean + SPEED_SPREADS * np.sqrt(variance)), *SPEED_RANGE))
 
     def update(self, option: str, predicted_ms: float, measured_ms: float) -> None:
         """Fold in one decode by ``option``: ``predicted_ms`` (unscaled) and
@@ -273,10 +286,12 @@ class SpeedFactors:
         if predicted_ms < SPEED_MIN_MS or measured_ms <= 0.0:
             return
         ratio = min(max(measured_ms / predicted_ms, SPEED_RANGE[0]), SPEED_RANGE[1])
-        log_value = (1 - SPEED_WEIGHT) * np.log(self.value(option)) + SPEED_WEIGHT * np.log(
-            ratio
+        mean, variance = self.moments.get(option, (0.0, SPEED_PRIOR_SPREAD**2))
+        step = np.log(ratio) - mean
+        self.moments[option] = (
+            mean + SPEED_WEIGHT * step,
+            (1 - SPEED_WEIGHT) * (variance + SPEED_WEIGHT * step * step),
         )
-        self.values[option] = float(np.clip(np.exp(log_value), *SPEED_RANGE))
 
 
 #: The running corrections shared by every ``auto-<N>ms`` decoder of this process.
