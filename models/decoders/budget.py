@@ -90,7 +90,7 @@ SPEED_MIN_MS = 1.0
 #: auto-20ms met its budget on 54% of the val-256 frames (bench.tradeoff, 2026-11-26
 #: 02:28 UTC), choosing fast, whose 16-21 ms straddle the budget, on 22 of 24.
 SPEED_SPREADS = 1.0
-#: The log ratio's spread assumed before an option has run (about 15%).
+#: The log ratio's spread assumed when an option's first decode is folded in (about 15%).
 SPEED_PRIOR_SPREAD = 0.15
 
 
@@ -275,8 +275,11 @@ class SpeedFactors:
 
     def value(self, option: str) -> float:
         """The factor of ``option``: ``exp(mean + SPEED_SPREADS * spread)`` of its log
-        ratio (a prior spread of :data:`SPEED_PRIOR_SPREAD` around 1 until it has run)."""
-        mean, variance = self.moments.get(option, (0.0, SPEED_PRIOR_SPREAD**2))
+        ratio; 1 until it has run (an option predicted too dear would otherwise never
+        run and never learn its cost: the latency budget tries it once at face value)."""
+        if option not in self.moments:
+            return 1.0
+        mean, variance = self.moments[option]
         return float(np.clip(np.exp(mean + SPEED_SPREADS * np.sqrt(variance)), *SPEED_RANGE))
 
     def update(self, option: str, predicted_ms: float, measured_ms: float) -> None:

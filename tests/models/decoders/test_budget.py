@@ -117,10 +117,9 @@ def test_a_routed_frame_is_charged_the_refinement_of_its_boxes_only() -> None:
 
 def test_speed_factors_follow_each_option_within_their_bounds() -> None:
     speed = SpeedFactors()
-    prior = float(np.exp(budget.SPEED_SPREADS * budget.SPEED_PRIOR_SPREAD))
-    assert speed.value("fast") == pytest.approx(prior)
+    assert speed.value("fast") == 1.0
     speed.update("fast", 10.0, 20.0)
-    assert prior < speed.value("fast") < 4.0 and speed.value("itoh") == pytest.approx(prior)
+    assert 1.0 < speed.value("fast") < 4.0 and speed.value("itoh") == 1.0
     before = speed.value("fast")
     speed.update("fast", 0.5, 100.0)
     assert speed.value("fast") == before
