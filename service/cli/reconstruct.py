@@ -78,4 +78,23 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {args.output}: decoder {decoder.name}, W from {result.winding.min()} to "
         f"{result.winding.max()}, {result.timings_ns['total'] / 1e6:.1f} ms, values in {units}"
     )
+    channels = result.info.get("channels", [result.info.get("details") or {}])
+    for facts in filter(None, (channel.get("budget") for channel in channels)):
+        print(budget_summary(facts))
     return 0
+
+
+def budget_summary(facts: dict[str, Any]) -> str:
+    """One line on a latency budget's choice (``info["budget"]`` of ``auto-<N>ms``)."""
+    chosen = facts["chosen"]
+    line = (
+        f"latency budget {facts['budget_ms']:g} ms: {chosen} (predicted "
+        f"{facts['predicted_ms'][chosen]:.1f} ms) took {facts['measured_ms']:.1f} ms, "
+        f"{'within' if facts['met'] else 'over'} budget"
+    )
+    if facts["calibration_ms"] >= 1.0:
+        line += (
+            f"; measuring this machine's costs first took {facts['calibration_ms']:.0f} ms "
+            "(once per process)"
+        )
+    return line

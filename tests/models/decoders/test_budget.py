@@ -158,6 +158,7 @@ def test_a_budget_reports_the_factor_it_used_and_learns_from_the_decode() -> Non
     result = decoder.decode(hard_frame(256), MODULO)
     facts = result.info["details"]["budget"]
     assert facts["speed_factor"] == round(before, 3)
+    assert facts["calibration_ms"] >= 0.0 and facts["measured_ms"] > 0.0
     assert facts["chosen"] == "best" and facts["predicted_ms"]["best"] > budget.SPEED_MIN_MS
     assert budget.SPEED.value("best") != before
 

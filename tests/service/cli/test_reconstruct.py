@@ -79,6 +79,9 @@ def test_reconstruct_within_a_latency_budget(tmp_path: Path, pipeline: Path) -> 
                       cwd=tmp_path)  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert out.exists()
+    summary = result.stdout.splitlines()[-1]
+    assert summary.startswith("latency budget 5000 ms: ") and "within budget" in summary
+    assert "(once per process)" in summary
 
 
 def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
