@@ -13,6 +13,7 @@ decoding (``worker/temporal.py``) keeps its memory in ``state.temporal``.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -22,9 +23,15 @@ from numpy.typing import NDArray
 
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
+from models.formation import ENCODINGS, SensorParams, simulate
+from models.scenes import VAL256_BITS, VAL256_MAX_WRAPS, VAL256_OVEREXPOSED, synthetic_scene
 from worker.frame_message import FrameMessage
 
 FRAME_MODES: tuple[str, ...] = ("independent", "temporal")
+#: The frame a worker warms its stream decoder on (:func:`warm_up`): SCAMP-5's size,
+#: a seeded synthetic scene exposed as val-256 is.
+WARM_UP_SIZE = 256
+WARM_UP_SEED = 0
 
 
 @dataclass
@@ -89,3 +96,26 @@ def make_frame_decoder(mode: str, decoder: str) -> FrameDecoder:
         )
 
     return temporal
+
+
+def warm_up(decoder: str) -> dict[str, float]:
+    """Decode one seeded synthetic frame (:data:`WARM_UP_SIZE` px) per wrapping encoding
+    that spatial decoder ``decoder`` supports, so that a stream's first frame pays
+    neither the ONNX sessions' creation nor a latency budget's cost calibration
+    (seconds); returns the ms each took. A clear error for an unknown decoder."""
+    spatial = get_decoder(decoder)
+    scene = synthetic_scene(WARM_UP_SEED, WARM_UP_SIZE)
+    took = {}
+    for encoding in ENCODINGS:
+        params = SensorParams(
+            encoding=encoding,  # type: ignore[arg-type]
+            bits=VAL256_BITS,
+            max_wraps=VAL256_MAX_WRAPS,
+        )
+        if encoding == "clip" or not spatial.supports(params):
+            continue
+        frame = simulate(scene, params, overexposed=VAL256_OVEREXPOSED)
+        start = time.perf_counter_ns()
+        spatial.decode(frame.codes, frame.params)
+        took[encoding] = (time.perf_counter_ns() - start) / 1e6
+    return took

@@ -39,7 +39,7 @@ from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.deliveries import Delivery, StreamConsumer
 from worker.device_consumer import DeviceConsumer
-from worker.device_state import make_frame_decoder
+from worker.device_state import make_frame_decoder, warm_up
 from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor
 from worker.outputs import STREAM_EXR_COMPRESSION
@@ -133,6 +133,10 @@ class Worker:
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
+        if self.config.devices:
+            took = warm_up(self.config.decoder)
+            log.info("worker %s: stream decoder %s warmed up (%s)", self.id, self.config.decoder,
+                     ", ".join(f"{enc} {ms:.0f} ms" for enc, ms in took.items()))  # fmt: skip
         threads = [
             threading.Thread(target=self._job_loop, args=(i,), name=f"jobs-{i}", daemon=True)
             for i in range(self.config.concurrency)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.decoders import budget
 from models.errors import InvalidInputError
-from worker.device_state import DeviceState, make_frame_decoder
+from worker.device_state import DeviceState, make_frame_decoder, warm_up
 from worker.frame_message import FrameMessage
 
 
@@ -42,3 +43,21 @@ def test_unknown_mode_and_decoder() -> None:
         make_frame_decoder("psychic", "itoh")
     with pytest.raises(InvalidInputError, match="unknown decoder"):
         make_frame_decoder("independent", "nope")
+
+
+def test_warm_up_decodes_each_supported_encoding() -> None:
+    took = warm_up("itoh")
+    assert set(took) == {"modulo", "mantissa"} and all(ms > 0 for ms in took.values())
+    with pytest.raises(InvalidInputError, match="unknown decoder"):
+        warm_up("nope")
+
+
+def test_warm_up_calibrates_a_latency_budget() -> None:
+    """After warming an ``auto-<N>ms`` stream decoder its costs for 256x256 frames are
+    measured: the first live frame does not pay for that."""
+    for cached in (budget.call_cost, budget.refinement_ns_per_pixel, budget.overhead_ns_per_pixel):
+        cached.cache_clear()
+    warm_up("auto-50ms")
+    assert budget.call_cost.cache_info().currsize >= 2
+    assert budget.refinement_ns_per_pixel.cache_info().currsize == 2 * len(budget.QUALITIES)
+    assert budget.overhead_ns_per_pixel.cache_info().currsize == 2 * len(budget.QUALITIES)

@@ -339,3 +339,13 @@ def test_devices_spread_over_workers(
             f"frames 0..5 of {device} in order",
         )
     assert len(result_files(data_dir)) == 12
+
+
+def test_an_unknown_stream_decoder_stops_the_worker_at_start(workers) -> None:
+    """Warming the stream decoder up front turns a bad MCAM_DEFAULT_DECODER into a
+    one-line error at start, not a dead device thread at the first frame."""
+    process = workers.start("--decoder", "nope")
+    output = process.communicate(timeout=60)[0].decode()
+    assert process.returncode != 0
+    assert "unknown decoder" in output and "nope" in output
+    assert "Traceback" not in output
