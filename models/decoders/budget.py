@@ -51,7 +51,7 @@ from numpy.typing import NDArray
 
 from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
 from models.decoders.base import Decoder
-from models.decoders.guided_puma import box_pixels, refinement_boxes
+from models.decoders.guided_puma import refinement_boxes
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, simulate
@@ -159,7 +159,7 @@ def check_ns_per_pixel(quality: str, encoding: str) -> float:
 @cache
 def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION_SIZE) -> float:
     """Time per refined pixel (ns: per pixel of the boxes it refines, see
-    :func:`refined_pixels`) of ``auto-<quality>``'s refinement (0 when it has none) on
+    :func:`refined_shapes`) of ``auto-<quality>``'s refinement (0 when it has none) on
     the ``size``-px calibration frame, from the W and the doubtful pixels that
     ``auto-<quality>`` hands it there; measured once: the least of
     :data:`CALIBRATION_RUNS` at 256 px, one run at larger sizes (a converged
@@ -174,7 +174,7 @@ def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION
     def refine() -> None:
         refiner.refine(m, guide, params, doubtful)
 
-    pixels = refined_pixels(doubtful, m.size)
+    pixels = sum(h * w for h, w in refined_shapes(doubtful, m.shape))
     if size == CALIBRATION_SIZE:
         return fastest_ns(refine, CALIBRATION_RUNS) / pixels
     start = time.perf_counter_ns()
@@ -182,10 +182,25 @@ def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION
     return (time.perf_counter_ns() - start) / pixels
 
 
-def refined_pixels(doubtful: NDArray[np.bool_] | None, frame_pixels: int) -> int:
-    """Pixels a refinement handed these doubtful pixels works on: the whole frame when
-    None, else its boxes around them (:func:`refinement_boxes`)."""
-    return frame_pixels if doubtful is None else box_pixels(refinement_boxes(doubtful))
+def refined_shapes(
+    doubtful: NDArray[np.bool_] | None, shape: tuple[int, int]
+) -> list[tuple[int, int]]:
+    """The shapes of what a refinement handed these doubtful pixels works on: the whole
+    frame when None, else each box around them (:func:`refinement_boxes`)."""
+    if doubtful is None:
+        return [shape]
+    boxes = refinement_boxes(doubtful)
+    return [(rows.stop - rows.start, cols.stop - cols.start) for rows, cols in boxes]
+
+
+def refinement_ns(quality: str, encoding: str, shapes: list[tuple[int, int]]) -> float:
+    """Predicted time (ns) of ``auto-<quality>``'s refinement of boxes of these shapes,
+    each at the cost per pixel of its own size class (:func:`refinement_size`): a box
+    of a large frame costs per pixel what a frame of its size does."""
+    return sum(
+        h * w * refinement_ns_per_pixel(quality, encoding, refinement_size((h, w)))
+        for h, w in shapes
+    )
 
 
 def refinement_size(shape: tuple[int, int]) -> int:
@@ -213,14 +228,30 @@ def check_budget(budget_ms: float) -> None:
 
 @cache
 def overhead_ns_per_pixel(quality: str, encoding: str) -> float:
-    """What :func:`stage_ns` leaves out of ``auto-<quality>``'s time on the calibration
-    frame (tile integration, stitching, anchoring), per pixel (ns, at least 0);
-    measured once."""
+    """The routing's own time per pixel (ns, at least 0: tile integration, stitching,
+    anchoring): ``auto-<quality>``'s W before refinement on the calibration frame (whose
+    hard tiles take two network windows) less its predicted network calls; measured
+    once. (Taken as the whole decode less every predicted stage it measured 20-130
+    ns/px from run to run: the difference of two times ten times larger.)"""
     m, params = calibration_frame(encoding)
     decoder = adaptive(quality)
     analysis = analyse(m, params, decoder.tile)
-    total = fastest_ns(lambda: decoder.explain_analysed(m, params, analysis), CALIBRATION_RUNS)
-    return max(total - stage_ns(quality, analysis, m.shape, params), 0.0) / m.size
+    unrefined = fastest_ns(
+        lambda: decoder.unrefined_winding(m, params, analysis), CALIBRATION_RUNS
+    )
+    return max(unrefined - network_ns(quality, analysis, m.shape, params), 0.0) / m.size
+
+
+def network_ns(
+    quality: str, analysis: FrameAnalysis, shape: tuple[int, int], params: SensorParams
+) -> float:
+    """Predicted time (ns) of ``auto-<quality>``'s network calls on a frame
+    (:meth:`AdaptiveDecoder.network_calls`, each split into the decoder's runs)."""
+    decoder = adaptive(quality)
+    hard = decoder.hard_tile_decoder(params)
+    cost = call_cost(hard.name, params.encoding)
+    calls = decoder.network_calls(analysis, shape)
+    return sum(cost.ns(pixels) for call in calls for pixels in hard.run_pixels(call, params))
 
 
 def predicted_ms(
@@ -241,18 +272,11 @@ def stage_ns(
     its network calls (:meth:`AdaptiveDecoder.network_calls`), then its refinement of
     the boxes around the network's pixels, or its small-region check of the frame."""
     decoder = adaptive(quality)
-    calls = decoder.network_calls(analysis, shape)
-    hard = decoder.hard_tile_decoder(params)
-    cost = call_cost(hard.name, params.encoding)
-    total_ns = sum(
-        cost.ns(pixels) for call in calls for pixels in hard.run_pixels(call, params)
-    )
+    total_ns = network_ns(quality, analysis, shape, params)
     frame_pixels = shape[0] * shape[1]
     if decoder.refiner(params) is not None:
-        pixels = refined_pixels(decoder.doubtful_pixels(analysis, shape), frame_pixels)
-        total_ns += pixels * refinement_ns_per_pixel(
-            quality, params.encoding, refinement_size(shape)
-        )
+        shapes = refined_shapes(decoder.doubtful_pixels(analysis, shape), shape)
+        total_ns += refinement_ns(quality, params.encoding, shapes)
     else:
         total_ns += frame_pixels * check_ns_per_pixel(quality, params.encoding)
     return total_ns
@@ -356,13 +380,14 @@ class BudgetDecoder(Decoder):
 def calibrate(params: SensorParams, shape: tuple[int, int]) -> None:
     """Measure (once; cached) every cost :func:`unscaled_options` needs for frames of
     ``params.encoding`` and of ``shape``'s size class."""
-    size = refinement_size(shape)
+    sizes = [size for size in REFINEMENT_CALIBRATION_SIZES if size <= refinement_size(shape)]
     call_cost(CLASSICAL, params.encoding)
     for quality in QUALITIES:
         call_cost(adaptive(quality).hard_tile_decoder(params).name, params.encoding)
         check_ns_per_pixel(quality, params.encoding)
-        refinement_ns_per_pixel(quality, params.encoding, size)
         overhead_ns_per_pixel(quality, params.encoding)
+        for size in sizes:
+            refinement_ns_per_pixel(quality, params.encoding, size)
 
 
 def unscaled_options(

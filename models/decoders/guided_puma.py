@@ -170,11 +170,6 @@ def refinement_boxes(doubtful: NDArray[np.bool_]) -> list[tuple[slice, slice]]:
     return [box for box in ndimage.find_objects(ndimage.label(grown)[0]) if box is not None]
 
 
-def box_pixels(boxes: list[tuple[slice, slice]]) -> int:
-    """Pixels in ``boxes`` (row and column slices with explicit bounds)."""
-    return sum((rows.stop - rows.start) * (cols.stop - cols.start) for rows, cols in boxes)
-
-
 def curvature(m: NDArray[np.float64]) -> NDArray[np.float32]:
     """Herraez's second-difference measure per pixel (H x W, wraps): the root sum of
     squares of the wrapped second differences along rows, columns and both diagonals.

@@ -15,7 +15,8 @@ from models.decoders.budget import (
     SpeedFactors,
     call_cost,
     predicted_ms,
-    refined_pixels,
+    refined_shapes,
+    refinement_ns,
     refinement_ns_per_pixel,
     refinement_size,
     resolve,
@@ -107,12 +108,16 @@ def test_a_routed_frame_is_charged_the_refinement_of_its_boxes_only() -> None:
     decoder = get_decoder("auto-balanced")
     doubtful = decoder.doubtful_pixels(analysis, m.shape)
     assert doubtful is not None
-    boxes = refined_pixels(doubtful, m.size)
-    assert 0 < boxes < m.size and refined_pixels(None, m.size) == m.size
-    per_pixel = refinement_ns_per_pixel("balanced", "modulo")
-    whole_frame = stage_ns("best", analysis, m.shape, MODULO)
-    assert stage_ns("balanced", analysis, m.shape, MODULO) >= boxes * per_pixel
-    assert stage_ns("balanced", analysis, m.shape, MODULO) < whole_frame
+    shapes = refined_shapes(doubtful, m.shape)
+    assert len(shapes) == 2 and sum(h * w for h, w in shapes) < m.size
+    assert refined_shapes(None, m.shape) == [m.shape]
+    boxes_ns = refinement_ns("balanced", "modulo", shapes)
+    per_pixel = refinement_ns_per_pixel("balanced", "modulo", 256)
+    assert boxes_ns == pytest.approx(sum(h * w for h, w in shapes) * per_pixel)
+    assert stage_ns("balanced", analysis, m.shape, MODULO) >= boxes_ns
+    assert stage_ns("balanced", analysis, m.shape, MODULO) < stage_ns(
+        "best", analysis, m.shape, MODULO
+    )
 
 
 def test_speed_factors_follow_each_option_within_their_bounds() -> None:
@@ -161,6 +166,17 @@ def test_a_budget_reports_the_factor_it_used_and_learns_from_the_decode() -> Non
     assert facts["calibration_ms"] >= 0.0 and facts["measured_ms"] > 0.0
     assert facts["chosen"] == "best" and facts["predicted_ms"]["best"] > budget.SPEED_MIN_MS
     assert budget.SPEED.value("best") != before
+
+
+def test_each_box_is_charged_at_its_own_size_class() -> None:
+    """A box of a large frame costs per pixel what a frame of its size does."""
+    small, large = (200, 200), (400, 400)
+    assert refinement_ns("balanced", "modulo", [small]) == pytest.approx(
+        200 * 200 * refinement_ns_per_pixel("balanced", "modulo", 256)
+    )
+    assert refinement_ns("balanced", "modulo", [large]) == pytest.approx(
+        400 * 400 * refinement_ns_per_pixel("balanced", "modulo", 512)
+    )
 
 
 def test_refinement_costs_are_calibrated_by_frame_size() -> None:
