@@ -7,11 +7,13 @@ analysis time plus
 - the network's calls (:meth:`AdaptiveDecoder.network_calls`: the whole frame, or
   one window per group of hard tiles), each split into the runs the decoder makes
   (:meth:`Decoder.run_pixels`), at a fixed cost per run plus a cost per pixel;
-- when the quality refines, its cost per pixel times the pixels of the boxes it
-  refines (:func:`models.decoders.guided_puma.refinement_boxes` of the network's
-  pixels; the whole frame when the network decoded all of it); at ``fast``, the small
-  -region check's cost per pixel of the frame instead;
-- the rest (tile integration, stitching, anchoring), per pixel of the frame.
+- when the quality refines, each box it refines
+  (:func:`models.decoders.guided_puma.refinement_boxes` of the network's pixels; the
+  whole frame when the network decoded all of it) at the cost per pixel of a frame of
+  the box's size class; at ``fast``, the small-region check's cost per pixel of the
+  frame instead;
+- the routing's own work (tile integration, stitching, anchoring), per pixel of the
+  frame.
 
 The first quality predicted within the budget decodes the frame. When none fits,
 ``itoh`` (one DCT solve per frame) decodes it if that is predicted to fit, else the
@@ -20,9 +22,11 @@ quickest option runs. The inversion from W to irradiance is not part of the budg
 Costs are measured once per process on this machine, by timing each stage on a
 seeded synthetic 256 x 256 frame exposed like val-256 (and its top-left quarter, for
 the fixed cost of a run), so predictions follow the hardware and the thread
-settings; the refinement is also timed on a 512 x 512 frame, used for frames larger
-than 256 x 256 (its cost per pixel grows with the frame). Pass-through and exact
-integration tiles cost nothing beyond the rest. The predictions are then scaled by
+settings; the refinement is also timed on a 512 x 512 frame, used for boxes larger
+than 256 x 256 (its cost per pixel changes with the size). Pass-through and exact
+integration tiles cost nothing beyond the routing's own work. A process measures
+these costs on its first budgeted frame of each encoding and size class
+(:func:`calibrate`; seconds, reported apart). The predictions are then scaled by
 the process's running measured / predicted ratio of each option
 (:class:`SpeedFactors`), which follows load on the cores and each option's own bias.
 The choice, every option's predicted ms, the measured ms and whether the budget was
@@ -32,10 +36,11 @@ Measured (2026-11-26, AMD EPYC, 2 cores; predicted / measured ms of each quality
 after the analysis, frame by frame): the cost per pixel of the network and of a
 whole-frame refinement, as before, predicted ``fast`` at 0.44-0.87, ``balanced`` at
 0.65-2.38 (mostly-dark frames 2.4: it charged the whole frame's refinement) and
-``best`` at 1.2-1.6; the model above ``fast`` at 0.99-1.11, ``balanced`` at
-1.04-1.33, ``best`` at 1.27-1.64 (a converged refinement's cost varies by frame: on
-the safe side). bench.tradeoff reports these ratios and the share of frames each
-budget met.
+``best`` at 1.2-1.6; the model above (bench.tradeoff, 03:42 UTC, geometric means per
+frame set) ``fast`` at 0.94-1.02, ``balanced`` at 1.01-1.48 and ``best`` at 1.05-1.47
+(a converged refinement's cost varies by frame; sparse frames' boxes refine faster
+per pixel than the calibration frame's). bench.tradeoff reports these ratios and the
+share of frames each budget met.
 """
 
 from __future__ import annotations
