@@ -269,12 +269,7 @@ class AdaptiveDecoder(Decoder):
         calls = self.network_calls(analysis, shape)
         if not calls or calls == [shape]:
             return None
-        doubtful = np.zeros(shape, bool)
-        for region in analysis.tiles:
-            if _is_hard(region):
-                doubtful[region.row : region.row + region.height,
-                         region.col : region.col + region.width] = True
-        return doubtful
+        return _hard_tiles(analysis, shape)
 
     def hard_windows(
         self, analysis: FrameAnalysis, shape: tuple[int, ...]
@@ -375,7 +370,7 @@ class AdaptiveDecoder(Decoder):
             return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
         pixels: Counter[str] = Counter()
         tiles: list[Tile] = []
-        trusted = np.zeros(m.shape, bool)
+        doubtful = _hard_tiles(analysis, m.shape)
         for region in analysis.tiles:
             if _is_hard(region):
                 continue
@@ -390,7 +385,6 @@ class AdaptiveDecoder(Decoder):
                     along_rows[rows.start : rows.stop - 1, cols],
                 )
             tiles.append(Tile(rows, cols, relative))
-            trusted[rows, cols] = True
             pixels[route] += region.height * region.width
         for window_rows, window_cols, members in self.hard_windows(analysis, m.shape):
             window = hard.predict_winding(m[window_rows, window_cols], params)
@@ -402,14 +396,25 @@ class AdaptiveDecoder(Decoder):
                 tiles.append(Tile(rows, cols, relative))
                 pixels[hard.name] += region.height * region.width
         winding = stitch(tiles, m.shape, along_cols, along_rows)
-        winding = anchor_winding(winding, params, trusted)
+        winding = anchor_winding(winding, params, ~doubtful)
         reason = f"{difficulty} wraps; quality {self.quality}"
-        return winding, _report(pixels, reason), ~trusted
+        return winding, _report(pixels, reason), doubtful
 
 
 def _is_hard(region: RegionAnalysis) -> bool:
     """Residues in the tile: the hard-tile decoder decides it."""
     return region.difficulty not in ("none", "smooth")
+
+
+def _hard_tiles(analysis: FrameAnalysis, shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    """The pixels (bool, ``shape``) of the tiles the hard-tile decoder decides; the other
+    tiles (pass-through, integration) are exact up to the frame's constant."""
+    hard = np.zeros(shape, bool)
+    for region in analysis.tiles:
+        if _is_hard(region):
+            hard[region.row : region.row + region.height,
+                 region.col : region.col + region.width] = True  # fmt: skip
+    return hard
 
 
 def _report(pixels: Counter[str] | dict[str, int], reason: str) -> dict[str, Any]:

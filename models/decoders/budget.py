@@ -162,7 +162,7 @@ def check_ns_per_pixel(quality: str, encoding: str) -> float:
 
 
 @cache
-def refinement_ns_per_pixel(quality: str, encoding: str, size: int = CALIBRATION_SIZE) -> float:
+def refinement_ns_per_pixel(quality: str, encoding: str, size: int) -> float:
     """Time per refined pixel (ns: per pixel of the boxes it refines, see
     :func:`refined_shapes`) of ``auto-<quality>``'s refinement (0 when it has none) on
     the ``size``-px calibration frame, from the W and the doubtful pixels that

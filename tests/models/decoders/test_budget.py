@@ -180,8 +180,8 @@ def test_each_box_is_charged_at_its_own_size_class() -> None:
 
 
 def test_refinement_costs_are_calibrated_by_frame_size() -> None:
-    assert refinement_ns_per_pixel("fast", "modulo") == 0.0
-    assert refinement_ns_per_pixel("balanced", "modulo") > 0.0
+    assert refinement_ns_per_pixel("fast", "modulo", 256) == 0.0
+    assert refinement_ns_per_pixel("balanced", "modulo", 256) > 0.0
     assert [refinement_size(s) for s in ((64, 64), (256, 256), (300, 300), (2048, 2048))] == [
         256,
         256,
