@@ -9,8 +9,13 @@ Everything is seeded by ``(seed, step)`` so a resumed run sees the same data.
 
 from __future__ import annotations
 
+import multiprocessing
+from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from functools import cache
+from multiprocessing.pool import AsyncResult
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -105,6 +110,46 @@ def sample_batch(
     winding = np.stack([p[1] for p in pairs])[:, None]
     return m, winding
 
+
+class Batch(NamedTuple):
+    """One optimizer step's data: ``m`` and ``W`` (``N x 1 x H x W``) and, for the
+    ``ce-risk`` loss, the per-class errors of :func:`class_errors` (else None)."""
+
+    m: NDArray[np.float32]
+    winding: NDArray[np.int64]
+    errors: NDArray[np.float32] | None
+
+
+def training_batch(seed: int, step: int, config: PairConfig, with_errors: bool) -> Batch:
+    """The batch of ``step`` (:func:`sample_batch`), with its class errors if asked."""
+    m, winding = sample_batch(seed, step, config)
+    errors = class_errors(m, winding, config.encoding) if with_errors else None
+    return Batch(m, winding, errors)
+
+
+def batch_stream(
+    seed: int, plan: Iterable[tuple[int, PairConfig]], with_errors: bool, workers: int = 0
+) -> Iterator[Batch]:
+    """The batches of ``plan`` (step, pair config) in order.
+
+    With ``workers > 0`` they are made ahead in that many forked processes (as PyTorch's
+    data loader does; they run numpy only, never the GPU), at most two per worker in
+    flight (a GPU step outruns one CPU core's batch). Every batch depends only on
+    ``(seed, step, config)``, so the stream is the same for any ``workers``.
+    """
+    if workers <= 0:
+        for step, config in plan:
+            yield training_batch(seed, step, config, with_errors)
+        return
+    tasks = iter(plan)
+    with multiprocessing.get_context("fork").Pool(workers) as pool:
+        pending: deque[AsyncResult[Batch]] = deque()
+        for step, config in tasks:
+            pending.append(pool.apply_async(training_batch, (seed, step, config, with_errors)))
+            if len(pending) >= 2 * workers:
+                yield pending.popleft().get()
+        while pending:
+            yield pending.popleft().get()
 
 
 def class_errors(

@@ -141,7 +141,10 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
         "init_from": config.init_from,
         "seed": config.seed,
         "threads": config.threads,
-        "device": "cpu",
+        "large_crop": config.large_crop,
+        "device": config.device,
+        "hardware": state.get("hardware", "cpu"),
+        "precision": config.precision,
         "alpha": 2.0,
         "bits": 8,
     }

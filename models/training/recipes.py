@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 from models.training.train import TrainConfig
 
 #: Stage steps of the shipped small tier: edge net, winding net on true edges,
@@ -146,4 +149,40 @@ SHIPPED: tuple[TrainConfig, ...] = (
     ),
     *unmodnet_chain("mantissa"),
     *unmodnet_chain("modulo"),
+)
+
+#: Stage-step proportions of a timed GPU run (:mod:`models.training.timed` scales them
+#: to the time it has): those of the base tier's two CPU runs together (edge net 2%,
+#: winding net on true edges 43%, end to end 37%, end to end on large crops 18%).
+TIMED_UNITS = (3, 42, 37, 18)
+#: A timed run's batches: 16 crops of 128 px (stage 4: 4 of 256 px), 8x the pixels of a
+#: CPU step, so the GPU runs fewer, larger steps.
+TIMED_CROP, TIMED_LARGE_CROP, TIMED_BATCH = 128, 256, 16
+
+
+def timed_run(tier: str, encoding: str, **changes: Any) -> TrainConfig:
+    """A run of :data:`TIMED_LANES`: the tier from scratch in :data:`TIMED_UNITS`, with
+    ``changes`` to any field."""
+    config = TrainConfig(
+        tier=tier, encoding=encoding, stage_steps=TIMED_UNITS, crop=TIMED_CROP,
+        large_crop=TIMED_LARGE_CROP, batch=TIMED_BATCH,
+    )  # fmt: skip
+    return replace(config, **changes)
+
+
+#: The lanes trained at once on a lent GPU (``python -m models.training.timed``): the
+#: base tier (then its noise-aware fine-tune, a fifth as long again) and the small-s2d
+#: tier, per encoding. The device, precision and step counts of the runs that shipped
+#: are in their cards.
+TIMED_LANES: tuple[tuple[TrainConfig, ...], ...] = (
+    (
+        timed_run("base", "mantissa"),
+        timed_run(
+            "base", "mantissa", stage_steps=(0, 0, 0, 18), max_read_noise=0.02,
+            init_from="mantissanet-base-mantissa",
+        ),
+    ),
+    (timed_run("base", "modulo"),),
+    (timed_run("small-s2d", "mantissa"),),
+    (timed_run("small-s2d", "modulo"),),
 )

@@ -12,6 +12,12 @@ A run may start from another run's trained weights (``init_from``, e.g. a
 noise-aware fine-tune of a finished model, or a model trained in two runs); stages
 with 0 steps are skipped. ``label`` tells apart runs that would share a name (the
 first of two runs of one model).
+
+Training runs on the CPU (``device="cpu"``, the default) or a GPU (``"cuda"``), in
+float32 or bf16 autocast (``precision``); ``workers`` processes make the batches ahead
+(:func:`models.training.data.batch_stream`), which a GPU needs to be kept busy. None of
+these changes which batches a step sees. ``train(..., deadline=...)`` stops at a wall
+clock time with a checkpoint (a later call resumes).
 """
 
 from __future__ import annotations
@@ -19,18 +25,17 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from numpy.typing import NDArray
 from torch import Tensor
 from torch.nn import functional as F
 
-from models.training.data import PairConfig, class_errors, sample_batch
+from models.errors import InvalidInputError
+from models.training.data import Batch, PairConfig, batch_stream
 from models.training.networks import NUM_CLASSES, TIERS, MantissaNet, UnModNet, wrap_edges
 
 RUNS_DIR = Path(__file__).resolve().parents[2] / "runs"
@@ -49,6 +54,8 @@ LOSSES = tuple(HEAD_OUTPUTS)
 FAMILIES = ("mantissanet", "unmodnet")
 STAGE_LR = (2e-3, 2e-3, 5e-4, 3e-4)
 EDGE_WEIGHT = 0.1
+#: ``fp32``: float32 throughout; ``bf16``: bfloat16 autocast (a GPU's fast path).
+PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -60,6 +67,8 @@ class TrainConfig:
     of batches trained from the model's own state after up to that many passes, see
     :func:`rollover_losses`. ``label``: a tag in the run name (``-<label>`` before the
     encoding), for a run that is a step towards another rather than a model.
+    ``device``, ``precision`` and ``workers``: where and how the steps run (see the module
+    docstring).
     """
 
     family: str = "mantissanet"
@@ -78,6 +87,9 @@ class TrainConfig:
     label: str = ""
     seed: int = 0
     threads: int = 1
+    device: str = "cpu"
+    precision: str = "fp32"
+    workers: int = 0
     checkpoint_every: int = 100
     log_every: int = 20
     runs_dir: Path = field(default=RUNS_DIR, compare=False)
@@ -111,6 +123,14 @@ class TrainConfig:
         ends = [sum(self.stage_steps[: i + 1]) for i in range(len(self.stage_steps))]
         return next((i + 1 for i, end in enumerate(ends) if step < end), len(ends))
 
+    def pairs(self, stage: int) -> PairConfig:
+        """What a batch of ``stage`` holds: stage 4 takes ``large_crop`` crops, a quarter
+        as many."""
+        if stage == 4:
+            batch = max(self.batch // 4, 1)
+            return PairConfig(self.encoding, self.large_crop, batch, self.max_read_noise)
+        return PairConfig(self.encoding, self.crop, self.batch, self.max_read_noise)
+
     def learning_rate(self, step: int) -> float:
         """Per-stage rate with a cosine decay to 5% over each stage."""
         stage = self.stage(step)
@@ -125,6 +145,13 @@ def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
     if config.family == "unmodnet":
         return UnModNet(TIERS[config.tier])
     return MantissaNet(TIERS[config.tier], HEAD_OUTPUTS[config.loss])
+
+
+def edge_bce(edges: Tensor, truth: Tensor) -> Tensor:
+    """BCE of predicted wrap-edge probabilities against the true edges, in float32 outside
+    any autocast (BCE on probabilities is unsafe in reduced precision)."""
+    with torch.autocast(edges.device.type, enabled=False):
+        return F.binary_cross_entropy(edges.float().clamp(1e-4, 1 - 1e-4), truth.float())
 
 
 def winding_jumps(winding: Tensor) -> tuple[Tensor, Tensor]:
@@ -221,7 +248,8 @@ def rollover_losses(
     states). The roll-outs run the net in training mode, so they also update its batch
     norm statistics, as the shipped runs did."""
     top = winding.amax(dim=(1, 2, 3), keepdim=True).float()
-    k = torch.floor(torch.rand(top.shape, generator=generator) * (top + 1)).long()
+    draws = torch.rand(top.shape, generator=generator).to(top.device)
+    k = torch.floor(draws * (top + 1)).long()
     state = torch.minimum(winding, k).float()
     if own_states and torch.rand((), generator=generator).item() < own_states:
         passes = int(torch.randint(1, own_passes + 1, (), generator=generator).item())
@@ -236,13 +264,14 @@ def step_losses(
     model: MantissaNet | UnModNet, m: Tensor, winding: Tensor, stage: int, loss: str,
     step: int = 0, errors: Tensor | None = None, risk_weight: float = RISK_WEIGHT,
     own_states: float = 0.0, own_passes: int = 4,
-) -> tuple[Tensor, dict[str, float]]:
-    """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy);
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """The loss of one batch in ``stage`` and its logged parts (edge BCE, pixel accuracy,
+    detached scalars: reading them waits for a GPU, so the loop reads them only to log);
     ``errors`` are the per-class errors that ``ce-risk`` needs."""
     truth = wrap_edges(winding)
     if stage == 1:
-        edge_bce = F.binary_cross_entropy(model.edge(m).clamp(1e-4, 1 - 1e-4), truth)
-        return edge_bce, {"edge_bce": edge_bce.item()}
+        edge_error = edge_bce(model.edge(m), truth)
+        return edge_error, {"edge_bce": edge_error.detach()}
     if isinstance(model, UnModNet):
         edges = truth if stage == 2 else model.edge(m)
         generator = torch.Generator().manual_seed(step)
@@ -250,30 +279,21 @@ def step_losses(
             model, m, winding, edges, generator, own_states, own_passes
         )
         if stage == 2:
-            return total, {"accuracy": accuracy.item()}
-        edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
-        total = total + EDGE_WEIGHT * edge_bce
-        return total, {"edge_bce": edge_bce.item(), "accuracy": accuracy.item()}
+            return total, {"accuracy": accuracy.detach()}
+        edge_error = edge_bce(edges, truth)
+        total = total + EDGE_WEIGHT * edge_error
+        return total, {"edge_bce": edge_error.detach(), "accuracy": accuracy.detach()}
     if stage == 2:
         logits = model.winding(m, truth)
         total = winding_loss(logits, winding, loss, errors, risk_weight)
-        parts: dict[str, float] = {}
+        parts: dict[str, Tensor] = {}
     else:
         logits, edges = model(m)
-        edge_bce = F.binary_cross_entropy(edges.clamp(1e-4, 1 - 1e-4), truth)
-        total = winding_loss(logits, winding, loss, errors, risk_weight) + EDGE_WEIGHT * edge_bce
-        parts = {"edge_bce": edge_bce.item()}
+        edge_error = edge_bce(edges, truth)
+        total = winding_loss(logits, winding, loss, errors, risk_weight) + EDGE_WEIGHT * edge_error
+        parts = {"edge_bce": edge_error.detach()}
     accuracy = prediction_accuracy(logits, winding, loss)
-    return total, {**parts, "accuracy": accuracy.item()}
-
-
-def loss_errors(
-    config: TrainConfig, m: NDArray[np.float32], winding: NDArray[np.int64]
-) -> Tensor | None:
-    """Per-class errors of a batch (``ce-risk`` only, else None)."""
-    if config.loss != "ce-risk":
-        return None
-    return torch.from_numpy(class_errors(m, winding, config.encoding))
+    return total, {**parts, "accuracy": accuracy.detach()}
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
@@ -292,10 +312,14 @@ def run_state(
     config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
     step: int, wall_s: float,
 ) -> dict[str, Any]:
-    """What a checkpoint holds: weights, optimizer state, step, wall time (s), config."""
+    """What a checkpoint holds: weights, optimizer state, step, wall time (s), config, and
+    the hardware it last ran on (the GPU's name, or ``cpu``)."""
+    device = next(model.parameters()).device
+    hardware = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     return {
         "model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
         "wall_s": wall_s, "config": {**asdict(config), "runs_dir": str(config.runs_dir)},
+        "hardware": hardware,
     }  # fmt: skip
 
 
@@ -310,59 +334,128 @@ def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
     return load_checkpoint(source)["model"]
 
 
-def train(config: TrainConfig, report: Callable[[dict[str, Any]], None] | None = None) -> Path:
-    """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records."""
+def check_config(config: TrainConfig) -> None:
+    """Raise InvalidInputError (a ValueError), naming the field, for a configuration that
+    :func:`train` cannot run."""
     if config.loss not in LOSSES or config.tier not in TIERS or config.family not in FAMILIES:
-        raise ValueError(
+        raise InvalidInputError(
             f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
         )
     if not config.risk_weight >= 0.0:
-        raise ValueError(f"risk_weight must be >= 0, got {config.risk_weight}")
-    torch.set_num_threads(config.threads)
-    config.run_dir.mkdir(parents=True, exist_ok=True)
+        raise InvalidInputError(f"risk_weight must be >= 0, got {config.risk_weight}")
+    if config.precision not in PRECISIONS:
+        raise InvalidInputError(
+            f"precision must be one of {PRECISIONS}, got {config.precision!r}"
+        )
+    if config.workers < 0:
+        raise InvalidInputError(
+            f"workers must be >= 0 (0 makes batches in-process), got {config.workers}"
+        )
+    try:
+        device = torch.device(config.device)
+    except RuntimeError as exc:
+        raise InvalidInputError(
+            f"device must be a torch device such as cpu or cuda, got {config.device!r}"
+        ) from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InvalidInputError(f"device {config.device!r} asked for, but torch sees no CUDA GPU")
+
+
+def restore(
+    config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer
+) -> tuple[int, float]:
+    """Load the run's checkpoint (or ``init_from``'s weights) into ``model`` and
+    ``optimizer``; returns (step, wall seconds) reached, (0, 0.0) for a fresh run."""
     checkpoint = config.run_dir / "checkpoint.pt"
-    model = build_model(config)
-    optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])
-    step, wall_s = 0, 0.0
     if checkpoint.exists():
         state = load_checkpoint(checkpoint)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        step, wall_s = state["step"], state["wall_s"]
-    elif config.init_from:
+        return state["step"], state["wall_s"]
+    if config.init_from:
         model.load_state_dict(initial_weights(config))
-    pairs = PairConfig(config.encoding, config.crop, config.batch, config.max_read_noise)
-    large = PairConfig(
-        config.encoding, config.large_crop, max(config.batch // 4, 1), config.max_read_noise
-    )
+    return 0, 0.0
+
+
+def step_batches(config: TrainConfig, start: int) -> Iterator[Batch]:
+    """The batches of steps ``start`` .. the last (stage 4's are larger crops)."""
+    plan = ((step, config.pairs(config.stage(step))) for step in range(start, config.total_steps))
+    return batch_stream(config.seed, plan, config.loss == "ce-risk", config.workers)
+
+
+def optimizer_step(
+    config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+    batch: Batch, step: int,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """One step on ``batch`` at the step's learning rate, on the model's device and in the
+    run's precision; returns the loss and its logged parts (detached)."""
+    device = next(model.parameters()).device
+    for group in optimizer.param_groups:
+        group["lr"] = config.learning_rate(step)
+    errors = None if batch.errors is None else torch.from_numpy(batch.errors).to(device)
+    bf16 = config.precision == "bf16"
+    with torch.autocast(device.type, torch.bfloat16, enabled=bf16):
+        loss, parts = step_losses(
+            model, torch.from_numpy(batch.m).to(device),
+            torch.from_numpy(batch.winding).to(device), config.stage(step), config.loss, step,
+            errors, config.risk_weight, config.own_states, config.own_passes,
+        )  # fmt: skip
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return loss.detach(), parts
+
+
+def use_device(config: TrainConfig) -> torch.device:
+    """The run's torch device, with the threads and GPU fast paths (cuDNN autotuning,
+    TF32) set for it."""
+    device = torch.device(config.device)
+    torch.set_num_threads(config.threads)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    return device
+
+
+def train(
+    config: TrainConfig,
+    report: Callable[[dict[str, Any]], None] | None = None,
+    deadline: float | None = None,
+) -> Path:
+    """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records.
+
+    ``deadline`` (``time.monotonic()`` seconds): stop after the first step past it, with a
+    checkpoint, even if steps remain (calling again resumes there)."""
+    check_config(config)
+    device = use_device(config)
+    config.run_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint = config.run_dir / "checkpoint.pt"
+    model = build_model(config).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])
+    step, wall_s = restore(config, model, optimizer)
     model.train()
     started = time.monotonic() - wall_s
     with (config.run_dir / "log.jsonl").open("a") as log:
-        while step < config.total_steps:
-            stage = config.stage(step)
-            m_np, w_np = sample_batch(config.seed, step, large if stage == 4 else pairs)
-            for group in optimizer.param_groups:
-                group["lr"] = config.learning_rate(step)
-            loss, parts = step_losses(
-                model, torch.from_numpy(m_np), torch.from_numpy(w_np), stage, config.loss, step,
-                loss_errors(config, m_np, w_np), config.risk_weight,
-                config.own_states, config.own_passes,
-            )
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+        for batch in step_batches(config, step):
+            loss, parts = optimizer_step(config, model, optimizer, batch, step)
             step += 1
-            if step % config.log_every == 0 or step == config.total_steps:
-                record = {"step": step, "stage": stage, "loss": loss.item(), **parts,
+            now = time.monotonic()
+            last = step == config.total_steps or (deadline is not None and now > deadline)
+            if step % config.log_every == 0 or last:
+                record = {"step": step, "stage": config.stage(step - 1), "loss": loss.item(),
+                          **{name: value.item() for name, value in parts.items()},
                           "lr": config.learning_rate(step - 1),
-                          "wall_s": round(time.monotonic() - started, 1)}  # fmt: skip
+                          "wall_s": round(now - started, 1)}  # fmt: skip
                 log.write(json.dumps(record) + "\n")
                 log.flush()
                 if report:
                     report(record)
-            if step % config.checkpoint_every == 0 or step == config.total_steps:
-                elapsed = time.monotonic() - started
-                save_checkpoint(checkpoint, run_state(config, model, optimizer, step, elapsed))
+            if step % config.checkpoint_every == 0 or last:
+                state = run_state(config, model, optimizer, step, now - started)
+                save_checkpoint(checkpoint, state)
+            if last:
+                break
     if not checkpoint.exists():
         save_checkpoint(checkpoint, run_state(config, model, optimizer, step, wall_s))
     return checkpoint

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,8 @@ LOSS_CHOICES = ("ce", "ce-risk", "mse", "jumps")
 TIER_CHOICES = ("tiny", "small", "base", "small-s2d")
 #: ``models.training.train.RISK_WEIGHT``, for the same reason.
 RISK_WEIGHT = 0.1
+#: ``models.training.train.PRECISIONS``, likewise.
+PRECISION_CHOICES = ("fp32", "bf16")
 
 
 def register(subparsers: Any) -> None:
@@ -36,6 +39,7 @@ def register(subparsers: Any) -> None:
     actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
     every = actions.add_parser("all", help="reproduce every shipped model (train, export, val)")
     every.add_argument("--no-val", action="store_true", help="skip the val-256 measurement")
+    add_execution_options(every)
     every.set_defaults(func=run)
     one = actions.add_parser("run", help="train one configuration (resumes its checkpoint)")
     one.add_argument("--family", default="mantissanet", choices=("mantissanet", "unmodnet"))
@@ -59,6 +63,11 @@ def register(subparsers: Any) -> None:
     one.add_argument("--seed", type=int, default=0)
     one.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
     one.add_argument("--runs-dir", type=Path, help="checkpoints and logs (default: runs/)")
+    one.add_argument(
+        "--precision", default="fp32", choices=PRECISION_CHOICES,
+        help="fp32, or bf16 autocast (a GPU's fast path)",
+    )
+    add_execution_options(one)
     one.set_defaults(func=run)
     export = actions.add_parser("export", help="export a run's checkpoint to ONNX + card")
     export.add_argument("checkpoint", type=Path, help="runs/<name>/checkpoint.pt")
@@ -68,6 +77,14 @@ def register(subparsers: Any) -> None:
     measure = actions.add_parser("measure", help="re-measure model cards on val-256")
     measure.add_argument("cards", type=Path, nargs="+", help="models/onnx/<name>.json")
     measure.set_defaults(func=run)
+
+
+def add_execution_options(parser: argparse.ArgumentParser) -> None:
+    """Where the steps run; neither changes which batches a step sees."""
+    parser.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
+    parser.add_argument(
+        "--workers", type=int, default=0, help="processes making batches ahead (0: in-process)"
+    )
 
 
 def parse_stages(text: str) -> tuple[int, ...]:
@@ -127,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
             measure_and_show(card_path, measure=True)
         return 0
     if args.action == "all":
-        for config in SHIPPED:
+        for recipe in SHIPPED:
+            config = replace(recipe, device=args.device, workers=args.workers)
             checkpoint = train(config, print_progress)
             if exported(config):
                 export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
@@ -139,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
         max_read_noise=args.read_noise, risk_weight=args.risk_weight,
         init_from=args.init_from, label=args.label, seed=args.seed, threads=args.threads,
-        runs_dir=args.runs_dir or RUNS_DIR,
+        runs_dir=args.runs_dir or RUNS_DIR, device=args.device, precision=args.precision,
+        workers=args.workers,
     )  # fmt: skip
     print(f"checkpoint: {train(config, print_progress)}")
     return 0

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from models.formation import SensorParams, to_unwrapped
-from models.training.data import PairConfig, class_errors, sample_batch
+from models.training.data import PairConfig, batch_stream, class_errors, sample_batch
 from models.training.networks import NUM_CLASSES
 
 
@@ -75,3 +75,21 @@ def test_class_errors_are_relative_squared_irradiance_errors() -> None:
     assert mantissa[4] == pytest.approx(1.0) and mantissa[2] == pytest.approx(0.25)
     modulo = class_errors(m, winding, "modulo")[0, :, 0, 0]
     assert modulo[5] == pytest.approx(4 / 3.5**2)
+
+
+def test_prefetched_stream_equals_the_in_process_one() -> None:
+    small, large = PairConfig("mantissa", crop=32, batch=2), PairConfig("mantissa", 64, 1)
+    plan = [(0, small), (1, small), (2, large), (3, large), (4, small)]
+    alone = list(batch_stream(4, plan, with_errors=True, workers=0))
+    ahead = list(batch_stream(4, plan, with_errors=True, workers=2))
+    assert [b.m.shape for b in ahead] == [b.m.shape for b in alone]
+    for a, b in zip(alone, ahead, strict=True):
+        np.testing.assert_array_equal(a.m, b.m)
+        np.testing.assert_array_equal(a.winding, b.winding)
+        assert a.errors is not None and b.errors is not None
+        np.testing.assert_array_equal(a.errors, b.errors)
+
+
+def test_stream_without_errors_leaves_them_out() -> None:
+    (batch,) = batch_stream(0, [(0, PairConfig("modulo", 32, 1))], with_errors=False)
+    assert batch.errors is None and batch.m.shape == (1, 1, 32, 32)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -173,3 +174,46 @@ def test_unmodnet_trains_on_its_own_states(tmp_path: Path) -> None:
     )  # fmt: skip
     checkpoint = train(config)
     assert load_checkpoint(checkpoint)["step"] == 5
+
+
+def test_a_deadline_stops_with_a_checkpoint_that_resumes(tmp_path: Path) -> None:
+    whole = load_checkpoint(train(tiny_config(tmp_path / "a", (1, 2, 1))))
+    cut = load_checkpoint(train(tiny_config(tmp_path / "b", (1, 2, 1)), deadline=0.0))
+    assert cut["step"] == 1
+    resumed = load_checkpoint(train(tiny_config(tmp_path / "b", (1, 2, 1))))
+    assert resumed["step"] == 4
+    for key, value in whole["model"].items():
+        torch.testing.assert_close(resumed["model"][key], value)
+
+
+def test_prefetching_workers_train_the_same_model(tmp_path: Path) -> None:
+    alone = load_checkpoint(train(tiny_config(tmp_path / "a", (1, 2, 1))))
+    config = replace(tiny_config(tmp_path / "b", (1, 2, 1)), workers=2)
+    ahead = load_checkpoint(train(config))
+    for key, value in alone["model"].items():
+        torch.testing.assert_close(ahead["model"][key], value)
+
+
+def test_bf16_autocast_trains_every_stage(tmp_path: Path) -> None:
+    config = replace(tiny_config(tmp_path, (1, 1, 1)), stage_steps=(1, 1, 1, 1), large_crop=32)
+    state = load_checkpoint(train(replace(config, precision="bf16")))
+    assert state["step"] == 4
+    assert all(torch.isfinite(v).all() for v in state["model"].values() if v.is_floating_point())
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"precision": "fp16"}, "precision must be one of"),
+        ({"workers": -1}, "workers must be >= 0"),
+    ],
+)
+def test_run_settings_are_checked(tmp_path: Path, change: dict[str, object], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        train(replace(tiny_config(tmp_path, (1, 1, 1)), **change))  # type: ignore[arg-type]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA GPU")
+def test_a_gpu_run_without_a_gpu_says_so(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="torch sees no CUDA GPU"):
+        train(replace(tiny_config(tmp_path, (1, 1, 1)), device="cuda"))

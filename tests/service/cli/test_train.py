@@ -6,9 +6,11 @@ import json
 from pathlib import Path
 
 import onnxruntime as ort
+import pytest
+import torch
 
 from models.training import train
-from service.cli.train import LOSS_CHOICES, RISK_WEIGHT, TIER_CHOICES
+from service.cli.train import LOSS_CHOICES, PRECISION_CHOICES, RISK_WEIGHT, TIER_CHOICES
 from tests.service.cli.conftest import assert_one_line_error, run_mcam
 
 
@@ -67,3 +69,17 @@ def test_the_command_line_offers_every_training_loss_tier_and_default() -> None:
     assert LOSS_CHOICES == train.LOSSES
     assert TIER_CHOICES == tuple(train.TIERS)
     assert RISK_WEIGHT == train.RISK_WEIGHT
+    assert PRECISION_CHOICES == train.PRECISIONS
+
+
+@pytest.mark.parametrize(("device", "message"), [("cuda", "no CUDA GPU"), ("gpu7", "torch device")])
+def test_a_device_this_machine_lacks_is_one_clear_line(
+    tmp_path: Path, device: str, message: str
+) -> None:
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    result = run_mcam(
+        "train", "run", "--tier", "tiny", "--stages", "1,1,1", "--device", device,
+        "--runs-dir", tmp_path, cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(result, message)

@@ -1,0 +1,150 @@
+"""Train several chains of runs at once on one machine within a wall-clock budget.
+
+A GPU machine is lent for minutes, so its runs are sized by time, not by steps:
+``python -m models.training.timed --seconds 460 --device cuda`` starts one process per
+lane of :data:`models.training.recipes.TIMED_LANES` (a chain of runs, e.g. a model and
+then its noise-aware fine-tune). Each lane
+
+1. probes: times :data:`PROBE_STEPS` end-to-end steps (stage 3, the dearest) of its first
+   run on a throwaway model, while the other lanes probe too (they share the GPU);
+2. plans: scales the chain's stage steps, given in proportion, so that the chain ends
+   :data:`MARGIN` before the deadline at the probed rate (:func:`planned_steps`);
+3. trains the chain with those step counts, stopping at the deadline at the latest.
+
+Each checkpoint records its configuration, the planned step counts included, so
+``mcam train run --stages ...`` (or a recipe in :mod:`models.training.recipes`) repeats
+the run on any machine, seeded exactly as before.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from models.training.train import RUNS_DIR, TrainConfig, train
+
+#: Steps timed by the probe (after :data:`PROBE_WARMUP` untimed ones: worker start-up,
+#: cuDNN autotuning).
+PROBE_STEPS = 30
+PROBE_WARMUP = 10
+#: Share of the time left after the probe that the plan leaves unused (stage changes,
+#: checkpoints, the other lanes' probes ending).
+MARGIN = 0.1
+#: A lane logs one line per this many optimizer steps.
+LOG_EVERY = 100
+
+
+def planned_steps(
+    units: tuple[tuple[int, ...], ...], steps_per_s: float, seconds: float
+) -> tuple[tuple[int, ...], ...]:
+    """Stage steps of each run of a chain, in proportion to ``units``, so that all of them
+    together take ``(1 - MARGIN) * seconds`` at ``steps_per_s``. A stage with units keeps
+    at least one step; one without stays at 0."""
+    if steps_per_s <= 0 or seconds <= 0:
+        raise ValueError(f"need a positive rate and time, got {steps_per_s} steps/s, {seconds} s")
+    total_units = sum(sum(run) for run in units)
+    if total_units <= 0:
+        raise ValueError("a chain needs at least one stage with steps")
+    scale = (1 - MARGIN) * seconds * steps_per_s / total_units
+    return tuple(tuple(max(round(u * scale), 1) if u else 0 for u in run) for run in units)
+
+
+def probe_rate(config: TrainConfig) -> float:
+    """End-to-end optimizer steps per second of ``config`` on its device, measured on a
+    throwaway model in a temporary folder."""
+    stamps: dict[int, float] = {}
+
+    def note(record: dict[str, Any]) -> None:
+        stamps[record["step"]] = time.monotonic()
+
+    with tempfile.TemporaryDirectory() as folder:
+        probe = replace(
+            config, stage_steps=(0, 0, PROBE_WARMUP + PROBE_STEPS), init_from=None,
+            label="probe", log_every=PROBE_WARMUP, checkpoint_every=10**9, runs_dir=Path(folder),
+        )  # fmt: skip
+        train(probe, note)
+    first, last = PROBE_WARMUP, PROBE_WARMUP + PROBE_STEPS
+    return PROBE_STEPS / max(stamps[last] - stamps[first], 1e-9)
+
+
+def lane_report(record: dict[str, Any], name: str) -> None:
+    """Print every :data:`LOG_EVERY`-th step's record, prefixed with the run's name."""
+    if record["step"] % LOG_EVERY == 0:
+        parts = " ".join(
+            f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items()
+        )
+        print(f"[{name}] {parts}", flush=True)
+
+
+def run_lane(chain: tuple[TrainConfig, ...], deadline: float) -> list[Path]:
+    """Probe, plan and train one chain (:func:`time.monotonic` ``deadline``); returns the
+    checkpoints. The runs take the chain's ``stage_steps`` as proportions."""
+    rate = probe_rate(chain[0])
+    left = deadline - time.monotonic()
+    if left <= 0:
+        print(f"[{chain[0].name}] the probe ({rate:.2f} steps/s) took all the time", flush=True)
+        return []
+    plan = planned_steps(tuple(config.stage_steps for config in chain), rate, left)
+    print(f"[{chain[0].name}] {rate:.2f} steps/s, {left:.0f} s left: stages {plan}", flush=True)
+    checkpoints = []
+    for config, steps in zip(chain, plan, strict=True):
+        planned = replace(config, stage_steps=steps, log_every=20)
+        checkpoints.append(train(planned, lambda r, n=planned.name: lane_report(r, n), deadline))
+        print(f"[{planned.name}] done: {checkpoints[-1]}", flush=True)
+    return checkpoints
+
+
+def lane_command(index: int, args: argparse.Namespace, end: float) -> list[str]:
+    """The command line of lane ``index`` ending at ``end`` (:func:`time.time`)."""
+    return [
+        sys.executable, "-m", "models.training.timed", "--lane", str(index),
+        "--end", repr(end), "--device", args.device, "--precision", args.precision,
+        "--workers", str(args.workers), "--runs-dir", str(args.runs_dir),
+    ]  # fmt: skip
+
+
+def lanes(args: argparse.Namespace) -> tuple[tuple[TrainConfig, ...], ...]:
+    """The recipe's lanes with this invocation's device, precision, workers and folder."""
+    from models.training.recipes import TIMED_LANES
+
+    return tuple(
+        tuple(
+            replace(c, device=args.device, precision=args.precision, workers=args.workers,
+                    runs_dir=args.runs_dir)  # fmt: skip
+            for c in chain
+        )
+        for chain in TIMED_LANES
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Start every lane in its own process and wait for them (or run one, ``--lane``)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=460.0, help="wall-clock budget (s)")
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--precision", default="bf16", choices=("fp32", "bf16"))
+    parser.add_argument("--workers", type=int, default=3, help="batch processes per lane")
+    parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR)
+    parser.add_argument("--lane", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--end", type=float, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.lane is not None:
+        run_lane(lanes(args)[args.lane], time.monotonic() + args.end - time.time())
+        return 0
+    end = time.time() + args.seconds
+    processes = [
+        subprocess.Popen(lane_command(index, args, end)) for index in range(len(lanes(args)))
+    ]
+    codes = [process.wait() for process in processes]
+    print(f"lanes ended with exit codes {codes}", flush=True)
+    return max(codes, default=0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""Tests of models/training/timed.py: step plans sized by time, and one timed lane."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from models.training import timed
+from models.training.recipes import TIMED_LANES
+from models.training.train import TrainConfig, load_checkpoint
+
+units = st.lists(
+    st.lists(st.integers(0, 50), min_size=3, max_size=4).map(tuple), min_size=1, max_size=3
+).filter(lambda chain: sum(map(sum, chain)) > 0)
+
+
+@given(units, st.floats(0.5, 200.0), st.floats(10.0, 2000.0))
+def test_plan_keeps_proportions_and_fits_the_time(
+    chain: list[tuple[int, ...]], rate: float, seconds: float
+) -> None:
+    plan = timed.planned_steps(tuple(chain), rate, seconds)
+    assert [len(run) for run in plan] == [len(run) for run in chain]
+    for run, run_units in zip(plan, chain, strict=True):
+        assert all((steps == 0) == (u == 0) for steps, u in zip(run, run_units, strict=True))
+    stages = sum(u > 0 for run in chain for u in run)
+    budget = (1 - timed.MARGIN) * seconds * rate
+    assert sum(map(sum, plan)) <= budget + stages
+    assert sum(map(sum, plan)) >= budget - stages
+
+
+@pytest.mark.parametrize(
+    ("rate", "seconds", "message"), [(0.0, 10.0, "positive rate"), (1.0, -1.0, "positive")]
+)
+def test_plan_refuses_no_rate_or_no_time(rate: float, seconds: float, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        timed.planned_steps(((1, 1, 1),), rate, seconds)
+
+
+def test_plan_refuses_a_chain_without_steps() -> None:
+    with pytest.raises(ValueError, match="at least one stage"):
+        timed.planned_steps(((0, 0, 0),), 1.0, 10.0)
+
+
+def test_lanes_start_from_scratch_or_from_their_own_chain() -> None:
+    for chain in TIMED_LANES:
+        assert chain[0].init_from is None
+        names = [config.name for config in chain]
+        assert len(set(names)) == len(names)
+        for before, config in zip(chain, chain[1:], strict=False):
+            assert config.init_from == before.name
+
+
+def test_a_lane_probes_plans_and_trains_its_chain_before_the_deadline(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(timed, "PROBE_WARMUP", 1)
+    monkeypatch.setattr(timed, "PROBE_STEPS", 2)
+    first = TrainConfig(
+        tier="tiny", stage_steps=(1, 2, 2, 1), crop=32, large_crop=32, batch=2,
+        runs_dir=tmp_path, workers=1, precision="bf16",
+    )  # fmt: skip
+    noisy = replace(first, stage_steps=(0, 0, 0, 1), max_read_noise=0.02, init_from=first.name)
+    seconds = 10.0
+    started = time.monotonic()
+    checkpoints = timed.run_lane((first, noisy), started + seconds)
+    assert time.monotonic() - started < seconds + 5
+    states = [load_checkpoint(path) for path in checkpoints]
+    planned = [tuple(state["config"]["stage_steps"]) for state in states]
+    assert planned[0][0] >= 1 and planned[1][:3] == (0, 0, 0)
+    assert planned[1][3] == planned[0][3] and sum(planned[0]) > 20
+    assert [state["config"]["precision"] for state in states] == ["bf16", "bf16"]
+    # Each run trains its plan, unless the deadline (a guard for a mis-probed rate) cuts it.
+    assert all(1 <= s["step"] <= sum(p) for s, p in zip(states, planned, strict=True))
+    assert states[1]["config"]["init_from"] == first.name
+    assert not list(tmp_path.glob("*probe*"))
