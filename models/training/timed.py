@@ -5,8 +5,9 @@ A GPU machine is lent for minutes, so its runs are sized by time, not by steps:
 lane of :data:`models.training.recipes.TIMED_LANES` (a chain of runs, e.g. a model and
 then its noise-aware fine-tune). Each lane
 
-1. probes: times :data:`PROBE_STEPS` end-to-end steps (stage 3, the dearest) of its first
-   run on a throwaway model, while the other lanes probe too (they share the GPU);
+1. probes: counts the end-to-end steps (stage 3, the dearest) of its first run on a
+   throwaway model in a window of wall-clock time common to all lanes, so that every
+   lane is measured while all the others run (they share the GPU);
 2. plans: scales the chain's stage steps, given in proportion, so that the chain ends
    :data:`MARGIN` before the deadline at the probed rate (:func:`planned_steps`);
 3. trains the chain with those step counts, stopping at the deadline at the latest.
@@ -29,10 +30,13 @@ from typing import Any
 
 from models.training.train import RUNS_DIR, TrainConfig, train
 
-#: Steps timed by the probe (after :data:`PROBE_WARMUP` untimed ones: worker start-up,
-#: cuDNN autotuning).
-PROBE_STEPS = 30
-PROBE_WARMUP = 10
+#: The probe's window (s after the lanes start): every lane counts its steps from
+#: :data:`PROBE_FROM` to :data:`PROBE_TO`, after its start-up (imports, batch workers,
+#: cuDNN autotuning). A probe of 30 steps each, the first way (H200, 2026-11-26), timed
+#: the base tier's lanes while the small-s2d lanes were still starting: 23 steps/s
+#: probed, 15 in the run, so two runs were cut short by the deadline.
+PROBE_FROM = 20.0
+PROBE_TO = 40.0
 #: Share of the time left after the probe that the plan leaves unused (stage changes,
 #: checkpoints, the other lanes' probes ending).
 MARGIN = 0.1
@@ -55,22 +59,28 @@ def planned_steps(
     return tuple(tuple(max(round(u * scale), 1) if u else 0 for u in run) for run in units)
 
 
-def probe_rate(config: TrainConfig) -> float:
-    """End-to-end optimizer steps per second of ``config`` on its device, measured on a
-    throwaway model in a temporary folder."""
-    stamps: dict[int, float] = {}
+def probe_rate(config: TrainConfig, window: tuple[float, float]) -> float:
+    """End-to-end optimizer steps per second of ``config`` on its device in ``window``
+    (:func:`time.monotonic` seconds), measured on a throwaway model in a temporary
+    folder; raises RuntimeError if no step ended in the window."""
+    stamps: list[float] = []
 
     def note(record: dict[str, Any]) -> None:
-        stamps[record["step"]] = time.monotonic()
+        stamps.append(time.monotonic())
 
     with tempfile.TemporaryDirectory() as folder:
         probe = replace(
-            config, stage_steps=(0, 0, PROBE_WARMUP + PROBE_STEPS), init_from=None,
-            label="probe", log_every=PROBE_WARMUP, checkpoint_every=10**9, runs_dir=Path(folder),
+            config, stage_steps=(0, 0, 10**9), init_from=None, label="probe", log_every=1,
+            checkpoint_every=10**9, runs_dir=Path(folder),
         )  # fmt: skip
-        train(probe, note)
-    first, last = PROBE_WARMUP, PROBE_WARMUP + PROBE_STEPS
-    return PROBE_STEPS / max(stamps[last] - stamps[first], 1e-9)
+        train(probe, note, deadline=window[1])
+    inside = [stamp for stamp in stamps if window[0] <= stamp <= window[1]]
+    if len(inside) < 2:
+        raise RuntimeError(
+            f"{config.name}: {len(inside)} probe steps ended between {PROBE_FROM} and "
+            f"{PROBE_TO} s; start-up took longer, or one step takes longer than the window"
+        )
+    return (len(inside) - 1) / (inside[-1] - inside[0])
 
 
 def lane_report(record: dict[str, Any], name: str) -> None:
@@ -82,10 +92,11 @@ def lane_report(record: dict[str, Any], name: str) -> None:
         print(f"[{name}] {parts}", flush=True)
 
 
-def run_lane(chain: tuple[TrainConfig, ...], deadline: float) -> list[Path]:
-    """Probe, plan and train one chain (:func:`time.monotonic` ``deadline``); returns the
-    checkpoints. The runs take the chain's ``stage_steps`` as proportions."""
-    rate = probe_rate(chain[0])
+def run_lane(chain: tuple[TrainConfig, ...], started: float, deadline: float) -> list[Path]:
+    """Probe, plan and train one chain (:func:`time.monotonic` times: the lanes'
+    common start and the ``deadline``); returns the checkpoints. The runs take the
+    chain's ``stage_steps`` as proportions."""
+    rate = probe_rate(chain[0], (started + PROBE_FROM, started + PROBE_TO))
     left = deadline - time.monotonic()
     if left <= 0:
         print(f"[{chain[0].name}] the probe ({rate:.2f} steps/s) took all the time", flush=True)
@@ -100,11 +111,13 @@ def run_lane(chain: tuple[TrainConfig, ...], deadline: float) -> list[Path]:
     return checkpoints
 
 
-def lane_command(index: int, args: argparse.Namespace, end: float) -> list[str]:
-    """The command line of lane ``index`` ending at ``end`` (:func:`time.time`)."""
+def lane_command(index: int, args: argparse.Namespace, start: float) -> list[str]:
+    """The command line of lane ``index`` of the lanes started at ``start``
+    (:func:`time.time`)."""
     return [
-        sys.executable, "-m", "models.training.timed", "--lane", str(index),
-        "--end", repr(end), "--device", args.device, "--precision", args.precision,
+        sys.executable, "-m", "models.training.timed", "--lane", str(index), "--seconds",
+        str(args.seconds), "--start", repr(start), "--device", args.device,
+        "--precision", args.precision,
         "--workers", str(args.workers), "--runs-dir", str(args.runs_dir),
     ]  # fmt: skip
 
@@ -132,14 +145,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=3, help="batch processes per lane")
     parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR)
     parser.add_argument("--lane", type=int, help=argparse.SUPPRESS)
-    parser.add_argument("--end", type=float, help=argparse.SUPPRESS)
+    parser.add_argument("--start", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.lane is not None:
-        run_lane(lanes(args)[args.lane], time.monotonic() + args.end - time.time())
+        started = time.monotonic() + args.start - time.time()
+        run_lane(lanes(args)[args.lane], started, started + args.seconds)
         return 0
-    end = time.time() + args.seconds
+    start = time.time()
     processes = [
-        subprocess.Popen(lane_command(index, args, end)) for index in range(len(lanes(args)))
+        subprocess.Popen(lane_command(index, args, start)) for index in range(len(lanes(args)))
     ]
     codes = [process.wait() for process in processes]
     print(f"lanes ended with exit codes {codes}", flush=True)

@@ -58,16 +58,16 @@ def test_lanes_start_from_scratch_or_from_their_own_chain() -> None:
 def test_a_lane_probes_plans_and_trains_its_chain_before_the_deadline(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(timed, "PROBE_WARMUP", 1)
-    monkeypatch.setattr(timed, "PROBE_STEPS", 2)
+    monkeypatch.setattr(timed, "PROBE_FROM", 1.0)
+    monkeypatch.setattr(timed, "PROBE_TO", 4.0)
     first = TrainConfig(
         tier="tiny", stage_steps=(1, 2, 2, 1), crop=32, large_crop=32, batch=2,
         runs_dir=tmp_path, workers=1, precision="bf16",
     )  # fmt: skip
     noisy = replace(first, stage_steps=(0, 0, 0, 1), max_read_noise=0.02, init_from=first.name)
-    seconds = 10.0
+    seconds = 12.0
     started = time.monotonic()
-    checkpoints = timed.run_lane((first, noisy), started + seconds)
+    checkpoints = timed.run_lane((first, noisy), started, started + seconds)
     assert time.monotonic() - started < seconds + 5
     states = [load_checkpoint(path) for path in checkpoints]
     planned = [tuple(state["config"]["stage_steps"]) for state in states]
@@ -78,3 +78,10 @@ def test_a_lane_probes_plans_and_trains_its_chain_before_the_deadline(
     assert all(1 <= s["step"] <= sum(p) for s, p in zip(states, planned, strict=True))
     assert states[1]["config"]["init_from"] == first.name
     assert not list(tmp_path.glob("*probe*"))
+
+
+def test_a_probe_without_steps_in_its_window_says_why(tmp_path: Path) -> None:
+    config = TrainConfig(tier="tiny", crop=32, batch=2, runs_dir=tmp_path)
+    now = time.monotonic()
+    with pytest.raises(RuntimeError, match="probe steps ended between"):
+        timed.probe_rate(config, (now + 60.0, now + 0.5))
