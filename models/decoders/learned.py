@@ -178,21 +178,21 @@ class OnnxWindingModel:
     def predict(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
         """W for a frame of any size: tiled with reconciled offsets when large (see
         :data:`WHOLE_RUN_SLACK`)."""
-        if max(m.shape) <= self.run_tile:
+        if self.runs_whole(m.shape):
             return self.run(m)
         tile = int(self.card["tile"])
         return stitch_overlapping(m.shape, tile, OVERLAP, lambda r, c: self.run(m[r, c]))
 
-    @property
-    def run_tile(self) -> int:
-        """The longest side (px) of a frame run whole."""
-        return int(self.card["tile"]) + WHOLE_RUN_SLACK
+    def runs_whole(self, shape: tuple[int, ...]) -> bool:
+        """Whether :meth:`predict` runs a frame of ``shape`` in one run (its longer side
+        is at most the card's tile plus :data:`WHOLE_RUN_SLACK`), else in tiles."""
+        return max(shape) <= int(self.card["tile"]) + WHOLE_RUN_SLACK
 
     def run_pixels(self, shape: tuple[int, int]) -> list[int]:
         """Pixels of each run :meth:`predict` makes on a frame of ``shape`` (each tile
         padded to the net's multiple)."""
         multiple = int(self.card["multiple"])
-        runs = [shape] if max(shape) <= self.run_tile else [
+        runs = [shape] if self.runs_whole(shape) else [
             (rows.stop - rows.start, cols.stop - cols.start)
             for rows, cols in tiles(shape, int(self.card["tile"]), OVERLAP)
         ]

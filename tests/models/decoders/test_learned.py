@@ -190,4 +190,5 @@ def test_run_pixels_counts_the_runs_predict_makes(rows: int, cols: int) -> None:
     pixels = decoder.run_pixels((rows, cols), SensorParams(encoding="mantissa"))
     step = int(model.card["multiple"])
     assert pixels == [-(-h // step) * step * (-(-w // step) * step) for h, w in calls]
-    assert (len(pixels) == 1) == (max(rows, cols) <= model.run_tile)
+    whole = max(rows, cols) <= int(model.card["tile"]) + learned.WHOLE_RUN_SLACK
+    assert (len(pixels) == 1) == whole == model.runs_whole((rows, cols))
