@@ -30,7 +30,7 @@ from models.training.networks import (
     multiple,
     parameter_count,
 )
-from models.training.train import TrainConfig, build_model, load_checkpoint
+from models.training.train import TrainConfig, build_model, checkpoint_segments, load_checkpoint
 
 OPSET = 17
 TILE = 256
@@ -142,9 +142,8 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
         "seed": config.seed,
         "threads": config.threads,
         "large_crop": config.large_crop,
-        "device": config.device,
-        "hardware": state.get("hardware", "cpu"),
         "precision": config.precision,
+        "segments": checkpoint_segments(state),
         "alpha": 2.0,
         "bits": 8,
     }

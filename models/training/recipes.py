@@ -107,6 +107,53 @@ def unmodnet_chain(encoding: str) -> tuple[TrainConfig, ...]:
     return tuple(runs)
 
 
+#: Stage-step proportions of a timed GPU run (:mod:`models.training.timed` scales them
+#: to the time it has): those of the base tier's two CPU runs together (edge net 2%,
+#: winding net on true edges 43%, end to end 37%, end to end on large crops 18%).
+TIMED_UNITS = (3, 42, 37, 18)
+#: A timed run's batches: 16 crops of 128 px (stage 4: 4 of 256 px), 8x the pixels of a
+#: CPU step, so the GPU runs fewer, larger steps.
+TIMED_CROP, TIMED_LARGE_CROP, TIMED_BATCH = 128, 256, 16
+
+
+def timed_run(tier: str, encoding: str, **changes: Any) -> TrainConfig:
+    """A run of :data:`TIMED_LANES`: the tier from scratch in :data:`TIMED_UNITS`, with
+    ``changes`` to any field."""
+    config = TrainConfig(
+        tier=tier, encoding=encoding, stage_steps=TIMED_UNITS, crop=TIMED_CROP,
+        large_crop=TIMED_LARGE_CROP, batch=TIMED_BATCH,
+    )  # fmt: skip
+    return replace(config, **changes)
+
+
+#: The lanes trained at once on a lent GPU (``python -m models.training.timed``): the
+#: base tier (then its noise-aware fine-tune, a fifth as long again) and the small-s2d
+#: tier, per encoding. The device, precision and step counts of the runs that shipped
+#: are in their cards.
+TIMED_LANES: tuple[tuple[TrainConfig, ...], ...] = (
+    (
+        timed_run("base", "mantissa"),
+        timed_run(
+            "base", "mantissa", stage_steps=(0, 0, 0, 18), max_read_noise=0.02,
+            init_from="mantissanet-base-mantissa",
+        ),
+    ),
+    (timed_run("base", "modulo"),),
+    (timed_run("small-s2d", "mantissa"),),
+    (timed_run("small-s2d", "modulo"),),
+)
+
+#: Stage steps of the base tier on modulo frames, the one shipped model of a timed GPU
+#: run (:data:`TIMED_LANES`, 2026-11-26): given 500 s on an H200 with three other
+#: lanes (bf16 autocast), it made 8876 steps there before the deadline; the last 1069
+#: (stage 4) ran on one EPYC core from its checkpoint (bf16 autocast, 29 minutes; the
+#: card's ``segments``). val-256 modulo alone / refined by guided PUMA: 23.10 / 24.06 dB,
+#: 90.45% W (22.93 / 24.00 dB at the deadline), against small-s2d's 22.20 / 23.87 and
+#: small's 22.84 / 23.70: the most accurate modulo net. The same lanes' base and
+#: small-s2d mantissa nets and small-s2d modulo net measured below the shipped
+#: CPU-trained ones (see docs/experiments.md, session 18) and were not shipped.
+BASE_MODULO_STAGES = (298, 4177, 3680, 1790)
+
 #: Loss of the shipped tiny mantissa net: cross-entropy plus 0.1 x the expected log-MSE
 #: (``ce-risk``). Measured on val-256 mantissa (net alone / refined by guided PUMA, dB):
 #: tiny seed 0 ce-risk 22.09 / 23.88 against ce 21.63 / 23.56 (better on 19 of the 24
@@ -149,40 +196,5 @@ SHIPPED: tuple[TrainConfig, ...] = (
     ),
     *unmodnet_chain("mantissa"),
     *unmodnet_chain("modulo"),
-)
-
-#: Stage-step proportions of a timed GPU run (:mod:`models.training.timed` scales them
-#: to the time it has): those of the base tier's two CPU runs together (edge net 2%,
-#: winding net on true edges 43%, end to end 37%, end to end on large crops 18%).
-TIMED_UNITS = (3, 42, 37, 18)
-#: A timed run's batches: 16 crops of 128 px (stage 4: 4 of 256 px), 8x the pixels of a
-#: CPU step, so the GPU runs fewer, larger steps.
-TIMED_CROP, TIMED_LARGE_CROP, TIMED_BATCH = 128, 256, 16
-
-
-def timed_run(tier: str, encoding: str, **changes: Any) -> TrainConfig:
-    """A run of :data:`TIMED_LANES`: the tier from scratch in :data:`TIMED_UNITS`, with
-    ``changes`` to any field."""
-    config = TrainConfig(
-        tier=tier, encoding=encoding, stage_steps=TIMED_UNITS, crop=TIMED_CROP,
-        large_crop=TIMED_LARGE_CROP, batch=TIMED_BATCH,
-    )  # fmt: skip
-    return replace(config, **changes)
-
-
-#: The lanes trained at once on a lent GPU (``python -m models.training.timed``): the
-#: base tier (then its noise-aware fine-tune, a fifth as long again) and the small-s2d
-#: tier, per encoding. The device, precision and step counts of the runs that shipped
-#: are in their cards.
-TIMED_LANES: tuple[tuple[TrainConfig, ...], ...] = (
-    (
-        timed_run("base", "mantissa"),
-        timed_run(
-            "base", "mantissa", stage_steps=(0, 0, 0, 18), max_read_noise=0.02,
-            init_from="mantissanet-base-mantissa",
-        ),
-    ),
-    (timed_run("base", "modulo"),),
-    (timed_run("small-s2d", "mantissa"),),
-    (timed_run("small-s2d", "modulo"),),
+    timed_run("base", "modulo", stage_steps=BASE_MODULO_STAGES, precision="bf16"),
 )

@@ -308,19 +308,40 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
+def hardware_name(device: torch.device) -> str:
+    """The GPU's name, or the CPU's model name (``cpu`` where the system does not say)."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    cpuinfo = Path("/proc/cpuinfo")
+    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
+    names = [line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")]
+    return names[0] if names else "cpu"
+
+
 def run_state(
     config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
-    step: int, wall_s: float,
+    step: int, wall_s: float, segments: list[dict[str, Any]],
 ) -> dict[str, Any]:
     """What a checkpoint holds: weights, optimizer state, step, wall time (s), config, and
-    the hardware it last ran on (the GPU's name, or ``cpu``)."""
-    device = next(model.parameters()).device
-    hardware = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    the run's segments: where each stretch of steps ran (hardware, device, precision,
+    ``steps`` [first, last), wall s), one per call of :func:`train` that made steps."""
     return {
         "model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
         "wall_s": wall_s, "config": {**asdict(config), "runs_dir": str(config.runs_dir)},
-        "hardware": hardware,
+        "segments": segments,
     }  # fmt: skip
+
+
+def checkpoint_segments(state: dict[str, Any]) -> list[dict[str, Any]]:
+    """A checkpoint's segments; one on an unnamed CPU for checkpoints written before
+    segments were recorded (all of them ran on one CPU core)."""
+    if "segments" in state:
+        return list(state["segments"])
+    config = state["config"]
+    return [{
+        "hardware": "cpu", "device": "cpu", "precision": config.get("precision", "fp32"),
+        "steps": [0, state["step"]], "wall_s": round(state["wall_s"], 1),
+    }] if state["step"] else []  # fmt: skip
 
 
 def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
@@ -363,18 +384,19 @@ def check_config(config: TrainConfig) -> None:
 
 def restore(
     config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer
-) -> tuple[int, float]:
+) -> tuple[int, float, list[dict[str, Any]]]:
     """Load the run's checkpoint (or ``init_from``'s weights) into ``model`` and
-    ``optimizer``; returns (step, wall seconds) reached, (0, 0.0) for a fresh run."""
+    ``optimizer``; returns the step and wall seconds reached and the segments so far,
+    (0, 0.0, []) for a fresh run."""
     checkpoint = config.run_dir / "checkpoint.pt"
     if checkpoint.exists():
         state = load_checkpoint(checkpoint)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        return state["step"], state["wall_s"]
+        return state["step"], state["wall_s"], checkpoint_segments(state)
     if config.init_from:
         model.load_state_dict(initial_weights(config))
-    return 0, 0.0
+    return 0, 0.0, []
 
 
 def step_batches(config: TrainConfig, start: int) -> Iterator[Batch]:
@@ -433,9 +455,14 @@ def train(
     checkpoint = config.run_dir / "checkpoint.pt"
     model = build_model(config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])
-    step, wall_s = restore(config, model, optimizer)
+    step, wall_s, segments = restore(config, model, optimizer)
+    segment: dict[str, Any] = {
+        "hardware": hardware_name(device), "device": config.device,
+        "precision": config.precision, "steps": [step, step], "wall_s": 0.0,
+    }  # fmt: skip
     model.train()
     started = time.monotonic() - wall_s
+    segment_started = time.monotonic()
     with (config.run_dir / "log.jsonl").open("a") as log:
         for batch in step_batches(config, step):
             loss, parts = optimizer_step(config, model, optimizer, batch, step)
@@ -452,10 +479,14 @@ def train(
                 if report:
                     report(record)
             if step % config.checkpoint_every == 0 or last:
-                state = run_state(config, model, optimizer, step, now - started)
-                save_checkpoint(checkpoint, state)
+                segment["steps"][1] = step
+                segment["wall_s"] = round(now - segment_started, 1)
+                done = [*segments, segment]
+                save_checkpoint(
+                    checkpoint, run_state(config, model, optimizer, step, now - started, done)
+                )
             if last:
                 break
     if not checkpoint.exists():
-        save_checkpoint(checkpoint, run_state(config, model, optimizer, step, wall_s))
+        save_checkpoint(checkpoint, run_state(config, model, optimizer, step, wall_s, segments))
     return checkpoint

@@ -37,6 +37,8 @@ def test_card_describes_the_file(exported: tuple[Path, Path]) -> None:
     assert card["decoder"] == "mantissanet-tiny" and card["encoding"] == "mantissa"
     assert card["parameters"] > 1000 and card["gflops_256"] > 0
     assert card["training"]["steps"] == 3 and "forest" not in card["training"]["scenes"]
+    (segment,) = card["training"]["segments"]
+    assert segment["steps"] == [0, 3] and segment["device"] == "cpu"
 
 
 @pytest.mark.parametrize("source", ["random", "real"])

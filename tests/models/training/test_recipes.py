@@ -44,7 +44,7 @@ def test_only_plain_small_models_are_quantized() -> None:
 
 def test_every_shipped_card_was_trained_by_its_recipe() -> None:
     """``mcam train all`` reproduces the shipped models: each card records the stage
-    steps, read noise, starting run and loss of its recipe."""
+    steps, read noise, starting run, loss, crops, batch and precision of its recipe."""
     for config in filter(exported, SHIPPED):
         card_path = ONNX_DIR / f"{config.name}.json"
         assert card_path.exists(), f"no shipped card for recipe {config.name}"
@@ -53,6 +53,10 @@ def test_every_shipped_card_was_trained_by_its_recipe() -> None:
         assert training["max_read_noise"] == config.max_read_noise, config.name
         assert training.get("init_from") == config.init_from, config.name
         assert training["loss"] == config.loss, config.name
+        assert (training["crop"], training["batch"]) == (config.crop, config.batch), config.name
+        # Cards written before these were recorded: 128-px large crops, float32.
+        assert training.get("large_crop", 128) == config.large_crop, config.name
+        assert training.get("precision", "fp32") == config.precision, config.name
         assert training.get("own_states", 0.0) == config.own_states, config.name
         if config.family == "unmodnet":
             assert training["own_passes"] == config.own_passes, config.name

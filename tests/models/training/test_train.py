@@ -15,6 +15,7 @@ from models.training.train import (
     HEAD_OUTPUTS,
     RISK_FLOOR,
     TrainConfig,
+    checkpoint_segments,
     expected_log_mse,
     load_checkpoint,
     prediction_accuracy,
@@ -217,3 +218,21 @@ def test_run_settings_are_checked(tmp_path: Path, change: dict[str, object], mes
 def test_a_gpu_run_without_a_gpu_says_so(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="torch sees no CUDA GPU"):
         train(replace(tiny_config(tmp_path, (1, 1, 1)), device="cuda"))
+
+
+def test_each_resumed_stretch_of_a_run_is_a_segment(tmp_path: Path) -> None:
+    train(tiny_config(tmp_path, (1, 1, 0)))
+    state = load_checkpoint(train(tiny_config(tmp_path, (1, 2, 1))))
+    segments = state["segments"]
+    assert [s["steps"] for s in segments] == [[0, 2], [2, 4]]
+    assert all(s["device"] == "cpu" and s["precision"] == "fp32" for s in segments)
+    assert all(s["hardware"] and s["wall_s"] >= 0.0 for s in segments)
+    assert checkpoint_segments(state) == segments
+
+
+def test_a_checkpoint_from_before_segments_is_one_cpu_segment() -> None:
+    old = {"step": 7, "wall_s": 12.34, "config": {"tier": "tiny"}}
+    assert checkpoint_segments(old) == [
+        {"hardware": "cpu", "device": "cpu", "precision": "fp32", "steps": [0, 7], "wall_s": 12.3}
+    ]
+    assert checkpoint_segments({**old, "step": 0}) == []
