@@ -97,12 +97,6 @@ SPEED_MIN_MS = 1.0
 SPEED_SPREADS = 1.0
 #: The log ratio's spread assumed when an option's first decode is folded in (about 15%).
 SPEED_PRIOR_SPREAD = 0.15
-#: Per frame that a budget decodes with another option, an option's factor forgets this
-#: share of what it learnt (its log mean and spread relax towards 0 and the prior), so
-#: that an option which once ran slow is tried again at about its face value within some
-#: 20-30 frames: one slow frame (a converged refinement's cost varies by frame) kept
-#: ``best`` out of a 120 ms budget on 23 of 24 val-256 frames, though it took 89 ms.
-SPEED_FORGET = 0.05
 
 
 @cache
@@ -331,18 +325,6 @@ class SpeedFactors:
             (1 - SPEED_WEIGHT) * (variance + SPEED_WEIGHT * step * step),
         )
 
-    def forget(self, chosen: str) -> None:
-        """One frame decoded by ``chosen``: every other option's moments relax by
-        :data:`SPEED_FORGET` towards no correction (mean 0, the prior spread); what they
-        learnt is that much staler, and an option predicted too dear is tried again."""
-        prior = SPEED_PRIOR_SPREAD**2
-        for option, (mean, variance) in self.moments.items():
-            if option != chosen:
-                self.moments[option] = (
-                    (1 - SPEED_FORGET) * mean,
-                    variance + SPEED_FORGET * (prior - variance),
-                )
-
 
 #: The running corrections shared by every ``auto-<N>ms`` decoder of this process.
 SPEED = SpeedFactors()
@@ -386,7 +368,6 @@ class BudgetDecoder(Decoder):
         done = time.perf_counter_ns()
         speed = SPEED.value(chosen)
         SPEED.update(chosen, model[chosen], analysis_ms + (done - decode_start) / 1e6)
-        SPEED.forget(chosen)
         measured_ms = (done - start) / 1e6
         info["budget"] = {
             "budget_ms": self.budget_ms,

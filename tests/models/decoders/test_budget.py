@@ -10,9 +10,7 @@ from hypothesis import strategies as st
 
 from models.decoders import budget, get_decoder
 from models.decoders.budget import (
-    SPEED_PRIOR_SPREAD,
     SPEED_RANGE,
-    SPEED_SPREADS,
     BudgetDecoder,
     SpeedFactors,
     call_cost,
@@ -157,43 +155,6 @@ def test_speed_factors_stay_finite_and_bounded(pairs: list[tuple[float, float]])
     for predicted, measured in pairs:
         speed.update("balanced", predicted, measured)
         assert SPEED_RANGE[0] <= speed.value("balanced") <= SPEED_RANGE[1]
-
-
-def test_an_option_that_ran_slow_once_is_tried_again_later() -> None:
-    """One slow frame sets a factor that keeps an option out of a budget; frames decoded
-    by other options wear it off towards face value, and the chosen option keeps its."""
-    speed = SpeedFactors()
-    speed.update("best", 80.0, 200.0)
-    speed.update("balanced", 40.0, 60.0)
-    slow, balanced = speed.value("best"), speed.value("balanced")
-    assert 80.0 * slow > 120.0
-    frames = 0
-    while 80.0 * speed.value("best") > 120.0:
-        speed.forget("balanced")
-        frames += 1
-    assert 5 < frames < 40
-    assert speed.value("balanced") == balanced
-    for _ in range(500):
-        speed.forget("balanced")
-    assert speed.value("best") == pytest.approx(np.exp(SPEED_SPREADS * SPEED_PRIOR_SPREAD))
-
-
-@given(
-    mean=st.floats(-1.4, 1.4),
-    spread=st.floats(0.0, 2.0),
-    frames=st.integers(1, 100),
-)
-def test_forgetting_only_moves_towards_the_prior(mean: float, spread: float, frames: int) -> None:
-    speed = SpeedFactors()
-    speed.moments["best"] = (mean, spread**2)
-    for _ in range(frames):
-        speed.forget("fast")
-    forgot_mean, forgot_variance = speed.moments["best"]
-    assert abs(forgot_mean) <= abs(mean) and np.sign(forgot_mean) in (0, np.sign(mean))
-    prior = SPEED_PRIOR_SPREAD**2
-    low, high = sorted((spread**2, prior))
-    assert low - 1e-12 <= forgot_variance <= high + 1e-12
-    assert SPEED_RANGE[0] <= speed.value("best") <= SPEED_RANGE[1]
 
 
 def test_a_budget_reports_the_factor_it_used_and_learns_from_the_decode() -> None:
