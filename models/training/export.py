@@ -22,6 +22,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from models.decoders.learned import ONNX_DIR
 from models.scenes import TRAIN_SCENES
+from models.training.checkpoints import checkpoint_segments, load_checkpoint
 from models.training.networks import (
     MULTIPLE,
     NUM_CLASSES,
@@ -30,7 +31,7 @@ from models.training.networks import (
     multiple,
     parameter_count,
 )
-from models.training.train import TrainConfig, build_model, checkpoint_segments, load_checkpoint
+from models.training.train import TrainConfig, build_model
 
 OPSET = 17
 TILE = 256

@@ -18,12 +18,12 @@ from typing import Any
 
 from models.errors import InvalidInputError
 
-#: The winding losses of ``models.training.train.LOSSES`` (named here so that parsing
+#: The winding losses of ``models.training.losses.LOSSES`` (named here so that parsing
 #: the command line does not import torch; a test keeps the two equal).
 LOSS_CHOICES = ("ce", "ce-risk", "mse", "jumps")
 #: The tiers of ``models.training.networks.TIERS`` (likewise kept equal by a test).
 TIER_CHOICES = ("tiny", "small", "base", "small-s2d")
-#: ``models.training.train.RISK_WEIGHT``, for the same reason.
+#: ``models.training.losses.RISK_WEIGHT``, for the same reason.
 RISK_WEIGHT = 0.1
 #: ``models.training.train.PRECISIONS``, likewise.
 PRECISION_CHOICES = ("fp32", "bf16")

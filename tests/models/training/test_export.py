@@ -20,7 +20,8 @@ from models.training.export import (
     sha256_of,
     trained_model,
 )
-from models.training.train import TrainConfig, rolled_out_state, train
+from models.training.losses import rolled_out_state
+from models.training.train import TrainConfig, train
 
 
 def torch_winding(checkpoint: Path, m: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from models.training import train
+from models.training import losses, train
 from service.cli.train import LOSS_CHOICES, PRECISION_CHOICES, RISK_WEIGHT, TIER_CHOICES
 from tests.service.cli.conftest import assert_one_line_error, run_mcam
 
@@ -66,9 +66,9 @@ def test_missing_model_card_is_one_clear_line(tmp_path: Path) -> None:
 
 
 def test_the_command_line_offers_every_training_loss_tier_and_default() -> None:
-    assert LOSS_CHOICES == train.LOSSES
+    assert LOSS_CHOICES == losses.LOSSES
     assert TIER_CHOICES == tuple(train.TIERS)
-    assert RISK_WEIGHT == train.RISK_WEIGHT
+    assert RISK_WEIGHT == losses.RISK_WEIGHT
     assert PRECISION_CHOICES == train.PRECISIONS
 
 

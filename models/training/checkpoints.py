@@ -1,0 +1,63 @@
+"""Training checkpoints: what they hold, written atomically, and where each stretch of a
+run's steps ran (its *segments*)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+if TYPE_CHECKING:
+    from models.training.train import TrainConfig
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Write atomically (temporary file, then rename)."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint written by :func:`models.training.train.train` (model, optimizer,
+    step, wall_s, config, segments)."""
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def hardware_name(device: torch.device) -> str:
+    """The GPU's name, or the CPU's model name (``cpu`` where the system does not say)."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    cpuinfo = Path("/proc/cpuinfo")
+    lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
+    names = [line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")]
+    return names[0] if names else "cpu"
+
+
+def run_state(
+    config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+    step: int, wall_s: float, segments: list[dict[str, Any]],
+) -> dict[str, Any]:
+    """What a checkpoint holds: weights, optimizer state, step, wall time (s), config, and
+    the run's segments: where each stretch of steps ran (hardware, device, precision,
+    ``steps`` [first, last), wall s), one per call of :func:`models.training.train.train`
+    that made steps."""
+    return {
+        "model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+        "wall_s": wall_s, "config": {**asdict(config), "runs_dir": str(config.runs_dir)},
+        "segments": segments,
+    }  # fmt: skip
+
+
+def checkpoint_segments(state: dict[str, Any]) -> list[dict[str, Any]]:
+    """A checkpoint's segments; one on an unnamed CPU for checkpoints written before
+    segments were recorded (all of them ran on one CPU core)."""
+    if "segments" in state:
+        return list(state["segments"])
+    config = state["config"]
+    return [{
+        "hardware": "cpu", "device": "cpu", "precision": config.get("precision", "fp32"),
+        "steps": [0, state["step"]], "wall_s": round(state["wall_s"], 1),
+    }] if state["step"] else []  # fmt: skip
