@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import SensorParams, luminance, simulate
+from models.formation import SensorFrame, SensorParams, luminance, simulate
 from models.hdr_io import read_hdr
 
 HDRI_DIR = Path(__file__).resolve().parent / "data" / "hdri"
@@ -164,3 +164,15 @@ def synthetic_scene(seed: int, size: int = 128) -> NDArray[np.float64]:
     gradient = np.exp(rng.uniform(0, 3) * (np.cos(angle) * xx + np.sin(angle) * yy))
     vignette = np.cos(np.clip(rng.uniform(0, 1.2) * np.hypot(xx, yy), 0, 1.5)) ** 4
     return scene * gradient * vignette + 1e-6
+
+
+def synthetic_val256_frame(encoding: str, size: int = VAL256_SIZE, seed: int = 0) -> SensorFrame:
+    """Seeded synthetic scene ``seed`` (``size`` x ``size``) exposed and encoded as
+    val-256 frames are (overexposed 0.2, max_wraps 16, 8 bits, no noise): a stand-in
+    frame for timing and warming decoders that uses no validation scene."""
+    params = SensorParams(
+        encoding=encoding,  # type: ignore[arg-type]
+        bits=VAL256_BITS,
+        max_wraps=VAL256_MAX_WRAPS,
+    )
+    return simulate(synthetic_scene(seed, size), params, overexposed=VAL256_OVEREXPOSED)

@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
-from models.formation import ENCODINGS, SensorParams, simulate
-from models.scenes import VAL256_BITS, VAL256_MAX_WRAPS, VAL256_OVEREXPOSED, synthetic_scene
+from models.formation import ENCODINGS
+from models.scenes import synthetic_val256_frame
 from worker.frame_message import FrameMessage
 
 FRAME_MODES: tuple[str, ...] = ("independent", "temporal")
@@ -104,17 +104,11 @@ def warm_up(decoder: str) -> dict[str, float]:
     neither the ONNX sessions' creation nor a latency budget's cost calibration
     (seconds); returns the ms each took. A clear error for an unknown decoder."""
     spatial = get_decoder(decoder)
-    scene = synthetic_scene(WARM_UP_SEED, WARM_UP_SIZE)
     took = {}
-    for encoding in ENCODINGS:
-        params = SensorParams(
-            encoding=encoding,  # type: ignore[arg-type]
-            bits=VAL256_BITS,
-            max_wraps=VAL256_MAX_WRAPS,
-        )
-        if encoding == "clip" or not spatial.supports(params):
+    for encoding in (e for e in ENCODINGS if e != "clip"):
+        frame = synthetic_val256_frame(encoding, WARM_UP_SIZE, WARM_UP_SEED)
+        if not spatial.supports(frame.params):
             continue
-        frame = simulate(scene, params, overexposed=VAL256_OVEREXPOSED)
         start = time.perf_counter_ns()
         spatial.decode(frame.codes, frame.params)
         took[encoding] = (time.perf_counter_ns() - start) / 1e6

@@ -59,9 +59,9 @@ from models.decoders.base import Decoder
 from models.decoders.guided_puma import refinement_boxes
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.errors import InvalidInputError
-from models.formation import SensorParams, dequantize, simulate
+from models.formation import SensorParams, dequantize
 from models.scene_analysis import FrameAnalysis, analyse
-from models.scenes import VAL256_BITS, VAL256_MAX_WRAPS, VAL256_OVEREXPOSED, synthetic_scene
+from models.scenes import synthetic_val256_frame
 from models.timing import fastest_ns
 
 NAME = re.compile(r"auto-(\d+(?:\.\d+)?)ms")
@@ -105,14 +105,8 @@ def calibration_frame(
 ) -> tuple[NDArray[np.float64], SensorParams]:
     """Stored values ``m`` (wrap units) of a seeded synthetic ``size`` x ``size`` scene
     exposed as val-256 is, and its sensor parameters."""
-    params = SensorParams(
-        encoding=encoding,  # type: ignore[arg-type]
-        bits=VAL256_BITS,
-        max_wraps=VAL256_MAX_WRAPS,
-    )
-    scene = synthetic_scene(CALIBRATION_SEED, size)
-    frame = simulate(scene, params, overexposed=VAL256_OVEREXPOSED)
-    return dequantize(frame.codes, params.bits), frame.params
+    frame = synthetic_val256_frame(encoding, size, CALIBRATION_SEED)
+    return dequantize(frame.codes, frame.params.bits), frame.params
 
 
 @dataclass(frozen=True)

@@ -141,10 +141,9 @@ def batch_stream(
         for step, config in plan:
             yield training_batch(seed, step, config, with_errors)
         return
-    tasks = iter(plan)
     with multiprocessing.get_context("fork").Pool(workers) as pool:
         pending: deque[AsyncResult[Batch]] = deque()
-        for step, config in tasks:
+        for step, config in plan:
             pending.append(pool.apply_async(training_batch, (seed, step, config, with_errors)))
             if len(pending) >= 2 * workers:
                 yield pending.popleft().get()

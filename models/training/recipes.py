@@ -134,7 +134,7 @@ TIMED_LANES: tuple[tuple[TrainConfig, ...], ...] = (
     (
         timed_run("base", "mantissa"),
         timed_run(
-            "base", "mantissa", stage_steps=(0, 0, 0, 18), max_read_noise=0.02,
+            "base", "mantissa", stage_steps=(0, 0, 0, TIMED_UNITS[3]), max_read_noise=0.02,
             init_from="mantissanet-base-mantissa",
         ),
     ),

@@ -28,7 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from models.training.train import RUNS_DIR, TrainConfig, train
+from models.training.train import RUNS_DIR, TrainConfig, record_line, train
 
 #: The probe's window (s after the lanes start): every lane counts its steps from
 #: :data:`PROBE_FROM` to :data:`PROBE_TO`, after its start-up (imports, batch workers,
@@ -86,10 +86,7 @@ def probe_rate(config: TrainConfig, window: tuple[float, float]) -> float:
 def lane_report(record: dict[str, Any], name: str) -> None:
     """Print every :data:`LOG_EVERY`-th step's record, prefixed with the run's name."""
     if record["step"] % LOG_EVERY == 0:
-        parts = " ".join(
-            f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items()
-        )
-        print(f"[{name}] {parts}", flush=True)
+        print(f"[{name}] {record_line(record)}", flush=True)
 
 
 def run_lane(chain: tuple[TrainConfig, ...], started: float, deadline: float) -> list[Path]:

@@ -238,6 +238,13 @@ def use_device(config: TrainConfig) -> torch.device:
     return device
 
 
+def record_line(record: dict[str, Any]) -> str:
+    """A log record (step, stage, loss and its parts, ...) as one ``key=value`` line."""
+    return " ".join(
+        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items()
+    )
+
+
 def train(
     config: TrainConfig,
     report: Callable[[dict[str, Any]], None] | None = None,

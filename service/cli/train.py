@@ -99,10 +99,9 @@ def parse_stages(text: str) -> tuple[int, ...]:
 
 def print_progress(record: dict[str, Any]) -> None:
     """One line per logged step."""
-    parts = " ".join(
-        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in record.items()
-    )
-    print(parts, flush=True)
+    from models.training.train import record_line
+
+    print(record_line(record), flush=True)
 
 
 def measure_and_show(card_path: Path, measure: bool) -> None:

@@ -64,3 +64,13 @@ def test_synthetic_scene_is_seeded_finite_and_positive(seed: int, size: int) -> 
     assert scene.shape == (size, size)
     assert np.isfinite(scene).all() and scene.min() > 0
     np.testing.assert_array_equal(scene, scenes.synthetic_scene(seed, size))
+
+
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+def test_synthetic_val256_frame_is_seeded_and_exposed_like_val256(encoding: str) -> None:
+    frame = scenes.synthetic_val256_frame(encoding, 64, seed=3)
+    again = scenes.synthetic_val256_frame(encoding, 64, seed=3)
+    assert frame.codes.shape == (64, 64) and np.array_equal(frame.codes, again.codes)
+    assert frame.params.encoding == encoding and frame.params.bits == scenes.VAL256_BITS
+    assert frame.params.max_wraps == scenes.VAL256_MAX_WRAPS
+    assert (frame.irradiance > 1.0).mean() == pytest.approx(scenes.VAL256_OVEREXPOSED, abs=0.02)
