@@ -78,44 +78,67 @@ def val256_crop_offsets(width: int, count: int, seed: int) -> list[int]:
     return sorted(int(o) for o in rng.choice(width, size=count, replace=False))
 
 
-def val256_scenes() -> list[tuple[str, NDArray[np.float64]]]:
-    """The val-256 crops as ``(label, luminance 256 x 256)``, in a fixed order.
+def panorama_crops(
+    names: tuple[str, ...], per_scene: int, seed: int, colour: bool = False
+) -> list[tuple[str, NDArray[np.float64]]]:
+    """``per_scene`` seeded 256 x 256 crops of each scene of ``names`` as ``(label,
+    crop)``, in a fixed order: luminance (H x W), or linear RGB (H x W x 3) when
+    ``colour``.
 
-    The validation panoramas are 256 pixels tall; each crop is a 256-column window
-    at a seeded offset, wrapping around the 360-degree seam.
+    The panoramas are 256 pixels tall (the middle rows are taken otherwise); each crop
+    is a 256-column window at a seeded offset (:func:`val256_crop_offsets`, seed
+    ``seed`` + the scene's index), wrapping around the 360-degree seam.
     """
     crops = []
-    for index, name in enumerate(VAL_SCENES):
-        gray = load_hdri_gray(name)
-        top = (gray.shape[0] - VAL256_SIZE) // 2
-        rows = gray[top : top + VAL256_SIZE]
-        offsets = val256_crop_offsets(gray.shape[1], VAL256_CROPS_PER_SCENE, VAL256_SEED + index)
-        for offset in offsets:
+    for index, name in enumerate(names):
+        scene = load_hdri(name) if colour else load_hdri_gray(name)
+        top = (scene.shape[0] - VAL256_SIZE) // 2
+        rows = scene[top : top + VAL256_SIZE]
+        for offset in val256_crop_offsets(scene.shape[1], per_scene, seed + index):
             crop = np.roll(rows, -offset, axis=1)[:, :VAL256_SIZE]
             crops.append((f"{name}@{offset}", np.ascontiguousarray(crop)))
     return crops
 
 
-def val256_frames(encoding: str, read_noise: float = 0.0) -> list[ValFrame]:
-    """The fixed val-256 evaluation set for ``encoding`` (``modulo`` or ``mantissa``).
+def val256_scenes(colour: bool = False) -> list[tuple[str, NDArray[np.float64]]]:
+    """The val-256 crops as ``(label, luminance 256 x 256)`` (or linear RGB 256 x 256 x 3
+    when ``colour``), in a fixed order (:func:`panorama_crops`)."""
+    return panorama_crops(VAL_SCENES, VAL256_CROPS_PER_SCENE, VAL256_SEED, colour)
 
-    24 frames (3 scenes x 8 crops), 256 x 256 grayscale, overexposed 0.2,
-    max_wraps 16, 8 bits, alpha 2; read noise (wrap units) seeded per crop.
-    """
+
+def exposed_frames(
+    crops: list[tuple[str, NDArray[np.float64]]],
+    encoding: str,
+    read_noise: float = 0.0,
+    seed: int = VAL256_SEED,
+) -> list[ValFrame]:
+    """Each crop as a frame at the val-256 settings for ``encoding``: overexposed 0.2,
+    max_wraps 16, 8 bits, alpha 2; read noise (wrap units) seeded per crop (``seed`` +
+    its index)."""
     frames = []
-    for index, (_, crop) in enumerate(val256_scenes()):
+    for index, (_, crop) in enumerate(crops):
         params = SensorParams.parse(
             {
                 "encoding": encoding,
                 "bits": VAL256_BITS,
                 "max_wraps": VAL256_MAX_WRAPS,
                 "read_noise": read_noise,
-                "seed": VAL256_SEED + index,
+                "seed": seed + index,
             }
         )
         frame = simulate(crop, params, overexposed=VAL256_OVEREXPOSED)
         frames.append(ValFrame(frame.codes, frame.winding, frame.irradiance, frame.params))
     return frames
+
+
+def val256_frames(encoding: str, read_noise: float = 0.0, colour: bool = False) -> list[ValFrame]:
+    """The fixed val-256 evaluation set for ``encoding`` (``modulo`` or ``mantissa``).
+
+    24 frames (3 scenes x 8 crops), 256 x 256 grayscale (or RGB when ``colour``: the
+    same crops, exposed on their luminance), overexposed 0.2, max_wraps 16, 8 bits,
+    alpha 2; read noise (wrap units) seeded per crop.
+    """
+    return exposed_frames(val256_scenes(colour), encoding, read_noise)
 
 
 def _disk_mask(size: int, cy: float, cx: float, radius: float) -> tuple[slice, slice, NDArray]:

@@ -59,6 +59,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from models.decoders.base import Decoder, anchor_winding
+from models.decoders.colour import harmonise
 from models.decoders.guided_puma import MAX_MOVES, GuidedPumaDecoder, refined_name
 from models.decoders.region_vote import region_vote
 from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
@@ -104,6 +105,10 @@ NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: base-noise+puma at 23.99 dB, and before the base net was trained longer tiny+puma at
 #: 23.88 dB; ranked by the nets' own PSNR it would run base-noise+puma, 23.92 dB).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
+#: Qualities that make a colour frame's channels consistent once each is decoded
+#: (:func:`models.decoders.colour.harmonise`, about 0.1-0.15 s per 256x256 frame; see
+#: that module for what it gains). Not ``fast``: it would cost more than the channels.
+JOINT_COLOUR: frozenset[str] = frozenset({"balanced", "best"})
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
 #: Without refinement, regions where the stitched W disagrees with this decoder's take
@@ -188,10 +193,12 @@ class AdaptiveDecoder(Decoder):
         tile: int = DEFAULT_TILE,
         margin: int = 16,
         group: int = GROUP_TILES,
+        joint_colour: bool | None = None,
     ) -> None:
         if quality not in QUALITIES:
             raise ValueError(f"quality must be one of {QUALITIES}, got {quality!r}")
         self.quality = quality
+        self.joint_colour = quality in JOINT_COLOUR if joint_colour is None else joint_colour
         self.tile = tile
         self.margin = margin
         self.group = group
@@ -238,6 +245,17 @@ class AdaptiveDecoder(Decoder):
         self, m: NDArray[np.float64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         return self.explain_analysed(m, params, analyse(m, params, self.tile))
+
+    def explain_planes(
+        self, planes: NDArray[np.float64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """Each channel routed on its own; then, when ``joint_colour`` (by default at the
+        qualities of :data:`JOINT_COLOUR`), a colour frame's channels made consistent
+        (reported under ``colour``)."""
+        winding, info = super().explain_planes(planes, params)
+        if planes.shape[2] == 3 and self.joint_colour:
+            winding, info["colour"] = harmonise(planes, winding, params)
+        return winding, info
 
     def network_calls(
         self, analysis: FrameAnalysis, shape: tuple[int, int]

@@ -93,6 +93,10 @@ class Decoder(ABC):
 
     name: ClassVar[str]
     version: str = "1"
+    #: Whether :meth:`explain_winding` on one channel is this decoder's whole answer (a
+    #: guide or a router's choice must be); False for decoders of colour frames whose
+    #: channels are decoded jointly (:mod:`models.decoders.colour`).
+    per_channel: ClassVar[bool] = True
 
     def decode(self, codes: NDArray[Any], params: SensorParams) -> DecodeResult:
         """Decode a frame of codes (H x W or H x W x C, DN) into W and x_hat."""
@@ -106,15 +110,8 @@ class Decoder(ABC):
         if params.encoding == "clip":
             winding = np.zeros(planes.shape, np.int64)
         else:
-            channels = [
-                self.explain_winding(planes[:, :, c], params) for c in range(planes.shape[2])
-            ]
-            winding = np.stack([w for w, _ in channels], axis=2).astype(np.int64)
-            details = [facts for _, facts in channels if facts]
-            if details:
-                info["channels" if len(channels) > 1 else "details"] = (
-                    details if len(channels) > 1 else details[0]
-                )
+            winding, facts = self.explain_planes(planes, params)
+            info.update(facts)
         predicted = time.perf_counter_ns()
         if squeeze:
             winding = winding[:, :, 0]
@@ -143,6 +140,23 @@ class Decoder(ABC):
         Decoders that make per-frame choices (the adaptive router) override this.
         """
         return self.predict_winding(m, params), {}
+
+    def explain_planes(
+        self, planes: NDArray[np.float64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """Winding numbers (int64, H x W x C) of every channel of ``planes`` (H x W x C
+        wrapped values), and the facts of :meth:`explain_winding`: under ``details`` for
+        one channel, a list under ``channels`` for several. Each channel is decoded on its
+        own; decoders that decode the channels jointly override this.
+        """
+        channels = [self.explain_winding(planes[:, :, c], params) for c in range(planes.shape[2])]
+        winding = np.stack([w for w, _ in channels], axis=2).astype(np.int64)
+        details = [facts for _, facts in channels if facts]
+        if not details:
+            return winding, {}
+        if len(channels) > 1:
+            return winding, {"channels": details}
+        return winding, {"details": details[0]}
 
     def run_pixels(self, shape: tuple[int, int], params: SensorParams) -> list[int]:
         """Pixels of each run :meth:`predict_winding` makes on a channel of ``shape``: the

@@ -106,7 +106,8 @@ class PumaEnergy:
     ``sum w_ij |u_j - u_i| ** p + prior_weight * sum c(K - prior)``
 
     ``weights`` (see :data:`PairWeights`) weighs each neighbour pair; ``prior`` (int
-    H x W, optional) pulls ``K`` towards a known guess, at ``c(d) = -d`` per pixel below
+    H x W, optional) pulls ``K`` towards a known guess (``prior_weight``: one weight, or
+    one per pixel, H x W), at ``c(d) = -d`` per pixel below
     it and ``c(d) = above_factor * d`` above it (convex for ``above_factor >= 0``, so
     the moves still reach the global minimum). Without a prior the energy does not
     change when ``K`` shifts by a constant.
@@ -115,13 +116,17 @@ class PumaEnergy:
     p: float = 1.0
     weights: PairWeights = None
     prior: NDArray[np.int64] | None = None
-    prior_weight: float = 0.0
+    prior_weight: float | NDArray[np.float64] = 0.0
     above_factor: float = 1.0
 
     def __call__(self, winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
         energy = clique_energy(winding + m, self.p, self.weights)
         if self.prior is not None:
-            energy += self.prior_weight * float(self._prior_cost(winding - self.prior).sum())
+            cost = self._prior_cost(winding - self.prior)
+            if np.ndim(self.prior_weight) == 0:
+                energy += self.prior_weight * float(cost.sum())
+            else:
+                energy += float(np.sum(self.prior_weight * cost))
         return energy
 
     def _prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:

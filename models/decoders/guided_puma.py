@@ -89,6 +89,7 @@ from models.decoders.learned import load_cards, stitch_overlapping
 from models.decoders.region_moves import best_region_move
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_guide
+from models.errors import InvalidInputError
 from models.formation import SensorParams, max_winding
 from models.scene_analysis import neighbour_jumps, residue_map
 from models.tile_reconcile import common_offset
@@ -208,6 +209,12 @@ class GuidedPumaDecoder(Decoder):
         max_moves: int = MAX_MOVES,
         region_moves: int = REGION_MOVES,
     ) -> None:
+        if not guide.per_channel:
+            raise InvalidInputError(
+                f"{guide.name!r} decodes the channels of a colour frame jointly and cannot "
+                f"guide a refinement, which works channel by channel; put {SUFFIX} first "
+                "(e.g. herraez+puma+colour)"
+            )
         self.guide = guide
         self.prior_weight = prior_weight
         self.max_moves = max_moves

@@ -27,6 +27,7 @@ PROVIDERS: tuple[str, ...] = (
     "models.decoders.guided_puma",
     "models.decoders.adaptive",
     "models.decoders.budget",
+    "models.decoders.colour",
 )
 
 

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from models import scenes
 from models.errors import InvalidInputError
-from models.formation import reconstruct
+from models.formation import luminance, reconstruct
 
 
 def test_split_is_disjoint_and_complete() -> None:
@@ -74,3 +74,19 @@ def test_synthetic_val256_frame_is_seeded_and_exposed_like_val256(encoding: str)
     assert frame.params.encoding == encoding and frame.params.bits == scenes.VAL256_BITS
     assert frame.params.max_wraps == scenes.VAL256_MAX_WRAPS
     assert (frame.irradiance > 1.0).mean() == pytest.approx(scenes.VAL256_OVEREXPOSED, abs=0.02)
+
+
+def test_val256_in_colour_is_the_same_crops_exposed_on_their_luminance() -> None:
+    gray, colour = scenes.val256_frames("mantissa")[:2], scenes.val256_frames(
+        "mantissa", colour=True
+    )
+    assert len(colour) == len(scenes.val256_frames("mantissa"))
+    crops = scenes.val256_scenes(colour=True)
+    for frame, (label, crop), (gray_label, gray_crop) in zip(
+        colour[:2], crops, scenes.val256_scenes(), strict=False
+    ):
+        assert label == gray_label and crop.shape == (256, 256, 3)
+        np.testing.assert_allclose(luminance(crop), gray_crop)
+        assert frame.codes.shape == frame.winding.shape == (256, 256, 3)
+        assert abs((luminance(frame.x) > 1).mean() - 0.2) < 0.01
+    assert gray[0].params.gain == pytest.approx(colour[0].params.gain)

@@ -163,3 +163,16 @@ def test_the_prior_costs_above_factor_per_wrap_above_the_guess(above: float) -> 
     np.testing.assert_allclose(
         energy.prior_move_cost(winding, -1), 0.1 * np.array([[1.0, 1.0, -above]])
     )
+
+
+def test_a_prior_weight_per_pixel_weighs_each_pixels_disagreement() -> None:
+    """One weight per pixel (colour anchors: weight on a few pixels, none elsewhere)
+    gives the sum of each pixel's weighted cost, and the same moves."""
+    prior = np.array([[2, 2, 2]])
+    weights = np.array([[0.0, 0.5, 0.1]])
+    energy = PumaEnergy(1.0, None, prior, weights, 1.0)
+    flat = np.zeros((1, 3))
+    winding = np.array([[0, 1, 5]])
+    prior_term = energy(winding, flat) - clique_energy(winding + flat, 1.0)
+    assert prior_term == pytest.approx(0.5 * 1 + 0.1 * 3)
+    np.testing.assert_allclose(energy.prior_move_cost(winding, 1), [[0.0, -0.5, 0.1]])

@@ -1,0 +1,175 @@
+"""Colour frames: each channel decoded on its own, against the channels made consistent.
+
+``python -m bench.colour`` measures, for each encoding and decoder, the decoder on
+each channel alone and with :func:`models.decoders.colour.harmonise` after it
+(``<decoder>+colour``; ``auto`` at balanced and best with ``joint_colour`` off and
+on), on two sets of 256 x 256 linear-RGB frames at the val-256 settings (overexposed
+0.2 on luminance, max_wraps 16, 8 bits):
+
+- ``val``: val-256 in colour, the validation crops (:func:`models.scenes.val256_frames`
+  with ``colour=True``);
+- ``tuning``: 2 seeded crops of each *training* scene, the set the parameters of
+  :mod:`models.decoders.colour` were chosen on (``--sets tuning``).
+
+Per row: winding accuracy (per pixel-channel), the share of pixels with all three
+channels right, mean PSNR and PU21-PSNR over the frames, the largest loss of PSNR on
+one frame against decoding the channels alone, and the median ms per frame (one
+decode per frame, after one warm-up frame). Prints Markdown; writes
+``bench/results/colour.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import RESULTS, entry_point, machine, utc_now, versions
+from models import metrics
+from models.decoders import Decoder, get_decoder
+from models.decoders.adaptive import AdaptiveDecoder
+from models.decoders.colour import ColourDecoder
+from models.scenes import TRAIN_SCENES, ValFrame, exposed_frames, panorama_crops, val256_frames
+
+ENCODINGS = ("mantissa", "modulo")
+SETS = ("val", "tuning")
+#: Decoders measured unless named: classical, the router's fast path, and its qualities.
+DEFAULT_DECODERS = ("itoh", "herraez", "auto-fast", "auto-balanced", "auto-best")
+#: Seed of the tuning crops' offsets (val-256 uses 256; any other keeps them apart).
+TUNING_SEED = 900
+TUNING_CROPS_PER_SCENE = 2
+
+
+def frame_set(name: str, encoding: str) -> list[ValFrame]:
+    """The colour frames of set ``name`` for ``encoding``."""
+    if name == "val":
+        return val256_frames(encoding, colour=True)
+    crops = panorama_crops(TRAIN_SCENES, TUNING_CROPS_PER_SCENE, TUNING_SEED, colour=True)
+    return exposed_frames(crops, encoding, seed=TUNING_SEED)
+
+
+def pair(name: str) -> tuple[Decoder, Decoder]:
+    """Decoder ``name`` with its channels decoded alone, and made consistent."""
+    if name.startswith("auto-") and name.removeprefix("auto-") in ("fast", "balanced", "best"):
+        quality = name.removeprefix("auto-")
+        return AdaptiveDecoder(quality, joint_colour=False), AdaptiveDecoder(
+            quality, joint_colour=True
+        )
+    alone = get_decoder(name)
+    return alone, ColourDecoder(alone)
+
+
+def measure(decoder: Decoder, frames: list[ValFrame]) -> dict[str, Any]:
+    """Accuracy per frame and the median ms per frame of ``decoder`` on ``frames``."""
+    decoder.decode(frames[0].codes, frames[0].params)
+    psnr, pu21, accuracy, all_right, ms = [], [], [], [], []
+    for frame in frames:
+        start = time.perf_counter_ns()
+        result = decoder.decode(frame.codes, frame.params)
+        ms.append((time.perf_counter_ns() - start) / 1e6)
+        psnr.append(metrics.psnr(result.irradiance, frame.x))
+        pu21.append(metrics.pu21_psnr(result.irradiance, frame.x))
+        accuracy.append(metrics.winding_accuracy(result.winding, frame.winding))
+        all_right.append(float(np.mean((result.winding == frame.winding).all(axis=2))))
+    return {
+        "psnr_db": psnr,
+        "pu21_psnr_db": pu21,
+        "winding_accuracy": float(np.mean(accuracy)),
+        "all_channels_right": float(np.mean(all_right)),
+        "ms_per_frame": float(np.median(ms)),
+    }
+
+
+def finite_mean(values: list[float]) -> float:
+    """Mean of the finite values (an exact frame's PSNR is infinite)."""
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("inf")
+
+
+def summary(alone: dict[str, Any], joint: dict[str, Any]) -> dict[str, Any]:
+    """One table row: both modes' means and the largest loss on one frame."""
+    losses = [
+        b - a
+        for a, b in zip(alone["psnr_db"], joint["psnr_db"], strict=True)
+        if np.isfinite(a) and np.isfinite(b)
+    ]
+    row: dict[str, Any] = {}
+    for mode, result in (("alone", alone), ("joint", joint)):
+        row[mode] = {
+            "psnr_db": finite_mean(result["psnr_db"]),
+            "pu21_psnr_db": finite_mean(result["pu21_psnr_db"]),
+            "winding_accuracy": result["winding_accuracy"],
+            "all_channels_right": result["all_channels_right"],
+            "ms_per_frame": result["ms_per_frame"],
+            "psnr_per_frame_db": result["psnr_db"],
+        }
+    row["worst_frame_change_db"] = min(losses) if losses else 0.0
+    row["frames_gaining_0_5_db"] = sum(d > 0.5 for d in losses)
+    row["frames_losing_0_5_db"] = sum(d < -0.5 for d in losses)
+    return row
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    rows = []
+    for set_name in args.sets:
+        for encoding in args.encodings:
+            frames = frame_set(set_name, encoding)[: args.frames]
+            for name in args.decoders:
+                alone, joint = pair(name)
+                row = summary(measure(alone, frames), measure(joint, frames))
+                rows.append({"set": set_name, "encoding": encoding, "decoder": name, **row})
+                print(markdown_row(rows[-1]), flush=True)
+    return {
+        "benchmark": "colour",
+        "date": utc_now(),
+        "machine": machine(),
+        "versions": versions(),
+        "rows": rows,
+    }
+
+
+def markdown_row(row: dict[str, Any]) -> str:
+    alone, joint = row["alone"], row["joint"]
+    return (
+        f"| {row['set']} | {row['encoding']} | {row['decoder']} | "
+        f"{alone['psnr_db']:.2f} -> {joint['psnr_db']:.2f} | "
+        f"{alone['pu21_psnr_db']:.2f} -> {joint['pu21_psnr_db']:.2f} | "
+        f"{100 * alone['winding_accuracy']:.2f} -> {100 * joint['winding_accuracy']:.2f} | "
+        f"{100 * alone['all_channels_right']:.2f} -> {100 * joint['all_channels_right']:.2f} | "
+        f"{row['frames_gaining_0_5_db']} / {row['frames_losing_0_5_db']} | "
+        f"{row['worst_frame_change_db']:+.2f} | "
+        f"{alone['ms_per_frame']:.0f} -> {joint['ms_per_frame']:.0f} |"
+    )
+
+
+def markdown(report: dict[str, Any]) -> str:
+    lines = [
+        f"Colour frames, channels alone -> made consistent, {report['date']}, "
+        f"{report['machine']['cpu']} ({report['machine']['cores']} cores)",
+        "",
+        "| set | encoding | decoder | PSNR dB | PU21-PSNR dB | W acc % | all 3 right % "
+        "| frames +/- 0.5 dB | worst frame dB | ms/frame |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [markdown_row(row) for row in report["rows"]]
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--decoders", nargs="+", default=list(DEFAULT_DECODERS))
+    parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
+    parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
+    parser.add_argument("--frames", type=int, default=None, help="first N frames of each set")
+    parser.add_argument("--out", type=Path, default=RESULTS / "colour.json")
+    return parser.parse_args(argv)
+
+
+main = entry_point(parse_args, run, markdown)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

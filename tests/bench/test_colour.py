@@ -1,0 +1,42 @@
+"""Tests of bench/colour.py: the colour sets, the decoder pairs and the report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bench import colour
+from models.decoders.adaptive import AdaptiveDecoder
+from models.decoders.colour import ColourDecoder
+
+
+def test_the_tuning_set_holds_two_crops_of_every_training_scene_apart_from_val() -> None:
+    tuning = colour.frame_set("tuning", "modulo")
+    assert len(tuning) == 2 * 14
+    assert all(frame.codes.shape == (256, 256, 3) for frame in tuning[:3])
+    assert len(colour.frame_set("val", "modulo")) == 24
+
+
+@pytest.mark.parametrize("name", ["herraez", "auto-best"])
+def test_each_decoder_is_measured_alone_and_made_consistent(name: str) -> None:
+    alone, joint = colour.pair(name)
+    if name.startswith("auto"):
+        assert isinstance(alone, AdaptiveDecoder) and isinstance(joint, AdaptiveDecoder)
+        assert not alone.joint_colour and joint.joint_colour
+    else:
+        assert isinstance(joint, ColourDecoder) and joint.inner is alone
+
+
+def test_report_compares_both_modes_frame_by_frame(tmp_path: Path) -> None:
+    out = tmp_path / "colour.json"
+    colour.main(["--decoders", "itoh", "--encodings", "mantissa", "--sets", "val",
+                 "--frames", "2", "--out", str(out)])  # fmt: skip
+    row = json.loads(out.read_text())["rows"][0]
+    assert (row["set"], row["encoding"], row["decoder"]) == ("val", "mantissa", "itoh")
+    for mode in ("alone", "joint"):
+        assert len(row[mode]["psnr_per_frame_db"]) == 2
+        assert 0.0 <= row[mode]["all_channels_right"] <= row[mode]["winding_accuracy"] <= 1.0
+        assert row[mode]["ms_per_frame"] > 0
+    assert out.with_suffix(".md").read_text().count("| val | mantissa | itoh |") == 1
