@@ -338,11 +338,47 @@ class BudgetDecoder(Decoder):
     def explain_winding(
         self, m: NDArray[np.float64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
-        """W from the most accurate option predicted to fit, and the facts: the choice,
-        each option's predicted ms, the factor applied, the measured ms (from the
-        analysis to the W) and whether the budget was met, and the ms spent calibrating
-        the costs first (once per process, encoding and size class: seconds, not part
-        of the frame's time)."""
+        """:meth:`explain_within` the whole budget."""
+        return self.explain_within(m, params, self.budget_ms)
+
+    def explain_planes(
+        self, planes: NDArray[np.float64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """A colour frame shares the budget among its channels, so that the frame, not
+        each channel, is decoded within it: each channel gets the time left divided by
+        the channels left. The frame's facts (``budget``: the budget, the measured ms
+        of all channels, whether it was met) come with each channel's (``channels``).
+        The channels are decoded on their own (no :mod:`models.decoders.colour` step,
+        whose cost the budget does not predict)."""
+        if planes.shape[2] == 1:
+            return super().explain_planes(planes, params)
+        calibration_start = time.perf_counter_ns()
+        calibrate(params, planes.shape[:2])
+        start = time.perf_counter_ns()
+        windings, channels = [], []
+        for channel in range(planes.shape[2]):
+            left_ms = self.budget_ms - (time.perf_counter_ns() - start) / 1e6
+            share_ms = left_ms / (planes.shape[2] - channel)
+            winding, facts = self.explain_within(planes[:, :, channel], params, share_ms)
+            windings.append(winding)
+            channels.append(facts)
+        measured_ms = (time.perf_counter_ns() - start) / 1e6
+        frame = {
+            "budget_ms": self.budget_ms,
+            "measured_ms": round(measured_ms, 2),
+            "met": measured_ms <= self.budget_ms,
+            "calibration_ms": round((start - calibration_start) / 1e6, 2),
+        }
+        return np.stack(windings, axis=2), {"channels": channels, "budget": frame}
+
+    def explain_within(
+        self, m: NDArray[np.float64], params: SensorParams, budget_ms: float
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """W of one channel from the most accurate option predicted to fit ``budget_ms``,
+        and the facts: the choice, each option's predicted ms, the factor applied, the
+        measured ms (from the analysis to the W) and whether ``budget_ms`` was met, and
+        the ms spent calibrating the costs first (once per process, encoding and size
+        class: seconds, not part of the frame's time)."""
         calibration_start = time.perf_counter_ns()
         calibrate(params, m.shape)
         start = time.perf_counter_ns()
@@ -350,12 +386,12 @@ class BudgetDecoder(Decoder):
         analysis_ms = (time.perf_counter_ns() - start) / 1e6
         model = unscaled_options(analysis, analysis_ms, m.shape, params)
         options = {name: ms * SPEED.value(name) for name, ms in model.items()}
-        fitting = [name for name, ms in options.items() if ms <= self.budget_ms]
+        fitting = [name for name, ms in options.items() if ms <= budget_ms]
         chosen = fitting[0] if fitting else min(options, key=options.__getitem__)
         decode_start = time.perf_counter_ns()
         if chosen == CLASSICAL:
             winding = get_decoder(CLASSICAL).predict_winding(m, params)
-            reason = f"no quality of auto is predicted within {self.budget_ms:g} ms"
+            reason = f"no quality of auto is predicted within {budget_ms:g} ms"
             info: dict[str, Any] = {"routes": {CLASSICAL: 1.0}, "reason": reason}
         else:
             winding, info = adaptive(chosen).explain_analysed(m, params, analysis)
@@ -364,13 +400,13 @@ class BudgetDecoder(Decoder):
         SPEED.update(chosen, model[chosen], analysis_ms + (done - decode_start) / 1e6)
         measured_ms = (done - start) / 1e6
         info["budget"] = {
-            "budget_ms": self.budget_ms,
+            "budget_ms": round(budget_ms, 2),
             "chosen": chosen,
             "predicted_to_fit": bool(fitting),
             "predicted_ms": {name: round(ms, 2) for name, ms in options.items()},
             "speed_factor": round(speed, 3),
             "measured_ms": round(measured_ms, 2),
-            "met": measured_ms <= self.budget_ms,
+            "met": measured_ms <= budget_ms,
             "calibration_ms": round((start - calibration_start) / 1e6, 2),
         }
         return winding, info

@@ -34,8 +34,9 @@ all three votes differ, nothing changes.
 
 ``auto`` runs it after its channels at balanced and best (:data:`JOINT_COLOUR` in
 :mod:`models.decoders.adaptive`); any decoder gets it as ``<decoder>+colour``. A
-latency budget (``auto-<N>ms``) and the temporal video decoder still decode the
-channels of a colour frame on their own.
+latency budget (``auto-<N>ms``, which shares its budget among a colour frame's
+channels) and the temporal video decoder still decode the channels of a colour frame on
+their own.
 
 Measured (``python -m bench.colour``, 2026-11-26, 2 AMD EPYC cores; the constants
 below were chosen on the *tuning* set, 2 crops of each training scene, before the

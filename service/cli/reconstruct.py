@@ -81,6 +81,12 @@ def run(args: argparse.Namespace) -> int:
     channels = result.info.get("channels", [result.info.get("details") or {}])
     for facts in filter(None, (channel.get("budget") for channel in channels)):
         print(budget_summary(facts))
+    if (frame := result.info.get("budget")) is not None:
+        print(
+            f"latency budget {frame['budget_ms']:g} ms for the colour frame, shared by its "
+            f"channels: they took {frame['measured_ms']:.1f} ms, "
+            f"{'within' if frame['met'] else 'over'} budget"
+        )
     return 0
 
 

@@ -188,3 +188,28 @@ def test_refinement_costs_are_calibrated_by_frame_size() -> None:
         512,
         512,
     ]
+
+
+def test_a_colour_frame_shares_the_budget_among_its_channels() -> None:
+    """The frame, not each channel, is decoded within the budget: the first channel
+    gets a third of it, each later one a share of what is left."""
+    codes = np.stack([hard_frame(), hard_frame(), hard_frame()], axis=2)
+    result = BudgetDecoder(300.0).decode(codes, MODULO)
+    channels = result.info["channels"]
+    assert len(channels) == 3
+    shares = [channel["budget"]["budget_ms"] for channel in channels]
+    assert shares[0] == pytest.approx(100.0, abs=0.01)
+    for index, share in enumerate(shares):
+        spent = sum(c["budget"]["measured_ms"] for c in channels[:index])
+        assert share <= (300.0 - spent) / (3 - index) + 0.01
+    frame = result.info["budget"]
+    assert frame["budget_ms"] == 300.0
+    assert frame["measured_ms"] >= sum(c["budget"]["measured_ms"] for c in channels)
+    assert frame["met"] == (frame["measured_ms"] <= 300.0)
+    assert "colour" not in result.info
+
+
+def test_a_grayscale_frame_keeps_the_whole_budget() -> None:
+    result = BudgetDecoder(300.0).decode(hard_frame(), MODULO)
+    assert result.info["details"]["budget"]["budget_ms"] == 300.0
+    assert "budget" not in result.info

@@ -84,6 +84,20 @@ def test_reconstruct_within_a_latency_budget(tmp_path: Path, pipeline: Path) -> 
     assert "(once per process)" in summary
 
 
+def test_a_colour_frame_shares_its_latency_budget(tmp_path: Path) -> None:
+    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
+    scene = blob_scene(size=48, peak=6.0, halving=10.0)
+    frame = simulate(np.stack([scene, 0.7 * scene, 0.4 * scene], axis=2), params)
+    write_frame(tmp_path / "colour.npy", frame.codes, None)
+    result = run_mcam("reconstruct", "colour.npy", "-o", "x.exr", "--encoding", "modulo",
+                      "--bits", "8", "--decoder", "auto-5000ms", cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert sum(line.startswith("latency budget ") for line in lines) == 4
+    assert lines[-1].startswith("latency budget 5000 ms for the colour frame, shared by")
+    assert lines[-1].endswith("within budget")
+
+
 def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
     np.save(tmp_path / "bare.npy", np.zeros((8, 8), np.uint8))
     np.save(tmp_path / "float.npy", np.zeros((8, 8), np.float32))
