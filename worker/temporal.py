@@ -101,6 +101,12 @@ mantissa +0.6 / +1.8 / +2.1 dB and modulo +0.3 / +3.4 / -1.3 dB (herraez 26.91 -
 independent 19.34); pan/zoom mantissa and the moving light moved by -0.06 to +0.36 dB.
 Periodic keyframes refined as well lost 4.9 dB on the mantissa sunrise, so they are not.
 
+A keyframe of a colour stream then goes through the spatial decoder's
+:meth:`models.decoders.base.Decoder.join_channels`, as a still frame would (``auto``
+at balanced and best, ``<decoder>+colour``: the channels made consistent,
+:mod:`models.decoders.colour`); the temporal steps between keyframes track each
+channel on its own.
+
 A periodic keyframe first makes the temporal step as usual (with its
 fallbacks), then decodes the frame spatially and shifts that answer by its most
 common difference to the tracked one, so a scene that is bright everywhere (where
@@ -382,6 +388,7 @@ class StreamDecoder:
         spatial = self._spatial_planes(m, params)
         if reason in ANCHOR_KEYFRAMES and self.keyframe_refiner is not None:
             spatial = refined_planes(self.keyframe_refiner, m, spatial, params)
+        spatial = self.spatial.join_channels(m, spatial, params)[0]
         if reason != "periodic" or state.u is None:
             return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}
         tracked, local, fell_back = self._tracked(m, params, state, spatial)

@@ -246,16 +246,14 @@ class AdaptiveDecoder(Decoder):
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         return self.explain_analysed(m, params, analyse(m, params, self.tile))
 
-    def explain_planes(
-        self, planes: NDArray[np.float64], params: SensorParams
+    def join_channels(
+        self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
-        """Each channel routed on its own; then, when ``joint_colour`` (by default at the
-        qualities of :data:`JOINT_COLOUR`), a colour frame's channels made consistent
-        (reported under ``colour``)."""
-        winding, info = super().explain_planes(planes, params)
+        """A colour frame's channels made consistent when ``joint_colour`` (by default at
+        the qualities of :data:`JOINT_COLOUR`)."""
         if planes.shape[2] == 3 and self.joint_colour:
-            winding, info["colour"] = harmonise(planes, winding, params)
-        return winding, info
+            return harmonise(planes, winding, params)
+        return winding, {}
 
     def network_calls(
         self, analysis: FrameAnalysis, shape: tuple[int, int]

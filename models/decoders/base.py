@@ -93,10 +93,6 @@ class Decoder(ABC):
 
     name: ClassVar[str]
     version: str = "1"
-    #: Whether :meth:`explain_winding` on one channel is this decoder's whole answer (a
-    #: guide or a router's choice must be); False for decoders of colour frames whose
-    #: channels are decoded jointly (:mod:`models.decoders.colour`).
-    per_channel: ClassVar[bool] = True
 
     def decode(self, codes: NDArray[Any], params: SensorParams) -> DecodeResult:
         """Decode a frame of codes (H x W or H x W x C, DN) into W and x_hat."""
@@ -147,16 +143,28 @@ class Decoder(ABC):
         """Winding numbers (int64, H x W x C) of every channel of ``planes`` (H x W x C
         wrapped values), and the facts of :meth:`explain_winding`: under ``details`` for
         one channel, a list under ``channels`` for several. Each channel is decoded on its
-        own; decoders that decode the channels jointly override this.
+        own, then a colour frame's channels go through :meth:`join_channels`.
         """
         channels = [self.explain_winding(planes[:, :, c], params) for c in range(planes.shape[2])]
         winding = np.stack([w for w, _ in channels], axis=2).astype(np.int64)
         details = [facts for _, facts in channels if facts]
-        if not details:
-            return winding, {}
+        info: dict[str, Any] = {}
+        if details:
+            info = {"channels": details} if len(channels) > 1 else {"details": details[0]}
         if len(channels) > 1:
-            return winding, {"channels": details}
-        return winding, {"details": details[0]}
+            winding, joined = self.join_channels(planes, winding, params)
+            if joined:
+                info["colour"] = joined
+        return winding, info
+
+    def join_channels(
+        self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """What this decoder does with a colour frame's W (H x W x C) once each channel is
+        decoded, and its facts (reported under ``colour``): nothing by default; the
+        channels made consistent by :mod:`models.decoders.colour` for decoders that
+        decode them jointly."""
+        return winding, {}
 
     def run_pixels(self, shape: tuple[int, int], params: SensorParams) -> list[int]:
         """Pixels of each run :meth:`predict_winding` makes on a channel of ``shape``: the

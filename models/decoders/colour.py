@@ -32,11 +32,13 @@ where at least two votes agree, every channel takes that W plus its relative W
 right; where two channels are wrong the same way, the third is made wrong too; where
 all three votes differ, nothing changes.
 
-``auto`` runs it after its channels at balanced and best (:data:`JOINT_COLOUR` in
-:mod:`models.decoders.adaptive`); any decoder gets it as ``<decoder>+colour``. A
-latency budget (``auto-<N>ms``, which shares its budget among a colour frame's
-channels) and the temporal video decoder still decode the channels of a colour frame on
-their own.
+It is a decoder's :meth:`models.decoders.base.Decoder.join_channels`: ``auto`` runs it
+after its channels at balanced and best (:data:`JOINT_COLOUR` in
+:mod:`models.decoders.adaptive`), any decoder gets it as ``<decoder>+colour``, a
+refined decoder (``<decoder>+puma``) joins as its guide does, and a colour video's
+keyframes are joined (:mod:`worker.temporal`; the frames between them track each
+channel). A latency budget (``auto-<N>ms``, which shares its budget among a colour
+frame's channels) decodes the channels on their own.
 
 Measured (``python -m bench.colour``, 2026-11-26, 2 AMD EPYC cores; the constants
 below were chosen on the *tuning* set, 2 crops of each training scene, before the
@@ -149,10 +151,8 @@ def harmonise(
 
 class ColourDecoder(Decoder):
     """``inner`` on each channel, then :func:`harmonise` on colour frames (grayscale
-    frames are ``inner``'s answer unchanged; so is a colour frame ``inner`` already made
-    consistent, as ``auto`` at balanced and best do)."""
-
-    per_channel = False
+    frames are ``inner``'s answer unchanged). ``inner``'s own :meth:`join_channels` is
+    not run, so a colour frame is made consistent once."""
 
     def __init__(self, inner: Decoder) -> None:
         self.inner = inner
@@ -170,13 +170,12 @@ class ColourDecoder(Decoder):
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         return self.inner.explain_winding(m, params)
 
-    def explain_planes(
-        self, planes: NDArray[np.float64], params: SensorParams
+    def join_channels(
+        self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
-        winding, info = self.inner.explain_planes(planes, params)
-        if planes.shape[2] == 3 and "colour" not in info:
-            winding, info["colour"] = harmonise(planes, winding, params)
-        return winding, info
+        if planes.shape[2] == 3:
+            return harmonise(planes, winding, params)
+        return winding, {}
 
 
 def resolve(name: str) -> DecoderSpec | None:

@@ -89,7 +89,6 @@ from models.decoders.learned import load_cards, stitch_overlapping
 from models.decoders.region_moves import best_region_move
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_guide
-from models.errors import InvalidInputError
 from models.formation import SensorParams, max_winding
 from models.scene_analysis import neighbour_jumps, residue_map
 from models.tile_reconcile import common_offset
@@ -209,12 +208,6 @@ class GuidedPumaDecoder(Decoder):
         max_moves: int = MAX_MOVES,
         region_moves: int = REGION_MOVES,
     ) -> None:
-        if not guide.per_channel:
-            raise InvalidInputError(
-                f"{guide.name!r} decodes the channels of a colour frame jointly and cannot "
-                f"guide a refinement, which works channel by channel; put {SUFFIX} first "
-                "(e.g. herraez+puma+colour)"
-            )
         self.guide = guide
         self.prior_weight = prior_weight
         self.max_moves = max_moves
@@ -229,6 +222,12 @@ class GuidedPumaDecoder(Decoder):
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         return self.explain_winding(m, params)[0]
+
+    def join_channels(
+        self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """The guide's way with a colour frame's channels, after each is refined."""
+        return self.guide.join_channels(planes, winding, params)
 
     def explain_winding(
         self, m: NDArray[np.float64], params: SensorParams

@@ -7,6 +7,7 @@ import pytest
 
 from device.scenes import ProceduralScene
 from models.decoders.base import Decoder
+from models.decoders.colour import ColourDecoder
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, simulate
@@ -311,6 +312,37 @@ def test_colour_frames_keep_their_shape(temporal: StreamDecoder) -> None:
         result = temporal.decode(frame.codes, PARAMS, state)
         assert result.winding.shape == result.irradiance.shape == (SIZE, SIZE, 3)
         np.testing.assert_array_equal(result.winding, frame.winding)
+
+
+class PlanesDecoder(Decoder):
+    """Returns the planes of a fixed W (H x W x 3), one per call, in channel order."""
+
+    name = "planes"  # type: ignore[assignment]
+
+    def __init__(self, winding: np.ndarray) -> None:
+        self.winding = winding
+        self.calls = 0
+
+    def predict_winding(self, m: np.ndarray, params: SensorParams) -> np.ndarray:
+        plane = self.winding[:, :, self.calls % 3].copy()
+        self.calls += 1
+        return plane
+
+
+def test_a_colour_keyframe_joins_its_channels_as_a_still_frame_would() -> None:
+    """The spatial decoder's channels disagree (blue a wrap low in a region); a colour
+    decoder's keyframe makes them consistent, as its still decode does."""
+    params = SensorParams(encoding="mantissa", bits=12)
+    x = blob(1.0)
+    frame = encoded(np.stack([x, 0.8 * x, 0.6 * x], axis=2), params)
+    wrong = frame.winding.copy()
+    wrong[24:34, 26:40, 2] -= 1
+    assert (wrong != frame.winding).any()
+    spatial = ColourDecoder(PlanesDecoder(wrong))
+    config = TemporalConfig(refine_keyframes=False)
+    result = StreamDecoder("temporal", spatial, config).decode(frame.codes, params, StreamState())
+    assert result.keyframe == "first"
+    np.testing.assert_array_equal(result.winding, frame.winding)
 
 
 @pytest.mark.parametrize(

@@ -175,8 +175,17 @@ def test_names_resolve_and_wrong_ones_say_why() -> None:
     assert any("+colour" in text for text in name_patterns())
     with pytest.raises(InvalidInputError, match="unknown decoder 'nope'"):
         resolve("nope+colour")
-    with pytest.raises(InvalidInputError, match="put \\+puma first"):
-        get_decoder("itoh+colour+puma")
+
+
+def test_a_refined_decoder_joins_the_channels_as_its_guide_does() -> None:
+    """``<decoder>+colour+puma`` refines each channel, then makes them consistent, as
+    ``<decoder>+puma+colour`` does."""
+    params = SensorParams(encoding="mantissa", bits=12)
+    frame = encode(colour_scene(), params)
+    first = get_decoder("herraez+colour+puma").decode(frame.codes, params)
+    second = get_decoder("herraez+puma+colour").decode(frame.codes, params)
+    np.testing.assert_array_equal(first.winding, second.winding)
+    assert "colour" in first.info and "colour" in second.info
 
 
 @pytest.mark.parametrize(("quality", "joint"), [("fast", False), ("balanced", True)])
