@@ -29,6 +29,10 @@ OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy"}
 #: third of its time (bench.stream, itoh) to save 14% of the disk; uploads and video jobs,
 #: whose files travel to clients, default to ``zip``.
 STREAM_EXR_COMPRESSION = "none"
+#: The decode's facts written to the EXR's ``routing`` attribute (JSON): per channel
+#: (``details`` for one, ``channels`` for several), a colour frame's joined channels
+#: (``colour``) and a latency budget shared by its channels (``budget``).
+ROUTING_FACTS = ("details", "channels", "colour", "budget")
 
 
 def exr_attributes(params: SensorParams, info: dict[str, Any]) -> dict[str, str]:
@@ -42,7 +46,7 @@ def exr_attributes(params: SensorParams, info: dict[str, Any]) -> dict[str, str]
     }
     if params.gain is not None:
         attributes["gain"] = repr(params.gain)
-    routing = {key: info[key] for key in ("details", "channels") if key in info}
+    routing = {key: info[key] for key in ROUTING_FACTS if key in info}
     if routing:
         attributes["routing"] = json.dumps(routing, sort_keys=True)
     return attributes
