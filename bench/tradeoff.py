@@ -36,8 +36,9 @@ from bench import RESULTS, machine, utc_now, versions, write_report
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
-from models.decoders.budget import BudgetDecoder, predicted_ms
-from models.decoders.budget import adaptive as budget_adaptive
+from models.decoders.budget import BudgetDecoder
+from models.decoders.cost_model import adaptive as budget_adaptive
+from models.decoders.cost_model import predicted_ms
 from models.decoders.learned import ort_spinning, worker_threads
 from models.formation import SensorParams, dequantize, simulate
 from models.scene_analysis import analyse
@@ -114,7 +115,7 @@ def measure(decoder: Decoder, frames: list[ValFrame], repeats: int) -> dict[str,
 
 
 def prediction_ratios(frames: list[ValFrame], repeats: int) -> dict[str, dict[str, float]]:
-    """How well the latency-budget cost model (:func:`models.decoders.budget.predicted_ms`)
+    """How well the latency-budget cost model (:func:`models.decoders.cost_model.predicted_ms`)
     predicts each quality of ``auto``: per quality, the geometric mean, least and
     greatest ratio of predicted to measured ms (median of ``repeats``) of the W
     prediction after the scene analysis, over the frames with residues."""

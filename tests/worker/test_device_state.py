@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.decoders import budget
+from models.decoders import cost_model
 from models.errors import InvalidInputError
 from worker.device_state import DeviceState, make_frame_decoder, warm_up
 from worker.frame_message import FrameMessage
@@ -55,9 +55,10 @@ def test_warm_up_decodes_each_supported_encoding() -> None:
 def test_warm_up_calibrates_a_latency_budget() -> None:
     """After warming an ``auto-<N>ms`` stream decoder its costs for 256x256 frames are
     measured: the first live frame does not pay for that."""
-    for cached in (budget.call_cost, budget.refinement_ns_per_pixel, budget.overhead_ns_per_pixel):
+    costs = cost_model
+    for cached in (costs.call_cost, costs.refinement_ns_per_pixel, costs.overhead_ns_per_pixel):
         cached.cache_clear()
     warm_up("auto-50ms")
-    assert budget.call_cost.cache_info().currsize >= 2
-    assert budget.refinement_ns_per_pixel.cache_info().currsize == 2 * len(budget.QUALITIES)
-    assert budget.overhead_ns_per_pixel.cache_info().currsize == 2 * len(budget.QUALITIES)
+    assert costs.call_cost.cache_info().currsize >= 2
+    assert costs.refinement_ns_per_pixel.cache_info().currsize == 2 * len(costs.QUALITIES)
+    assert costs.overhead_ns_per_pixel.cache_info().currsize == 2 * len(costs.QUALITIES)
