@@ -189,13 +189,33 @@ def synthetic_scene(seed: int, size: int = 128) -> NDArray[np.float64]:
     return scene * gradient * vignette + 1e-6
 
 
-def synthetic_val256_frame(encoding: str, size: int = VAL256_SIZE, seed: int = 0) -> SensorFrame:
+def synthetic_val256_frame(
+    encoding: str, size: int = VAL256_SIZE, seed: int = 0, colour: bool = False
+) -> SensorFrame:
     """Seeded synthetic scene ``seed`` (``size`` x ``size``) exposed and encoded as
     val-256 frames are (overexposed 0.2, max_wraps 16, 8 bits, no noise): a stand-in
-    frame for timing and warming decoders that uses no validation scene."""
+    frame for timing and warming decoders that uses no validation scene. ``colour``:
+    linear RGB, the scene tinted by :func:`synthetic_tint`."""
     params = SensorParams(
         encoding=encoding,  # type: ignore[arg-type]
         bits=VAL256_BITS,
         max_wraps=VAL256_MAX_WRAPS,
     )
-    return simulate(synthetic_scene(seed, size), params, overexposed=VAL256_OVEREXPOSED)
+    scene = synthetic_scene(seed, size)
+    if colour:
+        scene = scene[:, :, None] * synthetic_tint(seed, size)
+    return simulate(scene, params, overexposed=VAL256_OVEREXPOSED)
+
+
+def synthetic_tint(seed: int, size: int) -> NDArray[np.float64]:
+    """Seeded smooth per-channel gains (``size`` x ``size`` x 3, around 1): red and blue
+    tilted from green by smooth log-chroma fields of up to 0.6 (natural log), as
+    natural scenes' chroma varies slowly."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    fields = [
+        rng.uniform(-0.4, 0.4) * np.sin(rng.uniform(1, 4) * xx + rng.uniform(0, 6.3))
+        + rng.uniform(-0.2, 0.2) * np.cos(rng.uniform(1, 4) * yy)
+        for _ in range(2)
+    ]
+    return np.exp(np.stack([fields[0], np.zeros((size, size)), fields[1]], axis=2))

@@ -6,7 +6,8 @@ quality's cost on this frame (:mod:`models.decoders.cost_model`, measured once p
 process on this machine). The first quality predicted within the budget decodes the
 frame. When none fits, ``itoh`` (one DCT solve per frame) decodes it if that is
 predicted to fit, else the quickest option runs. The inversion from W to irradiance
-is not part of the budget. A colour frame shares the budget among its channels.
+is not part of the budget. A colour frame is decoded within the budget as a whole
+(:meth:`BudgetDecoder.explain_planes`).
 
 The predictions are scaled by the process's running measured / predicted ratio of
 each option (:class:`SpeedFactors`), which follows load on the cores and each
@@ -26,7 +27,14 @@ from numpy.typing import NDArray
 
 from models.decoders.adaptive import DEFAULT_TILE
 from models.decoders.base import Decoder
-from models.decoders.cost_model import CLASSICAL, adaptive, calibrate, unscaled_options
+from models.decoders.colour import harmonise
+from models.decoders.cost_model import (
+    CLASSICAL,
+    adaptive,
+    calibrate,
+    colour_ns_per_pixel,
+    unscaled_options,
+)
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams
@@ -48,6 +56,14 @@ SPEED_MIN_MS = 1.0
 SPEED_SPREADS = 1.0
 #: The log ratio's spread assumed when an option's first decode is folded in (about 15%).
 SPEED_PRIOR_SPREAD = 0.15
+#: A colour frame's channels are made consistent when that is predicted to take at most
+#: this share of its budget. The join gained 1.0-4.6 dB on colour frames (bench.colour:
+#: auto-balanced and auto-best, both encodings, val-256 in colour and the tuning set),
+#: more than a step of quality does on grayscale val-256 (fast -> balanced 2.1 dB, balanced
+#: -> best 0.3 dB), so it may take up to half the time; a rule of thumb, not a fit.
+JOIN_SHARE = 0.5
+#: The join's name among the speed factors (:class:`SpeedFactors`).
+COLOUR = "colour"
 
 
 def check_budget(budget_ms: float) -> None:
@@ -122,32 +138,45 @@ class BudgetDecoder(Decoder):
     def explain_planes(
         self, planes: NDArray[np.float64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
-        """A colour frame shares the budget among its channels, so that the frame, not
-        each channel, is decoded within it: each channel gets the time left divided by
-        the channels left. The frame's facts (``budget``: the budget, the measured ms
-        of all channels, whether it was met) come with each channel's (``channels``).
-        The channels are decoded on their own (no :mod:`models.decoders.colour` step,
-        whose cost the budget does not predict)."""
+        """A colour frame is decoded within the budget as a whole. Its channels are made
+        consistent (:func:`models.decoders.colour.harmonise`) when that is predicted to
+        take at most :data:`JOIN_SHARE` of the budget, and the rest is shared among the
+        channels: each gets the time left divided by the channels left. The frame's
+        facts (``budget``: the budget, whether the channels were joined and the join's
+        predicted ms, the measured ms of it all, whether the budget was met) come with
+        each channel's (``channels``) and the join's (``colour``)."""
         if planes.shape[2] == 1:
             return super().explain_planes(planes, params)
         calibration_start = time.perf_counter_ns()
         calibrate(params, planes.shape[:2])
+        join_model_ms = planes[:, :, 0].size * colour_ns_per_pixel(params.encoding) / 1e6
         start = time.perf_counter_ns()
+        join_ms = join_model_ms * SPEED.value(COLOUR)
+        joined = join_ms <= JOIN_SHARE * self.budget_ms
+        channels_ms = self.budget_ms - (join_ms if joined else 0.0)
         windings, channels = [], []
         for channel in range(planes.shape[2]):
-            left_ms = self.budget_ms - (time.perf_counter_ns() - start) / 1e6
+            left_ms = channels_ms - (time.perf_counter_ns() - start) / 1e6
             share_ms = left_ms / (planes.shape[2] - channel)
             winding, facts = self.explain_within(planes[:, :, channel], params, share_ms)
             windings.append(winding)
             channels.append(facts)
+        info: dict[str, Any] = {"channels": channels}
+        winding = np.stack(windings, axis=2)
+        if joined:
+            join_start = time.perf_counter_ns()
+            winding, info["colour"] = harmonise(planes, winding, params)
+            SPEED.update(COLOUR, join_model_ms, (time.perf_counter_ns() - join_start) / 1e6)
         measured_ms = (time.perf_counter_ns() - start) / 1e6
-        frame = {
+        info["budget"] = {
             "budget_ms": self.budget_ms,
+            "joined": joined,
+            "join_predicted_ms": round(join_ms, 2),
             "measured_ms": round(measured_ms, 2),
             "met": measured_ms <= self.budget_ms,
             "calibration_ms": round((start - calibration_start) / 1e6, 2),
         }
-        return np.stack(windings, axis=2), {"channels": channels, "budget": frame}
+        return winding, info
 
     def explain_within(
         self, m: NDArray[np.float64], params: SensorParams, budget_ms: float

@@ -37,8 +37,8 @@ after its channels at balanced and best (:data:`JOINT_COLOUR` in
 :mod:`models.decoders.adaptive`), any decoder gets it as ``<decoder>+colour``, a
 refined decoder (``<decoder>+puma``) joins as its guide does, and a colour video's
 keyframes are joined (:mod:`worker.temporal`; the frames between them track each
-channel). A latency budget (``auto-<N>ms``, which shares its budget among a colour
-frame's channels) decodes the channels on their own.
+channel). A latency budget (``auto-<N>ms``) joins a colour frame's channels when that
+is predicted to take at most half its budget (:mod:`models.decoders.budget`).
 
 Measured (``python -m bench.colour``, 2026-11-26, 2 AMD EPYC cores; the constants
 below were chosen on the *tuning* set, 2 crops of each training scene, before the

@@ -15,6 +15,7 @@ analysis:
 - the routing's own work (tile integration, stitching, anchoring), per pixel of the
   frame.
 
+A colour frame's join (:func:`colour_ns_per_pixel`) is charged per pixel of the frame.
 The inversion from W to irradiance is not part of it. Costs are measured once per
 process on this machine, by timing each stage on a seeded synthetic 256 x 256 frame
 exposed like val-256 (and its top-left quarter, for the fixed cost of a run), so
@@ -44,6 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.adaptive import QUALITIES, AdaptiveDecoder
+from models.decoders.colour import harmonise
 from models.decoders.guided_puma import refinement_boxes
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams, dequantize
@@ -242,6 +244,23 @@ def stage_ns(
     else:
         total_ns += frame_pixels * check_ns_per_pixel(quality, params.encoding)
     return total_ns
+
+
+@cache
+def colour_ns_per_pixel(encoding: str) -> float:
+    """Time per pixel (ns) of making a colour frame's channels consistent
+    (:func:`models.decoders.colour.harmonise`) on the colour calibration frame (the
+    calibration scene tinted, :func:`models.scenes.synthetic_val256_frame`), from the W
+    ``auto-balanced`` gives its channels; the least of :data:`CALIBRATION_RUNS`,
+    measured once."""
+    frame = synthetic_val256_frame(encoding, CALIBRATION_SIZE, CALIBRATION_SEED, colour=True)
+    planes = dequantize(frame.codes, frame.params.bits)
+    decoder = adaptive("balanced")
+    winding = np.stack(
+        [decoder.explain_winding(planes[:, :, c], frame.params)[0] for c in range(3)], axis=2
+    )
+    runs = fastest_ns(lambda: harmonise(planes, winding, frame.params), CALIBRATION_RUNS)
+    return runs / (planes.shape[0] * planes.shape[1])
 
 
 def calibrate(params: SensorParams, shape: tuple[int, int]) -> None:

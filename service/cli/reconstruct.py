@@ -82,9 +82,10 @@ def run(args: argparse.Namespace) -> int:
     for facts in filter(None, (channel.get("budget") for channel in channels)):
         print(budget_summary(facts))
     if (frame := result.info.get("budget")) is not None:
+        joined = "made consistent" if frame["joined"] else "not joined (no time for it)"
         print(
             f"latency budget {frame['budget_ms']:g} ms for the colour frame, shared by its "
-            f"channels: they took {frame['measured_ms']:.1f} ms, "
+            f"channels ({joined}): {frame['measured_ms']:.1f} ms in all, "
             f"{'within' if frame['met'] else 'over'} budget"
         )
     return 0

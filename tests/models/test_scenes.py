@@ -90,3 +90,14 @@ def test_val256_in_colour_is_the_same_crops_exposed_on_their_luminance() -> None
         assert frame.codes.shape == frame.winding.shape == (256, 256, 3)
         assert abs((luminance(frame.x) > 1).mean() - 0.2) < 0.01
     assert gray[0].params.gain == pytest.approx(colour[0].params.gain)
+
+
+def test_the_colour_synthetic_frame_is_the_scene_tinted_and_exposed_on_luminance() -> None:
+    frame = scenes.synthetic_val256_frame("mantissa", 64, seed=3, colour=True)
+    again = scenes.synthetic_val256_frame("mantissa", 64, seed=3, colour=True)
+    assert frame.codes.shape == (64, 64, 3) and np.array_equal(frame.codes, again.codes)
+    overexposed = (luminance(frame.irradiance) > 1.0).mean()
+    assert overexposed == pytest.approx(scenes.VAL256_OVEREXPOSED, abs=0.02)
+    tint = scenes.synthetic_tint(3, 64)
+    assert np.all(tint[:, :, 1] == 1.0)
+    assert np.all(np.abs(np.log(tint)) <= 0.6) and np.ptp(np.log(tint[:, :, 0])) > 0.0

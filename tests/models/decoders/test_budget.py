@@ -9,10 +9,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from models.decoders import budget, get_decoder
-from models.decoders.budget import SPEED_RANGE, BudgetDecoder, SpeedFactors, resolve
+from models.decoders.budget import JOIN_SHARE, SPEED_RANGE, BudgetDecoder, SpeedFactors, resolve
 from models.decoders.registry import name_patterns
 from models.errors import InvalidInputError
 from models.formation import SensorParams, quantize
+from models.scenes import synthetic_val256_frame
 
 MODULO = SensorParams(encoding="modulo", bits=8)
 
@@ -111,23 +112,41 @@ def test_a_budget_reports_the_factor_it_used_and_learns_from_the_decode() -> Non
     assert budget.SPEED.value("best") != before
 
 
-def test_a_colour_frame_shares_the_budget_among_its_channels() -> None:
-    """The frame, not each channel, is decoded within the budget: the first channel
-    gets a third of it, each later one a share of what is left."""
-    codes = np.stack([hard_frame(), hard_frame(), hard_frame()], axis=2)
-    result = BudgetDecoder(300.0).decode(codes, MODULO)
+def colour_frame() -> tuple[np.ndarray, SensorParams]:
+    """A 64 x 64 colour frame with wraps in every channel, and its parameters."""
+    frame = synthetic_val256_frame("modulo", 64, seed=3, colour=True)
+    return frame.codes, frame.params
+
+
+@pytest.mark.parametrize("budget_ms", [2.0, 600000.0])
+def test_a_colour_frame_shares_the_budget_among_its_channels(budget_ms: float) -> None:
+    """The frame, not each channel, is decoded within the budget: the join (when it is
+    predicted to fit in half the budget) is set aside, the first channel gets a third of
+    the rest, each later one a share of what is left."""
+    codes, params = colour_frame()
+    result = BudgetDecoder(budget_ms).decode(codes, params)
+    frame = result.info["budget"]
+    assert frame["budget_ms"] == budget_ms
+    assert frame["joined"] is (frame["join_predicted_ms"] <= JOIN_SHARE * budget_ms)
+    assert frame["joined"] is (budget_ms > 2.0)
+    assert ("colour" in result.info) is frame["joined"]
     channels = result.info["channels"]
     assert len(channels) == 3
-    shares = [channel["budget"]["budget_ms"] for channel in channels]
-    assert shares[0] == pytest.approx(100.0, abs=0.01)
-    for index, share in enumerate(shares):
+    shared = budget_ms - (frame["join_predicted_ms"] if frame["joined"] else 0.0)
+    for index, channel in enumerate(channels):
         spent = sum(c["budget"]["measured_ms"] for c in channels[:index])
-        assert share <= (300.0 - spent) / (3 - index) + 0.01
-    frame = result.info["budget"]
-    assert frame["budget_ms"] == 300.0
+        assert channel["budget"]["budget_ms"] <= (shared - spent) / (3 - index) + 0.01
+    assert channels[0]["budget"]["budget_ms"] == pytest.approx(shared / 3, abs=0.05)
     assert frame["measured_ms"] >= sum(c["budget"]["measured_ms"] for c in channels)
-    assert frame["met"] == (frame["measured_ms"] <= 300.0)
-    assert "colour" not in result.info
+    assert frame["met"] == (frame["measured_ms"] <= budget_ms)
+
+
+def test_a_generous_budget_decodes_a_colour_frame_like_auto_best() -> None:
+    codes, params = colour_frame()
+    result = BudgetDecoder(600000.0).decode(codes, params)
+    best = get_decoder("auto-best").decode(codes, params)
+    np.testing.assert_array_equal(result.winding, best.winding)
+    assert result.info["colour"] == best.info["colour"]
 
 
 def test_a_grayscale_frame_keeps_the_whole_budget() -> None:

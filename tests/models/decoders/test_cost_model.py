@@ -9,6 +9,7 @@ import pytest
 from models.decoders import get_decoder
 from models.decoders.cost_model import (
     call_cost,
+    colour_ns_per_pixel,
     predicted_ms,
     refined_shapes,
     refinement_ns,
@@ -86,3 +87,11 @@ def test_refinement_costs_are_calibrated_by_frame_size() -> None:
         512,
         512,
     ]
+
+
+def test_the_colour_join_is_timed_once_per_encoding() -> None:
+    colour_ns_per_pixel.cache_clear()
+    cost = colour_ns_per_pixel("modulo")
+    assert cost > 0.0
+    assert colour_ns_per_pixel("modulo") == cost
+    assert colour_ns_per_pixel.cache_info().hits == 1
