@@ -4,7 +4,7 @@
 each channel alone and with :func:`models.decoders.colour.harmonise` after it
 (``<decoder>+colour``; ``auto`` at balanced and best with ``joint_colour`` off and
 on), on two sets of 256 x 256 linear-RGB frames at the val-256 settings (overexposed
-0.2 on luminance, max_wraps 16, 8 bits):
+0.2 on luminance, max_wraps 16, 8 bits; read noise 0, or ``--read-noise``):
 
 - ``val``: val-256 in colour, the validation crops (:func:`models.scenes.val256_frames`
   with ``colour=True``);
@@ -43,12 +43,12 @@ TUNING_SEED = 900
 TUNING_CROPS_PER_SCENE = 2
 
 
-def frame_set(name: str, encoding: str) -> list[ValFrame]:
-    """The colour frames of set ``name`` for ``encoding``."""
+def frame_set(name: str, encoding: str, read_noise: float = 0.0) -> list[ValFrame]:
+    """The colour frames of set ``name`` for ``encoding``, at ``read_noise`` (wrap units)."""
     if name == "val":
-        return val256_frames(encoding, colour=True)
+        return val256_frames(encoding, read_noise, colour=True)
     crops = panorama_crops(TRAIN_SCENES, TUNING_CROPS_PER_SCENE, TUNING_SEED, colour=True)
-    return exposed_frames(crops, encoding, seed=TUNING_SEED)
+    return exposed_frames(crops, encoding, read_noise, seed=TUNING_SEED)
 
 
 def pair(name: str) -> tuple[Decoder, Decoder]:
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rows = []
     for set_name in args.sets:
         for encoding in args.encodings:
-            frames = frame_set(set_name, encoding)[: args.frames]
+            frames = frame_set(set_name, encoding, args.read_noise)[: args.frames]
             for name in args.decoders:
                 alone, joint = pair(name)
                 row = summary(measure(alone, frames), measure(joint, frames))
@@ -127,6 +127,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "date": utc_now(),
         "machine": machine(),
         "versions": versions(),
+        "read_noise": args.read_noise,
         "rows": rows,
     }
 
@@ -147,7 +148,8 @@ def markdown_row(row: dict[str, Any]) -> str:
 
 def markdown(report: dict[str, Any]) -> str:
     lines = [
-        f"Colour frames, channels alone -> made consistent, {report['date']}, "
+        f"Colour frames (read noise {report['read_noise']:g}), channels alone -> made "
+        f"consistent, {report['date']}, "
         f"{report['machine']['cpu']} ({report['machine']['cores']} cores)",
         "",
         "| set | encoding | decoder | PSNR dB | PU21-PSNR dB | W acc % | all 3 right % "
@@ -164,6 +166,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
     parser.add_argument("--frames", type=int, default=None, help="first N frames of each set")
+    parser.add_argument("--read-noise", type=float, default=0.0, help="wrap units (default 0)")
     parser.add_argument("--out", type=Path, default=RESULTS / "colour.json")
     return parser.parse_args(argv)
 

@@ -20,6 +20,9 @@ with it: ``finite`` (every decoder returns finite W and x_hat, never NaN/inf),
 | 1 x 1 and 1 x N frames | a clear error: spatial decoders need 2 x 2 |
 | codes >= 2^bits, float codes | a clear invalid-input error |
 | an encoding the decoder has no model for | a clear invalid-input error naming it |
+| each case above as a colour frame (3 channels) | the same outcome through the decoders |
+| | that join a colour frame's channels (``auto``, ``<decoder>+colour``, a budget) |
+| a tinted colour ramp, 1e-6 .. 1e6 | finite through those decoders |
 """
 
 from __future__ import annotations
@@ -162,3 +165,38 @@ def test_auto_passes_unwrapped_frames_through(case: str) -> None:
     codes, _, params = next(c for c in EXTREMES if c.name == case).build()
     routes = get_decoder("auto").decode(codes, params).info["details"]["routes"]
     assert routes == {"pass-through": 1.0}
+
+
+#: Decoders that join a colour frame's channels (models/decoders/colour.py).
+COLOUR_DECODERS = ["auto-balanced", "auto-best", "itoh+colour", "auto-600000ms"]
+
+
+def three_channels(plane: np.ndarray) -> np.ndarray:
+    return np.repeat(plane[:, :, None], 3, axis=2)
+
+
+def as_colour(case: Extreme) -> Extreme:
+    """``case`` with its frame repeated in three channels (its truth likewise)."""
+
+    def build() -> tuple[np.ndarray, np.ndarray | None, SensorParams]:
+        codes, truth, params = case.build()
+        return three_channels(codes), None if truth is None else three_channels(truth), params
+
+    return Extreme(case.name, build, case.expect)
+
+
+@pytest.mark.parametrize("case", EXTREMES, ids=[c.name for c in EXTREMES])
+@pytest.mark.parametrize("decoder", COLOUR_DECODERS)
+def test_extreme_colour_frames(decoder: str, case: Extreme) -> None:
+    run(decoder, as_colour(case))
+
+
+@pytest.mark.parametrize("decoder", COLOUR_DECODERS)
+def test_a_tinted_colour_ramp_stays_finite(decoder: str) -> None:
+    rows, cols = np.mgrid[0:SIZE, 0:SIZE]
+    ramp = 1e-6 * 1e12 ** ((rows + cols) / (2 * SIZE - 2))
+    red, blue = np.exp(0.5 * np.sin(cols / 5)), np.exp(-0.4 * rows / SIZE)
+    tint = np.stack([red, np.ones_like(ramp), blue], axis=2)
+    frame = encode(ramp[:, :, None] * tint, mantissa())
+    result = get_decoder(decoder).decode(frame.codes, frame.params)
+    assert np.isfinite(result.irradiance).all() and (result.winding >= 0).all()
