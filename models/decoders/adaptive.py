@@ -106,9 +106,13 @@ NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: 23.88 dB; ranked by the nets' own PSNR it would run base-noise+puma, 23.92 dB).
 REFINEMENT: dict[str, int] = {"fast": 0, "balanced": 2, "best": MAX_MOVES}
 #: Qualities that make a colour frame's channels consistent once each is decoded
-#: (:func:`models.decoders.colour.harmonise`, about 0.1-0.15 s per 256x256 frame; see
-#: that module for what it gains). Not ``fast``: it would cost more than the channels.
-JOINT_COLOUR: frozenset[str] = frozenset({"balanced", "best"})
+#: (:func:`models.decoders.colour.harmonise`; see that module for what it gains), each
+#: up to frames of this many pixels (None: any size). The join costs about 2.5 us per
+#: pixel at every size (0.15 s at 256x256, 0.7 s at 512x512, 2.5 s at 1024x1024 on a
+#: synthetic frame whose channels auto-balanced decoded in 0.54 s), so balanced joins
+#: frames up to 512x512 and best any frame. Not ``fast``: it would cost more than the
+#: channels.
+JOINT_COLOUR: dict[str, int | None] = {"balanced": 512 * 512, "best": None}
 #: Stand-in for hard tiles when no learned decoder is installed.
 CLASSICAL_FALLBACK = "itoh"
 #: Without refinement, regions where the stitched W disagrees with this decoder's take
@@ -199,6 +203,7 @@ class AdaptiveDecoder(Decoder):
             raise ValueError(f"quality must be one of {QUALITIES}, got {quality!r}")
         self.quality = quality
         self.joint_colour = quality in JOINT_COLOUR if joint_colour is None else joint_colour
+        self.join_max_pixels = JOINT_COLOUR.get(quality)
         self.tile = tile
         self.margin = margin
         self.group = group
@@ -250,10 +255,15 @@ class AdaptiveDecoder(Decoder):
         self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         """A colour frame's channels made consistent when ``joint_colour`` (by default at
-        the qualities of :data:`JOINT_COLOUR`)."""
-        if planes.shape[2] == 3 and self.joint_colour:
-            return harmonise(planes, winding, params)
-        return winding, {}
+        the qualities of :data:`JOINT_COLOUR`, up to its size), or why they were not."""
+        if planes.shape[2] != 3 or not self.joint_colour:
+            return winding, {}
+        pixels = planes.shape[0] * planes.shape[1]
+        if self.join_max_pixels is not None and pixels > self.join_max_pixels:
+            side = int(np.sqrt(self.join_max_pixels))
+            reason = f"not joined: frames over {side}x{side} px are joined at best only"
+            return winding, {"reason": reason}
+        return harmonise(planes, winding, params)
 
     def network_calls(
         self, analysis: FrameAnalysis, shape: tuple[int, int]

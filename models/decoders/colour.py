@@ -33,8 +33,8 @@ right; where two channels are wrong the same way, the third is made wrong too; w
 all three votes differ, nothing changes.
 
 It is a decoder's :meth:`models.decoders.base.Decoder.join_channels`: ``auto`` runs it
-after its channels at balanced and best (:data:`JOINT_COLOUR` in
-:mod:`models.decoders.adaptive`), any decoder gets it as ``<decoder>+colour``, a
+after its channels at best and, up to 512x512 px, at balanced (:data:`JOINT_COLOUR` in
+:mod:`models.decoders.adaptive`: it costs about 2.5 us a pixel), any decoder gets it as ``<decoder>+colour``, a
 refined decoder (``<decoder>+puma``) joins as its guide does, and a colour video's
 keyframes are joined (:mod:`worker.temporal`; the frames between them track each
 channel). A latency budget (``auto-<N>ms``) joins a colour frame's channels when that
@@ -101,6 +101,14 @@ def colour_anchors(m: NDArray[np.float64], winding: NDArray[np.int64]) -> NDArra
     return (winding == 0).all(axis=2) & (m < ANCHOR_CODE).all(axis=2)
 
 
+def has_jumps(chroma: NDArray[np.float64]) -> bool:
+    """Whether any two neighbours of ``chroma`` (wrap units) differ by over half a wrap."""
+    return bool(
+        (np.abs(np.diff(chroma, axis=0)) > 0.5).any()
+        or (np.abs(np.diff(chroma, axis=1)) > 0.5).any()
+    )
+
+
 def relative_winding(
     m: NDArray[np.float64],
     winding: NDArray[np.int64],
@@ -113,6 +121,10 @@ def relative_winding(
     wrapped = difference - np.floor(difference)
     guide = (winding[:, :, channel] - winding[:, :, REFERENCE]) + np.floor(difference)
     guide = guide.astype(np.int64)
+    if not has_jumps(guide + wrapped):
+        # Every move would add jumps and the anchors already agree: the guide is the
+        # minimum (a colour frame whose channels agree everywhere costs no min-cut).
+        return guide - np.floor(difference).astype(np.int64)
     energy = PumaEnergy(
         1.0, pair_weights(wrapped), guide, np.where(anchors, ANCHOR_WEIGHT, 0.0), 1.0
     )

@@ -16,6 +16,7 @@ from models.decoders.colour import (
     ColourDecoder,
     colour_anchors,
     harmonise,
+    has_jumps,
     relative_winding,
 )
 from models.decoders.registry import get_decoder, name_patterns, resolve
@@ -210,3 +211,27 @@ def test_a_colour_frame_auto_already_made_consistent_is_not_harmonised_twice() -
     wrapped = ColourDecoder(inner).decode(frame.codes, params)
     np.testing.assert_array_equal(wrapped.winding, once.winding)
     assert wrapped.info["colour"] == once.info["colour"]
+
+
+def test_channels_that_agree_everywhere_cost_no_min_cut(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A guide without a chroma jump is the minimum: no move is searched."""
+    m, truth, params = frame_of(colour_scene(peak=8.0))
+    assert not has_jumps(np.zeros((3, 3))) and has_jumps(np.array([[0.0, 0.7]]))
+
+    def refuse(*args: object) -> None:
+        raise AssertionError("no min-cut should run")
+
+    monkeypatch.setattr("models.decoders.colour.minimise", refuse)
+    harmonised, _ = harmonise(m, truth, params)
+    np.testing.assert_array_equal(harmonised, truth)
+
+
+def test_balanced_joins_frames_up_to_its_size_and_says_why_not_beyond() -> None:
+    params = SensorParams(encoding="mantissa", bits=12)
+    frame = encode(colour_scene(), params)
+    decoder = AdaptiveDecoder("balanced")
+    assert decoder.join_max_pixels == 512 * 512 and AdaptiveDecoder("best").join_max_pixels is None
+    decoder.join_max_pixels = 32 * 32
+    result = decoder.decode(frame.codes, params)
+    reason = "not joined: frames over 32x32 px are joined at best only"
+    assert result.info["colour"] == {"reason": reason}
