@@ -76,11 +76,44 @@ async function submitFrame(frame, simulated) {
   return (await reply.json()).id;
 }
 
+const percent = (share) => `${(100 * share).toFixed(1)}%`;
+
+// One line per fact of how the job's frame was decoded (GET /v1/jobs/{id} "info"):
+// each channel's routes and refinement or latency budget, and a colour frame's join.
+function describeDecode(info) {
+  if (!info) return "";
+  const lines = [`decoder: ${info.decoder}`];
+  const channels = info.channels || (info.details ? [info.details] : []);
+  channels.forEach((facts, index) => {
+    const label = channels.length > 1 ? `${"RGB"[index] ?? index}: ` : "";
+    if (facts.routes) {
+      const routes = Object.entries(facts.routes)
+        .map(([route, share]) => `${route} ${percent(share)}`).join(", ");
+      lines.push(`${label}${routes}${facts.reason ? ` (${facts.reason})` : ""}`);
+    }
+    if (facts.refinement) {
+      const { decoder, changed_fraction: changed } = facts.refinement;
+      lines.push(`${label}refined by ${decoder}: ${percent(changed)} of pixels changed`);
+    }
+    if (facts.budget) {
+      const { budget_ms: budget, chosen, measured_ms: took } = facts.budget;
+      lines.push(`${label}latency budget ${budget} ms: ${chosen}, took ${took} ms`);
+    }
+  });
+  const colour = info.colour;
+  if (colour) {
+    const changed = colour.reason ? "" : percent(colour.changed_fraction);
+    lines.push(colour.reason ?? `colour: channels made consistent, ${changed} of pixel-channels changed`);
+  }
+  return lines.join("\n");
+}
+
 function showJob(job) {
   $("progress").value = job.progress;
   const stages = Object.entries(job.timings_ns || {})
     .map(([stage, ns]) => `${stage}: ${(ns / 1e6).toFixed(1)} ms`);
   $("timings").textContent = stages.join("\n");
+  $("routing").textContent = describeDecode(job.info);
   const error = job.error ? ` (${job.error.code}: ${job.error.message})` : "";
   setStatus(`job ${job.id}: ${job.state}${error}`, job.state === "failed");
 }

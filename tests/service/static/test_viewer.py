@@ -50,9 +50,12 @@ def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Pa
         page.select_option("#encoding", "mantissa")
         page.fill("#alpha", "2")
         page.fill("#bits", "8")
+        page.select_option("#quality", "balanced")
         page.click("#run")
         page.wait_for_function("!document.getElementById('download').disabled", timeout=60_000)
         assert "succeeded" in page.inner_text("#status")
+        routing = page.inner_text("#routing")
+        assert routing.startswith("decoder: auto-balanced") and "%" in routing
         page.wait_for_function(  # blob images decode asynchronously
             "['img-codes', 'img-winding', 'img-hdr'].every(id => {"
             " const image = document.getElementById(id);"
