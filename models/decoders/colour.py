@@ -34,11 +34,12 @@ all three votes differ, nothing changes.
 
 It is a decoder's :meth:`models.decoders.base.Decoder.join_channels`: ``auto`` runs it
 after its channels at best and, up to 512x512 px, at balanced (:data:`JOINT_COLOUR` in
-:mod:`models.decoders.adaptive`: it costs about 2.5 us a pixel), any decoder gets it as ``<decoder>+colour``, a
-refined decoder (``<decoder>+puma``) joins as its guide does, and a colour video's
-keyframes are joined (:mod:`worker.temporal`; the frames between them track each
-channel). A latency budget (``auto-<N>ms``) joins a colour frame's channels when that
-is predicted to take at most half its budget (:mod:`models.decoders.budget`).
+:mod:`models.decoders.adaptive`: it costs about 2.5 us a pixel), any decoder gets it
+as ``<decoder>+colour``, a refined decoder (``<decoder>+puma``) joins as its guide
+does, and a colour video's keyframes are joined (:mod:`worker.temporal`; the frames
+between them track each channel). A latency budget (``auto-<N>ms``) joins a colour
+frame's channels when that is predicted to take at most half its budget
+(:mod:`models.decoders.budget`).
 
 Measured (``python -m bench.colour``, 2026-11-26, 2 AMD EPYC cores; the constants
 below were chosen on the *tuning* set, 2 crops of each training scene, before the

@@ -3,8 +3,12 @@
 A batch mixes random crops of the 14 training HDRIs (random 1x/2x downscale,
 wrapping around the panorama seam) and seeded synthetic scenes; each crop gets
 random flips and 90-degree rotations, a random exposure (overexposed fraction
-0.05..0.35), a random ``max_wraps`` and optionally read noise. Grayscale.
-Everything is seeded by ``(seed, step)`` so a resumed run sees the same data.
+0.05..0.35), a random ``max_wraps`` and optionally read noise. Grayscale (the HDRIs'
+luminance), or with probability ``colour_fraction`` an HDRI crop in linear RGB,
+exposed on its luminance as a colour frame is, of which one random channel makes the
+pair: the nets decode colour frames channel by channel, and a channel is not a
+luminance image (a blue sky can lie above saturation everywhere). Everything is
+seeded by ``(seed, step)`` so a resumed run sees the same data.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, from_unwrapped, simulate
-from models.scenes import TRAIN_SCENES, load_hdri_gray, synthetic_scene
+from models.scenes import TRAIN_SCENES, load_hdri, load_hdri_gray, synthetic_scene
 from models.training.networks import NUM_CLASSES
 
 OVEREXPOSED_RANGE = (0.05, 0.35)
@@ -38,23 +42,26 @@ class PairConfig:
     max_read_noise: float = 0.0
     synthetic_fraction: float = 0.5
     bits: int = 8
+    colour_fraction: float = 0.0
 
 
 @cache
-def _train_scenes() -> tuple[NDArray[np.float64], ...]:
-    return tuple(load_hdri_gray(name) for name in TRAIN_SCENES)
+def _train_scenes(colour: bool = False) -> tuple[NDArray[np.float64], ...]:
+    load = load_hdri if colour else load_hdri_gray
+    return tuple(load(name) for name in TRAIN_SCENES)
 
 
-def _hdri_crop(rng: np.random.Generator, size: int) -> NDArray[np.float64]:
-    """A random ``size x size`` crop of a training HDRI, at 1x or 2x downscale (1x only
-    when the panorama, 256 px tall, has no room for 2x)."""
-    scene = _train_scenes()[int(rng.integers(len(TRAIN_SCENES)))]
+def _hdri_crop(rng: np.random.Generator, size: int, colour: bool = False) -> NDArray[np.float64]:
+    """A random ``size x size`` crop of a training HDRI (luminance, or linear RGB
+    ``size x size x 3`` when ``colour``), at 1x or 2x downscale (1x only when the
+    panorama, 256 px tall, has no room for 2x)."""
+    scene = _train_scenes(colour)[int(rng.integers(len(TRAIN_SCENES)))]
     factor = int(rng.integers(1, min(2, scene.shape[0] // size) + 1))
     span = size * factor
     top = int(rng.integers(0, scene.shape[0] - span + 1))
     rows = np.roll(scene[top : top + span], -int(rng.integers(scene.shape[1])), axis=1)
     crop = rows[:, :span]
-    return crop.reshape(size, factor, size, factor).mean(axis=(1, 3))
+    return crop.reshape(size, factor, size, factor, *scene.shape[2:]).mean(axis=(1, 3))
 
 
 def _augment(rng: np.random.Generator, scene: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -81,7 +88,9 @@ def sample_pair(
         if rng.uniform() < config.synthetic_fraction:
             scene = synthetic_scene(int(rng.integers(2**31)), config.crop)
         else:
-            scene = _hdri_crop(rng, config.crop)
+            # No draw when colour_fraction is 0, so grayscale recipes see the same data.
+            colour = bool(config.colour_fraction) and rng.uniform() < config.colour_fraction
+            scene = _hdri_crop(rng, config.crop, colour)
         noise = rng.uniform(0.0, config.max_read_noise) if rng.uniform() < 0.5 else 0.0
         params = SensorParams(
             encoding=config.encoding,  # type: ignore[arg-type]
@@ -96,8 +105,12 @@ def sample_pair(
             frame = simulate(augmented, params, overexposed=overexposed)
         except InvalidInputError:
             continue
-        winding = np.minimum(frame.winding, NUM_CLASSES - 1)
-        return dequantize(frame.codes, config.bits).astype(np.float32), winding
+        codes, winding = frame.codes, frame.winding
+        if codes.ndim == 3:
+            channel = int(rng.integers(codes.shape[2]))
+            codes, winding = codes[:, :, channel], winding[:, :, channel]
+        winding = np.minimum(winding, NUM_CLASSES - 1)
+        return dequantize(codes, config.bits).astype(np.float32), winding
 
 
 def sample_batch(

@@ -75,6 +75,7 @@ class TrainConfig:
     large_crop: int = 128
     batch: int = 8
     max_read_noise: float = 0.0
+    colour_fraction: float = 0.0
     risk_weight: float = RISK_WEIGHT
     own_states: float = 0.0
     own_passes: int = 4
@@ -91,10 +92,15 @@ class TrainConfig:
 
     @property
     def name(self) -> str:
-        noise = "-noise" if self.max_read_noise > 0 else ""
         loss = "" if self.loss == "ce" else f"-{self.loss}"
         label = f"-{self.label}" if self.label else ""
-        return f"{self.family}-{self.tier}{noise}{loss}{label}-{self.encoding}"
+        return f"{self.family}-{self.tier}{self.data_tag}{loss}{label}-{self.encoding}"
+
+    @property
+    def data_tag(self) -> str:
+        """``-noise`` for noise-aware training, ``-colour`` for colour-channel data."""
+        noise = "-noise" if self.max_read_noise > 0 else ""
+        return noise + ("-colour" if self.colour_fraction > 0 else "")
 
     @property
     def decoder(self) -> str:
@@ -102,8 +108,7 @@ class TrainConfig:
         differ only in their loss serve the same decoder)."""
         if self.family == "unmodnet":
             return "unmodnet"
-        noise = "-noise" if self.max_read_noise > 0 else ""
-        return f"{self.family}-{self.tier}{noise}"
+        return f"{self.family}-{self.tier}{self.data_tag}"
 
     @property
     def run_dir(self) -> Path:
@@ -123,8 +128,12 @@ class TrainConfig:
         as many."""
         if stage == 4:
             batch = max(self.batch // 4, 1)
-            return PairConfig(self.encoding, self.large_crop, batch, self.max_read_noise)
-        return PairConfig(self.encoding, self.crop, self.batch, self.max_read_noise)
+            crop = self.large_crop
+        else:
+            crop, batch = self.crop, self.batch
+        return PairConfig(
+            self.encoding, crop, batch, self.max_read_noise, colour_fraction=self.colour_fraction
+        )
 
     def learning_rate(self, step: int) -> float:
         """Per-stage rate with a cosine decay to 5% over each stage."""
@@ -162,6 +171,11 @@ def check_config(config: TrainConfig) -> None:
         )
     if not config.risk_weight >= 0.0:
         raise InvalidInputError(f"risk_weight must be >= 0, got {config.risk_weight}")
+    if not 0.0 <= config.colour_fraction <= 1.0:
+        raise InvalidInputError(
+            f"colour_fraction must be in [0, 1] (the share of HDRI crops taken as one "
+            f"channel of a colour frame), got {config.colour_fraction}"
+        )
     if config.precision not in PRECISIONS:
         raise InvalidInputError(
             f"precision must be one of {PRECISIONS}, got {config.precision!r}"

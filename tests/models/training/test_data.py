@@ -93,3 +93,15 @@ def test_prefetched_stream_equals_the_in_process_one() -> None:
 def test_stream_without_errors_leaves_them_out() -> None:
     (batch,) = batch_stream(0, [(0, PairConfig("modulo", 32, 1))], with_errors=False)
     assert batch.errors is None and batch.m.shape == (1, 1, 32, 32)
+
+
+def test_colour_crops_give_one_channel_of_a_frame_exposed_on_luminance() -> None:
+    """With colour_fraction 1 every HDRI pair is one channel of a colour frame: channels
+    wrap apart from the luminance a grayscale crop shows, and the pairs stay 2-D."""
+    colour = PairConfig("mantissa", crop=32, batch=6, synthetic_fraction=0.0, colour_fraction=1.0)
+    gray = PairConfig("mantissa", crop=32, batch=6, synthetic_fraction=0.0)
+    m, winding = sample_batch(11, 0, colour)
+    assert m.shape == winding.shape == (6, 1, 32, 32)
+    assert winding.min() == 0 and winding.max() < NUM_CLASSES
+    assert not np.array_equal(m, sample_batch(11, 0, gray)[0])
+    np.testing.assert_array_equal(m, sample_batch(11, 0, colour)[0])

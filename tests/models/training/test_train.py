@@ -9,9 +9,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from models.errors import InvalidInputError
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
 from models.training.losses import HEAD_OUTPUTS
-from models.training.train import TrainConfig, train
+from models.training.train import TrainConfig, check_config, train
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -67,6 +68,19 @@ def test_a_label_names_the_run_but_not_the_decoder() -> None:
     assert config.name == "mantissanet-small-s2d-part1-modulo"
     assert config.decoder == "mantissanet-small-s2d"
     assert TrainConfig(tier="small-s2d").name == "mantissanet-small-s2d-mantissa"
+
+
+def test_colour_channel_data_names_the_run_and_the_decoder() -> None:
+    config = TrainConfig(tier="tiny", colour_fraction=0.5, max_read_noise=0.01, label="ft")
+    assert config.name == "mantissanet-tiny-noise-colour-ft-mantissa"
+    assert config.decoder == "mantissanet-tiny-noise-colour"
+    assert config.pairs(3).colour_fraction == config.pairs(4).colour_fraction == 0.5
+
+
+@pytest.mark.parametrize("fraction", [-0.1, 1.5, float("nan")])
+def test_a_colour_fraction_outside_0_1_is_refused(fraction: float) -> None:
+    with pytest.raises(InvalidInputError, match="colour_fraction"):
+        check_config(TrainConfig(colour_fraction=fraction))
 
 
 def test_a_run_can_start_from_another_runs_weights(tmp_path: Path) -> None:
