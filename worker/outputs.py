@@ -13,12 +13,12 @@ is known, else wrap units x), ``half`` (default false: float32 EXR) and
 from __future__ import annotations
 
 import io
-import json
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from models.exr_header import decode_attributes, sensor_attributes
 from models.formation import SensorParams, reconstruct
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 
@@ -29,29 +29,6 @@ OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy"}
 #: third of its time (bench.stream, itoh) to save 14% of the disk; uploads and video jobs,
 #: whose files travel to clients, default to ``zip``.
 STREAM_EXR_COMPRESSION = "none"
-#: The decode's facts written to the EXR's ``routing`` attribute (JSON): per channel
-#: (``details`` for one, ``channels`` for several), a colour frame's joined channels
-#: (``colour``) and a latency budget shared by its channels (``budget``).
-ROUTING_FACTS = ("details", "channels", "colour", "budget")
-
-
-def exr_attributes(params: SensorParams, info: dict[str, Any]) -> dict[str, str]:
-    """EXR header attributes recording how the frame was encoded and decoded."""
-    attributes = {
-        "encoding": params.encoding,
-        "alpha": repr(params.alpha),
-        "bits": str(params.bits),
-        "decoder": str(info.get("decoder", "")),
-        "decoderVersion": str(info.get("version", "")),
-    }
-    if params.gain is not None:
-        attributes["gain"] = repr(params.gain)
-    routing = {key: info[key] for key in ROUTING_FACTS if key in info}
-    if routing:
-        attributes["routing"] = json.dumps(routing, sort_keys=True)
-    return attributes
-
-
 def encode_exr_result(
     codes: NDArray[Any],
     winding: NDArray[np.integer],
@@ -70,7 +47,7 @@ def encode_exr_result(
     )
     return encode_exr(
         x_hat,
-        exr_attributes(params, info),
+        sensor_attributes(params) | decode_attributes(info),
         half=half,
         compression=str(options.get("exr_compression", DEFAULT_EXR_COMPRESSION)),
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from models.formation import ENCODINGS, SensorParams
+from models.formation import ENCODINGS
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 
 #: Flags that set (simulate) or override (reconstruct) a frame's sensor parameters.
@@ -48,15 +48,3 @@ def add_exr_compression_flag(parser: argparse.ArgumentParser) -> None:
 def sensor_values(args: argparse.Namespace) -> dict[str, Any]:
     """The sensor flags as a mapping, None where not given."""
     return {name: getattr(args, name) for name in SENSOR_FLAGS}
-
-
-def params_attributes(params: SensorParams) -> dict[str, str]:
-    """EXR string attributes recording a frame's encoding, alpha, bits and (known) gain."""
-    attributes = {
-        "encoding": params.encoding,
-        "alpha": repr(params.alpha),
-        "bits": str(params.bits),
-    }
-    if params.gain is not None:
-        attributes["gain"] = repr(params.gain)
-    return attributes

@@ -8,12 +8,12 @@ from typing import Any
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError
+from models.exr_header import decode_attributes, sensor_attributes
 from models.frames import frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
 from service.cli.options import (
     add_exr_compression_flag,
     add_sensor_flags,
-    params_attributes,
     sensor_values,
 )
 
@@ -66,11 +66,8 @@ def run(args: argparse.Namespace) -> int:
     gain = frame.params.gain
     pixels = result.irradiance if gain is None else result.irradiance / gain
     units = "wrap units x (gain unknown)" if gain is None else "scene-referred x / gain"
-    attributes = params_attributes(frame.params) | {
-        "decoder": decoder.name,
-        "decoderVersion": decoder.version,
-        "comments": f"MantissaCam reconstruction of {args.frame}; values in {units}",
-    }
+    attributes = sensor_attributes(frame.params) | decode_attributes(result.info)
+    attributes["comments"] = f"MantissaCam reconstruction of {args.frame}; values in {units}"
     write_exr(args.output, pixels, attributes, half=args.half, compression=args.exr_compression)
     if args.winding_out:
         write_winding(args.winding_out, result.winding)

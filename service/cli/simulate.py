@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from models.exr_header import sensor_attributes
 from models.formation import SensorParams, simulate
 from models.frames import frame_format, write_frame, write_winding
 from models.hdr_io import read_hdr, write_exr
 from service.cli.options import (
     add_clip_negative_flag,
     add_sensor_flags,
-    params_attributes,
     sensor_values,
 )
 
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     if args.ground_truth:
         write_winding(args.ground_truth, frame.winding)
     if args.reference_out:
-        attributes = params_attributes(frame.params) | {
+        attributes = sensor_attributes(frame.params) | {
             "comments": "scene-referred irradiance the simulated sensor saw (x / gain)"
         }
         write_exr(args.reference_out, frame.irradiance / frame.params.gain, attributes)

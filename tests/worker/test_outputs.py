@@ -11,7 +11,7 @@ import OpenEXR
 from models.decoders import get_decoder
 from models.formation import SensorParams, encode
 from models.hdr_io import EXR_COMPRESSIONS, read_hdr
-from worker.outputs import encode_outputs, exr_attributes
+from worker.outputs import encode_outputs
 
 PARAMS = SensorParams(encoding="modulo", bits=8, gain=2.0)
 
@@ -43,21 +43,3 @@ def test_the_exr_compression_option_reaches_the_file() -> None:
         header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
         assert header["compression"] == EXR_COMPRESSIONS[name]
     np.testing.assert_array_equal(read_hdr(files["none"]).pixels, read_hdr(files["zip"]).pixels)
-
-
-def test_attributes_without_routing_or_gain() -> None:
-    attributes = exr_attributes(SensorParams(), {"decoder": "itoh", "version": "1"})
-    assert attributes["decoder"] == "itoh"
-    assert "routing" not in attributes and "gain" not in attributes
-
-
-def test_a_colour_frames_joined_channels_are_recorded() -> None:
-    rows, cols = np.mgrid[0:64, 0:64]
-    x = 4.0 * np.exp(-((rows - 32) ** 2 + (cols - 32) ** 2) / 400)
-    params = SensorParams(encoding="mantissa", bits=8)
-    frame = encode(np.stack([x, 0.8 * x, 0.6 * x], axis=2), params)
-    result = get_decoder("auto-best").decode(frame.codes, params)
-    attributes = exr_attributes(params, result.info)
-    routing = json.loads(attributes["routing"])
-    assert len(routing["channels"]) == 3
-    assert set(routing["colour"]) == {"anchors", "majority_fraction", "changed_fraction"}

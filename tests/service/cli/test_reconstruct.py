@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -96,6 +97,8 @@ def test_a_colour_frame_shares_its_latency_budget(tmp_path: Path) -> None:
     assert sum(line.startswith("latency budget ") for line in lines) == 4
     assert lines[-1].startswith("latency budget 5000 ms for the colour frame, shared by")
     assert "(made consistent)" in lines[-1] and lines[-1].endswith("within budget")
+    routing = json.loads(read_hdr(tmp_path / "x.exr").attributes["routing"])
+    assert routing["budget"]["joined"] is True and len(routing["channels"]) == 3
 
 
 def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
