@@ -3,12 +3,13 @@
 A spatial decoder unwraps each channel of a colour frame on its own, and gets each
 channel's hard regions wrong in its own places: the blue channel of a sky crop a
 wrap low while red and green are right. On val-256 in colour (the val-256 crops in
-RGB, :func:`models.scenes.val256_rgb_frames`) 11% of the pixel-channels that
+RGB, :func:`models.scenes.val256_frames` with ``colour``) 11% of the pixel-channels that
 auto-balanced decodes are wrong while the other two channels of the pixel are
 right; putting just those right would take it from 20.7 to 25.2 dB (mantissa).
 
 The channels share what the codes say about them through the *chroma*: for channel
-``c`` against the reference channel (green, the one the exposure is set on)
+``c`` against the reference channel (green, most of the luminance the exposure is set
+on)
 
     q = u_c - u_ref = (W_c - W_ref) + (m_c - m_ref)
 
@@ -89,7 +90,8 @@ ANCHOR_WEIGHT = 0.05
 MIN_ANCHORS = 64
 #: Region moves, then pixel moves, of the chroma unwrapping. Measured on the
 #: training-scene colour crops (auto-balanced guide, mantissa): 8 + 2 gained 1.45 dB,
-#: 8 + 0 1.07 dB at half the time, 4 + 30 (converged) 1.45 dB at twice the time.
+#: 8 + 0 1.07 dB at half the time; band pixel moves
+#: (:mod:`models.decoders.band_moves`) instead of full ones 1.07 dB.
 REGION_MOVES = 8
 PIXEL_MOVES = 2
 #: A pixel no two channels' votes agree on keeps its decoded W.
