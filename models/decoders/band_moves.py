@@ -53,14 +53,18 @@ BAND_REACH = 16
 JUMP_STEP = 0.5
 
 
+def jump_pairs(u: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """The neighbour pairs of ``u`` (wraps) further apart than :data:`JUMP_STEP`: to the
+    right neighbour (H x W-1) and to the lower one (H-1 x W)."""
+    return np.abs(np.diff(u, axis=1)) > JUMP_STEP, np.abs(np.diff(u, axis=0)) > JUMP_STEP
+
+
 def band_seeds(
     winding: NDArray[np.int64], m: NDArray[np.float64], unary: NDArray[np.float64]
 ) -> NDArray[np.bool_]:
     """Pixels (H x W) that can lower the energy by moving: the ends of jumps and the
     pixels whose own move cost ``unary`` is negative."""
-    u = winding + m
-    right = np.abs(np.diff(u, axis=1)) > JUMP_STEP
-    down = np.abs(np.diff(u, axis=0)) > JUMP_STEP
+    right, down = jump_pairs(winding + m)
     seeds = unary < 0.0
     seeds[:, :-1] |= right
     seeds[:, 1:] |= right

@@ -63,6 +63,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from models.decoders.band_moves import jump_pairs
 from models.decoders.base import Decoder
 from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import JUMPS, pair_weights
@@ -105,11 +106,9 @@ def colour_anchors(m: NDArray[np.float64], winding: NDArray[np.int64]) -> NDArra
 
 
 def has_jumps(chroma: NDArray[np.float64]) -> bool:
-    """Whether any two neighbours of ``chroma`` (wrap units) differ by over half a wrap."""
-    return bool(
-        (np.abs(np.diff(chroma, axis=0)) > 0.5).any()
-        or (np.abs(np.diff(chroma, axis=1)) > 0.5).any()
-    )
+    """Whether any two neighbours of ``chroma`` (wrap units) differ by over half a wrap
+    (:func:`models.decoders.band_moves.jump_pairs`)."""
+    return any(pairs.any() for pairs in jump_pairs(chroma))
 
 
 def relative_winding(

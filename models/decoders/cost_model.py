@@ -255,10 +255,8 @@ def colour_ns_per_pixel(encoding: str) -> float:
     measured once."""
     frame = synthetic_val256_frame(encoding, CALIBRATION_SIZE, CALIBRATION_SEED, colour=True)
     planes = dequantize(frame.codes, frame.params.bits)
-    decoder = adaptive("balanced")
-    winding = np.stack(
-        [decoder.explain_winding(planes[:, :, c], frame.params)[0] for c in range(3)], axis=2
-    )
+    channels_alone = AdaptiveDecoder("balanced", joint_colour=False)
+    winding = channels_alone.explain_planes(planes, frame.params)[0]
     runs = fastest_ns(lambda: harmonise(planes, winding, frame.params), CALIBRATION_RUNS)
     return runs / (planes.shape[0] * planes.shape[1])
 

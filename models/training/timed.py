@@ -28,7 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from models.training.train import RUNS_DIR, TrainConfig, record_line, train
+from models.training.train import PRECISIONS, RUNS_DIR, TrainConfig, record_line, train
 
 #: The probe's window (s after the lanes start): every lane counts its steps from
 #: :data:`PROBE_FROM` to :data:`PROBE_TO`, after its start-up (imports, batch workers,
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=460.0, help="wall-clock budget (s)")
     parser.add_argument("--device", default="cuda")
-    parser.add_argument("--precision", default="bf16", choices=("fp32", "bf16"))
+    parser.add_argument("--precision", default="bf16", choices=PRECISIONS)
     parser.add_argument("--workers", type=int, default=3, help="batch processes per lane")
     parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR)
     parser.add_argument("--lane", type=int, help=argparse.SUPPRESS)

@@ -11,6 +11,7 @@ from models.decoders.colour import ColourDecoder
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, simulate
+from tests.models.decoders.fixed_planes import FixedPlanesDecoder
 from tests.worker.panning import PAN_PARAMS, pan_clip, smooth_scene
 from worker.brightness import BrightnessConfig
 from worker.crop_vote import CropConfig
@@ -314,21 +315,6 @@ def test_colour_frames_keep_their_shape(temporal: StreamDecoder) -> None:
         np.testing.assert_array_equal(result.winding, frame.winding)
 
 
-class PlanesDecoder(Decoder):
-    """Returns the planes of a fixed W (H x W x 3), one per call, in channel order."""
-
-    name = "planes"  # type: ignore[assignment]
-
-    def __init__(self, winding: np.ndarray) -> None:
-        self.winding = winding
-        self.calls = 0
-
-    def predict_winding(self, m: np.ndarray, params: SensorParams) -> np.ndarray:
-        plane = self.winding[:, :, self.calls % 3].copy()
-        self.calls += 1
-        return plane
-
-
 def test_a_colour_keyframe_joins_its_channels_as_a_still_frame_would() -> None:
     """The spatial decoder's channels disagree (blue a wrap low in a region); a colour
     decoder's keyframe makes them consistent, as its still decode does."""
@@ -338,7 +324,7 @@ def test_a_colour_keyframe_joins_its_channels_as_a_still_frame_would() -> None:
     wrong = frame.winding.copy()
     wrong[24:34, 26:40, 2] -= 1
     assert (wrong != frame.winding).any()
-    spatial = ColourDecoder(PlanesDecoder(wrong))
+    spatial = ColourDecoder(FixedPlanesDecoder(wrong))
     config = TemporalConfig(refine_keyframes=False)
     result = StreamDecoder("temporal", spatial, config).decode(frame.codes, params, StreamState())
     assert result.keyframe == "first"

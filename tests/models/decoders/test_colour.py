@@ -9,7 +9,6 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from models.decoders.adaptive import AdaptiveDecoder
-from models.decoders.base import Decoder
 from models.decoders.colour import (
     ANCHOR_CODE,
     MIN_ANCHORS,
@@ -22,6 +21,7 @@ from models.decoders.colour import (
 from models.decoders.registry import get_decoder, name_patterns, resolve
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, encode
+from tests.models.decoders.fixed_planes import FixedPlanesDecoder
 
 
 def colour_scene(
@@ -44,21 +44,6 @@ def frame_of(
     params = SensorParams(encoding=encoding, bits=12)
     frame = encode(scene, params)
     return dequantize(frame.codes, params.bits), frame.winding, params
-
-
-class FixedDecoder(Decoder):
-    """Returns a fixed W per channel (given as H x W x 3), in call order."""
-
-    name = "fixed"  # type: ignore[assignment]
-
-    def __init__(self, winding: NDArray[np.int64]) -> None:
-        self.winding = winding
-        self.calls = 0
-
-    def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        plane = self.winding[:, :, self.calls % self.winding.shape[2]]
-        self.calls += 1
-        return plane.copy()
 
 
 def test_the_scene_wraps_several_times_in_every_channel() -> None:
@@ -155,7 +140,7 @@ def test_the_colour_decoder_fixes_its_inner_decoders_colour_frames() -> None:
     frame = encode(scene, params)
     decoded = frame.winding.copy()
     decoded[20:34, 22:40, 2] -= 1
-    result = ColourDecoder(FixedDecoder(decoded)).decode(frame.codes, params)
+    result = ColourDecoder(FixedPlanesDecoder(decoded)).decode(frame.codes, params)
     np.testing.assert_array_equal(result.winding, frame.winding)
     assert result.info["decoder"] == "fixed+colour"
     assert result.info["colour"]["changed_fraction"] > 0
@@ -165,7 +150,7 @@ def test_the_colour_decoder_leaves_grayscale_frames_to_its_inner_decoder() -> No
     params = SensorParams(encoding="mantissa", bits=12)
     frame = encode(colour_scene()[:, :, 1], params)
     wrong = frame.winding[:, :, None] + 1
-    result = ColourDecoder(FixedDecoder(wrong)).decode(frame.codes, params)
+    result = ColourDecoder(FixedPlanesDecoder(wrong)).decode(frame.codes, params)
     np.testing.assert_array_equal(result.winding, wrong[:, :, 0])
     assert "colour" not in result.info
 
