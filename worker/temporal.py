@@ -78,6 +78,21 @@ temporal decoding from 18.81 to 21.51 dB with itoh (independent: 19.73) and from
 On a still camera it is not run: refined there too, the sunrise clip
 lost 4.5 dB with herraez (34.76 -> 30.21 dB), and every frame cost 20-50 ms more.
 
+The refinement's moves are confined to the fallback pixels and ``refine_reach`` px
+round them (:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refine_within`), and
+every ``refine_whole_every``-th frame it refines the whole frame. Over the pan/zoom
+clip (mantissa, herraez and mantissanet-tiny) 99% of the pixels the whole-frame
+refinement changed were fallback pixels or their neighbours (herraez: 99.9% within 8
+px; itoh 95%), and two whole-frame pixel cuts were 46 of a frame's 57 ms. Measured
+(2026-11-26, pan/zoom, mean PSNR whole -> band only -> band with a whole frame every
+4th): herraez mantissa 46.17 -> 46.22 -> 46.22 dB at 43-48 -> 22-24 -> 27-29 ms a
+frame, itoh 22.62 -> 22.58 -> 22.62, modulo within 0.1 dB for all four decoders.
+The whole frames are for errors far from any fallback pixel: mantissanet-tiny's
+first keyframe leaves a sky region of 18k pixels a wrap off, which a whole-frame
+refinement moves once the pan has changed its border (frames 33-36); band only,
+it stays and the clip falls to 19.36 dB (whole 21.44, every 4th 21.34, every 8th
+21.08; independent decoding 21.17).
+
 Otherwise (a still camera, or nothing fell back), clusters of safe pixels whose
 misfit is far above their sensor noise (a light moving faster than
 ``motion_radius``, a lamp switched on) are refined by guided graph cuts on a crop
@@ -150,6 +165,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from models.decoders.band_moves import band_of
 from models.decoders.base import Decoder, check_frame_shape
 from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.region_vote import region_vote
@@ -178,7 +194,9 @@ class TemporalConfig:
     """Knobs of the temporal rule (see the module docstring). ``margin`` in wraps,
     ``still`` in wraps, ``motion_radius`` in pixels, ``keyframe_interval`` in frames
     (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels,
-    ``refine_moves`` the min-cuts of the final refinement (0: none),
+    ``refine_moves`` the min-cuts of the final refinement (0: none), ``refine_reach``
+    how far (px) from the fallback pixels it may change W, ``refine_whole_every`` every
+    how many frames it refines the whole frame instead (0: never, 1: every frame),
     ``refine_keyframes`` whether a stream's anchoring keyframes are refined,
     ``motion`` / ``brightness`` / ``crop`` the knobs of motion and brightness
     compensation, of the crop vote and of arrival refinement
@@ -192,6 +210,8 @@ class TemporalConfig:
     local_limit: float = 0.5
     local_passes: int = 4
     refine_moves: int = 2
+    refine_reach: int = 4
+    refine_whole_every: int = 4
     refine_keyframes: bool = True
     motion: MotionConfig = MotionConfig()
     brightness: BrightnessConfig = BrightnessConfig()
@@ -209,6 +229,8 @@ class TemporalConfig:
                 "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
                 "local_passes must be >= 1": self.local_passes >= 1,
                 "refine_moves must be >= 0": self.refine_moves >= 0,
+                "refine_reach must be >= 0": self.refine_reach >= 0,
+                "refine_whole_every must be >= 0": self.refine_whole_every >= 0,
             },
         )
 
@@ -443,7 +465,10 @@ class StreamDecoder:
             merged = merge_spatial(channel, whole)
             winding[:, :, c], spatial[:, :, c] = merged or (whole, np.ones(whole.shape, bool))
         if self.refiner is not None and shift != (0, 0) and (local | spatial).any():
-            winding = refined_planes(self.refiner, m, winding, params)
+            every = self.config.refine_whole_every
+            whole = every > 0 and state.frames % every == 0
+            bands = None if whole else grown(local | spatial, self.config.refine_reach)
+            winding = refined_planes(self.refiner, m, winding, params, bands)
         elif self.arrival_refiner is not None:
             for c in range(m.shape[2]):
                 winding[:, :, c], took = refine_arrivals(
@@ -460,11 +485,26 @@ def refined_planes(
     m: NDArray[np.float64],
     winding: NDArray[np.int64],
     params: SensorParams,
+    bands: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.int64]:
-    """Each plane of ``winding`` (H x W x C) refined by ``refiner`` on its plane of ``m``."""
+    """Each plane of ``winding`` (H x W x C) refined by ``refiner`` on its plane of ``m``:
+    whole, or only within its plane of ``bands`` (bool, H x W x C) when given."""
+    planes = []
+    for c in range(m.shape[2]):
+        if bands is None:
+            planes.append(refiner.refine(m[:, :, c], winding[:, :, c], params)[0])
+        elif bands[:, :, c].any():
+            band = bands[:, :, c]
+            planes.append(refiner.refine_within(m[:, :, c], winding[:, :, c], params, band)[0])
+        else:
+            planes.append(winding[:, :, c])
+    return np.stack(planes, axis=2)
+
+
+def grown(pixels: NDArray[np.bool_], reach: int) -> NDArray[np.bool_]:
+    """``pixels`` (bool, H x W x C) grown by ``reach`` px (Chebyshev) within each plane."""
     return np.stack(
-        [refiner.refine(m[:, :, c], winding[:, :, c], params)[0] for c in range(m.shape[2])],
-        axis=2,
+        [band_of(pixels[:, :, c], reach) for c in range(pixels.shape[2])], axis=2
     )
 
 

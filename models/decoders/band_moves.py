@@ -40,6 +40,7 @@ from scipy import ndimage
 
 from models.decoders.graphcut import (
     MoveCapacities,
+    MoveSolver,
     PumaEnergy,
     cut_pixels,
     min_cut,
@@ -140,3 +141,16 @@ def best_band_move(
         return cut_pixels(capacities)
     moved = cut_band(capacities, band)
     return moved if moved.any() else cut_pixels(capacities)
+
+
+def confined_move(band: NDArray[np.bool_]) -> MoveSolver:
+    """A move solver that cuts only ``band`` (bool, H x W), every other pixel kept: for a
+    refinement whose errors can only lie near known pixels (the temporal decoder's
+    fallback pixels, :mod:`worker.temporal`)."""
+
+    def solve(
+        winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
+    ) -> NDArray[np.bool_]:
+        return cut_band(move_capacities(winding, m, jump, energy), band)
+
+    return solve

@@ -81,7 +81,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from models.decoders.band_moves import best_band_move
+from models.decoders.band_moves import best_band_move, confined_move
 from models.decoders.base import Decoder
 from models.decoders.classical import wrap_difference
 from models.decoders.graphcut import PairWeights, PumaEnergy, best_pixel_move, minimise
@@ -269,6 +269,28 @@ class GuidedPumaDecoder(Decoder):
             boxes.append(facts)
         totals = {key: sum(facts[key] for facts in boxes) for key in REFINEMENT_COUNTS}
         return winding, {**totals, "changed_fraction": float(np.mean(winding != guide))}
+
+    def refine_within(
+        self,
+        m: NDArray[np.float64],
+        guide: NDArray[np.int64],
+        params: SensorParams,
+        band: NDArray[np.bool_],
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """``guide`` (int W, H x W) refined by pixel moves confined to ``band`` (bool,
+        H x W; :func:`models.decoders.band_moves.confined_move`): every other pixel keeps
+        the guide, and frames of any size are cut whole (the graph is the band's).
+        Facts as :meth:`refine` reports them."""
+        energy = PumaEnergy(1.0, pair_weights(m), guide, self.prior_weight, ABOVE_FACTOR)
+        result = minimise(m, guide, energy, JUMPS, self.max_moves, confined_move(band))
+        top = max_winding(params)
+        winding = np.clip(result.winding, 0, top if top is not None else None)
+        return winding, {
+            "windows": 1,
+            "region_moves": 0,
+            "moves": result.moves,
+            "changed_fraction": float(np.mean(winding != guide)),
+        }
 
     def _refine_frame(
         self, m: NDArray[np.float64], guide: NDArray[np.int64], params: SensorParams

@@ -11,7 +11,13 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from models.decoders import band_moves
-from models.decoders.band_moves import band_of, band_seeds, best_band_move, cut_band
+from models.decoders.band_moves import (
+    band_of,
+    band_seeds,
+    best_band_move,
+    confined_move,
+    cut_band,
+)
 from models.decoders.graphcut import (
     PumaEnergy,
     best_pixel_move,
@@ -128,3 +134,15 @@ def test_converged_band_moves_reach_the_pixel_moves_minimum(
     band = minimise(m, guide, energy, (1, -1), 100, best_band_move)
     assert band.energies[-1] == pytest.approx(pixel.energies[-1], rel=1e-9, abs=1e-9)
     np.testing.assert_array_equal(band.winding, truth)
+
+
+def test_a_confined_move_keeps_every_pixel_outside_its_band() -> None:
+    """The hill's missing top is put back where the band covers it, and only there."""
+    m, truth, guide = _hill(32, short_by=1)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
+    band = np.zeros(m.shape, bool)
+    band[:, :16] = True
+    moved = confined_move(band)(guide, m, 1, energy)
+    assert not moved[~band].any()
+    assert moved.any()
+    np.testing.assert_array_equal((guide + moved)[band], np.where(moved, truth, guide)[band])

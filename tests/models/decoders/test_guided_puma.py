@@ -332,3 +332,22 @@ def test_no_doubtful_pixel_keeps_the_guide_and_all_doubtful_refines_whole() -> N
     assert facts == {"windows": 0, "region_moves": 0, "moves": 0, "changed_fraction": 0.0}
     whole, _ = decoder.refine(m, guide, PARAMS, np.ones(m.shape, bool))
     np.testing.assert_array_equal(whole, decoder.refine(m, guide, PARAMS)[0])
+
+
+def test_a_refinement_within_a_band_changes_only_the_band() -> None:
+    """Confined to the left hill, the pixel moves put its rings back and leave the right
+    hill as the guide had it; a band over the whole frame reaches the true W."""
+    truth, m, guide, _ = _two_hills()
+    decoder = GuidedPumaDecoder(CappedGuide(truth, 2), region_moves=0)
+    left = np.zeros(m.shape, bool)
+    left[:, :128] = True
+    winding, facts = decoder.refine_within(m, guide, PARAMS, left)
+    np.testing.assert_array_equal(winding[:, :128], truth[:, :128])
+    np.testing.assert_array_equal(winding[:, 128:], guide[:, 128:])
+    assert facts["windows"] == 1 and facts["region_moves"] == 0 and facts["moves"] > 1
+    assert facts["changed_fraction"] == pytest.approx(np.mean(winding != guide))
+    whole, _ = decoder.refine_within(m, guide, PARAMS, np.ones(m.shape, bool))
+    np.testing.assert_array_equal(whole, truth)
+    kept, facts = decoder.refine_within(m, guide, PARAMS, np.zeros(m.shape, bool))
+    np.testing.assert_array_equal(kept, guide)
+    assert facts["changed_fraction"] == 0.0
