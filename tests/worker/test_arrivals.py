@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams
-from worker.arrivals import ArrivalConfig, refine_arrivals
+from worker.arrivals import REACH, ArrivalConfig, refine_arrivals
 from worker.temporal import StreamDecoder, StreamState, TemporalConfig
 
 PARAMS = SensorParams(encoding="modulo", bits=8)
@@ -33,6 +34,9 @@ def test_a_light_left_at_its_old_winding_is_unwrapped() -> None:
     change = np.abs(m - 0.3)
     merged, taken = refine_arrivals(m, tracked, change, PARAMS, refiner(), ArrivalConfig())
     assert taken.any() and not taken[:8].any()
+    near = ndimage.binary_dilation(change > ArrivalConfig().change, iterations=REACH)
+    assert not taken[~near].any()
+    np.testing.assert_array_equal(merged[~near], tracked[~near])
     wrong_before = int((tracked != truth).sum())
     assert wrong_before > 500
     assert (merged != truth).sum() <= wrong_before // 100
