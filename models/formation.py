@@ -221,6 +221,15 @@ def dequantize(codes: NDArray[Any], bits: int) -> NDArray[np.float64]:
     return (arr.astype(np.float64) + 0.5) / (1 << bits)
 
 
+def overflow_remedy(dtype: type[np.floating]) -> str:
+    """What a user can do about values too large for ``dtype``."""
+    if np.finfo(dtype).bits < 32:
+        return "ask for float32 output instead of half floats, or lower the gain"
+    if np.finfo(dtype).bits == 32:
+        return "float32, the widest EXR pixel type, cannot hold them: lower the gain or alpha"
+    return "lower the gain or alpha"
+
+
 def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: str) -> None:
     """Raise :class:`OutputOverflowError` if ``values`` exceed ``dtype``'s finite range."""
     limit = float(np.finfo(dtype).max)
@@ -228,7 +237,7 @@ def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: st
     if over.any():
         raise OutputOverflowError(
             f"{int(over.sum())} pixels of the {what} exceed the {np.dtype(dtype).name} limit "
-            f"{limit:.4g}; ask for float32 output (or float64 arrays), or lower the gain"
+            f"{limit:.4g}; {overflow_remedy(dtype)}"
         )
 
 
@@ -251,7 +260,7 @@ def from_unwrapped(
         raise OutputOverflowError(
             f"{int(over.sum())} pixels of the reconstruction exceed the {np.dtype(dtype).name} "
             f"limit {float(np.finfo(dtype).max):.4g} (alpha^(u-1) with u up to {u.max():.6g}); "
-            "ask for float32 output, a smaller alpha, or check the winding numbers"
+            f"{overflow_remedy(dtype)}, or check the winding numbers"
         )
     return np.where(above, np.exp(log_x), u).astype(dtype)
 

@@ -182,6 +182,12 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[s
 
 def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
     with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        if len(tif.pages) > 1:
+            raise InvalidInputError(
+                f"the TIFF holds {len(tif.pages)} pages and a reconstruction takes one frame: "
+                "send a single-page TIFF, or decode the sequence as a video "
+                "(POST /v1/videos, mcam video)"
+            )
         page = tif.pages.first
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
         stored = _stored_params(page.description, "TIFF ImageDescription")

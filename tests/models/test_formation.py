@@ -161,9 +161,13 @@ def test_largest_int64_winding_reconstructs_in_float64_modulo() -> None:
 def test_overflow_message_names_pixel_count_and_limit() -> None:
     params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
     winding = np.array([[200, 1], [0, 200]])
-    with pytest.raises(OutputOverflowError, match=r"^2 pixels .*float32 limit 3\.403e\+38"):
+    with pytest.raises(
+        OutputOverflowError, match=r"^2 pixels .*float32 limit 3\.403e\+38.*lower the gain or alpha"
+    ):
         reconstruct(np.zeros((2, 2), np.uint8), winding, params, np.float32)
-    with pytest.raises(OutputOverflowError, match=r"^1 pixels .*float16 limit 6\.55e\+04"):
+    with pytest.raises(
+        OutputOverflowError, match=r"^1 pixels .*float16 limit 6\.55e\+04; ask for float32 output"
+    ):
         from_unwrapped(np.array([70000.0, 3.0]), SensorParams(encoding="modulo"), np.float16)
 
 

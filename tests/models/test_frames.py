@@ -230,6 +230,16 @@ def test_foreign_tiff_description_is_not_taken_for_params() -> None:
         decode_frame(buffer.getvalue(), "tiff")
 
 
+def test_a_multi_page_tiff_is_refused_with_a_pointer_to_video() -> None:
+    """Pages after the first are not dropped silently: a clip is a video job."""
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as tif:
+        for _ in range(3):
+            tif.write(random_codes((4, 4), 8))
+    with pytest.raises(InvalidInputError, match="holds 3 pages.*/v1/videos"):
+        decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
+
+
 @pytest.mark.parametrize("fmt", FRAME_FORMATS)
 def test_pixel_limit(fmt: str) -> None:
     data = encode_frame(random_codes((16, 8), 8), PARAMS_8, fmt)
