@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, TypeAdapter, ValidationError
 
 from device.link_protocol import (
     BracketPacket,
@@ -77,14 +77,32 @@ class BracketCommand(BaseModel):
     ratio: float = Field(2.0, gt=1.0, le=64, allow_inf_nan=False)
 
 
-Command = Annotated[
-    StartCommand | StopCommand | ExposureCommand | EncodingCommand | FrameRateCommand
-    | BracketCommand,
-    Field(discriminator="command"),
-]
 COMMANDS: tuple[str, ...] = (
     "start", "stop", "set_exposure", "set_encoding", "set_frame_rate", "bracket",
 )
+
+
+def _command_name(value: Any) -> Any:
+    """The ``command`` of a mapping or a command model (None when it has none)."""
+    return value.get("command") if isinstance(value, dict) else getattr(value, "command", None)
+
+
+Command = Annotated[
+    Annotated[StartCommand, Tag("start")]
+    | Annotated[StopCommand, Tag("stop")]
+    | Annotated[ExposureCommand, Tag("set_exposure")]
+    | Annotated[EncodingCommand, Tag("set_encoding")]
+    | Annotated[FrameRateCommand, Tag("set_frame_rate")]
+    | Annotated[BracketCommand, Tag("bracket")],
+    Discriminator(
+        _command_name,
+        custom_error_type="unknown_command",
+        custom_error_message=(
+            f"a command is a JSON object whose field 'command' is one of {', '.join(COMMANDS)}, "
+            'e.g. {"command": "start"}'
+        ),
+    ),
+]
 _ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
 
 
@@ -93,9 +111,8 @@ def validate_command(values: dict[str, Any]) -> Command:
     try:
         return _ADAPTER.validate_python(values)
     except ValidationError as exc:
-        problems = describe_validation_error(exc, "command")
         raise InvalidInputError(
-            f"invalid device command: {problems} (commands: {', '.join(COMMANDS)})"
+            f"invalid device command: {describe_validation_error(exc, 'command')}"
         ) from None
 
 

@@ -37,7 +37,7 @@ class SensorFields(BaseModel):
     """Sensor parameters (see ``models.formation.SensorParams``); given ones override any
     parameters stored in the file. Ranges are checked when the parameters are merged."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     encoding: Literal["modulo", "mantissa", "clip"] | None = None
     alpha: float | None = Field(None, description="mantissa base: one wrap per factor alpha")

@@ -48,7 +48,7 @@ _MEDIA = {"hdr10": "video/mp4", "sdr": "video/mp4", "exr_zip": "application/zip"
 class VideoOptionFields(BaseModel):
     """How a video is decoded and rendered (uploads and live recordings)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     decoder: str | None = Field(None, description="spatial decoder (GET /v1/decoders)")
     mode: Literal["independent", "temporal"] = Field(
@@ -77,7 +77,9 @@ class VideoOptionFields(BaseModel):
         """The options of the video job (see ``worker.video_jobs.video_options``)."""
         return {
             "mode": self.mode,
-            "outputs": [name.strip() for name in self.outputs.split(",") if name.strip()],
+            "outputs": list(
+                dict.fromkeys(name.strip() for name in self.outputs.split(",") if name.strip())
+            ),
             "fps": self.fps,
             "white_level": self.white_level,
             "reference_white": self.reference_white,

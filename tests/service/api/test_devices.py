@@ -46,7 +46,9 @@ def test_devices_health_control_latest_and_events(
     assert wait_for(lambda: camera.settings.fps == 50, 10)
     bad = http.post("/v1/devices/cam1/control", json={"command": "set_frame_rate", "fps": -1})
     assert bad.status_code == 422
-    assert http.post("/v1/devices/cam1/control", json={"command": "fly"}).status_code == 422
+    unknown = http.post("/v1/devices/cam1/control", json={"command": "fly"})
+    assert unknown.status_code == 422
+    assert "field 'command' is one of start, stop" in unknown.json()["message"]
 
     assert wait_for(lambda: http.get("/v1/devices/cam1/frames/latest").status_code == 200, 60)
     exr = http.get("/v1/devices/cam1/frames/latest")

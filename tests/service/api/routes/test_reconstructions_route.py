@@ -135,6 +135,19 @@ def test_bad_raw_uploads(client: Client, kwargs: dict, status: int, code: str) -
     assert reply.json()["code"] == code
 
 
+@pytest.mark.parametrize("field", ["latency_ms", "gain", "read_noise"])
+def test_a_nan_parameter_is_named_as_not_finite(client: Client, field: str) -> None:
+    reply = client().post(
+        "/v1/reconstructions",
+        headers={"Content-Type": "application/octet-stream"},
+        content=bytes(64),
+        params={"format": "raw", "width": 8, "height": 8, "bits": 8, "encoding": "modulo",
+                field: "nan"},
+    )
+    assert reply.status_code == 422, reply.text
+    assert f"{field}: Input should be a finite number" in reply.json()["message"]
+
+
 def test_codes_above_bit_depth_are_refused(client: Client) -> None:
     codes = np.full((8, 8), 300, np.uint16)
     reply = client().post(

@@ -75,12 +75,13 @@ def test_zip_of_pngs_independent_exr_only(client: Client, worker: Worker) -> Non
     reply = http.post(
         "/v1/videos",
         content=buffer.getvalue(),
-        params={"mode": "independent", "outputs": "exr_zip", "exr_compression": "none"},
+        params={"mode": "independent", "outputs": "exr_zip,exr_zip", "exr_compression": "none"},
         headers={"Content-Type": "application/octet-stream"},
     )
     assert reply.status_code == 202, reply.text
     job = finished_job(http, reply.json()["id"])
     assert job["state"] == "succeeded" and set(job["results"]) == {"exr_zip"}
+    assert job["options"]["outputs"] == ["exr_zip"]
     frames = http.get(f"/v1/videos/{job['id']}/result", params={"output": "exr_zip"})
     with zipfile.ZipFile(io.BytesIO(frames.content)) as archive:
         headers = [
@@ -101,6 +102,11 @@ def test_bad_uploads_are_refused(client: Client) -> None:
         ({"file": ("a.npy", small)}, {**FLAGS, "exr_compression": "lzw"}, 422, "exr_compression"),
         ({"file": ("a.bin", b"hello")}, {**FLAGS}, 415, "format"),
         ({"file": ("a.npy", small)}, {"outputs": "exr_zip"}, 422, "--encoding"),
+        ({"file": ("a.npy", small)}, {**FLAGS, "fps": "nan"}, 422, "fps: Input should be a finite"),
+        (
+            {"file": ("a.npy", small)}, {**FLAGS, "white_level": "inf"}, 422,
+            "white_level: Input should be a finite",
+        ),
     ]
     for files, data, status, fragment in cases:
         reply = http.post("/v1/videos", files=files, data=data)
