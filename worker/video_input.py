@@ -30,6 +30,7 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
+from models.decoders.base import check_frame_shape
 from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
 from models.formation import SensorParams, validate_codes
 from models.frames import check_pixel_count, decode_frame, decoding, merge_params
@@ -170,16 +171,23 @@ def decode_video(
     max_pixels: int | None = None,
     max_frames: int | None = None,
 ) -> WrappedVideo:
-    """Decode a wrapped video's bytes; ``overrides`` fill in or replace stored params."""
+    """Decode a wrapped video's bytes; ``overrides`` fill in or replace stored params.
+
+    Frames a decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
+    here, before a job is queued."""
     fmt = video_format(fmt)
-    with decoding(f"the {fmt.upper()} video"):
-        if fmt == "zip":
-            return _read_zip(data, overrides, max_pixels, max_frames)
+    if fmt == "zip":
+        with decoding("the ZIP video"):
+            video = _read_zip(data, overrides, max_pixels, max_frames)
+    else:
         reader = _read_tiff if fmt == "tiff" else _read_npy
-        codes, stored = reader(data, max_pixels, max_frames)
-    params = merge_params(stored, overrides)
-    codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
-    return WrappedVideo(codes, params)
+        with decoding(f"the {fmt.upper()} video"):
+            codes, stored = reader(data, max_pixels, max_frames)
+        params = merge_params(stored, overrides)
+        codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
+        video = WrappedVideo(codes, params)
+    check_frame_shape(video.codes[0])
+    return video
 
 
 def read_video(

@@ -116,6 +116,23 @@ def test_bad_videos_are_refused(data: bytes, fmt: str, error: type[Exception]) -
         decode_video(data, fmt, FLAGS)
 
 
+@pytest.mark.parametrize(
+    ("data", "fmt", "fragment"),
+    [
+        (npy_bytes(codes(channels=2)), "npy", "1 or 3 channels"),
+        (npy_bytes(codes()[:, :1]), "npy", "1 x 5 frame has no neighbours"),
+        (tiff_bytes(codes()[:, :, :1]), "tiff", "6 x 1 frame has no neighbours"),
+        (zip_bytes(codes()[:, :1, :1]), "zip", "1 x 1 frame has no neighbours"),
+    ],
+    ids=["two-channels", "one-row", "one-column", "one-pixel"],
+)
+def test_frames_no_decoder_takes_are_refused_before_any_job(
+    data: bytes, fmt: str, fragment: str
+) -> None:
+    with pytest.raises(InvalidInputError, match=fragment):
+        decode_video(data, fmt, FLAGS)
+
+
 def test_zip_frames_must_match() -> None:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
