@@ -231,7 +231,11 @@ def overflow_remedy(dtype: type[np.floating]) -> str:
 
 
 def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: str) -> None:
-    """Raise :class:`OutputOverflowError` if ``values`` exceed ``dtype``'s finite range."""
+    """Raise :class:`OutputOverflowError` if ``values`` exceed ``dtype``'s finite range
+    (:class:`InvalidInputError` if any is NaN: no number at all)."""
+    undefined = int(np.isnan(values).sum())
+    if undefined:
+        raise InvalidInputError(f"{undefined} pixels of the {what} are NaN (not a number)")
     limit = float(np.finfo(dtype).max)
     over = ~(np.abs(values) <= limit)
     if over.any():

@@ -163,7 +163,9 @@ def test_half_and_float32_overflow_are_errors() -> None:
     assert read_hdr(encode_exr(np.array([[1.0, 7e4]]))).pixels[0, 1] == 7e4
     with pytest.raises(OutputOverflowError, match="float32"):
         encode_exr(np.array([[1.0, 1e39]]))
-    with pytest.raises(OutputOverflowError):
+    with pytest.raises(OutputOverflowError, match="1 pixels.*float32 limit"):
+        encode_exr(np.array([[1.0, -np.inf]]))
+    with pytest.raises(InvalidInputError, match="^1 pixels of the HDR image are NaN"):
         encode_exr(np.array([[1.0, np.nan]]))
 
 
