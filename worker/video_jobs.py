@@ -23,7 +23,7 @@ from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from worker.job_processor import JobContext, JobOutcome
 from worker.temporal import TemporalConfig
 from worker.video_input import WrappedVideo
-from worker.video_output import MIN_HDR10_SIDE, REFERENCE_WHITE, Hdr10Settings
+from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
 from worker.video_pipeline import OUTPUTS, VideoOptions, decode_video_frames, write_outputs
 
 #: Result file name of each output.
@@ -83,11 +83,8 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
 
 def check_hdr10_size(outputs: list[str], shape: tuple[int, ...]) -> None:
     """Refuse an HDR10 output for frames (T x H x W[x C]) smaller than the encoder takes."""
-    if "hdr10" in outputs and min(shape[1:3]) < MIN_HDR10_SIDE:
-        raise InvalidInputError(
-            f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels; "
-            "ask for outputs=exr_zip,sdr"
-        )
+    if "hdr10" in outputs:
+        check_hdr10_frame_size(shape[1], shape[2], "ask for outputs=exr_zip,sdr")
 
 
 def run_video_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:

@@ -214,6 +214,16 @@ def _check_clip(frames: Sequence[NDArray[np.floating]]) -> tuple[int, int]:
     return height + height % 2, width + width % 2
 
 
+def check_hdr10_frame_size(height: int, width: int, remedy: str) -> None:
+    """Refuse frames (px) smaller than the HEVC encoder takes; ``remedy`` says what the
+    caller can ask for instead."""
+    if min(height, width) < MIN_HDR10_SIDE:
+        raise InvalidInputError(
+            f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels, "
+            f"got {height} x {width}; {remedy}"
+        )
+
+
 def write_hdr10(
     frames: Sequence[NDArray[np.floating]],
     target: Target,
@@ -224,11 +234,7 @@ def write_hdr10(
     levels. ``progress(n)`` is called after each of the n frames written."""
     settings = settings or Hdr10Settings()
     height, width = _check_clip(frames)
-    if min(height, width) < MIN_HDR10_SIDE:
-        raise InvalidInputError(
-            f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels, "
-            f"got {height} x {width}; ask for the EXR sequence for smaller frames"
-        )
+    check_hdr10_frame_size(height, width, "ask for the EXR sequence for smaller frames")
     levels = light_levels(frames, settings)
     with av.open(target, mode="w", format="mp4") as container:
         stream = add_hdr10_stream(container, settings, levels, (height, width), len(frames))

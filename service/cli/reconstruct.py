@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
-from models.errors import MissingParameterError
+from models.errors import MissingParameterError, UnsupportedFormatError
 from models.exr_header import decode_attributes, sensor_attributes
 from models.frames import frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
@@ -57,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
     if args.frame is None or args.output is None:
         raise MissingParameterError(
             "give a wrapped frame and -o OUTPUT.exr (or --list-decoders to see the decoders)"
+        )
+    if Path(args.output).suffix.lower() != ".exr":
+        raise UnsupportedFormatError(
+            f"-o {args.output}: a reconstruction is written as OpenEXR; name the file .exr"
         )
     if args.winding_out:
         frame_format(args.winding_out)

@@ -12,7 +12,7 @@ from models.errors import UnsupportedFormatError
 from service.cli.options import add_exr_compression_flag, add_sensor_flags, sensor_values
 from worker.temporal import MODES, TemporalConfig
 from worker.video_input import read_video
-from worker.video_output import REFERENCE_WHITE, Hdr10Settings
+from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
 from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs
 
 #: Output suffixes and the output each one means.
@@ -91,6 +91,11 @@ def run(args: argparse.Namespace) -> int:
         exr_compression=args.exr_compression,
     )
     video = read_video(args.video, sensor_values(args))
+    if "hdr10" in targets:
+        check_hdr10_frame_size(
+            video.codes.shape[1], video.codes.shape[2],
+            "write the EXR frames instead (-o clip.zip, with --preview for an SDR video)",
+        )
     progress = None if args.quiet else progress_bar
     start = time.perf_counter()
     decoded = decode_video_frames(video, options, progress)

@@ -133,3 +133,8 @@ def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
     )  # fmt: skip
     assert_one_line_error(overflow, "float16")
     assert not (tmp_path / "x.exr").exists()
+    not_exr = run_mcam(
+        "reconstruct", pipeline / "wrapped.png", "-o", "x.txt", cwd=tmp_path
+    )  # fmt: skip
+    assert_one_line_error(not_exr, "x.txt", "name the file .exr")
+    assert not (tmp_path / "x.txt").exists()

@@ -65,3 +65,9 @@ def test_video_needs_parameters(tmp_path: Path) -> None:
     np.save(tmp_path / "wrapped.npy", np.zeros((2, 8, 8), np.uint8))
     result = run_mcam("video", "wrapped.npy", "-o", "frames.zip", cwd=tmp_path)
     assert_one_line_error(result, "--encoding")
+
+
+def test_frames_too_small_for_hdr10_are_refused_before_decoding(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((3, 32, 32), np.uint8))
+    result = run_mcam("video", "wrapped.npy", "-o", "clip.mp4", *FLAGS, cwd=tmp_path)
+    assert_one_line_error(result, "64 x 64", "got 32 x 32", "-o clip.zip")
