@@ -25,7 +25,17 @@ The codes decide it: the guide is only a starting point, except on *anchor* pixe
 :data:`ANCHOR_CODE`), which are dark in every channel, hence truly W = 0 in each,
 and pin the relative W there to 0 (:data:`ANCHOR_WEIGHT` per pixel and wrap). With
 fewer than :data:`MIN_ANCHORS` anchors nothing fixes the relative W's constant, and
-it is set to the guide's most common one.
+it is set as a single channel's is (:func:`models.decoders.base.anchor_winding`): the
+channel it gives, the reference's decoded W plus the relative W, has its darkest
+pixels (the :data:`models.decoders.base.ANCHOR_PERCENTILE` percentile) at W = 0.
+Until 2026-11-26 it followed the guide's most common relative W, which failed where
+the guide's channel was wrong in whole tiles: on four venice crops auto-balanced's
+blue sky was stitched a wrap high on 58% of the pixels and a wrap low on 39%, few
+pixels were dark in every channel, and the join kept the high wrap (bench.colour,
+val, balanced mantissa 23.96 -> 24.54 dB, modulo 22.50 -> 24.26 dB with the anchoring
+rule; on the tuning set, where it was chosen, auto-fast +0.39 / +0.19 dB, herraez
+-0.13 / +0.66 dB, itoh +0.39 / +0.01 dB, balanced +0.00 / +0.02 dB; best unchanged,
+its channels leave enough anchors).
 
 Each channel then votes for the reference's W at each pixel, ``W_c - (W_c - W_ref)``;
 where at least two votes agree, every channel takes that W plus its relative W
@@ -45,8 +55,8 @@ frame's channels when that is predicted to take at most half its budget
 Measured (``python -m bench.colour``, 2026-11-26, 2 AMD EPYC cores; the constants
 below were chosen on the *tuning* set, 2 crops of each training scene, before the
 validation crops were measured), mean PSNR channels alone -> made consistent:
-val-256 in colour, mantissa: auto-balanced 20.74 -> 23.96 dB, auto-best 19.86 ->
-24.44 dB, herraez 19.84 -> 22.23 dB; modulo: auto-balanced 19.52 -> 22.50 dB,
+val-256 in colour, mantissa: auto-balanced 20.74 -> 24.54 dB, auto-best 19.86 ->
+24.44 dB, herraez 19.84 -> 22.39 dB; modulo: auto-balanced 19.52 -> 24.26 dB,
 auto-best 21.53 -> 24.55 dB; tuning set, mantissa: auto-balanced 24.52 -> 25.97 dB,
 auto-best 25.34 -> 26.38 dB. It costs 110-170 ms per 256x256 frame. With itoh's
 guide it gains nothing on PSNR (a wrong majority spreads): the better the channels'
@@ -64,14 +74,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.band_moves import jump_pairs
-from models.decoders.base import Decoder
+from models.decoders.base import ANCHOR_PERCENTILE, Decoder, integer_percentile
 from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import JUMPS, pair_weights
 from models.decoders.region_moves import best_region_move
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_inner
 from models.formation import SensorParams, max_winding
-from models.tile_reconcile import common_offset
 
 SUFFIX = "+colour"
 NAME = re.compile(rf"(?P<inner>.+){re.escape(SUFFIX)}")
@@ -87,7 +96,7 @@ REFERENCE = 1
 ANCHOR_CODE = 0.5
 #: Prior weight of an anchor pixel (per wrap of relative W away from 0); elsewhere 0.
 ANCHOR_WEIGHT = 0.05
-#: With fewer anchors the relative W's constant follows the guide.
+#: With fewer anchors the relative W's constant is set by the anchoring rule.
 MIN_ANCHORS = 64
 #: Region moves, then pixel moves, of the chroma unwrapping. Measured on the
 #: training-scene colour crops (auto-balanced guide, mantissa): 8 + 2 gained 1.45 dB,
@@ -132,9 +141,11 @@ def relative_winding(
     )
     chroma = minimise(wrapped, guide, energy, JUMPS, REGION_MOVES, best_region_move).winding
     chroma = minimise(wrapped, chroma, energy, JUMPS, PIXEL_MOVES, best_pixel_move).winding
+    relative = chroma - np.floor(difference).astype(np.int64)
     if anchors.sum() < MIN_ANCHORS:
-        chroma = chroma + common_offset(guide, chroma)
-    return chroma - np.floor(difference).astype(np.int64)
+        darkest = integer_percentile(winding[:, :, REFERENCE] + relative, ANCHOR_PERCENTILE)
+        relative = relative - darkest
+    return relative
 
 
 def harmonise(
