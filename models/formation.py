@@ -384,3 +384,8 @@ def max_winding(params: SensorParams) -> int | None:
         return None
     u_max = to_unwrapped(np.array(params.max_wraps), params)
     return int(np.floor(u_max + params.read_noise * 6))
+
+
+def clip_winding(winding: NDArray[np.integer], params: SensorParams) -> NDArray[np.int64]:
+    """``winding`` clamped to the encoding's range: 0 (x >= 0) to :func:`max_winding`."""
+    return np.clip(winding, 0, max_winding(params))

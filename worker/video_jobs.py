@@ -52,7 +52,7 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
     if unknown:
         raise InvalidInputError(f"unknown video options {sorted(unknown)}")
     values = DEFAULT_OPTIONS | options
-    outputs = list(dict.fromkeys(values["outputs"]))
+    outputs = list(values["outputs"])
     bad = [name for name in outputs if name not in OUTPUTS]
     if bad or not outputs:
         raise InvalidInputError(

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
+from models.formation import SensorParams, clip_winding, dequantize, from_unwrapped
 
 #: Lower-tail percentile of the relative winding map used as the W = 0 anchor. The
 #: exposure leaves most pixels unwrapped (overexposed <= 0.35 in practice), so the 5th
@@ -81,11 +81,16 @@ def anchor_winding(
     ``trusted`` (optional) restricts that percentile to pixels whose relative W
     is known to be exact, so a region of guesses cannot move the anchor.
     """
+    return clip_winding(relative - anchor_offset(relative, trusted), params)
+
+
+def anchor_offset(
+    relative: NDArray[np.int64], trusted: NDArray[np.bool_] | None = None
+) -> int:
+    """The constant :func:`anchor_winding` takes off ``relative``: its
+    ``ANCHOR_PERCENTILE`` percentile (over ``trusted`` pixels when any are given)."""
     basis = relative if trusted is None or not trusted.any() else relative[trusted]
-    offset = integer_percentile(basis, ANCHOR_PERCENTILE)
-    winding = np.maximum(relative - offset, 0)
-    top = max_winding(params)
-    return winding if top is None else np.minimum(winding, top)
+    return integer_percentile(basis, ANCHOR_PERCENTILE)
 
 
 class Decoder(ABC):

@@ -74,13 +74,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.band_moves import jump_pairs
-from models.decoders.base import ANCHOR_PERCENTILE, Decoder, integer_percentile
+from models.decoders.base import Decoder, anchor_offset
 from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import JUMPS, pair_weights
 from models.decoders.region_moves import best_region_move
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_inner
-from models.formation import SensorParams, max_winding
+from models.formation import SensorParams, clip_winding
 
 SUFFIX = "+colour"
 NAME = re.compile(rf"(?P<inner>.+){re.escape(SUFFIX)}")
@@ -143,8 +143,7 @@ def relative_winding(
     chroma = minimise(wrapped, chroma, energy, JUMPS, PIXEL_MOVES, best_pixel_move).winding
     relative = chroma - np.floor(difference).astype(np.int64)
     if anchors.sum() < MIN_ANCHORS:
-        darkest = integer_percentile(winding[:, :, REFERENCE] + relative, ANCHOR_PERCENTILE)
-        relative = relative - darkest
+        relative = relative - anchor_offset(winding[:, :, REFERENCE] + relative)
     return relative
 
 
@@ -166,7 +165,7 @@ def harmonise(
     )
     agreed = majority != NO_MAJORITY
     harmonised = np.where(agreed[:, :, None], majority[:, :, None] + relative, winding)
-    harmonised = np.clip(harmonised, 0, max_winding(params))
+    harmonised = clip_winding(harmonised, params)
     return harmonised, {
         "anchors": int(anchors.sum()),
         "majority_fraction": float(agreed.mean()),

@@ -89,7 +89,7 @@ from models.decoders.learned import load_cards, stitch_overlapping
 from models.decoders.region_moves import best_region_move
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_guide
-from models.formation import SensorParams, max_winding
+from models.formation import SensorParams, clip_winding
 from models.scene_analysis import neighbour_jumps, residue_map
 from models.tile_reconcile import common_offset
 
@@ -258,17 +258,16 @@ class GuidedPumaDecoder(Decoder):
             return self._refine_frame(m, guide, params)
         winding = guide.copy()
         boxes: list[dict[str, Any]] = []
-        top = max_winding(params)
         for box in refinement_boxes(doubtful):
             refined, facts = self._refine_frame(m[box], guide[box], params)
             trusted = ~doubtful[box]
             if trusted.any():
                 refined = refined + common_offset(guide[box][trusted], refined[trusted])
-            refined = np.clip(refined, 0, top if top is not None else None)
+            refined = clip_winding(refined, params)
             winding[box] = np.where(doubtful[box], refined, guide[box])
             boxes.append(facts)
         totals = {key: sum(facts[key] for facts in boxes) for key in REFINEMENT_COUNTS}
-        return winding, {**totals, "changed_fraction": float(np.mean(winding != guide))}
+        return winding, _facts(winding, guide, **totals)
 
     def refine_within(
         self,
@@ -281,16 +280,11 @@ class GuidedPumaDecoder(Decoder):
         H x W; :func:`models.decoders.band_moves.confined_move`): every other pixel keeps
         the guide, and frames of any size are cut whole (the graph is the band's).
         Facts as :meth:`refine` reports them."""
-        energy = PumaEnergy(1.0, pair_weights(m), guide, self.prior_weight, ABOVE_FACTOR)
-        result = minimise(m, guide, energy, JUMPS, self.max_moves, confined_move(band))
-        top = max_winding(params)
-        winding = np.clip(result.winding, 0, top if top is not None else None)
-        return winding, {
-            "windows": 1,
-            "region_moves": 0,
-            "moves": result.moves,
-            "changed_fraction": float(np.mean(winding != guide)),
-        }
+        result = minimise(
+            m, guide, self._energy(m, guide), JUMPS, self.max_moves, confined_move(band)
+        )
+        winding = clip_winding(result.winding, params)
+        return winding, _facts(winding, guide, windows=1, region_moves=0, moves=result.moves)
 
     def _refine_frame(
         self, m: NDArray[np.float64], guide: NDArray[np.int64], params: SensorParams
@@ -301,9 +295,7 @@ class GuidedPumaDecoder(Decoder):
 
         def refine_window(rows: slice, cols: slice) -> NDArray[np.int64]:
             window, prior = m[rows, cols], guide[rows, cols]
-            energy = PumaEnergy(
-                1.0, pair_weights(window), prior, self.prior_weight, ABOVE_FACTOR
-            )
+            energy = self._energy(window, prior)
             start = prior
             if self.region_moves:
                 first = minimise(window, prior, energy, JUMPS, self.region_moves, best_region_move)
@@ -315,15 +307,22 @@ class GuidedPumaDecoder(Decoder):
 
         side = max(m.shape) if m.size <= WHOLE_FRAME_PIXELS else WINDOW
         refined = stitch_overlapping(m.shape, side, WINDOW_OVERLAP, refine_window)
-        top = max_winding(params)
-        winding = np.clip(refined, 0, top if top is not None else None)
-        facts = {
-            "windows": len(moves),
-            "region_moves": sum(region_cuts),
-            "moves": sum(moves),
-            "changed_fraction": float(np.mean(winding != guide)),
-        }
-        return winding, facts
+        winding = clip_winding(refined, params)
+        return winding, _facts(
+            winding, guide, windows=len(moves), region_moves=sum(region_cuts), moves=sum(moves)
+        )
+
+    def _energy(self, m: NDArray[np.float64], guide: NDArray[np.int64]) -> PumaEnergy:
+        """The guided PUMA energy (module doc) of ``m`` (wraps) around ``guide`` (W)."""
+        return PumaEnergy(1.0, pair_weights(m), guide, self.prior_weight, ABOVE_FACTOR)
+
+
+def _facts(
+    winding: NDArray[np.int64], guide: NDArray[np.int64], **counts: int
+) -> dict[str, Any]:
+    """A refinement's facts: its :data:`REFINEMENT_COUNTS` and the fraction of pixels it
+    changed from ``guide``."""
+    return {**counts, "changed_fraction": float(np.mean(winding != guide))}
 
 
 def refined_name(guide_name: str, max_moves: int = MAX_MOVES) -> str:
