@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from pathlib import Path
 
@@ -72,13 +73,33 @@ def file_problem(exc: OSError) -> str:
     return f"cannot use {path}: {exc.strerror or exc}"
 
 
+#: Exit status of a command whose output's reader went away (128 + SIGPIPE, as a shell
+#: reports a process that SIGPIPE ended).
+READER_GONE = 141
+
+
+def reader_gone() -> int:
+    """The reader of our standard output went away (``mcam ... | head``): stop quietly,
+    as other command-line tools do, and point standard output at the null device so
+    that Python's final flush does not fail again."""
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return READER_GONE
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Parse arguments, run the command, map caller errors to exit code 2. Freed memory
+    """Parse arguments, run the command, map caller errors to exit code 2 (and a reader
+    that went away to :data:`READER_GONE`, silently). Freed memory
     stays in the process for reuse (:func:`models.allocator.keep_freed_memory`)."""
     keep_freed_memory()
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:
+        return reader_gone()
     except McamError as exc:
         print(f"mcam {args.command}: error: {exc.message}", file=sys.stderr)
         return 2

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import errno
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from service.cli.main import file_problem, main
+from service.cli.main import READER_GONE, file_problem, main
 
 FLAGS = ("--encoding", "mantissa", "--alpha", "2", "--bits", "8")
 
@@ -51,3 +54,18 @@ def test_unwritable_output_exits_2_without_a_traceback(
     err = capsys.readouterr().err
     assert err.startswith("mcam reconstruct: error: ") and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly(tmp_path: Path) -> None:
+    """``mcam ... | head``: the pipe's reader is gone before the command writes."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "service.cli.main", "reconstruct", "--list-decoders"],
+            stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120, check=False,
+        )
+    finally:
+        os.close(write_end)
+    assert done.returncode == READER_GONE
+    assert done.stderr == ""
