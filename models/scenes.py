@@ -158,12 +158,32 @@ def _texture(rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.flo
     return np.exp(rng.uniform(0, 0.5) * grating + rng.uniform(0, 0.15) * noise)
 
 
-def synthetic_scene(seed: int, size: int = 128) -> NDArray[np.float64]:
+def glows(rng: np.random.Generator, size: int, median: float) -> NDArray[np.float64]:
+    """One to four smooth bright lobes to add to a ``size x size`` scene whose median
+    radiance is ``median``: a light's glare or a lamp's fall-off on a wall (power law
+    ``(1 + d^2 / s^2)^-1``) or a specular highlight (Gaussian), of width ``s`` 2 px to a
+    third of the frame and peak 10 to 10^4 x the median. Unlike the dead leaves' sharp
+    disks, a lobe of peak ``P`` crosses every wrap up to ``P`` within a few pixels of
+    the last: a bright region whose W the codes decide, ring by ring."""
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    out = np.zeros((size, size))
+    for _ in range(int(rng.integers(1, 5))):
+        cy, cx = rng.uniform(-0.25 * size, 1.25 * size, 2)
+        width = 10 ** rng.uniform(np.log10(2.0), np.log10(size / 3))
+        squared = ((yy - cy) ** 2 + (xx - cx) ** 2) / width**2
+        shape = np.exp(-0.5 * squared) if rng.uniform() < 0.5 else 1.0 / (1.0 + squared)
+        out += median * 10 ** rng.uniform(1.0, 4.0) * shape
+    return out
+
+
+def synthetic_scene(seed: int, size: int = 128, lobes: bool = False) -> NDArray[np.float64]:
     """A seeded synthetic HDR luminance scene, ``size x size`` float64 (> 0).
 
     Dead leaves (disks with power-law radii, occluding each other) with
     heavy-tailed radiances (log-normal, or Pareto for a fraction), textured
-    surfaces, a few small very bright sources, a smooth gradient and vignetting.
+    surfaces, a few small very bright sources, a smooth gradient and vignetting;
+    with ``lobes``, also smooth bright lobes (:func:`glows`, drawn from their own
+    seeded stream: the rest of the scene is the same either way).
     """
     rng = np.random.default_rng(seed)
     scene = np.full((size, size), rng.lognormal(0.0, 1.0))
@@ -182,6 +202,8 @@ def synthetic_scene(seed: int, size: int = 128) -> NDArray[np.float64]:
         ys, xs, mask = _disk_mask(size, cy, cx, rng.uniform(0.5, 3.0))
         bright = np.median(scene) * 10 ** rng.uniform(2, 5)
         scene[ys, xs] = np.where(mask, bright, scene[ys, xs])
+    if lobes:
+        scene = scene + glows(np.random.default_rng([seed, 1]), size, float(np.median(scene)))
     yy, xx = np.mgrid[0:size, 0:size] / size - 0.5
     angle = rng.uniform(0, 2 * np.pi)
     gradient = np.exp(rng.uniform(0, 3) * (np.cos(angle) * xx + np.sin(angle) * yy))

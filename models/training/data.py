@@ -7,8 +7,12 @@ random flips and 90-degree rotations, a random exposure (overexposed fraction
 luminance), or with probability ``colour_fraction`` an HDRI crop in linear RGB,
 exposed on its luminance as a colour frame is, of which one random channel makes the
 pair: the nets decode colour frames channel by channel, and a channel is not a
-luminance image (a blue sky can lie above saturation everywhere). Everything is
-seeded by ``(seed, step)`` so a resumed run sees the same data.
+luminance image (a blue sky can lie above saturation everywhere). With probability
+``glow_fraction`` a synthetic scene also gets smooth bright lobes
+(:func:`models.scenes.glows`): without them no training crop had a bright region
+whose wrap rings could be counted, and the nets never answered W >= 3, even on a clean
+glow that Itoh's method unwraps exactly. Everything is seeded by ``(seed, step)`` so a
+resumed run sees the same data.
 """
 
 from __future__ import annotations
@@ -34,7 +38,8 @@ OVEREXPOSED_RANGE = (0.05, 0.35)
 
 @dataclass(frozen=True)
 class PairConfig:
-    """What the sampler draws: encoding, crop size (px), batch size and noise range."""
+    """What the sampler draws: encoding, crop size (px), batch size, noise range and the
+    shares of synthetic scenes, of colour HDRI crops and of synthetic scenes with lobes."""
 
     encoding: str
     crop: int = 64
@@ -43,6 +48,7 @@ class PairConfig:
     synthetic_fraction: float = 0.5
     bits: int = 8
     colour_fraction: float = 0.0
+    glow_fraction: float = 0.0
 
 
 @cache
@@ -86,7 +92,10 @@ def sample_pair(
     """One training pair: ``m`` (float32, crop x crop) and true ``W`` (int64)."""
     while True:
         if rng.uniform() < config.synthetic_fraction:
-            scene = synthetic_scene(int(rng.integers(2**31)), config.crop)
+            seed = int(rng.integers(2**31))
+            # No draw when glow_fraction is 0, so earlier recipes see the same data.
+            lobes = bool(config.glow_fraction) and rng.uniform() < config.glow_fraction
+            scene = synthetic_scene(seed, config.crop, lobes)
         else:
             # No draw when colour_fraction is 0, so grayscale recipes see the same data.
             colour = bool(config.colour_fraction) and rng.uniform() < config.colour_fraction

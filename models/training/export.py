@@ -134,6 +134,7 @@ def training_facts(config: TrainConfig, state: dict[str, Any]) -> dict[str, Any]
         "loss": config.loss,
         **({"risk_weight": config.risk_weight} if config.loss == "ce-risk" else {}),
         "max_read_noise": config.max_read_noise,
+        **({"glow_fraction": config.glow_fraction} if config.glow_fraction else {}),
         **(
             {"own_states": config.own_states, "own_passes": config.own_passes}
             if config.family == "unmodnet"

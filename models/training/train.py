@@ -60,6 +60,8 @@ class TrainConfig:
     :func:`models.training.losses.winding_loss`. ``own_states`` / ``own_passes``
     (``unmodnet`` only): the fraction of batches trained from the model's own state after
     up to that many passes, see :func:`models.training.losses.rollover_losses`.
+    ``glow_fraction``: the share of synthetic scenes with smooth bright lobes (see
+    :mod:`models.training.data`).
     ``label``: a tag in the run name (``-<label>`` before the encoding), for a run that is
     a step towards another rather than a model.
     ``device``, ``precision`` and ``workers``: where and how the steps run (see the module
@@ -76,6 +78,7 @@ class TrainConfig:
     batch: int = 8
     max_read_noise: float = 0.0
     colour_fraction: float = 0.0
+    glow_fraction: float = 0.0
     risk_weight: float = RISK_WEIGHT
     own_states: float = 0.0
     own_passes: int = 4
@@ -132,8 +135,9 @@ class TrainConfig:
         else:
             crop, batch = self.crop, self.batch
         return PairConfig(
-            self.encoding, crop, batch, self.max_read_noise, colour_fraction=self.colour_fraction
-        )
+            self.encoding, crop, batch, self.max_read_noise,
+            colour_fraction=self.colour_fraction, glow_fraction=self.glow_fraction,
+        )  # fmt: skip
 
     def learning_rate(self, step: int) -> float:
         """Per-stage rate with a cosine decay to 5% over each stage."""
@@ -162,6 +166,13 @@ def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
     return load_checkpoint(source)["model"]
 
 
+#: The shares of the training data a run sets, each in [0, 1], and what each is.
+FRACTIONS = {
+    "colour_fraction": "the share of HDRI crops taken as one channel of a colour frame",
+    "glow_fraction": "the share of synthetic scenes with smooth bright lobes",
+}
+
+
 def check_config(config: TrainConfig) -> None:
     """Raise InvalidInputError (a ValueError), naming the field, for a configuration that
     :func:`train` cannot run."""
@@ -171,11 +182,10 @@ def check_config(config: TrainConfig) -> None:
         )
     if not config.risk_weight >= 0.0:
         raise InvalidInputError(f"risk_weight must be >= 0, got {config.risk_weight}")
-    if not 0.0 <= config.colour_fraction <= 1.0:
-        raise InvalidInputError(
-            f"colour_fraction must be in [0, 1] (the share of HDRI crops taken as one "
-            f"channel of a colour frame), got {config.colour_fraction}"
-        )
+    for name, meaning in FRACTIONS.items():
+        value = getattr(config, name)
+        if not 0.0 <= value <= 1.0:
+            raise InvalidInputError(f"{name} must be in [0, 1] ({meaning}), got {value}")
     if config.precision not in PRECISIONS:
         raise InvalidInputError(
             f"precision must be one of {PRECISIONS}, got {config.precision!r}"

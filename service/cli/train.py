@@ -60,6 +60,10 @@ def register(subparsers: Any) -> None:
         "--colour-fraction", type=float, default=0.0,
         help="share of HDRI crops taken as one channel of a colour frame (default 0)",
     )  # fmt: skip
+    one.add_argument(
+        "--glow-fraction", type=float, default=0.0,
+        help="share of synthetic scenes with smooth bright lobes (default 0)",
+    )  # fmt: skip
     one.add_argument("--init-from", help="start from this finished run's weights (a run name)")
     one.add_argument(
         "--label", default="", help="a tag in the run name (a run towards another model)"
@@ -159,8 +163,8 @@ def run(args: argparse.Namespace) -> int:
         family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
         max_read_noise=args.read_noise, colour_fraction=args.colour_fraction,
-        risk_weight=args.risk_weight, init_from=args.init_from, label=args.label,
-        seed=args.seed, threads=args.threads,
+        glow_fraction=args.glow_fraction, risk_weight=args.risk_weight,
+        init_from=args.init_from, label=args.label, seed=args.seed, threads=args.threads,
         runs_dir=args.runs_dir or RUNS_DIR, device=args.device, precision=args.precision,
         workers=args.workers,
     )  # fmt: skip

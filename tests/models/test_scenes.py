@@ -101,3 +101,23 @@ def test_the_colour_synthetic_frame_is_the_scene_tinted_and_exposed_on_luminance
     tint = scenes.synthetic_tint(3, 64)
     assert np.all(tint[:, :, 1] == 1.0)
     assert np.all(np.abs(np.log(tint)) <= 0.6) and np.ptp(np.log(tint[:, :, 0])) > 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 7])
+def test_lobes_only_add_smooth_light_to_the_same_scene(seed: int) -> None:
+    """A scene with lobes is the scene without them plus bright smooth light: brighter
+    nowhere darker, seeded, and reaching at least 10x the plain scene's median."""
+    plain = scenes.synthetic_scene(seed, 64)
+    lit = scenes.synthetic_scene(seed, 64, lobes=True)
+    np.testing.assert_array_equal(lit, scenes.synthetic_scene(seed, 64, lobes=True))
+    assert np.all(lit >= plain) and np.isfinite(lit).all()
+    assert (lit - plain).max() > 0
+
+
+def test_glows_cross_every_wrap_up_to_their_peak() -> None:
+    """A lobe decays smoothly: neighbouring pixels differ by far less than the peak, so
+    its rings can be counted (the reason to train on it)."""
+    light = scenes.glows(np.random.default_rng(3), 128, 1.0)
+    assert light.min() >= 0 and light.max() >= 10.0
+    steps = np.abs(np.diff(np.log(light + 1.0), axis=1))
+    assert steps.max() < 0.5 * np.log(light.max() + 1.0)

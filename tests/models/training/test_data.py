@@ -105,3 +105,17 @@ def test_colour_crops_give_one_channel_of_a_frame_exposed_on_luminance() -> None
     assert winding.min() == 0 and winding.max() < NUM_CLASSES
     assert not np.array_equal(m, sample_batch(11, 0, gray)[0])
     np.testing.assert_array_equal(m, sample_batch(11, 0, colour)[0])
+
+
+def test_glow_fraction_0_keeps_the_earlier_data_and_1_adds_lobes() -> None:
+    """Recipes without lobes see the data they were trained on; with glow_fraction 1
+    every synthetic scene gets its lobes: the same scene, brighter, with more high W."""
+    plain = PairConfig("mantissa", crop=32, batch=6, synthetic_fraction=1.0)
+    zero = PairConfig("mantissa", crop=32, batch=6, synthetic_fraction=1.0, glow_fraction=0.0)
+    lit = PairConfig("mantissa", crop=32, batch=6, synthetic_fraction=1.0, glow_fraction=1.0)
+    m, winding = sample_batch(4, 0, plain)
+    np.testing.assert_array_equal(m, sample_batch(4, 0, zero)[0])
+    lit_m, lit_winding = sample_batch(4, 0, lit)
+    assert lit_m.shape == m.shape and lit_winding.max() < NUM_CLASSES
+    assert not np.array_equal(lit_m, m)
+    np.testing.assert_array_equal(lit_m, sample_batch(4, 0, lit)[0])

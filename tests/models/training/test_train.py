@@ -77,10 +77,16 @@ def test_colour_channel_data_names_the_run_and_the_decoder() -> None:
     assert config.pairs(3).colour_fraction == config.pairs(4).colour_fraction == 0.5
 
 
+@pytest.mark.parametrize("field", ["colour_fraction", "glow_fraction"])
 @pytest.mark.parametrize("fraction", [-0.1, 1.5, float("nan")])
-def test_a_colour_fraction_outside_0_1_is_refused(fraction: float) -> None:
-    with pytest.raises(InvalidInputError, match="colour_fraction"):
-        check_config(TrainConfig(colour_fraction=fraction))
+def test_a_data_fraction_outside_0_1_is_refused(field: str, fraction: float) -> None:
+    with pytest.raises(InvalidInputError, match=field):
+        check_config(TrainConfig(**{field: fraction}))
+
+
+def test_the_glow_fraction_reaches_every_stages_pairs() -> None:
+    config = TrainConfig(tier="tiny", glow_fraction=0.25)
+    assert config.pairs(3).glow_fraction == config.pairs(4).glow_fraction == 0.25
 
 
 def test_a_run_can_start_from_another_runs_weights(tmp_path: Path) -> None:
