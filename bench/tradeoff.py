@@ -7,6 +7,9 @@
 - ``large-512`` / ``large-1024``: seeded synthetic scenes at 512 and 1024 px;
 - ``mostly-dark``: val-256 crops exposed so that only 1% of pixels wrap, plus
   unwrapped crops (realistic for streaming: most tiles need nothing);
+- ``glows``: every other val-256 crop with smooth bright lobes added
+  (:func:`models.scenes.glows`: a lamp's glare, a specular highlight), exposed like
+  val-256: bright regions whose wrap rings the codes decide but the nets under-count;
 
 for each decoder: PSNR and PU21-PSNR against the true irradiance, winding
 accuracy, ms/frame (median of repeats) and frames/s. It marks the Pareto front
@@ -47,6 +50,8 @@ from models.scenes import (
     VAL256_MAX_WRAPS,
     VAL256_OVEREXPOSED,
     ValFrame,
+    exposed_frames,
+    glows,
     synthetic_scene,
     val256_frames,
     val256_scenes,
@@ -78,6 +83,21 @@ def mostly_dark_frames(count: int) -> list[ValFrame]:
     wrapped = [frames_at(crop, 0.01, None) for crop in crops]
     unwrapped = [frames_at(crop, None, 0.9 / float(crop.max())) for crop in crops]
     return wrapped + unwrapped
+
+
+#: Seed of the lobes of the ``glows`` set.
+GLOW_SEED = 77
+
+
+def glow_frames(count: int) -> list[ValFrame]:
+    """``count`` val-256 crops (every other one) with seeded lobes, at the val-256 settings."""
+    crops = val256_scenes()[::2][:count]
+    lit = [
+        (label, crop + glows(np.random.default_rng([GLOW_SEED, index]), crop.shape[0],
+                             float(np.median(crop))))
+        for index, (label, crop) in enumerate(crops)
+    ]  # fmt: skip
+    return exposed_frames(lit, "mantissa")
 
 
 def median_ms(run: Callable[[], Any], repeats: int) -> float:
@@ -223,6 +243,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         sets["large-512"] = large_frames(512, 2)
         sets["large-1024"] = large_frames(1024, 1)
     sets["mostly-dark"] = mostly_dark_frames(args.dark)
+    if args.glows:
+        sets["glows"] = glow_frames(args.glows)
     peak = peak_gflops()
     table: dict[str, list[dict[str, Any]]] = {}
     predictions: dict[str, dict[str, dict[str, float]]] = {}
@@ -367,6 +389,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=24, help="val-256 frames to use")
     parser.add_argument("--dark", type=int, default=3, help="mostly-dark crops per kind")
+    parser.add_argument("--glows", type=int, default=12, help="glows frames (0: none)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--decoders", nargs="*", help="only these decoders")
     parser.add_argument("--quick", action="store_true", help="skip the 512/1024 sets")

@@ -120,14 +120,16 @@ class PumaEnergy:
     above_factor: float = 1.0
 
     def __call__(self, winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
-        energy = clique_energy(winding + m, self.p, self.weights)
-        if self.prior is not None:
-            cost = self._prior_cost(winding - self.prior)
-            if np.ndim(self.prior_weight) == 0:
-                energy += self.prior_weight * float(cost.sum())
-            else:
-                energy += float(np.sum(self.prior_weight * cost))
-        return energy
+        return clique_energy(winding + m, self.p, self.weights) + self.prior_energy(winding)
+
+    def prior_energy(self, winding: NDArray[np.int64]) -> float:
+        """The prior term ``prior_weight * sum c(K - prior)`` (0 without a prior)."""
+        if self.prior is None:
+            return 0.0
+        cost = self._prior_cost(winding - self.prior)
+        if np.ndim(self.prior_weight) == 0:
+            return float(self.prior_weight) * float(cost.sum())
+        return float(np.sum(self.prior_weight * cost))
 
     def _prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:
         """``c(K - prior)`` per pixel, in units of ``prior_weight``: ``max(-d, above * d)``,
@@ -142,7 +144,7 @@ class PumaEnergy:
         return self.prior_weight * (self._prior_cost(offset + jump) - self._prior_cost(offset))
 
 
-def _move_terms(
+def move_terms(
     d: NDArray[np.float64], jump: int, p: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Binary-move terms of the pairs with unwrapped difference ``d = u_j - u_i``.
@@ -158,7 +160,7 @@ def _move_terms(
     return down - base, np.maximum(up + down - 2.0 * base, 0.0)
 
 
-def _pair_capacities(
+def pair_capacities(
     c: NDArray[np.float64], w: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Edges and t-links of pair terms ``c delta_i - c delta_j + w (1 - delta_i) delta_j``.
@@ -185,7 +187,7 @@ class MoveCapacities:
     ``unary`` (H x W): a pixel's cost of moving, paid from the source when positive
     and to the sink when negative; ``right`` / ``down``: (forward, backward) edge
     capacities to the right (H x W-1) and lower (H-1 x W) neighbour. The move's
-    energy change is ``sum unary[moved] + cut`` (see :func:`_pair_capacities`).
+    energy change is ``sum unary[moved] + cut`` (see :func:`pair_capacities`).
     """
 
     unary: NDArray[np.float64]
@@ -198,13 +200,13 @@ def move_capacities(
 ) -> MoveCapacities:
     """The s-t graph of the move that adds ``jump`` to a subset of ``winding``."""
     right, down = _differences(winding + m)
-    c_right, w_right = _move_terms(right, jump, energy.p)
-    c_down, w_down = _move_terms(down, jump, energy.p)
+    c_right, w_right = move_terms(right, jump, energy.p)
+    c_down, w_down = move_terms(down, jump, energy.p)
     if energy.weights is not None:
         c_right, w_right = c_right * energy.weights[0], w_right * energy.weights[0]
         c_down, w_down = c_down * energy.weights[1], w_down * energy.weights[1]
-    forward_right, backward_right, shift_right = _pair_capacities(c_right, w_right)
-    forward_down, backward_down, shift_down = _pair_capacities(c_down, w_down)
+    forward_right, backward_right, shift_right = pair_capacities(c_right, w_right)
+    forward_down, backward_down, shift_down = pair_capacities(c_down, w_down)
     unary = energy.prior_move_cost(winding, jump)
     unary[:, :-1] += shift_right
     unary[:, 1:] -= shift_right
@@ -268,6 +270,11 @@ def min_cut(unary: NDArray[np.float64], edges: Iterable[Edges]) -> NDArray[np.bo
     return graph.get_grid_segments(nodes)
 
 
+def accepts(value: float, current: float) -> bool:
+    """Whether a move to energy ``value`` lowers ``current`` by more than rounding."""
+    return value < current - _REL_TOL * abs(current)
+
+
 def minimise(
     m: NDArray[np.float64],
     winding: NDArray[np.int64],
@@ -290,7 +297,7 @@ def minimise(
         moves += 1
         candidate = winding + jump * solver(winding, m, jump, energy).astype(np.int64)
         value = energy(candidate, m)
-        if value >= energies[-1] - _REL_TOL * abs(energies[-1]):
+        if not accepts(value, energies[-1]):
             failed += 1
             continue
         failed = 0

@@ -84,9 +84,15 @@ from scipy import ndimage
 from models.decoders.band_moves import best_band_move, confined_move
 from models.decoders.base import Decoder
 from models.decoders.classical import wrap_difference
-from models.decoders.graphcut import PairWeights, PumaEnergy, best_pixel_move, minimise
+from models.decoders.graphcut import (
+    PairWeights,
+    PumaEnergy,
+    PumaResult,
+    best_pixel_move,
+    minimise,
+)
 from models.decoders.learned import load_cards, stitch_overlapping
-from models.decoders.region_moves import best_region_move
+from models.decoders.region_moves import best_region_move, region_descent
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.registry import resolve as resolve_guide
 from models.formation import SensorParams, clip_winding
@@ -133,6 +139,12 @@ JUMPS = (1, -1)
 #: region moves alone stop short where a wrong region joins a right one across an
 #: aliased edge (tiny guide: 22.0 dB against 23.3).
 REGION_MOVES = 2
+#: A budgeted refinement (``max_moves`` below :data:`MAX_MOVES`, with region moves) runs
+#: its region moves to convergence instead, on one partition, within this many cuts
+#: (:func:`models.decoders.region_moves.region_descent`; val-256 frames converge in
+#: 5-11): two lift a region by one wrap at most, and a glow's core the net left three
+#: wraps short stayed short.
+DESCENT_MOVES = 16
 #: Frames of up to this many pixels are refined whole. Measured with the small guide:
 #: 512x512 whole 3.6 s / 36.34 dB against 6.8 s / 34.32 dB in 256-px windows (the
 #: windows' stitching loses regions); 1024x1024 whole 17 s against 13 s in windows,
@@ -212,8 +224,8 @@ class GuidedPumaDecoder(Decoder):
         self.prior_weight = prior_weight
         self.max_moves = max_moves
         self.region_moves = region_moves
-        budgeted = bool(region_moves) and max_moves < MAX_MOVES
-        self.pixel_move = best_band_move if budgeted else best_pixel_move
+        self.budgeted = bool(region_moves) and max_moves < MAX_MOVES
+        self.pixel_move = best_band_move if self.budgeted else best_pixel_move
         self.name = refined_name(guide.name, max_moves)  # type: ignore[misc]
         self.version = guide.version
 
@@ -298,7 +310,7 @@ class GuidedPumaDecoder(Decoder):
             energy = self._energy(window, prior)
             start = prior
             if self.region_moves:
-                first = minimise(window, prior, energy, JUMPS, self.region_moves, best_region_move)
+                first = self._region_step(window, prior, energy)
                 start = first.winding
                 region_cuts.append(first.moves)
             result = minimise(window, start, energy, JUMPS, self.max_moves, self.pixel_move)
@@ -311,6 +323,15 @@ class GuidedPumaDecoder(Decoder):
         return winding, _facts(
             winding, guide, windows=len(moves), region_moves=sum(region_cuts), moves=sum(moves)
         )
+
+    def _region_step(
+        self, m: NDArray[np.float64], guide: NDArray[np.int64], energy: PumaEnergy
+    ) -> PumaResult:
+        """The region moves that start a refinement: to convergence when budgeted
+        (:data:`DESCENT_MOVES`), else :data:`REGION_MOVES` of them."""
+        if self.budgeted:
+            return region_descent(guide, m, energy, JUMPS, DESCENT_MOVES)
+        return minimise(m, guide, energy, JUMPS, self.region_moves, best_region_move)
 
     def _energy(self, m: NDArray[np.float64], guide: NDArray[np.int64]) -> PumaEnergy:
         """The guided PUMA energy (module doc) of ``m`` (wraps) around ``guide`` (W)."""

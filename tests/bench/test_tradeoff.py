@@ -40,11 +40,12 @@ def test_quick_run_writes_json_markdown_and_plot(tmp_path: Path) -> None:
     out = tmp_path / "tradeoff.json"
     plot = tmp_path / "tradeoff.png"
     tradeoff.main(
-        ["--quick", "--frames", "1", "--dark", "1", "--repeats", "1", "--decoders", "itoh",
-         "auto-fast", "--out", str(out), "--plot", str(plot)]
+        ["--quick", "--frames", "1", "--dark", "1", "--glows", "1", "--repeats", "1",
+         "--decoders", "itoh", "auto-fast", "--out", str(out), "--plot", str(plot)]
     )  # fmt: skip
     report = json.loads(out.read_text())
-    assert set(report["results"]) == {"val-256", "mostly-dark"}
+    assert set(report["results"]) == {"val-256", "mostly-dark", "glows"}
+    assert report["sets"]["glows"] == 1
     decoders = {r["decoder"] for r in report["results"]["val-256"]}
     assert decoders == {"itoh", "auto-fast"}
     assert report["peak_gflops_per_s"] > 0

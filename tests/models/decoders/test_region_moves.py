@@ -14,9 +14,11 @@ from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import pair_weights
 from models.decoders.region_moves import (
     CONSISTENT_STEP,
+    RegionGraph,
     best_region_move,
     consistent_regions,
     merge_parallel_edges,
+    region_descent,
 )
 
 
@@ -151,3 +153,91 @@ def test_regions_of_a_single_row_and_a_single_pixel() -> None:
     np.testing.assert_array_equal(labels, [[0, 0, 1, 1]])
     count, labels = consistent_regions(np.zeros((1, 1)), None)
     assert count == 1 and labels.tolist() == [[0]]
+
+
+def _glow(short: int, size: int = 40) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``m`` of a smooth glow (peak 5.7 wraps) beside a rough patch, its true W, and a
+    guide that leaves every pixel at W >= 2 ``short`` wraps short (never below 2), as
+    the nets leave a bright glow's core."""
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    u = 0.2 + 5.5 * np.exp(-((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.15)
+    u[ROUGH] += 0.8 * np.random.default_rng(2).random((4, 4))
+    truth = np.floor(u).astype(np.int64)
+    guide = np.where(truth >= 2, np.maximum(truth - short, 2), truth)
+    return u - truth, truth, guide
+
+
+def test_region_descent_lifts_a_core_several_wraps_short() -> None:
+    """Two region moves lift a region by one wrap at most; the descent converges."""
+    m, truth, guide = _glow(short=3)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, 0.5)
+    two = minimise(m, guide, energy, (1, -1), 2, best_region_move)
+    result = region_descent(guide, m, energy, (1, -1), 32)
+    smooth = np.ones(m.shape, bool)
+    smooth[ROUGH] = False
+    assert np.any(two.winding[smooth] != truth[smooth])
+    np.testing.assert_array_equal(result.winding[smooth], truth[smooth])
+    assert result.winding.dtype == np.int64 and result.winding.shape == m.shape
+    assert all(b < a for a, b in itertools.pairwise(result.energies))
+    assert result.moves <= 32
+
+
+def test_region_descent_stops_at_once_where_nothing_pays() -> None:
+    """From its own answer (with the same prior) no move pays: two cuts, no change."""
+    m, _, guide = _glow(short=3)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, 0.5)
+    settled = region_descent(guide, m, energy, (1, -1), 32).winding
+    again = region_descent(settled, m, energy, (1, -1), 32)
+    np.testing.assert_array_equal(again.winding, settled)
+    assert again.moves == 2 and len(again.energies) == 1
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    m=arrays(np.float64, (3, 4), elements=st.floats(0.0, 0.999)),
+    winding=arrays(np.int64, (3, 4), elements=st.integers(0, 3)),
+    prior=arrays(np.int64, (3, 4), elements=st.integers(0, 3)),
+    weight=st.floats(0.01, 2.0),
+    moves=st.integers(1, 8),
+)
+def test_region_descent_never_raises_the_pixel_energy(
+    m: np.ndarray, winding: np.ndarray, prior: np.ndarray, weight: float, moves: int
+) -> None:
+    """Its energies (pairs across borders + prior) fall move by move and differ from the
+    pixel energy by a constant, the pairs inside regions; regions move whole."""
+    energy = PumaEnergy(1.0, pair_weights(m), prior, weight, 0.5)
+    result = region_descent(winding, m, energy, (1, -1), moves)
+    assert result.moves <= moves
+    assert energy(result.winding, m) <= energy(winding, m) + 1e-9
+    inside = energy(winding, m) - result.energies[0]
+    assert energy(result.winding, m) - result.energies[-1] == pytest.approx(inside, abs=1e-9)
+    _, labels = consistent_regions(winding + m, energy.weights)
+    for label in np.unique(labels):
+        assert len(np.unique((result.winding - winding)[labels == label])) == 1
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    m=arrays(np.float64, (2, 3), elements=st.floats(0.0, 0.999)),
+    winding=arrays(np.int64, (2, 3), elements=st.integers(0, 2)),
+    prior=arrays(np.int64, (2, 3), elements=st.integers(0, 2)),
+    jump=st.sampled_from([1, -1]),
+    active=st.integers(0, 2**6 - 1),
+)
+def test_a_restricted_region_move_is_the_best_over_its_active_regions(
+    m: np.ndarray, winding: np.ndarray, prior: np.ndarray, jump: int, active: int
+) -> None:
+    """Brute force over every subset of the active regions (the others stay)."""
+    energy = PumaEnergy(1.0, pair_weights(m), prior, 0.3, 0.5)
+    graph = RegionGraph(winding, m, energy)
+    allowed = np.array([(active >> k) & 1 for k in range(graph.count)], bool)
+    shift = np.zeros(graph.count, np.int64)
+    moved = graph.best_move(shift, jump, allowed)
+    assert not np.any(moved & ~allowed)
+    candidates = np.flatnonzero(allowed)
+    best = min(
+        graph.energy_of(shift + jump * np.isin(np.arange(graph.count), candidates[list(pick)]))
+        for size in range(len(candidates) + 1)
+        for pick in itertools.combinations(range(len(candidates)), size)
+    )
+    assert graph.energy_of(shift + jump * moved) <= best + 1e-9
