@@ -53,7 +53,10 @@ start near the minimum and need fewer, cheaper cuts. From the tiny net's W on va
 (2 quiet AMD EPYC cores, 2026-11-25), a pixel cut costs 14.5 ms at 256x256 and a region
 cut 4.3 ms (medians).
 A refinement with region moves and a budget below :data:`MAX_MOVES` (``auto`` at
-``balanced``) cuts its pixel moves on a narrow band around the pixels that can gain
+``balanced``) runs its region moves to convergence on one partition
+(:func:`models.decoders.region_moves.region_descent`, :data:`DESCENT_MOVES`): two
+lift a region by one wrap at most, and a glow's core the net left three wraps short
+stayed short. It cuts its pixel moves on a narrow band around the pixels that can gain
 (:mod:`models.decoders.band_moves`): its two pixel cuts took 12-25% less time on
 val-256 with the same W. Without region moves first the pixel cuts must move whole
 regions, which a band cannot: the temporal refinement (two pixel cuts, no region
