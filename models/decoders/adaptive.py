@@ -90,7 +90,8 @@ TIER_LADDER: dict[str, tuple[str, ...]] = {
 #: balanced and best both run it.
 NET_BY_PSNR: dict[str, float | None] = {"balanced": 4.0, "best": None}
 #: Pixel min-cuts of guided PUMA after the network per quality (0: no refinement; a
-#: refinement starts with its region moves). Measured on val-256 (bench.accuracy,
+#: refinement starts with its region moves, at balanced until they converge: see
+#: :mod:`models.decoders.region_moves`). Measured on val-256 (bench.accuracy,
 #: 2026-11-25 17:38 UTC, both with the small-s2d net): mantissa balanced 24.02 dB in 52
 #: ms, best 24.30 dB in 69 ms; modulo 24.00 against 23.87 dB. Earlier, with the small net in
 #: both: balanced 23.72 dB, best 23.52 dB. The route, not the budget, makes that
