@@ -51,7 +51,6 @@ from models.decoders.graphcut import (
     PumaResult,
     accepts,
     min_cut,
-    move_capacities,
     move_terms,
     pair_capacities,
 )
@@ -95,21 +94,11 @@ def best_region_move(
 ) -> NDArray[np.bool_]:
     """The pixels whose K should grow by ``jump``, moving consistent regions whole:
     the minimum cut of the pixel move's graph with each region contracted to a node
-    (a :data:`models.decoders.graphcut.MoveSolver`)."""
-    capacities = move_capacities(winding, m, jump, energy)
-    count, labels = consistent_regions(winding + m, energy.weights)
-    unary = np.bincount(labels.ravel(), capacities.unary.ravel(), minlength=count)
-    tails = np.concatenate([labels[:, :-1].ravel(), labels[:-1].ravel()])
-    heads = np.concatenate([labels[:, 1:].ravel(), labels[1:].ravel()])
-    forward = np.concatenate([capacities.right[0].ravel(), capacities.down[0].ravel()])
-    backward = np.concatenate([capacities.right[1].ravel(), capacities.down[1].ravel()])
-    # Pairs inside a region cost nothing when the region moves whole, and their
-    # t-link shifts cancel in the region's unary sum.
-    between = (tails != heads) & ((forward > 0.0) | (backward > 0.0))
-    edges = merge_parallel_edges(
-        tails[between], heads[between], forward[between], backward[between], count
-    )
-    return min_cut(unary, [edges])[labels]
+    (a :data:`models.decoders.graphcut.MoveSolver`; :meth:`RegionGraph.best_move` on
+    the regions of ``winding``, every one of them free to move)."""
+    graph = RegionGraph(winding, m, energy)
+    everything = np.ones(graph.count, bool)
+    return graph.best_move(np.zeros(graph.count, np.int64), jump, everything)[graph.labels]
 
 
 def merge_parallel_edges(
