@@ -50,8 +50,8 @@ from models.scenes import (
     VAL256_MAX_WRAPS,
     VAL256_OVEREXPOSED,
     ValFrame,
+    add_glows,
     exposed_frames,
-    glows,
     synthetic_scene,
     val256_frames,
     val256_scenes,
@@ -93,10 +93,9 @@ def glow_frames(count: int) -> list[ValFrame]:
     """``count`` val-256 crops (every other one) with seeded lobes, at the val-256 settings."""
     crops = val256_scenes()[::2][:count]
     lit = [
-        (label, crop + glows(np.random.default_rng([GLOW_SEED, index]), crop.shape[0],
-                             float(np.median(crop))))
+        (label, add_glows(crop, np.random.default_rng([GLOW_SEED, index])))
         for index, (label, crop) in enumerate(crops)
-    ]  # fmt: skip
+    ]
     return exposed_frames(lit, "mantissa")
 
 

@@ -176,6 +176,11 @@ def glows(rng: np.random.Generator, size: int, median: float) -> NDArray[np.floa
     return out
 
 
+def add_glows(scene: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
+    """``scene`` (square, luminance) with :func:`glows` added, scaled to its median."""
+    return scene + glows(rng, scene.shape[0], float(np.median(scene)))
+
+
 def synthetic_scene(seed: int, size: int = 128, lobes: bool = False) -> NDArray[np.float64]:
     """A seeded synthetic HDR luminance scene, ``size x size`` float64 (> 0).
 
@@ -203,7 +208,7 @@ def synthetic_scene(seed: int, size: int = 128, lobes: bool = False) -> NDArray[
         bright = np.median(scene) * 10 ** rng.uniform(2, 5)
         scene[ys, xs] = np.where(mask, bright, scene[ys, xs])
     if lobes:
-        scene = scene + glows(np.random.default_rng([seed, 1]), size, float(np.median(scene)))
+        scene = add_glows(scene, np.random.default_rng([seed, 1]))
     yy, xx = np.mgrid[0:size, 0:size] / size - 0.5
     angle = rng.uniform(0, 2 * np.pi)
     gradient = np.exp(rng.uniform(0, 3) * (np.cos(angle) * xx + np.sin(angle) * yy))
