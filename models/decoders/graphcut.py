@@ -126,12 +126,12 @@ class PumaEnergy:
         """The prior term ``prior_weight * sum c(K - prior)`` (0 without a prior)."""
         if self.prior is None:
             return 0.0
-        cost = self._prior_cost(winding - self.prior)
+        cost = self.prior_cost(winding - self.prior)
         if np.ndim(self.prior_weight) == 0:
             return float(self.prior_weight) * float(cost.sum())
         return float(np.sum(self.prior_weight * cost))
 
-    def _prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:
+    def prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:
         """``c(K - prior)`` per pixel, in units of ``prior_weight``: ``max(-d, above * d)``,
         which is ``c`` for any ``above_factor >= 0``."""
         return np.maximum(-offset, self.above_factor * offset)
@@ -141,7 +141,7 @@ class PumaEnergy:
         if self.prior is None:
             return np.zeros(winding.shape)
         offset = winding - self.prior
-        return self.prior_weight * (self._prior_cost(offset + jump) - self._prior_cost(offset))
+        return self.prior_weight * (self.prior_cost(offset + jump) - self.prior_cost(offset))
 
 
 def move_terms(

@@ -14,10 +14,11 @@ from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import pair_weights
 from models.decoders.region_moves import (
     CONSISTENT_STEP,
+    BorderEdges,
+    PriorGroups,
     RegionGraph,
     best_region_move,
     consistent_regions,
-    merge_parallel_edges,
     region_descent,
 )
 
@@ -132,18 +133,64 @@ def _cut_cost(
         min_size=1,
         max_size=12,
     ).filter(lambda pairs: all(tail != head for tail, head, _, _ in pairs)),
+    selected=arrays(bool, 12),
     sink=arrays(bool, 5),
 )
-def test_merged_parallel_edges_cost_the_same_for_every_cut(
-    pairs: list[tuple[int, int, float, float]], sink: np.ndarray
+def test_merged_border_edges_cost_the_same_for_every_cut(
+    pairs: list[tuple[int, int, float, float]], selected: np.ndarray, sink: np.ndarray
 ) -> None:
+    """Merged, the selected pairs cost what they cost one by one; one edge per pair of
+    regions, from the lower region to the higher."""
     tails, heads, forward, backward = (np.array(column) for column in zip(*pairs, strict=True))
-    merged = merge_parallel_edges(tails, heads, forward, backward, 5)
-    assert np.all(merged[0] < merged[1])
-    assert len(set(zip(merged[0], merged[1], strict=True))) == merged[0].size
-    assert _cut_cost(merged, sink) == pytest.approx(
-        _cut_cost((tails, heads, forward, backward), sink), abs=1e-9
-    )
+    chosen = selected[: tails.size]
+    edges = BorderEdges(tails, heads, 5)
+    up, down = edges.merge(chosen, forward[chosen], backward[chosen])
+    assert np.all(edges.low < edges.high)
+    assert len(set(zip(edges.low, edges.high, strict=True))) == edges.low.size
+    merged = (edges.low, edges.high, up, down)
+    single = (tails[chosen], heads[chosen], forward[chosen], backward[chosen])
+    assert _cut_cost(merged, sink) == pytest.approx(_cut_cost(single, sink), abs=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    winding=arrays(np.int64, (3, 4), elements=st.integers(-2, 3)),
+    prior=arrays(np.int64, (3, 4), elements=st.integers(-2, 3)),
+    labels=arrays(np.int64, (3, 4), elements=st.integers(0, 2)),
+    weight=st.one_of(
+        st.floats(0.01, 2.0), arrays(np.float64, (3, 4), elements=st.floats(0.0, 2.0))
+    ),
+    shift=arrays(np.int64, 3, elements=st.integers(-2, 2)),
+    jump=st.sampled_from([1, -1]),
+    active=arrays(bool, 3),
+)
+def test_the_prior_by_region_is_the_prior_by_pixel(
+    winding: np.ndarray,
+    prior: np.ndarray,
+    labels: np.ndarray,
+    weight: float | np.ndarray,
+    shift: np.ndarray,
+    jump: int,
+    active: np.ndarray,
+) -> None:
+    """Grouped by (region, offset), the prior energy and each active region's move cost
+    are the pixel sums of :class:`PumaEnergy`'s."""
+    energy = PumaEnergy(1.0, None, prior, weight, 0.5)
+    groups = PriorGroups(winding, labels, energy)
+    moved = winding + shift[labels]
+    assert groups.energy_of(shift) == pytest.approx(energy.prior_energy(moved), abs=1e-9)
+    region, cost = groups.move_cost(shift, jump, active)
+    by_pixel = np.bincount(labels.ravel(), energy.prior_move_cost(moved, jump).ravel(), 3)
+    by_group = np.bincount(region, cost, 3)
+    np.testing.assert_allclose(by_group[active], by_pixel[active], atol=1e-9)
+    assert not np.any(by_group[~active])
+
+
+def test_a_frame_without_a_prior_has_no_prior_groups() -> None:
+    groups = PriorGroups(np.zeros((2, 2), np.int64), np.zeros((2, 2), np.int64), PumaEnergy())
+    assert groups.energy_of(np.zeros(1, np.int64)) == 0.0
+    region, cost = groups.move_cost(np.zeros(1, np.int64), 1, np.ones(1, bool))
+    assert region.size == 0 and cost.size == 0
 
 
 def test_regions_of_a_single_row_and_a_single_pixel() -> None:
