@@ -12,13 +12,13 @@ rise; above it, for a fall). The band move cuts the graph of the pixels within
 pairs with band pixels folded into their terminal links, so the cut is exact over the
 moves that leave the outside alone.
 
-When the band's cut moves nothing the full pixel cut runs (a region larger than the
-band can still pay to move whole), so a refinement run to convergence stops only
-where no pixel move lowers the energy: for the convex guided energy that is the same
-global minimum as with full cuts. Converging that way costs more, though (the last
-cuts must be full ones, after a band cut that found nothing), so only budgeted
-refinements that start with region moves use band moves
-(:class:`models.decoders.guided_puma.GuidedPumaDecoder`: ``auto`` at ``balanced``).
+Band moves serve only budgeted refinements
+(:class:`models.decoders.guided_puma.GuidedPumaDecoder`, ``auto`` at ``balanced``),
+which first run region moves to convergence
+(:func:`models.decoders.region_moves.region_descent`). A band cut that moves nothing
+is a failed move: no full pixel cut follows it. What a full cut could add there is a
+set of pixels far from every seed moving together, a region moving whole, and the
+region descent has already tried those moves.
 
 Measured (2026-11-25, AMD EPYC, 2 cores; val-256, the two pixel cuts of auto-balanced
 after its two region moves on the small-s2d net's W; medians of 5 interleaved runs):
@@ -26,10 +26,19 @@ mantissa 30.3 -> 26.6 ms, modulo 24.1 -> 18.0 ms, the same W on all 48 frames. T
 whole of auto-balanced kept its PSNR to 0.001 dB on val-256 (24.015 / 23.997 dB),
 the mostly-dark set (42.52), and synthetic 512x512 (36.54) and 1024x1024 frames
 (38.18). Reach 8 cut the pixel cuts' time by 30-43% but changed one modulo frame
-(val-256 modulo 23.64 dB); without the fallback to the full cut, reach 16 left a
-large region a wrap off on a 512x512 frame when refined to convergence (36.40 ->
-34.01 dB). Converging with band moves reached the same PSNR everywhere but took
-longer (val-256 mantissa 103 -> 120 ms, 512x512 1.26 -> 1.82 s).
+(val-256 modulo 23.64 dB). Then an empty band cut was followed by the full pixel cut,
+so that band moves run to convergence stopped only at the pixel moves' global
+minimum: without it, and without region moves first, reach 16 left a large region a
+wrap off on a 512x512 frame refined to convergence (36.40 -> 34.01 dB). Converging
+with band moves reached the same PSNR everywhere but took longer (val-256 mantissa
+103 -> 120 ms, 512x512 1.26 -> 1.82 s), so no refinement converges with them.
+
+Dropping that full cut after the region descent (2026-11-26; auto-balanced, 2 quiet
+AMD EPYC cores, medians of 5 interleaved runs): the same W on val-256 (both
+encodings), the mostly-dark, glows and colour frames (hash-checked), 512x512 and
+1024x1024; mostly-dark 25.5 -> 23.5 ms a frame (the full cut cost 3-4 ms on each
+frame with wraps, after a band cut that found nothing), 6 glows frames 51.3 -> 48.7
+ms, 12 val-256 frames 78.4 -> 78.9 ms.
 """
 
 from __future__ import annotations
@@ -129,8 +138,9 @@ def cut_band(capacities: MoveCapacities, band: NDArray[np.bool_]) -> NDArray[np.
 def best_band_move(
     winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
 ) -> NDArray[np.bool_]:
-    """The pixels whose K should grow by ``jump``: the band's cut, or the full pixel cut
-    when the band's moves nothing (a :data:`models.decoders.graphcut.MoveSolver`)."""
+    """The pixels whose K should grow by ``jump``: the cut of the band around the pixels
+    that gain by moving, every other pixel kept (a
+    :data:`models.decoders.graphcut.MoveSolver`; nothing when no pixel gains)."""
     capacities = move_capacities(winding, m, jump, energy)
     seeds = band_seeds(winding, m, capacities.unary)
     if not seeds.any():
@@ -139,8 +149,7 @@ def best_band_move(
     band = band_of(seeds, BAND_REACH)
     if band.all():
         return cut_pixels(capacities)
-    moved = cut_band(capacities, band)
-    return moved if moved.any() else cut_pixels(capacities)
+    return cut_band(capacities, band)
 
 
 def confined_move(band: NDArray[np.bool_]) -> MoveSolver:

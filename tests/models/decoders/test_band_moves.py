@@ -26,6 +26,7 @@ from models.decoders.graphcut import (
     move_capacities,
 )
 from models.decoders.guided_puma import pair_weights
+from models.decoders.region_moves import region_descent
 
 
 def _hill(size: int, short_by: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -121,17 +122,19 @@ def test_the_band_cut_is_the_best_move_that_keeps_the_outside(
 
 
 @pytest.mark.parametrize("reach", [1, 3, band_moves.BAND_REACH])
-def test_converged_band_moves_reach_the_pixel_moves_minimum(
+def test_band_moves_after_a_region_descent_reach_the_pixel_moves_minimum(
     reach: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Run to convergence, band moves stop only where the full pixel cut finds nothing
-    either: the same (global) minimum of the convex energy, even with a band too
-    narrow to move the hill's top whole."""
+    """As a budgeted refinement runs them: region moves to convergence, then band moves
+    (an empty band cut is a failed move) stop at the global minimum of the convex
+    energy that full pixel moves reach, even with a band too narrow to move the hill's
+    top whole."""
     monkeypatch.setattr(band_moves, "BAND_REACH", reach)
     m, truth, guide = _hill(48, short_by=2)
     energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
     pixel = minimise(m, guide, energy, (1, -1), 100, best_pixel_move)
-    band = minimise(m, guide, energy, (1, -1), 100, best_band_move)
+    start = region_descent(guide, m, energy, (1, -1), 16).winding
+    band = minimise(m, start, energy, (1, -1), 100, best_band_move)
     assert band.energies[-1] == pytest.approx(pixel.energies[-1], rel=1e-9, abs=1e-9)
     np.testing.assert_array_equal(band.winding, truth)
 
