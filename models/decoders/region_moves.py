@@ -36,6 +36,20 @@ Measured (2026-11-26, mantissa, auto-balanced, two region moves -> converged): t
 tuning crops of the training scenes 26.98 -> 27.39 dB (best 27.50), with glows 43.51
 -> 44.43 dB (best 44.38), val-256 with glows 44.20 -> 47.31 dB; val-256 (24.02 dB) and
 the mostly-dark set (45.59 dB) unchanged; about 10-15 ms more per val-256 frame.
+
+Since 2026-11-26 (afternoon) a partition's border pairs are grouped into region edges
+once (:class:`BorderEdges`) and the prior into (region, offset) groups
+(:class:`PriorGroups`), so a cut over a few regions no longer touches every pixel:
+the descent of auto-balanced took 47 -> 39 ms a frame on val-256 (mantissa, 8 frames)
+and 8.0 -> 5.7 ms on the mostly-dark set, with the same W. On val-256 most of the
+rest is the first three cuts: the guide's textured frames hold 24k-31k regions, nearly
+all single pixels near residues (their pairs never link), and the first two cuts
+move 6k-10k of them each. Linking the pairs near residues too (a lower
+:data:`LINK_WEIGHT`; at 0 auto-balanced took 13-17% less time) lost 0.8-2.0 dB on the
+tuning crops of the training scenes (at 0.2 / 0.05 / 0: mantissa 27.39 -> 26.08 /
+25.71 / 25.36 dB, modulo 26.11 -> 25.31 / 25.08 / 24.73 dB), and leaving the single
+pixels out of the descent (to the pixel moves) lost 0.3 dB there (mantissa) and saved
+nothing, so neither is done.
 """
 
 from __future__ import annotations
