@@ -24,6 +24,11 @@ checked against ``itoh`` instead (:meth:`AdaptiveDecoder.check_small_regions`): 
 removes the net's false wraps at steep edges of dark frames for the cost of one
 itoh decode (2.7 ms at 256x256).
 
+Last, at every quality, compact blobs that read the sensor's clip value behind an
+aliased ring (a lamp or the sun brighter than ``max_wraps``) are set to the clip
+(:mod:`models.decoders.saturation`; val-256 +0.65-0.8 dB at each quality). No
+network and no unwrapper can count those wraps from the codes.
+
 A frame with no residue at all is integrated whole. At quality ``best`` a frame
 with any residue goes whole to the network: per-tile routing trusts tiles whose
 borders may cross sharp edges (jumps over half a wrap that leave no residue),
@@ -63,6 +68,7 @@ from models.decoders.colour import harmonise
 from models.decoders.guided_puma import MAX_MOVES, GuidedPumaDecoder, refined_name
 from models.decoders.region_vote import region_vote
 from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
+from models.decoders.saturation import fill_saturated
 from models.formation import SensorParams
 from models.scene_analysis import FrameAnalysis, RegionAnalysis, analyse
 from models.tile_reconcile import Tile, integrate_jumps, stitch
@@ -350,6 +356,9 @@ class AdaptiveDecoder(Decoder):
             report["refinement"] = {"decoder": refiner.name, **facts}
         elif self.checks_small_regions(params):
             winding, report["small_regions"] = self.check_small_regions(m, winding, params)
+        winding, saturation = fill_saturated(winding, m, params)
+        if saturation:
+            report["saturation"] = saturation
         return winding, report
 
     def checks_small_regions(self, params: SensorParams) -> bool:

@@ -1,0 +1,148 @@
+"""Tests of models/decoders/saturation.py: clipped blobs set to the sensor's clip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from models.decoders import get_decoder
+from models.decoders.saturation import (
+    MIN_PIXELS,
+    clip_tolerance,
+    clipped_value,
+    fill_saturated,
+    reads_clip,
+)
+from models.formation import SensorParams, dequantize, encode, max_winding
+
+SIZE = 64
+
+
+def _params(encoding: str = "mantissa", read_noise: float = 0.0) -> SensorParams:
+    return SensorParams(
+        encoding=encoding, bits=8, max_wraps=16.0, read_noise=read_noise, seed=3
+    )
+
+
+def _lamp(params: SensorParams, sigma: float = 4.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A gentle ramp (x 0.2-2.5 wraps) with a lamp far above the clip at its centre: the
+    true W, ``m`` and the clipped pixels (x at ``max_wraps``)."""
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    ramp = 0.2 + 2.3 * xx / SIZE
+    lamp = 2000.0 * np.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / (2 * sigma**2))
+    frame = encode(ramp + lamp, params)
+    return frame.winding, dequantize(frame.codes, params.bits), frame.irradiance >= 16.0
+
+
+def _under_counted(truth: np.ndarray, clipped: np.ndarray, short: int = 3) -> np.ndarray:
+    """What a decoder leaves: the lamp's clipped core ``short`` wraps short."""
+    return np.where(clipped, truth - short, truth)
+
+
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+def test_a_clipped_lamp_gets_the_clip_value(encoding: str) -> None:
+    params = _params(encoding)
+    truth, m, clipped = _lamp(params)
+    assert clipped.sum() > MIN_PIXELS
+    filled, facts = fill_saturated(_under_counted(truth, clipped), m, params)
+    np.testing.assert_array_equal(filled[clipped], truth[clipped])
+    np.testing.assert_array_equal(filled[~clipped], truth[~clipped])
+    assert facts["filled_fraction"] == pytest.approx(clipped.mean())
+    assert facts["changed_fraction"] == pytest.approx(clipped.mean())
+    assert filled.dtype == np.int64 and filled.shape == m.shape
+
+
+def test_a_noisy_lamp_is_filled_on_both_sides_of_the_wrap() -> None:
+    """With read noise the clip's u straddles a wrap: each pixel gets the W that puts its
+    u nearest the clip."""
+    params = _params(read_noise=0.01)
+    truth, m, clipped = _lamp(params)
+    filled, _ = fill_saturated(_under_counted(truth, clipped), m, params)
+    u_max = clipped_value(params)
+    assert u_max is not None
+    inside = clipped & reads_clip(m, params, u_max)
+    assert np.all(np.abs(filled[inside] + m[inside] - u_max) <= clip_tolerance(params, u_max))
+    assert np.mean(filled[clipped] == truth[clipped]) > 0.95
+
+
+def test_without_a_clip_nothing_changes() -> None:
+    params = _params().model_copy(update={"max_wraps": None})
+    truth, m, clipped = _lamp(_params())
+    guess = _under_counted(truth, clipped)
+    filled, facts = fill_saturated(guess, m, params)
+    np.testing.assert_array_equal(filled, guess)
+    assert facts == {}
+
+
+def test_a_dark_patch_that_reads_the_clip_code_stays_dark() -> None:
+    """x near 0 reads code 0 as the clip does; the decoder calls it W = 0."""
+    params = _params()
+    m = np.full((SIZE, SIZE), 0.3)
+    m[20:40, 20:40] = dequantize(np.zeros((20, 20), np.uint8), params.bits)
+    winding = np.zeros(m.shape, np.int64)
+    filled, facts = fill_saturated(winding, m, params)
+    np.testing.assert_array_equal(filled, winding)
+    assert facts["filled_fraction"] == 0.0
+
+
+def test_a_bright_plateau_reached_smoothly_is_not_the_clip() -> None:
+    """A flat bright region at a whole number of wraps, inside a smooth ramp (no residue
+    round it), reads the clip's code but is not cut off from the frame."""
+    params = _params()
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    u = 1.5 + 0.02 * xx
+    u[24:40, 24:40] = 2.0
+    winding = np.floor(u).astype(np.int64)
+    filled, _ = fill_saturated(winding, u - winding, params)
+    np.testing.assert_array_equal(filled, winding)
+
+
+def test_a_thin_contour_that_reads_the_clip_code_is_not_a_blob() -> None:
+    params = _params()
+    truth, m, clipped = _lamp(params)
+    guess = _under_counted(truth, clipped)
+    line = np.zeros(m.shape, bool)
+    line[5, 2:60] = True
+    m = np.where(line, m[clipped][0], m)
+    guess = np.where(line, 1, guess)
+    filled, _ = fill_saturated(guess, m, params)
+    np.testing.assert_array_equal(filled[line], 1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    codes=arrays(np.uint8, (12, 14), elements=st.sampled_from([0, 1, 40, 128, 250, 255])),
+    winding=arrays(np.int64, (12, 14), elements=st.integers(0, 5)),
+    encoding=st.sampled_from(["mantissa", "modulo"]),
+)
+def test_filling_changes_only_clip_readings_into_the_range_and_settles(
+    codes: np.ndarray, winding: np.ndarray, encoding: str
+) -> None:
+    params = _params(encoding)
+    m = dequantize(codes, params.bits)
+    filled, _ = fill_saturated(winding, m, params)
+    u_max = clipped_value(params)
+    assert u_max is not None
+    changed = filled != winding
+    assert not np.any(changed & ~reads_clip(m, params, u_max))
+    assert filled.min() >= 0 and filled.max() <= max(int(winding.max()), max_winding(params))
+    again, _ = fill_saturated(filled, m, params)
+    np.testing.assert_array_equal(again, filled)
+
+
+@pytest.mark.parametrize("quality", ["balanced", "best"])
+def test_auto_fills_a_clipped_lamp_and_reports_it(quality: str) -> None:
+    """(auto-fast's net calls this lamp's flat core dark, W = 0, so it stays: the
+    module's failure mode.)"""
+    params = _params()
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    texture = 0.6 + 0.5 * np.sin(xx / 3.0) * np.cos(yy / 5.0)
+    lamp = 2000.0 * np.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / (2 * 4.0**2))
+    frame = encode(texture + lamp, params)
+    result = get_decoder(f"auto-{quality}").decode(frame.codes, params)
+    clipped = frame.irradiance >= 16.0
+    np.testing.assert_array_equal(result.winding[clipped], frame.winding[clipped])
+    assert result.info["details"]["saturation"]["filled_fraction"] >= clipped.mean()
