@@ -197,6 +197,7 @@ class AdaptiveDecoder(Decoder):
     """Routes each tile to the cheapest decoder that is right for it."""
 
     name = "auto"
+    fills_saturation = True
 
     def __init__(
         self,

@@ -98,6 +98,10 @@ class Decoder(ABC):
 
     name: ClassVar[str]
     version: str = "1"
+    #: Whether the decoder sets clipped blobs to the sensor's clip
+    #: (:mod:`models.decoders.saturation`); a stream decoding with it along time fills
+    #: them again after refining an anchoring keyframe (:mod:`worker.temporal`).
+    fills_saturation: ClassVar[bool] = False
 
     def decode(self, codes: NDArray[Any], params: SensorParams) -> DecodeResult:
         """Decode a frame of codes (H x W or H x W x C, DN) into W and x_hat."""

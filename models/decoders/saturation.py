@@ -22,8 +22,10 @@ aliased ring cuts off from the rest of the frame:
 - of at least :data:`MIN_PIXELS` pixels, of which at least :data:`MIN_INTERIOR` are
   interior (all four neighbours in the blob): a wrap contour that happens to read the
   same code is a thin line, a clipped light a solid disc;
-- at least half of its pixels decoded with ``W >=`` :data:`MIN_WINDING`: a dark
-  patch (``x`` near 0 reads code 0 too) is decoded at ``W = 0``;
+- at least half of its pixels decoded at ``u = W + m >=`` :data:`MIN_DECODED_U`: a
+  dark patch (``x`` near 0 reads code 0 too, never code 255: read noise cannot take
+  ``u`` below 0) is decoded at ``W = 0``. (Not ``W >= 1``: with read noise a blob the
+  decoder puts at ``u`` near 1 is half ``W = 0`` at codes near 255.)
 - and most of the pixels round it near residues (:func:`aliased_rings`): with read
   noise the tolerance grows, and wide wrap contours of gentle gradients (a band at
   ``u`` near 1, half ``W = 0`` and half ``W = 1``) and flat regions near a whole
@@ -38,7 +40,7 @@ a few more lamps than 0.5. On val-256 (2026-11-26, in ``auto``): mantissa fast /
 balanced / best 21.95 / 24.02 / 24.30 -> 22.60 / 24.82 / 25.10 dB, modulo 22.13 /
 24.01 / 24.06 -> 22.91 / 24.77 / 24.81 dB; at read noise 0.01 mantissa 21.90 / 23.62 /
 24.31 -> 22.67 / 24.41 / 25.09 dB, modulo 21.22 / 23.02 / 23.89 -> 21.98 / 23.73 /
-24.44 dB; the glows set +0.3-0.8 dB; the mostly-dark set and the synthetic 512x512
+24.67 dB; the glows set +0.3-0.8 dB; the mostly-dark set and the synthetic 512x512
 frames unchanged. About 1.5 ms a 256x256 frame.
 
 Failure modes: a clipped blob of fewer than :data:`MIN_PIXELS` pixels, or one the
@@ -71,8 +73,8 @@ from models.formation import (
 MIN_PIXELS = 8
 #: ...at least this fraction of them interior (all four 4-neighbours in the blob)...
 MIN_INTERIOR = 0.5
-#: ...at least half of them decoded with W of at least this...
-MIN_WINDING = 1
+#: ...at least half of them decoded at ``u = W + m`` of at least this (wraps)...
+MIN_DECODED_U = 0.5
 #: ...and at least this share of the pixels within :data:`RING` px round it (Chebyshev)
 #: lying within :data:`RESIDUE_REACH` px of a residue: cut off by an aliased ring.
 RING_RESIDUE_SHARE = 0.4
@@ -127,7 +129,7 @@ def saturated_blobs(
         return np.zeros(candidates.shape, bool)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
     inside = np.bincount(labels[interior(candidates)], minlength=count + 1)
-    bright = np.bincount(labels[winding >= MIN_WINDING], minlength=count + 1)
+    bright = np.bincount(labels[winding + m >= MIN_DECODED_U], minlength=count + 1)
     keep = (sizes >= MIN_PIXELS) & (inside >= MIN_INTERIOR * sizes) & (2 * bright >= sizes)
     keep[0] = False
     if keep.any():
@@ -167,15 +169,20 @@ def grown_box(mask: NDArray[np.bool_], margin: int) -> tuple[slice, slice]:
 
 
 def fill_saturated(
-    winding: NDArray[np.int64], m: NDArray[np.float64], params: SensorParams
+    winding: NDArray[np.int64],
+    m: NDArray[np.float64],
+    params: SensorParams,
+    judged: NDArray[np.int64] | None = None,
 ) -> tuple[NDArray[np.int64], dict[str, Any]]:
     """``winding`` (int W, H x W) with every saturated blob of ``m`` (module doc) set to the
     clip, ``W = round(u_max - m)``; and the facts (the fraction of pixels filled and
-    the fraction changed). Without ``max_wraps`` nothing changes."""
+    the fraction changed). ``judged`` (H x W; default ``winding``) is the decoder's W
+    that tells whether a blob is overexposed. Without ``max_wraps`` nothing changes."""
     u_max = clipped_value(params)
     if u_max is None:
         return winding, {}
-    blobs = saturated_blobs(winding, reads_clip(m, params, u_max), m)
+    decided = winding if judged is None else judged
+    blobs = saturated_blobs(decided, reads_clip(m, params, u_max), m)
     if not blobs.any():
         return winding, {"filled_fraction": 0.0, "changed_fraction": 0.0}
     clipped = clip_winding(np.round(u_max - m).astype(np.int64), params)

@@ -376,3 +376,20 @@ def test_one_pixel_wide_frames_get_a_clear_error(temporal: StreamDecoder, shape:
     with pytest.raises(InvalidInputError, match="no neighbours"):
         temporal.decode(np.zeros(shape, np.uint8), PARAMS, state)
     assert state.u is None
+
+
+def test_a_still_stream_keeps_a_clipped_lamp_filled() -> None:
+    """auto fills the lamp's clipped core; the anchoring keyframe's refinement would lower
+    it again, so the stream fills it after refining and carries it on."""
+    params = SensorParams(encoding="mantissa", bits=8, max_wraps=16.0, read_noise=0.002)
+    yy, xx = np.mgrid[0:64, 0:64].astype(np.float64)
+    texture = 0.6 + 0.5 * np.sin(xx / 3.0) * np.cos(yy / 5.0)
+    scene = texture + 2000.0 * np.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / 32.0)
+    frames = [encode(scene, params.model_copy(update={"seed": t})) for t in range(4)]
+    decoder = StreamDecoder("temporal", "auto-balanced")
+    decoded = list(decode_frames([f.codes for f in frames], params, decoder))
+    assert decoded[0].keyframe == "first" and all(d.keyframe is None for d in decoded[1:])
+    for frame, result in zip(frames, decoded, strict=True):
+        clipped = frame.irradiance >= 16.0
+        assert clipped.sum() > 100
+        np.testing.assert_array_equal(result.winding[clipped], frame.winding[clipped])
