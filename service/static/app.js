@@ -79,7 +79,8 @@ async function submitFrame(frame, simulated) {
 const percent = (share) => `${(100 * share).toFixed(1)}%`;
 
 // One line per fact of how the job's frame was decoded (GET /v1/jobs/{id} "info"):
-// each channel's routes and refinement or latency budget, and a colour frame's join.
+// each channel's routes, refinement, clipped blobs filled or latency budget, and a
+// colour frame's join.
 function describeDecode(info) {
   if (!info) return "";
   const lines = [`decoder: ${info.decoder}`];
@@ -94,6 +95,10 @@ function describeDecode(info) {
     if (facts.refinement) {
       const { decoder, changed_fraction: changed } = facts.refinement;
       lines.push(`${label}refined by ${decoder}: ${percent(changed)} of pixels changed`);
+    }
+    if (facts.saturation?.filled_fraction) {
+      const filled = percent(facts.saturation.filled_fraction);
+      lines.push(`${label}clipped blobs set to the sensor's clip: ${filled} of pixels`);
     }
     if (facts.budget) {
       const { budget_ms: budget, chosen, measured_ms: took } = facts.budget;
