@@ -123,7 +123,8 @@ def saturated_blobs(
     winding: NDArray[np.int64], candidates: NDArray[np.bool_], m: NDArray[np.float64]
 ) -> NDArray[np.bool_]:
     """The pixels (H x W) of the blobs of ``candidates`` that pass the module's rules
-    (size, interior share, decoded W, an aliased ring round them in ``m``)."""
+    (size, interior share, decoded ``u = winding + m``, an aliased ring round them in
+    ``m``)."""
     labels, count = ndimage.label(candidates, structure=_CROSS)
     if count == 0:
         return np.zeros(candidates.shape, bool)

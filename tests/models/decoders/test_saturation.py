@@ -68,6 +68,29 @@ def test_a_noisy_lamp_is_filled_on_both_sides_of_the_wrap() -> None:
     assert np.mean(filled[clipped] == truth[clipped]) > 0.95
 
 
+def test_a_noisy_lamp_decoded_near_one_wrap_is_still_overexposed() -> None:
+    """With read noise the core reads codes near 255 and near 0; a decoder that puts it
+    at u near 1 gives half of it W = 0 (the codes near 255), yet it is bright."""
+    params = _params(read_noise=0.01)
+    truth, m, clipped = _lamp(params)
+    near_one = np.where(clipped, np.where(m > 0.5, 0, 1), truth)
+    assert np.mean(near_one[clipped] == 0) > 0.3
+    filled, _ = fill_saturated(near_one, m, params)
+    assert np.mean(filled[clipped] == truth[clipped]) > 0.95
+
+
+def test_a_fill_can_be_judged_on_another_answer() -> None:
+    """A refinement that lowered the blob to W = 0 hides it; judged on the unrefined
+    answer it is filled all the same."""
+    params = _params()
+    truth, m, clipped = _lamp(params)
+    lowered = np.where(clipped, 0, truth)
+    unchanged, _ = fill_saturated(lowered, m, params)
+    np.testing.assert_array_equal(unchanged, lowered)
+    filled, _ = fill_saturated(lowered, m, params, judged=_under_counted(truth, clipped))
+    np.testing.assert_array_equal(filled, truth)
+
+
 def test_without_a_clip_nothing_changes() -> None:
     params = _params().model_copy(update={"max_wraps": None})
     truth, m, clipped = _lamp(_params())
