@@ -61,6 +61,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from models.decoders.classical import wrap_difference
 from models.decoders.guided_puma import residue_pixels
 from models.formation import (
     SensorParams,
@@ -105,8 +106,8 @@ def clip_tolerance(params: SensorParams, u_max: float) -> float:
 
 def reads_clip(m: NDArray[np.float64], params: SensorParams, u_max: float) -> NDArray[np.bool_]:
     """Pixels (H x W) whose ``m`` (wraps) is within :func:`clip_tolerance` of ``frac(u_max)``."""
-    offset = m - (u_max - np.floor(u_max))
-    return np.abs(offset - np.round(offset)) <= clip_tolerance(params, u_max)
+    offset = wrap_difference(m - (u_max - np.floor(u_max)))
+    return np.abs(offset) <= clip_tolerance(params, u_max)
 
 
 def interior(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
