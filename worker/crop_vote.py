@@ -72,7 +72,7 @@ class CropConfig:
         )
 
 
-def _widened(span: slice, margin: int, size: int) -> slice:
+def widened(span: slice, margin: int, size: int) -> slice:
     """``span`` grown by ``margin`` each side, to at least ``MIN_SIDE``, inside ``[0, size)``."""
     start, stop = span.start - margin, span.stop + margin
     short = MIN_SIDE - (stop - start)
@@ -95,8 +95,8 @@ def cluster_boxes(
     for index, found in enumerate(ndimage.find_objects(labels), start=1):
         if found is None or sizes[index] < config.min_cluster:
             continue
-        rows = _widened(found[0], config.margin, unsafe.shape[0])
-        cols = _widened(found[1], config.margin, unsafe.shape[1])
+        rows = widened(found[0], config.margin, unsafe.shape[0])
+        cols = widened(found[1], config.margin, unsafe.shape[1])
         boxes.append((sizes[index], (rows, cols)))
     chosen = []
     for _, (rows, cols) in sorted(boxes, key=lambda box: -box[0]):

@@ -120,23 +120,39 @@ def interior(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
     return inner
 
 
+def solid_blobs(
+    candidates: NDArray[np.bool_],
+) -> tuple[NDArray[np.int64], int, NDArray[np.int64], NDArray[np.bool_]]:
+    """The 4-connected blobs of ``candidates`` (H x W): their labels (0 outside), count,
+    sizes (px, per label) and which are solid (at least :data:`MIN_PIXELS` pixels, of
+    which :data:`MIN_INTERIOR` interior; label 0 never)."""
+    labels, count = ndimage.label(candidates, structure=_CROSS)
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    inside = np.bincount(labels[interior(candidates)], minlength=count + 1)
+    solid = (sizes >= MIN_PIXELS) & (inside >= MIN_INTERIOR * sizes)
+    solid[0] = False
+    return labels, count, sizes, solid
+
+
+def ringed(
+    labels: NDArray[np.int64], keep: NDArray[np.bool_], m: NDArray[np.float64], count: int
+) -> NDArray[np.bool_]:
+    """The pixels (H x W) of the blobs ``keep`` (per label) that an aliased ring cuts
+    off (:func:`aliased_rings`)."""
+    if keep.any():
+        keep = keep & aliased_rings(np.where(keep[labels], labels, 0), m, count)
+    return keep[labels]
+
+
 def saturated_blobs(
     winding: NDArray[np.int64], candidates: NDArray[np.bool_], m: NDArray[np.float64]
 ) -> NDArray[np.bool_]:
     """The pixels (H x W) of the blobs of ``candidates`` that pass the module's rules
     (size, interior share, decoded ``u = winding + m``, an aliased ring round them in
     ``m``)."""
-    labels, count = ndimage.label(candidates, structure=_CROSS)
-    if count == 0:
-        return np.zeros(candidates.shape, bool)
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    inside = np.bincount(labels[interior(candidates)], minlength=count + 1)
+    labels, count, sizes, keep = solid_blobs(candidates)
     bright = np.bincount(labels[winding + m >= MIN_DECODED_U], minlength=count + 1)
-    keep = (sizes >= MIN_PIXELS) & (inside >= MIN_INTERIOR * sizes) & (2 * bright >= sizes)
-    keep[0] = False
-    if keep.any():
-        keep &= aliased_rings(np.where(keep[labels], labels, 0), m, count)
-    return keep[labels]
+    return ringed(labels, keep & (2 * bright >= sizes), m, count)
 
 
 def aliased_rings(

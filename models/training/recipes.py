@@ -117,8 +117,8 @@ TIMED_CROP, TIMED_LARGE_CROP, TIMED_BATCH = 128, 256, 16
 
 
 def timed_run(tier: str, encoding: str, **changes: Any) -> TrainConfig:
-    """A run of :data:`TIMED_LANES`: the tier from scratch in :data:`TIMED_UNITS`, with
-    ``changes`` to any field."""
+    """A run of a lane set of :data:`TIMED_LANES`: the tier from scratch in
+    :data:`TIMED_UNITS`, with ``changes`` to any field."""
     config = TrainConfig(
         tier=tier, encoding=encoding, stage_steps=TIMED_UNITS, crop=TIMED_CROP,
         large_crop=TIMED_LARGE_CROP, batch=TIMED_BATCH,
@@ -126,25 +126,8 @@ def timed_run(tier: str, encoding: str, **changes: Any) -> TrainConfig:
     return replace(config, **changes)
 
 
-#: The lanes trained at once on a lent GPU (``python -m models.training.timed``): the
-#: base tier (then its noise-aware fine-tune, a fifth as long again) and the small-s2d
-#: tier, per encoding. The device, precision and step counts of the runs that shipped
-#: are in their cards.
-TIMED_LANES: tuple[tuple[TrainConfig, ...], ...] = (
-    (
-        timed_run("base", "mantissa"),
-        timed_run(
-            "base", "mantissa", stage_steps=(0, 0, 0, TIMED_UNITS[3]), max_read_noise=0.02,
-            init_from="mantissanet-base-mantissa",
-        ),
-    ),
-    (timed_run("base", "modulo"),),
-    (timed_run("small-s2d", "mantissa"),),
-    (timed_run("small-s2d", "modulo"),),
-)
-
 #: Stage steps of the base tier on modulo frames, the one shipped model of a timed GPU
-#: run (:data:`TIMED_LANES`, 2026-11-26): given 500 s on an H200 with three other
+#: run (``first`` of :data:`TIMED_LANES`, 2026-11-26): given 500 s on an H200 with three other
 #: lanes (bf16 autocast), it made 8876 steps there before the deadline; the last 1069
 #: (stage 4) ran on one EPYC core from its checkpoint (bf16 autocast, 29 minutes; the
 #: card's ``segments``). val-256 modulo alone / refined by guided PUMA: 23.10 / 24.06 dB,
@@ -164,6 +147,35 @@ BASE_MODULO_STAGES = (298, 4177, 3680, 1790)
 #: 21.78 / 22.93 but with less W right (87.1 against 88.0%) and PU21 25.70 against
 #: 25.86 dB (one seed, not shipped); the modulo nets and the base tier use ce.
 TINY_MANTISSA_LOSS = "ce-risk"
+
+#: Sets of lanes trained at once on a lent GPU (``python -m models.training.timed
+#: --lanes NAME``), each lane a chain of runs from scratch. ``first`` (2026-11-26, an
+#: H200): the base tier (then its noise-aware fine-tune, a fifth as long again) and the
+#: small-s2d tier, per encoding. ``s2d`` (2026-11-26, an H100): the half-resolution
+#: tiny and base tiers per encoding, candidates for ``auto``'s fast and balanced nets
+#: (tiny-s2d runs in about half small-s2d's time on 2 EPYC cores, base-s2d in a third
+#: of base's). The device, precision and step counts of the runs that shipped are in
+#: their cards.
+TIMED_LANES: dict[str, tuple[tuple[TrainConfig, ...], ...]] = {
+    "first": (
+        (
+            timed_run("base", "mantissa"),
+            timed_run(
+                "base", "mantissa", stage_steps=(0, 0, 0, TIMED_UNITS[3]), max_read_noise=0.02,
+                init_from="mantissanet-base-mantissa",
+            ),
+        ),
+        (timed_run("base", "modulo"),),
+        (timed_run("small-s2d", "mantissa"),),
+        (timed_run("small-s2d", "modulo"),),
+    ),
+    "s2d": (
+        (timed_run("tiny-s2d", "mantissa", loss=TINY_MANTISSA_LOSS),),
+        (timed_run("tiny-s2d", "modulo"),),
+        (timed_run("base-s2d", "mantissa"),),
+        (timed_run("base-s2d", "modulo"),),
+    ),
+}
 
 SHIPPED: tuple[TrainConfig, ...] = (
     TrainConfig(tier="small", encoding="mantissa", stage_steps=SMALL_STAGES),

@@ -1,9 +1,9 @@
 """Train several chains of runs at once on one machine within a wall-clock budget.
 
 A GPU machine is lent for minutes, so its runs are sized by time, not by steps:
-``python -m models.training.timed --seconds 460 --device cuda`` starts one process per
-lane of :data:`models.training.recipes.TIMED_LANES` (a chain of runs, e.g. a model and
-then its noise-aware fine-tune). Each lane
+``python -m models.training.timed --seconds 460 --device cuda --lanes s2d`` starts one
+process per lane of the named set of :data:`models.training.recipes.TIMED_LANES` (a
+chain of runs, e.g. a model and then its noise-aware fine-tune). Each lane
 
 1. probes: counts the end-to-end steps (stage 3, the dearest) of its first run on a
    throwaway model in a window of wall-clock time common to all lanes, so that every
@@ -115,12 +115,12 @@ def lane_command(index: int, args: argparse.Namespace, start: float) -> list[str
         sys.executable, "-m", "models.training.timed", "--lane", str(index), "--seconds",
         str(args.seconds), "--start", repr(start), "--device", args.device,
         "--precision", args.precision,
-        "--workers", str(args.workers), "--runs-dir", str(args.runs_dir),
+        "--workers", str(args.workers), "--runs-dir", str(args.runs_dir), "--lanes", args.lanes,
     ]  # fmt: skip
 
 
 def lanes(args: argparse.Namespace) -> tuple[tuple[TrainConfig, ...], ...]:
-    """The recipe's lanes with this invocation's device, precision, workers and folder."""
+    """The named set of lanes with this invocation's device, precision, workers and folder."""
     from models.training.recipes import TIMED_LANES
 
     return tuple(
@@ -129,7 +129,7 @@ def lanes(args: argparse.Namespace) -> tuple[tuple[TrainConfig, ...], ...]:
                     runs_dir=args.runs_dir)  # fmt: skip
             for c in chain
         )
-        for chain in TIMED_LANES
+        for chain in TIMED_LANES[args.lanes]
     )
 
 
@@ -141,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", default="bf16", choices=PRECISIONS)
     parser.add_argument("--workers", type=int, default=3, help="batch processes per lane")
     parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR)
+    parser.add_argument("--lanes", default="s2d", help="set of lanes in recipes.TIMED_LANES")
     parser.add_argument("--lane", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--start", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

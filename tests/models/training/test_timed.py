@@ -47,8 +47,9 @@ def test_plan_refuses_a_chain_without_steps() -> None:
         timed.planned_steps(((0, 0, 0),), 1.0, 10.0)
 
 
-def test_lanes_start_from_scratch_or_from_their_own_chain() -> None:
-    for chain in TIMED_LANES:
+@pytest.mark.parametrize("name", sorted(TIMED_LANES))
+def test_lanes_start_from_scratch_or_from_their_own_chain(name: str) -> None:
+    for chain in TIMED_LANES[name]:
         assert chain[0].init_from is None
         names = [config.name for config in chain]
         assert len(set(names)) == len(names)
