@@ -137,6 +137,19 @@ def timed_run(tier: str, encoding: str, **changes: Any) -> TrainConfig:
 #: CPU-trained ones (see docs/experiments.md, session 18) and were not shipped.
 BASE_MODULO_STAGES = (298, 4177, 3680, 1790)
 
+#: Stage steps of the tiny-s2d tier, the ``s2d`` lanes of a timed GPU run (2026-11-26,
+#: an H100, bf16 autocast, 380 s with three other lanes). The mantissa lane (ce-risk)
+#: made 2.4x fewer steps than the modulo one at the same plan. val-256 alone / refined
+#: by guided PUMA (the model cards): mantissa 21.42 / 23.84 dB, modulo 21.72 / 23.47
+#: dB, at 0.45 GFLOPs (small-s2d: 1.09), 12-16 ms a frame on this host's slow spell
+#: where small-s2d took 19-23 ms. As ``auto``'s fast net it lost 0.70 dB (mantissa) /
+#: 0.47 dB (modulo) for 3.3-4.4 ms a frame, so ``auto`` keeps small-s2d; it ships as
+#: the fastest learned decoder, ``mantissanet-tiny-s2d``. The same lanes' base-s2d
+#: nets measured below small-s2d (mantissa 22.03 / 23.69 dB, modulo 22.29 / 23.54 dB
+#: at 23-34 ms) and were not shipped.
+TINY_S2D_MANTISSA_STAGES = (118, 1650, 1454, 707)
+TINY_S2D_MODULO_STAGES = (286, 4004, 3528, 1716)
+
 #: Loss of the shipped tiny mantissa net: cross-entropy plus 0.1 x the expected log-MSE
 #: (``ce-risk``). Measured on val-256 mantissa (net alone / refined by guided PUMA, dB):
 #: tiny seed 0 ce-risk 22.09 / 23.88 against ce 21.63 / 23.56 (better on 19 of the 24
@@ -209,4 +222,9 @@ SHIPPED: tuple[TrainConfig, ...] = (
     *unmodnet_chain("mantissa"),
     *unmodnet_chain("modulo"),
     timed_run("base", "modulo", stage_steps=BASE_MODULO_STAGES, precision="bf16"),
+    timed_run(
+        "tiny-s2d", "mantissa", loss=TINY_MANTISSA_LOSS, stage_steps=TINY_S2D_MANTISSA_STAGES,
+        precision="bf16",
+    ),
+    timed_run("tiny-s2d", "modulo", stage_steps=TINY_S2D_MODULO_STAGES, precision="bf16"),
 )
