@@ -134,10 +134,12 @@ clip unsafe changed the moving light by 0.01-0.07 dB. A lamp moving faster than 
 rule can follow left a trail (the pixels of its filled core kept a high W once it had
 moved on) and arrived unfilled, so on that clip the stream stayed 1.4-3.3 dB below
 independent decoding, which fills each frame afresh. Since then every temporal step
-ends with clip tracking (:mod:`worker.clip_tracking`, ``clip`` holds its knobs): a
+runs clip tracking (:mod:`worker.clip_tracking`, ``clip`` holds its knobs; in a still
+view before arrival refinement, after a moving camera's refinement, whose energy does
+not know the clip): a
 clipped blob that continues one of the previous frame and jumped there is filled, and
 the zone a clipped blob left is decoded spatially on a crop (moving light, auto-fast,
-mantissa / modulo: 15.87 / 13.69 -> 17.42 / 17.15 dB, above independent decoding).
+mantissa / modulo: 15.87 / 13.69 -> 17.40 / 17.08 dB, above independent decoding).
 
 A keyframe of a colour stream then goes through the spatial decoder's
 :meth:`models.decoders.base.Decoder.join_channels`, as a still frame would (``auto``
@@ -499,24 +501,48 @@ class StreamDecoder:
             whole = every > 0 and state.frames % every == 0
             bands = None if whole else grown(local | spatial, self.config.refine_reach)
             winding = refined_planes(self.refiner, m, winding, params, bands)
-        elif self.arrival_refiner is not None:
+            self._track_clips(m, params, state.u, prediction, winding, (local, spatial))
+            return winding, local, spatial
+        # In a still view clip tracking goes first, and arrival refinement leaves what it
+        # set alone: on the moving light (auto-fast) the same PSNR within 0.02 dB, and
+        # 8 ms less a frame than refining the lamp's wake before decoding it again.
+        clipped = self._track_clips(m, params, state.u, prediction, winding, (local, spatial))
+        if self.arrival_refiner is not None:
             for c in range(m.shape[2]):
                 winding[:, :, c], took = refine_arrivals(
-                    m[:, :, c], winding[:, :, c], prediction.change[:, :, c], params,
+                    m[:, :, c], winding[:, :, c],
+                    np.where(clipped[:, :, c], 0.0, prediction.change[:, :, c]), params,
                     self.arrival_refiner, self.config.arrival,
-                )
-                local[:, :, c] &= ~took
-                spatial[:, :, c] |= took
-        if self.spatial.fills_saturation:
-            for c in range(m.shape[2]):
-                winding[:, :, c], took = track_clip(
-                    m[:, :, c], winding[:, :, c], state.u[:, :, c],
-                    prediction.change[:, :, c], params,
-                    lambda crop: self.spatial.predict_winding(crop, params), self.config.clip,
                 )  # fmt: skip
                 local[:, :, c] &= ~took
                 spatial[:, :, c] |= took
         return winding, local, spatial
+
+    def _track_clips(
+        self,
+        m: NDArray[np.float64],
+        params: SensorParams,
+        previous_u: NDArray[np.float64],
+        prediction: Prediction,
+        winding: NDArray[np.int64],
+        paths: tuple[NDArray[np.bool_], NDArray[np.bool_]],
+    ) -> NDArray[np.bool_]:
+        """Clip tracking (:mod:`worker.clip_tracking`) on each plane of ``winding`` (H x W
+        x C, changed in place) when the spatial decoder fills clipped blobs; the pixels
+        it set count as spatial in ``paths`` (local, spatial; changed in place). Returns
+        them."""
+        local, spatial = paths
+        taken = np.zeros(m.shape, bool)
+        if not self.spatial.fills_saturation:
+            return taken
+        for c in range(m.shape[2]):
+            winding[:, :, c], taken[:, :, c] = track_clip(
+                m[:, :, c], winding[:, :, c], previous_u[:, :, c], prediction.change[:, :, c],
+                params, lambda crop: self.spatial.predict_winding(crop, params), self.config.clip,
+            )  # fmt: skip
+        local &= ~taken
+        spatial |= taken
+        return taken
 
 
 def refined_planes(
