@@ -12,7 +12,7 @@ independent decoding of ``auto`` (filling each frame afresh) does not suffer:
 - where it *leaves*, its filled core and its steep rim fall by many wraps; the rule
   keeps them high, and the trail grows frame after frame.
 
-So after the temporal step, for each channel:
+So in every temporal step, once the rule and its fallbacks have run, per channel:
 
 1. *Continuing blobs* are filled, ``W = round(u_max - m)``: the solid blobs of pixels
    reading the clip (:func:`models.decoders.saturation.solid_blobs`) with half their
@@ -54,7 +54,11 @@ those clips (there is no separate tuning set of videos).
 Failure modes: a lamp that arrives within ``reach`` px of nothing clipped (switched
 on) waits for the next keyframe, as before; a small lamp (under ``MIN_PIXELS``) is
 not tracked; the zone is only as right as the spatial decoder on it; a clipped blob
-whose new pixels happen to be tracked with small misfits is not filled.
+whose new pixels happen to be tracked with small misfits is not filled. Wrap flicker
+on the moving light rises (auto-fast, mantissa: 0.0021 -> 0.0032, 5.9x below
+independent decoding): the clipped core's code sits at a wrap boundary (code 0 for
+``u_max`` 5 or 16), so read noise flips its W at an unchanged ``u``, and the wake's
+crop decodes vary from frame to frame.
 """
 
 from __future__ import annotations
