@@ -22,6 +22,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from models.formation import SensorParams, max_winding
 
@@ -89,6 +90,16 @@ def residue_map(
 ) -> NDArray[np.int64]:
     """Circulation of the jumps around each 2x2 loop, shape (H-1, W-1); non-zero = residue."""
     return along_cols[:-1, :] + along_rows[:, 1:] - along_cols[1:, :] - along_rows[:, :-1]
+
+
+def residue_pixels(m: NDArray[np.float64], reach: int) -> NDArray[np.bool_]:
+    """Pixels (H x W) within ``reach`` pixels of a residue's 2x2 loop of ``m`` (wraps)."""
+    loops = residue_map(*neighbour_jumps(m)) != 0
+    near = np.zeros(m.shape, bool)
+    for rows in (slice(None, -1), slice(1, None)):
+        for cols in (slice(None, -1), slice(1, None)):
+            near[rows, cols] |= loops
+    return ndimage.binary_dilation(near, iterations=reach) if reach > 0 and near.any() else near
 
 
 def _region(

@@ -62,13 +62,13 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from models.decoders.classical import wrap_difference
-from models.decoders.guided_puma import residue_pixels
 from models.formation import (
     SensorParams,
     clip_winding,
     to_unwrapped,
     unwrapped_noise_sigma,
 )
+from models.scene_analysis import residue_pixels
 
 #: A blob needs at least this many pixels...
 MIN_PIXELS = 8

@@ -21,11 +21,11 @@ from models.decoders.guided_puma import (
     GuidedPumaDecoder,
     curvature,
     pair_weights,
-    residue_pixels,
 )
 from models.decoders.registry import available_decoders, resolve
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, encode
+from models.scene_analysis import residue_pixels
 
 
 def _hill(size: int = 96, peak: float = 24.0, width: int | None = None) -> np.ndarray:
@@ -198,7 +198,7 @@ def test_residues_and_their_weights() -> None:
     # A loop that climbs 0 -> 0.3 -> 0.6 -> 0.9 and falls back to 0: one wrap jump
     # around it, so its circulation is non-zero (a residue).
     m[2:4, 2:4] = [[0.0, 0.3], [0.9, 0.6]]
-    assert not residue_pixels(np.zeros((8, 8))).any()
+    assert not residue_pixels(np.zeros((8, 8)), reach=2).any()
     near = residue_pixels(m, reach=0)
     assert near[2:4, 2:4].all()
     assert not near[6:, 6:].any()

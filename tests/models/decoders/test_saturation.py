@@ -156,16 +156,18 @@ def test_filling_changes_only_clip_readings_into_the_range_and_settles(
     np.testing.assert_array_equal(again, filled)
 
 
-@pytest.mark.parametrize("quality", ["balanced", "best"])
-def test_auto_fills_a_clipped_lamp_and_reports_it(quality: str) -> None:
+@pytest.mark.parametrize("name", ["auto-balanced", "auto-best", "auto-balanced+puma"])
+def test_auto_fills_a_clipped_lamp_and_reports_it(name: str) -> None:
     """(auto-fast's net calls this lamp's flat core dark, W = 0, so it stays: the
-    module's failure mode.)"""
+    module's failure mode.) Refined again (``+puma``), the lamp is filled again."""
     params = _params()
     yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
     texture = 0.6 + 0.5 * np.sin(xx / 3.0) * np.cos(yy / 5.0)
     lamp = 2000.0 * np.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / (2 * 4.0**2))
     frame = encode(texture + lamp, params)
-    result = get_decoder(f"auto-{quality}").decode(frame.codes, params)
+    decoder = get_decoder(name)
+    assert decoder.fills_saturation
+    result = decoder.decode(frame.codes, params)
     clipped = frame.irradiance >= 16.0
     np.testing.assert_array_equal(result.winding[clipped], frame.winding[clipped])
     assert result.info["details"]["saturation"]["filled_fraction"] >= clipped.mean()
