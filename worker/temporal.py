@@ -136,10 +136,10 @@ moved on) and arrived unfilled, so on that clip the stream stayed 1.4-3.3 dB bel
 independent decoding, which fills each frame afresh. Since then every temporal step
 runs clip tracking (:mod:`worker.clip_tracking`, ``clip`` holds its knobs; in a still
 view before arrival refinement, after a moving camera's refinement, whose energy does
-not know the clip): a
-clipped blob that continues one of the previous frame and jumped there is filled, and
-the zone a clipped blob left is decoded spatially on a crop (moving light, auto-fast,
-mantissa / modulo: 15.87 / 13.69 -> 17.40 / 17.08 dB, above independent decoding).
+not know the clip): a clipped blob that continues one of the previous frame and
+jumped there is filled, and the zone a clipped blob left is decoded spatially on a
+crop (moving light, auto-fast, mantissa / modulo: 15.87 / 13.69 -> 17.40 / 17.08 dB,
+above independent decoding).
 
 A keyframe of a colour stream then goes through the spatial decoder's
 :meth:`models.decoders.base.Decoder.join_channels`, as a still frame would (``auto``
