@@ -74,12 +74,14 @@ from models.decoders.band_moves import band_of
 from models.decoders.saturation import (
     MIN_PIXELS,
     clip_tolerance,
+    clip_winding_of,
     clipped_value,
+    grown_box,
     reads_clip,
     ringed,
     solid_blobs,
 )
-from models.formation import SensorParams, clip_winding
+from models.formation import SensorParams
 from models.tile_reconcile import common_offset
 from worker.config_checks import refuse_invalid
 from worker.crop_vote import widened
@@ -169,11 +171,8 @@ def decoded_zone(
     """``winding`` (H x W) with ``zone`` taken from ``decode`` (m of a crop -> its W) on
     the zone's bounding box widened by ``margin`` px, aligned to ``winding`` on the
     crop's other pixels (left as it is if the crop has none)."""
-    rows, cols = np.flatnonzero(zone.any(axis=1)), np.flatnonzero(zone.any(axis=0))
-    box = (
-        widened(slice(rows[0], rows[-1] + 1), margin, m.shape[0]),
-        widened(slice(cols[0], cols[-1] + 1), margin, m.shape[1]),
-    )
+    rows, cols = grown_box(zone, 0)
+    box = (widened(rows, margin, m.shape[0]), widened(cols, margin, m.shape[1]))
     context = ~zone[box]
     if not context.any():
         return winding
@@ -210,8 +209,7 @@ def track_clip(
         return winding, unchanged
     reads = reads_clip(m, params, u_max)
     filled = continuing_blobs(m, was_clipped, change, reads, config)
-    clipped = clip_winding(np.round(u_max - m).astype(np.int64), params)
-    result = np.where(filled, clipped, winding)
+    result = np.where(filled, clip_winding_of(m, params, u_max), winding)
     zone = left_zone(was_clipped, reads, filled, change, config)
     if zone.any():
         result = decoded_zone(m, result, zone, decode, config.margin)

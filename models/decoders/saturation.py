@@ -186,6 +186,14 @@ def grown_box(mask: NDArray[np.bool_], margin: int) -> tuple[slice, slice]:
     )
 
 
+def clip_winding_of(
+    m: NDArray[np.float64], params: SensorParams, u_max: float
+) -> NDArray[np.int64]:
+    """The W (H x W, in the encoding's range) that puts each pixel of ``m`` at the clip:
+    ``round(u_max - m)``."""
+    return clip_winding(np.round(u_max - m).astype(np.int64), params)
+
+
 def fill_saturated(
     winding: NDArray[np.int64],
     m: NDArray[np.float64],
@@ -203,8 +211,7 @@ def fill_saturated(
     blobs = saturated_blobs(decided, reads_clip(m, params, u_max), m)
     if not blobs.any():
         return winding, {"filled_fraction": 0.0, "changed_fraction": 0.0}
-    clipped = clip_winding(np.round(u_max - m).astype(np.int64), params)
-    filled = np.where(blobs, clipped, winding)
+    filled = np.where(blobs, clip_winding_of(m, params, u_max), winding)
     return filled, {
         "filled_fraction": float(blobs.mean()),
         "changed_fraction": float(np.mean(filled != winding)),
