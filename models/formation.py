@@ -284,6 +284,16 @@ def unwrapped_noise_sigma(u: NDArray[np.floating], params: SensorParams) -> NDAr
     return np.sqrt(params.read_noise**2 + shot**2)
 
 
+def largest_noise_sigma(top: float, params: SensorParams) -> float:
+    """The largest standard deviation (wraps) :func:`unwrapped_noise_sigma` gives any
+    unwrapped value from 0 to ``top`` (wraps): a bound on a pixel's noise when its own
+    ``u`` may be wrong by whole wraps (sampled on 65 levels plus ``u = 1``, where the
+    mantissa encoding's noise peaks)."""
+    top = max(float(top), 0.0)
+    levels = np.append(np.linspace(0.0, top, 65), min(1.0, top))
+    return max(float(unwrapped_noise_sigma(levels, params).max()), params.read_noise)
+
+
 def apply_shot_noise(
     x: NDArray[np.float64], full_well: float, rng: np.random.Generator
 ) -> NDArray[np.float64]:

@@ -46,7 +46,11 @@ Unsafe pixels fall back to the spatial decoder:
   that brings its ``u`` closest to a settled 8-neighbour's ``u`` (the best-matching
   neighbour decides, as in quality-guided unwrapping), unless its own temporal
   answer is closer than the best match divided by ``SELF_WEIGHT`` (so a static
-  edge does not flip with noise), growing inwards from the safe pixels for up to
+  edge does not flip with noise) or its own change is *steady*: within
+  ``steady_sigmas`` sigmas of the frame-to-frame noise the sensor can give any level
+  up to the frame's brightest (:func:`models.formation.largest_noise_sigma`; the
+  bound, not the noise at the pixel's own ``u``, since an unsafe pixel's ``u`` may be
+  whole wraps wrong), growing inwards from the safe pixels for up to
   ``local_passes`` passes (the *local* path; :mod:`worker.temporal_fallback`);
   then, only when the camera moved (a global shift was kept), each large cluster
   of unsafe pixels is decoded again by the spatial decoder on a crop around it,
@@ -162,6 +166,20 @@ independent decoding). Pan/zoom gained up to 1 dB (itoh), the other clips moved 
 at most 0.03 dB. Wrap flicker fell or held on every pair but sunrise modulo with
 herraez: 0.0031 -> 0.0087, still 18x below independent decoding.)
 
+Why steady pixels keep their answer (2026-11-26, bench.video's clips, 60 frames):
+on the static clip with read noise, modulo, every wrap flip the stream made where the
+truth did not (itoh: 3,331) was a local-path pixel inside a region the keyframe had
+put wrong, matched to a different noisy neighbour each frame, its own change 0.07-0.24
+wraps. Keeping steady pixels' own answers (3 sigmas; 2 and 4 measured too) cut that
+wrap flicker from 0.00086 to 0.00026 (itoh) and from 0.00119 to 0.00023
+(mantissanet-tiny) at the same PSNR, and lifted the sunrise, whose unsafe pixels sit
+on steep wrap bands the brightness gain already tracks: modulo herraez 25.58 -> 43.98,
+auto-fast 26.50 -> 36.16, mantissanet-tiny 25.88 -> 41.09 dB, mantissa herraez /
+auto-fast / tiny 37.74 / 36.48 / 37.59 -> 42.04 / 38.53 / 43.07 dB. Elsewhere within
+-0.17..+0.98 dB (pan/zoom modulo herraez -0.17, itoh -0.11; static mantissa herraez
++0.98). The noise at each pixel's own ``u`` instead of the bound cut the static
+flicker only to 0.00053 (itoh), since the wrong regions' ``u`` reads too dark.
+
 Failure modes
 -------------
 - Aliasing: a true change above half a wrap within one frame (a fast edge, a light
@@ -197,7 +215,13 @@ from models.decoders.region_vote import region_vote
 from models.decoders.registry import get_decoder
 from models.decoders.saturation import fill_saturated
 from models.errors import InvalidInputError
-from models.formation import SensorParams, dequantize, from_unwrapped, max_winding
+from models.formation import (
+    SensorParams,
+    dequantize,
+    from_unwrapped,
+    largest_noise_sigma,
+    max_winding,
+)
 from models.tile_reconcile import common_offset
 from worker.arrivals import ArrivalConfig, refine_arrivals
 from worker.brightness import BrightnessConfig, brighten, frame_gain
@@ -234,6 +258,7 @@ class TemporalConfig:
     margin: float = 0.1
     motion_radius: int = 1
     still: float = 0.05
+    steady_sigmas: float = 3.0
     keyframe_interval: int = 30
     local_limit: float = 0.5
     local_passes: int = 4
@@ -253,6 +278,7 @@ class TemporalConfig:
             {
                 "margin must be in [0, 0.5)": 0.0 <= self.margin < 0.5,
                 "still must be in [0, 0.5]": 0.0 <= self.still <= 0.5,
+                "steady_sigmas must be >= 0": self.steady_sigmas >= 0.0,
                 "motion_radius must be >= 0": self.motion_radius >= 0,
                 "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
                 "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
@@ -421,9 +447,9 @@ class StreamDecoder:
             if not cost < self.config.motion.switch * still_cost:
                 moved = Compensated(prev_u, np.ones(m.shape[:2], bool), (0, 0), 0.0)
                 gain = still_gain
-        prediction = temporal_prediction(
-            m, brighten(moved.u, gain, params), self.config, moved.inside
-        )
+        previous = brighten(moved.u, gain, params)
+        noise = np.sqrt(2.0) * largest_noise_sigma(float(previous.max()), params)
+        prediction = temporal_prediction(m, previous, self.config, moved.inside, noise)
         return prediction, moved.shift
 
     def _spatial_planes(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:

@@ -2,7 +2,7 @@
 
 :mod:`worker.temporal` describes when each is used: the *local* path
 (:func:`neighbour_fix`: each unsafe pixel takes the W that best matches a settled
-8-neighbour, or keeps its own temporal answer) and the *spatial* path
+8-neighbour, or keeps its own temporal answer when that is close or *steady*) and the *spatial* path
 (:func:`merge_spatial`: a full spatial decode aligned to the tracked answer by
 :func:`models.tile_reconcile.common_offset`, winning where it is
 :func:`locally_smooth` and the tracked answer is not). Arrays are one channel,
@@ -69,7 +69,8 @@ def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
     m_open = unsafe.m
     where = (rows + 1) * width + cols + 1
     offsets = [dy * width + dx for dy, dx in _NEIGHBOURS]
-    own_cost, own = SELF_WEIGHT * unsafe.change, unsafe.winding
+    own_cost = np.where(unsafe.steady, 0.0, SELF_WEIGHT * unsafe.change)
+    own = unsafe.winding
     for _ in range(passes):
         best, choice = np.full(where.shape, np.inf), np.zeros(where.shape, np.int64)
         for offset in offsets:

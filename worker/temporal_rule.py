@@ -28,7 +28,9 @@ class Prediction:
 
     ``winding``: ``round(u_{t-1} - m_t)``; ``safe``: where it is kept; ``lo`` / ``hi``:
     the least / greatest previous ``u`` within ``motion_radius``; ``m``: the frame;
-    ``change``: ``|W_t + m_t - u_{t-1}|`` of the pixel itself (wraps).
+    ``change``: ``|W_t + m_t - u_{t-1}|`` of the pixel itself (wraps); ``steady``: where
+    that change is within the sensor's noise (``steady_sigmas`` sigmas of it), so the
+    pixel's own answer is as good as the codes can tell.
     """
 
     winding: NDArray[np.int64]
@@ -37,6 +39,7 @@ class Prediction:
     hi: NDArray[np.float64]
     m: NDArray[np.float64]
     change: NDArray[np.float64]
+    steady: NDArray[np.bool_]
 
     def channel(self, c: int) -> Prediction:
         """The prediction of channel ``c`` (H x W arrays)."""
@@ -47,7 +50,7 @@ class Prediction:
         return Prediction(*(part[index] for part in self._parts()))
 
     def _parts(self) -> tuple[NDArray[Any], ...]:
-        return (self.winding, self.safe, self.lo, self.hi, self.m, self.change)
+        return (self.winding, self.safe, self.lo, self.hi, self.m, self.change, self.steady)
 
     def bounds(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """The range of W that motion within ``motion_radius`` allows: ``W + m`` within
@@ -87,14 +90,18 @@ def temporal_prediction(
     prev_u: NDArray[np.float64],
     config: TemporalConfig,
     inside: NDArray[np.bool_] | None = None,
+    noise: float = 0.0,
 ) -> Prediction:
     """Predict W of the frame ``m`` (H x W x C) from the previous ``u`` moved onto it
-    (see module doc); pixels outside ``inside`` (H x W) are unpredicted: unsafe, unbounded."""
+    (see module doc); pixels outside ``inside`` (H x W) are unpredicted: unsafe, unbounded.
+    ``noise``: the sigma (wraps) that sensor noise gives a pixel's frame-to-frame change
+    (0: none, only an unchanged pixel is steady)."""
     winding = np.rint(prev_u - m)
     u = winding + m
     change = misfit(prev_u, m)
     limit = 0.5 - config.margin
     safe = change <= limit
+    steady = change <= config.steady_sigmas * noise
     lo, hi = prev_u, prev_u
     if config.motion_radius > 0:
         lo = window_extreme(prev_u, config.motion_radius, np.minimum)
@@ -103,7 +110,7 @@ def temporal_prediction(
         safe &= still | ((u - lo <= limit) & (hi - u <= limit))
     if inside is not None and not inside.all():
         outside = np.broadcast_to(~inside[:, :, None], m.shape)
-        safe = safe & ~outside
+        safe, steady = safe & ~outside, steady & ~outside
         lo, hi = np.where(outside, 0.0, lo), np.where(outside, UNBOUNDED, hi)
         change = np.where(outside, 0.5, change)
-    return Prediction(winding.astype(np.int64), safe, lo, hi, m, change)
+    return Prediction(winding.astype(np.int64), safe, lo, hi, m, change, steady)

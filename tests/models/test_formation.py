@@ -16,6 +16,7 @@ from models.formation import (
     encode,
     exposure_gain,
     from_unwrapped,
+    largest_noise_sigma,
     luminance,
     max_winding,
     quantize,
@@ -300,6 +301,25 @@ def test_unwrapped_noise_sigma_matches_simulated_noise(encoding: str, x: float) 
     u_noisy = frame.winding + dequantize(frame.codes, params.bits)
     u = to_unwrapped(np.array(x), params)
     assert float(unwrapped_noise_sigma(u, params)) == pytest.approx(np.std(u_noisy), rel=0.05)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    encoding=st.sampled_from(["modulo", "mantissa"]),
+    read_noise=st.floats(0.0, 0.1),
+    full_well=st.one_of(st.none(), st.floats(10.0, 1e6)),
+    top=st.floats(0.0, 40.0),
+    share=st.floats(0.0, 1.0),
+)
+def test_largest_noise_sigma_bounds_every_level_up_to_the_top(
+    encoding: str, read_noise: float, full_well: float | None, top: float, share: float
+) -> None:
+    """The bound is at least the noise at any level from 0 to ``top`` (within the grid's
+    sampling of a smooth curve), and never less than the read noise."""
+    params = SensorParams(encoding=encoding, read_noise=read_noise, full_well=full_well)
+    bound = largest_noise_sigma(top, params)
+    assert bound >= read_noise
+    assert float(unwrapped_noise_sigma(np.array(share * top), params)) <= bound * 1.02 + 1e-12
 
 
 def test_unwrapped_noise_sigma_without_full_well_is_the_read_noise() -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -23,7 +25,7 @@ def ramp_prediction() -> tuple[Prediction, np.ndarray]:
     exact = temporal_prediction(m, u, TemporalConfig(motion_radius=0)).channel(0)
     safe = exact.safe.copy()
     safe[20:32, 30:42] = False
-    loose = Prediction(exact.winding, safe, exact.lo - 1, exact.hi + 1, exact.m, exact.change)
+    loose = replace(exact, safe=safe, lo=exact.lo - 1, hi=exact.hi + 1)
     return loose, np.floor(u[:, :, 0]).astype(np.int64)
 
 

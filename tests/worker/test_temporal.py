@@ -350,7 +350,7 @@ def test_a_colour_keyframe_joins_its_channels_as_a_still_frame_would() -> None:
 @pytest.mark.parametrize(
     "bad",
     [{"margin": 0.5}, {"motion_radius": -1}, {"keyframe_interval": -2}, {"local_limit": 2.0},
-     {"local_passes": 0}, {"still": 0.7}, {"refine_moves": -1},
+     {"local_passes": 0}, {"still": 0.7}, {"steady_sigmas": -1.0}, {"refine_moves": -1},
      {"refine_reach": -1}, {"refine_whole_every": -2}],
 )
 def test_bad_settings_are_refused(bad: dict) -> None:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from worker.temporal import Prediction, TemporalConfig, temporal_prediction
+from worker.temporal import TemporalConfig, temporal_prediction
 from worker.temporal_fallback import locally_smooth, merge_spatial, neighbour_fix
 
 
@@ -19,9 +21,31 @@ def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:
     wrong[4:7, 4:7] += 2
     safe[4:7, 4:7] = False
     safe[0, 9] = False
-    damaged = Prediction(wrong, safe, prediction.lo, prediction.hi + 3, m, np.abs(wrong + m - u))
+    change = np.abs(wrong + m - u)
+    damaged = replace(
+        prediction, winding=wrong, safe=safe, hi=prediction.hi + 3, change=change,
+        steady=change == 0,
+    )
     fixed = neighbour_fix(damaged.channel(0), passes=2)
     np.testing.assert_array_equal(fixed, np.floor(u[:, :, 0]))
+
+
+def test_neighbour_fix_keeps_a_steady_pixels_own_answer() -> None:
+    """An unsafe pixel whose own answer is a wrap off and changed by 0.2 wraps takes its
+    neighbours' W, unless its change is steady (within the sensor's noise)."""
+    u = np.add.outer(np.linspace(0, 3, 12), np.linspace(0, 2, 10))[:, :, None]
+    m = u - np.floor(u)
+    prediction = temporal_prediction(m, u, TemporalConfig(motion_radius=0)).channel(0)
+    wrong, safe, change = prediction.winding.copy(), prediction.safe.copy(), prediction.change
+    wrong[5, 5] += 1
+    safe[5, 5] = False
+    change = change.copy()
+    change[5, 5] = 0.2
+    for steady, expected in ((False, np.floor(u[5, 5, 0])), (True, np.floor(u[5, 5, 0]) + 1)):
+        flags = prediction.steady.copy()
+        flags[5, 5] = steady
+        damaged = replace(prediction, winding=wrong, safe=safe, change=change, steady=flags)
+        assert neighbour_fix(damaged, passes=1)[5, 5] == expected
 
 
 def test_locally_smooth_marks_pixels_next_to_a_jump() -> None:
@@ -39,13 +63,11 @@ def test_merge_spatial_aligns_the_constant_and_fills_unsafe_pixels() -> None:
     prediction = temporal_prediction(m, u, TemporalConfig(motion_radius=0)).channel(0)
     safe = prediction.safe.copy()
     safe[2:5, 2:5] = False
-    damaged = Prediction(prediction.winding, safe, prediction.lo, prediction.hi + 3, m[:, :, 0],
-                         prediction.change)
+    damaged = replace(prediction, safe=safe, hi=prediction.hi + 3)
     merged = merge_spatial(damaged, np.floor(u[:, :, 0]).astype(np.int64) - 3)
     assert merged is not None
     winding, taken = merged
     np.testing.assert_array_equal(winding, np.floor(u[:, :, 0]))
     assert taken[2:5, 2:5].all()
-    none_safe = Prediction(prediction.winding, np.zeros_like(safe), prediction.lo,
-                           prediction.hi, m[:, :, 0], prediction.change)
+    none_safe = replace(prediction, safe=np.zeros_like(safe))
     assert merge_spatial(none_safe, prediction.winding) is None

@@ -36,6 +36,20 @@ def test_prediction_flags_edges_near_moving_content() -> None:
     assert not prediction.safe[:, 2:4].any() and prediction.safe[:, 0].all()
 
 
+def test_steady_pixels_changed_within_the_noise() -> None:
+    """A pixel is steady when its change is within ``steady_sigmas`` sigmas of the noise:
+    none changed by 0.2 wraps is steady at no noise, all are at sigma 0.1; a pixel
+    outside the moved frame never is."""
+    prev = np.full((3, 4, 1), 2.3)
+    m = np.full((3, 4, 1), 0.5)
+    config = TemporalConfig(steady_sigmas=3.0)
+    assert not temporal_prediction(m, prev, config).steady.any()
+    inside = np.ones((3, 4), bool)
+    inside[:, 0] = False
+    steady = temporal_prediction(m, prev, config, inside, noise=0.1).steady
+    assert steady[:, 1:].all() and not steady[:, 0].any()
+
+
 @settings(max_examples=50)
 @given(
     values=arrays(np.float64, st.tuples(st.integers(1, 6), st.integers(1, 6), st.just(1)),
