@@ -213,7 +213,6 @@ from models.decoders.base import Decoder, check_frame_shape
 from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.region_vote import region_vote
 from models.decoders.registry import get_decoder
-from models.decoders.saturation import fill_saturated
 from models.errors import InvalidInputError
 from models.formation import (
     SensorParams,
@@ -464,10 +463,7 @@ class StreamDecoder:
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
         spatial = self._spatial_planes(m, params)
         if reason in ANCHOR_KEYFRAMES and self.keyframe_refiner is not None:
-            refined = refined_planes(self.keyframe_refiner, m, spatial, params)
-            if self.spatial.fills_saturation:
-                refined = filled_planes(m, refined, spatial, params)
-            spatial = refined
+            spatial = refined_planes(self.keyframe_refiner, m, spatial, params, refill=True)
         spatial = self.spatial.join_channels(m, spatial, params)[0]
         if reason != "periodic" or state.u is None:
             return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}
@@ -577,39 +573,26 @@ def refined_planes(
     winding: NDArray[np.int64],
     params: SensorParams,
     bands: NDArray[np.bool_] | None = None,
+    refill: bool = False,
 ) -> NDArray[np.int64]:
     """Each plane of ``winding`` (H x W x C) refined by ``refiner`` on its plane of ``m``:
-    whole, or only within its plane of ``bands`` (bool, H x W x C) when given."""
+    whole, or only within its plane of ``bands`` (bool, H x W x C) when given. With
+    ``refill``, a whole plane's clipped blobs are filled again, judged on ``winding``
+    (:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refilled`; an anchoring
+    keyframe, see the module doc)."""
     planes = []
     for c in range(m.shape[2]):
         if bands is None:
-            planes.append(refiner.refine(m[:, :, c], winding[:, :, c], params)[0])
+            plane = refiner.refine(m[:, :, c], winding[:, :, c], params)[0]
+            if refill:
+                plane = refiner.refilled(m[:, :, c], plane, winding[:, :, c], params)[0]
+            planes.append(plane)
         elif bands[:, :, c].any():
             band = bands[:, :, c]
             planes.append(refiner.refine_within(m[:, :, c], winding[:, :, c], params, band)[0])
         else:
             planes.append(winding[:, :, c])
     return np.stack(planes, axis=2)
-
-
-def filled_planes(
-    m: NDArray[np.float64],
-    refined: NDArray[np.int64],
-    spatial: NDArray[np.int64],
-    params: SensorParams,
-) -> NDArray[np.int64]:
-    """Each plane of ``refined`` (H x W x C) with the clipped blobs of the spatial
-    decoder's answer ``spatial`` set to the clip again
-    (:func:`models.decoders.saturation.fill_saturated`, judged on ``spatial``): the
-    keyframe refinement's energy does not know the clip and lowers them, often to W 0-1,
-    where a blob looks like a dark patch."""
-    return np.stack(
-        [
-            fill_saturated(refined[:, :, c], m[:, :, c], params, spatial[:, :, c])[0]
-            for c in range(m.shape[2])
-        ],
-        axis=2,
-    )
 
 
 def grown(pixels: NDArray[np.bool_], reach: int) -> NDArray[np.bool_]:

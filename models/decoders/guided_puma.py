@@ -246,9 +246,24 @@ class GuidedPumaDecoder(Decoder):
         them: ``auto-fast+puma`` on val-256 mantissa 24.43 -> 24.71 dB)."""
         guide, details = self.guide.explain_winding(m, params)
         winding, facts = self.refine(m, guide, params)
-        if self.fills_saturation:
-            winding, facts["saturation"] = fill_saturated(winding, m, params, guide)
+        winding, saturation = self.refilled(m, winding, guide, params)
+        if saturation is not None:
+            facts["saturation"] = saturation
         return winding, {"guide": self.guide.name, "guide_details": details, **facts}
+
+    def refilled(
+        self,
+        m: NDArray[np.float64],
+        refined: NDArray[np.int64],
+        guide: NDArray[np.int64],
+        params: SensorParams,
+    ) -> tuple[NDArray[np.int64], dict[str, Any] | None]:
+        """``refined`` (int W, H x W) with the guide's clipped blobs set to the clip again
+        (:func:`models.decoders.saturation.fill_saturated`, judged on ``guide``), and the
+        fill's facts; unchanged with None when the guide does not fill clipped blobs."""
+        if not self.fills_saturation:
+            return refined, None
+        return fill_saturated(refined, m, params, guide)
 
     def refine(
         self,

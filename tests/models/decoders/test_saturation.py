@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from models.decoders import get_decoder
+from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.saturation import (
     MIN_PIXELS,
     clip_tolerance,
@@ -171,3 +172,23 @@ def test_auto_fills_a_clipped_lamp_and_reports_it(name: str) -> None:
     clipped = frame.irradiance >= 16.0
     np.testing.assert_array_equal(result.winding[clipped], frame.winding[clipped])
     assert result.info["details"]["saturation"]["filled_fraction"] >= clipped.mean()
+
+
+def test_a_refiner_refills_only_for_a_guide_that_fills() -> None:
+    """``GuidedPumaDecoder.refilled`` puts a lamp lowered by a refinement back at the clip
+    when its guide fills clipped blobs (``auto``), and leaves W alone otherwise."""
+    params = _params()
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    lamp = 2000.0 * np.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / (2 * 4.0**2))
+    frame = encode(0.6 + lamp, params)
+    m = dequantize(frame.codes, params.bits)
+    clipped = frame.irradiance >= 16.0
+    lowered = np.where(clipped, 0, frame.winding)
+    filling = GuidedPumaDecoder(get_decoder("auto-balanced"))
+    refilled, facts = filling.refilled(m, lowered, frame.winding, params)
+    np.testing.assert_array_equal(refilled[clipped], frame.winding[clipped])
+    assert facts is not None and facts["filled_fraction"] >= clipped.mean()
+    plain = GuidedPumaDecoder(get_decoder("itoh"))
+    kept, none = plain.refilled(m, lowered, frame.winding, params)
+    np.testing.assert_array_equal(kept, lowered)
+    assert none is None
