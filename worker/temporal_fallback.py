@@ -2,9 +2,9 @@
 
 :mod:`worker.temporal` describes when each is used: the *local* path
 (:func:`neighbour_fix`: each unsafe pixel takes the W that best matches a settled
-8-neighbour, or keeps its own temporal answer when that is close or *steady*) and the *spatial* path
-(:func:`merge_spatial`: a full spatial decode aligned to the tracked answer by
-:func:`models.tile_reconcile.common_offset`, winning where it is
+8-neighbour, or keeps its own temporal answer when that is close or *steady*) and the
+*spatial* path (:func:`merge_spatial`: a full spatial decode aligned to the tracked
+answer by :func:`models.tile_reconcile.common_offset`, winning where it is
 :func:`locally_smooth` and the tracked answer is not). Arrays are one channel,
 H x W; ``u`` and ``m`` in wraps.
 """
