@@ -231,8 +231,8 @@ class AdaptiveDecoder(Decoder):
         :meth:`refiner`): at ``balanced`` and ``best`` the installed winding net (within
         the quality's cost cap, :data:`NET_BY_PSNR`) with the highest measured refined
         val-256 PSNR on the frame's encoding; otherwise (or when no card has that
-        figure) the first installed tier of the quality's ladder for the encoding
-        (:data:`TIER_LADDER`) that supports it; without one, the classical fallback."""
+        figure) the quality's first installed tier for the encoding that supports it; without
+        one, the classical fallback."""
         net = None
         if self.quality in NET_BY_PSNR:
             net = most_accurate_net(params, NET_BY_PSNR[self.quality])
