@@ -74,26 +74,17 @@ from models.scene_analysis import FrameAnalysis, RegionAnalysis, analyse
 from models.tile_reconcile import Tile, integrate_jumps, stitch
 
 QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
-#: Network tiers tried in order for each quality level and encoding; the first installed
-#: one runs (``balanced`` and ``best`` first pick by the measured PSNR in the model cards,
-#: see :data:`NET_BY_PSNR`). ``fast`` runs a half-resolution net: the small one, on
-#: val-256 (auto-fast, 2026-11-25, interleaved with one core busy) mantissa 21.38 dB in
-#: 17.9 ms against tiny's 21.50 dB in 28.3 ms, modulo 22.13 against 22.10 dB. On mantissa
-#: frames the tiny one since session 24's net (auto-fast, interleaved, small-s2d ->
-#: tiny-s2d): tuning crops 25.05 -> 25.51 dB, at read noise 0.01 25.07 -> 25.33, val-256
-#: 22.60 -> 22.91, mostly-dark 44.89 -> 44.90, glows 48.75 -> 48.48, 512x512 36.36 ->
-#: 36.32 dB, each 15-25% faster (val-256 18.2 -> 15.5 ms); on modulo it loses (tuning
-#: 25.21 -> 24.72, val-256 22.91 -> 22.76 dB).
-HALF_RESOLUTION_LADDER = ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small")
-TIER_LADDER: dict[str, dict[str, tuple[str, ...]]] = {
-    "fast": {
-        "mantissa": ("mantissanet-tiny-s2d", *HALF_RESOLUTION_LADDER),
-        "modulo": HALF_RESOLUTION_LADDER,
-    },
-    "balanced": dict.fromkeys(("mantissa", "modulo"), HALF_RESOLUTION_LADDER),
-    "best": dict.fromkeys(
-        ("mantissa", "modulo"), ("mantissanet-base", "mantissanet-small", "mantissanet-tiny")
-    ),
+#: Network tiers tried in order for each quality level; the first installed one runs
+#: (``balanced`` and ``best`` first pick by the measured PSNR in the model cards, see
+#: :data:`NET_BY_PSNR`). ``fast`` runs the half-resolution small net: on val-256
+#: (auto-fast, 2026-11-25, interleaved with one core busy) mantissa 21.38 dB in 17.9 ms
+#: against tiny's 21.50 dB in 28.3 ms, modulo 22.13 against 22.10 dB; 12.3 ms on a quiet
+#: machine. A tiny net at half resolution was 1-2 ms faster still but 0.1 (mantissa) to
+#: 0.9 dB (modulo) less accurate.
+TIER_LADDER: dict[str, tuple[str, ...]] = {
+    "fast": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
+    "balanced": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
+    "best": ("mantissanet-base", "mantissanet-small", "mantissanet-tiny"),
 }
 #: Qualities that pick the net whose refinement (``<net>+puma``) measured the highest
 #: val-256 PSNR on the frame's encoding, among nets of at most this many GFLOPs per
@@ -231,7 +222,7 @@ class AdaptiveDecoder(Decoder):
         :meth:`refiner`): at ``balanced`` and ``best`` the installed winding net (within
         the quality's cost cap, :data:`NET_BY_PSNR`) with the highest measured refined
         val-256 PSNR on the frame's encoding; otherwise (or when no card has that
-        figure) the quality's first installed tier for the encoding that supports it; without
+        figure) the quality's first installed tier that supports the encoding; without
         one, the classical fallback."""
         net = None
         if self.quality in NET_BY_PSNR:
@@ -241,7 +232,7 @@ class AdaptiveDecoder(Decoder):
             net = next(
                 (
                     name
-                    for name in TIER_LADDER[self.quality].get(params.encoding, ())
+                    for name in TIER_LADDER[self.quality]
                     if name in installed and get_decoder(name).supports(params)
                 ),
                 None,
