@@ -11,7 +11,7 @@ from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 from worker.arrivals import REACH, ArrivalConfig, refine_arrivals
-from worker.temporal import StreamDecoder, StreamState, TemporalConfig
+from worker.temporal import StreamDecoder, TemporalConfig, decode_frames
 
 PARAMS = SensorParams(encoding="modulo", bits=8)
 SIZE = 160
@@ -67,9 +67,7 @@ def test_a_light_jumping_across_a_still_view_is_tracked_by_the_stream() -> None:
     accuracy = {}
     for config_name, arrival in (("on", ArrivalConfig()), ("off", ArrivalConfig(min_cluster=0))):
         decoder = StreamDecoder("temporal", "itoh", TemporalConfig(arrival=arrival))
-        state = StreamState()
-        for frame_codes in codes:
-            result = decoder.decode(frame_codes, PARAMS, state)
+        *_, result = decode_frames(codes, PARAMS, decoder)
         accuracy[config_name] = float(np.mean(result.winding == truth))
     assert accuracy["on"] > 0.99
     assert accuracy["on"] > accuracy["off"]

@@ -12,7 +12,7 @@ from models.errors import InvalidInputError
 from models.formation import SensorParams
 from worker.clip_tracking import ClipTrackConfig, continuing_blobs, track_clip
 from worker.motion import misfit
-from worker.temporal import StreamDecoder, StreamState, TemporalConfig
+from worker.temporal import StreamDecoder, TemporalConfig, decode_frames
 
 PARAMS = SensorParams(encoding="modulo", bits=8, max_wraps=16)
 SIZE = 128
@@ -123,9 +123,7 @@ def test_a_stream_keeps_a_moving_lamp_filled() -> None:
     wrong = {}
     for name, clip in (("on", ClipTrackConfig()), ("off", ClipTrackConfig(reach=0))):
         decoder = StreamDecoder("temporal", "auto-fast", TemporalConfig(clip=clip))
-        state = StreamState()
-        for frame_codes in codes:
-            result = decoder.decode(frame_codes, PARAMS, state)
+        *_, result = decode_frames(codes, PARAMS, decoder)
         wrong[name] = result.winding != truth
     assert wrong["off"][clipped].all() and wrong["off"][old_core].all()
     assert not wrong["on"][clipped].any() and not wrong["on"][old_core].any()
