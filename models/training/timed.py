@@ -28,6 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from models.training.recipes import TIMED_LANES
 from models.training.train import PRECISIONS, RUNS_DIR, TrainConfig, record_line, train
 
 #: The probe's window (s after the lanes start): every lane counts its steps from
@@ -131,8 +132,6 @@ def lane_command(index: int, args: argparse.Namespace, start: float) -> list[str
 
 def lanes(args: argparse.Namespace) -> tuple[tuple[TrainConfig, ...], ...]:
     """The named set of lanes with this invocation's device, precision, workers and folder."""
-    from models.training.recipes import TIMED_LANES
-
     return tuple(
         tuple(
             replace(c, device=args.device, precision=args.precision, workers=args.workers,
@@ -151,7 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", default="bf16", choices=PRECISIONS)
     parser.add_argument("--workers", type=int, default=3, help="batch processes per lane")
     parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR)
-    parser.add_argument("--lanes", default="s2d", help="set of lanes in recipes.TIMED_LANES")
+    parser.add_argument(
+        "--lanes", default="s2d", choices=sorted(TIMED_LANES),
+        help="set of lanes in recipes.TIMED_LANES",
+    )  # fmt: skip
     parser.add_argument("--lane", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--start", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

@@ -98,3 +98,13 @@ def test_a_probe_measures_the_next_window_after_a_slow_start(tmp_path: Path) -> 
     rate = timed.probe_rate(config, (now - 3.0, now))
     assert rate > 0
     assert time.monotonic() - now < 3.0 * timed.PROBE_RETRIES + 5
+
+
+def test_an_unknown_lane_set_is_refused_with_the_known_ones(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        timed.main(["--lanes", "nope", "--device", "cpu"])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert "invalid choice: 'nope'" in error and "s2d" in error
