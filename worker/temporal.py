@@ -7,178 +7,111 @@ previous frame's unwrapped value ``u_{t-1} = W_{t-1} + m_{t-1}`` (wraps):
     W_t = round(u_{t-1} - m_t)
 
 which is exact when the pixel's true change ``|u_t - u_{t-1}|`` is below half a wrap.
+What each step below measured, and the variants tried and dropped, are in
+``docs/temporal-decoding.md``.
 
-Motion compensation
--------------------
-On a pan or zoom the content moves by pixels per frame, so at a moving edge the
-same pixel of the previous frame shows other content and the rule aliases (it
-lost 5-17 dB against per-frame decoding on the pan/zoom clip). So ``u_{t-1}`` is
-first moved onto the current frame by :func:`worker.motion.compensate` (a global
-shift of up to ``motion.search`` px plus a one-pixel refinement per block, matched
-on texture, which a brightness change leaves alone), and the rule and the checks
-below compare each pixel with where its content was. Pixels whose content
-entered the frame (no source in the previous frame) are unsafe and unbounded: the
-fallback decides them. ``TemporalConfig.motion`` holds the knobs (``search = 0``
-turns compensation off: the previous frame is used as it is).
+Motion and brightness
+---------------------
+On a pan or zoom the content moves by pixels per frame, so ``u_{t-1}`` is first moved
+onto the current frame by :func:`worker.motion.compensate` (a global shift of up to
+``motion.search`` px plus a one-pixel refinement per block, matched on texture, which
+a brightness change leaves alone); the rule and the checks below compare each pixel
+with where its content was. Pixels whose content entered the frame (no source in the
+previous frame) are unsafe and unbounded: the fallback decides them.
 
-Then a global brightness change is undone: the moved ``u_{t-1}`` is brightened by
-the gain that best explains ``m_t`` (:mod:`worker.brightness`; under a sunrise
-ramp a bright modulo pixel moves by more than half a wrap per frame). Motion is
-estimated first because texture matching does not mind a brightness change,
-while a gain fitted to unaligned content can match by accident. A move is then
-kept only if, with its gain, it predicts ``m_t`` better than the unmoved frame
-does (mean misfit below ``motion.switch`` times the unmoved one's): on smooth,
-noisy content texture barely pins the shift, and a wrong one would alias.
-``TemporalConfig.brightness`` holds its knobs (``search = 0`` turns it off).
+Then a global brightness change is undone: the moved ``u_{t-1}`` is brightened by the
+gain that best explains ``m_t`` (:mod:`worker.brightness`; under a sunrise ramp a
+bright modulo pixel moves by more than half a wrap per frame). Motion is estimated
+first because texture matching does not mind a brightness change, while a gain fitted
+to unaligned content can match by accident. A move is kept only if, with its gain, it
+predicts ``m_t`` better than the unmoved frame does (mean misfit below
+``motion.switch`` times the unmoved one's): on smooth, noisy content texture barely
+pins the shift, and a wrong one would alias. ``TemporalConfig.motion`` and
+``TemporalConfig.brightness`` hold the knobs (``search = 0`` turns either off).
 
 The rule, per pixel (and channel)
 ---------------------------------
 (Computed by :mod:`worker.temporal_rule`; this module runs the stream around it.)
 A pixel is *safe* when every (motion-compensated) previous value within
 ``motion_radius`` pixels (a ``(2r+1)^2`` window, so that motion up to ``r`` px/frame
-beyond what compensation followed stays decidable) gives the
-same ``W_t`` with at least ``margin`` wraps to spare: ``|W_t + m_t - u_{t-1}(q)| <=
-0.5 - margin`` for every q in the window. Safe pixels keep the temporal answer.
-Unsafe pixels fall back to the spatial decoder:
+beyond what compensation followed stays decidable) gives the same ``W_t`` with at
+least ``margin`` wraps to spare: ``|W_t + m_t - u_{t-1}(q)| <= 0.5 - margin`` for
+every q in the window. Safe pixels keep the temporal answer. Unsafe pixels fall back
+(:mod:`worker.temporal_fallback`):
 
 - few unsafe pixels (at most ``local_limit`` of the frame): a cheap local fix, no
-  spatial decoder: each unsafe pixel takes the W (within the range motion allows)
-  that brings its ``u`` closest to a settled 8-neighbour's ``u`` (the best-matching
-  neighbour decides, as in quality-guided unwrapping), unless its own temporal
-  answer is closer than the best match divided by ``SELF_WEIGHT`` (so a static
-  edge does not flip with noise) or its own change is *steady*: within
+  spatial decoder (the *local* path): each unsafe pixel takes the W (within the range
+  motion allows) that brings its ``u`` closest to a settled 8-neighbour's ``u``,
+  growing inwards from the safe pixels for up to ``local_passes`` passes, unless its
+  own temporal answer is closer than the best match divided by ``SELF_WEIGHT`` (so a
+  static edge does not flip with noise) or its own change is *steady*: within
   ``steady_sigmas`` sigmas of the frame-to-frame noise the sensor can give any level
   up to the frame's brightest (:func:`models.formation.largest_noise_sigma`; the
   bound, not the noise at the pixel's own ``u``, since an unsafe pixel's ``u`` may be
-  whole wraps wrong), growing inwards from the safe pixels for up to
-  ``local_passes`` passes (the *local* path; :mod:`worker.temporal_fallback`);
-  then, only when the camera moved (a global shift was kept), each large cluster
-  of unsafe pixels is decoded again by the spatial decoder on a crop around it,
-  and each region where the two answers disagree (and that touches an unsafe
-  pixel) takes the one with fewer jumps across its boundary
+  whole wraps wrong). Then, only when the camera moved (a global shift was kept),
+  each large cluster of unsafe pixels is decoded again by the spatial decoder on a
+  crop around it, and each region where the two answers disagree (and that touches an
+  unsafe pixel) takes the one with fewer jumps across its boundary
   (:mod:`worker.crop_vote`; ``crop`` holds its knobs, its pixels count as
-  *spatial*). The crops' total area is capped, so the step stays cheaper than a
-  full spatial decode. On the pan/zoom clip this vote settles unsafe edge pixels
-  the local fix got wrong (bench.video: herraez +1 dB); on a still camera the
-  unsafe clusters are noise or a brightness change, where the tracked answer is
-  the better one (with the vote on every frame, the static and sunrise clips lost
-  up to 5 dB and half their flicker reduction, at 2-4x the cost);
+  *spatial*). The crops' total area is capped, so the step stays cheaper than a full
+  spatial decode. On a still camera the unsafe clusters are noise or a brightness
+  change, where the tracked answer is the better one;
 - more: one full spatial decode of the frame, its unknown constant set to the most
   common difference to the temporal answer on safe pixels (*spatial* path). There,
   where the spatial answer disagrees with a safe temporal one, the spatial one wins
-  when it is *confident* (its ``u`` is within half a wrap of all four neighbours)
-  and the temporal one is not.
+  when it is *confident* (its ``u`` is within half a wrap of all four neighbours) and
+  the temporal one is not.
 
-Last, when the camera moved (a global shift was kept) and any pixel fell back, the
-frame is refined by guided graph-cut unwrapping (:mod:`models.decoders.guided_puma`,
-at most ``refine_moves`` min-cuts) from the merged answer: a region whose W disagrees
-with the codes along most of its border (a fallback seam, an error carried in with
-the content) is moved by whole wraps. On the pan/zoom clip (mantissa) it took
-temporal decoding from 18.81 to 21.51 dB with itoh (independent: 19.73) and from
-19.00 to 20.08 dB with mantissanet-tiny (independent: 19.78), for 40-60 ms per
-256x256 frame. Since the refinement weighs pairs by reliability (bench.video,
-2026-11-25 17:50 UTC, mantissa) temporal decoding there reaches 46.1 dB with herraez
-(independent 34.7) and 46.0 dB with auto-fast (independent 22.0; before, 20.1).
-On a still camera it is not run: refined there too, the sunrise clip
-lost 4.5 dB with herraez (34.76 -> 30.21 dB), and every frame cost 20-50 ms more.
+After the fallbacks
+-------------------
+When the camera moved (a global shift was kept) and any pixel fell back, the frame is
+refined by guided graph-cut unwrapping (:mod:`models.decoders.guided_puma`, pixel
+moves only, at most ``refine_moves`` min-cuts) from the merged answer: a region whose
+W disagrees with the codes along most of its border (a fallback seam, an error carried
+in with the content) is moved by whole wraps. The moves are confined to the fallback
+pixels and ``refine_reach`` px round them
+(:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refine_within`), and every
+``refine_whole_every``-th frame the whole frame is refined, for errors far from any
+fallback pixel. A still camera is not refined this way (it cost the sunrise clip 4.5
+dB).
 
-The refinement's moves are confined to the fallback pixels and ``refine_reach`` px
-round them (:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refine_within`), and
-every ``refine_whole_every``-th frame it refines the whole frame. Over the pan/zoom
-clip (mantissa, herraez and mantissanet-tiny) 99% of the pixels the whole-frame
-refinement changed were fallback pixels or their neighbours (herraez: 99.9% within 8
-px; itoh 95%), and two whole-frame pixel cuts were 46 of a frame's 57 ms. Measured
-(2026-11-26, pan/zoom, mean PSNR whole -> band only -> band with a whole frame every
-4th): herraez mantissa 46.17 -> 46.22 -> 46.22 dB at 43-48 -> 22-24 -> 27-29 ms a
-frame, itoh 22.62 -> 22.58 -> 22.62, modulo within 0.1 dB for all four decoders.
-The whole frames are for errors far from any fallback pixel: mantissanet-tiny's
-first keyframe leaves a sky region of 18k pixels a wrap off, which a whole-frame
-refinement moves once the pan has changed its border (frames 33-36); band only,
-it stays and the clip falls to 19.36 dB (whole 21.44, every 4th 21.34, every 8th
-21.08; independent decoding 21.17).
-
-Otherwise (a still camera, or nothing fell back), clusters of safe pixels whose
-misfit is far above their sensor noise (a light moving faster than
-``motion_radius``, a lamp switched on) are refined by guided graph cuts on a crop
-around them (:mod:`worker.arrivals`, ``arrival`` holds its knobs): on the
-moving-light clip it cut wrap flicker from 6-16x to 11.6-32x less than independent
-decoding and raised PU21-PSNR by 0.3-0.5 dB with the networks; on the sunrise clip (mantissa) it
-took mantissanet-tiny from 28.0 to 35.2 dB, where wraps sweep faster than half a
-wrap per frame.
-
-Whole frames are decoded spatially (*keyframes*) for: the first frame of a stream,
-a frame flagged DISCONT (device reconnect), a sequence gap, a change of shape or
-sensor parameters, and every ``keyframe_interval`` frames (0: never) so that errors
-cannot persist. The first four (:data:`ANCHOR_KEYFRAMES`) anchor the stream, which
-carries their errors on, so their spatial answer is refined by guided PUMA to
-convergence (``refine_keyframes``; one refinement per stream start, 20-100 ms at
-256x256). Measured (2026-11-25, 60-frame clips, temporal mean PSNR with auto-fast /
-mantissanet-tiny / herraez): pan/zoom modulo 21.1 / 21.1 / 45.7 -> 45.6 / 45.7 / 45.8
-dB (the keyframe's sky put right), static noise mantissa 16.36 / 15.86 / 16.46 -> 17.45 /
-16.11 / 16.47 dB and modulo 15.88 / 15.71 / 15.59 -> 16.20 / 16.19 / 15.59 dB, sunrise
-mantissa +0.6 / +1.8 / +2.1 dB and modulo +0.3 / +3.4 / -1.3 dB (herraez 26.91 -> 25.58,
-independent 19.34); pan/zoom mantissa and the moving light moved by -0.06 to +0.36 dB.
-Periodic keyframes refined as well lost 4.9 dB on the mantissa sunrise, so they are not.
+Otherwise (a still camera, or nothing fell back), clusters of safe pixels whose misfit
+is far above their sensor noise (a light moving faster than ``motion_radius``, a lamp
+switched on) are refined by guided graph cuts on a crop around them
+(:mod:`worker.arrivals`, ``arrival`` holds its knobs).
 
 With a spatial decoder that fills clipped blobs (``auto``, see
-:mod:`models.decoders.saturation`), an anchoring keyframe's refined answer is filled
-again, each blob judged on the spatial answer (the refinement's energy does not know
-the clip and lowers the blobs, often to where they look like dark patches), and the
-stream carries the filled blobs on. Measured (2026-11-26, auto-fast, 60-frame clips,
-temporal mean PSNR mantissa / modulo; bench.video: independent decoding with the fill,
-moving light 17.29 / 17.02, static noise 23.35 / 16.13, sunrise 22.28 / 21.73 dB):
-filling only after anchoring keyframes, the moving light 15.87 / 13.69, static noise
-23.84 / 16.20, sunrise 36.48 / 25.81 dB. Placements tried before (with an earlier
-overexposure test of the fill, half the blob at W >= 1): filling every frame 16.89 /
-12.58, 23.88 / 16.20, 31.46 / 27.78 dB; after every keyframe (periodic ones too)
-15.89 / 13.76, 23.78 / 16.20, 32.80 / 28.42 dB (on the mantissa sunrise a periodic
-keyframe's fill raised 70 pixels that were not clipped, and the stream kept them);
-never 15.85 / 13.68, 17.45 / 16.20, 36.48 / 25.81 dB. Marking pixels that leave the
-clip unsafe changed the moving light by 0.01-0.07 dB. A lamp moving faster than the
-rule can follow left a trail (the pixels of its filled core kept a high W once it had
-moved on) and arrived unfilled, so on that clip the stream stayed 1.4-3.3 dB below
-independent decoding, which fills each frame afresh. Since then every temporal step
-runs clip tracking (:mod:`worker.clip_tracking`, ``clip`` holds its knobs; in a still
-view before arrival refinement, after a moving camera's refinement, whose energy does
-not know the clip): a clipped blob that continues one of the previous frame and
-jumped there is filled, and the zone a clipped blob left is decoded spatially on a
-crop (moving light, auto-fast, mantissa / modulo: 15.87 / 13.69 -> 17.40 / 17.08 dB,
-above independent decoding).
+:mod:`models.decoders.saturation`) every temporal step also runs clip tracking
+(:mod:`worker.clip_tracking`, ``clip`` holds its knobs; in a still view before arrival
+refinement, after a moving camera's refinement, whose energy does not know the clip):
+a clipped blob that continues one of the previous frame and jumped there is filled,
+and the zone a clipped blob left is decoded spatially on a crop.
+
+Keyframes
+---------
+Whole frames are decoded spatially (*keyframes*) for: the first frame of a stream, a
+frame flagged DISCONT (device reconnect), a sequence gap, a change of shape or sensor
+parameters, and every ``keyframe_interval`` frames (0: never) so that errors cannot
+persist. The first four (:data:`ANCHOR_KEYFRAMES`) anchor the stream, which carries
+their errors on, so their spatial answer is refined by guided PUMA to convergence
+(``refine_keyframes``; one refinement per stream start, 20-100 ms at 256x256) and,
+with a decoder that fills clipped blobs, filled again, each blob judged on the spatial
+answer (the refinement's energy does not know the clip and lowers the blobs).
+
+A periodic keyframe first makes the temporal step as usual (with its fallbacks), then
+decodes the frame spatially and shifts that answer by its most common difference to
+the tracked one, so a scene that is bright everywhere (where "darkest pixels have W =
+0" is wrong) keeps its tracked winding numbers. Where the two disagree, each connected
+region of disagreement takes the answer that makes fewer jumps across its boundary
+(:func:`models.decoders.region_vote.region_vote`), so neither a spatial decoder's
+wrong region nor a tracked one survives the keyframe. Periodic keyframes are not
+refined.
 
 A keyframe of a colour stream then goes through the spatial decoder's
 :meth:`models.decoders.base.Decoder.join_channels`, as a still frame would (``auto``
 at balanced and best, ``<decoder>+colour``: the channels made consistent,
 :mod:`models.decoders.colour`); the temporal steps between keyframes track each
 channel on its own.
-
-A periodic keyframe first makes the temporal step as usual (with its
-fallbacks), then decodes the frame spatially and shifts that answer by its most
-common difference to the tracked one, so a scene that is bright everywhere (where
-"darkest pixels have W = 0" is wrong) keeps its tracked winding numbers. Where the
-two disagree, each connected region of disagreement takes the answer that makes
-fewer jumps across its boundary (:func:`models.decoders.region_vote.region_vote`), so
-neither a spatial decoder's wrong region nor a tracked one survives the keyframe.
-(Until 2026-11-25 the unsafe pixels took the spatial answer instead of the
-temporal fallbacks. Against that, bench.video measured this rule's sunrise clip
-1.1-2.1 dB better with the networks on mantissa, 3.7 dB with itoh and 0.8-2.6 dB
-with herraez, but 1.0 dB worse with auto-fast on modulo (still 4.6 dB above
-independent decoding). Pan/zoom gained up to 1 dB (itoh), the other clips moved by
-at most 0.03 dB. Wrap flicker fell or held on every pair but sunrise modulo with
-herraez: 0.0031 -> 0.0087, still 18x below independent decoding.)
-
-Why steady pixels keep their answer (2026-11-26, bench.video's clips, 60 frames):
-on the static clip with read noise, modulo, every wrap flip the stream made where the
-truth did not (itoh: 3,331) was a local-path pixel inside a region the keyframe had
-put wrong, matched to a different noisy neighbour each frame, its own change 0.07-0.24
-wraps. Keeping steady pixels' own answers (3 sigmas; 2 and 4 measured too) cut that
-wrap flicker from 0.00086 to 0.00026 (itoh) and from 0.00119 to 0.00023
-(mantissanet-tiny) at the same PSNR, and lifted the sunrise, whose unsafe pixels sit
-on steep wrap bands the brightness gain already tracks: modulo herraez 25.58 -> 43.98,
-auto-fast 26.50 -> 36.16, mantissanet-tiny 25.88 -> 41.09 dB, mantissa herraez /
-auto-fast / tiny 37.74 / 36.48 / 37.59 -> 42.04 / 38.53 / 43.07 dB. Elsewhere within
--0.17..+0.98 dB (pan/zoom modulo herraez -0.17, itoh -0.11; static mantissa herraez
-+0.98). The noise at each pixel's own ``u`` instead of the bound cut the static
-flicker only to 0.00053 (itoh), since the wrong regions' ``u`` reads too dark.
 
 Failure modes
 -------------
@@ -189,9 +122,14 @@ Failure modes
   fast local motion, a fast zoom's corners). Errors persist until the local fix
   or a keyframe decodes the pixel again.
 - Fallback quality: unsafe pixels are only as right as the spatial decoder (and a
-  crop sees less context than the full frame).
+  crop sees less context than the full frame). At a steep scene edge that a pan moves
+  across, an unsafe pixel matched to the neighbour across the edge can be a wrap off
+  for a frame and right again in the next: most of the pan/zoom clip's remaining wrap
+  flicker.
 - A wrong constant at a first/DISCONT keyframe (the anchor rule failing) persists
   through periodic keyframes until the next DISCONT.
+- A lamp brighter than the clip: no decoder but ``auto`` knows the clip, and with the
+  others the stream's clipped core can end up darker than a fresh spatial decode's.
 
 A :class:`StreamState` holds what the method remembers (previous ``u``, frame
 index, last keyframe, sequence number); the worker keeps one per device stream.
@@ -355,12 +293,8 @@ class StreamDecoder:
         self.spatial = get_decoder(decoder) if isinstance(decoder, str) else decoder
         self.config = config or TemporalConfig()
         moves = self.config.refine_moves
-        # Pixel moves only (region_moves=0). bench.video (2026-11-25, 4 decoders, 8
-        # clips) with 2 region moves first: before the final refinement, with 1 pixel
-        # move, pan/zoom lost up to 6.2 dB (herraez) and half its flicker reduction;
-        # before the arrival refinement, with its 8 pixel moves, PSNR and flicker were
-        # unchanged on 30 of 32 pairs (sunrise modulo auto-fast -0.36 dB) for 1-4 ms
-        # less a frame, within the run-to-run noise.
+        # Pixel moves only (region_moves=0): region moves first cost pan/zoom up to
+        # 6.2 dB (docs/temporal-decoding.md).
         self.refiner = (
             GuidedPumaDecoder(self.spatial, max_moves=moves, region_moves=0) if moves else None
         )
