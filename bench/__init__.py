@@ -7,6 +7,7 @@ Importing it keeps freed memory in the process, as ``mcam`` does
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from models.allocator import keep_freed_memory
+from models.decoders import available_decoders
 
 keep_freed_memory()
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -101,6 +103,15 @@ def write_report(report: dict[str, Any], markdown: str, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n")
     out.with_suffix(".md").write_text(markdown + "\n")
+
+
+def refuse_unknown_decoders(parser: argparse.ArgumentParser, names: list[str] | None) -> None:
+    """Stop with the parser's usage error when any of ``names`` is not an installed
+    decoder, listing the installed ones."""
+    installed = {spec.name for spec in available_decoders()}
+    unknown = sorted(set(names or []) - installed)
+    if unknown:
+        parser.error(f"unknown decoders {', '.join(unknown)}; installed: {', '.join(installed)}")
 
 
 def entry_point(

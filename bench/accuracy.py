@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, entry_point, machine, utc_now, versions
+from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.errors import McamError
@@ -274,10 +274,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.frames < 1 or args.repeats < 1 or args.time_frames < 0:
         parser.error("--frames and --repeats must be >= 1, --time-frames >= 0")
-    installed = {spec.name for spec in available_decoders()}
-    unknown = sorted(set(args.decoders or []) - installed)
-    if unknown:
-        parser.error(f"unknown decoders {', '.join(unknown)}; installed: {', '.join(installed)}")
+    refuse_unknown_decoders(parser, args.decoders)
     return args
 
 

@@ -1,15 +1,22 @@
-"""``mcam serve``: the whole service in one command: embedded Redis, one worker, the API.
+"""``mcam serve``: the whole service in one command: embedded Redis, the workers, the API.
 
 Usage::
 
     mcam serve --host 127.0.0.1 --port 8000
+    mcam serve --workers 2 --threads 1      # one single-threaded worker per core
 
 With ``MCAM_REDIS_URL`` unset it starts the private redis-server in the data dir
-(``worker/embedded_redis.py``); the worker runs as a child process (``mcam
+(``worker/embedded_redis.py``); each worker runs as a child process (``mcam
 worker``) and the API (``service.main:create_app``) under uvicorn in this
 process. It prints the URL and, on first start, the generated API key. A worker
 that dies is restarted (with backoff). Ctrl-C or SIGTERM stops the API, then the
-worker (gracefully), then the embedded Redis.
+workers (gracefully), then the embedded Redis.
+
+One worker (the default) decodes one frame at a time on all its onnxruntime threads:
+the least latency for one stream. Several cameras, uploads or batches are decoded
+faster by one single-threaded worker per core, since most of a refined decode runs on
+one core (``python -m bench.throughput``: auto-balanced on val-256, 2 cores, 15-18
+frames/s with one worker of 2 threads, 28-31 with two workers of one thread).
 """
 
 from __future__ import annotations
@@ -41,13 +48,23 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser = subparsers.add_parser(
         "serve",
         help="run API + worker + embedded queue",
-        description="Run the API, one worker and (without MCAM_REDIS_URL) the embedded Redis.",
+        description="Run the API, the workers and (without MCAM_REDIS_URL) the embedded Redis.",
     )
     parser.add_argument("--host", help="listen address (default: MCAM_HOST or 127.0.0.1)")
     parser.add_argument("--port", type=int, help="listen port (default: MCAM_PORT or 8000)")
-    parser.add_argument("--concurrency", type=int, help="the worker's concurrent jobs")
-    parser.add_argument("--threads", type=int, help="the worker's ONNX intra-op threads")
+    parser.add_argument(
+        "--workers", type=positive, default=1, help="worker processes to run (default: 1)"
+    )
+    parser.add_argument("--concurrency", type=int, help="each worker's concurrent jobs")
+    parser.add_argument("--threads", type=int, help="each worker's ONNX intra-op threads")
     parser.set_defaults(func=run)
+
+
+def positive(text: str) -> int:
+    """An argparse type: a whole number of at least 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(text)
 
 
 def worker_command(args: argparse.Namespace) -> list[str]:
@@ -99,19 +116,23 @@ class WorkerSupervisor:
             self.process = self._spawn()
             backoff = min(backoff * 2, RESTART_MAX_S)
 
-    def stop(self) -> None:
-        """SIGTERM the worker, wait for its in-flight work, kill it if it hangs."""
+    def terminate(self) -> None:
+        """Stop restarting the worker and SIGTERM it (it finishes its in-flight work)."""
         self._stopping.set()
         if self._thread.is_alive():
             self._thread.join()
-        process = self.process
-        if process is not None and process.poll() is None:
-            process.terminate()
-            try:
-                process.wait(WORKER_STOP_S)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+
+    def wait(self) -> None:
+        """Wait for a terminated worker to exit, killing it if it hangs."""
+        if self.process is None:
+            return
+        try:
+            self.process.wait(WORKER_STOP_S)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
 
 
 def _interrupt(_signum: int, _frame: FrameType | None) -> None:
@@ -121,23 +142,28 @@ def _interrupt(_signum: int, _frame: FrameType | None) -> None:
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
     embedded = EmbeddedRedis(settings.data_dir) if settings.redis_url is None else None
-    worker: WorkerSupervisor | None = None
+    workers: list[WorkerSupervisor] = []
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         if embedded is not None:
             settings = settings_with(settings, redis_url=embedded.start())
         _, new_key = KeyRing.from_settings(settings)
-        worker = WorkerSupervisor(
-            worker_command(args), str(settings.redis_url), str(settings.data_dir.resolve())
-        ).start()
+        for _ in range(args.workers):
+            workers.append(
+                WorkerSupervisor(
+                    worker_command(args), str(settings.redis_url), str(settings.data_dir.resolve())
+                ).start()
+            )
         announce(settings, new_key)
         uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     except KeyboardInterrupt:
         pass
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        if worker is not None:
-            worker.stop()
+        for worker in workers:
+            worker.terminate()
+        for worker in workers:
+            worker.wait()
         if embedded is not None:
             embedded.stop()
     return 0

@@ -36,10 +36,16 @@ def redis_url_for(settings: Settings) -> str:
     return embedded.url
 
 
+#: The environment variables that set a worker's intra-op threads: onnxruntime's
+#: (``models.decoders.learned.THREADS_ENV``, read when a session is made) and the
+#: numerical libraries' (read when they load).
+THREAD_VARIABLES = ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS")
+
+
 def set_thread_limits(threads: int, spin: bool = False) -> None:
     """Intra-op threads for onnxruntime and numerical libraries, and whether onnxruntime's
     idle threads spin (``MCAM_ORT_SPIN``), set before decoders load."""
-    for name in ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS"):
+    for name in THREAD_VARIABLES:
         os.environ[name] = str(threads)
     os.environ["MCAM_ORT_SPIN"] = "1" if spin else "0"
 

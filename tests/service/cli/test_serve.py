@@ -12,6 +12,8 @@ import stat
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -20,6 +22,7 @@ import pytest
 import redis
 
 from models.formation import SensorParams, simulate
+from service.cli.main import main
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.redis_keys import WORKERS_HEARTBEAT
 
@@ -72,29 +75,47 @@ def worker_pids(client: redis.Redis) -> set[int]:
     return {json.loads(beat)["pid"] for beat in client.hvals(WORKERS_HEARTBEAT)}
 
 
-def test_serve_runs_everything_restarts_a_dead_worker_and_stops_cleanly(tmp_path: Path) -> None:
+@contextmanager
+def serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str], Path, int]]:
+    """``mcam serve`` on a free port with its data dir under ``tmp_path``: the process,
+    the data dir and the port; killed at the end if it is still running."""
     data_dir = tmp_path / "data"
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
     env.update({"MCAM_DATA_DIR": str(data_dir), "MCAM_HEARTBEAT_S": "0.5"})
     process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "service.cli.main",
-            "serve",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-        ],
+        [sys.executable, "-m", "service.cli.main", "serve", "--host", "127.0.0.1",
+         "--port", str(port), *flags],
         cwd=tmp_path,
         env={**env, "PYTHONPATH": str(REPO)},
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
-    )
+    )  # fmt: skip
     try:
+        yield process, data_dir, port
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+def reconstruct_itoh(base: str, key: str) -> None:
+    """One frame through the API, waited for; it must succeed."""
+    data, params = npy_frame()
+    reply = httpx.post(
+        f"{base}/v1/reconstructions",
+        files={"file": ("frame.npy", data, "application/octet-stream")},
+        data={"encoding": params.encoding, "bits": str(params.bits), "decoder": "itoh"},
+        headers={"Authorization": f"Bearer {key}", "Prefer": "wait=30"},
+        timeout=60,
+    )
+    assert reply.status_code == 200, reply.text
+    assert reply.json()["state"] == "succeeded"
+
+
+def test_serve_runs_everything_restarts_a_dead_worker_and_stops_cleanly(tmp_path: Path) -> None:
+    with serving(tmp_path) as (process, data_dir, port):
         lines = read_until(process, r"^use it as: Authorization: Bearer ", 90)
         banner = "".join(lines)
         assert f"http://127.0.0.1:{port}/" in banner
@@ -104,16 +125,7 @@ def test_serve_runs_everything_restarts_a_dead_worker_and_stops_cleanly(tmp_path
         assert stat.S_IMODE(key_file.stat().st_mode) == 0o600
         base = f"http://127.0.0.1:{port}"
         wait_ready(base)
-        data, params = npy_frame()
-        reply = httpx.post(
-            f"{base}/v1/reconstructions",
-            files={"file": ("frame.npy", data, "application/octet-stream")},
-            data={"encoding": params.encoding, "bits": str(params.bits), "decoder": "itoh"},
-            headers={"Authorization": f"Bearer {key}", "Prefer": "wait=30"},
-            timeout=60,
-        )
-        assert reply.status_code == 200, reply.text
-        assert reply.json()["state"] == "succeeded"
+        reconstruct_itoh(base, key)
         redis_socket = EmbeddedRedis(data_dir).socket
         client = connect(f"unix://{redis_socket}")
         [first_pid] = worker_pids(client)
@@ -127,7 +139,34 @@ def test_serve_runs_everything_restarts_a_dead_worker_and_stops_cleanly(tmp_path
         assert not redis_socket.exists()
         with pytest.raises(ProcessLookupError):
             os.kill(worker_pid, 0)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
+
+
+def test_serve_runs_as_many_workers_as_asked_and_stops_them_all(tmp_path: Path) -> None:
+    with serving(tmp_path, "--workers", "2", "--threads", "1") as (process, data_dir, port):
+        lines = read_until(process, r"^use it as: Authorization: Bearer ", 90)
+        key = lines[-1].split("Bearer ", 1)[1].strip()
+        base = f"http://127.0.0.1:{port}"
+        wait_ready(base)
+        client = connect(f"unix://{EmbeddedRedis(data_dir).socket}")
+        deadline = time.monotonic() + 60
+        while len(worker_pids(client)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        pids = worker_pids(client)
+        assert len(pids) == 2
+        reconstruct_itoh(base, key)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(60) == 0
+        for pid in pids:
+            with pytest.raises(ProcessLookupError):
+                os.kill(pid, 0)
+
+
+@pytest.mark.parametrize("workers", ["0", "-1", "two"])
+def test_a_worker_count_below_one_is_refused_with_one_line(
+    workers: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        main(["serve", "--workers", workers])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert "--workers" in err and "whole number >= 1" in err and "Traceback" not in err

@@ -1,0 +1,233 @@
+"""Frames per second on all the cores: one process with every thread, or one process per core.
+
+bench.tradeoff times one frame at a time (ms/frame, and frames/s as its inverse): what
+one stream gets, since a device stream's frames are decoded in order by the one worker
+that owns it (and a temporal stream's frames depend on each other). When there is more
+than one thing to decode (several cameras, uploads, a batch of stills) what counts is
+how many frames all the cores finish per second, and that depends on how the workers
+use the cores: onnxruntime spreads a net over its intra-op threads, but the rest of a
+decode (scene analysis, the graph cuts of the refinement) runs on one core, and
+threads of one process share its interpreter lock.
+
+``python -m bench.throughput`` decodes the val-256 frames with each decoder in each
+*layout* (processes x job threads per process x onnxruntime threads per job), every
+worker decoding all the frames ``--repeats`` times after one warm-up pass, started
+together, and reports the frames all of them finished per second of wall time:
+
+- ``1 x 1 x C``: one worker on all ``C`` cores (``mcam serve``'s default worker);
+- ``1 x C x 1``: one worker decoding ``C`` jobs at once (``mcam worker --concurrency C
+  --threads 1``);
+- ``C x 1 x 1``: ``C`` workers of one thread each (``mcam serve --workers C --threads
+  1``).
+
+The decoded W is the same in every layout (the decoders are deterministic), so the mean
+PSNR is measured once per decoder. It prints a Markdown table and writes
+``bench/results/throughput.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
+from models import metrics
+from models.decoders import get_decoder
+from models.scenes import ValFrame, val256_frames
+from service.cli.worker import THREAD_VARIABLES
+
+DECODERS = ("itoh", "auto-fast", "auto-balanced", "auto-best")
+#: Seconds a worker process may take to start, warm up and decode its share.
+WORKER_TIMEOUT_S = 600.0
+
+
+@dataclass(frozen=True)
+class FrameSet:
+    """The first ``count`` val-256 frames of ``encoding``: what each worker process
+    builds for itself (cheaper to send than the frames)."""
+
+    encoding: str
+    count: int
+
+    def load(self) -> list[ValFrame]:
+        return val256_frames(self.encoding)[: self.count]
+
+
+def layouts(cores: int) -> list[tuple[int, int, int]]:
+    """(processes, job threads per process, onnxruntime threads per job) to compare on a
+    machine with ``cores`` cores (one layout when there is one core)."""
+    found = [(1, 1, cores), (1, cores, 1), (cores, 1, 1)]
+    return list(dict.fromkeys(found))
+
+
+def layout_name(layout: tuple[int, int, int]) -> str:
+    return " x ".join(str(part) for part in layout)
+
+
+def decode_share(
+    decoder: str, frames_of: FrameSet, repeats: int, jobs: int, start: Any, results: Any
+) -> None:
+    """One worker process: warm up, wait for the others at ``start`` (a barrier), decode
+    every frame of ``frames_of`` ``repeats`` times on each of ``jobs`` threads, and put
+    (first start, last end in monotonic ns, frames decoded) on ``results``. The
+    onnxruntime thread count comes from the environment the parent set before starting
+    it."""
+    frames = frames_of.load()
+    chosen = get_decoder(decoder)
+    for frame in frames:
+        chosen.decode(frame.codes, frame.params)
+
+    def work() -> None:
+        for _ in range(repeats):
+            for frame in frames:
+                chosen.decode(frame.codes, frame.params)
+
+    threads = [threading.Thread(target=work) for _ in range(jobs)]
+    start.wait()
+    began = time.monotonic_ns()
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    results.put((began, time.monotonic_ns(), jobs * repeats * len(frames)))
+
+
+@contextmanager
+def thread_limits(threads: int) -> Iterator[None]:
+    """The environment the worker processes started inside inherit: ``threads`` intra-op
+    threads for onnxruntime and the numerical libraries, as ``mcam worker --threads``
+    sets them (read when a process loads those libraries, so set before it starts)."""
+    saved = {name: os.environ.get(name) for name in THREAD_VARIABLES}
+    os.environ.update(dict.fromkeys(THREAD_VARIABLES, str(threads)))
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def measure_layout(
+    decoder: str, frames_of: FrameSet, layout: tuple[int, int, int], repeats: int
+) -> dict[str, Any]:
+    """Frames per second of ``decoder`` over all the workers of ``layout``, and each
+    worker's mean ms per frame per job thread."""
+    processes, jobs, ort_threads = layout
+    context = multiprocessing.get_context("spawn")
+    start, results = context.Barrier(processes), context.Queue()
+    workers = [
+        context.Process(
+            target=decode_share, args=(decoder, frames_of, repeats, jobs, start, results)
+        )
+        for _ in range(processes)
+    ]
+    with thread_limits(ort_threads):
+        for worker in workers:
+            worker.start()
+    shares = [results.get(timeout=WORKER_TIMEOUT_S) for _ in workers]
+    for worker in workers:
+        worker.join()
+    began = min(share[0] for share in shares)
+    ended = max(share[1] for share in shares)
+    frames = sum(share[2] for share in shares)
+    per_job_ms = [(end - begin) / 1e6 / (count / jobs) for begin, end, count in shares]
+    return {
+        "layout": layout_name(layout),
+        "processes": processes,
+        "jobs_per_process": jobs,
+        "ort_threads": ort_threads,
+        "frames": frames,
+        "frames_per_s": frames / ((ended - began) / 1e9),
+        "ms_per_frame_per_job": float(np.mean(per_job_ms)),
+    }
+
+
+def mean_psnr(decoder: str, frames: list[ValFrame]) -> float:
+    """Mean linear PSNR (dB) of ``decoder`` on ``frames``."""
+    chosen = get_decoder(decoder)
+    values = [
+        metrics.psnr(chosen.decode(frame.codes, frame.params).irradiance, frame.x)
+        for frame in frames
+    ]
+    return float(np.mean(values))
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    cores = args.cores or os.cpu_count() or 1
+    frames_of = FrameSet(args.encoding, args.frames)
+    frames = frames_of.load()
+    rows = []
+    for decoder in args.decoders:
+        row: dict[str, Any] = {"decoder": decoder, "psnr_db": mean_psnr(decoder, frames)}
+        row["layouts"] = [
+            measure_layout(decoder, frames_of, layout, args.repeats) for layout in layouts(cores)
+        ]
+        rows.append(row)
+    return {
+        "date": utc_now(),
+        "machine": machine(),
+        "versions": versions(),
+        "load_average": os.getloadavg(),
+        "encoding": args.encoding,
+        "frames": len(frames),
+        "repeats": args.repeats,
+        "cores": cores,
+        "layouts": [layout_name(layout) for layout in layouts(cores)],
+        "results": rows,
+    }
+
+
+def markdown(report: dict[str, Any]) -> str:
+    names = report["layouts"]
+    lines = [
+        f"Throughput on val-256 ({report['encoding']}, {report['frames']} frames x "
+        f"{report['repeats']} per worker), {report['date']}, {report['machine']['cpu']} "
+        f"({report['cores']} cores); load average at the end "
+        f"{[round(value, 2) for value in report['load_average']]}. Layout: processes x "
+        "job threads per process x onnxruntime threads per job; frames/s over all the "
+        "workers (ms a frame per job thread in brackets).",
+        "",
+        "| decoder | PSNR dB | " + " | ".join(names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
+    for row in report["results"]:
+        cells = [
+            f"{layout['frames_per_s']:.1f} ({layout['ms_per_frame_per_job']:.1f} ms)"
+            for layout in row["layouts"]
+        ]
+        lines.append(f"| {row['decoder']} | {row['psnr_db']:.2f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--decoders", nargs="+", default=list(DECODERS))
+    parser.add_argument("--encoding", choices=("mantissa", "modulo"), default="mantissa")
+    parser.add_argument("--frames", type=int, default=24, help="first N val-256 frames")
+    parser.add_argument("--repeats", type=int, default=3, help="passes over the frames")
+    parser.add_argument("--cores", type=int, help="cores to fill (default: all)")
+    parser.add_argument("--out", type=Path, default=RESULTS / "throughput.json")
+    args = parser.parse_args(argv)
+    if min(args.frames, args.repeats, args.cores or 1) < 1:
+        parser.error("--frames, --repeats and --cores must be >= 1")
+    refuse_unknown_decoders(parser, args.decoders)
+    return args
+
+
+main = entry_point(parse_args, run, markdown)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

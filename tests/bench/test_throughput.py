@@ -1,0 +1,61 @@
+"""Tests of bench/throughput.py: the layouts, the workers' environment and a tiny end-to-end
+run with real worker processes (no timings asserted)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from bench import throughput
+from models.decoders.learned import THREADS_ENV
+
+
+def test_layouts_fill_the_cores_three_ways_and_one_core_one_way() -> None:
+    assert throughput.layouts(2) == [(1, 1, 2), (1, 2, 1), (2, 1, 1)]
+    assert throughput.layouts(1) == [(1, 1, 1)]
+
+
+def test_thread_limits_set_the_workers_threads_and_restore_the_parents(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv(THREADS_ENV, "7")
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert throughput.THREAD_VARIABLES[0] == THREADS_ENV
+    with throughput.thread_limits(1):
+        assert all(os.environ[name] == "1" for name in throughput.THREAD_VARIABLES)
+    assert os.environ[THREADS_ENV] == "7"
+    assert "OMP_NUM_THREADS" not in os.environ
+
+
+def test_two_worker_processes_decode_every_frame_of_their_share(tmp_path: Path) -> None:
+    out = tmp_path / "throughput.json"
+    assert throughput.main(
+        ["--decoders", "itoh", "--frames", "2", "--repeats", "2", "--cores", "2",
+         "--out", str(out)]
+    ) == 0  # fmt: skip
+    report = json.loads(out.read_text())
+    [row] = report["results"]
+    assert row["decoder"] == "itoh" and row["psnr_db"] > 0
+    found = {layout["layout"]: layout for layout in row["layouts"]}
+    assert set(found) == {"1 x 1 x 2", "1 x 2 x 1", "2 x 1 x 1"}
+    # Every worker decodes its frames ``repeats`` times on each job thread.
+    assert found["1 x 1 x 2"]["frames"] == 4
+    assert found["1 x 2 x 1"]["frames"] == 8
+    assert found["2 x 1 x 1"]["frames"] == 8
+    assert all(layout["frames_per_s"] > 0 for layout in found.values())
+    table = out.with_suffix(".md").read_text()
+    assert "| itoh |" in table and "2 x 1 x 1" in table
+
+
+def test_unknown_decoders_and_counts_below_one_are_refused(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit):
+        throughput.parse_args(["--decoders", "nope"])
+    assert "unknown decoders nope" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        throughput.parse_args(["--repeats", "0"])
+    assert "must be >= 1" in capsys.readouterr().err
