@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
+import queue
 import threading
 import time
 from collections.abc import Iterator
@@ -136,9 +137,7 @@ def measure_layout(
     with thread_limits(ort_threads):
         for worker in workers:
             worker.start()
-    shares = [results.get(timeout=WORKER_TIMEOUT_S) for _ in workers]
-    for worker in workers:
-        worker.join()
+    shares = collect(results, workers)
     began = min(share[0] for share in shares)
     ended = max(share[1] for share in shares)
     frames = sum(share[2] for share in shares)
@@ -152,6 +151,37 @@ def measure_layout(
         "frames_per_s": frames / ((ended - began) / 1e9),
         "ms_per_frame_per_job": float(np.mean(per_job_ms)),
     }
+
+
+def collect(results: Any, workers: list[Any]) -> list[tuple[int, int, int]]:
+    """One share from each worker process on ``results``. A worker that dies first, or
+    workers that take longer than :data:`WORKER_TIMEOUT_S`, end the benchmark with one
+    line saying so (exit status 1; the other workers are stopped)."""
+    shares: list[tuple[int, int, int]] = []
+    deadline = time.monotonic() + WORKER_TIMEOUT_S
+    try:
+        while len(shares) < len(workers):
+            try:
+                shares.append(results.get(timeout=1.0))
+                continue
+            except queue.Empty:
+                pass
+            failed = [worker.exitcode for worker in workers if worker.exitcode not in (None, 0)]
+            if failed:
+                raise SystemExit(
+                    f"bench.throughput: a worker process failed (exit code {failed[0]}); "
+                    "its error is printed above"
+                )
+            if time.monotonic() > deadline:
+                raise SystemExit(
+                    f"bench.throughput: the worker processes took over {WORKER_TIMEOUT_S:.0f} s"
+                )
+    finally:
+        for worker in workers:
+            if worker.is_alive() and len(shares) < len(workers):
+                worker.terminate()
+            worker.join()
+    return shares
 
 
 def mean_psnr(decoder: str, frames: list[ValFrame]) -> float:

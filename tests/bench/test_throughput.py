@@ -59,3 +59,11 @@ def test_unknown_decoders_and_counts_below_one_are_refused(
     with pytest.raises(SystemExit):
         throughput.parse_args(["--repeats", "0"])
     assert "must be >= 1" in capsys.readouterr().err
+
+
+def test_a_worker_process_that_fails_ends_the_run_with_one_line() -> None:
+    with pytest.raises(SystemExit) as stopped:
+        throughput.measure_layout(
+            "no-such-decoder", throughput.FrameSet("mantissa", 1), (2, 1, 1), 1
+        )
+    assert "a worker process failed (exit code 1)" in str(stopped.value.code)
