@@ -16,7 +16,7 @@ One worker (the default) decodes one frame at a time on all its onnxruntime thre
 the least latency for one stream. Several cameras, uploads or batches are decoded
 faster by one single-threaded worker per core, since most of a refined decode runs on
 one core (``python -m bench.throughput``: auto-balanced on val-256, 2 cores, 15-18
-frames/s with one worker of 2 threads, 28-31 with two workers of one thread).
+frames/s with one worker of 2 threads, 28-33 with two workers of one thread).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ RESTART_MAX_S = 30.0
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "serve",
-        help="run API + worker + embedded queue",
+        help="run API + workers + embedded queue",
         description="Run the API, the workers and (without MCAM_REDIS_URL) the embedded Redis.",
     )
     parser.add_argument("--host", help="listen address (default: MCAM_HOST or 127.0.0.1)")
