@@ -13,7 +13,7 @@ import math
 import os
 import platform
 import subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Iterable
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -21,6 +21,8 @@ from typing import Any
 
 from models.allocator import keep_freed_memory
 from models.decoders import available_decoders
+from models.decoders.registry import name_patterns, resolve
+from models.errors import InvalidInputError
 
 keep_freed_memory()
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -105,13 +107,36 @@ def write_report(report: dict[str, Any], markdown: str, out: Path) -> None:
     out.with_suffix(".md").write_text(markdown + "\n")
 
 
-def refuse_unknown_decoders(parser: argparse.ArgumentParser, names: list[str] | None) -> None:
-    """Stop with the parser's usage error when any of ``names`` is not an installed
-    decoder, listing the installed ones."""
-    installed = {spec.name for spec in available_decoders()}
-    unknown = sorted(set(names or []) - installed)
+def refuse_unknown_decoders(
+    parser: argparse.ArgumentParser,
+    names: Iterable[str] | None,
+    extra: Collection[str] = (),
+) -> None:
+    """Stop with the parser's usage error when any of ``names`` is neither a decoder the
+    registry resolves (installed or parametrized, e.g. ``<net>+puma2``) nor one of the
+    benchmark's own ``extra`` names, listing what it accepts."""
+    unknown = sorted({name for name in names or () if name not in extra and not _resolves(name)})
     if unknown:
-        parser.error(f"unknown decoders {', '.join(unknown)}; installed: {', '.join(installed)}")
+        accepted = [spec.name for spec in available_decoders()] + list(extra) + name_patterns()
+        parser.error(f"unknown decoders {', '.join(unknown)}; choose from: {', '.join(accepted)}")
+
+
+def refuse_unknown(
+    parser: argparse.ArgumentParser, what: str, names: Iterable[str], choices: Collection[str]
+) -> None:
+    """Stop with the parser's usage error when any of ``names`` is not in ``choices``
+    (``what``: the option's plural noun, e.g. ``clips``), listing them."""
+    unknown = sorted(set(names) - set(choices))
+    if unknown:
+        parser.error(f"unknown {what} {', '.join(unknown)}; choose from: {', '.join(choices)}")
+
+
+def _resolves(name: str) -> bool:
+    try:
+        resolve(name)
+    except InvalidInputError:
+        return False
+    return True
 
 
 def entry_point(

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, entry_point, machine, utc_now, versions
+from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
 from models import metrics
 from models.decoders import Decoder, get_decoder
 from models.decoders.adaptive import AdaptiveDecoder
@@ -168,7 +168,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--frames", type=int, default=None, help="first N frames of each set")
     parser.add_argument("--read-noise", type=float, default=0.0, help="wrap units (default 0)")
     parser.add_argument("--out", type=Path, default=RESULTS / "colour.json")
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    refuse_unknown_decoders(parser, args.decoders)
+    return args
 
 
 main = entry_point(parse_args, run, markdown)

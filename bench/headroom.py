@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from bench import RESULTS, entry_point, machine, utc_now, versions
+from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
 from models.decoders import get_decoder
 from models.decoders.adaptive import most_accurate_net
 from models.formation import SensorParams, dequantize, from_unwrapped, to_unwrapped
@@ -190,7 +190,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
     parser.add_argument("--frames", type=int, default=24, help="first N val-256 frames")
     parser.add_argument("--out", type=Path, default=RESULTS / "headroom.json")
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    refuse_unknown_decoders(parser, args.decoders)
+    return args
 
 
 main = entry_point(parse_args, run, markdown)

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from bench import RESULTS, machine, utc_now, versions, write_report
+from bench import RESULTS, machine, refuse_unknown, utc_now, versions, write_report
 from bench.tradeoff import header, peak_gflops
 from models.decoders.learned import load_cards, make_session, worker_threads
 
@@ -295,6 +295,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=15, help="timed runs per lever variant")
     parser.add_argument("--out", type=Path, default=RESULTS / "profile.json")
     args = parser.parse_args(argv)
+    profiled = sorted({card["decoder"] for card in load_cards()})
+    refuse_unknown(parser, "models", args.models, profiled)
     report = run(args)
     write_report(report, markdown(report), args.out)
     print(markdown(report))

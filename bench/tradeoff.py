@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, machine, utc_now, versions, write_report
+from bench import RESULTS, machine, refuse_unknown_decoders, utc_now, versions, write_report
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
@@ -182,18 +182,29 @@ def peak_gflops(size: int = 2048, repeats: int = 5) -> float:
     return 2 * size**3 / (best / 1000) / 1e9
 
 
-def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
-    """Every installed decoder, ``auto`` at other tile sizes and the latency budgets of
-    :data:`BUDGETS_MS` (or only the named ones)."""
-    every = [(s.name, get_decoder(s.name)) for s in available_decoders() if s.name != "auto"]
-    every += [
-        (f"auto-{q}-tile{t}", AdaptiveDecoder(q, tile=t))
+def tile_variants() -> dict[str, AdaptiveDecoder]:
+    """``auto`` at each quality and each tile size of :data:`TILE_SIZES` but the default,
+    by name (``auto-<quality>-tile<px>``)."""
+    return {
+        f"auto-{q}-tile{t}": AdaptiveDecoder(q, tile=t)
         for q in QUALITIES
         for t in TILE_SIZES
         if t != DEFAULT_TILE
-    ]
-    every += [(f"auto-{b:g}ms", get_decoder(f"auto-{b:g}ms")) for b in BUDGETS_MS]
-    return [(n, d) for n, d in every if not names or n in names]
+    }
+
+
+def default_names() -> list[str]:
+    """Every installed decoder, the tile variants and the latency budgets of
+    :data:`BUDGETS_MS`."""
+    installed = [spec.name for spec in available_decoders() if spec.name != "auto"]
+    return installed + list(tile_variants()) + [f"auto-{b:g}ms" for b in BUDGETS_MS]
+
+
+def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
+    """The named decoders (any the registry resolves, or a tile variant), else
+    :func:`default_names`."""
+    variants = tile_variants()
+    return [(n, variants[n] if n in variants else get_decoder(n)) for n in names or default_names()]
 
 
 def speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -395,6 +406,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=RESULTS / "tradeoff.json")
     parser.add_argument("--plot", type=Path, default=RESULTS / "tradeoff.png")
     args = parser.parse_args(argv)
+    refuse_unknown_decoders(parser, args.decoders, extra=tile_variants())
     report = run(args)
     write_report(report, markdown(report), args.out)
     plot(report, args.plot)

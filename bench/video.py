@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from bench import RESULTS as RESULTS_DIR
-from bench import machine, publish, utc_now, versions
+from bench import machine, publish, refuse_unknown, refuse_unknown_decoders, utc_now, versions
 from models.decoders.registry import available_decoders
 from models.video_clips import CLIP_KINDS, DEFAULT_FRAMES, VIDEO_ENCODINGS, ClipEncoding, make_clip
 from models.video_metrics import clip_metrics
@@ -154,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.decoders == "all"
         else tuple(args.decoders.split(","))
     )
+    refuse_unknown_decoders(parser, decoders)
+    refuse_unknown(parser, "clips", args.clips.split(","), CLIP_KINDS)
+    refuse_unknown(parser, "encodings", args.encodings.split(","), VIDEO_ENCODINGS)
     config = TemporalConfig(keyframe_interval=args.keyframe_interval)
     load = [[round(value, 2) for value in os.getloadavg()]]
     print(

@@ -1,0 +1,50 @@
+"""Every benchmark refuses a name it does not know before it measures anything: a usage
+error (exit code 2) naming the unknown value and what it accepts, never a traceback
+after minutes of work, and never a silently smaller table."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from bench import colour, headroom, profile, tradeoff, video
+
+MAINS: dict[str, Callable[[list[str] | None], Any]] = {
+    "colour": colour.main,
+    "headroom": headroom.main,
+    "profile": profile.main,
+    "tradeoff": tradeoff.main,
+    "video": video.main,
+}
+
+
+@pytest.mark.parametrize(
+    ("bench", "argv", "message"),
+    [
+        ("colour", ["--decoders", "itoh", "nope"], "unknown decoders nope; choose from: itoh"),
+        ("headroom", ["--decoders", "nope"], "unknown decoders nope"),
+        ("profile", ["--models", "itoh"], "unknown models itoh; choose from: mantissanet-"),
+        ("tradeoff", ["--decoders", "auto-fast-tile48"], "unknown decoders auto-fast-tile48"),
+        ("video", ["--decoders", "itoh,nope"], "unknown decoders nope"),
+        ("video", ["--clips", "pan_zoom,orbit"], "unknown clips orbit; choose from: pan_zoom"),
+        ("video", ["--encodings", "log"], "unknown encodings log; choose from: mantissa"),
+    ],
+)
+def test_unknown_names_are_usage_errors(
+    bench: str, argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        MAINS[bench](argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert "Traceback" not in err
+
+
+def test_tradeoff_accepts_its_own_tile_variants_and_parametrized_decoders() -> None:
+    names = ["auto-fast-tile32", "mantissanet-tiny+puma2", "auto-40ms"]
+    chosen = tradeoff.candidates(names)
+    assert [name for name, _ in chosen] == names
+    assert chosen[0][1].tile == 32
