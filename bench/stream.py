@@ -7,9 +7,10 @@ Run as ``python -m bench.stream [--frames N] [--workers 1 2]``. Measures
 2. link path: a writer process floods a real pty with pre-encoded packets, the daemon (this
    process) parses and XADDs them to a real redis-server: sustained frames/s and the
    daemon's CPU time per frame (this process's rusage: reader + publisher threads);
-3. end to end with 1 and 2 ``mcam worker`` processes (itoh): throughput when flooded (one
-   device, and as many devices as workers: a device stream is owned by one worker at a
-   time, so a second worker only helps with a second device), and latency from the packet
+3. end to end with 1 and 2 ``mcam worker`` processes (``--decoder``, default itoh, on
+   the workers' stream decode pool, ``--stream-processes``): throughput when flooded
+   (one device, and as many devices as workers: a device stream is owned by one worker
+   at a time, which decodes it on its pool), and latency from the packet
    leaving the camera to the EXR on disk (event ``written_ns`` minus the packet's
    timestamp, both wall clock) when paced below capacity. A run ends when every device's
    last frame is recorded; frames reconstructed are the EXRs in the result store, and the
@@ -39,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, machine, utc_now, versions, write_report
+from bench import RESULTS, machine, refuse_unknown_decoders, utc_now, versions, write_report
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.link_parser import LinkParser
 from device.link_protocol import DataPacket, encode_data
@@ -204,10 +205,10 @@ def run_link(url: str, devices: list[str], count: int, templates: list[DataPacke
 
 
 def bench_decoder(
-    templates: list[DataPacket], compression: str, repeat: int = 100
+    templates: list[DataPacket], compression: str, name: str, repeat: int = 100
 ) -> dict[str, float]:
     """The decoder alone (decode + EXR encode as ``compression``), in-process, frames/s."""
-    decoder = get_decoder(DECODER)
+    decoder = get_decoder(name)
     params = SensorParams(encoding="modulo", bits=8, gain=1.0)
     start = time.perf_counter()
     for i in range(repeat):
@@ -218,12 +219,16 @@ def bench_decoder(
 
 
 def start_workers(
-    n: int, url: str, data_dir: Path, compression: str
+    n: int, url: str, data_dir: Path, args: argparse.Namespace
 ) -> list[subprocess.Popen[bytes]]:
+    """``n`` ``mcam worker`` processes of one onnxruntime thread each, decoding streams
+    with ``args.decoder`` on ``args.stream_processes`` processes (None: the default)."""
     env = {**os.environ, "MCAM_REDIS_URL": url, "MCAM_DATA_DIR": str(data_dir),
-           "MCAM_STREAM_EXR_COMPRESSION": compression}
+           "MCAM_STREAM_EXR_COMPRESSION": args.exr_compression}
+    if args.stream_processes is not None:
+        env["MCAM_STREAM_PROCESSES"] = str(args.stream_processes)
     mcam = Path(sys.executable).parent / "mcam"
-    return [subprocess.Popen([mcam, "worker", "--decoder", DECODER, "--threads", "1",
+    return [subprocess.Popen([mcam, "worker", "--decoder", args.decoder, "--threads", "1",
                               "--log-level", "WARNING"], env=env,
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             for _ in range(n)]
@@ -237,12 +242,20 @@ def main(argv: list[str] | None = None) -> int:
                         help="paced rate for the latency runs")
     parser.add_argument("--exr-compression", choices=tuple(EXR_COMPRESSIONS),
                         default=STREAM_EXR_COMPRESSION, help="of the device frames' EXRs")
+    parser.add_argument("--decoder", default=DECODER, help=f"stream decoder (default {DECODER})")
+    parser.add_argument("--stream-processes", type=int,
+                        help="MCAM_STREAM_PROCESSES of the workers (default: theirs)")
+    parser.add_argument("--out", type=Path, default=RESULTS / "stream.json")
     args = parser.parse_args(argv)
+    refuse_unknown_decoders(parser, [args.decoder])
+    if args.stream_processes is not None and args.stream_processes < 1:
+        parser.error("--stream-processes must be >= 1")
     templates = template_packets()
     rows: dict[str, Any] = {"parse_only": bench_parse(stream_bytes(templates, args.frames,
                                                                      False)),
                             "decoder_in_process": bench_decoder(templates,
-                                                                args.exr_compression)}
+                                                                args.exr_compression,
+                                                                args.decoder)}
     with tempfile.TemporaryDirectory(prefix="mcam-bench-") as tmp:
         workdir = Path(tmp)
         with EmbeddedRedis(workdir / "redis") as url:
@@ -251,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
             rows["link_path"] = run_link(url, ["bench0"], args.frames, templates, None, workdir,
                                          None)
             for n in args.workers:
-                workers = start_workers(n, url, workdir / f"data{n}", args.exr_compression)
+                workers = start_workers(n, url, workdir / f"data{n}", args)
                 results = workdir / f"data{n}" / RESULTS_DIR
                 time.sleep(2.0)
                 for n_devices in sorted({1, n}):
@@ -266,7 +279,8 @@ def main(argv: list[str] | None = None) -> int:
                 for worker in workers:
                     worker.wait(30)
     report = {"date": utc_now(), "machine": machine(), "versions": versions(),
-              "decoder": DECODER, "frame": "256x256 8-bit modulo",
+              "decoder": args.decoder, "stream_processes": args.stream_processes,
+              "frame": "256x256 8-bit modulo",
               "exr_compression": args.exr_compression, "results": rows}
     lines = ["| run | metric | value |", "|---|---|---|"]
     for name, values in rows.items():
@@ -275,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {name} | {metric} | {shown} |")
     markdown = "\n".join(lines)
     print(markdown)
-    write_report(report, markdown, RESULTS / "stream.json")
+    write_report(report, markdown, args.out)
     return 0
 
 

@@ -20,6 +20,10 @@ together, and reports the frames all of them finished per second of wall time:
 - ``C x 1 x 1``: ``C`` workers of one thread each (``mcam serve --workers C --threads
   1``).
 
+And one stream as the device consumer decodes it in independent mode: batches of
+frames decoded by a pool of ``C`` single-threaded processes
+(:mod:`worker.decode_pool`) and taken in stream order.
+
 The decoded W is the same in every layout (the decoders are deterministic), so the mean
 PSNR is measured once per decoder. It prints a Markdown table and writes
 ``bench/results/throughput.json``.
@@ -46,6 +50,9 @@ from models import metrics
 from models.decoders import get_decoder
 from models.scenes import ValFrame, val256_frames
 from service.cli.worker import THREAD_VARIABLES
+from worker.decode_pool import DecodePool
+from worker.device_consumer import BATCH
+from worker.frame_message import FrameMessage
 
 DECODERS = ("itoh", "auto-fast", "auto-balanced", "auto-best")
 #: Seconds a worker process may take to start, warm up and decode its share.
@@ -184,6 +191,39 @@ def collect(results: Any, workers: list[Any]) -> list[tuple[int, int, int]]:
     return shares
 
 
+def measure_stream_pool(
+    decoder: str, frames: list[ValFrame], processes: int, repeats: int
+) -> dict[str, Any]:
+    """Frames per second of one stream decoded by a :class:`worker.decode_pool.DecodePool`
+    of ``processes`` processes and taken in order, in batches of
+    :data:`worker.device_consumer.BATCH` as the device consumer reads them (after one
+    warm-up pass over ``frames``)."""
+    pool = DecodePool(decoder, processes)
+    try:
+        pool.wait_ready()
+        in_order(pool, frames, 1)
+        began = time.monotonic_ns()
+        count = in_order(pool, frames, repeats)
+        seconds = (time.monotonic_ns() - began) / 1e9
+    finally:
+        pool.close()
+    return {"processes": processes, "frames": count, "frames_per_s": count / seconds}
+
+
+def in_order(pool: DecodePool, frames: list[ValFrame], repeats: int) -> int:
+    """Decode ``frames`` ``repeats`` times through ``pool`` as one stream; frames done."""
+    messages = [
+        FrameMessage("bench", index, index, frame.codes, frame.params)
+        for index, frame in enumerate(frames * repeats)
+    ]
+    for first in range(0, len(messages), BATCH):
+        batch = [(str(m.sequence), m) for m in messages[first : first + BATCH]]
+        pool.prefetch("bench", batch)
+        for entry_id, message in batch:
+            pool.result("bench", entry_id, message)
+    return len(messages)
+
+
 def mean_psnr(decoder: str, frames: list[ValFrame]) -> float:
     """Mean linear PSNR (dB) of ``decoder`` on ``frames``."""
     chosen = get_decoder(decoder)
@@ -204,6 +244,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         row["layouts"] = [
             measure_layout(decoder, frames_of, layout, args.repeats) for layout in layouts(cores)
         ]
+        if cores > 1:
+            row["stream_pool"] = measure_stream_pool(decoder, frames, cores, args.repeats)
         rows.append(row)
     return {
         "date": utc_now(),
@@ -221,22 +263,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def markdown(report: dict[str, Any]) -> str:
     names = report["layouts"]
+    pool = f"one stream in order, {report['cores']} processes"
     lines = [
         f"Throughput on val-256 ({report['encoding']}, {report['frames']} frames x "
         f"{report['repeats']} per worker), {report['date']}, {report['machine']['cpu']} "
         f"({report['cores']} cores); load average at the end "
         f"{[round(value, 2) for value in report['load_average']]}. Layout: processes x "
         "job threads per process x onnxruntime threads per job; frames/s over all the "
-        "workers (ms a frame per job thread in brackets).",
+        "workers (ms a frame per job thread in brackets); the last column: one stream "
+        "through the device consumer's decode pool, taken in stream order.",
         "",
-        "| decoder | PSNR dB | " + " | ".join(names) + " |",
-        "|---|---|" + "---|" * len(names),
+        "| decoder | PSNR dB | " + " | ".join(names) + f" | {pool} |",
+        "|---|---|" + "---|" * (len(names) + 1),
     ]
     for row in report["results"]:
         cells = [
             f"{layout['frames_per_s']:.1f} ({layout['ms_per_frame_per_job']:.1f} ms)"
             for layout in row["layouts"]
         ]
+        cells.append(f"{row['stream_pool']['frames_per_s']:.1f}" if "stream_pool" in row else "-")
         lines.append(f"| {row['decoder']} | {row['psnr_db']:.2f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -21,6 +21,10 @@ delete) the entry: one round trip where there were three (record, ack, renew; ea
 write waits for Redis's fsync, about 0.3 ms here). Frames also go
 to the device's live recording, if one is running (``worker/recordings.py``). A redelivered
 entry at or before the recorded one is acked without a second result or event.
+With a :class:`worker.decode_pool.DecodePool` as ``decode`` (independent decoding on
+several processes), each batch read is handed to the pool first, so its frames decode
+in parallel while they are written one by one in stream order as above; a device the
+worker stops owning has its pending frames dropped.
 A frame that keeps failing goes to the dead letters after ``max_deliveries``
 attempts with a ``failed`` event.
 """
@@ -37,6 +41,7 @@ from typing import Any
 import redis
 
 from models.errors import McamError
+from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order
 from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
@@ -100,7 +105,7 @@ class DeviceConsumer:
         owner: str,
         lease_ms: int,
         max_deliveries: int,
-        decode: FrameDecoder,
+        decode: FrameDecoder | DecodePool,
         stop: threading.Event,
         peers: Callable[[], int] = lambda: 1,
         exr_compression: str = STREAM_EXR_COMPRESSION,
@@ -198,17 +203,37 @@ class DeviceConsumer:
     def _forget(self, device: str) -> None:
         self.states.pop(device, None)
         self._consumers.pop(device, None)
+        if isinstance(self.decode, DecodePool):
+            self.decode.discard(device)
 
     def _drain(self, device: str) -> bool:
         consumer = self._consumers[device]
         deliveries = consumer.read_own_pending(BATCH) or consumer.read_new(
             block_ms=None, count=BATCH
         )
+        if isinstance(self.decode, DecodePool):
+            self.decode.prefetch(device, self._fresh(self.states[device], deliveries))
         for delivery in deliveries:
             if self.stop.is_set():
                 break
             self._handle(device, consumer, delivery)
         return bool(deliveries)
+
+    @staticmethod
+    def _fresh(state: DeviceState, deliveries: list[Delivery]) -> list[tuple[str, FrameMessage]]:
+        """The (entry id, message) pairs of ``deliveries`` that will be decoded: after the
+        newest done entry, well formed (a malformed one fails in :meth:`_reconstruct`)."""
+        fresh = []
+        for delivery in deliveries:
+            if state.last_entry is not None and entry_order(delivery.entry_id) <= entry_order(
+                state.last_entry
+            ):
+                continue
+            try:
+                fresh.append((delivery.entry_id, FrameMessage.from_fields(delivery.fields)))
+            except McamError:
+                continue
+        return fresh
 
     def _handle(self, device: str, consumer: StreamConsumer, delivery: Delivery) -> None:
         state = self.states[device]
@@ -242,7 +267,10 @@ class DeviceConsumer:
             stale = _event("stale", message)
             self._record(device, state, delivery, state.last_sequence, "", stale)
             return
-        frame = self.decode(state, message)
+        if isinstance(self.decode, DecodePool):
+            frame = self.decode.result(device, delivery.entry_id, message)
+        else:
+            frame = self.decode(state, message)
         start = time.perf_counter_ns()
         data = encode_exr_result(
             message.codes, frame.winding, message.params, frame.info, self.exr_options

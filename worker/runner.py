@@ -35,11 +35,13 @@ from types import FrameType
 
 import redis
 
+from models.decoders.registry import resolve
 from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
+from worker.decode_pool import DecodePool
 from worker.deliveries import Delivery, StreamConsumer
 from worker.device_consumer import DeviceConsumer
-from worker.device_state import make_frame_decoder, warm_up
+from worker.device_state import FrameDecoder, make_frame_decoder, warm_up
 from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor
 from worker.outputs import STREAM_EXR_COMPRESSION
@@ -67,8 +69,9 @@ class WorkerConfig:
     """Everything a worker needs; the CLI fills it from the ``MCAM_*`` settings.
 
     Times: ``claim_idle_ms`` / ``lease_ms`` in ms, ``heartbeat_s`` / ``retention_s`` in s.
-    ``decoder``, ``frame_mode`` and ``stream_exr_compression`` apply to live device frames
-    (jobs name their own).
+    ``decoder``, ``frame_mode``, ``stream_exr_compression`` and ``stream_processes``
+    (independent decoding on a pool of that many processes when above 1:
+    :mod:`worker.decode_pool`) apply to live device frames (jobs name their own).
     """
 
     redis_url: str
@@ -83,10 +86,16 @@ class WorkerConfig:
     retention_s: float = 7 * 24 * 3600.0
     devices: bool = True
     stream_exr_compression: str = STREAM_EXR_COMPRESSION
+    stream_processes: int = 1
 
     def __post_init__(self) -> None:
         if self.concurrency < 1:
             raise McamError(f"concurrency must be at least 1, got {self.concurrency}")
+        if self.stream_processes < 1:
+            raise McamError(
+                f"stream processes must be at least 1, got {self.stream_processes}; set "
+                "MCAM_STREAM_PROCESSES to 1 (decode in the worker) or more (a pool)"
+            )
         if self.stream_exr_compression not in EXR_COMPRESSIONS:
             raise McamError(
                 f"unknown stream EXR compression {self.stream_exr_compression!r}; set "
@@ -133,16 +142,17 @@ class Worker:
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
-        if self.config.devices:
-            took = warm_up(self.config.decoder)
-            log.info("worker %s: stream decoder %s warmed up (%s)", self.id, self.config.decoder,
-                     ", ".join(f"{enc} {ms:.0f} ms" for enc, ms in took.items()))  # fmt: skip
         threads = [
             threading.Thread(target=self._job_loop, args=(i,), name=f"jobs-{i}", daemon=True)
             for i in range(self.config.concurrency)
         ]
         if self.config.devices:
-            threads.append(threading.Thread(target=self._device_loop, name="devices", daemon=True))
+            decode = self._stream_decoder()
+            threads.append(
+                threading.Thread(
+                    target=self._device_loop, args=(decode,), name="devices", daemon=True
+                )
+            )
         for thread in threads:
             thread.start()
         log.info("worker %s running (%d job threads)", self.id, self.config.concurrency)
@@ -198,8 +208,21 @@ class Worker:
 
         self._resilient(step)
 
-    def _device_loop(self) -> None:
-        decode = make_frame_decoder(self.config.frame_mode, self.config.decoder)
+    def _stream_decoder(self) -> FrameDecoder | DecodePool:
+        """The live frames' decoder, warmed up: a pool of ``stream_processes`` processes
+        for independent decoding (:mod:`worker.decode_pool`), else this process's own."""
+        config = self.config
+        if config.frame_mode == "independent" and config.stream_processes > 1:
+            resolve(config.decoder)
+            log.info("worker %s: stream decoder %s on %d processes", self.id, config.decoder,
+                     config.stream_processes)  # fmt: skip
+            return DecodePool(config.decoder, config.stream_processes)
+        took = warm_up(config.decoder)
+        log.info("worker %s: stream decoder %s warmed up (%s)", self.id, config.decoder,
+                 ", ".join(f"{enc} {ms:.0f} ms" for enc, ms in took.items()))  # fmt: skip
+        return make_frame_decoder(config.frame_mode, config.decoder)
+
+    def _device_loop(self, decode: FrameDecoder | DecodePool) -> None:
         devices = DeviceConsumer(
             self.client,
             self.store,
@@ -222,6 +245,8 @@ class Worker:
             devices.release_all()
         except redis.exceptions.ConnectionError:
             log.warning("worker %s: could not release device leases (they will lapse)", self.id)
+        if isinstance(decode, DecodePool):
+            decode.close()
 
     def _heartbeat_loop(self) -> None:
         last_purge = 0.0

@@ -42,6 +42,11 @@ def redis_url_for(settings: Settings) -> str:
 THREAD_VARIABLES = ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS")
 
 
+#: Default ceiling of a worker's stream decode processes (one per core below it): a
+#: device is read in batches of 16 frames, and each process holds its own networks.
+MAX_STREAM_PROCESSES = 8
+
+
 def set_thread_limits(threads: int, spin: bool = False) -> None:
     """Intra-op threads for onnxruntime and numerical libraries, and whether onnxruntime's
     idle threads spin (``MCAM_ORT_SPIN``), set before decoders load."""
@@ -72,6 +77,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="decode device frames one by one, or along time (default: independent)",
     )
     parser.add_argument(
+        "--stream-processes",
+        type=int,
+        help="processes decoding a device stream in independent mode "
+        "(default: MCAM_STREAM_PROCESSES, else one per core up to 8; 1: in the worker)",
+    )
+    parser.add_argument(
         "--no-devices", action="store_true", help="only run jobs, leave device streams alone"
     )
     parser.add_argument("--log-level", default="INFO", help="logging level (default: INFO)")
@@ -82,8 +93,13 @@ def run(args: argparse.Namespace) -> int:
     settings = get_settings()
     concurrency = settings.worker_concurrency if args.concurrency is None else args.concurrency
     threads = settings.worker_threads if args.threads is None else args.threads
-    if concurrency < 1 or threads < 1:
-        raise McamError("--concurrency and --threads must be at least 1")
+    processes = args.stream_processes
+    if processes is None:
+        processes = settings.stream_processes or min(
+            len(os.sched_getaffinity(0)), MAX_STREAM_PROCESSES
+        )
+    if concurrency < 1 or threads < 1 or processes < 1:
+        raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
@@ -103,5 +119,6 @@ def run(args: argparse.Namespace) -> int:
         retention_s=settings.result_retention_s,
         devices=not args.no_devices,
         stream_exr_compression=settings.stream_exr_compression,
+        stream_processes=processes,
     )
     return Worker(config).run()

@@ -60,6 +60,12 @@ class Settings(BaseSettings):
         STREAM_EXR_COMPRESSION,
         description="EXR compression of live device frames: none (fastest) or zip (smaller)",
     )
+    stream_processes: int | None = Field(
+        None,
+        ge=1,
+        description="processes decoding one device stream's frames in independent mode, "
+        "results kept in stream order; unset: one per core (at most 8); 1: in the worker",
+    )
     result_retention_s: float = Field(7 * 24 * 3600.0, gt=0)
 
 

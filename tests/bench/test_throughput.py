@@ -46,8 +46,11 @@ def test_two_worker_processes_decode_every_frame_of_their_share(tmp_path: Path) 
     assert found["1 x 2 x 1"]["frames"] == 8
     assert found["2 x 1 x 1"]["frames"] == 8
     assert all(layout["frames_per_s"] > 0 for layout in found.values())
+    # One stream through a decode pool of 2: every frame ``repeats`` times, in order.
+    assert row["stream_pool"]["processes"] == 2 and row["stream_pool"]["frames"] == 4
     table = out.with_suffix(".md").read_text()
     assert "| itoh |" in table and "2 x 1 x 1" in table
+    assert "one stream in order, 2 processes" in table
 
 
 def test_unknown_decoders_and_counts_below_one_are_refused(

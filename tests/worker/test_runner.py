@@ -272,12 +272,14 @@ def test_failing_device_frame_is_dead_lettered_and_order_kept(
     assert len(result_files(data_dir)) == 4
 
 
+@pytest.mark.parametrize("processes", ["1", "2"])
 def test_repeated_sequence_is_not_written_twice(
-    client: redis.Redis, workers, data_dir: Path, make_frame, wait_until
+    client: redis.Redis, workers, data_dir: Path, make_frame, wait_until, processes: str
 ) -> None:
+    """In the worker process and on a decode pool (worker/decode_pool.py) alike."""
     frame: SensorFrame = make_frame()
     device = "cam-3"
-    workers.start()
+    workers.start(MCAM_STREAM_PROCESSES=processes)
     publish(client, device, frame, range(3))
     publish(client, device, frame, range(1, 2))
     wait_until(lambda: len(frame_events(client, device)) >= 4, 60, "4 events")
@@ -314,6 +316,8 @@ def test_worker_config_checks_heartbeat_against_lease(tmp_path: Path) -> None:
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, concurrency=0)
     with pytest.raises(McamError, match="MCAM_STREAM_EXR_COMPRESSION to one of: zip, none"):
         WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, stream_exr_compression="lzw")
+    with pytest.raises(McamError, match="set MCAM_STREAM_PROCESSES to 1"):
+        WorkerConfig(redis_url="unix:///x", data_dir=tmp_path, stream_processes=0)
 
 
 def test_devices_spread_over_workers(

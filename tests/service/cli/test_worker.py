@@ -36,10 +36,11 @@ def test_worker_without_redis_explains_what_to_do(tmp_path: Path) -> None:
     assert "no Redis" in err and "MCAM_REDIS_URL" in err and "Traceback" not in err
 
 
-def test_worker_rejects_zero_concurrency(tmp_path: Path) -> None:
-    process = mcam("worker", "--concurrency", "0", env={"MCAM_DATA_DIR": str(tmp_path)})
+@pytest.mark.parametrize("flag", ["--concurrency", "--stream-processes"])
+def test_worker_rejects_zero_concurrency_or_stream_processes(tmp_path: Path, flag: str) -> None:
+    process = mcam("worker", flag, "0", env={"MCAM_DATA_DIR": str(tmp_path)})
     _out, err = process.communicate(timeout=60)
-    assert process.returncode == 2 and "at least 1" in err
+    assert process.returncode == 2 and "at least 1" in err and "Traceback" not in err
 
 
 def test_worker_finds_the_embedded_redis_and_stops_on_sigterm(tmp_path: Path) -> None:
