@@ -47,6 +47,13 @@ THREAD_VARIABLES = ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS")
 MAX_STREAM_PROCESSES = 8
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS reports one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
 def set_thread_limits(threads: int, spin: bool = False) -> None:
     """Intra-op threads for onnxruntime and numerical libraries, and whether onnxruntime's
     idle threads spin (``MCAM_ORT_SPIN``), set before decoders load."""
@@ -95,9 +102,7 @@ def run(args: argparse.Namespace) -> int:
     threads = settings.worker_threads if args.threads is None else args.threads
     processes = args.stream_processes
     if processes is None:
-        processes = settings.stream_processes or min(
-            len(os.sched_getaffinity(0)), MAX_STREAM_PROCESSES
-        )
+        processes = settings.stream_processes or min(usable_cores(), MAX_STREAM_PROCESSES)
     if concurrency < 1 or threads < 1 or processes < 1:
         raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
     logging.basicConfig(
