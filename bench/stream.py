@@ -21,7 +21,9 @@ Run as ``python -m bench.stream [--frames N] [--workers 1 2]``. Measures
 encoding alike (default: the workers' default, ``worker.outputs.STREAM_EXR_COMPRESSION``).
 
 Frames are rendered once by the virtual SCAMP-5 (modulo, procedural scene) so rendering
-cost is not measured. Prints a Markdown table, writes ``bench/results/stream.json``.
+cost is not measured; ``--scenes val256`` sends the first val-256 mantissa frames
+instead (crops of real scenes whose dense wraps make ``auto`` refine, the load a decode
+pool is for). Prints a Markdown table, writes ``bench/results/stream.json`` (``--out``).
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ from device.simulator import VirtualScamp5
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams
 from models.hdr_io import EXR_COMPRESSIONS
+from models.scenes import val256_frames
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
 from worker.outputs import STREAM_EXR_COMPRESSION, encode_exr_result
@@ -59,8 +62,16 @@ DECODER = "itoh"
 DISTINCT = 16
 
 
-def template_packets() -> list[DataPacket]:
-    """``DISTINCT`` rendered frames of the virtual camera (modulo, gain 1)."""
+def template_packets(scenes: str = "camera") -> list[DataPacket]:
+    """``DISTINCT`` frames: rendered by the virtual camera (``camera``: modulo, gain 1, a
+    smooth procedural scene that most decoders finish in a millisecond or two) or the
+    first val-256 mantissa frames (``val256``: crops of real scenes, dense wraps)."""
+    if scenes == "val256":
+        return [
+            DataPacket(index, 0, "mantissa", frame.params.alpha, frame.params.bits,
+                       float(frame.params.gain or 0.0), frame.codes)
+            for index, frame in enumerate(val256_frames("mantissa")[:DISTINCT])
+        ]  # fmt: skip
     camera = VirtualScamp5(LoopEndpoint())
     out = []
     for index in range(DISTINCT):
@@ -209,10 +220,12 @@ def bench_decoder(
 ) -> dict[str, float]:
     """The decoder alone (decode + EXR encode as ``compression``), in-process, frames/s."""
     decoder = get_decoder(name)
-    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
     start = time.perf_counter()
     for i in range(repeat):
-        codes = templates[i % len(templates)].codes
+        packet = templates[i % len(templates)]
+        codes = packet.codes
+        params = SensorParams(encoding=packet.encoding, alpha=packet.alpha, bits=packet.bits,
+                              gain=packet.gain or None)  # fmt: skip
         result = decoder.decode(codes, params)
         encode_exr_result(codes, result.winding, params, {}, {"exr_compression": compression})
     return {"frames_per_s": repeat / (time.perf_counter() - start)}
@@ -245,12 +258,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--decoder", default=DECODER, help=f"stream decoder (default {DECODER})")
     parser.add_argument("--stream-processes", type=int,
                         help="MCAM_STREAM_PROCESSES of the workers (default: theirs)")
+    parser.add_argument("--scenes", choices=("camera", "val256"), default="camera",
+                        help="frames of the virtual camera (easy) or val-256 (dense wraps)")
     parser.add_argument("--out", type=Path, default=RESULTS / "stream.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, [args.decoder])
     if args.stream_processes is not None and args.stream_processes < 1:
         parser.error("--stream-processes must be >= 1")
-    templates = template_packets()
+    templates = template_packets(args.scenes)
     rows: dict[str, Any] = {"parse_only": bench_parse(stream_bytes(templates, args.frames,
                                                                      False)),
                             "decoder_in_process": bench_decoder(templates,
@@ -280,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
                     worker.wait(30)
     report = {"date": utc_now(), "machine": machine(), "versions": versions(),
               "decoder": args.decoder, "stream_processes": args.stream_processes,
-              "frame": "256x256 8-bit modulo",
+              "frames": "256x256 8-bit " + (
+                  "val-256 mantissa" if args.scenes == "val256" else "virtual camera, modulo"),
               "exr_compression": args.exr_compression, "results": rows}
     lines = ["| run | metric | value |", "|---|---|---|"]
     for name, values in rows.items():

@@ -9,12 +9,13 @@ from typing import Any
 
 import pytest
 
-from bench import colour, headroom, profile, tradeoff, video
+from bench import colour, headroom, profile, stream, tradeoff, video
 
 MAINS: dict[str, Callable[[list[str] | None], Any]] = {
     "colour": colour.main,
     "headroom": headroom.main,
     "profile": profile.main,
+    "stream": stream.main,
     "tradeoff": tradeoff.main,
     "video": video.main,
 }
@@ -26,6 +27,9 @@ MAINS: dict[str, Callable[[list[str] | None], Any]] = {
         ("colour", ["--decoders", "itoh", "nope"], "unknown decoders nope; choose from: itoh"),
         ("headroom", ["--decoders", "nope"], "unknown decoders nope"),
         ("profile", ["--models", "itoh"], "unknown models itoh; choose from: mantissanet-"),
+        ("stream", ["--decoder", "nope"], "unknown decoders nope"),
+        ("stream", ["--stream-processes", "0"], "--stream-processes must be >= 1"),
+        ("stream", ["--scenes", "mars"], "invalid choice: 'mars'"),
         ("tradeoff", ["--decoders", "auto-fast-tile48"], "unknown decoders auto-fast-tile48"),
         ("video", ["--decoders", "itoh,nope"], "unknown decoders nope"),
         ("video", ["--clips", "pan_zoom,orbit"], "unknown clips orbit; choose from: pan_zoom"),
