@@ -43,13 +43,12 @@ from typing import Any
 import numpy as np
 
 from bench import RESULTS, machine, refuse_unknown_decoders, utc_now, versions, write_report
-from device.daemon import DaemonConfig, DeviceDaemon
+from device.daemon import DaemonConfig, DeviceDaemon, packet_params
 from device.link_parser import LinkParser
 from device.link_protocol import DataPacket, encode_data
 from device.sim_link import LoopEndpoint, PtyEndpoint
 from device.simulator import VirtualScamp5
 from models.decoders.registry import get_decoder
-from models.formation import SensorParams
 from models.hdr_io import EXR_COMPRESSIONS
 from models.scenes import val256_frames
 from worker.embedded_redis import EmbeddedRedis, connect
@@ -111,10 +110,8 @@ def bench_parse_publish(url: str, packets: list[bytes]) -> dict[str, float]:
     for i in range(0, len(data), 4096):
         for packet in parser.feed(data[i : i + 4096]):
             assert isinstance(packet, DataPacket)
-            params = SensorParams(encoding=packet.encoding, alpha=packet.alpha,
-                                  bits=packet.bits, gain=packet.gain)
             message = FrameMessage("bench-pp", packet.sequence, packet.timestamp_ns,
-                                   packet.codes, params)
+                                   packet.codes, packet_params(packet))
             client.xadd(frame_stream("bench-pp"), message.to_fields(), maxlen=256,
                         approximate=True)
             published += 1
@@ -220,12 +217,10 @@ def bench_decoder(
 ) -> dict[str, float]:
     """The decoder alone (decode + EXR encode as ``compression``), in-process, frames/s."""
     decoder = get_decoder(name)
+    frames = [(packet.codes, packet_params(packet)) for packet in templates]
     start = time.perf_counter()
     for i in range(repeat):
-        packet = templates[i % len(templates)]
-        codes = packet.codes
-        params = SensorParams(encoding=packet.encoding, alpha=packet.alpha, bits=packet.bits,
-                              gain=packet.gain or None)  # fmt: skip
+        codes, params = frames[i % len(frames)]
         result = decoder.decode(codes, params)
         encode_exr_result(codes, result.winding, params, {}, {"exr_compression": compression})
     return {"frames_per_s": repeat / (time.perf_counter() - start)}

@@ -48,8 +48,8 @@ import numpy as np
 from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
 from models import metrics
 from models.decoders import get_decoder
+from models.decoders.learned import THREAD_VARIABLES
 from models.scenes import ValFrame, val256_frames
-from service.cli.worker import THREAD_VARIABLES
 from worker.decode_pool import DecodePool
 from worker.device_consumer import BATCH
 from worker.frame_message import FrameMessage

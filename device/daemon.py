@@ -62,6 +62,13 @@ class DaemonConfig:
     data_dir: Path | None = None
 
 
+def packet_params(packet: DataPacket) -> SensorParams:
+    """The sensor parameters a data packet states (a gain of 0: unknown); a clear error
+    for values out of range."""
+    return SensorParams.parse({"encoding": packet.encoding, "alpha": packet.alpha,
+                               "bits": packet.bits, "gain": packet.gain or None})
+
+
 def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
     """Open ``url`` with pyserial (any URL :func:`serial.serial_for_url` knows).
 
@@ -131,10 +138,8 @@ class DeviceDaemon:
         if packet.flags & FLAG_BRACKET:
             self._on_bracket_packet(packet)
             return
-        params = SensorParams.parse({"encoding": packet.encoding, "alpha": packet.alpha,
-                                     "bits": packet.bits, "gain": packet.gain or None})
         self.publisher.offer(FrameMessage(self.device, packet.sequence, packet.timestamp_ns,
-                                          packet.codes, params, self._discont))
+                                          packet.codes, packet_params(packet), self._discont))
         self._discont = False
 
     def _on_bracket_packet(self, packet: DataPacket) -> None:

@@ -48,7 +48,7 @@ from multiprocessing.synchronize import Barrier
 
 import numpy as np
 
-from models.decoders.learned import THREADS_ENV
+from models.decoders.learned import THREAD_VARIABLES
 from models.errors import McamError
 from worker.device_state import DecodedFrame, DeviceState, FrameDecoder, make_frame_decoder, warm_up
 from worker.frame_message import FrameMessage
@@ -85,7 +85,7 @@ def _start(decoder: str, all_started: Barrier, worker: int) -> None:
     global _decode, _all_started
     _all_started = all_started
     threading.Thread(target=_exit_with, args=(worker,), daemon=True).start()
-    os.environ[THREADS_ENV] = os.environ["OMP_NUM_THREADS"] = str(PROCESS_THREADS)
+    os.environ.update(dict.fromkeys(THREAD_VARIABLES, str(PROCESS_THREADS)))
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from models.allocator import keep_freed_memory
 
@@ -135,9 +135,11 @@ class DecodePool:
         self.processes = processes
         self._pending: dict[str, dict[str, tuple[FrameMessage, Future[DecodedFrame]]]] = {}
         self._cost_ms: dict[str, float] = {}
-        self._executor = self._start_executor()
+        # The worker's own decoder first: an unknown decoder is refused here, with a
+        # clear error, before any process starts.
         self._local = make_frame_decoder("independent", decoder)
         warm_up(decoder)
+        self._executor = self._start_executor()
 
     def _start_executor(self) -> ProcessPoolExecutor:
         context = multiprocessing.get_context("spawn")

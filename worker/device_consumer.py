@@ -225,9 +225,7 @@ class DeviceConsumer:
         newest done entry, well formed (a malformed one fails in :meth:`_reconstruct`)."""
         fresh = []
         for delivery in deliveries:
-            if state.last_entry is not None and entry_order(delivery.entry_id) <= entry_order(
-                state.last_entry
-            ):
+            if _done(state, delivery):
                 continue
             try:
                 fresh.append((delivery.entry_id, FrameMessage.from_fields(delivery.fields)))
@@ -237,9 +235,7 @@ class DeviceConsumer:
 
     def _handle(self, device: str, consumer: StreamConsumer, delivery: Delivery) -> None:
         state = self.states[device]
-        if state.last_entry is not None and entry_order(delivery.entry_id) <= entry_order(
-            state.last_entry
-        ):
+        if _done(state, delivery):
             consumer.done(delivery)
             return
         while True:
@@ -339,6 +335,13 @@ class DeviceConsumer:
         last = state.last_sequence if state.last_sequence is not None else -1
         self._record(device, state, delivery, max(sequence_number, last), "", event)
         consumer.dead_letter(delivery, error.code, error.message, device=device, sequence=sequence)
+
+
+def _done(state: DeviceState, delivery: Delivery) -> bool:
+    """Whether ``delivery``'s entry is at or before the newest one done for the device."""
+    return state.last_entry is not None and entry_order(delivery.entry_id) <= entry_order(
+        state.last_entry
+    )
 
 
 def _event(kind: str, message: FrameMessage, **extra: Any) -> dict[str, str]:

@@ -35,7 +35,6 @@ from types import FrameType
 
 import redis
 
-from models.decoders.registry import resolve
 from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.decode_pool import DecodePool
@@ -213,7 +212,6 @@ class Worker:
         for independent decoding (:mod:`worker.decode_pool`), else this process's own."""
         config = self.config
         if config.frame_mode == "independent" and config.stream_processes > 1:
-            resolve(config.decoder)
             log.info("worker %s: stream decoder %s on %d processes", self.id, config.decoder,
                      config.stream_processes)  # fmt: skip
             return DecodePool(config.decoder, config.stream_processes)

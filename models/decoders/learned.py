@@ -38,6 +38,10 @@ from models.formation import SensorParams
 
 ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 THREADS_ENV = "MCAM_WORKER_THREADS"
+#: The environment variables that set a process's intra-op threads: onnxruntime's
+#: (:data:`THREADS_ENV`, read when a session is made) and the numerical libraries'
+#: (read when they load).
+THREAD_VARIABLES = (THREADS_ENV, "OMP_NUM_THREADS")
 DEFAULT_THREADS = 2
 SPIN_ENV = "MCAM_ORT_SPIN"
 #: The spellings of ``MCAM_ORT_SPIN`` (those pydantic reads as booleans, so the

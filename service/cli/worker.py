@@ -16,6 +16,7 @@ import argparse
 import logging
 import os
 
+from models.decoders.learned import THREAD_VARIABLES
 from models.errors import McamError
 from service.core.config import Settings, get_settings
 from worker.device_state import FRAME_MODES
@@ -34,12 +35,6 @@ def redis_url_for(settings: Settings) -> str:
             "or `mcam serve` first, or set MCAM_REDIS_URL"
         )
     return embedded.url
-
-
-#: The environment variables that set a worker's intra-op threads: onnxruntime's
-#: (``models.decoders.learned.THREADS_ENV``, read when a session is made) and the
-#: numerical libraries' (read when they load).
-THREAD_VARIABLES = ("MCAM_WORKER_THREADS", "OMP_NUM_THREADS")
 
 
 #: Default ceiling of a worker's stream decode processes (one per core below it): a

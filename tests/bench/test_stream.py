@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench import stream
-from models.formation import SensorParams
+from device.daemon import packet_params
 
 
 @pytest.mark.parametrize(("scenes", "encoding"), [("camera", "modulo"), ("val256", "mantissa")])
@@ -22,7 +22,7 @@ def test_template_packets_are_distinct_256px_frames_with_their_parameters(
     assert {p.codes.shape for p in packets} == {(256, 256)}
     assert {p.encoding for p in packets} == {encoding}
     assert len({p.codes.tobytes() for p in packets}) == stream.DISTINCT
-    SensorParams(encoding=packets[0].encoding, alpha=packets[0].alpha, bits=packets[0].bits)
+    assert {packet_params(p).encoding for p in packets} == {encoding}
 
 
 def test_the_in_process_decoder_uses_each_packet_s_own_parameters() -> None:
