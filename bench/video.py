@@ -26,7 +26,9 @@ from bench import machine, publish, refuse_unknown, refuse_unknown_decoders, utc
 from models.decoders.registry import available_decoders
 from models.video_clips import CLIP_KINDS, DEFAULT_FRAMES, VIDEO_ENCODINGS, ClipEncoding, make_clip
 from models.video_metrics import clip_metrics
-from worker.temporal import MODES, PATHS, StreamDecoder, StreamState, TemporalConfig
+from worker.stream_state import PATHS, StreamState
+from worker.temporal import StreamDecoder
+from worker.temporal_config import MODES, TemporalConfig
 
 RESULTS = RESULTS_DIR / "video.json"
 #: Decoders benchmarked unless named on the command line: the fast spatial ones.

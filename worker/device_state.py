@@ -26,8 +26,8 @@ from models.errors import InvalidInputError
 from models.formation import ENCODINGS
 from models.scenes import synthetic_val256_frame
 from worker.frame_message import FrameMessage
+from worker.temporal_config import MODES
 
-FRAME_MODES: tuple[str, ...] = ("independent", "temporal")
 #: The frame a worker warms its stream decoder on (:func:`warm_up`): SCAMP-5's size,
 #: a seeded synthetic scene exposed as val-256 is.
 WARM_UP_SIZE = 256
@@ -65,8 +65,8 @@ FrameDecoder = Callable[[DeviceState, FrameMessage], DecodedFrame]
 def make_frame_decoder(mode: str, decoder: str) -> FrameDecoder:
     """The frame decoder for ``mode`` (``independent`` or ``temporal``) on top of the
     spatial decoder ``decoder``."""
-    if mode not in FRAME_MODES:
-        raise InvalidInputError(f"unknown frame mode {mode!r}; use one of {FRAME_MODES}")
+    if mode not in MODES:
+        raise InvalidInputError(f"unknown frame mode {mode!r}; use one of {MODES}")
     spatial = get_decoder(decoder)
     if mode == "independent":
 
@@ -76,7 +76,8 @@ def make_frame_decoder(mode: str, decoder: str) -> FrameDecoder:
 
         return independent
 
-    from worker.temporal import StreamDecoder, StreamState
+    from worker.stream_state import StreamState
+    from worker.temporal import StreamDecoder
 
     stream_decoder = StreamDecoder("temporal", spatial)
 

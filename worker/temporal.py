@@ -131,22 +131,22 @@ Failure modes
 - A lamp brighter than the clip: no decoder but ``auto`` knows the clip, and with the
   others the stream's clipped core can end up darker than a fresh spatial decode's.
 
-A :class:`StreamState` holds what the method remembers (previous ``u``, frame
-index, last keyframe, sequence number); the worker keeps one per device stream.
-Every :class:`FrameDecode` reports the fraction of pixels that took each path.
+A :class:`worker.stream_state.StreamState` holds what the method remembers (previous
+``u``, frame index, last keyframe, sequence number); the worker keeps one per device
+stream. Every :class:`worker.stream_state.FrameDecode` reports the fraction of pixels
+that took each path. The knobs named above are fields of
+:class:`worker.temporal_config.TemporalConfig`.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from models.decoders.band_moves import band_of
 from models.decoders.base import Decoder, check_frame_shape
 from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.region_vote import region_vote
@@ -160,112 +160,21 @@ from models.formation import (
     max_winding,
 )
 from models.tile_reconcile import common_offset
-from worker.arrivals import ArrivalConfig, refine_arrivals
-from worker.brightness import BrightnessConfig, brighten, frame_gain
-from worker.clip_tracking import ClipTrackConfig, track_clip
-from worker.config_checks import refuse_invalid
+from worker.arrivals import refine_arrivals
+from worker.brightness import brighten, frame_gain
+from worker.clip_tracking import track_clip
 from worker.crop_vote import CropConfig, crop_vote
-from worker.motion import Compensated, MotionConfig, compensate
+from worker.motion import Compensated, compensate
+from worker.plane_refinement import grown, refined_planes
+from worker.stream_state import FrameDecode, StreamState, path_shares
+from worker.temporal_config import MODES, TemporalConfig
 from worker.temporal_fallback import merge_spatial, neighbour_fix
 from worker.temporal_rule import Prediction, temporal_prediction
 
-MODES: tuple[str, ...] = ("independent", "temporal")
-PATHS: tuple[str, ...] = ("temporal", "local", "spatial")
 #: Keyframes that anchor a stream (its start, a reconnect, a gap, new sensor parameters):
 #: their spatial answer is refined by guided PUMA to convergence, since the stream
 #: carries its errors on (see the module doc); periodic keyframes are not.
 ANCHOR_KEYFRAMES: tuple[str, ...] = ("first", "discont", "gap", "params")
-
-
-@dataclass(frozen=True)
-class TemporalConfig:
-    """Knobs of the temporal rule (see the module docstring). ``margin`` in wraps,
-    ``still`` in wraps, ``motion_radius`` in pixels, ``keyframe_interval`` in frames
-    (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels,
-    ``refine_moves`` the min-cuts of the final refinement (0: none), ``refine_reach``
-    how far (px) from the fallback pixels it may change W, ``refine_whole_every`` every
-    how many frames it refines the whole frame instead (0: never, 1: every frame),
-    ``refine_keyframes`` whether a stream's anchoring keyframes are refined,
-    ``motion`` / ``brightness`` / ``crop`` the knobs of motion and brightness
-    compensation, of the crop vote, of arrival refinement and of clip tracking
-    (:class:`worker.motion.MotionConfig`, :class:`worker.brightness.BrightnessConfig`,
-    :class:`worker.crop_vote.CropConfig`, :class:`worker.arrivals.ArrivalConfig`,
-    :class:`worker.clip_tracking.ClipTrackConfig`)."""
-
-    margin: float = 0.1
-    motion_radius: int = 1
-    still: float = 0.05
-    steady_sigmas: float = 3.0
-    keyframe_interval: int = 30
-    local_limit: float = 0.5
-    local_passes: int = 4
-    refine_moves: int = 2
-    refine_reach: int = 4
-    refine_whole_every: int = 4
-    refine_keyframes: bool = True
-    motion: MotionConfig = MotionConfig()
-    brightness: BrightnessConfig = BrightnessConfig()
-    crop: CropConfig = CropConfig()
-    arrival: ArrivalConfig = ArrivalConfig()
-    clip: ClipTrackConfig = ClipTrackConfig()
-
-    def __post_init__(self) -> None:
-        refuse_invalid(
-            "temporal",
-            {
-                "margin must be in [0, 0.5)": 0.0 <= self.margin < 0.5,
-                "still must be in [0, 0.5]": 0.0 <= self.still <= 0.5,
-                "steady_sigmas must be >= 0": self.steady_sigmas >= 0.0,
-                "motion_radius must be >= 0": self.motion_radius >= 0,
-                "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
-                "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
-                "local_passes must be >= 1": self.local_passes >= 1,
-                "refine_moves must be >= 0": self.refine_moves >= 0,
-                "refine_reach must be >= 0": self.refine_reach >= 0,
-                "refine_whole_every must be >= 0": self.refine_whole_every >= 0,
-            },
-        )
-
-
-@dataclass
-class StreamState:
-    """What temporal decoding remembers about one stream.
-
-    ``u``: the previous frame's unwrapped values (H x W x C, wraps); ``params``: its
-    sensor parameters; ``frames``: frames decoded so far; ``last_keyframe``: index of
-    the last keyframe; ``sequence``: the previous frame's device sequence number.
-    """
-
-    u: NDArray[np.float64] | None = None
-    params: SensorParams | None = None
-    frames: int = 0
-    last_keyframe: int = -1
-    sequence: int | None = None
-
-    def reset(self) -> None:
-        """Forget the stream: the next frame is a keyframe."""
-        self.u, self.params, self.sequence = None, None, None
-
-
-@dataclass
-class FrameDecode:
-    """One decoded video frame.
-
-    ``winding`` (int64) and ``irradiance`` (x_hat, wrap units) have the codes' shape;
-    ``keyframe`` is why the frame was decoded whole (``first``, ``discont``, ``gap``,
-    ``params``, ``periodic``, ``independent``) or None; ``paths`` the fraction of
-    pixels per path (:data:`PATHS`); ``timings_ns`` wall time in ns.
-    """
-
-    winding: NDArray[np.int64]
-    irradiance: NDArray[np.float64]
-    keyframe: str | None
-    paths: dict[str, float]
-    timings_ns: dict[str, int] = field(default_factory=dict)
-
-    def summary(self) -> dict[str, Any]:
-        """JSON-friendly facts about the frame (no arrays)."""
-        return {"keyframe": self.keyframe, "paths": self.paths, "timings_ns": self.timings_ns}
 
 
 def _planes(codes: NDArray[Any], params: SensorParams) -> NDArray[np.float64]:
@@ -499,51 +408,6 @@ class StreamDecoder:
         local &= ~taken
         spatial |= taken
         return taken
-
-
-def refined_planes(
-    refiner: GuidedPumaDecoder,
-    m: NDArray[np.float64],
-    winding: NDArray[np.int64],
-    params: SensorParams,
-    bands: NDArray[np.bool_] | None = None,
-    refill: bool = False,
-) -> NDArray[np.int64]:
-    """Each plane of ``winding`` (H x W x C) refined by ``refiner`` on its plane of ``m``:
-    whole, or only within its plane of ``bands`` (bool, H x W x C) when given. With
-    ``refill``, a whole plane's clipped blobs are filled again, judged on ``winding``
-    (:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refilled`; an anchoring
-    keyframe, see the module doc)."""
-    planes = []
-    for c in range(m.shape[2]):
-        if bands is None:
-            plane = refiner.refine(m[:, :, c], winding[:, :, c], params)[0]
-            if refill:
-                plane = refiner.refilled(m[:, :, c], plane, winding[:, :, c], params)[0]
-            planes.append(plane)
-        elif bands[:, :, c].any():
-            band = bands[:, :, c]
-            planes.append(refiner.refine_within(m[:, :, c], winding[:, :, c], params, band)[0])
-        else:
-            planes.append(winding[:, :, c])
-    return np.stack(planes, axis=2)
-
-
-def grown(pixels: NDArray[np.bool_], reach: int) -> NDArray[np.bool_]:
-    """``pixels`` (bool, H x W x C) grown by ``reach`` px (Chebyshev) within each plane."""
-    return np.stack(
-        [band_of(pixels[:, :, c], reach) for c in range(pixels.shape[2])], axis=2
-    )
-
-
-def path_shares(local: NDArray[np.bool_], spatial: NDArray[np.bool_]) -> dict[str, float]:
-    """The fraction of pixels (and channels) that took each path of :data:`PATHS`."""
-    used_local, used_spatial = float(local.mean()), float(spatial.mean())
-    return {
-        "temporal": 1.0 - used_local - used_spatial,
-        "local": used_local,
-        "spatial": used_spatial,
-    }
 
 
 def decode_frames(

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from worker.motion import misfit
 
 if TYPE_CHECKING:
-    from worker.temporal import TemporalConfig
+    from worker.temporal_config import TemporalConfig
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from models.errors import InvalidInputError
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from worker.job_processor import JobContext, JobOutcome
-from worker.temporal import TemporalConfig
+from worker.temporal_config import TemporalConfig
 from worker.video_input import WrappedVideo
 from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
 from worker.video_pipeline import OUTPUTS, VideoOptions, decode_video_frames, write_outputs

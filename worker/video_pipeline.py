@@ -25,7 +25,9 @@ from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
 from models.hdr_io import DEFAULT_EXR_COMPRESSION
-from worker.temporal import StreamDecoder, StreamState, TemporalConfig
+from worker.stream_state import StreamState
+from worker.temporal import StreamDecoder
+from worker.temporal_config import TemporalConfig
 from worker.video_input import WrappedVideo
 from worker.video_output import (
     Hdr10Settings,

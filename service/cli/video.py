@@ -10,7 +10,7 @@ from typing import Any
 
 from models.errors import UnsupportedFormatError
 from service.cli.options import add_exr_compression_flag, add_sensor_flags, sensor_values
-from worker.temporal import MODES, TemporalConfig
+from worker.temporal_config import MODES, TemporalConfig
 from worker.video_input import read_video
 from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
 from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs

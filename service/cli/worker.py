@@ -19,8 +19,8 @@ import os
 from models.decoders.learned import THREAD_VARIABLES
 from models.errors import McamError
 from service.core.config import Settings, get_settings
-from worker.device_state import FRAME_MODES
 from worker.embedded_redis import EmbeddedRedis
+from worker.temporal_config import MODES
 
 
 def redis_url_for(settings: Settings) -> str:
@@ -74,7 +74,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     parser.add_argument(
         "--frame-mode",
-        choices=FRAME_MODES,
+        choices=MODES,
         default="independent",
         help="decode device frames one by one, or along time (default: independent)",
     )

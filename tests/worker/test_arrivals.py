@@ -11,7 +11,8 @@ from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 from worker.arrivals import REACH, ArrivalConfig, refine_arrivals
-from worker.temporal import StreamDecoder, TemporalConfig, decode_frames
+from worker.temporal import StreamDecoder, decode_frames
+from worker.temporal_config import TemporalConfig
 
 PARAMS = SensorParams(encoding="modulo", bits=8)
 SIZE = 160

@@ -12,7 +12,8 @@ from models.errors import InvalidInputError
 from models.formation import SensorParams
 from worker.clip_tracking import ClipTrackConfig, continuing_blobs, track_clip
 from worker.motion import misfit
-from worker.temporal import StreamDecoder, TemporalConfig, decode_frames
+from worker.temporal import StreamDecoder, decode_frames
+from worker.temporal_config import TemporalConfig
 
 PARAMS = SensorParams(encoding="modulo", bits=8, max_wraps=16)
 SIZE = 128

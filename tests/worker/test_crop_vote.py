@@ -11,7 +11,7 @@ from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 from worker.crop_vote import GROW, MIN_SIDE, CropConfig, cluster_boxes, crop_vote
-from worker.temporal import TemporalConfig
+from worker.temporal_config import TemporalConfig
 from worker.temporal_rule import Prediction, temporal_prediction
 
 PARAMS = SensorParams(encoding="modulo", bits=8)

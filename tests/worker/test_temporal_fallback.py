@@ -6,8 +6,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from worker.temporal import TemporalConfig, temporal_prediction
+from worker.temporal_config import TemporalConfig
 from worker.temporal_fallback import locally_smooth, merge_spatial, neighbour_fix
+from worker.temporal_rule import temporal_prediction
 
 
 def test_neighbour_fix_settles_unsafe_pixels_from_their_neighbours() -> None:

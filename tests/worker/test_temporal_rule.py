@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from worker.temporal import TemporalConfig
+from worker.temporal_config import TemporalConfig
 from worker.temporal_rule import UNBOUNDED, temporal_prediction, window_extreme
 
 

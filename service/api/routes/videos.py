@@ -28,7 +28,7 @@ from service.api.schemas import (
 )
 from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
-from worker.temporal import TemporalConfig
+from worker.temporal_config import TemporalConfig
 from worker.video_input import decode_video
 from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
 from worker.video_output import REFERENCE_WHITE

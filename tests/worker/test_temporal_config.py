@@ -1,0 +1,33 @@
+"""Tests of worker/temporal_config.py: the temporal decoder's knobs are checked when made."""
+
+from __future__ import annotations
+
+import pytest
+
+from models.errors import InvalidInputError
+from worker.crop_vote import CropConfig
+from worker.temporal_config import MODES, TemporalConfig
+
+
+def test_defaults_are_valid_and_name_both_modes() -> None:
+    config = TemporalConfig()
+    assert MODES == ("independent", "temporal")
+    assert config.keyframe_interval > 0
+    assert 0.0 <= config.margin < 0.5
+
+
+def test_a_nested_config_is_kept() -> None:
+    crop = CropConfig(min_cluster=0)
+    assert TemporalConfig(crop=crop).crop is crop
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [{"margin": 0.5}, {"motion_radius": -1}, {"keyframe_interval": -2}, {"local_limit": 2.0},
+     {"local_passes": 0}, {"still": 0.7}, {"steady_sigmas": -1.0}, {"refine_moves": -1},
+     {"refine_reach": -1}, {"refine_whole_every": -2}],
+)
+def test_bad_settings_are_refused(bad: dict) -> None:
+    name = next(iter(bad))
+    with pytest.raises(InvalidInputError, match=f"invalid temporal settings.*{name}"):
+        TemporalConfig(**bad)
