@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import connected_components
 
 from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
 from models.decoders import get_decoder
-from models.decoders.adaptive import most_accurate_net
+from models.decoders.adaptive_policy import most_accurate_net
 from models.formation import SensorParams, dequantize, from_unwrapped, to_unwrapped
 from models.metrics import psnr, winding_accuracy
 from models.scenes import ValFrame, val256_frames

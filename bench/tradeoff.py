@@ -38,7 +38,8 @@ import numpy as np
 from bench import RESULTS, machine, refuse_unknown_decoders, utc_now, versions, write_report
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
-from models.decoders.adaptive import DEFAULT_TILE, QUALITIES, AdaptiveDecoder
+from models.decoders.adaptive import AdaptiveDecoder
+from models.decoders.adaptive_policy import DEFAULT_TILE, QUALITIES
 from models.decoders.budget import BudgetDecoder
 from models.decoders.cost_model import adaptive as budget_adaptive
 from models.decoders.cost_model import predicted_ms

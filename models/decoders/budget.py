@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from models.decoders.adaptive import DEFAULT_TILE
+from models.decoders.adaptive_policy import DEFAULT_TILE
 from models.decoders.base import Decoder
 from models.decoders.colour import harmonise
 from models.decoders.cost_model import (

@@ -44,7 +44,8 @@ from functools import cache
 import numpy as np
 from numpy.typing import NDArray
 
-from models.decoders.adaptive import QUALITIES, AdaptiveDecoder
+from models.decoders.adaptive import AdaptiveDecoder
+from models.decoders.adaptive_policy import QUALITIES
 from models.decoders.colour import harmonise
 from models.decoders.guided_puma import refinement_boxes
 from models.decoders.registry import get_decoder

@@ -17,7 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import UploadFile
 
-from models.decoders.adaptive import QUALITIES
+from models.decoders.adaptive_policy import QUALITIES
 from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
 from models.formation import SensorParams
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
