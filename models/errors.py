@@ -45,6 +45,12 @@ class OutputOverflowError(McamError):
     code = "output_overflow"
 
 
+class OutputUnderflowError(McamError):
+    """Nonzero values of the reconstruction would round to zero in the output dtype."""
+
+    code = "output_underflow"
+
+
 class ImageTooLargeError(McamError):
     """An image exceeds the configured pixel or byte limit."""
 

@@ -36,7 +36,12 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from models.errors import InvalidInputError, OutputOverflowError, describe_validation_error
+from models.errors import (
+    InvalidInputError,
+    OutputOverflowError,
+    OutputUnderflowError,
+    describe_validation_error,
+)
 
 Encoding = Literal["modulo", "mantissa", "clip"]
 ENCODINGS: tuple[str, ...] = ("modulo", "mantissa", "clip")
@@ -65,7 +70,7 @@ class SensorParams(BaseModel):
     max_wraps: float | None = Field(None, gt=0.0, allow_inf_nan=False)
     read_noise: float = Field(0.0, ge=0.0, le=1.0, allow_inf_nan=False)
     full_well: float | None = Field(None, gt=0.0, allow_inf_nan=False)
-    seed: int | None = None
+    seed: int | None = Field(None, ge=0, le=2**63 - 1)
 
     @classmethod
     def parse(cls, values: dict[str, Any]) -> SensorParams:
@@ -230,6 +235,13 @@ def overflow_remedy(dtype: type[np.floating]) -> str:
     return "lower the gain or alpha"
 
 
+def underflow_remedy(dtype: type[np.floating]) -> str:
+    """What a user can do about nonzero values too small for ``dtype``."""
+    if np.finfo(dtype).bits < 32:
+        return "ask for float32 output instead of half floats, or lower the gain"
+    return "lower the gain, or ask for the output in wrap units (not scene-referred)"
+
+
 def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: str) -> None:
     """Raise :class:`OutputOverflowError` if ``values`` exceed ``dtype``'s finite range
     (:class:`InvalidInputError` if any is NaN: no number at all)."""
@@ -242,6 +254,23 @@ def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: st
         raise OutputOverflowError(
             f"{int(over.sum())} pixels of the {what} exceed the {np.dtype(dtype).name} limit "
             f"{limit:.4g}; {overflow_remedy(dtype)}"
+        )
+
+
+def ensure_nonzero_kept(values: NDArray[np.floating], dtype: type[np.floating], what: str) -> None:
+    """Raise :class:`OutputUnderflowError` if nonzero ``values`` would round to zero in
+    ``dtype``. A reconstruction is never zero (codes decode at their bin centre), so a
+    zero in its file is an image gone black in silence: a huge gain dividing it into
+    scene units, or half floats for tiny values."""
+    source = np.asarray(values)
+    if source.dtype.itemsize <= np.dtype(dtype).itemsize:
+        return
+    lost = int(np.count_nonzero((source != 0) & (source.astype(dtype) == 0)))
+    if lost:
+        raise OutputUnderflowError(
+            f"{lost} nonzero pixels of the {what} are below the smallest "
+            f"{np.dtype(dtype).name} ({float(np.finfo(dtype).smallest_subnormal):.4g}) "
+            f"and would be stored as 0; {underflow_remedy(dtype)}"
         )
 
 
@@ -383,6 +412,7 @@ def reconstruct(
     if rescale:
         x = x / params.gain
     ensure_fits(x, dtype, "reconstruction")
+    ensure_nonzero_kept(x, dtype, "reconstruction")
     return x.astype(dtype)
 
 

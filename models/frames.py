@@ -163,6 +163,19 @@ def _stored_params(text: str | None, where: str) -> dict[str, Any]:
     return values
 
 
+def tiff_params(description: str | None) -> dict[str, Any]:
+    """Our sensor parameters from a TIFF ImageDescription; {} when it holds none, or
+    holds text that other software wrote there (any text that is not a JSON object of
+    sensor parameter names): those frames take their parameters from the caller."""
+    try:
+        values = json.loads(description or "")
+    except json.JSONDecodeError:
+        return {}
+    if not isinstance(values, dict) or not set(values) <= set(SensorParams.model_fields):
+        return {}
+    return values
+
+
 def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
@@ -190,10 +203,7 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[
             )
         page = tif.pages.first
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
-        stored = _stored_params(page.description, "TIFF ImageDescription")
-        if not set(stored) <= set(SensorParams.model_fields):
-            stored = {}  # a description written by other software, not our parameters
-        return page.asarray(), stored
+        return page.asarray(), tiff_params(page.description)
 
 
 def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:

@@ -18,7 +18,6 @@ fields) win over stored parameters, as for single frames.
 from __future__ import annotations
 
 import io
-import json
 import os
 import re
 import zipfile
@@ -33,7 +32,7 @@ from numpy.typing import NDArray
 from models.decoders.base import check_frame_shape
 from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
 from models.formation import SensorParams, validate_codes
-from models.frames import check_pixel_count, decode_frame, decoding, merge_params
+from models.frames import check_pixel_count, decode_frame, decoding, merge_params, tiff_params
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 _ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
@@ -74,17 +73,6 @@ def check_frame_count(count: int, max_frames: int | None) -> None:
         )
 
 
-def _tiff_params(description: str | None) -> dict[str, Any]:
-    """Our parameters from a TIFF description; {} for text other software wrote."""
-    try:
-        values = json.loads(description or "")
-    except json.JSONDecodeError:
-        return {}
-    if not isinstance(values, dict) or not set(values) <= set(SensorParams.model_fields):
-        return {}
-    return values
-
-
 def _read_tiff(
     data: bytes, max_pixels: int | None, max_frames: int | None
 ) -> tuple[NDArray[Any], dict[str, Any]]:
@@ -102,7 +90,7 @@ def _read_tiff(
                     f"the first {shape}"
                 )
             frames.append(page.asarray())
-        return np.stack(frames), _tiff_params(first.description)
+        return np.stack(frames), tiff_params(first.description)
 
 
 def _read_npy(

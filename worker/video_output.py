@@ -34,6 +34,7 @@ from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTr
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
+from models.formation import ensure_nonzero_kept
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 from models.metrics import reinhard
 
@@ -328,9 +329,14 @@ def exr_sequence_zip(
     half: bool = False,
     compression: str = DEFAULT_EXR_COMPRESSION,
 ) -> None:
-    """A zip of one EXR per frame (``frame_00000.exr``, ...), values in wrap units, each
-    compressed as ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`)."""
+    """A zip of one EXR per frame (``frame_00000.exr``, ...) of reconstructed ``frames``
+    (wrap units, or scene units when the pipeline knows the gain), each compressed as
+    ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`). Refused with
+    :class:`models.errors.OutputUnderflowError` if a pixel would be stored as 0."""
     _check_clip(frames)
+    dtype = np.float16 if half else np.float32
+    for index, frame in enumerate(frames):
+        ensure_nonzero_kept(frame, dtype, f"video frame {index}")
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
         for index, frame in enumerate(frames):
             data = encode_exr(

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from models.errors import InvalidInputError, OutputOverflowError
+from models.errors import InvalidInputError, OutputOverflowError, OutputUnderflowError
 from models.formation import (
     SensorParams,
     dequantize,
@@ -124,6 +124,12 @@ def test_bad_codes_are_rejected(codes: np.ndarray, message: str) -> None:
         validate_codes(codes, 8)
 
 
+@pytest.mark.parametrize("seed", [-1, 2**63])
+def test_noise_seeds_must_be_non_negative_64_bit(seed: int) -> None:
+    with pytest.raises(InvalidInputError, match="seed"):
+        SensorParams.parse({"seed": seed})
+
+
 @PROPERTY
 @given(
     winding=st.lists(st.integers(0, 2**63 - 1), min_size=1, max_size=8).map(np.array),
@@ -170,6 +176,20 @@ def test_overflow_message_names_pixel_count_and_limit() -> None:
         OutputOverflowError, match=r"^1 pixels .*float16 limit 6\.55e\+04; ask for float32 output"
     ):
         from_unwrapped(np.array([70000.0, 3.0]), SensorParams(encoding="modulo"), np.float16)
+
+
+def test_a_reconstruction_that_would_round_to_zero_is_refused() -> None:
+    """A huge gain (scene-referred x / gain) or half floats for tiny values: the EXR would
+    be silently black, so the error names the count and what to change."""
+    codes, winding = np.array([[3, 200]], np.uint8), np.zeros((1, 2), np.int64)
+    huge_gain = SensorParams(encoding="mantissa", gain=1e308)
+    with pytest.raises(OutputUnderflowError, match=r"^2 nonzero pixels .*float32.*lower the gain"):
+        reconstruct(codes, winding, huge_gain, np.float32, scene_referred=True)
+    assert np.all(reconstruct(codes, winding, huge_gain, np.float64, scene_referred=True) > 0)
+    tiny_scene = SensorParams(encoding="modulo", gain=1e9)
+    with pytest.raises(OutputUnderflowError, match=r"^1 nonzero .*float16.*ask for float32"):
+        reconstruct(codes[:, :1], winding[:, :1], tiny_scene, np.float16, scene_referred=True)
+    assert reconstruct(codes[:, :1], winding[:, :1], tiny_scene, np.float16)[0, 0] > 0
 
 
 def test_too_many_wraps_for_int64_is_a_clear_error() -> None:

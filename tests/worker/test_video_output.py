@@ -13,7 +13,7 @@ from av.sidedata.sidedata import Type
 from hypothesis import given
 from hypothesis import strategies as st
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, OutputUnderflowError
 from models.hdr_io import EXR_COMPRESSIONS, read_hdr
 from worker.video_output import (
     BT709_TO_BT2020,
@@ -179,6 +179,15 @@ def test_exr_sequence_zip_round_trip(compression: str) -> None:
             np.testing.assert_array_equal(image.pixels, frame.astype(np.float32))
             header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
             assert header["compression"] == EXR_COMPRESSIONS[compression]
+
+
+def test_frames_that_would_be_stored_as_zero_are_refused() -> None:
+    """Scene units under a huge gain, or tiny values as half floats: no black EXRs."""
+    frames = [np.full((4, 4), 2.0), np.full((4, 4), 1e-300)]
+    with pytest.raises(OutputUnderflowError, match="16 nonzero pixels of the video frame 1"):
+        exr_sequence_zip(frames, io.BytesIO())
+    with pytest.raises(OutputUnderflowError, match="ask for float32"):
+        exr_sequence_zip([np.full((4, 4), 1e-9)], io.BytesIO(), half=True)
 
 
 @pytest.mark.parametrize(

@@ -112,7 +112,8 @@ def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
         },
         409: error_response(
             "the job has not succeeded: job_not_finished (poll again), job_failed or "
-            "job_cancelled (no result will come)"
+            "job_cancelled (no result will come); video_job: a video's files come from "
+            "/v1/videos/{id}/result"
         ),
         **JOB_ERRORS,
     },
@@ -139,6 +140,12 @@ def get_result(
             f"part {part!r} comes as {', '.join(allowed)}, not {fmt!r}; pick one of those"
         )
     record = finished_record(state, job_id)
+    if record.kind == "video":
+        raise ApiError(
+            409, "video_job",
+            f"job {job_id} is a video job: fetch its files from /v1/videos/{job_id}/result"
+            "?output=hdr10, sdr or exr_zip",
+        )  # fmt: skip
     return result_file(state, record, part, fmt, exposure)
 
 

@@ -15,9 +15,10 @@ from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
-from models.errors import InvalidInputError, UnsupportedFormatError
+from models.errors import UnsupportedFormatError
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.errors import ApiError
 from service.api.routes.jobs import JOB_ERRORS, finished_record
 from service.api.schemas import (
     UPLOAD_ERRORS,
@@ -151,7 +152,10 @@ async def post_video(
     response_class=Response,
     responses={
         200: {"content": {"video/mp4": {}, "application/zip": {}}},
-        409: error_response("the job has not succeeded, or did not make that output"),
+        409: error_response(
+            "the job has not succeeded (job_not_finished, job_failed, job_cancelled), is "
+            "not a video (not_a_video_job) or did not make that output (output_not_made)"
+        ),
         **JOB_ERRORS,
     },
 )
@@ -165,10 +169,18 @@ def get_video_result(
 ) -> Response:
     """The output file of a succeeded video job."""
     record = finished_record(state, job_id)
-    if record.kind != "video" or output not in record.results:
-        raise InvalidInputError(
-            f"job {job_id} has no {output!r} output; it made: {', '.join(record.results)}"
-        )
+    if record.kind != "video":
+        raise ApiError(
+            409, "not_a_video_job",
+            f"job {job_id} is a {record.kind} job, not a video; fetch its result from "
+            f"/v1/jobs/{job_id}/result",
+        )  # fmt: skip
+    if output not in record.results:
+        raise ApiError(
+            409, "output_not_made",
+            f"video job {job_id} did not make {output!r}; it made: "
+            f"{', '.join(sorted(record.results))} (choose the outputs when submitting)",
+        )  # fmt: skip
     data = state.store.read(record.results[output])
     name = VIDEO_FILES[output]
     return Response(

@@ -85,6 +85,7 @@ def nan_exr() -> bytes:
         (exr_bytes()[:200], FIELDS, 422, "invalid_input"),
         (exr_bytes(), {**FIELDS, "overexposed": "0.1"}, 422, "invalid_input"),
         (exr_bytes(), {**FIELDS, "bits": "17"}, 422, "invalid_input"),
+        (exr_bytes(), {**FIELDS, "seed": "-1"}, 422, "invalid_input"),
         (exr_bytes(), {**FIELDS, "format": "jpeg"}, 422, "invalid_input"),
         (encode_exr(np.ones((600, 600))), FIELDS, 413, "image_too_large"),
         (encode_exr(-scene()), FIELDS, 422, "invalid_input"),

@@ -90,7 +90,25 @@ def test_zip_of_pngs_independent_exr_only(client: Client, worker: Worker) -> Non
         ]
     assert [h["compression"] for h in headers] == [OpenEXR.NO_COMPRESSION] * 4
     missing = http.get(f"/v1/videos/{job['id']}/result", params={"output": "hdr10"})
-    assert missing.status_code == 422 and "exr_zip" in missing.json()["message"]
+    assert missing.status_code == 409 and missing.json()["code"] == "output_not_made"
+    assert "exr_zip" in missing.json()["message"]
+    still = http.get(f"/v1/jobs/{job['id']}/result")
+    assert still.status_code == 409 and still.json()["code"] == "video_job"
+    assert f"/v1/videos/{job['id']}/result" in still.json()["message"]
+
+
+def test_a_still_job_has_no_video_files(client: Client, worker: Worker) -> None:
+    http = client()
+    codes = encode(slow_clip()[0], PARAMS).codes
+    reply = http.post(
+        "/v1/reconstructions", files={"file": ("f.npy", npy_bytes(codes))}, data=FLAGS
+    )
+    assert reply.status_code == 202, reply.text
+    job = finished_job(http, reply.json()["id"])
+    assert job["state"] == "succeeded", job
+    wrong = http.get(f"/v1/videos/{job['id']}/result")
+    assert wrong.status_code == 409 and wrong.json()["code"] == "not_a_video_job"
+    assert f"/v1/jobs/{job['id']}/result" in wrong.json()["message"]
 
 
 def test_bad_uploads_are_refused(client: Client) -> None:
