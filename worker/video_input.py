@@ -10,9 +10,12 @@ Formats
   (``frame_2.png`` before ``frame_10.png``); parameters from the first frame's text
   chunk. Entries that are not ``.png`` (folders, ``__MACOSX``) are ignored.
 
-The frame count (``max_frames``) and the pixels per frame (``max_pixels``) are
-checked from headers before pixel data is decoded. Caller overrides (flags, form
-fields) win over stored parameters, as for single frames.
+The frame count (``max_frames``), the pixels per frame (``max_pixels``) and the code
+values of the whole video (``max_samples``: frames x pixels x channels) are checked
+from headers before pixel data is decoded, and no zip entry is inflated beyond what a
+PNG frame of ``max_pixels`` can hold (a few MB of zip can declare gigabytes).
+Caller overrides (flags, form fields) win over stored parameters, as for single
+frames.
 """
 
 from __future__ import annotations
@@ -32,10 +35,27 @@ from numpy.typing import NDArray
 from models.decoders.base import check_frame_shape
 from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
 from models.formation import SensorParams, validate_codes
-from models.frames import check_pixel_count, decode_frame, decoding, merge_params, tiff_params
+from models.frames import (
+    WrappedFrame,
+    check_pixel_count,
+    decode_frame,
+    decoding,
+    merge_params,
+    tiff_params,
+)
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 _ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
+
+
+@dataclass(frozen=True)
+class VideoLimits:
+    """What a wrapped video may hold (None: no limit): ``pixels`` per frame, ``frames``,
+    and ``samples``, its code values in all (frames x pixels x channels)."""
+
+    pixels: int | None = None
+    frames: int | None = None
+    samples: int | None = None
 
 
 @dataclass(frozen=True)
@@ -73,15 +93,34 @@ def check_frame_count(count: int, max_frames: int | None) -> None:
         )
 
 
-def _read_tiff(
-    data: bytes, max_pixels: int | None, max_frames: int | None
-) -> tuple[NDArray[Any], dict[str, Any]]:
+def check_sample_count(frames: int, frame_shape: tuple[int, ...], max_samples: int | None) -> None:
+    """Refuse a video whose code values (``frames`` x the product of ``frame_shape``)
+    exceed ``max_samples``."""
+    samples = frames * int(np.prod(frame_shape, dtype=np.int64))
+    if max_samples is not None and samples > max_samples:
+        shape = " x ".join(str(n) for n in (frames, *frame_shape))
+        raise ImageTooLargeError(
+            f"the video holds {samples} code values ({shape}), above the limit of "
+            f"{max_samples}; send fewer or smaller frames, or raise the limit "
+            "(MCAM_MAX_VIDEO_SAMPLES)"
+        )
+
+
+def png_entry_limit(max_pixels: int | None) -> int | None:
+    """Most bytes a zip entry may inflate to: a 16-bit grayscale PNG frame of
+    ``max_pixels`` stored without compression is under ``2 * max_pixels`` plus row
+    filters and chunk headers; twice that and 1 MiB leaves room for any real PNG."""
+    return None if max_pixels is None else 4 * max_pixels + 2**20
+
+
+def _read_tiff(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
     with tifffile.TiffFile(io.BytesIO(data)) as tif:
         pages = tif.pages
-        check_frame_count(len(pages), max_frames)
+        check_frame_count(len(pages), limits.frames)
         first = pages.first
-        check_pixel_count(int(first.imagewidth), int(first.imagelength), max_pixels)
+        check_pixel_count(int(first.imagewidth), int(first.imagelength), limits.pixels)
         shape = first.shape
+        check_sample_count(len(pages), shape, limits.samples)
         frames = []
         for page in pages:
             if page.shape != shape:
@@ -93,9 +132,7 @@ def _read_tiff(
         return np.stack(frames), tiff_params(first.description)
 
 
-def _read_npy(
-    data: bytes, max_pixels: int | None, max_frames: int | None
-) -> tuple[NDArray[Any], dict[str, Any]]:
+def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
     buffer = io.BytesIO(data)
     version = np.lib.format.read_magic(buffer)
     header = (
@@ -109,8 +146,9 @@ def _read_npy(
             f"a wrapped video is an array T x H x W or T x H x W x C, got shape {shape}; "
             "send a single frame as a frame, not a video"
         )
-    check_frame_count(shape[0], max_frames)
-    check_pixel_count(shape[2], shape[1], max_pixels)
+    check_frame_count(shape[0], limits.frames)
+    check_pixel_count(shape[2], shape[1], limits.pixels)
+    check_sample_count(shape[0], shape[1:], limits.samples)
     buffer.seek(0)
     return np.load(buffer, allow_pickle=False), {}
 
@@ -121,56 +159,76 @@ def _natural_key(name: str) -> list[Any]:
 
 
 def _read_zip(
-    data: bytes, overrides: dict[str, Any] | None, max_pixels: int | None, max_frames: int | None
+    data: bytes, overrides: dict[str, Any] | None, limits: VideoLimits
 ) -> WrappedVideo:
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
-        names = sorted(
+        entries = sorted(
             (
-                info.filename
+                info
                 for info in archive.infolist()
                 if not info.is_dir()
                 and info.filename.lower().endswith(".png")
                 and not info.filename.startswith("__MACOSX/")
             ),
-            key=_natural_key,
+            key=lambda info: _natural_key(info.filename),
         )
-        if not names:
+        if not entries:
             raise InvalidInputError(
                 f"the zip holds no .png frame ({len(archive.infolist())} other entries); a "
                 "wrapped video as a zip is one PNG of codes per frame, named in frame order"
             )
-        check_frame_count(len(names), max_frames)
-        frames = [decode_frame(archive.read(names[0]), "png", overrides, max_pixels)]
-        for name in names[1:]:
-            frame = decode_frame(archive.read(name), "png", overrides, max_pixels)
-            if frame.codes.shape != frames[0].codes.shape or frame.params != frames[0].params:
+        check_frame_count(len(entries), limits.frames)
+        first = _zip_frame(archive, entries[0], overrides, limits)
+        check_sample_count(len(entries), first.codes.shape, limits.samples)
+        frames = [first]
+        for entry in entries[1:]:
+            frame = _zip_frame(archive, entry, overrides, limits)
+            if frame.codes.shape != first.codes.shape or frame.params != first.params:
                 raise InvalidInputError(
-                    f"{name} differs from {names[0]} in size or parameters; all frames of a "
-                    "video share one size and one set of sensor parameters"
+                    f"{entry.filename} differs from {entries[0].filename} in size or "
+                    "parameters; all frames of a video share one size and one set of sensor "
+                    "parameters"
                 )
             frames.append(frame)
-    return WrappedVideo(np.stack([f.codes for f in frames]), frames[0].params)
+    return WrappedVideo(np.stack([f.codes for f in frames]), first.params)
+
+
+def _zip_frame(
+    archive: zipfile.ZipFile,
+    entry: zipfile.ZipInfo,
+    overrides: dict[str, Any] | None,
+    limits: VideoLimits,
+) -> WrappedFrame:
+    """One PNG frame of a zip, refused before inflating when its declared size is more
+    than a frame of ``limits.pixels`` can take (zipfile reads no further than that size)."""
+    most = png_entry_limit(limits.pixels)
+    if most is not None and entry.file_size > most:
+        raise ImageTooLargeError(
+            f"{entry.filename} inflates to {entry.file_size} bytes, more than a PNG frame of "
+            f"at most {limits.pixels} pixels can hold ({most}); send smaller frames"
+        )
+    return decode_frame(archive.read(entry), "png", overrides, limits.pixels)
 
 
 def decode_video(
     data: bytes,
     fmt: str,
     overrides: dict[str, Any] | None = None,
-    max_pixels: int | None = None,
-    max_frames: int | None = None,
+    limits: VideoLimits | None = None,
 ) -> WrappedVideo:
     """Decode a wrapped video's bytes; ``overrides`` fill in or replace stored params.
 
     Frames a decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
     here, before a job is queued."""
     fmt = video_format(fmt)
+    limits = limits or VideoLimits()
     if fmt == "zip":
         with decoding("the ZIP video"):
-            video = _read_zip(data, overrides, max_pixels, max_frames)
+            video = _read_zip(data, overrides, limits)
     else:
         reader = _read_tiff if fmt == "tiff" else _read_npy
         with decoding(f"the {fmt.upper()} video"):
-            codes, stored = reader(data, max_pixels, max_frames)
+            codes, stored = reader(data, limits)
         params = merge_params(stored, overrides)
         codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
         video = WrappedVideo(codes, params)
@@ -181,9 +239,8 @@ def decode_video(
 def read_video(
     path: str | os.PathLike[str],
     overrides: dict[str, Any] | None = None,
-    max_pixels: int | None = None,
-    max_frames: int | None = None,
+    limits: VideoLimits | None = None,
 ) -> WrappedVideo:
     """Read a wrapped-video file; the format follows the file's suffix."""
     fmt = video_format(path)
-    return decode_video(Path(path).read_bytes(), fmt, overrides, max_pixels, max_frames)
+    return decode_video(Path(path).read_bytes(), fmt, overrides, limits)

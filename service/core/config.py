@@ -36,6 +36,14 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
     max_pixels: int = Field(4096 * 4096, gt=0, description="per frame (all frames of a video)")
     max_video_frames: int = Field(600, gt=0)
+    max_video_samples: int = Field(
+        2**26,
+        gt=0,
+        le=2**27,
+        description="code values of a whole video (frames x pixels x channels); a job "
+        "stores them as one Redis value (2 bytes each, Redis takes at most 512 MB) and a "
+        "worker holds about 20 bytes each while decoding",
+    )
     rate_limit_per_minute: int = Field(600, gt=0, description="requests per API key in any 60 s")
     max_prefer_wait_s: float = Field(
         60.0, ge=0, description="longest 'Prefer: wait=N' a request may block for its job"

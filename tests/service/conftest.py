@@ -92,6 +92,7 @@ def make_settings(tmp_path: Path, redis_url: str | None, **overrides: object) ->
         "api_keys": f"{FULL_KEY},{READ_KEY}:read,{SUBMIT_KEY}:submit",
         "max_upload_bytes": 2_000_000,
         "max_pixels": 512 * 512,
+        "max_video_samples": 2_000_000,
         "heartbeat_s": 0.5,
         "default_decoder": "itoh",
         "rate_limit_per_minute": 1_000_000,  # tests that poll must not be limited on slow CI

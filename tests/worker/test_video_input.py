@@ -17,7 +17,7 @@ from models.errors import (
 )
 from models.formation import SensorParams
 from models.frames import encode_frame
-from worker.video_input import decode_video, read_video, video_format
+from worker.video_input import VideoLimits, decode_video, read_video, video_format
 
 PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
 FLAGS = {"encoding": "mantissa", "alpha": 2.0, "bits": 8}
@@ -91,11 +91,30 @@ def test_read_video_from_a_path(tmp_path) -> None:
 
 def test_limits_are_checked() -> None:
     with pytest.raises(ImageTooLargeError, match="frames"):
-        decode_video(npy_bytes(codes(5)), "npy", FLAGS, max_frames=4)
+        decode_video(npy_bytes(codes(5)), "npy", FLAGS, VideoLimits(frames=4))
     with pytest.raises(ImageTooLargeError, match="pixels"):
-        decode_video(tiff_bytes(codes()), "tiff", max_pixels=29)
+        decode_video(tiff_bytes(codes()), "tiff", limits=VideoLimits(pixels=29))
     with pytest.raises(ImageTooLargeError, match="frames"):
-        decode_video(zip_bytes(codes(5)), "zip", max_frames=4)
+        decode_video(zip_bytes(codes(5)), "zip", limits=VideoLimits(frames=4))
+
+
+@pytest.mark.parametrize("fmt", ["npy", "tiff", "zip"])
+def test_the_whole_video_is_bounded_in_code_values(fmt: str) -> None:
+    """4 frames of 6 x 5 codes: 120 values pass a limit of 120 and fail one of 119."""
+    data = {"npy": npy_bytes, "tiff": tiff_bytes, "zip": zip_bytes}[fmt](codes())
+    assert decode_video(data, fmt, FLAGS, VideoLimits(samples=120)).frames == 4
+    with pytest.raises(ImageTooLargeError, match=r"120 code values \(4 x 6 x 5\).*119"):
+        decode_video(data, fmt, FLAGS, VideoLimits(samples=119))
+
+
+def test_a_zip_entry_that_inflates_past_any_frame_is_not_inflated() -> None:
+    """A zip bomb: 4 MiB of zeros in a few KB, declared as a PNG frame."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("frame_0.png", bytes(4 * 2**20))
+    assert len(buffer.getvalue()) < 2**15
+    with pytest.raises(ImageTooLargeError, match="frame_0.png inflates to 4194304 bytes"):
+        decode_video(buffer.getvalue(), "zip", FLAGS, VideoLimits(pixels=64 * 64))
 
 
 @pytest.mark.parametrize(

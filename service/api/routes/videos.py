@@ -30,7 +30,7 @@ from service.api.schemas import (
 from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
 from worker.temporal_config import TemporalConfig
-from worker.video_input import decode_video
+from worker.video_input import VideoLimits, decode_video
 from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
 from worker.video_output import REFERENCE_WHITE
 from worker.video_pipeline import OUTPUTS
@@ -119,9 +119,10 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields) -> Response
     """Decode the upload, check the options and queue the job."""
     settings = state.settings
     fmt = sniff_video_format(upload, fields.format)
-    video = decode_video(
-        upload.data, fmt, fields.sensor_overrides(), settings.max_pixels, settings.max_video_frames
+    limits = VideoLimits(
+        settings.max_pixels, settings.max_video_frames, settings.max_video_samples
     )
+    video = decode_video(upload.data, fmt, fields.sensor_overrides(), limits)
     decoder = fields.decoder or settings.default_decoder
     options = fields.video_job_options()
     video_options(decoder, options)

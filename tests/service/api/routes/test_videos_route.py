@@ -10,6 +10,7 @@ import av
 import httpx
 import numpy as np
 import OpenEXR
+import tifffile
 
 from models.formation import SensorParams, encode
 from models.frames import encode_frame
@@ -130,3 +131,21 @@ def test_bad_uploads_are_refused(client: Client) -> None:
         reply = http.post("/v1/videos", files=files, data=data)
         assert reply.status_code == status, reply.text
         assert fragment in reply.text
+
+
+def test_uploads_that_inflate_past_the_limits_are_refused_unread(client: Client) -> None:
+    """A few KB that would decode to more than the service takes: 413 naming the limit."""
+    pages = io.BytesIO()
+    tifffile.imwrite(pages, np.zeros((40, 256, 256), np.uint8), compression="zlib")
+    bomb = io.BytesIO()
+    with zipfile.ZipFile(bomb, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("frame_0.png", bytes(64 * 2**20))
+    http = client()
+    for name, data, fragment in [
+        ("clip.tiff", pages.getvalue(), "2621440 code values (40 x 256 x 256)"),
+        ("clip.zip", bomb.getvalue(), "frame_0.png inflates to 67108864 bytes"),
+    ]:
+        assert len(data) < 200_000
+        reply = http.post("/v1/videos", files={"file": (name, data)}, data=FLAGS)
+        assert reply.status_code == 413, reply.text
+        assert reply.json()["code"] == "image_too_large" and fragment in reply.json()["message"]
