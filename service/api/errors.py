@@ -14,6 +14,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.errors import McamError
 
@@ -102,19 +103,46 @@ async def redis_error(_: Request, exc: Exception) -> JSONResponse:
     )
 
 
-async def internal_error(request: Request, exc: Exception) -> JSONResponse:
-    log.exception("internal error on %s %s", request.method, request.url.path, exc_info=exc)
-    return JSONResponse(
-        error_body("internal_error", "an internal error occurred; it has been logged"),
-        status_code=500,
-    )
+class InternalErrorMiddleware:
+    """ASGI middleware turning a bug (any exception no handler took) into a logged JSON
+    500. Starlette's own handler for ``Exception`` answers and then re-raises, so the
+    server drops the connection and the client's next request on it fails too; this
+    one answers and lets the connection live. A bug after the response started (a
+    stream) can only end that response."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked_send(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked_send)
+        except Exception:
+            if started:
+                raise
+            log.exception("internal error on %s %s", scope["method"], scope["path"])
+            response = JSONResponse(
+                error_body("internal_error", "an internal error occurred; it has been logged"),
+                status_code=500,
+            )
+            await response(scope, receive, send)
 
 
 def install_error_handlers(app: FastAPI) -> None:
-    """Register the JSON error handlers on ``app``."""
+    """Register the JSON error handlers on ``app`` and, innermost of its middleware,
+    :class:`InternalErrorMiddleware` (install before any other middleware)."""
     app.add_exception_handler(McamError, mcam_error)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_exception_handler(HTTPException, http_error)
     app.add_exception_handler(redis.exceptions.ConnectionError, redis_error)
     app.add_exception_handler(redis.exceptions.TimeoutError, redis_error)
-    app.add_exception_handler(Exception, internal_error)
+    app.add_middleware(InternalErrorMiddleware)

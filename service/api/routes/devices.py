@@ -13,6 +13,7 @@ from fastapi.responses import StreamingResponse
 
 from device.commands import Command, command_fields
 from device.health import ALL_DROP_CAUSES
+from models.errors import InvalidInputError
 from models.hdr_io import read_hdr
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import download
@@ -117,6 +118,16 @@ def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
     return download(tonemap_png(pixels, exposure), "png", stem)
 
 
+def _check_entry_id(name: str, value: str | None) -> None:
+    """Refuse an event id Redis would reject once the stream has started: both parts of
+    ``<ms>-<seq>`` are unsigned 64-bit integers."""
+    if value and "-" in value and any(int(part) >= 2**64 for part in value.split("-")):
+        raise InvalidInputError(
+            f"{name} {value!r} is not an event id: both parts of '<ms>-<seq>' are below "
+            "2^64; resume from the last id the stream sent, or leave it out for new events"
+        )
+
+
 def _event_lines(client: redis.Redis, device: str, since: str, limit: int | None) -> Iterator[str]:
     """Server-sent events from ``events:<device>``, after entry ``since``."""
     sent = 0
@@ -148,6 +159,8 @@ def events(device_id: str, state: StateDep, _key: ReadKey,
            last_event_id: Annotated[str | None, Header(pattern=r"^\d+-\d+$")] = None,
            ) -> StreamingResponse:
     device = known_device(state, device_id)
+    for name, value in (("since", since), ("Last-Event-ID", last_event_id)):
+        _check_entry_id(name, value)
     start = last_event_id or since
     if start == "$":
         newest = state.client.xrevrange(events_stream(device), count=1)

@@ -61,6 +61,11 @@ def test_devices_health_control_latest_and_events(
         assert events.headers["content-type"].startswith("text/event-stream")
         body = "".join(events.iter_text())
     assert body.count("event: frame") == 2 and '"sequence": "0"' in body
+    huge = "1-" + "9" * 23
+    for params, headers in [({"since": huge}, {}), ({}, {"Last-Event-ID": huge})]:
+        refused = http.get("/v1/devices/cam1/events", params=params, headers=headers)
+        assert refused.status_code == 422, refused.text
+        assert "below 2^64" in refused.json()["message"]
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -5,8 +5,11 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import httpx
+import pytest
 
-from tests.service.conftest import FULL_KEY
+from service.core.config import Settings
+from service.main import create_app
+from tests.service.conftest import FULL_KEY, serve
 
 Client = Callable[[str], httpx.Client]
 
@@ -31,3 +34,25 @@ def test_field_errors_name_the_field(client: Client) -> None:
     )
     assert reply.status_code == 422
     assert reply.json()["details"][0]["field"] == "set_frame_rate.fps"
+
+
+def test_a_bug_is_a_logged_json_500_and_the_connection_lives_on(
+    settings: Settings, caplog: pytest.LogCaptureFixture
+) -> None:
+    app = create_app(settings)
+
+    def broken() -> None:
+        raise RuntimeError("a bug")
+
+    app.add_api_route("/v1/broken", broken)
+    app.router.routes.insert(0, app.router.routes.pop())  # ahead of the viewer's "/" mount
+    with serve(app) as url, httpx.Client(base_url=url) as http:
+        reply = http.get("/v1/broken")
+        assert reply.status_code == 500
+        assert reply.json() == {
+            "code": "internal_error",
+            "message": "an internal error occurred; it has been logged",
+        }
+        assert "a bug" not in reply.text
+        assert http.get("/health/live").status_code == 200
+    assert any("internal error on GET /v1/broken" in r.getMessage() for r in caplog.records)
