@@ -39,8 +39,6 @@ import logging
 import multiprocessing
 import os
 import signal
-import threading
-import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -50,6 +48,8 @@ import numpy as np
 
 from models.decoders.learned import THREAD_VARIABLES
 from models.errors import McamError
+from models.formation import narrow_winding
+from worker.child_process import watch_parent
 from worker.device_state import DecodedFrame, DeviceState, FrameDecoder, make_frame_decoder, warm_up
 from worker.frame_message import FrameMessage
 
@@ -70,8 +70,6 @@ SMOOTHING = 0.2
 
 #: Seconds the processes of a new pool may take to start and warm up together.
 START_TIMEOUT_S = 300.0
-#: How often a pool process checks that its worker is still alive (s).
-PARENT_CHECK_S = 1.0
 
 _decode: FrameDecoder | None = None
 _all_started: Barrier | None = None
@@ -84,7 +82,7 @@ def _start(decoder: str, all_started: Barrier, worker: int) -> None:
     decoder built and warmed."""
     global _decode, _all_started
     _all_started = all_started
-    threading.Thread(target=_exit_with, args=(worker,), daemon=True).start()
+    watch_parent(worker)
     os.environ.update(dict.fromkeys(THREAD_VARIABLES, str(PROCESS_THREADS)))
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from models.allocator import keep_freed_memory
@@ -92,15 +90,6 @@ def _start(decoder: str, all_started: Barrier, worker: int) -> None:
     keep_freed_memory()
     _decode = make_frame_decoder("independent", decoder)
     warm_up(decoder)
-
-
-def _exit_with(worker: int) -> None:
-    """Exit this pool process once its worker (pid ``worker``) is gone. A worker killed
-    outright (SIGKILL, out of memory) cannot shut its pool down, and a pool process
-    waiting for work would otherwise wait for ever."""
-    while os.getppid() == worker:
-        time.sleep(PARENT_CHECK_S)
-    os._exit(0)
 
 
 def _ready() -> int:
@@ -116,8 +105,7 @@ def _decode_frame(message: FrameMessage) -> DecodedFrame:
     it (int16 for any W a 16-bit code can wrap to: 4x less to copy than int64)."""
     assert _decode is not None, "pool process started without its decoder"
     frame = _decode(DeviceState(message.device), message)
-    narrow = np.min_scalar_type(-max(abs(int(frame.winding.min())), int(frame.winding.max())) - 1)
-    frame.winding = frame.winding.astype(narrow)
+    frame.winding = narrow_winding(frame.winding)
     return frame
 
 

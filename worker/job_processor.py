@@ -2,7 +2,8 @@
 
 Usage (inside the worker)::
 
-    processor = JobProcessor(client, store, max_deliveries=3, stop=stop_event)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=stop_event,
+                             child=ChildProcess(start_job_child, ("auto",)))
     processor.handle(consumer, delivery)      # never raises for a job's own failure
 
 Each job kind has a handler ``handler(ctx: JobContext, codes) -> JobOutcome``
@@ -13,6 +14,13 @@ calls ``ctx.check()`` between steps (raises when the job was cancelled) and, if
 it runs long, ``ctx.check_stop()`` (raises when the worker is stopping: the job
 is handed back to the queue). Results are keyed by job id (``jobs/<id>/...``), so a
 redelivered job overwrites identical files and never duplicates them.
+
+A reconstruction's decode runs in the job thread's child process
+(:class:`worker.child_process.ChildProcess`, warmed up on the worker's decoder when
+the worker starts): a decode that holds the interpreter lock for minutes (graph cuts
+on a large frame) cannot stall the worker's heartbeat, leases and streams, and a job
+cancelled mid-decode ends it at once (the child is killed; the next job starts a new
+one). A video job decodes its frames in the worker process and stops between frames.
 """
 
 from __future__ import annotations
@@ -29,9 +37,13 @@ import numpy as np
 import redis
 from numpy.typing import NDArray
 
+from models.allocator import keep_freed_memory
 from models.decoders.registry import get_decoder
 from models.errors import McamError
+from models.formation import SensorParams, narrow_winding
+from worker.child_process import ChildProcess
 from worker.deliveries import Delivery, StreamConsumer
+from worker.device_state import warm_up
 from worker.job_store import JobStore
 from worker.jobs import JobError, JobNotFoundError, JobRecord, JobState
 from worker.metrics import Metrics
@@ -69,12 +81,24 @@ class JobOutcome:
 
 @dataclass
 class JobContext:
-    """What a handler may use while it runs one job."""
+    """What a handler may use while it runs one job; ``child`` decodes its frame (None:
+    in this process)."""
 
     record: JobRecord
     jobs: JobStore
     store: ResultStore
     stop: threading.Event
+    child: ChildProcess | None = None
+
+    def decode(self, codes: NDArray[np.unsignedinteger]) -> StillDecode:
+        """The job's frame (codes, DN) decoded by its decoder, in the child process when
+        there is one; raises :class:`JobCancelled` as soon as the job is cancelled (a
+        worker that is stopping finishes the frame, as it would in this process)."""
+        args = (self.record.decoder, codes, self.record.params)
+        if self.child is None:
+            return decode_still(*args)
+        result: StillDecode = self.child.call(decode_still, args, self.check)
+        return result
 
     def check(self) -> None:
         """Raise :class:`JobCancelled` when the job was cancelled."""
@@ -108,11 +132,36 @@ class JobContext:
 JobHandler = Callable[[JobContext, NDArray[np.unsignedinteger]], JobOutcome]
 
 
+@dataclass(frozen=True)
+class StillDecode:
+    """A decoded still frame as it travels back from the child: W in its narrowest
+    integer type, the decoder's facts and its timings (ns)."""
+
+    winding: NDArray[np.signedinteger]
+    info: dict[str, Any]
+    timings_ns: dict[str, int]
+
+
+def decode_still(
+    decoder: str, codes: NDArray[np.unsignedinteger], params: SensorParams
+) -> StillDecode:
+    """Decode one frame with ``decoder`` (run in a job's child process)."""
+    result = get_decoder(decoder).decode(codes, params)
+    return StillDecode(narrow_winding(result.winding), result.info, result.timings_ns)
+
+
+def start_job_child(decoder: str) -> None:
+    """A job child's initializer: the command line's allocator settings, and
+    ``decoder`` (the worker's) built and warmed so a first job does not wait for it."""
+    keep_freed_memory()
+    warm_up(decoder)
+
+
 def reconstruct_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:
     """Decode one frame with the job's decoder; write the EXR and the winding map. (Its
     progress is set with its final state: a write per job fewer, each an fsync.)"""
     record = ctx.record
-    result = get_decoder(record.decoder).decode(codes, record.params)
+    result = ctx.decode(codes)
     ctx.check()
     start = time.perf_counter_ns()
     files = encode_outputs(codes, result.winding, record.params, result.info, record.options)
@@ -153,12 +202,14 @@ class JobProcessor:
         *,
         max_deliveries: int,
         stop: threading.Event,
+        child: ChildProcess | None = None,
     ) -> None:
         self.jobs = JobStore(client)
         self.metrics = Metrics(client)
         self.store = store
         self.max_deliveries = max_deliveries
         self.stop = stop
+        self.child = child
 
     def handle(self, consumer: StreamConsumer, delivery: Delivery) -> None:
         """Process one entry to a final outcome: done, failed (dead letter) or handed back.
@@ -219,7 +270,7 @@ class JobProcessor:
         if not changed:
             self._finish(consumer, delivery, record.id)
             return
-        ctx = JobContext(record, self.jobs, self.store, self.stop)
+        ctx = JobContext(record, self.jobs, self.store, self.stop, self.child)
         outcome = load_handler(record.kind)(ctx, entry_codes(delivery.fields))
         finished = time.time_ns()
         timings = {

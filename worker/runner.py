@@ -7,7 +7,8 @@ Usage::
 
 Threads: ``concurrency`` job consumers on the ``jobs`` stream (each its own
 consumer in the ``workers`` group: reclaim entries idle > ``claim_idle_ms``, else
-read new ones), one device consumer (leases + in-order frames, see
+read new ones; each decodes its jobs' frames in a child process of its own, see
+:mod:`worker.job_processor`), one device consumer (leases + in-order frames, see
 ``worker/device_consumer.py``), and the main thread, which writes this worker's
 heartbeat to the ``workers`` hash every ``heartbeat_s``, renews its device leases
 (so ``heartbeat_s`` must be shorter than ``lease_ms``), keeps its in-flight jobs
@@ -37,12 +38,13 @@ import redis
 
 from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
+from worker.child_process import ChildProcess
 from worker.decode_pool import DecodePool
 from worker.deliveries import Delivery, StreamConsumer
 from worker.device_consumer import DeviceConsumer
 from worker.device_state import FrameDecoder, make_frame_decoder, warm_up
 from worker.embedded_redis import connect
-from worker.job_processor import JobProcessor
+from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
 from worker.result_store import RESULTS_DIR, ResultStore
@@ -178,8 +180,13 @@ class Worker:
                 self.stop.wait(RECONNECT_S)
 
     def _job_loop(self, index: int) -> None:
+        child = ChildProcess(start_job_child, (self.config.decoder,))
         processor = JobProcessor(
-            self.client, self.store, max_deliveries=self.config.max_deliveries, stop=self.stop
+            self.client,
+            self.store,
+            max_deliveries=self.config.max_deliveries,
+            stop=self.stop,
+            child=child,
         )
         consumer: StreamConsumer | None = None
 
@@ -206,6 +213,7 @@ class Worker:
                 self.jobs_done += 1
 
         self._resilient(step)
+        child.close()
 
     def _stream_decoder(self) -> FrameDecoder | DecodePool:
         """The live frames' decoder, warmed up: a pool of ``stream_processes`` processes

@@ -7,6 +7,7 @@ and per-device ordering through two workers with a takeover.
 from __future__ import annotations
 
 import io
+import json
 import os
 import signal
 from collections.abc import Callable
@@ -198,6 +199,30 @@ def test_cancel_while_running_is_honoured(
     record = queue.get(job.id)
     assert record.state is JobState.CANCELLED and record.results == {}
     assert client.xlen(DEAD_LETTER_STREAM) == 0
+
+
+def test_cancelling_a_long_decode_stops_it_and_the_worker_stays_live(
+    queue: JobQueue, client: redis.Redis, workers, wait_until, finished, make_frame
+) -> None:
+    """Graph cuts on 1024 x 1024 random codes run about a minute on one core, most of it
+    holding the interpreter lock: in the job's child process the worker keeps beating,
+    and a cancel kills the decode at once, leaving the worker ready for the next job."""
+    codes = np.random.default_rng(0).integers(0, 256, (1024, 1024)).astype(np.uint8)
+    job = queue.submit("reconstruction", codes, SensorParams(encoding="modulo"), "graphcut")
+    worker = workers.start()
+    wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
+
+    def beat_ns() -> int:
+        return json.loads(client.hvals(WORKERS_HEARTBEAT)[0])["ts_ns"]
+
+    first = beat_ns()
+    wait_until(lambda: beat_ns() > first, 20, "a heartbeat while the decode runs")
+    assert queue.cancel(job.id).state is JobState.CANCELLED
+    wait_until(lambda: client.xlen(JOBS_STREAM) == 0, 20, "the cancelled decode stopped")
+    frame: SensorFrame = make_frame()
+    after = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    assert finished(queue, after.id).state is JobState.SUCCEEDED
+    assert worker.poll() is None
 
 
 def frame_events(client: redis.Redis, device: str) -> list[dict[str, str]]:

@@ -1,0 +1,192 @@
+"""A child process the worker hands one call at a time, and kills when it must stop.
+
+Usage (a job consumer thread of the worker)::
+
+    child = ChildProcess(warm_up, ("auto",))           # spawned now, warms up meanwhile
+    result = child.call(decode_still, (name, codes, params), should_stop=ctx.check)
+    child.close()
+
+Why: most of a refined or graph-cut decode holds the interpreter lock (PyMaxflow's
+min-cuts, seconds each on a large frame). Run in a worker thread, a long one starved
+the worker's other threads: its heartbeat went stale (the service reported no worker),
+its device leases lapsed, and a cancelled job ran on for minutes since nothing could
+stop it between two min-cuts. In a child process the worker's threads keep running,
+and ``should_stop`` (polled every :data:`POLL_S` while the child works) ends the call
+at once: the child is killed, the exception ``should_stop`` raised propagates, and the
+next call starts a fresh child.
+
+A child that dies while working (killed, out of memory) fails its call with
+:class:`ChildDiedError`. Children exit by themselves when their worker is gone
+(:func:`watch_parent`), so a worker killed outright leaves none behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import pickle
+import signal
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from typing import Any
+
+from models.errors import McamError
+
+log = logging.getLogger(__name__)
+
+#: How often a waiting call asks ``should_stop`` (s).
+POLL_S = 0.2
+#: How often a child checks that its worker is still alive (s).
+PARENT_CHECK_S = 1.0
+#: How long a closing child may take to exit before it is killed (s).
+CLOSE_TIMEOUT_S = 5.0
+
+
+class ChildDiedError(McamError):
+    """The child process died while it worked on a call."""
+
+    code = "decoder_crashed"
+
+
+def watch_parent(parent: int) -> None:
+    """In a child: exit once the process ``parent`` (its pid, passed in since it may be
+    gone before this runs) is no longer this process's parent. A worker killed outright
+    (SIGKILL, out of memory) cannot stop its children, and a child waiting for work
+    would otherwise wait for ever."""
+
+    def exit_with_parent() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(0)
+
+    threading.Thread(target=exit_with_parent, daemon=True).start()
+
+
+def _serve(
+    conn: Connection, parent: int, initializer: Callable[..., Any] | None, initargs: tuple
+) -> None:
+    """The child's loop: run each ``(function, args)`` received, send back ``("ok",
+    result)`` or ``("error", exception, traceback text)``; stop at end of input."""
+    watch_parent(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the worker's to handle
+    if initializer is not None:
+        initializer(*initargs)
+    while True:
+        try:
+            function, args = conn.recv()
+        except EOFError:
+            return
+        try:
+            reply: tuple[Any, ...] = ("ok", function(*args))
+        except Exception as exc:
+            reply = ("error", _portable(exc), traceback.format_exc())
+        conn.send(reply)
+
+
+def _portable(exc: Exception) -> Exception:
+    """``exc`` if it survives pickling, else a RuntimeError naming it."""
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:
+        return RuntimeError(f"{type(exc).__name__}: {exc}")
+    return exc
+
+
+class ChildProcess:
+    """One spawned child running calls one at a time (see the module docstring)."""
+
+    def __init__(
+        self, initializer: Callable[..., Any] | None = None, initargs: tuple = ()
+    ) -> None:
+        self.initializer = initializer
+        self.initargs = initargs
+        self._context = multiprocessing.get_context("spawn")
+        self._process: BaseProcess | None = None
+        self._conn: Connection | None = None
+        self.start()
+
+    @property
+    def pid(self) -> int | None:
+        """The running child's pid (None between a kill and the next call)."""
+        return self._process.pid if self._process is not None else None
+
+    def start(self) -> None:
+        """Spawn the child if none runs (it initializes while the worker goes on)."""
+        if self._process is not None and self._process.is_alive():
+            return
+        self._discard()
+        ours, theirs = self._context.Pipe()
+        process = self._context.Process(
+            target=_serve,
+            args=(theirs, os.getpid(), self.initializer, self.initargs),
+            name="mcam-job-decoder",
+            daemon=True,
+        )
+        process.start()
+        theirs.close()
+        self._process, self._conn = process, ours
+
+    def call(
+        self, function: Callable[..., Any], args: tuple, should_stop: Callable[[], None]
+    ) -> Any:
+        """``function(*args)`` in the child (both picklable: a module-level function);
+        ``should_stop()`` is called while it runs, and whatever it raises kills the
+        child and propagates. The function's own exception is raised here."""
+        self.start()
+        assert self._process is not None and self._conn is not None
+        self._conn.send((function, args))
+        while not self._conn.poll(POLL_S):
+            if not self._process.is_alive():
+                raise self._died()
+            try:
+                should_stop()
+            except BaseException:
+                self.kill()
+                raise
+        try:
+            reply = self._conn.recv()
+        except EOFError:
+            raise self._died() from None
+        if reply[0] == "ok":
+            return reply[1]
+        _, exc, text = reply
+        if not isinstance(exc, McamError):
+            log.error("call in child %s failed:\n%s", self.pid, text)
+        raise exc
+
+    def kill(self) -> None:
+        """Kill the child now (the next call starts a new one)."""
+        if self._process is not None and self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+        self._discard()
+
+    def close(self) -> None:
+        """Let the child finish (end of input), killing it if it does not exit soon."""
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if self._process is not None:
+            self._process.join(CLOSE_TIMEOUT_S)
+        self.kill()
+
+    def _died(self) -> ChildDiedError:
+        code = self._process.exitcode if self._process is not None else None
+        self.kill()
+        how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit {code}"
+        return ChildDiedError(
+            f"the decoding process died ({how}; a signal 9 is often the system out of "
+            "memory) while it worked on this job; try a smaller frame or a lighter decoder"
+        )
+
+    def _discard(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+        if self._process is not None:
+            self._process.join(0)
+        self._process, self._conn = None, None
