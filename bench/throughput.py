@@ -6,8 +6,8 @@ that owns it (and a temporal stream's frames depend on each other). When there i
 than one thing to decode (several cameras, uploads, a batch of stills) what counts is
 how many frames all the cores finish per second, and that depends on how the workers
 use the cores: onnxruntime spreads a net over its intra-op threads, but the rest of a
-decode (scene analysis, the graph cuts of the refinement) runs on one core, and
-threads of one process share its interpreter lock.
+decode (scene analysis, the graph cuts of the refinement) runs on one core, and holds
+the interpreter lock of its process.
 
 ``python -m bench.throughput`` decodes the val-256 frames with each decoder in each
 *layout* (processes x job threads per process x onnxruntime threads per job), every
@@ -19,6 +19,9 @@ together, and reports the frames all of them finished per second of wall time:
   --threads 1``);
 - ``C x 1 x 1``: ``C`` workers of one thread each (``mcam serve --workers C --threads
   1``).
+
+Each job thread decodes in a child process of its own, as a worker's job threads do
+(:mod:`worker.job_processor`), so the handover (the codes there, W back) is counted.
 
 And one stream as the device consumer decodes it in independent mode: batches of
 frames decoded by a pool of ``C`` single-threaded processes
@@ -50,9 +53,11 @@ from models import metrics
 from models.decoders import get_decoder
 from models.decoders.learned import THREAD_VARIABLES
 from models.scenes import ValFrame, val256_frames
+from worker.child_process import ChildProcess
 from worker.decode_pool import DecodePool
 from worker.device_consumer import BATCH
 from worker.frame_message import FrameMessage
+from worker.job_processor import decode_still, start_job_child
 
 DECODERS = ("itoh", "auto-fast", "auto-balanced", "auto-best")
 #: Seconds a worker process may take to start, warm up and decode its share.
@@ -85,22 +90,28 @@ def layout_name(layout: tuple[int, int, int]) -> str:
 def decode_share(
     decoder: str, frames_of: FrameSet, repeats: int, jobs: int, start: Any, results: Any
 ) -> None:
-    """One worker process: warm up, wait for the others at ``start`` (a barrier), decode
-    every frame of ``frames_of`` ``repeats`` times on each of ``jobs`` threads, and put
-    (first start, last end in monotonic ns, frames decoded) on ``results``. The
-    onnxruntime thread count comes from the environment the parent set before starting
-    it."""
+    """One worker process: ``jobs`` job threads, each handing its frames to a child
+    process of its own as the worker's job threads do
+    (:class:`worker.child_process.ChildProcess`, :func:`worker.job_processor.decode_still`);
+    warm up, wait for the others at ``start`` (a barrier), decode every frame of
+    ``frames_of`` ``repeats`` times on each thread, and put (first start, last end in
+    monotonic ns, frames decoded) on ``results``. The onnxruntime thread count comes
+    from the environment the parent set before starting it."""
     frames = frames_of.load()
-    chosen = get_decoder(decoder)
-    for frame in frames:
-        chosen.decode(frame.codes, frame.params)
+    children = [ChildProcess(start_job_child, (decoder,)) for _ in range(jobs)]
 
-    def work() -> None:
+    def decode_all(child: ChildProcess) -> None:
+        for frame in frames:
+            child.call(decode_still, (decoder, frame.codes, frame.params), _never)
+
+    for child in children:
+        decode_all(child)
+
+    def work(child: ChildProcess) -> None:
         for _ in range(repeats):
-            for frame in frames:
-                chosen.decode(frame.codes, frame.params)
+            decode_all(child)
 
-    threads = [threading.Thread(target=work) for _ in range(jobs)]
+    threads = [threading.Thread(target=work, args=(child,)) for child in children]
     start.wait()
     began = time.monotonic_ns()
     for thread in threads:
@@ -108,6 +119,12 @@ def decode_share(
     for thread in threads:
         thread.join()
     results.put((began, time.monotonic_ns(), jobs * repeats * len(frames)))
+    for child in children:
+        child.close()
+
+
+def _never() -> None:
+    """A benchmark's decodes are never stopped."""
 
 
 @contextmanager

@@ -139,7 +139,10 @@ class ChildProcess:
         child and propagates. The function's own exception is raised here."""
         self.start()
         assert self._process is not None and self._conn is not None
-        self._conn.send((function, args))
+        try:
+            self._conn.send((function, args))
+        except OSError:
+            raise self._died() from None
         while not self._conn.poll(POLL_S):
             if not self._process.is_alive():
                 raise self._died()
@@ -150,7 +153,7 @@ class ChildProcess:
                 raise
         try:
             reply = self._conn.recv()
-        except EOFError:
+        except (EOFError, OSError):
             raise self._died() from None
         if reply[0] == "ok":
             return reply[1]
@@ -176,7 +179,10 @@ class ChildProcess:
         self.kill()
 
     def _died(self) -> ChildDiedError:
-        code = self._process.exitcode if self._process is not None else None
+        code = None
+        if self._process is not None:
+            self._process.join(CLOSE_TIMEOUT_S)  # its pipe closed first: let it be reaped
+            code = self._process.exitcode
         self.kill()
         how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit {code}"
         return ChildDiedError(
