@@ -43,6 +43,8 @@ from models.formation import SensorParams, validate_codes
 FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
 #: PNG text-chunk keyword holding the parameters as JSON.
 PNG_KEYWORD = "mantissacam"
+#: The eight bytes every PNG file starts with.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
@@ -180,6 +182,11 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[s
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
     except UnidentifiedImageError:
+        if data.startswith(PNG_SIGNATURE):
+            raise InvalidInputError(
+                "the PNG's header is damaged (PNG signature, but no readable image header: "
+                "zero or impossible size, bad chunk); send the frame as written"
+            ) from None
         raise InvalidInputError("the data is not a PNG image (bad or missing signature)") from None
     except Image.DecompressionBombError:
         raise ImageTooLargeError("the PNG image is too large to decode safely") from None

@@ -75,20 +75,39 @@ def _problem(error: dict[str, Any]) -> dict[str, str]:
     return {"field": _location(error["loc"]), "message": error["msg"]}
 
 
-async def validation_error(_: Request, exc: Exception) -> JSONResponse:
+def _media_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+async def validation_error(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     details = [_problem(err) for err in exc.errors()]
     problems = [f"{detail['field']}: {detail['message']}" for detail in details]
-    return JSONResponse(
-        error_body("invalid_input", "invalid request: " + "; ".join(problems), details=details),
-        status_code=422,
-    )
+    message = "invalid request: " + "; ".join(problems)
+    media = _media_type(request)
+    body_errors = any(tuple(err["loc"][:1]) == ("body",) for err in exc.errors())
+    if body_errors and media != "application/json":
+        message += (
+            f" (the body came as {media or 'no content type'!r} and was not read: send a "
+            "JSON object with the header 'Content-Type: application/json')"
+        )
+    return JSONResponse(error_body("invalid_input", message, details=details), status_code=422)
+
+
+#: FastAPI's words for a JSON body its parser gave up on (too deeply nested, say).
+UNPARSED_BODY = "There was an error parsing the body"
 
 
 async def http_error(_: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, HTTPException)
     if isinstance(exc.detail, dict):
         body = error_body(exc.detail["code"], exc.detail["message"])
+    elif exc.status_code == 400 and exc.detail == UNPARSED_BODY:
+        body = error_body(
+            "bad_request",
+            "the JSON body could not be parsed (nested too deeply, or not JSON); send a flat "
+            "JSON object of the documented fields",
+        )
     else:
         body = error_body(STATUS_CODES.get(exc.status_code, "error"), str(exc.detail))
     return JSONResponse(body, status_code=exc.status_code, headers=exc.headers)

@@ -16,16 +16,19 @@ from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException
 
 from models.decoders.adaptive_policy import QUALITIES
 from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
 from models.formation import SensorParams
+from models.frames import PNG_SIGNATURE
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
+from service.api.errors import ApiError
 
 Model = TypeVar("Model", bound=BaseModel)
 #: Leading bytes of the frame file formats we accept.
 _MAGIC: tuple[tuple[bytes, str], ...] = (
-    (b"\x89PNG\r\n\x1a\n", "png"),
+    (PNG_SIGNATURE, "png"),
     (b"II*\x00", "tiff"),
     (b"MM\x00*", "tiff"),
     (b"\x93NUMPY", "npy"),
@@ -105,11 +108,21 @@ class Upload:
 
 
 async def _read_multipart(request: Request) -> Upload:
-    async with request.form(max_files=1, max_fields=_MAX_FORM_FIELDS) as form:
+    try:
+        form = await request.form(max_files=1, max_fields=_MAX_FORM_FIELDS)
+    except HTTPException as exc:
+        raise ApiError(
+            exc.status_code, "bad_request",
+            f"the multipart/form-data body could not be read ({exc.detail.rstrip('.')}); send "
+            "one well-formed part per field, the file in 'file' with a short file name "
+            "(curl -F file=@frame.png)",
+        ) from None  # fmt: skip
+    try:
         file = form.get("file")
         if not isinstance(file, UploadFile):
             raise MissingParameterError(
-                "no file uploaded: send it in the multipart/form-data field 'file'"
+                "no file uploaded: send it in the multipart/form-data field 'file' (a body "
+                "cut short before its closing boundary loses the file too)"
             )
         fields: dict[str, str] = {}
         for name, value in form.multi_items():
@@ -119,6 +132,8 @@ async def _read_multipart(request: Request) -> Upload:
                 raise InvalidInputError(f"form field {name!r} must be text, not a file")
             fields[name] = value
         return Upload(await file.read(), file.filename, fields)
+    finally:
+        await form.close()
 
 
 async def read_upload(request: Request) -> Upload:

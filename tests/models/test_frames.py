@@ -24,6 +24,7 @@ from models.formation import SensorParams
 from models.frames import (
     FRAME_FORMATS,
     PNG_KEYWORD,
+    PNG_SIGNATURE,
     WrappedFrame,
     decode_frame,
     decode_raw,
@@ -208,6 +209,16 @@ def test_truncated_or_garbage_files_are_invalid_input(fmt: str) -> None:
     for broken in (data[: len(data) // 2], data[:10], b"not an image at all" * 10):
         with pytest.raises(InvalidInputError):
             decode_frame(broken, fmt, {"encoding": "modulo", "bits": 12})
+
+
+def test_a_png_with_a_zero_size_header_is_named_damaged() -> None:
+    header = struct.pack(">IIBBBBB", 0, 0, 8, 0, 0, 0, 0)
+    chunk = struct.pack(">I", len(header)) + b"IHDR" + header
+    data = PNG_SIGNATURE + chunk + struct.pack(">I", zlib.crc32(chunk[4:]))
+    with pytest.raises(InvalidInputError, match="PNG's header is damaged"):
+        decode_frame(data, "png", {"encoding": "modulo", "bits": 8})
+    with pytest.raises(InvalidInputError, match="not a PNG image"):
+        decode_frame(b"GIF89a" + data, "png", {"encoding": "modulo", "bits": 8})
 
 
 def test_bad_params_json_is_invalid_input() -> None:

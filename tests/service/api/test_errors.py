@@ -56,3 +56,25 @@ def test_a_bug_is_a_logged_json_500_and_the_connection_lives_on(
         assert "a bug" not in reply.text
         assert http.get("/health/live").status_code == 200
     assert any("internal error on GET /v1/broken" in r.getMessage() for r in caplog.records)
+
+
+def test_a_json_body_too_deep_to_parse_says_so(client: Client) -> None:
+    deep = "[" * 100_000 + "]" * 100_000
+    reply = client(FULL_KEY).post(
+        "/v1/devices/cam1/control",
+        content=deep.encode(),
+        headers={"Content-Type": "application/json"},
+    )
+    assert reply.status_code == 400, reply.text
+    assert reply.json()["code"] == "bad_request"
+    assert "could not be parsed" in reply.json()["message"]
+
+
+def test_a_body_that_is_not_sent_as_json_is_named(client: Client) -> None:
+    reply = client(FULL_KEY).post(
+        "/v1/devices/cam1/control",
+        content=b'{"command": "stop"}',
+        headers={"Content-Type": "text/plain"},
+    )
+    assert reply.status_code == 422, reply.text
+    assert "'text/plain' and was not read" in reply.json()["message"]

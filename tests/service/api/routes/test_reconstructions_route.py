@@ -232,6 +232,23 @@ def test_missing_file_field_and_wrong_content_type(client: Client) -> None:
     assert reply.status_code == 415 and reply.json()["code"] == "unsupported_format"
 
 
+def test_malformed_multipart_bodies_say_how_to_send_one(client: Client) -> None:
+    data, _ = frame_png()
+    two = client().post(
+        "/v1/reconstructions", files=[("file", ("a.png", data)), ("file", ("b.png", data))]
+    )
+    assert two.status_code == 400 and two.json()["code"] == "bad_request"
+    assert "Too many files" in two.json()["message"] and "curl -F" in two.json()["message"]
+    whole = httpx.Request("POST", "http://x", files={"file": ("a.png", data)})
+    body = whole.read()
+    cut = body[: body.rindex(b"--", 0, len(body) - 4)]  # no closing boundary
+    reply = client().post(
+        "/v1/reconstructions", content=cut,
+        headers={"Content-Type": whole.headers["Content-Type"]},
+    )  # fmt: skip
+    assert reply.status_code == 422 and "cut short" in reply.json()["message"]
+
+
 def test_read_only_key_cannot_submit(client: Client) -> None:
     data, _ = frame_png()
     reply = client(READ_KEY).post("/v1/reconstructions", files={"file": ("f.png", data)})
