@@ -111,6 +111,8 @@ async def _read_multipart(request: Request) -> Upload:
     try:
         form = await request.form(max_files=1, max_fields=_MAX_FORM_FIELDS)
     except HTTPException as exc:
+        if isinstance(exc, ApiError) or not isinstance(exc.detail, str):
+            raise  # ours (the body limit's 413), already a JSON error
         raise ApiError(
             exc.status_code, "bad_request",
             f"the multipart/form-data body could not be read ({exc.detail.rstrip('.')}); send "
