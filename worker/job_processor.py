@@ -20,7 +20,9 @@ A reconstruction's decode runs in the job thread's child process
 the worker starts): a decode that holds the interpreter lock for minutes (graph cuts
 on a large frame) cannot stall the worker's heartbeat, leases and streams, and a job
 cancelled mid-decode ends it at once (the child is killed; the next job starts a new
-one). A video job decodes its frames in the worker process and stops between frames.
+one). A video job decodes its frames there too, a few at a time
+(:data:`worker.video_jobs.CHUNK_FRAMES`), and checks between those calls for a
+worker that is stopping.
 """
 
 from __future__ import annotations
@@ -90,14 +92,19 @@ class JobContext:
     stop: threading.Event
     child: ChildProcess | None = None
 
-    def decode(self, codes: NDArray[np.unsignedinteger]) -> StillDecode:
-        """The job's frame (codes, DN) decoded by its decoder, in the child process when
-        there is one; raises :class:`JobCancelled` as soon as the job is cancelled (a
-        worker that is stopping finishes the frame, as it would in this process)."""
-        args = (self.record.decoder, codes, self.record.params)
+    def run(self, function: Callable[..., Any], *args: Any) -> Any:
+        """``function(*args)`` in the job's child process when there is one (both
+        picklable), else here; raises :class:`JobCancelled` as soon as the job is
+        cancelled (a worker that is stopping lets the call finish, as it would here)."""
         if self.child is None:
-            return decode_still(*args)
-        result: StillDecode = self.child.call(decode_still, args, self.check)
+            return function(*args)
+        return self.child.call(function, args, self.check)
+
+    def decode(self, codes: NDArray[np.unsignedinteger]) -> StillDecode:
+        """The job's frame (codes, DN) decoded by its decoder (:meth:`run`)."""
+        result: StillDecode = self.run(
+            decode_still, self.record.decoder, codes, self.record.params
+        )
         return result
 
     def check(self) -> None:

@@ -4,9 +4,11 @@
 ``video``. The job record carries the spatial decoder and the sensor parameters;
 its ``options`` (see :func:`video_options`) pick the decoding mode, the outputs
 and the exposure scaling. Frames are decoded as one stream (the first frame is a
-keyframe); progress counts decoded frames; the job checks for cancellation and for
-worker shutdown after every frame (a stopped job is redone from its first frame by
-the next worker, so temporal state never spans workers).
+keyframe), :data:`CHUNK_FRAMES` at a time in the job's child process
+(:meth:`worker.job_processor.JobContext.run`); progress counts decoded frames; a
+cancellation stops the decode at once, and the job checks for worker shutdown after
+every chunk (a stopped job is redone from its first frame by the next worker, so
+temporal state never spans workers).
 """
 
 from __future__ import annotations
@@ -32,6 +34,10 @@ VIDEO_FILES: dict[str, str] = {
     "sdr": "video-sdr.mp4",
     "exr_zip": "frames-exr.zip",
 }
+#: Frames decoded per call of the job's child process: each call carries the stream's
+#: state there and back (its previous ``u``: 0.5 MB at 256x256), and progress and a
+#: stopping worker are seen between calls.
+CHUNK_FRAMES = 8
 #: The options a video job takes, with their defaults.
 DEFAULT_OPTIONS: dict[str, Any] = {
     "mode": "temporal",
@@ -100,7 +106,7 @@ def run_video_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOut
             ctx.check_stop()
 
     start = time.perf_counter_ns()
-    decoded = decode_video_frames(video, options, progress)
+    decoded = decode_video_frames(video, options, progress, run=ctx.run, chunk=CHUNK_FRAMES)
     decoded_ns = time.perf_counter_ns()
     buffers = {name: io.BytesIO() for name in outputs}
     facts = write_outputs(decoded, video, dict(buffers), options)

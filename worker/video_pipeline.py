@@ -18,14 +18,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
+from models.formation import SensorParams
 from models.hdr_io import DEFAULT_EXR_COMPRESSION
-from worker.stream_state import StreamState
+from worker.stream_state import FrameDecode, StreamState
 from worker.temporal import StreamDecoder
 from worker.temporal_config import TemporalConfig
 from worker.video_input import WrappedVideo
@@ -66,6 +68,18 @@ class DecodedVideo:
     winding: list[NDArray[np.int64]]
     frames: list[dict[str, Any]]
 
+    def add(self, frame: FrameDecode) -> None:
+        """Append one decoded frame."""
+        self.irradiance.append(frame.irradiance)
+        self.winding.append(frame.winding)
+        self.frames.append(frame.summary())
+
+    def extend(self, other: DecodedVideo) -> None:
+        """Append the frames of ``other``, in order."""
+        self.irradiance += other.irradiance
+        self.winding += other.winding
+        self.frames += other.frames
+
     def summary(self) -> dict[str, Any]:
         """Keyframes, mean path shares and mean decode time, for a job record."""
         paths = [frame["paths"] for frame in self.frames]
@@ -79,20 +93,58 @@ class DecodedVideo:
         }
 
 
+#: Runs ``function(*args)`` somewhere and returns its result: here, or in a worker job's
+#: child process (:meth:`worker.job_processor.JobContext.run`).
+Runner = Callable[..., Any]
+
+
+def run_here(function: Callable[..., Any], *args: Any) -> Any:
+    """The default :data:`Runner`: call ``function`` in this process."""
+    return function(*args)
+
+
+@lru_cache(maxsize=8)
+def stream_decoder(mode: str, decoder: str, temporal: TemporalConfig) -> StreamDecoder:
+    """One :class:`worker.temporal.StreamDecoder` per (mode, decoder, knobs) in a
+    process: it keeps no stream's state, so chunks of any video may share it."""
+    return StreamDecoder(mode, decoder, temporal)
+
+
+def decode_chunk(
+    options: VideoOptions,
+    params: SensorParams,
+    codes: NDArray[np.unsignedinteger],
+    first: int,
+    state: StreamState,
+) -> tuple[DecodedVideo, StreamState]:
+    """Frames ``first`` .. ``first + len(codes) - 1`` of a video (codes, DN) decoded as one
+    stream continuing from ``state``; their results and the state after the last."""
+    decoder = stream_decoder(options.mode, options.decoder, options.temporal)
+    decoded = DecodedVideo([], [], [])
+    for offset, frame_codes in enumerate(codes):
+        discont = first + offset in options.keyframes
+        decoded.add(decoder.decode(frame_codes, params, state, discont=discont))
+    return decoded, state
+
+
 def decode_video_frames(
-    video: WrappedVideo, options: VideoOptions, progress: StageProgress | None = None
+    video: WrappedVideo,
+    options: VideoOptions,
+    progress: StageProgress | None = None,
+    *,
+    run: Runner = run_here,
+    chunk: int = 1,
 ) -> DecodedVideo:
-    """Decode every frame of ``video`` in order, as one stream."""
-    decoder = StreamDecoder(options.mode, options.decoder, options.temporal)
+    """Decode every frame of ``video`` in order, as one stream, ``chunk`` frames per
+    call of ``run`` (progress is reported after each call)."""
     state = StreamState()
     decoded = DecodedVideo([], [], [])
-    for index, codes in enumerate(video.codes):
-        frame = decoder.decode(codes, video.params, state, discont=index in options.keyframes)
-        decoded.irradiance.append(frame.irradiance)
-        decoded.winding.append(frame.winding)
-        decoded.frames.append(frame.summary())
+    for first in range(0, video.frames, chunk):
+        codes = video.codes[first : first + chunk]
+        part, state = run(decode_chunk, options, video.params, codes, first, state)
+        decoded.extend(part)
         if progress:
-            progress("decode", index + 1, video.frames)
+            progress("decode", len(decoded.frames), video.frames)
     return decoded
 
 

@@ -201,14 +201,22 @@ def test_cancel_while_running_is_honoured(
     assert client.xlen(DEAD_LETTER_STREAM) == 0
 
 
+@pytest.mark.parametrize(
+    ("kind", "frames", "options"),
+    [("reconstruction", None, None), ("video", 2, {"mode": "independent"})],
+)
 def test_cancelling_a_long_decode_stops_it_and_the_worker_stays_live(
-    queue: JobQueue, client: redis.Redis, workers, wait_until, finished, make_frame
+    queue: JobQueue, client: redis.Redis, workers, wait_until, finished, make_frame,
+    kind: str, frames: int | None, options: dict | None,
 ) -> None:
     """Graph cuts on 1024 x 1024 random codes run about a minute on one core, most of it
     holding the interpreter lock: in the job's child process the worker keeps beating,
-    and a cancel kills the decode at once, leaving the worker ready for the next job."""
-    codes = np.random.default_rng(0).integers(0, 256, (1024, 1024)).astype(np.uint8)
-    job = queue.submit("reconstruction", codes, SensorParams(encoding="modulo"), "graphcut")
+    and a cancel kills the decode at once (a video's mid-frame), leaving the worker
+    ready for the next job."""
+    shape = (1024, 1024) if frames is None else (frames, 1024, 1024)
+    codes = np.random.default_rng(0).integers(0, 256, shape).astype(np.uint8)
+    params = SensorParams(encoding="modulo")
+    job = queue.submit(kind, codes, params, "graphcut", options)
     worker = workers.start()
     wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
 

@@ -1,0 +1,67 @@
+"""Tests of worker/video_pipeline.py: a wrapped video decoded in chunks, then written."""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from models.errors import InvalidInputError
+from models.formation import SensorParams, encode
+from worker.child_process import ChildProcess
+from worker.video_input import WrappedVideo
+from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs
+
+PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+FRAMES = 10
+
+
+def clip() -> WrappedVideo:
+    """A smooth blob (up to ~9 wraps) brightening 3% per frame, 32 x 32."""
+    yy, xx = np.mgrid[0:32, 0:32] - 16
+    base = 0.05 + 8.0 * np.exp(-(yy**2 + xx**2) / 10.0**2)
+    return WrappedVideo(
+        np.stack([encode(base * 1.03**t, PARAMS).codes for t in range(FRAMES)]), PARAMS
+    )
+
+
+@pytest.fixture(scope="module")
+def child() -> Iterator[ChildProcess]:
+    process = ChildProcess()
+    yield process
+    process.close()
+
+
+def in_child(child: ChildProcess) -> Any:
+    """A runner that sends each chunk to ``child``, as a worker's video job does."""
+    return lambda function, *args: child.call(function, args, lambda: None)
+
+
+@pytest.mark.parametrize("mode", ["temporal", "independent"])
+def test_chunks_and_the_child_decode_as_one_stream_does(mode: str, child: ChildProcess) -> None:
+    video = clip()
+    options = VideoOptions(mode=mode, decoder="itoh", keyframes=frozenset({5}))
+    whole = decode_video_frames(video, options)
+    seen: list[int] = []
+    chunked = decode_video_frames(
+        video, options, lambda _stage, done, _total: seen.append(done),
+        run=in_child(child), chunk=4,
+    )  # fmt: skip
+    assert seen == [4, 8, 10]
+    np.testing.assert_array_equal(np.stack(chunked.winding), np.stack(whole.winding))
+    np.testing.assert_array_equal(np.stack(chunked.irradiance), np.stack(whole.irradiance))
+    reasons = [frame["keyframe"] for frame in chunked.frames]
+    assert reasons == [frame["keyframe"] for frame in whole.frames]
+    if mode == "temporal":
+        assert reasons[0] == "first" and reasons[5] == "discont" and reasons.count(None) == 8
+    assert chunked.summary()["frames"] == FRAMES
+
+
+def test_unknown_outputs_are_refused() -> None:
+    video = clip()
+    decoded = decode_video_frames(video, VideoOptions(decoder="itoh"))
+    with pytest.raises(InvalidInputError, match="unknown video outputs"):
+        write_outputs(decoded, video, {"gif": io.BytesIO()}, VideoOptions())
