@@ -6,10 +6,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError, UnsupportedFormatError
 from models.exr_header import decode_attributes, sensor_attributes
+from models.formation import ensure_nonzero_kept
 from models.frames import frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
 from service.cli.options import (
@@ -70,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     result = decoder.decode(frame.codes, frame.params)
     gain = frame.params.gain
     pixels = result.irradiance if gain is None else result.irradiance / gain
+    ensure_nonzero_kept(pixels, np.float16 if args.half else np.float32, "reconstruction")
     units = "wrap units x (gain unknown)" if gain is None else "scene-referred x / gain"
     attributes = sensor_attributes(frame.params) | decode_attributes(result.info)
     attributes["comments"] = f"MantissaCam reconstruction of {args.frame}; values in {units}"

@@ -132,6 +132,11 @@ def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
         cwd=tmp_path,
     )  # fmt: skip
     assert_one_line_error(overflow, "float16")
+    underflow = run_mcam(
+        "reconstruct", pipeline / "wrapped.png", "-o", "x.exr", "--gain", "1e308",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(underflow, "would be stored as 0", "lower the gain")
     assert not (tmp_path / "x.exr").exists()
     not_exr = run_mcam(
         "reconstruct", pipeline / "wrapped.png", "-o", "x.txt", cwd=tmp_path
