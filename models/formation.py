@@ -265,7 +265,8 @@ def ensure_nonzero_kept(values: NDArray[np.floating], dtype: type[np.floating], 
     source = np.asarray(values)
     if source.dtype.itemsize <= np.dtype(dtype).itemsize:
         return
-    lost = int(np.count_nonzero((source != 0) & (source.astype(dtype) == 0)))
+    half_tiny = float(np.finfo(dtype).smallest_subnormal) / 2  # at most this rounds to 0
+    lost = int(np.count_nonzero((source != 0) & (np.abs(source) <= half_tiny)))
     if lost:
         raise OutputUnderflowError(
             f"{lost} nonzero pixels of the {what} are below the smallest "
