@@ -16,8 +16,11 @@ at once: the child is killed, the exception ``should_stop`` raised propagates, a
 next call starts a fresh child.
 
 A child that dies while working (killed, out of memory) fails its call with
-:class:`ChildDiedError`. Children exit by themselves when their worker is gone
-(:func:`watch_parent`), so a worker killed outright leaves none behind.
+:class:`ChildDiedError` (and a warning in the log); a new child is started at once
+after a kill or a death, so the next call does not wait for one to warm up. Children
+ignore SIGINT and SIGTERM (:func:`leave_signals_to_parent`) and exit by themselves
+when their worker is gone (:func:`watch_parent`), so a worker killed outright leaves
+none behind.
 """
 
 from __future__ import annotations
@@ -67,13 +70,23 @@ def watch_parent(parent: int) -> None:
     threading.Thread(target=exit_with_parent, daemon=True).start()
 
 
+def leave_signals_to_parent() -> None:
+    """In a child: ignore SIGINT and SIGTERM. A terminal's Ctrl-C or a service manager's
+    SIGTERM reaches the whole process group; the worker handles them (it finishes or
+    hands back its work) and ends its children itself, by closing their input, by
+    SIGKILL, or by dying (:func:`watch_parent`). A child killed by that SIGTERM would
+    look like a crashed decode and cost its job a delivery."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 def _serve(
     conn: Connection, parent: int, initializer: Callable[..., Any] | None, initargs: tuple
 ) -> None:
     """The child's loop: run each ``(function, args)`` received, send back ``("ok",
     result)`` or ``("error", exception, traceback text)``; stop at end of input."""
     watch_parent(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the worker's to handle
+    leave_signals_to_parent()
     if initializer is not None:
         initializer(*initargs)
     while True:
@@ -149,7 +162,7 @@ class ChildProcess:
             try:
                 should_stop()
             except BaseException:
-                self.kill()
+                self.restart()
                 raise
         try:
             reply = self._conn.recv()
@@ -161,6 +174,12 @@ class ChildProcess:
         if not isinstance(exc, McamError):
             log.error("call in child %s failed:\n%s", self.pid, text)
         raise exc
+
+    def restart(self) -> None:
+        """Kill the child and start a fresh one at once, so that the next call does not
+        wait for it to start and warm up."""
+        self.kill()
+        self.start()
 
     def kill(self) -> None:
         """Kill the child now (the next call starts a new one)."""
@@ -183,8 +202,9 @@ class ChildProcess:
         if self._process is not None:
             self._process.join(CLOSE_TIMEOUT_S)  # its pipe closed first: let it be reaped
             code = self._process.exitcode
-        self.kill()
         how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit {code}"
+        log.warning("child %s died while it worked (%s); starting another", self.pid, how)
+        self.restart()
         return ChildDiedError(
             f"the decoding process died ({how}; a signal 9 is often the system out of "
             "memory) while it worked on this job; try a smaller frame or a lighter decoder"

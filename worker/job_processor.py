@@ -43,7 +43,7 @@ from models.allocator import keep_freed_memory
 from models.decoders.registry import get_decoder
 from models.errors import McamError
 from models.formation import SensorParams, narrow_winding
-from worker.child_process import ChildProcess
+from worker.child_process import ChildDiedError, ChildProcess
 from worker.deliveries import Delivery, StreamConsumer
 from worker.device_state import warm_up
 from worker.job_store import JobStore
@@ -65,7 +65,7 @@ RETRY_BACKOFF_S = 0.05
 
 
 class JobCancelled(Exception):
-    """The job was cancelled while it ran."""
+    """The job was cancelled (or settled elsewhere) while it ran: drop it."""
 
 
 class ShutdownRequested(Exception):
@@ -92,13 +92,20 @@ class JobContext:
     stop: threading.Event
     child: ChildProcess | None = None
 
-    def run(self, function: Callable[..., Any], *args: Any) -> Any:
+    def run(self, function: Callable[..., Any], *args: Any, hand_back: bool = False) -> Any:
         """``function(*args)`` in the job's child process when there is one (both
         picklable), else here; raises :class:`JobCancelled` as soon as the job is
-        cancelled (a worker that is stopping lets the call finish, as it would here)."""
+        cancelled or settled elsewhere. A worker that is stopping lets the call finish,
+        as it would here, unless ``hand_back``: then :class:`ShutdownRequested` ends it
+        at once (a video job, which the next worker redoes from its first frame)."""
         if self.child is None:
             return function(*args)
-        return self.child.call(function, args, self.check)
+        return self.child.call(function, args, self.check_all if hand_back else self.check)
+
+    def check_all(self) -> None:
+        """:meth:`check_stop`, then :meth:`check`."""
+        self.check_stop()
+        self.check()
 
     def decode(self, codes: NDArray[np.unsignedinteger]) -> StillDecode:
         """The job's frame (codes, DN) decoded by its decoder (:meth:`run`)."""
@@ -108,8 +115,9 @@ class JobContext:
         return result
 
     def check(self) -> None:
-        """Raise :class:`JobCancelled` when the job was cancelled."""
-        if self.jobs.load(self.record.id).state is JobState.CANCELLED:
+        """Raise :class:`JobCancelled` when the job was cancelled, or has been settled by
+        another worker (which reclaimed it while this one was stopping or stalled)."""
+        if self.jobs.load(self.record.id).state.finished:
             raise JobCancelled
 
     def check_stop(self) -> None:
@@ -242,16 +250,17 @@ class JobProcessor:
             try:
                 self._run(consumer, delivery, record)
                 return
-            except ShutdownRequested:
-                self.jobs.transition(record.id, JobState.QUEUED, (JobState.RUNNING,))
-                consumer.give_back(delivery)
-                return
             except JobCancelled:
                 self._finish(consumer, delivery, record.id)
                 return
             except redis.exceptions.ConnectionError:
                 raise
             except Exception as exc:
+                if isinstance(exc, ShutdownRequested) or (
+                    self.stop.is_set() and isinstance(exc, ChildDiedError)
+                ):
+                    self._hand_back(consumer, delivery, record)
+                    return
                 if not isinstance(exc, McamError):
                     log.exception("job %s failed (delivery %d)", record.id, delivery.deliveries)
                 if delivery.deliveries >= self.max_deliveries:
@@ -259,7 +268,16 @@ class JobProcessor:
                     return
                 time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))
                 consumer.retry(delivery)
+                self.jobs.update(record.id, frames_done=0, progress=0.0)
                 record = self.jobs.load(record.id)
+
+    def _hand_back(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
+        """The worker is stopping: the job goes back to the queue, to be redone from its
+        start by the next worker (its progress starts again from 0)."""
+        self.jobs.transition(
+            record.id, JobState.QUEUED, (JobState.RUNNING,), frames_done=0, progress=0.0
+        )
+        consumer.give_back(delivery)
 
     def _run(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
         if record.state.finished:

@@ -157,7 +157,7 @@ class Worker:
         for thread in threads:
             thread.start()
         log.info("worker %s running (%d job threads)", self.id, self.config.concurrency)
-        self._heartbeat_loop()
+        self._heartbeat_loop(threads)
         for thread in threads:
             thread.join()
         self._forget_heartbeat()
@@ -254,9 +254,13 @@ class Worker:
         if isinstance(decode, DecodePool):
             decode.close()
 
-    def _heartbeat_loop(self) -> None:
+    def _heartbeat_loop(self, threads: list[threading.Thread]) -> None:
+        """Beat, keep in-flight jobs and device leases alive and purge expired results
+        every ``heartbeat_s`` until the worker stops and ``threads`` have finished: a
+        job in hand while the worker stops is still this worker's (another would
+        reclaim it and decode it again)."""
         last_purge = 0.0
-        while not self.stop.is_set():
+        while not self.stop.is_set() or any(thread.is_alive() for thread in threads):
             try:
                 self._beat()
                 for consumer, delivery in list(self._in_flight.values()):
@@ -270,7 +274,11 @@ class Worker:
                         log.info("worker %s purged %d expired results", self.id, removed)
             except redis.exceptions.ConnectionError as exc:
                 log.warning("worker %s: heartbeat failed (%s)", self.id, exc)
-            self.stop.wait(self.config.heartbeat_s)
+            if not self.stop.wait(self.config.heartbeat_s):
+                continue
+            deadline = time.monotonic() + self.config.heartbeat_s
+            for thread in threads:
+                thread.join(max(0.0, deadline - time.monotonic()))
 
     def _beat(self) -> None:
         now = time.time_ns()

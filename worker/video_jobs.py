@@ -4,17 +4,18 @@
 ``video``. The job record carries the spatial decoder and the sensor parameters;
 its ``options`` (see :func:`video_options`) pick the decoding mode, the outputs
 and the exposure scaling. Frames are decoded as one stream (the first frame is a
-keyframe), :data:`CHUNK_FRAMES` at a time in the job's child process
+keyframe), up to :data:`CHUNK_FRAMES` at a time in the job's child process
 (:meth:`worker.job_processor.JobContext.run`); progress counts decoded frames; a
-cancellation stops the decode at once, and the job checks for worker shutdown after
-every chunk (a stopped job is redone from its first frame by the next worker, so
-temporal state never spans workers).
+cancellation or a stopping worker ends the decode at once (a stopped job is handed
+back and redone from its first frame by the next worker, so temporal state never
+spans workers).
 """
 
 from __future__ import annotations
 
 import io
 import time
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -34,9 +35,10 @@ VIDEO_FILES: dict[str, str] = {
     "sdr": "video-sdr.mp4",
     "exr_zip": "frames-exr.zip",
 }
-#: Frames decoded per call of the job's child process: each call carries the stream's
-#: state there and back (its previous ``u``: 0.5 MB at 256x256), and progress and a
-#: stopping worker are seen between calls.
+#: Most frames decoded per call of the job's child process (fewer when frames are slow:
+#: about a second's worth, :func:`worker.video_pipeline.decode_video_frames`): each
+#: call carries the stream's state there and back (its previous ``u``: 0.5 MB at
+#: 256x256), and progress is reported between calls.
 CHUNK_FRAMES = 8
 #: The options a video job takes, with their defaults.
 DEFAULT_OPTIONS: dict[str, Any] = {
@@ -102,11 +104,12 @@ def run_video_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOut
     def progress(stage: str, done: int, _total: int) -> None:
         if stage == "decode":
             ctx.progress(done)
-            ctx.check()
-            ctx.check_stop()
+            ctx.check_all()
 
     start = time.perf_counter_ns()
-    decoded = decode_video_frames(video, options, progress, run=ctx.run, chunk=CHUNK_FRAMES)
+    decoded = decode_video_frames(
+        video, options, progress, run=partial(ctx.run, hand_back=True), chunk=CHUNK_FRAMES
+    )
     decoded_ns = time.perf_counter_ns()
     buffers = {name: io.BytesIO() for name in outputs}
     facts = write_outputs(decoded, video, dict(buffers), options)

@@ -16,6 +16,7 @@ Used by ``mcam video`` and by the worker's video jobs. Decoding follows
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -134,17 +135,25 @@ def decode_video_frames(
     *,
     run: Runner = run_here,
     chunk: int = 1,
+    chunk_s: float = 1.0,
 ) -> DecodedVideo:
-    """Decode every frame of ``video`` in order, as one stream, ``chunk`` frames per
-    call of ``run`` (progress is reported after each call)."""
+    """Decode every frame of ``video`` in order, as one stream, in calls of ``run`` of at
+    most ``chunk`` frames: the first call takes one frame, each next one as many as the
+    frames so far suggest fit in ``chunk_s`` seconds (at least one), so that progress,
+    reported after each call, advances about every ``chunk_s`` on slow frames too."""
     state = StreamState()
     decoded = DecodedVideo([], [], [])
-    for first in range(0, video.frames, chunk):
-        codes = video.codes[first : first + chunk]
+    size, first = 1, 0
+    start = time.perf_counter()
+    while first < video.frames:
+        codes = video.codes[first : first + size]
         part, state = run(decode_chunk, options, video.params, codes, first, state)
         decoded.extend(part)
+        first += len(codes)
         if progress:
-            progress("decode", len(decoded.frames), video.frames)
+            progress("decode", first, video.frames)
+        per_frame_s = (time.perf_counter() - start) / first
+        size = max(1, min(chunk, int(chunk_s / max(per_frame_s, 1e-9))))
     return decoded
 
 

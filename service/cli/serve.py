@@ -89,6 +89,7 @@ class WorkerSupervisor:
         self.env = {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": data_dir}
         self.process: subprocess.Popen[bytes] | None = None
         self._stopping = threading.Event()
+        self._lock = threading.Lock()  # no restart once terminate() has signalled
         self._thread = threading.Thread(target=self._watch, name="worker-watch", daemon=True)
 
     def start(self) -> WorkerSupervisor:
@@ -102,6 +103,11 @@ class WorkerSupervisor:
         )
 
     def _watch(self) -> None:
+        """Restart the worker when it exits. A worker this thread restarted gets its
+        parent-death signal when this *thread* ends (``PR_SET_PDEATHSIG`` follows the
+        thread that forked), so after the last restart the thread stays until that
+        worker has exited: ending earlier sent a stopping worker a second SIGTERM, and
+        it dropped the job in hand."""
         backoff = RESTART_MIN_S
         while not self._stopping.wait(1.0):
             if self.process is None or self.process.poll() is None:
@@ -114,27 +120,32 @@ class WorkerSupervisor:
                 flush=True,
             )
             if self._stopping.wait(backoff):
-                return
-            self.process = self._spawn()
+                break
+            with self._lock:
+                if self._stopping.is_set():
+                    break
+                self.process = self._spawn()
             backoff = min(backoff * 2, RESTART_MAX_S)
+        if self.process is not None:
+            self.process.wait()
 
     def terminate(self) -> None:
         """Stop restarting the worker and SIGTERM it (it finishes its in-flight work)."""
-        self._stopping.set()
-        if self._thread.is_alive():
-            self._thread.join()
-        if self.process is not None and self.process.poll() is None:
-            self.process.terminate()
+        with self._lock:
+            self._stopping.set()
+            if self.process is not None and self.process.poll() is None:
+                self.process.terminate()
 
     def wait(self) -> None:
         """Wait for a terminated worker to exit, killing it if it hangs."""
-        if self.process is None:
-            return
-        try:
-            self.process.wait(WORKER_STOP_S)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
+        if self.process is not None:
+            try:
+                self.process.wait(WORKER_STOP_S)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        if self._thread.is_alive():
+            self._thread.join()
 
 
 def _interrupt(_signum: int, _frame: FrameType | None) -> None:

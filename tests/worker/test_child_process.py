@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from collections.abc import Iterator
 
 import pytest
@@ -64,16 +65,28 @@ def test_should_stop_kills_the_child_and_the_next_call_starts_another(
 
     with pytest.raises(Cancelled):
         child.call(child_calls.sleep, (600.0,), stop_on_third_poll)
-    assert len(polls) == 3 and not alive(first) and child.pid is None
-    second = child.call(child_calls.pid, (), never)
-    assert second != first
+    assert len(polls) == 3 and not alive(first)
+    second = child.pid
+    assert second is not None and second != first and alive(second)  # started at once
+    assert child.call(child_calls.pid, (), never) == second
     assert child.call(child_calls.started, (), never) == "yes"
 
 
-def test_a_child_that_dies_fails_its_call_clearly(child: ChildProcess) -> None:
+def test_a_child_that_dies_fails_its_call_clearly(
+    child: ChildProcess, caplog: pytest.LogCaptureFixture
+) -> None:
     with pytest.raises(ChildDiedError, match=r"died \(exit 3"):
         child.call(child_calls.exit_now, (3,), never)
+    assert "died while it worked (exit 3)" in caplog.text
+    assert child.pid is not None and alive(child.pid)
     assert child.call(pow, (3, 2), never) == 9
+
+
+def test_the_child_leaves_sigterm_to_its_parent(child: ChildProcess) -> None:
+    """A service manager's SIGTERM to the process group must not kill the decode."""
+    pid = child.call(child_calls.pid, (), never)
+    os.kill(pid, signal.SIGTERM)
+    assert child.call(child_calls.pid, (), never) == pid
 
 
 def test_close_ends_the_child() -> None:

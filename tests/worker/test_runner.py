@@ -233,6 +233,44 @@ def test_cancelling_a_long_decode_stops_it_and_the_worker_stays_live(
     assert worker.poll() is None
 
 
+def random_codes(*shape: int) -> np.ndarray:
+    """Codes graph cuts take seconds on at 512 x 512 (no smooth region to settle)."""
+    return np.random.default_rng(0).integers(0, 256, shape).astype(np.uint8)
+
+
+def test_a_stopping_worker_keeps_its_job_from_being_reclaimed(
+    queue: JobQueue, workers, wait_until, finished
+) -> None:
+    """Worker A finishes the job in hand after SIGTERM; all that time it keeps the job's
+    entry fresh, so worker B (claiming entries idle for 1 s) does not decode it again."""
+    modulo = SensorParams(encoding="modulo")
+    job = queue.submit("reconstruction", random_codes(512, 512), modulo, "graphcut")
+    first = workers.start("--no-devices")
+    wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
+    workers.start("--no-devices")
+    first.send_signal(signal.SIGTERM)
+    assert first.wait(120) == 0
+    record = finished(queue, job.id)
+    assert record.state is JobState.SUCCEEDED and record.attempts == 1
+
+
+def test_sigterm_hands_a_video_back_at_once_with_its_progress_reset(
+    queue: JobQueue, client: redis.Redis, workers, wait_until
+) -> None:
+    modulo = SensorParams(encoding="modulo")
+    job = queue.submit(
+        "video", random_codes(3, 512, 512), modulo, "graphcut", {"mode": "independent"}
+    )
+    worker = workers.start("--no-devices")
+    wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
+    worker.send_signal(signal.SIGTERM)
+    assert worker.wait(60) == 0
+    record = queue.get(job.id)
+    assert record.state is JobState.QUEUED and record.attempts == 1
+    assert record.frames_done == 0 and record.progress == 0.0
+    assert client.xpending(JOBS_STREAM, GROUP)["pending"] == 0
+
+
 def frame_events(client: redis.Redis, device: str) -> list[dict[str, str]]:
     return [
         {k.decode(): v.decode() for k, v in fields.items()}

@@ -48,9 +48,9 @@ def test_chunks_and_the_child_decode_as_one_stream_does(mode: str, child: ChildP
     seen: list[int] = []
     chunked = decode_video_frames(
         video, options, lambda _stage, done, _total: seen.append(done),
-        run=in_child(child), chunk=4,
+        run=in_child(child), chunk=4, chunk_s=1e9,
     )  # fmt: skip
-    assert seen == [4, 8, 10]
+    assert seen == [1, 5, 9, 10]
     np.testing.assert_array_equal(np.stack(chunked.winding), np.stack(whole.winding))
     np.testing.assert_array_equal(np.stack(chunked.irradiance), np.stack(whole.irradiance))
     reasons = [frame["keyframe"] for frame in chunked.frames]
@@ -58,6 +58,16 @@ def test_chunks_and_the_child_decode_as_one_stream_does(mode: str, child: ChildP
     if mode == "temporal":
         assert reasons[0] == "first" and reasons[5] == "discont" and reasons.count(None) == 8
     assert chunked.summary()["frames"] == FRAMES
+
+
+def test_slow_frames_go_one_at_a_time() -> None:
+    """Frames slower than the chunk's time target: one per call, progress every frame."""
+    seen: list[int] = []
+    decode_video_frames(
+        clip(), VideoOptions(decoder="itoh"), lambda _stage, done, _total: seen.append(done),
+        chunk=4, chunk_s=0.0,
+    )  # fmt: skip
+    assert seen == list(range(1, FRAMES + 1))
 
 
 def test_unknown_outputs_are_refused() -> None:

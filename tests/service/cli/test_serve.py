@@ -23,7 +23,10 @@ import redis
 
 from models.formation import SensorParams, simulate
 from service.cli.main import main
+from service.cli.serve import WorkerSupervisor
 from worker.embedded_redis import EmbeddedRedis, connect
+from worker.job_store import JobStore
+from worker.jobs import JobState
 from worker.redis_keys import WORKERS_HEARTBEAT
 
 REPO = Path(__file__).resolve().parents[3]
@@ -134,11 +137,39 @@ def test_serve_runs_everything_restarts_a_dead_worker_and_stops_cleanly(tmp_path
         while not worker_pids(client) - {first_pid} and time.monotonic() < deadline:
             time.sleep(0.1)
         [worker_pid] = worker_pids(client) - {first_pid}
+        slow = submit_slow_job(base, key)
+        deadline = time.monotonic() + 60
+        while JobStore(client).load(slow).state is not JobState.RUNNING:
+            assert time.monotonic() < deadline, "the slow job never started"
+            time.sleep(0.1)
         process.send_signal(signal.SIGTERM)
-        assert process.wait(60) == 0
+        assert process.wait(90) == 0
         assert not redis_socket.exists()
         with pytest.raises(ProcessLookupError):
             os.kill(worker_pid, 0)
+    # The restarted worker finished the job in hand (it used to get a second SIGTERM
+    # when serve's restart thread ended, and dropped it).
+    restarted = EmbeddedRedis(data_dir)
+    restarted.start()
+    try:
+        assert JobStore(connect(restarted.url)).load(slow).state is JobState.SUCCEEDED
+    finally:
+        restarted.stop()
+
+
+def submit_slow_job(base: str, key: str) -> str:
+    """Graph cuts on 512 x 512 random codes (seconds); its job id."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.random.default_rng(0).integers(0, 256, (512, 512)).astype(np.uint8))
+    reply = httpx.post(
+        f"{base}/v1/reconstructions",
+        files={"file": ("frame.npy", buffer.getvalue(), "application/octet-stream")},
+        data={"encoding": "modulo", "bits": "8", "decoder": "graphcut"},
+        headers={"Authorization": f"Bearer {key}"},
+        timeout=60,
+    )
+    assert reply.status_code == 202, reply.text
+    return str(reply.json()["id"])
 
 
 def test_serve_runs_as_many_workers_as_asked_and_stops_them_all(tmp_path: Path) -> None:
@@ -170,3 +201,49 @@ def test_a_worker_count_below_one_is_refused_with_one_line(
     assert stopped.value.code == 2
     err = capsys.readouterr().err
     assert "--workers" in err and "whole number >= 1" in err and "Traceback" not in err
+
+
+SIGNAL_RECORDER = """
+import signal, sys, time
+from pathlib import Path
+log = Path(sys.argv[1])
+stop_at = None
+def on_term(*_):
+    global stop_at
+    with log.open("a") as f:
+        f.write("TERM\\n")
+    stop_at = stop_at or time.monotonic() + 1.0
+signal.signal(signal.SIGTERM, on_term)
+with log.open("a") as f:
+    f.write("start\\n")
+while stop_at is None or time.monotonic() < stop_at:
+    time.sleep(0.02)
+"""
+
+
+def test_a_restarted_worker_gets_one_sigterm_and_its_watch_outlives_it(tmp_path: Path) -> None:
+    """PR_SET_PDEATHSIG follows the thread that forked: the thread that restarted a worker
+    must stay until that worker exits, or the worker gets a second SIGTERM (which makes
+    a real worker drop the job in hand)."""
+    script, log = tmp_path / "recorder.py", tmp_path / "signals.log"
+    script.write_text(SIGNAL_RECORDER)
+    supervisor = WorkerSupervisor([sys.executable, str(script), str(log)], "unused", "unused")
+    supervisor.start()
+
+    def starts() -> int:
+        return log.read_text().count("start") if log.exists() else 0
+
+    deadline = time.monotonic() + 30
+    while starts() < 1 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert supervisor.process is not None
+    supervisor.process.kill()
+    while starts() < 2 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert starts() == 2, "the supervisor did not restart the worker"
+    supervisor.terminate()
+    time.sleep(0.3)
+    assert supervisor._thread.is_alive()  # the worker still runs: its watch must too
+    supervisor.wait()
+    assert log.read_text().count("TERM") == 1
+    assert supervisor.process.returncode == 0
