@@ -13,7 +13,7 @@ worker owning more than ``ceil(devices / live device workers)`` hands one over,
 so devices spread over the workers). The owner first takes over every pending
 entry of the stream (a previous owner's unfinished frames), then reads new ones,
 and handles them one by one in stream order. Per frame: decode, write
-``devices/<id>/<seq:012d>.exr`` durably (compressed as ``exr_compression`` says:
+``devices/<id>/<seq:012d>-<entry id>.exr`` durably (compressed as ``exr_compression`` says:
 :data:`worker.outputs.STREAM_EXR_COMPRESSION` by default), then in one Lua step
 (only while the lease is still ours) record the sequence, point ``device:<id>:latest`` at
 the result, append a ``frame`` event to ``events:<id>``, extend the lease and XACK (and
@@ -89,9 +89,12 @@ class LeaseLost(Exception):
     """Another worker owns the device now; stop processing its stream."""
 
 
-def result_key(device: str, sequence: int) -> str:
-    """Result-store key of a device frame's EXR."""
-    return f"devices/{device}/{sequence:012d}.exr"
+def result_key(device: str, sequence: int, entry_id: str) -> str:
+    """Result-store key of a device frame's EXR: by sequence number (files list in frame
+    order), then stream entry id. A camera that restarts counts from 0 again, and a
+    DISCONT frame may repeat a number: the entry id keeps each frame's file its own (a
+    redelivered entry writes the same file again)."""
+    return f"devices/{device}/{sequence:012d}-{entry_id}.exr"
 
 
 class DeviceConsumer:
@@ -271,7 +274,7 @@ class DeviceConsumer:
         data = encode_exr_result(
             message.codes, frame.winding, message.params, frame.info, self.exr_options
         )
-        key = result_key(device, message.sequence)
+        key = result_key(device, message.sequence, delivery.entry_id)
         self.store.write(key, data)
         self.recorder.add_frame(message, delivery.entry_id)
         encode_ns = time.perf_counter_ns() - start

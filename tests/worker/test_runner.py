@@ -311,7 +311,10 @@ def test_device_frames_in_order_through_two_workers_with_takeover(
     assert [e["type"] for e in events] == ["frame"] * 200
     assert [int(e["sequence"]) for e in events] == list(range(200))
     assert len({e["worker"] for e in events}) == 2
-    expected = [f"devices/{device}/{seq:012d}.exr" for seq in range(200)]
+    expected = [e["key"] for e in events]
+    assert [key.split("/")[2].split("-")[0] for key in expected] == [
+        f"{seq:012d}" for seq in range(200)
+    ]
     assert result_files(data_dir) == expected
     assert client.get(latest_key(device)).decode() == expected[-1]
     wait_until(lambda: client.xlen(f"frames:{device}") == 0, 10, "frames acked and deleted")
@@ -376,6 +379,25 @@ def test_stream_frames_are_zip_compressed_when_configured(
     keys = result_files(data_dir)
     assert len(keys) == 2
     assert {stored_compression(data_dir, key) for key in keys} == {OpenEXR.ZIP_COMPRESSION}
+
+
+def test_a_camera_that_counts_from_zero_again_keeps_every_frame(
+    client: redis.Redis, workers, data_dir: Path, make_frame, wait_until
+) -> None:
+    """A restarted camera repeats sequence numbers (its first frame flagged DISCONT):
+    each frame gets a file of its own, and each event points at its own frame."""
+    frame: SensorFrame = make_frame()
+    device = "cam-restart"
+    workers.start()
+    publish(client, device, frame, range(3))
+    for seq in range(2):
+        message = FrameMessage(device, seq, seq * 1000, frame.codes, frame.params, seq == 0)
+        assert publish_frame(client, message, maxlen=1000) == 0
+    wait_until(lambda: len(frame_events(client, device)) >= 5, 60, "5 frames")
+    events = frame_events(client, device)
+    assert [int(e["sequence"]) for e in events] == [0, 1, 2, 0, 1]
+    keys = [e["key"] for e in events]
+    assert len(set(keys)) == 5 and sorted(result_files(data_dir)) == sorted(keys)
 
 
 def test_worker_config_checks_heartbeat_against_lease(tmp_path: Path) -> None:
