@@ -29,6 +29,7 @@ from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
 from worker.redis_keys import (
     DEVICES_SET,
+    control_cursor_key,
     control_stream,
     events_stream,
     health_key,
@@ -60,7 +61,7 @@ class FramePublisher:
         self._redis_ok = True
         self._retry_at = 0.0
         self._backoff = 0.05
-        self._control_id = f"{time.time_ns() // 1_000_000}-0"  # commands sent from now on
+        self._control_id: str | None = None  # read from Redis when it is first reachable
         self._next_health = 0.0
         self._reported = {"dropped": 0, "reconnects": 0}
 
@@ -164,11 +165,21 @@ class FramePublisher:
             self._reported = reported
 
     def _read_control(self) -> None:
-        reply = self.client.xread({control_stream(self.device): self._control_id}, count=16)
+        """Forward the control commands after the last one handled (by this daemon or,
+        for the first read, by the device's previous daemon: commands the API accepted
+        while no daemon ran are not lost; a device's first daemon skips older ones)."""
+        stream = control_stream(self.device)
+        if self._control_id is None:
+            done = self.client.get(control_cursor_key(self.device))
+            newest = self.client.xrevrange(stream, count=1) if done is None else []
+            start = done or (newest[0][0] if newest else b"0-0")
+            self._control_id = start.decode() if isinstance(start, bytes) else start
+        reply = self.client.xread({stream: self._control_id}, count=16)
         for _, entries in reply or []:
             for entry_id, fields in entries:
-                self._control_id = entry_id
+                self._control_id = entry_id.decode() if isinstance(entry_id, bytes) else entry_id
                 try:
                     self.on_command(fields_to_command(fields))
                 except InvalidInputError:
                     self.health.add("control_rejected")
+                self.client.set(control_cursor_key(self.device), self._control_id)

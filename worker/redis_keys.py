@@ -46,6 +46,12 @@ def control_stream(device: str) -> str:
     return f"control:{validate_device_id(device)}"
 
 
+def control_cursor_key(device: str) -> str:
+    """The id of the last control command the device's daemon handled, so that a daemon
+    that restarts goes on with the commands sent while it was down."""
+    return f"control:{validate_device_id(device)}:done"
+
+
 def events_stream(device: str) -> str:
     """Stream of events (frame reconstructed, drop, reconnect) for server-sent events."""
     return f"events:{validate_device_id(device)}"
