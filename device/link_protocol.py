@@ -21,6 +21,7 @@ from __future__ import annotations
 import enum
 import math
 import struct
+import sys
 import zlib
 from dataclasses import dataclass, field
 
@@ -243,9 +244,9 @@ def decode_data(payload: bytes | memoryview) -> DataPacket:
         raise ProtocolError(f"unsupported data version {version} / data type {dtype_id}")
     if enc not in ENCODING_NAMES or not 1 <= bits <= 16 or width == 0 or height == 0:
         raise ProtocolError(f"bad data header: encoding {enc}, bits {bits}, {width}x{height}")
-    if not (1.0 < alpha <= MAX_ALPHA and 0.0 <= gain < math.inf):
+    if not (1.0 < alpha <= MAX_ALPHA and (gain == 0.0 or sys.float_info.min <= gain < math.inf)):
         raise ProtocolError(f"bad data header: alpha {alpha} (must be in (1, {MAX_ALPHA}]), "
-                            f"gain {gain} (must be finite, >= 0)")
+                            f"gain {gain} (must be 0 for unknown, or a normal positive number)")
     itemsize = 1 if bits <= 8 else 2
     if len(payload) - DATA_HEADER_SIZE != width * height * itemsize:
         raise ProtocolError(

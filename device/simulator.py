@@ -11,6 +11,7 @@ doubles (by ``ratio``) each time, all of the same scene instant.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import OrderedDict
@@ -31,8 +32,10 @@ from device.link_parser import LinkParser
 from device.link_protocol import FLAG_BRACKET, DataPacket, encode_data
 from device.scenes import ProceduralScene, SceneSequence
 from device.sim_link import Endpoint
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, McamError
 from models.formation import SensorFrame, SensorParams, simulate
+
+log = logging.getLogger(__name__)
 
 #: Integration time at which the exposure gain is the analog gain (ns).
 REFERENCE_INTEGRATION_NS = 1_000_000
@@ -88,6 +91,7 @@ class VirtualScamp5:
         self.sequence = 0
         self.frame_index = 0
         self.frames_captured = 0
+        self.capture_error: str | None = None  # why the last tick formed no frame
         self.packets_sent = 0
         self.packets_unsent = 0
         self.sent: OrderedDict[int, SentFrame] = OrderedDict()
@@ -220,11 +224,25 @@ class VirtualScamp5:
         """Whether ``max_frames`` regular frames have been captured."""
         return self.max_frames is not None and self.frames_captured >= self.max_frames
 
+    def tick(self) -> None:
+        """:meth:`step`, surviving settings under which no frame can be formed (an
+        exposure whose pixels would wrap more than int64 counts): the camera logs it once
+        and sends nothing until a command changes them, as a sensor that saturates its
+        counters would, instead of its thread dying with the link still open."""
+        try:
+            self.step()
+        except McamError as exc:
+            if exc.message != self.capture_error:
+                log.warning("virtual camera: no frame at these settings: %s", exc.message)
+            self.capture_error = exc.message
+        else:
+            self.capture_error = None
+
     def run(self) -> None:
         """Tick at the set frame rate until :meth:`stop`."""
         next_tick = time.monotonic()
         while not self._stop.is_set():
-            self.step()
+            self.tick()
             next_tick = max(next_tick + 1.0 / self.settings.fps, time.monotonic() - 0.1)
             self._stop.wait(max(0.0, next_tick - time.monotonic()))
 

@@ -25,8 +25,10 @@ With a :class:`worker.decode_pool.DecodePool` as ``decode`` (independent decodin
 several processes), each batch read is handed to the pool first, so its frames decode
 in parallel while they are written one by one in stream order as above; a device the
 worker stops owning has its pending frames dropped.
-A frame that keeps failing goes to the dead letters after ``max_deliveries``
-attempts with a ``failed`` event.
+A frame whose data cannot be reconstructed (a :class:`models.errors.McamError`: bad
+codes or parameters, output beyond float32) goes to the dead letters at once with a
+``failed`` event, since a retry would fail the same way and hold the stream up; one
+that fails otherwise (a bug, a crashed pool process) after ``max_deliveries`` attempts.
 """
 
 from __future__ import annotations
@@ -250,7 +252,7 @@ class DeviceConsumer:
             except Exception as exc:
                 if not isinstance(exc, McamError):
                     log.exception("frame %s of %s failed", delivery.entry_id, device)
-                if delivery.deliveries >= self.max_deliveries:
+                if isinstance(exc, McamError) or delivery.deliveries >= self.max_deliveries:
                     self._give_up(device, state, consumer, delivery, exc)
                     return
                 time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))

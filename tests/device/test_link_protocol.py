@@ -100,7 +100,8 @@ def test_inconsistent_payloads_raise_protocol_errors() -> None:
     patched = payload[:22] + bytes([3]) + payload[23:]
     with pytest.raises(lp.ProtocolError, match="exceed 3 bits"):
         lp.decode_data(patched)
-    for alpha, gain in ((0.0, 1.0), (float("nan"), 1.0), (2.0, -1.0), (2.0, float("inf"))):
+    for alpha, gain in ((0.0, 1.0), (float("nan"), 1.0), (2.0, -1.0), (2.0, float("inf")),
+                        (2.0, 5e-324)):
         payload = lp.encode_data(lp.DataPacket(1, 0, "modulo", alpha, 8, gain, codes))[8:-4]
         with pytest.raises(lp.ProtocolError, match="alpha"):
             lp.decode_data(payload)

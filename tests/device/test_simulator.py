@@ -6,6 +6,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -141,3 +142,32 @@ def test_open_endpoint_rejects_unknown_ports() -> None:
         open_endpoint("/dev/ttyUSB0")
     with pytest.raises(InvalidInputError, match="socket://HOST:PORT"):
         open_endpoint("socket://localhost")
+
+
+def test_an_exposure_no_frame_can_hold_is_survived_and_undone(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A gain and integration the API accepts one by one can together wrap pixels past
+    int64 counts: the camera sends nothing (and says why, once) until they change."""
+    endpoint = LoopEndpoint()
+    camera = VirtualScamp5(endpoint, settings=CameraSettings(encoding="modulo"))
+    draining = threading.Event()
+
+    def drain() -> None:  # the loop holds 4096 bytes: the host must read
+        while not draining.is_set():
+            endpoint.port.read(65536)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    try:
+        camera.settings = replace(camera.settings, gain=1e9, integration_ns=(1 << 63) - 1)
+        for _ in range(3):
+            camera.tick()
+        assert camera.frames_captured == 0 and "wrap more than" in (camera.capture_error or "")
+        assert caplog.text.count("no frame at these settings") == 1
+        camera.settings = replace(camera.settings, gain=1.0, integration_ns=1_000_000)
+        camera.tick()
+        assert camera.frames_captured == 1 and camera.capture_error is None
+    finally:
+        draining.set()
+        reader.join(5)

@@ -342,7 +342,7 @@ def test_failing_device_frame_is_dead_lettered_and_order_kept(
     assert events[2]["code"] == "output_overflow"
     [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
     assert letter[b"device"] == device.encode() and letter[b"sequence"] == b"2"
-    assert letter[b"deliveries"] == b"3"
+    assert letter[b"deliveries"] == b"1"  # a bad frame fails the same way every time
     assert len(result_files(data_dir)) == 4
 
 
