@@ -9,8 +9,8 @@ Usage (inside the worker, one thread)::
     devices.release_all()
 
 For each device in the ``devices`` set the worker tries to take the lease (a
-worker owning more than ``ceil(devices / live device workers)`` hands one over,
-so devices spread over the workers). The owner first takes over every pending
+worker owning more than its share of the active devices hands one over, so devices
+spread over the workers: :mod:`worker.device_share`). The owner first takes over every pending
 entry of the stream (a previous owner's unfinished frames), then reads new ones,
 and handles them one by one in stream order. Per frame: decode, write
 ``devices/<id>/<seq:012d>-<entry id>.exr`` durably (compressed as ``exr_compression`` says:
@@ -45,6 +45,7 @@ import redis
 from models.errors import McamError
 from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order
+from worker.device_share import device_to_hand_over, newest_frame_ms, redis_now_ms
 from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
 from worker.job_processor import RETRY_BACKOFF_S, error_of
@@ -129,7 +130,7 @@ class DeviceConsumer:
         self._consumers: dict[str, StreamConsumer] = {}
         self._commit = client.register_script(_COMMIT)
         self.peers = peers
-        self._peers_seen = (1, -math.inf)
+        self._share_checked = -math.inf
         self._resting: dict[str, float] = {}
 
     def poll(self) -> bool:
@@ -150,17 +151,20 @@ class DeviceConsumer:
                 self.recorder.finish_if_stopping(device)
             except LeaseLost:
                 self._forget(device)
-        if len(self.states) > self._fair_share(len(devices)):
-            self._hand_over(max(self.states))
+        surplus = self._surplus(devices)
+        if surplus is not None:
+            self._hand_over(surplus)
         return busy
 
-    def _fair_share(self, devices: int) -> int:
-        """``ceil(devices / live device workers)``; the worker count is re-read each second."""
-        count, when = self._peers_seen
-        if time.monotonic() - when > 1.0:
-            count = max(self.peers(), 1)
-            self._peers_seen = (count, time.monotonic())
-        return math.ceil(devices / count)
+    def _surplus(self, devices: list[str]) -> str | None:
+        """An owned device beyond this worker's fair share of the active devices
+        (:mod:`worker.device_share`), looked at once a second."""
+        if not self.states or time.monotonic() - self._share_checked < 1.0:
+            return None
+        self._share_checked = time.monotonic()
+        newest = newest_frame_ms(self.client, devices)
+        now_ms = redis_now_ms(self.client)
+        return device_to_hand_over(self.states, newest, now_ms, self.peers())
 
     def _hand_over(self, device: str) -> None:
         """Release a device for another worker, and leave it alone for a few leases."""
