@@ -4,6 +4,7 @@ reconstruction, and a server-sent event stream of what happens to a device's fra
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from typing import Annotated, Any, Literal
 
@@ -36,6 +37,10 @@ DEVICE_ERRORS = {**AUTH_ERRORS, 404: error_response("no such device")}
 CONTROL_MAXLEN = 1000
 #: How long one events poll blocks before a keep-alive comment (ms).
 EVENTS_BLOCK_MS = 1000
+#: A device whose daemon has not written its health for this long (s; it writes every
+#: 0.25 s) is shown as ``silent``: the daemon was stopped or killed, or lost Redis. Its
+#: last reported state stays in ``last_state``.
+DAEMON_SILENT_S = 10.0
 
 
 def _text(value: bytes | str) -> str:
@@ -69,6 +74,11 @@ def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
             view[name] = value if name in _TEXT_FIELDS else _number(value)
     latest = client.get(latest_key(device))
     view["latest_result"] = _text(latest) if latest else None
+    updated = view.get("updated_ns")
+    if isinstance(updated, int):
+        view["age_s"] = round((time.time_ns() - updated) / 1e9, 3)
+        if view["age_s"] > DAEMON_SILENT_S:
+            view["last_state"], view["state"], view["fps"] = view.get("state"), "silent", 0.0
     return view
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -15,6 +16,8 @@ from service.core.config import Settings
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY
+from worker.embedded_redis import connect
+from worker.redis_keys import DEVICES_SET, health_key
 
 
 @pytest.fixture
@@ -73,6 +76,23 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium is not installed")
+def test_a_device_whose_daemon_went_quiet_is_shown_silent(
+    settings: Settings, client: Callable[..., httpx.Client]
+) -> None:
+    """A daemon killed outright leaves its last health behind: the API says how old it is
+    and stops calling the device connected."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "gone")
+    minute_ago = time.time_ns() - 60 * 10**9
+    redis_client.hset(health_key("gone"), mapping={
+        "state": "connected", "fps": "10.000", "updated_ns": str(minute_ago),
+    })  # fmt: skip
+    view = client(READ_KEY).get("/v1/devices/gone").json()
+    assert view["state"] == "silent" and view["last_state"] == "connected"
+    assert view["fps"] == 0.0 and view["age_s"] >= 60
+
+
 def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) -> None:
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as playwright:
