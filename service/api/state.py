@@ -30,6 +30,7 @@ class ServiceState:
     keyring: KeyRing
     limiter: RateLimiter
     store: ResultStore
+    redis_url: str
     embedded: EmbeddedRedis | None = None
     _queue: JobQueue | None = field(default=None, repr=False)
 
@@ -74,5 +75,6 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
         keyring=keyring,
         limiter=RateLimiter(client, settings.rate_limit_per_minute),
         store=ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s),
+        redis_url=url,
         embedded=embedded,
     )
