@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import redis
 
+from device import link_protocol as lp
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.faults import Faults
 from device.sim_link import TcpEndpoint
@@ -209,3 +210,13 @@ def test_a_port_that_will_not_open_is_reported(
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert warnings and f"cannot open {missing}" in warnings[0]
     assert len(warnings) < 5  # one per outage, then every WARN_EVERY attempts
+
+
+def test_a_wild_sequence_jump_is_a_gap_not_trillions_of_missing_frames(
+        client: redis.Redis) -> None:
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client)
+    codes = np.zeros((4, 4), np.uint8)
+    for sequence in (0, 1, 5, 2**64 - 1):
+        daemon._on_data(lp.DataPacket(sequence, 0, "modulo", 2.0, 8, 1.0, codes))
+    assert daemon.health.counts["sequence_gaps"] == 2
+    assert daemon.health.counts["frames_missing"] == 3
