@@ -18,9 +18,8 @@ next call starts a fresh child.
 A child that dies while working (killed, out of memory) fails its call with
 :class:`ChildDiedError` (and a warning in the log); a new child is started at once
 after a kill or a death, so the next call does not wait for one to warm up. Children
-ignore SIGINT and SIGTERM (:func:`leave_signals_to_parent`) and exit by themselves
-when their worker is gone (:func:`watch_parent`), so a worker killed outright leaves
-none behind.
+ignore SIGINT and SIGTERM and exit by themselves when their worker is gone
+(:func:`follow_parent`), so a worker killed outright leaves none behind.
 """
 
 from __future__ import annotations
@@ -56,6 +55,13 @@ class ChildDiedError(McamError):
     code = "decoder_crashed"
 
 
+def follow_parent(parent: int) -> None:
+    """In a child, first: leave the group's signals to the parent
+    (:func:`leave_signals_to_parent`) and exit with it (:func:`watch_parent`)."""
+    watch_parent(parent)
+    leave_signals_to_parent()
+
+
 def watch_parent(parent: int) -> None:
     """In a child: exit once the process ``parent`` (its pid, passed in since it may be
     gone before this runs) is no longer this process's parent. A worker killed outright
@@ -85,8 +91,7 @@ def _serve(
 ) -> None:
     """The child's loop: run each ``(function, args)`` received, send back ``("ok",
     result)`` or ``("error", exception, traceback text)``; stop at end of input."""
-    watch_parent(parent)
-    leave_signals_to_parent()
+    follow_parent(parent)
     if initializer is not None:
         initializer(*initargs)
     while True:

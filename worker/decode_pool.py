@@ -48,7 +48,7 @@ import numpy as np
 from models.decoders.learned import THREAD_VARIABLES
 from models.errors import McamError
 from models.formation import narrow_winding
-from worker.child_process import leave_signals_to_parent, watch_parent
+from worker.child_process import follow_parent
 from worker.device_state import DecodedFrame, DeviceState, FrameDecoder, make_frame_decoder, warm_up
 from worker.frame_message import FrameMessage
 
@@ -76,14 +76,13 @@ _all_started: Barrier | None = None
 
 def _start(decoder: str, all_started: Barrier, worker: int) -> None:
     """Pool process initializer: one thread for onnxruntime and the numerical libraries,
-    Ctrl-C and SIGTERM left to the worker (which shuts the pool down), an exit of its own when the
-    worker (pid ``worker``: passed, since it may be gone before this runs) dies, the
-    decoder built and warmed."""
+    Ctrl-C and SIGTERM left to the worker (which shuts the pool down) and an exit of its
+    own when the worker (pid ``worker``) dies (:func:`worker.child_process.follow_parent`),
+    the decoder built and warmed."""
     global _decode, _all_started
     _all_started = all_started
-    watch_parent(worker)
+    follow_parent(worker)
     os.environ.update(dict.fromkeys(THREAD_VARIABLES, str(PROCESS_THREADS)))
-    leave_signals_to_parent()
     from models.allocator import keep_freed_memory
 
     keep_freed_memory()

@@ -21,8 +21,8 @@ the worker starts): a decode that holds the interpreter lock for minutes (graph 
 on a large frame) cannot stall the worker's heartbeat, leases and streams, and a job
 cancelled mid-decode ends it at once (the child is killed; the next job starts a new
 one). A video job decodes its frames there too, a few at a time
-(:data:`worker.video_jobs.CHUNK_FRAMES`), and checks between those calls for a
-worker that is stopping.
+(:data:`worker.video_jobs.CHUNK_FRAMES`); a worker that is stopping ends a video's
+decode at once and hands the job back, while it finishes a still job's.
 """
 
 from __future__ import annotations

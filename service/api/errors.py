@@ -17,6 +17,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.errors import McamError
+from service.api.media_types import media_type
 
 log = logging.getLogger(__name__)
 
@@ -75,16 +76,12 @@ def _problem(error: dict[str, Any]) -> dict[str, str]:
     return {"field": _location(error["loc"]), "message": error["msg"]}
 
 
-def _media_type(request: Request) -> str:
-    return request.headers.get("content-type", "").split(";")[0].strip().lower()
-
-
 async def validation_error(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     details = [_problem(err) for err in exc.errors()]
     problems = [f"{detail['field']}: {detail['message']}" for detail in details]
     message = "invalid request: " + "; ".join(problems)
-    media = _media_type(request)
+    media = media_type(request)
     body_errors = any(tuple(err["loc"][:1]) == ("body",) for err in exc.errors())
     if body_errors and media != "application/json":
         message += (

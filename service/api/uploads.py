@@ -24,6 +24,7 @@ from models.formation import SensorParams
 from models.frames import PNG_SIGNATURE
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.errors import ApiError
+from service.api.media_types import media_type
 
 Model = TypeVar("Model", bound=BaseModel)
 #: Leading bytes of the frame file formats we accept.
@@ -140,7 +141,7 @@ async def _read_multipart(request: Request) -> Upload:
 
 async def read_upload(request: Request) -> Upload:
     """The request's file: multipart field ``file`` or the raw body."""
-    media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    media = media_type(request)
     if media == "multipart/form-data":
         upload = await _read_multipart(request)
     elif media == "application/octet-stream":

@@ -12,7 +12,7 @@ from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError, UnsupportedFormatError
 from models.exr_header import decode_attributes, sensor_attributes
-from models.formation import ensure_nonzero_kept
+from models.formation import reconstruct
 from models.frames import frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
 from service.cli.options import (
@@ -71,9 +71,9 @@ def run(args: argparse.Namespace) -> int:
     decoder = get_decoder(args.decoder)
     frame = read_frame(args.frame, sensor_values(args))
     result = decoder.decode(frame.codes, frame.params)
+    dtype = np.float16 if args.half else np.float32
+    pixels = reconstruct(frame.codes, result.winding, frame.params, dtype, scene_referred=True)
     gain = frame.params.gain
-    pixels = result.irradiance if gain is None else result.irradiance / gain
-    ensure_nonzero_kept(pixels, np.float16 if args.half else np.float32, "reconstruction")
     units = "wrap units x (gain unknown)" if gain is None else "scene-referred x / gain"
     attributes = sensor_attributes(frame.params) | decode_attributes(result.info)
     attributes["comments"] = f"MantissaCam reconstruction of {args.frame}; values in {units}"

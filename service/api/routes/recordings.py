@@ -24,6 +24,7 @@ from models.decoders.registry import resolve
 from models.errors import InvalidInputError
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.errors import ApiError
+from service.api.media_types import media_type
 from service.api.routes.devices import DEVICE_ERRORS, known_device
 from service.api.routes.reconstructions import prefer_wait_s
 from service.api.routes.videos import VideoOptionFields
@@ -53,7 +54,7 @@ class RecordingFields(VideoOptionFields):
 async def read_fields(request: Request) -> RecordingFields:
     """The fields from the query, updated by a JSON or form body (422 if bad)."""
     values: dict[str, Any] = dict(request.query_params)
-    media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    media = media_type(request)
     if media == "application/json":
         try:
             body = await request.json()
