@@ -223,6 +223,7 @@ def test_cancelling_a_long_decode_stops_it_and_the_worker_stays_live(
     def beat_ns() -> int:
         return json.loads(client.hvals(WORKERS_HEARTBEAT)[0])["ts_ns"]
 
+    wait_until(lambda: client.hlen(WORKERS_HEARTBEAT), 20, "the worker's first heartbeat")
     first = beat_ns()
     wait_until(lambda: beat_ns() > first, 20, "a heartbeat while the decode runs")
     assert queue.cancel(job.id).state is JobState.CANCELLED
