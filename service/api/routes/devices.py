@@ -22,6 +22,7 @@ from service.api.errors import ApiError
 from service.api.previews import tonemap_png
 from service.api.schemas import AUTH_ERRORS, error_response
 from service.api.state import ServiceState
+from worker.device_registry import forget_device
 from worker.embedded_redis import connect_async
 from worker.redis_keys import (
     DEVICES_SET,
@@ -100,6 +101,19 @@ def list_devices(state: StateDep, _key: ReadKey) -> dict[str, list[dict[str, Any
 @router.get("/{device_id}", responses=DEVICE_ERRORS, summary="One device's health and settings")
 def get_device(device_id: str, state: StateDep, _key: ReadKey) -> dict[str, Any]:
     return device_view(state.client, known_device(state, device_id))
+
+
+@router.delete("/{device_id}", responses={**DEVICE_ERRORS, 409: error_response("device busy")},
+               summary="Forget a device whose daemon has stopped (its keys, not its results)")
+def forget(device_id: str, state: StateDep, _key: SubmitKey,
+           discard_frames: bool = False) -> dict[str, Any]:
+    """409 ``device_busy`` while its daemon reports, it records, or frames wait to be
+    decoded (``discard_frames=true`` drops those). Stored reconstructions stay until
+    their retention ends; a daemon that comes back registers the device again."""
+    device = known_device(state, device_id)
+    dropped = forget_device(state.client, device, silent_after_s=DAEMON_SILENT_S,
+                            discard_frames=discard_frames)
+    return {"device": device, "forgotten": True, "frames_discarded": dropped}
 
 
 @router.post("/{device_id}/control", status_code=202, responses=DEVICE_ERRORS,

@@ -52,6 +52,9 @@ def test_devices_health_control_latest_and_events(
     unknown = http.post("/v1/devices/cam1/control", json={"command": "fly"})
     assert unknown.status_code == 422
     assert "field 'command' is one of start, stop" in unknown.json()["message"]
+    busy = http.delete("/v1/devices/cam1")
+    assert busy.status_code == 409 and busy.json()["code"] == "device_busy", busy.text
+    assert "stop it" in busy.json()["message"]
 
     assert wait_for(lambda: http.get("/v1/devices/cam1/frames/latest").status_code == 200, 60)
     exr = http.get("/v1/devices/cam1/frames/latest")
@@ -74,9 +77,7 @@ def test_devices_health_control_latest_and_events(
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium is not installed")
-def test_a_device_whose_daemon_went_quiet_is_shown_silent(
+def test_a_device_whose_daemon_went_quiet_is_shown_silent_and_can_be_forgotten(
     settings: Settings, client: Callable[..., httpx.Client]
 ) -> None:
     """A daemon killed outright leaves its last health behind: the API says how old it is
@@ -92,7 +93,16 @@ def test_a_device_whose_daemon_went_quiet_is_shown_silent(
     assert view["state"] == "silent" and view["last_state"] == "connected"
     assert view["fps"] == 0.0 and view["age_s"] >= 60
 
+    assert client(READ_KEY).delete("/v1/devices/gone").status_code == 403
+    forgotten = client(SUBMIT_KEY).delete("/v1/devices/gone")
+    assert forgotten.status_code == 200, forgotten.text
+    assert forgotten.json() == {"device": "gone", "forgotten": True, "frames_discarded": 0}
+    assert client(READ_KEY).get("/v1/devices").json()["devices"] == []
+    assert client(SUBMIT_KEY).delete("/v1/devices/gone").status_code == 404
 
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium is not installed")
 def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) -> None:
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as playwright:

@@ -1,0 +1,72 @@
+"""Forgetting a device: refused while anything still depends on it, then every key goes."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import redis
+
+from models.formation import SensorParams
+from worker.device_registry import DeviceBusyError, device_keys, forget_device
+from worker.frame_message import FrameMessage
+from worker.queue import publish_frame
+from worker.recordings import request_stop, start_recording
+from worker.redis_keys import DEVICES_SET, events_stream, health_key, recording_key
+
+PARAMS = SensorParams(encoding="modulo", bits=8)
+CODES = np.arange(64, dtype=np.uint8).reshape(8, 8)
+
+
+def _register(client: redis.Redis, device: str, *, reported_s_ago: float, frames: int) -> None:
+    """What a daemon leaves behind: health, queued frames, an event."""
+    updated = time.time_ns() - int(reported_s_ago * 1e9)
+    client.hset(health_key(device), mapping={"state": "connected", "updated_ns": updated})
+    client.sadd(DEVICES_SET, device)
+    for seq in range(frames):
+        publish_frame(client, FrameMessage(device, seq, seq, CODES, PARAMS), maxlen=16)
+    client.xadd(events_stream(device), {"type": "frame"})
+
+
+def test_forgets_a_silent_device_and_all_its_keys(client: redis.Redis) -> None:
+    _register(client, "gone", reported_s_ago=60, frames=0)
+    _register(client, "kept", reported_s_ago=60, frames=0)
+    assert forget_device(client, "gone", silent_after_s=10) == 0
+    assert client.smembers(DEVICES_SET) == {b"kept"}
+    assert client.exists(*device_keys("gone")) == 0
+    assert client.exists(health_key("kept"), events_stream("kept")) == 2
+
+
+def test_a_reporting_daemon_keeps_its_device(client: redis.Redis) -> None:
+    _register(client, "live", reported_s_ago=1, frames=0)
+    with pytest.raises(DeviceBusyError, match="reported 10 s ago or less") as error:
+        forget_device(client, "live", silent_after_s=10)
+    assert error.value.http_status == 409 and error.value.code == "device_busy"
+    assert client.sismember(DEVICES_SET, "live")
+
+
+def test_undecoded_frames_are_kept_unless_discarded(client: redis.Redis) -> None:
+    _register(client, "cam", reported_s_ago=60, frames=3)
+    with pytest.raises(DeviceBusyError, match="3 frame"):
+        forget_device(client, "cam", silent_after_s=10)
+    assert client.sismember(DEVICES_SET, "cam")
+    assert forget_device(client, "cam", silent_after_s=10, discard_frames=True) == 3
+    assert client.exists(*device_keys("cam")) == 0
+
+
+def test_a_running_recording_keeps_its_device(client: redis.Redis) -> None:
+    _register(client, "rec", reported_s_ago=60, frames=0)
+    assert start_recording(client, "rec", decoder="itoh", options={}, max_frames=5)
+    for _ in range(2):  # recording, then stopping (the worker has not finished it)
+        with pytest.raises(DeviceBusyError, match="is recording"):
+            forget_device(client, "rec", silent_after_s=10)
+        request_stop(client, "rec")
+    client.hset(recording_key("rec"), "state", "submitted")
+    assert forget_device(client, "rec", silent_after_s=10) == 0
+
+
+def test_a_device_without_health_can_be_forgotten(client: redis.Redis) -> None:
+    client.sadd(DEVICES_SET, "orphan")
+    assert forget_device(client, "orphan", silent_after_s=10) == 0
+    assert not client.sismember(DEVICES_SET, "orphan")
