@@ -153,8 +153,30 @@ def _check_entry_id(name: str, value: str | None) -> None:
         )
 
 
+def _entry_key(entry_id: str) -> tuple[int, int]:
+    ms, _, seq = entry_id.partition("-")
+    return int(ms), int(seq or 0)
+
+
+def _resume_point(client: redis.Redis, device: str, requested: str) -> tuple[str, str | None]:
+    """Where an event stream starts (an entry id; ``$``: after the newest), and a ``reset``
+    event when ``requested`` lies beyond every event the device has had: Redis lost its
+    data or the id was made up, so the client would otherwise wait for ever. It then
+    gets every event kept, from the oldest."""
+    newest = client.xrevrange(events_stream(device), count=1)
+    newest_id = _text(newest[0][0]) if newest else "0-0"
+    if requested == "$":
+        return newest_id, None
+    if requested == "0" or _entry_key(requested) <= _entry_key(newest_id):
+        return requested, None
+    reset = {"type": "reset", "requested": requested, "newest": newest_id,
+             "reason": "the requested event id is newer than any event of this device; "
+                       "the stream starts again from its oldest kept event"}
+    return "0", f"event: reset\ndata: {json.dumps(reset)}\n\n"
+
+
 async def _event_lines(
-    url: str, device: str, since: str, limit: int | None
+    url: str, device: str, since: str, limit: int | None, preamble: str | None = None
 ) -> AsyncIterator[str]:
     """Server-sent events from ``events:<device>``, after entry ``since``. Async, on a
     connection of its own: a waiting client holds no thread (as a blocking generator,
@@ -166,6 +188,8 @@ async def _event_lines(
     last = since
     try:
         yield "retry: 2000\n\n"
+        if preamble:
+            yield preamble
         while limit is None or sent < limit:
             reply = await client.xread({stream: last}, count=64, block=EVENTS_BLOCK_MS)
             if not reply:
@@ -195,10 +219,7 @@ def events(device_id: str, state: StateDep, _key: ReadKey,
     device = known_device(state, device_id)
     for name, value in (("since", since), ("Last-Event-ID", last_event_id)):
         _check_entry_id(name, value)
-    start = last_event_id or since
-    if start == "$":
-        newest = state.client.xrevrange(events_stream(device), count=1)
-        start = _text(newest[0][0]) if newest else "0"
-    return StreamingResponse(_event_lines(state.redis_url, device, start, limit),
+    start, preamble = _resume_point(state.client, device, last_event_id or since)
+    return StreamingResponse(_event_lines(state.redis_url, device, start, limit, preamble),
                              media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache"})

@@ -67,6 +67,12 @@ def test_devices_health_control_latest_and_events(
         assert events.headers["content-type"].startswith("text/event-stream")
         body = "".join(events.iter_text())
     assert body.count("event: frame") == 2 and '"sequence": "0"' in body
+    future = {"Last-Event-ID": f"{(time.time_ns() // 10**6) + 10**9}-0"}
+    with http.stream("GET", "/v1/devices/cam1/events", params={"limit": 1},
+                     headers=future) as events:
+        body = "".join(events.iter_text())
+    assert body.count("event: reset") == 1 and body.count("event: frame") == 1, body
+    assert '"sequence": "0"' in body  # from the oldest kept event
     huge = "1-" + "9" * 23
     for params, headers in [({"since": huge}, {}), ({}, {"Last-Event-ID": huge})]:
         refused = http.get("/v1/devices/cam1/events", params=params, headers=headers)
