@@ -45,7 +45,7 @@ import redis
 from models.errors import McamError
 from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order
-from worker.device_share import device_to_hand_over, newest_frame_ms, redis_now_ms
+from worker.device_share import device_to_hand_over, frame_clock
 from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
 from worker.job_processor import RETRY_BACKOFF_S, error_of
@@ -162,8 +162,7 @@ class DeviceConsumer:
         if not self.states or time.monotonic() - self._share_checked < 1.0:
             return None
         self._share_checked = time.monotonic()
-        newest = newest_frame_ms(self.client, devices)
-        now_ms = redis_now_ms(self.client)
+        newest, now_ms = frame_clock(self.client, devices)
         return device_to_hand_over(self.states, newest, now_ms, self.peers())
 
     def _hand_over(self, device: str) -> None:

@@ -23,28 +23,25 @@ from worker.redis_keys import frame_stream
 ACTIVE_MS = 30_000
 
 
-def newest_frame_ms(client: redis.Redis, devices: Iterable[str]) -> dict[str, int]:
-    """Each device's newest frame time: the ms part of its frame stream's last entry id
-    (kept by Redis after the entries are deleted); 0 for a device with no stream."""
+def frame_clock(client: redis.Redis, devices: Iterable[str]) -> tuple[dict[str, int], int]:
+    """Each device's newest frame time (ms, Redis clock: the ms part of its frame stream's
+    last entry id, kept by Redis after the entries are deleted; 0 for a device with no
+    stream), and Redis's clock now (ms), in one round trip."""
     names = list(devices)
     pipe = client.pipeline(transaction=False)
     for device in names:
         pipe.xinfo_stream(frame_stream(device))
+    pipe.time()
+    *infos, (seconds, micros) = pipe.execute(raise_on_error=False)
     newest = {}
-    for device, info in zip(names, pipe.execute(raise_on_error=False), strict=True):
+    for device, info in zip(names, infos, strict=True):
         if isinstance(info, dict):
             last = info.get("last-generated-id", b"0-0")
             text = last.decode() if isinstance(last, bytes) else str(last)
             newest[device] = int(text.split("-")[0])
         else:
             newest[device] = 0
-    return newest
-
-
-def redis_now_ms(client: redis.Redis) -> int:
-    """Redis's clock in ms (stream ids are stamped with it)."""
-    seconds, micros = client.time()
-    return int(seconds) * 1000 + int(micros) // 1000
+    return newest, int(seconds) * 1000 + int(micros) // 1000
 
 
 def device_to_hand_over(

@@ -9,8 +9,7 @@ from hypothesis import strategies as st
 from worker.device_share import (
     ACTIVE_MS,
     device_to_hand_over,
-    newest_frame_ms,
-    redis_now_ms,
+    frame_clock,
 )
 from worker.redis_keys import frame_stream
 
@@ -49,6 +48,8 @@ def test_newest_frame_times_come_from_the_streams(client: redis.Redis) -> None:
     client.xadd(frame_stream("old"), {"seq": "0"}, id="1000-0")
     entry = client.xadd(frame_stream("new"), {"seq": "0"})
     client.xdel(frame_stream("new"), entry)  # consumed frames are deleted: the id remains
-    newest = newest_frame_ms(client, ["old", "new", "never"])
+    newest, now_ms = frame_clock(client, ["old", "new", "never"])
     assert newest["old"] == 1000 and newest["never"] == 0
-    assert abs(newest["new"] - redis_now_ms(client)) < 5_000
+    assert abs(newest["new"] - now_ms) < 5_000
+    seconds, _micros = client.time()
+    assert abs(now_ms - int(seconds) * 1000) < 5_000
