@@ -270,7 +270,15 @@ class LearnedDecoder(Decoder):
         return self.models[params.encoding]
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        return anchor_winding(self.model_for(params).predict(m), params)
+        """The net's W, anchored. A uniform frame (every code equal) holds no evidence of
+        where one W ends and another begins, so it gets one W, the net's commonest answer
+        (the nets alone answered W 0..2 on an all-zero frame, UnModNet 0..15 on all-max
+        codes: an invented image)."""
+        winding = self.model_for(params).predict(m)
+        if m.size and m.min() == m.max():
+            low = int(winding.min())
+            winding = np.full_like(winding, low + int(np.bincount(winding.ravel() - low).argmax()))
+        return anchor_winding(winding, params)
 
     def run_pixels(self, shape: tuple[int, int], params: SensorParams) -> list[int]:
         return self.model_for(params).run_pixels(shape)

@@ -192,3 +192,17 @@ def test_run_pixels_counts_the_runs_predict_makes(rows: int, cols: int) -> None:
     assert pixels == [-(-h // step) * step * (-(-w // step) * step) for h, w in calls]
     whole = max(rows, cols) <= int(model.card["tile"]) + learned.WHOLE_RUN_SLACK
     assert (len(pixels) == 1) == whole == model.runs_whole((rows, cols))
+
+
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+@pytest.mark.parametrize("code", [0, 255])
+def test_a_uniform_frame_decodes_to_a_uniform_image(encoding: str, code: int) -> None:
+    """No decoder invents structure where every code is the same."""
+    params = SensorParams(encoding=encoding, bits=8, alpha=2.0)
+    codes = np.full((48, 40), code, np.uint8)
+    for spec in learned.specs():
+        decoder = get_decoder(spec.name)
+        if not decoder.supports(params):
+            continue
+        winding = decoder.decode(codes, params).winding
+        assert np.ptp(winding) == 0, f"{spec.name}: W {winding.min()}..{winding.max()}"
