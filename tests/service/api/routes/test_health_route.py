@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 from pathlib import Path
 
@@ -51,3 +53,26 @@ def test_ready_reports_redis_down_and_unknown_default_decoder(tmp_path: Path) ->
             f"{api}/v1/jobs/{'0' * 32}", headers={"Authorization": f"Bearer {FULL_KEY}"}
         )
         assert jobs.status_code == 503 and jobs.json()["code"] == "queue_unavailable"
+
+
+def test_a_hung_redis_gets_a_quick_503_not_a_hang(tmp_path: Path) -> None:
+    """A Redis that accepts connections but never answers (stopped, swapping, stuck on
+    disk) costs a request one ``redis_timeout_s``: with retries it cost 20-80 s."""
+    embedded = EmbeddedRedis(tmp_path / "r")
+    settings = make_settings(tmp_path, embedded.start(), redis_timeout_s=0.5)
+    auth = {"Authorization": f"Bearer {FULL_KEY}"}
+    try:
+        with serve(create_app(settings)) as api:
+            assert httpx.get(f"{api}/v1/jobs/{'0' * 32}", headers=auth).status_code == 404
+            assert embedded.pid is not None
+            os.kill(embedded.pid, signal.SIGSTOP)
+            try:
+                ready = httpx.get(f"{api}/health/ready", timeout=8)
+                job = httpx.get(f"{api}/v1/jobs/{'0' * 32}", headers=auth, timeout=8)
+            finally:
+                os.kill(embedded.pid, signal.SIGCONT)
+            assert ready.status_code == 503 and ready.json()["checks"]["queue"] is False
+            assert job.status_code == 503 and job.json()["code"] == "queue_unavailable"
+            assert httpx.get(f"{api}/v1/jobs/{'0' * 32}", headers=auth).status_code == 404
+    finally:
+        embedded.stop()
