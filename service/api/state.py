@@ -58,7 +58,7 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
     embedded = None
     url = settings.redis_url
     if url is None:
-        embedded = EmbeddedRedis(settings.data_dir)
+        embedded = EmbeddedRedis(settings.data_dir, keep_alive=True)
         url = embedded.start()
     client = connect(url, timeout_s=settings.redis_timeout_s, fail_fast=True)
     problem = durability_problem(client)

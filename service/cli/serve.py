@@ -9,7 +9,8 @@ With ``MCAM_REDIS_URL`` unset it starts the private redis-server in the data dir
 (``worker/embedded_redis.py``); each worker runs as a child process (``mcam
 worker``) and the API (``service.main:create_app``) under uvicorn in this
 process. It prints the URL and, on first start, the generated API key. A worker
-that dies is restarted (with backoff). Ctrl-C or SIGTERM stops the API, then the
+that dies is restarted (with backoff), and so is the embedded Redis (from its
+append-only file, within a second). Ctrl-C or SIGTERM stops the API, then the
 workers (gracefully), then the embedded Redis.
 
 One worker (the default) decodes one job at a time on all its onnxruntime threads: the
@@ -154,7 +155,9 @@ def _interrupt(_signum: int, _frame: FrameType | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
-    embedded = EmbeddedRedis(settings.data_dir) if settings.redis_url is None else None
+    embedded = (
+        EmbeddedRedis(settings.data_dir, keep_alive=True) if settings.redis_url is None else None
+    )
     workers: list[WorkerSupervisor] = []
     signal.signal(signal.SIGTERM, _interrupt)
     try:

@@ -12,7 +12,13 @@ from pathlib import Path
 import pytest
 
 from models.errors import McamError
-from worker.embedded_redis import EmbeddedRedis, RedisStartError, connect, durability_problem
+from worker.embedded_redis import (
+    WATCH_INTERVAL_S,
+    EmbeddedRedis,
+    RedisStartError,
+    connect,
+    durability_problem,
+)
 
 
 def test_start_serves_unix_socket_and_stop_cleans_up(tmp_path: Path) -> None:
@@ -47,6 +53,28 @@ def test_data_survives_stop_and_a_killed_server(tmp_path: Path) -> None:
         client = connect(url)
         assert client.get("k") == b"v" and client.get("k2") == b"v2"
         assert client.xrange("s")[0][1] == {b"codes": b"\x00\xff" * 10}
+
+
+def test_a_kept_alive_server_that_dies_is_restarted_with_its_data(tmp_path: Path) -> None:
+    server = EmbeddedRedis(tmp_path, keep_alive=True)
+    client = connect(server.start())
+    client.set("accepted", "job")
+    first = server.pid
+    assert first is not None
+    os.kill(first, signal.SIGKILL)
+    deadline = time.monotonic() + 20
+    while (server.pid in (None, first) or server.restarts == 0) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert server.restarts == 1 and server.pid not in (None, first)
+    assert client.get("accepted") == b"job"  # the same client reconnects to the same socket
+    with pytest.raises(ChildProcessError):
+        os.waitpid(first, os.WNOHANG)  # the dead server was reaped, no zombie left
+    second = server.pid
+    server.stop()
+    time.sleep(2.5 * WATCH_INTERVAL_S)
+    assert server.pid is None and server.restarts == 1 and not server.socket.exists()
+    with pytest.raises(ProcessLookupError):
+        os.kill(second, 0)
 
 
 def test_long_data_dir_uses_a_short_socket_path(tmp_path: Path) -> None:
