@@ -275,7 +275,8 @@ class Recorder:
                 "and a worker running?"
             )
         codes = np.stack(
-            [np.load(self.store.path(frame_key(recording.id, i))) for i in range(recording.frames)]
+            [np.load(self.store.existing_path(frame_key(recording.id, i)))
+             for i in range(recording.frames)]
         )
         check_hdr10_size(recording.options.get("outputs", []), codes.shape)
         options = {**recording.options, "keyframes": recording.keyframes}

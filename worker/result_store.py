@@ -4,7 +4,7 @@ Usage::
 
     store = ResultStore(Path("data/results"), retention_s=7 * 86400)
     path = store.write("jobs/0123abcd.../result.exr", exr_bytes)  # atomic + fsynced
-    store.exists(key); store.read(key); store.path(key)
+    store.exists(key); store.read(key); store.existing_path(key)
     store.purge_expired()  # deletes files older than retention_s, returns how many
 
 Keys are relative paths of letters, digits and ``_ . / -`` only: no ``..``
@@ -42,6 +42,10 @@ class ResultNotFoundError(McamError):
 
     code = "not_found"
     http_status = 404
+
+
+def _not_found(key: str) -> ResultNotFoundError:
+    return ResultNotFoundError(f"no result {key!r} (never written or expired)")
 
 
 def validate_key(key: str) -> str:
@@ -86,12 +90,19 @@ class ResultStore:
         """True when a result is stored under ``key``."""
         return self.path(key).is_file()
 
+    def existing_path(self, key: str) -> Path:
+        """The file that holds ``key``; :class:`ResultNotFoundError` if there is none."""
+        path = self.path(key)
+        if not path.is_file():
+            raise _not_found(key)
+        return path
+
     def read(self, key: str) -> bytes:
         """The bytes stored under ``key``; :class:`ResultNotFoundError` if there are none."""
         try:
             return self.path(key).read_bytes()
         except FileNotFoundError:
-            raise ResultNotFoundError(f"no result {key!r} (never written or expired)") from None
+            raise _not_found(key) from None
 
     def write(self, key: str, data: bytes) -> Path:
         """Store ``data`` under ``key`` durably; an existing result is replaced atomically."""

@@ -72,7 +72,7 @@ def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev:
     """The bytes of ``part`` in ``fmt`` for a succeeded job."""
     stem = f"{record.id}-{part}"
     if part == "winding":
-        winding = read_winding(state.store.path(record.results["winding"]))
+        winding = read_winding(state.store.existing_path(record.results["winding"]))
         if fmt == "png":
             return download(winding_png(winding), fmt, stem)
         return download(winding_bytes(winding, fmt), fmt, stem)

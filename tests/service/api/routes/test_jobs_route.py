@@ -13,8 +13,10 @@ from PIL import Image
 from models.decoders.registry import get_decoder
 from models.frames import decode_frame
 from models.hdr_io import read_hdr
+from service.core.config import Settings
 from tests.service.conftest import PARAMS, READ_KEY, SUBMIT_KEY, frame_png
 from tests.worker.conftest import overflowing_codes
+from worker.result_store import RESULTS_DIR
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
@@ -135,3 +137,20 @@ def test_a_failed_job_says_no_result_will_come(client: Client, worker: Worker) -
     result = client().get(f"/v1/jobs/{reply.json()['id']}/result")
     assert result.status_code == 409 and result.json()["code"] == "job_failed"
     assert "no result" in result.json()["message"]
+
+
+def test_expired_result_files_are_404_for_every_part(
+    client: Client, worker: Worker, settings: Settings
+) -> None:
+    """Retention removes files before their job record: each part then says so (the
+    W map answered 500)."""
+    http = client()
+    job = reconstructed_job(http)
+    for path in (settings.data_dir / RESULTS_DIR).rglob("*"):
+        if path.is_file():
+            path.unlink()
+    for params in ({}, {"part": "winding"}, {"part": "winding", "format": "png"},
+                   {"part": "image", "format": "png"}, {"part": "codes"}, {"part": "histogram"}):
+        reply = http.get(f"/v1/jobs/{job['id']}/result", params=params)
+        assert reply.status_code == 404, (params, reply.text)
+        assert "never written or expired" in reply.json()["message"]
