@@ -261,6 +261,9 @@ class JobProcessor:
                 ):
                     self._hand_back(consumer, delivery, record)
                     return
+                if isinstance(exc, McamError) and not isinstance(exc, ChildDiedError):
+                    self._fail(consumer, delivery, record, error_of(exc), caller_error=True)
+                    return
                 if not isinstance(exc, McamError):
                     log.exception("job %s failed (delivery %d)", record.id, delivery.deliveries)
                 if delivery.deliveries >= self.max_deliveries:
@@ -328,8 +331,12 @@ class JobProcessor:
         consumer.done(delivery)
 
     def _fail(
-        self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError
+        self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError,
+        *, caller_error: bool = False,
     ) -> None:
+        """The job fails with ``error``. A ``caller_error`` (the input's fault: another try
+        gives the same answer) fails at the first delivery and its entry is simply done;
+        any other failure, after its retries, goes to the dead letters for an operator."""
         changed, _ = self.jobs.transition(
             record.id,
             JobState.FAILED,
@@ -338,7 +345,10 @@ class JobProcessor:
             finished_ns=time.time_ns(),
             error=error,
         )
-        consumer.dead_letter(delivery, error.code, error.message, job=record.id)
+        if caller_error:
+            consumer.done(delivery)
+        else:
+            consumer.dead_letter(delivery, error.code, error.message, job=record.id)
         if changed:
             self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
         else:
