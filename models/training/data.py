@@ -57,6 +57,12 @@ def _train_scenes(colour: bool = False) -> tuple[NDArray[np.float64], ...]:
     return tuple(load(name) for name in TRAIN_SCENES)
 
 
+def largest_crop() -> int:
+    """The largest training crop (px): the smallest side of the smallest training
+    panorama (a crop wraps around a panorama's seam, but not over its top or bottom)."""
+    return min(min(scene.shape[:2]) for scene in _train_scenes())
+
+
 def _hdri_crop(rng: np.random.Generator, size: int, colour: bool = False) -> NDArray[np.float64]:
     """A random ``size x size`` crop of a training HDRI (luminance, or linear RGB
     ``size x size x 3`` when ``colour``), at 1x or 2x downscale (1x only when the

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -41,7 +42,7 @@ from models.training.checkpoints import (
     run_state,
     save_checkpoint,
 )
-from models.training.data import Batch, PairConfig, batch_stream
+from models.training.data import Batch, PairConfig, batch_stream, largest_crop
 from models.training.losses import HEAD_OUTPUTS, LOSSES, RISK_WEIGHT, step_losses
 from models.training.networks import TIERS, MantissaNet, UnModNet
 
@@ -166,34 +167,130 @@ def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
     return load_checkpoint(source)["model"]
 
 
-#: The shares of the training data a run sets, each in [0, 1], and what each is.
+#: The shares a run sets, each in [0, 1], and what each is.
 FRACTIONS = {
     "colour_fraction": "the share of HDRI crops taken as one channel of a colour frame",
     "glow_fraction": "the share of synthetic scenes with smooth bright lobes",
+    "own_states": "the share of unmodnet batches trained from the model's own states",
 }
+#: Counts a run sets that must be at least 1, and what each is.
+POSITIVE_COUNTS = {
+    "batch": "crops per optimizer step",
+    "threads": "torch threads",
+    "own_passes": "unmodnet passes rolled out",
+    "checkpoint_every": "steps between checkpoints",
+    "log_every": "steps between log lines",
+}
+#: The largest read noise a frame may have (wrap units), ``SensorParams.read_noise``'s bound.
+READ_NOISE_LIMIT = 1.0
+#: Seeds are non-negative and below this (``torch.manual_seed`` takes 64-bit seeds).
+SEED_LIMIT = 2**63
+#: Training crops are multiples of this many px, and at least :data:`SMALLEST_CROP`.
+CROP_MULTIPLE = 16
+SMALLEST_CROP = 32
+#: A run name's tag (``label``) and a run to start from (``init_from``) name one folder of
+#: the runs folder: letters, digits, ``.``, ``_`` and ``-``, not starting with ``.`` or ``-``.
+RUN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+ENCODINGS = ("mantissa", "modulo")
 
 
 def check_config(config: TrainConfig) -> None:
     """Raise InvalidInputError (a ValueError), naming the field, for a configuration that
-    :func:`train` cannot run."""
+    :func:`train` cannot run; nothing is trained or written before these checks."""
+    check_choices(config)
+    check_amounts(config)
+    check_stages(config)
+    check_crops(config)
+    check_names(config)
+    check_device(config)
+
+
+def check_choices(config: TrainConfig) -> None:
+    """Family, tier, loss, encoding and precision are ones the trainer knows."""
     if config.loss not in LOSSES or config.tier not in TIERS or config.family not in FAMILIES:
         raise InvalidInputError(
             f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
         )
+    if config.encoding not in ENCODINGS:
+        raise InvalidInputError(f"encoding must be one of {ENCODINGS}, got {config.encoding!r}")
+    if config.precision not in PRECISIONS:
+        raise InvalidInputError(
+            f"precision must be one of {PRECISIONS}, got {config.precision!r}"
+        )
+
+
+def check_amounts(config: TrainConfig) -> None:
+    """Weights, shares, counts, the seed and the read noise are in range."""
     if not config.risk_weight >= 0.0:
         raise InvalidInputError(f"risk_weight must be >= 0, got {config.risk_weight}")
     for name, meaning in FRACTIONS.items():
         value = getattr(config, name)
         if not 0.0 <= value <= 1.0:
             raise InvalidInputError(f"{name} must be in [0, 1] ({meaning}), got {value}")
-    if config.precision not in PRECISIONS:
-        raise InvalidInputError(
-            f"precision must be one of {PRECISIONS}, got {config.precision!r}"
-        )
+    for name, meaning in POSITIVE_COUNTS.items():
+        value = getattr(config, name)
+        if value < 1:
+            raise InvalidInputError(f"{name} must be at least 1 ({meaning}), got {value}")
     if config.workers < 0:
         raise InvalidInputError(
             f"workers must be >= 0 (0 makes batches in-process), got {config.workers}"
         )
+    if not 0 <= config.seed < SEED_LIMIT:
+        raise InvalidInputError(f"seed must be in [0, 2**63), got {config.seed}")
+    if not 0.0 <= config.max_read_noise <= READ_NOISE_LIMIT:
+        raise InvalidInputError(
+            f"max read noise must be in [0, {READ_NOISE_LIMIT}] (a Gaussian sigma in wrap "
+            f"units; the shipped noise-aware nets use 0.02), got {config.max_read_noise}"
+        )
+
+
+def check_stages(config: TrainConfig) -> None:
+    """3 or 4 stages of >= 0 steps, at least one step in all unless the run starts from
+    another run's weights (else it would write an untrained checkpoint)."""
+    steps = config.stage_steps
+    if len(steps) not in (3, 4) or any(count < 0 for count in steps):
+        raise InvalidInputError(
+            f"stage steps must be 3 or 4 counts >= 0 (e.g. 500,3500,2000), got {steps}"
+        )
+    if config.total_steps == 0 and not config.init_from:
+        raise InvalidInputError(
+            f"stage steps {steps} train nothing: give at least one stage a step "
+            "(e.g. 500,3500,2000)"
+        )
+
+
+def check_crops(config: TrainConfig) -> None:
+    """The crops (and stage 4's large crops, when it has steps) are multiples of
+    :data:`CROP_MULTIPLE` px, at least :data:`SMALLEST_CROP` and no larger than the
+    smallest training panorama allows (:func:`models.training.data.largest_crop`)."""
+    crops = {"crop": config.crop}
+    if len(config.stage_steps) == 4 and config.stage_steps[3] > 0:
+        crops["large_crop"] = config.large_crop
+    for name, size in crops.items():
+        if size % CROP_MULTIPLE or size < SMALLEST_CROP:
+            raise InvalidInputError(
+                f"{name} must be a multiple of {CROP_MULTIPLE} px and >= {SMALLEST_CROP}, "
+                f"got {size}"
+            )
+        if size > largest_crop():
+            raise InvalidInputError(
+                f"{name} must be at most {largest_crop()} px (the smallest side of the "
+                f"smallest training panorama), got {size}"
+            )
+
+
+def check_names(config: TrainConfig) -> None:
+    """``label`` and ``init_from`` each name one folder of the runs folder."""
+    for name, value in (("label", config.label), ("init_from", config.init_from)):
+        if value and not RUN_NAME.fullmatch(value):
+            raise InvalidInputError(
+                f"{name} must be one folder name (letters, digits, '.', '_', '-'; no '/'), "
+                f"got {value!r}"
+            )
+
+
+def check_device(config: TrainConfig) -> None:
+    """The device is a torch device this machine has."""
     try:
         device = torch.device(config.device)
     except RuntimeError as exc:

@@ -157,8 +157,6 @@ def run(args: argparse.Namespace) -> int:
             if exported(config):
                 export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
         return 0
-    if args.crop % 16 or args.crop < 32:
-        raise InvalidInputError(f"--crop must be a multiple of 16 and >= 32, got {args.crop}")
     config = TrainConfig(
         family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,

@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
+from pydantic import ValidationError
 
 from models.errors import InvalidInputError
+from models.formation import SensorParams
+from models.scenes import TRAIN_SCENES, load_hdri_gray
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
+from models.training.data import largest_crop
 from models.training.losses import HEAD_OUTPUTS
-from models.training.train import TrainConfig, check_config, train
+from models.training.train import READ_NOISE_LIMIT, TrainConfig, check_config, train
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -170,3 +175,13 @@ def test_each_resumed_stretch_of_a_run_is_a_segment(tmp_path: Path) -> None:
     assert checkpoint_segments(state) == segments
 
 
+
+
+def test_the_read_noise_limit_is_the_sensor_models() -> None:
+    SensorParams(encoding="mantissa", read_noise=READ_NOISE_LIMIT)
+    with pytest.raises(ValidationError):
+        SensorParams(encoding="mantissa", read_noise=math.nextafter(READ_NOISE_LIMIT, 2.0))
+
+
+def test_the_largest_crop_is_the_smallest_panoramas_side() -> None:
+    assert largest_crop() == min(min(load_hdri_gray(name).shape) for name in TRAIN_SCENES)

@@ -83,3 +83,32 @@ def test_a_device_this_machine_lacks_is_one_clear_line(
         "--runs-dir", tmp_path, cwd=tmp_path,
     )  # fmt: skip
     assert_one_line_error(result, message)
+
+
+@pytest.mark.parametrize(
+    ("flags", "fragments"),
+    [
+        (("--batch", "0"), ("batch must be at least 1", "got 0")),
+        (("--batch", "-3"), ("batch must be at least 1", "got -3")),
+        (("--threads", "0"), ("threads must be at least 1", "got 0")),
+        (("--threads", "-1"), ("threads must be at least 1", "got -1")),
+        (("--seed", "-1"), ("seed must be in [0, 2**63)", "got -1")),
+        (("--read-noise", "-1"), ("max read noise must be in [0, 1.0]", "got -1")),
+        (("--read-noise", "5"), ("max read noise must be in [0, 1.0]", "got 5")),
+        (("--crop", "512"), ("crop must be at most 256 px",)),
+        (("--crop", "40"), ("crop must be a multiple of 16",)),
+        (("--stages", "0,0,0"), ("stage steps (0, 0, 0) train nothing",)),
+        (("--label", "a/b"), ("label must be one folder name", "'a/b'")),
+        (("--init-from", "../x"), ("init_from must be one folder name",)),
+    ],
+    ids=lambda value: "_".join(value) if isinstance(value, tuple) else value,
+)
+def test_bad_run_settings_are_one_clear_line_before_training(
+    tmp_path: Path, flags: tuple[str, ...], fragments: tuple[str, ...]
+) -> None:
+    runs = tmp_path / "runs"
+    result = run_mcam(
+        "train", "run", "--stages", "1,1,1", *flags, "--runs-dir", runs, cwd=tmp_path
+    )
+    assert_one_line_error(result, "mcam train: error:", *fragments)
+    assert not runs.exists()
