@@ -27,7 +27,7 @@ import math
 import re
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -301,15 +301,58 @@ def check_device(config: TrainConfig) -> None:
         raise InvalidInputError(f"device {config.device!r} asked for, but torch sees no CUDA GPU")
 
 
+#: The settings a resumed run may change: they do not change which weights its steps
+#: reach. Where and how the steps run (``device``, ``precision``, ``threads``: each
+#: segment of the checkpoint records its own; ``workers``: the batches are the same), how
+#: often it logs and checkpoints, its runs folder, and its name's ``label`` (a run's
+#: folder may be renamed: its batches depend only on the seed and step). Every other
+#: field of :class:`TrainConfig` changes what is trained and must match the checkpoint.
+RESUMABLE_CHANGES = frozenset({
+    "device", "precision", "threads", "workers", "checkpoint_every", "log_every",
+    "runs_dir", "label",
+})  # fmt: skip
+
+
+def changed_settings(config: TrainConfig, saved: dict[str, Any]) -> list[str]:
+    """The fields that change what is trained on which ``config`` differs from a
+    checkpoint's ``saved`` configuration, as ``name saved (now new)``; a field the
+    checkpoint predates counts as its default."""
+    changes = []
+    for item in fields(TrainConfig):
+        if item.name in RESUMABLE_CHANGES:
+            continue
+        now = getattr(config, item.name)
+        before = saved.get(item.name, item.default)
+        if isinstance(now, tuple):
+            before = tuple(before)
+        if before != now:
+            changes.append(f"{item.name} {before!r} (now {now!r})")
+    return changes
+
+
+def check_same_training(config: TrainConfig, saved: dict[str, Any], checkpoint: Path) -> None:
+    """Refuse to resume (or return) a checkpoint trained with other settings than
+    ``config``'s, naming each that differs and what to do."""
+    changes = changed_settings(config, saved)
+    if changes:
+        raise InvalidInputError(
+            f"{checkpoint} was trained with other settings: {', '.join(changes)}; rerun with "
+            "the checkpoint's settings to resume it, or train these settings as another run "
+            "(another --runs-dir or --label)"
+        )
+
+
 def restore(
     config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer
 ) -> tuple[int, float, list[dict[str, Any]]]:
     """Load the run's checkpoint (or ``init_from``'s weights) into ``model`` and
     ``optimizer``; returns the step and wall seconds reached and the segments so far,
-    (0, 0.0, []) for a fresh run."""
+    (0, 0.0, []) for a fresh run. A checkpoint trained with other settings is refused
+    (:func:`check_same_training`)."""
     checkpoint = config.run_dir / "checkpoint.pt"
     if checkpoint.exists():
         state = load_checkpoint(checkpoint)
+        check_same_training(config, state["config"], checkpoint)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         return state["step"], state["wall_s"], checkpoint_segments(state)

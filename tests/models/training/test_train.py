@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -37,9 +39,32 @@ def test_three_stages_log_and_checkpoint(tmp_path: Path) -> None:
     assert load_checkpoint(checkpoint)["step"] == 3
 
 
+class Crash(Exception):
+    """What :func:`crash_at` raises: the process died there."""
+
+
+def crash_at(step: int) -> Callable[[dict[str, Any]], None]:
+    """A report that raises at ``step``'s log record (after the step, before its
+    checkpoint), as a process killed there would stop."""
+
+    def report(record: dict[str, Any]) -> None:
+        if record["step"] == step:
+            raise Crash(step)
+
+    return report
+
+
+def interrupted(config: TrainConfig, step: int) -> None:
+    """Train ``config`` until it crashes at ``step`` (its last checkpoint before)."""
+    with pytest.raises(Crash):
+        train(config, crash_at(step))
+
+
 def test_resumed_run_equals_an_uninterrupted_one(tmp_path: Path) -> None:
     whole = load_checkpoint(train(tiny_config(tmp_path / "a", (1, 2, 1))))
-    train(tiny_config(tmp_path / "b", (1, 1, 0)))
+    interrupted(tiny_config(tmp_path / "b", (1, 2, 1)), 3)
+    cut = load_checkpoint(tmp_path / "b" / "mantissanet-tiny-mantissa" / "checkpoint.pt")
+    assert cut["step"] == 2
     resumed = load_checkpoint(train(tiny_config(tmp_path / "b", (1, 2, 1))))
     assert resumed["step"] == whole["step"] == 4
     for key, value in whole["model"].items():
@@ -166,7 +191,7 @@ def test_a_gpu_run_without_a_gpu_says_so(tmp_path: Path) -> None:
 
 
 def test_each_resumed_stretch_of_a_run_is_a_segment(tmp_path: Path) -> None:
-    train(tiny_config(tmp_path, (1, 1, 0)))
+    interrupted(tiny_config(tmp_path, (1, 2, 1)), 3)
     state = load_checkpoint(train(tiny_config(tmp_path, (1, 2, 1))))
     segments = state["segments"]
     assert [s["steps"] for s in segments] == [[0, 2], [2, 4]]
@@ -185,3 +210,40 @@ def test_the_read_noise_limit_is_the_sensor_models() -> None:
 
 def test_the_largest_crop_is_the_smallest_panoramas_side() -> None:
     assert largest_crop() == min(min(load_hdri_gray(name).shape) for name in TRAIN_SCENES)
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        ({"seed": 4}, "seed 3 (now 4)"),
+        ({"stage_steps": (1, 2, 2, 1)}, "stage_steps (1, 1, 0) (now (1, 2, 2, 1))"),
+        ({"crop": 48, "batch": 1}, "crop 32 (now 48), batch 2 (now 1)"),
+        ({"large_crop": 64}, "large_crop 128 (now 64)"),
+        ({"max_read_noise": 0.01}, "max_read_noise 0.0 (now 0.01)"),
+    ],
+)
+def test_a_checkpoint_of_other_settings_is_neither_resumed_nor_returned(
+    tmp_path: Path, change: dict[str, Any], named: str
+) -> None:
+    """A finished run keeps its settings: another seed, stages, crop, ... on its folder
+    (renamed, where the change renames the run) is refused, naming each difference, and
+    the checkpoint stays as it was."""
+    first = replace(tiny_config(tmp_path, (1, 1, 0)), seed=3)
+    train(first)
+    changed = replace(first, **change)
+    first.run_dir.rename(tmp_path / "moved")
+    (tmp_path / "moved").rename(changed.run_dir)
+    checkpoint = changed.run_dir / "checkpoint.pt"
+    before = checkpoint.read_bytes()
+    with pytest.raises(InvalidInputError, match="trained with other settings") as caught:
+        train(changed)
+    assert named in caught.value.message
+    assert "another --runs-dir or --label" in caught.value.message
+    assert checkpoint.read_bytes() == before
+
+
+def test_a_resume_may_change_where_and_how_the_steps_run(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, (1, 2, 1))
+    interrupted(config, 3)
+    faster = replace(config, threads=2, workers=1, checkpoint_every=1, log_every=2)
+    assert load_checkpoint(train(faster))["step"] == 4

@@ -112,3 +112,22 @@ def test_bad_run_settings_are_one_clear_line_before_training(
     )
     assert_one_line_error(result, "mcam train: error:", *fragments)
     assert not runs.exists()
+
+
+def test_a_resume_with_other_settings_is_refused_naming_them(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    first = run_mcam(
+        "train", "run", "--tier", "tiny", "--stages", "1,1,0", "--crop", "32", "--batch", "4",
+        "--seed", "3", "--runs-dir", runs, cwd=tmp_path,
+    )  # fmt: skip
+    assert first.returncode == 0, first.stderr
+    again = run_mcam(
+        "train", "run", "--tier", "tiny", "--stages", "1,2,2,1", "--crop", "48", "--batch", "2",
+        "--seed", "4", "--runs-dir", runs, cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(
+        again, "trained with other settings", "stage_steps (1, 1, 0) (now (1, 2, 2, 1))",
+        "crop 32 (now 48)", "batch 4 (now 2)", "seed 3 (now 4)", "--runs-dir", "--label",
+    )  # fmt: skip
+    checkpoint = runs / "mantissanet-tiny-mantissa" / "checkpoint.pt"
+    assert torch.load(checkpoint, weights_only=False)["config"]["seed"] == 3
