@@ -7,6 +7,7 @@ end on larger crops (``large_crop``, a quarter of the batch) so the net sees the
 of a full frame. Batches depend only on ``(seed, step)``; a checkpoint
 (:mod:`models.training.checkpoints`) is written every ``checkpoint_every`` steps under
 ``runs/<name>/`` and a restarted run resumes from it. Losses go to ``runs/<name>/log.jsonl``.
+One process at a time trains a run: it holds ``runs/<name>/lock`` (:func:`run_lock`).
 
 A run may start from another run's trained weights (``init_from``, e.g. a
 noise-aware fine-tune of a finished model, or a model trained in two runs); stages
@@ -22,11 +23,14 @@ clock time with a checkpoint (a later call resumes).
 
 from __future__ import annotations
 
+import fcntl
 import json
 import math
+import os
 import re
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -409,6 +413,34 @@ def record_line(record: dict[str, Any]) -> str:
     )
 
 
+#: The file of a run folder that its training process holds locked (and writes its pid to).
+LOCK_FILE = "lock"
+
+
+@contextmanager
+def run_lock(run_dir: Path) -> Iterator[None]:
+    """Hold the exclusive lock of a run folder (created if need be) while training it:
+    ``flock`` on ``<run_dir>/lock``, which holds the holder's pid. The system releases
+    it when the process ends, however it ends; another process that asks for it meanwhile
+    gets an InvalidInputError naming the holder."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / LOCK_FILE
+    with path.open("a+") as file:
+        try:
+            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            file.seek(0)
+            holder = file.read().strip() or "unknown"
+            raise InvalidInputError(
+                f"{run_dir} is being trained by process {holder} (it holds {path}); wait "
+                "for it to end or stop it, or train elsewhere (another --runs-dir or --label)"
+            ) from None
+        file.truncate(0)
+        file.write(f"{os.getpid()}\n")
+        file.flush()
+        yield
+
+
 def train(
     config: TrainConfig,
     report: Callable[[dict[str, Any]], None] | None = None,
@@ -417,10 +449,21 @@ def train(
     """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records.
 
     ``deadline`` (``time.monotonic()`` seconds): stop after the first step past it, with a
-    checkpoint, even if steps remain (calling again resumes there)."""
+    checkpoint, even if steps remain (calling again resumes there). The run folder is
+    locked meanwhile (:func:`run_lock`)."""
     check_config(config)
     device = use_device(config)
-    config.run_dir.mkdir(parents=True, exist_ok=True)
+    with run_lock(config.run_dir):
+        return run_steps(config, device, report, deadline)
+
+
+def run_steps(
+    config: TrainConfig,
+    device: torch.device,
+    report: Callable[[dict[str, Any]], None] | None,
+    deadline: float | None,
+) -> Path:
+    """The steps of :func:`train`, in its locked run folder."""
     checkpoint = config.run_dir / "checkpoint.pt"
     model = build_model(config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])

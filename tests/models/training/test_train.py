@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -19,7 +20,7 @@ from models.scenes import TRAIN_SCENES, load_hdri_gray
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
 from models.training.data import largest_crop
 from models.training.losses import HEAD_OUTPUTS
-from models.training.train import READ_NOISE_LIMIT, TrainConfig, check_config, train
+from models.training.train import READ_NOISE_LIMIT, TrainConfig, check_config, run_lock, train
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -247,3 +248,12 @@ def test_a_resume_may_change_where_and_how_the_steps_run(tmp_path: Path) -> None
     interrupted(config, 3)
     faster = replace(config, threads=2, workers=1, checkpoint_every=1, log_every=2)
     assert load_checkpoint(train(faster))["step"] == 4
+
+
+def test_a_locked_run_folder_is_refused_naming_the_holder(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, (1, 1, 1))
+    with run_lock(config.run_dir):
+        with pytest.raises(InvalidInputError, match=f"being trained by process {os.getpid()}"):
+            train(config)
+    assert not (config.run_dir / "checkpoint.pt").exists()
+    assert load_checkpoint(train(config))["step"] == 3

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import onnxruntime as ort
@@ -10,8 +11,9 @@ import pytest
 import torch
 
 from models.training import losses, train
+from models.training.train import run_lock
 from service.cli.train import LOSS_CHOICES, PRECISION_CHOICES, RISK_WEIGHT, TIER_CHOICES
-from tests.service.cli.conftest import assert_one_line_error, run_mcam
+from tests.service.cli.conftest import MCAM, assert_one_line_error, run_mcam
 
 
 def test_train_run_then_export_makes_a_working_onnx_model(tmp_path: Path) -> None:
@@ -131,3 +133,32 @@ def test_a_resume_with_other_settings_is_refused_naming_them(tmp_path: Path) -> 
     )  # fmt: skip
     checkpoint = runs / "mantissanet-tiny-mantissa" / "checkpoint.pt"
     assert torch.load(checkpoint, weights_only=False)["config"]["seed"] == 3
+
+
+def start_training(runs: Path, cwd: Path) -> subprocess.Popen[str]:
+    """``mcam train run`` of a long tiny run, once it has logged its first steps."""
+    process = subprocess.Popen(
+        [str(MCAM), "train", "run", "--tier", "tiny", "--stages", "1,100000,1", "--crop", "32",
+         "--batch", "2", "--runs-dir", str(runs)],
+        cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert process.stdout is not None
+    first = process.stdout.readline()
+    assert "step=" in first, process.stderr.read() if process.stderr else first
+    return process
+
+
+def test_a_run_trained_by_another_process_is_refused_naming_it(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    holder = start_training(runs, tmp_path)
+    try:
+        second = run_mcam(
+            "train", "run", "--tier", "tiny", "--stages", "1,100000,1", "--crop", "32",
+            "--batch", "2", "--runs-dir", runs, cwd=tmp_path,
+        )  # fmt: skip
+        assert_one_line_error(second, f"being trained by process {holder.pid}", "wait")
+    finally:
+        holder.kill()
+        holder.communicate()
+    with run_lock(runs / "mantissanet-tiny-mantissa"):
+        pass
