@@ -6,8 +6,10 @@ the losses are in :mod:`models.training.losses`); an optional stage 4 continues 
 end on larger crops (``large_crop``, a quarter of the batch) so the net sees the context
 of a full frame. Batches depend only on ``(seed, step)``; a checkpoint
 (:mod:`models.training.checkpoints`) is written every ``checkpoint_every`` steps under
-``runs/<name>/`` and a restarted run resumes from it. Losses go to ``runs/<name>/log.jsonl``.
-One process at a time trains a run: it holds ``runs/<name>/lock`` (:func:`run_lock`).
+``runs/<name>/`` and a restarted run resumes from it. Losses go to
+``runs/<name>/log.jsonl`` (on a resume, its records past the checkpoint's step are
+dropped: one history). One process at a time trains a run: it holds
+``runs/<name>/lock`` (:func:`run_lock`).
 
 A run may start from another run's trained weights (``init_from``, e.g. a
 noise-aware fine-tune of a finished model, or a model trained in two runs); stages
@@ -413,6 +415,36 @@ def record_line(record: dict[str, Any]) -> str:
     )
 
 
+#: A run's log: one JSON record per logged step (:func:`run_steps`).
+LOG_FILE = "log.jsonl"
+
+
+def logged_step(line: str) -> int | None:
+    """The step of one log line, None for a line that is not a whole record (a line
+    cut short when the process died)."""
+    try:
+        record = json.loads(line)
+    except json.JSONDecodeError:
+        return None
+    step = record.get("step") if isinstance(record, dict) else None
+    return step if isinstance(step, int) else None
+
+
+def trim_log(log: Path, step: int) -> None:
+    """Keep the records of ``log`` up to ``step`` (the checkpoint's; 0 for a fresh run),
+    so that the steps a resumed run makes again are logged once. Rewritten atomically
+    (a temporary file renamed over it)."""
+    if not log.exists():
+        return
+    lines = log.read_text().splitlines()
+    kept = [line for line in lines if (logged := logged_step(line)) is not None and logged <= step]
+    if kept == lines:
+        return
+    tmp = log.with_suffix(".tmp")
+    tmp.write_text("".join(f"{line}\n" for line in kept))
+    tmp.replace(log)
+
+
 #: The file of a run folder that its training process holds locked (and writes its pid to).
 LOCK_FILE = "lock"
 
@@ -468,6 +500,7 @@ def run_steps(
     model = build_model(config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])
     step, wall_s, segments = restore(config, model, optimizer)
+    trim_log(config.run_dir / LOG_FILE, step)
     segment: dict[str, Any] = {
         "hardware": hardware_name(device), "device": config.device,
         "precision": config.precision, "steps": [step, step], "wall_s": 0.0,
@@ -475,7 +508,7 @@ def run_steps(
     model.train()
     started = time.monotonic() - wall_s
     segment_started = time.monotonic()
-    with (config.run_dir / "log.jsonl").open("a") as log:
+    with (config.run_dir / LOG_FILE).open("a") as log:
         for batch in step_batches(config, step):
             loss, parts = optimizer_step(config, model, optimizer, batch, step)
             step += 1

@@ -257,3 +257,16 @@ def test_a_locked_run_folder_is_refused_naming_the_holder(tmp_path: Path) -> Non
             train(config)
     assert not (config.run_dir / "checkpoint.pt").exists()
     assert load_checkpoint(train(config))["step"] == 3
+
+
+def test_a_resumed_run_logs_each_step_once(tmp_path: Path) -> None:
+    """The steps after the last checkpoint, logged before a crash, are made again on
+    resume: the log keeps one record per step (a line cut short by the crash dropped)."""
+    config = tiny_config(tmp_path, (1, 2, 2))
+    interrupted(config, 3)
+    log = config.run_dir / "log.jsonl"
+    with log.open("a") as file:
+        file.write('{"step": 4, "sta')
+    train(config)
+    steps = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert steps == [1, 2, 3, 4, 5]
