@@ -20,7 +20,8 @@ Training runs on the CPU (``device="cpu"``, the default) or a GPU (``"cuda"``), 
 float32 or bf16 autocast (``precision``); ``workers`` processes make the batches ahead
 (:func:`models.training.data.batch_stream`), which a GPU needs to be kept busy. None of
 these changes which batches a step sees. ``train(..., deadline=...)`` stops at a wall
-clock time with a checkpoint (a later call resumes).
+clock time with a checkpoint (a later call resumes). SIGINT (Ctrl-C) and SIGTERM stop
+it the same way after the step in progress, then raise :class:`Stopped`.
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ import json
 import math
 import os
 import re
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -473,6 +476,43 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         yield
 
 
+#: The signals that stop a run after its step in progress, with a checkpoint.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class Stopped(Exception):
+    """A run stopped by a signal (:data:`STOP_SIGNALS`) after saving its checkpoint at
+    ``step`` of ``total`` steps; calling :func:`train` again resumes there."""
+
+    def __init__(self, signum: int, step: int, total: int, checkpoint: Path) -> None:
+        self.signum, self.step, self.total, self.checkpoint = signum, step, total, checkpoint
+        super().__init__(
+            f"stopped by {signal.Signals(signum).name} after step {step} of {total}; "
+            f"checkpoint {checkpoint} saved: run the same command again to resume from "
+            f"step {step}"
+        )
+
+
+@contextmanager
+def stop_requests() -> Iterator[list[int]]:
+    """While open, SIGINT and SIGTERM are noted in the list it gives instead of ending the
+    process (the training loop stops after its step); the previous handlers come back
+    after. Outside the main thread, where Python cannot handle signals, the list stays
+    empty."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, lambda number, _frame: received.append(number))
+    try:
+        yield received
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
 def train(
     config: TrainConfig,
     report: Callable[[dict[str, Any]], None] | None = None,
@@ -481,12 +521,16 @@ def train(
     """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records.
 
     ``deadline`` (``time.monotonic()`` seconds): stop after the first step past it, with a
-    checkpoint, even if steps remain (calling again resumes there). The run folder is
-    locked meanwhile (:func:`run_lock`)."""
+    checkpoint, even if steps remain (calling again resumes there). SIGINT or SIGTERM
+    (in the main thread) stops it the same way, then raises :class:`Stopped`. The run
+    folder is locked meanwhile (:func:`run_lock`)."""
     check_config(config)
     device = use_device(config)
-    with run_lock(config.run_dir):
-        return run_steps(config, device, report, deadline)
+    with run_lock(config.run_dir), stop_requests() as stops:
+        checkpoint, step = run_steps(config, device, report, deadline, stops)
+        if stops:
+            raise Stopped(stops[0], step, config.total_steps, checkpoint)
+        return checkpoint
 
 
 def run_steps(
@@ -494,8 +538,10 @@ def run_steps(
     device: torch.device,
     report: Callable[[dict[str, Any]], None] | None,
     deadline: float | None,
-) -> Path:
-    """The steps of :func:`train`, in its locked run folder."""
+    stops: list[int],
+) -> tuple[Path, int]:
+    """The steps of :func:`train`, in its locked run folder, until the last, the
+    deadline or a signal noted in ``stops``; returns the checkpoint and its step."""
     checkpoint = config.run_dir / "checkpoint.pt"
     model = build_model(config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])
@@ -513,7 +559,8 @@ def run_steps(
             loss, parts = optimizer_step(config, model, optimizer, batch, step)
             step += 1
             now = time.monotonic()
-            last = step == config.total_steps or (deadline is not None and now > deadline)
+            late = deadline is not None and now > deadline
+            last = step == config.total_steps or late or bool(stops)
             if step % config.log_every == 0 or last:
                 record = {"step": step, "stage": config.stage(step - 1), "loss": loss.item(),
                           **{name: value.item() for name, value in parts.items()},
@@ -523,6 +570,8 @@ def run_steps(
                 log.flush()
                 if report:
                     report(record)
+            # A signal that came while the step was logged stops the run at this step too.
+            last = last or bool(stops)
             if step % config.checkpoint_every == 0 or last:
                 segment["steps"][1] = step
                 segment["wall_s"] = round(now - segment_started, 1)
@@ -534,4 +583,4 @@ def run_steps(
                 break
     if not checkpoint.exists():
         save_checkpoint(checkpoint, run_state(config, model, optimizer, step, wall_s, segments))
-    return checkpoint
+    return checkpoint, step

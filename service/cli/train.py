@@ -5,6 +5,8 @@ after an interruption), exports them to ``models/onnx`` (plus the int8 QDQ versi
 of one tier) and measures val-256.
 ``mcam train run`` trains one configuration; ``mcam train export`` exports a run;
 ``mcam train measure`` re-measures shipped cards on val-256.
+Ctrl-C (SIGINT) or SIGTERM stops a run after its step in progress, with a checkpoint
+that the same command resumes; the command then exits 130 or 143.
 PyTorch is imported only when a command runs, so the runtime never needs it.
 """
 
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -135,6 +138,19 @@ def export_and_measure(
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run the action; a run stopped by SIGINT or SIGTERM (after saving its checkpoint)
+    says where it will resume and exits 128 + the signal's number (130, 143), as a shell
+    reports a process the signal ended."""
+    from models.training.train import Stopped
+
+    try:
+        return dispatch(args)
+    except Stopped as stopped:
+        print(f"mcam train: {stopped}", file=sys.stderr, flush=True)
+        return 128 + stopped.signum
+
+
+def dispatch(args: argparse.Namespace) -> int:
     """Dispatch the action; imports the torch-based training code lazily."""
     from models.training.recipes import SHIPPED, exported, quantized
     from models.training.train import RUNS_DIR, TrainConfig, train

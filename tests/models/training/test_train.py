@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -20,7 +21,14 @@ from models.scenes import TRAIN_SCENES, load_hdri_gray
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
 from models.training.data import largest_crop
 from models.training.losses import HEAD_OUTPUTS
-from models.training.train import READ_NOISE_LIMIT, TrainConfig, check_config, run_lock, train
+from models.training.train import (
+    READ_NOISE_LIMIT,
+    Stopped,
+    TrainConfig,
+    check_config,
+    run_lock,
+    train,
+)
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -270,3 +278,32 @@ def test_a_resumed_run_logs_each_step_once(tmp_path: Path) -> None:
     train(config)
     steps = [json.loads(line)["step"] for line in log.read_text().splitlines()]
     assert steps == [1, 2, 3, 4, 5]
+
+
+def signal_at(step: int, signum: int) -> Callable[[dict[str, Any]], None]:
+    """A report that sends this process ``signum`` at ``step``'s log record."""
+
+    def report(record: dict[str, Any]) -> None:
+        if record["step"] == step:
+            os.kill(os.getpid(), signum)
+
+    return report
+
+
+@pytest.mark.parametrize(
+    ("signum", "workers"), [(signal.SIGTERM, 0), (signal.SIGINT, 0), (signal.SIGINT, 1)]
+)
+def test_a_signal_stops_after_the_step_with_a_checkpoint_that_resumes(
+    tmp_path: Path, signum: int, workers: int
+) -> None:
+    whole = load_checkpoint(train(tiny_config(tmp_path / "a", (1, 2, 2))))
+    config = replace(tiny_config(tmp_path / "b", (1, 2, 2)), workers=workers)
+    with pytest.raises(Stopped, match="resume from step 3") as caught:
+        train(config, signal_at(3, signum))
+    assert (caught.value.signum, caught.value.step, caught.value.total) == (signum, 3, 5)
+    assert load_checkpoint(caught.value.checkpoint)["step"] == 3
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    resumed = load_checkpoint(train(config))
+    assert resumed["step"] == 5
+    for key, value in whole["model"].items():
+        torch.testing.assert_close(resumed["model"][key], value)

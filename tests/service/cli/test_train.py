@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 from pathlib import Path
 
@@ -162,3 +163,20 @@ def test_a_run_trained_by_another_process_is_refused_naming_it(tmp_path: Path) -
         holder.communicate()
     with run_lock(runs / "mantissanet-tiny-mantissa"):
         pass
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_saves_a_checkpoint_and_says_where_the_run_resumes(
+    tmp_path: Path, signum: int, code: int
+) -> None:
+    runs = tmp_path / "runs"
+    process = start_training(runs, tmp_path)
+    process.send_signal(signum)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == code, err
+    line = err.strip().splitlines()[-1]
+    step = torch.load(
+        runs / "mantissanet-tiny-mantissa" / "checkpoint.pt", weights_only=False
+    )["step"]
+    assert step >= 20 and line.startswith(f"mcam train: stopped by {signum.name}")
+    assert f"after step {step} of 100002" in line and f"resume from step {step}" in line
