@@ -108,11 +108,42 @@ def parse_stages(text: str) -> tuple[int, ...]:
     return tuple(int(p) for p in parts)
 
 
-def print_progress(record: dict[str, Any]) -> None:
-    """One line per logged step."""
-    from models.training.train import record_line
+def duration(seconds: float) -> str:
+    """Seconds as ``h:mm:ss``."""
+    minutes, secs = divmod(round(seconds), 60)
+    return f"{minutes // 60}:{minutes % 60:02d}:{secs:02d}"
 
-    print(record_line(record), flush=True)
+
+class Progress:
+    """Prints one line per logged step: ``[run] step=<step>/<total>``, the record's
+    other fields and ``eta=h:mm:ss``, the time left at the steps per second since this
+    command's first record (at that first record, the run's mean rate so far)."""
+
+    def __init__(self, name: str, total_steps: int) -> None:
+        self.name = name
+        self.total_steps = total_steps
+        self.first: tuple[int, float] | None = None
+
+    def eta_s(self, step: int, wall_s: float) -> float | None:
+        """Seconds left after ``step`` at ``wall_s`` (the run's wall seconds so far);
+        None before any time has passed."""
+        first_step, first_wall = self.first or (0, 0.0)
+        if step <= first_step or wall_s <= first_wall:
+            first_step, first_wall = 0, 0.0
+        if wall_s <= first_wall:
+            return None
+        return (self.total_steps - step) * (wall_s - first_wall) / (step - first_step)
+
+    def __call__(self, record: dict[str, Any]) -> None:
+        from models.training.train import record_line
+
+        step, wall_s = record["step"], record["wall_s"]
+        if self.first is None:
+            self.first = (step, wall_s)
+        eta_s = self.eta_s(step, wall_s)
+        line = record_line({**record, "step": f"{step}/{self.total_steps}"})
+        eta = "?" if eta_s is None else duration(eta_s)
+        print(f"[{self.name}] {line} eta={eta}", flush=True)
 
 
 def measure_and_show(card_path: Path, measure: bool) -> None:
@@ -169,7 +200,7 @@ def dispatch(args: argparse.Namespace) -> int:
     if args.action == "all":
         for recipe in SHIPPED:
             config = replace(recipe, device=args.device, workers=args.workers)
-            checkpoint = train(config, print_progress)
+            checkpoint = train(config, Progress(config.name, config.total_steps))
             if exported(config):
                 export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
         return 0
@@ -182,5 +213,5 @@ def dispatch(args: argparse.Namespace) -> int:
         runs_dir=args.runs_dir or RUNS_DIR, device=args.device, precision=args.precision,
         workers=args.workers,
     )  # fmt: skip
-    print(f"checkpoint: {train(config, print_progress)}")
+    print(f"checkpoint: {train(config, Progress(config.name, config.total_steps))}")
     return 0

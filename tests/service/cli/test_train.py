@@ -13,7 +13,13 @@ import torch
 
 from models.training import losses, train
 from models.training.train import run_lock
-from service.cli.train import LOSS_CHOICES, PRECISION_CHOICES, RISK_WEIGHT, TIER_CHOICES
+from service.cli.train import (
+    LOSS_CHOICES,
+    PRECISION_CHOICES,
+    RISK_WEIGHT,
+    TIER_CHOICES,
+    Progress,
+)
 from tests.service.cli.conftest import MCAM, assert_one_line_error, run_mcam
 
 
@@ -24,6 +30,8 @@ def test_train_run_then_export_makes_a_working_onnx_model(tmp_path: Path) -> Non
     )  # fmt: skip
     assert trained.returncode == 0, trained.stderr
     assert "stage=3" in trained.stdout
+    assert "[mantissanet-tiny-mantissa] step=3/3 " in trained.stdout
+    assert trained.stdout.splitlines()[-2].endswith(" eta=0:00:00")
     checkpoint = tmp_path / "runs" / "mantissanet-tiny-mantissa" / "checkpoint.pt"
     exported = run_mcam(
         "train", "export", checkpoint, "--onnx-dir", tmp_path / "onnx", "--no-val", cwd=tmp_path
@@ -180,3 +188,17 @@ def test_a_signal_saves_a_checkpoint_and_says_where_the_run_resumes(
     )["step"]
     assert step >= 20 and line.startswith(f"mcam train: stopped by {signum.name}")
     assert f"after step {step} of 100002" in line and f"resume from step {step}" in line
+
+
+def test_progress_lines_name_the_run_its_steps_and_the_time_left(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The first line's ETA is at the run's mean rate so far (a resumed run: 100 steps in
+    50 s), later ones at this command's rate (20 steps in 20 s)."""
+    progress = Progress("tiny-run", 1000)
+    progress({"step": 100, "stage": 2, "loss": 0.5, "wall_s": 50.0})
+    progress({"step": 120, "stage": 2, "loss": 0.25, "wall_s": 70.0})
+    first, second = capsys.readouterr().out.splitlines()
+    assert first == "[tiny-run] step=100/1000 stage=2 loss=0.5 wall_s=50 eta=0:07:30"
+    assert second.startswith("[tiny-run] step=120/1000 stage=2")
+    assert second.endswith(" eta=0:14:40")
