@@ -2,7 +2,8 @@
 
 ``mcam train all`` reruns the recipes of the shipped models (resumable: rerun it
 after an interruption), exports them to ``models/onnx`` (plus the int8 QDQ version
-of one tier) and measures val-256.
+of one tier), replacing the shipped models, and measures val-256; a model whose card
+is up to date with its finished checkpoint is kept as it is.
 ``mcam train run`` trains one configuration; ``mcam train export`` exports a run;
 ``mcam train measure`` re-measures shipped cards on val-256.
 Ctrl-C (SIGINT) or SIGTERM stops a run after its step in progress, with a checkpoint
@@ -15,11 +16,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from models.errors import InvalidInputError
+
+if TYPE_CHECKING:
+    from models.training.train import TrainConfig
 
 #: The winding losses of ``models.training.losses.LOSSES`` (named here so that parsing
 #: the command line does not import torch; a test keeps the two equal).
@@ -84,6 +89,11 @@ def register(subparsers: Any) -> None:
     export.add_argument("checkpoint", type=Path, help="runs/<name>/checkpoint.pt")
     export.add_argument("--onnx-dir", type=Path, help="output folder (default: models/onnx)")
     export.add_argument("--no-val", action="store_true", help="skip the val-256 measurement")
+    export.add_argument(
+        "--force", action="store_true",
+        help="replace this run's model, or the model another card serves for the same "
+        "decoder and encoding (that card and its .onnx are removed)",
+    )  # fmt: skip
     export.set_defaults(func=run)
     measure = actions.add_parser("measure", help="re-measure model cards on val-256")
     measure.add_argument("cards", type=Path, nargs="+", help="models/onnx/<name>.json")
@@ -155,17 +165,53 @@ def measure_and_show(card_path: Path, measure: bool) -> None:
 
 
 def export_and_measure(
-    checkpoint: Path, onnx_dir: Path | None, measure: bool, int8: bool = False
+    checkpoint: Path, onnx_dir: Path | None, measure: bool, force: bool
 ) -> None:
-    """Export a checkpoint (and its int8 QDQ version), measure, print the cards."""
+    """Export a checkpoint (refusing to replace a model unless ``force``), measure, print
+    the card."""
     from models.training.export import ONNX_DIR, export_run
 
-    card_path = export_run(checkpoint, onnx_dir or ONNX_DIR)
-    measure_and_show(card_path, measure)
-    if int8:
-        from models.training.quantize import quantize_card
+    measure_and_show(export_run(checkpoint, onnx_dir or ONNX_DIR, force), measure)
 
+
+def reproduce(recipes: Iterable[TrainConfig], onnx_dir: Path, measure: bool) -> None:
+    """``mcam train all``: train each recipe (resuming its checkpoint), then ship those
+    that ship (:func:`ship`)."""
+    from models.training.recipes import exported, quantized
+    from models.training.train import train
+
+    for config in recipes:
+        checkpoint = train(config, Progress(config.name, config.total_steps))
+        if exported(config):
+            ship(checkpoint, onnx_dir / f"{config.name}.json", measure, quantized(config))
+
+
+def ship(checkpoint: Path, card_path: Path, measure: bool, int8: bool) -> None:
+    """Export a finished run to ``card_path`` (replacing the model there: ``train all``
+    reproduces it) and measure it, then its int8 QDQ version likewise; a card already
+    up to date with the checkpoint is kept (and only measured if it never was)."""
+    from models.training.export import card_is_current, export_run
+    from models.training.quantize import quantize_card, quantized_card_path
+
+    if card_is_current(card_path, checkpoint):
+        keep(card_path, checkpoint, measure)
+    else:
+        measure_and_show(export_run(checkpoint, card_path.parent, force=True), measure)
+    if not int8:
+        return
+    int8_path = quantized_card_path(card_path)
+    if card_is_current(int8_path, checkpoint):
+        keep(int8_path, checkpoint, measure)
+    else:
         measure_and_show(quantize_card(card_path), measure)
+
+
+def keep(card_path: Path, checkpoint: Path, measure: bool) -> None:
+    """Say that a card is up to date with its checkpoint; measure it if asked and it has
+    no val-256 figures yet."""
+    print(f"up to date: {card_path} (exported from {checkpoint})", flush=True)
+    if measure and "val256" not in json.loads(card_path.read_text()):
+        measure_and_show(card_path, measure)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -183,13 +229,14 @@ def run(args: argparse.Namespace) -> int:
 
 def dispatch(args: argparse.Namespace) -> int:
     """Dispatch the action; imports the torch-based training code lazily."""
-    from models.training.recipes import SHIPPED, exported, quantized
+    from models.training.export import ONNX_DIR
+    from models.training.recipes import SHIPPED
     from models.training.train import RUNS_DIR, TrainConfig, train
 
     if args.action == "export":
         if not args.checkpoint.exists():
             raise FileNotFoundError(2, "no such checkpoint", str(args.checkpoint))
-        export_and_measure(args.checkpoint, args.onnx_dir, not args.no_val)
+        export_and_measure(args.checkpoint, args.onnx_dir, not args.no_val, args.force)
         return 0
     if args.action == "measure":
         for card_path in args.cards:
@@ -198,11 +245,8 @@ def dispatch(args: argparse.Namespace) -> int:
             measure_and_show(card_path, measure=True)
         return 0
     if args.action == "all":
-        for recipe in SHIPPED:
-            config = replace(recipe, device=args.device, workers=args.workers)
-            checkpoint = train(config, Progress(config.name, config.total_steps))
-            if exported(config):
-                export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
+        recipes = [replace(r, device=args.device, workers=args.workers) for r in SHIPPED]
+        reproduce(recipes, ONNX_DIR, not args.no_val)
         return 0
     config = TrainConfig(
         family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import subprocess
 from pathlib import Path
@@ -12,13 +13,14 @@ import pytest
 import torch
 
 from models.training import losses, train
-from models.training.train import run_lock
+from models.training.train import TrainConfig, run_lock
 from service.cli.train import (
     LOSS_CHOICES,
     PRECISION_CHOICES,
     RISK_WEIGHT,
     TIER_CHOICES,
     Progress,
+    reproduce,
 )
 from tests.service.cli.conftest import MCAM, assert_one_line_error, run_mcam
 
@@ -41,6 +43,10 @@ def test_train_run_then_export_makes_a_working_onnx_model(tmp_path: Path) -> Non
     assert card["decoder"] == "mantissanet-tiny" and card["encoding"] == "mantissa"
     session = ort.InferenceSession(str(tmp_path / "onnx" / card["file"]))
     assert [i.name for i in session.get_inputs()] == ["m"]
+    again = run_mcam(
+        "train", "export", checkpoint, "--onnx-dir", tmp_path / "onnx", "--no-val", cwd=tmp_path
+    )
+    assert_one_line_error(again, "mantissanet-tiny-mantissa.onnx exists", "--force")
     card_path = tmp_path / "onnx" / f"{card['name']}.json"
     measured = run_mcam("train", "measure", card_path, cwd=tmp_path)
     assert measured.returncode == 0, measured.stderr
@@ -202,3 +208,24 @@ def test_progress_lines_name_the_run_its_steps_and_the_time_left(
     assert first == "[tiny-run] step=100/1000 stage=2 loss=0.5 wall_s=50 eta=0:07:30"
     assert second.startswith("[tiny-run] step=120/1000 stage=2")
     assert second.endswith(" eta=0:14:40")
+
+
+def test_train_all_keeps_the_models_up_to_date_with_their_checkpoints(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A rerun exports, quantizes and measures only the runs whose checkpoint changed."""
+    config = TrainConfig(
+        tier="tiny", stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path / "runs"
+    )
+    onnx_dir = tmp_path / "onnx"
+    card_path = onnx_dir / "mantissanet-tiny-mantissa.json"
+    reproduce([config], onnx_dir, measure=False)
+    first = card_path.read_bytes()
+    capsys.readouterr()
+    reproduce([config], onnx_dir, measure=False)
+    assert card_path.read_bytes() == first
+    assert capsys.readouterr().out.startswith(f"up to date: {card_path}")
+    shutil.rmtree(config.run_dir)
+    reproduce([config], onnx_dir, measure=False)
+    retrained = json.loads(card_path.read_text())["training"]["checkpoint_sha256"]
+    assert retrained != json.loads(first)["training"]["checkpoint_sha256"]
