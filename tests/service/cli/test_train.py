@@ -229,3 +229,19 @@ def test_train_all_keeps_the_models_up_to_date_with_their_checkpoints(
     reproduce([config], onnx_dir, measure=False)
     retrained = json.loads(card_path.read_text())["training"]["checkpoint_sha256"]
     assert retrained != json.loads(first)["training"]["checkpoint_sha256"]
+
+
+@pytest.mark.parametrize("action", ["run", "export"])
+def test_an_empty_checkpoint_is_one_clear_line(tmp_path: Path, action: str) -> None:
+    checkpoint = tmp_path / "runs" / "mantissanet-tiny-mantissa" / "checkpoint.pt"
+    checkpoint.parent.mkdir(parents=True)
+    checkpoint.write_bytes(b"")
+    if action == "run":
+        args: tuple[str | Path, ...] = (
+            "run", "--tier", "tiny", "--stages", "1,1,1", "--crop", "32", "--batch", "2",
+            "--runs-dir", tmp_path / "runs",
+        )  # fmt: skip
+    else:
+        args = ("export", checkpoint, "--onnx-dir", tmp_path / "onnx", "--no-val")
+    result = run_mcam("train", *args, cwd=tmp_path)
+    assert_one_line_error(result, f"{checkpoint} is not a readable checkpoint", "delete")
