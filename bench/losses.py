@@ -40,10 +40,12 @@ def study_configs(args: argparse.Namespace) -> list[TrainConfig]:
 
 
 def measure_run(config: TrainConfig, frames: int) -> dict[str, Any]:
-    """Train or resume the run, export it (to ``<runs>/loss-study/``), measure it on val-256."""
-    study_dir = config.runs_dir / "loss-study"
+    """Train or resume the run, export it (to ``<runs>/loss-study/<run>/``: the runs of
+    every loss make the same decoder, one model per folder; a rerun replaces it), measure
+    it on val-256."""
+    study_dir = config.runs_dir / "loss-study" / config.name
     study_dir.mkdir(parents=True, exist_ok=True)
-    card_path = export_run(train(config), study_dir)
+    card_path = export_run(train(config), study_dir, force=True)
     onnx_name = card_path.with_suffix(".onnx").name
     cards = [c for c in load_cards(study_dir) if c["file"] == onnx_name]
     decoder = LearnedDecoder(cards[0]["decoder"], cards)

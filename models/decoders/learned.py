@@ -81,13 +81,33 @@ def ort_spinning() -> bool:
     return spinning
 
 
-def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:
-    """Every model card (``*.json``) whose ONNX file exists, sorted by file name."""
-    cards = []
+def read_cards(onnx_dir: Path = ONNX_DIR) -> list[tuple[Path, dict[str, Any]]]:
+    """Every model card (``*.json``) whose ONNX file exists, with its path, sorted by
+    file name."""
+    found = []
     for path in sorted(onnx_dir.glob("*.json")):
         card = json.loads(path.read_text())
         if (onnx_dir / card["file"]).exists():
-            cards.append({**card, "path": str(onnx_dir / card["file"])})
+            found.append((path, card))
+    return found
+
+
+def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:
+    """Every model card (``*.json``) whose ONNX file exists, sorted by file name, with
+    ``path`` set to its ONNX file. Each (decoder, encoding) has one model: two cards that
+    claim the same are an InvalidInputError naming both, rather than one chosen silently."""
+    claimed: dict[tuple[str, str], Path] = {}
+    cards = []
+    for path, card in read_cards(onnx_dir):
+        key = (card["decoder"], card["encoding"])
+        if key in claimed:
+            raise InvalidInputError(
+                f"model cards {claimed[key]} and {path} both serve decoder {key[0]!r} on "
+                f"{key[1]} frames; remove (or move out of {onnx_dir}) the one that should "
+                "not be used, with its .onnx"
+            )
+        claimed[key] = path
+        cards.append({**card, "path": str(onnx_dir / card["file"])})
     return cards
 
 

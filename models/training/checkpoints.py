@@ -3,27 +3,66 @@ run's steps ran (its *segments*)."""
 
 from __future__ import annotations
 
+import os
+import pickle
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
 
+from models.errors import InvalidInputError
+
 if TYPE_CHECKING:
     from models.training.train import TrainConfig
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write atomically (temporary file, then rename)."""
+    """Write atomically and durably: a temporary file, flushed to disk, renamed over
+    ``path``, then the folder flushed so that the rename survives a power cut."""
     tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
+    with tmp.open("wb") as file:
+        torch.save(state, file)
+        file.flush()
+        os.fsync(file.fileno())
     tmp.replace(path)
+    sync_folder(path.parent)
+
+
+def sync_folder(folder: Path) -> None:
+    """Flush a folder's entries (a rename in it) to disk."""
+    descriptor = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+#: What ``torch.load`` raises on an empty, truncated or corrupt file.
+UNREADABLE = (EOFError, RuntimeError, pickle.UnpicklingError)
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
     """A checkpoint written by :func:`models.training.train.train` (model, optimizer,
-    step, wall_s, config, segments)."""
-    return torch.load(path, map_location="cpu", weights_only=False)
+    step, wall_s, config, segments). An empty, cut short or corrupt file is an
+    InvalidInputError naming it and what to do."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except UNREADABLE as exc:
+        first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise unreadable(path, first_line) from exc
+    if not isinstance(state, dict):
+        raise unreadable(path, f"it holds a {type(state).__name__}, not a checkpoint's dict")
+    return state
+
+
+def unreadable(path: Path, reason: str) -> InvalidInputError:
+    """The error for a checkpoint file that cannot be read, saying what to do."""
+    return InvalidInputError(
+        f"{path} is not a readable checkpoint ({reason}): it is empty, cut short or corrupt; "
+        f"put back a good copy, or delete the run folder {path.parent} to train the run "
+        "again from scratch"
+    )
 
 
 def hardware_name(device: torch.device) -> str:

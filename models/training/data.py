@@ -18,6 +18,7 @@ resumed run sees the same data.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -55,6 +56,12 @@ class PairConfig:
 def _train_scenes(colour: bool = False) -> tuple[NDArray[np.float64], ...]:
     load = load_hdri if colour else load_hdri_gray
     return tuple(load(name) for name in TRAIN_SCENES)
+
+
+def largest_crop() -> int:
+    """The largest training crop (px): the smallest side of the smallest training
+    panorama (a crop wraps around a panorama's seam, but not over its top or bottom)."""
+    return min(min(scene.shape[:2]) for scene in _train_scenes())
 
 
 def _hdri_crop(rng: np.random.Generator, size: int, colour: bool = False) -> NDArray[np.float64]:
@@ -149,6 +156,13 @@ def training_batch(seed: int, step: int, config: PairConfig, with_errors: bool) 
     return Batch(m, winding, errors)
 
 
+def worker_signals() -> None:
+    """A batch worker's signal handling, whatever the forked process inherited: SIGINT
+    ignored, SIGTERM (how the pool ends its workers) ends it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def batch_stream(
     seed: int, plan: Iterable[tuple[int, PairConfig]], with_errors: bool, workers: int = 0
 ) -> Iterator[Batch]:
@@ -157,13 +171,15 @@ def batch_stream(
     With ``workers > 0`` they are made ahead in that many forked processes (as PyTorch's
     data loader does; they run numpy only, never the GPU), at most two per worker in
     flight (a GPU step outruns one CPU core's batch). Every batch depends only on
-    ``(seed, step, config)``, so the stream is the same for any ``workers``.
+    ``(seed, step, config)``, so the stream is the same for any ``workers``. The workers
+    leave SIGINT (a Ctrl-C reaches the whole process group) to the training process,
+    which ends them when it stops.
     """
     if workers <= 0:
         for step, config in plan:
             yield training_batch(seed, step, config, with_errors)
         return
-    with multiprocessing.get_context("fork").Pool(workers) as pool:
+    with multiprocessing.get_context("fork").Pool(workers, worker_signals) as pool:
         pending: deque[AsyncResult[Batch]] = deque()
         for step, config in plan:
             pending.append(pool.apply_async(training_batch, (seed, step, config, with_errors)))

@@ -22,7 +22,7 @@ from onnxruntime.quantization import (
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from models.training.data import PairConfig, sample_batch
-from models.training.export import sha256_of
+from models.training.export import sha256_of, write_card
 
 CALIBRATION_SEED = 7
 CALIBRATION_CROP = 128
@@ -41,13 +41,20 @@ class TrainingCrops(CalibrationDataReader):
         return next(self.items, None)
 
 
+def quantized_card_path(card_path: Path) -> Path:
+    """Where :func:`quantize_card` writes the int8 card of ``card_path``: its name with
+    ``<decoder>-int8`` for the decoder."""
+    card = json.loads(card_path.read_text())
+    stem = Path(card["file"]).stem.replace(card["decoder"], card["decoder"] + "-int8")
+    return card_path.with_name(f"{stem}.json")
+
+
 def quantize_card(card_path: Path, batches: int = 32) -> Path:
     """Quantize the model of ``card_path``; write ``<name>-int8.onnx`` and its card."""
     card: dict[str, Any] = json.loads(card_path.read_text())
     source = card_path.parent / card["file"]
     prepared = source.with_name(source.stem + ".prep.onnx")
-    target = source.with_name(source.stem.replace(card["decoder"], card["decoder"] + "-int8"))
-    target = target.with_suffix(".onnx")
+    target = quantized_card_path(card_path).with_suffix(".onnx")
     quant_pre_process(str(source), str(prepared), skip_symbolic_shape=True)
     try:
         quantize_static(
@@ -78,5 +85,5 @@ def quantize_card(card_path: Path, batches: int = 32) -> Path:
         },
     }
     quantized_card = target.with_suffix(".json")
-    quantized_card.write_text(json.dumps(quantized, indent=2) + "\n")
+    write_card(quantized_card, quantized)
     return quantized_card

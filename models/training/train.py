@@ -6,7 +6,10 @@ the losses are in :mod:`models.training.losses`); an optional stage 4 continues 
 end on larger crops (``large_crop``, a quarter of the batch) so the net sees the context
 of a full frame. Batches depend only on ``(seed, step)``; a checkpoint
 (:mod:`models.training.checkpoints`) is written every ``checkpoint_every`` steps under
-``runs/<name>/`` and a restarted run resumes from it. Losses go to ``runs/<name>/log.jsonl``.
+``runs/<name>/`` and a restarted run resumes from it. Losses go to
+``runs/<name>/log.jsonl`` (on a resume, its records past the checkpoint's step are
+dropped: one history). One process at a time trains a run: it holds
+``runs/<name>/lock`` (:func:`run_lock`).
 
 A run may start from another run's trained weights (``init_from``, e.g. a
 noise-aware fine-tune of a finished model, or a model trained in two runs); stages
@@ -17,16 +20,23 @@ Training runs on the CPU (``device="cpu"``, the default) or a GPU (``"cuda"``), 
 float32 or bf16 autocast (``precision``); ``workers`` processes make the batches ahead
 (:func:`models.training.data.batch_stream`), which a GPU needs to be kept busy. None of
 these changes which batches a step sees. ``train(..., deadline=...)`` stops at a wall
-clock time with a checkpoint (a later call resumes).
+clock time with a checkpoint (a later call resumes). SIGINT (Ctrl-C) and SIGTERM stop
+it the same way after the step in progress, then raise :class:`Stopped`.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import math
+import os
+import re
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from contextlib import contextmanager
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +51,7 @@ from models.training.checkpoints import (
     run_state,
     save_checkpoint,
 )
-from models.training.data import Batch, PairConfig, batch_stream
+from models.training.data import Batch, PairConfig, batch_stream, largest_crop
 from models.training.losses import HEAD_OUTPUTS, LOSSES, RISK_WEIGHT, step_losses
 from models.training.networks import TIERS, MantissaNet, UnModNet
 
@@ -166,34 +176,130 @@ def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
     return load_checkpoint(source)["model"]
 
 
-#: The shares of the training data a run sets, each in [0, 1], and what each is.
+#: The shares a run sets, each in [0, 1], and what each is.
 FRACTIONS = {
     "colour_fraction": "the share of HDRI crops taken as one channel of a colour frame",
     "glow_fraction": "the share of synthetic scenes with smooth bright lobes",
+    "own_states": "the share of unmodnet batches trained from the model's own states",
 }
+#: Counts a run sets that must be at least 1, and what each is.
+POSITIVE_COUNTS = {
+    "batch": "crops per optimizer step",
+    "threads": "torch threads",
+    "own_passes": "unmodnet passes rolled out",
+    "checkpoint_every": "steps between checkpoints",
+    "log_every": "steps between log lines",
+}
+#: The largest read noise a frame may have (wrap units), ``SensorParams.read_noise``'s bound.
+READ_NOISE_LIMIT = 1.0
+#: Seeds are non-negative and below this (``torch.manual_seed`` takes 64-bit seeds).
+SEED_LIMIT = 2**63
+#: Training crops are multiples of this many px, and at least :data:`SMALLEST_CROP`.
+CROP_MULTIPLE = 16
+SMALLEST_CROP = 32
+#: A run name's tag (``label``) and a run to start from (``init_from``) name one folder of
+#: the runs folder: letters, digits, ``.``, ``_`` and ``-``, not starting with ``.`` or ``-``.
+RUN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+ENCODINGS = ("mantissa", "modulo")
 
 
 def check_config(config: TrainConfig) -> None:
     """Raise InvalidInputError (a ValueError), naming the field, for a configuration that
-    :func:`train` cannot run."""
+    :func:`train` cannot run; nothing is trained or written before these checks."""
+    check_choices(config)
+    check_amounts(config)
+    check_stages(config)
+    check_crops(config)
+    check_names(config)
+    check_device(config)
+
+
+def check_choices(config: TrainConfig) -> None:
+    """Family, tier, loss, encoding and precision are ones the trainer knows."""
     if config.loss not in LOSSES or config.tier not in TIERS or config.family not in FAMILIES:
         raise InvalidInputError(
             f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
         )
+    if config.encoding not in ENCODINGS:
+        raise InvalidInputError(f"encoding must be one of {ENCODINGS}, got {config.encoding!r}")
+    if config.precision not in PRECISIONS:
+        raise InvalidInputError(
+            f"precision must be one of {PRECISIONS}, got {config.precision!r}"
+        )
+
+
+def check_amounts(config: TrainConfig) -> None:
+    """Weights, shares, counts, the seed and the read noise are in range."""
     if not config.risk_weight >= 0.0:
         raise InvalidInputError(f"risk_weight must be >= 0, got {config.risk_weight}")
     for name, meaning in FRACTIONS.items():
         value = getattr(config, name)
         if not 0.0 <= value <= 1.0:
             raise InvalidInputError(f"{name} must be in [0, 1] ({meaning}), got {value}")
-    if config.precision not in PRECISIONS:
-        raise InvalidInputError(
-            f"precision must be one of {PRECISIONS}, got {config.precision!r}"
-        )
+    for name, meaning in POSITIVE_COUNTS.items():
+        value = getattr(config, name)
+        if value < 1:
+            raise InvalidInputError(f"{name} must be at least 1 ({meaning}), got {value}")
     if config.workers < 0:
         raise InvalidInputError(
             f"workers must be >= 0 (0 makes batches in-process), got {config.workers}"
         )
+    if not 0 <= config.seed < SEED_LIMIT:
+        raise InvalidInputError(f"seed must be in [0, 2**63), got {config.seed}")
+    if not 0.0 <= config.max_read_noise <= READ_NOISE_LIMIT:
+        raise InvalidInputError(
+            f"max read noise must be in [0, {READ_NOISE_LIMIT}] (a Gaussian sigma in wrap "
+            f"units; the shipped noise-aware nets use 0.02), got {config.max_read_noise}"
+        )
+
+
+def check_stages(config: TrainConfig) -> None:
+    """3 or 4 stages of >= 0 steps, at least one step in all unless the run starts from
+    another run's weights (else it would write an untrained checkpoint)."""
+    steps = config.stage_steps
+    if len(steps) not in (3, 4) or any(count < 0 for count in steps):
+        raise InvalidInputError(
+            f"stage steps must be 3 or 4 counts >= 0 (e.g. 500,3500,2000), got {steps}"
+        )
+    if config.total_steps == 0 and not config.init_from:
+        raise InvalidInputError(
+            f"stage steps {steps} train nothing: give at least one stage a step "
+            "(e.g. 500,3500,2000)"
+        )
+
+
+def check_crops(config: TrainConfig) -> None:
+    """The crops (and stage 4's large crops, when it has steps) are multiples of
+    :data:`CROP_MULTIPLE` px, at least :data:`SMALLEST_CROP` and no larger than the
+    smallest training panorama allows (:func:`models.training.data.largest_crop`)."""
+    crops = {"crop": config.crop}
+    if len(config.stage_steps) == 4 and config.stage_steps[3] > 0:
+        crops["large_crop"] = config.large_crop
+    for name, size in crops.items():
+        if size % CROP_MULTIPLE or size < SMALLEST_CROP:
+            raise InvalidInputError(
+                f"{name} must be a multiple of {CROP_MULTIPLE} px and >= {SMALLEST_CROP}, "
+                f"got {size}"
+            )
+        if size > largest_crop():
+            raise InvalidInputError(
+                f"{name} must be at most {largest_crop()} px (the smallest side of the "
+                f"smallest training panorama), got {size}"
+            )
+
+
+def check_names(config: TrainConfig) -> None:
+    """``label`` and ``init_from`` each name one folder of the runs folder."""
+    for name, value in (("label", config.label), ("init_from", config.init_from)):
+        if value and not RUN_NAME.fullmatch(value):
+            raise InvalidInputError(
+                f"{name} must be one folder name (letters, digits, '.', '_', '-'; no '/'), "
+                f"got {value!r}"
+            )
+
+
+def check_device(config: TrainConfig) -> None:
+    """The device is a torch device this machine has."""
     try:
         device = torch.device(config.device)
     except RuntimeError as exc:
@@ -204,15 +310,58 @@ def check_config(config: TrainConfig) -> None:
         raise InvalidInputError(f"device {config.device!r} asked for, but torch sees no CUDA GPU")
 
 
+#: The settings a resumed run may change: they do not change which weights its steps
+#: reach. Where and how the steps run (``device``, ``precision``, ``threads``: each
+#: segment of the checkpoint records its own; ``workers``: the batches are the same), how
+#: often it logs and checkpoints, its runs folder, and its name's ``label`` (a run's
+#: folder may be renamed: its batches depend only on the seed and step). Every other
+#: field of :class:`TrainConfig` changes what is trained and must match the checkpoint.
+RESUMABLE_CHANGES = frozenset({
+    "device", "precision", "threads", "workers", "checkpoint_every", "log_every",
+    "runs_dir", "label",
+})  # fmt: skip
+
+
+def changed_settings(config: TrainConfig, saved: dict[str, Any]) -> list[str]:
+    """The fields that change what is trained on which ``config`` differs from a
+    checkpoint's ``saved`` configuration, as ``name saved (now new)``; a field the
+    checkpoint predates counts as its default."""
+    changes = []
+    for item in fields(TrainConfig):
+        if item.name in RESUMABLE_CHANGES:
+            continue
+        now = getattr(config, item.name)
+        before = saved.get(item.name, item.default)
+        if isinstance(now, tuple):
+            before = tuple(before)
+        if before != now:
+            changes.append(f"{item.name} {before!r} (now {now!r})")
+    return changes
+
+
+def check_same_training(config: TrainConfig, saved: dict[str, Any], checkpoint: Path) -> None:
+    """Refuse to resume (or return) a checkpoint trained with other settings than
+    ``config``'s, naming each that differs and what to do."""
+    changes = changed_settings(config, saved)
+    if changes:
+        raise InvalidInputError(
+            f"{checkpoint} was trained with other settings: {', '.join(changes)}; rerun with "
+            "the checkpoint's settings to resume it, or train these settings as another run "
+            "(another --runs-dir or --label)"
+        )
+
+
 def restore(
     config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer
 ) -> tuple[int, float, list[dict[str, Any]]]:
     """Load the run's checkpoint (or ``init_from``'s weights) into ``model`` and
     ``optimizer``; returns the step and wall seconds reached and the segments so far,
-    (0, 0.0, []) for a fresh run."""
+    (0, 0.0, []) for a fresh run. A checkpoint trained with other settings is refused
+    (:func:`check_same_training`)."""
     checkpoint = config.run_dir / "checkpoint.pt"
     if checkpoint.exists():
         state = load_checkpoint(checkpoint)
+        check_same_training(config, state["config"], checkpoint)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         return state["step"], state["wall_s"], checkpoint_segments(state)
@@ -269,6 +418,101 @@ def record_line(record: dict[str, Any]) -> str:
     )
 
 
+#: A run's log: one JSON record per logged step (:func:`run_steps`).
+LOG_FILE = "log.jsonl"
+
+
+def logged_step(line: str) -> int | None:
+    """The step of one log line, None for a line that is not a whole record (a line
+    cut short when the process died)."""
+    try:
+        record = json.loads(line)
+    except json.JSONDecodeError:
+        return None
+    step = record.get("step") if isinstance(record, dict) else None
+    return step if isinstance(step, int) else None
+
+
+def trim_log(log: Path, step: int) -> None:
+    """Keep the records of ``log`` up to ``step`` (the checkpoint's; 0 for a fresh run),
+    so that the steps a resumed run makes again are logged once. Rewritten atomically
+    (a temporary file renamed over it)."""
+    if not log.exists():
+        return
+    lines = log.read_text().splitlines()
+    kept = [line for line in lines if (logged := logged_step(line)) is not None and logged <= step]
+    if kept == lines:
+        return
+    tmp = log.with_suffix(".tmp")
+    tmp.write_text("".join(f"{line}\n" for line in kept))
+    tmp.replace(log)
+
+
+#: The file of a run folder that its training process holds locked (and writes its pid to).
+LOCK_FILE = "lock"
+
+
+@contextmanager
+def run_lock(run_dir: Path) -> Iterator[None]:
+    """Hold the exclusive lock of a run folder (created if need be) while training it:
+    ``flock`` on ``<run_dir>/lock``, which holds the holder's pid. The system releases
+    it when the process ends, however it ends; another process that asks for it meanwhile
+    gets an InvalidInputError naming the holder."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / LOCK_FILE
+    with path.open("a+") as file:
+        try:
+            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            file.seek(0)
+            holder = file.read().strip() or "unknown"
+            raise InvalidInputError(
+                f"{run_dir} is being trained by process {holder} (it holds {path}); wait "
+                "for it to end or stop it, or train elsewhere (another --runs-dir or --label)"
+            ) from None
+        file.truncate(0)
+        file.write(f"{os.getpid()}\n")
+        file.flush()
+        yield
+
+
+#: The signals that stop a run after its step in progress, with a checkpoint.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class Stopped(Exception):
+    """A run stopped by a signal (:data:`STOP_SIGNALS`) after saving its checkpoint at
+    ``step`` of ``total`` steps; calling :func:`train` again resumes there."""
+
+    def __init__(self, signum: int, step: int, total: int, checkpoint: Path) -> None:
+        self.signum, self.step, self.total, self.checkpoint = signum, step, total, checkpoint
+        super().__init__(
+            f"stopped by {signal.Signals(signum).name} after step {step} of {total}; "
+            f"checkpoint {checkpoint} saved: run the same command again to resume from "
+            f"step {step}"
+        )
+
+
+@contextmanager
+def stop_requests() -> Iterator[list[int]]:
+    """While open, SIGINT and SIGTERM are noted in the list it gives instead of ending the
+    process (the training loop stops after its step); the previous handlers come back
+    after. Outside the main thread, where Python cannot handle signals, the list stays
+    empty."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, lambda number, _frame: received.append(number))
+    try:
+        yield received
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
 def train(
     config: TrainConfig,
     report: Callable[[dict[str, Any]], None] | None = None,
@@ -277,14 +521,32 @@ def train(
     """Train (or resume) the run; returns the checkpoint path. ``report`` gets log records.
 
     ``deadline`` (``time.monotonic()`` seconds): stop after the first step past it, with a
-    checkpoint, even if steps remain (calling again resumes there)."""
+    checkpoint, even if steps remain (calling again resumes there). SIGINT or SIGTERM
+    (in the main thread) stops it the same way, then raises :class:`Stopped`. The run
+    folder is locked meanwhile (:func:`run_lock`)."""
     check_config(config)
     device = use_device(config)
-    config.run_dir.mkdir(parents=True, exist_ok=True)
+    with run_lock(config.run_dir), stop_requests() as stops:
+        checkpoint, step = run_steps(config, device, report, deadline, stops)
+        if stops:
+            raise Stopped(stops[0], step, config.total_steps, checkpoint)
+        return checkpoint
+
+
+def run_steps(
+    config: TrainConfig,
+    device: torch.device,
+    report: Callable[[dict[str, Any]], None] | None,
+    deadline: float | None,
+    stops: list[int],
+) -> tuple[Path, int]:
+    """The steps of :func:`train`, in its locked run folder, until the last, the
+    deadline or a signal noted in ``stops``; returns the checkpoint and its step."""
     checkpoint = config.run_dir / "checkpoint.pt"
     model = build_model(config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=STAGE_LR[0])
     step, wall_s, segments = restore(config, model, optimizer)
+    trim_log(config.run_dir / LOG_FILE, step)
     segment: dict[str, Any] = {
         "hardware": hardware_name(device), "device": config.device,
         "precision": config.precision, "steps": [step, step], "wall_s": 0.0,
@@ -292,12 +554,13 @@ def train(
     model.train()
     started = time.monotonic() - wall_s
     segment_started = time.monotonic()
-    with (config.run_dir / "log.jsonl").open("a") as log:
+    with (config.run_dir / LOG_FILE).open("a") as log:
         for batch in step_batches(config, step):
             loss, parts = optimizer_step(config, model, optimizer, batch, step)
             step += 1
             now = time.monotonic()
-            last = step == config.total_steps or (deadline is not None and now > deadline)
+            late = deadline is not None and now > deadline
+            last = step == config.total_steps or late or bool(stops)
             if step % config.log_every == 0 or last:
                 record = {"step": step, "stage": config.stage(step - 1), "loss": loss.item(),
                           **{name: value.item() for name, value in parts.items()},
@@ -307,6 +570,8 @@ def train(
                 log.flush()
                 if report:
                     report(record)
+            # A signal that came while the step was logged stops the run at this step too.
+            last = last or bool(stops)
             if step % config.checkpoint_every == 0 or last:
                 segment["steps"][1] = step
                 segment["wall_s"] = round(now - segment_started, 1)
@@ -318,4 +583,4 @@ def train(
                 break
     if not checkpoint.exists():
         save_checkpoint(checkpoint, run_state(config, model, optimizer, step, wall_s, segments))
-    return checkpoint
+    return checkpoint, step

@@ -2,9 +2,12 @@
 
 ``mcam train all`` reruns the recipes of the shipped models (resumable: rerun it
 after an interruption), exports them to ``models/onnx`` (plus the int8 QDQ version
-of one tier) and measures val-256.
+of one tier), replacing the shipped models, and measures val-256; a model whose card
+is up to date with its finished checkpoint is kept as it is.
 ``mcam train run`` trains one configuration; ``mcam train export`` exports a run;
 ``mcam train measure`` re-measures shipped cards on val-256.
+Ctrl-C (SIGINT) or SIGTERM stops a run after its step in progress, with a checkpoint
+that the same command resumes; the command then exits 130 or 143.
 PyTorch is imported only when a command runs, so the runtime never needs it.
 """
 
@@ -12,11 +15,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from models.errors import InvalidInputError
+
+if TYPE_CHECKING:
+    from models.training.train import TrainConfig
 
 #: The winding losses of ``models.training.losses.LOSSES`` (named here so that parsing
 #: the command line does not import torch; a test keeps the two equal).
@@ -81,6 +89,11 @@ def register(subparsers: Any) -> None:
     export.add_argument("checkpoint", type=Path, help="runs/<name>/checkpoint.pt")
     export.add_argument("--onnx-dir", type=Path, help="output folder (default: models/onnx)")
     export.add_argument("--no-val", action="store_true", help="skip the val-256 measurement")
+    export.add_argument(
+        "--force", action="store_true",
+        help="replace this run's model, or the model another card serves for the same "
+        "decoder and encoding (that card and its .onnx are removed)",
+    )  # fmt: skip
     export.set_defaults(func=run)
     measure = actions.add_parser("measure", help="re-measure model cards on val-256")
     measure.add_argument("cards", type=Path, nargs="+", help="models/onnx/<name>.json")
@@ -105,11 +118,42 @@ def parse_stages(text: str) -> tuple[int, ...]:
     return tuple(int(p) for p in parts)
 
 
-def print_progress(record: dict[str, Any]) -> None:
-    """One line per logged step."""
-    from models.training.train import record_line
+def duration(seconds: float) -> str:
+    """Seconds as ``h:mm:ss``."""
+    minutes, secs = divmod(round(seconds), 60)
+    return f"{minutes // 60}:{minutes % 60:02d}:{secs:02d}"
 
-    print(record_line(record), flush=True)
+
+class Progress:
+    """Prints one line per logged step: ``[run] step=<step>/<total>``, the record's
+    other fields and ``eta=h:mm:ss``, the time left at the steps per second since this
+    command's first record (at that first record, the run's mean rate so far)."""
+
+    def __init__(self, name: str, total_steps: int) -> None:
+        self.name = name
+        self.total_steps = total_steps
+        self.first: tuple[int, float] | None = None
+
+    def eta_s(self, step: int, wall_s: float) -> float | None:
+        """Seconds left after ``step`` at ``wall_s`` (the run's wall seconds so far);
+        None before any time has passed."""
+        first_step, first_wall = self.first or (0, 0.0)
+        if step <= first_step or wall_s <= first_wall:
+            first_step, first_wall = 0, 0.0
+        if wall_s <= first_wall:
+            return None
+        return (self.total_steps - step) * (wall_s - first_wall) / (step - first_step)
+
+    def __call__(self, record: dict[str, Any]) -> None:
+        from models.training.train import record_line
+
+        step, wall_s = record["step"], record["wall_s"]
+        if self.first is None:
+            self.first = (step, wall_s)
+        eta_s = self.eta_s(step, wall_s)
+        line = record_line({**record, "step": f"{step}/{self.total_steps}"})
+        eta = "?" if eta_s is None else duration(eta_s)
+        print(f"[{self.name}] {line} eta={eta}", flush=True)
 
 
 def measure_and_show(card_path: Path, measure: bool) -> None:
@@ -121,28 +165,78 @@ def measure_and_show(card_path: Path, measure: bool) -> None:
 
 
 def export_and_measure(
-    checkpoint: Path, onnx_dir: Path | None, measure: bool, int8: bool = False
+    checkpoint: Path, onnx_dir: Path | None, measure: bool, force: bool
 ) -> None:
-    """Export a checkpoint (and its int8 QDQ version), measure, print the cards."""
+    """Export a checkpoint (refusing to replace a model unless ``force``), measure, print
+    the card."""
     from models.training.export import ONNX_DIR, export_run
 
-    card_path = export_run(checkpoint, onnx_dir or ONNX_DIR)
-    measure_and_show(card_path, measure)
-    if int8:
-        from models.training.quantize import quantize_card
+    measure_and_show(export_run(checkpoint, onnx_dir or ONNX_DIR, force), measure)
 
+
+def reproduce(recipes: Iterable[TrainConfig], onnx_dir: Path, measure: bool) -> None:
+    """``mcam train all``: train each recipe (resuming its checkpoint), then ship those
+    that ship (:func:`ship`)."""
+    from models.training.recipes import exported, quantized
+    from models.training.train import train
+
+    for config in recipes:
+        checkpoint = train(config, Progress(config.name, config.total_steps))
+        if exported(config):
+            ship(checkpoint, onnx_dir / f"{config.name}.json", measure, quantized(config))
+
+
+def ship(checkpoint: Path, card_path: Path, measure: bool, int8: bool) -> None:
+    """Export a finished run to ``card_path`` (replacing the model there: ``train all``
+    reproduces it) and measure it, then its int8 QDQ version likewise; a card already
+    up to date with the checkpoint is kept (and only measured if it never was)."""
+    from models.training.export import card_is_current, export_run
+    from models.training.quantize import quantize_card, quantized_card_path
+
+    if card_is_current(card_path, checkpoint):
+        keep(card_path, checkpoint, measure)
+    else:
+        measure_and_show(export_run(checkpoint, card_path.parent, force=True), measure)
+    if not int8:
+        return
+    int8_path = quantized_card_path(card_path)
+    if card_is_current(int8_path, checkpoint):
+        keep(int8_path, checkpoint, measure)
+    else:
         measure_and_show(quantize_card(card_path), measure)
 
 
+def keep(card_path: Path, checkpoint: Path, measure: bool) -> None:
+    """Say that a card is up to date with its checkpoint; measure it if asked and it has
+    no val-256 figures yet."""
+    print(f"up to date: {card_path} (exported from {checkpoint})", flush=True)
+    if measure and "val256" not in json.loads(card_path.read_text()):
+        measure_and_show(card_path, measure)
+
+
 def run(args: argparse.Namespace) -> int:
+    """Run the action; a run stopped by SIGINT or SIGTERM (after saving its checkpoint)
+    says where it will resume and exits 128 + the signal's number (130, 143), as a shell
+    reports a process the signal ended."""
+    from models.training.train import Stopped
+
+    try:
+        return dispatch(args)
+    except Stopped as stopped:
+        print(f"mcam train: {stopped}", file=sys.stderr, flush=True)
+        return 128 + stopped.signum
+
+
+def dispatch(args: argparse.Namespace) -> int:
     """Dispatch the action; imports the torch-based training code lazily."""
-    from models.training.recipes import SHIPPED, exported, quantized
+    from models.training.export import ONNX_DIR
+    from models.training.recipes import SHIPPED
     from models.training.train import RUNS_DIR, TrainConfig, train
 
     if args.action == "export":
         if not args.checkpoint.exists():
             raise FileNotFoundError(2, "no such checkpoint", str(args.checkpoint))
-        export_and_measure(args.checkpoint, args.onnx_dir, not args.no_val)
+        export_and_measure(args.checkpoint, args.onnx_dir, not args.no_val, args.force)
         return 0
     if args.action == "measure":
         for card_path in args.cards:
@@ -151,14 +245,9 @@ def run(args: argparse.Namespace) -> int:
             measure_and_show(card_path, measure=True)
         return 0
     if args.action == "all":
-        for recipe in SHIPPED:
-            config = replace(recipe, device=args.device, workers=args.workers)
-            checkpoint = train(config, print_progress)
-            if exported(config):
-                export_and_measure(checkpoint, None, not args.no_val, int8=quantized(config))
+        recipes = [replace(r, device=args.device, workers=args.workers) for r in SHIPPED]
+        reproduce(recipes, ONNX_DIR, not args.no_val)
         return 0
-    if args.crop % 16 or args.crop < 32:
-        raise InvalidInputError(f"--crop must be a multiple of 16 and >= 32, got {args.crop}")
     config = TrainConfig(
         family=args.family, tier=args.tier, encoding=args.encoding, loss=args.loss,
         stage_steps=parse_stages(args.stages), crop=args.crop, batch=args.batch,
@@ -168,5 +257,5 @@ def run(args: argparse.Namespace) -> int:
         runs_dir=args.runs_dir or RUNS_DIR, device=args.device, precision=args.precision,
         workers=args.workers,
     )  # fmt: skip
-    print(f"checkpoint: {train(config, print_progress)}")
+    print(f"checkpoint: {train(config, Progress(config.name, config.total_steps))}")
     return 0

@@ -18,7 +18,7 @@ def test_study_trains_exports_and_measures_every_loss(tmp_path: Path) -> None:
     assert [row["loss"] for row in report["results"]] == ["ce", "ce-risk", "mse", "jumps"]
     for row in report["results"]:
         assert 0.0 <= row["read_noise_0"]["winding_accuracy"] <= 1.0
-        assert (tmp_path / "runs" / "loss-study" / f"{row['run']}.onnx").exists()
+        assert (tmp_path / "runs" / "loss-study" / row["run"] / f"{row['run']}.onnx").exists()
     assert report["best"] in {"ce", "ce-risk", "mse", "jumps"}
     assert "| jumps |" in out.with_suffix(".md").read_text()
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -206,3 +208,19 @@ def test_a_uniform_frame_decodes_to_a_uniform_image(encoding: str, code: int) ->
             continue
         winding = decoder.decode(codes, params).winding
         assert np.ptp(winding) == 0, f"{spec.name}: W {winding.min()}..{winding.max()}"
+
+
+def test_two_cards_of_one_decoder_and_encoding_are_refused_naming_both(tmp_path: Path) -> None:
+    """The runtime picked whichever sorted last; now neither, with a clear error."""
+    for name in ("mantissanet-tiny-mantissa", "mantissanet-tiny-ce-risk-mantissa"):
+        (tmp_path / f"{name}.onnx").write_bytes(b"")
+        card = {"decoder": "mantissanet-tiny", "encoding": "mantissa", "file": f"{name}.onnx"}
+        (tmp_path / f"{name}.json").write_text(json.dumps(card))
+    with pytest.raises(InvalidInputError, match="both serve decoder 'mantissanet-tiny'") as caught:
+        learned.load_cards(tmp_path)
+    assert "mantissanet-tiny-mantissa.json" in caught.value.message
+    assert "mantissanet-tiny-ce-risk-mantissa.json" in caught.value.message
+    (tmp_path / "mantissanet-tiny-mantissa.onnx").unlink()
+    assert [c["file"] for c in learned.load_cards(tmp_path)] == [
+        "mantissanet-tiny-ce-risk-mantissa.onnx"
+    ]

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
+from models.errors import InvalidInputError
 from models.training.checkpoints import (
     checkpoint_segments,
     hardware_name,
@@ -32,3 +34,15 @@ def test_a_checkpoint_is_written_whole_and_read_back(tmp_path: Path) -> None:
 
 def test_the_cpu_has_a_name() -> None:
     assert hardware_name(torch.device("cpu"))
+
+
+@pytest.mark.parametrize("damage", ["empty", "cut-short", "garbage"])
+def test_an_unreadable_checkpoint_is_one_clear_error(tmp_path: Path, damage: str) -> None:
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, {"step": 3, "weights": torch.arange(1000.0)})
+    whole = path.read_bytes()
+    damaged = {"empty": b"", "cut-short": whole[: len(whole) // 2], "garbage": b"x" * 64}
+    path.write_bytes(damaged[damage])
+    with pytest.raises(InvalidInputError, match="not a readable checkpoint") as caught:
+        load_checkpoint(path)
+    assert str(path) in caught.value.message and "delete the run folder" in caught.value.message

@@ -3,19 +3,25 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 import pytest
 import torch
+from torch import nn
 
-from models.decoders.learned import onnx_model
+from models.decoders.learned import load_cards, onnx_model
+from models.errors import InvalidInputError
 from models.formation import dequantize
 from models.scenes import val256_frames
 from models.training.export import (
+    ExportMismatchError,
     RolloverGraph,
     WindingGraph,
+    card_is_current,
+    check_onnx,
     export_run,
     sha256_of,
     trained_model,
@@ -125,3 +131,71 @@ def test_jumps_model_exports_jumps_that_the_runtime_integrates(tmp_path: Path) -
     card["path"] = str(card_path.with_suffix(".onnx"))
     winding = onnx_model(card).run(m[0, 0].astype(np.float64))
     assert winding.shape == (48, 64) and winding.dtype == np.int64 and winding.min() == 0
+
+
+class Shifted(nn.Module):
+    """An inference graph whose W is one more than another's."""
+
+    def __init__(self, graph: nn.Module) -> None:
+        super().__init__()
+        self.graph = graph
+
+    def forward(self, m: torch.Tensor) -> torch.Tensor:
+        return self.graph(m) + 1
+
+
+def test_an_onnx_graph_that_disagrees_with_pytorch_is_refused(
+    exported: tuple[Path, Path],
+) -> None:
+    checkpoint, card_path = exported
+    model, config, _ = trained_model(checkpoint)
+    graph = WindingGraph(model, config.loss).eval()
+    check_onnx(graph, card_path.with_suffix(".onnx"), 16)
+    with pytest.raises(ExportMismatchError, match="on a 48x80 input: 0.00% of the outputs equal"):
+        check_onnx(Shifted(graph), card_path.with_suffix(".onnx"), 16)
+
+
+def tiny_run(runs: Path, loss: str = "ce") -> Path:
+    """The checkpoint of a 3-step tiny mantissa run."""
+    return train(TrainConfig(tier="tiny", loss=loss, stage_steps=(1, 1, 1), crop=32, batch=2,
+                             runs_dir=runs))  # fmt: skip
+
+
+def test_an_export_replaces_a_model_only_when_forced(tmp_path: Path) -> None:
+    checkpoint, onnx_dir = tiny_run(tmp_path / "runs"), tmp_path / "onnx"
+    card_path = export_run(checkpoint, onnx_dir)
+    before = card_path.read_bytes()
+    with pytest.raises(InvalidInputError, match="exists .* pass --force to replace it"):
+        export_run(checkpoint, onnx_dir)
+    assert card_path.read_bytes() == before
+    assert export_run(checkpoint, onnx_dir, force=True) == card_path
+    assert sorted(path.name for path in onnx_dir.iterdir()) == [
+        "mantissanet-tiny-mantissa.json", "mantissanet-tiny-mantissa.onnx",
+    ]  # fmt: skip
+
+
+def test_a_second_model_of_a_decoder_and_encoding_supersedes_the_first_only_when_forced(
+    tmp_path: Path,
+) -> None:
+    """ce and ce-risk runs both make mantissanet-tiny on mantissa frames: the runtime takes
+    one, so the second export is refused, and forced it removes the first."""
+    onnx_dir = tmp_path / "onnx"
+    first = export_run(tiny_run(tmp_path / "runs", "ce-risk"), onnx_dir)
+    checkpoint = tiny_run(tmp_path / "runs")
+    with pytest.raises(InvalidInputError, match="already serves decoder 'mantissanet-t") as caught:
+        export_run(checkpoint, onnx_dir)
+    assert str(first) in caught.value.message and "--force" in caught.value.message
+    card = json.loads(export_run(checkpoint, onnx_dir, force=True).read_text())
+    assert card["supersedes"] == ["mantissanet-tiny-ce-risk-mantissa.onnx"]
+    assert [c["name"] for c in load_cards(onnx_dir)] == ["mantissanet-tiny-mantissa"]
+    assert not first.exists() and not first.with_suffix(".onnx").exists()
+
+
+def test_a_card_is_current_until_its_run_is_trained_again(tmp_path: Path) -> None:
+    checkpoint = tiny_run(tmp_path / "runs")
+    card_path = export_run(checkpoint, tmp_path / "onnx")
+    card = json.loads(card_path.read_text())
+    assert card["training"]["checkpoint_sha256"] == sha256_of(checkpoint)
+    assert card_is_current(card_path, checkpoint)
+    shutil.rmtree(checkpoint.parent)
+    assert not card_is_current(card_path, tiny_run(tmp_path / "runs"))

@@ -3,16 +3,32 @@
 from __future__ import annotations
 
 import json
+import math
+import os
+import signal
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
+from pydantic import ValidationError
 
 from models.errors import InvalidInputError
+from models.formation import SensorParams
+from models.scenes import TRAIN_SCENES, load_hdri_gray
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
+from models.training.data import largest_crop
 from models.training.losses import HEAD_OUTPUTS
-from models.training.train import TrainConfig, check_config, train
+from models.training.train import (
+    READ_NOISE_LIMIT,
+    Stopped,
+    TrainConfig,
+    check_config,
+    run_lock,
+    train,
+)
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -32,9 +48,32 @@ def test_three_stages_log_and_checkpoint(tmp_path: Path) -> None:
     assert load_checkpoint(checkpoint)["step"] == 3
 
 
+class Crash(Exception):
+    """What :func:`crash_at` raises: the process died there."""
+
+
+def crash_at(step: int) -> Callable[[dict[str, Any]], None]:
+    """A report that raises at ``step``'s log record (after the step, before its
+    checkpoint), as a process killed there would stop."""
+
+    def report(record: dict[str, Any]) -> None:
+        if record["step"] == step:
+            raise Crash(step)
+
+    return report
+
+
+def interrupted(config: TrainConfig, step: int) -> None:
+    """Train ``config`` until it crashes at ``step`` (its last checkpoint before)."""
+    with pytest.raises(Crash):
+        train(config, crash_at(step))
+
+
 def test_resumed_run_equals_an_uninterrupted_one(tmp_path: Path) -> None:
     whole = load_checkpoint(train(tiny_config(tmp_path / "a", (1, 2, 1))))
-    train(tiny_config(tmp_path / "b", (1, 1, 0)))
+    interrupted(tiny_config(tmp_path / "b", (1, 2, 1)), 3)
+    cut = load_checkpoint(tmp_path / "b" / "mantissanet-tiny-mantissa" / "checkpoint.pt")
+    assert cut["step"] == 2
     resumed = load_checkpoint(train(tiny_config(tmp_path / "b", (1, 2, 1))))
     assert resumed["step"] == whole["step"] == 4
     for key, value in whole["model"].items():
@@ -161,7 +200,7 @@ def test_a_gpu_run_without_a_gpu_says_so(tmp_path: Path) -> None:
 
 
 def test_each_resumed_stretch_of_a_run_is_a_segment(tmp_path: Path) -> None:
-    train(tiny_config(tmp_path, (1, 1, 0)))
+    interrupted(tiny_config(tmp_path, (1, 2, 1)), 3)
     state = load_checkpoint(train(tiny_config(tmp_path, (1, 2, 1))))
     segments = state["segments"]
     assert [s["steps"] for s in segments] == [[0, 2], [2, 4]]
@@ -170,3 +209,101 @@ def test_each_resumed_stretch_of_a_run_is_a_segment(tmp_path: Path) -> None:
     assert checkpoint_segments(state) == segments
 
 
+
+
+def test_the_read_noise_limit_is_the_sensor_models() -> None:
+    SensorParams(encoding="mantissa", read_noise=READ_NOISE_LIMIT)
+    with pytest.raises(ValidationError):
+        SensorParams(encoding="mantissa", read_noise=math.nextafter(READ_NOISE_LIMIT, 2.0))
+
+
+def test_the_largest_crop_is_the_smallest_panoramas_side() -> None:
+    assert largest_crop() == min(min(load_hdri_gray(name).shape) for name in TRAIN_SCENES)
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        ({"seed": 4}, "seed 3 (now 4)"),
+        ({"stage_steps": (1, 2, 2, 1)}, "stage_steps (1, 1, 0) (now (1, 2, 2, 1))"),
+        ({"crop": 48, "batch": 1}, "crop 32 (now 48), batch 2 (now 1)"),
+        ({"large_crop": 64}, "large_crop 128 (now 64)"),
+        ({"max_read_noise": 0.01}, "max_read_noise 0.0 (now 0.01)"),
+    ],
+)
+def test_a_checkpoint_of_other_settings_is_neither_resumed_nor_returned(
+    tmp_path: Path, change: dict[str, Any], named: str
+) -> None:
+    """A finished run keeps its settings: another seed, stages, crop, ... on its folder
+    (renamed, where the change renames the run) is refused, naming each difference, and
+    the checkpoint stays as it was."""
+    first = replace(tiny_config(tmp_path, (1, 1, 0)), seed=3)
+    train(first)
+    changed = replace(first, **change)
+    first.run_dir.rename(tmp_path / "moved")
+    (tmp_path / "moved").rename(changed.run_dir)
+    checkpoint = changed.run_dir / "checkpoint.pt"
+    before = checkpoint.read_bytes()
+    with pytest.raises(InvalidInputError, match="trained with other settings") as caught:
+        train(changed)
+    assert named in caught.value.message
+    assert "another --runs-dir or --label" in caught.value.message
+    assert checkpoint.read_bytes() == before
+
+
+def test_a_resume_may_change_where_and_how_the_steps_run(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, (1, 2, 1))
+    interrupted(config, 3)
+    faster = replace(config, threads=2, workers=1, checkpoint_every=1, log_every=2)
+    assert load_checkpoint(train(faster))["step"] == 4
+
+
+def test_a_locked_run_folder_is_refused_naming_the_holder(tmp_path: Path) -> None:
+    config = tiny_config(tmp_path, (1, 1, 1))
+    with run_lock(config.run_dir):
+        with pytest.raises(InvalidInputError, match=f"being trained by process {os.getpid()}"):
+            train(config)
+    assert not (config.run_dir / "checkpoint.pt").exists()
+    assert load_checkpoint(train(config))["step"] == 3
+
+
+def test_a_resumed_run_logs_each_step_once(tmp_path: Path) -> None:
+    """The steps after the last checkpoint, logged before a crash, are made again on
+    resume: the log keeps one record per step (a line cut short by the crash dropped)."""
+    config = tiny_config(tmp_path, (1, 2, 2))
+    interrupted(config, 3)
+    log = config.run_dir / "log.jsonl"
+    with log.open("a") as file:
+        file.write('{"step": 4, "sta')
+    train(config)
+    steps = [json.loads(line)["step"] for line in log.read_text().splitlines()]
+    assert steps == [1, 2, 3, 4, 5]
+
+
+def signal_at(step: int, signum: int) -> Callable[[dict[str, Any]], None]:
+    """A report that sends this process ``signum`` at ``step``'s log record."""
+
+    def report(record: dict[str, Any]) -> None:
+        if record["step"] == step:
+            os.kill(os.getpid(), signum)
+
+    return report
+
+
+@pytest.mark.parametrize(
+    ("signum", "workers"), [(signal.SIGTERM, 0), (signal.SIGINT, 0), (signal.SIGINT, 1)]
+)
+def test_a_signal_stops_after_the_step_with_a_checkpoint_that_resumes(
+    tmp_path: Path, signum: int, workers: int
+) -> None:
+    whole = load_checkpoint(train(tiny_config(tmp_path / "a", (1, 2, 2))))
+    config = replace(tiny_config(tmp_path / "b", (1, 2, 2)), workers=workers)
+    with pytest.raises(Stopped, match="resume from step 3") as caught:
+        train(config, signal_at(3, signum))
+    assert (caught.value.signum, caught.value.step, caught.value.total) == (signum, 3, 5)
+    assert load_checkpoint(caught.value.checkpoint)["step"] == 3
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    resumed = load_checkpoint(train(config))
+    assert resumed["step"] == 5
+    for key, value in whole["model"].items():
+        torch.testing.assert_close(resumed["model"][key], value)
