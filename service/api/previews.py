@@ -47,6 +47,14 @@ def srgb8(linear: NDArray[np.floating]) -> NDArray[np.uint8]:
     return np.round(encoded * 255.0).astype(np.uint8)
 
 
+def scene_to_wrap_units(
+    pixels: NDArray[np.float64], gain: float | None
+) -> NDArray[np.float64]:
+    """Scene-referred pixels (x / gain, as results are stored when the gain is known)
+    back in wrap units, the scale every preview and its exposure slider share."""
+    return pixels * gain if gain is not None else pixels
+
+
 def tonemap_png(x: NDArray[np.floating], exposure_ev: float) -> bytes:
     """Preview of linear HDR ``x`` (wrap units: 1 = a conventional pixel's saturation)."""
     return png_bytes(srgb8(np.asarray(x, dtype=np.float64) * 2.0**exposure_ev))

@@ -19,7 +19,7 @@ from models.hdr_io import read_hdr
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import download
 from service.api.errors import ApiError
-from service.api.previews import tonemap_png
+from service.api.previews import scene_to_wrap_units, tonemap_png
 from service.api.schemas import AUTH_ERRORS, error_response
 from service.api.state import ServiceState
 from worker.device_registry import forget_device
@@ -139,8 +139,10 @@ def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
     stem = f"{device}-latest"
     if format == "exr":
         return download(exr, "exr", stem)
-    pixels = read_hdr(exr, name="the stored result").pixels
-    return download(tonemap_png(pixels, exposure), "png", stem)
+    image = read_hdr(exr, name="the stored result")
+    gain = image.attributes.get("gain")  # device frames are stored scene-referred
+    x = scene_to_wrap_units(image.pixels, float(gain) if gain else None)
+    return download(tonemap_png(x, exposure), "png", stem)
 
 
 def _check_entry_id(name: str, value: str | None) -> None:

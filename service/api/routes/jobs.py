@@ -16,7 +16,13 @@ from models.hdr_io import read_hdr
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, winding_bytes
 from service.api.errors import ApiError
-from service.api.previews import codes_png, log_luminance_histogram, tonemap_png, winding_png
+from service.api.previews import (
+    codes_png,
+    log_luminance_histogram,
+    scene_to_wrap_units,
+    tonemap_png,
+    winding_png,
+)
 from service.api.schemas import AUTH_ERRORS, JobView, error_response, job_view
 from service.api.state import ServiceState
 from worker.jobs import JobRecord, JobState
@@ -52,8 +58,8 @@ def finished_record(state: ServiceState, job_id: str) -> JobRecord:
 
 def wrap_units(record: JobRecord, pixels: NDArray[np.float64]) -> NDArray[np.float64]:
     """The EXR's pixels in wrap units (undo the scene-referred division by the gain)."""
-    if record.options.get("scene_referred", True) and record.params.gain is not None:
-        return pixels * record.params.gain
+    if record.options.get("scene_referred", True):
+        return scene_to_wrap_units(pixels, record.params.gain)
     return pixels
 
 

@@ -2,22 +2,30 @@
 
 from __future__ import annotations
 
+import io
 import shutil
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
+from PIL import Image
 
 from device.simulator import VirtualScamp5
+from models.decoders.registry import get_decoder
+from models.formation import SensorParams, simulate
 from models.hdr_io import read_hdr
+from service.api.previews import srgb8
 from service.core.config import Settings
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY
 from worker.embedded_redis import connect
-from worker.redis_keys import DEVICES_SET, health_key
+from worker.outputs import encode_exr_result
+from worker.redis_keys import DEVICES_SET, health_key, latest_key
+from worker.result_store import RESULTS_DIR, ResultStore
 
 
 @pytest.fixture
@@ -105,6 +113,28 @@ def test_a_device_whose_daemon_went_quiet_is_shown_silent_and_can_be_forgotten(
     assert forgotten.json() == {"device": "gone", "forgotten": True, "frames_discarded": 0}
     assert client(READ_KEY).get("/v1/devices").json()["devices"] == []
     assert client(SUBMIT_KEY).delete("/v1/devices/gone").status_code == 404
+
+
+def test_the_live_preview_shares_the_job_previews_wrap_units(
+    settings: Settings, client: Callable[..., httpx.Client]
+) -> None:
+    """Device frames are stored scene-referred (x / gain): the PNG preview multiplies the
+    gain back, as a job's preview does, so the one exposure slider means the same on
+    both (a gain-8 camera looked 3 EV darker live)."""
+    assert settings.redis_url is not None
+    params = SensorParams(encoding="modulo", bits=8, gain=8.0)
+    codes = simulate(np.linspace(0, 3, 64 * 64).reshape(64, 64), params).codes
+    decoded = get_decoder("itoh").decode(codes, params)
+    exr = encode_exr_result(codes, decoded.winding, params, decoded.info, {})
+    key = "devices/cam9/000000000001-1-0.exr"
+    ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s).write(key, exr)
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "cam9")
+    redis_client.set(latest_key("cam9"), key)
+    png = client(READ_KEY).get("/v1/devices/cam9/frames/latest", params={"format": "png"})
+    assert png.status_code == 200, png.text
+    shown = np.asarray(Image.open(io.BytesIO(png.content)))
+    np.testing.assert_array_equal(shown, srgb8(read_hdr(exr).pixels * 8.0))
 
 
 @pytest.mark.slow
