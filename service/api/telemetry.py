@@ -25,6 +25,7 @@ from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.state import ServiceState
+from worker.jobs import JobState
 from worker.metrics import MetricFamily, read_metrics
 
 log = logging.getLogger(__name__)
@@ -77,13 +78,17 @@ class QueueCollector(Collector):
             PREFIX + "queue_pending", "jobs delivered but not acknowledged", value=stats["pending"]
         )
         yield GaugeMetricFamily(
-            PREFIX + "dead_letters",
-            "entries in the dead-letter stream",
+            PREFIX + "dead_letter_stream_length",
+            "entries in the dead-letter stream now (mcam_dead_letters_total counts every one)",
             value=stats["dead_letters"],
         )
-        jobs = GaugeMetricFamily(PREFIX + "jobs", "job records by state", labels=["state"])
-        for state, count in stats["jobs_by_state"].items():
-            jobs.add_metric([state], count)
+        jobs = GaugeMetricFamily(
+            PREFIX + "jobs_active",
+            "jobs queued or running now, by state (mcam_jobs_processed_total counts ended ones)",
+            labels=["state"],
+        )
+        for state in (JobState.QUEUED, JobState.RUNNING):
+            jobs.add_metric([state.value], stats["jobs_by_state"][state.value])
         yield jobs
         devices = GaugeMetricFamily(
             PREFIX + "device_stream_depth", "frames waiting per device stream", labels=["device"]

@@ -50,9 +50,13 @@ def test_metrics_after_one_job(client: Client, worker: Worker) -> None:
         "mcam_queue_wait_seconds_count",
     ):
         assert values[(name, ())] == 1.0, name
-    assert values[("mcam_jobs", (("state", "succeeded"),))] == 1.0
+    assert values[("mcam_jobs_processed_total", (("state", "succeeded"),))] == 1.0
+    assert values[("mcam_jobs_active", (("state", "queued"),))] == 0.0
+    assert values[("mcam_jobs_active", (("state", "running"),))] == 0.0
     assert values[("mcam_queue_depth", ())] == 0.0
-    assert values[("mcam_dead_letters", ())] == 0.0
+    assert values[("mcam_dead_letter_stream_length", ())] == 0.0
+    names = [family.name for family in text_string_to_metric_families(reply.text)]
+    assert len(names) == len(set(names)), "two metric families share a name"
     assert values[("mcam_queue_up", ())] == 1.0
     posted = (
         "mcam_http_request_duration_seconds_count",
