@@ -19,6 +19,7 @@ from starlette.concurrency import run_in_threadpool
 from models.decoders.registry import available_decoders
 from service.api.body_limit import BodyLimitMiddleware
 from service.api.errors import install_error_handlers
+from service.api.head_requests import HeadRequestMiddleware
 from service.api.state import ServiceState, open_state
 from service.api.telemetry import RequestTimer, build_registry
 from service.core.config import Settings, get_settings
@@ -78,5 +79,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics_registry = registry
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     app.add_middleware(RequestTimer, histogram=requests)
+    app.add_middleware(HeadRequestMiddleware)
     app.mount("/", StaticFiles(directory=STATIC_DIR, html=True), name="viewer")
     return app

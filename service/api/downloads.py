@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 from fastapi import Response
+from fastapi.responses import FileResponse
 from numpy.typing import NDArray
 
 from models.errors import UnsupportedFormatError
 from models.frames import encode_frame
 from worker.outputs import encode_winding
+from worker.result_store import ResultStore
 
 MEDIA_TYPES: dict[str, str] = {
     "png": "image/png",
@@ -28,6 +30,25 @@ def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
             f"W reaches {int(w.max())}, beyond a 16-bit {fmt.upper()}; ask for format=npy"
         )
     return encode_frame(w.astype(np.uint16), None, fmt)
+
+
+#: Cache policy of a stored result: its URL names one job's file, which never changes.
+IMMUTABLE = "private, max-age=31536000, immutable"
+
+
+def stored_file(
+    store: ResultStore, key: str, media_type: str, filename: str, *, immutable: bool = True
+) -> FileResponse:
+    """A stored result streamed from disk, with Range requests (a player seeks, a broken
+    download resumes), ``ETag`` and ``Last-Modified``; ``immutable``: cacheable for good
+    (a job's result), else revalidated each time (a device's newest frame)."""
+    return FileResponse(
+        store.existing_path(key),
+        media_type=media_type,
+        filename=filename,
+        content_disposition_type="attachment",
+        headers={"Cache-Control": IMMUTABLE if immutable else "no-cache"},
+    )
 
 
 def download(

@@ -17,7 +17,7 @@ from device.health import ALL_DROP_CAUSES
 from models.errors import InvalidInputError
 from models.hdr_io import read_hdr
 from service.api.deps import ReadKey, StateDep, SubmitKey
-from service.api.downloads import download
+from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.previews import scene_to_wrap_units, tonemap_png
 from service.api.schemas import AUTH_ERRORS, error_response
@@ -135,10 +135,11 @@ def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
     key = state.client.get(latest_key(device))
     if not key:
         raise ApiError(404, "not_found", f"device {device!r} has no reconstructed frame yet")
-    exr = state.store.read(_text(key))
     stem = f"{device}-latest"
     if format == "exr":
-        return download(exr, "exr", stem)
+        return stored_file(state.store, _text(key), MEDIA_TYPES["exr"], f"{stem}.exr",
+                           immutable=False)
+    exr = state.store.read(_text(key))
     image = read_hdr(exr, name="the stored result")
     gain = image.attributes.get("gain")  # device frames are stored scene-referred
     x = scene_to_wrap_units(image.pixels, float(gain) if gain else None)

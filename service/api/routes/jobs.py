@@ -14,7 +14,7 @@ from models.formation import encode
 from models.frames import encode_frame, read_winding
 from models.hdr_io import read_hdr
 from service.api.deps import ReadKey, StateDep, SubmitKey
-from service.api.downloads import MEDIA_TYPES, download, winding_bytes
+from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
 from service.api.errors import ApiError
 from service.api.previews import (
     codes_png,
@@ -82,9 +82,9 @@ def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev:
         if fmt == "png":
             return download(winding_png(winding), fmt, stem)
         return download(winding_bytes(winding, fmt), fmt, stem)
-    exr = state.store.read(record.results["exr"])
     if part == "image" and fmt == "exr":
-        return download(exr, fmt, stem)
+        return stored_file(state.store, record.results["exr"], MEDIA_TYPES["exr"], f"{stem}.exr")
+    exr = state.store.read(record.results["exr"])
     x = wrap_units(record, read_hdr(exr, name="the stored result").pixels)
     if part == "image":
         return download(tonemap_png(x, ev), fmt, stem)

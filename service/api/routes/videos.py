@@ -18,6 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from models.errors import UnsupportedFormatError
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.downloads import stored_file
 from service.api.errors import ApiError
 from service.api.routes.jobs import JOB_ERRORS, finished_record
 from service.api.schemas import (
@@ -182,10 +183,5 @@ def get_video_result(
             f"video job {job_id} did not make {output!r}; it made: "
             f"{', '.join(sorted(record.results))} (choose the outputs when submitting)",
         )  # fmt: skip
-    data = state.store.read(record.results[output])
-    name = VIDEO_FILES[output]
-    return Response(
-        data,
-        media_type=_MEDIA[output],
-        headers={"Content-Disposition": f'attachment; filename="{job_id}-{name}"'},
-    )
+    return stored_file(state.store, record.results[output], _MEDIA[output],
+                       f"{job_id}-{VIDEO_FILES[output]}")

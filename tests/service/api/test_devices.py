@@ -107,6 +107,8 @@ def test_a_device_whose_daemon_went_quiet_is_shown_silent_and_can_be_forgotten(
     assert view["state"] == "silent" and view["last_state"] == "connected"
     assert view["fps"] == 0.0 and view["age_s"] >= 60
 
+    head = client(READ_KEY).head("/v1/devices/gone/events", timeout=10)  # a stream: ends
+    assert head.status_code == 200 and head.headers["content-type"].startswith("text/event")
     assert client(READ_KEY).delete("/v1/devices/gone").status_code == 403
     forgotten = client(SUBMIT_KEY).delete("/v1/devices/gone")
     assert forgotten.status_code == 200, forgotten.text

@@ -154,3 +154,23 @@ def test_expired_result_files_are_404_for_every_part(
         reply = http.get(f"/v1/jobs/{job['id']}/result", params=params)
         assert reply.status_code == 404, (params, reply.text)
         assert "never written or expired" in reply.json()["message"]
+
+
+def test_stored_results_support_range_head_and_caching(client: Client, worker: Worker) -> None:
+    """A player seeks and a broken download resumes (Range); a link checker asks HEAD;
+    a job's result never changes, so it is cached for good."""
+    http = client()
+    job = reconstructed_job(http)
+    url = f"/v1/jobs/{job['id']}/result"
+    whole = http.get(url)
+    assert whole.status_code == 200 and "immutable" in whole.headers["cache-control"]
+    assert whole.headers["etag"] and whole.headers["last-modified"]
+    part = http.get(url, headers={"Range": "bytes=10-99"})
+    assert part.status_code == 206 and part.content == whole.content[10:100]
+    assert part.headers["content-range"] == f"bytes 10-99/{len(whole.content)}"
+    head = http.head(url)
+    assert head.status_code == 200 and head.content == b""
+    assert int(head.headers["content-length"]) == len(whole.content)
+    assert http.head(f"/v1/jobs/{'0' * 32}").status_code == 404
+    for path in ("/health/live", "/v1/decoders", "/"):
+        assert http.head(path).status_code == 200, path
