@@ -5,8 +5,8 @@ Formats
 - ``png``: grayscale 8- or 16-bit; codes stored as-is (never rescaled); the
   parameters as JSON in a ``tEXt`` chunk with keyword ``mantissacam``. Colour
   frames are refused: store them as TIFF.
-- ``tiff``: any channel count (``H x W`` or ``H x W x C``); the parameters as
-  JSON in the ImageDescription tag.
+- ``tiff``: ``H x W`` or ``H x W x C`` (decoders take C = 1 or 3: grey or RGB, no
+  alpha); the parameters as JSON in the ImageDescription tag.
 - ``npy``: the codes array only; parameters come from the caller.
 
 Reading merges the stored parameters with overrides (command-line flags or form
@@ -39,6 +39,7 @@ from models.errors import (
     UnsupportedFormatError,
 )
 from models.formation import SensorParams, validate_codes
+from models.tiff_pages import open_tiff, page_codes
 
 FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
 #: PNG text-chunk keyword holding the parameters as JSON.
@@ -66,7 +67,7 @@ def frame_format(name: str | os.PathLike[str]) -> str:
     if key not in _ALIASES:
         raise UnsupportedFormatError(
             f"unsupported wrapped-frame format {str(name)!r}; "
-            "use one of: .png (grayscale), .tiff/.tif (any channels), .npy"
+            "use one of: .png (grayscale), .tiff/.tif (grey or RGB), .npy"
         )
     return _ALIASES[key]
 
@@ -201,7 +202,7 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[s
 
 
 def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
-    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+    with open_tiff(data) as tif:
         if len(tif.pages) > 1:
             raise InvalidInputError(
                 f"the TIFF holds {len(tif.pages)} pages and a reconstruction takes one frame: "
@@ -210,7 +211,7 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[
             )
         page = tif.pages.first
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
-        return page.asarray(), tiff_params(page.description)
+        return page_codes(page), tiff_params(page.description)
 
 
 def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:

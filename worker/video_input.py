@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tifffile
 from numpy.typing import NDArray
 
 from models.decoders.base import check_frame_shape
@@ -43,6 +42,7 @@ from models.frames import (
     merge_params,
     tiff_params,
 )
+from models.tiff_pages import open_tiff, page_codes, page_shape
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 _ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
@@ -114,21 +114,21 @@ def png_entry_limit(max_pixels: int | None) -> int | None:
 
 
 def _read_tiff(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
-    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+    with open_tiff(data) as tif:
         pages = tif.pages
         check_frame_count(len(pages), limits.frames)
         first = pages.first
         check_pixel_count(int(first.imagewidth), int(first.imagelength), limits.pixels)
-        shape = first.shape
+        shape = page_shape(first)
         check_sample_count(len(pages), shape, limits.samples)
         frames = []
         for page in pages:
-            if page.shape != shape:
+            if page_shape(page) != shape:
                 raise InvalidInputError(
-                    f"all pages of a video have one shape; page {len(frames)} is {page.shape}, "
-                    f"the first {shape}"
+                    f"all pages of a video have one shape; page {len(frames)} is "
+                    f"{page_shape(page)}, the first {shape}"
                 )
-            frames.append(page.asarray())
+            frames.append(page_codes(page))
         return np.stack(frames), tiff_params(first.description)
 
 

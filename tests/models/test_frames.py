@@ -322,3 +322,21 @@ def test_winding_png_refuses_what_it_cannot_hold(tmp_path: Path) -> None:
     (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n")
     with pytest.raises(InvalidInputError):
         read_winding(tmp_path / "bad.png")
+
+
+def test_a_separate_plane_rgb_tiff_is_read_samples_last() -> None:
+    rgb = random_codes((3, 6, 5), 8)
+    buffer = io.BytesIO()
+    tifffile.imwrite(
+        buffer, rgb, photometric="rgb", planarconfig="separate",
+        description=PARAMS_8.model_dump_json(), metadata=None,
+    )  # fmt: skip
+    frame = decode_frame(buffer.getvalue(), "tiff")
+    np.testing.assert_array_equal(frame.codes, np.moveaxis(rgb, 0, -1))
+
+
+def test_an_lzw_tiff_is_refused_as_unsupported_compression_not_damage() -> None:
+    buffer = io.BytesIO()
+    Image.fromarray(random_codes((6, 5), 8)).save(buffer, "TIFF", compression="tiff_lzw")
+    with pytest.raises(UnsupportedFormatError, match="unsupported TIFF compression LZW"):
+        decode_frame(buffer.getvalue(), "tiff", PARAMS_8.model_dump())
