@@ -22,7 +22,7 @@ def register(subparsers: Any) -> None:
         "simulate",
         help="simulate a wrapping sensor on an HDR scene (OpenEXR or Radiance .hdr)",
         description="Expose an HDR scene and write the wrapped sensor frame it gives "
-        "(.png grayscale, .tiff any channels, .npy), parameters stored in the file.",
+        "(.png grayscale, .tiff grey or RGB, .npy), parameters stored in the file.",
     )
     parser.add_argument("scene", help="scene-referred HDR image: .exr, .hdr or .pic")
     parser.add_argument("-o", "--output", required=True, help="wrapped frame: .png, .tiff, .npy")
