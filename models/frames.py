@@ -47,6 +47,8 @@ PNG_KEYWORD = "mantissacam"
 #: The eight bytes every PNG file starts with.
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
+#: File-name suffixes of wrapped frames and winding maps.
+FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in _ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")

@@ -8,15 +8,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-from models.errors import UnsupportedFormatError
+from models.errors import InvalidInputError
 from service.cli.options import add_exr_compression_flag, add_sensor_flags, sensor_values
+from service.cli.output_files import OutputFile, staged_outputs
 from worker.temporal_config import MODES, TemporalConfig
 from worker.video_input import read_video
 from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
 from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs
 
 #: Output suffixes and the output each one means.
-SUFFIXES = {".mp4": "hdr10", ".mov": "hdr10", ".zip": "exr_zip"}
+SUFFIXES = {".mp4": "hdr10", ".zip": "exr_zip"}
 BAR_WIDTH = 30
 
 
@@ -55,14 +56,27 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-def output_kind(path: str) -> str:
-    """The output a file name asks for, from its suffix."""
-    suffix = Path(path).suffix.lower()
-    if suffix not in SUFFIXES:
-        raise UnsupportedFormatError(
-            f"cannot tell what to write to {path!r}: use .mp4 / .mov (HDR10) or .zip (EXR frames)"
+def output_files(args: argparse.Namespace) -> dict[str, OutputFile]:
+    """The files to write, by output (:data:`worker.video_pipeline.OUTPUTS`)."""
+    main = OutputFile(
+        "-o", args.output, "the output is an HDR10 video (.mp4) or EXR frames (.zip)",
+        tuple(SUFFIXES),
+    )  # fmt: skip
+    main.check_name()
+    kind = SUFFIXES[Path(args.output).suffix.lower()]
+    files = {kind: main}
+    if args.preview:
+        files["sdr"] = OutputFile(
+            "--preview", args.preview, "the SDR preview is an H.264 video", (".mp4",)
         )
-    return SUFFIXES[suffix]
+    if args.exr:
+        if kind == "exr_zip":
+            raise InvalidInputError(
+                f"-o {args.output} already writes the EXR frames; drop --exr {args.exr}, or "
+                "write the HDR10 video with -o clip.mp4"
+            )
+        files["exr_zip"] = OutputFile("--exr", args.exr, "the EXR frames are a zip", (".zip",))
+    return files
 
 
 def progress_bar(stage: str, done: int, total: int) -> None:
@@ -75,11 +89,7 @@ def progress_bar(stage: str, done: int, total: int) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Read, decode and write; print a one-line summary."""
-    targets = {output_kind(args.output): args.output}
-    if args.preview:
-        targets["sdr"] = args.preview
-    if args.exr:
-        targets["exr_zip"] = args.exr
+    files = output_files(args)
     options = VideoOptions(
         mode=args.mode,
         decoder=args.decoder,
@@ -90,21 +100,23 @@ def run(args: argparse.Namespace) -> int:
         half=args.half,
         exr_compression=args.exr_compression,
     )
-    video = read_video(args.video, sensor_values(args))
-    if "hdr10" in targets:
-        check_hdr10_frame_size(
-            video.codes.shape[1], video.codes.shape[2],
-            "write the EXR frames instead (-o clip.zip, with --preview for an SDR video)",
-        )
-    progress = None if args.quiet else progress_bar
-    start = time.perf_counter()
-    decoded = decode_video_frames(video, options, progress)
-    write_outputs(decoded, video, targets, options, progress)
+    with staged_outputs(list(files.values()), [args.video]) as paths:
+        video = read_video(args.video, sensor_values(args))
+        if "hdr10" in files:
+            check_hdr10_frame_size(
+                video.codes.shape[1], video.codes.shape[2],
+                "write the EXR frames instead (-o clip.zip, with --preview for an SDR video)",
+            )
+        progress = None if args.quiet else progress_bar
+        start = time.perf_counter()
+        decoded = decode_video_frames(video, options, progress)
+        targets = {kind: str(paths[file.flag]) for kind, file in files.items()}
+        write_outputs(decoded, video, targets, options, progress)
     summary = decoded.summary()
     print(
-        f"wrote {', '.join(targets.values())}: {summary['frames']} frames, mode {args.mode}, "
-        f"decoder {args.decoder}, {summary['ms_per_frame']:.1f} ms/frame decoding, "
-        f"{summary['keyframes']} keyframes, {summary['paths']['temporal']:.1%} of pixels "
-        f"temporal, {time.perf_counter() - start:.1f} s in all"
+        f"wrote {', '.join(file.path for file in files.values())}: {summary['frames']} frames, "
+        f"mode {args.mode}, decoder {args.decoder}, {summary['ms_per_frame']:.1f} ms/frame "
+        f"decoding, {summary['keyframes']} keyframes, {summary['paths']['temporal']:.1%} of "
+        f"pixels temporal, {time.perf_counter() - start:.1f} s in all"
     )
     return 0

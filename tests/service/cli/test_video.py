@@ -71,3 +71,30 @@ def test_frames_too_small_for_hdr10_are_refused_before_decoding(tmp_path: Path) 
     np.save(tmp_path / "wrapped.npy", np.zeros((3, 32, 32), np.uint8))
     result = run_mcam("video", "wrapped.npy", "-o", "clip.mp4", *FLAGS, cwd=tmp_path)
     assert_one_line_error(result, "64 x 64", "got 32 x 32", "-o clip.zip")
+
+
+def test_video_refuses_clashing_or_misnamed_outputs_before_decoding(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 64, 64), np.uint8))
+    cases = [
+        (("-o", "a.zip", "--exr", "b.zip"), "-o a.zip already writes the EXR frames"),
+        (("-o", "s.mp4", "--preview", "s.mp4"), "-o and --preview both name s.mp4"),
+        (("-o", "s.mp4", "--preview", "p.zip"), "--preview p.zip", ".mp4"),
+        (("-o", "s.mp4", "--exr", "e.mp4"), "--exr e.mp4", ".zip"),
+        (("-o", "clip.mov",), "-o clip.mov", ".mp4"),
+        (("-o", "nofolder/x.mp4",), "no such folder: nofolder"),
+    ]
+    for outputs, *fragments in cases:
+        result = run_mcam("video", "wrapped.npy", *outputs, *FLAGS, cwd=tmp_path)
+        assert_one_line_error(result, *fragments)
+    assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
+
+
+def test_a_failing_output_leaves_no_other_output_behind(tmp_path: Path) -> None:
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+    np.save(tmp_path / "wrapped.npy", np.stack([encode(x, params).codes for x in slow_clip()]))
+    result = run_mcam(
+        "video", "wrapped.npy", "-o", "clip.mp4", "--preview", "sdr.mp4", "--exr", "frames.zip",
+        *FLAGS, "--gain", "1e300", "--quiet", cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(result, "would be stored as 0")  # the EXR frames, written last
+    assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
