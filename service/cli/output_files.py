@@ -95,6 +95,17 @@ def _create_temporary(output: OutputFile) -> Path:
     return temporary
 
 
+def _named_for_its_output(
+    exc: OSError, outputs: Sequence[OutputFile], temporaries: dict[str, Path]
+) -> OSError:
+    """``exc`` naming the output a writer (PyAV, zipfile, numpy) failed on, instead of its
+    temporary file, so that :func:`service.cli.main.file_problem` names the path given."""
+    for output in outputs:
+        if str(temporaries.get(output.flag)) in (str(exc.filename), str(exc.filename2)):
+            return OSError(exc.errno, exc.strerror, output.path)
+    return exc
+
+
 @contextmanager
 def staged_outputs(
     outputs: Sequence[OutputFile], inputs: Sequence[str] = ()
@@ -109,6 +120,8 @@ def staged_outputs(
         yield temporaries
         for output in outputs:
             os.replace(temporaries.pop(output.flag), output.path)
+    except OSError as exc:
+        raise _named_for_its_output(exc, outputs, temporaries) from None
     finally:
         for temporary in temporaries.values():
             temporary.unlink(missing_ok=True)

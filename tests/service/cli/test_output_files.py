@@ -58,3 +58,12 @@ def test_an_uncreatable_output_names_its_path() -> None:
     with pytest.raises(InvalidInputError, match="cannot create /proc/x.exr .* for -o"):
         with staged_outputs([exr("-o", "/proc/x.exr")]):
             pass
+
+
+def test_a_writer_failing_on_its_temporary_file_names_the_output(tmp_path: Path) -> None:
+    target = tmp_path / "clip.mp4"
+    with pytest.raises(OSError) as failure:
+        with staged_outputs([OutputFile("-o", str(target), "a video", (".mp4",))]) as paths:
+            raise OSError(28, "No space left on device", str(paths["-o"]))
+    assert failure.value.filename == str(target) and failure.value.strerror.startswith("No space")
+    assert list(tmp_path.iterdir()) == []
