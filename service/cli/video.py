@@ -13,7 +13,14 @@ from service.cli.options import add_exr_compression_flag, add_sensor_flags, sens
 from service.cli.output_files import OutputFile, staged_outputs
 from worker.temporal_config import MODES, TemporalConfig
 from worker.video_input import read_video
-from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
+from worker.video_output import (
+    FPS_RANGE,
+    REFERENCE_WHITE,
+    REFERENCE_WHITE_RANGE,
+    WHITE_LEVEL_RANGE,
+    Hdr10Settings,
+    check_hdr10_frame_size,
+)
 from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs
 
 #: Output suffixes and the output each one means.
@@ -36,18 +43,25 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--decoder", default="itoh", help="spatial decoder (default: itoh)")
     parser.add_argument("--preview", metavar="SDR.mp4", help="also write an SDR H.264 preview")
     parser.add_argument("--exr", metavar="FRAMES.zip", help="also write the EXR sequence")
-    parser.add_argument("--fps", type=float, default=30.0, help="frame rate (default: 30)")
+    parser.add_argument(
+        "--fps", type=float, default=30.0,
+        help=f"frame rate, {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g} (default: 30); 23.976, 29.97 "
+        "and 59.94 are written as the NTSC rates 24000/1001, 30000/1001, 60000/1001",
+    )  # fmt: skip
     parser.add_argument(
         "--white-level", type=float, default=1.0,
-        help="x (wrap units) shown at the reference white (default: 1)",
+        help="x (wrap units) shown at the reference white, "
+        f"{WHITE_LEVEL_RANGE[0]:g} to {WHITE_LEVEL_RANGE[1]:g} (default: 1)",
     )
     parser.add_argument(
         "--reference-white", type=float, default=REFERENCE_WHITE,
-        help=f"cd/m^2 of the reference white (default: {REFERENCE_WHITE:g}, ITU-R BT.2408)",
+        help=f"cd/m^2 of the reference white, {REFERENCE_WHITE_RANGE[0]:g} to "
+        f"{REFERENCE_WHITE_RANGE[1]:g} (default: {REFERENCE_WHITE:g}, ITU-R BT.2408)",
     )
     parser.add_argument(
         "--keyframe-interval", type=int, default=TemporalConfig.keyframe_interval,
-        help="temporal mode: decode every Nth frame spatially (0: never)",
+        help="temporal mode: decode every Nth frame spatially (0: never; default: "
+        f"{TemporalConfig.keyframe_interval})",
     )
     parser.add_argument("--half", action="store_true", help="EXR frames as half floats")
     add_exr_compression_flag(parser)

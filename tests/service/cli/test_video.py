@@ -98,3 +98,16 @@ def test_a_failing_output_leaves_no_other_output_behind(tmp_path: Path) -> None:
     )  # fmt: skip
     assert_one_line_error(result, "would be stored as 0")  # the EXR frames, written last
     assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
+
+
+def test_video_refuses_settings_that_render_no_picture(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 64, 64), np.uint8))
+    cases = [
+        (("--fps", "inf"), "fps must be from 0.1 to 1000"),
+        (("--fps", "0.0003"), "fps must be from 0.1 to 1000"),
+        (("--white-level", "1e-300"), "white_level must be from"),
+        (("--reference-white", "10001"), "reference_white must be from 1 to 10000 cd/m^2"),
+    ]
+    for flags, fragment in cases:
+        result = run_mcam("video", "wrapped.npy", "-o", "c.mp4", *FLAGS, *flags, cwd=tmp_path)
+        assert_one_line_error(result, fragment)
