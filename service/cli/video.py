@@ -94,11 +94,18 @@ def output_files(args: argparse.Namespace) -> dict[str, OutputFile]:
 
 
 def progress_bar(stage: str, done: int, total: int) -> None:
-    """Draw ``stage [#####.....] done/total`` on stderr, ending the line when done."""
+    """Draw ``stage [#####.....] done/total`` on stderr, ending the line when done; when
+    stderr is not a terminal (a log, a pipe), only the finished line of each stage."""
+    finished = done >= total
+    if not (finished or sys.stderr.isatty()):
+        return
     filled = BAR_WIDTH * done // max(total, 1)
     bar = "#" * filled + "." * (BAR_WIDTH - filled)
-    end = "\n" if done >= total else ""
-    print(f"\r{stage:<8} [{bar}] {done}/{total} frames", end=end, file=sys.stderr, flush=True)
+    line = f"{stage:<8} [{bar}] {done}/{total} frames"
+    if sys.stderr.isatty():
+        print(f"\r{line}", end="\n" if finished else "", file=sys.stderr, flush=True)
+    else:
+        print(line, file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -35,7 +35,11 @@ def test_video_writes_hdr10_preview_and_exr_frames(tmp_path: Path) -> None:
         cwd=tmp_path,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
-    assert f"decode   [{'#' * 30}] {FRAMES}/{FRAMES} frames" in result.stderr
+    # stderr is no terminal here: one finished line per stage, no carriage-return redraws
+    assert result.stderr.splitlines() == [
+        f"{stage:<8} [{'#' * 30}] {FRAMES}/{FRAMES} frames"
+        for stage in ("decode", "hdr10", "sdr", "exr_zip")
+    ]
     assert f"{FRAMES} frames, mode temporal" in result.stdout
     with av.open(str(tmp_path / "clip.mp4")) as container:
         stream = container.streams.video[0]
