@@ -18,7 +18,9 @@ row / column; sides below ``MIN_HDR10_SIDE`` are refused (libx265 crashes on the
 The SDR preview (:func:`write_sdr_preview`) is Reinhard-tonemapped (one key for the
 whole clip, from its middle frame, so the preview does not pump), sRGB-encoded,
 8-bit 4:2:0 H.264. The EXR sequence (:func:`exr_sequence_zip`) is a zip of one
-float32 (or half) EXR per frame, ``frame_00000.exr`` ..., in wrap units.
+float32 (or half) EXR per frame, ``frame_00000.exr`` ..., of the values it is given
+(the pipeline gives scene-referred ``x / gain`` when the gain is known, else wrap units)
+and the header attributes it is given per frame.
 """
 
 from __future__ import annotations
@@ -354,18 +356,20 @@ def exr_sequence_zip(
     *,
     half: bool = False,
     compression: str = DEFAULT_EXR_COMPRESSION,
+    attributes: Sequence[dict[str, str]] | None = None,
 ) -> None:
     """A zip of one EXR per frame (``frame_00000.exr``, ...) of reconstructed ``frames``
     (wrap units, or scene units when the pipeline knows the gain), each compressed as
-    ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`). Refused with
-    :class:`models.errors.OutputUnderflowError` if a pixel would be stored as 0."""
+    ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and
+    that frame's ``attributes`` (string header attributes, one mapping per frame) in
+    its header. Refused with :class:`models.errors.OutputUnderflowError` if a pixel would
+    be stored as 0."""
     _check_clip(frames)
     dtype = np.float16 if half else np.float32
     for index, frame in enumerate(frames):
         ensure_nonzero_kept(frame, dtype, f"video frame {index}")
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
         for index, frame in enumerate(frames):
-            data = encode_exr(
-                frame, {"frameIndex": str(index)}, half=half, compression=compression
-            )
+            header = {"frameIndex": str(index)} | (attributes[index] if attributes else {})
+            data = encode_exr(frame, header, half=half, compression=compression)
             archive.writestr(f"frame_{index:05d}.exr", data)

@@ -10,7 +10,7 @@ import numpy as np
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError
-from models.exr_header import decode_attributes, sensor_attributes
+from models.exr_header import reconstruction_attributes, values_unit
 from models.formation import reconstruct
 from models.frames import FRAME_SUFFIXES, read_frame, write_winding
 from models.hdr_io import write_exr
@@ -80,10 +80,7 @@ def run(args: argparse.Namespace) -> int:
         result = decoder.decode(frame.codes, frame.params)
         dtype = np.float16 if args.half else np.float32
         pixels = reconstruct(frame.codes, result.winding, frame.params, dtype, scene_referred=True)
-        gain = frame.params.gain
-        units = "wrap units x (gain unknown)" if gain is None else "scene-referred x / gain"
-        attributes = sensor_attributes(frame.params) | decode_attributes(result.info)
-        attributes["comments"] = f"MantissaCam reconstruction of {args.frame}; values in {units}"
+        attributes = reconstruction_attributes(frame.params, result.info, args.frame)
         write_exr(
             paths["-o"], pixels, attributes, half=args.half, compression=args.exr_compression
         )
@@ -91,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
             write_winding(paths["--winding-out"], result.winding)
     print(
         f"wrote {args.output}: decoder {decoder.name}, W from {result.winding.min()} to "
-        f"{result.winding.max()}, {result.timings_ns['total'] / 1e6:.1f} ms, values in {units}"
+        f"{result.winding.max()}, {result.timings_ns['total'] / 1e6:.1f} ms, values in "
+        f"{values_unit(frame.params)}"
     )
     channels = result.info.get("channels", [result.info.get("details") or {}])
     for facts in filter(None, (channel.get("budget") for channel in channels)):

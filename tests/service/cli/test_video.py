@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import zipfile
 from pathlib import Path
 
@@ -54,6 +55,11 @@ def test_video_writes_hdr10_preview_and_exr_frames(tmp_path: Path) -> None:
             data = archive.read(name)
             header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
             assert header["compression"] == OpenEXR.NO_COMPRESSION
+            # the provenance mcam reconstruct writes, and the stream's facts
+            assert (header["encoding"], header["alpha"], header["bits"]) == ("mantissa", "2.0", "8")
+            assert (header["decoder"], header["decoderVersion"]) == ("itoh", "1")
+            assert header["comments"].endswith("values in wrap units x (gain unknown)")
+            assert json.loads(header["temporal"])["mode"] == "temporal"
             pixels = read_hdr(data).pixels
             bound = mantissa_tolerance(x, 1.0, bits=8, alpha=2.0)
             assert np.all(np.abs(pixels - x) <= bound)
