@@ -37,7 +37,7 @@ from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTr
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import ensure_nonzero_kept
+from models.formation import ensure_fits, ensure_nonzero_kept
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 from models.metrics import reinhard
 
@@ -357,17 +357,20 @@ def exr_sequence_zip(
     half: bool = False,
     compression: str = DEFAULT_EXR_COMPRESSION,
     attributes: Sequence[dict[str, str]] | None = None,
+    scene_gain: float | None = None,
 ) -> None:
     """A zip of one EXR per frame (``frame_00000.exr``, ...) of reconstructed ``frames``
     (wrap units, or scene units when the pipeline knows the gain), each compressed as
     ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and
     that frame's ``attributes`` (string header attributes, one mapping per frame) in
-    its header. Refused with :class:`models.errors.OutputUnderflowError` if a pixel would
-    be stored as 0."""
+    its header. Refused with :class:`models.errors.OutputOverflowError` or
+    :class:`models.errors.OutputUnderflowError` if a pixel would be stored as inf or 0
+    (``scene_gain``: the gain scene-referred frames were divided by, for the remedy)."""
     _check_clip(frames)
     dtype = np.float16 if half else np.float32
     for index, frame in enumerate(frames):
-        ensure_nonzero_kept(frame, dtype, f"video frame {index}")
+        ensure_fits(frame, dtype, f"video frame {index}", scene_gain)
+        ensure_nonzero_kept(frame, dtype, f"video frame {index}", scene_gain)
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
         for index, frame in enumerate(frames):
             header = {"frameIndex": str(index)} | (attributes[index] if attributes else {})

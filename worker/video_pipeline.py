@@ -197,6 +197,7 @@ def write_outputs(
             exr_sequence_zip(
                 frames, target, half=options.half, compression=options.exr_compression,
                 attributes=exr_frame_attributes(decoded, video.params, options.mode),
+                scene_gain=gain,
             )  # fmt: skip
             step(total)
     return facts
