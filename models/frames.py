@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -52,6 +53,7 @@ FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in _ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -155,16 +157,31 @@ def write_frame(
     Path(path).write_bytes(encode_frame(codes, params, frame_format(path)))
 
 
-def _stored_params(text: str | None, where: str) -> dict[str, Any]:
+@dataclass(frozen=True)
+class UnreadableParams:
+    """Stored parameter text that cannot be used (damaged, or written by other software):
+    ``problem`` says why. :func:`merge_params` ignores it when the caller gives every
+    parameter the frame needs, and refuses the frame otherwise."""
+
+    problem: str
+
+
+StoredParams = dict[str, Any] | UnreadableParams
+
+
+def _stored_params(text: str | None, where: str) -> StoredParams:
     """Parameters parsed from stored JSON text; {} when there is none."""
     if not text:
         return {}
     try:
         values = json.loads(text)
     except json.JSONDecodeError:
-        raise InvalidInputError(f"the {where} is not valid JSON sensor parameters") from None
+        return UnreadableParams(f"the {where} is not valid JSON sensor parameters")
     if not isinstance(values, dict):
-        raise InvalidInputError(f"the {where} holds JSON but not an object of sensor parameters")
+        return UnreadableParams(f"the {where} holds JSON but not an object of sensor parameters")
+    unknown = sorted(set(values) - set(SensorParams.model_fields))
+    if unknown:
+        return UnreadableParams(f"the {where} holds unknown parameter names {unknown}")
     return values
 
 
@@ -181,7 +198,7 @@ def tiff_params(description: str | None) -> dict[str, Any]:
     return values
 
 
-def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
     except UnidentifiedImageError:
@@ -235,25 +252,45 @@ def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[s
 _READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}
 
 
-def merge_params(stored: dict[str, Any], overrides: dict[str, Any] | None) -> SensorParams:
+def _missing(values: dict[str, Any]) -> dict[str, str]:
+    """The parameters a frame cannot be decoded without that ``values`` lack, each with
+    an example value."""
+    needed = dict(_REQUIRED)
+    if values.get("encoding") == "mantissa":
+        needed["alpha"] = "2"
+    return {key: example for key, example in needed.items() if key not in values}
+
+
+def _asking_for(missing: dict[str, str]) -> str:
+    """How to give ``missing`` parameters, as flags and as form fields."""
+    flags = " ".join(f"--{key} {example}" for key, example in missing.items())
+    fields = ", ".join(f"{key}={example}" for key, example in missing.items())
+    return f"command line: {flags}; HTTP: the form fields {fields}"
+
+
+def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> SensorParams:
     """Stored parameters updated by ``overrides`` (None values ignored), checked complete.
 
     Raises :class:`MissingParameterError` naming the parameters to give (as
     command-line flags and as HTTP form fields) when the encoding, the bit depth or
-    (for mantissa) alpha is known from neither.
+    (for mantissa) alpha is known from neither. Unreadable stored parameters are
+    ignored, with a warning logged, when ``overrides`` hold all it needs; else refused.
     """
     given = {key: value for key, value in (overrides or {}).items() if value is not None}
+    if isinstance(stored, UnreadableParams):
+        if missing := _missing(given):
+            raise InvalidInputError(
+                f"{stored.problem}; give the parameters to decode the frame without it "
+                f"({_asking_for(missing)})"
+            )
+        logger.warning("%s; ignored it: decoding with the parameters given", stored.problem)
+        stored = {}
     merged = {key: value for key, value in stored.items() if value is not None} | given
-    needed = dict(_REQUIRED)
-    if merged.get("encoding") == "mantissa":
-        needed["alpha"] = "2"
-    missing = [key for key in needed if key not in merged]
+    missing = _missing(merged)
     if missing:
-        flags = " ".join(f"--{key} {needed[key]}" for key in missing)
-        fields = ", ".join(f"{key}={needed[key]}" for key in missing)
         raise MissingParameterError(
             f"the frame does not store its {', '.join(missing)}; give them as parameters "
-            f"(command line: {flags}; HTTP: the form fields {fields})"
+            f"({_asking_for(missing)})"
         )
     return SensorParams.parse(merged)
 
