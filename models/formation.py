@@ -251,11 +251,13 @@ def overflow_remedy(dtype: type[np.floating], scene_gain: float | None = None) -
 def underflow_remedy(dtype: type[np.floating], scene_gain: float | None = None) -> str:
     """What a user can do about nonzero values too small for ``dtype`` (``scene_gain``
     as for :func:`overflow_remedy`: a huge one makes a scene-referred output tiny)."""
-    if np.finfo(dtype).bits < 32:
-        return "ask for float32 output instead of half floats"
     if scene_gain is not None:
-        return _scene_gain_remedy(scene_gain, "lower the gain for larger values")
-    return "values this small are below any code step: check the winding numbers"
+        fix = _scene_gain_remedy(scene_gain, "lower the gain for larger values")
+    else:
+        fix = "values this small are below any code step: check the winding numbers"
+    if np.finfo(dtype).bits < 32:
+        return f"ask for float32 output instead of half floats, or {fix}"
+    return fix
 
 
 def ensure_fits(
@@ -413,7 +415,8 @@ def simulate(
     gain = params.gain
     if gain is None:
         gain = exposure_gain(scene, overexposed) if overexposed is not None else 1.0
-    x = scene * gain
+    with np.errstate(over="ignore"):  # counted and refused by ensure_fits
+        x = scene * gain
     ensure_fits(x, np.float64, "exposed irradiance")
     return encode(x, params.model_copy(update={"gain": gain}))
 

@@ -426,3 +426,16 @@ def test_sensor_params_parse_gives_readable_errors() -> None:
     with pytest.raises(InvalidInputError, match="bits"):
         SensorParams.parse({"bits": 17})
     assert SensorParams.parse({"encoding": "modulo", "bits": 12}).levels == 4096
+
+
+@pytest.mark.filterwarnings("error")
+def test_an_exposure_past_float64_is_refused_without_a_numpy_warning() -> None:
+    with pytest.raises(OutputOverflowError, match="exposed irradiance exceed the float64"):
+        simulate(np.full((2, 2), 10.0), SensorParams(gain=1e308))
+
+
+def test_half_float_underflow_also_names_a_wrong_scene_gain() -> None:
+    codes, winding = np.array([[3]], np.uint8), np.zeros((1, 1), np.int64)
+    huge_gain = SensorParams(encoding="modulo", gain=1e300)
+    with pytest.raises(OutputUnderflowError, match="ask for float32 .*, or .*gain 1e\\+300"):
+        reconstruct(codes, winding, huge_gain, np.float16, scene_referred=True)
