@@ -32,7 +32,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.base import check_frame_shape
-from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
+from models.errors import (
+    ImageTooLargeError,
+    InvalidInputError,
+    McamError,
+    UnsupportedFormatError,
+)
 from models.formation import SensorParams, validate_codes
 from models.frames import (
     WrappedFrame,
@@ -207,7 +212,10 @@ def _zip_frame(
             f"{entry.filename} inflates to {entry.file_size} bytes, more than a PNG frame of "
             f"at most {limits.pixels} pixels can hold ({most}); send smaller frames"
         )
-    return decode_frame(archive.read(entry), "png", overrides, limits.pixels)
+    try:
+        return decode_frame(archive.read(entry), "png", overrides, limits.pixels)
+    except McamError as exc:
+        raise type(exc)(f"{entry.filename}: {exc.message}") from None
 
 
 def decode_video(

@@ -190,3 +190,12 @@ def test_a_separate_plane_tiff_video_is_read_samples_last() -> None:
         description=PARAMS.model_dump_json(), metadata=None,
     )  # fmt: skip
     np.testing.assert_array_equal(decode_video(buffer.getvalue(), "tiff").codes, video)
+
+
+def test_a_bad_png_in_a_zip_names_its_entry() -> None:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("frame_0.png", encode_frame(codes(1)[0], PARAMS, "png"))
+        archive.writestr("frame_1.png", b"not a png")
+    with pytest.raises(InvalidInputError, match=r"^frame_1.png: the data is not a PNG image"):
+        decode_video(buffer.getvalue(), "zip")
