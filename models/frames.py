@@ -295,6 +295,17 @@ def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> Sens
     return SensorParams.parse(merged)
 
 
+def warn_if_8bit(codes: NDArray[Any], params: SensorParams) -> None:
+    """Log a warning when codes (DN) set to more than 8 bits all fit in 8: an 8-bit frame
+    read with a wider bit depth decodes as almost black, without any error."""
+    if params.bits > 8 and int(codes.max()) < 256:
+        logger.warning(
+            "every code is below 256 although bits is %d: if the frame is 8-bit, give "
+            "bits 8 (--bits 8, or the form field bits=8)",
+            params.bits,
+        )
+
+
 def decode_frame(
     data: bytes,
     fmt: str,
@@ -308,6 +319,7 @@ def decode_frame(
     _check_layout(codes)
     params = merge_params(stored, overrides)
     codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
+    warn_if_8bit(codes, params)
     return WrappedFrame(codes=codes, params=params)
 
 

@@ -46,6 +46,7 @@ from models.frames import (
     decoding,
     merge_params,
     tiff_params,
+    warn_if_8bit,
 )
 from models.tiff_pages import open_tiff, page_codes, page_shape
 
@@ -239,6 +240,7 @@ def decode_video(
             codes, stored = reader(data, limits)
         params = merge_params(stored, overrides)
         codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
+        warn_if_8bit(codes, params)
         video = WrappedVideo(codes, params)
     check_frame_shape(video.codes[0])
     return video

@@ -362,3 +362,12 @@ def test_a_damaged_png_chunk_gives_way_to_the_callers_parameters(
     given = {"encoding": "modulo", "bits": 8}
     assert decode_frame(buffer.getvalue(), "png", given).params.encoding == "modulo"
     assert "ignored it: decoding with the parameters given" in caplog.text
+
+
+def test_8_bit_codes_read_as_16_bit_are_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    eight_bit = encode_frame(random_codes((6, 5), 8), None, "npy")
+    decode_frame(eight_bit, "npy", {"encoding": "modulo", "bits": 16})
+    assert "every code is below 256 although bits is 16" in caplog.text
+    caplog.clear()
+    decode_frame(eight_bit, "npy", {"encoding": "modulo", "bits": 8})
+    assert caplog.text == ""
