@@ -140,4 +140,16 @@ def run(args: argparse.Namespace) -> int:
         f"decoding, {summary['keyframes']} keyframes, {summary['paths']['temporal']:.1%} of "
         f"pixels temporal, {time.perf_counter() - start:.1f} s in all"
     )
+    if {"hdr10", "sdr"} & set(files):
+        padding_note(video.codes.shape[1], video.codes.shape[2])
     return 0
+
+
+def padding_note(height: int, width: int) -> None:
+    """Say so when the MP4 videos are padded to even sides (4:2:0 chroma needs them)."""
+    if height % 2 or width % 2:
+        print(
+            f"the MP4 videos are {height + height % 2} x {width + width % 2}: 4:2:0 video "
+            f"needs even sides, so the last row / column of the {height} x {width} frames "
+            "is repeated (EXR frames keep their size)"
+        )

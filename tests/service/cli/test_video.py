@@ -121,3 +121,11 @@ def test_video_refuses_settings_that_render_no_picture(tmp_path: Path) -> None:
     for flags, fragment in cases:
         result = run_mcam("video", "wrapped.npy", "-o", "c.mp4", *FLAGS, *flags, cwd=tmp_path)
         assert_one_line_error(result, fragment)
+
+
+def test_odd_sized_frames_are_said_to_be_padded(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 65, 67), np.uint8))
+    result = run_mcam("video", "wrapped.npy", "-o", "c.mp4", *FLAGS, "--quiet", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "the MP4 videos are 66 x 68" in result.stdout
+    assert "65 x 67 frames is repeated" in result.stdout
