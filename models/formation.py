@@ -421,6 +421,13 @@ def simulate(
     return encode(x, params.model_copy(update={"gain": gain}))
 
 
+def to_scene(x: NDArray[np.floating], gain: float) -> NDArray[np.float64]:
+    """Scene-referred values ``x / gain`` of wrap units ``x``; an overflow to inf is left
+    for the caller's :func:`ensure_fits` to count and refuse (no numpy warning)."""
+    with np.errstate(over="ignore"):
+        return np.asarray(x, np.float64) / gain
+
+
 def reconstruct(
     codes: NDArray[Any],
     winding: NDArray[np.integer],
@@ -443,7 +450,7 @@ def reconstruct(
     x = from_unwrapped(winding.astype(np.float64) + m, params, np.float64 if rescale else dtype)
     scene_gain = params.gain if rescale else None
     if scene_gain is not None:
-        x = x / scene_gain
+        x = to_scene(x, scene_gain)
     ensure_fits(x, dtype, "reconstruction", scene_gain)
     ensure_nonzero_kept(x, dtype, "reconstruction", scene_gain)
     return x.astype(dtype)

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
 from models.exr_header import reconstruction_attributes, stream_attributes
-from models.formation import SensorParams
+from models.formation import SensorParams, to_scene
 from models.hdr_io import DEFAULT_EXR_COMPRESSION
 from worker.stream_state import FrameDecode, StreamState
 from worker.temporal import StreamDecoder
@@ -193,7 +193,9 @@ def write_outputs(
             write_sdr_preview(decoded.irradiance, target, options.hdr10.fps, progress=step)
         else:
             gain = video.params.gain
-            frames = decoded.irradiance if gain is None else [x / gain for x in decoded.irradiance]
+            frames = decoded.irradiance
+            if gain is not None:
+                frames = [to_scene(x, gain) for x in frames]
             exr_sequence_zip(
                 frames, target, half=options.half, compression=options.exr_compression,
                 attributes=exr_frame_attributes(decoded, video.params, options.mode),

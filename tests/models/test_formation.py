@@ -23,6 +23,7 @@ from models.formation import (
     reconstruct,
     simulate,
     split_unwrapped,
+    to_scene,
     to_unwrapped,
     unwrapped_noise_sigma,
     validate_codes,
@@ -439,3 +440,8 @@ def test_half_float_underflow_also_names_a_wrong_scene_gain() -> None:
     huge_gain = SensorParams(encoding="modulo", gain=1e300)
     with pytest.raises(OutputUnderflowError, match="ask for float32 .*, or .*gain 1e\\+300"):
         reconstruct(codes, winding, huge_gain, np.float16, scene_referred=True)
+
+
+@pytest.mark.filterwarnings("error")
+def test_a_scene_referred_overflow_gives_no_numpy_warning() -> None:
+    assert to_scene(np.array([1e300]), 1e-300)[0] == np.inf
