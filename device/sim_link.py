@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import queue
 import select
 import socket
 import tempfile
@@ -24,6 +25,8 @@ from models.errors import InvalidInputError
 
 #: How long a write waits for the host to drain the link before giving up (s).
 WRITE_TIMEOUT_S = 1.0
+#: Largest TCP port number.
+MAX_TCP_PORT = 65_535
 
 
 class Endpoint(Protocol):
@@ -211,7 +214,7 @@ class LoopEndpoint:
         """Append bytes for the host; False if it does not read them in time."""
         try:
             return self.port.is_open and self.port.write(data) == len(data)
-        except serial.SerialException:
+        except (serial.SerialException, queue.Full):  # the loop's queue stayed full
             return False
 
     def read(self) -> bytes:
@@ -237,8 +240,10 @@ def open_endpoint(url: str) -> Endpoint:
         return PtyEndpoint(Path(url[4:]))
     if url.startswith("socket://"):
         host, _, port = url[len("socket://") :].rpartition(":")
-        if not port.isdigit():
-            raise InvalidInputError(f"bad socket URL {url!r}: use socket://HOST:PORT")
+        if not port.isdigit() or int(port) > MAX_TCP_PORT:
+            raise InvalidInputError(
+                f"bad socket URL {url!r}: use socket://HOST:PORT, PORT from 0 to {MAX_TCP_PORT}"
+            )
         return TcpEndpoint(host or "127.0.0.1", int(port))
     if url == "loop://":
         return LoopEndpoint()

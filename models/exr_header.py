@@ -1,9 +1,12 @@
 """The EXR header attributes of a reconstruction: how its frame was encoded and decoded.
 
 Every reconstruction written as OpenEXR (a job's result by the worker, ``mcam
-reconstruct``, a simulated frame's reference) records its sensor parameters
-(:func:`sensor_attributes`) and, once decoded, its decoder and the decode's routing
-facts (:func:`decode_attributes`), so a file read back says where it came from.
+reconstruct``, a video's EXR frames, a simulated frame's reference) records its sensor
+parameters (:func:`sensor_attributes`) and, once decoded, its decoder and the decode's
+routing facts (:func:`decode_attributes`); ``mcam reconstruct`` and video frames add
+the units of their values in ``comments`` (:func:`reconstruction_attributes`) and video
+frames how the stream decoded them (:func:`stream_attributes`), so a file read back says
+where it came from.
 """
 
 from __future__ import annotations
@@ -29,6 +32,32 @@ def sensor_attributes(params: SensorParams) -> dict[str, str]:
     if params.gain is not None:
         attributes["gain"] = repr(params.gain)
     return attributes
+
+
+def values_unit(params: SensorParams) -> str:
+    """The unit of a reconstruction written scene-referred: ``x / gain`` when the gain
+    is known, else wrap units ``x``."""
+    return "wrap units x (gain unknown)" if params.gain is None else "scene-referred x / gain"
+
+
+def reconstruction_attributes(
+    params: SensorParams, info: dict[str, Any], source: str
+) -> dict[str, str]:
+    """Sensor and decode attributes of a scene-referred reconstruction of ``source`` (a
+    file name, ``video frame 3``), with a ``comments`` line stating its units."""
+    return (
+        sensor_attributes(params)
+        | decode_attributes(info)
+        | {"comments": f"MantissaCam reconstruction of {source}; values in {values_unit(params)}"}
+    )
+
+
+def stream_attributes(mode: str, frame: dict[str, Any]) -> dict[str, str]:
+    """A video frame's decode along its stream: ``temporal`` holds the mode, why the frame
+    was a keyframe (None for a temporal step) and the fraction of pixels per path
+    (``worker.stream_state.FrameDecode.summary``), as JSON."""
+    facts = {"mode": mode, "keyframe": frame["keyframe"], "paths": frame["paths"]}
+    return {"temporal": json.dumps(facts, sort_keys=True)}
 
 
 def decode_attributes(info: dict[str, Any]) -> dict[str, str]:

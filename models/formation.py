@@ -226,25 +226,49 @@ def dequantize(codes: NDArray[Any], bits: int) -> NDArray[np.float64]:
     return (arr.astype(np.float64) + 0.5) / (1 << bits)
 
 
-def overflow_remedy(dtype: type[np.floating]) -> str:
-    """What a user can do about values too large for ``dtype``."""
+def _scene_gain_remedy(scene_gain: float, change: str) -> str:
+    return (
+        f"the output is scene-referred x / gain with gain {scene_gain:.4g}: if that gain is "
+        f"not the frame's, give the right one ({change})"
+    )
+
+
+def overflow_remedy(dtype: type[np.floating], scene_gain: float | None = None) -> str:
+    """What a user can do about values too large for ``dtype``: ``scene_gain`` is the
+    gain a scene-referred output was divided by (a tiny one makes it huge), None for
+    wrap units (where fewer wraps, from a lower capture gain or alpha, help)."""
+    if scene_gain is not None:
+        fix = _scene_gain_remedy(scene_gain, "a higher gain gives smaller values")
+    else:
+        fix = "lower the gain or alpha"
     if np.finfo(dtype).bits < 32:
-        return "ask for float32 output instead of half floats, or lower the gain"
+        return f"ask for float32 output instead of half floats, or {fix}"
     if np.finfo(dtype).bits == 32:
-        return "float32, the widest EXR pixel type, cannot hold them: lower the gain or alpha"
-    return "lower the gain or alpha"
+        return f"float32, the widest EXR pixel type, cannot hold them: {fix}"
+    return fix
 
 
-def underflow_remedy(dtype: type[np.floating]) -> str:
-    """What a user can do about nonzero values too small for ``dtype``."""
+def underflow_remedy(dtype: type[np.floating], scene_gain: float | None = None) -> str:
+    """What a user can do about nonzero values too small for ``dtype`` (``scene_gain``
+    as for :func:`overflow_remedy`: a huge one makes a scene-referred output tiny)."""
+    if scene_gain is not None:
+        fix = _scene_gain_remedy(scene_gain, "lower the gain for larger values")
+    else:
+        fix = "values this small are below any code step: check the winding numbers"
     if np.finfo(dtype).bits < 32:
-        return "ask for float32 output instead of half floats, or lower the gain"
-    return "lower the gain, or ask for the output in wrap units (not scene-referred)"
+        return f"ask for float32 output instead of half floats, or {fix}"
+    return fix
 
 
-def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: str) -> None:
+def ensure_fits(
+    values: NDArray[np.floating],
+    dtype: type[np.floating],
+    what: str,
+    scene_gain: float | None = None,
+) -> None:
     """Raise :class:`OutputOverflowError` if ``values`` exceed ``dtype``'s finite range
-    (:class:`InvalidInputError` if any is NaN: no number at all)."""
+    (:class:`InvalidInputError` if any is NaN: no number at all); ``scene_gain`` as for
+    :func:`overflow_remedy`."""
     undefined = int(np.isnan(values).sum())
     if undefined:
         raise InvalidInputError(f"{undefined} pixels of the {what} are NaN (not a number)")
@@ -253,15 +277,21 @@ def ensure_fits(values: NDArray[np.floating], dtype: type[np.floating], what: st
     if over.any():
         raise OutputOverflowError(
             f"{int(over.sum())} pixels of the {what} exceed the {np.dtype(dtype).name} limit "
-            f"{limit:.4g}; {overflow_remedy(dtype)}"
+            f"{limit:.4g}; {overflow_remedy(dtype, scene_gain)}"
         )
 
 
-def ensure_nonzero_kept(values: NDArray[np.floating], dtype: type[np.floating], what: str) -> None:
+def ensure_nonzero_kept(
+    values: NDArray[np.floating],
+    dtype: type[np.floating],
+    what: str,
+    scene_gain: float | None = None,
+) -> None:
     """Raise :class:`OutputUnderflowError` if nonzero ``values`` would round to zero in
     ``dtype``. A reconstruction is never zero (codes decode at their bin centre), so a
     zero in its file is an image gone black in silence: a huge gain dividing it into
-    scene units, or half floats for tiny values."""
+    scene units (``scene_gain``, as for :func:`overflow_remedy`), or half floats for
+    tiny values."""
     source = np.asarray(values)
     if source.dtype.itemsize <= np.dtype(dtype).itemsize:
         return
@@ -271,7 +301,7 @@ def ensure_nonzero_kept(values: NDArray[np.floating], dtype: type[np.floating], 
         raise OutputUnderflowError(
             f"{lost} nonzero pixels of the {what} are below the smallest "
             f"{np.dtype(dtype).name} ({float(np.finfo(dtype).smallest_subnormal):.4g}) "
-            f"and would be stored as 0; {underflow_remedy(dtype)}"
+            f"and would be stored as 0; {underflow_remedy(dtype, scene_gain)}"
         )
 
 
@@ -385,9 +415,17 @@ def simulate(
     gain = params.gain
     if gain is None:
         gain = exposure_gain(scene, overexposed) if overexposed is not None else 1.0
-    x = scene * gain
+    with np.errstate(over="ignore"):  # counted and refused by ensure_fits
+        x = scene * gain
     ensure_fits(x, np.float64, "exposed irradiance")
     return encode(x, params.model_copy(update={"gain": gain}))
+
+
+def to_scene(x: NDArray[np.floating], gain: float) -> NDArray[np.float64]:
+    """Scene-referred values ``x / gain`` of wrap units ``x``; an overflow to inf is left
+    for the caller's :func:`ensure_fits` to count and refuse (no numpy warning)."""
+    with np.errstate(over="ignore"):
+        return np.asarray(x, np.float64) / gain
 
 
 def reconstruct(
@@ -410,10 +448,11 @@ def reconstruct(
         )
     rescale = scene_referred and params.gain is not None
     x = from_unwrapped(winding.astype(np.float64) + m, params, np.float64 if rescale else dtype)
-    if rescale:
-        x = x / params.gain
-    ensure_fits(x, dtype, "reconstruction")
-    ensure_nonzero_kept(x, dtype, "reconstruction")
+    scene_gain = params.gain if rescale else None
+    if scene_gain is not None:
+        x = to_scene(x, scene_gain)
+    ensure_fits(x, dtype, "reconstruction", scene_gain)
+    ensure_nonzero_kept(x, dtype, "reconstruction", scene_gain)
     return x.astype(dtype)
 
 

@@ -5,8 +5,8 @@ Formats
 - ``png``: grayscale 8- or 16-bit; codes stored as-is (never rescaled); the
   parameters as JSON in a ``tEXt`` chunk with keyword ``mantissacam``. Colour
   frames are refused: store them as TIFF.
-- ``tiff``: any channel count (``H x W`` or ``H x W x C``); the parameters as
-  JSON in the ImageDescription tag.
+- ``tiff``: ``H x W`` or ``H x W x C`` (decoders take C = 1 or 3: grey or RGB, no
+  alpha); the parameters as JSON in the ImageDescription tag.
 - ``npy``: the codes array only; parameters come from the caller.
 
 Reading merges the stored parameters with overrides (command-line flags or form
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -39,6 +40,7 @@ from models.errors import (
     UnsupportedFormatError,
 )
 from models.formation import SensorParams, validate_codes
+from models.tiff_pages import open_tiff, page_codes
 
 FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
 #: PNG text-chunk keyword holding the parameters as JSON.
@@ -46,9 +48,12 @@ PNG_KEYWORD = "mantissacam"
 #: The eight bytes every PNG file starts with.
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
+#: File-name suffixes of wrapped frames and winding maps.
+FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in _ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -66,7 +71,7 @@ def frame_format(name: str | os.PathLike[str]) -> str:
     if key not in _ALIASES:
         raise UnsupportedFormatError(
             f"unsupported wrapped-frame format {str(name)!r}; "
-            "use one of: .png (grayscale), .tiff/.tif (any channels), .npy"
+            "use one of: .png (grayscale), .tiff/.tif (grey or RGB), .npy"
         )
     return _ALIASES[key]
 
@@ -152,16 +157,31 @@ def write_frame(
     Path(path).write_bytes(encode_frame(codes, params, frame_format(path)))
 
 
-def _stored_params(text: str | None, where: str) -> dict[str, Any]:
+@dataclass(frozen=True)
+class UnreadableParams:
+    """Stored parameter text that cannot be used (damaged, or written by other software):
+    ``problem`` says why. :func:`merge_params` ignores it when the caller gives every
+    parameter the frame needs, and refuses the frame otherwise."""
+
+    problem: str
+
+
+StoredParams = dict[str, Any] | UnreadableParams
+
+
+def _stored_params(text: str | None, where: str) -> StoredParams:
     """Parameters parsed from stored JSON text; {} when there is none."""
     if not text:
         return {}
     try:
         values = json.loads(text)
     except json.JSONDecodeError:
-        raise InvalidInputError(f"the {where} is not valid JSON sensor parameters") from None
+        return UnreadableParams(f"the {where} is not valid JSON sensor parameters")
     if not isinstance(values, dict):
-        raise InvalidInputError(f"the {where} holds JSON but not an object of sensor parameters")
+        return UnreadableParams(f"the {where} holds JSON but not an object of sensor parameters")
+    unknown = sorted(set(values) - set(SensorParams.model_fields))
+    if unknown:
+        return UnreadableParams(f"the {where} holds unknown parameter names {unknown}")
     return values
 
 
@@ -178,7 +198,7 @@ def tiff_params(description: str | None) -> dict[str, Any]:
     return values
 
 
-def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
     except UnidentifiedImageError:
@@ -201,7 +221,7 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[s
 
 
 def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
-    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+    with open_tiff(data) as tif:
         if len(tif.pages) > 1:
             raise InvalidInputError(
                 f"the TIFF holds {len(tif.pages)} pages and a reconstruction takes one frame: "
@@ -210,7 +230,7 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[
             )
         page = tif.pages.first
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
-        return page.asarray(), tiff_params(page.description)
+        return page_codes(page), tiff_params(page.description)
 
 
 def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
@@ -232,27 +252,58 @@ def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[s
 _READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}
 
 
-def merge_params(stored: dict[str, Any], overrides: dict[str, Any] | None) -> SensorParams:
+def _missing(values: dict[str, Any]) -> dict[str, str]:
+    """The parameters a frame cannot be decoded without that ``values`` lack, each with
+    an example value."""
+    needed = dict(_REQUIRED)
+    if values.get("encoding") == "mantissa":
+        needed["alpha"] = "2"
+    return {key: example for key, example in needed.items() if key not in values}
+
+
+def _asking_for(missing: dict[str, str]) -> str:
+    """How to give ``missing`` parameters, as flags and as form fields."""
+    flags = " ".join(f"--{key} {example}" for key, example in missing.items())
+    fields = ", ".join(f"{key}={example}" for key, example in missing.items())
+    return f"command line: {flags}; HTTP: the form fields {fields}"
+
+
+def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> SensorParams:
     """Stored parameters updated by ``overrides`` (None values ignored), checked complete.
 
     Raises :class:`MissingParameterError` naming the parameters to give (as
     command-line flags and as HTTP form fields) when the encoding, the bit depth or
-    (for mantissa) alpha is known from neither.
+    (for mantissa) alpha is known from neither. Unreadable stored parameters are
+    ignored, with a warning logged, when ``overrides`` hold all it needs; else refused.
     """
     given = {key: value for key, value in (overrides or {}).items() if value is not None}
+    if isinstance(stored, UnreadableParams):
+        if missing := _missing(given):
+            raise InvalidInputError(
+                f"{stored.problem}; give the parameters to decode the frame without it "
+                f"({_asking_for(missing)})"
+            )
+        logger.warning("%s; ignored it: decoding with the parameters given", stored.problem)
+        stored = {}
     merged = {key: value for key, value in stored.items() if value is not None} | given
-    needed = dict(_REQUIRED)
-    if merged.get("encoding") == "mantissa":
-        needed["alpha"] = "2"
-    missing = [key for key in needed if key not in merged]
+    missing = _missing(merged)
     if missing:
-        flags = " ".join(f"--{key} {needed[key]}" for key in missing)
-        fields = ", ".join(f"{key}={needed[key]}" for key in missing)
         raise MissingParameterError(
             f"the frame does not store its {', '.join(missing)}; give them as parameters "
-            f"(command line: {flags}; HTTP: the form fields {fields})"
+            f"({_asking_for(missing)})"
         )
     return SensorParams.parse(merged)
+
+
+def warn_if_8bit(codes: NDArray[Any], params: SensorParams) -> None:
+    """Log a warning when codes (DN) set to more than 8 bits all fit in 8: an 8-bit frame
+    read with a wider bit depth decodes as almost black, without any error."""
+    if params.bits > 8 and int(codes.max()) < 256:
+        logger.warning(
+            "every code is below 256 although bits is %d: if the frame is 8-bit, give "
+            "bits 8 (--bits 8, or the form field bits=8)",
+            params.bits,
+        )
 
 
 def decode_frame(
@@ -268,6 +319,7 @@ def decode_frame(
     _check_layout(codes)
     params = merge_params(stored, overrides)
     codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
+    warn_if_8bit(codes, params)
     return WrappedFrame(codes=codes, params=params)
 
 

@@ -177,11 +177,26 @@ def rgbe_to_float(rgbe: NDArray[np.uint8]) -> NDArray[np.float64]:
     return (rgbe[..., :3].astype(np.float64) + 0.5) * scale[..., None]
 
 
+def smallest_scanline(width: int) -> int:
+    """The fewest bytes a Radiance scanline of ``width`` pixels can take: new-style RLE
+    (a 4-byte start, then per component runs of at most 127 pixels in 2 bytes each)
+    where the width allows it, else 4 bytes a pixel."""
+    if _RLE_MIN_WIDTH <= width <= _RLE_MAX_WIDTH:
+        return 4 + 4 * 2 * -(-width // 127)
+    return 4 * width
+
+
 def _read_radiance(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, str]]:
     variables, width, height, pos, (flip_rows, flip_columns) = _radiance_header(data)
     if width < 1 or height < 1:
         raise InvalidInputError(f"the Radiance image is {width} x {height}; it has no pixels")
     check_pixel_count(width, height, max_pixels)
+    if len(data) - pos < height * smallest_scanline(width):
+        raise InvalidInputError(
+            f"the Radiance file is truncated or corrupt: its header declares {width} x "
+            f"{height} pixels, which take at least {height * smallest_scanline(width)} bytes, "
+            f"and {len(data) - pos} bytes follow it; send the complete file"
+        )
     rgbe = np.empty((height, width, 4), np.uint8)
     for row in range(height):
         rgbe[row], pos = _scanline(data, pos, width, row)

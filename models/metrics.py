@@ -221,21 +221,36 @@ def ms_ssim(estimate: ArrayLike, reference: ArrayLike) -> float:
     return ms_ssim_ldr(reinhard(estimate, reference), reinhard(reference, reference))
 
 
+def flip_inputs(
+    estimate: NDArray[np.float64], reference: NDArray[np.float64]
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Both images as float32 RGB, divided by the reference's peak (so it is 1).
+
+    HDR-FLIP picks its exposures from the reference's median and maximum luminance, so
+    a common scale does not change its error; but it computes them in float32 with a
+    floor near 1e-7 and ends the process (a C++ ``exit``) when the range comes out
+    empty, as it does for a reference of ~1e-8. At peak 1 the range is always usable.
+    Estimate values beyond float32 after the division are clipped to its largest."""
+    peak = _reference_peak(reference)
+    limit = float(np.finfo(np.float32).max)
+    x = np.minimum(estimate / peak, limit).astype(np.float32)
+    ref = (reference / peak).astype(np.float32)
+    if x.ndim == 2:
+        x, ref = np.repeat(x[:, :, None], 3, axis=2), np.repeat(ref[:, :, None], 3, axis=2)
+    return x, ref
+
+
 def hdr_flip(estimate: ArrayLike, reference: ArrayLike) -> float | None:
     """Mean HDR-FLIP error (0 = identical) of linear images; ``None`` without flip-evaluator.
 
-    Grayscale images are compared as gray RGB.
+    Grayscale images are compared as gray RGB; both are scaled as :func:`flip_inputs` says.
     """
     try:
         import flip_evaluator
     except ImportError:
         return None
-    x, ref = validate_pair(estimate, reference)
-    if x.ndim == 2:
-        x, ref = np.repeat(x[:, :, None], 3, axis=2), np.repeat(ref[:, :, None], 3, axis=2)
-    _, mean_error, _ = flip_evaluator.evaluate(
-        ref.astype(np.float32), x.astype(np.float32), "HDR", applyMagma=False
-    )
+    x, ref = flip_inputs(*validate_pair(estimate, reference))
+    _, mean_error, _ = flip_evaluator.evaluate(ref, x, "HDR", applyMagma=False)
     return float(mean_error)
 
 

@@ -29,11 +29,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tifffile
 from numpy.typing import NDArray
 
 from models.decoders.base import check_frame_shape
-from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
+from models.errors import (
+    ImageTooLargeError,
+    InvalidInputError,
+    McamError,
+    UnsupportedFormatError,
+)
 from models.formation import SensorParams, validate_codes
 from models.frames import (
     WrappedFrame,
@@ -42,7 +46,9 @@ from models.frames import (
     decoding,
     merge_params,
     tiff_params,
+    warn_if_8bit,
 )
+from models.tiff_pages import open_tiff, page_codes, page_shape
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 _ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
@@ -114,21 +120,21 @@ def png_entry_limit(max_pixels: int | None) -> int | None:
 
 
 def _read_tiff(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
-    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+    with open_tiff(data) as tif:
         pages = tif.pages
         check_frame_count(len(pages), limits.frames)
         first = pages.first
         check_pixel_count(int(first.imagewidth), int(first.imagelength), limits.pixels)
-        shape = first.shape
+        shape = page_shape(first)
         check_sample_count(len(pages), shape, limits.samples)
         frames = []
         for page in pages:
-            if page.shape != shape:
+            if page_shape(page) != shape:
                 raise InvalidInputError(
-                    f"all pages of a video have one shape; page {len(frames)} is {page.shape}, "
-                    f"the first {shape}"
+                    f"all pages of a video have one shape; page {len(frames)} is "
+                    f"{page_shape(page)}, the first {shape}"
                 )
-            frames.append(page.asarray())
+            frames.append(page_codes(page))
         return np.stack(frames), tiff_params(first.description)
 
 
@@ -207,7 +213,10 @@ def _zip_frame(
             f"{entry.filename} inflates to {entry.file_size} bytes, more than a PNG frame of "
             f"at most {limits.pixels} pixels can hold ({most}); send smaller frames"
         )
-    return decode_frame(archive.read(entry), "png", overrides, limits.pixels)
+    try:
+        return decode_frame(archive.read(entry), "png", overrides, limits.pixels)
+    except McamError as exc:
+        raise type(exc)(f"{entry.filename}: {exc.message}") from None
 
 
 def decode_video(
@@ -231,6 +240,7 @@ def decode_video(
             codes, stored = reader(data, limits)
         params = merge_params(stored, overrides)
         codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
+        warn_if_8bit(codes, params)
         video = WrappedVideo(codes, params)
     check_frame_shape(video.codes[0])
     return video

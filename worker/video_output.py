@@ -18,7 +18,9 @@ row / column; sides below ``MIN_HDR10_SIDE`` are refused (libx265 crashes on the
 The SDR preview (:func:`write_sdr_preview`) is Reinhard-tonemapped (one key for the
 whole clip, from its middle frame, so the preview does not pump), sRGB-encoded,
 8-bit 4:2:0 H.264. The EXR sequence (:func:`exr_sequence_zip`) is a zip of one
-float32 (or half) EXR per frame, ``frame_00000.exr`` ..., in wrap units.
+float32 (or half) EXR per frame, ``frame_00000.exr`` ..., of the values it is given
+(the pipeline gives scene-referred ``x / gain`` when the gain is known, else wrap units)
+and the header attributes it is given per frame.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from __future__ import annotations
 import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import IO, Any
 
 import av
@@ -34,7 +37,7 @@ from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTr
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import ensure_nonzero_kept
+from models.formation import ensure_fits, ensure_nonzero_kept
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 from models.metrics import reinhard
 
@@ -57,15 +60,30 @@ X265_BFRAME_DELAY = 2
 #: Mastering display: P3-D65 primaries in x265's units of 0.00002.
 MASTERING_PRIMARIES = "G(13250,34500)B(7500,3000)R(34000,16000)WP(15635,16450)"
 
+#: Frame rates a video may have (frames per second).
+FPS_RANGE = (0.1, 1000.0)
+#: NTSC rates n * 1000/1001 that a rounded rate (23.976, 29.97, 59.94) stands for.
+NTSC_RATES = tuple(Fraction(n * 1000, 1001) for n in (24, 30, 48, 60, 120, 240))
+#: How close (relative) a rate must be to an NTSC rate to be taken for it.
+NTSC_TOLERANCE = 1e-4
+#: ``white_level`` (wrap units) a video may show at its reference white: from below a
+#: 16-bit code step (x = 2^-16) to far past any wrap count a 16-bit code reaches.
+WHITE_LEVEL_RANGE = (1e-6, 1e30)
+#: Reference white (cd/m^2): PQ reaches 10000; under 1 cd/m^2 nothing is visible.
+REFERENCE_WHITE_RANGE = (1.0, PQ_PEAK)
+
 Target = str | IO[bytes]
 Progress = Callable[[int], None]
 
 
 @dataclass(frozen=True)
 class Hdr10Settings:
-    """HDR10 encoding choices. ``white_level``: the ``x`` (wrap units) shown at
-    ``reference_white`` cd/m^2; ``mastering_peak`` / ``mastering_floor`` in cd/m^2;
-    ``crf``: x265 quality (lower is better); ``lossless``: x265 lossless mode."""
+    """HDR10 encoding choices. ``fps``: frames per second (:data:`FPS_RANGE`);
+    ``white_level``: the ``x`` (wrap units, :data:`WHITE_LEVEL_RANGE`) shown at
+    ``reference_white`` cd/m^2 (:data:`REFERENCE_WHITE_RANGE`); ``mastering_peak`` /
+    ``mastering_floor`` in cd/m^2; ``crf``: x265 quality (lower is better); ``lossless``:
+    x265 lossless mode. Values out of range (NaN, inf) are refused: they render a clip
+    all black or all white, or no clip at all."""
 
     fps: float = 30.0
     white_level: float = 1.0
@@ -77,8 +95,16 @@ class Hdr10Settings:
     lossless: bool = False
 
     def __post_init__(self) -> None:
-        if not (self.fps > 0 and self.white_level > 0 and self.reference_white > 0):
-            raise InvalidInputError("fps, white_level and reference_white must be positive")
+        for name, (low, high), unit in (
+            ("fps", FPS_RANGE, "frames per second"),
+            ("white_level", WHITE_LEVEL_RANGE, "wrap units"),
+            ("reference_white", REFERENCE_WHITE_RANGE, "cd/m^2"),
+        ):
+            value = getattr(self, name)
+            if not low <= value <= high:  # False for NaN too
+                raise InvalidInputError(
+                    f"{name} must be from {low:g} to {high:g} {unit}, got {value:g}"
+                )
         if not 0 < self.mastering_floor < self.mastering_peak <= PQ_PEAK:
             raise InvalidInputError(
                 f"mastering luminance must satisfy 0 < floor < peak <= {PQ_PEAK:g} cd/m^2"
@@ -256,7 +282,7 @@ def add_hdr10_stream(
 ) -> av.VideoStream:
     """Add the libx265 HEVC Main10 stream of an HDR10 clip of ``frame_count`` frames of
     ``size`` (even height, width in pixels) to an MP4 container, colour tags on its context."""
-    stream = container.add_stream("libx265", rate=_rate(settings.fps))
+    stream = container.add_stream("libx265", rate=frame_rate(settings.fps))
     stream.height, stream.width = size
     stream.pix_fmt = "yuv420p10le"
     stream.codec_tag = "hvc1"
@@ -273,10 +299,12 @@ def add_hdr10_stream(
     return stream
 
 
-def _rate(fps: float) -> Any:
-    """A frame rate PyAV accepts (an exact fraction)."""
-    from fractions import Fraction
-
+def frame_rate(fps: float) -> Fraction:
+    """``fps`` as the exact fraction PyAV takes: an NTSC rate (24000/1001, 30000/1001, ...)
+    for its rounded value (23.976, 29.97, ...), else the nearest fraction over <= 1001."""
+    for rate in NTSC_RATES:
+        if abs(fps / rate - 1) < NTSC_TOLERANCE:
+            return rate
     return Fraction(fps).limit_denominator(1001)
 
 
@@ -304,7 +332,7 @@ def write_sdr_preview(
     """Encode the tonemapped clip as 8-bit H.264 (yuv420p, BT.709 tags) MP4."""
     height, width = _check_clip(frames)
     with av.open(target, mode="w", format="mp4") as container:
-        stream = container.add_stream("libx264", rate=_rate(fps))
+        stream = container.add_stream("libx264", rate=frame_rate(fps))
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
         stream.options = {"crf": str(crf), "preset": "fast"}
         context = stream.codec_context
@@ -328,18 +356,23 @@ def exr_sequence_zip(
     *,
     half: bool = False,
     compression: str = DEFAULT_EXR_COMPRESSION,
+    attributes: Sequence[dict[str, str]] | None = None,
+    scene_gain: float | None = None,
 ) -> None:
     """A zip of one EXR per frame (``frame_00000.exr``, ...) of reconstructed ``frames``
     (wrap units, or scene units when the pipeline knows the gain), each compressed as
-    ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`). Refused with
-    :class:`models.errors.OutputUnderflowError` if a pixel would be stored as 0."""
+    ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and
+    that frame's ``attributes`` (string header attributes, one mapping per frame) in
+    its header. Refused with :class:`models.errors.OutputOverflowError` or
+    :class:`models.errors.OutputUnderflowError` if a pixel would be stored as inf or 0
+    (``scene_gain``: the gain scene-referred frames were divided by, for the remedy)."""
     _check_clip(frames)
     dtype = np.float16 if half else np.float32
     for index, frame in enumerate(frames):
-        ensure_nonzero_kept(frame, dtype, f"video frame {index}")
+        ensure_fits(frame, dtype, f"video frame {index}", scene_gain)
+        ensure_nonzero_kept(frame, dtype, f"video frame {index}", scene_gain)
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
         for index, frame in enumerate(frames):
-            data = encode_exr(
-                frame, {"frameIndex": str(index)}, half=half, compression=compression
-            )
+            header = {"frameIndex": str(index)} | (attributes[index] if attributes else {})
+            data = encode_exr(frame, header, half=half, compression=compression)
             archive.writestr(f"frame_{index:05d}.exr", data)

@@ -8,7 +8,9 @@ Used by ``mcam video`` and by the worker's video jobs. Decoding follows
   the reference white);
 - ``sdr``: the tonemapped H.264 preview;
 - ``exr_zip``: one EXR per frame, scene-referred (``x / gain``) when the gain is
-  known, else wrap units, as ``mcam reconstruct`` writes single frames.
+  known, else wrap units, with the header ``mcam reconstruct`` writes of single frames
+  (sensor parameters, decoder, units) and the frame's stream facts (mode, keyframe,
+  path shares).
 
 ``progress(stage, done, total)`` is called after each frame of each stage
 (``decode``, then each output in order).
@@ -26,7 +28,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import SensorParams
+from models.exr_header import reconstruction_attributes, stream_attributes
+from models.formation import SensorParams, to_scene
 from models.hdr_io import DEFAULT_EXR_COMPRESSION
 from worker.stream_state import FrameDecode, StreamState
 from worker.temporal import StreamDecoder
@@ -63,11 +66,13 @@ class VideoOptions:
 
 @dataclass
 class DecodedVideo:
-    """Per-frame reconstructions ``x`` (wrap units), W maps and decode facts."""
+    """Per-frame reconstructions ``x`` (wrap units), W maps and decode facts, and the
+    spatial decoder's ``{"decoder": name, "version": version}``."""
 
     irradiance: list[NDArray[np.float64]]
     winding: list[NDArray[np.int64]]
     frames: list[dict[str, Any]]
+    decoder: dict[str, str] = field(default_factory=dict)
 
     def add(self, frame: FrameDecode) -> None:
         """Append one decoded frame."""
@@ -80,6 +85,7 @@ class DecodedVideo:
         self.irradiance += other.irradiance
         self.winding += other.winding
         self.frames += other.frames
+        self.decoder = other.decoder or self.decoder
 
     def summary(self) -> dict[str, Any]:
         """Keyframes, mean path shares and mean decode time, for a job record."""
@@ -121,7 +127,8 @@ def decode_chunk(
     """Frames ``first`` .. ``first + len(codes) - 1`` of a video (codes, DN) decoded as one
     stream continuing from ``state``; their results and the state after the last."""
     decoder = stream_decoder(options.mode, options.decoder, options.temporal)
-    decoded = DecodedVideo([], [], [])
+    spatial = {"decoder": decoder.spatial.name, "version": decoder.spatial.version}
+    decoded = DecodedVideo([], [], [], spatial)
     for offset, frame_codes in enumerate(codes):
         discont = first + offset in options.keyframes
         decoded.add(decoder.decode(frame_codes, params, state, discont=discont))
@@ -186,9 +193,25 @@ def write_outputs(
             write_sdr_preview(decoded.irradiance, target, options.hdr10.fps, progress=step)
         else:
             gain = video.params.gain
-            frames = decoded.irradiance if gain is None else [x / gain for x in decoded.irradiance]
+            frames = decoded.irradiance
+            if gain is not None:
+                frames = [to_scene(x, gain) for x in frames]
             exr_sequence_zip(
-                frames, target, half=options.half, compression=options.exr_compression
-            )
+                frames, target, half=options.half, compression=options.exr_compression,
+                attributes=exr_frame_attributes(decoded, video.params, options.mode),
+                scene_gain=gain,
+            )  # fmt: skip
             step(total)
     return facts
+
+
+def exr_frame_attributes(
+    decoded: DecodedVideo, params: SensorParams, mode: str
+) -> list[dict[str, str]]:
+    """The EXR header of each frame: what ``mcam reconstruct`` writes of a frame (sensor
+    parameters, decoder, units) and how the stream decoded it (:mod:`models.exr_header`)."""
+    return [
+        reconstruction_attributes(params, decoded.decoder, f"video frame {index}")
+        | stream_attributes(mode, frame)
+        for index, frame in enumerate(decoded.frames)
+    ]

@@ -43,8 +43,10 @@ class DecodeResult:
 def check_frame_shape(codes: NDArray[Any]) -> None:
     """Reject frames a decoder cannot unwrap: not 2-D/3-D, or smaller than 2 x 2."""
     if codes.ndim == 3 and codes.shape[2] not in (1, 3):
+        alpha = " (RGB without its alpha channel)" if codes.shape[2] == 4 else ""
         raise InvalidInputError(
-            f"a frame has 1 or 3 channels, got shape {codes.shape}; give H x W or H x W x 3"
+            f"a frame has 1 or 3 channels (grey or RGB), got shape {codes.shape}; give "
+            f"H x W or H x W x 3{alpha}"
         )
     if codes.ndim not in (2, 3):
         raise InvalidInputError(f"a frame is H x W or H x W x 3, got shape {codes.shape}")

@@ -12,16 +12,30 @@ import sys
 from typing import Any
 
 import uvicorn
+from pydantic import ValidationError
 
+from models.errors import InvalidInputError
 from service.core.config import Settings, get_settings
 from service.core.security import KEY_FILE_NAME, KeyRing
 from service.main import create_app
 
 
 def settings_with(settings: Settings, **updates: Any) -> Settings:
-    """``settings`` with the given (non-None) values replaced, validated."""
+    """``settings`` with the given (non-None) values replaced, validated; a bad value
+    given as a flag (``--port 99999``) is blamed on the flag, not on ``MCAM_PORT``."""
     given = {name: value for name, value in updates.items() if value is not None}
-    return Settings.model_validate({**settings.model_dump(), **given})
+    try:
+        return Settings.model_validate({**settings.model_dump(), **given})
+    except ValidationError as exc:
+        flagged = [error for error in exc.errors() if error["loc"] and error["loc"][0] in given]
+        if not flagged:
+            raise
+        raise InvalidInputError(
+            "; ".join(
+                f"--{str(error['loc'][0]).replace('_', '-')} {error['input']}: {error['msg']}"
+                for error in flagged
+            )
+        ) from None
 
 
 def announce(settings: Settings, new_key: str | None) -> None:

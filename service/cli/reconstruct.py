@@ -3,23 +3,23 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
-from models.errors import MissingParameterError, UnsupportedFormatError
-from models.exr_header import decode_attributes, sensor_attributes
+from models.errors import MissingParameterError
+from models.exr_header import reconstruction_attributes, values_unit
 from models.formation import reconstruct
-from models.frames import frame_format, read_frame, write_winding
+from models.frames import FRAME_SUFFIXES, read_frame, write_winding
 from models.hdr_io import write_exr
 from service.cli.options import (
     add_exr_compression_flag,
     add_sensor_flags,
     sensor_values,
 )
+from service.cli.output_files import OutputFile, staged_outputs
 
 
 def register(subparsers: Any) -> None:
@@ -54,6 +54,18 @@ def list_decoders() -> int:
     return 0
 
 
+def outputs(args: argparse.Namespace) -> list[OutputFile]:
+    """The files the command writes: the EXR and the optional W map."""
+    files = [OutputFile("-o", args.output, "a reconstruction is written as OpenEXR", (".exr",))]
+    if args.winding_out:
+        files.append(
+            OutputFile(
+                "--winding-out", args.winding_out, "a W map is PNG, TIFF or .npy", FRAME_SUFFIXES
+            )
+        )
+    return files
+
+
 def run(args: argparse.Namespace) -> int:
     """Decode the frame and write the EXR (and the optional W map)."""
     if args.list_decoders:
@@ -62,27 +74,22 @@ def run(args: argparse.Namespace) -> int:
         raise MissingParameterError(
             "give a wrapped frame and -o OUTPUT.exr (or --list-decoders to see the decoders)"
         )
-    if Path(args.output).suffix.lower() != ".exr":
-        raise UnsupportedFormatError(
-            f"-o {args.output}: a reconstruction is written as OpenEXR; name the file .exr"
+    with staged_outputs(outputs(args), [args.frame]) as paths:
+        decoder = get_decoder(args.decoder)
+        frame = read_frame(args.frame, sensor_values(args))
+        result = decoder.decode(frame.codes, frame.params)
+        dtype = np.float16 if args.half else np.float32
+        pixels = reconstruct(frame.codes, result.winding, frame.params, dtype, scene_referred=True)
+        attributes = reconstruction_attributes(frame.params, result.info, args.frame)
+        write_exr(
+            paths["-o"], pixels, attributes, half=args.half, compression=args.exr_compression
         )
-    if args.winding_out:
-        frame_format(args.winding_out)
-    decoder = get_decoder(args.decoder)
-    frame = read_frame(args.frame, sensor_values(args))
-    result = decoder.decode(frame.codes, frame.params)
-    dtype = np.float16 if args.half else np.float32
-    pixels = reconstruct(frame.codes, result.winding, frame.params, dtype, scene_referred=True)
-    gain = frame.params.gain
-    units = "wrap units x (gain unknown)" if gain is None else "scene-referred x / gain"
-    attributes = sensor_attributes(frame.params) | decode_attributes(result.info)
-    attributes["comments"] = f"MantissaCam reconstruction of {args.frame}; values in {units}"
-    write_exr(args.output, pixels, attributes, half=args.half, compression=args.exr_compression)
-    if args.winding_out:
-        write_winding(args.winding_out, result.winding)
+        if args.winding_out:
+            write_winding(paths["--winding-out"], result.winding)
     print(
         f"wrote {args.output}: decoder {decoder.name}, W from {result.winding.min()} to "
-        f"{result.winding.max()}, {result.timings_ns['total'] / 1e6:.1f} ms, values in {units}"
+        f"{result.winding.max()}, {result.timings_ns['total'] / 1e6:.1f} ms, values in "
+        f"{values_unit(frame.params)}"
     )
     channels = result.info.get("channels", [result.info.get("details") or {}])
     for facts in filter(None, (channel.get("budget") for channel in channels)):

@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from models.errors import InvalidInputError
 from models.exr_header import sensor_attributes
-from models.formation import SensorParams, simulate
-from models.frames import frame_format, write_frame, write_winding
+from models.formation import SensorFrame, SensorParams, simulate
+from models.frames import FRAME_SUFFIXES, frame_format, write_frame, write_winding
 from models.hdr_io import read_hdr, write_exr
 from service.cli.options import (
     add_clip_negative_flag,
     add_sensor_flags,
     sensor_values,
 )
+from service.cli.output_files import OutputFile, staged_outputs
 
 
 def register(subparsers: Any) -> None:
@@ -21,11 +23,14 @@ def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "simulate",
         help="simulate a wrapping sensor on an HDR scene (OpenEXR or Radiance .hdr)",
-        description="Expose an HDR scene and write the wrapped sensor frame it gives "
-        "(.png grayscale, .tiff any channels, .npy), parameters stored in the file.",
+        description="Expose an HDR scene and write the wrapped sensor frame it gives: "
+        ".png (grayscale) or .tiff (grey or RGB) store the parameters in the file; .npy "
+        "stores the codes only (the command prints the flags mcam reconstruct needs).",
     )
     parser.add_argument("scene", help="scene-referred HDR image: .exr, .hdr or .pic")
-    parser.add_argument("-o", "--output", required=True, help="wrapped frame: .png, .tiff, .npy")
+    parser.add_argument(
+        "-o", "--output", required=True, help="wrapped frame: .png, .tiff, .npy (codes only)"
+    )
     add_sensor_flags(parser, "defaults: mantissa, alpha 2, 8 bits, gain from --overexposed or 1")
     parser.add_argument(
         "--overexposed",
@@ -48,34 +53,71 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
+def outputs(args: argparse.Namespace) -> list[OutputFile]:
+    """The files the command writes: the frame and the optional W map and reference."""
+    files = [OutputFile("-o", args.output, "a wrapped frame is PNG, TIFF or .npy", FRAME_SUFFIXES)]
+    if args.ground_truth:
+        files.append(
+            OutputFile(
+                "--ground-truth", args.ground_truth, "a W map is PNG, TIFF or .npy", FRAME_SUFFIXES
+            )
+        )
+    if args.reference_out:
+        files.append(
+            OutputFile("--reference-out", args.reference_out, "the reference is OpenEXR", (".exr",))
+        )
+    return files
+
+
+def check_not_black(frame: SensorFrame) -> None:
+    """Refuse a frame whose every code and W is 0 although the scene it saw is not black."""
+    brightest = float(frame.irradiance.max())
+    if brightest > 0 and not frame.codes.any() and not frame.winding.any():
+        raise InvalidInputError(
+            f"every pixel quantises to code 0 (the brightest is x = {brightest:.4g} wrap "
+            f"units, under one {frame.params.bits}-bit code step of {2.0**-frame.params.bits:.4g})"
+            "; raise --gain, or let --overexposed set it (e.g. --overexposed 0.01)"
+        )
+
+
+def reconstruct_flags(params: SensorParams) -> str:
+    """The ``mcam reconstruct`` flags that restore parameters a ``.npy`` does not store."""
+    flags = f"--encoding {params.encoding} --alpha {params.alpha!r} --bits {params.bits}"
+    return f"{flags} --gain {params.gain!r}" if params.gain is not None else flags
+
+
 def run(args: argparse.Namespace) -> int:
     """Simulate the frame and write it (plus the optional ground truth and reference)."""
-    frame_format(args.output)
-    if args.ground_truth:
-        frame_format(args.ground_truth)
-    scene = read_hdr(args.scene, clip_negative=args.clip_negative)
-    noise = {
-        "max_wraps": args.max_wraps,
-        "read_noise": args.read_noise,
-        "full_well": args.full_well,
-        "seed": args.seed,
-    }
-    given = sensor_values(args) | noise
-    params = SensorParams.parse({key: value for key, value in given.items() if value is not None})
-    frame = simulate(scene.pixels, params, overexposed=args.overexposed, gray=args.gray)
-    write_frame(args.output, frame.codes, frame.params)
-    if args.ground_truth:
-        write_winding(args.ground_truth, frame.winding)
-    if args.reference_out:
-        attributes = sensor_attributes(frame.params) | {
-            "comments": "scene-referred irradiance the simulated sensor saw (x / gain)"
+    with staged_outputs(outputs(args), [args.scene]) as paths:
+        scene = read_hdr(args.scene, clip_negative=args.clip_negative)
+        noise = {
+            "max_wraps": args.max_wraps,
+            "read_noise": args.read_noise,
+            "full_well": args.full_well,
+            "seed": args.seed,
         }
-        write_exr(args.reference_out, frame.irradiance / frame.params.gain, attributes)
+        given = sensor_values(args) | noise
+        params = SensorParams.parse({k: v for k, v in given.items() if v is not None})
+        frame = simulate(scene.pixels, params, overexposed=args.overexposed, gray=args.gray)
+        check_not_black(frame)
+        write_frame(paths["-o"], frame.codes, frame.params)
+        if args.ground_truth:
+            write_winding(paths["--ground-truth"], frame.winding)
+        if args.reference_out:
+            attributes = sensor_attributes(frame.params) | {
+                "comments": "scene-referred irradiance the simulated sensor saw (x / gain)"
+            }
+            write_exr(paths["--reference-out"], frame.irradiance / frame.params.gain, attributes)
     shape = " x ".join(str(n) for n in frame.codes.shape)
     print(
         f"wrote {args.output}: {shape} {frame.params.encoding} codes, {frame.params.bits}-bit, "
         f"gain {frame.params.gain:.6g}, W from {frame.winding.min()} to {frame.winding.max()}"
     )
+    if frame_format(args.output) == "npy":
+        print(
+            f"{args.output} holds the codes only: reconstruct it with "
+            f"{reconstruct_flags(frame.params)}"
+        )
     if scene.negatives_clipped:
         print(f"clipped {scene.negatives_clipped} negative scene values to 0")
     return 0

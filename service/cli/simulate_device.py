@@ -20,10 +20,14 @@ from pathlib import Path
 
 from device.faults import Faults
 from device.scenes import ExrScene, ProceduralScene, SceneSequence
-from device.sim_link import open_endpoint
+from device.sim_link import Endpoint, open_endpoint
 from device.simulator import CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
+
+#: Frame rates (frames per second) the virtual camera streams at: from one frame in ten
+#: seconds to mcam-link's set_frame_rate limit.
+FPS_RANGE = (0.1, 10_000.0)
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -36,14 +40,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         help="pty, pty:SYMLINK, socket://HOST:PORT (server) or loop://")
     parser.add_argument("--exr", type=Path, action="append",
                         help="HDR image(s) to pan across (default: a procedural scene)")
-    parser.add_argument("--fps", type=float, default=30.0, help="frames per second")
+    parser.add_argument("--fps", type=float, default=30.0,
+                        help=f"frames per second, {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g}")
     parser.add_argument("--frames", type=int, help="stop streaming after this many frames")
-    parser.add_argument("--encoding", choices=("modulo", "mantissa", "clip"), default="modulo")
+    parser.add_argument("--encoding", choices=("modulo", "mantissa", "clip"), default="modulo",
+                        help="how the pixels wrap (default: modulo)")
     parser.add_argument("--alpha", type=float, default=2.0, help="mantissa base (default 2)")
     parser.add_argument("--bits", type=int, default=8, help="code bits (default 8)")
     parser.add_argument("--gain", type=float, default=1.0, help="wrap units per scene unit")
     parser.add_argument("--read-noise", type=float, default=0.002, help="sigma in wraps")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="noise and fault seed, >= 0")
     faults = parser.add_argument_group("fault injection")
     faults.add_argument("--corrupt-bytes", type=float, default=0.0,
                         help="fraction of bytes overwritten, in bursts")
@@ -60,9 +66,35 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.set_defaults(func=run)
 
 
+def check_flags(args: argparse.Namespace) -> None:
+    """Refuse flag values the camera cannot run with, naming the flag."""
+    low, high = FPS_RANGE
+    if not low <= args.fps <= high:
+        raise InvalidInputError(f"--fps must be from {low:g} to {high:g}, got {args.fps:g}")
+    if args.frames is not None and args.frames < 1:
+        raise InvalidInputError(f"--frames must be at least 1, got {args.frames}")
+    if args.seed < 0:
+        raise InvalidInputError(f"--seed must be 0 or more, got {args.seed}")
+    if args.port == "loop://":
+        raise InvalidInputError(
+            "--port loop:// only reaches readers in this same process (tests); give pty, "
+            "pty:PATH or socket://HOST:PORT for mcam device to read"
+        )
+
+
+def open_port(url: str) -> Endpoint:
+    """The camera's end of the link at ``url``; a port it cannot open is named."""
+    try:
+        return open_endpoint(url)
+    except OSError as exc:
+        raise InvalidInputError(
+            f"--port {url}: cannot open it ({exc.strerror or exc}); give a local address "
+            "and a free port, or pty"
+        ) from None
+
+
 def run(args: argparse.Namespace) -> int:
-    if args.fps <= 0:
-        raise InvalidInputError(f"--fps must be positive, got {args.fps}")
+    check_flags(args)
     scene: SceneSequence = ExrScene(args.exr) if args.exr else ProceduralScene()
     settings = CameraSettings(encoding=args.encoding, alpha=args.alpha, bits=args.bits,
                               gain=args.gain, fps=args.fps, read_noise=args.read_noise)
@@ -76,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError(str(exc)) from None
     SensorParams.parse({"encoding": args.encoding, "alpha": args.alpha, "bits": args.bits,
                         "gain": args.gain, "read_noise": args.read_noise})
-    camera = VirtualScamp5(open_endpoint(args.port), scene, settings, faults, seed=args.seed,
+    camera = VirtualScamp5(open_port(args.port), scene, settings, faults, seed=args.seed,
                            max_frames=args.frames)
     print(camera.endpoint.url, flush=True)
     stopped = threading.Event()

@@ -8,15 +8,23 @@ import time
 from pathlib import Path
 from typing import Any
 
-from models.errors import UnsupportedFormatError
+from models.errors import InvalidInputError
 from service.cli.options import add_exr_compression_flag, add_sensor_flags, sensor_values
+from service.cli.output_files import OutputFile, staged_outputs
 from worker.temporal_config import MODES, TemporalConfig
 from worker.video_input import read_video
-from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
+from worker.video_output import (
+    FPS_RANGE,
+    REFERENCE_WHITE,
+    REFERENCE_WHITE_RANGE,
+    WHITE_LEVEL_RANGE,
+    Hdr10Settings,
+    check_hdr10_frame_size,
+)
 from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs
 
 #: Output suffixes and the output each one means.
-SUFFIXES = {".mp4": "hdr10", ".mov": "hdr10", ".zip": "exr_zip"}
+SUFFIXES = {".mp4": "hdr10", ".zip": "exr_zip"}
 BAR_WIDTH = 30
 
 
@@ -35,18 +43,25 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--decoder", default="itoh", help="spatial decoder (default: itoh)")
     parser.add_argument("--preview", metavar="SDR.mp4", help="also write an SDR H.264 preview")
     parser.add_argument("--exr", metavar="FRAMES.zip", help="also write the EXR sequence")
-    parser.add_argument("--fps", type=float, default=30.0, help="frame rate (default: 30)")
+    parser.add_argument(
+        "--fps", type=float, default=30.0,
+        help=f"frame rate, {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g} (default: 30); 23.976, 29.97 "
+        "and 59.94 are written as the NTSC rates 24000/1001, 30000/1001, 60000/1001",
+    )  # fmt: skip
     parser.add_argument(
         "--white-level", type=float, default=1.0,
-        help="x (wrap units) shown at the reference white (default: 1)",
+        help="x (wrap units) shown at the reference white, "
+        f"{WHITE_LEVEL_RANGE[0]:g} to {WHITE_LEVEL_RANGE[1]:g} (default: 1)",
     )
     parser.add_argument(
         "--reference-white", type=float, default=REFERENCE_WHITE,
-        help=f"cd/m^2 of the reference white (default: {REFERENCE_WHITE:g}, ITU-R BT.2408)",
+        help=f"cd/m^2 of the reference white, {REFERENCE_WHITE_RANGE[0]:g} to "
+        f"{REFERENCE_WHITE_RANGE[1]:g} (default: {REFERENCE_WHITE:g}, ITU-R BT.2408)",
     )
     parser.add_argument(
         "--keyframe-interval", type=int, default=TemporalConfig.keyframe_interval,
-        help="temporal mode: decode every Nth frame spatially (0: never)",
+        help="temporal mode: decode every Nth frame spatially (0: never; default: "
+        f"{TemporalConfig.keyframe_interval})",
     )
     parser.add_argument("--half", action="store_true", help="EXR frames as half floats")
     add_exr_compression_flag(parser)
@@ -55,31 +70,47 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-def output_kind(path: str) -> str:
-    """The output a file name asks for, from its suffix."""
-    suffix = Path(path).suffix.lower()
-    if suffix not in SUFFIXES:
-        raise UnsupportedFormatError(
-            f"cannot tell what to write to {path!r}: use .mp4 / .mov (HDR10) or .zip (EXR frames)"
+def output_files(args: argparse.Namespace) -> dict[str, OutputFile]:
+    """The files to write, by output (:data:`worker.video_pipeline.OUTPUTS`)."""
+    main = OutputFile(
+        "-o", args.output, "the output is an HDR10 video (.mp4) or EXR frames (.zip)",
+        tuple(SUFFIXES),
+    )  # fmt: skip
+    main.check_name()
+    kind = SUFFIXES[Path(args.output).suffix.lower()]
+    files = {kind: main}
+    if args.preview:
+        files["sdr"] = OutputFile(
+            "--preview", args.preview, "the SDR preview is an H.264 video", (".mp4",)
         )
-    return SUFFIXES[suffix]
+    if args.exr:
+        if kind == "exr_zip":
+            raise InvalidInputError(
+                f"-o {args.output} already writes the EXR frames; drop --exr {args.exr}, or "
+                "write the HDR10 video with -o clip.mp4"
+            )
+        files["exr_zip"] = OutputFile("--exr", args.exr, "the EXR frames are a zip", (".zip",))
+    return files
 
 
 def progress_bar(stage: str, done: int, total: int) -> None:
-    """Draw ``stage [#####.....] done/total`` on stderr, ending the line when done."""
+    """Draw ``stage [#####.....] done/total`` on stderr, ending the line when done; when
+    stderr is not a terminal (a log, a pipe), only the finished line of each stage."""
+    finished = done >= total
+    if not (finished or sys.stderr.isatty()):
+        return
     filled = BAR_WIDTH * done // max(total, 1)
     bar = "#" * filled + "." * (BAR_WIDTH - filled)
-    end = "\n" if done >= total else ""
-    print(f"\r{stage:<8} [{bar}] {done}/{total} frames", end=end, file=sys.stderr, flush=True)
+    line = f"{stage:<8} [{bar}] {done}/{total} frames"
+    if sys.stderr.isatty():
+        print(f"\r{line}", end="\n" if finished else "", file=sys.stderr, flush=True)
+    else:
+        print(line, file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
     """Read, decode and write; print a one-line summary."""
-    targets = {output_kind(args.output): args.output}
-    if args.preview:
-        targets["sdr"] = args.preview
-    if args.exr:
-        targets["exr_zip"] = args.exr
+    files = output_files(args)
     options = VideoOptions(
         mode=args.mode,
         decoder=args.decoder,
@@ -90,21 +121,35 @@ def run(args: argparse.Namespace) -> int:
         half=args.half,
         exr_compression=args.exr_compression,
     )
-    video = read_video(args.video, sensor_values(args))
-    if "hdr10" in targets:
-        check_hdr10_frame_size(
-            video.codes.shape[1], video.codes.shape[2],
-            "write the EXR frames instead (-o clip.zip, with --preview for an SDR video)",
-        )
-    progress = None if args.quiet else progress_bar
-    start = time.perf_counter()
-    decoded = decode_video_frames(video, options, progress)
-    write_outputs(decoded, video, targets, options, progress)
+    with staged_outputs(list(files.values()), [args.video]) as paths:
+        video = read_video(args.video, sensor_values(args))
+        if "hdr10" in files:
+            check_hdr10_frame_size(
+                video.codes.shape[1], video.codes.shape[2],
+                "write the EXR frames instead (-o clip.zip, with --preview for an SDR video)",
+            )
+        progress = None if args.quiet else progress_bar
+        start = time.perf_counter()
+        decoded = decode_video_frames(video, options, progress)
+        targets = {kind: str(paths[file.flag]) for kind, file in files.items()}
+        write_outputs(decoded, video, targets, options, progress)
     summary = decoded.summary()
     print(
-        f"wrote {', '.join(targets.values())}: {summary['frames']} frames, mode {args.mode}, "
-        f"decoder {args.decoder}, {summary['ms_per_frame']:.1f} ms/frame decoding, "
-        f"{summary['keyframes']} keyframes, {summary['paths']['temporal']:.1%} of pixels "
-        f"temporal, {time.perf_counter() - start:.1f} s in all"
+        f"wrote {', '.join(file.path for file in files.values())}: {summary['frames']} frames, "
+        f"mode {args.mode}, decoder {args.decoder}, {summary['ms_per_frame']:.1f} ms/frame "
+        f"decoding, {summary['keyframes']} keyframes, {summary['paths']['temporal']:.1%} of "
+        f"pixels temporal, {time.perf_counter() - start:.1f} s in all"
     )
+    if {"hdr10", "sdr"} & set(files):
+        padding_note(video.codes.shape[1], video.codes.shape[2])
     return 0
+
+
+def padding_note(height: int, width: int) -> None:
+    """Say so when the MP4 videos are padded to even sides (4:2:0 chroma needs them)."""
+    if height % 2 or width % 2:
+        print(
+            f"the MP4 videos are {height + height % 2} x {width + width % 2}: 4:2:0 video "
+            f"needs even sides, so the last row / column of the {height} x {width} frames "
+            "is repeated (EXR frames keep their size)"
+        )

@@ -62,3 +62,20 @@ def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_pat
     result = subprocess.run([MCAM, "simulate-device", "--bits", "40"],
                             capture_output=True, text=True, env=env, timeout=60)
     assert result.returncode == 2 and "bits" in result.stderr
+
+
+def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
+    cases = [
+        (("--port", "socket://127.0.0.1:99999"), "PORT from 0 to 65535"),
+        (("--port", "socket://no.such.host.invalid:5555"), "--port socket://no.such.host.invalid"),
+        (("--port", "loop://"), "--port loop:// only reaches readers in this same process"),
+        (("--fps", "1e-300"), "--fps must be from 0.1 to 10000"),
+        (("--frames", "-5"), "--frames must be at least 1"),
+        (("--seed", "-1"), "--seed must be 0 or more"),
+    ]
+    for flags, fragment in cases:
+        result = subprocess.run([MCAM, "simulate-device", *flags], capture_output=True,
+                                text=True, timeout=60, cwd=tmp_path)
+        assert result.returncode == 2, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and fragment in lines[0], result.stderr

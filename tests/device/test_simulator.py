@@ -171,3 +171,12 @@ def test_an_exposure_no_frame_can_hold_is_survived_and_undone(
     finally:
         draining.set()
         reader.join(5)
+
+
+def test_a_loop_nobody_reads_refuses_the_write_instead_of_raising() -> None:
+    """pyserial's loop holds 4096 bytes; past that its queue.Full used to escape write()."""
+    endpoint = LoopEndpoint()
+    try:
+        assert endpoint.write(bytes(5000)) is False
+    finally:
+        endpoint.close()

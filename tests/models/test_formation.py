@@ -23,6 +23,7 @@ from models.formation import (
     reconstruct,
     simulate,
     split_unwrapped,
+    to_scene,
     to_unwrapped,
     unwrapped_noise_sigma,
     validate_codes,
@@ -183,13 +184,23 @@ def test_a_reconstruction_that_would_round_to_zero_is_refused() -> None:
     be silently black, so the error names the count and what to change."""
     codes, winding = np.array([[3, 200]], np.uint8), np.zeros((1, 2), np.int64)
     huge_gain = SensorParams(encoding="mantissa", gain=1e308)
-    with pytest.raises(OutputUnderflowError, match=r"^2 nonzero pixels .*float32.*lower the gain"):
+    with pytest.raises(
+        OutputUnderflowError, match=r"^2 nonzero pixels .*float32.*gain 1e\+308.*lower the gain"
+    ):
         reconstruct(codes, winding, huge_gain, np.float32, scene_referred=True)
     assert np.all(reconstruct(codes, winding, huge_gain, np.float64, scene_referred=True) > 0)
     tiny_scene = SensorParams(encoding="modulo", gain=1e9)
     with pytest.raises(OutputUnderflowError, match=r"^1 nonzero .*float16.*ask for float32"):
         reconstruct(codes[:, :1], winding[:, :1], tiny_scene, np.float16, scene_referred=True)
     assert reconstruct(codes[:, :1], winding[:, :1], tiny_scene, np.float16)[0, 0] > 0
+
+
+def test_a_scene_referred_overflow_asks_for_a_higher_gain() -> None:
+    """x / gain with a tiny gain overflows: lowering the gain would make it worse."""
+    codes, winding = np.array([[3, 200]], np.uint8), np.zeros((1, 2), np.int64)
+    tiny_gain = SensorParams(encoding="mantissa", gain=1e-40)
+    with pytest.raises(OutputOverflowError, match=r"gain 1e-40.*a higher gain gives smaller"):
+        reconstruct(codes, winding, tiny_gain, np.float32, scene_referred=True)
 
 
 def test_too_many_wraps_for_int64_is_a_clear_error() -> None:
@@ -416,3 +427,21 @@ def test_sensor_params_parse_gives_readable_errors() -> None:
     with pytest.raises(InvalidInputError, match="bits"):
         SensorParams.parse({"bits": 17})
     assert SensorParams.parse({"encoding": "modulo", "bits": 12}).levels == 4096
+
+
+@pytest.mark.filterwarnings("error")
+def test_an_exposure_past_float64_is_refused_without_a_numpy_warning() -> None:
+    with pytest.raises(OutputOverflowError, match="exposed irradiance exceed the float64"):
+        simulate(np.full((2, 2), 10.0), SensorParams(gain=1e308))
+
+
+def test_half_float_underflow_also_names_a_wrong_scene_gain() -> None:
+    codes, winding = np.array([[3]], np.uint8), np.zeros((1, 1), np.int64)
+    huge_gain = SensorParams(encoding="modulo", gain=1e300)
+    with pytest.raises(OutputUnderflowError, match="ask for float32 .*, or .*gain 1e\\+300"):
+        reconstruct(codes, winding, huge_gain, np.float16, scene_referred=True)
+
+
+@pytest.mark.filterwarnings("error")
+def test_a_scene_referred_overflow_gives_no_numpy_warning() -> None:
+    assert to_scene(np.array([1e300]), 1e-300)[0] == np.inf

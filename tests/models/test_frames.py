@@ -12,7 +12,7 @@ import pytest
 import tifffile
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from PIL import Image
+from PIL import Image, PngImagePlugin
 
 from models.errors import (
     ImageTooLargeError,
@@ -322,3 +322,52 @@ def test_winding_png_refuses_what_it_cannot_hold(tmp_path: Path) -> None:
     (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n")
     with pytest.raises(InvalidInputError):
         read_winding(tmp_path / "bad.png")
+
+
+def test_a_separate_plane_rgb_tiff_is_read_samples_last() -> None:
+    rgb = random_codes((3, 6, 5), 8)
+    buffer = io.BytesIO()
+    tifffile.imwrite(
+        buffer, rgb, photometric="rgb", planarconfig="separate",
+        description=PARAMS_8.model_dump_json(), metadata=None,
+    )  # fmt: skip
+    frame = decode_frame(buffer.getvalue(), "tiff")
+    np.testing.assert_array_equal(frame.codes, np.moveaxis(rgb, 0, -1))
+
+
+def test_an_lzw_tiff_is_refused_as_unsupported_compression_not_damage() -> None:
+    buffer = io.BytesIO()
+    Image.fromarray(random_codes((6, 5), 8)).save(buffer, "TIFF", compression="tiff_lzw")
+    with pytest.raises(UnsupportedFormatError, match="unsupported TIFF compression LZW"):
+        decode_frame(buffer.getvalue(), "tiff", PARAMS_8.model_dump())
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("{not json", "not valid JSON"),
+        ("[1, 2]", "not an object"),
+        ('{"encoding": "mantissa", "alpha": 2.0, "bits": 8, "foo": 1}', r"unknown .*\['foo'\]"),
+    ],
+)
+def test_a_damaged_png_chunk_gives_way_to_the_callers_parameters(
+    text: str, problem: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    info = PngImagePlugin.PngInfo()
+    info.add_text(PNG_KEYWORD, text)
+    buffer = io.BytesIO()
+    Image.fromarray(random_codes((4, 4), 8)).save(buffer, format="PNG", pnginfo=info)
+    with pytest.raises(InvalidInputError, match=f"{problem}.*--encoding mantissa --bits 8"):
+        decode_frame(buffer.getvalue(), "png", {"alpha": 2.0})
+    given = {"encoding": "modulo", "bits": 8}
+    assert decode_frame(buffer.getvalue(), "png", given).params.encoding == "modulo"
+    assert "ignored it: decoding with the parameters given" in caplog.text
+
+
+def test_8_bit_codes_read_as_16_bit_are_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    eight_bit = encode_frame(random_codes((6, 5), 8), None, "npy")
+    decode_frame(eight_bit, "npy", {"encoding": "modulo", "bits": 16})
+    assert "every code is below 256 although bits is 16" in caplog.text
+    caplog.clear()
+    decode_frame(eight_bit, "npy", {"encoding": "modulo", "bits": 8})
+    assert caplog.text == ""

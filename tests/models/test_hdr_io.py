@@ -25,6 +25,7 @@ from models.hdr_io import (
     encode_exr,
     read_hdr,
     rgbe_to_float,
+    smallest_scanline,
     write_exr,
 )
 
@@ -287,7 +288,7 @@ def test_rgbe_to_float_is_the_bin_centre() -> None:
 
 def test_broken_radiance_files() -> None:
     for cut in (len(HAND_FILE) - 1, len(HAND_FILE) - len(HAND_ROW1) - 3):
-        with pytest.raises(InvalidInputError, match="truncated or corrupt at scanline"):
+        with pytest.raises(InvalidInputError, match="truncated or corrupt"):
             read_hdr(HAND_FILE[:cut])
     overlong_run = HAND_FILE.replace(bytes([128 + 8, 128]), bytes([128 + 9, 128]), 1)
     with pytest.raises(InvalidInputError, match="scanline 0"):
@@ -300,3 +301,13 @@ def test_broken_radiance_files() -> None:
         read_hdr(HAND_FILE.replace(b"-Y 2 +X 8", b"+X 8 -Y 2"))
     with pytest.raises(InvalidInputError, match="width 9"):
         read_hdr(HAND_FILE.replace(bytes([2, 2, 0, 8]), bytes([2, 2, 0, 9])))
+
+
+def test_a_radiance_header_larger_than_its_data_is_refused_before_allocating() -> None:
+    """100000 x 100000 declared over no data: refused from the file length (was a
+    MemoryError allocating 40 GB)."""
+    header = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 100000 +X 100000\n"
+    with pytest.raises(InvalidInputError, match="declares 100000 x 100000 pixels.* 0 bytes follow"):
+        read_hdr(header)
+    assert smallest_scanline(8) == 4 + 8 and smallest_scanline(128) == 4 + 16
+    assert smallest_scanline(7) == 28  # too narrow for RLE: flat

@@ -14,6 +14,7 @@ from models.errors import InvalidInputError
 from models.metrics import (
     MS_SSIM_WEIGHTS,
     evaluate,
+    flip_inputs,
     hdr_flip,
     ms_ssim,
     ms_ssim_ldr,
@@ -189,6 +190,22 @@ def test_hdr_flip_value_or_none() -> None:
     assert hdr_flip(reference, reference) == 0.0
     small, large = hdr_flip(reference * 1.1, reference), hdr_flip(reference * 3, reference)
     assert 0.0 < small < large <= 1.0
+
+
+def test_flip_inputs_put_the_reference_peak_at_one() -> None:
+    reference = np.full((4, 4), 1e-30)
+    estimate = np.full((4, 4), 1e10)
+    x, ref = flip_inputs(estimate, reference)
+    assert ref.shape == x.shape == (4, 4, 3) and ref.dtype == x.dtype == np.float32
+    assert np.all(ref == 1.0)
+    assert np.all(x == np.finfo(np.float32).max)  # 1e40 does not fit: clipped, not inf
+
+
+@pytest.mark.skipif(not HAS_FLIP, reason="flip-evaluator not installed")
+def test_hdr_flip_does_not_depend_on_a_common_scale() -> None:
+    reference = np.exp(np.random.default_rng(2).uniform(0, 5, (24, 24)))
+    error = hdr_flip(reference * 1.1, reference)
+    assert hdr_flip(reference * 1.1e-8, reference * 1e-8) == pytest.approx(error, rel=1e-5)
 
 
 @pytest.mark.parametrize("metric", [psnr, pu21_psnr, ssim, ms_ssim, evaluate])

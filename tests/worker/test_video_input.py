@@ -173,3 +173,29 @@ def test_zip_without_pngs_says_what_it_holds() -> None:
         archive.writestr("notes.txt", "frames to follow")
     with pytest.raises(InvalidInputError, match=r"no \.png frame \(1 other entries\)"):
         decode_video(buffer.getvalue(), "zip", FLAGS)
+
+
+def test_a_truncated_tiff_video_is_refused_not_cut_short() -> None:
+    video = np.zeros((12, 16, 16), np.uint8)  # pages' data first: the cut loses IFDs
+    data = tiff_bytes(video)
+    with pytest.raises(InvalidInputError, match="TIFF video is truncated or corrupt"):
+        decode_video(data[: len(data) // 2], "tiff")
+
+
+def test_a_separate_plane_tiff_video_is_read_samples_last() -> None:
+    video = codes(frames=3, channels=3)
+    buffer = io.BytesIO()
+    tifffile.imwrite(
+        buffer, np.moveaxis(video, -1, 1), photometric="rgb", planarconfig="separate",
+        description=PARAMS.model_dump_json(), metadata=None,
+    )  # fmt: skip
+    np.testing.assert_array_equal(decode_video(buffer.getvalue(), "tiff").codes, video)
+
+
+def test_a_bad_png_in_a_zip_names_its_entry() -> None:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("frame_0.png", encode_frame(codes(1)[0], PARAMS, "png"))
+        archive.writestr("frame_1.png", b"not a png")
+    with pytest.raises(InvalidInputError, match=r"^frame_1.png: the data is not a PNG image"):
+        decode_video(buffer.getvalue(), "zip")

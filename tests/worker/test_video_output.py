@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import zipfile
+from fractions import Fraction
 
 import av
 import numpy as np
@@ -23,6 +24,7 @@ from worker.video_output import (
     Hdr10Settings,
     add_hdr10_stream,
     exr_sequence_zip,
+    frame_rate,
     hdr10_yuv,
     light_levels,
     pq_decode,
@@ -202,8 +204,24 @@ def test_bad_clips_are_refused(frames: list[np.ndarray]) -> None:
 
 
 @pytest.mark.parametrize(
-    "settings", [{"fps": 0}, {"white_level": -1}, {"mastering_peak": 20_000}]
-)
+    "settings",
+    [
+        {"fps": 0}, {"fps": float("inf")}, {"fps": 0.0003}, {"fps": 1e9}, {"fps": float("nan")},
+        {"white_level": -1}, {"white_level": float("inf")}, {"white_level": 1e-300},
+        {"reference_white": 1e-300}, {"reference_white": 10_001}, {"reference_white": 1e308},
+        {"mastering_peak": 20_000},
+    ],
+)  # fmt: skip
 def test_bad_settings_are_refused(settings: dict) -> None:
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(InvalidInputError, match=f"{next(iter(settings)).split('_')[0]}"):
         Hdr10Settings(**settings)
+
+
+@pytest.mark.parametrize(
+    ("fps", "rate"),
+    [(23.976, Fraction(24000, 1001)), (29.97, Fraction(30000, 1001)),
+     (59.94, Fraction(60000, 1001)), (24, Fraction(24)), (12.5, Fraction(25, 2)),
+     (0.1, Fraction(1, 10))],
+)  # fmt: skip
+def test_frame_rates_are_exact_and_ntsc_rates_recognised(fps: float, rate: Fraction) -> None:
+    assert frame_rate(fps) == rate

@@ -33,7 +33,12 @@ from service.api.uploads import SensorFields, Upload, read_upload_fields
 from worker.temporal_config import TemporalConfig
 from worker.video_input import VideoLimits, decode_video
 from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
-from worker.video_output import REFERENCE_WHITE
+from worker.video_output import (
+    FPS_RANGE,
+    REFERENCE_WHITE,
+    REFERENCE_WHITE_RANGE,
+    WHITE_LEVEL_RANGE,
+)
 from worker.video_pipeline import OUTPUTS
 
 router = APIRouter(prefix="/v1/videos", tags=["videos"])
@@ -59,13 +64,18 @@ class VideoOptionFields(BaseModel):
     outputs: str = Field(
         ",".join(OUTPUTS), description=f"comma-separated subset of {', '.join(OUTPUTS)}"
     )
-    fps: float = Field(30.0, gt=0, le=1000, description="frame rate of the videos")
+    fps: float = Field(
+        30.0, ge=FPS_RANGE[0], le=FPS_RANGE[1],
+        description="frame rate of the videos (23.976, 29.97, 59.94: the NTSC rates)",
+    )  # fmt: skip
     white_level: float = Field(
-        1.0, gt=0, description="x (wrap units) shown at the reference white"
-    )
+        1.0, ge=WHITE_LEVEL_RANGE[0], le=WHITE_LEVEL_RANGE[1],
+        description="x (wrap units) shown at the reference white",
+    )  # fmt: skip
     reference_white: float = Field(
-        REFERENCE_WHITE, gt=0, le=10_000, description="cd/m^2 (default: ITU-R BT.2408)"
-    )
+        REFERENCE_WHITE, ge=REFERENCE_WHITE_RANGE[0], le=REFERENCE_WHITE_RANGE[1],
+        description="cd/m^2 (default: ITU-R BT.2408)",
+    )  # fmt: skip
     keyframe_interval: int = Field(
         TemporalConfig.keyframe_interval, ge=0, description="temporal: spatial keyframe period"
     )

@@ -52,6 +52,7 @@ def test_frames_of_2x2_and_more_with_1_or_3_channels_pass(shape: tuple[int, ...]
         ((5,), "H x W or H x W x 3"),
         ((2, 2, 2, 2), "H x W or H x W x 3"),
         ((4, 4, 2), "1 or 3 channels"),
+        ((4, 4, 4), r"H x W x 3 \(RGB without its alpha channel\)"),
         ((1, 9), "1 x 9 frame has no neighbours"),
         ((9, 1, 3), "9 x 1 frame"),
     ],

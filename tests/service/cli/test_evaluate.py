@@ -77,3 +77,13 @@ def test_evaluate_clips_negative_values_when_asked(tmp_path: Path, pipeline: Pat
     )  # fmt: skip
     assert clipped.returncode == 0, clipped.stderr
     assert json.loads(clipped.stdout)["psnr"] is None  # identical after clipping: infinite
+
+
+def test_evaluate_measures_hdr_flip_on_tiny_values(tmp_path: Path) -> None:
+    """FLIP's own exposure range collapses below ~1e-7 and it used to end the process."""
+    write_exr(tmp_path / "tiny.exr", 1e-8 * np.linspace(0.5, 2.0, 256).reshape(16, 16))
+    write_exr(tmp_path / "flat.exr", np.full((16, 16), 1e-30))
+    for name in ("tiny.exr", "flat.exr"):
+        result = run_mcam("evaluate", name, "--reference", name, "--json", cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert json.loads(result.stdout)["hdr_flip"] == 0.0

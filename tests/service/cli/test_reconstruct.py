@@ -143,3 +143,13 @@ def test_reconstruct_bad_input(tmp_path: Path, pipeline: Path) -> None:
     )  # fmt: skip
     assert_one_line_error(not_exr, "x.txt", "name the file .exr")
     assert not (tmp_path / "x.txt").exists()
+
+
+def test_reconstruct_checks_its_outputs_before_decoding(tmp_path: Path, pipeline: Path) -> None:
+    frame = pipeline / "wrapped.png"
+    winding_exr = run_mcam("reconstruct", frame, "-o", "x.exr", "--winding-out", "W.exr",
+                           cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(winding_exr, "--winding-out W.exr: a W map", ".png")
+    folder = run_mcam("reconstruct", frame, "-o", "adir.exr/", cwd=tmp_path)
+    assert_one_line_error(folder, "-o adir.exr/ names a folder")
+    assert list(tmp_path.iterdir()) == []

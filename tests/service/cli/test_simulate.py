@@ -70,3 +70,35 @@ def test_simulate_bad_input(tmp_path: Path) -> None:
     assert_one_line_error(
         run_mcam("simulate", "rgb.exr", "-o", "w.tiff", "--alpha", "0.5", cwd=tmp_path), "alpha"
     )
+
+
+def test_simulate_checks_every_output_before_writing_any(tmp_path: Path) -> None:
+    write_exr(tmp_path / "scene.exr", blob_scene(size=16))
+    bad_suffix = run_mcam("simulate", "scene.exr", "-o", "w.png", "--ground-truth", "W.exr",
+                          cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(bad_suffix, "--ground-truth W.exr", ".png")
+    same = run_mcam("simulate", "scene.exr", "-o", "w.png", "--ground-truth", "w.png",
+                    cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(same, "-o and --ground-truth both name w.png")
+    over_input = run_mcam("simulate", "scene.exr", "-o", "w.png", "--reference-out", "scene.exr",
+                          cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(over_input, "--reference-out scene.exr is the input file")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["scene.exr"]
+
+
+def test_simulate_refuses_a_frame_that_quantises_to_black(tmp_path: Path) -> None:
+    write_exr(tmp_path / "dim.exr", np.full((8, 8), 1e-30))
+    result = run_mcam("simulate", "dim.exr", "-o", "w.png", cwd=tmp_path)
+    assert_one_line_error(result, "every pixel quantises to code 0", "--overexposed")
+    assert not (tmp_path / "w.png").exists()
+
+
+def test_simulate_npy_prints_the_flags_reconstruct_needs(tmp_path: Path) -> None:
+    write_exr(tmp_path / "scene.exr", blob_scene(size=16))
+    result = run_mcam("simulate", "scene.exr", "-o", "w.npy", "--bits", "10", "--gain", "0.25",
+                      cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    flags = "--encoding mantissa --alpha 2.0 --bits 10 --gain 0.25"
+    assert f"w.npy holds the codes only: reconstruct it with {flags}" in result.stdout
+    rebuilt = run_mcam("reconstruct", "w.npy", "-o", "x.exr", *flags.split(), cwd=tmp_path)
+    assert rebuilt.returncode == 0, rebuilt.stderr

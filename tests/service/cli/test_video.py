@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import zipfile
 from pathlib import Path
 
@@ -35,7 +36,11 @@ def test_video_writes_hdr10_preview_and_exr_frames(tmp_path: Path) -> None:
         cwd=tmp_path,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
-    assert f"decode   [{'#' * 30}] {FRAMES}/{FRAMES} frames" in result.stderr
+    # stderr is no terminal here: one finished line per stage, no carriage-return redraws
+    assert result.stderr.splitlines() == [
+        f"{stage:<8} [{'#' * 30}] {FRAMES}/{FRAMES} frames"
+        for stage in ("decode", "hdr10", "sdr", "exr_zip")
+    ]
     assert f"{FRAMES} frames, mode temporal" in result.stdout
     with av.open(str(tmp_path / "clip.mp4")) as container:
         stream = container.streams.video[0]
@@ -50,6 +55,11 @@ def test_video_writes_hdr10_preview_and_exr_frames(tmp_path: Path) -> None:
             data = archive.read(name)
             header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
             assert header["compression"] == OpenEXR.NO_COMPRESSION
+            # the provenance mcam reconstruct writes, and the stream's facts
+            assert (header["encoding"], header["alpha"], header["bits"]) == ("mantissa", "2.0", "8")
+            assert (header["decoder"], header["decoderVersion"]) == ("itoh", "1")
+            assert header["comments"].endswith("values in wrap units x (gain unknown)")
+            assert json.loads(header["temporal"])["mode"] == "temporal"
             pixels = read_hdr(data).pixels
             bound = mantissa_tolerance(x, 1.0, bits=8, alpha=2.0)
             assert np.all(np.abs(pixels - x) <= bound)
@@ -71,3 +81,51 @@ def test_frames_too_small_for_hdr10_are_refused_before_decoding(tmp_path: Path) 
     np.save(tmp_path / "wrapped.npy", np.zeros((3, 32, 32), np.uint8))
     result = run_mcam("video", "wrapped.npy", "-o", "clip.mp4", *FLAGS, cwd=tmp_path)
     assert_one_line_error(result, "64 x 64", "got 32 x 32", "-o clip.zip")
+
+
+def test_video_refuses_clashing_or_misnamed_outputs_before_decoding(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 64, 64), np.uint8))
+    cases = [
+        (("-o", "a.zip", "--exr", "b.zip"), "-o a.zip already writes the EXR frames"),
+        (("-o", "s.mp4", "--preview", "s.mp4"), "-o and --preview both name s.mp4"),
+        (("-o", "s.mp4", "--preview", "p.zip"), "--preview p.zip", ".mp4"),
+        (("-o", "s.mp4", "--exr", "e.mp4"), "--exr e.mp4", ".zip"),
+        (("-o", "clip.mov",), "-o clip.mov", ".mp4"),
+        (("-o", "nofolder/x.mp4",), "no such folder: nofolder"),
+    ]
+    for outputs, *fragments in cases:
+        result = run_mcam("video", "wrapped.npy", *outputs, *FLAGS, cwd=tmp_path)
+        assert_one_line_error(result, *fragments)
+    assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
+
+
+def test_a_failing_output_leaves_no_other_output_behind(tmp_path: Path) -> None:
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+    np.save(tmp_path / "wrapped.npy", np.stack([encode(x, params).codes for x in slow_clip()]))
+    result = run_mcam(
+        "video", "wrapped.npy", "-o", "clip.mp4", "--preview", "sdr.mp4", "--exr", "frames.zip",
+        *FLAGS, "--gain", "1e300", "--quiet", cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(result, "would be stored as 0")  # the EXR frames, written last
+    assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
+
+
+def test_video_refuses_settings_that_render_no_picture(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 64, 64), np.uint8))
+    cases = [
+        (("--fps", "inf"), "fps must be from 0.1 to 1000"),
+        (("--fps", "0.0003"), "fps must be from 0.1 to 1000"),
+        (("--white-level", "1e-300"), "white_level must be from"),
+        (("--reference-white", "10001"), "reference_white must be from 1 to 10000 cd/m^2"),
+    ]
+    for flags, fragment in cases:
+        result = run_mcam("video", "wrapped.npy", "-o", "c.mp4", *FLAGS, *flags, cwd=tmp_path)
+        assert_one_line_error(result, fragment)
+
+
+def test_odd_sized_frames_are_said_to_be_padded(tmp_path: Path) -> None:
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 65, 67), np.uint8))
+    result = run_mcam("video", "wrapped.npy", "-o", "c.mp4", *FLAGS, "--quiet", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "the MP4 videos are 66 x 68" in result.stdout
+    assert "65 x 67 frames is repeated" in result.stdout

@@ -115,7 +115,11 @@ def test_a_still_job_has_no_video_files(client: Client, worker: Worker) -> None:
 def test_bad_uploads_are_refused(client: Client) -> None:
     http = client()
     small = npy_bytes(np.zeros((3, 16, 16), np.uint8))
+    pages = io.BytesIO()
+    tifffile.imwrite(pages, np.zeros((12, 16, 16), np.uint8), metadata=None)
+    truncated = pages.getvalue()[: len(pages.getvalue()) // 2]
     cases = [
+        ({"file": ("a.tiff", truncated)}, {**FLAGS}, 422, "TIFF video is truncated or corrupt"),
         ({"file": ("a.npy", small)}, {**FLAGS}, 422, "64 x 64"),
         ({"file": ("a.npy", small)}, {**FLAGS, "outputs": "gif"}, 422, "gif"),
         ({"file": ("a.npy", small)}, {**FLAGS, "exr_compression": "lzw"}, 422, "exr_compression"),

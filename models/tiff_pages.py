@@ -1,0 +1,91 @@
+"""TIFF pages of wrapped frames and videos, read strictly: the one TIFF reader of
+:mod:`models.frames` (a frame: one page) and :mod:`worker.video_input` (a video: a page
+per frame).
+
+- tifffile reports some damage (a page offset past the end of a truncated file) only
+  as a log warning and goes on with the pages before it; :func:`open_tiff` turns such
+  a warning into :class:`TiffDamaged`, so half a video is refused, not decoded short.
+- Compressions tifffile cannot decode without the optional ``imagecodecs`` package
+  (LZW, JPEG, ...) are refused by name (:func:`page_codes`), not reported as damage.
+- Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
+  returned ``H x W x C``, as contiguous pages are.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import tifffile
+from numpy.typing import NDArray
+
+from models.errors import UnsupportedFormatError
+
+
+class TiffDamaged(ValueError):
+    """tifffile warned about the file's structure: it is truncated or corrupt."""
+
+
+class _ThreadWarnings(logging.Handler):
+    """Collects tifffile's warnings logged by one thread."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.thread = threading.get_ident()
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == self.thread:
+            self.messages.append(record.getMessage())
+
+    def check(self) -> None:
+        """Raise :class:`TiffDamaged` with the first warning, if any."""
+        if self.messages:
+            raise TiffDamaged(self.messages[0])
+
+
+@contextmanager
+def open_tiff(data: bytes) -> Iterator[tifffile.TiffFile]:
+    """The TIFF of ``data`` with all its pages indexed; :class:`TiffDamaged` if tifffile
+    warns while indexing or reading it (callers wrap that with
+    :func:`models.frames.decoding`, which names the file)."""
+    logger = tifffile.logger()
+    collector = _ThreadWarnings()
+    logger.addHandler(collector)
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            len(tif.pages)  # index every page now: a truncated file warns here
+            collector.check()
+            yield tif
+        collector.check()
+    finally:
+        logger.removeHandler(collector)
+
+
+def _separate(page: tifffile.TiffPage) -> bool:
+    return page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and page.samplesperpixel > 1
+
+
+def page_shape(page: tifffile.TiffPage) -> tuple[int, ...]:
+    """The shape :func:`page_codes` returns for ``page``: ``H x W`` or ``H x W x C``."""
+    shape = tuple(int(n) for n in page.shape)
+    return (*shape[1:], shape[0]) if _separate(page) else shape
+
+
+def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
+    """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last).
+
+    Raises :class:`UnsupportedFormatError` for a compression this install cannot decode."""
+    compression = tifffile.COMPRESSION(page.compression)
+    if compression not in tifffile.TIFF.DECOMPRESSORS:
+        raise UnsupportedFormatError(
+            f"unsupported TIFF compression {compression.name}; save the TIFF uncompressed "
+            "or with deflate (zlib) compression"
+        )
+    codes = page.asarray()
+    return np.moveaxis(codes, 0, -1) if _separate(page) else codes

@@ -1,0 +1,127 @@
+"""The files a command writes: checked before any work, written whole or not at all.
+
+A command lists its outputs (:class:`OutputFile`: the flag naming it, the path, the
+suffixes its format allows) and runs inside :func:`staged_outputs`, which
+
+- refuses, before any input is read, a wrong suffix, a path naming a folder, a
+  missing folder, two outputs naming one file and an output naming an input;
+- creates each output as a hidden temporary file in its own folder (so an unwritable
+  folder is found at once, and a rename puts it in place atomically) with the final
+  suffix (writers pick the format from it);
+- moves every temporary file into place only when the whole command succeeded, and
+  removes them all otherwise: a failed command leaves no partial or stale-looking output.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from models.errors import InvalidInputError, UnsupportedFormatError
+
+
+@dataclass(frozen=True)
+class OutputFile:
+    """One file to write: ``flag`` names it (``-o``), ``path`` as given, ``what`` says how
+    it is written (``"a reconstruction is written as OpenEXR"``) and the ``suffixes`` its
+    format may have (lower case, first preferred)."""
+
+    flag: str
+    path: str
+    what: str
+    suffixes: tuple[str, ...]
+
+    def check_name(self) -> None:
+        """Refuse a path that names a folder or has a suffix of another format."""
+        if self.path.endswith(("/", os.sep)) or Path(self.path).is_dir():
+            raise InvalidInputError(
+                f"{self.flag} {self.path} names a folder; give the path of a file, e.g. "
+                f"{Path(self.path.rstrip('/' + os.sep)) / ('out' + self.suffixes[0])}"
+            )
+        if Path(self.path).suffix.lower() not in self.suffixes:
+            *others, last = self.suffixes
+            choices = f"{', '.join(others)} or {last}" if others else last
+            raise UnsupportedFormatError(
+                f"{self.flag} {self.path}: {self.what}; name the file {choices}"
+            )
+
+
+def _same_file(a: str, b: str) -> bool:
+    if os.path.exists(a) and os.path.exists(b):
+        return os.path.samefile(a, b)
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_outputs(outputs: Sequence[OutputFile], inputs: Sequence[str] = ()) -> None:
+    """Refuse bad names (:meth:`OutputFile.check_name`), two outputs on one file, an
+    output on an input, and a folder that does not exist."""
+    for index, output in enumerate(outputs):
+        output.check_name()
+        for other in outputs[:index]:
+            if _same_file(output.path, other.path):
+                raise InvalidInputError(
+                    f"{other.flag} and {output.flag} both name {output.path}; give each "
+                    "output its own file"
+                )
+        for source in inputs:
+            if _same_file(output.path, source):
+                raise InvalidInputError(
+                    f"{output.flag} {output.path} is the input file; write the output to "
+                    "another file"
+                )
+        folder = Path(output.path).parent
+        if not folder.is_dir():
+            raise InvalidInputError(
+                f"no such folder: {folder} (for {output.flag} {output.path}); create it or "
+                "choose another path"
+            )
+
+
+def _create_temporary(output: OutputFile) -> Path:
+    """An empty hidden file beside ``output.path`` with its suffix (mode as umask allows)."""
+    final = Path(output.path)
+    temporary = final.with_name(f".{final.stem}.mcam-{secrets.token_hex(4)}{final.suffix}")
+    try:
+        os.close(os.open(temporary, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+    except OSError as exc:
+        raise InvalidInputError(
+            f"cannot create {output.path} ({exc.strerror or exc}) for {output.flag}; choose "
+            "a folder you may write to"
+        ) from None
+    return temporary
+
+
+def _named_for_its_output(
+    exc: OSError, outputs: Sequence[OutputFile], temporaries: dict[str, Path]
+) -> OSError:
+    """``exc`` naming the output a writer (PyAV, zipfile, numpy) failed on, instead of its
+    temporary file, so that :func:`service.cli.main.file_problem` names the path given."""
+    for output in outputs:
+        if str(temporaries.get(output.flag)) in (str(exc.filename), str(exc.filename2)):
+            return OSError(exc.errno, exc.strerror, output.path)
+    return exc
+
+
+@contextmanager
+def staged_outputs(
+    outputs: Sequence[OutputFile], inputs: Sequence[str] = ()
+) -> Iterator[dict[str, Path]]:
+    """Check the outputs (:func:`check_outputs`), then yield the temporary path to write
+    for each flag; on success move each into place, on any failure remove them all."""
+    check_outputs(outputs, inputs)
+    temporaries: dict[str, Path] = {}
+    try:
+        for output in outputs:
+            temporaries[output.flag] = _create_temporary(output)
+        yield temporaries
+        for output in outputs:
+            os.replace(temporaries.pop(output.flag), output.path)
+    except OSError as exc:
+        raise _named_for_its_output(exc, outputs, temporaries) from None
+    finally:
+        for temporary in temporaries.values():
+            temporary.unlink(missing_ok=True)

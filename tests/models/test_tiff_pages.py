@@ -1,0 +1,45 @@
+"""Tests of models/tiff_pages.py: the strict TIFF reader of frames and videos."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from models.errors import UnsupportedFormatError
+from models.tiff_pages import TiffDamaged, open_tiff, page_codes, page_shape
+
+
+def tiff(array: np.ndarray, **options: object) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, array, metadata=None, **options)
+    return buffer.getvalue()
+
+
+def test_a_truncated_multi_page_tiff_is_damaged_not_short(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    data = tiff(np.zeros((12, 16, 16), np.uint8))
+    with pytest.raises(TiffDamaged, match="invalid page offset"):
+        with open_tiff(data[: len(data) // 2]):
+            pass
+    assert capsys.readouterr().err == ""  # tifffile's warning no longer leaks to stderr
+
+
+def test_separate_planes_come_back_samples_last() -> None:
+    rgb = np.arange(3 * 4 * 5, dtype=np.uint8).reshape(3, 4, 5)
+    with open_tiff(tiff(rgb, photometric="rgb", planarconfig="separate")) as tif:
+        page = tif.pages.first
+        assert page_shape(page) == (4, 5, 3)
+        np.testing.assert_array_equal(page_codes(page), np.moveaxis(rgb, 0, -1))
+
+
+def test_an_undecodable_compression_is_named() -> None:
+    buffer = io.BytesIO()
+    Image.fromarray(np.zeros((4, 4), np.uint8)).save(buffer, "TIFF", compression="tiff_lzw")
+    with open_tiff(buffer.getvalue()) as tif:
+        with pytest.raises(UnsupportedFormatError, match="compression LZW.*deflate"):
+            page_codes(tif.pages.first)

@@ -1,0 +1,69 @@
+"""Tests of service/cli/output_files.py: outputs checked up front, written whole or not at all."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from models.errors import InvalidInputError, UnsupportedFormatError
+from service.cli.output_files import OutputFile, check_outputs, staged_outputs
+
+EXR = (".exr",)
+
+
+def exr(flag: str, path: Path | str) -> OutputFile:
+    return OutputFile(flag, str(path), "a reconstruction is written as OpenEXR", EXR)
+
+
+@pytest.mark.parametrize(
+    ("outputs", "inputs", "error", "message"),
+    [
+        ([exr("-o", "x.png")], [], UnsupportedFormatError, "-o x.png: .* name the file .exr"),
+        ([exr("-o", "d.exr/")], [], InvalidInputError, "names a folder"),
+        ([exr("-o", "a.exr"), exr("--w", "./a.exr")], [], InvalidInputError, "both name"),
+        ([exr("-o", "in.exr")], ["in.exr"], InvalidInputError, "is the input file"),
+        ([exr("-o", "nofolder/a.exr")], [], InvalidInputError, "no such folder: nofolder"),
+    ],
+)
+def test_bad_outputs_are_refused_before_any_work(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, outputs: list[OutputFile],
+    inputs: list[str], error: type[Exception], message: str,
+) -> None:  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "in.exr").write_bytes(b"scene")
+    with pytest.raises(error, match=message):
+        check_outputs(outputs, inputs)
+
+
+def test_outputs_move_into_place_only_when_all_succeeded(tmp_path: Path) -> None:
+    outputs = [exr("-o", tmp_path / "a.exr"), exr("--w", tmp_path / "b.exr")]
+    with pytest.raises(RuntimeError):
+        with staged_outputs(outputs) as paths:
+            paths["-o"].write_bytes(b"done")
+            raise RuntimeError("the second output failed")
+    assert os.listdir(tmp_path) == []
+    with staged_outputs(outputs) as paths:
+        assert paths["-o"].parent == tmp_path and paths["-o"].suffix == ".exr"
+        for path in paths.values():
+            path.write_bytes(b"done")
+    assert sorted(os.listdir(tmp_path)) == ["a.exr", "b.exr"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "a.exr").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_an_uncreatable_output_names_its_path() -> None:
+    with pytest.raises(InvalidInputError, match="cannot create /proc/x.exr .* for -o"):
+        with staged_outputs([exr("-o", "/proc/x.exr")]):
+            pass
+
+
+def test_a_writer_failing_on_its_temporary_file_names_the_output(tmp_path: Path) -> None:
+    target = tmp_path / "clip.mp4"
+    with pytest.raises(OSError) as failure:
+        with staged_outputs([OutputFile("-o", str(target), "a video", (".mp4",))]) as paths:
+            raise OSError(28, "No space left on device", str(paths["-o"]))
+    assert failure.value.filename == str(target) and failure.value.strerror.startswith("No space")
+    assert list(tmp_path.iterdir()) == []
