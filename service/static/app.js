@@ -4,34 +4,79 @@
 
 const $ = (id) => document.getElementById(id);
 const KEY_STORAGE = "mcam-api-key";
-const POLL_MS = 300;
+const POLL_FIRST_MS = 250; // a job is polled every 250 ms at first, 1.5 times longer each
+const POLL_MAX_MS = 2000; // time up to 2 s: a long job costs 30 requests a minute
+const RETRY_MAX_MS = 8000; // a failed poll is retried after 1, 2, 4, 8, 8… s (or Retry-After)
+const FINISHED = ["succeeded", "failed", "cancelled"];
 let currentJob = null;
+let watched = null; // the job in flight: { id, stop: AbortController }
 let histogram = null;
 let exposureTimer = null;
 
-class ApiError extends Error {}
+// An API call that failed: the HTTP status (0: the server could not be reached) and the
+// seconds a 429 or 503 asked to wait (Retry-After).
+class ApiError extends Error {
+  constructor(message, status = 0, retryAfterS = null) {
+    super(message);
+    this.status = status;
+    this.retryAfterS = retryAfterS;
+  }
+}
 
 function apiKey() {
   return localStorage.getItem(KEY_STORAGE) || "";
 }
 
+async function replyError(reply) {
+  let message = `${reply.status} ${reply.statusText}`;
+  try {
+    const body = await reply.json();
+    message = `${body.code}: ${body.message}`;
+  } catch (_) { /* not JSON: keep the status line */ }
+  const retryAfterS = Number(reply.headers.get("Retry-After")) || null;
+  return new ApiError(message, reply.status, retryAfterS);
+}
+
 async function api(path, options = {}) {
   const headers = { Authorization: `Bearer ${apiKey()}`, ...(options.headers || {}) };
-  const reply = await fetch(path, { ...options, headers });
-  if (!reply.ok) {
-    let message = `${reply.status} ${reply.statusText}`;
-    try {
-      const body = await reply.json();
-      message = `${body.code}: ${body.message}`;
-    } catch (_) { /* not JSON: keep the status line */ }
-    throw new ApiError(message);
+  let reply;
+  try {
+    reply = await fetch(path, { ...options, headers });
+  } catch (error) {
+    if (error.name === "AbortError") throw error;
+    throw new ApiError("cannot reach the server; check that mcam serve is running");
   }
+  if (!reply.ok) throw await replyError(reply);
   return reply;
 }
 
-function setStatus(text, isError = false) {
+// A wait of ms that ends early when signal aborts.
+function sleep(ms, signal) {
+  return new Promise((resolve) => {
+    const timer = setTimeout(resolve, ms);
+    signal.addEventListener("abort", () => { clearTimeout(timer); resolve(); }, { once: true });
+  });
+}
+
+// How long to wait before asking again after the failures-th failure in a row.
+function retryDelayMs(error, failures) {
+  if (error.retryAfterS) return error.retryAfterS * 1000;
+  return Math.min(1000 * 2 ** (failures - 1), RETRY_MAX_MS);
+}
+
+// "The server has no such thing (any more)": asking again will not help.
+const isGone = (error) => error instanceof ApiError && [404, 410].includes(error.status);
+
+function retryNote(error, delayMs) {
+  const reason = error.status
+    ? `the server answered ${error.message}` : "connection to the server lost";
+  return `${reason}; retrying in ${Math.ceil(delayMs / 1000)} s`;
+}
+
+// tone: "" (plain), "warning" (trouble that is being retried) or "error".
+function setStatus(text, tone = "") {
   $("status").textContent = text;
-  $("status").classList.toggle("error", isError);
+  $("status").className = tone;
 }
 
 async function loadDecoders() {
@@ -46,7 +91,7 @@ async function loadDecoders() {
       select.add(option);
     }
   } catch (error) {
-    setStatus(`cannot list decoders: ${error.message}`, true);
+    setStatus(`cannot list decoders: ${error.message}`, "error");
   }
 }
 
@@ -120,16 +165,38 @@ function showJob(job) {
   $("timings").textContent = stages.join("\n");
   $("routing").textContent = describeDecode(job.info);
   const error = job.error ? ` (${job.error.code}: ${job.error.message})` : "";
-  setStatus(`job ${job.id}: ${job.state}${error}`, job.state === "failed");
+  setStatus(`job ${job.id}: ${job.state}${error}`, job.state === "failed" ? "error" : "");
 }
 
-async function waitForJob(id) {
-  for (;;) {
-    const job = await (await api(`/v1/jobs/${id}`)).json();
-    showJob(job);
-    if (["succeeded", "failed", "cancelled"].includes(job.state)) return job;
-    await new Promise((resolve) => setTimeout(resolve, POLL_MS));
+// Poll the job until it finished, at growing intervals. A failed poll (server down, 503,
+// 429) keeps the job on screen and is retried (after Retry-After if given); a 404 or 410
+// means the job is gone. Returns the finished job, or null once signal aborts (Cancel).
+async function waitForJob(id, signal) {
+  let pollMs = POLL_FIRST_MS;
+  let failures = 0;
+  while (!signal.aborted) {
+    let delayMs;
+    try {
+      const job = await (await api(`/v1/jobs/${id}`, { signal })).json();
+      showJob(job);
+      if (FINISHED.includes(job.state)) return job;
+      failures = 0;
+      delayMs = pollMs;
+      pollMs = Math.min(pollMs * 1.5, POLL_MAX_MS);
+    } catch (error) {
+      if (signal.aborted) break;
+      if (isGone(error)) {
+        throw new ApiError(`job ${id} no longer exists on the server (${error.message}); ` +
+          "submit the frame again");
+      }
+      if (!(error instanceof ApiError)) throw error;
+      failures += 1;
+      delayMs = retryDelayMs(error, failures);
+      setStatus(`job ${id}: ${retryNote(error, delayMs)} (Cancel stops waiting)`, "warning");
+    }
+    await sleep(delayMs, signal);
   }
+  return null;
 }
 
 async function showImage(id, query) {
@@ -183,19 +250,41 @@ async function showResult() {
 async function run(event) {
   event.preventDefault();
   const file = $("file").files[0];
-  if (!file) return setStatus("choose a file first", true);
+  if (!file) return setStatus("choose a file first", "error");
   $("run").disabled = true;
   $("download").disabled = true;
   try {
     const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
     const frame = simulated ? await simulateFrame(file) : file;
     currentJob = await submitFrame(frame, simulated);
-    const job = await waitForJob(currentJob);
-    if (job.state === "succeeded") await showResult();
+    watched = { id: currentJob, stop: new AbortController() };
+    $("cancel").disabled = false;
+    const job = await waitForJob(currentJob, watched.stop.signal);
+    if (job?.state === "succeeded") await showResult();
   } catch (error) {
-    setStatus(error.message, true);
+    setStatus(error.message, "error");
   } finally {
+    watched = null;
+    $("cancel").disabled = true;
     $("run").disabled = false;
+  }
+}
+
+// Cancel the job in flight (DELETE /v1/jobs/{id}) and stop waiting for it. One that
+// finished meanwhile (409) is left to the poll; if the server cannot be told, the page
+// stops waiting all the same and says so.
+async function cancel() {
+  const { id, stop } = watched;
+  $("cancel").disabled = true;
+  try {
+    const job = await (await api(`/v1/jobs/${id}`, { method: "DELETE" })).json();
+    stop.abort();
+    showJob(job);
+  } catch (error) {
+    if (error.status === 409) return;
+    stop.abort();
+    setStatus(`job ${id}: stopped waiting, but the server could not cancel it ` +
+      `(${error.message}); it may still run`, "error");
   }
 }
 
@@ -205,7 +294,7 @@ function onExposure() {
   clearTimeout(exposureTimer);
   if (!currentJob) return;
   exposureTimer = setTimeout(() => {
-    showImage("img-hdr", `format=png&exposure=${exposure()}`).catch((e) => setStatus(e.message, true));
+    showImage("img-hdr", `format=png&exposure=${exposure()}`).catch((e) => setStatus(e.message, "error"));
   }, 120);
 }
 
@@ -218,7 +307,7 @@ async function download() {
     link.click();
     URL.revokeObjectURL(link.href);
   } catch (error) {
-    setStatus(error.message, true);
+    setStatus(error.message, "error");
   }
 }
 
@@ -232,5 +321,6 @@ $("key-form").addEventListener("submit", (event) => {
 $("job-form").addEventListener("submit", run);
 $("exposure").addEventListener("input", onExposure);
 $("download").addEventListener("click", download);
+$("cancel").addEventListener("click", cancel);
 if (apiKey()) loadDecoders();
 else setStatus("Enter the API key (printed by mcam serve on first start) and save it.");
