@@ -8,7 +8,7 @@ const POLL_FIRST_MS = 250; // a job is polled every 250 ms at first, 1.5 times l
 const POLL_MAX_MS = 2000; // time up to 2 s: a long job costs 30 requests a minute
 const RETRY_MAX_MS = 8000; // a failed poll is retried after 1, 2, 4, 8, 8… s (or Retry-After)
 const FINISHED = ["succeeded", "failed", "cancelled"];
-let currentJob = null;
+let shownJob = null; // the succeeded job whose results the panels show (null: none)
 let watched = null; // the job in flight: { id, stop: AbortController }
 let histogram = null;
 let exposureTimer = null;
@@ -168,6 +168,12 @@ function showJob(job) {
   setStatus(`job ${job.id}: ${job.state}${error}`, job.state === "failed" ? "error" : "");
 }
 
+function clearJob() {
+  $("progress").value = 0;
+  $("timings").textContent = "";
+  $("routing").textContent = "";
+}
+
 // Poll the job until it finished, at growing intervals. A failed poll (server down, 503,
 // 429) keeps the job on screen and is retried (after Retry-After if given); a 404 or 410
 // means the job is gone. Returns the finished job, or null once signal aborts (Cancel).
@@ -199,12 +205,19 @@ async function waitForJob(id, signal) {
   return null;
 }
 
-async function showImage(id, query) {
-  const blob = await (await api(`/v1/jobs/${currentJob}/result?${query}`)).blob();
+async function resultBlob(job, query) {
+  return (await api(`/v1/jobs/${job}/result?${query}`)).blob();
+}
+
+// Show blob in the image element id (null: empty it).
+function setImage(id, blob) {
   const img = $(id);
   if (img.src.startsWith("blob:")) URL.revokeObjectURL(img.src);
-  img.src = URL.createObjectURL(blob);
+  if (blob) img.src = URL.createObjectURL(blob);
+  else img.removeAttribute("src");
 }
+
+const hdrQuery = () => `format=png&exposure=${exposure()}`;
 
 function exposure() {
   return Number($("exposure").value);
@@ -236,15 +249,43 @@ function drawHistogram() {
   ctx.fillText(right, canvas.width - ctx.measureText(right).width - 2, canvas.height - 2);
 }
 
-async function showResult() {
-  await Promise.all([
-    showImage("img-codes", "part=codes&format=png"),
-    showImage("img-winding", "part=winding&format=png"),
-    showImage("img-hdr", `format=png&exposure=${exposure()}`),
-  ]);
-  histogram = await (await api(`/v1/jobs/${currentJob}/result?part=histogram`)).json();
+// Empty the result panels: nothing of an earlier job stays beside a new one.
+function clearResult() {
+  shownJob = null;
+  for (const id of ["img-codes", "img-winding", "img-hdr"]) setImage(id, null);
+  histogram = null;
   drawHistogram();
+  $("download").disabled = true;
+}
+
+// Fetch every panel of the succeeded job, then show them together.
+async function showResult(job) {
+  const ev = exposure();
+  const [codes, winding, hdr, counts] = await Promise.all([
+    resultBlob(job, "part=codes&format=png"),
+    resultBlob(job, "part=winding&format=png"),
+    resultBlob(job, hdrQuery()),
+    api(`/v1/jobs/${job}/result?part=histogram`).then((reply) => reply.json()),
+  ]);
+  setImage("img-codes", codes);
+  setImage("img-winding", winding);
+  setImage("img-hdr", hdr);
+  histogram = counts;
+  drawHistogram();
+  shownJob = job;
   $("download").disabled = false;
+  if (exposure() !== ev) refreshHdr();
+}
+
+// Tonemap the shown job's HDR again at the slider's exposure.
+async function refreshHdr() {
+  const job = shownJob;
+  try {
+    const blob = await resultBlob(job, hdrQuery());
+    if (shownJob === job) setImage("img-hdr", blob);
+  } catch (error) {
+    if (shownJob === job) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
+  }
 }
 
 async function run(event) {
@@ -252,15 +293,17 @@ async function run(event) {
   const file = $("file").files[0];
   if (!file) return setStatus("choose a file first", "error");
   $("run").disabled = true;
-  $("download").disabled = true;
+  clearJob();
+  clearResult();
+  setStatus("uploading the frame…");
   try {
     const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
     const frame = simulated ? await simulateFrame(file) : file;
-    currentJob = await submitFrame(frame, simulated);
-    watched = { id: currentJob, stop: new AbortController() };
+    const id = await submitFrame(frame, simulated);
+    watched = { id, stop: new AbortController() };
     $("cancel").disabled = false;
-    const job = await waitForJob(currentJob, watched.stop.signal);
-    if (job?.state === "succeeded") await showResult();
+    const job = await waitForJob(id, watched.stop.signal);
+    if (job?.state === "succeeded") await showResult(id);
   } catch (error) {
     setStatus(error.message, "error");
   } finally {
@@ -292,18 +335,15 @@ function onExposure() {
   $("ev-value").textContent = exposure();
   drawHistogram();
   clearTimeout(exposureTimer);
-  if (!currentJob) return;
-  exposureTimer = setTimeout(() => {
-    showImage("img-hdr", `format=png&exposure=${exposure()}`).catch((e) => setStatus(e.message, "error"));
-  }, 120);
+  if (shownJob) exposureTimer = setTimeout(refreshHdr, 120);
 }
 
 async function download() {
   try {
-    const blob = await (await api(`/v1/jobs/${currentJob}/result`)).blob();
+    const blob = await resultBlob(shownJob, "part=image&format=exr");
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
-    link.download = `${currentJob}.exr`;
+    link.download = `${shownJob}.exr`;
     link.click();
     URL.revokeObjectURL(link.href);
   } catch (error) {

@@ -2,7 +2,8 @@
 
 Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
 a server restart; a 429 is waited out as Retry-After says; a stuck job is polled gently and
-can be cancelled; a job gone from the server is given up with a clear message.
+can be cancelled; a job gone from the server is given up with a clear message; the result
+panels show a job's results only once it succeeded, never beside another job's.
 """
 
 from __future__ import annotations
@@ -22,9 +23,11 @@ from tests.service.conftest import (
     FULL_KEY,
     frame_png,
     make_settings,
+    npy_bytes,
     running_worker,
     serve,
 )
+from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import connect
 from worker.redis_keys import job_key
 
@@ -85,8 +88,13 @@ def api_requests(page: Page, prefix: str) -> list[str]:
 def submit(page: Page, path: Path) -> str:
     """Upload ``path``, press Run, and return the job id once the status shows it."""
     page.set_input_files("#file", str(path))
+    before = page.inner_text("#status")
     page.click("#run")
-    page.wait_for_function("/job [0-9a-f]{32}/.test(document.getElementById('status').textContent)")
+    page.wait_for_function(
+        "before => { const now = document.getElementById('status').textContent;"
+        " return now !== before && /job [0-9a-f]{32}/.test(now); }",
+        arg=before,
+    )
     found = JOB_ID.search(page.inner_text("#status"))
     assert found is not None
     return found.group(1)
@@ -97,6 +105,19 @@ def wait_for_status(page: Page, text: str, timeout_ms: int = 30_000) -> str:
         f"document.getElementById('status').textContent.includes({text!r})", timeout=timeout_ms
     )
     return page.inner_text("#status")
+
+
+def panels_empty(page: Page) -> bool:
+    """No result image, a blank histogram and no download."""
+    return bool(
+        page.evaluate(
+            f"{PANELS}.every(id => !document.getElementById(id).getAttribute('src'))"
+            " && (() => { const shown = document.getElementById('histogram');"
+            " const blank = document.createElement('canvas');"
+            " blank.width = shown.width; blank.height = shown.height;"
+            " return shown.toDataURL() === blank.toDataURL(); })()"
+        )
+    ) and page.is_disabled("#download")
 
 
 def wait_for_panels(page: Page) -> None:
@@ -142,6 +163,41 @@ def test_a_stuck_job_is_polled_gently_and_can_be_cancelled(
     page.click("#cancel")
     assert wait_for_status(page, "cancelled") == f"job {job_id}: cancelled"
     assert page.is_enabled("#run") and page.is_disabled("#cancel")
+
+
+def test_panels_show_only_a_succeeded_job(
+    browser: Browser, api: str, settings: Settings, frame: Path, tmp_path: Path
+) -> None:
+    page = open_viewer(browser, api)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    overflow = tmp_path / "overflow.npy"
+    overflow.write_bytes(npy_bytes(overflowing_codes(SIZE)))
+    with running_worker(settings):
+        submit(page, frame)
+        wait_for_panels(page)
+        page.select_option("#encoding", "mantissa")
+        page.fill("#alpha", "1e6")
+        page.fill("#bits", "8")
+        submit(page, overflow)
+        assert "output_overflow" in wait_for_status(page, "failed")
+        assert panels_empty(page), "the failed job left the previous job's results on screen"
+
+    page.select_option("#encoding", "")
+    page.fill("#alpha", "")
+    page.fill("#bits", "")
+    page.wait_for_function("!document.getElementById('run').disabled")
+    job_requests = api_requests(page, "/v1/jobs/")
+    job_id = submit(page, frame)  # the worker is gone: the job stays queued
+    page.fill("#exposure", "-2")
+    page.dispatch_event("#exposure", "input")
+    page.wait_for_timeout(1_000)
+    assert page.inner_text("#status") == f"job {job_id}: queued"
+    assert panels_empty(page), "the slider fetched a preview of a job still in the queue"
+    assert not any("/result" in url for url in job_requests)
+    page.click("#cancel")
+    wait_for_status(page, "cancelled")
+    assert errors == []
 
 
 def test_a_rate_limited_poll_waits_as_retry_after_says(
