@@ -3,7 +3,8 @@
 Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
 a server restart; a 429 is waited out as Retry-After says; a stuck job is polled gently and
 can be cancelled; a job gone from the server is given up with a clear message; the result
-panels show a job's results only once it succeeded, never beside another job's.
+panels show a job's results only once it succeeded, never beside another job's. The live
+device view waits out a 429 too, and stops watching a device the server forgot.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import httpx
 import pytest
 
 from service.core.config import Settings
@@ -29,7 +31,7 @@ from tests.service.conftest import (
 )
 from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import connect
-from worker.redis_keys import job_key
+from worker.redis_keys import DEVICES_SET, health_key, job_key
 
 if TYPE_CHECKING:
     from playwright.sync_api import Browser, Page
@@ -232,3 +234,59 @@ def test_a_job_gone_from_the_server_is_given_up_with_a_clear_message(
     assert "submit the frame again" in status
     assert page.get_attribute("#status", "class") == "error"
     assert page.is_disabled("#cancel")
+
+
+def register_device(redis_url: str, device: str) -> None:
+    """A device whose daemon registered it and went quiet a minute ago (so it may be
+    forgotten): in the device set, with its last health."""
+    client = connect(redis_url)
+    client.sadd(DEVICES_SET, device)
+    minute_ago = time.time_ns() - 60 * 10**9
+    health = {"state": "connected", "updated_ns": minute_ago, "frames_ok": 0, "fps": 0.0}
+    client.hset(health_key(device), mapping={**health, "sequence_gaps": 0, "reconnects": 0})
+
+
+def watch_device(page: Page, device: str) -> list[str]:
+    """List the devices, pick ``device``; the device requests the page makes from then."""
+    page.click("#live-refresh")
+    page.wait_for_selector(f"#live-device option[value={device}]", state="attached")
+    polls = api_requests(page, f"/v1/devices/{device}")
+    page.select_option("#live-device", device)
+    return polls
+
+
+def test_the_live_view_waits_out_a_rate_limit(
+    browser: Browser, redis_url: str, tmp_path: Path
+) -> None:
+    settings = make_settings(tmp_path, redis_url, rate_limit_per_minute=5)
+    register_device(redis_url, "cam1")
+    with serve(create_app(settings)) as url:
+        page = open_viewer(browser, url)  # GET /v1/decoders: 1 of 5
+        polls = watch_device(page, "cam1")  # the list: 2; polls 3 to 5; the 6th is refused
+        page.wait_for_function(
+            "document.getElementById('live-status').textContent.includes('rate_limited')"
+        )
+        status = page.inner_text("#live-status")
+        assert status.startswith("device cam1: ") and "retrying in" in status, status
+        refused = len(polls)
+        page.wait_for_timeout(2_500)
+        assert len(polls) == refused, "the live view polled again before Retry-After"
+
+
+def test_the_live_view_stops_watching_a_forgotten_device(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api)
+    polls = watch_device(page, "cam1")
+    page.wait_for_function("document.getElementById('live-status').textContent.includes('silent')")
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    assert httpx.delete(f"{api}/v1/devices/cam1", headers=headers).status_code == 200
+    page.wait_for_function(
+        "document.getElementById('live-status').textContent.includes('no longer known')"
+    )
+    assert "press List devices" in page.inner_text("#live-status")
+    stopped = len(polls)
+    page.wait_for_timeout(2_500)
+    assert len(polls) == stopped, "the live view kept polling a device the server forgot"
