@@ -4,9 +4,12 @@
 
 const $ = (id) => document.getElementById(id);
 const KEY_STORAGE = "mcam-api-key";
-const POLL_FIRST_MS = 250; // a job is polled every 250 ms at first, 1.5 times longer each
-const POLL_MAX_MS = 2000; // time up to 2 s: a long job costs 30 requests a minute
-const RETRY_MAX_MS = 8000; // a failed poll is retried after 1, 2, 4, 8, 8… s (or Retry-After)
+// A job is polled after 250 ms, then 1.5 times later each time, up to every 2 s (a long
+// job: 30 requests a minute). A failed poll is retried after 1, 2, 4, 8, 8… s, or after
+// the Retry-After the server gave.
+const POLL_FIRST_MS = 250;
+const POLL_MAX_MS = 2000;
+const RETRY_MAX_MS = 8000;
 const FINISHED = ["succeeded", "failed", "cancelled"];
 let shownJob = null; // the succeeded job whose results the panels show (null: none)
 let watched = null; // the job in flight: { id, stop: AbortController }
@@ -112,6 +115,7 @@ async function simulateFrame(file) {
 }
 
 async function submitFrame(frame, simulated) {
+  setStatus("uploading the frame…");
   const form = new FormData();
   form.append("file", frame);
   if (!simulated) sensorFields(form, false);
@@ -295,7 +299,6 @@ async function run(event) {
   $("run").disabled = true;
   clearJob();
   clearResult();
-  setStatus("uploading the frame…");
   try {
     const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
     const frame = simulated ? await simulateFrame(file) : file;
@@ -303,7 +306,7 @@ async function run(event) {
     watched = { id, stop: new AbortController() };
     $("cancel").disabled = false;
     const job = await waitForJob(id, watched.stop.signal);
-    if (job?.state === "succeeded") await showResult(id);
+    if (job?.state === "succeeded") await showResult(id).catch(resultsUnreachable(id));
   } catch (error) {
     setStatus(error.message, "error");
   } finally {
@@ -311,6 +314,14 @@ async function run(event) {
     $("cancel").disabled = true;
     $("run").disabled = false;
   }
+}
+
+// An error handler for the results of job id that could not be fetched.
+function resultsUnreachable(id) {
+  return (error) => {
+    throw new ApiError(`job ${id} succeeded, but its results could not be fetched ` +
+      `(${error.message}); press Reconstruct to run it again`);
+  };
 }
 
 // Cancel the job in flight (DELETE /v1/jobs/{id}) and stop waiting for it. One that
