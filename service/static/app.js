@@ -4,34 +4,82 @@
 
 const $ = (id) => document.getElementById(id);
 const KEY_STORAGE = "mcam-api-key";
-const POLL_MS = 300;
-let currentJob = null;
+// A job is polled after 250 ms, then 1.5 times later each time, up to every 2 s (a long
+// job: 30 requests a minute). A failed poll is retried after 1, 2, 4, 8, 8… s, or after
+// the Retry-After the server gave.
+const POLL_FIRST_MS = 250;
+const POLL_MAX_MS = 2000;
+const RETRY_MAX_MS = 8000;
+const FINISHED = ["succeeded", "failed", "cancelled"];
+let shownJob = null; // the succeeded job whose results the panels show (null: none)
+let watched = null; // the job in flight: { id, stop: AbortController }
 let histogram = null;
 let exposureTimer = null;
 
-class ApiError extends Error {}
+// An API call that failed: the HTTP status (0: the server could not be reached) and the
+// seconds a 429 or 503 asked to wait (Retry-After).
+class ApiError extends Error {
+  constructor(message, status = 0, retryAfterS = null) {
+    super(message);
+    this.status = status;
+    this.retryAfterS = retryAfterS;
+  }
+}
 
 function apiKey() {
   return localStorage.getItem(KEY_STORAGE) || "";
 }
 
+async function replyError(reply) {
+  let message = `${reply.status} ${reply.statusText}`;
+  try {
+    const body = await reply.json();
+    message = `${body.code}: ${body.message}`;
+  } catch (_) { /* not JSON: keep the status line */ }
+  const retryAfterS = Number(reply.headers.get("Retry-After")) || null;
+  return new ApiError(message, reply.status, retryAfterS);
+}
+
 async function api(path, options = {}) {
   const headers = { Authorization: `Bearer ${apiKey()}`, ...(options.headers || {}) };
-  const reply = await fetch(path, { ...options, headers });
-  if (!reply.ok) {
-    let message = `${reply.status} ${reply.statusText}`;
-    try {
-      const body = await reply.json();
-      message = `${body.code}: ${body.message}`;
-    } catch (_) { /* not JSON: keep the status line */ }
-    throw new ApiError(message);
+  let reply;
+  try {
+    reply = await fetch(path, { ...options, headers });
+  } catch (error) {
+    if (error.name === "AbortError") throw error;
+    throw new ApiError("cannot reach the server; check that mcam serve is running");
   }
+  if (!reply.ok) throw await replyError(reply);
   return reply;
 }
 
-function setStatus(text, isError = false) {
+// A wait of ms that ends early when signal aborts.
+function sleep(ms, signal) {
+  return new Promise((resolve) => {
+    const timer = setTimeout(resolve, ms);
+    signal.addEventListener("abort", () => { clearTimeout(timer); resolve(); }, { once: true });
+  });
+}
+
+// How long to wait before asking again after the failures-th failure in a row.
+function retryDelayMs(error, failures) {
+  if (error.retryAfterS) return error.retryAfterS * 1000;
+  return Math.min(1000 * 2 ** (failures - 1), RETRY_MAX_MS);
+}
+
+// "The server has no such thing (any more)": asking again will not help.
+const isGone = (error) => error instanceof ApiError && [404, 410].includes(error.status);
+
+function retryNote(error, delayMs) {
+  const reason = error.status
+    ? `the server answered ${error.message}` : "connection to the server lost";
+  return `${reason}; retrying in ${Math.ceil(delayMs / 1000)} s`;
+}
+
+// tone: "" (plain), "warning" (trouble that is being retried) or "error".
+function setStatus(text, tone = "") {
   $("status").textContent = text;
-  $("status").classList.toggle("error", isError);
+  $("status").className = tone;
 }
 
 async function loadDecoders() {
@@ -46,7 +94,7 @@ async function loadDecoders() {
       select.add(option);
     }
   } catch (error) {
-    setStatus(`cannot list decoders: ${error.message}`, true);
+    setStatus(`cannot list decoders: ${error.message}`, "error");
   }
 }
 
@@ -67,6 +115,7 @@ async function simulateFrame(file) {
 }
 
 async function submitFrame(frame, simulated) {
+  setStatus("uploading the frame…");
   const form = new FormData();
   form.append("file", frame);
   if (!simulated) sensorFields(form, false);
@@ -120,24 +169,59 @@ function showJob(job) {
   $("timings").textContent = stages.join("\n");
   $("routing").textContent = describeDecode(job.info);
   const error = job.error ? ` (${job.error.code}: ${job.error.message})` : "";
-  setStatus(`job ${job.id}: ${job.state}${error}`, job.state === "failed");
+  setStatus(`job ${job.id}: ${job.state}${error}`, job.state === "failed" ? "error" : "");
 }
 
-async function waitForJob(id) {
-  for (;;) {
-    const job = await (await api(`/v1/jobs/${id}`)).json();
-    showJob(job);
-    if (["succeeded", "failed", "cancelled"].includes(job.state)) return job;
-    await new Promise((resolve) => setTimeout(resolve, POLL_MS));
+function clearJob() {
+  $("progress").value = 0;
+  $("timings").textContent = "";
+  $("routing").textContent = "";
+}
+
+// Poll the job until it finished, at growing intervals. A failed poll (server down, 503,
+// 429) keeps the job on screen and is retried (after Retry-After if given); a 404 or 410
+// means the job is gone. Returns the finished job, or null once signal aborts (Cancel).
+async function waitForJob(id, signal) {
+  let pollMs = POLL_FIRST_MS;
+  let failures = 0;
+  while (!signal.aborted) {
+    let delayMs;
+    try {
+      const job = await (await api(`/v1/jobs/${id}`, { signal })).json();
+      showJob(job);
+      if (FINISHED.includes(job.state)) return job;
+      failures = 0;
+      delayMs = pollMs;
+      pollMs = Math.min(pollMs * 1.5, POLL_MAX_MS);
+    } catch (error) {
+      if (signal.aborted) break;
+      if (isGone(error)) {
+        throw new ApiError(`job ${id} no longer exists on the server (${error.message}); ` +
+          "submit the frame again");
+      }
+      if (!(error instanceof ApiError)) throw error;
+      failures += 1;
+      delayMs = retryDelayMs(error, failures);
+      setStatus(`job ${id}: ${retryNote(error, delayMs)} (Cancel stops waiting)`, "warning");
+    }
+    await sleep(delayMs, signal);
   }
+  return null;
 }
 
-async function showImage(id, query) {
-  const blob = await (await api(`/v1/jobs/${currentJob}/result?${query}`)).blob();
+async function resultBlob(job, query) {
+  return (await api(`/v1/jobs/${job}/result?${query}`)).blob();
+}
+
+// Show blob in the image element id (null: empty it).
+function setImage(id, blob) {
   const img = $(id);
   if (img.src.startsWith("blob:")) URL.revokeObjectURL(img.src);
-  img.src = URL.createObjectURL(blob);
+  if (blob) img.src = URL.createObjectURL(blob);
+  else img.removeAttribute("src");
 }
+
+const hdrQuery = () => `format=png&exposure=${exposure()}`;
 
 function exposure() {
   return Number($("exposure").value);
@@ -169,33 +253,92 @@ function drawHistogram() {
   ctx.fillText(right, canvas.width - ctx.measureText(right).width - 2, canvas.height - 2);
 }
 
-async function showResult() {
-  await Promise.all([
-    showImage("img-codes", "part=codes&format=png"),
-    showImage("img-winding", "part=winding&format=png"),
-    showImage("img-hdr", `format=png&exposure=${exposure()}`),
-  ]);
-  histogram = await (await api(`/v1/jobs/${currentJob}/result?part=histogram`)).json();
+// Empty the result panels: nothing of an earlier job stays beside a new one.
+function clearResult() {
+  shownJob = null;
+  for (const id of ["img-codes", "img-winding", "img-hdr"]) setImage(id, null);
+  histogram = null;
   drawHistogram();
+  $("download").disabled = true;
+}
+
+// Fetch every panel of the succeeded job, then show them together.
+async function showResult(job) {
+  const ev = exposure();
+  const [codes, winding, hdr, counts] = await Promise.all([
+    resultBlob(job, "part=codes&format=png"),
+    resultBlob(job, "part=winding&format=png"),
+    resultBlob(job, hdrQuery()),
+    api(`/v1/jobs/${job}/result?part=histogram`).then((reply) => reply.json()),
+  ]);
+  setImage("img-codes", codes);
+  setImage("img-winding", winding);
+  setImage("img-hdr", hdr);
+  histogram = counts;
+  drawHistogram();
+  shownJob = job;
   $("download").disabled = false;
+  if (exposure() !== ev) refreshHdr();
+}
+
+// Tonemap the shown job's HDR again at the slider's exposure.
+async function refreshHdr() {
+  const job = shownJob;
+  try {
+    const blob = await resultBlob(job, hdrQuery());
+    if (shownJob === job) setImage("img-hdr", blob);
+  } catch (error) {
+    if (shownJob === job) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
+  }
 }
 
 async function run(event) {
   event.preventDefault();
   const file = $("file").files[0];
-  if (!file) return setStatus("choose a file first", true);
+  if (!file) return setStatus("choose a file first", "error");
   $("run").disabled = true;
-  $("download").disabled = true;
+  clearJob();
+  clearResult();
   try {
     const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
     const frame = simulated ? await simulateFrame(file) : file;
-    currentJob = await submitFrame(frame, simulated);
-    const job = await waitForJob(currentJob);
-    if (job.state === "succeeded") await showResult();
+    const id = await submitFrame(frame, simulated);
+    watched = { id, stop: new AbortController() };
+    $("cancel").disabled = false;
+    const job = await waitForJob(id, watched.stop.signal);
+    if (job?.state === "succeeded") await showResult(id).catch(resultsUnreachable(id));
   } catch (error) {
-    setStatus(error.message, true);
+    setStatus(error.message, "error");
   } finally {
+    watched = null;
+    $("cancel").disabled = true;
     $("run").disabled = false;
+  }
+}
+
+// An error handler for the results of job id that could not be fetched.
+function resultsUnreachable(id) {
+  return (error) => {
+    throw new ApiError(`job ${id} succeeded, but its results could not be fetched ` +
+      `(${error.message}); press Reconstruct to run it again`);
+  };
+}
+
+// Cancel the job in flight (DELETE /v1/jobs/{id}) and stop waiting for it. One that
+// finished meanwhile (409) is left to the poll; if the server cannot be told, the page
+// stops waiting all the same and says so.
+async function cancel() {
+  const { id, stop } = watched;
+  $("cancel").disabled = true;
+  try {
+    const job = await (await api(`/v1/jobs/${id}`, { method: "DELETE" })).json();
+    stop.abort();
+    showJob(job);
+  } catch (error) {
+    if (error.status === 409) return;
+    stop.abort();
+    setStatus(`job ${id}: stopped waiting, but the server could not cancel it ` +
+      `(${error.message}); it may still run`, "error");
   }
 }
 
@@ -203,22 +346,19 @@ function onExposure() {
   $("ev-value").textContent = exposure();
   drawHistogram();
   clearTimeout(exposureTimer);
-  if (!currentJob) return;
-  exposureTimer = setTimeout(() => {
-    showImage("img-hdr", `format=png&exposure=${exposure()}`).catch((e) => setStatus(e.message, true));
-  }, 120);
+  if (shownJob) exposureTimer = setTimeout(refreshHdr, 120);
 }
 
 async function download() {
   try {
-    const blob = await (await api(`/v1/jobs/${currentJob}/result`)).blob();
+    const blob = await resultBlob(shownJob, "part=image&format=exr");
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
-    link.download = `${currentJob}.exr`;
+    link.download = `${shownJob}.exr`;
     link.click();
     URL.revokeObjectURL(link.href);
   } catch (error) {
-    setStatus(error.message, true);
+    setStatus(error.message, "error");
   }
 }
 
@@ -232,5 +372,6 @@ $("key-form").addEventListener("submit", (event) => {
 $("job-form").addEventListener("submit", run);
 $("exposure").addEventListener("input", onExposure);
 $("download").addEventListener("click", download);
+$("cancel").addEventListener("click", cancel);
 if (apiKey()) loadDecoders();
 else setStatus("Enter the API key (printed by mcam serve on first start) and save it.");

@@ -1,45 +1,97 @@
 // Live view of camera devices: health counters and the newest reconstructed frame, polled
-// once a second (EventSource cannot send the API key header, so the page polls).
+// once a second (EventSource cannot send the API key header, so the page polls). The frame
+// is fetched only when a newer one came or the exposure changed. A failed poll is retried
+// after a growing wait (Retry-After on a 429 or 503); a device the server no longer knows
+// ends the watch. Uses api, sleep, retryDelayMs, retryNote and isGone from app.js.
 "use strict";
 
 const LIVE_POLL_MS = 1000;
-let liveTimer = null;
+let liveWatch = null; // AbortController of the device being watched
 let liveUrl = null;
 
+function liveStatus(text) {
+  document.getElementById("live-status").textContent = text;
+}
+
+function stopLiveWatch() {
+  liveWatch?.abort();
+  liveWatch = null;
+}
+
 async function listDevices() {
+  stopLiveWatch();
   const select = document.getElementById("live-device");
   select.replaceChildren(new Option("(choose a device)", ""));
   try {
     const { devices } = await (await api("/v1/devices")).json();
     for (const device of devices) select.add(new Option(`${device.id} (${device.state})`, device.id));
-    document.getElementById("live-status").textContent = `${devices.length} device(s)`;
+    liveStatus(`${devices.length} device(s)`);
   } catch (error) {
-    document.getElementById("live-status").textContent = `cannot list devices: ${error.message}`;
+    liveStatus(`cannot list devices: ${error.message}`);
   }
 }
 
-async function pollDevice(id) {
-  const status = document.getElementById("live-status");
+function describeHealth(health) {
+  const dropped = Object.values(health.dropped).reduce((a, b) => a + b, 0);
+  return `${health.state}: ${health.frames_ok} frames, ${health.fps} fps, ` +
+    `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects`;
+}
+
+// The device's health; an error marked deviceGone if the server no longer knows it.
+async function deviceHealth(path, signal) {
   try {
-    const health = await (await api(`/v1/devices/${encodeURIComponent(id)}`)).json();
-    const dropped = Object.values(health.dropped).reduce((a, b) => a + b, 0);
-    status.textContent = `${health.state}: ${health.frames_ok} frames, ${health.fps} fps, ` +
-      `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects`;
-    if (!health.latest_result) return;
-    const ev = document.getElementById("exposure").value;
-    const blob = await (await api(`/v1/devices/${encodeURIComponent(id)}/frames/latest` +
-      `?format=png&exposure=${ev}`)).blob();
-    if (liveUrl) URL.revokeObjectURL(liveUrl);
-    liveUrl = URL.createObjectURL(blob);
-    document.getElementById("live-frame").src = liveUrl;
+    return await (await api(path, { signal })).json();
   } catch (error) {
-    status.textContent = `device ${id}: ${error.message}`;
+    error.deviceGone = isGone(error);
+    throw error;
+  }
+}
+
+// One poll: show the health and, if it changed, the newest frame. Returns what the frame
+// on screen shows (newest result and exposure) for the next poll to compare with.
+async function pollDevice(id, shown, signal) {
+  const path = `/v1/devices/${encodeURIComponent(id)}`;
+  const health = await deviceHealth(path, signal);
+  liveStatus(describeHealth(health));
+  const ev = document.getElementById("exposure").value;
+  const wanted = `${health.latest_result} at ${ev} EV`;
+  if (!health.latest_result || wanted === shown) return shown;
+  const reply = await api(`${path}/frames/latest?format=png&exposure=${ev}`, { signal });
+  const blob = await reply.blob();
+  if (liveUrl) URL.revokeObjectURL(liveUrl);
+  liveUrl = URL.createObjectURL(blob);
+  document.getElementById("live-frame").src = liveUrl;
+  return wanted;
+}
+
+async function watchDevice(id, signal) {
+  let shown = "";
+  let failures = 0;
+  while (!signal.aborted) {
+    let delayMs = LIVE_POLL_MS;
+    try {
+      shown = await pollDevice(id, shown, signal);
+      failures = 0;
+    } catch (error) {
+      if (signal.aborted) return;
+      if (error.deviceGone) {
+        liveStatus(`device ${id} is no longer known to the server (${error.message}); ` +
+          "press List devices");
+        return;
+      }
+      if (!(error instanceof ApiError)) throw error;
+      failures += 1;
+      delayMs = Math.max(retryDelayMs(error, failures), LIVE_POLL_MS);
+      liveStatus(`device ${id}: ${retryNote(error, delayMs)}`);
+    }
+    await sleep(delayMs, signal);
   }
 }
 
 document.getElementById("live-refresh").addEventListener("click", listDevices);
 document.getElementById("live-device").addEventListener("change", (event) => {
-  clearInterval(liveTimer);
-  const id = event.target.value;
-  if (id) liveTimer = setInterval(() => pollDevice(id), LIVE_POLL_MS);
+  stopLiveWatch();
+  if (!event.target.value) return;
+  liveWatch = new AbortController();
+  watchDevice(event.target.value, liveWatch.signal);
 });

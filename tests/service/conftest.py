@@ -37,10 +37,12 @@ def free_port() -> int:
 
 
 @contextmanager
-def serve(app: FastAPI) -> Iterator[str]:
-    """Run ``app`` under uvicorn on 127.0.0.1 in a thread; yields its base URL."""
+def serve(app: FastAPI, port: int = 0) -> Iterator[str]:
+    """Run ``app`` under uvicorn on 127.0.0.1 in a thread; yields its base URL. ``port``
+    0 takes a free one; a given port lets a test restart a server where its clients are."""
     listener = socket.socket()
-    listener.bind(("127.0.0.1", 0))  # bound here and handed over: no other process takes it
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    listener.bind(("127.0.0.1", port))  # bound here and handed over: no other process takes it
     port = int(listener.getsockname()[1])
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [listener]}, daemon=True)

@@ -40,6 +40,10 @@ def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Pa
         page = browser.new_page(viewport={"width": 1280, "height": 900}, accept_downloads=True)
         errors: list[str] = []
         page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.on(  # a missing favicon, a failed request: each logs a console error
+            "console",
+            lambda message: errors.append(message.text) if message.type == "error" else None,
+        )
         page.goto(f"{api}/")
         page.fill("#api-key", FULL_KEY)
         page.click("#key-form button")

@@ -1,0 +1,292 @@
+"""The web viewer when things go wrong, in headless Debian chromium (Playwright, no download).
+
+Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
+a server restart; a 429 is waited out as Retry-After says; a stuck job is polled gently and
+can be cancelled; a job gone from the server is given up with a clear message; the result
+panels show a job's results only once it succeeded, never beside another job's. The live
+device view waits out a 429 too, and stops watching a device the server forgot.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import httpx
+import pytest
+
+from service.core.config import Settings
+from service.main import create_app
+from tests.service.conftest import (
+    FULL_KEY,
+    frame_png,
+    make_settings,
+    npy_bytes,
+    running_worker,
+    serve,
+)
+from tests.worker.conftest import overflowing_codes
+from worker.embedded_redis import connect
+from worker.redis_keys import DEVICES_SET, health_key, job_key
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Browser, Page
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+SIZE = 32  # small frames: the tests are about the page, not the decoder
+JOB_ID = re.compile(r"job ([0-9a-f]{32})")
+PANELS = "['img-codes', 'img-winding', 'img-hdr']"
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        CHROMIUM is None,
+        reason="Debian chromium is not installed "
+        "(apt-get install -y chromium); the browser test needs it",
+    ),
+]
+
+
+@pytest.fixture
+def browser() -> Iterator[Browser]:
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as playwright:
+        launched = playwright.chromium.launch(
+            executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"]
+        )
+        yield launched
+        launched.close()
+
+
+@pytest.fixture
+def frame(tmp_path: Path) -> Path:
+    path = tmp_path / "frame.png"
+    path.write_bytes(frame_png(SIZE)[0])
+    return path
+
+
+def open_viewer(browser: Browser, url: str) -> Page:
+    """The viewer at ``url`` with the key saved and the decoders listed."""
+    page = browser.new_page()
+    page.set_default_timeout(30_000)
+    page.goto(f"{url}/")
+    page.fill("#api-key", FULL_KEY)
+    page.click("#key-form button")
+    page.wait_for_selector("#decoder option[value=itoh]", state="attached")
+    return page
+
+
+def api_requests(page: Page, prefix: str) -> list[str]:
+    """The URLs the page requests under ``prefix``, appended as they go out."""
+    seen: list[str] = []
+    page.on("request", lambda request: seen.append(request.url) if prefix in request.url else None)
+    return seen
+
+
+def submit(page: Page, path: Path) -> str:
+    """Upload ``path``, press Run, and return the job id once the status shows it."""
+    page.set_input_files("#file", str(path))
+    before = page.inner_text("#status")
+    page.click("#run")
+    page.wait_for_function(
+        "before => { const now = document.getElementById('status').textContent;"
+        " return now !== before && /job [0-9a-f]{32}/.test(now); }",
+        arg=before,
+    )
+    found = JOB_ID.search(page.inner_text("#status"))
+    assert found is not None
+    return found.group(1)
+
+
+def wait_for_status(page: Page, text: str, timeout_ms: int = 30_000) -> str:
+    page.wait_for_function(
+        f"document.getElementById('status').textContent.includes({text!r})", timeout=timeout_ms
+    )
+    return page.inner_text("#status")
+
+
+def panels_empty(page: Page) -> bool:
+    """No result image, a blank histogram and no download."""
+    return bool(
+        page.evaluate(
+            f"{PANELS}.every(id => !document.getElementById(id).getAttribute('src'))"
+            " && (() => { const shown = document.getElementById('histogram');"
+            " const blank = document.createElement('canvas');"
+            " blank.width = shown.width; blank.height = shown.height;"
+            " return shown.toDataURL() === blank.toDataURL(); })()"
+        )
+    ) and page.is_disabled("#download")
+
+
+def wait_for_panels(page: Page) -> None:
+    page.wait_for_function("!document.getElementById('download').disabled")
+    page.wait_for_function(  # blob images decode asynchronously
+        f"{PANELS}.every(id => {{ const image = document.getElementById(id);"
+        f" return image.complete && image.naturalWidth === {SIZE}; }})"
+    )
+
+
+def test_a_job_is_followed_across_a_server_restart(
+    browser: Browser, settings: Settings, frame: Path
+) -> None:
+    with serve(create_app(settings)) as url:
+        page = open_viewer(browser, url)
+        job_id = submit(page, frame)  # no worker yet: the job waits in the queue
+        wait_for_status(page, "queued")
+    status = wait_for_status(page, "connection to the server lost")
+    assert job_id in status and "retrying in" in status
+    assert page.get_attribute("#status", "class") == "warning"
+    assert page.is_disabled("#run") and page.is_enabled("#cancel")
+
+    port = int(url.rsplit(":", 1)[1])
+    with serve(create_app(settings), port), running_worker(settings):
+        assert wait_for_status(page, "succeeded") == f"job {job_id}: succeeded"
+        wait_for_panels(page)
+    assert page.is_enabled("#run") and page.is_disabled("#cancel")
+
+
+def test_a_stuck_job_is_polled_gently_and_can_be_cancelled(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    page = open_viewer(browser, api)
+    job_requests = api_requests(page, "/v1/jobs/")
+    job_id = submit(page, frame)  # no worker: the job stays queued
+    started = time.monotonic()
+    page.wait_for_timeout(4_000)
+    polls = [url for url in job_requests if url.endswith(f"/v1/jobs/{job_id}")]
+    elapsed = time.monotonic() - started
+    assert len(polls) <= 2 + elapsed / 0.5, f"{len(polls)} polls in {elapsed:.1f} s"
+    assert page.inner_text("#status") == f"job {job_id}: queued"
+    assert page.is_disabled("#run")
+    page.click("#cancel")
+    assert wait_for_status(page, "cancelled") == f"job {job_id}: cancelled"
+    assert page.is_enabled("#run") and page.is_disabled("#cancel")
+
+
+def test_panels_show_only_a_succeeded_job(
+    browser: Browser, api: str, settings: Settings, frame: Path, tmp_path: Path
+) -> None:
+    page = open_viewer(browser, api)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    overflow = tmp_path / "overflow.npy"
+    overflow.write_bytes(npy_bytes(overflowing_codes(SIZE)))
+    with running_worker(settings):
+        submit(page, frame)
+        wait_for_panels(page)
+        page.select_option("#encoding", "mantissa")
+        page.fill("#alpha", "1e6")
+        page.fill("#bits", "8")
+        submit(page, overflow)
+        assert "output_overflow" in wait_for_status(page, "failed")
+        assert panels_empty(page), "the failed job left the previous job's results on screen"
+
+    page.select_option("#encoding", "")
+    page.fill("#alpha", "")
+    page.fill("#bits", "")
+    page.wait_for_function("!document.getElementById('run').disabled")
+    job_requests = api_requests(page, "/v1/jobs/")
+    job_id = submit(page, frame)  # the worker is gone: the job stays queued
+    page.fill("#exposure", "-2")
+    page.dispatch_event("#exposure", "input")
+    page.wait_for_timeout(1_000)
+    assert page.inner_text("#status") == f"job {job_id}: queued"
+    assert panels_empty(page), "the slider fetched a preview of a job still in the queue"
+    assert not any("/result" in url for url in job_requests)
+    page.click("#cancel")
+    wait_for_status(page, "cancelled")
+    assert errors == []
+
+
+def test_a_rate_limited_poll_waits_as_retry_after_says(
+    browser: Browser, redis_url: str, frame: Path, tmp_path: Path
+) -> None:
+    settings = make_settings(tmp_path, redis_url, rate_limit_per_minute=6)
+    with serve(create_app(settings)) as url:
+        page = open_viewer(browser, url)  # GET /v1/decoders: 1 of 6
+        polls = api_requests(page, "/v1/")
+        job_id = submit(page, frame)  # POST: 2 of 6; the 7th request is refused
+        status = wait_for_status(page, "rate_limited")
+        assert job_id in status and page.get_attribute("#status", "class") == "warning"
+        waiting = re.search(r"retrying in (\d+) s", status)
+        assert waiting is not None and int(waiting.group(1)) >= 30, status
+        refused = len(polls)
+        page.wait_for_timeout(2_000)
+        assert len(polls) == refused, "the page polled again before Retry-After"
+        assert page.is_enabled("#cancel")
+
+
+def test_a_job_gone_from_the_server_is_given_up_with_a_clear_message(
+    browser: Browser, api: str, settings: Settings, frame: Path
+) -> None:
+    page = open_viewer(browser, api)
+    job_id = submit(page, frame)
+    wait_for_status(page, "queued")
+    assert settings.redis_url is not None
+    connect(settings.redis_url).delete(job_key(job_id))  # as when its record expires
+    page.wait_for_function("!document.getElementById('run').disabled")
+    status = page.inner_text("#status")
+    assert status.startswith(f"job {job_id} no longer exists on the server"), status
+    assert "submit the frame again" in status
+    assert page.get_attribute("#status", "class") == "error"
+    assert page.is_disabled("#cancel")
+
+
+def register_device(redis_url: str, device: str) -> None:
+    """A device whose daemon registered it and went quiet a minute ago (so it may be
+    forgotten): in the device set, with its last health."""
+    client = connect(redis_url)
+    client.sadd(DEVICES_SET, device)
+    minute_ago = time.time_ns() - 60 * 10**9
+    health = {"state": "connected", "updated_ns": minute_ago, "frames_ok": 0, "fps": 0.0}
+    client.hset(health_key(device), mapping={**health, "sequence_gaps": 0, "reconnects": 0})
+
+
+def watch_device(page: Page, device: str) -> list[str]:
+    """List the devices, pick ``device``; the device requests the page makes from then."""
+    page.click("#live-refresh")
+    page.wait_for_selector(f"#live-device option[value={device}]", state="attached")
+    polls = api_requests(page, f"/v1/devices/{device}")
+    page.select_option("#live-device", device)
+    return polls
+
+
+def test_the_live_view_waits_out_a_rate_limit(
+    browser: Browser, redis_url: str, tmp_path: Path
+) -> None:
+    settings = make_settings(tmp_path, redis_url, rate_limit_per_minute=5)
+    register_device(redis_url, "cam1")
+    with serve(create_app(settings)) as url:
+        page = open_viewer(browser, url)  # GET /v1/decoders: 1 of 5
+        polls = watch_device(page, "cam1")  # the list: 2; polls 3 to 5; the 6th is refused
+        page.wait_for_function(
+            "document.getElementById('live-status').textContent.includes('rate_limited')"
+        )
+        status = page.inner_text("#live-status")
+        assert status.startswith("device cam1: ") and "retrying in" in status, status
+        refused = len(polls)
+        page.wait_for_timeout(2_500)
+        assert len(polls) == refused, "the live view polled again before Retry-After"
+
+
+def test_the_live_view_stops_watching_a_forgotten_device(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api)
+    polls = watch_device(page, "cam1")
+    page.wait_for_function("document.getElementById('live-status').textContent.includes('silent')")
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    assert httpx.delete(f"{api}/v1/devices/cam1", headers=headers).status_code == 200
+    page.wait_for_function(
+        "document.getElementById('live-status').textContent.includes('no longer known')"
+    )
+    assert "press List devices" in page.inner_text("#live-status")
+    stopped = len(polls)
+    page.wait_for_timeout(2_500)
+    assert len(polls) == stopped, "the live view kept polling a device the server forgot"
