@@ -26,8 +26,9 @@ import OpenEXR
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError, McamError, UnsupportedFormatError
-from models.formation import ensure_fits, validate_irradiance
+from models.formation import validate_irradiance
 from models.frames import check_pixel_count, decoding
+from models.output_range import ensure_fits
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 RADIANCE_MAGICS = (b"#?RADIANCE", b"#?RGBE")

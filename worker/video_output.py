@@ -37,9 +37,9 @@ from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTr
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import ensure_fits, ensure_nonzero_kept
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 from models.metrics import reinhard
+from models.output_range import ensure_fits, ensure_nonzero_kept
 
 #: ITU-R BT.2408 reference (diffuse) white, cd/m^2.
 REFERENCE_WHITE = 203.0
