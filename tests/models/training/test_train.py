@@ -298,11 +298,12 @@ def test_a_signal_stops_after_the_step_with_a_checkpoint_that_resumes(
 ) -> None:
     whole = load_checkpoint(train(tiny_config(tmp_path / "a", (1, 2, 2))))
     config = replace(tiny_config(tmp_path / "b", (1, 2, 2)), workers=workers)
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     with pytest.raises(Stopped, match="resume from step 3") as caught:
         train(config, signal_at(3, signum))
     assert (caught.value.signum, caught.value.step, caught.value.total) == (signum, 3, 5)
     assert load_checkpoint(caught.value.checkpoint)["step"] == 3
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert {s: signal.getsignal(s) for s in handlers} == handlers  # restored (SIG_IGN under nohup)
     resumed = load_checkpoint(train(config))
     assert resumed["step"] == 5
     for key, value in whole["model"].items():
