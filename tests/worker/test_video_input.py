@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import io
+import struct
+import tracemalloc
 import zipfile
+import zlib
 
 import numpy as np
 import pytest
@@ -115,6 +118,39 @@ def test_a_zip_entry_that_inflates_past_any_frame_is_not_inflated() -> None:
     assert len(buffer.getvalue()) < 2**15
     with pytest.raises(ImageTooLargeError, match="frame_0.png inflates to 4194304 bytes"):
         decode_video(buffer.getvalue(), "zip", FLAGS, VideoLimits(pixels=64 * 64))
+
+
+def lying_zip(png: bytes, hidden_mib: int) -> bytes:
+    """A zip whose one entry declares ``len(png)`` bytes (with the PNG's CRC) while its
+    deflate stream goes on inflating ``hidden_mib`` MiB of zeros past them."""
+    deflate = zlib.compressobj(9, zlib.DEFLATED, -15)
+    stream = deflate.compress(png)
+    for _ in range(hidden_mib):
+        stream += deflate.compress(bytes(2**20))
+    stream += deflate.flush()
+    name, crc = b"frame_0.png", zlib.crc32(png)
+    sizes = (crc, len(stream), len(png), len(name))
+    local = struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, 8, 0, 0, *sizes, 0) + name
+    central = struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, 20, 0, 8, 0, 0, *sizes,
+                          0, 0, 0, 0, 0, 0) + name  # fmt: skip
+    end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 1, 1, len(central),
+                      len(local) + len(stream), 0)  # fmt: skip
+    return local + stream + central + end
+
+
+def test_a_zip_entry_lying_about_its_size_is_inflated_only_that_far() -> None:
+    """zipfile's one-call read inflated up to 2 GiB before cutting to the declared size
+    (a 1 MB upload took the API to 2.2 GiB); chunked reads stop at the declared size."""
+    png = encode_frame(codes(1)[0], PARAMS, "png")
+    data = lying_zip(png, hidden_mib=256)
+    tracemalloc.start()
+    try:
+        video = decode_video(data, "zip", None, VideoLimits(pixels=64 * 64))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert video.codes.shape == (1, *codes(1)[0].shape)
+    assert peak < 32 * 2**20, f"{peak / 2**20:.0f} MiB held while decoding a {len(data)} B zip"
 
 
 @pytest.mark.parametrize(
