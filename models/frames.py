@@ -32,6 +32,7 @@ import tifffile
 from numpy.typing import NDArray
 from PIL import Image, PngImagePlugin, UnidentifiedImageError
 
+from models.decoders.base import check_shape
 from models.errors import (
     ImageTooLargeError,
     InvalidInputError,
@@ -40,7 +41,7 @@ from models.errors import (
     UnsupportedFormatError,
 )
 from models.formation import SensorParams, validate_codes
-from models.tiff_pages import open_tiff, page_codes
+from models.tiff_pages import open_tiff, page_codes, page_shape
 
 FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
 #: PNG text-chunk keyword holding the parameters as JSON.
@@ -230,6 +231,7 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[
             )
         page = tif.pages.first
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
+        check_shape(page_shape(page))  # a page of 1000 samples a pixel decoded first
         return page_codes(page), tiff_params(page.description)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import struct
+import tracemalloc
 import zlib
 from pathlib import Path
 
@@ -333,6 +334,23 @@ def test_a_separate_plane_rgb_tiff_is_read_samples_last() -> None:
     )  # fmt: skip
     frame = decode_frame(buffer.getvalue(), "tiff")
     np.testing.assert_array_equal(frame.codes, np.moveaxis(rgb, 0, -1))
+
+
+def test_a_tiff_of_many_samples_a_pixel_is_refused_from_its_header() -> None:
+    """1000 zlib-compressed samples a pixel: a small upload that decoded into hundreds
+    of MB before the channel count was checked."""
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, np.zeros((256, 256, 1000), np.uint8), photometric="minisblack",
+                     planarconfig="contig", compression="zlib", metadata=None)
+    assert len(buffer.getvalue()) < 2**20
+    tracemalloc.start()
+    try:
+        with pytest.raises(InvalidInputError, match="1 or 3 channels"):
+            decode_frame(buffer.getvalue(), "tiff", PARAMS_8.model_dump())
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MiB decoded before the refusal"
 
 
 def test_an_lzw_tiff_is_refused_as_unsupported_compression_not_damage() -> None:
