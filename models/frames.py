@@ -32,7 +32,6 @@ import tifffile
 from numpy.typing import NDArray
 from PIL import Image, PngImagePlugin, UnidentifiedImageError
 
-from models.decoders.base import check_shape
 from models.errors import (
     ImageTooLargeError,
     InvalidInputError,
@@ -83,6 +82,18 @@ def check_pixel_count(width: int, height: int, max_pixels: int | None) -> None:
         raise ImageTooLargeError(
             f"the image is {width} x {height} = {width * height} pixels, above the limit of "
             f"{max_pixels}; send a smaller image or raise the pixel limit (MCAM_MAX_PIXELS)"
+        )
+
+
+def check_samples(shape: tuple[int, ...], max_pixels: int | None) -> None:
+    """Raise :class:`ImageTooLargeError` when a frame of ``shape`` (from a file's header)
+    holds more samples than an RGB frame of ``max_pixels``: a compressed TIFF of 1000
+    samples a pixel decoded to gigabytes before its channels were looked at."""
+    samples = int(np.prod(shape, dtype=np.int64))
+    if max_pixels is not None and samples > 3 * max_pixels:
+        raise ImageTooLargeError(
+            f"the image's shape {shape} holds {samples} samples, more than an RGB frame of "
+            f"at most {max_pixels} pixels ({3 * max_pixels}); a frame is grey or RGB"
         )
 
 
@@ -231,7 +242,7 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[
             )
         page = tif.pages.first
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
-        check_shape(page_shape(page))  # a page of 1000 samples a pixel decoded first
+        check_samples(page_shape(page), max_pixels)
         return page_codes(page), tiff_params(page.description)
 
 

@@ -42,22 +42,17 @@ class DecodeResult:
 
 def check_frame_shape(codes: NDArray[Any]) -> None:
     """Reject frames a decoder cannot unwrap: not 2-D/3-D, or smaller than 2 x 2."""
-    check_shape(codes.shape)
-
-
-def check_shape(shape: tuple[int, ...]) -> None:
-    """:func:`check_frame_shape` from a shape alone (a file's header, before decoding)."""
-    if len(shape) == 3 and shape[2] not in (1, 3):
-        alpha = " (RGB without its alpha channel)" if shape[2] == 4 else ""
+    if codes.ndim == 3 and codes.shape[2] not in (1, 3):
+        alpha = " (RGB without its alpha channel)" if codes.shape[2] == 4 else ""
         raise InvalidInputError(
-            f"a frame has 1 or 3 channels (grey or RGB), got shape {shape}; give "
+            f"a frame has 1 or 3 channels (grey or RGB), got shape {codes.shape}; give "
             f"H x W or H x W x 3{alpha}"
         )
-    if len(shape) not in (2, 3):
-        raise InvalidInputError(f"a frame is H x W or H x W x 3, got shape {shape}")
-    if shape[0] < 2 or shape[1] < 2:
+    if codes.ndim not in (2, 3):
+        raise InvalidInputError(f"a frame is H x W or H x W x 3, got shape {codes.shape}")
+    if codes.shape[0] < 2 or codes.shape[1] < 2:
         raise InvalidInputError(
-            f"a {shape[0]} x {shape[1]} frame has no neighbours to unwrap against; "
+            f"a {codes.shape[0]} x {codes.shape[1]} frame has no neighbours to unwrap against; "
             "spatial decoders need at least 2 x 2 pixels"
         )
 
