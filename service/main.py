@@ -77,7 +77,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     registry, requests = build_registry(current_state)
     app.state.metrics_registry = registry
-    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes,
+                       json_limit=settings.max_json_bytes)
     app.add_middleware(RequestTimer, histogram=requests)
     app.add_middleware(HeadRequestMiddleware)
     app.mount("/", StaticFiles(directory=STATIC_DIR, html=True), name="viewer")

@@ -1,8 +1,12 @@
-"""Upload size limit enforced while the body streams in (never buffered whole first).
+"""Body size limits enforced while the body streams in (never buffered whole first).
 
 A declared ``Content-Length`` above the limit is refused before any byte is
 read; a chunked body is counted as it arrives and refused the moment it
-crosses the limit. Both answer 413 with code ``image_too_large``.
+crosses the limit. Uploads (any body but JSON or a URL-encoded form) answer 413
+``image_too_large``; a JSON or URL-encoded body has a limit of its own,
+``MCAM_MAX_JSON_BYTES``, and answers 413 ``body_too_large``: a control command or a
+recording request is a few hundred bytes, and FastAPI parses a JSON body before the
+API key is checked (a 22 MB body from no key at all took the API 650 MB).
 """
 
 from __future__ import annotations
@@ -13,9 +17,12 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.errors import ApiError, error_body
 
+#: Media types of small bodies (commands, forms of fields): :attr:`json_limit` applies.
+SMALL_BODY_TYPES = (b"application/json", b"application/x-www-form-urlencoded")
+
 
 def too_large(limit: int) -> ApiError:
-    """The 413 error for a body above ``limit`` bytes."""
+    """The 413 error for an upload above ``limit`` bytes."""
     return ApiError(
         413,
         "image_too_large",
@@ -24,20 +31,41 @@ def too_large(limit: int) -> ApiError:
     )
 
 
-class BodyLimitMiddleware:
-    """ASGI middleware: at most ``limit`` request-body bytes per request."""
+def body_too_large(limit: int) -> ApiError:
+    """The 413 error for a JSON or URL-encoded body above ``limit`` bytes."""
+    return ApiError(
+        413,
+        "body_too_large",
+        f"the JSON or form body exceeds {limit} bytes; commands and fields are a few "
+        "hundred bytes (files go as multipart uploads); or raise MCAM_MAX_JSON_BYTES",
+    )
 
-    def __init__(self, app: ASGIApp, limit: int) -> None:
+
+class BodyLimitMiddleware:
+    """ASGI middleware: at most ``limit`` request-body bytes per upload, ``json_limit``
+    per JSON or URL-encoded body."""
+
+    def __init__(self, app: ASGIApp, limit: int, json_limit: int) -> None:
         self.app = app
         self.limit = limit
+        self.json_limit = json_limit
+
+    def _error(self, headers: dict[bytes, bytes]) -> tuple[int, ApiError]:
+        """The limit for a request with ``headers``, and the error past it."""
+        media = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
+        if media in SMALL_BODY_TYPES or media.endswith(b"+json"):
+            return self.json_limit, body_too_large(self.json_limit)
+        return self.limit, too_large(self.limit)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.limit:
-            await self._refuse(send)
+        headers = dict(scope["headers"])
+        limit, error = self._error(headers)
+        declared = headers.get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > limit:
+            await self._refuse(send, error)
             return
         received = 0
 
@@ -46,14 +74,14 @@ class BodyLimitMiddleware:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.limit:
-                    raise too_large(self.limit)
+                if received > limit:
+                    raise error
             return message
 
         await self.app(scope, limited_receive, send)
 
-    async def _refuse(self, send: Send) -> None:
-        detail = too_large(self.limit).detail
+    async def _refuse(self, send: Send, error: ApiError) -> None:
+        detail = error.detail
         body = json.dumps(error_body(detail["code"], detail["message"])).encode()
         await send(
             {

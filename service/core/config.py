@@ -34,6 +34,9 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
+    max_json_bytes: int = Field(
+        64 * 1024, gt=0, description="a JSON or URL-encoded body (commands, form fields)"
+    )
     max_pixels: int = Field(4096 * 4096, gt=0, description="per frame (all frames of a video)")
     max_video_frames: int = Field(600, gt=0)
     max_video_samples: int = Field(
