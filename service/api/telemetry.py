@@ -112,6 +112,11 @@ def build_registry(state: Callable[[], ServiceState]) -> tuple[CollectorRegistry
     return registry, requests
 
 
+#: Methods kept as metric labels; any other (a client may send any token) is "other",
+#: so that made-up methods cannot grow the label set without bound.
+HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
 class RequestTimer:
     """ASGI middleware observing each HTTP request's duration into ``histogram``."""
 
@@ -137,6 +142,7 @@ class RequestTimer:
         finally:
             route = getattr(scope.get("route"), "path", None)
             route = "unmatched" if route is None else route or "/"
-            self.histogram.labels(scope["method"], route, str(status)).observe(
+            method = scope["method"] if scope["method"] in HTTP_METHODS else "other"
+            self.histogram.labels(method, route, str(status)).observe(
                 time.perf_counter() - start
             )

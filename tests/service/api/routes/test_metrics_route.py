@@ -63,3 +63,14 @@ def test_metrics_after_one_job(client: Client, worker: Worker) -> None:
         (("method", "POST"), ("route", "/v1/reconstructions"), ("status", "200")),
     )
     assert values[posted] == 1.0
+
+
+def test_made_up_methods_share_one_label(client: Client) -> None:
+    """Any token is a valid HTTP method: each used to add a label value for good."""
+    http = client()
+    for n in range(5):
+        http.request(f"FAKE{n}", "/health/live")
+    values = samples(httpx.get(f"{str(http.base_url).rstrip('/')}/metrics").text)
+    methods = {dict(labels)["method"] for name, labels in values
+               if name == "mcam_http_request_duration_seconds_count"}
+    assert "other" in methods and not any(m.startswith("FAKE") for m in methods)
