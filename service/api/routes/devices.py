@@ -149,7 +149,8 @@ def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
 def _check_entry_id(name: str, value: str | None) -> None:
     """Refuse an event id Redis would reject once the stream has started: both parts of
     ``<ms>-<seq>`` are unsigned 64-bit integers."""
-    if value and "-" in value and any(int(part) >= 2**64 for part in value.split("-")):
+    parts = value.split("-") if value and "-" in value else []
+    if any(len(part) > 20 or int(part) >= 2**64 for part in parts):
         raise InvalidInputError(
             f"{name} {value!r} is not an event id: both parts of '<ms>-<seq>' are below "
             "2^64; resume from the last id the stream sent, or leave it out for new events"

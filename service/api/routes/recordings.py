@@ -51,6 +51,10 @@ class RecordingFields(VideoOptionFields):
     max_frames: int = Field(300, ge=1, description="the recording stops by itself after these")
 
 
+#: A recording form names a handful of fields; Starlette's default allows 1000 and files.
+MAX_FORM_FIELDS = 32
+
+
 async def read_fields(request: Request) -> RecordingFields:
     """The fields from the query, updated by a JSON or form body (422 if bad)."""
     values: dict[str, Any] = dict(request.query_params)
@@ -58,13 +62,13 @@ async def read_fields(request: Request) -> RecordingFields:
     if media == "application/json":
         try:
             body = await request.json()
-        except ValueError:
+        except (ValueError, RecursionError):
             raise InvalidInputError("the JSON body is malformed; send an object") from None
         if not isinstance(body, dict):
             raise InvalidInputError("the JSON body must be an object, e.g. {\"action\": \"start\"}")
         values |= body
     elif media in ("application/x-www-form-urlencoded", "multipart/form-data"):
-        async with request.form() as form:
+        async with request.form(max_files=0, max_fields=MAX_FORM_FIELDS) as form:
             values |= {name: value for name, value in form.items() if isinstance(value, str)}
     try:
         return RecordingFields.model_validate(values)
