@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 from fastapi.responses import JSONResponse
@@ -35,10 +36,18 @@ def accepted_response(record: JobRecord) -> JSONResponse:
     )
 
 
-def job_response(queue: JobQueue, record: JobRecord, wait_s: float) -> JSONResponse:
-    """200 with the job if it finishes within ``wait_s`` (``Prefer: wait``), else 202."""
-    if wait_s > 0:
-        record = queue.wait(record.id, wait_s)
+def job_response(
+    queue: JobQueue, record: JobRecord, wait_s: float, slots: threading.BoundedSemaphore
+) -> JSONResponse:
+    """200 with the job if it finishes within ``wait_s`` (``Prefer: wait``), else 202.
+    A wait holds a server thread, so only as many requests as ``slots`` allows wait at
+    once; the others get their 202 at once (42 waiting uploads from one key made every
+    other request wait 22 s for a thread)."""
+    if wait_s > 0 and slots.acquire(blocking=False):
+        try:
+            record = queue.wait(record.id, wait_s)
+        finally:
+            slots.release()
         if record.state.finished:
             return JSONResponse(
                 job_view(record).model_dump(mode="json"),

@@ -8,6 +8,7 @@ data dir itself (the embedded default when the API runs alone).
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 
 import redis
@@ -31,6 +32,8 @@ class ServiceState:
     limiter: RateLimiter
     store: ResultStore
     redis_url: str
+    #: Requests that may hold a server thread waiting for their job (``Prefer: wait``).
+    wait_slots: threading.BoundedSemaphore
     embedded: EmbeddedRedis | None = None
     _queue: JobQueue | None = field(default=None, repr=False)
 
@@ -77,4 +80,5 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
         store=ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s),
         redis_url=url,
         embedded=embedded,
+        wait_slots=threading.BoundedSemaphore(settings.max_waiting_requests),
     )

@@ -48,6 +48,10 @@ class Settings(BaseSettings):
         "worker holds about 20 bytes each while decoding",
     )
     rate_limit_per_minute: int = Field(600, gt=0, description="requests per API key in any 60 s")
+    max_waiting_requests: int = Field(
+        16, ge=0, le=32,
+        description="requests held open at once by 'Prefer: wait' (the API has 40 threads)",
+    )  # fmt: skip
     max_prefer_wait_s: float = Field(
         60.0, ge=0, description="longest 'Prefer: wait=N' a request may block for its job"
     )

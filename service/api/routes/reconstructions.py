@@ -94,7 +94,7 @@ def submit(
             "exr_compression": fields.exr_compression,
         },
     )
-    return job_response(state.queue, record, wait_s)
+    return job_response(state.queue, record, wait_s, state.wait_slots)
 
 
 @router.post(

@@ -125,7 +125,8 @@ def stop(state: ServiceState, device: str, wait_s: float) -> Response:
                        f"{recording.error}")
     if recording.job is None:
         return _recording_response(recording, 202)
-    return job_response(state.queue, state.queue.get(recording.job), wait_s)
+    return job_response(state.queue, state.queue.get(recording.job), wait_s,
+                        state.wait_slots)
 
 
 @router.post(

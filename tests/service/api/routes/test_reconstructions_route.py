@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import io
+import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -12,7 +15,19 @@ import pytest
 
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
-from tests.service.conftest import PARAMS, READ_KEY, SUBMIT_KEY, frame_png, npy_bytes
+from service.main import create_app
+from tests.service.conftest import (
+    FULL_KEY,
+    PARAMS,
+    READ_KEY,
+    SUBMIT_KEY,
+    frame_png,
+    make_settings,
+    npy_bytes,
+    serve,
+)
+from worker.embedded_redis import connect
+from worker.redis_keys import JOBS_STREAM
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
@@ -253,3 +268,27 @@ def test_read_only_key_cannot_submit(client: Client) -> None:
     data, _ = frame_png()
     reply = client(READ_KEY).post("/v1/reconstructions", files={"file": ("f.png", data)})
     assert reply.status_code == 403 and reply.json()["code"] == "forbidden"
+
+
+def test_only_so_many_requests_wait_for_their_jobs_at_once(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """A wait holds one of the server's threads: past ``max_waiting_requests`` an
+    upload gets its 202 at once (no worker runs, so a waiting one waits it out)."""
+    settings = make_settings(tmp_path, redis_url, max_waiting_requests=1)
+    data, _ = frame_png()
+
+    def upload(url: str, wait_s: int) -> httpx.Response:
+        return httpx.post(f"{url}/v1/reconstructions", files={"file": ("f.png", data)},
+                          headers={"Authorization": f"Bearer {FULL_KEY}",
+                                   "Prefer": f"wait={wait_s}"}, timeout=60)
+
+    with serve(create_app(settings)) as url, ThreadPoolExecutor(1) as pool:
+        waiting = pool.submit(upload, url, 8)
+        while not waiting.done() and not connect(redis_url).xlen(JOBS_STREAM):
+            time.sleep(0.05)
+        time.sleep(0.5)  # from queued to waiting: one Redis read
+        hurried = upload(url, 8)
+        assert hurried.status_code == 202 and "preference-applied" not in hurried.headers
+        assert not waiting.done(), "the first upload should still be waiting for its job"
+        assert waiting.result().status_code == 202
