@@ -36,6 +36,7 @@ ROUTERS: tuple[str, ...] = (
     "service.api.routes.health",
     "service.api.routes.metrics",
     "service.api.routes.devices",
+    "service.api.routes.device_events",
     "service.api.routes.videos",
     "service.api.routes.recordings",
 )

@@ -22,6 +22,37 @@ from worker.result_store import RESULTS_DIR, ResultStore
 log = logging.getLogger(__name__)
 
 
+class StreamSlots:
+    """A count of long-lived streams, at most ``limit`` at once (thread-safe)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self._open = 0
+        self._lock = threading.Lock()
+
+    @property
+    def full(self) -> bool:
+        return self._open >= self.limit
+
+    @property
+    def refusal(self) -> str:
+        """Why a stream was refused, and what to do."""
+        return (f"{self.limit} event streams are open, the most this server keeps "
+                "(MCAM_MAX_EVENT_STREAMS); close one or retry shortly")
+
+    def take(self) -> bool:
+        """Open a stream if one is free."""
+        with self._lock:
+            if self._open >= self.limit:
+                return False
+            self._open += 1
+            return True
+
+    def release(self) -> None:
+        with self._lock:
+            self._open -= 1
+
+
 @dataclass
 class ServiceState:
     """Per-process resources; the job queue is created on first use (it needs Redis up)."""
@@ -34,6 +65,8 @@ class ServiceState:
     redis_url: str
     #: Requests that may hold a server thread waiting for their job (``Prefer: wait``).
     wait_slots: threading.BoundedSemaphore
+    #: Server-sent event streams open at once (each holds a blocked Redis connection).
+    event_slots: StreamSlots
     embedded: EmbeddedRedis | None = None
     _queue: JobQueue | None = field(default=None, repr=False)
 
@@ -81,4 +114,5 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
         redis_url=url,
         embedded=embedded,
         wait_slots=threading.BoundedSemaphore(settings.max_waiting_requests),
+        event_slots=StreamSlots(settings.max_event_streams),
     )

@@ -52,6 +52,10 @@ class Settings(BaseSettings):
         16, ge=0, le=32,
         description="requests held open at once by 'Prefer: wait' (the API has 40 threads)",
     )  # fmt: skip
+    max_event_streams: int = Field(
+        64, ge=1, le=10_000,
+        description="server-sent event streams open at once (each holds a Redis connection)",
+    )  # fmt: skip
     max_prefer_wait_s: float = Field(
         60.0, ge=0, description="longest 'Prefer: wait=N' a request may block for its job"
     )

@@ -1,20 +1,17 @@
 """``/v1/devices``: camera links (health from the daemons), control commands, the newest
-reconstruction, and a server-sent event stream of what happens to a device's frames."""
+reconstruction; forgetting a retired camera. Its event stream: :mod:`.device_events`."""
 
 from __future__ import annotations
 
 import json
 import time
-from collections.abc import AsyncIterator
 from typing import Annotated, Any, Literal
 
 import redis
-from fastapi import APIRouter, Body, Header, Query, Response
-from fastapi.responses import StreamingResponse
+from fastapi import APIRouter, Body, Query, Response
 
 from device.commands import Command, command_fields
 from device.health import ALL_DROP_CAUSES
-from models.errors import InvalidInputError
 from models.hdr_io import read_hdr
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file
@@ -23,11 +20,9 @@ from service.api.previews import scene_to_wrap_units, tonemap_png
 from service.api.schemas import AUTH_ERRORS, error_response
 from service.api.state import ServiceState
 from worker.device_registry import forget_device
-from worker.embedded_redis import connect_async
 from worker.redis_keys import (
     DEVICES_SET,
     control_stream,
-    events_stream,
     health_key,
     latest_key,
     validate_device_id,
@@ -37,15 +32,14 @@ router = APIRouter(prefix="/v1/devices", tags=["devices"])
 DEVICE_ERRORS = {**AUTH_ERRORS, 404: error_response("no such device")}
 #: Control stream bound (commands are small and consumed at once by the daemon).
 CONTROL_MAXLEN = 1000
-#: How long one events poll blocks before a keep-alive comment (ms).
-EVENTS_BLOCK_MS = 1000
 #: A device whose daemon has not written its health for this long (s; it writes every
 #: 0.25 s) is shown as ``silent``: the daemon was stopped or killed, or lost Redis. Its
 #: last reported state stays in ``last_state``.
 DAEMON_SILENT_S = 10.0
 
 
-def _text(value: bytes | str) -> str:
+def as_text(value: bytes | str) -> str:
+    """A Redis reply as text."""
     return value.decode() if isinstance(value, bytes) else value
 
 
@@ -65,7 +59,7 @@ _TEXT_FIELDS = ("device", "port", "state", "port_error")
 
 def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
     """A device's health hash as JSON: counters as numbers, drops grouped by cause."""
-    fields = {_text(k): _text(v) for k, v in client.hgetall(health_key(device)).items()}
+    fields = {as_text(k): as_text(v) for k, v in client.hgetall(health_key(device)).items()}
     view: dict[str, Any] = {"id": device, "dropped": {}}
     for name, value in fields.items():
         if name.startswith("dropped_") and name[len("dropped_"):] in ALL_DROP_CAUSES:
@@ -75,7 +69,7 @@ def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
         else:
             view[name] = value if name in _TEXT_FIELDS else _number(value)
     latest = client.get(latest_key(device))
-    view["latest_result"] = _text(latest) if latest else None
+    view["latest_result"] = as_text(latest) if latest else None
     updated = view.get("updated_ns")
     if isinstance(updated, int):
         view["age_s"] = round((time.time_ns() - updated) / 1e9, 3)
@@ -94,7 +88,7 @@ def known_device(state: ServiceState, device: str) -> str:
 
 @router.get("", responses=AUTH_ERRORS, summary="List devices with their health")
 def list_devices(state: StateDep, _key: ReadKey) -> dict[str, list[dict[str, Any]]]:
-    devices = sorted(_text(d) for d in state.client.smembers(DEVICES_SET))
+    devices = sorted(as_text(d) for d in state.client.smembers(DEVICES_SET))
     return {"devices": [device_view(state.client, d) for d in devices]}
 
 
@@ -123,7 +117,7 @@ def control(device_id: str, command: Annotated[Command, Body()], state: StateDep
     device = known_device(state, device_id)
     entry = state.client.xadd(control_stream(device), command_fields(command),
                               maxlen=CONTROL_MAXLEN, approximate=True)
-    return {"device": device, "entry": _text(entry), "command": command.model_dump()}
+    return {"device": device, "entry": as_text(entry), "command": command.model_dump()}
 
 
 @router.get("/{device_id}/frames/latest", responses=DEVICE_ERRORS,
@@ -137,93 +131,10 @@ def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
         raise ApiError(404, "not_found", f"device {device!r} has no reconstructed frame yet")
     stem = f"{device}-latest"
     if format == "exr":
-        return stored_file(state.store, _text(key), MEDIA_TYPES["exr"], f"{stem}.exr",
+        return stored_file(state.store, as_text(key), MEDIA_TYPES["exr"], f"{stem}.exr",
                            immutable=False)
-    exr = state.store.read(_text(key))
+    exr = state.store.read(as_text(key))
     image = read_hdr(exr, name="the stored result")
     gain = image.attributes.get("gain")  # device frames are stored scene-referred
     x = scene_to_wrap_units(image.pixels, float(gain) if gain else None)
     return download(tonemap_png(x, exposure), "png", stem)
-
-
-def _check_entry_id(name: str, value: str | None) -> None:
-    """Refuse an event id Redis would reject once the stream has started: both parts of
-    ``<ms>-<seq>`` are unsigned 64-bit integers."""
-    parts = value.split("-") if value and "-" in value else []
-    if any(len(part) > 20 or int(part) >= 2**64 for part in parts):
-        raise InvalidInputError(
-            f"{name} {value!r} is not an event id: both parts of '<ms>-<seq>' are below "
-            "2^64; resume from the last id the stream sent, or leave it out for new events"
-        )
-
-
-def _entry_key(entry_id: str) -> tuple[int, int]:
-    ms, _, seq = entry_id.partition("-")
-    return int(ms), int(seq or 0)
-
-
-def _resume_point(client: redis.Redis, device: str, requested: str) -> tuple[str, str | None]:
-    """Where an event stream starts (an entry id; ``$``: after the newest), and a ``reset``
-    event when ``requested`` lies beyond every event the device has had: Redis lost its
-    data or the id was made up, so the client would otherwise wait for ever. It then
-    gets every event kept, from the oldest."""
-    newest = client.xrevrange(events_stream(device), count=1)
-    newest_id = _text(newest[0][0]) if newest else "0-0"
-    if requested == "$":
-        return newest_id, None
-    if requested == "0" or _entry_key(requested) <= _entry_key(newest_id):
-        return requested, None
-    reset = {"type": "reset", "requested": requested, "newest": newest_id,
-             "reason": "the requested event id is newer than any event of this device; "
-                       "the stream starts again from its oldest kept event"}
-    return "0", f"event: reset\ndata: {json.dumps(reset)}\n\n"
-
-
-async def _event_lines(
-    url: str, device: str, since: str, limit: int | None, preamble: str | None = None
-) -> AsyncIterator[str]:
-    """Server-sent events from ``events:<device>``, after entry ``since``. Async, on a
-    connection of its own: a waiting client holds no thread (as a blocking generator,
-    each held one of the server's 40 for a second per poll, and 100 idle clients made
-    every other request wait 3-8 s)."""
-    client = connect_async(url)
-    sent = 0
-    stream = events_stream(device)
-    last = since
-    try:
-        yield "retry: 2000\n\n"
-        if preamble:
-            yield preamble
-        while limit is None or sent < limit:
-            reply = await client.xread({stream: last}, count=64, block=EVENTS_BLOCK_MS)
-            if not reply:
-                yield ": keep-alive\n\n"
-                continue
-            for _, entries in reply:
-                for entry_id, fields in entries:
-                    last = _text(entry_id)
-                    data = {_text(k): _text(v) for k, v in fields.items()}
-                    yield f"id: {last}\nevent: {data.get('type', 'message')}\n" \
-                          f"data: {json.dumps(data)}\n\n"
-                    sent += 1
-                    if limit is not None and sent >= limit:
-                        return
-    finally:
-        await client.aclose()
-
-
-@router.get("/{device_id}/events", responses=DEVICE_ERRORS,
-            summary="Server-sent events: frame reconstructed, failed, drop, reconnect",
-            response_class=StreamingResponse)
-def events(device_id: str, state: StateDep, _key: ReadKey,
-           since: Annotated[str, Query(pattern=r"^(\$|0|\d+-\d+)$")] = "$",
-           limit: Annotated[int | None, Query(ge=1, le=100_000)] = None,
-           last_event_id: Annotated[str | None, Header(pattern=r"^\d+-\d+$")] = None,
-           ) -> StreamingResponse:
-    device = known_device(state, device_id)
-    for name, value in (("since", since), ("Last-Event-ID", last_event_id)):
-        _check_entry_id(name, value)
-    start, preamble = _resume_point(state.client, device, last_event_id or since)
-    return StreamingResponse(_event_lines(state.redis_url, device, start, limit, preamble),
-                             media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache"})

@@ -19,12 +19,13 @@ from models.formation import SensorParams, simulate
 from models.hdr_io import read_hdr
 from service.api.previews import srgb8
 from service.core.config import Settings
+from service.main import create_app
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
-from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY
+from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, make_settings, serve
 from worker.embedded_redis import connect
 from worker.outputs import encode_exr_result
-from worker.redis_keys import DEVICES_SET, health_key, latest_key
+from worker.redis_keys import DEVICES_SET, events_stream, health_key, latest_key
 from worker.result_store import RESULTS_DIR, ResultStore
 
 
@@ -115,6 +116,29 @@ def test_a_device_whose_daemon_went_quiet_is_shown_silent_and_can_be_forgotten(
     assert forgotten.json() == {"device": "gone", "forgotten": True, "frames_discarded": 0}
     assert client(READ_KEY).get("/v1/devices").json()["devices"] == []
     assert client(SUBMIT_KEY).delete("/v1/devices/gone").status_code == 404
+
+
+def test_event_streams_are_capped_and_a_closed_one_frees_its_slot(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """Each stream holds a Redis connection blocked on XREAD: 200 from one key took 213
+    connections and nothing ended them. Past MCAM_MAX_EVENT_STREAMS a new one is 503."""
+    settings = make_settings(tmp_path, redis_url, max_event_streams=2)
+    connect(redis_url).sadd(DEVICES_SET, "cam1")
+    connect(redis_url).xadd(events_stream("cam1"), {"type": "frame"})  # one for limit=1
+    headers = {"Authorization": f"Bearer {READ_KEY}"}
+    with serve(create_app(settings)) as url, httpx.Client(base_url=url, headers=headers) as http:
+        opened = [http.stream("GET", "/v1/devices/cam1/events") for _ in range(2)]
+        for stream in opened:
+            assert stream.__enter__().status_code == 200
+        refused = http.get("/v1/devices/cam1/events")
+        assert refused.status_code == 503 and refused.json()["code"] == "too_many_streams"
+        assert "MCAM_MAX_EVENT_STREAMS" in refused.text and refused.headers["retry-after"]
+        opened[0].__exit__(None, None, None)
+        one = {"since": "0", "limit": 1}
+        assert wait_for(lambda: http.get("/v1/devices/cam1/events", params=one).status_code
+                        == 200, 10)
+        opened[1].__exit__(None, None, None)
 
 
 def test_the_live_preview_shares_the_job_previews_wrap_units(
