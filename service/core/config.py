@@ -13,6 +13,7 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.outputs import STREAM_EXR_COMPRESSION
 
@@ -79,6 +80,14 @@ class Settings(BaseSettings):
         "results kept in stream order; unset: one per core (at most 8); 1: in the worker",
     )
     result_retention_s: float = Field(7 * 24 * 3600.0, gt=0)
+    dataset_max_pairs: int = Field(
+        DEFAULT_MAX_PAIRS, gt=0,
+        description="bracketed reference pairs kept per device; the oldest are removed",
+    )  # fmt: skip
+    dataset_max_bytes: int = Field(
+        DEFAULT_MAX_BYTES, gt=0,
+        description="bytes of bracketed reference pairs kept per device; the oldest are removed",
+    )  # fmt: skip
 
 
 @cache
