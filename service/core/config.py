@@ -34,6 +34,16 @@ class Settings(BaseSettings):
     )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
+    http_keep_alive_s: int = Field(
+        5, ge=1, description="an idle keep-alive connection is closed after this many seconds"
+    )
+    http_max_connections: int = Field(
+        256, ge=2,
+        description="open HTTP connections and requests at once; a request beyond them: 503",
+    )  # fmt: skip
+    http_max_header_bytes: int = Field(
+        16 * 1024, ge=1024, description="request line and headers, buffered before parsing"
+    )
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
     max_pixels: int = Field(4096 * 4096, gt=0, description="per frame (all frames of a video)")
     max_video_frames: int = Field(600, gt=0)
