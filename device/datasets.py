@@ -4,7 +4,7 @@ A pair lives in ``<data dir>/datasets/<device>/<host ns>-<sequence>/``: the host
 clock at saving (ns since the epoch, 20 digits) first, so folder names sort oldest
 first and a camera whose sequence counter restarted never overwrites an earlier pair.
 After each save :func:`prune_pairs` removes the oldest pairs of that device beyond a
-count or a size in bytes.
+count or a size in bytes. The folders are owner-only (0700).
 """
 
 from __future__ import annotations
@@ -15,7 +15,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from worker.private_dirs import PRIVATE_DIR_MODE, private_dir
+
 log = logging.getLogger(__name__)
+
+#: Sub-folder of the data dir that holds every device's pairs.
+DATASETS_DIR = "datasets"
 
 #: Default bounds per device: about 300 KB a pair for a 256 x 256 frame.
 DEFAULT_MAX_PAIRS = 1000
@@ -32,14 +37,15 @@ class DatasetLimits:
 
 def device_dir(root: Path, device: str) -> Path:
     """The folder holding one device's pairs."""
-    return Path(root) / "datasets" / device
+    return Path(root) / DATASETS_DIR / device
 
 
 def new_pair_folder(root: Path, device: str, sequence: int) -> Path:
     """Create and return an empty folder for a new pair (``FileExistsError`` if taken)."""
     folder = device_dir(root, device) / f"{time.time_ns():020d}-{sequence:010d}"
-    folder.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-    folder.mkdir(mode=0o700)
+    private_dir(Path(root) / DATASETS_DIR)
+    private_dir(folder.parent)
+    folder.mkdir(mode=PRIVATE_DIR_MODE)
     return folder
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import stat
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,8 @@ def test_the_same_sequence_gets_a_new_folder_each_time(tmp_path: Path) -> None:
     assert first != second and first.name.endswith("-0000000007")
     assert sorted([second.name, first.name]) == [first.name, second.name]
     assert first.parent == device_dir(tmp_path, "cam1")
+    for folder in (first, first.parent, first.parent.parent):
+        assert stat.S_IMODE(folder.stat().st_mode) == 0o700, folder
 
 
 def test_the_oldest_pairs_beyond_the_count_are_removed_and_logged(
