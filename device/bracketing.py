@@ -6,8 +6,9 @@ whose gain grows by a constant ratio. :func:`merge_exposures` is a
 Debevec-style merge for a linear sensor: each exposure's estimate of the scene
 ``z / gain`` is weighted by a hat function of its code value ``z`` that is zero
 for dark and saturated samples. :class:`BracketCollector` assembles the packets
-and :func:`save_pair` writes ``data_dir/datasets/<device>/<sequence>/`` with
-``wrapped.png`` (codes + params), ``reference.exr`` (scene-referred irradiance,
+and :func:`save_pair` writes a new folder of ``data_dir/datasets/<device>/``
+(:func:`device.datasets.new_pair_folder`: named by the host's clock, then the sequence)
+with ``wrapped.png`` (codes + params), ``reference.exr`` (scene-referred irradiance,
 the wrapped frame's ``x`` is ``gain * reference``) and ``meta.json``.
 """
 
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from device.datasets import new_pair_folder
 from device.link_protocol import FLAG_BRACKET, DataPacket
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize
@@ -116,14 +118,14 @@ class BracketCollector:
 
 
 def save_pair(root: Path, device: str, bracket: Bracket) -> Path:
-    """Write the (wrapped frame, reference HDR) pair; return its folder."""
+    """Write the (wrapped frame, reference HDR) pair in a new folder; return the folder."""
     wrapped = bracket.wrapped
     params = SensorParams.parse({"encoding": wrapped.encoding, "alpha": wrapped.alpha,
                                  "bits": wrapped.bits, "gain": wrapped.gain or None})
-    folder = Path(root) / "datasets" / device / f"{wrapped.sequence:010d}"
-    folder.mkdir(parents=True, exist_ok=True)
+    reference = bracket.reference()
+    folder = new_pair_folder(root, device, wrapped.sequence)
     write_frame(folder / "wrapped.png", wrapped.codes, params)
-    write_exr(folder / "reference.exr", bracket.reference(),
+    write_exr(folder / "reference.exr", reference,
               {"comments": "bracketed reference, scene-referred; x = gain * value"})
     meta = {
         "device": device,

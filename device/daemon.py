@@ -27,6 +27,7 @@ import serial
 
 from device.bracketing import BracketCollector, save_pair
 from device.commands import Command, to_packet
+from device.datasets import DatasetLimits, prune_pairs
 from device.health import DeviceHealth
 from device.link_parser import DROP_CAUSES, LinkParser
 from device.link_protocol import DEFAULT_MAX_PAYLOAD, FLAG_BRACKET, DataPacket, encode_control
@@ -64,6 +65,7 @@ class DaemonConfig:
     backoff_initial_s: float = 0.05
     backoff_max_s: float = 2.0
     data_dir: Path | None = None
+    dataset_limits: DatasetLimits = DatasetLimits()
 
 
 def packet_params(packet: DataPacket) -> SensorParams:
@@ -160,6 +162,10 @@ class DeviceDaemon:
             return
         self.health.add("brackets_saved")
         log.info("bracketed reference pair saved in %s", folder)
+        try:
+            prune_pairs(self.config.data_dir, self.device, self.config.dataset_limits)
+        except OSError as exc:
+            log.warning("old dataset pairs of %s not removed: %s", self.device, exc)
 
     def _feed(self, data: bytes) -> None:
         packets = self._parser.feed(data) if data else self._parser.expire()

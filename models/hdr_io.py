@@ -26,6 +26,7 @@ import OpenEXR
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError, McamError, UnsupportedFormatError
+from models.exr_limits import check_exr_size, part_size
 from models.formation import validate_irradiance
 from models.frames import check_pixel_count, decoding
 from models.output_range import ensure_fits
@@ -72,7 +73,11 @@ def _exr_file(source: Path | bytes, header_only: bool) -> Any:
 
 
 def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, str]]:
-    """Pixels and string attributes of the first part holding Y or R,G,B."""
+    """Pixels and string attributes of the first part holding Y or R,G,B.
+
+    Every part's size is checked on the headers (:func:`check_exr_size`) before the
+    binding decodes all parts and channels.
+    """
     headers = [part.header for part in _exr_file(source, header_only=True).parts]
     layouts = [_image_channels([ch.name for ch in header["channels"]]) for header in headers]
     index = next((i for i, layout in enumerate(layouts) if layout is not None), None)
@@ -82,8 +87,8 @@ def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any
             f"no part of the OpenEXR file has a Y or R,G,B image (channels: {', '.join(found)}); "
             "write the image as channel Y (grayscale) or R, G, B"
         )
-    (x0, y0), (x1, y1) = headers[index]["dataWindow"]
-    check_pixel_count(int(x1 - x0 + 1), int(y1 - y0 + 1), max_pixels)
+    check_pixel_count(*part_size(headers[index]), max_pixels)
+    check_exr_size(headers, max_pixels)
     parts = _exr_file(source, header_only=False).parts
     if len(parts) != len(headers):
         # OpenEXR.File drops a part whose pixel data fails to decode instead of raising.

@@ -1,7 +1,8 @@
 """The FastAPI application: ``create_app(settings)`` wires routers, errors, limits and metrics.
 
 Each resource's router lives in its own module under ``service/api/routes``
-and is listed once in :data:`ROUTERS`; the web viewer is served at ``/``.
+and is listed once in :data:`ROUTERS`; the web viewer is served at ``/`` with a
+Content Security Policy (:mod:`service.api.security_headers`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from models.decoders.registry import available_decoders
 from service.api.body_limit import BodyLimitMiddleware
 from service.api.errors import install_error_handlers
 from service.api.head_requests import HeadRequestMiddleware
+from service.api.security_headers import API_HEADERS, VIEWER_HEADERS, SecurityHeaders
 from service.api.state import ServiceState, open_state
 from service.api.telemetry import RequestTimer, build_registry
 from service.core.config import Settings, get_settings
@@ -82,5 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        json_limit=settings.max_json_bytes)
     app.add_middleware(RequestTimer, histogram=requests)
     app.add_middleware(HeadRequestMiddleware)
-    app.mount("/", StaticFiles(directory=STATIC_DIR, html=True), name="viewer")
+    app.add_middleware(SecurityHeaders, headers=API_HEADERS)
+    viewer = SecurityHeaders(StaticFiles(directory=STATIC_DIR, html=True), VIEWER_HEADERS)
+    app.mount("/", viewer, name="viewer")
     return app

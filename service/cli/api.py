@@ -49,6 +49,29 @@ def announce(settings: Settings, new_key: str | None) -> None:
     sys.stdout.flush()
 
 
+def uvicorn_options(settings: Settings) -> dict[str, Any]:
+    """uvicorn's listen address and connection limits from the settings.
+
+    uvicorn (0.54, h11) has no timeout for a request whose headers or body never finish:
+    ``limit_concurrency`` bounds how many such connections hold the process, beyond which
+    requests get a 503. ``h11_max_incomplete_event_size`` bounds the bytes of an
+    unfinished request line and headers.
+    """
+    return {
+        "host": settings.host,
+        "port": settings.port,
+        "log_level": "info",
+        "timeout_keep_alive": settings.http_keep_alive_s,
+        "limit_concurrency": settings.http_max_connections,
+        "h11_max_incomplete_event_size": settings.http_max_header_bytes,
+    }
+
+
+def serve_http(settings: Settings) -> None:
+    """Run the API (``service.main:create_app``) under uvicorn until it is stopped."""
+    uvicorn.run(create_app(settings), **uvicorn_options(settings))
+
+
 def add_listen_arguments(parser: argparse.ArgumentParser) -> None:
     """``--host`` and ``--port`` (defaults from the settings), for every command that listens."""
     parser.add_argument("--host", help="listen address (default: MCAM_HOST or 127.0.0.1)")
@@ -69,5 +92,5 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
     _, new_key = KeyRing.from_settings(settings)
     announce(settings, new_key)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    serve_http(settings)
     return 0

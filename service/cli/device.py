@@ -8,7 +8,8 @@ Usage::
 
 Without ``MCAM_REDIS_URL`` it uses the embedded Redis of the data dir (started
 by ``mcam serve`` or ``mcam api``). Bracketed reference pairs go to
-``<data dir>/datasets/<device>/``. SIGTERM / Ctrl-C stop it.
+``<data dir>/datasets/<device>/``, at most ``MCAM_DATASET_MAX_PAIRS`` of them and
+``MCAM_DATASET_MAX_BYTES`` in all (the oldest are removed). SIGTERM / Ctrl-C stop it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import signal
 import threading
 
 from device.daemon import DaemonConfig, DeviceDaemon
+from device.datasets import DatasetLimits
 from service.cli.worker import redis_url_for
 from service.core.config import get_settings
 from worker.embedded_redis import connect
@@ -46,8 +48,9 @@ def run(args: argparse.Namespace) -> int:
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     client = connect(redis_url_for(settings), timeout_s=1.0)
+    limits = DatasetLimits(settings.dataset_max_pairs, settings.dataset_max_bytes)
     config = DaemonConfig(port=args.port, device=device, frames_maxlen=settings.frames_maxlen,
-                          data_dir=settings.data_dir)
+                          data_dir=settings.data_dir, dataset_limits=limits)
     daemon = DeviceDaemon(config, client)
     stopped = threading.Event()
 

@@ -32,12 +32,9 @@ import sys
 import threading
 from types import FrameType
 
-import uvicorn
-
-from service.cli.api import announce, settings_with
+from service.cli.api import announce, serve_http, settings_with
 from service.core.config import get_settings
 from service.core.security import KeyRing
-from service.main import create_app
 from worker.embedded_redis import EmbeddedRedis, terminate_with_parent
 
 #: How long the worker may take to finish its in-flight work on shutdown (s).
@@ -171,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
                 ).start()
             )
         announce(settings, new_key)
-        uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+        serve_http(settings)
     except KeyboardInterrupt:
         pass
     finally:

@@ -13,6 +13,7 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.outputs import STREAM_EXR_COMPRESSION
 
@@ -33,6 +34,16 @@ class Settings(BaseSettings):
     )
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
+    http_keep_alive_s: int = Field(
+        5, ge=1, description="an idle keep-alive connection is closed after this many seconds"
+    )
+    http_max_connections: int = Field(
+        256, ge=2,
+        description="open HTTP connections and requests at once; a request beyond them: 503",
+    )  # fmt: skip
+    http_max_header_bytes: int = Field(
+        16 * 1024, ge=1024, description="request line and headers, buffered before parsing"
+    )
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
     max_json_bytes: int = Field(
         64 * 1024, gt=0, description="a JSON or URL-encoded body (commands, form fields)"
@@ -90,6 +101,14 @@ class Settings(BaseSettings):
         "results kept in stream order; unset: one per core (at most 8); 1: in the worker",
     )
     result_retention_s: float = Field(7 * 24 * 3600.0, gt=0)
+    dataset_max_pairs: int = Field(
+        DEFAULT_MAX_PAIRS, gt=0,
+        description="bracketed reference pairs kept per device; the oldest are removed",
+    )  # fmt: skip
+    dataset_max_bytes: int = Field(
+        DEFAULT_MAX_BYTES, gt=0,
+        description="bytes of bracketed reference pairs kept per device; the oldest are removed",
+    )  # fmt: skip
 
 
 @cache

@@ -20,6 +20,7 @@ import redis
 
 from models.errors import McamError
 from service.core.config import Settings
+from worker.private_dirs import make_private_dirs
 from worker.redis_keys import rate_limit_key
 
 SCOPES: tuple[str, ...] = ("read", "submit")
@@ -73,12 +74,13 @@ def generate_key() -> str:
 
 
 def ensure_key_file(data_dir: Path) -> tuple[Path, str | None]:
-    """The key file in ``data_dir``, created with one new key (mode 0600) if absent.
+    """The key file in ``data_dir``, created with one new key (mode 0600) if absent; a
+missing data dir is created owner-only (0700).
 
     Returns the path and the new key when one was generated (for printing), else None.
     """
     path = Path(data_dir) / KEY_FILE_NAME
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_private_dirs(path.parent)
     secret = generate_key()
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)

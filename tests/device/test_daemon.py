@@ -12,6 +12,7 @@ import redis
 
 from device import link_protocol as lp
 from device.daemon import DaemonConfig, DeviceDaemon
+from device.datasets import DatasetLimits
 from device.faults import Faults
 from device.sim_link import TcpEndpoint
 from tests.device.conftest import health, stream_frames, wait_for
@@ -180,7 +181,7 @@ def test_bracketed_capture_stores_a_reference_pair(link, client: redis.Redis,
         assert wait_for(lambda: run.daemon.health.counts["brackets_saved"] == 1, 20)
         wrapped_seq = next(s for s, sent in run.camera.sent.items() if sent.bracket_count)
         scene = run.camera.scene.render(run.camera.sent[wrapped_seq].index)
-    folder = tmp_path / "data" / "datasets" / "cam1" / f"{wrapped_seq:010d}"
+    (folder,) = (tmp_path / "data" / "datasets" / "cam1").glob(f"*-{wrapped_seq:010d}")
     reference = read_hdr(folder / "reference.exr").pixels
     relative = np.abs(reference - scene) / scene
     # Stated accuracy of the merge (8-bit codes, shot + read noise): median 1 %, 99th pct 5 %.
@@ -220,3 +221,28 @@ def test_a_wild_sequence_jump_is_a_gap_not_trillions_of_missing_frames(
         daemon._on_data(lp.DataPacket(sequence, 0, "modulo", 2.0, 8, 1.0, codes))
     assert daemon.health.counts["sequence_gaps"] == 2
     assert daemon.health.counts["frames_missing"] == 3
+
+
+def bracket_packets(first: int) -> list[lp.DataPacket]:
+    """A 3-packet bracket from sequence ``first``: the wrapped frame, two clipped images."""
+    codes = np.full((4, 4), 100, np.uint8)
+    return [lp.DataPacket(first + i, 0, "clip" if i else "modulo", 2.0, 8, 0.5 * 2**i, codes,
+                          lp.FLAG_BRACKET, i, 3) for i in range(3)]
+
+
+def test_a_restarted_sequence_keeps_earlier_pairs_within_the_dataset_bound(
+        client: redis.Redis, tmp_path: Path) -> None:
+    config = DaemonConfig(port="loop://", device="cam9", data_dir=tmp_path,
+                          dataset_limits=DatasetLimits(max_pairs=3))
+    daemon = DeviceDaemon(config, client)
+    folders = tmp_path / "datasets" / "cam9"
+    kept: list[list[str]] = []
+    for first in (10, 10, 20, 30):  # the camera restarted its counter after the first bracket
+        daemon._last_sequence = None
+        for packet in bracket_packets(first):
+            daemon._on_data(packet)
+        kept.append([folder.name[-10:] for folder in sorted(folders.iterdir())])
+    assert daemon.health.counts["brackets_saved"] == 4
+    assert kept[2] == ["0000000010", "0000000010", "0000000020"]
+    assert kept[3] == ["0000000010", "0000000020", "0000000030"]
+    assert all((folder / "meta.json").is_file() for folder in folders.iterdir())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -28,6 +29,7 @@ def test_start_serves_unix_socket_and_stop_cleans_up(tmp_path: Path) -> None:
     assert connect(url).ping()
     config = (tmp_path / "redis" / "redis.conf").read_text()
     assert "appendonly yes" in config and "appendfsync always" in config and "port 0" in config
+    assert stat.S_IMODE((tmp_path / "redis").stat().st_mode) == 0o700  # the AOF is private
     pid = server.pid
     assert pid is not None
     server.stop()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 import time
 from pathlib import Path
 
@@ -35,6 +36,23 @@ def test_write_replaces_and_leaves_no_temp_files(store: ResultStore) -> None:
     store.write("a/b.bin", b"second")
     assert store.read("a/b.bin") == b"second"
     assert sorted(p.name for p in (store.root / "a").iterdir()) == ["b.bin"]
+
+
+def test_results_are_readable_by_their_owner_only(tmp_path: Path) -> None:
+    root = tmp_path / "data" / "results"
+    store = ResultStore(root, retention_s=60.0)
+    path = store.write("jobs/abc/result.exr", b"pixels")
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    for folder in (root.parent, root, root / "jobs", root / "jobs" / "abc"):
+        assert stat.S_IMODE(folder.stat().st_mode) == 0o700, folder
+
+
+def test_an_existing_readable_store_folder_is_narrowed(tmp_path: Path) -> None:
+    root = tmp_path / "results"
+    root.mkdir()
+    root.chmod(0o755)
+    ResultStore(root, retention_s=60.0)
+    assert stat.S_IMODE(root.stat().st_mode) == 0o700
 
 
 def test_read_missing_is_not_found(store: ResultStore) -> None:

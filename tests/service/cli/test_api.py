@@ -1,12 +1,21 @@
-"""Tests of ``mcam api``'s settings: flags override the environment, and are blamed as flags."""
+"""Tests of ``mcam api``'s settings: flags override the environment, and are blamed as flags;
+uvicorn's connection limits, on real sockets."""
 
 from __future__ import annotations
 
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
 import pytest
+import uvicorn
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
-from service.cli.api import settings_with
+from service.cli.api import settings_with, uvicorn_options
 from service.core.config import Settings
 
 
@@ -19,3 +28,76 @@ def test_a_good_flag_overrides_and_a_bad_setting_stays_a_settings_error() -> Non
     assert settings_with(Settings(), port=8123, host=None).port == 8123
     with pytest.raises(ValidationError):
         settings_with(Settings.model_construct(port=99999), host="127.0.0.1")
+
+
+async def hello(scope: dict[str, Any], receive: Any, send: Any) -> None:
+    """A minimal ASGI app: 200 'ok' to every HTTP request."""
+    if scope["type"] != "http":
+        return
+    await send({"type": "http.response.start", "status": 200,
+                "headers": [(b"content-type", b"text/plain")]})
+    await send({"type": "http.response.body", "body": b"ok"})
+
+
+@contextmanager
+def listening(settings: Settings) -> Iterator[int]:
+    """uvicorn with :func:`uvicorn_options` serving :func:`hello` in a thread; its port."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    options = uvicorn_options(settings) | {"log_level": "warning"}
+    server = uvicorn.Server(uvicorn.Config(hello, **options))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [listener]}, daemon=True)
+    thread.start()
+    while not server.started:
+        assert thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.02)
+    try:
+        yield int(listener.getsockname()[1])
+    finally:
+        server.should_exit = True
+        thread.join(15)
+        listener.close()
+
+
+def status_of(port: int, request: bytes) -> tuple[int, socket.socket]:
+    """Send ``request`` on a new connection; the reply's status code and the open socket."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    sock.sendall(request)
+    reply = sock.recv(65536)
+    return int(reply.split(b" ", 2)[1]), sock
+
+
+GET = b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"
+
+
+def test_an_idle_keep_alive_connection_is_closed_after_the_setting() -> None:
+    with listening(Settings(http_keep_alive_s=1)) as port:
+        status, sock = status_of(port, GET)
+        started = time.monotonic()
+        with sock:
+            assert status == 200 and sock.recv(1) == b""
+        assert 0.8 < time.monotonic() - started < 3
+
+
+def test_requests_beyond_the_connection_limit_get_503() -> None:
+    with listening(Settings(http_max_connections=3)) as port:
+        stalled = [socket.create_connection(("127.0.0.1", port)) for _ in range(2)]
+        for sock in stalled:
+            sock.sendall(b"GET / HTTP/1.1\r\nHost: x\r\nX-Slow: ")  # headers never finish
+        time.sleep(0.2)
+        status, sock = status_of(port, GET)
+        sock.close()
+        assert status == 503
+        for sock in stalled:
+            sock.close()
+        time.sleep(0.2)
+        status, sock = status_of(port, GET)
+        sock.close()
+        assert status == 200
+
+
+def test_headers_longer_than_the_setting_are_refused() -> None:
+    with listening(Settings(http_max_header_bytes=1024)) as port:
+        status, sock = status_of(port, b"GET / HTTP/1.1\r\nX-Big: " + b"a" * 2048)
+        sock.close()
+        assert status == 400

@@ -45,10 +45,11 @@ def test_any_plain_key_authenticates_only_itself(secret: str) -> None:
 
 
 def test_key_file_is_generated_once_with_mode_0600(tmp_path: Path) -> None:
-    path, first = ensure_key_file(tmp_path)
+    path, first = ensure_key_file(tmp_path / "data")
+    assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
     assert first is not None and path.read_text().strip() == first
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
-    again, second = ensure_key_file(tmp_path)
+    again, second = ensure_key_file(tmp_path / "data")
     assert again == path and second is None and path.read_text().strip() == first
 
 

@@ -14,6 +14,7 @@ import pytest
 
 from models.hdr_io import read_hdr
 from tests.service.conftest import FULL_KEY, exr_bytes
+from tests.service.static.conftest import wait_for_js
 from worker.runner import Worker
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -56,20 +57,21 @@ def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Pa
         page.fill("#bits", "8")
         page.select_option("#quality", "balanced")
         page.click("#run")
-        page.wait_for_function("!document.getElementById('download').disabled", timeout=60_000)
+        wait_for_js(page, "!document.getElementById('download').disabled", timeout_ms=60_000)
         assert "succeeded" in page.inner_text("#status")
         routing = page.inner_text("#routing")
         assert routing.startswith("decoder: auto-balanced") and "%" in routing
-        page.wait_for_function(  # blob images decode asynchronously
+        wait_for_js(  # blob images decode asynchronously
+            page,
             "['img-codes', 'img-winding', 'img-hdr'].every(id => {"
             " const image = document.getElementById(id);"
             " return image.complete && image.naturalWidth === 128; })",
-            timeout=30_000,
+            timeout_ms=30_000,
         )
         before = page.get_attribute("#img-hdr", "src")
         page.fill("#exposure", "-4")
         page.dispatch_event("#exposure", "input")
-        page.wait_for_function(f"document.getElementById('img-hdr').src !== '{before}'")
+        wait_for_js(page, f"document.getElementById('img-hdr').src !== '{before}'")
         assert page.inner_text("#ev-value") == "-4"
         with page.expect_download() as download:
             page.click("#download")

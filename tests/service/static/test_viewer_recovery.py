@@ -29,6 +29,7 @@ from tests.service.conftest import (
     running_worker,
     serve,
 )
+from tests.service.static.conftest import wait_for_js
 from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import connect
 from worker.redis_keys import DEVICES_SET, health_key, job_key
@@ -92,7 +93,8 @@ def submit(page: Page, path: Path) -> str:
     page.set_input_files("#file", str(path))
     before = page.inner_text("#status")
     page.click("#run")
-    page.wait_for_function(
+    wait_for_js(
+        page,
         "before => { const now = document.getElementById('status').textContent;"
         " return now !== before && /job [0-9a-f]{32}/.test(now); }",
         arg=before,
@@ -103,8 +105,10 @@ def submit(page: Page, path: Path) -> str:
 
 
 def wait_for_status(page: Page, text: str, timeout_ms: int = 30_000) -> str:
-    page.wait_for_function(
-        f"document.getElementById('status').textContent.includes({text!r})", timeout=timeout_ms
+    wait_for_js(
+        page,
+        f"document.getElementById('status').textContent.includes({text!r})",
+        timeout_ms=timeout_ms,
     )
     return page.inner_text("#status")
 
@@ -123,8 +127,9 @@ def panels_empty(page: Page) -> bool:
 
 
 def wait_for_panels(page: Page) -> None:
-    page.wait_for_function("!document.getElementById('download').disabled")
-    page.wait_for_function(  # blob images decode asynchronously
+    wait_for_js(page, "!document.getElementById('download').disabled")
+    wait_for_js(  # blob images decode asynchronously
+        page,
         f"{PANELS}.every(id => {{ const image = document.getElementById(id);"
         f" return image.complete && image.naturalWidth === {SIZE}; }})"
     )
@@ -188,7 +193,7 @@ def test_panels_show_only_a_succeeded_job(
     page.select_option("#encoding", "")
     page.fill("#alpha", "")
     page.fill("#bits", "")
-    page.wait_for_function("!document.getElementById('run').disabled")
+    wait_for_js(page, "!document.getElementById('run').disabled")
     job_requests = api_requests(page, "/v1/jobs/")
     job_id = submit(page, frame)  # the worker is gone: the job stays queued
     page.fill("#exposure", "-2")
@@ -228,7 +233,7 @@ def test_a_job_gone_from_the_server_is_given_up_with_a_clear_message(
     wait_for_status(page, "queued")
     assert settings.redis_url is not None
     connect(settings.redis_url).delete(job_key(job_id))  # as when its record expires
-    page.wait_for_function("!document.getElementById('run').disabled")
+    wait_for_js(page, "!document.getElementById('run').disabled")
     status = page.inner_text("#status")
     assert status.startswith(f"job {job_id} no longer exists on the server"), status
     assert "submit the frame again" in status
@@ -263,8 +268,8 @@ def test_the_live_view_waits_out_a_rate_limit(
     with serve(create_app(settings)) as url:
         page = open_viewer(browser, url)  # GET /v1/decoders: 1 of 5
         polls = watch_device(page, "cam1")  # the list: 2; polls 3 to 5; the 6th is refused
-        page.wait_for_function(
-            "document.getElementById('live-status').textContent.includes('rate_limited')"
+        wait_for_js(
+            page, "document.getElementById('live-status').textContent.includes('rate_limited')"
         )
         status = page.inner_text("#live-status")
         assert status.startswith("device cam1: ") and "retrying in" in status, status
@@ -280,10 +285,11 @@ def test_the_live_view_stops_watching_a_forgotten_device(
     register_device(settings.redis_url, "cam1")
     page = open_viewer(browser, api)
     polls = watch_device(page, "cam1")
-    page.wait_for_function("document.getElementById('live-status').textContent.includes('silent')")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
     headers = {"Authorization": f"Bearer {FULL_KEY}"}
     assert httpx.delete(f"{api}/v1/devices/cam1", headers=headers).status_code == 200
-    page.wait_for_function(
+    wait_for_js(
+        page,
         "document.getElementById('live-status').textContent.includes('no longer known')"
     )
     assert "press List devices" in page.inner_text("#live-status")
