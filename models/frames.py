@@ -21,6 +21,7 @@ import io
 import json
 import logging
 import os
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -97,6 +98,11 @@ def check_samples(shape: tuple[int, ...], max_pixels: int | None) -> None:
         )
 
 
+#: A Python object's memory address in a library's message (numpy's npy header errors
+#: quote its parser's nodes): the server's memory layout is nobody's business.
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+
+
 @contextmanager
 def decoding(what: str) -> Iterator[None]:
     """Report a decoding library's failure on a truncated or corrupt file as bad input."""
@@ -105,7 +111,7 @@ def decoding(what: str) -> Iterator[None]:
     except McamError:
         raise
     except Exception as exc:  # PIL, tifffile, zlib and OpenEXR raise many types on bad data
-        detail = " ".join(str(exc).split()) or type(exc).__name__
+        detail = _ADDRESS.sub("", " ".join(str(exc).split())) or type(exc).__name__
         raise InvalidInputError(
             f"{what} is truncated or corrupt ({detail}); send the complete, unmodified file"
         ) from None

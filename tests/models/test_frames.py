@@ -389,3 +389,13 @@ def test_8_bit_codes_read_as_16_bit_are_warned_about(caplog: pytest.LogCaptureFi
     caplog.clear()
     decode_frame(eight_bit, "npy", {"encoding": "modulo", "bits": 8})
     assert caplog.text == ""
+
+
+def test_a_corrupt_npy_header_is_reported_without_memory_addresses() -> None:
+    """numpy quotes its header parser's nodes, with their addresses in the server."""
+    header = b"{'descr': '<u1', 'fortran_order': False, 'shape': (2+2, 4), }"
+    header += b" " * (118 - len(header)) + b"\n"
+    data = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(16)
+    with pytest.raises(InvalidInputError, match="truncated or corrupt") as caught:
+        decode_frame(data, "npy", PARAMS_8.model_dump())
+    assert " at 0x" not in caught.value.message
