@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import redis
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
@@ -12,6 +14,7 @@ from service.api.deps import StateDep
 from service.api.state import ServiceState
 
 router = APIRouter(prefix="/health", tags=["health"])
+log = logging.getLogger(__name__)
 #: A worker counts as alive when its heartbeat is younger than this many heartbeat periods.
 HEARTBEAT_PERIODS = 3
 
@@ -48,7 +51,8 @@ def readiness(state: ServiceState) -> Readiness:
         workers = len(state.queue.workers(HEARTBEAT_PERIODS * state.settings.heartbeat_s))
     except redis.exceptions.RedisError as exc:
         queue_ok = False
-        detail["queue"] = f"Redis unreachable: {exc}"
+        log.warning("readiness: Redis unreachable: %s", exc)
+        detail["queue"] = "Redis unreachable (the API's log says why)"
     if queue_ok and not workers:
         detail["workers"] = "no worker heartbeat: start one with 'mcam worker'"
     checks = {"decoders": decoders_ok, "queue": queue_ok, "workers": workers > 0}

@@ -48,6 +48,7 @@ def test_ready_reports_redis_down_and_unknown_default_decoder(tmp_path: Path) ->
         embedded.stop()
         body = httpx.get(f"{api}/health/ready").json()
         assert body["checks"]["queue"] is False and body["checks"]["decoders"] is False
+        assert "redis.sock" not in body["detail"]["queue"]  # no internal address to anyone
         assert httpx.get(f"{api}/health/live").status_code == 200
         jobs = httpx.get(
             f"{api}/v1/jobs/{'0' * 32}", headers={"Authorization": f"Bearer {FULL_KEY}"}
