@@ -52,6 +52,9 @@ from models.tiff_pages import open_tiff, page_codes, page_shape
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 _ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
+#: How far from a zip's end its end-of-central-directory record can lie (22 bytes and
+#: a comment of at most 65535).
+_EOCD_SEARCH = 22 + 65_535
 #: Bytes inflated per read of a zip entry (bounds the memory one read can take).
 INFLATE_CHUNK = 1 << 20
 
@@ -166,9 +169,26 @@ def _natural_key(name: str) -> list[Any]:
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
 
 
+def declared_entries(data: bytes) -> int | None:
+    """The entry count a zip's end-of-central-directory record declares (read before
+    zipfile builds an object per entry: 300k entries cost 270 MiB); None if the record
+    is not found or defers to ZIP64."""
+    end = data.rfind(b"PK\x05\x06", max(0, len(data) - _EOCD_SEARCH))
+    if end < 0 or len(data) < end + 12:
+        return None
+    total = int.from_bytes(data[end + 10 : end + 12], "little")
+    return None if total == 0xFFFF else total
+
+
 def _read_zip(
     data: bytes, overrides: dict[str, Any] | None, limits: VideoLimits
 ) -> WrappedVideo:
+    declared = declared_entries(data)
+    if limits.frames is not None and declared is not None and declared > 2 * limits.frames:
+        raise ImageTooLargeError(
+            f"the zip holds {declared} entries; a video takes at most {limits.frames} frames "
+            "(one PNG each): send fewer frames, without other files"
+        )
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
         entries = sorted(
             (

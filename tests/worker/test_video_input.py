@@ -20,7 +20,13 @@ from models.errors import (
 )
 from models.formation import SensorParams
 from models.frames import encode_frame
-from worker.video_input import VideoLimits, decode_video, read_video, video_format
+from worker.video_input import (
+    VideoLimits,
+    declared_entries,
+    decode_video,
+    read_video,
+    video_format,
+)
 
 PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
 FLAGS = {"encoding": "mantissa", "alpha": 2.0, "bits": 8}
@@ -235,3 +241,16 @@ def test_a_bad_png_in_a_zip_names_its_entry() -> None:
         archive.writestr("frame_1.png", b"not a png")
     with pytest.raises(InvalidInputError, match=r"^frame_1.png: the data is not a PNG image"):
         decode_video(buffer.getvalue(), "zip")
+
+
+def test_a_zip_of_too_many_entries_is_refused_from_its_directory_record() -> None:
+    """zipfile builds an object per entry before any count can be checked."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for n in range(50):
+            archive.writestr(f"note_{n}.txt", b"")
+    data = buffer.getvalue()
+    assert declared_entries(data) == 50
+    with pytest.raises(ImageTooLargeError, match="holds 50 entries; .* at most 10 frames"):
+        decode_video(data, "zip", FLAGS, VideoLimits(frames=10))
+    assert declared_entries(b"not a zip") is None
