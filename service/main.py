@@ -19,6 +19,7 @@ from starlette.concurrency import run_in_threadpool
 
 from models.decoders.registry import available_decoders
 from service.api.body_limit import BodyLimitMiddleware
+from service.api.body_timeout import BodyTimeoutMiddleware
 from service.api.errors import install_error_handlers
 from service.api.head_requests import HeadRequestMiddleware
 from service.api.security_headers import API_HEADERS, VIEWER_HEADERS, SecurityHeaders
@@ -82,6 +83,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics_registry = registry
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes,
                        json_limit=settings.max_json_bytes)
+    app.add_middleware(BodyTimeoutMiddleware, timeout_s=settings.http_body_timeout_s)
     app.add_middleware(RequestTimer, histogram=requests)
     app.add_middleware(HeadRequestMiddleware)
     app.add_middleware(SecurityHeaders, headers=API_HEADERS)

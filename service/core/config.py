@@ -44,6 +44,10 @@ class Settings(BaseSettings):
     http_max_header_bytes: int = Field(
         16 * 1024, ge=1024, description="request line and headers, buffered before parsing"
     )
+    http_body_timeout_s: float = Field(
+        30.0, gt=0, le=3600,
+        description="longest pause in a request body before 408 (a slow upload holds a task)",
+    )  # fmt: skip
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
     max_json_bytes: int = Field(
         64 * 1024, gt=0, description="a JSON or URL-encoded body (commands, form fields)"

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import httpx
+
+from service.main import create_app
+from tests.service.conftest import FULL_KEY, make_settings, serve
 
 Client = Callable[[str], httpx.Client]
 LIMIT = 2_000_000  # the test settings' max_upload_bytes
@@ -68,3 +73,19 @@ def test_a_json_body_has_a_small_limit_even_without_a_key(client: Client) -> Non
     assert form.status_code == 413 and form.json()["code"] == "body_too_large"
     small = client().post("/v1/devices/nosuch/control", json={"command": "start"})
     assert small.status_code == 404  # within the limit: on to the route (no such device)
+
+
+def test_a_body_that_stops_arriving_gets_408(tmp_path: Path, redis_url: str) -> None:
+    """A client that sends half a body and waits held a connection and a task for ever."""
+    settings = make_settings(tmp_path, redis_url, http_body_timeout_s=0.5)
+    with serve(create_app(settings)) as url:
+        host, port = url.removeprefix("http://").split(":")
+        with socket.create_connection((host, int(port)), timeout=10) as sock:
+            sock.sendall(b"POST /v1/reconstructions HTTP/1.1\r\nHost: x\r\n"
+                         b"Authorization: Bearer " + FULL_KEY.encode() + b"\r\n"
+                         b"Content-Type: application/octet-stream\r\n"
+                         b"Content-Length: 1000\r\n\r\n" + bytes(10))
+            reply = sock.recv(4096).decode()
+        assert reply.startswith("HTTP/1.1 408"), reply
+        assert "request_timeout" in reply and "MCAM_HTTP_BODY_TIMEOUT_S" in reply
+        assert httpx.get(f"{url}/health/live", timeout=5).status_code == 200

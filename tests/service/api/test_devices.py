@@ -23,6 +23,7 @@ from service.main import create_app
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, make_settings, serve
+from tests.service.static.conftest import wait_for_js
 from worker.embedded_redis import connect
 from worker.outputs import encode_exr_result
 from worker.redis_keys import DEVICES_SET, events_stream, health_key, latest_key
@@ -176,12 +177,12 @@ def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) ->
         page.goto(f"{api}/")
         page.fill("#api-key", FULL_KEY)
         page.click("#key-form button")
-        page.wait_for_function("localStorage.getItem('mcam-api-key') !== null")
+        wait_for_js(page, "localStorage.getItem('mcam-api-key') !== null")
         page.click("#live-refresh")
         page.wait_for_selector("#live-device option[value=cam1]", state="attached")
         page.select_option("#live-device", "cam1")
-        page.wait_for_function(
-            "document.getElementById('live-frame').naturalWidth === 256", timeout=60_000)
+        wait_for_js(page, "document.getElementById('live-frame').naturalWidth === 256",
+                    timeout_ms=60_000)
         assert "frames" in page.inner_text("#live-status")
         browser.close()
     assert errors == []
