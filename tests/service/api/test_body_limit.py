@@ -9,7 +9,7 @@ from pathlib import Path
 import httpx
 
 from service.main import create_app
-from tests.service.conftest import FULL_KEY, make_settings, serve
+from tests.service.conftest import FULL_KEY, make_settings, read_response, serve
 
 Client = Callable[[str], httpx.Client]
 LIMIT = 2_000_000  # the test settings' max_upload_bytes
@@ -85,7 +85,7 @@ def test_a_body_that_stops_arriving_gets_408(tmp_path: Path, redis_url: str) -> 
                          b"Authorization: Bearer " + FULL_KEY.encode() + b"\r\n"
                          b"Content-Type: application/octet-stream\r\n"
                          b"Content-Length: 1000\r\n\r\n" + bytes(10))
-            reply = sock.recv(4096).decode()
+            reply = read_response(sock).decode()
         assert reply.startswith("HTTP/1.1 408"), reply
         assert "request_timeout" in reply and "MCAM_HTTP_BODY_TIMEOUT_S" in reply
         assert httpx.get(f"{url}/health/live", timeout=5).status_code == 200
