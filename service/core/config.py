@@ -42,8 +42,11 @@ class Settings(BaseSettings):
         description="open HTTP connections and requests at once; a request beyond them: 503",
     )  # fmt: skip
     http_max_header_bytes: int = Field(
-        16 * 1024, ge=1024, description="request line and headers, buffered before parsing"
-    )
+        16 * 1024, ge=1024,
+        description="uvicorn/h11 h11_max_incomplete_event_size: bytes buffered while the "
+        "request line and headers are incomplete, then 400 (not a bound on the headers: "
+        "ones that arrive in one read may be longer)",
+    )  # fmt: skip
     http_body_timeout_s: float = Field(
         30.0, gt=0, le=3600,
         description="longest pause in a request body before 408 (a slow upload holds a task)",
