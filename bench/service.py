@@ -6,13 +6,13 @@ wrapped frames with ``Prefer: wait`` from 1, 4 and 16 concurrent clients. Report
 jobs/s, p50/p99 request latency (ms), lost requests (any job not succeeded),
 and the overhead of the API + queue path over calling the decoder in-process:
 ``(p50 latency at 1 client - in-process decode time) / in-process decode time``.
-Prints a table and writes ``bench/results/service.json``.
+Prints a Markdown table and writes ``bench/results/service.json`` and ``service.md``, with
+the date, the machine, the package versions and the load average at the end.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import socket
 import subprocess
@@ -27,13 +27,13 @@ from typing import Any
 import httpx
 import numpy as np
 
+from bench import RESULTS, machine, utc_now, versions, write_report
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams, simulate
 from models.frames import encode_frame
 from models.timing import median_ns
 from worker.embedded_redis import EmbeddedRedis
 
-RESULTS = Path(__file__).parent / "results" / "service.json"
 CLIENTS = (1, 4, 16)
 SIZE = 256
 KEY = "bench-key-0123456789abcdef"
@@ -200,6 +200,10 @@ def measure(decoder: str, jobs_per_client: int) -> dict[str, Any]:
                 ]
     single = levels[0]
     return {
+        "date": utc_now(),
+        "machine": machine(),
+        "versions": versions(),
+        "load_average": os.getloadavg(),
         "decoder": decoder,
         "size": f"{SIZE}x{SIZE}",
         "in_process_decode_ms": decode_ms,
@@ -207,37 +211,42 @@ def measure(decoder: str, jobs_per_client: int) -> dict[str, Any]:
         "overhead_pct": 100.0 * (single["p50_ms"] - decode_ms) / decode_ms,
         "levels": levels,
         "lost_total": sum(level["lost"] for level in levels),
-        "cpu_count": os.cpu_count(),
     }
 
 
-def print_table(result: dict[str, Any]) -> None:
-    print(
-        f"decoder {result['decoder']} at {result['size']}: in-process decode "
+def markdown(result: dict[str, Any]) -> str:
+    """The report as Markdown: a header line (date, machine, load) and one row per level."""
+    load = [round(value, 2) for value in result["load_average"]]
+    lines = [
+        f"bench.service, {result['date']}, {result['machine']['cpu']} "
+        f"({result['machine']['cores']} cores); load average at the end {load}. Decoder "
+        f"{result['decoder']} at {result['size']}: in-process decode "
         f"{result['in_process_decode_ms']:.1f} ms; API+queue overhead at 1 client "
-        f"{result['overhead_ms']:.1f} ms ({result['overhead_pct']:.0f}% of decode)"
-    )
-    print(
-        f"{'clients':>7} {'jobs':>5} {'jobs/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'lost':>5}"
-        "  median stages (ms; api_http = latency - worker total)"
-    )
+        f"{result['overhead_ms']:.1f} ms ({result['overhead_pct']:.0f}% of decode).",
+        "",
+        "| clients | jobs | jobs/s | p50 ms | p99 ms | lost "
+        "| median stages (ms; api_http = latency - worker total) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for level in result["levels"]:
-        stages = "  ".join(f"{k} {v:.1f}" for k, v in level["median_stage_ms"].items())
-        print(
-            f"{level['clients']:>7} {level['jobs']:>5} {level['jobs_per_s']:>8.1f} "
-            f"{level['p50_ms']:>8.1f} {level['p99_ms']:>8.1f} {level['lost']:>5}  {stages}"
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in level["median_stage_ms"].items())
+        lines.append(
+            f"| {level['clients']} | {level['jobs']} | {level['jobs_per_s']:.1f} "
+            f"| {level['p50_ms']:.1f} | {level['p99_ms']:.1f} | {level['lost']} | {stages} |"
         )
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoder", default="itoh", help="decoder to benchmark (default itoh)")
     parser.add_argument("--jobs-per-client", type=int, default=5)
+    parser.add_argument("--out", type=Path, default=RESULTS / "service.json")
     args = parser.parse_args(argv)
     result = measure(args.decoder, args.jobs_per_client)
-    print_table(result)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2) + "\n")
+    report = markdown(result)
+    write_report(result, report, args.out)
+    print(report)
     return 1 if result["lost_total"] else 0
 
 
