@@ -83,8 +83,13 @@ AUTH_ERRORS: dict[int | str, dict[str, Any]] = {
     429: error_response("rate limit exceeded (see Retry-After)"),
     503: error_response("the queue (Redis) is unreachable or full"),
 }
+#: Responses of a route that reads a request body (``service.api.body_timeout``).
+BODY_ERRORS: dict[int | str, dict[str, Any]] = {
+    408: error_response("the request body paused longer than MCAM_HTTP_BODY_TIMEOUT_S"),
+}
 UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
     **AUTH_ERRORS,
+    **BODY_ERRORS,
     400: error_response("malformed request body"),
     413: error_response("upload or image too large"),
     415: error_response("unsupported file format or content type"),

@@ -106,7 +106,10 @@ async def _event_lines(
 
 
 @router.get("/{device_id}/events",
-            responses={**DEVICE_ERRORS, 503: error_response("too many event streams open")},
+            responses={**DEVICE_ERRORS, 503: error_response(
+                "too_many_streams (MCAM_MAX_EVENT_STREAMS open; see Retry-After) or the queue "
+                "(Redis) is unavailable"
+            )},
             summary="Server-sent events: frame reconstructed, failed, drop, reconnect",
             response_class=StreamingResponse)
 def events(device_id: str, state: StateDep, _key: ReadKey,

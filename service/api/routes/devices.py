@@ -17,7 +17,7 @@ from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.previews import scene_to_wrap_units, tonemap_png
-from service.api.schemas import AUTH_ERRORS, error_response
+from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, error_response
 from service.api.state import ServiceState
 from worker.device_registry import forget_device
 from worker.redis_keys import (
@@ -110,7 +110,7 @@ def forget(device_id: str, state: StateDep, _key: SubmitKey,
     return {"device": device, "forgotten": True, "frames_discarded": dropped}
 
 
-@router.post("/{device_id}/control", status_code=202, responses=DEVICE_ERRORS,
+@router.post("/{device_id}/control", status_code=202, responses={**DEVICE_ERRORS, **BODY_ERRORS},
              summary="Send a control command to the camera (via its daemon)")
 def control(device_id: str, command: Annotated[Command, Body()], state: StateDep,
             _key: SubmitKey) -> dict[str, Any]:

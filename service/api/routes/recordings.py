@@ -28,7 +28,13 @@ from service.api.media_types import media_type
 from service.api.routes.devices import DEVICE_ERRORS, known_device
 from service.api.routes.reconstructions import prefer_wait_s
 from service.api.routes.videos import VideoOptionFields
-from service.api.schemas import JobAccepted, JobView, error_response, job_response
+from service.api.schemas import (
+    BODY_ERRORS,
+    JobAccepted,
+    JobView,
+    error_response,
+    job_response,
+)
 from service.api.state import ServiceState
 from worker.recordings import (
     Recording,
@@ -41,7 +47,14 @@ from worker.video_jobs import video_options
 router = APIRouter(prefix="/v1/devices", tags=["recordings"])
 #: How long a stop waits for the worker to queue the video job (s) before answering 202.
 STOP_WAIT_S = 10.0
-RECORDING_ERRORS = {**DEVICE_ERRORS, 409: error_response("a recording is (not) running")}
+RECORDING_ERRORS = {
+    **DEVICE_ERRORS,
+    **BODY_ERRORS,
+    409: error_response(
+        "start: recording_running (one is running); stop: no_recording (none is running) "
+        "or recording_failed (the worker could not make its video job)"
+    ),
+}
 
 
 class RecordingFields(VideoOptionFields):
