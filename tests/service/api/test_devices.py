@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import shutil
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -23,7 +22,7 @@ from service.main import create_app
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, make_settings, serve
-from tests.service.static.conftest import wait_for_js
+from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 from worker.embedded_redis import connect
 from worker.outputs import encode_exr_result
 from worker.redis_keys import DEVICES_SET, events_stream, health_key, latest_key
@@ -88,9 +87,6 @@ def test_devices_health_control_latest_and_events(
             refused = http.get("/v1/devices/cam1/events", params=params, headers=headers)
             assert refused.status_code == 422, refused.text
             assert "below 2^64" in refused.json()["message"]
-
-
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 def test_a_device_whose_daemon_went_quiet_is_shown_silent_and_can_be_forgotten(
@@ -165,12 +161,9 @@ def test_the_live_preview_shares_the_job_previews_wrap_units(
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None, reason="Debian chromium is not installed")
+@needs_chromium
 def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) -> None:
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM,
-                                             args=["--no-sandbox", "--disable-gpu"])
+    with chromium() as browser:
         page = browser.new_page()
         errors: list[str] = []
         page.on("pageerror", lambda exc: errors.append(str(exc)))
@@ -184,5 +177,4 @@ def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) ->
         wait_for_js(page, "document.getElementById('live-frame').naturalWidth === 256",
                     timeout_ms=60_000)
         assert "frames" in page.inner_text("#live-status")
-        browser.close()
     assert errors == []

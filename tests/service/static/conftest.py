@@ -1,14 +1,27 @@
-"""Helpers of the browser tests: waiting on the page under the viewer's CSP."""
+"""Helpers of the browser tests: Debian's chromium launched headless, and waiting on the
+page under the viewer's CSP."""
 
 from __future__ import annotations
 
+import shutil
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 import pytest
 
 if TYPE_CHECKING:
-    from playwright.sync_api import Page
+    from playwright.sync_api import Browser, Page
+
+#: Debian's chromium (Playwright never downloads a browser here).
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+#: A browser test is skipped without chromium.
+needs_chromium = pytest.mark.skipif(
+    CHROMIUM is None,
+    reason="Debian chromium is not installed (apt-get install -y chromium); "
+    "the browser test needs it",
+)
 
 #: How often a wait re-evaluates its expression (ms).
 POLL_MS = 50
@@ -26,3 +39,17 @@ def wait_for_js(page: Page, expression: str, arg: Any = None, timeout_ms: int = 
         if time.monotonic() > deadline:
             pytest.fail(f"not true within {timeout_ms} ms: {expression}")
         page.wait_for_timeout(POLL_MS)
+
+
+@contextmanager
+def chromium() -> Iterator[Browser]:
+    """Headless Debian chromium under Playwright (the test is skipped without Playwright)."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"]
+        )
+        try:
+            yield browser
+        finally:
+            browser.close()

@@ -14,30 +14,18 @@ import pytest
 
 from models.hdr_io import read_hdr
 from tests.service.conftest import FULL_KEY, exr_bytes
-from tests.service.static.conftest import wait_for_js
+from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 from worker.runner import Worker
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 ARTIFACTS = Path(__file__).resolve().parents[3] / "artifacts"
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(
-        CHROMIUM is None,
-        reason="Debian chromium is not installed "
-        "(apt-get install -y chromium); the browser test needs it",
-    ),
-]
+pytestmark = [pytest.mark.slow, needs_chromium]
 
 
 def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Path) -> None:
-    sync_api = pytest.importorskip("playwright.sync_api")
     scene = tmp_path / "scene.exr"
     scene.write_bytes(exr_bytes(128))
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(
-            executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"]
-        )
+    with chromium() as browser:
         page = browser.new_page(viewport={"width": 1280, "height": 900}, accept_downloads=True)
         errors: list[str] = []
         page.on("pageerror", lambda exc: errors.append(str(exc)))
@@ -80,7 +68,6 @@ def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Pa
         assert read_hdr(exr).pixels.shape == (128, 128)
         shot = tmp_path / "viewer.png"
         page.screenshot(path=str(shot), full_page=True)
-        browser.close()
     ARTIFACTS.mkdir(exist_ok=True)
     shutil.copy(shot, ARTIFACTS / "viewer.png")
     assert errors == []

@@ -10,7 +10,6 @@ device view waits out a 429 too, and stops watching a device the server forgot.
 from __future__ import annotations
 
 import re
-import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,7 +28,7 @@ from tests.service.conftest import (
     running_worker,
     serve,
 )
-from tests.service.static.conftest import wait_for_js
+from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import connect
 from worker.redis_keys import DEVICES_SET, health_key, job_key
@@ -37,30 +36,17 @@ from worker.redis_keys import DEVICES_SET, health_key, job_key
 if TYPE_CHECKING:
     from playwright.sync_api import Browser, Page
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 SIZE = 32  # small frames: the tests are about the page, not the decoder
 JOB_ID = re.compile(r"job ([0-9a-f]{32})")
 PANELS = "['img-codes', 'img-winding', 'img-hdr']"
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(
-        CHROMIUM is None,
-        reason="Debian chromium is not installed "
-        "(apt-get install -y chromium); the browser test needs it",
-    ),
-]
+pytestmark = [pytest.mark.slow, needs_chromium]
 
 
 @pytest.fixture
 def browser() -> Iterator[Browser]:
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as playwright:
-        launched = playwright.chromium.launch(
-            executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"]
-        )
+    with chromium() as launched:
         yield launched
-        launched.close()
 
 
 @pytest.fixture
