@@ -31,11 +31,9 @@ def overflow_remedy(dtype: type[np.floating], scene_gain: float | None = None) -
         fix = _scene_gain_remedy(scene_gain, "a higher gain gives smaller values")
     else:
         fix = "lower the gain or alpha"
-    if np.finfo(dtype).bits < 32:
-        return f"ask for float32 output instead of half floats, or {fix}"
     if np.finfo(dtype).bits == 32:
         return f"float32, the widest EXR pixel type, cannot hold them: {fix}"
-    return fix
+    return _or_float32(dtype, fix)
 
 
 def underflow_remedy(dtype: type[np.floating], scene_gain: float | None = None) -> str:
@@ -45,6 +43,11 @@ def underflow_remedy(dtype: type[np.floating], scene_gain: float | None = None) 
         fix = _scene_gain_remedy(scene_gain, "lower the gain for larger values")
     else:
         fix = "values this small are below any code step: check the winding numbers"
+    return _or_float32(dtype, fix)
+
+
+def _or_float32(dtype: type[np.floating], fix: str) -> str:
+    """``fix``, offered after float32 output when ``dtype`` is half floats."""
     if np.finfo(dtype).bits < 32:
         return f"ask for float32 output instead of half floats, or {fix}"
     return fix

@@ -50,8 +50,9 @@ def device_keys(device: str) -> list[str]:
 
 
 def _refusal(pipe: redis.client.Pipeline, device: str, silent_after_s: float,
-             discard_frames: bool) -> str | None:
-    """Why ``device`` must stay (read inside the WATCH), or None."""
+             waiting: int, discard_frames: bool) -> str | None:
+    """Why ``device`` must stay (read inside the WATCH; ``waiting``: its undecoded
+    frames), or None."""
     updated = pipe.hget(health_key(device), "updated_ns")
     if updated is not None and time.time_ns() - int(updated) < silent_after_s * 1e9:
         return (f"the daemon of device {device!r} reported {silent_after_s:g} s ago or less; "
@@ -59,7 +60,6 @@ def _refusal(pipe: redis.client.Pipeline, device: str, silent_after_s: float,
     if pipe.hget(recording_key(device), "state") in _ACTIVE_RECORDING:
         return (f"device {device!r} is recording; stop it with POST "
                 f"/v1/devices/{device}/recordings {{\"action\": \"stop\"}} and retry")
-    waiting = int(pipe.xlen(frame_stream(device)))
     if waiting and not discard_frames:
         return (f"{waiting} frame(s) of device {device!r} are not decoded yet; wait for a "
                 "worker to decode them, or pass discard_frames=true to drop them")
@@ -77,14 +77,14 @@ def forget_device(client: redis.Redis, device: str, *, silent_after_s: float,
         with client.pipeline() as pipe:
             try:
                 pipe.watch(*keys)
-                refusal = _refusal(pipe, device, silent_after_s, discard_frames)
+                waiting = int(pipe.xlen(frame_stream(device)))
+                refusal = _refusal(pipe, device, silent_after_s, waiting, discard_frames)
                 if refusal is not None:
                     raise DeviceBusyError(refusal)
-                dropped = int(pipe.xlen(frame_stream(device)))
                 pipe.multi()
                 pipe.srem(DEVICES_SET, device)
                 pipe.delete(*keys)
                 pipe.execute()
-                return dropped
+                return waiting
             except redis.WatchError:
                 continue

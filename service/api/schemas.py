@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
+from service.api.state import Slots
 from worker.jobs import JobRecord, JobState
 from worker.queue import JobQueue
 
@@ -37,13 +37,13 @@ def accepted_response(record: JobRecord) -> JSONResponse:
 
 
 def job_response(
-    queue: JobQueue, record: JobRecord, wait_s: float, slots: threading.BoundedSemaphore
+    queue: JobQueue, record: JobRecord, wait_s: float, slots: Slots
 ) -> JSONResponse:
     """200 with the job if it finishes within ``wait_s`` (``Prefer: wait``), else 202.
     A wait holds a server thread, so only as many requests as ``slots`` allows wait at
     once; the others get their 202 at once (42 waiting uploads from one key made every
     other request wait 22 s for a thread)."""
-    if wait_s > 0 and slots.acquire(blocking=False):
+    if wait_s > 0 and slots.take():
         try:
             record = queue.wait(record.id, wait_s)
         finally:

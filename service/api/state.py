@@ -22,35 +22,30 @@ from worker.result_store import RESULTS_DIR, ResultStore
 log = logging.getLogger(__name__)
 
 
-class StreamSlots:
-    """A count of long-lived streams, at most ``limit`` at once (thread-safe)."""
+class Slots:
+    """At most ``limit`` of something held at once (thread-safe): requests waiting for
+    their job, open event streams."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
-        self._open = 0
+        self._held = 0
         self._lock = threading.Lock()
 
     @property
     def full(self) -> bool:
-        return self._open >= self.limit
-
-    @property
-    def refusal(self) -> str:
-        """Why a stream was refused, and what to do."""
-        return (f"{self.limit} event streams are open, the most this server keeps "
-                "(MCAM_MAX_EVENT_STREAMS); close one or retry shortly")
+        return self._held >= self.limit
 
     def take(self) -> bool:
-        """Open a stream if one is free."""
+        """Hold a slot if one is free."""
         with self._lock:
-            if self._open >= self.limit:
+            if self._held >= self.limit:
                 return False
-            self._open += 1
+            self._held += 1
             return True
 
     def release(self) -> None:
         with self._lock:
-            self._open -= 1
+            self._held -= 1
 
 
 @dataclass
@@ -64,9 +59,9 @@ class ServiceState:
     store: ResultStore
     redis_url: str
     #: Requests that may hold a server thread waiting for their job (``Prefer: wait``).
-    wait_slots: threading.BoundedSemaphore
+    wait_slots: Slots
     #: Server-sent event streams open at once (each holds a blocked Redis connection).
-    event_slots: StreamSlots
+    event_slots: Slots
     embedded: EmbeddedRedis | None = None
     _queue: JobQueue | None = field(default=None, repr=False)
 
@@ -113,6 +108,6 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
         store=ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s),
         redis_url=url,
         embedded=embedded,
-        wait_slots=threading.BoundedSemaphore(settings.max_waiting_requests),
-        event_slots=StreamSlots(settings.max_event_streams),
+        wait_slots=Slots(settings.max_waiting_requests),
+        event_slots=Slots(settings.max_event_streams),
     )

@@ -22,7 +22,7 @@ from service.api.deps import ReadKey, StateDep
 from service.api.errors import ApiError
 from service.api.routes.devices import DEVICE_ERRORS, as_text, known_device
 from service.api.schemas import error_response
-from service.api.state import StreamSlots
+from service.api.state import Slots
 from worker.embedded_redis import connect_async
 from worker.redis_keys import events_stream
 
@@ -66,8 +66,14 @@ def _resume_point(client: redis.Redis, device: str, requested: str) -> tuple[str
     return "0", f"event: reset\ndata: {json.dumps(reset)}\n\n"
 
 
+def _refusal(limit: int) -> str:
+    """Why a stream was refused, and what to do."""
+    return (f"{limit} event streams are open, the most this server keeps "
+            "(MCAM_MAX_EVENT_STREAMS); close one or retry shortly")
+
+
 async def _event_lines(
-    url: str, device: str, since: str, limit: int | None, slots: StreamSlots,
+    url: str, device: str, since: str, limit: int | None, slots: Slots,
     preamble: str | None = None,
 ) -> AsyncIterator[str]:
     """Server-sent events from ``events:<device>``, after entry ``since``, while one of
@@ -76,7 +82,7 @@ async def _event_lines(
     poll, and 100 idle clients made every other request wait 3-8 s)."""
     if not slots.take():  # the route saw a free slot; another stream took it since
         yield f"retry: {RETRY_AFTER_S * 1000}\nevent: error\ndata: " + json.dumps(
-            {"code": "too_many_streams", "message": slots.refusal}) + "\n\n"
+            {"code": "too_many_streams", "message": _refusal(slots.limit)}) + "\n\n"
         return
     client = connect_async(url)
     sent = 0
@@ -121,7 +127,7 @@ def events(device_id: str, state: StateDep, _key: ReadKey,
     for name, value in (("since", since), ("Last-Event-ID", last_event_id)):
         _check_entry_id(name, value)
     if state.event_slots.full:
-        raise ApiError(503, "too_many_streams", state.event_slots.refusal,
+        raise ApiError(503, "too_many_streams", _refusal(state.event_slots.limit),
                        headers={"Retry-After": str(RETRY_AFTER_S)})
     start, preamble = _resume_point(state.client, device, last_event_id or since)
     lines = _event_lines(state.redis_url, device, start, limit, state.event_slots, preamble)
