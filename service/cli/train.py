@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the action; a run stopped by SIGINT or SIGTERM (after saving its checkpoint)
     says where it will resume and exits 128 + the signal's number (130, 143), as a shell
     reports a process the signal ended."""
-    from models.training.train import Stopped
+    from models.training.run_control import Stopped
 
     try:
         return dispatch(args)

@@ -21,14 +21,8 @@ from models.scenes import TRAIN_SCENES, load_hdri_gray
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
 from models.training.data import largest_crop
 from models.training.losses import HEAD_OUTPUTS
-from models.training.train import (
-    READ_NOISE_LIMIT,
-    Stopped,
-    TrainConfig,
-    check_config,
-    run_lock,
-    train,
-)
+from models.training.run_control import Stopped, run_lock
+from models.training.train import READ_NOISE_LIMIT, TrainConfig, check_config, train
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:

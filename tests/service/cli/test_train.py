@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from models.training import losses, train
-from models.training.train import TrainConfig, run_lock
+from models.training.run_control import run_lock
+from models.training.train import TrainConfig
 from service.cli.train import (
     LOSS_CHOICES,
     PRECISION_CHOICES,
