@@ -46,6 +46,7 @@ TIERS: dict[str, Tier] = {
     "small-s2d": Tier("small-s2d", 12, (16, 24, 32, 48, 64), 1, 12, 3, unshuffle=2),
     "tiny-s2d": Tier("tiny-s2d", 8, (8, 16, 24, 32, 32), 1, 8, 2, unshuffle=2),
     "base-s2d": Tier("base-s2d", 16, (24, 32, 48, 64, 96), 2, 16, 4, unshuffle=2),
+    "large": Tier("large", 32, (48, 64, 96, 128, 160), 2, 24, 4),
 }
 
 

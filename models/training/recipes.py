@@ -164,6 +164,35 @@ TINY_S2D_MODULO_STAGES = (286, 4004, 3528, 1716)
 #: mantissa net measured 21.83 / 23.93 dB against 21.94 / 23.99 and was not shipped.
 TINY_S2D_MORE_STAGES = (0, 0, 3435, 1717)
 
+#: Stage steps of the large tier (twice base's widths, 3.4x its GFLOPs: 27.4 at 256x256),
+#: per encoding, from timed GPU runs on an H100 (2026-11-27, bf16 autocast, two lanes):
+#: lanes ``large`` (planned for 460 s, done in 350 s: the probe ran while both lanes were
+#: starting) then ``large-more``, end to end from them (185 s). The runs ran as
+#: ``mantissanet-large-<encoding>`` and ``mantissanet-large-more-<encoding>``; their
+#: checkpoints were renamed to this recipe's names (a label does not change the batches).
+#: val-256 alone / refined by guided PUMA, after the first run and after the second:
+#: mantissa 22.50 / 24.23 -> 23.37 / 24.04 dB, W 91.32 -> 91.71%, PU21 alone 26.89 ->
+#: 26.65 dB, MS-SSIM 0.902 -> 0.886; modulo 23.34 / 24.21 -> 23.57 / 24.37 dB, W 90.79 ->
+#: 91.25%, better on every metric. Against base (the CPU-trained mantissa net, the GPU
+#: modulo net): mantissa +0.31 dB and +0.7 points of W alone, -0.05 dB refined, PU21
+#: -0.27 dB, MS-SSIM -0.017; modulo +0.47 dB alone, +0.31 refined, better on every
+#: metric. Twice base's widths buy tenths of a dB, not the step the #3 targets need.
+LARGE_STAGES = {"mantissa": (200, 2803, 2469, 1201), "modulo": (201, 2820, 2484, 1209)}
+LARGE_MORE_STAGES = {"mantissa": (0, 0, 1869, 934), "modulo": (0, 0, 1882, 941)}
+
+
+def large_chain(encoding: str) -> tuple[TrainConfig, TrainConfig]:
+    """The two runs of a shipped large-tier model (:data:`LARGE_STAGES`)."""
+    first = timed_run(
+        "large", encoding, stage_steps=LARGE_STAGES[encoding], precision="bf16", label=FIRST_RUN
+    )
+    more = timed_run(
+        "large", encoding, stage_steps=LARGE_MORE_STAGES[encoding], precision="bf16",
+        init_from=first.name,
+    )  # fmt: skip
+    return first, more
+
+
 #: Loss of the shipped tiny mantissa net: cross-entropy plus 0.1 x the expected log-MSE
 #: (``ce-risk``). Measured on val-256 mantissa (net alone / refined by guided PUMA, dB):
 #: tiny seed 0 ce-risk 22.09 / 23.88 against ce 21.63 / 23.56 (better on 19 of the 24
@@ -187,8 +216,10 @@ TINY_MANTISSA_LOSS = "ce-risk"
 #: alone, by loss (ce-risk, as shipped, and ce), since in ``s2d`` its ce-risk lane made
 #: 2.4x fewer steps than the modulo one. ``tiny-s2d-more`` (2026-11-26, an H100): both
 #: tiny-s2d nets continued end to end from a shipped recipe's run (its checkpoint copied
-#: into the runs folder first; see :data:`TINY_S2D_MORE_STAGES`). The device, precision
-#: and step counts of the runs that shipped are in their cards.
+#: into the runs folder first; see :data:`TINY_S2D_MORE_STAGES`). ``large`` then
+#: ``large-more`` (2026-11-27, an H100): the large tier per encoding, from scratch, then
+#: continued end to end (see :data:`LARGE_STAGES`). The device, precision and step counts
+#: of the runs that shipped are in their cards.
 TIMED_LANES: dict[str, tuple[tuple[TrainConfig, ...], ...]] = {
     "first": (
         (
@@ -211,6 +242,18 @@ TIMED_LANES: dict[str, tuple[tuple[TrainConfig, ...], ...]] = {
     "tiny-s2d-mantissa": (
         (timed_run("tiny-s2d", "mantissa", loss=TINY_MANTISSA_LOSS),),
         (timed_run("tiny-s2d", "mantissa"),),
+    ),
+    "large": tuple(
+        (timed_run("large", encoding, label=FIRST_RUN),) for encoding in ("mantissa", "modulo")
+    ),
+    "large-more": tuple(
+        (
+            timed_run(
+                "large", encoding, stage_steps=(0, 0, 2, 1),
+                init_from=f"mantissanet-large-{FIRST_RUN}-{encoding}",
+            ),
+        )
+        for encoding in ("mantissa", "modulo")
     ),
     "tiny-s2d-more": (
         (
@@ -269,4 +312,6 @@ SHIPPED: tuple[TrainConfig, ...] = (
         "tiny-s2d", "modulo", stage_steps=TINY_S2D_MORE_STAGES, precision="bf16",
         init_from=f"mantissanet-tiny-s2d-{FIRST_RUN}-modulo",
     ),
+    *large_chain("mantissa"),
+    *large_chain("modulo"),
 )

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 #: the command line does not import torch; a test keeps the two equal).
 LOSS_CHOICES = ("ce", "ce-risk", "mse", "jumps")
 #: The tiers of ``models.training.networks.TIERS`` (likewise kept equal by a test).
-TIER_CHOICES = ("tiny", "small", "base", "small-s2d", "tiny-s2d", "base-s2d")
+TIER_CHOICES = ("tiny", "small", "base", "small-s2d", "tiny-s2d", "base-s2d", "large")
 #: ``models.training.losses.RISK_WEIGHT``, for the same reason.
 RISK_WEIGHT = 0.1
 #: ``models.training.train.PRECISIONS``, likewise.
