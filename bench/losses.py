@@ -19,10 +19,11 @@ from typing import Any
 
 from bench import RESULTS, entry_point, machine, utc_now, versions
 from models.decoders.learned import LearnedDecoder, load_cards
+from models.training.config import RUNS_DIR, TrainConfig
 from models.training.export import export_run
 from models.training.losses import LOSSES
 from models.training.recipes import TINY_STAGES
-from models.training.train import RUNS_DIR, TrainConfig, train
+from models.training.train import train
 from models.training.validate import val256_metrics
 from service.cli.train import parse_stages
 

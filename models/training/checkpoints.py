@@ -14,7 +14,7 @@ import torch
 from models.errors import InvalidInputError
 
 if TYPE_CHECKING:
-    from models.training.train import TrainConfig
+    from models.training.config import TrainConfig
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:

@@ -34,6 +34,7 @@ from models.decoders.learned import ONNX_DIR, read_cards
 from models.errors import InvalidInputError, McamError
 from models.scenes import TRAIN_SCENES
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
+from models.training.config import TrainConfig
 from models.training.networks import (
     MULTIPLE,
     NUM_CLASSES,
@@ -42,7 +43,7 @@ from models.training.networks import (
     multiple,
     parameter_count,
 )
-from models.training.train import TrainConfig, build_model
+from models.training.train import build_model
 
 OPSET = 17
 TILE = 256

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-from models.training.train import TrainConfig
+from models.training.config import TrainConfig
 
 #: Stage steps of the shipped small tier: edge net, winding net on true edges,
 #: end to end on 64 px crops, end to end on 128 px crops. About 31 minutes per model

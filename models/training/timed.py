@@ -28,8 +28,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from models.training.config import PRECISIONS, RUNS_DIR, TrainConfig
 from models.training.recipes import TIMED_LANES
-from models.training.train import PRECISIONS, RUNS_DIR, TrainConfig, record_line, train
+from models.training.train import record_line, train
 
 #: The probe's window (s after the lanes start): every lane counts its steps from
 #: :data:`PROBE_FROM` to :data:`PROBE_TO`, after its start-up (imports, batch workers,

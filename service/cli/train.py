@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from models.errors import InvalidInputError
 
 if TYPE_CHECKING:
-    from models.training.train import TrainConfig
+    from models.training.config import TrainConfig
 
 #: The winding losses of ``models.training.losses.LOSSES`` (named here so that parsing
 #: the command line does not import torch; a test keeps the two equal).
@@ -33,7 +33,7 @@ LOSS_CHOICES = ("ce", "ce-risk", "mse", "jumps")
 TIER_CHOICES = ("tiny", "small", "base", "small-s2d", "tiny-s2d", "base-s2d", "large")
 #: ``models.training.losses.RISK_WEIGHT``, for the same reason.
 RISK_WEIGHT = 0.1
-#: ``models.training.train.PRECISIONS``, likewise.
+#: ``models.training.config.PRECISIONS``, likewise.
 PRECISION_CHOICES = ("fp32", "bf16")
 
 
@@ -229,9 +229,10 @@ def run(args: argparse.Namespace) -> int:
 
 def dispatch(args: argparse.Namespace) -> int:
     """Dispatch the action; imports the torch-based training code lazily."""
+    from models.training.config import RUNS_DIR, TrainConfig
     from models.training.export import ONNX_DIR
     from models.training.recipes import SHIPPED
-    from models.training.train import RUNS_DIR, TrainConfig, train
+    from models.training.train import train
 
     if args.action == "export":
         if not args.checkpoint.exists():

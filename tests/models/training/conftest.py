@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from models.training.config import TrainConfig
 from models.training.export import export_run
-from models.training.train import TrainConfig, train
+from models.training.train import train
 
 
 @pytest.fixture(scope="session")

@@ -16,6 +16,7 @@ from models.decoders.learned import load_cards, onnx_model
 from models.errors import InvalidInputError
 from models.formation import dequantize
 from models.scenes import val256_frames
+from models.training.config import TrainConfig
 from models.training.export import (
     ExportMismatchError,
     RolloverGraph,
@@ -27,7 +28,7 @@ from models.training.export import (
     trained_model,
 )
 from models.training.losses import rolled_out_state
-from models.training.train import TrainConfig, train
+from models.training.train import train
 
 
 def torch_winding(checkpoint: Path, m: np.ndarray) -> np.ndarray:

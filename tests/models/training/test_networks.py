@@ -24,7 +24,8 @@ def test_every_tier_maps_m_to_logits_and_edges(tier: str) -> None:
 
 def test_tiers_grow_in_parameters() -> None:
     counts = [
-        nets.parameter_count(nets.MantissaNet(nets.TIERS[t])) for t in ("tiny", "small", "base")
+        nets.parameter_count(nets.MantissaNet(nets.TIERS[t]))
+        for t in ("tiny", "small", "base", "large")
     ]
     assert counts == sorted(counts) and counts[0] > 1000
 

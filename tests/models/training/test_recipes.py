@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 
 from models.decoders.learned import ONNX_DIR
+from models.training.config import TrainConfig
 from models.training.recipes import SHIPPED, exported, quantized
-from models.training.train import TrainConfig
 
 
 def test_every_run_that_starts_from_another_comes_after_it() -> None:

@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 from models.training import timed
 from models.training.checkpoints import load_checkpoint
+from models.training.config import TrainConfig
 from models.training.recipes import SHIPPED, TIMED_LANES
-from models.training.train import TrainConfig
 
 units = st.lists(
     st.lists(st.integers(0, 50), min_size=3, max_size=4).map(tuple), min_size=1, max_size=3

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 import os
 import signal
 from collections.abc import Callable
@@ -13,16 +12,13 @@ from typing import Any
 
 import pytest
 import torch
-from pydantic import ValidationError
 
 from models.errors import InvalidInputError
-from models.formation import SensorParams
-from models.scenes import TRAIN_SCENES, load_hdri_gray
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
-from models.training.data import largest_crop
+from models.training.config import TrainConfig
 from models.training.losses import HEAD_OUTPUTS
 from models.training.run_control import Stopped, run_lock
-from models.training.train import READ_NOISE_LIMIT, TrainConfig, check_config, train
+from models.training.train import train
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -94,32 +90,6 @@ def test_every_loss_trains_and_names_its_run(tmp_path: Path, loss: str) -> None:
     state = load_checkpoint(train(config))
     head = state["model"]["winding.head.weight"]
     assert head.shape[0] == HEAD_OUTPUTS[loss]
-
-
-def test_a_label_names_the_run_but_not_the_decoder() -> None:
-    config = TrainConfig(tier="small-s2d", encoding="modulo", label="part1")
-    assert config.name == "mantissanet-small-s2d-part1-modulo"
-    assert config.decoder == "mantissanet-small-s2d"
-    assert TrainConfig(tier="small-s2d").name == "mantissanet-small-s2d-mantissa"
-
-
-def test_colour_channel_data_names_the_run_and_the_decoder() -> None:
-    config = TrainConfig(tier="tiny", colour_fraction=0.5, max_read_noise=0.01, label="ft")
-    assert config.name == "mantissanet-tiny-noise-colour-ft-mantissa"
-    assert config.decoder == "mantissanet-tiny-noise-colour"
-    assert config.pairs(3).colour_fraction == config.pairs(4).colour_fraction == 0.5
-
-
-@pytest.mark.parametrize("field", ["colour_fraction", "glow_fraction"])
-@pytest.mark.parametrize("fraction", [-0.1, 1.5, float("nan")])
-def test_a_data_fraction_outside_0_1_is_refused(field: str, fraction: float) -> None:
-    with pytest.raises(InvalidInputError, match=field):
-        check_config(TrainConfig(**{field: fraction}))
-
-
-def test_the_glow_fraction_reaches_every_stages_pairs() -> None:
-    config = TrainConfig(tier="tiny", glow_fraction=0.25)
-    assert config.pairs(3).glow_fraction == config.pairs(4).glow_fraction == 0.25
 
 
 def test_a_run_can_start_from_another_runs_weights(tmp_path: Path) -> None:
@@ -203,16 +173,6 @@ def test_each_resumed_stretch_of_a_run_is_a_segment(tmp_path: Path) -> None:
     assert checkpoint_segments(state) == segments
 
 
-
-
-def test_the_read_noise_limit_is_the_sensor_models() -> None:
-    SensorParams(encoding="mantissa", read_noise=READ_NOISE_LIMIT)
-    with pytest.raises(ValidationError):
-        SensorParams(encoding="mantissa", read_noise=math.nextafter(READ_NOISE_LIMIT, 2.0))
-
-
-def test_the_largest_crop_is_the_smallest_panoramas_side() -> None:
-    assert largest_crop() == min(min(load_hdri_gray(name).shape) for name in TRAIN_SCENES)
 
 
 @pytest.mark.parametrize(

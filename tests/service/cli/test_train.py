@@ -12,9 +12,9 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from models.training import losses, train
+from models.training import config, losses, networks
+from models.training.config import TrainConfig
 from models.training.run_control import run_lock
-from models.training.train import TrainConfig
 from service.cli.train import (
     LOSS_CHOICES,
     PRECISION_CHOICES,
@@ -85,9 +85,9 @@ def test_missing_model_card_is_one_clear_line(tmp_path: Path) -> None:
 
 def test_the_command_line_offers_every_training_loss_tier_and_default() -> None:
     assert LOSS_CHOICES == losses.LOSSES
-    assert TIER_CHOICES == tuple(train.TIERS)
+    assert TIER_CHOICES == tuple(networks.TIERS)
     assert RISK_WEIGHT == losses.RISK_WEIGHT
-    assert PRECISION_CHOICES == train.PRECISIONS
+    assert PRECISION_CHOICES == config.PRECISIONS
 
 
 @pytest.mark.parametrize(("device", "message"), [("cuda", "no CUDA GPU"), ("gpu7", "torch device")])
