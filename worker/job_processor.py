@@ -233,6 +233,8 @@ class JobProcessor:
             record = self.jobs.load(delivery.text("job"))
         except (KeyError, UnicodeDecodeError, JobNotFoundError) as exc:
             consumer.dead_letter(delivery, "not_found", f"entry names no known job: {exc}")
+            if isinstance(exc, JobNotFoundError):
+                self.jobs.release(delivery.text("job"))
             return
         while True:
             if delivery.deliveries > self.max_deliveries:
@@ -319,7 +321,7 @@ class JobProcessor:
             frames_done=record.frames_total,
         )
         if changed:
-            consumer.done(delivery)
+            self._drop(consumer, delivery, record.id)
             self._observe(timings, JobState.SUCCEEDED)
         else:
             self._finish(consumer, delivery, record.id)
@@ -328,7 +330,12 @@ class JobProcessor:
         """The job is final: its record expires with its results (set again here for
         jobs the API cancelled, whose transition carried no expiry); drop the entry."""
         self.jobs.expire(job_id, self.store.retention_s)
+        self._drop(consumer, delivery, job_id)
+
+    def _drop(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
+        """Delete the finished job's entry, then release its hold on the queue."""
         consumer.done(delivery)
+        self.jobs.release(job_id)
 
     def _fail(
         self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError,
@@ -349,6 +356,7 @@ class JobProcessor:
             consumer.done(delivery)
         else:
             consumer.dead_letter(delivery, error.code, error.message, job=record.id)
+        self.jobs.release(record.id)
         if changed:
             self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
         else:

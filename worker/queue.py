@@ -15,7 +15,11 @@ Usage (device daemon)::
 Job codes travel as raw bytes in the ``jobs`` stream entry (fields ``job``,
 ``kind``, ``shape``, ``dtype``, ``codes``), never JSON; the record lives at
 ``job:<id>``. The jobs stream rejects submissions beyond ``maxlen`` outstanding
-entries (:class:`QueueFullError`, 503); a device stream drops its oldest frames
+entries or ``max_bytes`` of their codes (:class:`QueueFullError`, 503), and from an
+API key that has ``max_per_key`` unfinished jobs (:class:`TooManyJobsError`, 429): a
+job counts against its key from its submit until its transition to a finished state,
+and its codes' bytes until its entry is deleted (:mod:`worker.job_store`); a device
+stream drops its oldest frames
 and counts them in ``frames_dropped_total``. Workers delete entries once done,
 so stream length is the backlog.
 """
@@ -41,7 +45,10 @@ from worker.metrics import Metrics, counter_key
 from worker.redis_keys import (
     DEAD_LETTER_STREAM,
     DEVICES_SET,
+    JOB_HOLDS,
     JOB_STATES,
+    JOBS_HELD_BYTES,
+    JOBS_PER_KEY,
     JOBS_STREAM,
     WORKERS_HEARTBEAT,
     frame_stream,
@@ -57,12 +64,21 @@ JOB_KINDS = ("reconstruction", "video")
 
 _SUBMIT = """
 if redis.call('XLEN', KEYS[1]) >= tonumber(ARGV[1]) then return 0 end
-local n = tonumber(ARGV[2])
-for i = 3, 2 + 2 * n, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
+local owner = ARGV[2]
+if owner ~= '' and tonumber(redis.call('HGET', KEYS[5], owner) or '0') >= tonumber(ARGV[3]) then
+  return -1
+end
+local bytes = tonumber(ARGV[4])
+if tonumber(redis.call('GET', KEYS[6]) or '0') + bytes > tonumber(ARGV[5]) then return -2 end
+local n = tonumber(ARGV[7])
+for i = 8, 7 + 2 * n, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
 local entry = {}
-for i = 3 + 2 * n, #ARGV do entry[#entry + 1] = ARGV[i] end
+for i = 8 + 2 * n, #ARGV do entry[#entry + 1] = ARGV[i] end
 redis.call('XADD', KEYS[1], '*', unpack(entry))
 redis.call('HINCRBY', KEYS[3], 'queued', 1)
+redis.call('HSET', KEYS[4], ARGV[6], owner .. ' ' .. ARGV[4])
+if owner ~= '' then redis.call('HINCRBY', KEYS[5], owner, 1) end
+redis.call('INCRBY', KEYS[6], bytes)
 return 1
 """
 
@@ -79,10 +95,18 @@ return dropped
 
 
 class QueueFullError(McamError):
-    """The jobs stream holds ``maxlen`` unfinished jobs; the client should retry later."""
+    """The jobs stream holds ``maxlen`` unfinished jobs, or their codes ``max_bytes``; the
+    client should retry later."""
 
     code = "queue_full"
     http_status = 503
+
+
+class TooManyJobsError(McamError):
+    """The submitting API key already has ``max_per_key`` jobs queued or running."""
+
+    code = "too_many_jobs"
+    http_status = 429
 
 
 def ensure_group(client: redis.Redis, stream: str) -> None:
@@ -149,10 +173,19 @@ class JobQueue:
     """Submit, inspect, wait for and cancel jobs; read queue statistics."""
 
     def __init__(
-        self, client: redis.Redis, *, maxlen: int, max_deliveries: int, claim_idle_ms: int
+        self,
+        client: redis.Redis,
+        *,
+        maxlen: int,
+        max_deliveries: int,
+        claim_idle_ms: int,
+        max_per_key: int | None = None,
+        max_bytes: int | None = None,
     ) -> None:
         self.client = client
         self.maxlen = maxlen
+        self.max_per_key = max_per_key
+        self.max_bytes = max_bytes
         self.max_deliveries = max_deliveries
         self.claim_idle_ms = claim_idle_ms
         self.jobs = JobStore(client)
@@ -167,12 +200,23 @@ class JobQueue:
         params: SensorParams,
         decoder: str,
         options: dict[str, Any] | None = None,
+        owner: str = "",
     ) -> JobRecord:
-        """Queue a job (codes in DN: one frame, or T frames for ``video``); returns its record.
+        """Queue a job (codes in DN: one frame, or T frames for ``video``) for the API key
+        ``owner`` (its id; ``""``: no key, as for a device's recording); returns its record.
 
-        Raises :class:`InvalidInputError` for bad codes/kind/decoder and
-        :class:`QueueFullError` when ``maxlen`` jobs are outstanding."""
+        Raises :class:`InvalidInputError` for bad codes/kind/decoder or codes larger than
+        ``max_bytes``, :class:`TooManyJobsError` when ``owner`` has ``max_per_key`` jobs
+        queued or running, and :class:`QueueFullError` when ``maxlen`` jobs are
+        outstanding or their codes and these would pass ``max_bytes``."""
         codes = _check_submission(kind, codes, params, decoder)
+        max_bytes = self.max_bytes if self.max_bytes is not None else 2**62
+        if codes.nbytes > max_bytes:
+            raise InvalidInputError(
+                f"this job's codes take {codes.nbytes} bytes, more than the queue holds for all "
+                f"unfinished jobs together ({max_bytes}, MCAM_JOBS_MAX_BYTES): send fewer "
+                "frames or pixels"
+            )
         record = JobRecord(
             id=uuid.uuid4().hex,
             kind=kind,  # type: ignore[arg-type]
@@ -184,16 +228,37 @@ class JobQueue:
         )
         fields = record_fields(record)
         entry = job_entry(record, codes)
-        args: list[Any] = [self.maxlen, len(fields)]
+        per_key = self.max_per_key if self.max_per_key is not None else 2**62
+        args: list[Any] = [
+            self.maxlen, owner, per_key, codes.nbytes, max_bytes, record.id, len(fields)
+        ]  # fmt: skip
         for pairs in (fields, entry):
             for name, value in pairs.items():
                 args += [name, value]
-        if not self._submit(keys=[JOBS_STREAM, job_key(record.id), JOB_STATES], args=args):
+        keys = [JOBS_STREAM, job_key(record.id), JOB_STATES, JOB_HOLDS, JOBS_PER_KEY]
+        accepted = int(self._submit(keys=[*keys, JOBS_HELD_BYTES], args=args))
+        if accepted != 1:
             self.metrics.inc("jobs_rejected_total")
-            raise QueueFullError(
-                f"the job queue is full ({self.maxlen} jobs waiting); retry in a few seconds"
-            )
+            raise self._refusal(accepted, codes.nbytes)
         return record
+
+    def _refusal(self, reason: int, nbytes: int) -> McamError:
+        """The error for a submit the script refused (``reason``: 0 queue length, -1 the
+        key's jobs, -2 the queue's bytes)."""
+        if reason == -1:
+            return TooManyJobsError(
+                f"this API key has {self.max_per_key} jobs queued or running, the most one key "
+                "may have (MCAM_MAX_QUEUED_JOBS_PER_KEY): wait for one to finish, or cancel "
+                "one, then submit again"
+            )
+        if reason == -2:
+            return QueueFullError(
+                f"the job queue holds as many bytes of codes as it may ({self.max_bytes}, "
+                f"MCAM_JOBS_MAX_BYTES; this job: {nbytes}); retry in a few seconds"
+            )
+        return QueueFullError(
+            f"the job queue is full ({self.maxlen} jobs waiting); retry in a few seconds"
+        )
 
     def get(self, job_id: str) -> JobRecord:
         """The job's record; :class:`JobNotFoundError` if there is none."""
@@ -240,23 +305,25 @@ class JobQueue:
         return alive
 
     def stats(self) -> dict[str, Any]:
-        """Queue depth, pending entries, jobs by state, dead letters, per-device streams."""
+        """Queue depth, pending entries, bytes of codes unfinished jobs hold, jobs by state,
+        dead letters, per-device streams."""
         devices = sorted(d.decode() for d in self.client.smembers(DEVICES_SET))
         pipe = self.client.pipeline(transaction=False)
         pipe.xlen(JOBS_STREAM)
         pipe.xpending(JOBS_STREAM, GROUP)
         pipe.xlen(DEAD_LETTER_STREAM)
         pipe.hgetall(counter_key("frames_dropped_total"))
+        pipe.get(JOBS_HELD_BYTES)
         for device in devices:
             pipe.xlen(frame_stream(device))
             pipe.get(lease_key(device))
             pipe.hget(last_sequence_key(device), "seq")
         replies = pipe.execute()
-        depth, pending, dead, dropped = replies[:4]
+        depth, pending, dead, dropped, held = replies[:5]
         dropped_by_device = {k.decode(): int(v) for k, v in dropped.items()}
         per_device = {}
         for i, device in enumerate(devices):
-            length, owner, last_seq = replies[4 + 3 * i : 7 + 3 * i]
+            length, owner, last_seq = replies[5 + 3 * i : 8 + 3 * i]
             per_device[device] = {
                 "depth": int(length),
                 "owner": owner.decode() if owner else None,
@@ -266,6 +333,7 @@ class JobQueue:
         return {
             "stream_depth": int(depth),
             "pending": int(pending["pending"]),
+            "held_bytes": int(held or 0),
             "jobs_by_state": self.jobs.states(),
             "dead_letters": int(dead),
             "frames_dropped": dropped_by_device,

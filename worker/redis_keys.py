@@ -17,6 +17,13 @@ DEAD_LETTER_STREAM = "deadletter"
 WORKERS_HEARTBEAT = "workers"
 #: Hash: job state -> number of job records in that state (kept by state transitions).
 JOB_STATES = "jobs:states"
+#: Hash: unfinished job id -> "<owner's key id> <bytes of its codes>" (its hold on the
+#: queue, taken at submit, released once by the transition to a finished state).
+JOB_HOLDS = "jobs:holds"
+#: Hash: API key id -> its unfinished jobs (queued or running).
+JOBS_PER_KEY = "jobs:per_key"
+#: Bytes of codes held by unfinished jobs (their ``jobs`` stream entries).
+JOBS_HELD_BYTES = "jobs:held_bytes"
 #: Prefix of the worker's Redis-backed metrics (see ``worker/metrics.py``).
 METRICS_PREFIX = "metrics:"
 _DEVICE_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")

@@ -93,6 +93,10 @@ UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
     400: error_response("malformed request body"),
     413: error_response("upload or image too large"),
     415: error_response("unsupported file format or content type"),
+    429: error_response(
+        "rate limit exceeded (rate_limited, see Retry-After), or the key already has "
+        "MCAM_MAX_QUEUED_JOBS_PER_KEY jobs queued or running (too_many_jobs)"
+    ),
 }
 
 

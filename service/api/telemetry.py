@@ -78,6 +78,11 @@ class QueueCollector(Collector):
             PREFIX + "queue_pending", "jobs delivered but not acknowledged", value=stats["pending"]
         )
         yield GaugeMetricFamily(
+            PREFIX + "queue_held_bytes",
+            "bytes of codes unfinished jobs hold in the jobs stream (at most MCAM_JOBS_MAX_BYTES)",
+            value=stats["held_bytes"],
+        )
+        yield GaugeMetricFamily(
             PREFIX + "dead_letter_stream_length",
             "entries in the dead-letter stream now (mcam_dead_letters_total counts every one)",
             value=stats["dead_letters"],

@@ -15,7 +15,14 @@ from worker.frame_message import FrameMessage
 from worker.job_store import JobStore
 from worker.jobs import JobNotFoundError, JobState
 from worker.metrics import read_metrics
-from worker.queue import GROUP, JobQueue, QueueFullError, entry_codes, publish_frame
+from worker.queue import (
+    GROUP,
+    JobQueue,
+    QueueFullError,
+    TooManyJobsError,
+    entry_codes,
+    publish_frame,
+)
 from worker.redis_keys import JOBS_STREAM, frame_stream
 
 PARAMS = SensorParams(encoding="modulo", bits=8)
@@ -77,6 +84,72 @@ def test_full_jobs_stream_rejects_and_counts(client: redis.Redis) -> None:
     assert queue.stats()["jobs_by_state"]["queued"] == 2
     rejected = {f.name: f for f in read_metrics(client)}["jobs_rejected_total"]
     assert rejected.samples[0].value == 1
+
+
+def bounded_queue(client: redis.Redis, *, per_key: int = 100, max_bytes: int = 10**6) -> JobQueue:
+    return JobQueue(
+        client, maxlen=100, max_deliveries=3, claim_idle_ms=1000, max_per_key=per_key,
+        max_bytes=max_bytes,
+    )  # fmt: skip
+
+
+def test_a_key_with_its_limit_of_unfinished_jobs_is_refused_others_are_not(
+    client: redis.Redis,
+) -> None:
+    queue = bounded_queue(client, per_key=2)
+    first = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    with pytest.raises(TooManyJobsError, match="2 jobs queued or running") as info:
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    assert info.value.code == "too_many_jobs" and info.value.http_status == 429
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="bob")
+    queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    assert client.xlen(JOBS_STREAM) == 4
+    queue.cancel(first.id)
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+
+
+@pytest.mark.parametrize("end", [JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED])
+def test_a_finished_job_frees_its_keys_place_and_its_deleted_entry_its_bytes(
+    client: redis.Redis, end: JobState
+) -> None:
+    queue = bounded_queue(client, per_key=1, max_bytes=CODES.nbytes)
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    store = JobStore(client)
+    store.transition(record.id, JobState.RUNNING, {JobState.QUEUED})
+    with pytest.raises(TooManyJobsError):
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    store.transition(record.id, end, {JobState.RUNNING})
+    store.transition(record.id, end, {end})
+    with pytest.raises(QueueFullError, match="MCAM_JOBS_MAX_BYTES"):
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    assert queue.stats()["held_bytes"] == CODES.nbytes
+    assert store.release(record.id) and not store.release(record.id)
+    assert queue.stats()["held_bytes"] == 0
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+
+
+def test_releasing_an_unfinished_jobs_entry_frees_its_keys_place_too(client: redis.Redis) -> None:
+    queue = bounded_queue(client, per_key=1)
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    JobStore(client).release(record.id)
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+
+
+def test_codes_past_the_queues_bytes_are_refused_until_a_job_ends(client: redis.Redis) -> None:
+    queue = bounded_queue(client, max_bytes=CODES.nbytes * 2)
+    first = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="bob")
+    with pytest.raises(QueueFullError, match="MCAM_JOBS_MAX_BYTES"):
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="carol")
+    queue.cancel(first.id)
+    with pytest.raises(QueueFullError, match="MCAM_JOBS_MAX_BYTES"):
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="carol")
+    JobStore(client).release(first.id)
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="carol")
+    with pytest.raises(InvalidInputError, match="send fewer frames or pixels"):
+        queue.submit("video", np.zeros((3, 8, 8), np.uint8), PARAMS, "itoh")
+    assert client.xlen(JOBS_STREAM) == 3
 
 
 def test_full_device_stream_drops_oldest_and_counts(client: redis.Redis, queue: JobQueue) -> None:
@@ -143,5 +216,6 @@ def test_stats_shape(queue: JobQueue, client: redis.Redis) -> None:
     client.xreadgroup(GROUP, "c", {JOBS_STREAM: ">"})
     stats = queue.stats()
     assert stats["stream_depth"] == 1 and stats["pending"] == 1
+    assert stats["held_bytes"] == CODES.nbytes
     assert stats["dead_letters"] == 0 and stats["devices"] == {}
     assert queue.workers(max_age_s=10) == {}

@@ -30,6 +30,7 @@ from worker.metrics import read_metrics
 from worker.queue import JobQueue, publish_frame
 from worker.redis_keys import (
     DEAD_LETTER_STREAM,
+    JOBS_PER_KEY,
     JOBS_STREAM,
     WORKERS_HEARTBEAT,
     events_stream,
@@ -67,9 +68,9 @@ def test_job_runs_and_cancelled_job_is_skipped(
     queue: JobQueue, client: redis.Redis, workers, data_dir: Path, make_frame, wait_until, finished
 ) -> None:
     frame: SensorFrame = make_frame()
-    skipped = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    skipped = queue.submit("reconstruction", frame.codes, frame.params, "itoh", owner="k")
     queue.cancel(skipped.id)
-    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh", owner="k")
     workers.start()
     record = finished(queue, job.id)
     assert record.state is JobState.SUCCEEDED, record.error
@@ -87,6 +88,8 @@ def test_job_runs_and_cancelled_job_is_skipped(
     assert 0 < client.ttl(f"job:{job.id}") <= retention_s
     assert 0 < client.ttl(f"job:{skipped.id}") <= retention_s
     wait_until(lambda: queue.stats()["stream_depth"] == 0, 10, "entries acked and deleted")
+    wait_until(lambda: queue.stats()["held_bytes"] == 0, 10, "the jobs' holds released")
+    assert client.hlen(JOBS_PER_KEY) == 0
     assert len(queue.workers(max_age_s=10)) == 1
 
 
@@ -137,6 +140,7 @@ def test_a_job_the_input_makes_impossible_fails_at_once_without_a_dead_letter(
     assert record.state is JobState.FAILED and record.attempts == 1
     assert record.error is not None and record.error.code == "output_overflow"
     wait_until(lambda: client.xlen(JOBS_STREAM) == 0, 10, "the entry done")
+    wait_until(lambda: queue.stats()["held_bytes"] == 0, 10, "the job's hold released")
     assert client.xlen(DEAD_LETTER_STREAM) == 0 and result_files(data_dir) == []
     stats = queue.stats()
     assert stats["dead_letters"] == 0 and stats["jobs_by_state"]["failed"] == 1
@@ -161,6 +165,7 @@ def test_a_job_failing_for_the_worker_goes_to_dead_letters_after_max_deliveries(
     [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
     assert letter[b"job"].decode() == job.id and letter[b"deliveries"] == b"3"
     wait_until(lambda: client.xlen(JOBS_STREAM) == 0, 10, "the entry dead-lettered")
+    wait_until(lambda: queue.stats()["held_bytes"] == 0, 10, "the job's hold released")
     assert queue.stats()["dead_letters"] == 1
 
 

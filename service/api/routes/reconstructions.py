@@ -26,6 +26,7 @@ from service.api.uploads import (
     read_upload_fields,
     sniff_frame_format,
 )
+from service.core.security import ApiKey
 
 router = APIRouter(prefix="/v1", tags=["reconstructions"])
 
@@ -77,9 +78,10 @@ def choose_decoder(fields: ReconstructionFields, default: str) -> str:
 
 
 def submit(
-    state: ServiceState, upload: Upload, fields: ReconstructionFields, wait_s: float
+    state: ServiceState, upload: Upload, fields: ReconstructionFields, wait_s: float, key: ApiKey
 ) -> Response:
-    """Decode the upload, queue the job, and wait up to ``wait_s`` for it to finish."""
+    """Decode the upload, queue the job for ``key``, and wait up to ``wait_s`` for it to
+    finish."""
     settings = state.settings
     frame = read_wrapped_frame(upload, fields, settings.max_pixels)
     decoder = choose_decoder(fields, settings.default_decoder)
@@ -93,6 +95,7 @@ def submit(
             "half": fields.half,
             "exr_compression": fields.exr_compression,
         },
+        owner=key.id,
     )
     return job_response(state.queue, record, wait_s, state.wait_slots)
 
@@ -113,7 +116,7 @@ async def post_reconstruction(
     request: Request,
     query: Annotated[ReconstructionFields, Query()],
     state: StateDep,
-    _: SubmitKey,
+    key: SubmitKey,
     prefer: Annotated[
         str | None, Header(description="`wait=N`: answer 200 with the job if done within N s")
     ] = None,
@@ -121,4 +124,4 @@ async def post_reconstruction(
     """Queue a wrapped frame; the job's state is at ``GET /v1/jobs/{id}``."""
     upload, fields = await read_upload_fields(request, ReconstructionFields, query)
     wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
-    return await run_in_threadpool(submit, state, upload, fields, wait_s)
+    return await run_in_threadpool(submit, state, upload, fields, wait_s, key)

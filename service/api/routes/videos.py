@@ -30,6 +30,7 @@ from service.api.schemas import (
 )
 from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
+from service.core.security import ApiKey
 from worker.temporal_config import TemporalConfig
 from worker.video_input import VideoLimits, decode_video
 from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
@@ -126,8 +127,8 @@ def sniff_video_format(upload: Upload, declared: str | None) -> str:
     )
 
 
-def submit(state: ServiceState, upload: Upload, fields: VideoFields) -> Response:
-    """Decode the upload, check the options and queue the job."""
+def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey) -> Response:
+    """Decode the upload, check the options and queue the job for ``key``."""
     settings = state.settings
     fmt = sniff_video_format(upload, fields.format)
     limits = VideoLimits(
@@ -138,7 +139,9 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields) -> Response
     options = fields.video_job_options()
     video_options(decoder, options)
     check_hdr10_size(options["outputs"], video.codes.shape)
-    record = state.queue.submit("video", video.codes, video.params, decoder, options)
+    record = state.queue.submit(
+        "video", video.codes, video.params, decoder, options, owner=key.id
+    )
     return accepted_response(record)
 
 
@@ -151,11 +154,11 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields) -> Response
     openapi_extra=upload_body(VideoFields, "a wrapped video (.tiff pages, .npy, .zip of PNGs)"),
 )
 async def post_video(
-    request: Request, query: Annotated[VideoFields, Query()], state: StateDep, _: SubmitKey
+    request: Request, query: Annotated[VideoFields, Query()], state: StateDep, key: SubmitKey
 ) -> Response:
     """Queue a wrapped video; poll ``GET /v1/jobs/{id}`` for progress (frames done)."""
     upload, fields = await read_upload_fields(request, VideoFields, query)
-    return await run_in_threadpool(submit, state, upload, fields)
+    return await run_in_threadpool(submit, state, upload, fields, key)
 
 
 @router.get(

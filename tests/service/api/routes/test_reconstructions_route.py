@@ -292,3 +292,30 @@ def test_only_so_many_requests_wait_for_their_jobs_at_once(
         assert hurried.status_code == 202 and "preference-applied" not in hurried.headers
         assert not waiting.done(), "the first upload should still be waiting for its job"
         assert waiting.result().status_code == 202
+
+
+def test_a_key_with_its_limit_of_unfinished_jobs_gets_429_and_other_keys_do_not(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """No worker runs, so each accepted job stays queued and counts against its key; a
+    cancelled one no longer does."""
+    settings = make_settings(tmp_path, redis_url, max_queued_jobs_per_key=2)
+    data, _ = frame_png()
+    with serve(create_app(settings)) as url:
+
+        def upload(key: str) -> httpx.Response:
+            return httpx.post(f"{url}/v1/reconstructions", files={"file": ("f.png", data)},
+                              headers={"Authorization": f"Bearer {key}"}, timeout=60)
+
+        first, second = upload(FULL_KEY), upload(FULL_KEY)
+        assert first.status_code == second.status_code == 202
+        refused = upload(FULL_KEY)
+        assert refused.status_code == 429, refused.text
+        assert refused.json()["code"] == "too_many_jobs"
+        assert "MCAM_MAX_QUEUED_JOBS_PER_KEY" in refused.json()["message"]
+        assert upload(SUBMIT_KEY).status_code == 202
+        assert connect(redis_url).xlen(JOBS_STREAM) == 3
+        cancel = httpx.delete(f"{url}/v1/jobs/{first.json()['id']}",
+                              headers={"Authorization": f"Bearer {FULL_KEY}"}, timeout=60)
+        assert cancel.status_code == 200, cancel.text
+        assert upload(FULL_KEY).status_code == 202

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import zipfile
 from collections.abc import Callable
+from pathlib import Path
 
 import av
 import httpx
@@ -15,7 +16,8 @@ import tifffile
 from models.formation import SensorParams, encode
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
-from tests.service.conftest import finished_job, npy_bytes
+from service.main import create_app
+from tests.service.conftest import FULL_KEY, finished_job, make_settings, npy_bytes, serve
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
@@ -153,3 +155,15 @@ def test_uploads_that_inflate_past_the_limits_are_refused_unread(client: Client)
         reply = http.post("/v1/videos", files={"file": (name, data)}, data=FLAGS)
         assert reply.status_code == 413, reply.text
         assert reply.json()["code"] == "image_too_large" and fragment in reply.json()["message"]
+
+
+def test_a_video_counts_against_its_keys_unfinished_jobs(tmp_path: Path, redis_url: str) -> None:
+    settings = make_settings(tmp_path, redis_url, max_queued_jobs_per_key=1)
+    clip = np.stack([encode(frame, PARAMS).codes for frame in slow_clip()[:3]])
+    with serve(create_app(settings)) as url:
+        http = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"})
+        for expected in (202, 429):
+            reply = http.post("/v1/videos", files={"file": ("c.npy", npy_bytes(clip))}, data=FLAGS)
+            assert reply.status_code == expected, reply.text
+        assert reply.json()["code"] == "too_many_jobs"
+        http.close()
