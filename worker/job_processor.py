@@ -51,6 +51,7 @@ from worker.jobs import JobError, JobNotFoundError, JobRecord, JobState
 from worker.metrics import Metrics
 from worker.outputs import OUTPUT_NAMES, encode_outputs
 from worker.queue import entry_codes
+from worker.queue_holds import QueueHolds
 from worker.result_store import ResultStore
 
 log = logging.getLogger(__name__)
@@ -220,6 +221,7 @@ class JobProcessor:
         child: ChildProcess | None = None,
     ) -> None:
         self.jobs = JobStore(client)
+        self.holds = QueueHolds(client)
         self.metrics = Metrics(client)
         self.store = store
         self.max_deliveries = max_deliveries
@@ -232,9 +234,9 @@ class JobProcessor:
         try:
             record = self.jobs.load(delivery.text("job"))
         except (KeyError, UnicodeDecodeError, JobNotFoundError) as exc:
-            consumer.dead_letter(delivery, "not_found", f"entry names no known job: {exc}")
             if isinstance(exc, JobNotFoundError):
-                self.jobs.release(delivery.text("job"))
+                self.holds.release(delivery.text("job"))
+            consumer.dead_letter(delivery, "not_found", f"entry names no known job: {exc}")
             return
         while True:
             if delivery.deliveries > self.max_deliveries:
@@ -333,9 +335,9 @@ class JobProcessor:
         self._drop(consumer, delivery, job_id)
 
     def _drop(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
-        """Delete the finished job's entry, then release its hold on the queue."""
+        """Release the finished job's hold on the queue, then delete its entry."""
+        self.holds.release(job_id)
         consumer.done(delivery)
-        self.jobs.release(job_id)
 
     def _fail(
         self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError,
@@ -353,10 +355,10 @@ class JobProcessor:
             error=error,
         )
         if caller_error:
-            consumer.done(delivery)
+            self._drop(consumer, delivery, record.id)
         else:
+            self.holds.release(record.id)
             consumer.dead_letter(delivery, error.code, error.message, job=record.id)
-        self.jobs.release(record.id)
         if changed:
             self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
         else:

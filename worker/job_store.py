@@ -10,9 +10,7 @@ Usage::
 Each top-level field of :class:`~worker.jobs.JobRecord` is one hash field holding
 its JSON value, so the API's cancel and the worker's progress writes never
 overwrite each other. State changes go through one Lua script that checks the
-current state, keeps the ``jobs:states`` counts and gives back a finished job's place
-in its API key's count; :meth:`JobStore.release` releases the rest of its hold on the
-queue when its entry is deleted.
+current state and keeps the ``jobs:states`` counts.
 """
 
 from __future__ import annotations
@@ -24,52 +22,25 @@ from typing import Any
 import redis
 
 from worker.jobs import JobNotFoundError, JobRecord, JobState, validate_job_id
-from worker.redis_keys import (
-    JOB_HOLDS,
-    JOB_STATES,
-    JOBS_HELD_BYTES,
-    JOBS_PER_KEY,
-    job_done_channel,
-    job_key,
-)
+from worker.redis_keys import JOB_STATES, job_done_channel, job_key
 
 _TRANSITION = """
 local current = redis.call('HGET', KEYS[1], 'state')
 if not current then return {0, ''} end
 local allowed = false
-for i = 4, 3 + tonumber(ARGV[3]) do
+for i = 3, 2 + tonumber(ARGV[2]) do
   if ARGV[i] == current then allowed = true end
 end
 if not allowed then return {0, current} end
 redis.call('HSET', KEYS[1], 'state', ARGV[1])
-local ttl = tonumber(ARGV[4 + tonumber(ARGV[3])])
-for i = 5 + tonumber(ARGV[3]), #ARGV, 2 do
+local ttl = tonumber(ARGV[3 + tonumber(ARGV[2])])
+for i = 4 + tonumber(ARGV[2]), #ARGV, 2 do
   redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1])
 end
 if ttl > 0 then redis.call('EXPIRE', KEYS[1], ttl) end
 redis.call('HINCRBY', KEYS[2], cjson.decode(current), -1)
 redis.call('HINCRBY', KEYS[2], cjson.decode(ARGV[1]), 1)
-local hold = ARGV[2] ~= '' and redis.call('HGET', KEYS[3], ARGV[2])
-if hold then
-  local owner, bytes = string.match(hold, '^(.-) (%d+)$')
-  if owner ~= '' then
-    redis.call('HSET', KEYS[3], ARGV[2], ' ' .. bytes)
-    if redis.call('HINCRBY', KEYS[4], owner, -1) <= 0 then redis.call('HDEL', KEYS[4], owner) end
-  end
-end
 return {1, current}
-"""
-
-_RELEASE = """
-local hold = redis.call('HGET', KEYS[1], ARGV[1])
-if not hold then return 0 end
-redis.call('HDEL', KEYS[1], ARGV[1])
-local owner, bytes = string.match(hold, '^(.-) (%d+)$')
-if owner ~= '' and redis.call('HINCRBY', KEYS[2], owner, -1) <= 0 then
-  redis.call('HDEL', KEYS[2], owner)
-end
-redis.call('DECRBY', KEYS[3], bytes)
-return 1
 """
 
 
@@ -89,7 +60,6 @@ class JobStore:
     def __init__(self, client: redis.Redis) -> None:
         self.client = client
         self._transition = client.register_script(_TRANSITION)
-        self._release = client.register_script(_RELEASE)
 
     def load(self, job_id: str) -> JobRecord:
         """The record of ``job_id``; :class:`JobNotFoundError` if unknown or malformed id."""
@@ -116,29 +86,19 @@ class JobStore:
         """Move to state ``to`` if the current state is in ``allowed_from`` and set
         ``fields`` with it, atomically; with ``expire_s``, the record expires that many
         seconds later, set in the same step (no reader sees a finished job that would
-        never expire). A finished state gives back the job's place in its API key's count
-        of unfinished jobs (:mod:`worker.queue`) in that step too, once; its codes' bytes
-        stay held until :meth:`release` (the entry leaves the stream). Returns (changed,
-        previous state or None if the record does not exist). Finished states notify
-        waiters."""
+        never expire). Returns (changed, previous state or None if the record does not
+        exist). Finished states notify waiters."""
         allowed = [json.dumps(state.value) for state in allowed_from]
         values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
         pairs = [item for pair in encode_fields(values).items() for item in pair]
         ttl = max(int(expire_s), 1) if expire_s is not None else 0
-        releases = job_id if to.finished else ""
         changed, previous = self._transition(
-            keys=[job_key(job_id), JOB_STATES, JOB_HOLDS, JOBS_PER_KEY],
-            args=[json.dumps(to.value), releases, len(allowed), *allowed, ttl, *pairs],
+            keys=[job_key(job_id), JOB_STATES],
+            args=[json.dumps(to.value), len(allowed), *allowed, ttl, *pairs],
         )
         if changed and to.finished:
             self.client.publish(job_done_channel(job_id), to.value)
         return bool(changed), JobState(json.loads(previous)) if previous else None
-
-    def release(self, job_id: str) -> bool:
-        """Release the job's whole hold on the queue (its codes' bytes, and its key's count
-        if no finished state gave that back) once its ``jobs`` entry is deleted; False when
-        it held nothing (released before, or queued before holds were kept)."""
-        return bool(self._release(keys=[JOB_HOLDS, JOBS_PER_KEY, JOBS_HELD_BYTES], args=[job_id]))
 
     def expire(self, job_id: str, seconds: float) -> None:
         """Let a finished job's record expire (with its results) after ``seconds``."""

@@ -16,10 +16,9 @@ Job codes travel as raw bytes in the ``jobs`` stream entry (fields ``job``,
 ``kind``, ``shape``, ``dtype``, ``codes``), never JSON; the record lives at
 ``job:<id>``. The jobs stream rejects submissions beyond ``maxlen`` outstanding
 entries or ``max_bytes`` of their codes (:class:`QueueFullError`, 503), and from an
-API key that has ``max_per_key`` unfinished jobs (:class:`TooManyJobsError`, 429): a
-job counts against its key from its submit until its transition to a finished state,
-and its codes' bytes until its entry is deleted (:mod:`worker.job_store`); a device
-stream drops its oldest frames
+API key that has ``max_per_key`` jobs or ``max_bytes_per_key`` bytes of codes in the
+queue (:class:`TooManyJobsError`, 429): each job holds its share from its submit until
+a worker deletes its entry (:mod:`worker.queue_holds`); a device stream drops its oldest frames
 and counts them in ``frames_dropped_total``. Workers delete entries once done,
 so stream length is the backlog.
 """
@@ -45,6 +44,7 @@ from worker.metrics import Metrics, counter_key
 from worker.redis_keys import (
     DEAD_LETTER_STREAM,
     DEVICES_SET,
+    JOB_BYTES_PER_KEY,
     JOB_HOLDS,
     JOB_STATES,
     JOBS_HELD_BYTES,
@@ -58,27 +58,34 @@ from worker.redis_keys import (
     lease_key,
 )
 
+#: A queue bound that never binds (Lua compares it as a double).
+UNBOUNDED = 2**62
 #: Consumer group every worker joins on the jobs stream and on each frame stream.
 GROUP = "workers"
 JOB_KINDS = ("reconstruction", "video")
 
 _SUBMIT = """
 if redis.call('XLEN', KEYS[1]) >= tonumber(ARGV[1]) then return 0 end
-local owner = ARGV[2]
-if owner ~= '' and tonumber(redis.call('HGET', KEYS[5], owner) or '0') >= tonumber(ARGV[3]) then
-  return -1
+local owner, bytes = ARGV[2], tonumber(ARGV[5])
+if owner ~= '' then
+  if tonumber(redis.call('HGET', KEYS[5], owner) or '0') >= tonumber(ARGV[3]) then return -1 end
+  if tonumber(redis.call('HGET', KEYS[6], owner) or '0') + bytes > tonumber(ARGV[4]) then
+    return -3
+  end
 end
-local bytes = tonumber(ARGV[4])
-if tonumber(redis.call('GET', KEYS[6]) or '0') + bytes > tonumber(ARGV[5]) then return -2 end
-local n = tonumber(ARGV[7])
-for i = 8, 7 + 2 * n, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
+if tonumber(redis.call('GET', KEYS[7]) or '0') + bytes > tonumber(ARGV[6]) then return -2 end
+local n = tonumber(ARGV[8])
+for i = 9, 8 + 2 * n, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
 local entry = {}
-for i = 8 + 2 * n, #ARGV do entry[#entry + 1] = ARGV[i] end
+for i = 9 + 2 * n, #ARGV do entry[#entry + 1] = ARGV[i] end
 redis.call('XADD', KEYS[1], '*', unpack(entry))
 redis.call('HINCRBY', KEYS[3], 'queued', 1)
-redis.call('HSET', KEYS[4], ARGV[6], owner .. ' ' .. ARGV[4])
-if owner ~= '' then redis.call('HINCRBY', KEYS[5], owner, 1) end
-redis.call('INCRBY', KEYS[6], bytes)
+redis.call('HSET', KEYS[4], ARGV[7], owner .. ' ' .. ARGV[5])
+if owner ~= '' then
+  redis.call('HINCRBY', KEYS[5], owner, 1)
+  redis.call('HINCRBY', KEYS[6], owner, bytes)
+end
+redis.call('INCRBY', KEYS[7], bytes)
 return 1
 """
 
@@ -103,7 +110,8 @@ class QueueFullError(McamError):
 
 
 class TooManyJobsError(McamError):
-    """The submitting API key already has ``max_per_key`` jobs queued or running."""
+    """The submitting API key already has ``max_per_key`` jobs, or ``max_bytes_per_key``
+    bytes of codes, in the queue."""
 
     code = "too_many_jobs"
     http_status = 429
@@ -179,12 +187,14 @@ class JobQueue:
         maxlen: int,
         max_deliveries: int,
         claim_idle_ms: int,
-        max_per_key: int | None = None,
-        max_bytes: int | None = None,
+        max_per_key: int = UNBOUNDED,
+        max_bytes_per_key: int = UNBOUNDED,
+        max_bytes: int = UNBOUNDED,
     ) -> None:
         self.client = client
         self.maxlen = maxlen
         self.max_per_key = max_per_key
+        self.max_bytes_per_key = max_bytes_per_key
         self.max_bytes = max_bytes
         self.max_deliveries = max_deliveries
         self.claim_idle_ms = claim_idle_ms
@@ -206,17 +216,11 @@ class JobQueue:
         ``owner`` (its id; ``""``: no key, as for a device's recording); returns its record.
 
         Raises :class:`InvalidInputError` for bad codes/kind/decoder or codes larger than
-        ``max_bytes``, :class:`TooManyJobsError` when ``owner`` has ``max_per_key`` jobs
-        queued or running, and :class:`QueueFullError` when ``maxlen`` jobs are
-        outstanding or their codes and these would pass ``max_bytes``."""
+        a bound, :class:`TooManyJobsError` when ``owner`` has ``max_per_key`` jobs or
+        would pass ``max_bytes_per_key`` bytes in the queue, and :class:`QueueFullError`
+        when ``maxlen`` jobs are outstanding or the queue would pass ``max_bytes``."""
         codes = _check_submission(kind, codes, params, decoder)
-        max_bytes = self.max_bytes if self.max_bytes is not None else 2**62
-        if codes.nbytes > max_bytes:
-            raise InvalidInputError(
-                f"this job's codes take {codes.nbytes} bytes, more than the queue holds for all "
-                f"unfinished jobs together ({max_bytes}, MCAM_JOBS_MAX_BYTES): send fewer "
-                "frames or pixels"
-            )
+        self._check_size(codes.nbytes, owner)
         record = JobRecord(
             id=uuid.uuid4().hex,
             kind=kind,  # type: ignore[arg-type]
@@ -228,28 +232,48 @@ class JobQueue:
         )
         fields = record_fields(record)
         entry = job_entry(record, codes)
-        per_key = self.max_per_key if self.max_per_key is not None else 2**62
         args: list[Any] = [
-            self.maxlen, owner, per_key, codes.nbytes, max_bytes, record.id, len(fields)
+            self.maxlen, owner, self.max_per_key, self.max_bytes_per_key, codes.nbytes,
+            self.max_bytes, record.id, len(fields),
         ]  # fmt: skip
         for pairs in (fields, entry):
             for name, value in pairs.items():
                 args += [name, value]
         keys = [JOBS_STREAM, job_key(record.id), JOB_STATES, JOB_HOLDS, JOBS_PER_KEY]
-        accepted = int(self._submit(keys=[*keys, JOBS_HELD_BYTES], args=args))
+        accepted = int(self._submit(keys=[*keys, JOB_BYTES_PER_KEY, JOBS_HELD_BYTES], args=args))
         if accepted != 1:
             self.metrics.inc("jobs_rejected_total")
             raise self._refusal(accepted, codes.nbytes)
         return record
 
+    def _check_size(self, nbytes: int, owner: str) -> None:
+        """Refuse codes of ``nbytes`` that no queue, however empty, would take."""
+        bounds = [(self.max_bytes, "the queue holds for all jobs", "MCAM_JOBS_MAX_BYTES")]
+        if owner:
+            bounds.append(
+                (self.max_bytes_per_key, "one key's jobs may hold", "MCAM_MAX_QUEUED_BYTES_PER_KEY")
+            )
+        for bound, what, setting in bounds:
+            if nbytes > bound:
+                raise InvalidInputError(
+                    f"this job's codes take {nbytes} bytes, more than {what} ({bound}, "
+                    f"{setting}): send fewer frames or pixels"
+                )
+
     def _refusal(self, reason: int, nbytes: int) -> McamError:
         """The error for a submit the script refused (``reason``: 0 queue length, -1 the
-        key's jobs, -2 the queue's bytes)."""
-        if reason == -1:
+        key's jobs, -3 the key's bytes, -2 the queue's bytes)."""
+        if reason in (-1, -3):
+            held = (
+                f"{self.max_per_key} jobs in the queue, the most one key may have "
+                "(MCAM_MAX_QUEUED_JOBS_PER_KEY)"
+                if reason == -1
+                else f"as many bytes of codes in the queue as one key may "
+                f"({self.max_bytes_per_key}, MCAM_MAX_QUEUED_BYTES_PER_KEY; this job: {nbytes})"
+            )
             return TooManyJobsError(
-                f"this API key has {self.max_per_key} jobs queued or running, the most one key "
-                "may have (MCAM_MAX_QUEUED_JOBS_PER_KEY): wait for one to finish, or cancel "
-                "one, then submit again"
+                f"this API key has {held}: wait for a job to finish (a cancelled job counts "
+                "until a worker drops it), then submit again"
             )
         if reason == -2:
             return QueueFullError(
@@ -305,8 +329,8 @@ class JobQueue:
         return alive
 
     def stats(self) -> dict[str, Any]:
-        """Queue depth, pending entries, bytes of codes unfinished jobs hold, jobs by state,
-        dead letters, per-device streams."""
+        """Queue depth, pending entries, bytes of codes the queued entries hold, jobs by
+        state, dead letters, per-device streams."""
         devices = sorted(d.decode() for d in self.client.smembers(DEVICES_SET))
         pipe = self.client.pipeline(transaction=False)
         pipe.xlen(JOBS_STREAM)

@@ -17,12 +17,14 @@ DEAD_LETTER_STREAM = "deadletter"
 WORKERS_HEARTBEAT = "workers"
 #: Hash: job state -> number of job records in that state (kept by state transitions).
 JOB_STATES = "jobs:states"
-#: Hash: unfinished job id -> "<owner's key id> <bytes of its codes>" (its hold on the
-#: queue, taken at submit, released once by the transition to a finished state).
+#: Hash: job id -> "<owner's key id> <bytes of its codes>", its hold on the queue while
+#: its entry is in the ``jobs`` stream (see ``worker/queue_holds.py``).
 JOB_HOLDS = "jobs:holds"
-#: Hash: API key id -> its unfinished jobs (queued or running).
+#: Hash: API key id -> its jobs in the ``jobs`` stream.
 JOBS_PER_KEY = "jobs:per_key"
-#: Bytes of codes held by unfinished jobs (their ``jobs`` stream entries).
+#: Hash: API key id -> bytes of codes of its jobs in the ``jobs`` stream.
+JOB_BYTES_PER_KEY = "jobs:bytes_per_key"
+#: Bytes of codes of all jobs in the ``jobs`` stream (with a hold).
 JOBS_HELD_BYTES = "jobs:held_bytes"
 #: Prefix of the worker's Redis-backed metrics (see ``worker/metrics.py``).
 METRICS_PREFIX = "metrics:"

@@ -75,6 +75,7 @@ class ServiceState:
                 max_deliveries=self.settings.max_deliveries,
                 claim_idle_ms=self.settings.claim_idle_ms,
                 max_per_key=self.settings.max_queued_jobs_per_key,
+                max_bytes_per_key=self.settings.max_queued_bytes_per_key,
                 max_bytes=self.settings.jobs_max_bytes,
             )
         return self._queue

@@ -79,7 +79,7 @@ class QueueCollector(Collector):
         )
         yield GaugeMetricFamily(
             PREFIX + "queue_held_bytes",
-            "bytes of codes unfinished jobs hold in the jobs stream (at most MCAM_JOBS_MAX_BYTES)",
+            "bytes of codes in the jobs stream (API submits stop at MCAM_JOBS_MAX_BYTES)",
             value=stats["held_bytes"],
         )
         yield GaugeMetricFamily(

@@ -90,11 +90,15 @@ class Settings(BaseSettings):
     jobs_maxlen: int = Field(10_000, gt=0, description="jobs stream bound; submits beyond it: 503")
     jobs_max_bytes: int = Field(
         2 * 1024**3, gt=0,
-        description="bytes of codes all unfinished jobs may hold in Redis; submits beyond it: 503",
+        description="bytes of codes all jobs in the queue may hold in Redis; submits beyond: 503",
     )  # fmt: skip
     max_queued_jobs_per_key: int = Field(
-        64, gt=0, description="jobs one API key may have queued or running; more: 429"
+        64, gt=0, description="jobs one API key may have in the queue; more: 429"
     )
+    max_queued_bytes_per_key: int = Field(
+        512 * 1024**2, gt=0,
+        description="bytes of codes one API key's jobs may hold in the queue; more: 429",
+    )  # fmt: skip
     frames_maxlen: int = Field(256, gt=0, description="per-device frame stream bound (drop oldest)")
     claim_idle_ms: int = Field(30_000, gt=0, description="reclaim entries pending this long")
     max_deliveries: int = Field(3, ge=1, description="then the entry goes to the dead letters")

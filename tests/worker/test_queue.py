@@ -23,7 +23,8 @@ from worker.queue import (
     entry_codes,
     publish_frame,
 )
-from worker.redis_keys import JOBS_STREAM, frame_stream
+from worker.queue_holds import QueueHolds
+from worker.redis_keys import JOB_BYTES_PER_KEY, JOBS_PER_KEY, JOBS_STREAM, frame_stream
 
 PARAMS = SensorParams(encoding="modulo", bits=8)
 CODES = np.arange(64, dtype=np.uint8).reshape(8, 8)
@@ -86,68 +87,74 @@ def test_full_jobs_stream_rejects_and_counts(client: redis.Redis) -> None:
     assert rejected.samples[0].value == 1
 
 
-def bounded_queue(client: redis.Redis, *, per_key: int = 100, max_bytes: int = 10**6) -> JobQueue:
+def bounded_queue(
+    client: redis.Redis, *, per_key: int = 100, per_key_bytes: int = 10**6, max_bytes: int = 10**6
+) -> JobQueue:
     return JobQueue(
         client, maxlen=100, max_deliveries=3, claim_idle_ms=1000, max_per_key=per_key,
-        max_bytes=max_bytes,
+        max_bytes_per_key=per_key_bytes, max_bytes=max_bytes,
     )  # fmt: skip
 
 
-def test_a_key_with_its_limit_of_unfinished_jobs_is_refused_others_are_not(
+def test_a_key_with_its_limit_of_jobs_in_the_queue_is_refused_others_are_not(
     client: redis.Redis,
 ) -> None:
     queue = bounded_queue(client, per_key=2)
     first = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
-    with pytest.raises(TooManyJobsError, match="2 jobs queued or running") as info:
+    with pytest.raises(TooManyJobsError, match="2 jobs in the queue") as info:
         queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
     assert info.value.code == "too_many_jobs" and info.value.http_status == 429
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="bob")
     queue.submit("reconstruction", CODES, PARAMS, "itoh")
     assert client.xlen(JOBS_STREAM) == 4
-    queue.cancel(first.id)
+    QueueHolds(client).release(first.id)
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
 
 
 @pytest.mark.parametrize("end", [JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED])
-def test_a_finished_job_frees_its_keys_place_and_its_deleted_entry_its_bytes(
+def test_a_job_holds_its_share_until_its_entry_is_released_once(
     client: redis.Redis, end: JobState
 ) -> None:
-    queue = bounded_queue(client, per_key=1, max_bytes=CODES.nbytes)
-    record = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
-    store = JobStore(client)
-    store.transition(record.id, JobState.RUNNING, {JobState.QUEUED})
-    with pytest.raises(TooManyJobsError):
-        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
-    store.transition(record.id, end, {JobState.RUNNING})
-    store.transition(record.id, end, {end})
-    with pytest.raises(QueueFullError, match="MCAM_JOBS_MAX_BYTES"):
-        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
-    assert queue.stats()["held_bytes"] == CODES.nbytes
-    assert store.release(record.id) and not store.release(record.id)
-    assert queue.stats()["held_bytes"] == 0
-    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
-
-
-def test_releasing_an_unfinished_jobs_entry_frees_its_keys_place_too(client: redis.Redis) -> None:
+    """A finished or cancelled job whose entry is still in the stream still counts: a
+    cancel-and-resubmit loop cannot grow the stream past a key's share."""
     queue = bounded_queue(client, per_key=1)
     record = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
-    JobStore(client).release(record.id)
+    assert queue.stats()["held_bytes"] == CODES.nbytes
+    store = JobStore(client)
+    store.transition(record.id, JobState.RUNNING, {JobState.QUEUED})
+    store.transition(record.id, end, {JobState.RUNNING})
+    with pytest.raises(TooManyJobsError, match="until a worker drops it"):
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    holds = QueueHolds(client)
+    assert holds.release(record.id) and not holds.release(record.id)
+    assert queue.stats()["held_bytes"] == 0
+    assert client.hlen(JOBS_PER_KEY) == client.hlen(JOB_BYTES_PER_KEY) == 0
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
 
 
-def test_codes_past_the_queues_bytes_are_refused_until_a_job_ends(client: redis.Redis) -> None:
+def test_a_keys_bytes_are_bounded_as_well_as_its_jobs(client: redis.Redis) -> None:
+    queue = bounded_queue(client, per_key_bytes=CODES.nbytes * 2)
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    with pytest.raises(TooManyJobsError, match="MCAM_MAX_QUEUED_BYTES_PER_KEY"):
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="bob")
+    with pytest.raises(InvalidInputError, match="one key's jobs may hold"):
+        queue.submit("video", np.zeros((3, 8, 8), np.uint8), PARAMS, "itoh", owner="bob")
+
+
+def test_codes_past_the_queues_bytes_are_refused_until_a_job_is_released(
+    client: redis.Redis,
+) -> None:
     queue = bounded_queue(client, max_bytes=CODES.nbytes * 2)
     first = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="bob")
     with pytest.raises(QueueFullError, match="MCAM_JOBS_MAX_BYTES"):
         queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="carol")
-    queue.cancel(first.id)
-    with pytest.raises(QueueFullError, match="MCAM_JOBS_MAX_BYTES"):
-        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="carol")
-    JobStore(client).release(first.id)
+    QueueHolds(client).release(first.id)
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="carol")
-    with pytest.raises(InvalidInputError, match="send fewer frames or pixels"):
+    with pytest.raises(InvalidInputError, match="the queue holds for all jobs"):
         queue.submit("video", np.zeros((3, 8, 8), np.uint8), PARAMS, "itoh")
     assert client.xlen(JOBS_STREAM) == 3
 

@@ -24,6 +24,7 @@ from tests.service.conftest import (
     frame_png,
     make_settings,
     npy_bytes,
+    running_worker,
     serve,
 )
 from worker.embedded_redis import connect
@@ -294,11 +295,11 @@ def test_only_so_many_requests_wait_for_their_jobs_at_once(
         assert waiting.result().status_code == 202
 
 
-def test_a_key_with_its_limit_of_unfinished_jobs_gets_429_and_other_keys_do_not(
+def test_a_key_with_its_limit_of_jobs_in_the_queue_gets_429_and_other_keys_do_not(
     tmp_path: Path, redis_url: str
 ) -> None:
-    """No worker runs, so each accepted job stays queued and counts against its key; a
-    cancelled one no longer does."""
+    """With no worker running each accepted job stays in the queue and counts against its
+    key, a cancelled one too until a worker drops its entry."""
     settings = make_settings(tmp_path, redis_url, max_queued_jobs_per_key=2)
     data, _ = frame_png()
     with serve(create_app(settings)) as url:
@@ -318,4 +319,9 @@ def test_a_key_with_its_limit_of_unfinished_jobs_gets_429_and_other_keys_do_not(
         cancel = httpx.delete(f"{url}/v1/jobs/{first.json()['id']}",
                               headers={"Authorization": f"Bearer {FULL_KEY}"}, timeout=60)
         assert cancel.status_code == 200, cancel.text
+        assert upload(FULL_KEY).status_code == 429
+        with running_worker(settings):
+            deadline = time.monotonic() + 30
+            while connect(redis_url).xlen(JOBS_STREAM) and time.monotonic() < deadline:
+                time.sleep(0.05)
         assert upload(FULL_KEY).status_code == 202
