@@ -221,8 +221,8 @@ def time_levers(path: str, repeats: int) -> list[dict[str, Any]]:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     cards = [c for c in load_cards() if c["decoder"] in args.models and c["encoding"] == "mantissa"]
-    peak = peak_gflops()
-    profiles = [profile_model(card, args.runs, peak) for card in cards]
+    peaks = peak_gflops()
+    profiles = [profile_model(card, args.runs, peaks["peak"]) for card in cards]
     levers = {card["name"]: time_levers(card["path"], args.repeats) for card in cards}
     return {
         "date": utc_now(),
@@ -233,7 +233,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "threads": worker_threads(),
         "runs": args.runs,
         "repeats": args.repeats,
-        "peak_gflops_per_s": peak,
+        "peak_gflops_per_s": peaks["peak"],
+        "matmul_gflops_per_s": {name: rate for name, rate in peaks.items() if name != "peak"},
         "profiles": profiles,
         "levers": levers,
     }

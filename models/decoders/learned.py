@@ -112,10 +112,10 @@ def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:
 
 
 def make_session(
-    path: str, threads: int, profile_prefix: str | None = None
+    path: str | bytes, threads: int, profile_prefix: str | None = None
 ) -> ort.InferenceSession:
-    """A CPU onnxruntime session with ``threads`` intra-op threads (profiling to files
-    starting with ``profile_prefix`` when given).
+    """A CPU onnxruntime session of a model file (or its bytes) with ``threads`` intra-op
+    threads (profiling to files starting with ``profile_prefix`` when given).
 
     Idle intra-op threads sleep unless ``MCAM_ORT_SPIN=1`` (:func:`ort_spinning`).
     Spinning pays only on cores nothing else uses. Measured on val-256 (2026-11-25, 2

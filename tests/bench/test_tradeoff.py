@@ -48,6 +48,9 @@ def test_quick_run_writes_json_markdown_and_plot(tmp_path: Path) -> None:
     assert report["sets"]["glows"] == 1
     decoders = {r["decoder"] for r in report["results"]["val-256"]}
     assert decoders == {"itoh", "auto-fast"}
-    assert report["peak_gflops_per_s"] > 0
+    rates = report["matmul_gflops_per_s"]
+    assert set(rates) == {"numpy", "onnxruntime"} and min(rates.values()) > 0
+    assert report["peak_gflops_per_s"] == max(rates.values())
     assert plot.read_bytes()[:4] == b"\x89PNG"
     assert "| itoh |" in out.with_suffix(".md").read_text()
+    assert "(numpy " in out.with_suffix(".md").read_text()
