@@ -164,17 +164,17 @@ TINY_S2D_MODULO_STAGES = (286, 4004, 3528, 1716)
 #: mantissa net measured 21.83 / 23.93 dB against 21.94 / 23.99 and was not shipped.
 TINY_S2D_MORE_STAGES = (0, 0, 3435, 1717)
 
-#: Stage steps of the large tier (twice base's widths, 3.4x its GFLOPs: 27.4 at 256x256),
+#: Stage steps of the large tier (about twice base's widths, 3.4x its GFLOPs: 27.4 at 256x256),
 #: per encoding, from timed GPU runs on an H100 (2026-11-27, bf16 autocast, two lanes):
-#: lanes ``large`` (planned for 460 s, done in 350 s: the probe ran while both lanes were
+#: lanes ``large`` (planned for 460 s, done in 353 s: the probe ran while both lanes were
 #: starting) then ``large-more``, end to end from them (185 s). The runs ran as
 #: ``mantissanet-large-<encoding>`` and ``mantissanet-large-more-<encoding>``; their
 #: checkpoints were renamed to this recipe's names (a label does not change the batches).
 #: val-256 alone / refined by guided PUMA, after the first run and after the second:
-#: mantissa 22.50 / 24.23 -> 23.37 / 24.04 dB, W 91.32 -> 91.71%, PU21 alone 26.89 ->
+#: mantissa 22.50 / 24.23 -> 23.37 / 24.03 dB, W 91.32 -> 91.71%, PU21 alone 26.89 ->
 #: 26.65 dB, MS-SSIM 0.902 -> 0.886; modulo 23.34 / 24.21 -> 23.57 / 24.37 dB, W 90.79 ->
 #: 91.25%, better on every metric. Against base (the CPU-trained mantissa net, the GPU
-#: modulo net): mantissa +0.31 dB and +0.7 points of W alone, -0.05 dB refined, PU21
+#: modulo net): mantissa +0.31 dB and +0.7 points of W alone, -0.06 dB refined, PU21
 #: -0.27 dB, MS-SSIM -0.017; modulo +0.47 dB alone, +0.31 refined, better on every
 #: metric. Twice base's widths buy tenths of a dB, not the step the #3 targets need.
 LARGE_STAGES = {"mantissa": (200, 2803, 2469, 1201), "modulo": (201, 2820, 2484, 1209)}
