@@ -94,8 +94,9 @@ UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
     413: error_response("upload or image too large"),
     415: error_response("unsupported file format or content type"),
     429: error_response(
-        "rate limit exceeded (rate_limited, see Retry-After), or the key already has "
-        "MCAM_MAX_QUEUED_JOBS_PER_KEY jobs queued or running (too_many_jobs)"
+        "rate limit exceeded (rate_limited, see Retry-After), or the key's jobs in the "
+        "queue reach MCAM_MAX_QUEUED_JOBS_PER_KEY or MCAM_MAX_QUEUED_BYTES_PER_KEY "
+        "(too_many_jobs)"
     ),
 }
 
