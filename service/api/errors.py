@@ -1,7 +1,8 @@
 """Every error the API returns is JSON ``{"code", "message"}`` with a stable code.
 
 Caller mistakes (:class:`McamError`, validation, unknown routes, oversized bodies)
-keep their own status; an unreachable queue is 503; only a real bug is a 500.
+keep their own status; an unreachable queue is 503, and so is a full one (Redis at
+its ``maxmemory``, :mod:`worker.redis_memory`); only a real bug is a 500.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.errors import McamError
 from service.api.media_types import media_type
+from worker.redis_memory import is_out_of_memory, store_full_error
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +122,24 @@ async def redis_error(_: Request, exc: Exception) -> JSONResponse:
     )
 
 
+async def redis_refusal(request: Request, exc: Exception) -> JSONResponse:
+    """Redis answered with an error: at its ``maxmemory`` (503 ``store_full``: nothing of
+    the request was stored, retry later), else a bug (logged, 500)."""
+    if is_out_of_memory(exc):
+        log.warning("Redis is full (maxmemory): %s %s refused", request.method, request.url.path)
+        error = store_full_error()
+        return JSONResponse(
+            error_body(error.code, error.message),
+            status_code=error.http_status,
+            headers={"Retry-After": "30"},
+        )
+    log.error("Redis refused a command on %s %s: %s", request.method, request.url.path, exc)
+    return JSONResponse(
+        error_body("internal_error", "an internal error occurred; it has been logged"),
+        status_code=500,
+    )
+
+
 class InternalErrorMiddleware:
     """ASGI middleware turning a bug (any exception no handler took) into a logged JSON
     500. Starlette's own handler for ``Exception`` answers and then re-raises, so the
@@ -162,4 +182,5 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(HTTPException, http_error)
     app.add_exception_handler(redis.exceptions.ConnectionError, redis_error)
     app.add_exception_handler(redis.exceptions.TimeoutError, redis_error)
+    app.add_exception_handler(redis.exceptions.ResponseError, redis_refusal)
     app.add_middleware(InternalErrorMiddleware)

@@ -92,17 +92,14 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
     embedded = None
     url = settings.redis_url
     if url is None:
-        embedded = EmbeddedRedis(settings.data_dir, keep_alive=True)
+        embedded = EmbeddedRedis(
+            settings.data_dir, keep_alive=True, maxmemory=settings.redis_maxmemory
+        )
         url = embedded.start()
     client = connect(url, timeout_s=settings.redis_timeout_s, fail_fast=True)
     problem = durability_problem(client)
     if problem is not None:
-        log.warning(
-            "Redis at %s may lose accepted jobs in a crash: %s; set appendonly yes and "
-            "appendfsync always",
-            url,
-            problem,
-        )
+        log.warning("Redis at %s may lose accepted jobs: %s", url, problem)
     return ServiceState(
         settings=settings,
         client=client,

@@ -63,6 +63,7 @@ class QueueCollector(Collector):
             state = self.state()
             families = read_metrics(state.client)
             stats = state.queue.stats()
+            memory = state.client.info("memory")
         except redis.exceptions.RedisError as exc:
             log.warning("metrics scrape without queue numbers: %s", exc)
             up.add_metric([], 0)
@@ -81,6 +82,16 @@ class QueueCollector(Collector):
             PREFIX + "queue_held_bytes",
             "bytes of codes in the jobs stream (API submits stop at MCAM_JOBS_MAX_BYTES)",
             value=stats["held_bytes"],
+        )
+        yield GaugeMetricFamily(
+            PREFIX + "redis_used_memory_bytes",
+            "memory Redis uses; at mcam_redis_maxmemory_bytes it refuses writes (503 store_full)",
+            value=memory["used_memory"],
+        )
+        yield GaugeMetricFamily(
+            PREFIX + "redis_maxmemory_bytes",
+            "Redis's maxmemory (0: unbounded; the embedded one's is MCAM_REDIS_MAXMEMORY)",
+            value=memory["maxmemory"],
         )
         yield GaugeMetricFamily(
             PREFIX + "dead_letter_stream_length",

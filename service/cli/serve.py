@@ -153,7 +153,9 @@ def _interrupt(_signum: int, _frame: FrameType | None) -> None:
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
     embedded = (
-        EmbeddedRedis(settings.data_dir, keep_alive=True) if settings.redis_url is None else None
+        EmbeddedRedis(settings.data_dir, keep_alive=True, maxmemory=settings.redis_maxmemory)
+        if settings.redis_url is None
+        else None
     )
     workers: list[WorkerSupervisor] = []
     signal.signal(signal.SIGTERM, _interrupt)

@@ -10,12 +10,13 @@ from functools import cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.outputs import STREAM_EXR_COMPRESSION
+from worker.redis_memory import DEFAULT_MAXMEMORY
 
 
 class Settings(BaseSettings):
@@ -92,6 +93,12 @@ class Settings(BaseSettings):
         2 * 1024**3, gt=0,
         description="bytes of codes all jobs in the queue may hold in Redis; submits beyond: 503",
     )  # fmt: skip
+    redis_maxmemory: int = Field(
+        DEFAULT_MAXMEMORY, gt=0,
+        description="bytes the embedded Redis may use (maxmemory, noeviction): beyond them it "
+        "refuses writes (submits: 503 store_full) and drops nothing; an external Redis "
+        "keeps its own setting",
+    )  # fmt: skip
     max_queued_jobs_per_key: int = Field(
         64, gt=0, description="jobs one API key may have in the queue; more: 429"
     )
@@ -127,6 +134,19 @@ class Settings(BaseSettings):
         DEFAULT_MAX_BYTES, gt=0,
         description="bytes of bracketed reference pairs kept per device; the oldest are removed",
     )  # fmt: skip
+
+    @field_validator("redis_maxmemory")
+    @classmethod
+    def _room_beyond_the_queue(cls, value: int, info: ValidationInfo) -> int:
+        """The queue's byte bound must bind before Redis fills up."""
+        queue_bytes = info.data.get("jobs_max_bytes")
+        if queue_bytes is not None and value <= queue_bytes:
+            raise ValueError(
+                f"must exceed MCAM_JOBS_MAX_BYTES ({queue_bytes}), the bytes of codes the "
+                "queue may hold, so that a full queue answers 503 queue_full before Redis "
+                "fills up; raise it or lower MCAM_JOBS_MAX_BYTES"
+            )
+        return value
 
 
 @cache

@@ -58,6 +58,8 @@ def test_services_and_persistence() -> None:
     services = data["services"]
     assert {"redis", "api", "worker-1", "worker-2", "simulator", "device"} <= set(services)
     assert "--appendonly" in services["redis"]["command"]
+    redis_flags = services["redis"]["command"]
+    assert redis_flags[redis_flags.index("--maxmemory-policy") + 1] == "noeviction"
     assert any(v.startswith("redis-data:") for v in services["redis"]["volumes"])
     for name in ("api", "worker-1", "worker-2"):
         assert services[name]["environment"]["MCAM_REDIS_URL"] == "redis://redis:6379/0"

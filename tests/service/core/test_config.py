@@ -49,3 +49,16 @@ def test_unreadable_values_name_their_setting(
     with pytest.raises(ValidationError) as caught:
         Settings()
     assert caught.value.errors()[0]["loc"] == (name.removeprefix("MCAM_").lower(),)
+
+
+def test_the_embedded_redis_must_have_room_beyond_the_queues_bytes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Else Redis fills (503 store_full, workers stalled) before the queue's own bound
+    answers 503 queue_full."""
+    monkeypatch.setenv("MCAM_JOBS_MAX_BYTES", "1000")
+    monkeypatch.setenv("MCAM_REDIS_MAXMEMORY", "1001")
+    assert Settings().redis_maxmemory == 1001
+    monkeypatch.setenv("MCAM_REDIS_MAXMEMORY", "1000")
+    with pytest.raises(ValidationError, match=r"must exceed MCAM_JOBS_MAX_BYTES \(1000\)"):
+        Settings()

@@ -1,0 +1,54 @@
+"""A full Redis (at its maxmemory, noeviction) through the real API: 503 store_full for
+writes, reads go on, nothing accepted is lost, and work resumes once there is room."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import httpx
+import pytest
+import redis
+
+from service.core.config import Settings
+from tests.service.api.routes.test_metrics_route import samples
+from tests.service.conftest import finished_job, frame_png, running_worker
+from worker.embedded_redis import connect
+
+Client = Callable[[str], httpx.Client]
+
+
+@pytest.fixture
+def server(settings: Settings) -> Iterator[redis.Redis]:
+    """A direct connection to the API's Redis, for the operator's CONFIG SET."""
+    assert settings.redis_url is not None
+    conn = connect(settings.redis_url)
+    yield conn
+    conn.close()
+
+
+def test_a_full_redis_refuses_submits_with_503_and_keeps_accepted_jobs(
+    client: Client, server: redis.Redis, settings: Settings
+) -> None:
+    http = client()
+    data, _ = frame_png()
+    accepted = http.post("/v1/reconstructions", files={"file": ("f.png", data)})
+    assert accepted.status_code == 202
+    server.config_set("maxmemory", 1)  # anything held is more: every growing write refused
+
+    refused = http.post("/v1/reconstructions", files={"file": ("f.png", data)})
+    assert refused.status_code == 503, refused.text
+    body = refused.json()
+    assert body["code"] == "store_full"
+    assert "nothing from this request was stored" in body["message"]
+    assert refused.headers["Retry-After"].isdigit()
+    job = http.get(f"/v1/jobs/{accepted.json()['id']}")  # reads go on
+    assert job.status_code == 200 and job.json()["state"] == "queued"
+    metrics = samples(httpx.get(f"{str(http.base_url).rstrip('/')}/metrics").text)
+    assert metrics[("mcam_redis_maxmemory_bytes", ())] == 1.0
+    assert metrics[("mcam_redis_used_memory_bytes", ())] > 1.0
+
+    server.config_set("maxmemory", 0)
+    with running_worker(settings):
+        assert finished_job(http, accepted.json()["id"])["state"] == "succeeded"
+    again = http.post("/v1/reconstructions", files={"file": ("f.png", data)})
+    assert again.status_code == 202

@@ -1,0 +1,146 @@
+"""worker/redis_memory.py on a real redis-server: the bound, the policy check, a full server.
+
+A server is made full by ``CONFIG SET maxmemory 1`` (any data is more than one byte):
+under ``noeviction`` it then refuses every command that would grow its memory.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import redis
+
+from models.formation import SensorFrame, SensorParams
+from worker.embedded_redis import EmbeddedRedis, connect, durability_problem
+from worker.jobs import JobState
+from worker.queue import JobQueue
+from worker.queue_holds import QueueHolds
+from worker.redis_keys import JOBS_STREAM
+from worker.redis_memory import (
+    DEFAULT_MAXMEMORY,
+    NO_EVICTION,
+    eviction_problem,
+    is_out_of_memory,
+    is_transient,
+    redis_trouble,
+    server_config,
+)
+
+PARAMS = SensorParams(encoding="modulo", bits=8)
+CODES = np.arange(64, dtype=np.uint8).reshape(8, 8)
+
+
+def fill(client: redis.Redis) -> None:
+    """Make the server full: every write that grows its memory is refused."""
+    client.config_set("maxmemory", 1)
+
+
+def make_room(client: redis.Redis) -> None:
+    client.config_set("maxmemory", 0)
+
+
+def test_server_config_bounds_memory_without_eviction() -> None:
+    assert server_config(123) == ["maxmemory 123", f"maxmemory-policy {NO_EVICTION}"]
+    with pytest.raises(ValueError, match="maxmemory must be > 0"):
+        server_config(0)
+
+
+@pytest.mark.parametrize(
+    ("config", "problem"),
+    [
+        ({"maxmemory": "100", "maxmemory-policy": "noeviction"}, None),
+        ({"maxmemory": "0", "maxmemory-policy": "allkeys-lru"}, None),  # never full
+        ({}, None),  # a managed server that shows nothing
+        ({"maxmemory": "100", "maxmemory-policy": "allkeys-lru"}, "'allkeys-lru'"),
+        ({"maxmemory": "100", "maxmemory-policy": "volatile-ttl"}, "'volatile-ttl'"),
+    ],
+)
+def test_eviction_problem_names_a_policy_that_drops_keys(
+    config: dict[str, str], problem: str | None
+) -> None:
+    found = eviction_problem(config)
+    if problem is None:
+        assert found is None
+    else:
+        assert found is not None and problem in found and "noeviction" in found
+
+
+def test_the_embedded_server_is_bounded_and_never_evicts(tmp_path: Path) -> None:
+    with EmbeddedRedis(tmp_path, maxmemory=64 * 1024**2) as url:
+        config = connect(url).config_get("maxmemory*")
+    assert config["maxmemory"] == str(64 * 1024**2)
+    assert config["maxmemory-policy"] == NO_EVICTION
+    with EmbeddedRedis(tmp_path / "default") as url:
+        assert connect(url).config_get("maxmemory")["maxmemory"] == str(DEFAULT_MAXMEMORY)
+
+
+def test_durability_problem_names_an_evicting_server(client: redis.Redis) -> None:
+    assert durability_problem(client) is None
+    client.config_set("maxmemory-policy", "allkeys-lru")
+    assert "evicts keys when full" in (durability_problem(client) or "")
+
+
+def test_refusals_of_a_full_server_are_told_apart_from_other_errors(client: redis.Redis) -> None:
+    client.set("text", "x")
+    fill(client)
+    with pytest.raises(redis.exceptions.RedisError) as command:
+        client.hset("h", "a", "1")
+    with pytest.raises(redis.exceptions.RedisError) as script:
+        client.eval("return redis.call('HSET', KEYS[1], 'a', '1')", 1, "h")
+    assert is_out_of_memory(command.value) and is_out_of_memory(script.value)
+    assert is_transient(script.value) and "full" in redis_trouble(script.value)
+    assert client.get("text") == b"x"  # reads go on
+    make_room(client)
+    with pytest.raises(redis.exceptions.ResponseError) as wrong_type:
+        client.hset("text", "a", "1")
+    assert not is_out_of_memory(wrong_type.value) and not is_transient(wrong_type.value)
+    lost = redis.exceptions.ConnectionError("gone")
+    assert is_transient(lost) and "unreachable" in redis_trouble(lost)
+
+
+def test_a_submit_to_a_full_server_stores_nothing_and_keeps_what_it_held(
+    queue: JobQueue, client: redis.Redis
+) -> None:
+    kept = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    before = queue.stats()
+    fill(client)
+    with pytest.raises(redis.exceptions.RedisError) as refused:
+        queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    assert is_out_of_memory(refused.value)
+    assert queue.stats() == before and client.xlen(JOBS_STREAM) == 1
+    assert queue.get(kept.id).state is JobState.QUEUED
+    make_room(client)
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    assert client.xlen(JOBS_STREAM) == 2
+
+
+def test_a_full_server_still_releases_holds(queue: JobQueue, client: redis.Redis) -> None:
+    """Releasing a hold frees memory: it must not need room to run."""
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
+    fill(client)
+    assert QueueHolds(client).release(record.id)
+    assert queue.stats()["held_bytes"] == 0
+
+
+def test_a_worker_waits_out_a_full_server_and_fails_no_job(
+    queue: JobQueue, client: redis.Redis, workers, make_frame, finished
+) -> None:
+    """A worker that cannot record a job's start keeps the entry and retries: the job
+    is neither failed nor dead-lettered, and runs once there is room."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    fill(client)
+    process = workers.start()
+    time.sleep(6.0)
+    assert process.poll() is None, "the worker exited on a full Redis"
+    assert queue.get(job.id).state is JobState.QUEUED
+    make_room(client)
+    record = finished(queue, job.id)
+    assert record.state is JobState.SUCCEEDED and record.attempts == 1, record.error
+    assert queue.stats()["dead_letters"] == 0
+    process.terminate()
+    output = process.communicate(timeout=30)[0].decode()
+    assert "Redis is full" in output and "Traceback" not in output

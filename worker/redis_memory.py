@@ -1,0 +1,96 @@
+"""Redis's memory bound: the embedded server's, an external server's policy, a full server.
+
+A Redis at its ``maxmemory`` either evicts keys (every ``maxmemory-policy`` but
+``noeviction``), which can drop an accepted job's record or codes without a word, or,
+under ``noeviction``, refuses the commands that would grow its memory (``-OOM command
+not allowed when used memory > 'maxmemory'``) and keeps everything it holds. So:
+
+- the embedded server runs with ``maxmemory`` ``MCAM_REDIS_MAXMEMORY`` (bytes) and
+  ``noeviction`` (:func:`server_config`): a runaway backlog meets a clear refusal
+  rather than the host's out-of-memory killer;
+- an external server whose policy evicts is named in the startup warning
+  (:func:`eviction_problem`, part of :func:`worker.embedded_redis.durability_problem`);
+- a refused write is told apart from a bug (:func:`is_out_of_memory`): the API answers
+  503 ``store_full`` (:class:`StoreFullError`), and workers and device daemons wait and
+  retry, as when Redis is unreachable (:func:`is_transient`).
+
+A full server still reads, deletes, acknowledges and expires keys, so results can
+be fetched and job records lapse at the end of their retention; but a worker cannot
+record a job's end (a write that grows a hash) until there is room, so jobs wait
+in the queue, not lost, until an operator raises ``maxmemory`` or data expires. The
+queue's own byte bound (``MCAM_JOBS_MAX_BYTES``, 503 ``queue_full``) sits below
+``MCAM_REDIS_MAXMEMORY`` so that it, not this one, is the bound clients normally meet.
+"""
+
+from __future__ import annotations
+
+import redis
+
+from models.errors import McamError
+
+#: Default ``maxmemory`` of the embedded server (bytes): the queue's 2 GiB of job codes,
+#: device frame streams, job records and Redis's own overhead.
+DEFAULT_MAXMEMORY = 4 * 1024**3
+#: The only policy that never drops an accepted job.
+NO_EVICTION = "noeviction"
+#: What Redis says when it refuses a write for want of memory (also inside a script).
+_OOM_REPLY = "OOM command not allowed"
+
+
+class StoreFullError(McamError):
+    """Redis refused a write: it is at its ``maxmemory`` and evicts nothing."""
+
+    code = "store_full"
+    http_status = 503
+
+
+def server_config(maxmemory: int) -> list[str]:
+    """``redis.conf`` lines bounding a server at ``maxmemory`` bytes without eviction."""
+    if maxmemory <= 0:
+        raise ValueError(f"maxmemory must be > 0 bytes, got {maxmemory}")
+    return [f"maxmemory {maxmemory}", f"maxmemory-policy {NO_EVICTION}"]
+
+
+def eviction_problem(config: dict[str, str]) -> str | None:
+    """Why a server with this ``CONFIG GET maxmemory*`` reply could drop accepted jobs
+    (it evicts keys once at ``maxmemory``), or None."""
+    policy = config.get("maxmemory-policy", NO_EVICTION)
+    if policy == NO_EVICTION or config.get("maxmemory", "0") == "0":
+        return None
+    return (
+        f"it evicts keys when full (maxmemory-policy {policy!r}); set maxmemory-policy "
+        f"{NO_EVICTION}"
+    )
+
+
+def is_out_of_memory(exc: BaseException) -> bool:
+    """Whether ``exc`` is Redis refusing a write at ``maxmemory`` (a command's
+    ``OutOfMemoryError``, or the same refusal inside a Lua script)."""
+    if isinstance(exc, redis.exceptions.OutOfMemoryError):
+        return True
+    return isinstance(exc, redis.exceptions.ResponseError) and _OOM_REPLY in str(exc)
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Whether a Redis command may succeed if tried again later: Redis unreachable, or
+    full (workers keep the entry and retry; nothing counts against the job)."""
+    return isinstance(exc, redis.exceptions.ConnectionError) or is_out_of_memory(exc)
+
+
+def redis_trouble(exc: BaseException) -> str:
+    """A log line's words for a transient Redis error (:func:`is_transient`)."""
+    if is_out_of_memory(exc):
+        return (
+            "Redis is full (at its maxmemory) and refuses writes; jobs wait in the queue "
+            "until it has room (raise MCAM_REDIS_MAXMEMORY or the server's maxmemory)"
+        )
+    return f"Redis unreachable ({exc})"
+
+
+def store_full_error() -> StoreFullError:
+    """The client's answer to a refused write: nothing was stored, retry later."""
+    return StoreFullError(
+        "the job store (Redis) is full (at its maxmemory): nothing from this request was "
+        "stored and everything accepted before is kept; retry later (an operator can raise "
+        "MCAM_REDIS_MAXMEMORY, or an external server's maxmemory)"
+    )
