@@ -235,10 +235,12 @@ class JobProcessor:
         stays pending and is handled again; :func:`worker.redis_memory.is_transient`)."""
         try:
             record = self.jobs.load(delivery.text("job"))
-        except (KeyError, UnicodeDecodeError, JobNotFoundError) as exc:
-            if isinstance(exc, JobNotFoundError):
-                self.holds.release(delivery.text("job"))
-            consumer.dead_letter(delivery, "not_found", f"entry names no known job: {exc}")
+        except (KeyError, UnicodeDecodeError) as exc:
+            consumer.dead_letter(delivery, "not_found", f"entry names no job: {exc}")
+            return
+        except JobNotFoundError as exc:
+            error = JobError(code="not_found", message=f"entry names no known job: {exc}")
+            self._drop(consumer, delivery, delivery.text("job"), dead_letter=error)
             return
         while True:
             if delivery.deliveries > self.max_deliveries:
@@ -336,10 +338,20 @@ class JobProcessor:
         self.jobs.expire(job_id, self.store.retention_s)
         self._drop(consumer, delivery, job_id)
 
-    def _drop(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
-        """Release the finished job's hold on the queue, then delete its entry."""
+    def _drop(
+        self,
+        consumer: StreamConsumer,
+        delivery: Delivery,
+        job_id: str,
+        dead_letter: JobError | None = None,
+    ) -> None:
+        """Release the finished job's hold on the queue, then delete its entry: done, or
+        moved to the dead letters with ``dead_letter``'s code and message."""
         self.holds.release(job_id)
-        consumer.done(delivery)
+        if dead_letter is None:
+            consumer.done(delivery)
+        else:
+            consumer.dead_letter(delivery, dead_letter.code, dead_letter.message, job=job_id)
 
     def _fail(
         self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError,
@@ -356,11 +368,7 @@ class JobProcessor:
             finished_ns=time.time_ns(),
             error=error,
         )
-        if caller_error:
-            self._drop(consumer, delivery, record.id)
-        else:
-            self.holds.release(record.id)
-            consumer.dead_letter(delivery, error.code, error.message, job=record.id)
+        self._drop(consumer, delivery, record.id, dead_letter=None if caller_error else error)
         if changed:
             self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
         else:

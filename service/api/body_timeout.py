@@ -5,7 +5,8 @@ uvicorn waits for ever for the rest of a body, so a client sending a byte now an
 a request's body is incomplete, each wait for its next chunk is bounded by
 ``MCAM_HTTP_BODY_TIMEOUT_S``; once the body is complete the wait is the app's own (a
 server-sent event stream waits for the client to leave). A request whose *headers*
-never finish never reaches the app: only a proxy in front can time that out.
+never finish never reaches the app: the server's protocol times that out
+(:mod:`service.api.header_timeout`).
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ import uvicorn
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
+from service.api.header_timeout import header_timeout_protocol
 from service.core.config import Settings, get_settings
 from service.core.security import KEY_FILE_NAME, KeyRing
 from service.main import create_app
@@ -50,17 +51,20 @@ def announce(settings: Settings, new_key: str | None) -> None:
 
 
 def uvicorn_options(settings: Settings) -> dict[str, Any]:
-    """uvicorn's listen address and connection limits from the settings.
+    """uvicorn's listen address, connection limits and timeouts from the settings.
 
-    uvicorn (0.54, h11) has no timeout for a request whose headers or body never finish:
-    ``limit_concurrency`` bounds how many such connections hold the process, beyond which
-    requests get a 503. ``h11_max_incomplete_event_size`` bounds the bytes of an
+    uvicorn (0.54, h11) has no timeout of its own for a request whose head never
+    finishes: its h11 protocol gets one (:mod:`service.api.header_timeout`), and a
+    body's pauses have theirs in the app (:mod:`service.api.body_timeout`).
+    ``limit_concurrency`` bounds the connections and requests at once, beyond which
+    requests get a 503; ``h11_max_incomplete_event_size`` bounds the bytes of an
     unfinished request line and headers.
     """
     return {
         "host": settings.host,
         "port": settings.port,
         "log_level": "info",
+        "http": header_timeout_protocol(settings.http_header_timeout_s),
         "timeout_keep_alive": settings.http_keep_alive_s,
         "limit_concurrency": settings.http_max_connections,
         "h11_max_incomplete_event_size": settings.http_max_header_bytes,

@@ -48,6 +48,11 @@ class Settings(BaseSettings):
         "request line and headers are incomplete, then 400 (not a bound on the headers: "
         "ones that arrive in one read may be longer)",
     )  # fmt: skip
+    http_header_timeout_s: float = Field(
+        10.0, gt=0, le=3600,
+        description="longest a request's line and headers may take (from the connection's "
+        "start or the request's first byte) before 408 and the connection closed",
+    )  # fmt: skip
     http_body_timeout_s: float = Field(
         30.0, gt=0, le=3600,
         description="longest pause in a request body before 408 (a slow upload holds a task)",

@@ -169,6 +169,25 @@ def test_a_job_failing_for_the_worker_goes_to_dead_letters_after_max_deliveries(
     assert queue.stats()["dead_letters"] == 1
 
 
+def test_entries_naming_no_job_are_dead_lettered_and_their_holds_released(
+    queue: JobQueue, client: redis.Redis, workers, make_frame, wait_until
+) -> None:
+    """A job whose record is gone (deleted by an operator) and an entry with no job
+    field: both go to the dead letters as ``not_found``; the first gives back its key's
+    share of the queue."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh", owner="k")
+    client.delete(f"job:{job.id}")
+    client.xadd(JOBS_STREAM, {"kind": "reconstruction"})
+    workers.start()
+    wait_until(lambda: client.xlen(DEAD_LETTER_STREAM) == 2, 30, "two dead letters")
+    letters = [letter for _id, letter in client.xrange(DEAD_LETTER_STREAM)]
+    assert [letter[b"code"] for letter in letters] == [b"not_found", b"not_found"]
+    assert letters[0][b"job"].decode() == job.id and b"job" not in letters[1]
+    assert client.xlen(JOBS_STREAM) == 0 and queue.stats()["held_bytes"] == 0
+    assert client.hlen(JOBS_PER_KEY) == 0
+
+
 def test_accepted_jobs_survive_a_redis_restart(
     embedded: EmbeddedRedis, workers, make_frame, finished
 ) -> None:

@@ -1,0 +1,92 @@
+"""A deadline for each HTTP request's line and headers, which uvicorn (0.54, h11) lacks.
+
+uvicorn times out an idle keep-alive connection, but not a fresh connection that sends
+nothing, nor one whose request line and headers never finish (a slow-headers client,
+"slowloris"): each holds a slot of ``MCAM_HTTP_MAX_CONNECTIONS`` until the client goes.
+:func:`header_timeout_protocol` makes uvicorn's h11 protocol with a deadline of
+``timeout_s`` seconds, armed when a connection opens and when the first bytes of a
+later request on it arrive, and disarmed once h11 has the whole head. At the deadline
+a connection that sent part of a request gets ``408`` (with a JSON body naming the
+limit) and is closed; one that sent nothing is closed. Request bodies have their own
+timeout (``MCAM_HTTP_BODY_TIMEOUT_S``, :mod:`service.api.body_timeout`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+
+import h11
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+log = logging.getLogger(__name__)
+
+
+def timeout_response(timeout_s: float) -> bytes:
+    """The raw ``408`` sent to a client whose request head did not arrive in time."""
+    body = json.dumps(
+        {
+            "code": "request_timeout",
+            "message": f"the request line and headers did not arrive within {timeout_s:g} s "
+            "(MCAM_HTTP_HEADER_TIMEOUT_S); send the whole head at once",
+        }
+    ).encode()
+    head = (
+        "HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
+        f"content-length: {len(body)}\r\nconnection: close\r\n\r\n"
+    )
+    return head.encode() + body
+
+
+class HeaderDeadlineProtocol(H11Protocol):
+    """uvicorn's h11 protocol with a deadline on each request head (see the module)."""
+
+    #: Seconds a request's line and headers may take (set by :func:`header_timeout_protocol`).
+    header_timeout_s: float = 10.0
+    _deadline: asyncio.TimerHandle | None = None
+    _head_bytes = 0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._arm()
+
+    def data_received(self, data: bytes) -> None:
+        if self._deadline is None and self.conn.their_state is h11.IDLE:
+            self._arm()
+        self._head_bytes += len(data)
+        super().data_received(data)
+        if self.conn.their_state is not h11.IDLE:
+            self._disarm()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+    def _arm(self) -> None:
+        self._head_bytes = 0
+        self._deadline = self.loop.call_later(self.header_timeout_s, self._expire)
+
+    def _disarm(self) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+
+    def _expire(self) -> None:
+        self._deadline = None
+        if self.transport.is_closing() or self.conn.their_state is not h11.IDLE:
+            return
+        if self._head_bytes:
+            log.info("request head from %s unfinished after %g s: 408", self.client,
+                     self.header_timeout_s)  # fmt: skip
+            self.transport.write(timeout_response(self.header_timeout_s))
+        self.transport.close()
+
+
+def header_timeout_protocol(timeout_s: float) -> type[HeaderDeadlineProtocol]:
+    """uvicorn's h11 protocol class (its ``http`` option) with a ``timeout_s`` deadline
+    on each request's line and headers."""
+    if timeout_s <= 0:
+        raise ValueError(f"the header timeout must be > 0 s, got {timeout_s}")
+    settings = {"header_timeout_s": timeout_s}
+    return type("HeaderDeadlineProtocol", (HeaderDeadlineProtocol,), settings)
