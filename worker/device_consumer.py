@@ -61,6 +61,7 @@ from worker.redis_keys import (
     latest_key,
     lease_key,
 )
+from worker.redis_memory import is_transient, redis_trouble
 from worker.result_store import ResultStore
 
 log = logging.getLogger(__name__)
@@ -250,9 +251,9 @@ class DeviceConsumer:
             try:
                 self._reconstruct(device, state, delivery)
                 return
-            except (LeaseLost, redis.exceptions.ConnectionError):
-                raise
             except Exception as exc:
+                if isinstance(exc, LeaseLost) or is_transient(exc):
+                    raise  # the frame stays pending: this owner retries it, in order
                 if not isinstance(exc, McamError):
                     log.exception("frame %s of %s failed", delivery.entry_id, device)
                 if isinstance(exc, McamError) or delivery.deliveries >= self.max_deliveries:
@@ -292,7 +293,14 @@ class DeviceConsumer:
         self.metrics.inc("frames_processed_total", pipe=pipe, device=device)
         waited_ms = time.time_ns() // 1_000_000 - entry_order(delivery.entry_id)[0]
         self.metrics.observe("queue_wait_seconds", max(waited_ms, 0) / 1e3, pipe=pipe)
-        pipe.execute()
+        try:
+            pipe.execute()
+        except redis.exceptions.RedisError as exc:
+            if not is_transient(exc):
+                raise
+            # The frame is committed: a retry would only redo it as stale.
+            log.warning("frame %s of %s: metrics not recorded: %s", delivery.entry_id, device,
+                        redis_trouble(exc))  # fmt: skip
 
     def _record(
         self,

@@ -97,24 +97,26 @@ def connect(url: str, *, timeout_s: float = 10.0, fail_fast: bool = False) -> re
 
 
 def durability_problem(client: redis.Redis) -> str | None:
-    """Why this Redis could lose accepted jobs and frames, and what to set: a crash loses
-    what it has not written to an append-only file fsynced before each reply, and a
-    full one that evicts keys drops them (:func:`worker.redis_memory.eviction_problem`);
-    or None. None too when the server does not let clients read its configuration
-    (managed services)."""
+    """Why this Redis could lose accepted jobs and frames, and what to set (each reason,
+    joined by '; '): a crash loses what it has not written to an append-only file fsynced
+    before each reply, and a full one that evicts keys drops them
+    (:func:`worker.redis_memory.eviction_problem`); or None. None too when the server
+    does not let clients read its configuration (managed services)."""
     try:
         config = client.config_get("append*")
         memory = client.config_get("maxmemory*")
     except redis.exceptions.RedisError:
         return None
+    problems = []
     if config.get("appendonly") != "yes":
-        return "it keeps no append-only file (appendonly no); set appendonly yes"
-    if config.get("appendfsync") != "always":
-        return (
+        problems.append("it keeps no append-only file (appendonly no); set appendonly yes")
+    elif config.get("appendfsync") != "always":
+        problems.append(
             f"it fsyncs its append-only file {config.get('appendfsync')!r}, not 'always'; "
             "set appendfsync always"
         )
-    return eviction_problem(memory)
+    problems.append(eviction_problem(memory) or "")
+    return "; ".join(problem for problem in problems if problem) or None
 
 
 def terminate_with_parent() -> None:

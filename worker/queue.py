@@ -57,6 +57,7 @@ from worker.redis_keys import (
     last_sequence_key,
     lease_key,
 )
+from worker.redis_memory import is_out_of_memory
 
 #: A queue bound that never binds (Lua compares it as a double).
 UNBOUNDED = 2**62
@@ -118,12 +119,24 @@ class TooManyJobsError(McamError):
 
 
 def ensure_group(client: redis.Redis, stream: str) -> None:
-    """Create the workers' consumer group on ``stream`` (and the stream) if missing."""
+    """Create the workers' consumer group on ``stream`` (and the stream) if missing. A full
+    Redis refuses the create even when the group exists (no ``BUSYGROUP``), so that
+    refusal counts only when the group is missing."""
     try:
         client.xgroup_create(stream, GROUP, id="0", mkstream=True)
     except redis.exceptions.ResponseError as exc:
-        if "BUSYGROUP" not in str(exc):
-            raise
+        if "BUSYGROUP" in str(exc) or (is_out_of_memory(exc) and _has_group(client, stream)):
+            return
+        raise
+
+
+def _has_group(client: redis.Redis, stream: str) -> bool:
+    """Whether ``stream`` exists with the workers' consumer group."""
+    try:
+        groups = client.xinfo_groups(stream)
+    except redis.exceptions.ResponseError:  # no such stream
+        return False
+    return any(group["name"] in (GROUP, GROUP.encode()) for group in groups)
 
 
 def publish_frame(client: redis.Redis, message: FrameMessage, *, maxlen: int) -> int:

@@ -200,9 +200,10 @@ class Worker:
                     f"{self.id}-j{index}",
                     max_deliveries=self.config.max_deliveries,
                 )
-            deliveries = consumer.read_own_pending(1) or consumer.reclaim(
-                self.config.claim_idle_ms, count=1
-            )
+            deliveries = consumer.read_own_pending(1)
+            for delivery in deliveries:  # again after a transient error: not idle meanwhile
+                consumer.touch(delivery)
+            deliveries = deliveries or consumer.reclaim(self.config.claim_idle_ms, count=1)
             if not deliveries and not self.stop.is_set():
                 deliveries = consumer.read_new(block_ms=BLOCK_MS, count=1)
             for delivery in deliveries:
@@ -267,26 +268,35 @@ class Worker:
         reclaim it and decode it again)."""
         last_purge = 0.0
         while not self.stop.is_set() or any(thread.is_alive() for thread in threads):
-            try:
-                self._beat()
-                for consumer, delivery in list(self._in_flight.values()):
-                    consumer.touch(delivery)
-                if self._devices is not None:
-                    self._devices.renew_all()
-                if time.monotonic() - last_purge > PURGE_EVERY_S:
-                    last_purge = time.monotonic()
-                    removed = self.store.purge_expired()
-                    if removed:
-                        log.info("worker %s purged %d expired results", self.id, removed)
-            except Exception as exc:
-                if not is_transient(exc):
-                    raise
-                log.warning("worker %s: heartbeat failed: %s", self.id, redis_trouble(exc))
+            # Each on its own: a full Redis refuses the beat (a write that grows a hash)
+            # but not the touches, which keep in-flight jobs from being reclaimed.
+            self._heartbeat_step("touch in-flight jobs", self._touch_in_flight)
+            if self._devices is not None:
+                self._heartbeat_step("renew device leases", self._devices.renew_all)
+            self._heartbeat_step("beat", self._beat)
+            if time.monotonic() - last_purge > PURGE_EVERY_S:
+                last_purge = time.monotonic()
+                removed = self.store.purge_expired()
+                if removed:
+                    log.info("worker %s purged %d expired results", self.id, removed)
             if not self.stop.wait(self.config.heartbeat_s):
                 continue
             deadline = time.monotonic() + self.config.heartbeat_s
             for thread in threads:
                 thread.join(max(0.0, deadline - time.monotonic()))
+
+    def _heartbeat_step(self, what: str, step: Callable[[], object]) -> None:
+        """Run one step of the heartbeat; a transient Redis error is logged, not raised."""
+        try:
+            step()
+        except Exception as exc:
+            if not is_transient(exc):
+                raise
+            log.warning("worker %s: could not %s: %s", self.id, what, redis_trouble(exc))
+
+    def _touch_in_flight(self) -> None:
+        for consumer, delivery in list(self._in_flight.values()):
+            consumer.touch(delivery)
 
     def _beat(self) -> None:
         now = time.time_ns()

@@ -19,6 +19,7 @@ from service.api.errors import ApiError
 from service.api.state import ServiceState
 from service.core.config import Settings
 from service.core.security import ApiKey
+from worker.redis_memory import is_transient, redis_trouble
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +58,8 @@ def _check_rate(state: ServiceState, key: ApiKey) -> None:
     except redis.exceptions.TimeoutError:
         raise  # a hung Redis: answer 503 now rather than wait for it again in the route
     except redis.exceptions.RedisError as exc:
-        log.warning("rate limit not enforced, Redis unreachable: %s", exc)
+        trouble = redis_trouble(exc) if is_transient(exc) else f"Redis refused it ({exc})"
+        log.warning("rate limit not enforced: %s", trouble)
         return
     if retry_after is not None:
         raise ApiError(

@@ -133,7 +133,7 @@ async def redis_refusal(request: Request, exc: Exception) -> JSONResponse:
             status_code=error.http_status,
             headers={"Retry-After": "30"},
         )
-    log.error("Redis refused a command on %s %s: %s", request.method, request.url.path, exc)
+    log.error("Redis refused a command on %s %s", request.method, request.url.path, exc_info=exc)
     return JSONResponse(
         error_body("internal_error", "an internal error occurred; it has been logged"),
         status_code=500,

@@ -5,7 +5,8 @@ nothing, nor one whose request line and headers never finish (a slow-headers cli
 "slowloris"): each holds a slot of ``MCAM_HTTP_MAX_CONNECTIONS`` until the client goes.
 :func:`header_timeout_protocol` makes uvicorn's h11 protocol with a deadline of
 ``timeout_s`` seconds, armed when a connection opens and when the first bytes of a
-later request on it arrive, and disarmed once h11 has the whole head. At the deadline
+later request on it arrive (or the bytes that end a request leave the connection idle
+with no timer), and disarmed once h11 has the whole head. At the deadline
 a connection that sent part of a request gets ``408`` (with a JSON body naming the
 limit) and is closed; one that sent nothing is closed. Request bodies have their own
 timeout (``MCAM_HTTP_BODY_TIMEOUT_S``, :mod:`service.api.body_timeout`).
@@ -58,6 +59,12 @@ class HeaderDeadlineProtocol(H11Protocol):
         super().data_received(data)
         if self.conn.their_state is not h11.IDLE:
             self._disarm()
+        elif self._deadline is None:
+            # A request ended within these bytes (the rest of a body the app answered
+            # before reading): uvicorn cancelled its keep-alive timer on them and armed
+            # nothing, and what follows is the next request's head, if any.
+            self._arm()
+            self._head_bytes = len(self.conn.trailing_data[0])
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()

@@ -143,15 +143,17 @@ class Settings(BaseSettings):
     @field_validator("redis_maxmemory")
     @classmethod
     def _room_beyond_the_queue(cls, value: int, info: ValidationInfo) -> int:
-        """The queue's byte bound must bind before Redis fills up."""
+        """The embedded Redis must hold more than the queue's codes (an external one
+        keeps its own maxmemory, and this setting is not used)."""
         queue_bytes = info.data.get("jobs_max_bytes")
-        if queue_bytes is not None and value <= queue_bytes:
-            raise ValueError(
-                f"must exceed MCAM_JOBS_MAX_BYTES ({queue_bytes}), the bytes of codes the "
-                "queue may hold, so that a full queue answers 503 queue_full before Redis "
-                "fills up; raise it or lower MCAM_JOBS_MAX_BYTES"
-            )
-        return value
+        if info.data.get("redis_url") or queue_bytes is None or value > queue_bytes:
+            return value
+        raise ValueError(
+            f"must exceed MCAM_JOBS_MAX_BYTES ({queue_bytes}), the bytes of codes the queue "
+            "may hold, with room for device frames and job records besides, so that a full "
+            "queue answers 503 queue_full before Redis fills up; raise it or lower "
+            "MCAM_JOBS_MAX_BYTES"
+        )
 
 
 @cache

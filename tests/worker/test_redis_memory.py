@@ -6,6 +6,7 @@ under ``noeviction`` it then refuses every command that would grow its memory.
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -14,11 +15,14 @@ import pytest
 import redis
 
 from models.formation import SensorFrame, SensorParams
+from worker.device_consumer import DeviceConsumer
+from worker.device_state import make_frame_decoder
 from worker.embedded_redis import EmbeddedRedis, connect, durability_problem
+from worker.frame_message import FrameMessage
 from worker.jobs import JobState
-from worker.queue import JobQueue
+from worker.queue import GROUP, JobQueue, publish_frame
 from worker.queue_holds import QueueHolds
-from worker.redis_keys import JOBS_STREAM
+from worker.redis_keys import JOBS_STREAM, events_stream, frame_stream
 from worker.redis_memory import (
     DEFAULT_MAXMEMORY,
     NO_EVICTION,
@@ -28,6 +32,7 @@ from worker.redis_memory import (
     redis_trouble,
     server_config,
 )
+from worker.result_store import RESULTS_DIR, ResultStore
 
 PARAMS = SensorParams(encoding="modulo", bits=8)
 CODES = np.arange(64, dtype=np.uint8).reshape(8, 8)
@@ -81,6 +86,9 @@ def test_durability_problem_names_an_evicting_server(client: redis.Redis) -> Non
     assert durability_problem(client) is None
     client.config_set("maxmemory-policy", "allkeys-lru")
     assert "evicts keys when full" in (durability_problem(client) or "")
+    client.config_set("appendonly", "no")
+    both = durability_problem(client) or ""
+    assert "no append-only file" in both and "evicts keys when full" in both
 
 
 def test_refusals_of_a_full_server_are_told_apart_from_other_errors(client: redis.Redis) -> None:
@@ -126,21 +134,75 @@ def test_a_full_server_still_releases_holds(queue: JobQueue, client: redis.Redis
 
 
 def test_a_worker_waits_out_a_full_server_and_fails_no_job(
-    queue: JobQueue, client: redis.Redis, workers, make_frame, finished
+    queue: JobQueue, client: redis.Redis, workers, make_frame, finished, wait_until
 ) -> None:
-    """A worker that cannot record a job's start keeps the entry and retries: the job
+    """A worker that cannot record a job's start keeps the entry and retries, touching
+    it so that an idle worker does not reclaim it meanwhile (each claim counts a
+    delivery: the job used to fail as worker_lost once there was room again); the job
     is neither failed nor dead-lettered, and runs once there is room."""
     frame: SensorFrame = make_frame()
     job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
     fill(client)
-    process = workers.start()
-    time.sleep(6.0)
-    assert process.poll() is None, "the worker exited on a full Redis"
+    processes = [workers.start(MCAM_CLAIM_IDLE_MS="2500") for _ in range(2)]
+    wait_until(lambda: client.xpending(JOBS_STREAM, GROUP)["pending"], 60, "a delivery")
+    time.sleep(8.0)  # over three claim periods
+    [pending] = client.xpending_range(JOBS_STREAM, GROUP, "-", "+", 10)
+    assert pending["times_delivered"] == 1, "reclaimed from a live worker"
+    assert all(p.poll() is None for p in processes), "a worker exited on a full Redis"
     assert queue.get(job.id).state is JobState.QUEUED
     make_room(client)
     record = finished(queue, job.id)
     assert record.state is JobState.SUCCEEDED and record.attempts == 1, record.error
     assert queue.stats()["dead_letters"] == 0
-    process.terminate()
-    output = process.communicate(timeout=30)[0].decode()
-    assert "Redis is full" in output and "Traceback" not in output
+    outputs = []
+    for process in processes:
+        process.terminate()
+        outputs.append(process.communicate(timeout=30)[0].decode())
+    assert any("Redis is full" in output for output in outputs)
+    assert not any("Traceback" in output for output in outputs)
+
+
+def test_a_device_frame_decoded_while_redis_is_full_is_committed_once(
+    client: redis.Redis, data_dir: Path, make_frame, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The frame's commit (its result key, event and ack) runs on a full Redis; its
+    metrics cannot be written and are skipped, not retried as a failure of the frame
+    (which redid it as a 'stale' frame, with a traceback)."""
+    frame: SensorFrame = make_frame()
+    device = "cam-full"
+    consumer = DeviceConsumer(
+        client,
+        ResultStore(data_dir / RESULTS_DIR, retention_s=3600),
+        owner="w-1",
+        lease_ms=5000,
+        max_deliveries=3,
+        decode=make_frame_decoder("independent", "itoh"),
+        stop=threading.Event(),
+    )
+    publish_frame(client, FrameMessage(device, 0, 0, frame.codes, frame.params), maxlen=10)
+    assert consumer.poll()  # takes the lease and decodes frame 0 with room
+    publish_frame(client, FrameMessage(device, 1, 1000, frame.codes, frame.params), maxlen=10)
+    fill(client)
+    consumer.poll()
+    make_room(client)
+    events = [fields[b"type"] for _id, fields in client.xrange(events_stream(device))]
+    assert events == [b"frame", b"frame"]
+    assert client.xlen(frame_stream(device)) == 0
+    assert "metrics not recorded" in caplog.text and "Traceback" not in caplog.text
+
+
+def test_a_queue_opened_on_a_full_redis_with_its_group_reads_on(
+    queue: JobQueue, client: redis.Redis
+) -> None:
+    """An API process started while Redis is full must still serve reads: making its
+    queue (the consumer group already there) used to fail with 503 store_full."""
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    fill(client)
+    reopened = JobQueue(client, maxlen=100, max_deliveries=3, claim_idle_ms=1000)
+    assert reopened.get(record.id).state is JobState.QUEUED
+    make_room(client)
+    client.delete(JOBS_STREAM)
+    fill(client)
+    with pytest.raises(redis.exceptions.ResponseError) as missing:
+        JobQueue(client, maxlen=100, max_deliveries=3, claim_idle_ms=1000)
+    assert is_out_of_memory(missing.value)

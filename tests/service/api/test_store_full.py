@@ -10,9 +10,18 @@ import pytest
 import redis
 
 from service.core.config import Settings
+from service.main import create_app
 from tests.service.api.routes.test_metrics_route import samples
-from tests.service.conftest import finished_job, frame_png, running_worker
+from tests.service.conftest import (
+    FULL_KEY,
+    PARAMS,
+    finished_job,
+    frame_png,
+    running_worker,
+    serve,
+)
 from worker.embedded_redis import connect
+from worker.queue import JobQueue
 
 Client = Callable[[str], httpx.Client]
 
@@ -52,3 +61,23 @@ def test_a_full_redis_refuses_submits_with_503_and_keeps_accepted_jobs(
         assert finished_job(http, accepted.json()["id"])["state"] == "succeeded"
     again = http.post("/v1/reconstructions", files={"file": ("f.png", data)})
     assert again.status_code == 202
+
+
+def test_an_api_started_on_a_full_redis_serves_reads(
+    settings: Settings, server: redis.Redis
+) -> None:
+    """Opening the job queue writes (its consumer group) and a full Redis refuses that
+    even when the group exists: reads answered 503 store_full in such a process."""
+    queue = JobQueue(server, maxlen=10, max_deliveries=3, claim_idle_ms=1000)
+    _, codes = frame_png()
+    job = queue.submit("reconstruction", codes, PARAMS, "itoh")
+    server.config_set("maxmemory", 1)
+    with serve(create_app(settings)) as url, httpx.Client(
+        base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"}
+    ) as http:
+        reply = http.get(f"/v1/jobs/{job.id}")
+        assert reply.status_code == 200 and reply.json()["state"] == "queued"
+        data, _ = frame_png()
+        refused = http.post("/v1/reconstructions", files={"file": ("f.png", data)})
+        assert refused.status_code == 503 and refused.json()["code"] == "store_full"
+    server.config_set("maxmemory", 0)

@@ -135,3 +135,17 @@ def test_the_header_timeout_applies_to_each_request_of_a_keep_alive_connection()
             sock.sendall(b"GET / HTTP/1.1\r\nHo")
             assert int(read_response(sock).split(b" ", 2)[1]) == 408
             assert sock.recv(1) == b""
+
+
+def test_the_header_timeout_covers_a_request_after_a_body_the_app_did_not_read() -> None:
+    """The app answered before reading the body; the body's last bytes then end that
+    request and start the next, with uvicorn's keep-alive timer cancelled: the next
+    request's unfinished head still gets its 408."""
+    with listening(Settings(http_header_timeout_s=1, http_keep_alive_s=5)) as port:
+        head = b"POST / HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n\r\n"
+        status, sock = status_of(port, head)
+        with sock:
+            assert status == 200
+            sock.sendall(b"0123456789GET / HT")
+            assert int(read_response(sock).split(b" ", 2)[1]) == 408
+            assert sock.recv(1) == b""

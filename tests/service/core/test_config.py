@@ -62,3 +62,5 @@ def test_the_embedded_redis_must_have_room_beyond_the_queues_bytes(
     monkeypatch.setenv("MCAM_REDIS_MAXMEMORY", "1000")
     with pytest.raises(ValidationError, match=r"must exceed MCAM_JOBS_MAX_BYTES \(1000\)"):
         Settings()
+    monkeypatch.setenv("MCAM_REDIS_URL", "redis://queue:6379/0")  # its own maxmemory
+    assert Settings().redis_maxmemory == 1000
