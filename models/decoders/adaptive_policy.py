@@ -25,9 +25,10 @@ QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
 #: 22.60 dB, 89.44 against 88.81% W, 10.9 against 14.6 ms; modulo 22.76 against 22.91 dB
 #: but 89.62 against 88.42% W, 10.0 against 11.8 ms; mostly-dark 44.90 / 44.89 dB,
 #: glows 48.48 / 48.75 dB, 512x512 36.32 / 36.36 dB, 1024x1024 38.17 dB both, each 10-25%
-#: faster. (An earlier tiny net at half resolution measured 0.1 dB (mantissa) to 0.9 dB
-#: (modulo) below small-s2d on 2026-11-25, so small-s2d ran until the shipped tiny-s2d,
-#: trained on 2026-11-26, was measured here.)
+#: faster; at read noise 0.01 mantissa 22.85 / 22.67 dB, 89.58 / 86.23% W, modulo 22.65 /
+#: 21.98 dB, 89.45 / 83.15% W. Noise-free it loses some PU21, SSIM and MS-SSIM on
+#: mantissa (25.56 / 25.83 dB PU21), which kept small-s2d here in session 24
+#: (docs/training.md); with read noise, as a live sensor has, it is better on each.
 TIER_LADDER: dict[str, tuple[str, ...]] = {
     "fast": ("mantissanet-tiny-s2d", "mantissanet-small-s2d", "mantissanet-tiny"),
     "balanced": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
