@@ -20,17 +20,13 @@ from models.formation import SensorParams
 QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
 #: Network tiers tried in order for each quality level; the first installed one runs
 #: (``balanced`` and ``best`` first pick by the measured PSNR in the model cards, see
-#: :data:`NET_BY_PSNR`). ``fast`` runs the half-resolution tiny net. Measured (auto-fast,
-#: 2026-11-27, quiet EPYC, tiny-s2d against small-s2d): val-256 mantissa 22.91 against
-#: 22.60 dB, 89.44 against 88.81% W, 10.9 against 14.6 ms; modulo 22.76 against 22.91 dB
-#: but 89.62 against 88.42% W, 10.0 against 11.8 ms; mostly-dark 44.90 / 44.89 dB,
-#: glows 48.48 / 48.75 dB, 512x512 36.32 / 36.36 dB, 1024x1024 38.17 dB both, each 10-25%
-#: faster; at read noise 0.01 mantissa 22.85 / 22.67 dB, 89.58 / 86.23% W, modulo 22.65 /
-#: 21.98 dB, 89.45 / 83.15% W. Noise-free it loses some PU21, SSIM and MS-SSIM on
-#: mantissa (25.56 / 25.83 dB PU21), which kept small-s2d here in session 24
-#: (docs/training.md); with read noise, as a live sensor has, it is better on each.
+#: :data:`NET_BY_PSNR`). ``fast`` runs the half-resolution small net: on val-256
+#: (auto-fast, 2026-11-25, interleaved with one core busy) mantissa 21.38 dB in 17.9 ms
+#: against tiny's 21.50 dB in 28.3 ms, modulo 22.13 against 22.10 dB; 12.3 ms on a quiet
+#: machine. A tiny net at half resolution was 1-2 ms faster still but 0.1 (mantissa) to
+#: 0.9 dB (modulo) less accurate.
 TIER_LADDER: dict[str, tuple[str, ...]] = {
-    "fast": ("mantissanet-tiny-s2d", "mantissanet-small-s2d", "mantissanet-tiny"),
+    "fast": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
     "balanced": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
     "best": ("mantissanet-base", "mantissanet-small", "mantissanet-tiny"),
 }
