@@ -24,6 +24,11 @@ queue's own byte bound (``MCAM_JOBS_MAX_BYTES``, 503 ``queue_full``) sits below
 
 from __future__ import annotations
 
+import logging
+import math
+import threading
+import time
+
 import redis
 
 from models.errors import McamError
@@ -85,6 +90,32 @@ def redis_trouble(exc: BaseException) -> str:
             "until it has room (raise MCAM_REDIS_MAXMEMORY or the server's maxmemory)"
         )
     return f"Redis unreachable ({exc})"
+
+
+class TroubleLog:
+    """Warns of transient Redis errors (:func:`is_transient`) at most once per ``every_s``
+    seconds per place: the loops retry about once a second, so a long outage wrote a
+    warning a second for each. The ones in between go to DEBUG and are counted in the
+    next warning. Safe to share between threads."""
+
+    def __init__(self, logger: logging.Logger, every_s: float = 30.0) -> None:
+        self.logger = logger
+        self.every_s = every_s
+        self._lock = threading.Lock()
+        self._last: dict[str, tuple[float, int]] = {}
+
+    def warn(self, where: str, exc: BaseException) -> None:
+        """Log ``exc`` (transient) at ``where`` (a phrase naming the place)."""
+        now = time.monotonic()
+        with self._lock:
+            last, held_back = self._last.get(where, (-math.inf, 0))
+            if now - last < self.every_s:
+                self._last[where] = (last, held_back + 1)
+                self.logger.debug("%s: %s", where, redis_trouble(exc))
+                return
+            self._last[where] = (now, 0)
+        since = f" ({held_back} more times since the last warning)" if held_back else ""
+        self.logger.warning("%s: %s; retrying%s", where, redis_trouble(exc), since)
 
 
 def store_full_error() -> StoreFullError:

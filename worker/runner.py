@@ -47,7 +47,7 @@ from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
-from worker.redis_memory import is_transient, redis_trouble
+from worker.redis_memory import TroubleLog, is_transient
 from worker.result_store import RESULTS_DIR, ResultStore
 
 log = logging.getLogger(__name__)
@@ -130,6 +130,7 @@ class Worker:
         self.started_ns = time.time_ns()
         self._devices: DeviceConsumer | None = None
         self._in_flight: dict[int, tuple[StreamConsumer, Delivery]] = {}
+        self._trouble = TroubleLog(log)
 
     def request_stop(self, *_args: object) -> None:
         """Ask every loop to finish its current item and exit (a second call exits now)."""
@@ -175,7 +176,8 @@ class Worker:
                 step()
             except Exception as exc:
                 if is_transient(exc):
-                    log.warning("worker %s: %s; retrying", self.id, redis_trouble(exc))
+                    where = f"worker {self.id} ({threading.current_thread().name})"
+                    self._trouble.warn(where, exc)
                 else:
                     log.exception("worker %s: unexpected error; continuing", self.id)
                 self.stop.wait(RECONNECT_S)
@@ -292,7 +294,7 @@ class Worker:
         except Exception as exc:
             if not is_transient(exc):
                 raise
-            log.warning("worker %s: could not %s: %s", self.id, what, redis_trouble(exc))
+            self._trouble.warn(f"worker {self.id}: could not {what}", exc)
 
     def _touch_in_flight(self) -> None:
         for consumer, delivery in list(self._in_flight.values()):

@@ -6,6 +6,7 @@ under ``noeviction`` it then refuses every command that would grow its memory.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from pathlib import Path
@@ -26,6 +27,7 @@ from worker.redis_keys import JOBS_STREAM, events_stream, frame_stream
 from worker.redis_memory import (
     DEFAULT_MAXMEMORY,
     NO_EVICTION,
+    TroubleLog,
     eviction_problem,
     is_out_of_memory,
     is_transient,
@@ -160,6 +162,8 @@ def test_a_worker_waits_out_a_full_server_and_fails_no_job(
         outputs.append(process.communicate(timeout=30)[0].decode())
     assert any("Redis is full" in output for output in outputs)
     assert not any("Traceback" in output for output in outputs)
+    # One warning per loop and heartbeat step in 30 s, not one a second each.
+    assert all(output.count("Redis is full") <= 4 for output in outputs), outputs
 
 
 def test_a_device_frame_decoded_while_redis_is_full_is_committed_once(
@@ -206,3 +210,19 @@ def test_a_queue_opened_on_a_full_redis_with_its_group_reads_on(
     with pytest.raises(redis.exceptions.ResponseError) as missing:
         JobQueue(client, maxlen=100, max_deliveries=3, claim_idle_ms=1000)
     assert is_out_of_memory(missing.value)
+
+
+def test_trouble_is_warned_once_per_period_and_place(caplog: pytest.LogCaptureFixture) -> None:
+    trouble = TroubleLog(logging.getLogger("test.trouble"), every_s=0.2)
+    full = redis.exceptions.OutOfMemoryError("command not allowed when used memory > 'maxmemory'.")
+    with caplog.at_level(logging.WARNING, logger="test.trouble"):
+        for _ in range(5):
+            trouble.warn("jobs", full)
+        trouble.warn("heartbeat", redis.exceptions.ConnectionError("gone"))
+        time.sleep(0.25)
+        trouble.warn("jobs", full)
+    lines = [record.getMessage() for record in caplog.records]
+    assert len(lines) == 3
+    assert lines[0].startswith("jobs: Redis is full") and "more times" not in lines[0]
+    assert lines[1].startswith("heartbeat: Redis unreachable (gone)")
+    assert lines[2].endswith("(4 more times since the last warning)")
