@@ -61,7 +61,7 @@ from worker.redis_keys import (
     latest_key,
     lease_key,
 )
-from worker.redis_memory import is_transient, redis_trouble
+from worker.redis_memory import TroubleLog, is_transient
 from worker.result_store import ResultStore
 
 log = logging.getLogger(__name__)
@@ -133,6 +133,7 @@ class DeviceConsumer:
         self.peers = peers
         self._share_checked = -math.inf
         self._resting: dict[str, float] = {}
+        self._trouble = TroubleLog(log)
 
     def poll(self) -> bool:
         """Refresh leases, then handle up to :data:`BATCH` frames per owned device; then
@@ -299,8 +300,7 @@ class DeviceConsumer:
             if not is_transient(exc):
                 raise
             # The frame is committed: a retry would only redo it as stale.
-            log.warning("frame %s of %s: metrics not recorded: %s", delivery.entry_id, device,
-                        redis_trouble(exc))  # fmt: skip
+            self._trouble.warn(f"device {device}", exc, then="frame metrics not recorded")
 
     def _record(
         self,

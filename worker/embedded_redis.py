@@ -115,8 +115,10 @@ def durability_problem(client: redis.Redis) -> str | None:
             f"it fsyncs its append-only file {config.get('appendfsync')!r}, not 'always'; "
             "set appendfsync always"
         )
-    problems.append(eviction_problem(memory) or "")
-    return "; ".join(problem for problem in problems if problem) or None
+    eviction = eviction_problem(memory)
+    if eviction is not None:
+        problems.append(eviction)
+    return "; ".join(problems) or None
 
 
 def terminate_with_parent() -> None:

@@ -94,9 +94,10 @@ def redis_trouble(exc: BaseException) -> str:
 
 class TroubleLog:
     """Warns of transient Redis errors (:func:`is_transient`) at most once per ``every_s``
-    seconds per place: the loops retry about once a second, so a long outage wrote a
-    warning a second for each. The ones in between go to DEBUG and are counted in the
-    next warning. Safe to share between threads."""
+    seconds per place: the loops retry about once a second, and a device stream's frames
+    come faster, so a long outage wrote a warning a second or more for each. The ones in
+    between go to DEBUG and are counted in the next warning. Safe to share between
+    threads."""
 
     def __init__(self, logger: logging.Logger, every_s: float = 30.0) -> None:
         self.logger = logger
@@ -104,8 +105,9 @@ class TroubleLog:
         self._lock = threading.Lock()
         self._last: dict[str, tuple[float, int]] = {}
 
-    def warn(self, where: str, exc: BaseException) -> None:
-        """Log ``exc`` (transient) at ``where`` (a phrase naming the place)."""
+    def warn(self, where: str, exc: BaseException, then: str = "retrying") -> None:
+        """Log ``exc`` (transient) at ``where`` (a phrase naming the place), and ``then``,
+        what the caller does about it."""
         now = time.monotonic()
         with self._lock:
             last, held_back = self._last.get(where, (-math.inf, 0))
@@ -115,7 +117,7 @@ class TroubleLog:
                 return
             self._last[where] = (now, 0)
         since = f" ({held_back} more times since the last warning)" if held_back else ""
-        self.logger.warning("%s: %s; retrying%s", where, redis_trouble(exc), since)
+        self.logger.warning("%s: %s; %s%s", where, redis_trouble(exc), then, since)
 
 
 def store_full_error() -> StoreFullError:

@@ -122,22 +122,24 @@ async def redis_error(_: Request, exc: Exception) -> JSONResponse:
     )
 
 
+def internal_error() -> JSONResponse:
+    """The 500 answered for a bug (logged by the caller)."""
+    return JSONResponse(
+        error_body("internal_error", "an internal error occurred; it has been logged"),
+        status_code=500,
+    )
+
+
 async def redis_refusal(request: Request, exc: Exception) -> JSONResponse:
     """Redis answered with an error: at its ``maxmemory`` (503 ``store_full``: nothing of
     the request was stored, retry later), else a bug (logged, 500)."""
     if is_out_of_memory(exc):
         log.warning("Redis is full (maxmemory): %s %s refused", request.method, request.url.path)
-        error = store_full_error()
-        return JSONResponse(
-            error_body(error.code, error.message),
-            status_code=error.http_status,
-            headers={"Retry-After": "30"},
-        )
+        response = await mcam_error(request, store_full_error())
+        response.headers["Retry-After"] = "30"
+        return response
     log.error("Redis refused a command on %s %s", request.method, request.url.path, exc_info=exc)
-    return JSONResponse(
-        error_body("internal_error", "an internal error occurred; it has been logged"),
-        status_code=500,
-    )
+    return internal_error()
 
 
 class InternalErrorMiddleware:
@@ -167,11 +169,7 @@ class InternalErrorMiddleware:
             if started:
                 raise
             log.exception("internal error on %s %s", scope["method"], scope["path"])
-            response = JSONResponse(
-                error_body("internal_error", "an internal error occurred; it has been logged"),
-                status_code=500,
-            )
-            await response(scope, receive, send)
+            await internal_error()(scope, receive, send)
 
 
 def install_error_handlers(app: FastAPI) -> None:

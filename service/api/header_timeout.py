@@ -21,17 +21,19 @@ import logging
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from service.api.errors import error_body
+
 log = logging.getLogger(__name__)
 
 
 def timeout_response(timeout_s: float) -> bytes:
     """The raw ``408`` sent to a client whose request head did not arrive in time."""
     body = json.dumps(
-        {
-            "code": "request_timeout",
-            "message": f"the request line and headers did not arrive within {timeout_s:g} s "
+        error_body(
+            "request_timeout",
+            f"the request line and headers did not arrive within {timeout_s:g} s "
             "(MCAM_HTTP_HEADER_TIMEOUT_S); send the whole head at once",
-        }
+        )
     ).encode()
     head = (
         "HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
@@ -46,7 +48,6 @@ class HeaderDeadlineProtocol(H11Protocol):
     #: Seconds a request's line and headers may take (set by :func:`header_timeout_protocol`).
     header_timeout_s: float = 10.0
     _deadline: asyncio.TimerHandle | None = None
-    _head_bytes = 0
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -55,7 +56,6 @@ class HeaderDeadlineProtocol(H11Protocol):
     def data_received(self, data: bytes) -> None:
         if self._deadline is None and self.conn.their_state is h11.IDLE:
             self._arm()
-        self._head_bytes += len(data)
         super().data_received(data)
         if self.conn.their_state is not h11.IDLE:
             self._disarm()
@@ -64,14 +64,12 @@ class HeaderDeadlineProtocol(H11Protocol):
             # before reading): uvicorn cancelled its keep-alive timer on them and armed
             # nothing, and what follows is the next request's head, if any.
             self._arm()
-            self._head_bytes = len(self.conn.trailing_data[0])
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         super().connection_lost(exc)
 
     def _arm(self) -> None:
-        self._head_bytes = 0
         self._deadline = self.loop.call_later(self.header_timeout_s, self._expire)
 
     def _disarm(self) -> None:
@@ -83,7 +81,7 @@ class HeaderDeadlineProtocol(H11Protocol):
         self._deadline = None
         if self.transport.is_closing() or self.conn.their_state is not h11.IDLE:
             return
-        if self._head_bytes:
+        if self.conn.trailing_data[0]:  # part of a head, buffered by h11
             log.info("request head from %s unfinished after %g s: 408", self.client,
                      self.header_timeout_s)  # fmt: skip
             self.transport.write(timeout_response(self.header_timeout_s))
