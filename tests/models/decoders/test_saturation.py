@@ -11,6 +11,7 @@ from hypothesis.extra.numpy import arrays
 from models.decoders import get_decoder
 from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.saturation import (
+    MIN_BRIGHT_SHARE,
     MIN_PIXELS,
     clip_tolerance,
     clipped_value,
@@ -78,6 +79,30 @@ def test_a_noisy_lamp_decoded_near_one_wrap_is_still_overexposed() -> None:
     assert np.mean(near_one[clipped] == 0) > 0.3
     filled, _ = fill_saturated(near_one, m, params)
     assert np.mean(filled[clipped] == truth[clipped]) > 0.95
+
+
+def _partly_bright(clipped: np.ndarray, share: float, truth: np.ndarray) -> np.ndarray:
+    """A decoder's W that calls the first ``share`` of the clipped pixels (row order)
+    bright, 3 wraps short, and the rest dark (W = 0)."""
+    rows, cols = np.nonzero(clipped)
+    bright = np.zeros(clipped.shape, bool)
+    take = int(np.ceil(share * rows.size))
+    bright[rows[:take], cols[:take]] = True
+    return np.where(bright, truth - 3, np.where(clipped, 0, truth))
+
+
+@pytest.mark.parametrize(("share", "filled"), [(MIN_BRIGHT_SHARE, True), (0.1, False)])
+def test_a_blob_is_overexposed_when_a_quarter_of_it_is_decoded_bright(
+    share: float, filled: bool
+) -> None:
+    """The nets often call part of a lamp's flat core dark: a quarter decoded bright is
+    enough; a blob the decoder calls dark but for a few pixels stays as decoded."""
+    params = _params()
+    truth, m, clipped = _lamp(params)
+    guess = _partly_bright(clipped, share, truth)
+    result, _ = fill_saturated(guess, m, params)
+    expected = truth if filled else guess
+    np.testing.assert_array_equal(result[clipped], expected[clipped])
 
 
 def test_a_fill_can_be_judged_on_another_answer() -> None:
