@@ -24,14 +24,17 @@ QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
 #: half-resolution small net and about a third faster. Measured (auto-fast, 2026-11-27,
 #: EPYC, tiny-s2d against small-s2d, both with the clip fill's quarter rule): val-256
 #: mantissa 22.91 / 22.76 dB, at read noise 0.01 22.85 / 22.67; modulo 22.76 / 22.91,
-#: at 0.01 22.65 / 21.98; the tuning crops of the training scenes mantissa 24.14 /
+#: at 0.01 22.65 / 21.98; 28 tuning crops of the training scenes mantissa 24.14 /
 #: 24.35, at 0.01 23.85 / 24.34, modulo 24.27 both, at 0.01 23.84 / 24.00; glows 48.48
-#: / 48.75; mostly-dark 42.68 / 42.59: a mean difference of -0.02 dB over the ten sets,
-#: and 9.9 against 13.4 ms a val-256 frame (bench.tradeoff). It gets fewer of the
-#: brightest pixels right (val-256 mantissa W = 3: 2.4% against 12.3%); balanced is the
-#: level for bright scenes. (On 2026-11-25 an earlier tiny-s2d net was 0.1-0.9 dB below
-#: small-s2d, and until the clip fill's quarter rule the shipped one left a small
-#: lamp's core dark, so small-s2d ran until 2026-11-27.)
+#: / 48.75; mostly-dark 42.68 / 42.59: a mean difference of -0.02 dB over the ten sets.
+#: bench.tradeoff: 9.3 ms a val-256 frame, 107.5 frames/s (with small-s2d 13.4 ms, 02:28
+#: UTC). Perceptual metrics split (against small-s2d with the half rule): val-256
+#: mantissa PU21-PSNR 25.56 / 25.83 dB and SSIM 0.838 / 0.844, modulo 25.26 / 24.60 dB
+#: and 0.838 / 0.836. It gets fewer of the brightest pixels right (val-256 mantissa
+#: W = 3: 2.4% against 12.3%); balanced is the level for bright scenes. (On 2026-11-25
+#: an earlier tiny-s2d net was 0.1-0.9 dB below small-s2d, and until the clip fill's
+#: quarter rule the shipped one left a small lamp's core dark, so small-s2d ran until
+#: 2026-11-27.)
 TIER_LADDER: dict[str, tuple[str, ...]] = {
     "fast": ("mantissanet-tiny-s2d", "mantissanet-small-s2d", "mantissanet-tiny"),
     "balanced": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),

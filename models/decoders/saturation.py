@@ -55,8 +55,9 @@ balanced / best 21.95 / 24.02 / 24.30 -> 22.60 / 24.82 / 25.10 dB, modulo 22.13 
 frames unchanged. About 1.5 ms a 256x256 frame.
 
 Failure modes: a clipped blob of fewer than :data:`MIN_PIXELS` pixels, or one the
-decoder left at ``W = 0`` (auto-fast's net does so with the flat core of a lamp on a
-dark textured background: it reads code 0 like a dark patch), stays short; so does
+decoder left at ``W = 0`` on more than three quarters of its pixels (both fast nets do
+so with the flat core of a lamp on a dark textured background in a 64x64 frame: it
+reads code 0 like a dark patch), stays short; so does
 one whose ring is smooth enough to leave few residues (a clip reached by a gentle
 slope, which an unwrapper can count anyway). A bright flat region cut off by steep
 edges whose true ``u`` happens to sit at the clip's code (within the tolerance) and

@@ -146,10 +146,11 @@ BASE_MODULO_STAGES = (298, 4177, 3680, 1790)
 #: same run as this one), modulo 21.72 / 23.47 dB, at 0.45 GFLOPs (small-s2d: 1.09),
 #: 12-16 ms a frame on this host's slow spell where small-s2d took 19-23 ms. As
 #: ``auto``'s fast net the ce-risk net lost 0.70 dB (mantissa) / 0.47 dB (modulo) for
-#: 3.3-4.4 ms a frame, so ``auto`` keeps small-s2d; it ships as the fastest learned
-#: decoder, ``mantissanet-tiny-s2d``. The ``s2d`` lanes' base-s2d nets measured below
-#: small-s2d (mantissa 22.03 / 23.69 dB, modulo 22.29 / 23.54 dB at 23-34 ms) and were
-#: not shipped.
+#: 3.3-4.4 ms a frame, so ``auto`` kept small-s2d (the ce net that replaced it has run
+#: at fast since 2026-11-27: ``models/decoders/adaptive_policy.py``); it ships as the
+#: fastest learned decoder, ``mantissanet-tiny-s2d``. The ``s2d`` lanes' base-s2d nets
+#: measured below small-s2d (mantissa 22.03 / 23.69 dB, modulo 22.29 / 23.54 dB at 23-34
+#: ms) and were not shipped.
 TINY_S2D_MANTISSA_STAGES = (281, 3935, 3466, 1686)
 TINY_S2D_MODULO_STAGES = (286, 4004, 3528, 1716)
 #: The tiny-s2d modulo net continues end to end from that run (lanes ``tiny-s2d-more``,
