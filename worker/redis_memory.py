@@ -94,8 +94,9 @@ def redis_trouble(exc: BaseException) -> str:
 
 class TroubleLog:
     """Warns of transient Redis errors (:func:`is_transient`) at most once per ``every_s``
-    seconds per place: the loops retry about once a second, and a device stream's frames
-    come faster, so a long outage wrote a warning a second or more for each. The ones in
+    seconds per place: the loops retry every 1-8 s (:func:`worker.runner.reconnect_delay`)
+    and a device stream's frames come faster, so a long outage wrote a warning every few
+    seconds or more for each. The ones in
     between go to DEBUG and are counted in the next warning. Safe to share between
     threads."""
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import random
 import signal
 import socket
 import threading
@@ -58,8 +59,11 @@ BLOCK_MS = 1000
 DEVICE_IDLE_S = 0.02
 #: Pause of the device consumer while it owns no device (s): new devices start within it.
 NO_DEVICE_IDLE_S = 0.25
-#: Pause after a Redis connection error before trying again (s).
+#: Pause after a failed loop step (Redis unreachable or full, or an unexpected error)
+#: before trying again (s); doubled after each failure in a row, up to
+#: :data:`RECONNECT_MAX_S` (see :func:`reconnect_delay`).
 RECONNECT_S = 1.0
+RECONNECT_MAX_S = 8.0
 #: Purge expired results this often (s).
 PURGE_EVERY_S = 300.0
 #: Heartbeats older than this many heartbeat periods are removed by any worker.
@@ -117,6 +121,15 @@ def new_worker_id() -> str:
     return f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
 
 
+def reconnect_delay(failures: int, jitter: float) -> float:
+    """Seconds to wait after ``failures`` (>= 1) failed steps in a row: :data:`RECONNECT_S`
+    doubled per further failure, at most :data:`RECONNECT_MAX_S`, times ``jitter`` (0.5
+    to 1, drawn per wait) so that the loops that lost Redis together do not all retry in
+    the same instant. A long outage then costs a loop one try per 4-8 s, not one a
+    second, and a short one is noticed within a second or two."""
+    return min(RECONNECT_S * 2.0 ** (failures - 1), RECONNECT_MAX_S) * jitter
+
+
 class Worker:
     """One worker process (see the module docstring)."""
 
@@ -170,17 +183,21 @@ class Worker:
         self.request_stop()
 
     def _resilient(self, step: Callable[[], None]) -> None:
-        """Run ``step`` until stopped, surviving Redis outages and unexpected errors."""
+        """Run ``step`` until stopped, surviving Redis outages and unexpected errors, each
+        retry after :func:`reconnect_delay`."""
+        failures = 0
         while not self.stop.is_set():
             try:
                 step()
+                failures = 0
             except Exception as exc:
+                failures += 1
                 if is_transient(exc):
                     where = f"worker {self.id} ({threading.current_thread().name})"
                     self._trouble.warn(where, exc)
                 else:
                     log.exception("worker %s: unexpected error; continuing", self.id)
-                self.stop.wait(RECONNECT_S)
+                self.stop.wait(reconnect_delay(failures, random.uniform(0.5, 1.0)))
 
     def _job_loop(self, index: int) -> None:
         child = ChildProcess(start_job_child, (self.config.decoder,))
@@ -202,6 +219,7 @@ class Worker:
                     f"{self.id}-j{index}",
                     max_deliveries=self.config.max_deliveries,
                 )
+            self._in_flight.pop(index, None)
             deliveries = consumer.read_own_pending(1)
             for delivery in deliveries:  # again after a transient error: not idle meanwhile
                 consumer.touch(delivery)
@@ -209,11 +227,11 @@ class Worker:
             if not deliveries and not self.stop.is_set():
                 deliveries = consumer.read_new(block_ms=BLOCK_MS, count=1)
             for delivery in deliveries:
+                # In flight until handled: if handling raises, the entry stays pending
+                # and the heartbeat keeps touching it while this loop waits to retry it.
                 self._in_flight[index] = (consumer, delivery)
-                try:
-                    processor.handle(consumer, delivery)
-                finally:
-                    self._in_flight.pop(index, None)
+                processor.handle(consumer, delivery)
+                self._in_flight.pop(index, None)
                 self.jobs_done += 1
 
         self._resilient(step)

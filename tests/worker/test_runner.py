@@ -10,6 +10,7 @@ import io
 import json
 import os
 import signal
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -38,7 +39,7 @@ from worker.redis_keys import (
     latest_key,
 )
 from worker.result_store import RESULTS_DIR, ResultStore
-from worker.runner import WorkerConfig
+from worker.runner import RECONNECT_MAX_S, RECONNECT_S, Worker, WorkerConfig, reconnect_delay
 
 #: Mantissa with a huge alpha: a ramp of 16 wraps decodes fine but overflows float32.
 OVERFLOW = SensorParams(encoding="mantissa", alpha=1e6, bits=8)
@@ -489,3 +490,52 @@ def test_an_unknown_stream_decoder_stops_the_worker_at_start(workers) -> None:
     assert process.returncode != 0
     assert "unknown decoder" in output and "nope" in output
     assert "Traceback" not in output
+
+
+class _InstantStop(threading.Event):
+    """A stop event whose waits return at once, recording the seconds each asked for."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.asked: list[float] = []
+
+    def wait(self, timeout: float | None = None) -> bool:
+        assert timeout is not None
+        self.asked.append(timeout)
+        return self.is_set()
+
+
+def test_a_loop_waits_longer_after_each_failure_in_a_row_and_briefly_after_a_success(
+    tmp_path: Path,
+) -> None:
+    """Five failed steps (Redis unreachable), one that works, one more failure: the
+    waits double up to the cap, each jittered down by at most half, and start again
+    from the shortest after the success."""
+    worker = Worker(WorkerConfig(redis_url="unix:///x", data_dir=tmp_path))
+    stop = _InstantStop()
+    worker.stop = stop
+    outcomes = iter(["fail"] * 5 + ["ok", "fail"])
+
+    def step() -> None:
+        outcome = next(outcomes, "stop")
+        if outcome == "stop":
+            stop.set()
+        elif outcome == "fail":
+            raise redis.exceptions.ConnectionError("Connection refused")
+
+    worker._resilient(step)
+    expected = [RECONNECT_S, 2 * RECONNECT_S, 4 * RECONNECT_S, RECONNECT_MAX_S]
+    expected += [RECONNECT_MAX_S, RECONNECT_S]
+    assert len(stop.asked) == len(expected)
+    for asked, longest in zip(stop.asked, expected, strict=True):
+        assert 0.5 * longest <= asked <= longest
+
+
+@pytest.mark.parametrize(
+    ("failures", "jitter", "seconds"),
+    [(1, 1.0, RECONNECT_S), (2, 0.5, RECONNECT_S), (3, 1.0, 4 * RECONNECT_S), (60, 1.0, 8.0)],
+)
+def test_the_reconnect_delay_doubles_to_its_cap(
+    failures: int, jitter: float, seconds: float
+) -> None:
+    assert reconnect_delay(failures, jitter) == pytest.approx(seconds)
