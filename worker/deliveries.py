@@ -25,6 +25,16 @@ from worker.redis_keys import DEAD_LETTER_STREAM
 
 #: The dead-letter stream keeps at most this many entries (oldest trimmed).
 DEAD_LETTER_MAXLEN = 10_000
+#: Reset an entry's idle time if consumer ARGV[2] of group ARGV[1] owns entry ARGV[3]
+#: of stream KEYS[1]; 1 if it did, else 0. XCLAIM is not refused by a full Redis.
+_TOUCH = """
+local pending = redis.call('XPENDING', KEYS[1], ARGV[1], ARGV[3], ARGV[3], 1)
+if #pending == 1 and pending[1][2] == ARGV[2] then
+  redis.call('XCLAIM', KEYS[1], ARGV[1], ARGV[2], 0, ARGV[3], 'JUSTID')
+  return 1
+end
+return 0
+"""
 
 
 @dataclass
@@ -60,6 +70,7 @@ class StreamConsumer:
         self.name = name
         self.max_deliveries = max_deliveries
         self.metrics = Metrics(client)
+        self._touch = client.register_script(_TOUCH)
         ensure_group(client, stream)
 
     def read_new(self, *, block_ms: int | None, count: int = 1) -> list[Delivery]:
@@ -135,10 +146,12 @@ class StreamConsumer:
             justid=True,
         )
 
-    def touch(self, delivery: Delivery) -> None:
+    def touch(self, delivery: Delivery) -> bool:
         """Reset the entry's idle time (no delivery counted) so that a long job is not
-        reclaimed from this live consumer."""
-        self.client.xclaim(self.stream, GROUP, self.name, 0, [delivery.entry_id], justid=True)
+        reclaimed from this live consumer; only while this consumer owns it (a plain
+        XCLAIM would take back an entry another worker reclaimed meanwhile, and both would
+        run it). Returns whether it still owns the entry."""
+        return bool(self._touch(keys=[self.stream], args=[GROUP, self.name, delivery.entry_id]))
 
     def done(self, delivery: Delivery) -> None:
         """Acknowledge and delete the entry (call only after its result is durable)."""

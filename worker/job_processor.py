@@ -242,6 +242,13 @@ class JobProcessor:
             error = JobError(code="not_found", message=f"entry names no known job: {exc}")
             self._drop(consumer, delivery, delivery.text("job"), dead_letter=error)
             return
+        except (ValueError, redis.exceptions.ResponseError) as exc:
+            # A record that does not parse, or a key of the wrong type: it would never
+            # run (a full Redis refuses writes, never this read).
+            log.error("job %s: its record is corrupt; dead-lettered: %s", delivery.text("job"), exc)
+            error = JobError(code="internal_error", message=f"the job's record is corrupt: {exc}")
+            self._drop(consumer, delivery, delivery.text("job"), dead_letter=error)
+            return
         while True:
             if delivery.deliveries > self.max_deliveries:
                 self._fail(

@@ -77,9 +77,11 @@ def is_out_of_memory(exc: BaseException) -> bool:
 
 
 def is_transient(exc: BaseException) -> bool:
-    """Whether a Redis command may succeed if tried again later: Redis unreachable, or
-    full (workers keep the entry and retry; nothing counts against the job)."""
-    return isinstance(exc, redis.exceptions.ConnectionError) or is_out_of_memory(exc)
+    """Whether a Redis command may succeed if tried again later: Redis unreachable, not
+    answering within the socket timeout, or full (workers keep the entry and retry;
+    nothing counts against the job)."""
+    unreachable = (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError)
+    return isinstance(exc, unreachable) or is_out_of_memory(exc)
 
 
 def redis_trouble(exc: BaseException) -> str:
@@ -89,16 +91,17 @@ def redis_trouble(exc: BaseException) -> str:
             "Redis is full (at its maxmemory) and refuses writes; jobs wait in the queue "
             "until it has room (raise MCAM_REDIS_MAXMEMORY or the server's maxmemory)"
         )
+    if isinstance(exc, redis.exceptions.TimeoutError):
+        return f"Redis did not answer in time ({exc})"
     return f"Redis unreachable ({exc})"
 
 
 class TroubleLog:
     """Warns of transient Redis errors (:func:`is_transient`) at most once per ``every_s``
-    seconds per place: the loops retry every 1-8 s (:func:`worker.runner.reconnect_delay`)
+    seconds per place: the loops retry every 0.5-8 s (:func:`worker.runner.reconnect_delay`)
     and a device stream's frames come faster, so a long outage wrote a warning every few
-    seconds or more for each. The ones in
-    between go to DEBUG and are counted in the next warning. Safe to share between
-    threads."""
+    seconds or more for each. The ones in between go to DEBUG and are counted in the next
+    warning. Safe to share between threads."""
 
     def __init__(self, logger: logging.Logger, every_s: float = 30.0) -> None:
         self.logger = logger

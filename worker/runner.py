@@ -64,6 +64,9 @@ NO_DEVICE_IDLE_S = 0.25
 #: :data:`RECONNECT_MAX_S` (see :func:`reconnect_delay`).
 RECONNECT_S = 1.0
 RECONNECT_MAX_S = 8.0
+#: Doublings past which the pause stays at the cap (bounds the power: a loop that has
+#: failed for hours must not overflow).
+RECONNECT_DOUBLINGS = 16
 #: Purge expired results this often (s).
 PURGE_EVERY_S = 300.0
 #: Heartbeats older than this many heartbeat periods are removed by any worker.
@@ -127,7 +130,8 @@ def reconnect_delay(failures: int, jitter: float) -> float:
     to 1, drawn per wait) so that the loops that lost Redis together do not all retry in
     the same instant. A long outage then costs a loop one try per 4-8 s, not one a
     second, and a short one is noticed within a second or two."""
-    return min(RECONNECT_S * 2.0 ** (failures - 1), RECONNECT_MAX_S) * jitter
+    doublings = min(failures - 1, RECONNECT_DOUBLINGS)
+    return min(RECONNECT_S * 2.0**doublings, RECONNECT_MAX_S) * jitter
 
 
 class Worker:
@@ -219,23 +223,37 @@ class Worker:
                     f"{self.id}-j{index}",
                     max_deliveries=self.config.max_deliveries,
                 )
-            self._in_flight.pop(index, None)
             deliveries = consumer.read_own_pending(1)
             for delivery in deliveries:  # again after a transient error: not idle meanwhile
                 consumer.touch(delivery)
+            if not deliveries:
+                self._in_flight.pop(index, None)
             deliveries = deliveries or consumer.reclaim(self.config.claim_idle_ms, count=1)
             if not deliveries and not self.stop.is_set():
                 deliveries = consumer.read_new(block_ms=BLOCK_MS, count=1)
             for delivery in deliveries:
-                # In flight until handled: if handling raises, the entry stays pending
-                # and the heartbeat keeps touching it while this loop waits to retry it.
                 self._in_flight[index] = (consumer, delivery)
-                processor.handle(consumer, delivery)
+                self._handle(processor, consumer, delivery, index)
                 self._in_flight.pop(index, None)
                 self.jobs_done += 1
 
         self._resilient(step)
         child.close()
+
+    def _handle(
+        self, processor: JobProcessor, consumer: StreamConsumer, delivery: Delivery, index: int
+    ) -> None:
+        """Handle one job entry of job thread ``index``. When Redis is unreachable or full
+        the entry stays in flight, so the heartbeat keeps touching it while the loop
+        waits to retry it; after any other error it counts a delivery and leaves the
+        heartbeat's care, so that the processor fails it past ``max_deliveries``."""
+        try:
+            processor.handle(consumer, delivery)
+        except Exception as exc:
+            if not is_transient(exc):
+                self._in_flight.pop(index, None)
+                consumer.retry(delivery)
+            raise
 
     def _stream_decoder(self) -> FrameDecoder | DecodePool:
         """The live frames' decoder, warmed up: a pool of ``stream_processes`` processes
@@ -274,7 +292,7 @@ class Worker:
         if self._devices is not None:
             try:
                 self._devices.release_all()
-            except redis.exceptions.ConnectionError:
+            except (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError):
                 log.warning(
                     "worker %s: could not release device leases (they will lapse)", self.id
                 )
@@ -350,5 +368,5 @@ class Worker:
     def _forget_heartbeat(self) -> None:
         try:
             self.client.hdel(WORKERS_HEARTBEAT, self.id)
-        except redis.exceptions.ConnectionError:
+        except (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError):
             log.warning("worker %s: could not remove its heartbeat", self.id)

@@ -36,7 +36,12 @@ QUALITIES: tuple[str, ...] = ("fast", "balanced", "best")
 #: quarter rule the shipped one left a small lamp's core dark, so small-s2d ran until
 #: 2026-11-27.)
 TIER_LADDER: dict[str, tuple[str, ...]] = {
-    "fast": ("mantissanet-tiny-s2d", "mantissanet-small-s2d", "mantissanet-tiny"),
+    "fast": (
+        "mantissanet-tiny-s2d",
+        "mantissanet-small-s2d",
+        "mantissanet-tiny",
+        "mantissanet-small",
+    ),
     "balanced": ("mantissanet-small-s2d", "mantissanet-tiny", "mantissanet-small"),
     "best": ("mantissanet-base", "mantissanet-small", "mantissanet-tiny"),
 }

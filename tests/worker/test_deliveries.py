@@ -74,3 +74,23 @@ def test_give_back_requeues_as_new_entry(client: redis.Redis) -> None:
 
 def test_entry_order() -> None:
     assert entry_order("10-2") > entry_order("9-99") > entry_order("9-1")
+
+
+def test_a_touch_keeps_an_entry_idle_free_only_for_its_owner(client: redis.Redis) -> None:
+    """A worker cut off from Redis longer than the claim period lost its entry to another;
+    its heartbeat's touch must not take it back (both would run the job)."""
+    alice, bob = consumer(client, "alice"), consumer(client, "bob")
+    client.xadd("s", {"n": "1"})
+    [delivery] = alice.read_new(block_ms=None)
+    time.sleep(0.05)
+    assert alice.touch(delivery)
+    [pending] = client.xpending_range("s", GROUP, "-", "+", 1)
+    assert pending["time_since_delivered"] < 50
+    time.sleep(0.05)
+    [reclaimed] = bob.reclaim(min_idle_ms=10)
+    assert not alice.touch(delivery)
+    [pending] = client.xpending_range("s", GROUP, "-", "+", 1)
+    assert pending["consumer"] == b"bob" and pending["times_delivered"] == 2
+    assert bob.touch(reclaimed)
+    alice.done(delivery)
+    assert not bob.touch(reclaimed)

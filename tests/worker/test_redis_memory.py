@@ -109,6 +109,11 @@ def test_refusals_of_a_full_server_are_told_apart_from_other_errors(client: redi
     assert not is_out_of_memory(wrong_type.value) and not is_transient(wrong_type.value)
     lost = redis.exceptions.ConnectionError("gone")
     assert is_transient(lost) and "unreachable" in redis_trouble(lost)
+    path = client.connection_pool.connection_kwargs["path"]
+    impatient = redis.Redis(unix_socket_path=path, socket_timeout=0.05)
+    with pytest.raises(redis.exceptions.TimeoutError) as slow:
+        impatient.blpop(["nothing"], timeout=1)
+    assert is_transient(slow.value) and "did not answer in time" in redis_trouble(slow.value)
 
 
 def test_a_submit_to_a_full_server_stores_nothing_and_keeps_what_it_held(

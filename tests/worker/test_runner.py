@@ -22,9 +22,10 @@ import redis
 from models.errors import McamError
 from models.formation import SensorFrame, SensorParams
 from tests.worker.conftest import overflowing_codes
-from worker.deliveries import GROUP
+from worker.deliveries import GROUP, Delivery, StreamConsumer
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
+from worker.job_processor import JobProcessor
 from worker.jobs import JobState
 from worker.lease import Lease
 from worker.metrics import read_metrics
@@ -170,21 +171,27 @@ def test_a_job_failing_for_the_worker_goes_to_dead_letters_after_max_deliveries(
     assert queue.stats()["dead_letters"] == 1
 
 
-def test_entries_naming_no_job_are_dead_lettered_and_their_holds_released(
+def test_entries_naming_no_readable_job_are_dead_lettered_and_their_holds_released(
     queue: JobQueue, client: redis.Redis, workers, make_frame, wait_until
 ) -> None:
-    """A job whose record is gone (deleted by an operator) and an entry with no job
-    field: both go to the dead letters as ``not_found``; the first gives back its key's
-    share of the queue."""
+    """A job whose record is gone (deleted by an operator), one whose record does not
+    parse, and an entry with no job field: each goes to the dead letters once (the
+    corrupt one as ``internal_error``; it used to be retried forever), and the jobs give
+    back their key's share of the queue."""
     frame: SensorFrame = make_frame()
-    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh", owner="k")
-    client.delete(f"job:{job.id}")
+    gone = queue.submit("reconstruction", frame.codes, frame.params, "itoh", owner="k")
+    corrupt = queue.submit("reconstruction", frame.codes, frame.params, "itoh", owner="k")
+    client.delete(f"job:{gone.id}")
+    client.hset(f"job:{corrupt.id}", "state", "not json")
     client.xadd(JOBS_STREAM, {"kind": "reconstruction"})
     workers.start()
-    wait_until(lambda: client.xlen(DEAD_LETTER_STREAM) == 2, 30, "two dead letters")
+    wait_until(lambda: client.xlen(DEAD_LETTER_STREAM) == 3, 30, "three dead letters")
     letters = [letter for _id, letter in client.xrange(DEAD_LETTER_STREAM)]
-    assert [letter[b"code"] for letter in letters] == [b"not_found", b"not_found"]
-    assert letters[0][b"job"].decode() == job.id and b"job" not in letters[1]
+    assert [letter[b"code"] for letter in letters] == [
+        b"not_found", b"internal_error", b"not_found"
+    ]
+    assert letters[0][b"job"].decode() == gone.id and letters[1][b"job"].decode() == corrupt.id
+    assert b"corrupt" in letters[1][b"message"] and b"job" not in letters[2]
     assert client.xlen(JOBS_STREAM) == 0 and queue.stats()["held_bytes"] == 0
     assert client.hlen(JOBS_PER_KEY) == 0
 
@@ -533,9 +540,50 @@ def test_a_loop_waits_longer_after_each_failure_in_a_row_and_briefly_after_a_suc
 
 @pytest.mark.parametrize(
     ("failures", "jitter", "seconds"),
-    [(1, 1.0, RECONNECT_S), (2, 0.5, RECONNECT_S), (3, 1.0, 4 * RECONNECT_S), (60, 1.0, 8.0)],
+    [
+        (1, 1.0, RECONNECT_S),
+        (2, 0.5, RECONNECT_S),
+        (3, 1.0, 4 * RECONNECT_S),
+        (60, 1.0, RECONNECT_MAX_S),
+        (100_000, 1.0, RECONNECT_MAX_S),
+    ],
+    ids=["first", "jittered", "doubled", "capped", "hours of failures"],
 )
 def test_the_reconnect_delay_doubles_to_its_cap(
     failures: int, jitter: float, seconds: float
 ) -> None:
     assert reconnect_delay(failures, jitter) == pytest.approx(seconds)
+
+
+class _BuggyProcessor(JobProcessor):
+    """A processor with a bug: every job raises an error that is not Redis's."""
+
+    def handle(self, consumer: StreamConsumer, delivery: Delivery) -> None:
+        raise RuntimeError("a bug")
+
+
+def test_a_job_stays_in_flight_through_a_full_redis_and_counts_a_delivery_after_a_bug(
+    embedded: EmbeddedRedis, client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """While Redis refuses the job's writes the entry stays in flight (the heartbeat keeps
+    touching it while the loop backs off); after any other error it leaves the
+    heartbeat's care and counts a delivery, so max_deliveries ends it."""
+    frame: SensorFrame = make_frame()
+    queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    worker = Worker(WorkerConfig(redis_url=embedded.url, data_dir=data_dir))
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=worker.stop)
+    worker._in_flight[0] = (consumer, delivery)
+    client.config_set("maxmemory", 1)
+    with pytest.raises(redis.exceptions.ResponseError, match="OOM"):
+        worker._handle(processor, consumer, delivery, 0)
+    client.config_set("maxmemory", 0)
+    assert worker._in_flight[0] == (consumer, delivery) and delivery.deliveries == 1
+    buggy = _BuggyProcessor(client, store, max_deliveries=3, stop=worker.stop)
+    with pytest.raises(RuntimeError, match="a bug"):
+        worker._handle(buggy, consumer, delivery, 0)
+    assert 0 not in worker._in_flight and delivery.deliveries == 2
+    [pending] = client.xpending_range(JOBS_STREAM, GROUP, "-", "+", 1)
+    assert pending["times_delivered"] == 2
