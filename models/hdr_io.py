@@ -26,6 +26,7 @@ import OpenEXR
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError, McamError, UnsupportedFormatError
+from models.exr_chunks import missing_chunks
 from models.exr_limits import check_exr_size, part_size
 from models.formation import validate_irradiance
 from models.frames import check_pixel_count, decoding
@@ -34,6 +35,7 @@ from models.output_range import ensure_fits
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 RADIANCE_MAGICS = (b"#?RADIANCE", b"#?RGBE")
 RGB_CHANNELS = ("R", "G", "B")
+_EXR_TRUNCATED = "the OpenEXR pixel data is truncated or corrupt; send the complete file"
 #: RGBE exponent bias plus the 8 mantissa bits: value = (m + 0.5) * 2^(e - 136).
 _RGBE_SHIFT = 136
 _RLE_MIN_WIDTH, _RLE_MAX_WIDTH = 8, 0x7FFF
@@ -75,9 +77,13 @@ def _exr_file(source: Path | bytes, header_only: bool) -> Any:
 def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, str]]:
     """Pixels and string attributes of the first part holding Y or R,G,B.
 
+    Bytes (an upload) missing pixel chunks are refused before the library reads them
+    (:func:`models.exr_chunks.missing_chunks`: it would print its complaint to stderr).
     Every part's size is checked on the headers (:func:`check_exr_size`) before the
     binding decodes all parts and channels.
     """
+    if isinstance(source, bytes) and missing_chunks(source):
+        raise InvalidInputError(_EXR_TRUNCATED)
     headers = [part.header for part in _exr_file(source, header_only=True).parts]
     layouts = [_image_channels([ch.name for ch in header["channels"]]) for header in headers]
     index = next((i for i, layout in enumerate(layouts) if layout is not None), None)
@@ -92,7 +98,7 @@ def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any
     parts = _exr_file(source, header_only=False).parts
     if len(parts) != len(headers):
         # OpenEXR.File drops a part whose pixel data fails to decode instead of raising.
-        raise InvalidInputError("the OpenEXR pixel data is truncated or corrupt")
+        raise InvalidInputError(_EXR_TRUNCATED)
     channels = parts[index].channels
     planes = [channels[name].pixels for name in layouts[index]]
     pixels = planes[0] if len(planes) == 1 else np.stack(planes, axis=2)

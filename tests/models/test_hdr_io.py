@@ -195,11 +195,14 @@ def test_bytes_and_path_read_the_same(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_hdr(path.read_bytes()).pixels, read_hdr(path).pixels)
 
 
-def test_truncated_and_foreign_files(tmp_path: Path) -> None:
+def test_truncated_and_foreign_files(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """A truncated upload is refused with the reason, and the OpenEXR library, which
+    prints its complaints to the process's stderr, never sees it."""
     data = encode_exr(np.random.default_rng(0).random((64, 64, 3)))
     for cut in (len(data) // 2, len(data) - 8, 40):
         with pytest.raises(InvalidInputError, match="upload.exr: .*truncated or corrupt"):
             read_hdr(data[:cut], name="upload.exr")
+    assert capfd.readouterr().err == ""
     with pytest.raises(UnsupportedFormatError, match="OpenEXR or Radiance"):
         read_hdr(b"\x89PNG\r\n\x1a\n" + bytes(100))
     with pytest.raises(FileNotFoundError):

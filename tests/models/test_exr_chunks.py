@@ -1,0 +1,49 @@
+"""Tests of models/exr_chunks.py: a scanline OpenEXR file's chunks, checked from its bytes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from models.exr_chunks import missing_chunks
+from models.hdr_io import encode_exr
+
+HDRI = Path(__file__).resolve().parents[2] / "models" / "data" / "hdri" / "venice.exr"
+
+
+@pytest.mark.parametrize("compression", ["zip", "none"])
+@pytest.mark.parametrize("shape", [(1, 1), (37, 53, 3), (300, 17)])
+def test_a_whole_file_has_every_chunk_and_every_cut_of_it_misses_some(
+    compression: str, shape: tuple[int, ...]
+) -> None:
+    data = encode_exr(np.random.default_rng(1).random(shape), compression=compression)
+    assert missing_chunks(data) is False
+    assert all(missing_chunks(data[:cut]) is True for cut in range(len(data)))
+
+
+def test_a_real_dwab_scene_is_whole() -> None:
+    """The shared scenes are DWAB-compressed: 256 scanlines a chunk."""
+    data = HDRI.read_bytes()
+    assert missing_chunks(data) is False
+    assert missing_chunks(data[: len(data) - 1]) is True
+
+
+def test_a_chunk_table_pointing_outside_the_file_is_caught() -> None:
+    data = bytearray(encode_exr(np.ones((20, 20)), compression="none"))
+    table = len(data) - 20 * (8 + 20 * 4) - 20 * 8  # one chunk per scanline
+    data[table : table + 8] = (len(data) + 100).to_bytes(8, "little")
+    assert missing_chunks(bytes(data)) is True
+
+
+def test_multi_part_files_are_left_to_the_library(tmp_path: Path) -> None:
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    parts = [
+        OpenEXR.Part(dict(header), {"Y": np.ones((4, 4), np.float32)}, name)
+        for name in ("a", "b")
+    ]
+    path = tmp_path / "two.exr"
+    OpenEXR.File(parts).write(str(path))
+    assert missing_chunks(path.read_bytes()) is None
