@@ -46,18 +46,21 @@ def _header(data: bytes) -> tuple[dict[bytes, bytes], int]:
         at += 4 + size
 
 
-def _chunk_count(attributes: dict[bytes, bytes]) -> int:
-    """Chunks of a scanline part: its height over the compression's lines per chunk."""
+def _chunk_count(attributes: dict[bytes, bytes]) -> int | None:
+    """Chunks of a scanline part: its height over the compression's lines per chunk
+    (None for a compression newer than this table, e.g. HTJ2K)."""
     _x0, y0, _x1, y1 = struct.unpack("<4i", attributes[b"dataWindow"])
-    lines = _LINES_PER_CHUNK[attributes[b"compression"][0]]
-    return -(-(y1 - y0 + 1) // lines)
+    code = attributes[b"compression"][0]
+    if code >= len(_LINES_PER_CHUNK):
+        return None
+    return -(-(y1 - y0 + 1) // _LINES_PER_CHUNK[code])
 
 
 def missing_chunks(data: bytes) -> bool | None:
     """Whether the OpenEXR file ``data`` (starting with its magic) is truncated or has a
     chunk table pointing outside it: True, False, or None for a file this module does
-    not check (tiled, deep or multi-part). A header that cannot be read counts as
-    truncated."""
+    not check (tiled, deep or multi-part, or a compression it does not know). A header
+    that cannot be read counts as truncated."""
     if len(data) < 8:
         return True
     (version,) = struct.unpack_from("<I", data, 4)
@@ -66,6 +69,8 @@ def missing_chunks(data: bytes) -> bool | None:
     try:
         attributes, at = _header(data)
         count = _chunk_count(attributes)
+        if count is None:
+            return None
         table_end = at + 8 * count
         if count < 0 or table_end > len(data):
             return True

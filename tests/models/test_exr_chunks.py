@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -47,3 +48,37 @@ def test_multi_part_files_are_left_to_the_library(tmp_path: Path) -> None:
     path = tmp_path / "two.exr"
     OpenEXR.File(parts).write(str(path))
     assert missing_chunks(path.read_bytes()) is None
+
+
+
+KNOWN = ["NO", "RLE", "ZIPS", "ZIP", "PIZ", "PXR24", "B44", "B44A", "DWAA", "DWAB"]
+NEWER = [
+    name
+    for name in ("HTJ2K256", "HTJ2K32", "LJ2K", "ZSTD")
+    if hasattr(OpenEXR, f"{name}_COMPRESSION")
+]
+
+
+def _written(compression: str) -> bytes:
+    """A 300 x 40 float32 Y image written by the OpenEXR library with ``compression``."""
+    header = {"compression": getattr(OpenEXR, f"{compression}_COMPRESSION"),
+              "type": OpenEXR.scanlineimage}  # fmt: skip
+    buffer = io.BytesIO()
+    pixels = np.random.default_rng(2).random((300, 40), dtype=np.float32)
+    OpenEXR.File(header, {"Y": pixels}).write(buffer)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("compression", KNOWN)
+def test_every_classic_compression_is_judged_whole_and_cut(compression: str) -> None:
+    """Lines per chunk differ by compression (1 to 256): the table must match the
+    library's own files."""
+    data = _written(compression)
+    assert missing_chunks(data) is False
+    step = max(1, len(data) // 200)
+    assert all(missing_chunks(data[:cut]) is True for cut in range(0, len(data), step))
+
+
+@pytest.mark.parametrize("compression", NEWER)
+def test_a_compression_newer_than_the_table_is_left_to_the_library(compression: str) -> None:
+    assert missing_chunks(_written(compression)) is None
