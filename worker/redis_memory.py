@@ -68,6 +68,10 @@ def eviction_problem(config: dict[str, str]) -> str | None:
     )
 
 
+#: Redis errors of a server that cannot be reached or does not answer in time.
+UNREACHABLE = (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError)
+
+
 def is_out_of_memory(exc: BaseException) -> bool:
     """Whether ``exc`` is Redis refusing a write at ``maxmemory`` (a command's
     ``OutOfMemoryError``, or the same refusal inside a Lua script)."""
@@ -80,8 +84,7 @@ def is_transient(exc: BaseException) -> bool:
     """Whether a Redis command may succeed if tried again later: Redis unreachable, not
     answering within the socket timeout, or full (workers keep the entry and retry;
     nothing counts against the job)."""
-    unreachable = (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError)
-    return isinstance(exc, unreachable) or is_out_of_memory(exc)
+    return isinstance(exc, UNREACHABLE) or is_out_of_memory(exc)
 
 
 def redis_trouble(exc: BaseException) -> str:

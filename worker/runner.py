@@ -48,7 +48,7 @@ from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
-from worker.redis_memory import TroubleLog, is_transient
+from worker.redis_memory import UNREACHABLE, TroubleLog, is_transient
 from worker.result_store import RESULTS_DIR, ResultStore
 
 log = logging.getLogger(__name__)
@@ -292,7 +292,7 @@ class Worker:
         if self._devices is not None:
             try:
                 self._devices.release_all()
-            except (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError):
+            except UNREACHABLE:
                 log.warning(
                     "worker %s: could not release device leases (they will lapse)", self.id
                 )
@@ -368,5 +368,5 @@ class Worker:
     def _forget_heartbeat(self) -> None:
         try:
             self.client.hdel(WORKERS_HEARTBEAT, self.id)
-        except (redis.exceptions.ConnectionError, redis.exceptions.TimeoutError):
+        except UNREACHABLE:
             log.warning("worker %s: could not remove its heartbeat", self.id)

@@ -19,7 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.errors import McamError
 from service.api.media_types import media_type
-from worker.redis_memory import is_out_of_memory, store_full_error
+from worker.redis_memory import UNREACHABLE, is_out_of_memory, store_full_error
 
 log = logging.getLogger(__name__)
 
@@ -178,7 +178,7 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(McamError, mcam_error)
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_exception_handler(HTTPException, http_error)
-    app.add_exception_handler(redis.exceptions.ConnectionError, redis_error)
-    app.add_exception_handler(redis.exceptions.TimeoutError, redis_error)
+    for unreachable in UNREACHABLE:
+        app.add_exception_handler(unreachable, redis_error)
     app.add_exception_handler(redis.exceptions.ResponseError, redis_refusal)
     app.add_middleware(InternalErrorMiddleware)
