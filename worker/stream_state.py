@@ -25,7 +25,9 @@ class StreamState:
 
     ``u``: the previous frame's unwrapped values (H x W x C, wraps); ``params``: its
     sensor parameters; ``frames``: frames decoded so far; ``last_keyframe``: index of
-    the last keyframe; ``sequence``: the previous frame's device sequence number.
+    the last keyframe; ``sequence``: the previous frame's device sequence number;
+    ``next_whole``: the frame index from which a moving camera's frame is refined whole
+    again, ``whole_interval``: the wait (frames) that set it (:mod:`worker.temporal`).
     """
 
     u: NDArray[np.float64] | None = None
@@ -33,6 +35,8 @@ class StreamState:
     frames: int = 0
     last_keyframe: int = -1
     sequence: int | None = None
+    next_whole: int = 0
+    whole_interval: int = 0
 
     def reset(self) -> None:
         """Forget the stream: the next frame is a keyframe."""

@@ -70,10 +70,14 @@ moves only, at most ``refine_moves`` min-cuts) from the merged answer: a region 
 W disagrees with the codes along most of its border (a fallback seam, an error carried
 in with the content) is moved by whole wraps. The moves are confined to the fallback
 pixels and ``refine_reach`` px round them
-(:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refine_within`), and every
-``refine_whole_every``-th frame the whole frame is refined, for errors far from any
-fallback pixel. A still camera is not refined this way (it cost the sunrise clip 4.5
-dB).
+(:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refine_within`), and now and
+then the whole frame is refined, for errors far from any fallback pixel: after
+``refine_whole_every`` frames, a wait that doubles (up to ``refine_whole_max``) each
+time a whole refinement changes no W beyond that reach, and starts again at
+``refine_whole_every`` when one does or an anchoring keyframe restarts the stream. (On
+the pan/zoom clip only mantissanet-tiny's whole refinements find anything: a sky a
+wrap off from its keyframe; the other decoders' PSNR was the same with none at all.)
+A still camera is not refined this way (it cost the sunrise clip 4.5 dB).
 
 Otherwise (a still camera, or nothing fell back), clusters of safe pixels whose misfit
 is far above their sensor noise (a light moving faster than ``motion_radius``, a lamp
@@ -126,6 +130,8 @@ Failure modes
   across, an unsafe pixel matched to the neighbour across the edge can be a wrap off
   for a frame and right again in the next: most of the pan/zoom clip's remaining wrap
   flicker.
+- An error carried in far from every fallback pixel lasts until the next whole
+  refinement: up to ``refine_whole_max`` frames once the waits have grown.
 - A wrong constant at a first/DISCONT keyframe (the anchor rule failing) persists
   through periodic keyframes until the next DISCONT.
 - A lamp brighter than the clip: no decoder but ``auto`` knows the clip, and with the
@@ -240,6 +246,9 @@ class StreamDecoder:
         state.u, state.params, state.sequence = u, params, sequence
         if keyframe is not None:
             state.last_keyframe = state.frames
+        if keyframe in ANCHOR_KEYFRAMES:
+            state.whole_interval = self.config.refine_whole_every
+            state.next_whole = state.frames + state.whole_interval
         state.frames += 1
         squeeze = np.asarray(codes).ndim == 2
         irradiance = from_unwrapped(u[:, :, 0] if squeeze else u, params)
@@ -362,10 +371,7 @@ class StreamDecoder:
             merged = merge_spatial(channel, whole)
             winding[:, :, c], spatial[:, :, c] = merged or (whole, np.ones(whole.shape, bool))
         if self.refiner is not None and shift != (0, 0) and (local | spatial).any():
-            every = self.config.refine_whole_every
-            whole = every > 0 and state.frames % every == 0
-            bands = None if whole else grown(local | spatial, self.config.refine_reach)
-            winding = refined_planes(self.refiner, m, winding, params, bands)
+            winding = self._refine_moving(m, params, state, winding, local | spatial)
             self._track_clips(m, params, state.u, prediction, winding, (local, spatial))
             return winding, local, spatial
         # In a still view clip tracking goes first, and arrival refinement leaves what it
@@ -382,6 +388,30 @@ class StreamDecoder:
                 local[:, :, c] &= ~took
                 spatial[:, :, c] |= took
         return winding, local, spatial
+
+    def _refine_moving(
+        self,
+        m: NDArray[np.float64],
+        params: SensorParams,
+        state: StreamState,
+        winding: NDArray[np.int64],
+        fallback: NDArray[np.bool_],
+    ) -> NDArray[np.int64]:
+        """A moving camera's W (H x W x C) refined within ``refine_reach`` px of the
+        ``fallback`` pixels, or whole when due; a whole refinement that changes nothing
+        beyond that band doubles the wait for the next one (up to
+        ``refine_whole_max`` frames), one that does resets it (module doc)."""
+        band = grown(fallback, self.config.refine_reach)
+        every = self.config.refine_whole_every
+        if not every or state.frames < state.next_whole:
+            return refined_planes(self.refiner, m, winding, params, band)
+        refined = refined_planes(self.refiner, m, winding, params)
+        beyond = bool(((refined != winding) & ~band).any())
+        state.whole_interval = (
+            every if beyond else min(2 * state.whole_interval, self.config.refine_whole_max)
+        )
+        state.next_whole = state.frames + state.whole_interval
+        return refined
 
     def _track_clips(
         self,

@@ -28,7 +28,9 @@ class TemporalConfig:
     (0: no periodic keyframes), ``local_limit`` a fraction of the frame's pixels,
     ``refine_moves`` the min-cuts of the final refinement (0: none), ``refine_reach``
     how far (px) from the fallback pixels it may change W, ``refine_whole_every`` every
-    how many frames it refines the whole frame instead (0: never, 1: every frame),
+    how many frames it refines the whole frame instead (0: never, 1: every frame), at
+    first and again after a whole refinement that changed W beyond that reach, and
+    ``refine_whole_max`` the longest wait (frames) it doubles to while they change nothing,
     ``refine_keyframes`` whether a stream's anchoring keyframes are refined,
     ``motion`` / ``brightness`` / ``crop`` the knobs of motion and brightness
     compensation, of the crop vote, of arrival refinement and of clip tracking
@@ -46,6 +48,7 @@ class TemporalConfig:
     refine_moves: int = 2
     refine_reach: int = 4
     refine_whole_every: int = 4
+    refine_whole_max: int = 16
     refine_keyframes: bool = True
     motion: MotionConfig = MotionConfig()
     brightness: BrightnessConfig = BrightnessConfig()
@@ -67,5 +70,8 @@ class TemporalConfig:
                 "refine_moves must be >= 0": self.refine_moves >= 0,
                 "refine_reach must be >= 0": self.refine_reach >= 0,
                 "refine_whole_every must be >= 0": self.refine_whole_every >= 0,
+                "refine_whole_max must be >= refine_whole_every": (
+                    self.refine_whole_max >= self.refine_whole_every
+                ),
             },
         )

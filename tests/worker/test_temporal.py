@@ -205,6 +205,27 @@ def test_the_final_refinement_near_the_fallback_pixels_mends_the_pan(every: int)
     assert wrong[2] < wrong[0]
 
 
+def test_whole_refinements_back_off_while_they_find_nothing_beyond_the_band() -> None:
+    """On the panning spot clip the whole-frame refinements change nothing beyond the
+    fallback band once the spot has left, so the wait between them doubles up to
+    ``refine_whole_max``; an error carried in far from any fallback pixel (a patch of
+    the stream's ``u`` a wrap high) is mended by the next whole refinement, which
+    starts the waits again."""
+    config = TemporalConfig(keyframe_interval=0, refine_whole_every=4, refine_whole_max=16)
+    decoder, state = StreamDecoder("temporal", "itoh", config), StreamState()
+    waits, wrong = [], []
+    for t, frame in enumerate(spot_frames(2, 34)):
+        if t == 14:
+            assert state.u is not None
+            state.u[4:16, 20:36] += 1.0
+        result = decoder.decode(frame.codes, PAN_PARAMS, state)
+        waits.append(state.whole_interval)
+        wrong.append(int((result.winding != frame.winding).sum()))
+    assert waits[:4] == [4] * 4 and max(waits[:28]) == 16
+    assert wrong[13] == 0 and wrong[14] > 0 and wrong[27] > 0
+    assert wrong[28] == 0 and waits[28] == 4
+
+
 def test_a_global_brightness_jump_is_followed_without_fallback(temporal: StreamDecoder) -> None:
     """x times sqrt 2 everywhere (half a wrap where the log part rules): the brightness
     gain explains it, so no pixel needs the fallback, and W is exact; with the gain
