@@ -88,7 +88,9 @@ class BracketCollector:
         self.abandoned = 0
 
     def add(self, packet: DataPacket) -> Bracket | None:
-        """Take one data packet; return a bracket when this packet completes one."""
+        """Take one data packet; return a bracket when this packet completes one. A packet
+        out of order, or an exposure that does not fit the bracket (see :meth:`fits`),
+        abandons it."""
         if not packet.flags & FLAG_BRACKET:
             return None
         expected = len(self._packets)
@@ -96,7 +98,7 @@ class BracketCollector:
             self._abandon()
             self._packets = [packet]
         elif (expected and packet.bracket_index == expected
-              and packet.sequence == self._packets[-1].sequence + 1):
+              and packet.sequence == self._packets[-1].sequence + 1 and self.fits(packet)):
             self._packets.append(packet)
         else:
             self._abandon()
@@ -106,6 +108,16 @@ class BracketCollector:
             self._packets = []
             return Bracket(wrapped, exposures)
         return None
+
+    def fits(self, exposure: DataPacket) -> bool:
+        """Whether ``exposure`` can join the bracket begun: a conventional (``clip``) image
+        of the wrapped frame's size, at the bit depth of the exposures before it."""
+        wrapped, *exposures = self._packets
+        return (
+            exposure.encoding == "clip"
+            and exposure.codes.shape == wrapped.codes.shape
+            and all(exposure.bits == earlier.bits for earlier in exposures)
+        )
 
     def interrupt(self) -> None:
         """The link broke: an unfinished bracket cannot complete."""

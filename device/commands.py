@@ -157,10 +157,18 @@ def command_fields(command: Command) -> dict[str, str]:
     return {key: str(value) for key, value in command.model_dump().items()}
 
 
+def _text(value: bytes | str) -> str:
+    """A stream field as text, or a clear error when its bytes are not UTF-8."""
+    if isinstance(value, str):
+        return value
+    try:
+        return value.decode()
+    except UnicodeDecodeError as exc:
+        raise InvalidInputError(
+            f"a control field is not UTF-8 text ({value[:32]!r}); write commands as text"
+        ) from exc
+
+
 def fields_to_command(fields: dict[bytes | str, bytes | str]) -> Command:
     """Parse the fields of a ``control:<device>`` stream entry."""
-    text = {
-        (k.decode() if isinstance(k, bytes) else k): (v.decode() if isinstance(v, bytes) else v)
-        for k, v in fields.items()
-    }
-    return validate_command(text)
+    return validate_command({_text(k): _text(v) for k, v in fields.items()})

@@ -168,7 +168,10 @@ class DeviceDaemon:
             log.warning("old dataset pairs of %s not removed: %s", self.device, exc)
 
     def _feed(self, data: bytes) -> None:
-        packets = self._parser.feed(data) if data else self._parser.expire()
+        # A partial packet also expires while bytes keep coming, once complete packets
+        # arrive behind it: a corrupt length must not hold them back for long.
+        packets = self._parser.feed(data) if data else []
+        packets += self._parser.expire(quiet=not data)
         for packet in packets:
             if not isinstance(packet, DataPacket):
                 continue  # control packets only travel host -> device
@@ -176,6 +179,10 @@ class DeviceDaemon:
                 self._on_data(packet)
             except McamError as exc:
                 log.warning("frame %d rejected: %s", packet.sequence, exc.message)
+                self.health.add("dropped_rejected")
+            except Exception:
+                # One packet the daemon cannot handle must not stop the link's reader.
+                log.exception("frame %d could not be handled", packet.sequence)
                 self.health.add("dropped_rejected")
         self.health.set_parser_counts(self._parser.drops, self._parser.garbage_bytes,
                                       self._parser_base)

@@ -44,8 +44,8 @@ class LinkParser:
     """Feed it bytes as they arrive; it returns the complete, verified packets.
 
     ``partial_timeout_s``: a partial packet older than this is dropped as
-    truncated by :meth:`expire` (the reader calls it when a read times out), so a
-    short read never blocks the stream forever.
+    truncated by :meth:`expire` (the reader calls it after every read), so a
+    short read or a corrupt length never blocks the stream for long.
     """
 
     def __init__(self, max_payload: int = DEFAULT_MAX_PAYLOAD,
@@ -84,8 +84,13 @@ class LinkParser:
         if self._buf and self._partial_since is None:
             self._partial_since = time.monotonic()
 
-    def expire(self, now: float | None = None) -> list[Packet]:
+    def expire(self, now: float | None = None, *, quiet: bool = True) -> list[Packet]:
         """Give up on a partial packet that has waited longer than the timeout.
+
+        ``quiet``: the link has gone quiet (the read timed out). While bytes keep coming
+        (``quiet=False``) the partial packet is given up only when a complete, verified
+        packet has arrived behind it: then its length was corrupt and the sender has
+        moved on, whereas a long packet on a slow link is still arriving.
 
         It is counted as truncated and the hunt resumes one byte later, so
         complete packets buffered behind it are returned, not lost.
@@ -94,6 +99,8 @@ class LinkParser:
             return []
         now = time.monotonic() if now is None else now
         if now - self._partial_since < self.partial_timeout_s:
+            return []
+        if not quiet and not self._overtaken():
             return []
         if self._buf.startswith(SIGNATURE) and len(self._buf) >= HEADER_SIZE:
             self._drop("truncated")
@@ -168,6 +175,23 @@ class LinkParser:
             return None
         self.packets_ok += 1
         return packet
+
+    def _overtaken(self) -> bool:
+        """Whether a complete packet with a valid header and CRC starts after the first
+        byte of the buffer (behind the partial packet at its start)."""
+        at = self._buf.find(SIGNATURE, 1)
+        while 0 < at and at + HEADER_SIZE <= len(self._buf):
+            _, length, header_ok = unpack_header(bytes(self._buf[at : at + HEADER_SIZE]))
+            end = at + HEADER_SIZE + length + CRC_SIZE
+            if header_ok and length <= self.max_payload and end <= len(self._buf):
+                raw = memoryview(self._buf)[at:end]
+                try:
+                    if packet_crc_ok(raw):
+                        return True
+                finally:
+                    raw.release()
+            at = self._buf.find(SIGNATURE, at + 1)
+        return False
 
     def _next_header_before(self, end: int) -> bool:
         """Whether a signature with a valid header starts inside ``buf[1:end]``."""

@@ -7,7 +7,9 @@ full the oldest unread frames are evicted, counted as ``stream_full``), writes t
 hash, and reads ``control:<device>`` for commands to forward to the camera.
 While Redis is unreachable, queued frames are dropped (``redis_unavailable``)
 and the connection is retried with backoff; the link keeps being read. After
-any drop the next published frame carries ``discont`` (temporal state broke).
+any drop the frame that follows the dropped one carries ``discont`` (temporal state
+broke): the next frame queued after a full queue's drop (frames queued before it
+still follow their predecessors), the next frame published after a failed publish.
 Growing drop and reconnect counters are also appended to ``events:<device>`` as
 ``drop`` / ``reconnect`` events for the API's server-sent events.
 """
@@ -15,6 +17,7 @@ Growing drop and reconnect counters are also appended to ``events:<device>`` as
 from __future__ import annotations
 
 import dataclasses
+import logging
 import queue
 import threading
 import time
@@ -34,6 +37,8 @@ from worker.redis_keys import (
     events_stream,
     health_key,
 )
+
+log = logging.getLogger(__name__)
 
 #: Seconds between health hash writes and control stream polls.
 HEALTH_INTERVAL_S = 0.25
@@ -57,7 +62,10 @@ class FramePublisher:
         self._queue: queue.Queue[FrameMessage] = queue.Queue(maxsize=queue_size)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._discont = False
+        # A drop at the queue (reader thread) and a failed publish (publishing thread)
+        # each mark the frame after it; each flag is written by one thread only.
+        self._dropped_at_queue = False
+        self._failed_publish = False
         self._redis_ok = True
         self._retry_at = 0.0
         self._backoff = 0.05
@@ -66,12 +74,17 @@ class FramePublisher:
         self._reported = {"dropped": 0, "reconnects": 0}
 
     def offer(self, message: FrameMessage) -> None:
-        """Queue a frame for publishing; drop it (counted) if the queue is full."""
+        """Queue a frame for publishing; drop it (counted) if the queue is full. The frame
+        queued after a drop carries ``discont``. Called from one thread (the link reader)."""
+        if self._dropped_at_queue and not message.discont:
+            message = dataclasses.replace(message, discont=True)
         try:
             self._queue.put_nowait(message)
         except queue.Full:
             self.health.add("dropped_queue_full")
-            self._discont = True
+            self._dropped_at_queue = True
+            return
+        self._dropped_at_queue = False
 
     def start(self) -> FramePublisher:
         """Run the publishing loop in a daemon thread."""
@@ -116,7 +129,7 @@ class FramePublisher:
         return True
 
     def _publish(self, message: FrameMessage) -> None:
-        if self._discont and not message.discont:
+        if self._failed_publish and not message.discont:
             message = dataclasses.replace(message, discont=True)
 
         def xadd() -> None:
@@ -125,11 +138,11 @@ class FramePublisher:
                 self.health.add("dropped_stream_full", evicted)
 
         if self._redis(xadd):
-            self._discont = False
+            self._failed_publish = False
             self.health.add("frames_ok")
         else:
             self.health.add("dropped_redis_unavailable")
-            self._discont = True
+            self._failed_publish = True
 
     def _new_events(self) -> list[dict[str, str]]:
         """``drop`` / ``reconnect`` events for counters that grew since the last report."""
@@ -180,6 +193,12 @@ class FramePublisher:
                 self._control_id = entry_id.decode() if isinstance(entry_id, bytes) else entry_id
                 try:
                     self.on_command(fields_to_command(fields))
-                except InvalidInputError:
+                except InvalidInputError as exc:
+                    log.warning("control entry %s of %s refused: %s",
+                                self._control_id, self.device, exc.message)
+                    self.health.add("control_rejected")
+                except Exception:
+                    # One bad entry must not stop publishing; the cursor still moves past it.
+                    log.exception("control entry %s of %s failed", self._control_id, self.device)
                     self.health.add("control_rejected")
                 self.client.set(control_cursor_key(self.device), self._control_id)

@@ -84,3 +84,26 @@ def test_collector_assembles_consecutive_packets_and_abandons_broken_ones() -> N
     collector.add(packet(30, 0))
     collector.interrupt()
     assert collector.abandoned == 2
+
+
+def exposure(seq: int, index: int, shape: tuple[int, int] = (2, 2), bits: int = 8,
+             encoding: str = "clip") -> DataPacket:
+    return DataPacket(seq, 0, encoding, 2.0, bits, 0.5 * 2**index,
+                      np.zeros(shape, np.uint16 if bits > 8 else np.uint8), FLAG_BRACKET, index, 3)
+
+
+@pytest.mark.parametrize("misfit", [
+    {"shape": (4, 4)}, {"bits": 12}, {"encoding": "modulo"},
+])
+def test_an_exposure_that_does_not_fit_abandons_the_bracket(misfit: dict) -> None:
+    """An exposure of another size than the wrapped frame, another bit depth than the
+    exposure before it, or not a conventional image cannot be merged into the pair's
+    reference: the bracket is abandoned (counted), not stored or crashed on."""
+    collector = BracketCollector()
+    collector.add(packet(10, 0))
+    assert collector.add(exposure(11, 1)) is None
+    assert collector.add(exposure(12, 2, **misfit)) is None
+    assert collector.abandoned == 1
+    collector.add(packet(20, 0))
+    collector.add(exposure(21, 1))
+    assert collector.add(exposure(22, 2)) is not None

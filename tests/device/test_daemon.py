@@ -246,3 +246,46 @@ def test_a_restarted_sequence_keeps_earlier_pairs_within_the_dataset_bound(
     assert kept[2] == ["0000000010", "0000000010", "0000000020"]
     assert kept[3] == ["0000000010", "0000000020", "0000000030"]
     assert all((folder / "meta.json").is_file() for folder in folders.iterdir())
+
+
+def test_a_bracket_whose_exposures_do_not_fit_is_abandoned_and_streaming_goes_on(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """Each packet of the bracket is intact, but its last exposure is of another size:
+    the bracket is counted incomplete, nothing is stored, and the next frame is
+    published."""
+    config = DaemonConfig(port="loop://", device="cam9", data_dir=tmp_path)
+    daemon = DeviceDaemon(config, client)
+    *fitting, last = bracket_packets(10)
+    misfit = lp.DataPacket(last.sequence, 0, "clip", 2.0, 8, last.gain,
+                           np.zeros((8, 8), np.uint8), lp.FLAG_BRACKET, 2, 3)
+    after = lp.DataPacket(13, 0, "modulo", 2.0, 8, 1.0, np.zeros((4, 4), np.uint8))
+    daemon._feed(b"".join(lp.encode_packet(p) for p in [*fitting, misfit, after]))
+    assert daemon.health.counts["brackets_incomplete"] == 1
+    assert not (tmp_path / "datasets").exists()
+    daemon.publisher.start()
+    daemon.publisher.stop()
+    assert [frame.sequence for frame in stream_frames(client, "cam9")] == [13]
+
+
+def test_a_packet_the_daemon_fails_on_is_counted_and_the_reader_goes_on(
+        client: redis.Redis, caplog: pytest.LogCaptureFixture) -> None:
+    """Whatever goes wrong handling one packet (here a publisher that raises stands in
+    for a bug), the reader logs it with its traceback, counts the frame rejected and
+    handles the next one."""
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client)
+    handled: list[int] = []
+    real = daemon.publisher.offer
+
+    def offer(message) -> None:
+        if message.sequence == 1:
+            raise RuntimeError("not a client mistake")
+        handled.append(message.sequence)
+        real(message)
+
+    daemon.publisher.offer = offer  # type: ignore[method-assign]
+    packets = [lp.DataPacket(s, 0, "modulo", 2.0, 8, 1.0, np.zeros((4, 4), np.uint8))
+               for s in range(3)]
+    with caplog.at_level(logging.ERROR):
+        daemon._feed(b"".join(lp.encode_packet(p) for p in packets))
+    assert handled == [0, 2] and daemon.health.counts["dropped_rejected"] == 1
+    assert "frame 1 could not be handled" in caplog.text

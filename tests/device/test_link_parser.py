@@ -141,6 +141,22 @@ def test_partial_packet_waits_then_expires_as_truncated() -> None:
     assert parser.buffered < len(lp.SIGNATURE)  # only a possible signature start is kept
 
 
+def test_while_bytes_keep_coming_a_partial_packet_expires_only_once_overtaken() -> None:
+    """A long packet still arriving on a slow link (bytes keep coming, nothing complete
+    behind it) is kept past the timeout; a header whose corrupt length swallows the
+    packets behind it is given up once one of them is complete, and they survive."""
+    wire = lp.encode_packet(small_data(4, 6, 6, 8))
+    parser = LinkParser(MAX_PAYLOAD, partial_timeout_s=0.5)
+    assert parser.feed(wire[:30]) == []
+    assert parser.expire(now=math.inf, quiet=False) == []
+    assert parser.feed(wire[30:]) != []
+    bogus = lp.pack_header(lp.PacketType.DATA, MAX_PAYLOAD)
+    assert parser.feed(bogus + wire) == []
+    assert parser.expire(quiet=False) == []  # not yet timed out
+    (packet,) = parser.expire(now=math.inf, quiet=False)
+    assert lp.encode_packet(packet) == wire and parser.drops["truncated"] == 1
+
+
 def test_reset_counts_a_started_packet_as_truncated() -> None:
     parser = LinkParser(MAX_PAYLOAD)
     parser.feed(lp.encode_packet(lp.StartPacket())[:-2])

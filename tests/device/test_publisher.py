@@ -13,9 +13,9 @@ from worker.frame_message import FrameMessage
 from worker.redis_keys import DEVICES_SET, control_stream, frame_stream
 
 
-def message(sequence: int) -> FrameMessage:
+def message(sequence: int, discont: bool = False) -> FrameMessage:
     codes = np.full((4, 4), sequence % 256, np.uint8)
-    return FrameMessage("cam0", sequence, sequence * 1000, codes, SensorParams())
+    return FrameMessage("cam0", sequence, sequence * 1000, codes, SensorParams(), discont)
 
 
 def test_full_stream_evicts_the_oldest_and_counts_them(client: redis.Redis) -> None:
@@ -51,3 +51,47 @@ def test_commands_sent_while_no_daemon_ran_reach_the_next_one(client: redis.Redi
     second._read_control()
     second._read_control()
     assert [getattr(command, "fps", None) for command in seen] == [5.0, 7.0]
+
+
+def published(client: redis.Redis) -> list[tuple[int, bool]]:
+    """(sequence, discont) of each frame on the stream, oldest first."""
+    return [(int(fields[b"seq"]), fields.get(b"discont", b"0") not in (b"0", b""))
+            for _, fields in client.xrange(frame_stream("cam0"))]
+
+
+def test_after_a_full_queue_drops_a_frame_the_next_one_queued_is_the_discontinuity(
+        client: redis.Redis) -> None:
+    """Frames queued before the drop still follow their predecessors; the first frame
+    queued after it (here the camera restarted its counter) carries discont, so the
+    worker does not discard it and the ones after as stale."""
+    health = DeviceHealth("cam0", "loop://")
+    publisher = FramePublisher(client, "cam0", health, lambda _: None, queue_size=4)
+    for sequence in (100, 101, 102, 103):
+        publisher.offer(message(sequence))
+    publisher.offer(message(0, discont=True))  # dropped: the queue is full
+    publisher.start()
+    publisher.stop()
+    publisher.offer(message(1))
+    publisher.offer(message(2))
+    publisher.start()
+    publisher.stop()
+    assert published(client) == [(100, False), (101, False), (102, False), (103, False),
+                                 (1, True), (2, False)]
+    assert health.counts["dropped_queue_full"] == 1
+
+
+def test_a_control_entry_that_is_not_text_is_refused_and_publishing_goes_on(
+        client: redis.Redis) -> None:
+    health = DeviceHealth("cam0", "loop://")
+    seen: list[Command] = []
+    publisher = FramePublisher(client, "cam0", health, seen.append)
+    publisher._read_control()
+    client.xadd(control_stream("cam0"), {"command": b"st\xffart"})
+    send_frame_rate(client, 5.0)
+    publisher._read_control()
+    assert [getattr(command, "fps", None) for command in seen] == [5.0]
+    assert health.counts["control_rejected"] == 1
+    publisher.start()
+    publisher.offer(message(7))
+    publisher.stop()
+    assert published(client) == [(7, False)]
