@@ -43,7 +43,7 @@ from worker.frame_message import FrameMessage
 from worker.queue import JobQueue
 from worker.redis_keys import recording_key
 from worker.result_store import ResultStore
-from worker.video_jobs import check_hdr10_size
+from worker.video_jobs import check_hdr10_size, video_options
 
 #: States of a recording that still collects frames or waits for its video job.
 ACTIVE_STATES = ("recording", "stopping")
@@ -278,7 +278,7 @@ class Recorder:
             [np.load(self.store.existing_path(frame_key(recording.id, i)))
              for i in range(recording.frames)]
         )
-        check_hdr10_size(recording.options.get("outputs", []), codes.shape)
         options = {**recording.options, "keyframes": recording.keyframes}
+        check_hdr10_size(video_options(recording.decoder, options)[1], codes.shape)
         params = SensorParams.model_validate_json(recording.params)
         return self.queue.submit("video", codes, params, recording.decoder, options).id

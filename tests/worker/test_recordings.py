@@ -138,10 +138,14 @@ def test_stop_without_frames_fails_with_a_reason(
     assert "no frames were recorded" in failed.error
 
 
+@pytest.mark.parametrize("options", [
+    {"mode": "temporal", "outputs": ["hdr10"]},
+    {"mode": "temporal"},  # the default outputs include hdr10
+])
 def test_hdr10_of_small_frames_fails_with_a_reason(
-    client: redis.Redis, recorder: Recorder, make_frame
+    client: redis.Redis, recorder: Recorder, make_frame, options: dict
 ) -> None:
-    start(client, options={"mode": "temporal", "outputs": ["hdr10"]})
+    start(client, options=options)
     recorder.add_frame(message(make_frame(size=32), 0), "4000-0")
     request_stop(client, "cam1")
     recorder.finish_if_stopping("cam1")
