@@ -239,10 +239,10 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
 
 
 def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
-    with open_tiff(data) as tif:
-        if len(tif.pages) > 1:
+    with open_tiff(data, max_pages=1) as (tif, pages):
+        if pages > 1:
             raise InvalidInputError(
-                f"the TIFF holds {len(tif.pages)} pages and a reconstruction takes one frame: "
+                "the TIFF holds more than one page and a reconstruction takes one frame: "
                 "send a single-page TIFF, or decode the sequence as a video "
                 "(POST /v1/videos, mcam video)"
             )

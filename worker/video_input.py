@@ -49,12 +49,10 @@ from models.frames import (
     warn_if_8bit,
 )
 from models.tiff_pages import open_tiff, page_codes, page_shape
+from worker.zip_directory import central_entries
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 _ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
-#: How far from a zip's end its end-of-central-directory record can lie (22 bytes and
-#: a comment of at most 65535).
-_EOCD_SEARCH = 22 + 65_535
 #: Bytes inflated per read of a zip entry (bounds the memory one read can take).
 INFLATE_CHUNK = 1 << 20
 
@@ -125,15 +123,19 @@ def png_entry_limit(max_pixels: int | None) -> int | None:
 
 
 def _read_tiff(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
-    with open_tiff(data) as tif:
-        pages = tif.pages
-        check_frame_count(len(pages), limits.frames)
-        first = pages.first
+    with open_tiff(data, limits.frames) as (tif, count):
+        if limits.frames is not None and count > limits.frames:
+            raise ImageTooLargeError(
+                f"the TIFF holds more than {limits.frames} pages (one frame each); send a "
+                "shorter clip or raise the limit (MCAM_MAX_VIDEO_FRAMES)"
+            )
+        check_frame_count(count, limits.frames)
+        first = tif.pages.first
         check_pixel_count(int(first.imagewidth), int(first.imagelength), limits.pixels)
         shape = page_shape(first)
-        check_sample_count(len(pages), shape, limits.samples)
+        check_sample_count(count, shape, limits.samples)
         frames = []
-        for page in pages:
+        for page in tif.pages:
             if page_shape(page) != shape:
                 raise InvalidInputError(
                     f"all pages of a video have one shape; page {len(frames)} is "
@@ -169,26 +171,16 @@ def _natural_key(name: str) -> list[Any]:
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
 
 
-def declared_entries(data: bytes) -> int | None:
-    """The entry count a zip's end-of-central-directory record declares (read before
-    zipfile builds an object per entry: 300k entries cost 270 MiB); None if the record
-    is not found or defers to ZIP64."""
-    end = data.rfind(b"PK\x05\x06", max(0, len(data) - _EOCD_SEARCH))
-    if end < 0 or len(data) < end + 12:
-        return None
-    total = int.from_bytes(data[end + 10 : end + 12], "little")
-    return None if total == 0xFFFF else total
-
-
 def _read_zip(
     data: bytes, overrides: dict[str, Any] | None, limits: VideoLimits
 ) -> WrappedVideo:
-    declared = declared_entries(data)
-    if limits.frames is not None and declared is not None and declared > 2 * limits.frames:
-        raise ImageTooLargeError(
-            f"the zip holds {declared} entries; a video takes at most {limits.frames} frames "
-            "(one PNG each): send fewer frames, without other files"
-        )
+    if limits.frames is not None:
+        entries = central_entries(data, 2 * limits.frames)
+        if entries is not None and entries > 2 * limits.frames:
+            raise ImageTooLargeError(
+                f"the zip holds more than {2 * limits.frames} entries; a video takes at most "
+                f"{limits.frames} frames (one PNG each): send fewer frames, without other files"
+            )
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
         entries = sorted(
             (
@@ -206,11 +198,12 @@ def _read_zip(
                 "wrapped video as a zip is one PNG of codes per frame, named in frame order"
             )
         check_frame_count(len(entries), limits.frames)
-        first = _zip_frame(archive, entries[0], overrides, limits)
+        first = _zip_frame(archive, entries[0], overrides, limits, png_entry_limit(limits.pixels))
         check_sample_count(len(entries), first.codes.shape, limits.samples)
+        most = frame_entry_limit(first.codes)
         frames = [first]
         for entry in entries[1:]:
-            frame = _zip_frame(archive, entry, overrides, limits)
+            frame = _zip_frame(archive, entry, overrides, limits, most)
             if frame.codes.shape != first.codes.shape or frame.params != first.params:
                 raise InvalidInputError(
                     f"{entry.filename} differs from {entries[0].filename} in size or "
@@ -221,20 +214,33 @@ def _read_zip(
     return WrappedVideo(np.stack([f.codes for f in frames]), first.params)
 
 
+def frame_entry_limit(codes: NDArray[Any]) -> int:
+    """Most bytes a zip entry may inflate to once the first frame (``codes``, H x W[x C])
+    is read: twice a PNG of that frame stored without compression (a filter byte per
+    row, two bytes a sample at most) and 1 MiB. Without it each entry could inflate to
+    :func:`png_entry_limit` (a valid 8 x 8 PNG followed by 65 MB of zeros, 100 times in
+    a 6.7 MB upload, took the API 19 s)."""
+    height, width = codes.shape[:2]
+    samples = width * (codes.shape[2] if codes.ndim == 3 else 1)
+    return 2 * height * (1 + 2 * samples) + 2**20
+
+
 def _zip_frame(
     archive: zipfile.ZipFile,
     entry: zipfile.ZipInfo,
     overrides: dict[str, Any] | None,
     limits: VideoLimits,
+    most: int | None,
 ) -> WrappedFrame:
-    """One PNG frame of a zip, refused before inflating when its declared size is more
-    than a frame of ``limits.pixels`` can take, and inflated in chunks of at most
-    :data:`INFLATE_CHUNK` bytes up to that size (see :func:`_inflate`)."""
-    most = png_entry_limit(limits.pixels)
+    """One PNG frame of a zip, refused before inflating when its declared size is above
+    ``most`` bytes (:func:`png_entry_limit`, then :func:`frame_entry_limit`), and
+    inflated in chunks of at most :data:`INFLATE_CHUNK` bytes up to that size (see
+    :func:`_inflate`)."""
     if most is not None and entry.file_size > most:
         raise ImageTooLargeError(
-            f"{entry.filename} inflates to {entry.file_size} bytes, more than a PNG frame of "
-            f"at most {limits.pixels} pixels can hold ({most}); send smaller frames"
+            f"{entry.filename} inflates to {entry.file_size} bytes, more than a PNG frame "
+            f"can hold ({most}: at most {limits.pixels} pixels, the size of the first "
+            "frame once it is read); send smaller frames, without data after the image"
         )
     try:
         return decode_frame(_inflate(archive, entry), "png", overrides, limits.pixels)

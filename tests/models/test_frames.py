@@ -249,7 +249,7 @@ def test_a_multi_page_tiff_is_refused_with_a_pointer_to_video() -> None:
     with tifffile.TiffWriter(buffer) as tif:
         for _ in range(3):
             tif.write(random_codes((4, 4), 8))
-    with pytest.raises(InvalidInputError, match="holds 3 pages.*/v1/videos"):
+    with pytest.raises(InvalidInputError, match="holds more than one page.*/v1/videos"):
         decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
 
 

@@ -31,7 +31,8 @@ def test_a_truncated_multi_page_tiff_is_damaged_not_short(
 
 def test_separate_planes_come_back_samples_last() -> None:
     rgb = np.arange(3 * 4 * 5, dtype=np.uint8).reshape(3, 4, 5)
-    with open_tiff(tiff(rgb, photometric="rgb", planarconfig="separate")) as tif:
+    with open_tiff(tiff(rgb, photometric="rgb", planarconfig="separate")) as (tif, pages):
+        assert pages == 1
         page = tif.pages.first
         assert page_shape(page) == (4, 5, 3)
         np.testing.assert_array_equal(page_codes(page), np.moveaxis(rgb, 0, -1))
@@ -40,6 +41,18 @@ def test_separate_planes_come_back_samples_last() -> None:
 def test_an_undecodable_compression_is_named() -> None:
     buffer = io.BytesIO()
     Image.fromarray(np.zeros((4, 4), np.uint8)).save(buffer, "TIFF", compression="tiff_lzw")
-    with open_tiff(buffer.getvalue()) as tif:
+    with open_tiff(buffer.getvalue()) as (tif, _):
         with pytest.raises(UnsupportedFormatError, match="compression LZW.*deflate"):
             page_codes(tif.pages.first)
+
+
+@pytest.mark.parametrize(("most", "counted"), [(None, 12), (20, 12), (12, 12), (5, 6), (0, 1)])
+def test_pages_are_counted_up_to_one_past_the_limit(most: int | None, counted: int) -> None:
+    """Past ``max_pages`` the count stops at one more: the caller refuses the file
+    without indexing the rest."""
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as writer:
+        for _ in range(12):
+            writer.write(np.zeros((4, 4), np.uint8))
+    with open_tiff(buffer.getvalue(), max_pages=most) as (_, pages):
+        assert pages == counted

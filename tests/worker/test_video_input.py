@@ -22,11 +22,11 @@ from models.formation import SensorParams
 from models.frames import encode_frame
 from worker.video_input import (
     VideoLimits,
-    declared_entries,
     decode_video,
     read_video,
     video_format,
 )
+from worker.zip_directory import central_entries
 
 PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
 FLAGS = {"encoding": "mantissa", "alpha": 2.0, "bits": 8}
@@ -105,6 +105,8 @@ def test_limits_are_checked() -> None:
         decode_video(tiff_bytes(codes()), "tiff", limits=VideoLimits(pixels=29))
     with pytest.raises(ImageTooLargeError, match="frames"):
         decode_video(zip_bytes(codes(5)), "zip", limits=VideoLimits(frames=4))
+    with pytest.raises(ImageTooLargeError, match="more than 4 pages"):
+        decode_video(tiff_bytes(codes(5)), "tiff", limits=VideoLimits(frames=4))
 
 
 @pytest.mark.parametrize("fmt", ["npy", "tiff", "zip"])
@@ -203,6 +205,19 @@ def test_zip_frames_must_match() -> None:
         decode_video(buffer.getvalue(), "zip")
 
 
+def test_a_later_zip_entry_may_inflate_only_to_what_the_first_frame_needs() -> None:
+    """A valid PNG followed by 2 MiB of zeros (readers ignore bytes after the image)
+    fits the limit for any frame of the pixel bound, but not twice an uncompressed
+    PNG of the first frame's 6 x 5 codes and 1 MiB: refused before it is inflated."""
+    png = encode_frame(codes()[0], PARAMS, "png")
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("frame_0.png", png + bytes(2 << 20))
+        archive.writestr("frame_1.png", png + bytes(2 << 20))
+    with pytest.raises(ImageTooLargeError, match=r"^frame_1.png inflates to \d+ bytes"):
+        decode_video(buffer.getvalue(), "zip", limits=VideoLimits(pixels=1024 * 1024))
+
+
 def test_format_names() -> None:
     assert [video_format(n) for n in ("a.TIF", "b.tiff", "c.npy", "zip")] == [
         "tiff", "tiff", "npy", "zip"
@@ -250,7 +265,7 @@ def test_a_zip_of_too_many_entries_is_refused_from_its_directory_record() -> Non
         for n in range(50):
             archive.writestr(f"note_{n}.txt", b"")
     data = buffer.getvalue()
-    assert declared_entries(data) == 50
-    with pytest.raises(ImageTooLargeError, match="holds 50 entries; .* at most 10 frames"):
+    assert central_entries(data, 100) == 50 and central_entries(data, 20) == 21
+    with pytest.raises(ImageTooLargeError, match="more than 20 entries; .* at most 10 frames"):
         decode_video(data, "zip", FLAGS, VideoLimits(frames=10))
-    assert declared_entries(b"not a zip") is None
+    assert central_entries(b"not a zip", 10) is None
