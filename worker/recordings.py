@@ -15,8 +15,9 @@ Usage (worker: the device stream's single owner, frames in sequence order)::
 The record is the hash ``device:<id>:recording``; its ``state`` goes ``recording`` ->
 ``stopping`` (asked by the API) -> ``submitted`` (the video job is queued, its id in
 ``job``) or ``failed`` (``error`` says why). A recording also ends by itself after
-``max_frames`` frames, or when the camera's sensor parameters (other than the noise
-seed) or frame shape change: the frames so far become the video. Each recorded
+``max_frames`` frames, before a frame that would take its code values past
+``max_samples`` (a video job is one Redis value), or when the camera's sensor parameters
+(other than the noise seed) or frame shape change: the frames so far become the video. Each recorded
 frame's codes (DN) are stored as ``recordings/<recording id>/<index:06d>.npy`` in the
 result store until the job is queued. A frame flagged DISCONT, or one after a
 sequence gap, is listed in ``keyframes`` (its index in the video), which the video
@@ -50,6 +51,10 @@ ACTIVE_STATES = ("recording", "stopping")
 #: Bound of the jobs stream for recorded videos: a recording already accepted is not
 #: lost to a full queue (its frames exist nowhere else).
 RECORDING_QUEUE_MAXLEN = 1 << 30
+#: Most code values (frames x pixels x channels) of a recorded video unless the API sets
+#: its own (``MCAM_MAX_VIDEO_SAMPLES``): a video job is one Redis value, 2 bytes a code,
+#: and Redis takes at most 512 MB (a 618 MiB recording's job was refused on every try).
+MAX_RECORDING_SAMPLES = 2**26
 
 _START = """
 local state = redis.call('HGET', KEYS[1], 'state')
@@ -87,6 +92,7 @@ class Recording:
     decoder: str
     options: dict[str, Any]
     max_frames: int
+    max_samples: int = MAX_RECORDING_SAMPLES
     frames: int = 0
     started_ns: int = 0
     stopped_ns: int | None = None
@@ -111,6 +117,7 @@ class Recording:
             decoder=get["decoder"],
             options=json.loads(get["options"]),
             max_frames=int(get["max_frames"]),
+            max_samples=int(get.get("max_samples", MAX_RECORDING_SAMPLES)),
             frames=int(get.get("frames", "0")),
             started_ns=int(get.get("started_ns", "0")),
             stopped_ns=int(get["stopped_ns"]) if get.get("stopped_ns") else None,
@@ -133,6 +140,7 @@ class Recording:
             "state": self.state,
             "frames": self.frames,
             "max_frames": self.max_frames,
+            "max_samples": self.max_samples,
             "decoder": self.decoder,
             "options": self.options,
             "keyframes": self.keyframes,
@@ -159,11 +167,22 @@ def load_recording(client: redis.Redis, device: str) -> Recording | None:
 
 
 def start_recording(
-    client: redis.Redis, device: str, *, decoder: str, options: dict[str, Any], max_frames: int
+    client: redis.Redis,
+    device: str,
+    *,
+    decoder: str,
+    options: dict[str, Any],
+    max_frames: int,
+    max_samples: int = MAX_RECORDING_SAMPLES,
 ) -> Recording | None:
-    """Start a recording (options: those of a video job); None if one is already active."""
+    """Start a recording (options: those of a video job; ``max_samples``: most code
+    values of the video); None if one is already active."""
     if max_frames < 1:
         raise InvalidInputError(f"max_frames must be at least 1, got {max_frames}")
+    if not 1 <= max_samples <= MAX_RECORDING_SAMPLES * 2:
+        raise InvalidInputError(
+            f"max_samples must be within [1, {MAX_RECORDING_SAMPLES * 2}], got {max_samples}"
+        )
     fields = {
         "id": uuid.uuid4().hex,
         "device": device,
@@ -171,6 +190,7 @@ def start_recording(
         "decoder": decoder,
         "options": json.dumps(options),
         "max_frames": str(max_frames),
+        "max_samples": str(max_samples),
         "frames": "0",
         "started_ns": str(time.time_ns()),
     }
@@ -239,7 +259,10 @@ class Recorder:
                                  recording.shape):
             self._finish(recording, "params_changed")
             return
-        elif message.discont or message.sequence != (recording.last_sequence or 0) + 1:
+        if (index + 1) * message.codes.size > recording.max_samples:
+            self._finish(recording, "max_samples")
+            return
+        if index and (message.discont or message.sequence != (recording.last_sequence or 0) + 1):
             update["keyframes"] = ",".join(map(str, [*recording.keyframes, index]))
         self.store.write(frame_key(recording.id, index), _npy(message.codes))
         update["frames"] = index + 1
@@ -260,7 +283,7 @@ class Recorder:
         """Assemble the recorded frames (T x H x W codes), queue the video job, note its id."""
         done = {"reason": reason, "stopped_ns": recording.stopped_ns or time.time_ns()}
         try:
-            job = self._submit(recording)
+            job = self._submit(recording, reason)
         except McamError as exc:
             self._set(recording, {**done, "state": "failed", "error": exc.message})
         else:
@@ -268,7 +291,13 @@ class Recorder:
         for key in self.store.keys(f"recordings/{recording.id}"):
             self.store.delete(key)
 
-    def _submit(self, recording: Recording) -> str:
+    def _submit(self, recording: Recording, reason: str) -> str:
+        if recording.frames == 0 and reason == "max_samples":
+            raise InvalidInputError(
+                f"one frame holds more code values than the recording's limit of "
+                f"{recording.max_samples}; record smaller frames or raise the limit "
+                "(MCAM_MAX_VIDEO_SAMPLES)"
+            )
         if recording.frames == 0:
             raise InvalidInputError(
                 "no frames were recorded: is the camera streaming (GET /v1/devices/{id}) "

@@ -153,6 +153,26 @@ def test_hdr10_of_small_frames_fails_with_a_reason(
     assert failed.state == "failed" and "HDR10 video needs frames" in failed.error
 
 
+def test_a_recording_ends_before_a_frame_that_would_pass_its_sample_limit(
+    client: redis.Redis, recorder: Recorder, make_frame
+) -> None:
+    """Three 16 x 16 frames fit a limit of 800 code values, the fourth would not: the
+    recording's video is the three, and a frame alone above the limit fails it with the
+    reason (a video job is one Redis value: a recording past 512 MB was never queued)."""
+    start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=100,
+                    max_samples=800)
+    for sequence in range(5):
+        recorder.add_frame(message(make_frame(size=16), sequence), f"{4000 + sequence}-0")
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.reason == "max_samples" and done.frames == 3
+    assert queued_codes(client, done.job).shape[0] == 3
+    start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=100,
+                    max_samples=200)
+    recorder.add_frame(message(make_frame(size=16), 9), "5000-0")
+    failed = load_recording(client, "cam1")
+    assert failed.state == "failed" and "one frame holds more code values" in failed.error
+
+
 def test_frames_without_a_recording_are_ignored(
     client: redis.Redis, recorder: Recorder, store: ResultStore, make_frame
 ) -> None:

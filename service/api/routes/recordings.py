@@ -106,7 +106,8 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
     options = fields.video_job_options()
     video_options(decoder, options)
     recording = start_recording(
-        state.client, device, decoder=decoder, options=options, max_frames=fields.max_frames
+        state.client, device, decoder=decoder, options=options, max_frames=fields.max_frames,
+        max_samples=state.settings.max_video_samples,
     )
     if recording is None:
         raise ApiError(
