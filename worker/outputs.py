@@ -1,9 +1,10 @@
-"""Result files of one decoded frame: the HDR EXR and the winding-number map.
+"""Result files of one decoded frame: the HDR EXR and the winding-number map (and, for
+a half-float EXR, the codes).
 
 Usage::
 
     files = encode_outputs(codes, result.winding, params, result.info, options)
-    # {"exr": EXR bytes, "winding": .npy bytes (int64)}
+    # {"exr": EXR bytes, "winding": .npy bytes (int64)[, "codes": .npy bytes]}
 
 Options (from the job): ``scene_referred`` (default true: x / gain when the gain
 is known, else wrap units x), ``half`` (default false: float32 EXR) and
@@ -23,7 +24,7 @@ from models.formation import SensorParams, reconstruct
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 
 #: Result-store key suffixes of a job's outputs.
-OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy"}
+OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy", "codes": "codes.npy"}
 #: EXR compression of live device frames (``MCAM_STREAM_EXR_COMPRESSION``). A stream's
 #: frames are written at frame rate into the result store, where ZIP cost the worker a
 #: third of its time (bench.stream, itoh) to save 14% of the disk; uploads and video jobs,
@@ -53,11 +54,15 @@ def encode_exr_result(
     )
 
 
+def _npy(array: NDArray[Any]) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array, allow_pickle=False)
+    return buffer.getvalue()
+
+
 def encode_winding(winding: NDArray[np.integer]) -> bytes:
     """The winding map as ``.npy`` bytes (int64, the frame's shape)."""
-    buffer = io.BytesIO()
-    np.save(buffer, np.asarray(winding, dtype=np.int64), allow_pickle=False)
-    return buffer.getvalue()
+    return _npy(np.asarray(winding, dtype=np.int64))
 
 
 def encode_outputs(
@@ -67,8 +72,13 @@ def encode_outputs(
     info: dict[str, Any],
     options: dict[str, Any],
 ) -> dict[str, bytes]:
-    """Both outputs of a frame, by output name (``exr``, ``winding``)."""
-    return {
+    """The outputs of a frame, by output name: ``exr``, ``winding`` and, when the EXR is
+    half-float, ``codes`` (.npy, DN): its 11-bit mantissa cannot carry the codes back
+    (16-bit codes re-encoded from it were off by up to 45 DN), a float32 EXR can."""
+    files = {
         "exr": encode_exr_result(codes, winding, params, info, options),
         "winding": encode_winding(winding),
     }
+    if options.get("half", False):
+        files["codes"] = _npy(np.asarray(codes))
+    return files

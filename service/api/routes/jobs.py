@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from typing import Annotated, Literal
 
 import numpy as np
@@ -67,7 +68,8 @@ def wrapped_codes(record: JobRecord, x: NDArray[np.float64]) -> NDArray[np.unsig
     """The frame's codes, re-encoded from the reconstruction with the formation model.
 
     ``x_hat`` keeps each pixel's stored fraction ``m`` whatever W the decoder chose,
-    so encoding it without noise gives back the uploaded codes."""
+    so encoding it without noise gives back the uploaded codes (from a float32 EXR; a
+    half-float job stores its codes instead, :func:`worker.outputs.encode_outputs`)."""
     exact = record.params.model_copy(
         update={"read_noise": 0.0, "full_well": None, "max_wraps": None}
     )
@@ -90,7 +92,11 @@ def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev:
         return download(tonemap_png(x, ev), fmt, stem)
     if part == "histogram":
         return JSONResponse(log_luminance_histogram(x))
-    codes = wrapped_codes(record, x)
+    codes = (
+        np.load(io.BytesIO(state.store.read(record.results["codes"])), allow_pickle=False)
+        if "codes" in record.results
+        else wrapped_codes(record, x)
+    )
     if fmt == "png":
         return download(codes_png(codes, record.params.bits), fmt, stem)
     return download(encode_frame(codes, record.params, fmt), fmt, stem)
