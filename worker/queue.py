@@ -66,6 +66,7 @@ GROUP = "workers"
 JOB_KINDS = ("reconstruction", "video")
 
 _SUBMIT = """
+if redis.call('EXISTS', KEYS[2]) == 1 then return 2 end
 if redis.call('XLEN', KEYS[1]) >= tonumber(ARGV[1]) then return 0 end
 local owner, bytes = ARGV[2], tonumber(ARGV[5])
 if owner ~= '' then
@@ -224,9 +225,12 @@ class JobQueue:
         decoder: str,
         options: dict[str, Any] | None = None,
         owner: str = "",
+        job_id: str | None = None,
     ) -> JobRecord:
         """Queue a job (codes in DN: one frame, or T frames for ``video``) for the API key
         ``owner`` (its id; ``""``: no key, as for a device's recording); returns its record.
+        ``job_id`` (default: a new uuid) makes a retried submit safe: a job of that id that
+        already exists is returned, not queued again.
 
         Raises :class:`InvalidInputError` for bad codes/kind/decoder or codes larger than
         a bound, :class:`TooManyJobsError` when ``owner`` has ``max_per_key`` jobs or
@@ -235,7 +239,7 @@ class JobQueue:
         codes = _check_submission(kind, codes, params, decoder)
         self._check_size(codes.nbytes, owner)
         record = JobRecord(
-            id=uuid.uuid4().hex,
+            id=job_id or uuid.uuid4().hex,
             kind=kind,  # type: ignore[arg-type]
             decoder=decoder,
             params=params,
@@ -254,6 +258,8 @@ class JobQueue:
                 args += [name, value]
         keys = [JOBS_STREAM, job_key(record.id), JOB_STATES, JOB_HOLDS, JOBS_PER_KEY]
         accepted = int(self._submit(keys=[*keys, JOB_BYTES_PER_KEY, JOBS_HELD_BYTES], args=args))
+        if accepted == 2:
+            return self.get(record.id)
         if accepted != 1:
             self.metrics.inc("jobs_rejected_total")
             raise self._refusal(accepted, codes.nbytes)

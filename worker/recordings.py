@@ -310,4 +310,8 @@ class Recorder:
         options = {**recording.options, "keyframes": recording.keyframes}
         check_hdr10_size(video_options(recording.decoder, options)[1], codes.shape)
         params = SensorParams.model_validate_json(recording.params)
-        return self.queue.submit("video", codes, params, recording.decoder, options).id
+        # The recording's id names its job: if noting the job below fails (Redis down),
+        # the next try finds the job queued instead of queueing it twice.
+        return self.queue.submit(
+            "video", codes, params, recording.decoder, options, job_id=recording.id
+        ).id

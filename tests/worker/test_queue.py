@@ -42,6 +42,15 @@ def test_submit_stores_record_and_raw_codes(queue: JobQueue, client: redis.Redis
     assert queue.stats()["jobs_by_state"]["queued"] == 1
 
 
+def test_a_submit_retried_with_its_job_id_queues_the_job_once(
+    queue: JobQueue, client: redis.Redis
+) -> None:
+    first = queue.submit("reconstruction", CODES, PARAMS, "itoh", job_id="a" * 32)
+    again = queue.submit("reconstruction", CODES, PARAMS, "herraez", job_id="a" * 32)
+    assert first.id == again.id == "a" * 32 and again.decoder == "itoh"
+    assert client.xlen(JOBS_STREAM) == 1
+
+
 def test_video_jobs_count_frames(queue: JobQueue) -> None:
     clip = np.zeros((5, 8, 8), np.uint8)
     record = queue.submit("video", clip, PARAMS, "itoh", {"mode": "temporal"})

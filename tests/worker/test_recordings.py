@@ -173,6 +173,33 @@ def test_a_recording_ends_before_a_frame_that_would_pass_its_sample_limit(
     assert failed.state == "failed" and "one frame holds more code values" in failed.error
 
 
+def test_a_stop_whose_job_was_queued_but_not_noted_queues_it_once(
+    client: redis.Redis, recorder: Recorder, make_frame, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Redis fails between queueing the video job and noting it on the recording: the
+    recording stays stopping, and the next try finds the job (named by the recording)
+    instead of queueing a second one."""
+    recording = start(client)
+    recorder.add_frame(message(make_frame(), 0), "6000-0")
+    request_stop(client, "cam1")
+    note = recorder._set
+
+    def failing(recording, fields, **kwargs):  # type: ignore[no-untyped-def]
+        if fields.get("state") == "submitted":
+            raise redis.ConnectionError("Redis went away")
+        return note(recording, fields, **kwargs)
+
+    monkeypatch.setattr(recorder, "_set", failing)
+    with pytest.raises(redis.ConnectionError):
+        recorder.finish_if_stopping("cam1")
+    assert load_recording(client, "cam1").state == "stopping"
+    monkeypatch.setattr(recorder, "_set", note)
+    recorder.finish_if_stopping("cam1")
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.job == recording.id
+    assert client.xlen(JOBS_STREAM) == 1
+
+
 def test_frames_without_a_recording_are_ignored(
     client: redis.Redis, recorder: Recorder, store: ResultStore, make_frame
 ) -> None:
