@@ -8,7 +8,8 @@ Formats
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
 - ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in file-name order
   (``frame_2.png`` before ``frame_10.png``); parameters from the first frame's text
-  chunk. Entries that are not ``.png`` (folders, ``__MACOSX``) are ignored.
+  chunk. Entries that are not ``.png`` (folders, ``__MACOSX``) and macOS resource
+  forks (``._name.png``) are ignored.
 
 The frame count (``max_frames``), the pixels per frame (``max_pixels``) and the code
 values of the whole video (``max_samples``: frames x pixels x channels) are checked
@@ -189,6 +190,7 @@ def _read_zip(
                 if not info.is_dir()
                 and info.filename.lower().endswith(".png")
                 and not info.filename.startswith("__MACOSX/")
+                and not info.filename.rsplit("/", 1)[-1].startswith("._")
             ),
             key=lambda info: _natural_key(info.filename),
         )

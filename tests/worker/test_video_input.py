@@ -87,6 +87,19 @@ def test_zip_of_pngs_in_natural_order() -> None:
     assert result.params == PARAMS
 
 
+def test_macos_resource_forks_in_a_zip_are_not_frames() -> None:
+    """Archivers on macOS store ``._name`` resource forks beside the files (outside
+    ``__MACOSX/`` too): they are not PNGs and not frames."""
+    video = codes(3)
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for t, frame in enumerate(video):
+            archive.writestr(f"clip/frame_{t}.png", encode_frame(frame, PARAMS, "png"))
+            archive.writestr(f"clip/._frame_{t}.png", b"\x00\x05\x16\x07 resource fork")
+        archive.writestr("__MACOSX/clip/._frame_0.png", b"\x00\x05\x16\x07")
+    np.testing.assert_array_equal(decode_video(buffer.getvalue(), "zip").codes, video)
+
+
 def test_overrides_win_over_stored_parameters() -> None:
     result = decode_video(tiff_bytes(codes()), "tif", {"alpha": 4.0, "bits": None})
     assert result.params.alpha == 4.0 and result.params.bits == 8
