@@ -42,7 +42,7 @@ from typing import Any
 
 import redis
 
-from models.errors import McamError
+from models.errors import InvalidInputError, McamError
 from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order
 from worker.device_share import device_to_hand_over, frame_clock
@@ -153,6 +153,10 @@ class DeviceConsumer:
                 self.recorder.finish_if_stopping(device)
             except LeaseLost:
                 self._forget(device)
+        # A device removed from the registry (DELETE /v1/devices/{id}) is let go here.
+        for gone in set(self.states) - set(devices):
+            self._forget(gone)
+        self._resting = {d: until for d, until in self._resting.items() if until > now}
         surplus = self._surplus(devices)
         if surplus is not None:
             self._hand_over(surplus)
@@ -265,6 +269,11 @@ class DeviceConsumer:
 
     def _reconstruct(self, device: str, state: DeviceState, delivery: Delivery) -> None:
         message = FrameMessage.from_fields(delivery.fields)
+        if message.device != device:
+            # The stream names the device; a frame naming another would join its recording.
+            raise InvalidInputError(
+                f"the frame names device {message.device!r} but arrived on {device!r}'s stream"
+            )
         if (
             state.last_sequence is not None
             and message.sequence <= state.last_sequence
@@ -340,17 +349,27 @@ class DeviceConsumer:
         exc: Exception,
     ) -> None:
         error = error_of(exc)
-        sequence = delivery.fields.get("seq", b"-1").decode()
+        # The entry failed to parse, perhaps here: its seq is shown, never trusted.
+        sequence = delivery.fields.get("seq", b"-1").decode(errors="replace")
         event = {
             "type": "failed",
             "sequence": sequence,
             "code": error.code,
             "message": error.message,
         }
-        sequence_number = int(sequence) if sequence.lstrip("-").isdigit() else -1
+        sequence_number = _sequence_number(sequence)
         last = state.last_sequence if state.last_sequence is not None else -1
         self._record(device, state, delivery, max(sequence_number, last), "", event)
         consumer.dead_letter(delivery, error.code, error.message, device=device, sequence=sequence)
+
+
+def _sequence_number(text: str) -> int:
+    """A failed entry's sequence number as the device's newest done: -1 unless ``text``
+    is a plain decimal integer (``"²"`` passes ``str.isdigit`` but not ``int``)."""
+    try:
+        return int(text) if text.isascii() else -1
+    except ValueError:
+        return -1
 
 
 def _done(state: DeviceState, delivery: Delivery) -> bool:

@@ -1,0 +1,84 @@
+"""Tests of worker/device_consumer.py: a device stream's frames, each committed or
+dead-lettered once, against a real Redis."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+import redis
+
+from tests.worker.conftest import ramp_frame
+from worker.device_consumer import DeviceConsumer
+from worker.device_registry import forget_device
+from worker.device_state import make_frame_decoder
+from worker.frame_message import FrameMessage
+from worker.queue import publish_frame
+from worker.recordings import load_recording, start_recording
+from worker.redis_keys import DEAD_LETTER_STREAM, DEVICES_SET, frame_stream
+from worker.result_store import RESULTS_DIR, ResultStore
+
+
+@pytest.fixture
+def consumer(client: redis.Redis, tmp_path: Path) -> DeviceConsumer:
+    store = ResultStore(tmp_path / RESULTS_DIR, retention_s=3600)
+    return DeviceConsumer(
+        client, store, owner="w1", lease_ms=5000, max_deliveries=3,
+        decode=make_frame_decoder("independent", "itoh"), stop=threading.Event(),
+    )  # fmt: skip
+
+
+def frame(device: str, sequence: int) -> FrameMessage:
+    sensor = ramp_frame(size=16)
+    return FrameMessage(device, sequence, sequence * 1000, sensor.codes, sensor.params)
+
+
+def dead_letters(client: redis.Redis) -> list[dict[bytes, bytes]]:
+    return [fields for _, fields in client.xrange(DEAD_LETTER_STREAM)]
+
+
+@pytest.mark.parametrize("seq", [b"\xff", "²".encode()])
+def test_an_entry_whose_sequence_does_not_parse_is_dead_lettered_and_the_rest_flow(
+    client: redis.Redis, consumer: DeviceConsumer, seq: bytes
+) -> None:
+    """A seq that is not UTF-8, or a digit ``int`` refuses: the entry goes to the dead
+    letters with its reason, and the device's next frame and another device's frame
+    are decoded (it used to raise out of every poll, stalling every device after it)."""
+    fields = frame("a", 0).to_fields()
+    fields["seq"] = seq
+    client.sadd(DEVICES_SET, "a")
+    client.xadd(frame_stream("a"), fields)
+    publish_frame(client, frame("a", 1), maxlen=10)
+    publish_frame(client, frame("b", 0), maxlen=10)
+    consumer.poll()
+    (letter,) = dead_letters(client)
+    assert letter[b"stream"] == frame_stream("a").encode()
+    assert client.xlen(frame_stream("a")) == 0 and client.xlen(frame_stream("b")) == 0
+    assert consumer.states["a"].last_sequence == 1
+
+
+def test_a_frame_naming_another_device_is_dead_lettered_not_recorded_there(
+    client: redis.Redis, consumer: DeviceConsumer
+) -> None:
+    """The stream is the device's identity: a frame on a's stream that names b does not
+    join b's recording."""
+    start_recording(client, "b", decoder="itoh", options={"mode": "temporal"}, max_frames=10)
+    client.sadd(DEVICES_SET, "a")
+    client.xadd(frame_stream("a"), frame("b", 0).to_fields())
+    consumer.poll()
+    (letter,) = dead_letters(client)
+    assert b"names device 'b' but arrived on 'a'" in letter[b"message"]
+    assert load_recording(client, "b").frames == 0
+
+
+def test_a_device_forgotten_from_the_registry_is_let_go(
+    client: redis.Redis, consumer: DeviceConsumer
+) -> None:
+    publish_frame(client, frame("a", 0), maxlen=10)
+    publish_frame(client, frame("b", 0), maxlen=10)
+    consumer.poll()
+    assert set(consumer.states) == {"a", "b"}
+    forget_device(client, "a", silent_after_s=0.0)
+    consumer.poll()
+    assert set(consumer.states) == {"b"}
