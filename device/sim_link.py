@@ -58,6 +58,18 @@ def _write_fd(fd: int, data: bytes, timeout_s: float) -> bool:
     return True
 
 
+def _is_pty_link(path: Path) -> bool:
+    """Whether ``path`` is a symlink to a pseudo-terminal (ours, or a run's left over)."""
+    return path.is_symlink() and os.readlink(path).startswith("/dev/pts/")
+
+
+def _remove_pty_link(path: Path) -> None:
+    """Remove ``path`` if it is a pty symlink; anything else there is left alone."""
+    if _is_pty_link(path):
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+
+
 class PtyEndpoint:
     """A pseudo-terminal; ``url`` is a stable symlink to the current slave (like /dev/serial/by-id).
 
@@ -71,6 +83,12 @@ class PtyEndpoint:
             self._own_dir = Path(tempfile.mkdtemp(prefix="mcam-pty-"))
             link_path = self._own_dir / "scamp5"
         self.link_path = Path(link_path)
+        for path in (self.link_path, self._new_link()):
+            if os.path.lexists(path) and not _is_pty_link(path):
+                raise InvalidInputError(
+                    f"{path} exists and is not a link to a pseudo-terminal; the simulated "
+                    "camera's port is a symlink it makes and removes: name a new path"
+                )
         self.url = str(self.link_path)
         self._master = -1
         self._slave = -1
@@ -87,16 +105,18 @@ class PtyEndpoint:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         os.set_blocking(self._master, False)
-        tmp = self.link_path.with_name(self.link_path.name + ".new")
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        tmp = self._new_link()
+        _remove_pty_link(tmp)
         tmp.symlink_to(self.slave_path)
         tmp.replace(self.link_path)
 
+    def _new_link(self) -> Path:
+        """Where the next symlink is made before it replaces :attr:`link_path`."""
+        return self.link_path.with_name(self.link_path.name + ".new")
+
     def disconnect(self) -> None:
         """Close both ends and remove the symlink (the port disappears)."""
-        with contextlib.suppress(FileNotFoundError):
-            self.link_path.unlink()
+        _remove_pty_link(self.link_path)
         for fd in (self._master, self._slave):
             if fd >= 0:
                 os.close(fd)

@@ -15,12 +15,12 @@ by ``mcam serve`` or ``mcam api``). Bracketed reference pairs go to
 from __future__ import annotations
 
 import argparse
-import logging
 import signal
 import threading
 
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.datasets import DatasetLimits
+from service.cli.options import add_log_level_flag, start_logging
 from service.cli.worker import redis_url_for
 from service.core.config import get_settings
 from worker.embedded_redis import connect
@@ -37,16 +37,14 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         help="pyserial URL: /dev/ttyACM0, a pty path, socket://HOST:PORT, "
                              "rfc2217://HOST:PORT, loop://")
     parser.add_argument("--device-id", required=True, help="1-64 letters, digits, '_' or '-'")
-    parser.add_argument("--log-level", default="INFO", help="logging level (default: INFO)")
+    add_log_level_flag(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     settings = get_settings()
     device = validate_device_id(args.device_id)
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    start_logging(args)
     client = connect(redis_url_for(settings), timeout_s=1.0)
     limits = DatasetLimits(settings.dataset_max_pairs, settings.dataset_max_bytes)
     config = DaemonConfig(port=args.port, device=device, frames_maxlen=settings.frames_maxlen,

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
 
 from models.formation import ENCODINGS
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
+
+#: Levels ``--log-level`` takes (any case).
+LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
 #: Flags that set (simulate) or override (reconstruct) a frame's sensor parameters.
 SENSOR_FLAGS: tuple[str, ...] = ("encoding", "alpha", "bits", "gain")
@@ -22,6 +26,21 @@ def add_sensor_flags(parser: argparse.ArgumentParser, description: str) -> None:
     group.add_argument("--bits", type=int, help="code bit depth, 1..16")
     group.add_argument(
         "--gain", type=float, help="scene irradiance to wrap units: x = gain * scene (> 0)"
+    )
+
+
+def add_log_level_flag(parser: argparse.ArgumentParser) -> None:
+    """``--log-level`` of a long-running command (one of :data:`LOG_LEVELS`, any case)."""
+    parser.add_argument(
+        "--log-level", default="INFO", type=str.upper, choices=LOG_LEVELS,
+        help="logging level (default: INFO)",
+    )  # fmt: skip
+
+
+def start_logging(args: argparse.Namespace) -> None:
+    """Log at ``args.log_level`` (see :func:`add_log_level_flag`) with times and names."""
+    logging.basicConfig(
+        level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
 
 

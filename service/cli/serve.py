@@ -30,6 +30,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from types import FrameType
 
 from service.cli.api import announce, serve_http, settings_with
@@ -42,6 +43,10 @@ WORKER_STOP_S = 30.0
 #: Backoff before restarting a worker that died: first and longest wait (s).
 RESTART_MIN_S = 1.0
 RESTART_MAX_S = 30.0
+#: A worker up this long (s) counts as healthy: its next death waits RESTART_MIN_S again.
+#: (Reset as soon as a new worker was alive at a poll, the wait never passed 2 s: a
+#: worker that dies at start takes over a second to import.)
+HEALTHY_AFTER_S = 30.0
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -55,8 +60,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "--workers", type=positive, default=1, help="worker processes to run (default: 1)"
     )
-    parser.add_argument("--concurrency", type=int, help="each worker's concurrent jobs")
-    parser.add_argument("--threads", type=int, help="each worker's ONNX intra-op threads")
+    parser.add_argument("--concurrency", type=positive, help="each worker's concurrent jobs")
+    parser.add_argument(
+        "--threads", type=positive, help="each worker's ONNX intra-op threads"
+    )
     parser.set_defaults(func=run)
 
 
@@ -86,6 +93,7 @@ class WorkerSupervisor:
         self.command = command
         self.env = {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": data_dir}
         self.process: subprocess.Popen[bytes] | None = None
+        self._spawned_at = 0.0
         self._stopping = threading.Event()
         self._lock = threading.Lock()  # no restart once terminate() has signalled
         self._thread = threading.Thread(target=self._watch, name="worker-watch", daemon=True)
@@ -96,6 +104,7 @@ class WorkerSupervisor:
         return self
 
     def _spawn(self) -> subprocess.Popen[bytes]:
+        self._spawned_at = time.monotonic()
         return subprocess.Popen(
             self.command, env=self.env, start_new_session=True, preexec_fn=terminate_with_parent
         )
@@ -109,7 +118,8 @@ class WorkerSupervisor:
         backoff = RESTART_MIN_S
         while not self._stopping.wait(1.0):
             if self.process is None or self.process.poll() is None:
-                backoff = RESTART_MIN_S
+                if time.monotonic() - self._spawned_at >= HEALTHY_AFTER_S:
+                    backoff = RESTART_MIN_S
                 continue
             print(
                 f"mcam serve: the worker exited ({self.process.returncode}); "

@@ -13,11 +13,11 @@ SIGTERM / Ctrl-C stop it gracefully (in-flight work is finished or handed back).
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 
 from models.decoders.learned import THREAD_VARIABLES
 from models.errors import McamError
+from service.cli.options import add_log_level_flag, start_logging
 from service.core.config import Settings, get_settings
 from worker.embedded_redis import EmbeddedRedis
 from worker.temporal_config import MODES
@@ -87,7 +87,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "--no-devices", action="store_true", help="only run jobs, leave device streams alone"
     )
-    parser.add_argument("--log-level", default="INFO", help="logging level (default: INFO)")
+    add_log_level_flag(parser)
     parser.set_defaults(func=run)
 
 
@@ -100,9 +100,7 @@ def run(args: argparse.Namespace) -> int:
         processes = settings.stream_processes or min(usable_cores(), MAX_STREAM_PROCESSES)
     if concurrency < 1 or threads < 1 or processes < 1:
         raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    start_logging(args)
     set_thread_limits(threads, settings.ort_spin)
     from worker.runner import Worker, WorkerConfig
 

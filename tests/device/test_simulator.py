@@ -3,6 +3,7 @@ real TCP socket, brackets, faults and its link endpoints."""
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -180,3 +181,20 @@ def test_a_loop_nobody_reads_refuses_the_write_instead_of_raising() -> None:
         assert endpoint.write(bytes(5000)) is False
     finally:
         endpoint.close()
+
+
+def test_a_pty_link_path_never_replaces_a_users_file(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``pty:PATH`` naming an existing file (or a file beside it at PATH.new) is refused
+    and the file stays; a link left by an earlier run is taken over and removed."""
+    for taken in ("precious.txt", "precious.txt.new"):
+        (tmp_path / taken).write_text("important data")
+        with pytest.raises(InvalidInputError, match="exists and is not a link to a pseudo"):
+            open_endpoint(f"pty:{tmp_path / 'precious.txt'}")
+        assert (tmp_path / taken).read_text() == "important data"
+        (tmp_path / taken).unlink()
+    left_over = tmp_path / "scamp5"
+    left_over.symlink_to("/dev/pts/999")
+    endpoint = open_endpoint(f"pty:{left_over}")
+    assert os.readlink(left_over) != "/dev/pts/999"
+    endpoint.close()
+    assert not os.path.lexists(left_over)

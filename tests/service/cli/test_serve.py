@@ -192,15 +192,37 @@ def test_serve_runs_as_many_workers_as_asked_and_stops_them_all(tmp_path: Path) 
                 os.kill(pid, 0)
 
 
-@pytest.mark.parametrize("workers", ["0", "-1", "two"])
+@pytest.mark.parametrize("flag", ["--workers", "--concurrency", "--threads"])
+@pytest.mark.parametrize("count", ["0", "-1", "two"])
 def test_a_worker_count_below_one_is_refused_with_one_line(
-    workers: str, capsys: pytest.CaptureFixture[str]
+    flag: str, count: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """Refused before anything starts (a worker given --concurrency 0 used to exit at
+    once and be restarted for ever)."""
     with pytest.raises(SystemExit) as stopped:
-        main(["serve", "--workers", workers])
+        main(["serve", flag, count])
     assert stopped.value.code == 2
     err = capsys.readouterr().err
-    assert "--workers" in err and "whole number >= 1" in err and "Traceback" not in err
+    assert flag in err and "whole number >= 1" in err and "Traceback" not in err
+
+
+def test_a_worker_that_keeps_dying_is_restarted_ever_more_slowly(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A worker that dies 1.2 s after each start (alive at the supervisor's first poll)
+    is restarted after 1, 2, then 4 s: the wait starts again only after a worker has
+    stayed up for HEALTHY_AFTER_S (it used to go 1, 2, 1, 2 s)."""
+    script = tmp_path / "dies.py"
+    script.write_text("import time\ntime.sleep(1.2)\n")
+    supervisor = WorkerSupervisor([sys.executable, str(script)], "unused", "unused").start()
+    deadline = time.monotonic() + 40
+    waits: list[str] = []
+    while len(waits) < 3 and time.monotonic() < deadline:
+        time.sleep(0.2)
+        waits += re.findall(r"restarting in (\d+) s", capsys.readouterr().err)
+    supervisor.terminate()
+    supervisor.wait()
+    assert waits[:3] == ["1", "2", "4"]
 
 
 SIGNAL_RECORDER = """

@@ -43,6 +43,16 @@ def test_worker_rejects_zero_concurrency_or_stream_processes(tmp_path: Path, fla
     assert process.returncode == 2 and "at least 1" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize(
+    "command", [["worker"], ["device", "--port", "loop://", "--device-id", "rig1"]]
+)
+def test_an_unknown_log_level_is_refused_with_one_line(tmp_path: Path, command: list[str]) -> None:
+    process = mcam(*command, "--log-level", "bogus", env={"MCAM_DATA_DIR": str(tmp_path)})
+    _out, err = process.communicate(timeout=60)
+    assert process.returncode == 2 and "invalid choice: 'BOGUS'" in err
+    assert "Traceback" not in err
+
+
 def test_worker_finds_the_embedded_redis_and_stops_on_sigterm(tmp_path: Path) -> None:
     with EmbeddedRedis(tmp_path) as url:
         client = connect(url)
