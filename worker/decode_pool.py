@@ -35,6 +35,7 @@ every other pending frame is submitted to it again.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
@@ -207,7 +208,14 @@ class DecodePool:
     def _restart(self) -> None:
         """Replace a broken executor and submit every pending frame to the new one."""
         log.warning("stream decode pool broken; starting %d new processes", self.processes)
-        self._executor.shutdown(wait=False, cancel_futures=True)
+        broken = self._executor
+        # The survivors ignore SIGTERM (child_process.leave_signals_to_parent), the broken
+        # pool's only way to end them: one blocked writing its result to the dead pool's
+        # pipe outlived close() and hung the worker's exit.
+        for process in list(getattr(broken, "_processes", {}).values()):
+            with contextlib.suppress(OSError):
+                process.kill()
+        broken.shutdown(wait=False, cancel_futures=True)
         self._executor = self._start_executor()
         for pending in self._pending.values():
             for entry_id, (message, _future) in list(pending.items()):

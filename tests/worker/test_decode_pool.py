@@ -3,6 +3,7 @@ taken in stream order, errors and dead processes handled."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -145,6 +146,30 @@ def test_a_process_that_dies_mid_frame_fails_that_frame_and_a_new_pool_takes_the
             frame = decode_pool.result(DEVICE, entry_id, message)
             np.testing.assert_array_equal(frame.winding, own(DeviceState(DEVICE), message).winding)
         assert not decode_pool.wait_ready() & old
+    finally:
+        decode_pool.close()
+
+
+def test_when_one_process_dies_its_survivor_is_ended_with_the_broken_pool(
+    pooled: None,
+) -> None:
+    """One of two processes killed while both decode large frames: the survivor, which
+    ignores SIGTERM and may be blocked writing its result to the dead pool's pipe, is
+    killed with the pool (it outlived close() and hung the worker's exit)."""
+    frame = synthetic_val256_frame("modulo", 1024, 0)
+    stream = entries([FrameMessage(DEVICE, k, k, frame.codes, frame.params) for k in range(4)])
+    decode_pool = DecodePool("itoh", 2)
+    try:
+        old = decode_pool.wait_ready()
+        decode_pool.prefetch(DEVICE, stream)
+        os.kill(min(old), signal.SIGKILL)
+        for entry_id, message in stream:
+            with contextlib.suppress(RuntimeError):
+                decode_pool.result(DEVICE, entry_id, message)
+        deadline = time.monotonic() + 10
+        while any(alive(pid) for pid in old) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not any(alive(pid) for pid in old)
     finally:
         decode_pool.close()
 
