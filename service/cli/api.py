@@ -19,6 +19,7 @@ from service.api.header_timeout import header_timeout_protocol
 from service.core.config import Settings, get_settings
 from service.core.security import KEY_FILE_NAME, KeyRing
 from service.main import create_app
+from worker.embedded_redis import EmbeddedRedis
 
 
 def settings_with(settings: Settings, **updates: Any) -> Settings:
@@ -92,9 +93,25 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.set_defaults(func=run)
 
 
+def embedded_redis_for(settings: Settings) -> EmbeddedRedis | None:
+    """The embedded Redis of the data dir when no ``MCAM_REDIS_URL`` is set (not started).
+    The command starts it before anything else, so that a data dir another command
+    already serves is refused in one line, not by a traceback from the app's startup."""
+    if settings.redis_url is not None:
+        return None
+    return EmbeddedRedis(settings.data_dir, keep_alive=True, maxmemory=settings.redis_maxmemory)
+
+
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
-    _, new_key = KeyRing.from_settings(settings)
-    announce(settings, new_key)
-    serve_http(settings)
+    embedded = embedded_redis_for(settings)
+    try:
+        if embedded is not None:
+            settings = settings_with(settings, redis_url=embedded.start())
+        _, new_key = KeyRing.from_settings(settings)
+        announce(settings, new_key)
+        serve_http(settings)
+    finally:
+        if embedded is not None:
+            embedded.stop()
     return 0

@@ -33,10 +33,10 @@ import threading
 import time
 from types import FrameType
 
-from service.cli.api import announce, serve_http, settings_with
+from service.cli.api import announce, embedded_redis_for, serve_http, settings_with
 from service.core.config import get_settings
 from service.core.security import KeyRing
-from worker.embedded_redis import EmbeddedRedis, terminate_with_parent
+from worker.embedded_redis import terminate_with_parent
 
 #: How long the worker may take to finish its in-flight work on shutdown (s).
 WORKER_STOP_S = 30.0
@@ -162,11 +162,7 @@ def _interrupt(_signum: int, _frame: FrameType | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
-    embedded = (
-        EmbeddedRedis(settings.data_dir, keep_alive=True, maxmemory=settings.redis_maxmemory)
-        if settings.redis_url is None
-        else None
-    )
+    embedded = embedded_redis_for(settings)
     workers: list[WorkerSupervisor] = []
     signal.signal(signal.SIGTERM, _interrupt)
     try:

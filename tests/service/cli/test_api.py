@@ -3,11 +3,15 @@ uvicorn's connection limits, on real sockets."""
 
 from __future__ import annotations
 
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -17,7 +21,10 @@ from pydantic import ValidationError
 from models.errors import InvalidInputError
 from service.cli.api import settings_with, uvicorn_options
 from service.core.config import Settings
-from tests.service.conftest import read_response
+from tests.service.conftest import free_port, read_response
+from worker.embedded_redis import EmbeddedRedis
+
+REPO = Path(__file__).resolve().parents[3]
 
 
 def test_a_bad_flag_is_named_as_the_flag_not_the_environment() -> None:
@@ -149,3 +156,19 @@ def test_the_header_timeout_covers_a_request_after_a_body_the_app_did_not_read()
             sock.sendall(b"0123456789GET / HT")
             assert int(read_response(sock).split(b" ", 2)[1]) == 408
             assert sock.recv(1) == b""
+
+
+def test_a_data_dir_whose_embedded_redis_already_runs_is_refused_in_one_line(
+    tmp_path: Path,
+) -> None:
+    """Another ``mcam api`` or ``serve`` serves the data dir: refused before the API
+    announces itself (it printed its URL, then a traceback from the app's startup)."""
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
+    with EmbeddedRedis(tmp_path):
+        done = subprocess.run(
+            [sys.executable, "-m", "service.cli.main", "api", "--port", str(free_port())],
+            cwd=REPO, env={**clean, "MCAM_DATA_DIR": str(tmp_path)},
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    assert done.returncode == 2 and "already serves this data dir" in done.stderr
+    assert "Traceback" not in done.stderr and "MantissaCam API on" not in done.stdout
