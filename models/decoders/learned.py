@@ -81,12 +81,34 @@ def ort_spinning() -> bool:
     return spinning
 
 
+#: Fields every model card has (what the runtime and ``mcam train measure`` read).
+CARD_FIELDS: tuple[str, ...] = ("file", "decoder", "encoding", "family")
+
+
+def read_card(path: Path) -> dict[str, Any]:
+    """The model card at ``path``, or :class:`InvalidInputError` naming the file when it
+    is not one (not JSON text, not an object, or without :data:`CARD_FIELDS`)."""
+    try:
+        card = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InvalidInputError(
+            f"{path} is not a model card (JSON text, models/onnx/<name>.json): {exc}"
+        ) from None
+    missing = [name for name in CARD_FIELDS if not isinstance(card, dict) or name not in card]
+    if missing:
+        raise InvalidInputError(
+            f"{path} is not a model card: it lacks {', '.join(missing)} "
+            "(cards are models/onnx/<name>.json, written by mcam train export)"
+        )
+    return card
+
+
 def read_cards(onnx_dir: Path = ONNX_DIR) -> list[tuple[Path, dict[str, Any]]]:
     """Every model card (``*.json``) whose ONNX file exists, with its path, sorted by
     file name."""
     found = []
     for path in sorted(onnx_dir.glob("*.json")):
-        card = json.loads(path.read_text())
+        card = read_card(path)
         if (onnx_dir / card["file"]).exists():
             found.append((path, card))
     return found

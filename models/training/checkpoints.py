@@ -42,26 +42,35 @@ def sync_folder(folder: Path) -> None:
 UNREADABLE = (EOFError, RuntimeError, pickle.UnpicklingError)
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
+def load_checkpoint(path: Path, *, resuming: bool = False) -> dict[str, Any]:
     """A checkpoint written by :func:`models.training.train.train` (model, optimizer,
     step, wall_s, config, segments). An empty, cut short or corrupt file is an
-    InvalidInputError naming it and what to do."""
+    InvalidInputError naming it and what to do (``resuming``: it is the run's own, which
+    the run can also start again without)."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except UNREADABLE as exc:
         first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise unreadable(path, first_line) from exc
+        raise unreadable(path, first_line, resuming) from exc
     if not isinstance(state, dict):
-        raise unreadable(path, f"it holds a {type(state).__name__}, not a checkpoint's dict")
+        reason = f"it holds a {type(state).__name__}, not a checkpoint's dict"
+        raise unreadable(path, reason, resuming)
     return state
 
 
-def unreadable(path: Path, reason: str) -> InvalidInputError:
-    """The error for a checkpoint file that cannot be read, saying what to do."""
-    return InvalidInputError(
-        f"{path} is not a readable checkpoint ({reason}): it is empty, cut short or corrupt; "
+def unreadable(path: Path, reason: str, resuming: bool) -> InvalidInputError:
+    """The error for a checkpoint file that cannot be read, saying what to do: only a run
+    resuming from its own checkpoint is told it may delete its run folder (export and
+    ``init_from`` read a checkpoint that is the user's to keep)."""
+    advice = (
         f"put back a good copy, or delete the run folder {path.parent} to train the run "
         "again from scratch"
+        if resuming
+        else "name a checkpoint.pt that training wrote (runs/<name>/checkpoint.pt)"
+    )
+    return InvalidInputError(
+        f"{path} is not a readable checkpoint ({reason}): it is empty, cut short or "
+        f"corrupt; {advice}"
     )
 
 

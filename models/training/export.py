@@ -234,10 +234,10 @@ def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) ->
     read noise after guided PUMA to convergence (``<decoder>+puma``, what ``auto`` at
     ``best`` runs)."""
     from models.decoders.guided_puma import GuidedPumaDecoder
-    from models.decoders.learned import LearnedDecoder, load_cards
+    from models.decoders.learned import LearnedDecoder, load_cards, read_card
     from models.training.validate import val256_metrics
 
-    card = json.loads(card_path.read_text())
+    card = read_card(card_path)
     cards = [c for c in load_cards(card_path.parent) if c["file"] == card["file"]]
     decoder = LearnedDecoder(card["decoder"], cards)
     card["val256"] = {

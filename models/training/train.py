@@ -84,7 +84,7 @@ def restore(
     (:func:`check_same_training`)."""
     checkpoint = config.run_dir / "checkpoint.pt"
     if checkpoint.exists():
-        state = load_checkpoint(checkpoint)
+        state = load_checkpoint(checkpoint, resuming=True)
         check_same_training(config, state["config"], checkpoint)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])

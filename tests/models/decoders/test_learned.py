@@ -224,3 +224,23 @@ def test_two_cards_of_one_decoder_and_encoding_are_refused_naming_both(tmp_path:
     assert [c["file"] for c in learned.load_cards(tmp_path)] == [
         "mantissanet-tiny-ce-risk-mantissa.onnx"
     ]
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [("notjson", "JSON text"), ("[1, 2]", "lacks file"), ('{"file": "a.onnx"}', "lacks decoder"),
+     (b"\xff\xfe", "JSON text")],
+)
+def test_a_file_that_is_not_a_model_card_is_named_with_what_is_wrong(
+    tmp_path: Path, text: str | bytes, reason: str
+) -> None:
+    path = tmp_path / "card.json"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(InvalidInputError, match=f"card.json is not a model card.*{reason}"):
+        learned.read_card(path)
+    with pytest.raises(InvalidInputError, match="is not a model card"):
+        learned.read_cards(tmp_path)
+
+
+def test_every_shipped_card_reads() -> None:
+    assert all(learned.read_card(path) == card for path, card in learned.read_cards())

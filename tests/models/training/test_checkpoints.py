@@ -44,5 +44,8 @@ def test_an_unreadable_checkpoint_is_one_clear_error(tmp_path: Path, damage: str
     damaged = {"empty": b"", "cut-short": whole[: len(whole) // 2], "garbage": b"x" * 64}
     path.write_bytes(damaged[damage])
     with pytest.raises(InvalidInputError, match="not a readable checkpoint") as caught:
-        load_checkpoint(path)
+        load_checkpoint(path, resuming=True)
     assert str(path) in caught.value.message and "delete the run folder" in caught.value.message
+    with pytest.raises(InvalidInputError, match="not a readable checkpoint") as caught:
+        load_checkpoint(path)  # an export's or init_from's: the user's file, not a run's
+    assert "delete" not in caught.value.message and "training wrote" in caught.value.message
