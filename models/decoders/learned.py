@@ -81,8 +81,8 @@ def ort_spinning() -> bool:
     return spinning
 
 
-#: Fields every model card has (what the runtime and ``mcam train measure`` read).
-CARD_FIELDS: tuple[str, ...] = ("file", "decoder", "encoding", "family")
+#: Fields every model card has (what the runtime reads to serve its model).
+CARD_FIELDS: tuple[str, ...] = ("file", "decoder", "encoding")
 
 
 def read_card(path: Path) -> dict[str, Any]:

@@ -244,7 +244,7 @@ def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) ->
         f"read_noise_{noise:g}": val256_metrics(decoder, card["encoding"], noise)
         for noise in read_noises
     }
-    if card["family"] == "mantissanet":
+    if card.get("family") == "mantissanet":
         refined = GuidedPumaDecoder(decoder)
         card["val256_refined"] = {"read_noise_0": val256_metrics(refined, card["encoding"])}
     write_card(card_path, card)
