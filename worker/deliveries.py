@@ -36,6 +36,20 @@ end
 return 0
 """
 
+#: Take over, for consumer ARGV[2] of group ARGV[1], the first ARGV[3] entries of stream
+#: KEYS[1] pending at any other consumer (counting a delivery each); returns how many.
+_CLAIM_OTHERS = """
+local claimed = 0
+for _, row in ipairs(redis.call('XPENDING', KEYS[1], ARGV[1], '-', '+', tonumber(ARGV[3]))) do
+  if row[2] ~= ARGV[2] then
+    redis.call('XCLAIM', KEYS[1], ARGV[1], ARGV[2], 0, row[1], 'RETRYCOUNT', row[4] + 1,
+               'JUSTID')
+    claimed = claimed + 1
+  end
+end
+return claimed
+"""
+
 
 @dataclass
 class Delivery:
@@ -71,6 +85,7 @@ class StreamConsumer:
         self.max_deliveries = max_deliveries
         self.metrics = Metrics(client)
         self._touch = client.register_script(_TOUCH)
+        self._claim_others = client.register_script(_CLAIM_OTHERS)
         ensure_group(client, stream)
 
     def read_new(self, *, block_ms: int | None, count: int = 1) -> list[Delivery]:
@@ -126,6 +141,17 @@ class StreamConsumer:
         if claimed and min_idle_ms > 0:
             self.metrics.inc("redeliveries_total", claimed)
         return claimed
+
+    def claim_others(self, count: int = 100) -> list[Delivery]:
+        """Entries pending at other consumers, taken over whatever their idle time (each
+        counts a delivery) and returned with their fields, oldest first. Only for a
+        stream one consumer reads at a time (a device's, under its lease): there any
+        entry pending elsewhere was stranded by a reader that lost the right to it."""
+        claimed = int(self._claim_others(keys=[self.stream], args=[GROUP, self.name, count]))
+        if not claimed:
+            return []
+        self.metrics.inc("redeliveries_total", claimed)
+        return self.read_own_pending(count)
 
     def reclaim(self, min_idle_ms: int, count: int = 10) -> list[Delivery]:
         """Claim idle entries of other consumers and return them with their fields."""

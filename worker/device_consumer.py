@@ -222,8 +222,13 @@ class DeviceConsumer:
 
     def _drain(self, device: str) -> bool:
         consumer = self._consumers[device]
-        deliveries = consumer.read_own_pending(BATCH) or consumer.read_new(
-            block_ms=None, count=BATCH
+        # Before new entries, any pending at another consumer: a worker that paused past
+        # its lease can still read entries after this one took the device over, and its
+        # commit then fails, leaving them pending there (they were lost: nobody read them).
+        deliveries = (
+            consumer.read_own_pending(BATCH)
+            or consumer.claim_others(BATCH)
+            or consumer.read_new(block_ms=None, count=BATCH)
         )
         if isinstance(self.decode, DecodePool):
             self.decode.prefetch(device, self._fresh(self.states[device], deliveries))

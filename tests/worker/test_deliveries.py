@@ -39,6 +39,21 @@ def test_idle_entries_are_reclaimed_with_delivery_count(client: redis.Redis) -> 
     assert redeliveries.samples[0].value == 1
 
 
+def test_entries_pending_at_others_are_claimed_at_once_and_own_ones_left(
+    client: redis.Redis,
+) -> None:
+    alice, bob = consumer(client, "alice"), consumer(client, "bob")
+    for n in range(3):
+        client.xadd("s", {"n": str(n)})
+    alice.read_new(block_ms=None, count=2)
+    [own] = bob.read_new(block_ms=None)
+    assert [d.fields["n"] for d in bob.claim_others()] == [b"0", b"1", b"2"]
+    rows = client.xpending_range("s", GROUP, "-", "+", 10)
+    assert {row["consumer"] for row in rows} == {b"bob"}
+    assert [row["times_delivered"] for row in rows] == [2, 2, 1]
+    assert bob.claim_others() == [] and own.deliveries == 1
+
+
 def test_dead_letter_keeps_error_not_payload(client: redis.Redis) -> None:
     alice = consumer(client, "alice")
     client.xadd("s", {"codes": b"\x00" * 100, "job": "j"})

@@ -4,6 +4,7 @@ dead-lettered once, against a real Redis."""
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -16,7 +17,7 @@ from worker.device_state import make_frame_decoder
 from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
 from worker.recordings import load_recording, start_recording
-from worker.redis_keys import DEAD_LETTER_STREAM, DEVICES_SET, frame_stream
+from worker.redis_keys import DEAD_LETTER_STREAM, DEVICES_SET, events_stream, frame_stream
 from worker.result_store import RESULTS_DIR, ResultStore
 
 
@@ -82,3 +83,35 @@ def test_a_device_forgotten_from_the_registry_is_let_go(
     forget_device(client, "a", silent_after_s=0.0)
     consumer.poll()
     assert set(consumer.states) == {"b"}
+
+
+def test_entries_a_lapsed_owner_read_after_the_take_over_are_decoded_by_the_new_one(
+    client: redis.Redis, tmp_path: Path
+) -> None:
+    """Worker A's lease lapses (a pause), B takes the device over with nothing pending,
+    then A, waking, reads frames 1 and 2 into its own pending list (its commit would fail:
+    it no longer holds the lease). B takes them over before new entries and decodes
+    them in order; they used to stay pending at A, and a later owner acked them unread."""
+    store = ResultStore(tmp_path / RESULTS_DIR, retention_s=3600)
+
+    def worker(owner: str, lease_ms: int) -> DeviceConsumer:
+        return DeviceConsumer(
+            client, store, owner=owner, lease_ms=lease_ms, max_deliveries=3,
+            decode=make_frame_decoder("independent", "itoh"), stop=threading.Event(),
+        )  # fmt: skip
+
+    a, b = worker("A", 100), worker("B", 5000)
+    publish_frame(client, frame("cam", 0), maxlen=10)
+    a.poll()
+    time.sleep(0.3)  # A's lease lapses
+    b.poll()
+    assert "cam" in b.states
+    publish_frame(client, frame("cam", 1), maxlen=10)
+    publish_frame(client, frame("cam", 2), maxlen=10)
+    assert len(a._consumers["cam"].read_new(block_ms=None, count=10)) == 2
+    publish_frame(client, frame("cam", 3), maxlen=10)
+    while b.poll():
+        pass
+    events = [(e[b"sequence"], e[b"worker"]) for _, e in client.xrange(events_stream("cam"))]
+    assert events == [(b"0", b"A"), (b"1", b"B"), (b"2", b"B"), (b"3", b"B")]
+    assert client.xpending(frame_stream("cam"), "workers")["pending"] == 0
