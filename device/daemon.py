@@ -12,6 +12,7 @@ as a training pair instead of being streamed. Control commands from
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import logging
 import queue
 import select
@@ -32,7 +33,7 @@ from device.health import DeviceHealth
 from device.link_parser import DROP_CAUSES, LinkParser
 from device.link_protocol import DEFAULT_MAX_PAYLOAD, FLAG_BRACKET, DataPacket, encode_control
 from device.publisher import FramePublisher
-from models.errors import McamError
+from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
 from worker.frame_message import FrameMessage
 from worker.redis_keys import validate_device_id
@@ -75,6 +76,17 @@ def packet_params(packet: DataPacket) -> SensorParams:
                                "bits": packet.bits, "gain": packet.gain or None})
 
 
+def check_port_url(url: str) -> None:
+    """Refuse a port URL whose scheme pyserial does not know: retrying could never open
+    it, unlike a tty that is not plugged in yet."""
+    scheme, separator, _ = url.partition("://")
+    if separator and importlib.util.find_spec(f"serial.urlhandler.protocol_{scheme}") is None:
+        raise InvalidInputError(
+            f"pyserial does not know the port URL scheme {scheme!r} ({url}); use a device "
+            "path (/dev/ttyACM0), socket://HOST:PORT, rfc2217://HOST:PORT or loop://"
+        )
+
+
 def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
     """Open ``url`` with pyserial (any URL :func:`serial.serial_for_url` knows).
 
@@ -82,6 +94,7 @@ def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
     says whether data is there, not how much, so the reader waits with ``select``
     and then takes everything available in one read.
     """
+    check_port_url(url)
     timeout = 0 if url.startswith("socket://") else read_timeout_s
     return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=1.0)
 
@@ -101,6 +114,8 @@ class DeviceDaemon:
         self._parser = self._new_parser()
         self._parser_base: Counter[str] = Counter()
         self._outbox: queue.Queue[bytes] = queue.Queue(maxsize=64)
+        # A command whose write failed (the link broke): sent first on the next link.
+        self._unsent: bytes | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_sequence: int | None = None
@@ -119,12 +134,17 @@ class DeviceDaemon:
             self.health.add("control_rejected")
 
     def _flush_outbox(self, port: Any) -> None:
+        """Write the queued commands to the camera, in order. A write that fails (a
+        timeout, the link gone) keeps its command for the next link, where it goes
+        first (it was dropped, uncounted); the failure itself ends this link."""
         while True:
-            try:
-                data = self._outbox.get_nowait()
-            except queue.Empty:
-                return
-            port.write(data)
+            if self._unsent is None:
+                try:
+                    self._unsent = self._outbox.get_nowait()
+                except queue.Empty:
+                    return
+            port.write(self._unsent)
+            self._unsent = None
             self.health.add("control_sent")
 
     # ---- frames ----

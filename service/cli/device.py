@@ -18,7 +18,7 @@ import argparse
 import signal
 import threading
 
-from device.daemon import DaemonConfig, DeviceDaemon
+from device.daemon import DaemonConfig, DeviceDaemon, check_port_url
 from device.datasets import DatasetLimits
 from service.cli.options import add_log_level_flag, start_logging
 from service.cli.worker import redis_url_for
@@ -44,6 +44,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def run(args: argparse.Namespace) -> int:
     settings = get_settings()
     device = validate_device_id(args.device_id)
+    check_port_url(args.port)
     start_logging(args)
     client = connect(redis_url_for(settings), timeout_s=1.0)
     limits = DatasetLimits(settings.dataset_max_pairs, settings.dataset_max_bytes)

@@ -9,11 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import redis
+import serial
 
 from device import link_protocol as lp
+from device.commands import FrameRateCommand
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.datasets import DatasetLimits
 from device.faults import Faults
+from device.link_parser import LinkParser
 from device.sim_link import TcpEndpoint
 from tests.device.conftest import health, stream_frames, wait_for
 from worker.embedded_redis import EmbeddedRedis
@@ -289,3 +292,35 @@ def test_a_packet_the_daemon_fails_on_is_counted_and_the_reader_goes_on(
         daemon._feed(b"".join(lp.encode_packet(p) for p in packets))
     assert handled == [0, 2] and daemon.health.counts["dropped_rejected"] == 1
     assert "frame 1 could not be handled" in caplog.text
+
+
+class StuckThenFreePort:
+    """A port whose first write times out (the camera stopped reading), then accepts."""
+
+    def __init__(self) -> None:
+        self.written: list[bytes] = []
+        self.stuck = True
+
+    def write(self, data: bytes) -> int:
+        if self.stuck:
+            self.stuck = False
+            raise serial.SerialTimeoutException("Write timeout")
+        self.written.append(data)
+        return len(data)
+
+
+def test_a_command_whose_write_timed_out_goes_first_on_the_next_link(
+        client: redis.Redis) -> None:
+    """The timeout ends the link (the daemon reconnects); the command is not lost but
+    written first once the port is back, before commands queued after it."""
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client)
+    daemon.send_command(FrameRateCommand(command="set_frame_rate", fps=5.0))
+    daemon.send_command(FrameRateCommand(command="set_frame_rate", fps=7.0))
+    port = StuckThenFreePort()
+    with pytest.raises(serial.SerialTimeoutException):
+        daemon._flush_outbox(port)
+    daemon._flush_outbox(port)
+    parser = LinkParser(lp.DEFAULT_MAX_PAYLOAD)
+    sent = [packet for data in port.written for packet in parser.feed(data)]
+    assert [getattr(packet, "fps", None) for packet in sent] == [5.0, 7.0]
+    assert daemon.health.counts["control_sent"] == 2
