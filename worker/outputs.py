@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from models.exr_header import decode_attributes, sensor_attributes
 from models.formation import SensorParams, reconstruct
+from models.frames import encode_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 
 #: Result-store key suffixes of a job's outputs.
@@ -54,15 +55,11 @@ def encode_exr_result(
     )
 
 
-def _npy(array: NDArray[Any]) -> bytes:
-    buffer = io.BytesIO()
-    np.save(buffer, array, allow_pickle=False)
-    return buffer.getvalue()
-
-
 def encode_winding(winding: NDArray[np.integer]) -> bytes:
     """The winding map as ``.npy`` bytes (int64, the frame's shape)."""
-    return _npy(np.asarray(winding, dtype=np.int64))
+    buffer = io.BytesIO()
+    np.save(buffer, np.asarray(winding, dtype=np.int64), allow_pickle=False)
+    return buffer.getvalue()
 
 
 def encode_outputs(
@@ -80,5 +77,5 @@ def encode_outputs(
         "winding": encode_winding(winding),
     }
     if options.get("half", False):
-        files["codes"] = _npy(np.asarray(codes))
+        files["codes"] = encode_frame(codes, None, "npy")
     return files

@@ -27,7 +27,6 @@ job decodes as a keyframe. A redelivered frame (stream entry at or before
 
 from __future__ import annotations
 
-import io
 import json
 import time
 import uuid
@@ -39,6 +38,7 @@ import redis
 
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
+from models.frames import encode_frame
 from worker.deliveries import entry_order
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue
@@ -211,12 +211,6 @@ def _params_key(params: SensorParams) -> str:
     return params.model_dump_json(exclude={"seed"})
 
 
-def _npy(codes: np.ndarray) -> bytes:
-    buffer = io.BytesIO()
-    np.save(buffer, codes)
-    return buffer.getvalue()
-
-
 class Recorder:
     """The worker's side: appends frames to active recordings and queues their video jobs."""
 
@@ -264,7 +258,7 @@ class Recorder:
             return
         if index and (message.discont or message.sequence != (recording.last_sequence or 0) + 1):
             update["keyframes"] = ",".join(map(str, [*recording.keyframes, index]))
-        self.store.write(frame_key(recording.id, index), _npy(message.codes))
+        self.store.write(frame_key(recording.id, index), encode_frame(message.codes, None, "npy"))
         update["frames"] = index + 1
         if not self._set(recording, update, state="recording", frames=index):
             return
