@@ -87,15 +87,20 @@ class ServiceState:
             self.embedded.stop()
 
 
+def embedded_redis_for(settings: Settings) -> EmbeddedRedis | None:
+    """The embedded Redis of the data dir when no ``MCAM_REDIS_URL`` is set (not started).
+    ``mcam api`` and ``mcam serve`` start it before anything else, so that a data dir
+    another command already serves is refused in one line, not by a traceback from the
+    app's startup; they pass its URL on, and the app starts one only when run otherwise."""
+    if settings.redis_url is not None:
+        return None
+    return EmbeddedRedis(settings.data_dir, keep_alive=True, maxmemory=settings.redis_maxmemory)
+
+
 def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
     """Connect to Redis (starting the embedded one when no URL is set) and open the store."""
-    embedded = None
-    url = settings.redis_url
-    if url is None:
-        embedded = EmbeddedRedis(
-            settings.data_dir, keep_alive=True, maxmemory=settings.redis_maxmemory
-        )
-        url = embedded.start()
+    embedded = embedded_redis_for(settings)
+    url = settings.redis_url if embedded is None else embedded.start()
     client = connect(url, timeout_s=settings.redis_timeout_s, fail_fast=True)
     problem = durability_problem(client)
     if problem is not None:

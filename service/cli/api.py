@@ -16,10 +16,10 @@ from pydantic import ValidationError
 
 from models.errors import InvalidInputError
 from service.api.header_timeout import header_timeout_protocol
+from service.api.state import embedded_redis_for
 from service.core.config import Settings, get_settings
 from service.core.security import KEY_FILE_NAME, KeyRing
 from service.main import create_app
-from worker.embedded_redis import EmbeddedRedis
 
 
 def settings_with(settings: Settings, **updates: Any) -> Settings:
@@ -91,15 +91,6 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     add_listen_arguments(parser)
     parser.set_defaults(func=run)
-
-
-def embedded_redis_for(settings: Settings) -> EmbeddedRedis | None:
-    """The embedded Redis of the data dir when no ``MCAM_REDIS_URL`` is set (not started).
-    The command starts it before anything else, so that a data dir another command
-    already serves is refused in one line, not by a traceback from the app's startup."""
-    if settings.redis_url is not None:
-        return None
-    return EmbeddedRedis(settings.data_dir, keep_alive=True, maxmemory=settings.redis_maxmemory)
 
 
 def run(args: argparse.Namespace) -> int:

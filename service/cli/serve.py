@@ -33,7 +33,8 @@ import threading
 import time
 from types import FrameType
 
-from service.cli.api import announce, embedded_redis_for, serve_http, settings_with
+from service.api.state import embedded_redis_for
+from service.cli.api import announce, serve_http, settings_with
 from service.core.config import get_settings
 from service.core.security import KeyRing
 from worker.embedded_redis import terminate_with_parent
