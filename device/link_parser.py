@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Iterator
 
 from device.link_protocol import (
     CRC_SIZE,
@@ -155,12 +156,7 @@ class LinkParser:
 
     def _verify(self, ptype: int, end: int) -> Packet | None:
         """Check and decode the complete candidate packet in ``buf[:end]``."""
-        raw = memoryview(self._buf)[:end]
-        try:
-            crc_ok = packet_crc_ok(raw)
-        finally:
-            raw.release()
-        if not crc_ok:
+        if not self._crc_ok(0, end):
             self._drop("truncated" if self._next_header_before(end) else "bad_crc")
             return None
         payload = bytes(self._buf[HEADER_SIZE : end - CRC_SIZE])
@@ -176,31 +172,36 @@ class LinkParser:
         self.packets_ok += 1
         return packet
 
+    def _crc_ok(self, start: int, end: int) -> bool:
+        """Whether the candidate packet in ``buf[start:end]`` has a correct CRC."""
+        raw = memoryview(self._buf)[start:end]
+        try:
+            return packet_crc_ok(raw)
+        finally:
+            raw.release()
+
+    def _later_headers(self, end: int | None = None) -> Iterator[tuple[int, int]]:
+        """``(start, payload length)`` of each signature with a valid header that starts
+        inside ``buf[1:end]`` (None: to the end of the buffer), in order."""
+        at = self._buf.find(SIGNATURE, 1, end)
+        while 0 < at and at + HEADER_SIZE <= len(self._buf):
+            _, length, header_ok = unpack_header(bytes(self._buf[at : at + HEADER_SIZE]))
+            if header_ok:
+                yield at, length
+            at = self._buf.find(SIGNATURE, at + 1, end)
+
     def _overtaken(self) -> bool:
         """Whether a complete packet with a valid header and CRC starts after the first
         byte of the buffer (behind the partial packet at its start)."""
-        at = self._buf.find(SIGNATURE, 1)
-        while 0 < at and at + HEADER_SIZE <= len(self._buf):
-            _, length, header_ok = unpack_header(bytes(self._buf[at : at + HEADER_SIZE]))
+        for at, length in self._later_headers():
             end = at + HEADER_SIZE + length + CRC_SIZE
-            if header_ok and length <= self.max_payload and end <= len(self._buf):
-                raw = memoryview(self._buf)[at:end]
-                try:
-                    if packet_crc_ok(raw):
-                        return True
-                finally:
-                    raw.release()
-            at = self._buf.find(SIGNATURE, at + 1)
+            if length <= self.max_payload and end <= len(self._buf) and self._crc_ok(at, end):
+                return True
         return False
 
     def _next_header_before(self, end: int) -> bool:
         """Whether a signature with a valid header starts inside ``buf[1:end]``."""
-        at = self._buf.find(SIGNATURE, 1, end)
-        while 0 < at and at + HEADER_SIZE <= len(self._buf):
-            if unpack_header(bytes(self._buf[at : at + HEADER_SIZE]))[2]:
-                return True
-            at = self._buf.find(SIGNATURE, at + 1, end)
-        return False
+        return any(True for _ in self._later_headers(end))
 
     def _drop(self, cause: str) -> None:
         """Count a rejected candidate and resume the signature hunt one byte later."""
