@@ -16,6 +16,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.outputs import STREAM_EXR_COMPRESSION
+from worker.recordings import MAX_RECORDING_SAMPLES
 from worker.redis_memory import DEFAULT_MAXMEMORY
 
 
@@ -64,9 +65,9 @@ class Settings(BaseSettings):
     max_pixels: int = Field(4096 * 4096, gt=0, description="per frame (all frames of a video)")
     max_video_frames: int = Field(600, gt=0)
     max_video_samples: int = Field(
-        2**26,
+        MAX_RECORDING_SAMPLES,
         gt=0,
-        le=2**27,
+        le=2 * MAX_RECORDING_SAMPLES,
         description="code values of a whole video (frames x pixels x channels); a job "
         "stores them as one Redis value (2 bytes each, Redis takes at most 512 MB) and a "
         "worker holds about 20 bytes each while decoding",
