@@ -21,13 +21,20 @@ from worker.redis_keys import DEAD_LETTER_STREAM, DEVICES_SET, events_stream, fr
 from worker.result_store import RESULTS_DIR, ResultStore
 
 
-@pytest.fixture
-def consumer(client: redis.Redis, tmp_path: Path) -> DeviceConsumer:
+def device_worker(
+    client: redis.Redis, tmp_path: Path, owner: str = "w1", lease_ms: int = 5000
+) -> DeviceConsumer:
+    """A worker's device side, decoding with itoh, storing under ``tmp_path``."""
     store = ResultStore(tmp_path / RESULTS_DIR, retention_s=3600)
     return DeviceConsumer(
-        client, store, owner="w1", lease_ms=5000, max_deliveries=3,
+        client, store, owner=owner, lease_ms=lease_ms, max_deliveries=3,
         decode=make_frame_decoder("independent", "itoh"), stop=threading.Event(),
     )  # fmt: skip
+
+
+@pytest.fixture
+def consumer(client: redis.Redis, tmp_path: Path) -> DeviceConsumer:
+    return device_worker(client, tmp_path)
 
 
 def frame(device: str, sequence: int) -> FrameMessage:
@@ -92,15 +99,7 @@ def test_entries_a_lapsed_owner_read_after_the_take_over_are_decoded_by_the_new_
     then A, waking, reads frames 1 and 2 into its own pending list (its commit would fail:
     it no longer holds the lease). B takes them over before new entries and decodes
     them in order; they used to stay pending at A, and a later owner acked them unread."""
-    store = ResultStore(tmp_path / RESULTS_DIR, retention_s=3600)
-
-    def worker(owner: str, lease_ms: int) -> DeviceConsumer:
-        return DeviceConsumer(
-            client, store, owner=owner, lease_ms=lease_ms, max_deliveries=3,
-            decode=make_frame_decoder("independent", "itoh"), stop=threading.Event(),
-        )  # fmt: skip
-
-    a, b = worker("A", 100), worker("B", 5000)
+    a, b = device_worker(client, tmp_path, "A", 100), device_worker(client, tmp_path, "B")
     publish_frame(client, frame("cam", 0), maxlen=10)
     a.poll()
     time.sleep(0.3)  # A's lease lapses
