@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import time
 from pathlib import Path
 
@@ -141,14 +142,22 @@ class ResultStore:
         except FileNotFoundError:
             return False
 
-    def purge_expired(self, now_s: float | None = None) -> int:
+    def purge_expired(
+        self, now_s: float | None = None, stop: threading.Event | None = None
+    ) -> int:
         """Delete results older than the retention time, and temp files a writer left
-        when it died (older than an hour); empty folders go too. Returns how many files."""
+        when it died (older than an hour); empty folders go too. Returns how many files.
+
+        A store of a week of 30 frames/s streams holds millions of files and takes
+        minutes to walk (about 6 us a file here): run it off any loop with deadlines, and
+        set ``stop`` to end the walk early (the rest waits for the next purge)."""
         now = time.time() if now_s is None else now_s
         cutoff = now - self.retention_s
         tmp_cutoff = now - min(self.retention_s, TMP_MAX_AGE_S)
         removed = 0
         for folder, _dirs, files in os.walk(self.root, topdown=False):
+            if stop is not None and stop.is_set():
+                break
             for name in files:
                 file = Path(folder, name)
                 limit = tmp_cutoff if name.endswith(_TMP_SUFFIX) else cutoff

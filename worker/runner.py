@@ -12,8 +12,8 @@ read new ones; each decodes its jobs' frames in a child process of its own, see
 ``worker/device_consumer.py``), and the main thread, which writes this worker's
 heartbeat to the ``workers`` hash every ``heartbeat_s``, renews its device leases
 (so ``heartbeat_s`` must be shorter than ``lease_ms``), keeps its in-flight jobs
-from looking idle (so long jobs are not reclaimed from a live worker) and purges
-expired results.
+from looking idle (so long jobs are not reclaimed from a live worker). A purge thread
+deletes expired results every :data:`PURGE_EVERY_S`.
 On SIGTERM the consumers finish the job or frame in hand (a long video job hands
 itself back to the queue), leases are released and the heartbeat is removed. A
 second signal exits at once; unacked work is then reclaimed by others.
@@ -173,11 +173,12 @@ class Worker:
                     target=self._device_loop, args=(decode,), name="devices", daemon=True
                 )
             )
-        for thread in threads:
+        purger = threading.Thread(target=self._purge_loop, name="purge", daemon=True)
+        for thread in [*threads, purger]:
             thread.start()
         log.info("worker %s running (%d job threads)", self.id, self.config.concurrency)
         self._heartbeat_loop(threads)
-        for thread in threads:
+        for thread in [*threads, purger]:
             thread.join()
         self._forget_heartbeat()
         self.client.close()
@@ -300,11 +301,10 @@ class Worker:
             decode.close()
 
     def _heartbeat_loop(self, threads: list[threading.Thread]) -> None:
-        """Beat, keep in-flight jobs and device leases alive and purge expired results
-        every ``heartbeat_s`` until the worker stops and ``threads`` have finished: a
-        job in hand while the worker stops is still this worker's (another would
-        reclaim it and decode it again)."""
-        last_purge = 0.0
+        """Beat and keep in-flight jobs and device leases alive every ``heartbeat_s``
+        until the worker stops and ``threads`` have finished: a job in hand while the
+        worker stops is still this worker's (another would reclaim it and decode it
+        again)."""
         while not self.stop.is_set() or any(thread.is_alive() for thread in threads):
             # Each on its own: a full Redis refuses the beat (a write that grows a hash)
             # but not the touches, which keep in-flight jobs from being reclaimed.
@@ -312,16 +312,27 @@ class Worker:
             if self._devices is not None:
                 self._heartbeat_step("renew device leases", self._devices.renew_all)
             self._heartbeat_step("beat", self._beat)
-            if time.monotonic() - last_purge > PURGE_EVERY_S:
-                last_purge = time.monotonic()
-                removed = self.store.purge_expired()
-                if removed:
-                    log.info("worker %s purged %d expired results", self.id, removed)
             if not self.stop.wait(self.config.heartbeat_s):
                 continue
             deadline = time.monotonic() + self.config.heartbeat_s
             for thread in threads:
                 thread.join(max(0.0, deadline - time.monotonic()))
+
+    def _purge_loop(self) -> None:
+        """Purge expired results now and every :data:`PURGE_EVERY_S` until the worker
+        stops, on a thread of its own: walking a store of millions of stream frames
+        takes minutes, longer than a device lease or a job's idle time, and must not
+        hold up the heartbeat. A failing purge (a folder we may not read) is logged
+        and tried again next time."""
+        while not self.stop.is_set():
+            try:
+                removed = self.store.purge_expired(stop=self.stop)
+            except OSError as exc:
+                log.warning("worker %s: could not purge expired results: %s", self.id, exc)
+            else:
+                if removed:
+                    log.info("worker %s purged %d expired results", self.id, removed)
+            self.stop.wait(PURGE_EVERY_S)
 
     def _heartbeat_step(self, what: str, step: Callable[[], object]) -> None:
         """Run one step of the heartbeat; a transient Redis error is logged, not raised."""

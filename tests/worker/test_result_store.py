@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import stat
+import threading
 import time
 from pathlib import Path
 
@@ -111,6 +112,19 @@ def test_purge_expired_removes_old_files_and_empty_folders(store: ResultStore) -
     assert store.read("jobs/new/result.exr") == b"new"
     assert store.purge_expired(now_s=time.time() + 120) == 1
     assert list(store.root.iterdir()) == []
+
+
+def test_a_stopped_purge_leaves_the_rest_for_the_next(store: ResultStore) -> None:
+    """A purge asked to stop (the worker is shutting down) ends its walk; what it did
+    not reach is purged next time."""
+    old = store.write("jobs/old/result.exr", b"old")
+    past = time.time() - 3600
+    os.utime(old, (past, past))
+    stop = threading.Event()
+    stop.set()
+    assert store.purge_expired(stop=stop) == 0
+    assert store.exists("jobs/old/result.exr")
+    assert store.purge_expired() == 1
 
 
 def test_purge_removes_temp_files_of_dead_writers(store: ResultStore) -> None:

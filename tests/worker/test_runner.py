@@ -587,3 +587,52 @@ def test_a_job_stays_in_flight_through_a_full_redis_and_counts_a_delivery_after_
     assert 0 not in worker._in_flight and delivery.deliveries == 2
     [pending] = client.xpending_range(JOBS_STREAM, GROUP, "-", "+", 1)
     assert pending["times_delivered"] == 2
+
+
+class _SlowStore(ResultStore):
+    """A result store whose purge takes as long as a week of 30 frames/s streams
+    (minutes): it fails once, as an unreadable folder would, then walks until released."""
+
+    def __init__(self, root: Path) -> None:
+        super().__init__(root, retention_s=3600)
+        self.purging = threading.Event()
+        self.release = threading.Event()
+        self.calls = 0
+
+    def purge_expired(self, now_s: float | None = None, stop: threading.Event | None = None) -> int:
+        self.calls += 1
+        if self.calls == 1:
+            raise PermissionError("[Errno 13] Permission denied: 'results/devices'")
+        self.purging.set()
+        self.release.wait(60)
+        return super().purge_expired(now_s, stop)
+
+
+def test_a_long_purge_does_not_hold_up_the_heartbeat(
+    embedded: EmbeddedRedis, client: redis.Redis, data_dir: Path, monkeypatch, wait_until
+) -> None:
+    """The heartbeat (which renews device leases and in-flight jobs) keeps beating while
+    the purge walks the store, and a purge that fails is tried again later."""
+    monkeypatch.setattr("worker.runner.PURGE_EVERY_S", 0.05)
+    worker = Worker(
+        WorkerConfig(redis_url=embedded.url, data_dir=data_dir, devices=False, heartbeat_s=0.1),
+        worker_id="w-purge",
+    )
+    worker.store = store = _SlowStore(data_dir / RESULTS_DIR)
+    running = threading.Thread(target=worker.run, daemon=True)
+    running.start()
+    try:
+        wait_until(store.purging.is_set, 30, "the second purge")
+
+        def beat_ns() -> int:
+            raw = client.hget(WORKERS_HEARTBEAT, "w-purge")
+            return json.loads(raw)["ts_ns"] if raw else 0
+
+        first = beat_ns()
+        wait_until(lambda: beat_ns() > first, 30, "a beat during the purge")
+        assert store.purging.is_set() and not store.release.is_set()
+    finally:
+        store.release.set()
+        worker.request_stop()
+        running.join(30)
+    assert not running.is_alive()
