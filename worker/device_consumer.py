@@ -97,7 +97,7 @@ def result_key(device: str, sequence: int, entry_id: str) -> str:
     """Result-store key of a device frame's EXR: by sequence number (files list in frame
     order), then stream entry id. A camera that restarts counts from 0 again, and a
     DISCONT frame may repeat a number: the entry id keeps each frame's file its own (a
-    redelivered entry writes the same file again)."""
+    redelivered entry finds its file and keeps it)."""
     return f"devices/{device}/{sequence:012d}-{entry_id}.exr"
 
 
@@ -296,7 +296,9 @@ class DeviceConsumer:
             message.codes, frame.winding, message.params, frame.info, self.exr_options
         )
         key = result_key(device, message.sequence, delivery.entry_id)
-        self.store.write(key, data)
+        # A frame's file is never replaced: an owner that lost its lease mid-frame would
+        # overwrite the file its successor committed (a redelivery finds it complete).
+        self.store.write(key, data, replace=False)
         self.recorder.add_frame(message, delivery.entry_id)
         encode_ns = time.perf_counter_ns() - start
         event = _event("frame", message, key=key, decode_ns=frame.timings_ns.get("decode", 0))

@@ -75,6 +75,16 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def _link_unless_present(tmp: Path, final: Path) -> None:
+    """Give ``tmp``'s file the name ``final`` unless that name exists (atomic), then drop
+    the temp name."""
+    try:
+        os.link(tmp, final)
+    except FileExistsError:
+        pass
+    tmp.unlink()
+
+
 class ResultStore:
     """Files under ``root``; ``write`` is atomic (temp file, fsync, rename, fsync dir)."""
 
@@ -107,8 +117,9 @@ class ResultStore:
         except FileNotFoundError:
             raise _not_found(key) from None
 
-    def write(self, key: str, data: bytes) -> Path:
-        """Store ``data`` under ``key`` durably; an existing result is replaced atomically."""
+    def write(self, key: str, data: bytes, *, replace: bool = True) -> Path:
+        """Store ``data`` under ``key`` durably; an existing result is replaced atomically,
+        or, with ``replace=False``, kept (the first complete file under a key wins)."""
         final = self.path(key)
         make_private_dirs(final.parent)
         tmp = final.with_name(f".{final.name}.{os.getpid()}.{time.monotonic_ns()}{_TMP_SUFFIX}")
@@ -118,7 +129,10 @@ class ResultStore:
                 handle.write(data)
                 handle.flush()
                 os.fsync(handle.fileno())
-            os.replace(tmp, final)
+            if replace:
+                os.replace(tmp, final)
+            else:
+                _link_unless_present(tmp, final)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise

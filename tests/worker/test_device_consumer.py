@@ -11,7 +11,7 @@ import pytest
 import redis
 
 from tests.worker.conftest import ramp_frame
-from worker.device_consumer import DeviceConsumer
+from worker.device_consumer import DeviceConsumer, LeaseLost
 from worker.device_registry import forget_device
 from worker.device_state import make_frame_decoder
 from worker.frame_message import FrameMessage
@@ -114,3 +114,27 @@ def test_entries_a_lapsed_owner_read_after_the_take_over_are_decoded_by_the_new_
     events = [(e[b"sequence"], e[b"worker"]) for _, e in client.xrange(events_stream("cam"))]
     assert events == [(b"0", b"A"), (b"1", b"B"), (b"2", b"B"), (b"3", b"B")]
     assert client.xpending(frame_stream("cam"), "workers")["pending"] == 0
+
+
+def test_an_owner_that_lost_the_lease_mid_frame_leaves_its_successors_file(
+    client: redis.Redis, tmp_path: Path
+) -> None:
+    """A decodes frame 0 and pauses past its lease before committing; B takes over and
+    commits frame 0. A's late write must not replace the file B's event points at (A
+    writes zip-compressed, B uncompressed, so the bytes tell them apart)."""
+    a = device_worker(client, tmp_path, "A", 100)
+    a.exr_options = {"exr_compression": "zip"}
+    b = device_worker(client, tmp_path, "B")
+    publish_frame(client, frame("cam", 0), maxlen=10)
+    client.sadd(DEVICES_SET, "cam")
+    assert a._hold("cam")
+    [delivery] = a._consumers["cam"].read_new(block_ms=None, count=1)
+    time.sleep(0.3)  # A's lease lapses mid-frame
+    while b.poll():
+        pass
+    ((_, event),) = client.xrange(events_stream("cam"))
+    committed = b.store.read(event[b"key"].decode())
+    with pytest.raises(LeaseLost):
+        a._reconstruct("cam", a.states["cam"], delivery)
+    assert b.store.read(event[b"key"].decode()) == committed
+    assert event[b"worker"] == b"B"

@@ -114,6 +114,16 @@ def test_purge_expired_removes_old_files_and_empty_folders(store: ResultStore) -
     assert list(store.root.iterdir()) == []
 
 
+def test_a_write_that_may_not_replace_keeps_the_first_file(store: ResultStore) -> None:
+    store.write("devices/cam/0.exr", b"first", replace=False)
+    store.write("devices/cam/0.exr", b"second", replace=False)
+    assert store.read("devices/cam/0.exr") == b"first"
+    assert store.keys() == ["devices/cam/0.exr"]
+    assert [p.name for p in (store.root / "devices" / "cam").iterdir()] == ["0.exr"]
+    store.write("devices/cam/0.exr", b"third")
+    assert store.read("devices/cam/0.exr") == b"third"
+
+
 def test_a_stopped_purge_leaves_the_rest_for_the_next(store: ResultStore) -> None:
     """A purge asked to stop (the worker is shutting down) ends its walk; what it did
     not reach is purged next time."""
