@@ -50,6 +50,16 @@ end
 return claimed
 """
 
+#: Read up to ARGV[4] new entries of stream KEYS[1] for consumer ARGV[3] of group ARGV[2],
+#: only while key KEYS[2] holds ARGV[1]; 0 when it does not.
+_READ_NEW_WHILE = """
+if redis.call('GET', KEYS[2]) ~= ARGV[1] then return 0 end
+local reply = redis.call('XREADGROUP', 'GROUP', ARGV[2], ARGV[3], 'COUNT', ARGV[4],
+                         'STREAMS', KEYS[1], '>')
+if not reply then return {} end
+return reply[1][2]
+"""
+
 
 @dataclass
 class Delivery:
@@ -71,6 +81,11 @@ def entry_order(entry_id: str) -> tuple[int, int]:
     return int(ms), int(seq or 0)
 
 
+def _pairs(flat: list[bytes]) -> dict[bytes, bytes]:
+    """A stream entry's fields as Lua returns them, ``[name, value, ...]``, as a dict."""
+    return dict(zip(flat[::2], flat[1::2], strict=True))
+
+
 def _fields(raw: dict[bytes, bytes] | None) -> dict[str, bytes]:
     return {k.decode(): v for k, v in (raw or {}).items()}
 
@@ -86,6 +101,7 @@ class StreamConsumer:
         self.metrics = Metrics(client)
         self._touch = client.register_script(_TOUCH)
         self._claim_others = client.register_script(_CLAIM_OTHERS)
+        self._read_new_while = client.register_script(_READ_NEW_WHILE)
         ensure_group(client, stream)
 
     def read_new(self, *, block_ms: int | None, count: int = 1) -> list[Delivery]:
@@ -97,6 +113,19 @@ class StreamConsumer:
             Delivery(self.stream, entry_id.decode(), _fields(raw))
             for _stream, entries in reply or []
             for entry_id, raw in entries
+        ]
+
+    def read_new_while(self, key: str, value: str, count: int = 1) -> list[Delivery] | None:
+        """Entries never delivered before (not blocking), read only while Redis key
+        ``key`` holds ``value``, in one step: None when it does not. A reader under a
+        lease that lapsed while it paused can then not strand entries in its own pending
+        list after another reader took the stream over."""
+        reply = self._read_new_while(keys=[self.stream, key], args=[value, GROUP, self.name, count])
+        if reply == 0:
+            return None
+        return [
+            Delivery(self.stream, entry_id.decode(), _fields(_pairs(raw)))
+            for entry_id, raw in reply
         ]
 
     def read_own_pending(self, count: int = 100) -> list[Delivery]:

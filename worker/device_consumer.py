@@ -222,14 +222,17 @@ class DeviceConsumer:
 
     def _drain(self, device: str) -> bool:
         consumer = self._consumers[device]
-        # Before new entries, any pending at another consumer: a worker that paused past
-        # its lease can still read entries after this one took the device over, and its
-        # commit then fails, leaving them pending there (they were lost: nobody read them).
-        deliveries = (
-            consumer.read_own_pending(BATCH)
-            or consumer.claim_others(BATCH)
-            or consumer.read_new(block_ms=None, count=BATCH)
-        )
+        # Before new entries, any pending at another consumer (a worker that stopped
+        # while it held frames, or one from before new entries were read under the lease).
+        deliveries = consumer.read_own_pending(BATCH) or consumer.claim_others(BATCH)
+        if not deliveries:
+            # Only while the lease is ours: a worker that paused past its lease would
+            # otherwise read entries after another took the device over, fail to commit
+            # them, and leave them pending behind frames the new owner has done.
+            new = consumer.read_new_while(lease_key(device), self.owner, BATCH)
+            if new is None:
+                raise LeaseLost(device)
+            deliveries = new
         if isinstance(self.decode, DecodePool):
             self.decode.prefetch(device, self._fresh(self.states[device], deliveries))
         for delivery in deliveries:

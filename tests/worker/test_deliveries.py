@@ -25,6 +25,21 @@ def test_read_done_removes_entry(client: redis.Redis) -> None:
     assert client.xlen("s") == 0 and client.xpending("s", GROUP)["pending"] == 0
 
 
+def test_new_entries_are_read_only_while_the_key_holds_the_value(client: redis.Redis) -> None:
+    """Read under a lease: nothing is read (or left pending) once another holds it."""
+    alice = consumer(client, "alice")
+    assert alice.read_new_while("lease", "alice") is None
+    client.set("lease", "alice")
+    assert alice.read_new_while("lease", "alice") == []
+    first = client.xadd("s", {"n": "1", "codes": b"\x00\xff"}).decode()
+    client.xadd("s", {"n": "2"})
+    [delivery] = alice.read_new_while("lease", "alice", count=1)
+    assert delivery.entry_id == first and delivery.fields == {"n": b"1", "codes": b"\x00\xff"}
+    client.set("lease", "bob")
+    assert alice.read_new_while("lease", "alice", count=5) is None
+    assert client.xpending("s", GROUP)["pending"] == 1
+
+
 def test_idle_entries_are_reclaimed_with_delivery_count(client: redis.Redis) -> None:
     alice, bob = consumer(client, "alice"), consumer(client, "bob")
     client.xadd("s", {"n": "1"})

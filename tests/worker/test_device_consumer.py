@@ -138,3 +138,25 @@ def test_an_owner_that_lost_the_lease_mid_frame_leaves_its_successors_file(
         a._reconstruct("cam", a.states["cam"], delivery)
     assert b.store.read(event[b"key"].decode()) == committed
     assert event[b"worker"] == b"B"
+
+
+def test_an_owner_whose_lease_lapsed_reads_no_new_entries(
+    client: redis.Redis, tmp_path: Path
+) -> None:
+    """A pauses past its lease between taking the device and reading it; B takes over.
+    When A goes on to read, it gets nothing and lets the device go, so no entry is left
+    pending at A behind frames B has done."""
+    a, b = device_worker(client, tmp_path, "A", 100), device_worker(client, tmp_path, "B")
+    publish_frame(client, frame("cam", 0), maxlen=10)
+    client.sadd(DEVICES_SET, "cam")
+    assert a._hold("cam")
+    time.sleep(0.3)  # A's lease lapses
+    b.poll()
+    publish_frame(client, frame("cam", 1), maxlen=10)
+    with pytest.raises(LeaseLost):
+        a._drain("cam")
+    assert client.xpending(frame_stream("cam"), "workers")["pending"] == 0
+    while b.poll():
+        pass
+    events = [e[b"sequence"] for _, e in client.xrange(events_stream("cam"))]
+    assert events == [b"0", b"1"]
