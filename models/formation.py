@@ -77,6 +77,13 @@ class SensorParams(BaseModel):
             problems = describe_validation_error(exc, "parameters")
             raise InvalidInputError(f"invalid sensor parameters: {problems}") from None
 
+    def differences(self, other: SensorParams) -> list[str]:
+        """Names of the parameters whose values differ from ``other``'s, leaving out the
+        noise seed: frames of one stream or video share a sensor and an exposure, while
+        each frame's noise is its own draw."""
+        mine, theirs = self.model_dump(exclude={"seed"}), other.model_dump(exclude={"seed"})
+        return [name for name, value in mine.items() if theirs[name] != value]
+
     @property
     def code_dtype(self) -> type[np.unsignedinteger]:
         """Storage dtype of the codes: uint8 for bits <= 8, else uint16."""

@@ -191,11 +191,6 @@ def _planes(codes: NDArray[Any], params: SensorParams) -> NDArray[np.float64]:
     return m[:, :, None] if m.ndim == 2 else m
 
 
-def _stream_key(params: SensorParams) -> dict[str, Any]:
-    """The parameters that must stay fixed within a stream (noise seeds may vary)."""
-    return params.model_dump(exclude={"seed"})
-
-
 class StreamDecoder:
     """Decodes frames of one or many streams in ``mode`` with spatial decoder ``decoder``."""
 
@@ -277,7 +272,7 @@ class StreamDecoder:
             return "discont"
         if sequence is not None and state.sequence is not None and sequence != state.sequence + 1:
             return "gap"
-        if state.u.shape != m.shape or _stream_key(state.params) != _stream_key(params):
+        if state.u.shape != m.shape or state.params.differences(params):
             return "params"
         interval = self.config.keyframe_interval
         if interval and state.frames - state.last_keyframe >= interval:

@@ -206,14 +206,22 @@ def _read_zip(
         frames = [first]
         for entry in entries[1:]:
             frame = _zip_frame(archive, entry, overrides, limits, most)
-            if frame.codes.shape != first.codes.shape or frame.params != first.params:
+            differences = first.params.differences(frame.params)
+            if frame.codes.shape != first.codes.shape:
+                differences.insert(0, f"size ({_size(frame.codes)} against {_size(first.codes)})")
+            if differences:
                 raise InvalidInputError(
-                    f"{entry.filename} differs from {entries[0].filename} in size or "
-                    "parameters; all frames of a video share one size and one set of sensor "
-                    "parameters"
+                    f"{entry.filename} differs from {entries[0].filename} in "
+                    f"{', '.join(differences)}; all frames of a video share one size and one "
+                    "set of sensor parameters (only the noise seed may differ)"
                 )
             frames.append(frame)
     return WrappedVideo(np.stack([f.codes for f in frames]), first.params)
+
+
+def _size(codes: NDArray[Any]) -> str:
+    """A frame's shape as ``H x W`` or ``H x W x C``."""
+    return " x ".join(str(side) for side in codes.shape)
 
 
 def frame_entry_limit(codes: NDArray[Any]) -> int:

@@ -445,3 +445,12 @@ def test_half_float_underflow_also_names_a_wrong_scene_gain() -> None:
 @pytest.mark.filterwarnings("error")
 def test_a_scene_referred_overflow_gives_no_numpy_warning() -> None:
     assert to_scene(np.array([1e300]), 1e-300)[0] == np.inf
+
+
+def test_parameter_differences_leave_out_the_noise_seed() -> None:
+    base = SensorParams(encoding="mantissa", seed=1)
+    assert base.differences(base.model_copy(update={"seed": 2})) == []
+    assert base.differences(SensorParams(encoding="modulo", bits=10, seed=1)) == [
+        "encoding",
+        "bits",
+    ]

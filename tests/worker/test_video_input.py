@@ -209,13 +209,38 @@ def test_frames_no_decoder_takes_are_refused_before_any_job(
         decode_video(data, fmt, FLAGS)
 
 
-def test_zip_frames_must_match() -> None:
+def zip_of(frames: dict[str, tuple[np.ndarray, SensorParams]]) -> bytes:
+    """A zip of PNG frames, each with its own parameters."""
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
-        archive.writestr("a.png", encode_frame(codes()[0], PARAMS, "png"))
-        archive.writestr("b.png", encode_frame(codes()[0][:4], PARAMS, "png"))
-    with pytest.raises(InvalidInputError, match="differs"):
-        decode_video(buffer.getvalue(), "zip")
+        for name, (frame, params) in frames.items():
+            archive.writestr(name, encode_frame(frame, params, "png"))
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("second", "named"),
+    [
+        ((codes()[0][:4], PARAMS), r"in size \(4 x 5 against 6 x 5\)"),
+        ((codes()[0], PARAMS.model_copy(update={"alpha": 3.0})), "in alpha;"),
+        ((codes()[0], PARAMS.model_copy(update={"gain": 2.0, "read_noise": 0.01})),
+         "in gain, read_noise;"),
+    ],
+    ids=["size", "alpha", "exposure and noise"],
+)  # fmt: skip
+def test_zip_frames_must_match_and_the_error_names_what_differs(
+    second: tuple[np.ndarray, SensorParams], named: str
+) -> None:
+    data = zip_of({"a.png": (codes()[0], PARAMS), "b.png": second})
+    with pytest.raises(InvalidInputError, match=f"b.png differs from a.png {named}"):
+        decode_video(data, "zip")
+
+
+def test_zip_frames_may_differ_in_noise_seed() -> None:
+    """Frames simulated one by one (``mcam simulate --seed k``) each carry their seed."""
+    frames = {f"f{k}.png": (codes()[k], PARAMS.model_copy(update={"seed": k})) for k in range(3)}
+    result = decode_video(zip_of(frames), "zip")
+    np.testing.assert_array_equal(result.codes, codes()[:3])
 
 
 def test_a_later_zip_entry_may_inflate_only_to_what_the_first_frame_needs() -> None:
