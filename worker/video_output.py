@@ -37,6 +37,7 @@ from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTr
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
+from models.formation import to_scene
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 from models.metrics import reinhard
 from models.output_range import ensure_fits, ensure_nonzero_kept
@@ -242,9 +243,10 @@ def _check_clip(frames: Sequence[NDArray[np.floating]]) -> tuple[int, int]:
 
 
 def check_hdr10_frame_size(height: int, width: int, remedy: str) -> None:
-    """Refuse frames (px) smaller than the HEVC encoder takes; ``remedy`` says what the
-    caller can ask for instead."""
-    if min(height, width) < MIN_HDR10_SIDE:
+    """Refuse frames (px) smaller than the HEVC encoder takes once an odd side is padded
+    by a pixel (as :func:`write_hdr10` does); ``remedy`` says what the caller can ask for
+    instead."""
+    if min(height + height % 2, width + width % 2) < MIN_HDR10_SIDE:
         raise InvalidInputError(
             f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels, "
             f"got {height} x {width}; {remedy}"
@@ -360,19 +362,31 @@ def exr_sequence_zip(
     scene_gain: float | None = None,
 ) -> None:
     """A zip of one EXR per frame (``frame_00000.exr``, ...) of reconstructed ``frames``
-    (wrap units, or scene units when the pipeline knows the gain), each compressed as
-    ``compression`` (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and
-    that frame's ``attributes`` (string header attributes, one mapping per frame) in
-    its header. Refused with :class:`models.errors.OutputOverflowError` or
-    :class:`models.errors.OutputUnderflowError` if a pixel would be stored as inf or 0
-    (``scene_gain``: the gain scene-referred frames were divided by, for the remedy)."""
-    _check_clip(frames)
-    dtype = np.float16 if half else np.float32
-    for index, frame in enumerate(frames):
-        ensure_fits(frame, dtype, f"video frame {index}", scene_gain)
-        ensure_nonzero_kept(frame, dtype, f"video frame {index}", scene_gain)
+    (wrap units ``x``; stored as scene units ``x / scene_gain`` when the gain is known,
+    converted a frame at a time), each compressed as ``compression``
+    (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and that frame's
+    ``attributes`` (string header attributes, one mapping per frame) in its header.
+    Refused, before anything is written, as :func:`check_exr_sequence` says."""
+    check_exr_sequence(frames, half=half, scene_gain=scene_gain)
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
         for index, frame in enumerate(frames):
             header = {"frameIndex": str(index)} | (attributes[index] if attributes else {})
-            data = encode_exr(frame, header, half=half, compression=compression)
+            stored = frame if scene_gain is None else to_scene(frame, scene_gain)
+            data = encode_exr(stored, header, half=half, compression=compression)
             archive.writestr(f"frame_{index:05d}.exr", data)
+
+
+def check_exr_sequence(
+    frames: Sequence[NDArray[np.floating]], *, half: bool, scene_gain: float | None
+) -> None:
+    """Raise :class:`models.errors.OutputOverflowError` or
+    :class:`models.errors.OutputUnderflowError` if a pixel of ``frames`` (wrap units,
+    stored divided by ``scene_gain`` when given) would be stored as inf or 0 in float32
+    (or float16 with ``half``). A pipeline calls it before encoding any other output, so
+    a clip that cannot be stored fails before minutes of video encoding."""
+    _check_clip(frames)
+    dtype = np.float16 if half else np.float32
+    for index, frame in enumerate(frames):
+        stored = frame if scene_gain is None else to_scene(frame, scene_gain)
+        ensure_fits(stored, dtype, f"video frame {index}", scene_gain)
+        ensure_nonzero_kept(stored, dtype, f"video frame {index}", scene_gain)

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
 from models.exr_header import reconstruction_attributes, stream_attributes
-from models.formation import SensorParams, to_scene
+from models.formation import SensorParams
 from models.hdr_io import DEFAULT_EXR_COMPRESSION
 from worker.stream_state import FrameDecode, StreamState
 from worker.temporal import StreamDecoder
@@ -38,6 +38,7 @@ from worker.video_input import WrappedVideo
 from worker.video_output import (
     Hdr10Settings,
     Target,
+    check_exr_sequence,
     exr_sequence_zip,
     write_hdr10,
     write_sdr_preview,
@@ -179,6 +180,9 @@ def write_outputs(
             f"unknown video outputs {sorted(unknown)}; choose from: {', '.join(OUTPUTS)}"
         )
     total = len(decoded.irradiance)
+    gain = video.params.gain
+    if "exr_zip" in targets:
+        check_exr_sequence(decoded.irradiance, half=options.half, scene_gain=gain)
     facts: dict[str, Any] = {}
     for name, target in targets.items():
 
@@ -192,12 +196,9 @@ def write_outputs(
         elif name == "sdr":
             write_sdr_preview(decoded.irradiance, target, options.hdr10.fps, progress=step)
         else:
-            gain = video.params.gain
-            frames = decoded.irradiance
-            if gain is not None:
-                frames = [to_scene(x, gain) for x in frames]
             exr_sequence_zip(
-                frames, target, half=options.half, compression=options.exr_compression,
+                decoded.irradiance, target, half=options.half,
+                compression=options.exr_compression,
                 attributes=exr_frame_attributes(decoded, video.params, options.mode),
                 scene_gain=gain,
             )  # fmt: skip

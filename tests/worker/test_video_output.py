@@ -23,6 +23,7 @@ from worker.video_output import (
     REFERENCE_WHITE,
     Hdr10Settings,
     add_hdr10_stream,
+    check_hdr10_frame_size,
     exr_sequence_zip,
     frame_rate,
     hdr10_yuv,
@@ -146,6 +147,15 @@ def test_encoder_packets_carry_sane_decode_timestamps(count: int) -> None:
 def test_hdr10_refuses_frames_libx265_cannot_take() -> None:
     with pytest.raises(InvalidInputError, match="at least 64 x 64"):
         write_hdr10([np.ones((48, 48))] * 2, io.BytesIO())
+
+
+def test_the_hdr10_size_check_counts_the_padding_of_an_odd_side() -> None:
+    """63 x 63 frames are padded to 64 x 64 and encoded, so the early checks of the API
+    and the CLI (which see the frame's own size) must let them through."""
+    check_hdr10_frame_size(63, 63, "")
+    with pytest.raises(InvalidInputError, match="got 62 x 63"):
+        check_hdr10_frame_size(62, 63, "")
+    assert write_hdr10([np.ones((63, 63))] * 2, io.BytesIO()).max_cll > 0
 
 
 def test_sdr_preview_reads_back() -> None:

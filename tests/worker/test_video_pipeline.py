@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import io
+import zipfile
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, OutputOverflowError
 from models.formation import SensorParams, encode
 from worker.child_process import ChildProcess
 from worker.video_input import WrappedVideo
@@ -75,3 +76,24 @@ def test_unknown_outputs_are_refused() -> None:
     decoded = decode_video_frames(video, VideoOptions(decoder="itoh"))
     with pytest.raises(InvalidInputError, match="unknown video outputs"):
         write_outputs(decoded, video, {"gif": io.BytesIO()}, VideoOptions())
+
+
+def test_an_exr_sequence_that_cannot_be_stored_fails_before_any_video_is_encoded() -> None:
+    """Half floats cannot hold x / gain past 65504: the job fails at once, naming the
+    remedy, rather than after encoding the HDR10 and SDR videos it would then throw away."""
+    small = clip()
+    codes = small.codes.repeat(2, axis=1).repeat(2, axis=2)  # 64 x 64, HDR10's smallest
+    video = WrappedVideo(codes, PARAMS.model_copy(update={"gain": 1e-5}))
+    decoded = decode_video_frames(video, VideoOptions(decoder="itoh"))
+    stages: list[str] = []
+    hdr10, exrs = io.BytesIO(), io.BytesIO()
+    with pytest.raises(OutputOverflowError, match="video frame 0"):
+        write_outputs(
+            decoded, video, {"hdr10": hdr10, "sdr": io.BytesIO(), "exr_zip": exrs},
+            VideoOptions(decoder="itoh", half=True),
+            lambda stage, _done, _total: stages.append(stage),
+        )  # fmt: skip
+    assert stages == [] and hdr10.getvalue() == b"" and exrs.getvalue() == b""
+    write_outputs(decoded, video, {"exr_zip": exrs}, VideoOptions(decoder="itoh"))
+    with zipfile.ZipFile(exrs) as archive:
+        assert len(archive.namelist()) == FRAMES
