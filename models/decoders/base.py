@@ -69,30 +69,21 @@ def integer_percentile(values: NDArray[np.integer], percentile: float) -> int:
     return lowest + int(np.searchsorted(np.cumsum(counts), index, side="right"))
 
 
-def anchor_winding(
-    relative: NDArray[np.int64],
-    params: SensorParams,
-    trusted: NDArray[np.bool_] | None = None,
-) -> NDArray[np.int64]:
+def anchor_winding(relative: NDArray[np.int64], params: SensorParams) -> NDArray[np.int64]:
     """Fix the unknown constant of an unwrapping: the darkest pixels get W = 0.
 
     Unwrapping recovers W only up to a global offset. The exposure is set for the
     dark detail, so the darkest pixels never wrap: we shift W so that its
     lower-tail value (the ``ANCHOR_PERCENTILE`` percentile, robust to a few
     isolated errors) is 0, then clamp to [0, max_winding] (W >= 0 since x >= 0).
-    ``trusted`` (optional) restricts that percentile to pixels whose relative W
-    is known to be exact, so a region of guesses cannot move the anchor.
     """
-    return clip_winding(relative - anchor_offset(relative, trusted), params)
+    return clip_winding(relative - anchor_offset(relative), params)
 
 
-def anchor_offset(
-    relative: NDArray[np.int64], trusted: NDArray[np.bool_] | None = None
-) -> int:
+def anchor_offset(relative: NDArray[np.int64]) -> int:
     """The constant :func:`anchor_winding` takes off ``relative``: its
-    ``ANCHOR_PERCENTILE`` percentile (over ``trusted`` pixels when any are given)."""
-    basis = relative if trusted is None or not trusted.any() else relative[trusted]
-    return integer_percentile(basis, ANCHOR_PERCENTILE)
+    ``ANCHOR_PERCENTILE`` percentile."""
+    return integer_percentile(relative, ANCHOR_PERCENTILE)
 
 
 class Decoder(ABC):

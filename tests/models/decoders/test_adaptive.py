@@ -256,3 +256,20 @@ def test_network_calls_and_doubtful_pixels_are_what_decoding_uses() -> None:
     assert best.doubtful_pixels(analysis, m.shape) is None
     flat = np.full((64, 64), 0.3)
     assert decoder.network_calls(analyse(flat, MODULO, 64), flat.shape) == []
+
+
+@pytest.mark.parametrize("quality", ["fast", "balanced"])
+def test_dark_pixels_in_a_hard_tile_still_anchor_the_frame(quality: str) -> None:
+    """A dark corner whose texture makes its tile hard, then a smooth ramp to W = 4:
+    the ramp's tiles are exact by integration, and the dark pixels (W = 0) lie only in
+    the hard tile. Anchoring on the exact tiles alone set their darkest, W = 1, to 0 and
+    shifted the whole frame a wrap down."""
+    rows, cols = np.mgrid[0:256, 0:256]
+    x = 0.3 + 0.05 * np.maximum(np.maximum(rows, cols) - 56, 0)
+    x[20:36, 20:36] = np.random.default_rng(0).uniform(0.0, 0.9, (16, 16))
+    frame = encode(x, MANTISSA)
+    result = AdaptiveDecoder(quality).decode(frame.codes, MANTISSA)
+    smooth = np.ones(x.shape, bool)
+    smooth[:48, :48] = False
+    assert result.info["details"]["routes"][INTEGRATION] > 0.5
+    np.testing.assert_array_equal(result.winding[smooth], frame.winding[smooth])
