@@ -24,6 +24,7 @@ queue's own byte bound (``MCAM_JOBS_MAX_BYTES``, 503 ``queue_full``) sits below
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import threading
@@ -80,15 +81,26 @@ def is_out_of_memory(exc: BaseException) -> bool:
     return isinstance(exc, redis.exceptions.ResponseError) and _OOM_REPLY in str(exc)
 
 
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` is a write refused for want of disk space or quota (the result
+    store's disk): it succeeds once results expire or an operator frees space."""
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
 def is_transient(exc: BaseException) -> bool:
-    """Whether a Redis command may succeed if tried again later: Redis unreachable, not
-    answering within the socket timeout, or full (workers keep the entry and retry;
-    nothing counts against the job)."""
-    return isinstance(exc, UNREACHABLE) or is_out_of_memory(exc)
+    """Whether a step may succeed if tried again later: Redis unreachable, not answering
+    within the socket timeout, or full, or the results disk full (workers keep the entry
+    and retry; nothing counts against the job)."""
+    return isinstance(exc, UNREACHABLE) or is_out_of_memory(exc) or is_disk_full(exc)
 
 
 def redis_trouble(exc: BaseException) -> str:
-    """A log line's words for a transient Redis error (:func:`is_transient`)."""
+    """A log line's words for a transient error (:func:`is_transient`)."""
+    if is_disk_full(exc):
+        return (
+            f"the results disk is full ({exc}); jobs and frames wait, not lost, until there "
+            "is room (free space, or lower MCAM_RESULT_RETENTION_S)"
+        )
     if is_out_of_memory(exc):
         return (
             "Redis is full (at its maxmemory) and refuses writes; jobs wait in the queue "

@@ -6,6 +6,7 @@ under ``noeviction`` it then refuses every command that would grow its memory.
 
 from __future__ import annotations
 
+import errno
 import logging
 import threading
 import time
@@ -231,3 +232,12 @@ def test_trouble_is_warned_once_per_period_and_place(caplog: pytest.LogCaptureFi
     assert lines[0].startswith("jobs: Redis is full") and "more times" not in lines[0]
     assert lines[1].startswith("heartbeat: Redis unreachable (gone)")
     assert lines[2].endswith("(4 more times since the last warning)")
+
+
+def test_a_full_results_disk_is_waited_out_and_said_so() -> None:
+    """Writing to /dev/full is what a full filesystem answers: ENOSPC."""
+    with pytest.raises(OSError) as full, open("/dev/full", "wb") as device:
+        device.write(b"x")
+        device.flush()
+    assert is_transient(full.value) and "results disk is full" in redis_trouble(full.value)
+    assert not is_transient(PermissionError(errno.EACCES, "Permission denied"))

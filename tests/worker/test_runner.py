@@ -6,6 +6,7 @@ and per-device ordering through two workers with a takeover.
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import os
@@ -636,3 +637,40 @@ def test_a_long_purge_does_not_hold_up_the_heartbeat(
         worker.request_stop()
         running.join(30)
     assert not running.is_alive()
+
+
+class _FullDisk(ResultStore):
+    """A result store on a disk with no room left until ``room`` is set (as the result
+    of a write on a full filesystem: the errno Linux gives)."""
+
+    room = False
+
+    def write(self, key: str, data: bytes, *, replace: bool = True) -> Path:
+        if not self.room:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.path(key)))
+        return super().write(key, data, replace=replace)
+
+
+def test_a_full_results_disk_keeps_the_job_waiting_not_failed(
+    embedded: EmbeddedRedis, client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """A job whose result cannot be written for want of space stays in flight without
+    counting a delivery, as with a full Redis, and succeeds once there is room (it used
+    to fail for good, dead-lettered as an internal error, within a second)."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    worker = Worker(WorkerConfig(redis_url=embedded.url, data_dir=data_dir))
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    store = _FullDisk(data_dir / RESULTS_DIR, retention_s=3600)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=worker.stop)
+    worker._in_flight[0] = (consumer, delivery)
+    for _ in range(3):
+        with pytest.raises(OSError, match="No space left"):
+            worker._handle(processor, consumer, delivery, 0)
+    assert worker._in_flight[0] == (consumer, delivery) and delivery.deliveries == 1
+    assert queue.get(job.id).state is not JobState.FAILED
+    assert queue.stats()["dead_letters"] == 0
+    store.room = True
+    worker._handle(processor, consumer, delivery, 0)
+    assert queue.get(job.id).state is JobState.SUCCEEDED
