@@ -150,7 +150,12 @@ def test_a_job_the_input_makes_impossible_fails_at_once_without_a_dead_letter(
 
 
 def test_a_job_failing_for_the_worker_goes_to_dead_letters_after_max_deliveries(
-    queue: JobQueue, client: redis.Redis, workers, data_dir: Path, wait_until, finished,
+    queue: JobQueue,
+    client: redis.Redis,
+    workers,
+    data_dir: Path,
+    wait_until,
+    finished,
     make_frame,
 ) -> None:
     """A failure that is not the input's (here the job's result folder cannot be made:
@@ -189,7 +194,9 @@ def test_entries_naming_no_readable_job_are_dead_lettered_and_their_holds_releas
     wait_until(lambda: client.xlen(DEAD_LETTER_STREAM) == 3, 30, "three dead letters")
     letters = [letter for _id, letter in client.xrange(DEAD_LETTER_STREAM)]
     assert [letter[b"code"] for letter in letters] == [
-        b"not_found", b"internal_error", b"not_found"
+        b"not_found",
+        b"internal_error",
+        b"not_found",
     ]
     assert letters[0][b"job"].decode() == gone.id and letters[1][b"job"].decode() == corrupt.id
     assert b"corrupt" in letters[1][b"message"] and b"job" not in letters[2]
@@ -257,8 +264,15 @@ def test_cancel_while_running_is_honoured(
     [("reconstruction", None, None), ("video", 2, {"mode": "independent"})],
 )
 def test_cancelling_a_long_decode_stops_it_and_the_worker_stays_live(
-    queue: JobQueue, client: redis.Redis, workers, wait_until, finished, make_frame,
-    kind: str, frames: int | None, options: dict | None,
+    queue: JobQueue,
+    client: redis.Redis,
+    workers,
+    wait_until,
+    finished,
+    make_frame,
+    kind: str,
+    frames: int | None,
+    options: dict | None,
 ) -> None:
     """Graph cuts on 1024 x 1024 random codes run about a minute on one core, most of it
     holding the interpreter lock: in the job's child process the worker keeps beating,
@@ -556,6 +570,20 @@ def test_the_reconnect_delay_doubles_to_its_cap(
     assert reconnect_delay(failures, jitter) == pytest.approx(seconds)
 
 
+def job_in_hand(
+    url: str, client: redis.Redis, queue: JobQueue, data_dir: Path, frame: SensorFrame
+) -> tuple[str, Worker, StreamConsumer, Delivery]:
+    """A queued itoh job read by job thread 0 of an in-process worker and in its care
+    (in flight), as the job loop holds it before handling: (job id, worker, consumer,
+    delivery)."""
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    worker = Worker(WorkerConfig(redis_url=url, data_dir=data_dir))
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    worker._in_flight[0] = (consumer, delivery)
+    return job.id, worker, consumer, delivery
+
+
 class _BuggyProcessor(JobProcessor):
     """A processor with a bug: every job raises an error that is not Redis's."""
 
@@ -569,14 +597,9 @@ def test_a_job_stays_in_flight_through_a_full_redis_and_counts_a_delivery_after_
     """While Redis refuses the job's writes the entry stays in flight (the heartbeat keeps
     touching it while the loop backs off); after any other error it leaves the
     heartbeat's care and counts a delivery, so max_deliveries ends it."""
-    frame: SensorFrame = make_frame()
-    queue.submit("reconstruction", frame.codes, frame.params, "itoh")
-    worker = Worker(WorkerConfig(redis_url=embedded.url, data_dir=data_dir))
-    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
-    [delivery] = consumer.read_new(block_ms=None)
     store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    _, worker, consumer, delivery = job_in_hand(embedded.url, client, queue, data_dir, make_frame())
     processor = JobProcessor(client, store, max_deliveries=3, stop=worker.stop)
-    worker._in_flight[0] = (consumer, delivery)
     client.config_set("maxmemory", 1)
     with pytest.raises(redis.exceptions.ResponseError, match="OOM"):
         worker._handle(processor, consumer, delivery, 0)
@@ -657,20 +680,17 @@ def test_a_full_results_disk_keeps_the_job_waiting_not_failed(
     """A job whose result cannot be written for want of space stays in flight without
     counting a delivery, as with a full Redis, and succeeds once there is room (it used
     to fail for good, dead-lettered as an internal error, within a second)."""
-    frame: SensorFrame = make_frame()
-    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
-    worker = Worker(WorkerConfig(redis_url=embedded.url, data_dir=data_dir))
-    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
-    [delivery] = consumer.read_new(block_ms=None)
     store = _FullDisk(data_dir / RESULTS_DIR, retention_s=3600)
+    job_id, worker, consumer, delivery = job_in_hand(
+        embedded.url, client, queue, data_dir, make_frame()
+    )
     processor = JobProcessor(client, store, max_deliveries=3, stop=worker.stop)
-    worker._in_flight[0] = (consumer, delivery)
     for _ in range(3):
         with pytest.raises(OSError, match="No space left"):
             worker._handle(processor, consumer, delivery, 0)
     assert worker._in_flight[0] == (consumer, delivery) and delivery.deliveries == 1
-    assert queue.get(job.id).state is not JobState.FAILED
+    assert queue.get(job_id).state is not JobState.FAILED
     assert queue.stats()["dead_letters"] == 0
     store.room = True
     worker._handle(processor, consumer, delivery, 0)
-    assert queue.get(job.id).state is JobState.SUCCEEDED
+    assert queue.get(job_id).state is JobState.SUCCEEDED
