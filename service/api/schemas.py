@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
+import redis
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
 from service.api.state import Slots
 from worker.jobs import JobRecord, JobState
 from worker.queue import JobQueue
+from worker.redis_memory import is_transient, redis_trouble
+
+log = logging.getLogger(__name__)
 
 
 class ErrorBody(BaseModel):
@@ -46,6 +51,12 @@ def job_response(
     if wait_s > 0 and slots.take():
         try:
             record = queue.wait(record.id, wait_s)
+        except redis.exceptions.RedisError as exc:
+            if not is_transient(exc):
+                raise
+            # The job is accepted and stored: an answer of 503 would have the client
+            # submit it again, so it gets its 202 and polls once Redis is back.
+            log.warning("job %s: the wait for it ended early: %s", record.id, redis_trouble(exc))
         finally:
             slots.release()
         if record.state.finished:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import io
+import os
+import signal
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -27,11 +30,34 @@ from tests.service.conftest import (
     running_worker,
     serve,
 )
-from worker.embedded_redis import connect
+from worker.embedded_redis import EmbeddedRedis, connect
 from worker.redis_keys import JOBS_STREAM
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
+
+
+def test_a_wait_cut_short_by_redis_answers_202_for_the_accepted_job(tmp_path: Path) -> None:
+    """Redis dies while a submit waits for its job (no worker runs): the job is stored,
+    so the answer is its 202, not a 503 that would have the client submit it twice.
+    Once Redis is back (its append-only file kept the job) the job is there, queued."""
+    embedded = EmbeddedRedis(tmp_path / "redis-home")
+    with embedded as redis_url, serve(create_app(make_settings(tmp_path, redis_url))) as url:
+        pid = embedded.pid
+        assert pid is not None
+        threading.Timer(1.0, os.kill, (pid, signal.SIGKILL)).start()
+        data, _ = frame_png()
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"}) as http:
+            reply = http.post(
+                "/v1/reconstructions", files={"file": ("frame.png", data, "image/png")},
+                headers={"Prefer": "wait=30"}, timeout=60,
+            )  # fmt: skip
+            assert reply.status_code == 202, reply.text
+            job = reply.json()
+            assert reply.headers["Location"] == job["url"] == f"/v1/jobs/{job['id']}"
+            embedded.stop()
+            embedded.start()
+            assert http.get(job["url"]).json()["state"] == "queued"
 
 
 def test_prefer_wait_returns_the_finished_job(client: Client, worker: Worker) -> None:
