@@ -250,6 +250,11 @@ class JobProcessor:
             self._drop(consumer, delivery, delivery.text("job"), dead_letter=error)
             return
         while True:
+            if record.state.finished:
+                # Settled before (a worker stopped between its result and the ack, or a
+                # cancel): dropped, however often it was delivered.
+                self._finish(consumer, delivery, record.id)
+                return
             if delivery.deliveries > self.max_deliveries:
                 self._fail(
                     consumer,
@@ -298,9 +303,6 @@ class JobProcessor:
         consumer.give_back(delivery)
 
     def _run(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
-        if record.state.finished:
-            self._finish(consumer, delivery, record.id)
-            return
         now = time.time_ns()
         started = record.started_ns or now
         changed, _ = self.jobs.transition(

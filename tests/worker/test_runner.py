@@ -694,3 +694,27 @@ def test_a_full_results_disk_keeps_the_job_waiting_not_failed(
     store.room = True
     worker._handle(processor, consumer, delivery, 0)
     assert queue.get(job_id).state is JobState.SUCCEEDED
+
+
+def test_a_finished_job_delivered_past_the_limit_is_dropped_not_dead_lettered(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """A worker stopped between a job's success and its ack, on the job's last allowed
+    delivery: the next worker finds the job succeeded and drops the entry (it used to
+    add a worker_lost dead letter for a job that had succeeded)."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    processor.handle(consumer, delivery)
+    assert queue.get(job.id).state is JobState.SUCCEEDED
+    entry = client.xadd(JOBS_STREAM, {"job": job.id}).decode()
+    [again] = consumer.read_new(block_ms=None)
+    assert again.entry_id == entry
+    again.deliveries = 4
+    processor.handle(consumer, again)
+    assert client.xlen(DEAD_LETTER_STREAM) == 0 and client.xlen(JOBS_STREAM) == 0
+    record = queue.get(job.id)
+    assert record.state is JobState.SUCCEEDED and record.error is None
