@@ -40,6 +40,7 @@ import redis
 from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.child_process import ChildProcess
+from worker.config_checks import heartbeat_problem
 from worker.decode_pool import DecodePool
 from worker.deliveries import Delivery, StreamConsumer
 from worker.device_consumer import DeviceConsumer
@@ -110,13 +111,9 @@ class WorkerConfig:
                 f"unknown stream EXR compression {self.stream_exr_compression!r}; set "
                 f"MCAM_STREAM_EXR_COMPRESSION to one of: {', '.join(EXR_COMPRESSIONS)}"
             )
-        if self.heartbeat_s * 1000 >= min(self.lease_ms, self.claim_idle_ms):
-            raise McamError(
-                f"the heartbeat ({self.heartbeat_s} s) renews device leases and in-flight jobs: "
-                f"it must be shorter than the lease ({self.lease_ms} ms) and the claim idle time "
-                f"({self.claim_idle_ms} ms); lower MCAM_HEARTBEAT_S or raise "
-                "MCAM_DEVICE_LEASE_MS / MCAM_CLAIM_IDLE_MS"
-            )
+        problem = heartbeat_problem(self.heartbeat_s, self.lease_ms, self.claim_idle_ms)
+        if problem:
+            raise McamError(problem)
 
 
 def new_worker_id() -> str:

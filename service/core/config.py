@@ -15,6 +15,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
 from models.hdr_io import EXR_COMPRESSIONS
+from worker.config_checks import heartbeat_problem
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.recordings import MAX_RECORDING_SAMPLES
 from worker.redis_memory import DEFAULT_MAXMEMORY
@@ -140,6 +141,19 @@ class Settings(BaseSettings):
         DEFAULT_MAX_BYTES, gt=0,
         description="bytes of bracketed reference pairs kept per device; the oldest are removed",
     )  # fmt: skip
+
+    @field_validator("heartbeat_s")
+    @classmethod
+    def _beats_within_lease(cls, value: float, info: ValidationInfo) -> float:
+        """Refused here, not only by the worker: ``mcam serve`` and ``mcam api`` would
+        otherwise accept jobs for workers that exit at start, over and over."""
+        lease_ms, idle_ms = info.data.get("device_lease_ms"), info.data.get("claim_idle_ms")
+        if lease_ms is None or idle_ms is None:
+            return value
+        problem = heartbeat_problem(value, lease_ms, idle_ms)
+        if problem:
+            raise ValueError(problem)
+        return value
 
     @field_validator("redis_maxmemory")
     @classmethod

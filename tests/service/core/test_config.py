@@ -64,3 +64,18 @@ def test_the_embedded_redis_must_have_room_beyond_the_queues_bytes(
         Settings()
     monkeypatch.setenv("MCAM_REDIS_URL", "redis://queue:6379/0")  # its own maxmemory
     assert Settings().redis_maxmemory == 1000
+
+
+@pytest.mark.parametrize(
+    "setting", [("MCAM_CLAIM_IDLE_MS", "1000"), ("MCAM_DEVICE_LEASE_MS", "2000")]
+)
+def test_a_heartbeat_too_slow_for_the_leases_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch, setting: tuple[str, str]
+) -> None:
+    """``mcam serve`` and ``mcam api`` read these settings too: they used to accept jobs
+    for workers that exited at start, restarted over and over."""
+    monkeypatch.setenv(*setting)
+    with pytest.raises(ValidationError, match="must be shorter than the lease"):
+        Settings()
+    monkeypatch.setenv("MCAM_HEARTBEAT_S", "0.5")
+    assert Settings().heartbeat_s == 0.5
