@@ -393,8 +393,12 @@ def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) ->
 
 def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
     """Read a winding-number map written by :func:`write_winding` (int64)."""
-    fmt = frame_format(path)
-    data = Path(path).read_bytes()
+    return decode_winding(Path(path).read_bytes(), frame_format(path))
+
+
+def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
+    """A winding-number map (int64) from the bytes of a ``png``, ``tiff`` or ``npy``
+    file as :func:`write_winding` writes them."""
     with decoding(f"the {fmt.upper()} winding map"):
         if fmt == "png":
             arr = np.asarray(Image.open(io.BytesIO(data), formats=["PNG"]))

@@ -21,6 +21,7 @@ import re
 import threading
 import time
 from pathlib import Path
+from typing import BinaryIO
 
 from models.errors import McamError
 from worker.private_dirs import PRIVATE_FILE_MODE, make_private_dirs, private_dir
@@ -114,6 +115,14 @@ class ResultStore:
         """The bytes stored under ``key``; :class:`ResultNotFoundError` if there are none."""
         try:
             return self.path(key).read_bytes()
+        except FileNotFoundError:
+            raise _not_found(key) from None
+
+    def open(self, key: str) -> BinaryIO:
+        """The file under ``key`` opened for reading (:class:`ResultNotFoundError` if there
+        is none): it stays readable to the end though a purge removes it meanwhile."""
+        try:
+            return self.path(key).open("rb")
         except FileNotFoundError:
             raise _not_found(key) from None
 

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+from typing import Any, BinaryIO
+
 import numpy as np
 from fastapi import Response
 from fastapi.responses import FileResponse
@@ -36,14 +40,29 @@ def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
 IMMUTABLE = "private, max-age=31536000, immutable"
 
 
+class HeldFileResponse(FileResponse):
+    """A file response of a file opened before the response starts, so that removing
+    the file (the retention purge) between the route and the send cannot turn the
+    response into a 500 or cut it short after its headers: the response reads the open
+    file's ``/proc/self/fd`` entry (the same file, named or not) and holds the file open
+    as long as it lives."""
+
+    def __init__(self, handle: BinaryIO, **kwargs: Any) -> None:
+        held = Path(f"/proc/self/fd/{handle.fileno()}")
+        path = held if held.exists() else Path(handle.name)
+        super().__init__(path, stat_result=os.fstat(handle.fileno()), **kwargs)
+        self.handle = handle
+
+
 def stored_file(
     store: ResultStore, key: str, media_type: str, filename: str, *, immutable: bool = True
 ) -> FileResponse:
     """A stored result streamed from disk, with Range requests (a player seeks, a broken
     download resumes), ``ETag`` and ``Last-Modified``; ``immutable``: cacheable for good
-    (a job's result), else revalidated each time (a device's newest frame)."""
-    return FileResponse(
-        store.existing_path(key),
+    (a job's result), else revalidated each time (a device's newest frame). A result
+    purged meanwhile is 404 ``not_found`` or, once opened here, sent whole."""
+    return HeldFileResponse(
+        store.open(key),
         media_type=media_type,
         filename=filename,
         content_disposition_type="attachment",

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
 from models.formation import encode
-from models.frames import encode_frame, read_winding
+from models.frames import decode_winding, encode_frame, frame_format
 from models.hdr_io import read_hdr
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
@@ -80,7 +80,8 @@ def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev:
     """The bytes of ``part`` in ``fmt`` for a succeeded job."""
     stem = f"{record.id}-{part}"
     if part == "winding":
-        winding = read_winding(state.store.existing_path(record.results["winding"]))
+        key = record.results["winding"]
+        winding = decode_winding(state.store.read(key), frame_format(key))
         if fmt == "png":
             return download(winding_png(winding), fmt, stem)
         return download(winding_bytes(winding, fmt), fmt, stem)
