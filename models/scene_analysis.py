@@ -50,11 +50,9 @@ class RegionAnalysis:
 
     @property
     def difficulty(self) -> Difficulty:
-        if self.wrap_edges == 0:
-            return "none"
-        if self.residues == 0:
-            return "smooth"
-        return "dense" if self.edge_density > DENSE_EDGE_DENSITY else "sparse"
+        if self.residues:  # a tile's edges on its border count in no tile; its loops do
+            return "dense" if self.edge_density > DENSE_EDGE_DENSITY else "sparse"
+        return "smooth" if self.wrap_edges else "none"
 
 
 @dataclass(frozen=True)
@@ -83,6 +81,12 @@ def neighbour_jumps(m: NDArray[np.floating]) -> tuple[NDArray[np.int64], NDArray
     along_cols = np.rint(np.diff(m, axis=1)).astype(np.int64)
     along_rows = np.rint(np.diff(m, axis=0)).astype(np.int64)
     return along_cols, along_rows
+
+
+def has_wrap_edge(m: NDArray[np.floating]) -> bool:
+    """Whether any neighbour pair of ``m`` (H x W, wrap units) is a wrap edge (its
+    :func:`neighbour_jumps` jump is not 0); without one, W is one constant."""
+    return any(bool(np.any(jumps)) for jumps in neighbour_jumps(m))
 
 
 def residue_map(
@@ -126,7 +130,9 @@ def _region(
 def analyse(m: NDArray[np.floating], params: SensorParams, tile: int = 64) -> FrameAnalysis:
     """Analyse one channel of stored values ``m`` (H x W, wrap units) in ``tile``-pixel tiles.
 
-    Each tile's figures count the neighbour pairs and loops entirely inside it.
+    Each tile's figures count the neighbour pairs inside it and the 2x2 loops that touch
+    it: a residue on the border between tiles counts in each (in none, the tiles each
+    side were integrated, and the frame routed, as if it were not there).
     """
     m = np.asarray(m, dtype=np.float64)
     if m.ndim != 2:
@@ -142,7 +148,7 @@ def analyse(m: NDArray[np.floating], params: SensorParams, tile: int = 64) -> Fr
             c,
             along_cols[r : r + tile, c : c + tile - 1],
             along_rows[r : r + tile - 1, c : c + tile],
-            residues[r : r + tile - 1, c : c + tile - 1],
+            residues[max(r - 1, 0) : r + tile, max(c - 1, 0) : c + tile],
             (min(tile, height - r), min(tile, width - c)),
         )
         for r in range(0, height, tile)

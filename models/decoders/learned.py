@@ -35,6 +35,7 @@ from models.decoders.classical import integrate_gradient
 from models.decoders.registry import DecoderSpec
 from models.errors import InvalidInputError
 from models.formation import SensorParams
+from models.scene_analysis import has_wrap_edge
 
 ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
 THREADS_ENV = "MCAM_WORKER_THREADS"
@@ -312,15 +313,16 @@ class LearnedDecoder(Decoder):
         return self.models[params.encoding]
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        """The net's W, anchored. A uniform frame (every code equal) holds no evidence of
-        where one W ends and another begins, so it gets one W, the net's commonest answer
-        (the nets alone answered W 0..2 on an all-zero frame, UnModNet 0..15 on all-max
-        codes: an invented image)."""
-        winding = self.model_for(params).predict(m)
-        if m.size and m.min() == m.max():
-            low = int(winding.min())
-            winding = np.full_like(winding, low + int(np.bincount(winding.ravel() - low).argmax()))
-        return anchor_winding(winding, params)
+        """The net's W, anchored. A frame without a wrap edge (no neighbour differs by
+        half a wrap or more: a uniform frame, a smooth unwrapped ramp) holds no evidence
+        of where one W ends and another begins, so it gets one W, anchored to 0 as every
+        decoder anchors (the nets alone answered W 0..2 on an all-zero frame, UnModNet
+        0..15 on all-max codes, and up to W = 5 on a smooth ramp below x = 1: an invented
+        image)."""
+        model = self.model_for(params)
+        if not has_wrap_edge(m):
+            return np.zeros(m.shape, np.int64)
+        return anchor_winding(model.predict(m), params)
 
     def run_pixels(self, shape: tuple[int, int], params: SensorParams) -> list[int]:
         return self.model_for(params).run_pixels(shape)

@@ -11,6 +11,7 @@ from models.formation import SensorParams, encode, split_unwrapped
 from models.scene_analysis import (
     DENSE_EDGE_DENSITY,
     analyse,
+    has_wrap_edge,
     neighbour_jumps,
     residue_map,
 )
@@ -112,3 +113,25 @@ def test_analysis_carries_the_jumps_it_counted() -> None:
     np.testing.assert_array_equal(result.along_cols, cols)
     np.testing.assert_array_equal(result.along_rows, rows)
     assert result.frame.wrap_edges == np.count_nonzero(cols) + np.count_nonzero(rows)
+
+
+def test_a_wrap_edge_is_a_neighbour_jump_of_more_than_half_a_wrap() -> None:
+    assert not has_wrap_edge(np.tile(np.linspace(0.0, 0.99, 64), (3, 1)))
+    assert not has_wrap_edge(np.array([[0.2, 0.7]]))  # exactly half a wrap: no jump
+    assert has_wrap_edge(np.array([[0.9], [0.1]]))
+    assert not has_wrap_edge(np.zeros((1, 1)))
+
+
+def test_a_residue_on_a_tile_border_counts_in_the_tiles_it_touches() -> None:
+    """Residues only in 2x2 loops across rows 63|64: both tiles they touch hold them, so
+    auto sends those to the hard-tile decoder (counted in none, the frame read 'sparse'
+    while every tile read none or smooth)."""
+    m = np.zeros((128, 128))
+    m[63, 40:42] = [0.0, 0.33]
+    m[64, 40:42] = [0.99, 0.66]
+    loops = np.argwhere(residue_map(*neighbour_jumps(m)))
+    assert len(loops) and (loops[:, 0] == 63).all()
+    analysis = analyse(m, MODULO, 64)
+    hard = [(t.row, t.col) for t in analysis.tiles if t.residues]
+    assert hard == [(0, 0), (64, 0)]
+    assert all(t.difficulty in ("sparse", "dense") for t in analysis.tiles if t.residues)

@@ -15,7 +15,7 @@ from models import scenes
 from models.decoders import learned
 from models.decoders.registry import available_decoders, get_decoder
 from models.errors import InvalidInputError
-from models.formation import SensorParams, simulate
+from models.formation import SensorParams, encode, simulate
 from models.scenes import synthetic_scene, val256_frames
 
 
@@ -208,6 +208,21 @@ def test_a_uniform_frame_decodes_to_a_uniform_image(encoding: str, code: int) ->
             continue
         winding = decoder.decode(codes, params).winding
         assert np.ptp(winding) == 0, f"{spec.name}: W {winding.min()}..{winding.max()}"
+
+
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+def test_a_frame_without_a_wrap_edge_decodes_to_w_zero(encoding: str) -> None:
+    """A smooth ramp below x = 1: no neighbour pair wraps, so W is one constant, 0, as
+    the classical decoders find (the nets alone answered up to W = 5 on it)."""
+    params = SensorParams(encoding=encoding, bits=8, alpha=2.0)
+    x = np.tile(np.linspace(0.0, 0.99, 64), (64, 1))
+    frame = encode(x, params)
+    assert not frame.winding.any()
+    for spec in learned.specs():
+        decoder = get_decoder(spec.name)
+        if decoder.supports(params):
+            winding = decoder.decode(frame.codes, params).winding
+            assert not winding.any(), f"{spec.name}: W {winding.min()}..{winding.max()}"
 
 
 def test_two_cards_of_one_decoder_and_encoding_are_refused_naming_both(tmp_path: Path) -> None:
