@@ -128,11 +128,13 @@ class JobContext:
         if self.stop.is_set():
             raise ShutdownRequested
 
-    def progress(self, frames_done: int) -> None:
-        """Record ``frames_done`` of ``frames_total`` frames."""
-        total = max(self.record.frames_total, 1)
+    def progress(self, frames_done: int, fraction: float | None = None) -> None:
+        """Record ``frames_done`` of ``frames_total`` frames and the share of the job's
+        work done (0..1; by default the share of frames done)."""
+        if fraction is None:
+            fraction = frames_done / max(self.record.frames_total, 1)
         self.jobs.update(
-            self.record.id, frames_done=frames_done, progress=min(frames_done / total, 1.0)
+            self.record.id, frames_done=frames_done, progress=min(max(fraction, 0.0), 1.0)
         )
 
     def key(self, name: str) -> str:

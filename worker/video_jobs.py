@@ -5,15 +5,17 @@
 its ``options`` (see :func:`video_options`) pick the decoding mode, the outputs
 and the exposure scaling. Frames are decoded as one stream (the first frame is a
 keyframe), up to :data:`CHUNK_FRAMES` at a time in the job's child process
-(:meth:`worker.job_processor.JobContext.run`); progress counts decoded frames; a
-cancellation or a stopping worker ends the decode at once (a stopped job is handed
-back and redone from its first frame by the next worker, so temporal state never
-spans workers).
+(:meth:`worker.job_processor.JobContext.run`); ``frames_done`` counts decoded frames
+and ``progress`` the share of all stages (decoding, then each output's encoding); a
+cancellation or a stopping worker ends the job between frames of any stage (a stopped
+job is handed back and redone from its first frame by the next worker, so temporal
+state never spans workers).
 """
 
 from __future__ import annotations
 
 import io
+import math
 import time
 from functools import partial
 from typing import Any
@@ -40,6 +42,9 @@ VIDEO_FILES: dict[str, str] = {
 #: call carries the stream's state there and back (its previous ``u``: 0.5 MB at
 #: 256x256), and progress is reported between calls.
 CHUNK_FRAMES = 8
+#: While outputs are encoded, progress is recorded (and a cancel looked for) at most
+#: this often (s).
+CHECK_EVERY_S = 0.25
 #: The options a video job takes, with their defaults.
 DEFAULT_OPTIONS: dict[str, Any] = {
     "mode": "temporal",
@@ -95,24 +100,42 @@ def check_hdr10_size(outputs: list[str], shape: tuple[int, ...]) -> None:
         check_hdr10_frame_size(shape[1], shape[2], "ask for outputs=exr_zip,sdr")
 
 
+class StageProgress:
+    """A video job's progress through its stages (decoding, then each output), each
+    weighing the same: the job shows 100% only once its last output is written, not
+    once its frames are decoded. Between frames it also checks for a cancel or a
+    stopping worker, at most every :data:`CHECK_EVERY_S` while encoding (each check is a
+    Redis round trip, an encoded frame a few ms)."""
+
+    def __init__(self, ctx: JobContext, stages: list[str], frames: int) -> None:
+        self.ctx, self.stages, self.frames = ctx, stages, max(frames, 1)
+        self.checked = -math.inf
+
+    def __call__(self, stage: str, done: int, _total: int) -> None:
+        now = time.monotonic()
+        if stage != "decode" and done < self.frames and now - self.checked < CHECK_EVERY_S:
+            return
+        self.checked = now
+        work = self.stages.index(stage) * self.frames + done
+        decoded = done if stage == "decode" else self.frames
+        self.ctx.progress(decoded, work / (len(self.stages) * self.frames))
+        self.ctx.check_all()
+
+
 def run_video_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:
     """Decode the job's frames, write its outputs to the result store."""
     record = ctx.record
     options, outputs = video_options(record.decoder, record.options)
     video = WrappedVideo(codes, record.params)
 
-    def progress(stage: str, done: int, _total: int) -> None:
-        if stage == "decode":
-            ctx.progress(done)
-            ctx.check_all()
-
+    progress = StageProgress(ctx, ["decode", *outputs], video.frames)
     start = time.perf_counter_ns()
     decoded = decode_video_frames(
         video, options, progress, run=partial(ctx.run, hand_back=True), chunk=CHUNK_FRAMES
     )
     decoded_ns = time.perf_counter_ns()
     buffers = {name: io.BytesIO() for name in outputs}
-    facts = write_outputs(decoded, video, dict(buffers), options)
+    facts = write_outputs(decoded, video, dict(buffers), options, progress)
     ctx.check()
     results = {name: ctx.write(VIDEO_FILES[name], buffers[name].getvalue()) for name in outputs}
     return JobOutcome(

@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
+import itertools
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
 import pytest
+import redis
 
 from models.errors import InvalidInputError
 from models.hdr_io import EXR_COMPRESSIONS
-from worker.video_jobs import DEFAULT_OPTIONS, video_options
+from tests.worker.conftest import PARAMS, ramp_frame
+from worker.job_processor import JobContext
+from worker.job_store import JobStore
+from worker.queue import JobQueue
+from worker.result_store import RESULTS_DIR, ResultStore
+from worker.video_jobs import DEFAULT_OPTIONS, run_video_job, video_options
 
 
 def test_defaults_give_every_output_and_zip_compressed_exrs() -> None:
@@ -33,3 +45,38 @@ def test_bad_options_are_refused_with_the_choices(options: dict, fragment: str) 
     with pytest.raises(InvalidInputError) as caught:
         video_options("itoh", options)
     assert fragment in caught.value.message
+
+
+class _RecordingJobs(JobStore):
+    """The job store, keeping each progress update it writes."""
+
+    def __init__(self, client: redis.Redis) -> None:
+        super().__init__(client)
+        self.updates: list[tuple[int, float]] = []
+
+    def update(self, job_id: str, **fields: Any) -> None:
+        if "progress" in fields:
+            self.updates.append((fields["frames_done"], fields["progress"]))
+        super().update(job_id, **fields)
+
+
+def test_progress_reaches_one_only_when_every_output_is_written(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Decoding is the first of three stages (then HDR10 and SDR): all frames decoded
+    is a third of the job, where it used to read 100% through the encoding."""
+    monkeypatch.setattr("worker.video_jobs.CHECK_EVERY_S", 0.0)
+    frames = 6
+    codes = np.stack([ramp_frame(size=64).codes] * frames)
+    job = queue.submit(
+        "video", codes, PARAMS, "itoh", {"mode": "independent", "outputs": ["hdr10", "sdr"]}
+    )
+    jobs = _RecordingJobs(client)
+    record = jobs.load(job.id)
+    ctx = JobContext(record, jobs, ResultStore(data_dir / RESULTS_DIR, 3600), threading.Event())
+    run_video_job(ctx, codes)
+    decoded = [fraction for done, fraction in jobs.updates if done == frames]
+    assert decoded[0] == pytest.approx(1 / 3)
+    assert all(b >= a for a, b in itertools.pairwise(f for _, f in jobs.updates))
+    assert jobs.updates[-1] == (frames, 1.0)
+    assert len(jobs.updates) > frames  # the encodes report too
