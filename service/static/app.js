@@ -40,7 +40,15 @@ async function replyError(reply) {
   return new ApiError(message, reply.status, retryAfterS);
 }
 
+// An API key is sent in a header: visible ASCII only (a pasted zero-width space or dash
+// made fetch refuse the request, which read as "cannot reach the server").
+const KEY_PATTERN = /^[\x21-\x7e]*$/;
+
 async function api(path, options = {}) {
+  if (!KEY_PATTERN.test(apiKey())) {
+    throw new Error("the saved API key holds characters a key never has (a space, a " +
+      "typographic dash?); paste it again as mcam serve printed it and save it");
+  }
   const headers = { Authorization: `Bearer ${apiKey()}`, ...(options.headers || {}) };
   let reply;
   try {
@@ -56,8 +64,9 @@ async function api(path, options = {}) {
 // A wait of ms that ends early when signal aborts.
 function sleep(ms, signal) {
   return new Promise((resolve) => {
-    const timer = setTimeout(resolve, ms);
-    signal.addEventListener("abort", () => { clearTimeout(timer); resolve(); }, { once: true });
+    const onAbort = () => { clearTimeout(timer); resolve(); };
+    const timer = setTimeout(() => { signal.removeEventListener("abort", onAbort); resolve(); }, ms);
+    signal.addEventListener("abort", onAbort, { once: true });
   });
 }
 
@@ -69,6 +78,11 @@ function retryDelayMs(error, failures) {
 
 // "The server has no such thing (any more)": asking again will not help.
 const isGone = (error) => error instanceof ApiError && [404, 410].includes(error.status);
+
+// A client error that asking again will not mend (a key without the read scope, or
+// revoked: 401, 403); not a timeout (408) or a rate limit (429).
+const isFinal = (error) => error instanceof ApiError && error.status >= 400 &&
+  error.status < 500 && ![408, 429].includes(error.status);
 
 function retryNote(error, delayMs) {
   const reason = error.status
@@ -105,13 +119,16 @@ function sensorFields(form, includeExposure) {
   if (includeExposure && $("overexposed").value) form.append("overexposed", $("overexposed").value);
 }
 
+// The sensor's frame of an HDR image, as a TIFF: it holds grey and colour frames alike
+// (a PNG frame is grey only, and every Radiance .hdr is colour).
 async function simulateFrame(file) {
   setStatus("simulating the sensor…");
   const form = new FormData();
   form.append("file", file);
+  form.append("format", "tiff");
   sensorFields(form, true);
   const reply = await api("/v1/simulate", { method: "POST", body: form });
-  return new File([await reply.blob()], "frame.png", { type: "image/png" });
+  return new File([await reply.blob()], "frame.tiff", { type: "image/tiff" });
 }
 
 async function submitFrame(frame, simulated) {
@@ -199,6 +216,7 @@ async function waitForJob(id, signal) {
         throw new ApiError(`job ${id} no longer exists on the server (${error.message}); ` +
           "submit the frame again");
       }
+      if (isFinal(error)) throw new ApiError(`job ${id}: ${error.message}`, error.status);
       if (!(error instanceof ApiError)) throw error;
       failures += 1;
       delayMs = retryDelayMs(error, failures);
@@ -256,6 +274,7 @@ function drawHistogram() {
 // Empty the result panels: nothing of an earlier job stays beside a new one.
 function clearResult() {
   shownJob = null;
+  clearTimeout(exposureTimer);
   for (const id of ["img-codes", "img-winding", "img-hdr"]) setImage(id, null);
   histogram = null;
   drawHistogram();
@@ -281,14 +300,19 @@ async function showResult(job) {
   if (exposure() !== ev) refreshHdr();
 }
 
-// Tonemap the shown job's HDR again at the slider's exposure.
+// Tonemap the shown job's HDR again at the slider's exposure. Only the reply to the
+// latest request is shown: an earlier one arriving late would show another exposure.
+let hdrRequest = 0;
 async function refreshHdr() {
   const job = shownJob;
+  if (!job) return;
+  const request = ++hdrRequest;
+  const current = () => shownJob === job && request === hdrRequest;
   try {
     const blob = await resultBlob(job, hdrQuery());
-    if (shownJob === job) setImage("img-hdr", blob);
+    if (current()) setImage("img-hdr", blob);
   } catch (error) {
-    if (shownJob === job) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
+    if (current()) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
   }
 }
 
@@ -365,7 +389,12 @@ async function download() {
 $("api-key").value = apiKey();
 $("key-form").addEventListener("submit", (event) => {
   event.preventDefault();
-  localStorage.setItem(KEY_STORAGE, $("api-key").value.trim());
+  const key = $("api-key").value.trim();
+  if (!KEY_PATTERN.test(key)) {
+    return setStatus("not saved: an API key is letters, digits and punctuation, without " +
+      "spaces or typographic dashes; paste it again as mcam serve printed it", "error");
+  }
+  localStorage.setItem(KEY_STORAGE, key);
   setStatus("API key saved.");
   loadDecoders();
 });

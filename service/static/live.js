@@ -2,7 +2,7 @@
 // once a second (EventSource cannot send the API key header, so the page polls). The frame
 // is fetched only when a newer one came or the exposure changed. A failed poll is retried
 // after a growing wait (Retry-After on a 429 or 503); a device the server no longer knows
-// ends the watch. Uses api, sleep, retryDelayMs, retryNote and isGone from app.js.
+// ends the watch. Uses api, sleep, retryDelayMs, retryNote, isGone and isFinal from app.js.
 "use strict";
 
 const LIVE_POLL_MS = 1000;
@@ -79,7 +79,10 @@ async function watchDevice(id, signal) {
           "press List devices");
         return;
       }
-      if (!(error instanceof ApiError)) throw error;
+      if (!(error instanceof ApiError) || isFinal(error)) {
+        liveStatus(`device ${id}: ${error.message}; the watch stopped`);
+        return;
+      }
       failures += 1;
       delayMs = Math.max(retryDelayMs(error, failures), LIVE_POLL_MS);
       liveStatus(`device ${id}: ${retryNote(error, delayMs)}`);

@@ -10,10 +10,12 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from models.hdr_io import read_hdr
-from tests.service.conftest import FULL_KEY, exr_bytes
+from models.hdr_io import encode_exr, read_hdr
+from tests.service.conftest import FULL_KEY
+from tests.service.conftest import scene as scene_irradiance
 from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 from worker.runner import Worker
 
@@ -23,8 +25,11 @@ pytestmark = [pytest.mark.slow, needs_chromium]
 
 
 def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Path) -> None:
+    """A colour EXR (every Radiance .hdr is colour too): its simulated frame travels as a
+    TIFF (a PNG frame is grey only, and colour HDR images used to fail here)."""
     scene = tmp_path / "scene.exr"
-    scene.write_bytes(exr_bytes(128))
+    grey = scene_irradiance(128)
+    scene.write_bytes(encode_exr(np.stack([grey, 0.8 * grey, 0.6 * grey], axis=2)))
     with chromium() as browser:
         page = browser.new_page(viewport={"width": 1280, "height": 900}, accept_downloads=True)
         errors: list[str] = []
@@ -65,7 +70,7 @@ def test_simulate_reconstruct_and_inspect(api: str, worker: Worker, tmp_path: Pa
             page.click("#download")
         exr = tmp_path / "result.exr"
         download.value.save_as(exr)
-        assert read_hdr(exr).pixels.shape == (128, 128)
+        assert read_hdr(exr).pixels.shape == (128, 128, 3)
         shot = tmp_path / "viewer.png"
         page.screenshot(path=str(shot), full_page=True)
     ARTIFACTS.mkdir(exist_ok=True)

@@ -22,6 +22,7 @@ from service.core.config import Settings
 from service.main import create_app
 from tests.service.conftest import (
     FULL_KEY,
+    SUBMIT_KEY,
     frame_png,
     make_settings,
     npy_bytes,
@@ -282,3 +283,41 @@ def test_the_live_view_stops_watching_a_forgotten_device(
     stopped = len(polls)
     page.wait_for_timeout(2_500)
     assert len(polls) == stopped, "the live view kept polling a device the server forgot"
+
+
+def test_a_key_that_cannot_read_jobs_ends_the_wait_with_the_reason(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """A submit-only key: the job is queued, then every poll answers 403. That is said
+    at once, in red, and the page is ready again (it used to retry every 8 s for good)."""
+    page = open_viewer(browser, api)
+    page.evaluate(f"localStorage.setItem('mcam-api-key', {SUBMIT_KEY!r})")
+    job_id = submit(page, frame)
+    wait_for_js(page, "!document.getElementById('run').disabled")
+    status = page.inner_text("#status")
+    assert status.startswith(f"job {job_id}: ") and "read" in status, status
+    assert page.get_attribute("#status", "class") == "error"
+    assert page.is_disabled("#cancel")
+
+
+def test_a_key_with_a_character_no_key_has_is_not_saved(browser: Browser, api: str) -> None:
+    """A key pasted with a zero-width space: refused with the reason on Save (fetch
+    refused the header, which read as 'cannot reach the server')."""
+    page = open_viewer(browser, api)
+    page.fill("#api-key", FULL_KEY + "\u200b")
+    page.click("#key-form button")
+    assert page.inner_text("#status").startswith("not saved: an API key is letters")
+    assert page.evaluate("localStorage.getItem('mcam-api-key')") == FULL_KEY
+
+
+def test_an_exposure_refresh_without_a_shown_job_asks_for_nothing(
+    browser: Browser, api: str
+) -> None:
+    """A slider refresh still pending when a new submit cleared the panels asked for
+    job null's preview and put its 404 over the submit's own error."""
+    page = open_viewer(browser, api)
+    requests = api_requests(page, "/v1/jobs/")
+    page.evaluate("refreshHdr()")
+    page.wait_for_timeout(300)
+    assert requests == []
+    assert page.get_attribute("#status", "class") != "error"
