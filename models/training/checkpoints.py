@@ -38,8 +38,9 @@ def sync_folder(folder: Path) -> None:
         os.close(descriptor)
 
 
-#: What ``torch.load`` raises on an empty, truncated or corrupt file.
-UNREADABLE = (EOFError, RuntimeError, pickle.UnpicklingError)
+#: What ``torch.load`` raises on an empty, truncated or corrupt file (a file cut
+#: short can also give EINVAL, a flipped byte a UnicodeDecodeError or a missing key).
+UNREADABLE = (EOFError, RuntimeError, pickle.UnpicklingError, OSError, ValueError, KeyError)
 
 
 def load_checkpoint(path: Path, *, resuming: bool = False) -> dict[str, Any]:

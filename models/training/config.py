@@ -177,8 +177,10 @@ def check_choices(config: TrainConfig) -> None:
 
 def check_amounts(config: TrainConfig) -> None:
     """Weights, shares, counts, the seed and the read noise are in range."""
-    if not config.risk_weight >= 0.0:
-        raise InvalidInputError(f"risk_weight must be >= 0, got {config.risk_weight}")
+    if not 0.0 <= config.risk_weight < math.inf:
+        raise InvalidInputError(
+            f"risk_weight must be finite and >= 0, got {config.risk_weight}"
+        )
     for name, meaning in FRACTIONS.items():
         value = getattr(config, name)
         if not 0.0 <= value <= 1.0:

@@ -322,33 +322,36 @@ def export_run(checkpoint: Path, onnx_dir: Path = ONNX_DIR, force: bool = False)
     graph = RolloverGraph(model) if unmodnet else WindingGraph(model, config.loss)
     onnx_path = onnx_dir / f"{config.name}.onnx"
     tmp = onnx_path.with_name(onnx_path.name + ".tmp")
-    export_onnx(graph, tmp)
     try:
+        export_onnx(graph, tmp)
         check_onnx(graph, tmp, MULTIPLE if unmodnet else multiple(model.tier))
-    except ExportMismatchError:
-        tmp.unlink()
+        # The whole card first, from the new file: an export stopped before the end
+        # leaves the old .onnx and its card together.
+        card = {
+            "name": config.name,
+            "decoder": config.decoder,
+            "family": config.family,
+            "tier": config.tier,
+            "encoding": config.encoding,
+            "noise_aware": config.max_read_noise > 0,
+            "file": onnx_path.name,
+            "sha256": sha256_of(tmp),
+            "output": "jumps" if config.loss == "jumps" else "winding",
+            "multiple": MULTIPLE if unmodnet else multiple(model.tier),
+            "tile": TILE,
+            "parameters": parameter_count(model),
+            "gflops_256": round(gflops_at(graph), 3),
+            **({"max_passes": MAX_PASSES, "gflops_per": "pass"} if unmodnet else {}),
+            "training": training_facts(config, state, sha256_of(checkpoint)),
+            "exported_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+    except BaseException:
+        tmp.unlink(missing_ok=True)
         raise
     replaced = [remove_card(path, keep=onnx_path) for path in superseded]
+    if replaced:
+        card["supersedes"] = replaced
     tmp.replace(onnx_path)
-    card = {
-        "name": config.name,
-        "decoder": config.decoder,
-        "family": config.family,
-        "tier": config.tier,
-        "encoding": config.encoding,
-        "noise_aware": config.max_read_noise > 0,
-        "file": onnx_path.name,
-        "sha256": sha256_of(onnx_path),
-        "output": "jumps" if config.loss == "jumps" else "winding",
-        "multiple": MULTIPLE if unmodnet else multiple(model.tier),
-        "tile": TILE,
-        "parameters": parameter_count(model),
-        "gflops_256": round(gflops_at(graph), 3),
-        **({"max_passes": MAX_PASSES, "gflops_per": "pass"} if unmodnet else {}),
-        **({"supersedes": replaced} if replaced else {}),
-        "training": training_facts(config, state, sha256_of(checkpoint)),
-        "exported_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
     card_path = onnx_path.with_suffix(".json")
     write_card(card_path, card)
     return card_path

@@ -28,6 +28,7 @@ it the same way after the step in progress, then raise :class:`Stopped`.
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -36,6 +37,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from models.errors import InvalidInputError, McamError
 from models.training.checkpoints import (
     checkpoint_segments,
     hardware_name,
@@ -56,6 +58,12 @@ from models.training.run_control import (
 )
 
 
+class TrainingDivergedError(McamError):
+    """A step's loss was not finite: the weights are lost to NaN from there on."""
+
+    code = "training_diverged"
+
+
 def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
     """The seeded, freshly initialised net of the run's family, tier and loss."""
     torch.manual_seed(config.seed)
@@ -65,14 +73,23 @@ def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
 
 
 def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
-    """The finished weights of the run ``config.init_from`` (same runs folder)."""
+    """The finished weights of the run ``config.init_from`` (same runs folder); a run
+    that has not reached its last step is refused."""
     source = config.runs_dir / str(config.init_from) / "checkpoint.pt"
     if not source.exists():
         raise FileNotFoundError(
             f"{config.name} starts from {source}, which does not exist: train "
             f"{config.init_from} first (mcam train all trains the recipes in order)"
         )
-    return load_checkpoint(source)["model"]
+    state = load_checkpoint(source)
+    planned = sum(state["config"]["stage_steps"])
+    if state["step"] < planned:
+        raise InvalidInputError(
+            f"{config.name} starts from {config.init_from}, which stopped at step "
+            f"{state['step']} of {planned}: train it to the end first (mcam train run "
+            "with its settings resumes it)"
+        )
+    return state["model"]
 
 
 def restore(
@@ -186,6 +203,12 @@ def run_steps(
     with (config.run_dir / LOG_FILE).open("a") as log:
         for batch in step_batches(config, step):
             loss, parts = optimizer_step(config, model, optimizer, batch, step)
+            if not math.isfinite(loss.item()):
+                raise TrainingDivergedError(
+                    f"{config.name} diverged at step {step + 1}: its loss is "
+                    f"{loss.item()}; nothing past it is saved, and resuming would repeat "
+                    "the same steps: start again with a lower learning rate or risk weight"
+                )
             step += 1
             now = time.monotonic()
             late = deadline is not None and now > deadline

@@ -171,7 +171,16 @@ def export_and_measure(
     the card."""
     from models.training.export import ONNX_DIR, export_run
 
-    measure_and_show(export_run(checkpoint, onnx_dir or ONNX_DIR, force), measure)
+    card_path = export_run(checkpoint, onnx_dir or ONNX_DIR, force)
+    training = json.loads(card_path.read_text())["training"]
+    planned = sum(training["planned_stage_steps"])
+    if training["steps"] < planned:
+        print(
+            f"mcam train export: warning: {checkpoint} stopped at step {training['steps']} "
+            f"of {planned}; its card records that (resume the run to finish it)",
+            file=sys.stderr,
+        )
+    measure_and_show(card_path, measure)
 
 
 def reproduce(recipes: Iterable[TrainConfig], onnx_dir: Path, measure: bool) -> None:

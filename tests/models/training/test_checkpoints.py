@@ -49,3 +49,27 @@ def test_an_unreadable_checkpoint_is_one_clear_error(tmp_path: Path, damage: str
     with pytest.raises(InvalidInputError, match="not a readable checkpoint") as caught:
         load_checkpoint(path)  # an export's or init_from's: the user's file, not a run's
     assert "delete" not in caught.value.message and "training wrote" in caught.value.message
+
+
+def test_any_cut_or_flipped_byte_is_the_clear_error_or_loads(tmp_path: Path) -> None:
+    """A file cut short can raise OSError (EINVAL), a flipped byte a UnicodeDecodeError:
+    each the same clear error as above (they were a bare 'Invalid argument' and a
+    traceback), or the file still loads."""
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, {"step": 3, "weights": torch.arange(1000.0)})
+    whole = path.read_bytes()
+    cuts = [whole[:cut] for cut in range(0, len(whole), 97)]
+    flips = []
+    for at in range(0, len(whole), 53):
+        flipped = bytearray(whole)
+        flipped[at] ^= 0xFF
+        flips.append(bytes(flipped))
+    refused = []
+    for data in cuts + flips:
+        path.write_bytes(data)
+        try:
+            load_checkpoint(path)
+        except InvalidInputError as exc:
+            assert "not a readable checkpoint" in exc.message
+            refused.append(data)
+    assert all(cut in refused for cut in cuts) and any(flip in refused for flip in flips)

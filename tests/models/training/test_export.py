@@ -16,6 +16,7 @@ from models.decoders.learned import load_cards, onnx_model
 from models.errors import InvalidInputError
 from models.formation import dequantize
 from models.scenes import val256_frames
+from models.training.checkpoints import load_checkpoint, save_checkpoint
 from models.training.config import TrainConfig
 from models.training.export import (
     ExportMismatchError,
@@ -200,3 +201,30 @@ def test_a_card_is_current_until_its_run_is_trained_again(tmp_path: Path) -> Non
     assert card_is_current(card_path, checkpoint)
     shutil.rmtree(checkpoint.parent)
     assert not card_is_current(card_path, tiny_run(tmp_path / "runs"))
+
+
+def test_an_export_stopped_before_its_card_leaves_the_old_model_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A re-export interrupted (Ctrl-C) while its card is made: the old .onnx and its card
+    stay together (the new file had replaced the old one under the old card), and no
+    temp file is left."""
+    checkpoint, onnx_dir = tiny_run(tmp_path / "runs"), tmp_path / "onnx"
+    card_path = export_run(checkpoint, onnx_dir)
+    files = {path.name: path.read_bytes() for path in onnx_dir.iterdir()}
+    state = load_checkpoint(checkpoint)
+    for weights in state["model"].values():
+        if weights.is_floating_point():
+            weights.add_(0.01)
+    retrained = tmp_path / "retrained.pt"
+    save_checkpoint(retrained, state)
+
+    def interrupted(*_args: object) -> float:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("models.training.export.gflops_at", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        export_run(retrained, onnx_dir, force=True)
+    assert {path.name: path.read_bytes() for path in onnx_dir.iterdir()} == files
+    card = json.loads(card_path.read_text())
+    assert card["sha256"] == sha256_of(onnx_dir / card["file"])

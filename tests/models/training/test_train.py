@@ -18,7 +18,7 @@ from models.training.checkpoints import checkpoint_segments, load_checkpoint
 from models.training.config import TrainConfig
 from models.training.losses import HEAD_OUTPUTS
 from models.training.run_control import Stopped, run_lock
-from models.training.train import train
+from models.training.train import TrainingDivergedError, train
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -75,9 +75,21 @@ def test_unknown_loss_is_refused(tmp_path: Path) -> None:
         train(TrainConfig(loss="l1", runs_dir=tmp_path))
 
 
-def test_negative_risk_weight_is_refused(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="risk_weight must be >= 0"):
-        train(TrainConfig(loss="ce-risk", risk_weight=-1.0, runs_dir=tmp_path))
+@pytest.mark.parametrize("weight", [-1.0, float("inf"), float("nan")])
+def test_a_risk_weight_not_finite_and_positive_is_refused(tmp_path: Path, weight: float) -> None:
+    """An infinite weight trained NaN weights and exported them."""
+    with pytest.raises(ValueError, match="risk_weight must be finite and >= 0"):
+        train(TrainConfig(loss="ce-risk", risk_weight=weight, runs_dir=tmp_path))
+
+
+def test_a_run_whose_loss_is_not_finite_stops_with_the_reason(tmp_path: Path) -> None:
+    """A risk weight of 1e300 makes the small net's loss infinite at its second step:
+    the run stops there, saving nothing past it (it trained on to NaN weights)."""
+    config = TrainConfig(tier="small", loss="ce-risk", risk_weight=1e300,
+                         stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path)  # fmt: skip
+    with pytest.raises(TrainingDivergedError, match="diverged at step 2: its loss is inf"):
+        train(config)
+    assert not (config.run_dir / "checkpoint.pt").exists()
 
 
 @pytest.mark.parametrize("loss", ["ce-risk", "mse", "jumps"])
@@ -102,6 +114,16 @@ def test_a_run_can_start_from_another_runs_weights(tmp_path: Path) -> None:
     assert config.name == "mantissanet-tiny-noise-mantissa" and started["step"] == 0
     for key, value in load_checkpoint(source)["model"].items():
         torch.testing.assert_close(started["model"][key], value)
+
+
+def test_a_run_may_not_start_from_an_unfinished_one(tmp_path: Path) -> None:
+    train(tiny_config(tmp_path, (1, 1, 1)), deadline=0.0)  # stops after its first step
+    config = TrainConfig(
+        tier="tiny", stage_steps=(0, 0, 0, 0), crop=32, batch=2, runs_dir=tmp_path,
+        max_read_noise=0.02, init_from="mantissanet-tiny-mantissa",
+    )  # fmt: skip
+    with pytest.raises(InvalidInputError, match="stopped at step 1 of 3: train it to the end"):
+        train(config)
 
 
 def test_a_missing_initial_run_is_named_in_the_error(tmp_path: Path) -> None:
