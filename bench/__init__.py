@@ -107,6 +107,35 @@ def write_report(report: dict[str, Any], markdown: str, out: Path) -> None:
     out.with_suffix(".md").write_text(markdown + "\n")
 
 
+def at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse ``type``: an integer of at least ``minimum``, else the parser's usage
+    error naming the value (a count of 0 gave NaN timings or an IndexError after minutes
+    of measuring)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def read_noise(text: str) -> float:
+    """An argparse ``type``: a read noise sigma in wraps, finite and in [0, 1] (what
+    :class:`models.formation.SensorParams` takes), refused before anything is measured."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"a read noise is in [0, 1] wraps, got {text}")
+    return value
+
+
 def refuse_unknown_decoders(
     parser: argparse.ArgumentParser,
     names: Iterable[str] | None,

@@ -25,7 +25,16 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
+from bench import (
+    RESULTS,
+    at_least,
+    entry_point,
+    machine,
+    read_noise,
+    refuse_unknown_decoders,
+    utc_now,
+    versions,
+)
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.errors import McamError
@@ -276,20 +285,22 @@ def recall_table(rows: list[dict[str, Any]]) -> list[str]:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoders", nargs="+", help="only these decoders (default: all)")
-    parser.add_argument("--frames", type=int, default=24, help="first N val-256 frames")
-    parser.add_argument("--repeats", type=int, default=3, help="timed decodes per timed frame")
-    parser.add_argument("--time-frames", type=int, default=4, help="frames timed repeatedly")
+    parser.add_argument("--frames", type=at_least(1), default=24, help="first N val-256 frames")
+    parser.add_argument(
+        "--repeats", type=at_least(1), default=3, help="timed decodes per timed frame"
+    )
+    parser.add_argument(
+        "--time-frames", type=at_least(0), default=4, help="frames timed repeatedly"
+    )
     parser.add_argument(
         "--noise-levels",
-        type=float,
+        type=read_noise,
         nargs="*",
         default=list(NOISE_LEVELS),
         help="read noise sigmas (wraps) of the noise table; none skips it",
     )
     parser.add_argument("--out", type=Path, default=RESULTS / "accuracy.json")
     args = parser.parse_args(argv)
-    if args.frames < 1 or args.repeats < 1 or args.time_frames < 0:
-        parser.error("--frames and --repeats must be >= 1, --time-frames >= 0")
     refuse_unknown_decoders(parser, args.decoders)
     return args
 

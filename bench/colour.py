@@ -27,7 +27,16 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
+from bench import (
+    RESULTS,
+    at_least,
+    entry_point,
+    machine,
+    read_noise,
+    refuse_unknown_decoders,
+    utc_now,
+    versions,
+)
 from models import metrics
 from models.decoders import Decoder, get_decoder
 from models.decoders.adaptive import AdaptiveDecoder
@@ -165,8 +174,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--decoders", nargs="+", default=list(DEFAULT_DECODERS))
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
-    parser.add_argument("--frames", type=int, default=None, help="first N frames of each set")
-    parser.add_argument("--read-noise", type=float, default=0.0, help="wrap units (default 0)")
+    parser.add_argument(
+        "--frames", type=at_least(1), default=None, help="first N frames of each set"
+    )
+    parser.add_argument("--read-noise", type=read_noise, default=0.0, help="wrap units (default 0)")
     parser.add_argument("--out", type=Path, default=RESULTS / "colour.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders)

@@ -17,7 +17,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench import RESULTS, entry_point, machine, utc_now, versions
+from bench import RESULTS, at_least, entry_point, machine, utc_now, versions
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.training.config import RUNS_DIR, TrainConfig
 from models.training.export import export_run
@@ -108,7 +108,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--stages", type=parse_stages, default=TINY_STAGES,
         help="steps per stage, comma separated (default: the shipped tiny recipe's)",
     )  # fmt: skip
-    parser.add_argument("--frames", type=int, default=24, help="first N val-256 frames")
+    parser.add_argument("--frames", type=at_least(1), default=24, help="first N val-256 frames")
     parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR, help="checkpoints (resumed)")
     parser.add_argument("--out", type=Path, default=RESULTS / "losses.json")
     return parser.parse_args(argv)

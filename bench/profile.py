@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from bench import RESULTS, machine, refuse_unknown, utc_now, versions, write_report
+from bench import RESULTS, at_least, machine, refuse_unknown, utc_now, versions, write_report
 from bench.tradeoff import header, matmul_gflops
 from models.decoders.learned import load_cards, make_session, worker_threads
 
@@ -292,8 +292,12 @@ def markdown(report: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="*", default=list(MODELS), help="decoders to profile")
-    parser.add_argument("--runs", type=int, default=10, help="profiled inferences per model")
-    parser.add_argument("--repeats", type=int, default=15, help="timed runs per lever variant")
+    parser.add_argument(
+        "--runs", type=at_least(1), default=10, help="profiled inferences per model"
+    )
+    parser.add_argument(
+        "--repeats", type=at_least(1), default=15, help="timed runs per lever variant"
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "profile.json")
     args = parser.parse_args(argv)
     profiled = sorted({card["decoder"] for card in load_cards()})

@@ -27,7 +27,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from bench import RESULTS, machine, utc_now, versions, write_report
+from bench import RESULTS, at_least, machine, utc_now, versions, write_report
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams, simulate
 from models.frames import encode_frame
@@ -240,7 +240,7 @@ def markdown(result: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoder", default="itoh", help="decoder to benchmark (default itoh)")
-    parser.add_argument("--jobs-per-client", type=int, default=5)
+    parser.add_argument("--jobs-per-client", type=at_least(1), default=5)
     parser.add_argument("--out", type=Path, default=RESULTS / "service.json")
     args = parser.parse_args(argv)
     result = measure(args.decoder, args.jobs_per_client)

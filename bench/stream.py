@@ -42,7 +42,15 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, machine, refuse_unknown_decoders, utc_now, versions, write_report
+from bench import (
+    RESULTS,
+    at_least,
+    machine,
+    refuse_unknown_decoders,
+    utc_now,
+    versions,
+    write_report,
+)
 from device.daemon import DaemonConfig, DeviceDaemon, packet_params
 from device.link_parser import LinkParser
 from device.link_protocol import DataPacket, encode_data
@@ -244,22 +252,20 @@ def start_workers(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.stream", description=__doc__)
-    parser.add_argument("--frames", type=int, default=300, help="frames per link run")
-    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--frames", type=at_least(1), default=300, help="frames per link run")
+    parser.add_argument("--workers", type=at_least(1), nargs="+", default=[1, 2])
     parser.add_argument("--latency-fps", type=float, default=5.0,
                         help="paced rate for the latency runs")
     parser.add_argument("--exr-compression", choices=tuple(EXR_COMPRESSIONS),
                         default=STREAM_EXR_COMPRESSION, help="of the device frames' EXRs")
     parser.add_argument("--decoder", default=DECODER, help=f"stream decoder (default {DECODER})")
-    parser.add_argument("--stream-processes", type=int,
+    parser.add_argument("--stream-processes", type=at_least(1),
                         help="MCAM_STREAM_PROCESSES of the workers (default: theirs)")
     parser.add_argument("--scenes", choices=("camera", "val256"), default="camera",
                         help="frames of the virtual camera (easy) or val-256 (dense wraps)")
     parser.add_argument("--out", type=Path, default=RESULTS / "stream.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, [args.decoder])
-    if args.stream_processes is not None and args.stream_processes < 1:
-        parser.error("--stream-processes must be >= 1")
     templates = template_packets(args.scenes)
     rows: dict[str, Any] = {"parse_only": bench_parse(stream_bytes(templates, args.frames,
                                                                      False)),

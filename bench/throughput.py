@@ -48,7 +48,15 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, entry_point, machine, refuse_unknown_decoders, utc_now, versions
+from bench import (
+    RESULTS,
+    at_least,
+    entry_point,
+    machine,
+    refuse_unknown_decoders,
+    utc_now,
+    versions,
+)
 from models import metrics
 from models.decoders import get_decoder
 from models.decoders.learned import THREAD_VARIABLES
@@ -307,13 +315,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoders", nargs="+", default=list(DECODERS))
     parser.add_argument("--encoding", choices=("mantissa", "modulo"), default="mantissa")
-    parser.add_argument("--frames", type=int, default=24, help="first N val-256 frames")
-    parser.add_argument("--repeats", type=int, default=3, help="passes over the frames")
-    parser.add_argument("--cores", type=int, help="cores to fill (default: all)")
+    parser.add_argument("--frames", type=at_least(1), default=24, help="first N val-256 frames")
+    parser.add_argument("--repeats", type=at_least(1), default=3, help="passes over the frames")
+    parser.add_argument("--cores", type=at_least(1), help="cores to fill (default: all)")
     parser.add_argument("--out", type=Path, default=RESULTS / "throughput.json")
     args = parser.parse_args(argv)
-    if min(args.frames, args.repeats, args.cores or 1) < 1:
-        parser.error("--frames, --repeats and --cores must be >= 1")
     refuse_unknown_decoders(parser, args.decoders)
     return args
 

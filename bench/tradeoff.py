@@ -36,7 +36,15 @@ from typing import Any
 import numpy as np
 from onnx import TensorProto, helper
 
-from bench import RESULTS, machine, refuse_unknown_decoders, utc_now, versions, write_report
+from bench import (
+    RESULTS,
+    at_least,
+    machine,
+    refuse_unknown_decoders,
+    utc_now,
+    versions,
+    write_report,
+)
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.decoders.adaptive import AdaptiveDecoder
@@ -430,10 +438,10 @@ def plot(report: dict[str, Any], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=24, help="val-256 frames to use")
-    parser.add_argument("--dark", type=int, default=3, help="mostly-dark crops per kind")
-    parser.add_argument("--glows", type=int, default=12, help="glows frames (0: none)")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--frames", type=at_least(1), default=24, help="val-256 frames to use")
+    parser.add_argument("--dark", type=at_least(1), default=3, help="mostly-dark crops per kind")
+    parser.add_argument("--glows", type=at_least(0), default=12, help="glows frames (0: none)")
+    parser.add_argument("--repeats", type=at_least(1), default=3)
     parser.add_argument("--decoders", nargs="*", help="only these decoders")
     parser.add_argument("--quick", action="store_true", help="skip the 512/1024 sets")
     parser.add_argument("--out", type=Path, default=RESULTS / "tradeoff.json")

@@ -22,7 +22,15 @@ from typing import Any
 import numpy as np
 
 from bench import RESULTS as RESULTS_DIR
-from bench import machine, publish, refuse_unknown, refuse_unknown_decoders, utc_now, versions
+from bench import (
+    at_least,
+    machine,
+    publish,
+    refuse_unknown,
+    refuse_unknown_decoders,
+    utc_now,
+    versions,
+)
 from models.decoders.registry import available_decoders
 from models.video_clips import CLIP_KINDS, DEFAULT_FRAMES, VIDEO_ENCODINGS, ClipEncoding, make_clip
 from models.video_metrics import clip_metrics
@@ -147,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--encodings", default=",".join(VIDEO_ENCODINGS))
     parser.add_argument("--decoders", default=",".join(DEFAULT_DECODERS),
                         help="comma-separated, or 'all' for every installed decoder")
-    parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES)
+    parser.add_argument("--frames", type=at_least(2), default=DEFAULT_FRAMES)
     parser.add_argument("--keyframe-interval", type=int, default=TemporalConfig.keyframe_interval)
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args(argv)

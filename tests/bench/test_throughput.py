@@ -61,7 +61,7 @@ def test_unknown_decoders_and_counts_below_one_are_refused(
     assert "unknown decoders nope" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         throughput.parse_args(["--repeats", "0"])
-    assert "must be >= 1" in capsys.readouterr().err
+    assert "must be at least 1, got 0" in capsys.readouterr().err
 
 
 def test_a_worker_process_that_fails_ends_the_run_with_one_line() -> None:

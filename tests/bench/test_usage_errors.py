@@ -9,9 +9,10 @@ from typing import Any
 
 import pytest
 
-from bench import colour, headroom, profile, stream, tradeoff, video
+from bench import accuracy, colour, headroom, profile, stream, tradeoff, video
 
 MAINS: dict[str, Callable[[list[str] | None], Any]] = {
+    "accuracy": accuracy.main,
     "colour": colour.main,
     "headroom": headroom.main,
     "profile": profile.main,
@@ -28,12 +29,23 @@ MAINS: dict[str, Callable[[list[str] | None], Any]] = {
         ("headroom", ["--decoders", "nope"], "unknown decoders nope"),
         ("profile", ["--models", "itoh"], "unknown models itoh; choose from: mantissanet-"),
         ("stream", ["--decoder", "nope"], "unknown decoders nope"),
-        ("stream", ["--stream-processes", "0"], "--stream-processes must be >= 1"),
+        ("stream", ["--stream-processes", "0"], "must be at least 1, got 0"),
         ("stream", ["--scenes", "mars"], "invalid choice: 'mars'"),
         ("tradeoff", ["--decoders", "auto-fast-tile48"], "unknown decoders auto-fast-tile48"),
         ("video", ["--decoders", "itoh,nope"], "unknown decoders nope"),
         ("video", ["--clips", "pan_zoom,orbit"], "unknown clips orbit; choose from: pan_zoom"),
         ("video", ["--encodings", "log"], "unknown encodings log; choose from: mantissa"),
+        # Counts and levels, refused before anything is measured (they gave NaN timings,
+        # an IndexError after the matmul calibration, or a traceback after the main table).
+        ("tradeoff", ["--repeats", "0"], "--repeats: must be at least 1, got 0"),
+        ("tradeoff", ["--frames", "0"], "--frames: must be at least 1, got 0"),
+        ("tradeoff", ["--dark", "0"], "--dark: must be at least 1, got 0"),
+        ("tradeoff", ["--glows", "-1"], "--glows: must be at least 0, got -1"),
+        ("accuracy", ["--noise-levels", "-0.1"], "a read noise is in [0, 1] wraps, got -0.1"),
+        ("accuracy", ["--noise-levels", "nan"], "a read noise is in [0, 1] wraps, got nan"),
+        ("colour", ["--read-noise", "2"], "a read noise is in [0, 1] wraps, got 2"),
+        ("video", ["--frames", "1"], "--frames: must be at least 2, got 1"),
+        ("profile", ["--runs", "x"], "'x' is not a whole number"),
     ],
 )
 def test_unknown_names_are_usage_errors(
