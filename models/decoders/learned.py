@@ -82,8 +82,12 @@ def ort_spinning() -> bool:
     return spinning
 
 
-#: Fields every model card has (what the runtime reads to serve its model).
-CARD_FIELDS: tuple[str, ...] = ("file", "decoder", "encoding")
+#: Fields every model card has: what the runtime reads to serve and describe its model
+#: (a card lacking one was accepted, then failed with a KeyError when used).
+CARD_FIELDS: tuple[str, ...] = (
+    "file", "decoder", "encoding", "family", "sha256", "multiple", "tile", "parameters",
+    "gflops_256",
+)
 
 
 def read_card(path: Path) -> dict[str, Any]:

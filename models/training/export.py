@@ -211,6 +211,7 @@ def training_facts(
         **({"risk_weight": config.risk_weight} if config.loss == "ce-risk" else {}),
         "max_read_noise": config.max_read_noise,
         **({"glow_fraction": config.glow_fraction} if config.glow_fraction else {}),
+        **({"colour_fraction": config.colour_fraction} if config.colour_fraction else {}),
         **(
             {"own_states": config.own_states, "own_passes": config.own_passes}
             if config.family == "unmodnet"

@@ -227,9 +227,10 @@ def test_a_frame_without_a_wrap_edge_decodes_to_w_zero(encoding: str) -> None:
 
 def test_two_cards_of_one_decoder_and_encoding_are_refused_naming_both(tmp_path: Path) -> None:
     """The runtime picked whichever sorted last; now neither, with a clear error."""
+    [shipped] = [c for c in learned.load_cards() if c["name"] == "mantissanet-tiny-modulo"]
     for name in ("mantissanet-tiny-mantissa", "mantissanet-tiny-ce-risk-mantissa"):
         (tmp_path / f"{name}.onnx").write_bytes(b"")
-        card = {"decoder": "mantissanet-tiny", "encoding": "mantissa", "file": f"{name}.onnx"}
+        card = {**shipped, "name": name, "file": f"{name}.onnx", "encoding": "mantissa"}
         (tmp_path / f"{name}.json").write_text(json.dumps(card))
     with pytest.raises(InvalidInputError, match="both serve decoder 'mantissanet-tiny'") as caught:
         learned.load_cards(tmp_path)
@@ -244,6 +245,7 @@ def test_two_cards_of_one_decoder_and_encoding_are_refused_naming_both(tmp_path:
 @pytest.mark.parametrize(
     ("text", "reason"),
     [("notjson", "JSON text"), ("[1, 2]", "lacks file"), ('{"file": "a.onnx"}', "lacks decoder"),
+     ('{"file": "a.onnx", "decoder": "n", "encoding": "mantissa"}', "lacks family, sha256"),
      (b"\xff\xfe", "JSON text")],
 )
 def test_a_file_that_is_not_a_model_card_is_named_with_what_is_wrong(

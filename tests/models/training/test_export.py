@@ -27,6 +27,7 @@ from models.training.export import (
     export_run,
     sha256_of,
     trained_model,
+    training_facts,
 )
 from models.training.losses import rolled_out_state
 from models.training.train import train
@@ -228,3 +229,14 @@ def test_an_export_stopped_before_its_card_leaves_the_old_model_whole(
     assert {path.name: path.read_bytes() for path in onnx_dir.iterdir()} == files
     card = json.loads(card_path.read_text())
     assert card["sha256"] == sha256_of(onnx_dir / card["file"])
+
+
+def test_the_card_records_every_share_that_changed_the_training_data(tmp_path: Path) -> None:
+    """A colour-trained run's card said nothing of its colour crops."""
+    config = TrainConfig(tier="tiny", colour_fraction=0.5, glow_fraction=0.25, runs_dir=tmp_path)
+    facts = training_facts(config, {"step": 0, "wall_s": 0.0, "segments": []}, "0" * 64)
+    assert facts["colour_fraction"] == 0.5 and facts["glow_fraction"] == 0.25
+    plain = training_facts(
+        TrainConfig(runs_dir=tmp_path), {"step": 0, "wall_s": 0.0, "segments": []}, "0" * 64
+    )
+    assert "colour_fraction" not in plain and "glow_fraction" not in plain
