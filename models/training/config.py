@@ -167,6 +167,11 @@ def check_choices(config: TrainConfig) -> None:
         raise InvalidInputError(
             f"loss must be one of {LOSSES}, tier one of {tuple(TIERS)}, family one of {FAMILIES}"
         )
+    if config.family == "unmodnet" and config.loss != "ce":
+        raise InvalidInputError(
+            f"unmodnet learns its rollover masks with cross-entropy only, got loss "
+            f"{config.loss!r}: leave the loss out (it trained as ce under another name)"
+        )
     if config.encoding not in ENCODINGS:
         raise InvalidInputError(f"encoding must be one of {ENCODINGS}, got {config.encoding!r}")
     if config.precision not in PRECISIONS:

@@ -133,6 +133,12 @@ def test_a_missing_initial_run_is_named_in_the_error(tmp_path: Path) -> None:
         train(config)
 
 
+def test_unmodnet_refuses_a_loss_it_would_ignore(tmp_path: Path) -> None:
+    with pytest.raises(InvalidInputError, match="unmodnet learns its rollover masks"):
+        train(TrainConfig(family="unmodnet", loss="jumps", runs_dir=tmp_path))
+    assert not any(tmp_path.iterdir())
+
+
 def test_unmodnet_trains_on_its_own_states(tmp_path: Path) -> None:
     config = TrainConfig(
         family="unmodnet", tier="tiny", stage_steps=(1, 2, 2), crop=32, batch=2,
