@@ -260,6 +260,10 @@ def check_device(config: TrainConfig) -> None:
         raise InvalidInputError(
             f"device must be a torch device such as cpu or cuda, got {config.device!r}"
         ) from exc
+    if device.type not in ("cpu", "cuda"):
+        raise InvalidInputError(
+            f"device must be cpu or cuda[:N] (the trainer runs on those), got {config.device!r}"
+        )
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InvalidInputError(f"device {config.device!r} asked for, but torch sees no CUDA GPU")
 

@@ -103,7 +103,11 @@ def test_the_command_line_offers_every_training_loss_tier_and_default() -> None:
     assert PRECISION_CHOICES == config.PRECISIONS
 
 
-@pytest.mark.parametrize(("device", "message"), [("cuda", "no CUDA GPU"), ("gpu7", "torch device")])
+@pytest.mark.parametrize(
+    ("device", "message"),
+    [("cuda", "no CUDA GPU"), ("gpu7", "torch device"), ("meta", "cpu or cuda[:N]"),
+     ("mps", "cpu or cuda[:N]")],
+)  # fmt: skip
 def test_a_device_this_machine_lacks_is_one_clear_line(
     tmp_path: Path, device: str, message: str
 ) -> None:
@@ -111,9 +115,10 @@ def test_a_device_this_machine_lacks_is_one_clear_line(
         pytest.skip("this machine has a CUDA GPU")
     result = run_mcam(
         "train", "run", "--tier", "tiny", "--stages", "1,1,1", "--device", device,
-        "--runs-dir", tmp_path, cwd=tmp_path,
+        "--runs-dir", tmp_path / "runs", cwd=tmp_path,
     )  # fmt: skip
     assert_one_line_error(result, message)
+    assert not (tmp_path / "runs").exists(), "a refused run left its folder behind"
 
 
 @pytest.mark.parametrize(
