@@ -75,6 +75,15 @@ def test_a_json_body_has_a_small_limit_even_without_a_key(client: Client) -> Non
     assert small.status_code == 404  # within the limit: on to the route (no such device)
 
 
+def test_a_second_content_type_does_not_lift_the_json_limit(client: Client) -> None:
+    """The body is parsed as the first Content-Type says; the limit followed the last,
+    so JSON sent with a second, upload type went past the JSON limit to the parser."""
+    big = b'{"command": "start", "pad": "' + b"x" * 100_000 + b'"}'
+    headers = [("Content-Type", "application/json"), ("Content-Type", "application/octet-stream")]
+    reply = client("").post("/v1/devices/nosuch/control", content=big, headers=headers)
+    assert reply.status_code == 413 and reply.json()["code"] == "body_too_large"
+
+
 def test_a_body_that_stops_arriving_gets_408(tmp_path: Path, redis_url: str) -> None:
     """A client that sends half a body and waits held a connection and a task for ever."""
     settings = make_settings(tmp_path, redis_url, http_body_timeout_s=0.5)
