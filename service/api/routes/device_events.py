@@ -72,6 +72,13 @@ def _refusal(limit: int) -> str:
             "(MCAM_MAX_EVENT_STREAMS); close one or retry shortly")
 
 
+def _stream_error(code: str, message: str) -> str:
+    """An ``error`` event that ends a started stream, asking the client to retry in
+    :data:`RETRY_AFTER_S`."""
+    body = json.dumps({"code": code, "message": message})
+    return f"retry: {RETRY_AFTER_S * 1000}\nevent: error\ndata: {body}\n\n"
+
+
 async def _event_lines(
     url: str, device: str, since: str, limit: int | None, slots: Slots,
     preamble: str | None = None,
@@ -81,8 +88,7 @@ async def _event_lines(
     thread (as a blocking generator, each held one of the server's 40 for a second per
     poll, and 100 idle clients made every other request wait 3-8 s)."""
     if not slots.take():  # the route saw a free slot; another stream took it since
-        yield f"retry: {RETRY_AFTER_S * 1000}\nevent: error\ndata: " + json.dumps(
-            {"code": "too_many_streams", "message": _refusal(slots.limit)}) + "\n\n"
+        yield _stream_error("too_many_streams", _refusal(slots.limit))
         return
     client = connect_async(url)
     sent = 0
@@ -93,7 +99,14 @@ async def _event_lines(
         if preamble:
             yield preamble
         while limit is None or sent < limit:
-            reply = await client.xread({stream: last}, count=64, block=EVENTS_BLOCK_MS)
+            try:
+                reply = await client.xread({stream: last}, count=64, block=EVENTS_BLOCK_MS)
+            except redis.RedisError as exc:
+                # Redis went away (restarted, full, unreachable): the stream ends with
+                # the reason, and the client resumes from its last id when told to retry.
+                yield _stream_error("queue_unavailable", f"the event stream lost Redis "
+                                    f"({exc}); reconnecting resumes after the last event")
+                return
             if not reply:
                 yield ": keep-alive\n\n"
                 continue
@@ -119,9 +132,9 @@ async def _event_lines(
             summary="Server-sent events: frame reconstructed, failed, drop, reconnect",
             response_class=StreamingResponse)
 def events(device_id: str, state: StateDep, _key: ReadKey,
-           since: Annotated[str, Query(pattern=r"^(\$|0|\d+-\d+)$")] = "$",
+           since: Annotated[str, Query(pattern=r"^(\$|0|[0-9]+-[0-9]+)$")] = "$",
            limit: Annotated[int | None, Query(ge=1, le=100_000)] = None,
-           last_event_id: Annotated[str | None, Header(pattern=r"^\d+-\d+$")] = None,
+           last_event_id: Annotated[str | None, Header(pattern=r"^[0-9]+-[0-9]+$")] = None,
            ) -> StreamingResponse:
     device = known_device(state, device_id)
     for name, value in (("since", since), ("Last-Event-ID", last_event_id)):
