@@ -206,11 +206,6 @@ def request_stop(client: redis.Redis, device: str) -> Recording | None:
     return load_recording(client, device)
 
 
-def _params_key(params: SensorParams) -> str:
-    """The parameters that must stay fixed within a recording (noise seeds may vary)."""
-    return params.model_dump_json(exclude={"seed"})
-
-
 class Recorder:
     """The worker's side: appends frames to active recordings and queues their video jobs."""
 
@@ -241,7 +236,7 @@ class Recorder:
         if recording.last_entry and entry_order(entry_id) <= entry_order(recording.last_entry):
             return
         index = recording.frames
-        params, shape = _params_key(message.params), ",".join(map(str, message.codes.shape))
+        shape = ",".join(map(str, message.codes.shape))
         update: dict[str, Any] = {"last_entry": entry_id, "last_sequence": message.sequence}
         if index == 0:
             update |= {
@@ -249,8 +244,9 @@ class Recorder:
                 "shape": shape,
                 "first_sequence": message.sequence,
             }
-        elif (params, shape) != (_params_key(SensorParams.model_validate_json(recording.params)),
-                                 recording.shape):
+        elif shape != recording.shape or SensorParams.model_validate_json(
+            recording.params
+        ).differences(message.params):
             self._finish(recording, "params_changed")
             return
         if (index + 1) * message.codes.size > recording.max_samples:
