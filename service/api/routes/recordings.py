@@ -127,13 +127,20 @@ def _wait_for_job(state: ServiceState, device: str, recording: Recording) -> Rec
 
 
 def stop(state: ServiceState, device: str, wait_s: float) -> Response:
-    """End the recording and answer with its video job."""
+    """End the recording and answer with its video job. The wait for the worker to queue
+    the job holds a server thread, so it takes one of the ``Prefer: wait`` slots; with
+    none free the recording is answered at once, still stopping (45 stops waiting on a
+    stalled worker made every other request wait 9 s)."""
     recording = request_stop(state.client, device)
     if recording is None:
         raise ApiError(
             409, "no_recording", f"device {device!r} is not recording; start one (action=start)"
         )
-    recording = _wait_for_job(state, device, recording)
+    if state.wait_slots.take():
+        try:
+            recording = _wait_for_job(state, device, recording)
+        finally:
+            state.wait_slots.release()
     if recording.state == "failed":
         raise ApiError(409, "recording_failed", f"recording {recording.id} failed: "
                        f"{recording.error}")

@@ -17,9 +17,10 @@ from device.simulator import VirtualScamp5
 from models.formation import reconstruct
 from models.hdr_io import read_hdr
 from service.core.config import Settings
+from service.main import create_app
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
-from tests.service.conftest import FULL_KEY, READ_KEY, finished_job
+from tests.service.conftest import FULL_KEY, READ_KEY, finished_job, make_settings, serve
 
 Client = Callable[[str], httpx.Client]
 FRAMES = 30
@@ -127,3 +128,18 @@ def test_stop_mid_stream_and_bad_requests(camera: VirtualScamp5, client: Client)
     job = http.get(record["job_url"]).json()
     assert job["frames_total"] == record["frames"] >= 3
     assert job["options"]["mode"] == "independent" and job["options"]["outputs"] == ["exr_zip"]
+
+
+def test_a_stop_waits_for_its_job_only_in_a_free_wait_slot(tmp_path: Path, redis_url: str) -> None:
+    """Each stop waiting for the worker holds a server thread; with no 'Prefer: wait'
+    slot free (none at all here) the stop answers at once with the recording, stopping,
+    and the job follows there."""
+    settings = make_settings(tmp_path, redis_url, max_waiting_requests=0)
+    with serve(create_app(settings)) as url, live_camera(settings, tmp_path, fps=15, seed=4), \
+            httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"}) as http:
+        assert wait_for(lambda: http.get("/v1/devices/cam1").status_code == 200, 30)
+        assert http.post(URL, json={"action": "start"}).status_code == 201
+        assert wait_for(lambda: recording(http)["frames"] >= 2, 30)
+        stopped = http.post(URL, json={"action": "stop"})
+        assert stopped.status_code == 202 and stopped.json()["state"] == "stopping"
+        assert wait_for(lambda: recording(http)["job"] is not None, 30)
