@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Annotated
 
 import redis
-from fastapi import Depends, Request
+from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.api.errors import ApiError
@@ -90,3 +90,8 @@ def require(scope: str) -> Callable[[ServiceState, Credentials], ApiKey]:
 
 ReadKey = Annotated[ApiKey, Depends(require("read"))]
 SubmitKey = Annotated[ApiKey, Depends(require("submit"))]
+
+#: A preview's exposure in EV, finite (``nan`` was refused as "less than or equal to 30").
+Exposure = Annotated[
+    float, Query(ge=-30, le=30, allow_inf_nan=False, description="EV of the image preview")
+]

@@ -8,12 +8,12 @@ import time
 from typing import Annotated, Any, Literal
 
 import redis
-from fastapi import APIRouter, Body, Query, Response
+from fastapi import APIRouter, Body, Response
 
 from device.commands import Command, command_fields
 from device.health import ALL_DROP_CAUSES
 from models.hdr_io import read_hdr
-from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.previews import scene_to_wrap_units, tonemap_png
@@ -124,7 +124,7 @@ def control(device_id: str, command: Annotated[Command, Body()], state: StateDep
             summary="The newest reconstructed frame: EXR, or a tonemapped PNG preview")
 def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
                  format: Literal["exr", "png"] = "exr",
-                 exposure: Annotated[float, Query(ge=-30, le=30)] = 0.0) -> Response:
+                 exposure: Exposure = 0.0) -> Response:
     device = known_device(state, device_id)
     key = state.client.get(latest_key(device))
     if not key:

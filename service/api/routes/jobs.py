@@ -14,7 +14,7 @@ from models.errors import InvalidInputError
 from models.formation import encode
 from models.frames import decode_winding, encode_frame, frame_format
 from models.hdr_io import read_hdr
-from service.api.deps import ReadKey, StateDep, SubmitKey
+from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
 from service.api.errors import ApiError
 from service.api.previews import (
@@ -141,7 +141,7 @@ def get_result(
     format: Annotated[
         Format | None, Query(description="default: exr, npy, png, json by part")
     ] = None,
-    exposure: Annotated[float, Query(ge=-30, le=30, description="EV of the image preview")] = 0.0,
+    exposure: Exposure = 0.0,
 ) -> Response:
     """``image`` as EXR (``png``: tonemapped at ``exposure`` EV), ``winding`` as npy/tiff
     (``png``: colour-coded), ``codes`` re-encoded (``png``: 8-bit), ``histogram``: log10

@@ -104,6 +104,7 @@ def test_previews_and_histogram(client: Client, worker: Worker) -> None:
         ({"part": "image", "format": "npy"}, 422),
         ({"part": "volume"}, 422),
         ({"exposure": "99"}, 422),
+        ({"exposure": "nan", "format": "png"}, 422),
         ({"format": "gif"}, 422),
     ],
 )
@@ -112,6 +113,8 @@ def test_bad_result_queries(client: Client, worker: Worker, params: dict, status
     reply = client().get(f"/v1/jobs/{job['id']}/result", params=params)
     assert reply.status_code == status, reply.text
     assert reply.json()["code"] == "invalid_input"
+    if params.get("exposure") == "nan":  # it said "less than or equal to 30"
+        assert "finite number" in reply.text
 
 
 def test_queued_job_has_no_result_and_can_be_cancelled(client: Client) -> None:
