@@ -360,14 +360,17 @@ def exr_sequence_zip(
     compression: str = DEFAULT_EXR_COMPRESSION,
     attributes: Sequence[dict[str, str]] | None = None,
     scene_gain: float | None = None,
+    checked: bool = False,
 ) -> None:
     """A zip of one EXR per frame (``frame_00000.exr``, ...) of reconstructed ``frames``
     (wrap units ``x``; stored as scene units ``x / scene_gain`` when the gain is known,
     converted a frame at a time), each compressed as ``compression``
     (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and that frame's
     ``attributes`` (string header attributes, one mapping per frame) in its header.
-    Refused, before anything is written, as :func:`check_exr_sequence` says."""
-    check_exr_sequence(frames, half=half, scene_gain=scene_gain)
+    Refused, before anything is written, as :func:`check_exr_sequence` says (unless
+    ``checked``: the caller ran that check on these frames already)."""
+    if not checked:
+        check_exr_sequence(frames, half=half, scene_gain=scene_gain)
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
         for index, frame in enumerate(frames):
             header = {"frameIndex": str(index)} | (attributes[index] if attributes else {})

@@ -179,7 +179,7 @@ def write_outputs(
         )
     total = len(decoded.irradiance)
     gain = video.params.gain
-    if "exr_zip" in targets:
+    if "exr_zip" in targets:  # before any encoding, so a clip that cannot be stored fails
         check_exr_sequence(decoded.irradiance, half=options.half, scene_gain=gain)
     facts: dict[str, Any] = {}
     for name, target in targets.items():
@@ -198,7 +198,7 @@ def write_outputs(
                 decoded.irradiance, target, half=options.half,
                 compression=options.exr_compression,
                 attributes=exr_frame_attributes(decoded, video.params, options.mode),
-                scene_gain=gain,
+                scene_gain=gain, checked=True,
             )  # fmt: skip
             step(total)
     return facts
