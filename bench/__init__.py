@@ -23,6 +23,7 @@ from models.allocator import keep_freed_memory
 from models.decoders import available_decoders
 from models.decoders.registry import name_patterns, resolve
 from models.errors import InvalidInputError
+from models.formation import SensorParams
 
 keep_freed_memory()
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -128,12 +129,9 @@ def read_noise(text: str) -> float:
     """An argparse ``type``: a read noise sigma in wraps, finite and in [0, 1] (what
     :class:`models.formation.SensorParams` takes), refused before anything is measured."""
     try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"a read noise is in [0, 1] wraps, got {text}")
-    return value
+        return SensorParams.parse({"read_noise": text}).read_noise
+    except InvalidInputError:
+        raise argparse.ArgumentTypeError(f"a read noise is in [0, 1] wraps, got {text}") from None
 
 
 def refuse_unknown_decoders(
