@@ -2,7 +2,8 @@
 
 Each resource's router lives in its own module under ``service/api/routes``
 and is listed once in :data:`ROUTERS`; the web viewer is served at ``/`` with a
-Content Security Policy (:mod:`service.api.security_headers`).
+Content Security Policy (:mod:`service.api.security_headers`), behind the API's own
+404s and 405s (:mod:`service.api.viewer_mount`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from service.api.head_requests import HeadRequestMiddleware
 from service.api.security_headers import API_HEADERS, VIEWER_HEADERS, SecurityHeaders
 from service.api.state import ServiceState, open_state
 from service.api.telemetry import RequestTimer, build_registry
+from service.api.viewer_mount import ViewerMount
 from service.core.config import Settings, get_settings
 from service.core.security import KeyRing
 
@@ -88,5 +90,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(HeadRequestMiddleware)
     app.add_middleware(SecurityHeaders, headers=API_HEADERS)
     viewer = SecurityHeaders(StaticFiles(directory=STATIC_DIR, html=True), VIEWER_HEADERS)
-    app.mount("/", viewer, name="viewer")
+    app.mount("/", ViewerMount(viewer, app.router.routes), name="viewer")
     return app

@@ -54,6 +54,38 @@ def test_unknown_routes_and_methods_are_json(api: str) -> None:
     assert wrong.status_code == 405 and wrong.json()["code"] == "method_not_allowed"
 
 
+@pytest.mark.parametrize(
+    ("method", "path", "allow"),
+    [
+        ("DELETE", "/v1/reconstructions", "POST"),
+        ("GET", "/v1/simulate", "POST"),
+        ("POST", "/v1/decoders", "GET, HEAD"),
+        ("PATCH", "/v1/jobs/abc123", "DELETE, GET, HEAD"),
+        ("POST", "/health/ready", "GET, HEAD"),
+    ],
+)
+def test_a_wrong_method_names_the_methods_the_api_route_takes(
+    api: str, method: str, path: str, allow: str
+) -> None:
+    """Not the viewer's 'GET, HEAD' (or its 404) that the mount at / answered before."""
+    reply = httpx.request(method, f"{api}{path}")
+    assert reply.status_code == 405 and reply.headers["allow"] == allow
+    assert f"{method} is not accepted at {path}; it accepts {allow}" in reply.json()["message"]
+
+
+def test_an_unknown_api_path_points_to_the_docs(api: str) -> None:
+    reply = httpx.post(f"{api}/v1/reconstruction")
+    assert reply.status_code == 404 and "/docs" in reply.json()["message"]
+
+
+def test_the_viewers_misses_are_told_in_words(api: str) -> None:
+    missing = httpx.get(f"{api}/nope.js")
+    assert missing.status_code == 404 and "no file /nope.js" in missing.json()["message"]
+    wrong = httpx.post(f"{api}/")
+    assert wrong.status_code == 405 and wrong.headers["allow"] == "GET, HEAD"
+    assert "web viewer" in wrong.json()["message"]
+
+
 def test_viewer_is_served_at_the_root(api: str) -> None:
     page = httpx.get(f"{api}/")
     assert page.status_code == 200 and "<html" in page.text.lower()

@@ -1,0 +1,100 @@
+"""The web viewer, mounted at ``/`` behind the API's routes, and the API's own misses.
+
+A mount at ``/`` matches every path, so without this module a request the API's routes
+did not take (a wrong method on ``/v1/reconstructions``, or a misspelt ``/v1/jobz``)
+reached the viewer's static files and got their answer: ``405 Allow: GET, HEAD`` for a
+route that takes POST, or a 404 that named no way on. :class:`ViewerMount` answers those
+for the API: a 405 whose ``Allow`` lists the methods the path's routes take, and a 404
+under the API's prefixes that points to the documentation. Every other path is the
+viewer's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from starlette.exceptions import HTTPException
+from starlette.routing import BaseRoute, Match, Mount
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from service.api.errors import ApiError
+
+#: Path prefixes that belong to the API, not to the viewer's files.
+API_PREFIXES: tuple[str, ...] = ("/v1/", "/health/", "/metrics")
+
+#: The methods a route of the API may declare.
+METHODS: tuple[str, ...] = ("DELETE", "GET", "PATCH", "POST", "PUT")
+
+
+def allowed_methods(routes: Iterable[BaseRoute], scope: Scope) -> set[str]:
+    """The methods some route other than a mount takes at ``scope``'s path, with HEAD
+    where GET is (:mod:`service.api.head_requests` answers it)."""
+    endpoints = [route for route in routes if not isinstance(route, Mount)]
+    methods = {
+        method
+        for method in METHODS
+        if any(route.matches({**scope, "method": method})[0] == Match.FULL for route in endpoints)
+    }
+    return methods | {"HEAD"} if "GET" in methods else methods
+
+
+def viewer_error(exc: HTTPException, scope: Scope) -> HTTPException:
+    """The viewer's own 404 or 405 (from its static files) told in words; any other
+    error as it was."""
+    path = scope["path"]
+    if exc.status_code == 405:
+        return ApiError(
+            405,
+            "method_not_allowed",
+            f"{scope['method']} is not accepted at {path}: the web viewer's files take GET "
+            "and HEAD",
+            headers=exc.headers,
+        )
+    if exc.status_code == 404:
+        return ApiError(
+            404, "not_found",
+            f"no file {path} in the web viewer (open / for the viewer, /docs for the API)",
+        )
+    return exc
+
+
+class ViewerMount:
+    """ASGI app for the ``/`` mount: the API's 405s and 404s, else the viewer ``app``.
+
+    ``routes`` are the application's (read per request, so routers added later count).
+    """
+
+    def __init__(self, viewer: ASGIApp, routes: list[BaseRoute]) -> None:
+        self.viewer = viewer
+        self.routes = routes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.viewer(scope, receive, send)
+            return
+        self.refuse_api_misses(scope)
+        try:
+            await self.viewer(scope, receive, send)
+        except HTTPException as exc:
+            raise viewer_error(exc, scope) from exc
+
+    def refuse_api_misses(self, scope: Scope) -> None:
+        """Raise the API's answer for a request no route took, if the path is the API's."""
+        path = scope["path"]
+        outer = {**scope, "root_path": scope.get("app_root_path", "")}
+        methods = allowed_methods(self.routes, outer)
+        if methods:
+            allow = ", ".join(sorted(methods))
+            raise ApiError(
+                405,
+                "method_not_allowed",
+                f"{scope['method']} is not accepted at {path}; it accepts {allow} "
+                "(the API's routes and methods are listed at /docs)",
+                headers={"Allow": allow},
+            )
+        if path.startswith(API_PREFIXES) or path in ("/v1", "/health"):
+            raise ApiError(
+                404,
+                "not_found",
+                f"no API resource at {path}; the API's routes are listed at /docs",
+            )
