@@ -187,6 +187,8 @@ class FramePublisher:
             newest = self.client.xrevrange(stream, count=1) if done is None else []
             start = done or (newest[0][0] if newest else b"0-0")
             self._control_id = start.decode() if isinstance(start, bytes) else start
+            if done is None:  # the device's place from now on, for its next daemon
+                self.client.set(control_cursor_key(self.device), self._control_id, nx=True)
         reply = self.client.xread({stream: self._control_id}, count=16)
         for _, entries in reply or []:
             for entry_id, fields in entries:

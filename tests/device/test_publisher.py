@@ -53,6 +53,17 @@ def test_commands_sent_while_no_daemon_ran_reach_the_next_one(client: redis.Redi
     assert [getattr(command, "fps", None) for command in seen] == [5.0, 7.0]
 
 
+def test_a_daemon_that_handled_no_command_yet_keeps_its_place(client: redis.Redis) -> None:
+    """The first daemon's starting point is the device's cursor from its first read: a
+    command sent while it was down after handling none still reaches the next daemon."""
+    health = DeviceHealth("cam0", "loop://")
+    seen: list[Command] = []
+    FramePublisher(client, "cam0", health, seen.append)._read_control()
+    send_frame_rate(client, 7.0)  # while no daemon runs
+    FramePublisher(client, "cam0", health, seen.append)._read_control()
+    assert [getattr(command, "fps", None) for command in seen] == [7.0]
+
+
 def published(client: redis.Redis) -> list[tuple[int, bool]]:
     """(sequence, discont) of each frame on the stream, oldest first."""
     return [(int(fields[b"seq"]), fields.get(b"discont", b"0") not in (b"0", b""))

@@ -19,10 +19,10 @@ from service.api.errors import ApiError
 from service.api.previews import scene_to_wrap_units, tonemap_png
 from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, error_response
 from service.api.state import ServiceState
+from worker.control_queue import ControlBacklogError, queue_command
 from worker.device_registry import forget_device
 from worker.redis_keys import (
     DEVICES_SET,
-    control_stream,
     health_key,
     latest_key,
     validate_device_id,
@@ -30,8 +30,6 @@ from worker.redis_keys import (
 
 router = APIRouter(prefix="/v1/devices", tags=["devices"])
 DEVICE_ERRORS = {**AUTH_ERRORS, 404: error_response("no such device")}
-#: Control stream bound (commands are small and consumed at once by the daemon).
-CONTROL_MAXLEN = 1000
 #: A device whose daemon has not written its health for this long (s; it writes every
 #: 0.25 s) is shown as ``silent``: the daemon was stopped or killed, or lost Redis. Its
 #: last reported state stays in ``last_state``.
@@ -110,14 +108,20 @@ def forget(device_id: str, state: StateDep, _key: SubmitKey,
     return {"device": device, "forgotten": True, "frames_discarded": dropped}
 
 
-@router.post("/{device_id}/control", status_code=202, responses={**DEVICE_ERRORS, **BODY_ERRORS},
+@router.post("/{device_id}/control", status_code=202,
+             responses={**DEVICE_ERRORS, **BODY_ERRORS,
+                        503: error_response("commands already wait unread")},
              summary="Send a control command to the camera (via its daemon)")
 def control(device_id: str, command: Annotated[Command, Body()], state: StateDep,
             _key: SubmitKey) -> dict[str, Any]:
+    """503 ``control_backlog_full`` (nothing queued) while the daemon has not read the
+    commands already waiting for it."""
     device = known_device(state, device_id)
-    entry = state.client.xadd(control_stream(device), command_fields(command),
-                              maxlen=CONTROL_MAXLEN, approximate=True)
-    return {"device": device, "entry": as_text(entry), "command": command.model_dump()}
+    try:
+        entry = queue_command(state.client, device, command_fields(command))
+    except ControlBacklogError as exc:
+        raise ApiError(503, exc.code, exc.message, headers={"Retry-After": "5"}) from exc
+    return {"device": device, "entry": entry, "command": command.model_dump()}
 
 
 @router.get("/{device_id}/frames/latest", responses=DEVICE_ERRORS,

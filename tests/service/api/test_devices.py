@@ -25,9 +25,16 @@ from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, make_settings, serve
 from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
+from worker.control_queue import CONTROL_BACKLOG
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.outputs import encode_exr_result
-from worker.redis_keys import DEVICES_SET, events_stream, health_key, latest_key
+from worker.redis_keys import (
+    DEVICES_SET,
+    control_stream,
+    events_stream,
+    health_key,
+    latest_key,
+)
 from worker.result_store import RESULTS_DIR, ResultStore
 
 
@@ -115,6 +122,24 @@ def test_a_device_whose_daemon_went_quiet_is_shown_silent_and_can_be_forgotten(
     assert forgotten.json() == {"device": "gone", "forgotten": True, "frames_discarded": 0}
     assert client(READ_KEY).get("/v1/devices").json()["devices"] == []
     assert client(SUBMIT_KEY).delete("/v1/devices/gone").status_code == 404
+
+
+def test_commands_for_a_stopped_daemon_are_refused_past_the_backlog(
+    settings: Settings, client: Callable[..., httpx.Client]
+) -> None:
+    """Before, every command was accepted (202) and the stream's bound then trimmed the
+    oldest ones unread: accepted commands were lost."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "idle")
+    http = client(SUBMIT_KEY)
+    command = {"command": "set_frame_rate", "fps": 20}
+    accepted = [http.post("/v1/devices/idle/control", json=command) for _ in range(CONTROL_BACKLOG)]
+    assert {reply.status_code for reply in accepted} == {202}
+    refused = http.post("/v1/devices/idle/control", json=command)
+    assert refused.status_code == 503 and refused.headers["retry-after"] == "5"
+    assert refused.json()["code"] == "control_backlog_full"
+    assert redis_client.xlen(control_stream("idle")) == CONTROL_BACKLOG
 
 
 def test_event_streams_are_capped_and_a_closed_one_frees_its_slot(
