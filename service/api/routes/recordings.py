@@ -61,11 +61,20 @@ class RecordingFields(VideoOptionFields):
     """Fields of ``POST /v1/devices/{id}/recordings`` (video options apply to ``start``)."""
 
     action: Literal["start", "stop"] = Field(description="start or stop the recording")
-    max_frames: int = Field(300, ge=1, description="the recording stops by itself after these")
+    max_frames: int = Field(300, ge=1, lt=1 << 63,
+                            description="the recording stops by itself after these")
 
 
 #: A recording form names a handful of fields; Starlette's default allows 1000 and files.
 MAX_FORM_FIELDS = 32
+
+
+def _refuse_booleans(values: dict[str, Any]) -> None:
+    """A JSON ``true`` for a number field is refused (pydantic would read it as 1)."""
+    for name, value in values.items():
+        field = RecordingFields.model_fields.get(name)
+        if isinstance(value, bool) and field is not None and field.annotation is not bool:
+            raise InvalidInputError(f"{name} must be a number, not {str(value).lower()}")
 
 
 async def read_fields(request: Request) -> RecordingFields:
@@ -83,6 +92,12 @@ async def read_fields(request: Request) -> RecordingFields:
     elif media in ("application/x-www-form-urlencoded", "multipart/form-data"):
         async with request.form(max_files=0, max_fields=MAX_FORM_FIELDS) as form:
             values |= {name: value for name, value in form.items() if isinstance(value, str)}
+    elif await request.body():
+        raise InvalidInputError(
+            f"the body came as {media or 'no content type'!r} and was not read: send a JSON "
+            "object with the header 'Content-Type: application/json', or form fields"
+        )
+    _refuse_booleans(values)
     try:
         return RecordingFields.model_validate(values)
     except ValidationError as exc:

@@ -103,6 +103,10 @@ def test_stop_mid_stream_and_bad_requests(camera: VirtualScamp5, client: Client)
         ({"content": b"{no", "headers": {"Content-Type": "application/json"}}, 422, "JSON"),
         ({"content": b"[" * 50_000, "headers": {"Content-Type": "application/json"}}, 422,
          "JSON"),  # nested past Python's recursion limit: it gave 500
+        ({"json": {"action": "start", "max_frames": True}}, 422, "not true"),  # it meant 1
+        ({"json": {"action": "start", "max_frames": 10**400}}, 422, "less than"),
+        ({"content": b'{"action": "start"}', "headers": {"Content-Type": "text/plain"}}, 422,
+         "'text/plain' and was not read"),
     ]
     for request, status, fragment in bad:
         reply = http.post(URL, **request)
