@@ -184,6 +184,11 @@ def split_unwrapped(
     u = np.asarray(u, dtype=np.float64)
     if params.encoding == "clip":
         return np.zeros(u.shape, np.int64), np.clip(u, 0.0, 1.0)
+    if not np.isfinite(u).all():
+        raise InvalidInputError(
+            f"{int((~np.isfinite(u)).sum())} pixels have no finite unwrapped value; the "
+            "irradiance must be finite (check the gain)"
+        )
     floor = np.floor(u)
     too_many = floor > float(MAX_WINDING) / 2
     if too_many.any():
@@ -281,14 +286,19 @@ def largest_noise_sigma(top: float, params: SensorParams) -> float:
 def apply_shot_noise(
     x: NDArray[np.float64], full_well: float, rng: np.random.Generator
 ) -> NDArray[np.float64]:
-    """Poisson shot noise for ``full_well`` electrons at ``x = 1`` (Gaussian for huge counts)."""
-    electrons = x * full_well
+    """Poisson shot noise for ``full_well`` electrons at ``x = 1`` (Gaussian for huge counts).
+
+    The Gaussian is applied relative to ``x`` (``x (1 + z / sqrt(electrons))``): a count
+    that overflows float64 (``x`` near 1e300) leaves ``x`` as it is, where ``inf +
+    sqrt(inf) z`` was NaN."""
+    with np.errstate(over="ignore"):
+        electrons = x * full_well
     small = electrons < _POISSON_LIMIT
     noisy = np.empty_like(electrons)
-    noisy[small] = rng.poisson(electrons[small])
+    noisy[small] = rng.poisson(electrons[small]) / full_well
     big = electrons[~small]
-    noisy[~small] = big + np.sqrt(big) * rng.standard_normal(big.shape)
-    return np.maximum(noisy, 0.0) / full_well
+    noisy[~small] = x[~small] * (1.0 + rng.standard_normal(big.shape) / np.sqrt(big))
+    return np.maximum(noisy, 0.0)
 
 
 def encode(x: NDArray[np.floating], params: SensorParams) -> SensorFrame:
@@ -381,13 +391,15 @@ def reconstruct(
 
 
 def max_winding(params: SensorParams) -> int | None:
-    """Upper bound on ``W`` from the encoding and ``max_wraps``; None when unbounded."""
+    """Upper bound on ``W`` from the encoding and ``max_wraps``, six standard deviations
+    of read and shot noise above it (shot noise is drawn after the ``max_wraps`` clip);
+    None when unbounded."""
     if params.encoding == "clip":
         return 0
     if params.max_wraps is None:
         return None
-    u_max = to_unwrapped(np.array(params.max_wraps), params)
-    return int(np.floor(u_max + params.read_noise * 6))
+    u_max = float(to_unwrapped(np.array(params.max_wraps), params))
+    return int(np.floor(u_max + 6 * largest_noise_sigma(u_max, params)))
 
 
 def clip_winding(winding: NDArray[np.integer], params: SensorParams) -> NDArray[np.int64]:

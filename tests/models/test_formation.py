@@ -323,6 +323,26 @@ def test_shot_noise_variance_is_x_over_full_well() -> None:
     assert np.var(u_noisy) == pytest.approx(2.0 / 400.0, rel=0.05)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_shot_noise_on_a_count_past_float64_keeps_the_pixel(seed: int) -> None:
+    """x * full_well overflowed to inf, and inf + sqrt(inf) z was NaN: W came out as
+    the int64 minimum (or the pixel inf) for half the seeds."""
+    params = SensorParams(encoding="mantissa", full_well=2e4, seed=seed)
+    frame = encode(np.array([[1e300, 1e305]]), params)
+    assert frame.winding.tolist() == encode(np.array([[1e300, 1e305]]), params.model_copy(
+        update={"full_well": None})).winding.tolist()
+
+
+@pytest.mark.parametrize("encoding", ["modulo", "mantissa"])
+def test_max_winding_bounds_the_windings_shot_noise_makes(encoding: str) -> None:
+    """Shot noise is drawn after the max_wraps clip; the bound left it out and decoders
+    clipped true windings down (542 of 4096 pixels here)."""
+    params = SensorParams(encoding=encoding, max_wraps=15.9, full_well=2000.0, seed=1)
+    frame = encode(np.full((64, 64), 15.9), params)
+    bound = max_winding(params)
+    assert bound is not None and frame.winding.max() <= bound
+
+
 @pytest.mark.parametrize(
     ("encoding", "x"), [("modulo", 2.0), ("mantissa", 0.5), ("mantissa", 8.0)]
 )
