@@ -14,8 +14,9 @@ while pending (a full device stream) come back without fields and are acked.
 
 from __future__ import annotations
 
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import redis
 
@@ -63,12 +64,15 @@ return reply[1][2]
 
 @dataclass
 class Delivery:
-    """A stream entry handed to this consumer; ``deliveries`` counts handings incl. this one."""
+    """A stream entry handed to this consumer; ``deliveries`` counts handings incl. this one.
+    ``lost`` is set when another consumer has taken the entry over (this one stalled
+    past the claim idle time): its work here is then wasted, and it is not ours to ack."""
 
     stream: str
     entry_id: str
     fields: dict[str, bytes]
     deliveries: int = 1
+    lost: threading.Event = field(default_factory=threading.Event, compare=False, repr=False)
 
     def text(self, name: str) -> str:
         """A header field as text (KeyError if missing)."""

@@ -70,6 +70,10 @@ class JobCancelled(Exception):
     """The job was cancelled (or settled elsewhere) while it ran: drop it."""
 
 
+class EntryLost(Exception):
+    """Another worker took the job's entry over while this one stalled: stop, leave it."""
+
+
 class ShutdownRequested(Exception):
     """The worker is stopping; the job is handed back to the queue."""
 
@@ -93,6 +97,7 @@ class JobContext:
     store: ResultStore
     stop: threading.Event
     child: ChildProcess | None = None
+    lost: threading.Event = field(default_factory=threading.Event)
 
     def run(self, function: Callable[..., Any], *args: Any, hand_back: bool = False) -> Any:
         """``function(*args)`` in the job's child process when there is one (both
@@ -117,8 +122,11 @@ class JobContext:
         return result
 
     def check(self) -> None:
-        """Raise :class:`JobCancelled` when the job was cancelled, or has been settled by
-        another worker (which reclaimed it while this one was stopping or stalled)."""
+        """Raise :class:`EntryLost` when another worker has taken the job's entry over
+        (this one stalled), :class:`JobCancelled` when the job was cancelled or has been
+        settled by another worker."""
+        if self.lost.is_set():
+            raise EntryLost
         if self.jobs.load(self.record.id).state.finished:
             raise JobCancelled
 
@@ -275,6 +283,11 @@ class JobProcessor:
             except JobCancelled:
                 self._finish(consumer, delivery, record.id)
                 return
+            except EntryLost:
+                self.metrics.inc("jobs_abandoned_total")
+                log.warning("job %s: another worker took its entry over while this one "
+                            "stalled; stopped here, left to it", record.id)
+                return
             except Exception as exc:
                 if is_transient(exc):
                     raise
@@ -317,7 +330,7 @@ class JobProcessor:
         if not changed:
             self._finish(consumer, delivery, record.id)
             return
-        ctx = JobContext(record, self.jobs, self.store, self.stop, self.child)
+        ctx = JobContext(record, self.jobs, self.store, self.stop, self.child, delivery.lost)
         outcome = load_handler(record.kind)(ctx, entry_codes(delivery.fields))
         finished = time.time_ns()
         timings = {

@@ -63,6 +63,9 @@ COUNTERS: dict[str, tuple[str, str]] = {
     ),
     "dead_letters_total": ("stream entries moved to the dead-letter stream", ""),
     "redeliveries_total": ("stream entries reclaimed from a consumer that stopped", ""),
+    "jobs_abandoned_total": (
+        "jobs a stalled worker stopped because another worker had taken them over", ""
+    ),
 }
 
 

@@ -341,8 +341,11 @@ class Worker:
             self._trouble.warn(f"worker {self.id}: could not {what}", exc)
 
     def _touch_in_flight(self) -> None:
+        """Keep in-flight job entries from being reclaimed; mark those another worker
+        took over meanwhile (this one stalled) as lost, so their jobs stop here."""
         for consumer, delivery in list(self._in_flight.values()):
-            consumer.touch(delivery)
+            if not consumer.touch(delivery):
+                delivery.lost.set()
 
     def _beat(self) -> None:
         now = time.time_ns()

@@ -23,13 +23,14 @@ import redis
 from models.errors import McamError
 from models.formation import SensorFrame, SensorParams
 from tests.worker.conftest import overflowing_codes
+from worker.child_process import ChildProcess
 from worker.deliveries import GROUP, Delivery, StreamConsumer
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.frame_message import FrameMessage
-from worker.job_processor import JobProcessor
+from worker.job_processor import JobProcessor, start_job_child
 from worker.jobs import JobState
 from worker.lease import Lease
-from worker.metrics import read_metrics
+from worker.metrics import counter_key, read_metrics
 from worker.queue import JobQueue, publish_frame
 from worker.redis_keys import (
     DEAD_LETTER_STREAM,
@@ -718,3 +719,37 @@ def test_a_finished_job_delivered_past_the_limit_is_dropped_not_dead_lettered(
     assert client.xlen(DEAD_LETTER_STREAM) == 0 and client.xlen(JOBS_STREAM) == 0
     record = queue.get(job.id)
     assert record.state is JobState.SUCCEEDED and record.error is None
+
+
+def test_a_stalled_worker_whose_job_was_taken_over_stops_decoding_it(
+    client: redis.Redis, embedded: EmbeddedRedis, queue: JobQueue, data_dir: Path, wait_until
+) -> None:
+    """Worker A stalled past the claim idle time and B reclaimed A's job: A's heartbeat
+    touch finds the entry gone and A stops its decode (it ran on to the end before),
+    leaving the entry, unacked, and the job to B."""
+    modulo = SensorParams(encoding="modulo")
+    job = queue.submit("reconstruction", random_codes(1024, 1024), modulo, "graphcut")
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    child = ChildProcess(start_job_child, ("itoh",))
+    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event(),
+                             child=child)
+    stalled = StreamConsumer(client, JOBS_STREAM, "a-j0", max_deliveries=3)
+    [delivery] = stalled.read_new(block_ms=None)
+    handler = threading.Thread(target=processor.handle, args=(stalled, delivery))
+    handler.start()
+    wait_until(lambda: queue.get(job.id).state is JobState.RUNNING, 60, "job running")
+    wait_until(lambda: child.pid is not None, 60, "the decode running in the child")
+    rescuer = StreamConsumer(client, JOBS_STREAM, "b-j0", max_deliveries=3)
+    assert rescuer.claim_idle(0) == 1
+    worker = Worker(WorkerConfig(redis_url=embedded.url, data_dir=data_dir))
+    worker._in_flight[0] = (stalled, delivery)
+    worker._touch_in_flight()
+    handler.join(30)
+    try:
+        assert not handler.is_alive(), "the decode went on after its entry was taken over"
+        consumers = client.xpending(JOBS_STREAM, GROUP)["consumers"]
+        assert [(c["name"], c["pending"]) for c in consumers] == [(b"b-j0", 1)]
+        assert queue.get(job.id).state is JobState.RUNNING  # B's to settle
+        assert client.hget(counter_key("jobs_abandoned_total"), "") == b"1"
+    finally:
+        child.close()
