@@ -14,6 +14,8 @@ from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
+from models.decoders.registry import resolve
+from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.config_checks import heartbeat_problem
 from worker.outputs import STREAM_EXR_COMPRESSION
@@ -153,6 +155,17 @@ class Settings(BaseSettings):
         problem = heartbeat_problem(value, lease_ms, idle_ms)
         if problem:
             raise ValueError(problem)
+        return value
+
+    @field_validator("default_decoder")
+    @classmethod
+    def _known_decoder(cls, value: str) -> str:
+        """An unknown default would start a service that blames every client naming no
+        decoder (422 'unknown decoder') for the operator's setting."""
+        try:
+            resolve(value)
+        except McamError as exc:
+            raise ValueError(exc.message) from None
         return value
 
     @field_validator("redis_maxmemory")

@@ -9,7 +9,8 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
-from models.decoders.registry import available_decoders
+from models.decoders.registry import resolve
+from models.errors import McamError
 from service.api.deps import StateDep
 from service.api.state import ServiceState
 
@@ -40,10 +41,12 @@ def live() -> Liveness:
 def readiness(state: ServiceState) -> Readiness:
     """Check the decoder registry, Redis and the workers' heartbeats."""
     detail: dict[str, str] = {}
-    names = [spec.name for spec in available_decoders()]
-    decoders_ok = state.settings.default_decoder in names
-    if not decoders_ok:
-        detail["decoders"] = f"default decoder {state.settings.default_decoder!r} not installed"
+    decoders_ok = True
+    try:
+        resolve(state.settings.default_decoder)  # listed, or parametrized (auto-40ms)
+    except McamError as exc:
+        decoders_ok = False
+        detail["decoders"] = f"default decoder: {exc.message}"
     workers = 0
     try:
         state.client.ping()

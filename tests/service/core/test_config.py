@@ -51,6 +51,24 @@ def test_unreadable_values_name_their_setting(
     assert caught.value.errors()[0]["loc"] == (name.removeprefix("MCAM_").lower(),)
 
 
+@pytest.mark.parametrize("name", ["auto-40ms", "herraez+colour", "mantissanet-small+puma"])
+def test_a_parametrized_default_decoder_is_accepted(
+    monkeypatch: pytest.MonkeyPatch, name: str
+) -> None:
+    monkeypatch.setenv("MCAM_DEFAULT_DECODER", name)
+    assert Settings().default_decoder == name
+
+
+def test_an_unknown_default_decoder_stops_the_service_at_start(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """It started, then answered every request naming no decoder with 422 'unknown
+    decoder', blaming the client for the operator's setting."""
+    monkeypatch.setenv("MCAM_DEFAULT_DECODER", "nope")
+    with pytest.raises(ValidationError, match="unknown decoder 'nope'; choose one of"):
+        Settings()
+
+
 def test_the_embedded_redis_must_have_room_beyond_the_queues_bytes(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -40,10 +40,19 @@ def test_ready_needs_a_worker_heartbeat(api: str, settings: Settings) -> None:
     assert wait_ready(api, 503).status_code == 503  # the worker removed its heartbeat
 
 
+def test_a_parametrized_default_decoder_is_ready(tmp_path: Path, redis_url: str) -> None:
+    """/health/ready compared the name with the listed decoders: 'auto-40ms' (valid
+    everywhere else) kept the service not ready for ever."""
+    settings = make_settings(tmp_path, redis_url, default_decoder="auto-40ms")
+    with serve(create_app(settings)) as api:
+        assert httpx.get(f"{api}/health/ready").json()["checks"]["decoders"] is True
+
+
 def test_ready_reports_redis_down_and_unknown_default_decoder(tmp_path: Path) -> None:
     embedded = EmbeddedRedis(tmp_path / "r")
     url = embedded.start()
-    settings = make_settings(tmp_path, url, default_decoder="missing")
+    # a decoder gone since the settings were read (the settings refuse an unknown one)
+    settings = make_settings(tmp_path, url).model_copy(update={"default_decoder": "missing"})
     with serve(create_app(settings)) as api:
         embedded.stop()
         body = httpx.get(f"{api}/health/ready").json()
