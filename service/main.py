@@ -17,6 +17,7 @@ from pathlib import Path
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
+from starlette.routing import BaseRoute
 
 from models.decoders.registry import available_decoders
 from service.api.body_limit import BodyLimitMiddleware
@@ -49,6 +50,11 @@ STATIC_DIR = Path(__file__).parent / "static"
 API_VERSION = "1.0.0"
 
 
+def api_routes() -> list[BaseRoute]:
+    """The routes of every router in :data:`ROUTERS`, with their full path templates."""
+    return [route for name in ROUTERS for route in importlib.import_module(name).router.routes]
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The API app. Redis is connected (or the embedded one started) at startup."""
     settings = settings or get_settings()
@@ -74,6 +80,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_error_handlers(app)
+    routes = api_routes()
     for name in ROUTERS:
         app.include_router(importlib.import_module(name).router)
 
@@ -86,9 +93,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes,
                        json_limit=settings.max_json_bytes)
     app.add_middleware(BodyTimeoutMiddleware, timeout_s=settings.http_body_timeout_s)
-    app.add_middleware(RequestTimer, histogram=requests)
     app.add_middleware(HeadRequestMiddleware)
+    app.add_middleware(RequestTimer, histogram=requests, routes=routes)
     app.add_middleware(SecurityHeaders, headers=API_HEADERS)
     viewer = SecurityHeaders(StaticFiles(directory=STATIC_DIR, html=True), VIEWER_HEADERS)
-    app.mount("/", ViewerMount(viewer, app.router.routes), name="viewer")
+    app.mount("/", ViewerMount(viewer, routes), name="viewer")
     return app

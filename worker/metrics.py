@@ -55,7 +55,11 @@ HISTOGRAMS: dict[str, str] = {
 #: Counter name -> (help, label name or "" when unlabelled).
 COUNTERS: dict[str, tuple[str, str]] = {
     "jobs_processed_total": ("jobs finished by a worker, by final state", "state"),
-    "jobs_rejected_total": ("job submissions refused because the jobs stream was full", ""),
+    "jobs_rejected_total": (
+        "job submissions refused by a queue bound: queue_full (jobs), queue_bytes, or the "
+        "API key's own key_jobs or key_bytes",
+        "reason",
+    ),
     "frames_processed_total": ("device frames reconstructed, by device", "device"),
     "frames_dropped_total": (
         "device frames dropped because the device's stream was full (oldest dropped)",

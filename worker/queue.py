@@ -64,6 +64,10 @@ UNBOUNDED = 2**62
 #: Consumer group every worker joins on the jobs stream and on each frame stream.
 GROUP = "workers"
 JOB_KINDS = ("reconstruction", "video")
+#: The submit script's refusal codes, as mcam_jobs_rejected_total's ``reason`` label.
+REFUSALS: dict[int, str] = {
+    0: "queue_full", -2: "queue_bytes", -1: "key_jobs", -3: "key_bytes",
+}
 
 _SUBMIT = """
 if redis.call('EXISTS', KEYS[2]) == 1 then return 2 end
@@ -261,7 +265,7 @@ class JobQueue:
         if accepted == 2:
             return self.get(record.id)
         if accepted != 1:
-            self.metrics.inc("jobs_rejected_total")
+            self.metrics.inc("jobs_rejected_total", reason=REFUSALS[accepted])
             raise self._refusal(accepted, codes.nbytes)
         return record
 
@@ -311,12 +315,14 @@ class JobQueue:
         """Cancel a queued or running job (a worker stops at its next check); a finished
         job is returned unchanged."""
         self.jobs.load(job_id)
-        self.jobs.transition(
+        cancelled, _ = self.jobs.transition(
             job_id,
             JobState.CANCELLED,
             (JobState.QUEUED, JobState.RUNNING),
             finished_ns=time.time_ns(),
         )
+        if cancelled:
+            self.metrics.inc("jobs_processed_total", state=JobState.CANCELLED.value)
         return self.jobs.load(job_id)
 
     def wait(self, job_id: str, timeout_s: float) -> JobRecord:

@@ -22,8 +22,10 @@ from prometheus_client.core import (
     Metric,
 )
 from prometheus_client.registry import Collector
+from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.api.route_match import route_template
 from service.api.state import ServiceState
 from worker.jobs import JobState
 from worker.metrics import MetricFamily, read_metrics
@@ -73,10 +75,14 @@ class QueueCollector(Collector):
         yield up
         yield from (_worker_family(family) for family in families)
         yield GaugeMetricFamily(
-            PREFIX + "queue_depth", "jobs waiting in the jobs stream", value=stats["stream_depth"]
+            PREFIX + "queue_depth",
+            "jobs in the jobs stream that no worker has taken yet",
+            value=max(stats["stream_depth"] - stats["pending"], 0),
         )
         yield GaugeMetricFamily(
-            PREFIX + "queue_pending", "jobs delivered but not acknowledged", value=stats["pending"]
+            PREFIX + "queue_pending",
+            "jobs a worker has taken and not finished (running, or to be reclaimed)",
+            value=stats["pending"],
         )
         yield GaugeMetricFamily(
             PREFIX + "queue_held_bytes",
@@ -107,7 +113,9 @@ class QueueCollector(Collector):
             jobs.add_metric([state.value], stats["jobs_by_state"][state.value])
         yield jobs
         devices = GaugeMetricFamily(
-            PREFIX + "device_stream_depth", "frames waiting per device stream", labels=["device"]
+            PREFIX + "device_stream_depth",
+            "frames in each device's stream not yet stored (waiting, or being decoded)",
+            labels=["device"],
         )
         for device, info in stats["devices"].items():
             devices.add_metric([device], info["depth"])
@@ -134,11 +142,15 @@ HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTI
 
 
 class RequestTimer:
-    """ASGI middleware observing each HTTP request's duration into ``histogram``."""
+    """ASGI middleware observing each HTTP request's duration into ``histogram``, by
+    method (as the client sent it: HEAD is answered as a GET inside), route template
+    and status. The template is the router's, else the one of the API ``routes`` the
+    path is for (a body refused before routing, a wrong method), else ``unmatched``."""
 
-    def __init__(self, app: ASGIApp, histogram: Histogram) -> None:
+    def __init__(self, app: ASGIApp, histogram: Histogram, routes: list[BaseRoute]) -> None:
         self.app = app
         self.histogram = histogram
+        self.routes = routes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -157,7 +169,8 @@ class RequestTimer:
             await self.app(scope, receive, timed_send)
         finally:
             route = getattr(scope.get("route"), "path", None)
-            route = "unmatched" if route is None else route or "/"
+            route = route_template(self.routes, scope) if route is None else route or "/"
+            route = "unmatched" if route is None else route
             method = scope["method"] if scope["method"] in HTTP_METHODS else "other"
             self.histogram.labels(method, route, str(status)).observe(
                 time.perf_counter() - start

@@ -11,31 +11,15 @@ viewer's.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-
 from starlette.exceptions import HTTPException
-from starlette.routing import BaseRoute, Match, Mount
+from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from service.api.errors import ApiError
+from service.api.route_match import allowed_methods
 
 #: Path prefixes that belong to the API, not to the viewer's files.
 API_PREFIXES: tuple[str, ...] = ("/v1/", "/health/", "/metrics")
-
-#: The methods a route of the API may declare.
-METHODS: tuple[str, ...] = ("DELETE", "GET", "PATCH", "POST", "PUT")
-
-
-def allowed_methods(routes: Iterable[BaseRoute], scope: Scope) -> set[str]:
-    """The methods some route other than a mount takes at ``scope``'s path, with HEAD
-    where GET is (:mod:`service.api.head_requests` answers it)."""
-    endpoints = [route for route in routes if not isinstance(route, Mount)]
-    methods = {
-        method
-        for method in METHODS
-        if any(route.matches({**scope, "method": method})[0] == Match.FULL for route in endpoints)
-    }
-    return methods | {"HEAD"} if "GET" in methods else methods
 
 
 def viewer_error(exc: HTTPException, scope: Scope) -> HTTPException:
@@ -61,7 +45,7 @@ def viewer_error(exc: HTTPException, scope: Scope) -> HTTPException:
 class ViewerMount:
     """ASGI app for the ``/`` mount: the API's 405s and 404s, else the viewer ``app``.
 
-    ``routes`` are the application's (read per request, so routers added later count).
+    ``routes`` are the API's (:func:`service.main.api_routes`).
     """
 
     def __init__(self, viewer: ASGIApp, routes: list[BaseRoute]) -> None:
@@ -81,7 +65,7 @@ class ViewerMount:
     def refuse_api_misses(self, scope: Scope) -> None:
         """Raise the API's answer for a request no route took, if the path is the API's."""
         path = scope["path"]
-        outer = {**scope, "root_path": scope.get("app_root_path", "")}
+        outer = {**scope, "root_path": scope.get("app_root_path", "")}  # not the mount's
         methods = allowed_methods(self.routes, outer)
         if methods:
             allow = ", ".join(sorted(methods))

@@ -92,8 +92,13 @@ def test_full_jobs_stream_rejects_and_counts(client: redis.Redis) -> None:
     assert info.value.code == "queue_full" and info.value.http_status == 503
     assert client.xlen(JOBS_STREAM) == 2
     assert queue.stats()["jobs_by_state"]["queued"] == 2
+    assert rejections(client) == {"queue_full": 1}
+
+
+def rejections(client: redis.Redis) -> dict[str, float]:
+    """mcam_jobs_rejected_total by reason."""
     rejected = {f.name: f for f in read_metrics(client)}["jobs_rejected_total"]
-    assert rejected.samples[0].value == 1
+    return {sample.labels["reason"]: sample.value for sample in rejected.samples}
 
 
 def bounded_queue(
@@ -114,6 +119,7 @@ def test_a_key_with_its_limit_of_jobs_in_the_queue_is_refused_others_are_not(
     with pytest.raises(TooManyJobsError, match="2 jobs in the queue") as info:
         queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
     assert info.value.code == "too_many_jobs" and info.value.http_status == 429
+    assert rejections(client) == {"key_jobs": 1}  # counted as a full stream before
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="bob")
     queue.submit("reconstruction", CODES, PARAMS, "itoh")
     assert client.xlen(JOBS_STREAM) == 4
@@ -196,11 +202,15 @@ def test_get_unknown_and_malformed_ids(queue: JobQueue) -> None:
         queue.cancel("f" * 32)
 
 
-def test_cancel_queued_job_and_finished_job_unchanged(queue: JobQueue) -> None:
+def test_cancel_queued_job_and_finished_job_unchanged(
+    queue: JobQueue, client: redis.Redis
+) -> None:
     record = queue.submit("reconstruction", CODES, PARAMS, "itoh")
     cancelled = queue.cancel(record.id)
     assert cancelled.state is JobState.CANCELLED and cancelled.finished_ns is not None
     assert queue.cancel(record.id) == cancelled
+    ended = {f.name: f for f in read_metrics(client)}["jobs_processed_total"]
+    assert [(s.labels, s.value) for s in ended.samples] == [({"state": "cancelled"}, 1)]
     assert queue.stats()["jobs_by_state"] == {
         "queued": 0,
         "running": 0,

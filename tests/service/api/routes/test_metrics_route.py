@@ -8,7 +8,11 @@ from collections.abc import Callable
 import httpx
 from prometheus_client.parser import text_string_to_metric_families
 
+from service.core.config import Settings
 from tests.service.conftest import frame_png
+from worker.deliveries import StreamConsumer
+from worker.embedded_redis import connect
+from worker.redis_keys import JOBS_STREAM
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
@@ -74,3 +78,34 @@ def test_made_up_methods_share_one_label(client: Client) -> None:
     methods = {dict(labels)["method"] for name, labels in values
                if name == "mcam_http_request_duration_seconds_count"}
     assert "other" in methods and not any(m.startswith("FAKE") for m in methods)
+
+
+def test_a_refused_body_and_a_head_are_labelled_with_their_route(client: Client) -> None:
+    """A 413 (refused before routing) was labelled 'unmatched' like a 404, and a HEAD as
+    the GET it is answered with."""
+    http = client()
+    big = http.post("/v1/reconstructions", content=b"x" * 3_000_000,
+                    headers={"Content-Type": "application/octet-stream"})
+    assert big.status_code == 413
+    assert http.head("/v1/decoders").status_code == 200
+    values = samples(httpx.get(f"{str(http.base_url).rstrip('/')}/metrics").text)
+    count = "mcam_http_request_duration_seconds_count"
+    assert values[(count, (("method", "POST"), ("route", "/v1/reconstructions"),
+                           ("status", "413")))] == 1.0
+    assert values[(count, (("method", "HEAD"), ("route", "/v1/decoders"),
+                           ("status", "200")))] == 1.0
+
+
+def test_queue_depth_counts_only_jobs_no_worker_took(client: Client, settings: Settings) -> None:
+    """A running job was counted in both mcam_queue_depth ('waiting') and
+    mcam_queue_pending."""
+    http = client()
+    data, _ = frame_png()
+    for _ in range(2):
+        assert http.post("/v1/reconstructions", files={"file": ("f.png", data)}).status_code == 202
+    assert settings.redis_url is not None
+    consumer = StreamConsumer(connect(settings.redis_url), JOBS_STREAM, "w-j0", max_deliveries=3)
+    assert len(consumer.read_new(block_ms=None)) == 1
+    values = samples(httpx.get(f"{str(http.base_url).rstrip('/')}/metrics").text)
+    assert values[("mcam_queue_depth", ())] == 1.0
+    assert values[("mcam_queue_pending", ())] == 1.0
