@@ -64,7 +64,8 @@ return reply[1][2]
 
 @dataclass
 class Delivery:
-    """A stream entry handed to this consumer; ``deliveries`` counts handings incl. this one.
+    """A stream entry handed to this consumer; ``deliveries`` counts handings incl. this one,
+    ``read_ms`` is when this consumer read it (ms since the epoch, as entry ids count).
     ``lost`` is set when another consumer has taken the entry over (this one stalled
     past the claim idle time): its work here is then wasted, and it is not ours to ack."""
 
@@ -72,6 +73,7 @@ class Delivery:
     entry_id: str
     fields: dict[str, bytes]
     deliveries: int = 1
+    read_ms: int = field(default_factory=lambda: time.time_ns() // 1_000_000)
     lost: threading.Event = field(default_factory=threading.Event, compare=False, repr=False)
 
     def text(self, name: str) -> str:

@@ -311,7 +311,7 @@ class DeviceConsumer:
         self.metrics.observe("decode_seconds", frame.timings_ns.get("decode", 0) / 1e9, pipe=pipe)
         self.metrics.observe("encode_seconds", encode_ns / 1e9, pipe=pipe)
         self.metrics.inc("frames_processed_total", pipe=pipe, device=device)
-        waited_ms = time.time_ns() // 1_000_000 - entry_order(delivery.entry_id)[0]
+        waited_ms = delivery.read_ms - entry_order(delivery.entry_id)[0]
         self.metrics.observe("queue_wait_seconds", max(waited_ms, 0) / 1e3, pipe=pipe)
         try:
             pipe.execute()

@@ -352,7 +352,7 @@ class JobProcessor:
         )
         if changed:
             self._drop(consumer, delivery, record.id)
-            self._observe(timings, JobState.SUCCEEDED)
+            self._observe(timings, JobState.SUCCEEDED, record.frames_total)
         else:
             self._finish(consumer, delivery, record.id)
 
@@ -398,10 +398,16 @@ class JobProcessor:
         else:
             self.jobs.expire(record.id, self.store.retention_s)
 
-    def _observe(self, timings_ns: dict[str, int], state: JobState) -> None:
+    def _observe(self, timings_ns: dict[str, int], state: JobState, frames: int) -> None:
+        """Record a succeeded job's stage times; its decode as ``frames`` frames, each at
+        the mean (a video's whole decode was one sample of 'time to decode one frame')."""
         pipe = self.metrics.client.pipeline(transaction=False)
         for stage in ("queue_wait", "decode", "encode", "total"):
-            if stage in timings_ns:
-                self.metrics.observe(f"{stage}_seconds", timings_ns[stage] / 1e9, pipe=pipe)
+            if stage not in timings_ns:
+                continue
+            seconds, times = timings_ns[stage] / 1e9, 1
+            if stage == "decode":
+                seconds, times = seconds / max(frames, 1), max(frames, 1)
+            self.metrics.observe(f"{stage}_seconds", seconds, pipe=pipe, times=times)
         self.metrics.inc("jobs_processed_total", pipe=pipe, state=state.value)
         pipe.execute()

@@ -48,7 +48,7 @@ BUCKETS_S: tuple[float, ...] = (
 HISTOGRAMS: dict[str, str] = {
     "queue_wait_seconds": "time a job or frame waited in the queue before a worker took it",
     "decode_seconds": "time to decode one frame (predict winding + invert)",
-    "encode_seconds": "time to encode and durably write the results (EXR, W map)",
+    "encode_seconds": "time to encode and durably write one job's or frame's results",
     "total_seconds": "time from submission to the durable result",
 }
 
@@ -117,15 +117,17 @@ class Metrics:
     def __init__(self, client: redis.Redis) -> None:
         self.client = client
 
-    def observe(self, name: str, seconds: float, pipe: redis.client.Pipeline | None = None) -> None:
-        """Add one observation (in seconds) to histogram ``name``."""
+    def observe(self, name: str, seconds: float, pipe: redis.client.Pipeline | None = None,
+                times: int = 1) -> None:
+        """Add an observation of ``seconds`` to histogram ``name``, ``times`` times (the
+        frames of a video, each observed at the mean of its decode)."""
         if name not in HISTOGRAMS:
             raise KeyError(f"unknown histogram {name!r}")
         target = pipe if pipe is not None else self.client.pipeline(transaction=False)
         key = histogram_key(name)
-        target.hincrby(key, _bucket_field(seconds), 1)
-        target.hincrbyfloat(key, "sum", float(seconds))
-        target.hincrby(key, "count", 1)
+        target.hincrby(key, _bucket_field(seconds), times)
+        target.hincrbyfloat(key, "sum", float(seconds) * times)
+        target.hincrby(key, "count", times)
         if pipe is None:
             target.execute()
 

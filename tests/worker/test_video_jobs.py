@@ -14,9 +14,13 @@ import redis
 from models.errors import InvalidInputError
 from models.hdr_io import EXR_COMPRESSIONS
 from tests.worker.conftest import PARAMS, ramp_frame
-from worker.job_processor import JobContext
+from worker.deliveries import StreamConsumer
+from worker.job_processor import JobContext, JobProcessor
 from worker.job_store import JobStore
+from worker.jobs import JobState
+from worker.metrics import read_metrics
 from worker.queue import JobQueue
+from worker.redis_keys import JOBS_STREAM
 from worker.result_store import RESULTS_DIR, ResultStore
 from worker.video_jobs import DEFAULT_OPTIONS, run_video_job, video_options
 
@@ -80,3 +84,25 @@ def test_progress_reaches_one_only_when_every_output_is_written(
     assert all(b >= a for a, b in itertools.pairwise(f for _, f in jobs.updates))
     assert jobs.updates[-1] == (frames, 1.0)
     assert len(jobs.updates) > frames  # the encodes report too
+
+
+def test_a_videos_decode_counts_in_the_histogram_as_its_frames(
+    client: redis.Redis, queue: JobQueue, data_dir: Path
+) -> None:
+    """mcam_decode_seconds is the time to decode one frame: a 6-frame video's whole
+    decode was one sample."""
+    frames = 6
+    codes = np.stack([ramp_frame(size=64).codes] * frames)
+    job = queue.submit("video", codes, PARAMS, "itoh",
+                       {"mode": "independent", "outputs": ["exr_zip"]})
+    store = ResultStore(data_dir / RESULTS_DIR, 3600)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    processor.handle(consumer, delivery)
+    assert queue.get(job.id).state is JobState.SUCCEEDED
+    histograms = {f.name: f.samples[0] for f in read_metrics(client) if f.kind == "histogram"}
+    assert histograms["decode_seconds"].count == frames
+    assert histograms["encode_seconds"].count == histograms["total_seconds"].count == 1
+    decode_ns = queue.get(job.id).timings_ns["decode"]
+    assert histograms["decode_seconds"].value == pytest.approx(decode_ns / 1e9)
