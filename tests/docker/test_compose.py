@@ -91,3 +91,18 @@ def test_dockerfile_is_slim_non_root_with_health_check() -> None:
     assert "/health/live" in text and "HEALTHCHECK" in text
     assert 'CMD ["mcam", "serve"]' in text
     assert dockerfile_environment()["MCAM_DATA_DIR"] == "/data"
+
+
+def test_an_init_reaps_and_forwards_signals_as_pid_1() -> None:
+    """mcam serve as PID 1 would inherit, and never reap, the processes of a worker
+    that died; tini does, and passes SIGTERM on."""
+    text = (DOCKER / "Dockerfile").read_text()
+    assert "install -y --no-install-recommends tini" in text
+    assert 'ENTRYPOINT ["tini", "--"]' in text
+
+
+def test_the_build_context_leaves_out_local_state() -> None:
+    """The context is the repository: without .dockerignore it sent the virtualenv, the
+    local service's data (its API keys, Redis files) and the git history."""
+    ignored = (DOCKER.parent / ".dockerignore").read_text().split()
+    assert {".git", ".venv", "data", "runs"} <= set(ignored)
