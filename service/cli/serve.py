@@ -16,10 +16,10 @@ workers (gracefully), then the embedded Redis.
 One worker (the default) decodes one job at a time on all its onnxruntime threads: the
 least latency for one upload. Uploads and batches are decoded faster by one
 single-threaded worker per core, since most of a refined decode runs on one core
-(``python -m bench.throughput``: auto-balanced on val-256, 2 cores, 15-18 frames/s
-with one worker of 2 threads, 28-33 with two workers of one thread). A camera's stream
-uses every core either way: its owner decodes it on a pool of processes
-(:mod:`worker.decode_pool`; 29.4 frames/s for one stream in the same benchmark).
+(``python -m bench.throughput``, README: auto-balanced on val-256, 2 cores, 23.8
+frames/s with one worker of 2 threads, 41.8 with two workers of one thread). A camera's
+stream uses every core either way: its owner decodes it on a pool of processes
+(:mod:`worker.decode_pool`; 40.0 frames/s for one stream in the same run).
 """
 
 from __future__ import annotations
