@@ -76,6 +76,11 @@ class Settings(BaseSettings):
         "worker holds about 20 bytes each while decoding",
     )
     rate_limit_per_minute: int = Field(600, gt=0, description="requests per API key in any 60 s")
+    metrics_public: bool = Field(
+        False,
+        description="serve /metrics without an API key (a scraper on a private network); "
+        "by default it needs a key with the read scope, as device ids and load are in it",
+    )
     max_waiting_requests: int = Field(
         16, ge=0, le=32,
         description="requests held open at once by 'Prefer: wait' (the API has 40 threads)",

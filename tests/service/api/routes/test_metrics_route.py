@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import httpx
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.core.config import Settings
-from tests.service.conftest import frame_png
+from service.main import create_app
+from tests.service.conftest import READ_KEY, SUBMIT_KEY, frame_png, make_settings, serve
 from worker.deliveries import StreamConsumer
 from worker.embedded_redis import connect
 from worker.redis_keys import JOBS_STREAM
@@ -26,12 +28,12 @@ def samples(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
     }
 
 
-def settled_metrics(url: str, timeout_s: float = 30.0) -> httpx.Response:
+def settled_metrics(http: httpx.Client, timeout_s: float = 30.0) -> httpx.Response:
     """/metrics once the worker has recorded its job: it marks the job succeeded (which
     answers the waiting POST) before it acknowledges the entry and observes the timings."""
     deadline = time.monotonic() + timeout_s
     while True:
-        reply = httpx.get(f"{url}/metrics")
+        reply = http.get("/metrics")
         decoded = samples(reply.text).get(("mcam_decode_seconds_count", ()))
         if reply.status_code != 200 or decoded == 1.0 or time.monotonic() > deadline:
             return reply
@@ -45,7 +47,7 @@ def test_metrics_after_one_job(client: Client, worker: Worker) -> None:
         "/v1/reconstructions", files={"file": ("f.png", data)}, headers={"Prefer": "wait=30"}
     )
     assert job.status_code == 200
-    reply = settled_metrics(str(http.base_url).rstrip("/"))
+    reply = settled_metrics(http)
     assert reply.status_code == 200 and reply.headers["content-type"].startswith("text/plain")
     values = samples(reply.text)
     for name in (
@@ -74,7 +76,7 @@ def test_made_up_methods_share_one_label(client: Client) -> None:
     http = client()
     for n in range(5):
         http.request(f"FAKE{n}", "/health/live")
-    values = samples(httpx.get(f"{str(http.base_url).rstrip('/')}/metrics").text)
+    values = samples(http.get("/metrics").text)
     methods = {dict(labels)["method"] for name, labels in values
                if name == "mcam_http_request_duration_seconds_count"}
     assert "other" in methods and not any(m.startswith("FAKE") for m in methods)
@@ -88,7 +90,7 @@ def test_a_refused_body_and_a_head_are_labelled_with_their_route(client: Client)
                     headers={"Content-Type": "application/octet-stream"})
     assert big.status_code == 413
     assert http.head("/v1/decoders").status_code == 200
-    values = samples(httpx.get(f"{str(http.base_url).rstrip('/')}/metrics").text)
+    values = samples(http.get("/metrics").text)
     count = "mcam_http_request_duration_seconds_count"
     assert values[(count, (("method", "POST"), ("route", "/v1/reconstructions"),
                            ("status", "413")))] == 1.0
@@ -106,6 +108,18 @@ def test_queue_depth_counts_only_jobs_no_worker_took(client: Client, settings: S
     assert settings.redis_url is not None
     consumer = StreamConsumer(connect(settings.redis_url), JOBS_STREAM, "w-j0", max_deliveries=3)
     assert len(consumer.read_new(block_ms=None)) == 1
-    values = samples(httpx.get(f"{str(http.base_url).rstrip('/')}/metrics").text)
+    values = samples(http.get("/metrics").text)
     assert values[("mcam_queue_depth", ())] == 1.0
     assert values[("mcam_queue_pending", ())] == 1.0
+
+
+def test_metrics_need_a_read_key_unless_made_public(
+    client: Client, tmp_path: Path, redis_url: str
+) -> None:
+    """They name every device and show the service's load: they were open to anyone."""
+    assert client("").get("/metrics").status_code == 401
+    assert client(SUBMIT_KEY).get("/metrics").status_code == 403
+    assert client(READ_KEY).get("/metrics").status_code == 200
+    public = make_settings(tmp_path, redis_url, metrics_public=True)
+    with serve(create_app(public)) as url:
+        assert httpx.get(f"{url}/metrics").status_code == 200
