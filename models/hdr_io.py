@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from models.errors import InvalidInputError, McamError, UnsupportedFormatError
 from models.exr_chunks import missing_chunks
 from models.exr_limits import check_exr_size, part_size
+from models.exr_parts import check_flat
 from models.formation import validate_irradiance
 from models.frames import check_pixel_count, decoding
 from models.output_range import ensure_fits
@@ -79,12 +80,13 @@ def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any
 
     Bytes (an upload) missing pixel chunks are refused before the library reads them
     (:func:`models.exr_chunks.missing_chunks`: it would print its complaint to stderr).
-    Every part's size is checked on the headers (:func:`check_exr_size`) before the
-    binding decodes all parts and channels.
+    Every part is checked on the headers (:func:`check_flat`, :func:`check_exr_size`)
+    before the binding decodes all parts and channels.
     """
     if isinstance(source, bytes) and missing_chunks(source):
         raise InvalidInputError(_EXR_TRUNCATED)
     headers = [part.header for part in _exr_file(source, header_only=True).parts]
+    check_flat(headers)
     layouts = [_image_channels([ch.name for ch in header["channels"]]) for header in headers]
     index = next((i for i, layout in enumerate(layouts) if layout is not None), None)
     if index is None:
