@@ -4,7 +4,8 @@ Formats
 -------
 - ``tiff``: a multi-page TIFF, one frame per page (``H x W`` or ``H x W x C``); the
   parameters as JSON in the first page's ImageDescription (as :mod:`models.frames`
-  writes it).
+  writes it). A later page storing parameters of its own must store the same (as
+  zipped frames must).
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
 - ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in file-name order
   (``frame_2.png`` before ``frame_10.png``); parameters from the first frame's text
@@ -30,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tifffile
 from numpy.typing import NDArray
 
 from models.decoders.base import check_frame_shape
@@ -123,7 +125,9 @@ def png_entry_limit(max_pixels: int | None) -> int | None:
     return None if max_pixels is None else 4 * max_pixels + 2**20
 
 
-def _read_tiff(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
+def _read_tiff(
+    data: bytes, overrides: dict[str, Any] | None, limits: VideoLimits
+) -> tuple[NDArray[Any], dict[str, Any]]:
     with open_tiff(data, limits.frames) as (tif, count):
         if limits.frames is not None and count > limits.frames:
             raise ImageTooLargeError(
@@ -133,17 +137,36 @@ def _read_tiff(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str
         check_frame_count(count, limits.frames)
         first = tif.pages.first
         check_pixel_count(int(first.imagewidth), int(first.imagelength), limits.pixels)
-        shape = page_shape(first)
-        check_sample_count(count, shape, limits.samples)
+        check_sample_count(count, page_shape(first), limits.samples)
+        stored = tiff_params(first.description)
         frames = []
         for page in tif.pages:
-            if page_shape(page) != shape:
-                raise InvalidInputError(
-                    f"all pages of a video have one shape; page {len(frames)} is "
-                    f"{page_shape(page)}, the first {shape}"
-                )
+            if frames:
+                _check_page(page, len(frames), first, stored, overrides)
             frames.append(page_codes(page))
-        return np.stack(frames), tiff_params(first.description)
+        return np.stack(frames), stored
+
+
+def _check_page(
+    page: tifffile.TiffPage,
+    index: int,
+    first: tifffile.TiffPage,
+    stored: dict[str, Any],
+    overrides: dict[str, Any] | None,
+) -> None:
+    """Refuse page ``index`` when its size, sample type or sensor parameters (its own
+    with ``overrides``; a page storing none has the first page's) differ from the
+    first page's (``stored``)."""
+    differences = []
+    if page_shape(page) != page_shape(first):
+        differences.append(f"size ({_size(page_shape(page))} against {_size(page_shape(first))})")
+    if page.dtype != first.dtype:
+        differences.append(f"sample type ({page.dtype} against {first.dtype})")
+    own = tiff_params(page.description)
+    if own and own != stored:
+        differences += merge_params(stored, overrides).differences(merge_params(own, overrides))
+    if differences:
+        raise _frame_differs(f"page {index}", "page 0", differences)
 
 
 def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
@@ -208,20 +231,27 @@ def _read_zip(
             frame = _zip_frame(archive, entry, overrides, limits, most)
             differences = first.params.differences(frame.params)
             if frame.codes.shape != first.codes.shape:
-                differences.insert(0, f"size ({_size(frame.codes)} against {_size(first.codes)})")
-            if differences:
-                raise InvalidInputError(
-                    f"{entry.filename} differs from {entries[0].filename} in "
-                    f"{', '.join(differences)}; all frames of a video share one size and one "
-                    "set of sensor parameters (only the noise seed may differ)"
+                differences.insert(
+                    0, f"size ({_size(frame.codes.shape)} against {_size(first.codes.shape)})"
                 )
+            if differences:
+                raise _frame_differs(entry.filename, entries[0].filename, differences)
             frames.append(frame)
     return WrappedVideo(np.stack([f.codes for f in frames]), first.params)
 
 
-def _size(codes: NDArray[Any]) -> str:
+def _size(shape: tuple[int, ...]) -> str:
     """A frame's shape as ``H x W`` or ``H x W x C``."""
-    return " x ".join(str(side) for side in codes.shape)
+    return " x ".join(str(side) for side in shape)
+
+
+def _frame_differs(frame: str, first: str, differences: list[str]) -> InvalidInputError:
+    """The error for a video ``frame`` that differs from its ``first`` in ``differences``."""
+    return InvalidInputError(
+        f"{frame} differs from {first} in {', '.join(differences)}; all frames of a video "
+        "share one size, sample type and set of sensor parameters (only the noise seed "
+        "may differ)"
+    )
 
 
 def frame_entry_limit(codes: NDArray[Any]) -> int:
@@ -282,9 +312,11 @@ def decode_video(
         with decoding("the ZIP video"):
             video = _read_zip(data, overrides, limits)
     else:
-        reader = _read_tiff if fmt == "tiff" else _read_npy
         with decoding(f"the {fmt.upper()} video"):
-            codes, stored = reader(data, limits)
+            if fmt == "tiff":
+                codes, stored = _read_tiff(data, overrides, limits)
+            else:
+                codes, stored = _read_npy(data, limits)
         params = merge_params(stored, overrides)
         codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
         warn_if_8bit(codes, params)

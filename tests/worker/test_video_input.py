@@ -287,6 +287,47 @@ def test_a_separate_plane_tiff_video_is_read_samples_last() -> None:
     np.testing.assert_array_equal(decode_video(buffer.getvalue(), "tiff").codes, video)
 
 
+def tiff_pages(*pages: tuple[np.ndarray, SensorParams | None]) -> bytes:
+    """A TIFF video written a page at a time, each page with its own description."""
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as writer:
+        for frame, params in pages:
+            description = params.model_dump_json() if params else None
+            writer.write(frame, description=description, metadata=None)
+    return buffer.getvalue()
+
+
+TWELVE_BIT = SensorParams(encoding="modulo", bits=12)
+
+
+@pytest.mark.parametrize(
+    ("second", "named"),
+    [
+        ((codes()[1].astype(np.uint16) * 16, TWELVE_BIT),
+         r"in sample type \(uint16 against uint8\), encoding, bits;"),
+        ((codes()[1].astype(np.uint16), None), r"in sample type \(uint16 against uint8\);"),
+        ((codes()[1], PARAMS.model_copy(update={"gain": 2.0})), "in gain;"),
+        ((codes()[1][:4], None), r"in size \(4 x 5 against 6 x 5\);"),
+    ],
+    ids=["12-bit modulo", "16-bit samples", "gain", "size"],
+)  # fmt: skip
+def test_tiff_pages_must_match_and_the_error_names_what_differs(
+    second: tuple[np.ndarray, SensorParams | None], named: str
+) -> None:
+    """Every page was decoded with page 0's parameters (a 12-bit page as 8-bit codes)."""
+    data = tiff_pages((codes()[0], PARAMS), second)
+    with pytest.raises(InvalidInputError, match=f"^page 1 differs from page 0 {named}"):
+        decode_video(data, "tiff")
+
+
+def test_tiff_pages_may_differ_in_noise_seed_and_need_not_repeat_parameters() -> None:
+    seeded = PARAMS.model_copy(update={"seed": 7})
+    data = tiff_pages((codes()[0], PARAMS), (codes()[1], None), (codes()[2], seeded))
+    result = decode_video(data, "tiff")
+    np.testing.assert_array_equal(result.codes, codes()[:3])
+    assert result.params == PARAMS
+
+
 def test_a_bad_png_in_a_zip_names_its_entry() -> None:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
