@@ -258,6 +258,17 @@ def read_hdr(
     return HdrImage(pixels=values, attributes=attributes, negatives_clipped=clipped)
 
 
+def _exr_text(value: str) -> str:
+    """``value`` as an EXR string attribute (UTF-8) can hold it: a byte of a file name
+    that is not UTF-8 (a surrogate escape, as ``os.fsdecode`` gives) becomes ``\\xff``,
+    any other lone surrogate ``\\ud800``."""
+    try:
+        raw = value.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # a surrogate that escapes no byte
+        raw = value.encode("utf-8", "backslashreplace")
+    return raw.decode("utf-8", "backslashreplace")
+
+
 def encode_exr(
     pixels: NDArray[np.floating],
     attributes: dict[str, str] | None = None,
@@ -269,7 +280,8 @@ def encode_exr(
     compressed as one of :data:`EXR_COMPRESSIONS`.
 
     ``attributes`` become string header attributes, after the standard ``capDate``
-    (local time, ``YYYY:MM:DD HH:MM:SS``) and ``comments``, which they may replace.
+    (local time, ``YYYY:MM:DD HH:MM:SS``) and ``comments``, which they may replace;
+    text UTF-8 cannot hold is escaped (:func:`_exr_text`).
     Raises :class:`OutputOverflowError` when a value does not fit the pixel type.
     """
     if compression not in EXR_COMPRESSIONS:
@@ -297,7 +309,7 @@ def encode_exr(
         "capDate": time.strftime("%Y:%m:%d %H:%M:%S"),
         "comments": "written by MantissaCam",
     }
-    header.update(attributes or {})
+    header.update({key: _exr_text(value) for key, value in (attributes or {}).items()})
     buffer = io.BytesIO()
     OpenEXR.File(header, channels).write(buffer)
     return buffer.getvalue()

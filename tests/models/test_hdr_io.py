@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import os
 import re
 from pathlib import Path
 
@@ -314,3 +315,13 @@ def test_a_radiance_header_larger_than_its_data_is_refused_before_allocating() -
         read_hdr(header)
     assert smallest_scanline(8) == 4 + 8 and smallest_scanline(128) == 4 + 16
     assert smallest_scanline(7) == 28  # too narrow for RLE: flat
+
+
+def test_attribute_text_utf8_cannot_hold_is_escaped() -> None:
+    """A file name that is not UTF-8 (a byte 0xff, surrogate-escaped) in ``comments``
+    crashed ``mcam reconstruct`` with UnicodeEncodeError."""
+    name = os.fsdecode(b"frame_\xff.png")
+    data = encode_exr(np.ones((2, 2)), {"comments": f"of {name}", "owner": "x\ud800 café"})
+    attributes = read_hdr(data).attributes
+    assert attributes["comments"] == "of frame_\\xff.png"
+    assert attributes["owner"] == "x\\ud800 café"
