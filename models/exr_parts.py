@@ -2,7 +2,8 @@
 
 The OpenEXR Python binding (3.5) decodes every part of a file at once, so a part the
 reader cannot use is refused from the headers (``OpenEXR.File(..., header_only=True)``)
-before any pixel is decoded.
+before any pixel is decoded, and the part holding the image is chosen there
+(:func:`image_part`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,9 @@ import OpenEXR
 
 from models.errors import UnsupportedFormatError
 
+RGB_CHANNELS = ("R", "G", "B")
+#: Chroma channels of a luminance/chroma image (Y, RY, BY), as ImfRgbaYca writes it.
+_CHROMA = ("RY", "BY")
 _DEEP = (OpenEXR.deepscanline, OpenEXR.deeptile)
 
 
@@ -27,3 +31,34 @@ def check_flat(headers: Sequence[Mapping[str, Any]]) -> None:
                 f"part {index + 1} of the OpenEXR file is deep ({header['type'].name}); deep "
                 "OpenEXR is not supported: flatten it to channel Y or R, G, B and send that"
             )
+
+
+def _image_channels(index: int, header: Mapping[str, Any]) -> tuple[str, ...] | None:
+    """The channels of part ``index`` holding the image: R,G,B if present, else Y, else
+    None. Raises :class:`UnsupportedFormatError` for a luminance/chroma image."""
+    names = {channel.name for channel in header["channels"]}
+    if names.issuperset(RGB_CHANNELS):
+        return RGB_CHANNELS
+    if "Y" not in names:
+        return None
+    if names.intersection(_CHROMA):
+        raise UnsupportedFormatError(
+            f"part {index + 1} of the OpenEXR file is luminance/chroma (channels Y, RY, BY), "
+            "which is not supported; re-save it as R, G, B (colour) or Y (grayscale)"
+        )
+    return ("Y",)
+
+
+def image_part(headers: Sequence[Mapping[str, Any]]) -> tuple[int, tuple[str, ...]]:
+    """The index of the first part holding the image, and its channels (Y or R, G, B).
+
+    Raises :class:`UnsupportedFormatError` when no part holds one."""
+    for index, header in enumerate(headers):
+        channels = _image_channels(index, header)
+        if channels is not None:
+            return index, channels
+    found = sorted({channel.name for header in headers for channel in header["channels"]})
+    raise UnsupportedFormatError(
+        f"no part of the OpenEXR file has a Y or R,G,B image (channels: {', '.join(found)}); "
+        "write the image as channel Y (grayscale) or R, G, B"
+    )

@@ -28,14 +28,13 @@ from numpy.typing import NDArray
 from models.errors import InvalidInputError, McamError, UnsupportedFormatError
 from models.exr_chunks import missing_chunks
 from models.exr_limits import check_exr_size, part_size
-from models.exr_parts import check_flat
+from models.exr_parts import check_flat, image_part
 from models.formation import validate_irradiance
 from models.frames import check_pixel_count, decoding
 from models.output_range import ensure_fits
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 RADIANCE_MAGICS = (b"#?RADIANCE", b"#?RGBE")
-RGB_CHANNELS = ("R", "G", "B")
 _EXR_TRUNCATED = "the OpenEXR pixel data is truncated or corrupt; send the complete file"
 #: RGBE exponent bias plus the 8 mantissa bits: value = (m + 0.5) * 2^(e - 136).
 _RGBE_SHIFT = 136
@@ -62,13 +61,6 @@ class HdrImage:
     negatives_clipped: int = 0
 
 
-def _image_channels(names: list[str]) -> tuple[str, ...] | None:
-    """The channels holding the image: R,G,B if present, else Y, else None."""
-    if all(name in names for name in RGB_CHANNELS):
-        return RGB_CHANNELS
-    return ("Y",) if "Y" in names else None
-
-
 def _exr_file(source: Path | bytes, header_only: bool) -> Any:
     if isinstance(source, bytes):
         return OpenEXR.File(io.BytesIO(source), separate_channels=True, header_only=header_only)
@@ -87,14 +79,7 @@ def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any
         raise InvalidInputError(_EXR_TRUNCATED)
     headers = [part.header for part in _exr_file(source, header_only=True).parts]
     check_flat(headers)
-    layouts = [_image_channels([ch.name for ch in header["channels"]]) for header in headers]
-    index = next((i for i, layout in enumerate(layouts) if layout is not None), None)
-    if index is None:
-        found = sorted({ch.name for header in headers for ch in header["channels"]})
-        raise UnsupportedFormatError(
-            f"no part of the OpenEXR file has a Y or R,G,B image (channels: {', '.join(found)}); "
-            "write the image as channel Y (grayscale) or R, G, B"
-        )
+    index, names = image_part(headers)
     check_pixel_count(*part_size(headers[index]), max_pixels)
     check_exr_size(headers, max_pixels)
     parts = _exr_file(source, header_only=False).parts
@@ -102,7 +87,7 @@ def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any
         # OpenEXR.File drops a part whose pixel data fails to decode instead of raising.
         raise InvalidInputError(_EXR_TRUNCATED)
     channels = parts[index].channels
-    planes = [channels[name].pixels for name in layouts[index]]
+    planes = [channels[name].pixels for name in names]
     pixels = planes[0] if len(planes) == 1 else np.stack(planes, axis=2)
     header = headers[index]
     return pixels, {key: value for key, value in header.items() if isinstance(value, str)}

@@ -35,3 +35,27 @@ def test_deep_parts_are_refused_before_decoding(storage: OpenEXR.Storage) -> Non
     for upload in (data, data[:-6]):
         with pytest.raises(UnsupportedFormatError, match=pattern):
             read_hdr(upload, max_pixels=10**6)
+
+
+def exr_of(channels: dict[str, np.ndarray | OpenEXR.Channel]) -> bytes:
+    """A single-part scanline EXR of ``channels``."""
+    buffer = io.BytesIO()
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, channels).write(buffer)
+    return buffer.getvalue()
+
+
+PLANE = np.ones((4, 6), np.float32)
+
+
+@pytest.mark.parametrize("chroma", [("RY", "BY"), ("RY",)])
+def test_a_luminance_chroma_image_is_refused(chroma: tuple[str, ...]) -> None:
+    """Y, RY, BY was read as a grayscale image of its luminance."""
+    data = exr_of({"Y": PLANE} | {name: PLANE * 0.1 for name in chroma})
+    with pytest.raises(UnsupportedFormatError, match="luminance/chroma.*re-save it as R, G, B"):
+        read_hdr(data)
+
+
+def test_colour_channels_beside_chroma_are_read() -> None:
+    data = exr_of({name: PLANE * k for k, name in enumerate(("R", "G", "B", "Y", "RY"), 1)})
+    np.testing.assert_array_equal(read_hdr(data).pixels[0, 0], [1, 2, 3])
