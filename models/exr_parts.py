@@ -49,13 +49,29 @@ def _image_channels(index: int, header: Mapping[str, Any]) -> tuple[str, ...] | 
     return ("Y",)
 
 
+def _check_sampling(index: int, header: Mapping[str, Any], names: tuple[str, ...]) -> None:
+    """Raise :class:`UnsupportedFormatError` when one of the channels ``names`` of part
+    ``index`` is subsampled: the binding returns it smaller than the image (a grayscale
+    image came back at half size, a colour one failed as 'truncated or corrupt')."""
+    for channel in header["channels"]:
+        if channel.name in names and (channel.xSampling, channel.ySampling) != (1, 1):
+            raise UnsupportedFormatError(
+                f"channel {channel.name} of part {index + 1} of the OpenEXR file is "
+                f"subsampled (xSampling {channel.xSampling}, ySampling {channel.ySampling}), "
+                "which is not supported; re-save the image with every channel at full "
+                "resolution"
+            )
+
+
 def image_part(headers: Sequence[Mapping[str, Any]]) -> tuple[int, tuple[str, ...]]:
     """The index of the first part holding the image, and its channels (Y or R, G, B).
 
-    Raises :class:`UnsupportedFormatError` when no part holds one."""
+    Raises :class:`UnsupportedFormatError` when no part holds one, or its channels are
+    subsampled."""
     for index, header in enumerate(headers):
         channels = _image_channels(index, header)
         if channels is not None:
+            _check_sampling(index, header, channels)
             return index, channels
     found = sorted({channel.name for header in headers for channel in header["channels"]})
     raise UnsupportedFormatError(

@@ -59,3 +59,25 @@ def test_a_luminance_chroma_image_is_refused(chroma: tuple[str, ...]) -> None:
 def test_colour_channels_beside_chroma_are_read() -> None:
     data = exr_of({name: PLANE * k for k, name in enumerate(("R", "G", "B", "Y", "RY"), 1)})
     np.testing.assert_array_equal(read_hdr(data).pixels[0, 0], [1, 2, 3])
+
+
+@pytest.mark.parametrize(
+    ("channels", "named"),
+    [
+        ({"Y": OpenEXR.Channel("Y", PLANE, 2, 2)}, "channel Y .*xSampling 2, ySampling 2"),
+        ({"R": PLANE, "G": OpenEXR.Channel("G", PLANE, 2, 1), "B": PLANE},
+         "channel G .*xSampling 2, ySampling 1"),
+    ],
+    ids=["gray", "colour"],
+)  # fmt: skip
+def test_subsampled_image_channels_are_refused(
+    channels: dict[str, np.ndarray | OpenEXR.Channel], named: str
+) -> None:
+    """A subsampled Y came back at half size; a subsampled G as 'truncated or corrupt'."""
+    with pytest.raises(UnsupportedFormatError, match=f"{named}.*every channel at full resolution"):
+        read_hdr(exr_of(channels))
+
+
+def test_a_subsampled_channel_beside_the_image_is_read() -> None:
+    data = exr_of({"Y": PLANE * 2, "A": OpenEXR.Channel("A", PLANE, 2, 2)})
+    np.testing.assert_array_equal(read_hdr(data).pixels, PLANE * 2)
