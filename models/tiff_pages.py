@@ -5,6 +5,9 @@ per frame).
 - tifffile reports some damage (a page offset past the end of a truncated file) only
   as a log warning and goes on with the pages before it; :func:`open_tiff` turns such
   a warning into :class:`TiffDamaged`, so half a video is refused, not decoded short.
+  While any thread is in it, tifffile's logger has its own level (WARNING), so a
+  global level (CRITICAL) cannot hide the warning, and does not propagate: the
+  warning is raised, not logged.
 - Compressions tifffile cannot decode without the optional ``imagecodecs`` package
   (LZW, JPEG, ...) are refused by name (:func:`page_codes`), not reported as damage.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
@@ -50,6 +53,38 @@ class _ThreadWarnings(logging.Handler):
             raise TiffDamaged(self.messages[0])
 
 
+class _LoggerHold:
+    """Holds tifffile's logger at WARNING or below, not propagating, while any thread
+    reads a TIFF; the last one out restores its level and propagation."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._readers = 0
+        self._saved = (logging.NOTSET, True)
+
+    @contextmanager
+    def held(self, logger: logging.Logger) -> Iterator[None]:
+        """``logger`` reports warnings to its own handlers whatever the global level."""
+        with self._lock:
+            if self._readers == 0:
+                self._saved = (logger.level, logger.propagate)
+                if logger.level == logging.NOTSET or logger.level > logging.WARNING:
+                    logger.setLevel(logging.WARNING)
+                logger.propagate = False
+            self._readers += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._readers -= 1
+                if self._readers == 0:
+                    logger.setLevel(self._saved[0])
+                    logger.propagate = self._saved[1]
+
+
+_HOLD = _LoggerHold()
+
+
 @contextmanager
 def open_tiff(
     data: bytes, max_pages: int | None = None
@@ -63,7 +98,7 @@ def open_tiff(
     collector = _ThreadWarnings()
     logger.addHandler(collector)
     try:
-        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        with _HOLD.held(logger), tifffile.TiffFile(io.BytesIO(data)) as tif:
             # Index the pages now: a truncated file warns here.
             most = None if max_pages is None else max_pages + 1
             pages = sum(1 for _ in itertools.islice(tif.pages, most))

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import logging
+import threading
 
 import numpy as np
 import pytest
@@ -27,6 +29,42 @@ def test_a_truncated_multi_page_tiff_is_damaged_not_short(
         with open_tiff(data[: len(data) // 2]):
             pass
     assert capsys.readouterr().err == ""  # tifffile's warning no longer leaks to stderr
+
+
+def damage_in_a_thread(data: bytes) -> list[BaseException]:
+    """What reading ``data`` with :func:`open_tiff` raised in another thread."""
+    raised: list[BaseException] = []
+
+    def read() -> None:
+        try:
+            with open_tiff(data):
+                pass
+        except TiffDamaged as exc:
+            raised.append(exc)
+
+    thread = threading.Thread(target=read)
+    thread.start()
+    thread.join()
+    return raised
+
+
+def test_damage_is_found_whatever_the_global_log_level(caplog: pytest.LogCaptureFixture) -> None:
+    """A root level of CRITICAL kept tifffile from logging its warning: half a video
+    was read as a short one. Its logger's own level and propagation come back once
+    the last of overlapping reads ends."""
+    caplog.set_level(logging.CRITICAL)
+    logger = tifffile.logger()
+    data = tiff(np.zeros((12, 16, 16), np.uint8))
+    with pytest.raises(TiffDamaged, match="invalid page offset"):
+        with open_tiff(data[: len(data) // 2]):
+            pass
+    with open_tiff(data) as (_, pages):
+        assert (logger.level, logger.propagate) == (logging.WARNING, False)
+        assert len(damage_in_a_thread(data[: len(data) // 2])) == 1
+        assert (logger.level, logger.propagate) == (logging.WARNING, False)
+    assert pages == 12
+    assert (logger.level, logger.propagate) == (logging.NOTSET, True)
+    assert caplog.records == []
 
 
 def test_separate_planes_come_back_samples_last() -> None:
