@@ -6,10 +6,11 @@ with :func:`models.formation.validate_irradiance`: NaN and inf are rejected,
 negatives are rejected unless the caller asks to clip them (lossy EXR
 compression leaves some), and the clipped count is reported.
 
-The Radiance reader handles new-style run-length-encoded and flat scanlines;
-an RGBE pixel decodes at its mantissa bin centre, ``(m + 0.5) * 2^(e - 136)``,
-as Radiance's own ``colr_color`` does. Header variables (``FORMAT``,
-``EXPOSURE``, ...) are returned as attributes; ``EXPOSURE`` is not divided out.
+The Radiance reader handles new-style run-length-encoded and flat scanlines, and
+refuses old-style runs (of early Radiance versions); an RGBE pixel decodes at its
+mantissa bin centre, ``(m + 0.5) * 2^(e - 136)``, as Radiance's own ``colr_color``
+does. Header variables (``FORMAT``, ``EXPOSURE``, ...) are returned as attributes;
+``EXPOSURE`` is not divided out.
 """
 
 from __future__ import annotations
@@ -153,6 +154,19 @@ def _rle_scanline(data: bytes, pos: int, width: int, row: int) -> tuple[NDArray[
     return line.T, pos
 
 
+def _refuse_old_style(flat: bytes, row: int) -> None:
+    """Raise :class:`UnsupportedFormatError` when the RGBE records of ``flat`` (bytes
+    of scanline ``row`` read as flat pixels) hold an old-style run, ``(1, 1, 1, n)``:
+    Radiance reads it as "repeat the pixel before", which no normalised pixel is."""
+    records = np.frombuffer(flat[: len(flat) // 4 * 4], np.uint8).reshape(-1, 4)
+    if (records[:, :3] == 1).all(axis=1).any():
+        raise UnsupportedFormatError(
+            f"the Radiance file uses old-style run-length encoding (scanline {row}), which "
+            "is not supported; convert it to OpenEXR, or re-save it with a current "
+            "Radiance tool (e.g. ra_rgbe), which writes new-style runs"
+        )
+
+
 def _scanline(data: bytes, pos: int, width: int, row: int) -> tuple[NDArray[np.uint8], int]:
     """One scanline of RGBE pixels (width x 4): new-style RLE or flat."""
     head = data[pos : pos + 4]
@@ -164,6 +178,7 @@ def _scanline(data: bytes, pos: int, width: int, row: int) -> tuple[NDArray[np.u
             )
         return _rle_scanline(data, pos + 4, width, row)
     flat = data[pos : pos + 4 * width]
+    _refuse_old_style(flat, row)
     if len(flat) != 4 * width:
         raise _truncated(row)
     return np.frombuffer(flat, np.uint8).reshape(width, 4), pos + 4 * width
@@ -191,6 +206,7 @@ def _read_radiance(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], d
         raise InvalidInputError(f"the Radiance image is {width} x {height}; it has no pixels")
     check_pixel_count(width, height, max_pixels)
     if len(data) - pos < height * smallest_scanline(width):
+        _refuse_old_style(data[pos : pos + 4 * width], 0)
         raise InvalidInputError(
             f"the Radiance file is truncated or corrupt: its header declares {width} x "
             f"{height} pixels, which take at least {height * smallest_scanline(width)} bytes, "

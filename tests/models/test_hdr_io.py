@@ -325,3 +325,18 @@ def test_attribute_text_utf8_cannot_hold_is_escaped() -> None:
     attributes = read_hdr(data).attributes
     assert attributes["comments"] == "of frame_\\xff.png"
     assert attributes["owner"] == "x\\ud800 café"
+
+
+@pytest.mark.parametrize(
+    ("resolution", "row"),
+    [
+        (b"-Y 3 +X 10\n", bytes([128, 64, 32, 129, 1, 1, 1, 9])),  # shorter than flat
+        (b"-Y 2 +X 2\n", bytes([128, 64, 32, 129, 1, 1, 1, 1])),  # as long as flat
+    ],
+    ids=["compressed", "width-2"],
+)
+def test_old_style_radiance_runs_are_refused(resolution: bytes, row: bytes) -> None:
+    """A pixel then (1, 1, 1, n), "repeat it n times": was read as a flat pixel
+    (1, 1, 1, e), or refused as truncated when the runs made the file shorter."""
+    with pytest.raises(UnsupportedFormatError, match=r"old-style run-length .*\(scanline 0\)"):
+        read_hdr(RADIANCE_HEADER + resolution + row * 3)
