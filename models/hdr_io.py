@@ -63,9 +63,16 @@ class HdrImage:
 
 
 def _exr_file(source: Path | bytes, header_only: bool) -> Any:
-    if isinstance(source, bytes):
-        return OpenEXR.File(io.BytesIO(source), separate_channels=True, header_only=header_only)
-    return OpenEXR.File(str(source), separate_channels=True, header_only=header_only)
+    """The binding's file; :class:`UnsupportedFormatError` when header text is not UTF-8."""
+    stream = io.BytesIO(source) if isinstance(source, bytes) else str(source)
+    try:
+        return OpenEXR.File(stream, separate_channels=True, header_only=header_only)
+    except UnicodeDecodeError as exc:
+        raise UnsupportedFormatError(
+            f"text in the OpenEXR header (an attribute or a name) is not UTF-8: byte "
+            f"0x{exc.object[exc.start]:02x} in {bytes(exc.object[:40])!r}; re-save the file "
+            "with UTF-8 metadata"
+        ) from None
 
 
 def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, str]]:

@@ -340,3 +340,13 @@ def test_old_style_radiance_runs_are_refused(resolution: bytes, row: bytes) -> N
     (1, 1, 1, e), or refused as truncated when the runs made the file shorter."""
     with pytest.raises(UnsupportedFormatError, match=r"old-style run-length .*\(scanline 0\)"):
         read_hdr(RADIANCE_HEADER + resolution + row * 3)
+
+
+def test_header_text_that_is_not_utf8_is_named() -> None:
+    """A valid file with a Latin-1 attribute was refused as 'truncated or corrupt'."""
+    buffer = io.BytesIO()
+    header = exr_header() | {"owner": "Rene"}
+    OpenEXR.File(header, {"Y": np.ones((2, 2), np.float32)}).write(buffer)
+    latin1 = buffer.getvalue().replace(b"Rene", b"Ren\xe9")
+    with pytest.raises(UnsupportedFormatError, match=r"not UTF-8: byte 0xe9 in b'Ren\\xe9'"):
+        read_hdr(latin1)
