@@ -19,6 +19,8 @@ RGB_CHANNELS = ("R", "G", "B")
 #: Chroma channels of a luminance/chroma image (Y, RY, BY), as ImfRgbaYca writes it.
 _CHROMA = ("RY", "BY")
 _DEEP = (OpenEXR.deepscanline, OpenEXR.deeptile)
+#: Channel names an error message lists at most.
+_LISTED = 10
 
 
 def check_flat(headers: Sequence[Mapping[str, Any]]) -> None:
@@ -75,6 +77,13 @@ def image_part(headers: Sequence[Mapping[str, Any]]) -> tuple[int, tuple[str, ..
             return index, channels
     found = sorted({channel.name for header in headers for channel in header["channels"]})
     raise UnsupportedFormatError(
-        f"no part of the OpenEXR file has a Y or R,G,B image (channels: {', '.join(found)}); "
+        f"no part of the OpenEXR file has a Y or R,G,B image (channels: {_listed(found)}); "
         "write the image as channel Y (grayscale) or R, G, B"
     )
+
+
+def _listed(names: list[str]) -> str:
+    """The first :data:`_LISTED` of ``names`` and how many more (3000 channels of long
+    names made a 645,129-character message)."""
+    more = len(names) - _LISTED
+    return ", ".join(names[:_LISTED]) + (f" ... and {more} more" if more > 0 else "")
