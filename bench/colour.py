@@ -40,6 +40,7 @@ from bench import (
 from models import metrics
 from models.decoders import Decoder, get_decoder
 from models.decoders.adaptive import AdaptiveDecoder
+from models.decoders.budget import BudgetDecoder
 from models.decoders.colour import ColourDecoder
 from models.scenes import TRAIN_SCENES, ValFrame, exposed_frames, panorama_crops, val256_frames
 
@@ -61,14 +62,28 @@ def frame_set(name: str, encoding: str, read_noise: float = 0.0) -> list[ValFram
 
 
 def pair(name: str) -> tuple[Decoder, Decoder]:
-    """Decoder ``name`` with its channels decoded alone, and made consistent."""
-    if name.startswith("auto-") and name.removeprefix("auto-") in ("fast", "balanced", "best"):
-        quality = name.removeprefix("auto-")
+    """Decoder ``name`` with its channels decoded alone, and made consistent (``auto``
+    is ``auto-balanced``)."""
+    alone = get_decoder(name)
+    if isinstance(alone, AdaptiveDecoder):
+        quality = alone.quality
         return AdaptiveDecoder(quality, joint_colour=False), AdaptiveDecoder(
             quality, joint_colour=True
         )
-    alone = get_decoder(name)
     return alone, ColourDecoder(alone)
+
+
+def refuse_joint_decoders(parser: argparse.ArgumentParser, names: list[str]) -> None:
+    """Stop with the parser's usage error when a decoder of ``names`` makes the channels
+    consistent itself (``<decoder>+colour``, a latency budget ``auto-<N>ms``): measured
+    as 'alone', it was already joint."""
+    joint = [name for name in names if isinstance(get_decoder(name), ColourDecoder | BudgetDecoder)]
+    if joint:
+        parser.error(
+            f"decoders {', '.join(joint)} make the channels consistent themselves; name the "
+            "decoder alone (itoh for itoh+colour, auto-fast, auto-balanced or auto-best): "
+            "this benchmark runs each one alone and made consistent"
+        )
 
 
 def measure(decoder: Decoder, frames: list[ValFrame]) -> dict[str, Any]:
@@ -181,6 +196,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=RESULTS / "colour.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders)
+    refuse_joint_decoders(parser, args.decoders)
     return args
 
 

@@ -40,3 +40,20 @@ def test_report_compares_both_modes_frame_by_frame(tmp_path: Path) -> None:
         assert 0.0 <= row[mode]["all_channels_right"] <= row[mode]["winding_accuracy"] <= 1.0
         assert row[mode]["ms_per_frame"] > 0
     assert out.with_suffix(".md").read_text().count("| val | mantissa | itoh |") == 1
+
+
+def test_auto_is_measured_as_auto_balanced_alone_and_joint() -> None:
+    """``auto`` got the registry's shared decoder, joint already, as 'alone'."""
+    alone, joint = colour.pair("auto")
+    assert isinstance(alone, AdaptiveDecoder) and isinstance(joint, AdaptiveDecoder)
+    assert (alone.quality, alone.joint_colour, joint.joint_colour) == ("balanced", False, True)
+
+
+@pytest.mark.parametrize("name", ["itoh+colour", "auto-50ms"])
+def test_decoders_joint_already_are_a_usage_error(
+    name: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        colour.parse_args(["--decoders", "itoh", name])
+    assert exited.value.code == 2
+    assert f"decoders {name} make the channels consistent themselves" in capsys.readouterr().err
