@@ -33,12 +33,19 @@ from device.link_protocol import FLAG_BRACKET, DataPacket, encode_data
 from device.scenes import ProceduralScene, SceneSequence
 from device.sim_link import Endpoint
 from models.errors import InvalidInputError, McamError
-from models.formation import SensorFrame, SensorParams, simulate
+from models.formation import MAX_NOISE_SEED, SensorFrame, SensorParams, simulate
 
 log = logging.getLogger(__name__)
 
 #: Integration time at which the exposure gain is the analog gain (ns).
 REFERENCE_INTEGRATION_NS = 1_000_000
+#: A frame's noise seed is ``seed * SEED_STRIDE + sequence`` (recorded frames rely on it).
+SEED_STRIDE = 1_000_003
+#: Sequence numbers a camera seed leaves room for: 2**40 frames, over three years at
+#: 10 000 frames per second.
+SEQUENCE_ROOM = 1 << 40
+#: Largest camera seed: every frame's noise seed up to ``SEQUENCE_ROOM`` fits an int64.
+MAX_SEED = (MAX_NOISE_SEED - SEQUENCE_ROOM) // SEED_STRIDE
 
 
 @dataclass(frozen=True)
@@ -76,7 +83,7 @@ class VirtualScamp5:
     """The virtual camera. Call :meth:`step` yourself, or :meth:`start` a streaming thread.
 
     ``history``: how many sent sequence numbers to remember for
-    :meth:`ground_truth` (0 keeps none).
+    :meth:`ground_truth` (0 keeps none); ``seed``: 0 to :data:`MAX_SEED`.
     """
 
     def __init__(self, endpoint: Endpoint, scene: SceneSequence | None = None,
@@ -86,6 +93,11 @@ class VirtualScamp5:
         self.scene = scene if scene is not None else ProceduralScene()
         self.settings = settings or CameraSettings()
         self.faults = faults or Faults()
+        if not 0 <= seed <= MAX_SEED:
+            raise InvalidInputError(
+                f"seed must be from 0 to {MAX_SEED} (a frame's noise seed, seed x {SEED_STRIDE}"
+                f" + sequence, must fit an int64), got {seed}"
+            )
         self.seed = seed
         self.max_frames = max_frames
         self.sequence = 0
@@ -111,7 +123,7 @@ class VirtualScamp5:
             "encoding": encoding or s.encoding, "alpha": s.alpha, "bits": s.bits,
             "gain": gain if gain is not None else s.exposure_gain,
             "read_noise": s.read_noise, "full_well": s.full_well,
-            "seed": self.seed * 1_000_003 + sequence,
+            "seed": self.seed * SEED_STRIDE + sequence,
         })
 
     def render(self, index: int, params: SensorParams) -> SensorFrame:

@@ -44,6 +44,8 @@ ENCODINGS: tuple[str, ...] = ("modulo", "mantissa", "clip")
 REC709_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
 #: Largest winding number we represent (W is stored as int64).
 MAX_WINDING = np.iinfo(np.int64).max
+#: Largest noise seed a frame takes (:attr:`SensorParams.seed` is an int64).
+MAX_NOISE_SEED = 2**63 - 1
 #: Above this expected electron count, shot noise uses the Gaussian approximation.
 _POISSON_LIMIT = 1e7
 
@@ -66,7 +68,7 @@ class SensorParams(BaseModel):
     max_wraps: float | None = Field(None, gt=0.0, allow_inf_nan=False)
     read_noise: float = Field(0.0, ge=0.0, le=1.0, allow_inf_nan=False)
     full_well: float | None = Field(None, gt=0.0, allow_inf_nan=False)
-    seed: int | None = Field(None, ge=0, le=2**63 - 1)
+    seed: int | None = Field(None, ge=0, le=MAX_NOISE_SEED)
 
     @classmethod
     def parse(cls, values: dict[str, Any]) -> SensorParams:

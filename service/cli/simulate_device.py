@@ -21,7 +21,7 @@ from pathlib import Path
 from device.faults import Faults
 from device.scenes import ExrScene, ProceduralScene, SceneSequence
 from device.sim_link import Endpoint, open_endpoint
-from device.simulator import CameraSettings, VirtualScamp5
+from device.simulator import MAX_SEED, CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 
@@ -49,7 +49,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--bits", type=int, default=8, help="code bits (default 8)")
     parser.add_argument("--gain", type=float, default=1.0, help="wrap units per scene unit")
     parser.add_argument("--read-noise", type=float, default=0.002, help="sigma in wraps")
-    parser.add_argument("--seed", type=int, default=0, help="noise and fault seed, >= 0")
+    parser.add_argument("--seed", type=int, default=0,
+                        help=f"noise and fault seed, 0 to {MAX_SEED}")
     faults = parser.add_argument_group("fault injection")
     faults.add_argument("--corrupt-bytes", type=float, default=0.0,
                         help="fraction of bytes overwritten, in bursts")
@@ -73,8 +74,8 @@ def check_flags(args: argparse.Namespace) -> None:
         raise InvalidInputError(f"--fps must be from {low:g} to {high:g}, got {args.fps:g}")
     if args.frames is not None and args.frames < 1:
         raise InvalidInputError(f"--frames must be at least 1, got {args.frames}")
-    if args.seed < 0:
-        raise InvalidInputError(f"--seed must be 0 or more, got {args.seed}")
+    if not 0 <= args.seed <= MAX_SEED:
+        raise InvalidInputError(f"--seed must be from 0 to {MAX_SEED}, got {args.seed}")
     if args.port == "loop://":
         raise InvalidInputError(
             "--port loop:// only reaches readers in this same process (tests); give pty, "

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import redis
 
+from device.simulator import MAX_SEED
 from tests.device.conftest import health, stream_frames, wait_for
 from worker.embedded_redis import EmbeddedRedis
 
@@ -76,7 +77,8 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         (("--port", "loop://"), "--port loop:// only reaches readers in this same process"),
         (("--fps", "1e-300"), "--fps must be from 0.1 to 10000"),
         (("--frames", "-5"), "--frames must be at least 1"),
-        (("--seed", "-1"), "--seed must be 0 or more"),
+        (("--seed", "-1"), f"--seed must be from 0 to {MAX_SEED}, got -1"),
+        (("--seed", "9300000000000"), f"--seed must be from 0 to {MAX_SEED}, got 9300000000000"),
     ]
     for flags, fragment in cases:
         result = subprocess.run([MCAM, "simulate-device", *flags], capture_output=True,

@@ -18,7 +18,7 @@ from device.faults import Faults
 from device.link_parser import LinkParser
 from device.scenes import ExrScene, ProceduralScene
 from device.sim_link import LoopEndpoint, TcpEndpoint, open_endpoint
-from device.simulator import CameraSettings, VirtualScamp5
+from device.simulator import MAX_SEED, SEQUENCE_ROOM, CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import simulate
 from tests.device.conftest import wait_for
@@ -53,6 +53,14 @@ def test_frames_are_the_formation_model_seeded_by_sequence() -> None:
     assert params.encoding == "modulo" and params.seed == 5 * 1_000_003 + 3
     with pytest.raises(InvalidInputError, match="history"):
         camera.ground_truth(99)
+
+
+def test_a_seed_whose_frame_seeds_overflow_int64_is_refused_up_front() -> None:
+    camera = VirtualScamp5(LoopEndpoint(), ProceduralScene(size=8), seed=MAX_SEED)
+    assert camera.params_for(SEQUENCE_ROOM).seed == MAX_SEED * 1_000_003 + SEQUENCE_ROOM
+    for seed in (MAX_SEED + 1, 9_300_000_000_000, -1):
+        with pytest.raises(InvalidInputError, match=f"seed must be from 0 to {MAX_SEED}"):
+            VirtualScamp5(LoopEndpoint(), seed=seed)
 
 
 def read_packets(port: serial.SerialBase, parser: LinkParser, count: int) -> list[lp.DataPacket]:
