@@ -8,11 +8,14 @@ the host's drop counters against.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from numbers import Integral
 
 import numpy as np
 
 from device.link_protocol import pack_header
+from models.errors import InvalidInputError
 
 
 @dataclass
@@ -26,7 +29,8 @@ class Faults:
     payload (with a valid header checksum) precedes it; ``stall_every`` /
     ``stall_s``: every N-th packet pauses ``stall_s`` seconds halfway through;
     ``disconnect_every`` / ``disconnect_s``: every N-th packet the link goes away
-    for ``disconnect_s`` seconds and comes back.
+    for ``disconnect_s`` seconds and comes back. N = 0 means never; durations are
+    finite and 0 or more.
     """
 
     corrupt_bytes: float = 0.0
@@ -45,9 +49,21 @@ class Faults:
         for name in ("corrupt_bytes", "drop_packets", "truncate_packets", "oversize_packets"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
-                raise ValueError(f"{name} must be a fraction in [0, 1], got {value}")
+                raise InvalidInputError(f"{name} must be a fraction in [0, 1], got {value}")
         if self.burst_len < 1:
-            raise ValueError(f"burst_len must be >= 1, got {self.burst_len}")
+            raise InvalidInputError(f"burst_len must be >= 1, got {self.burst_len}")
+        for name in ("stall_every", "disconnect_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, Integral) or value < 0:
+                raise InvalidInputError(
+                    f"{name} must be a whole number of packets, 0 (never) or more, got {value!r}"
+                )
+        for name in ("stall_s", "disconnect_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(
+                    f"{name} must be a finite number of seconds, 0 or more, got {value}"
+                )
         self._rng = np.random.default_rng(self.seed)
 
     def apply(self, packet: bytes) -> tuple[bytes, bool]:

@@ -59,10 +59,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     faults.add_argument("--truncate", type=float, default=0.0, help="fraction cut in half")
     faults.add_argument("--oversize", type=float, default=0.0,
                         help="fraction preceded by a bogus 16 MiB length header")
-    faults.add_argument("--stall-every", type=int, default=0, help="stall every N-th packet")
+    faults.add_argument("--stall-every", type=int, default=0,
+                        help="stall every N-th packet (0: never)")
     faults.add_argument("--stall-s", type=float, default=0.2, help="stall length in seconds")
     faults.add_argument("--disconnect-every", type=int, default=0,
-                        help="unplug the link every N-th packet")
+                        help="unplug the link every N-th packet (0: never)")
     faults.add_argument("--disconnect-s", type=float, default=0.5, help="how long it stays out")
     parser.set_defaults(func=run)
 
@@ -99,14 +100,11 @@ def run(args: argparse.Namespace) -> int:
     scene: SceneSequence = ExrScene(args.exr) if args.exr else ProceduralScene()
     settings = CameraSettings(encoding=args.encoding, alpha=args.alpha, bits=args.bits,
                               gain=args.gain, fps=args.fps, read_noise=args.read_noise)
-    try:
-        faults = Faults(corrupt_bytes=args.corrupt_bytes, burst_len=args.burst_len,
-                        drop_packets=args.drop, truncate_packets=args.truncate,
-                        oversize_packets=args.oversize, stall_every=args.stall_every,
-                        stall_s=args.stall_s, disconnect_every=args.disconnect_every,
-                        disconnect_s=args.disconnect_s, seed=args.seed)
-    except ValueError as exc:
-        raise InvalidInputError(str(exc)) from None
+    faults = Faults(corrupt_bytes=args.corrupt_bytes, burst_len=args.burst_len,
+                    drop_packets=args.drop, truncate_packets=args.truncate,
+                    oversize_packets=args.oversize, stall_every=args.stall_every,
+                    stall_s=args.stall_s, disconnect_every=args.disconnect_every,
+                    disconnect_s=args.disconnect_s, seed=args.seed)
     SensorParams.parse({"encoding": args.encoding, "alpha": args.alpha, "bits": args.bits,
                         "gain": args.gain, "read_noise": args.read_noise})
     camera = VirtualScamp5(open_port(args.port), scene, settings, faults, seed=args.seed,

@@ -79,6 +79,11 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         (("--frames", "-5"), "--frames must be at least 1"),
         (("--seed", "-1"), f"--seed must be from 0 to {MAX_SEED}, got -1"),
         (("--seed", "9300000000000"), f"--seed must be from 0 to {MAX_SEED}, got 9300000000000"),
+        (("--stall-every", "1", "--stall-s", "-1"),
+         "stall_s must be a finite number of seconds, 0 or more, got -1.0"),
+        (("--disconnect-every", "2", "--disconnect-s", "nan"),
+         "disconnect_s must be a finite number of seconds, 0 or more, got nan"),
+        (("--stall-every", "-1"), "stall_every must be a whole number of packets, 0 (never)"),
     ]
     for flags, fragment in cases:
         result = subprocess.run([MCAM, "simulate-device", *flags], capture_output=True,
