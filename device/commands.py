@@ -10,7 +10,17 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, TypeAdapter, ValidationError
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    TypeAdapter,
+    ValidationError,
+)
+from pydantic_core import PydanticCustomError
 
 from device.link_protocol import (
     BracketPacket,
@@ -24,6 +34,24 @@ from device.link_protocol import (
 from models.errors import InvalidInputError, describe_validation_error
 
 _STRICT = ConfigDict(extra="forbid", frozen=True)
+#: Frame rates (frames per second) a camera may be set to: from one frame in ten seconds
+#: to mcam-link's set_frame_rate limit.
+FPS_RANGE = (0.1, 10_000.0)
+
+
+def _refuse_boolean(value: Any) -> Any:
+    """A JSON true/false is not a number (pydantic would read it as 1 or 0)."""
+    if isinstance(value, bool):
+        raise PydanticCustomError(
+            "number_type", "Input should be a number, not {value}", {"value": str(value).lower()}
+        )
+    return value
+
+
+#: Number fields of a command: what lax validation takes (strings from stream fields
+#: included), except booleans.
+Real = Annotated[float, BeforeValidator(_refuse_boolean)]
+Whole = Annotated[int, BeforeValidator(_refuse_boolean)]
 
 
 class StartCommand(BaseModel):
@@ -45,8 +73,8 @@ class ExposureCommand(BaseModel):
 
     model_config = _STRICT
     command: Literal["set_exposure"]
-    gain: float = Field(gt=0, le=1e9, allow_inf_nan=False)
-    integration_ns: int = Field(1_000_000, gt=0, lt=1 << 63)
+    gain: Real = Field(gt=0, le=1e9, allow_inf_nan=False)
+    integration_ns: Whole = Field(1_000_000, gt=0, lt=1 << 63)
 
 
 class EncodingCommand(BaseModel):
@@ -55,16 +83,16 @@ class EncodingCommand(BaseModel):
     model_config = _STRICT
     command: Literal["set_encoding"]
     encoding: Literal["modulo", "mantissa", "clip"]
-    bits: int = Field(8, ge=1, le=16)
-    alpha: float = Field(2.0, gt=1.0, le=1e6, allow_inf_nan=False)
+    bits: Whole = Field(8, ge=1, le=16)
+    alpha: Real = Field(2.0, gt=1.0, le=1e6, allow_inf_nan=False)
 
 
 class FrameRateCommand(BaseModel):
-    """Frames per second."""
+    """Frames per second, within :data:`FPS_RANGE`."""
 
     model_config = _STRICT
     command: Literal["set_frame_rate"]
-    fps: float = Field(gt=0, le=10_000, allow_inf_nan=False)
+    fps: Real = Field(ge=FPS_RANGE[0], le=FPS_RANGE[1], allow_inf_nan=False)
 
 
 class BracketCommand(BaseModel):
@@ -72,9 +100,9 @@ class BracketCommand(BaseModel):
 
     model_config = _STRICT
     command: Literal["bracket"]
-    count: int = Field(5, ge=2, le=16)
-    base_gain: float = Field(0.0, ge=0, le=1e9, allow_inf_nan=False)
-    ratio: float = Field(2.0, gt=1.0, le=64, allow_inf_nan=False)
+    count: Whole = Field(5, ge=2, le=16)
+    base_gain: Real = Field(0.0, ge=0, le=1e9, allow_inf_nan=False)
+    ratio: Real = Field(2.0, gt=1.0, le=64, allow_inf_nan=False)
 
 
 COMMANDS: tuple[str, ...] = (

@@ -46,6 +46,8 @@ SEED_STRIDE = 1_000_003
 SEQUENCE_ROOM = 1 << 40
 #: Largest camera seed: every frame's noise seed up to ``SEQUENCE_ROOM`` fits an int64.
 MAX_SEED = (MAX_NOISE_SEED - SEQUENCE_ROOM) // SEED_STRIDE
+#: Longest the streaming thread waits between frames without reading control input (s).
+CONTROL_POLL_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -252,11 +254,22 @@ class VirtualScamp5:
 
     def run(self) -> None:
         """Tick at the set frame rate until :meth:`stop`."""
-        next_tick = time.monotonic()
+        due = time.monotonic()
         while not self._stop.is_set():
             self.tick()
-            next_tick = max(next_tick + 1.0 / self.settings.fps, time.monotonic() - 0.1)
-            self._stop.wait(max(0.0, next_tick - time.monotonic()))
+            due = self.wait_for_next_frame(due)
+
+    def wait_for_next_frame(self, last_due: float) -> float:
+        """Wait one frame period (at the current fps) after ``last_due`` (monotonic s),
+        reading control input every ``CONTROL_POLL_S``, so that a new frame rate counts
+        from ``last_due`` at once; return when the next frame is due (also on :meth:`stop`)."""
+        while True:
+            due = max(last_due + 1.0 / self.settings.fps, time.monotonic() - 0.1)
+            remaining = due - time.monotonic()
+            if remaining <= 0 or self._stop.wait(min(remaining, CONTROL_POLL_S)):
+                return due
+            with self.lock:
+                self.handle_input()
 
     def start(self) -> VirtualScamp5:
         """Run :meth:`run` in a daemon thread."""

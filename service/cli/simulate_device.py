@@ -18,16 +18,13 @@ import sys
 import threading
 from pathlib import Path
 
+from device.commands import FPS_RANGE
 from device.faults import Faults
 from device.scenes import ExrScene, ProceduralScene, SceneSequence
 from device.sim_link import Endpoint, open_endpoint
 from device.simulator import MAX_SEED, CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
-
-#: Frame rates (frames per second) the virtual camera streams at: from one frame in ten
-#: seconds to mcam-link's set_frame_rate limit.
-FPS_RANGE = (0.1, 10_000.0)
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -8,6 +8,7 @@ import pytest
 
 from device.commands import (
     COMMANDS,
+    FPS_RANGE,
     command_fields,
     fields_to_command,
     parse_command,
@@ -51,6 +52,9 @@ def test_a_missing_or_unknown_command_names_the_commands(values: dict[str, Any])
     ("values", "field"),
     [
         ({"command": "set_frame_rate", "fps": -1}, "set_frame_rate.fps"),
+        ({"command": "set_frame_rate", "fps": 1e-300}, "set_frame_rate.fps"),
+        ({"command": "set_frame_rate", "fps": 0.099}, "set_frame_rate.fps"),
+        ({"command": "set_frame_rate", "fps": 10_000.5}, "set_frame_rate.fps"),
         ({"command": "set_exposure", "gain": float("nan")}, "set_exposure.gain"),
         ({"command": "set_encoding", "encoding": "gamma"}, "set_encoding.encoding"),
         ({"command": "bracket", "count": 1}, "bracket.count"),
@@ -59,4 +63,28 @@ def test_a_missing_or_unknown_command_names_the_commands(values: dict[str, Any])
 )
 def test_a_bad_argument_is_named(values: dict[str, Any], field: str) -> None:
     with pytest.raises(InvalidInputError, match=f"^invalid device command: {field}: "):
+        validate_command(values)
+
+
+def test_the_frame_rate_range_is_the_cameras() -> None:
+    for fps in FPS_RANGE:
+        assert validate_command({"command": "set_frame_rate", "fps": fps}).fps == fps
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        {"command": "set_frame_rate", "fps": True},
+        {"command": "set_exposure", "gain": True},
+        {"command": "set_exposure", "gain": 1.0, "integration_ns": True},
+        {"command": "set_encoding", "encoding": "clip", "bits": True},
+        {"command": "set_encoding", "encoding": "mantissa", "alpha": False},
+        {"command": "bracket", "count": True},
+        {"command": "bracket", "ratio": True},
+        {"command": "bracket", "base_gain": False},
+    ],
+)
+def test_a_json_boolean_is_not_a_number(values: dict[str, Any]) -> None:
+    name = next(key for key, value in values.items() if isinstance(value, bool))
+    with pytest.raises(InvalidInputError, match=f"{values['command']}.{name}: .*not (true|false)"):
         validate_command(values)

@@ -14,6 +14,7 @@ import pytest
 import serial
 
 from device import link_protocol as lp
+from device.commands import FPS_RANGE
 from device.faults import Faults
 from device.link_parser import LinkParser
 from device.scenes import ExrScene, ProceduralScene
@@ -95,6 +96,20 @@ def test_control_packets_over_tcp_change_the_camera() -> None:
         port.write(lp.encode_control(lp.StopPacket()))
         assert wait_for(lambda: not camera.settings.running, 5)
         assert camera.settings.fps == 80.0
+        port.close()
+    finally:
+        camera.stop()
+
+
+def test_a_camera_at_the_slowest_frame_rate_still_obeys_control_input() -> None:
+    camera = VirtualScamp5(TcpEndpoint(), ProceduralScene(size=8),
+                           CameraSettings(fps=FPS_RANGE[0])).start()
+    try:
+        port = serial.serial_for_url(camera.endpoint.url, timeout=0.05)
+        assert wait_for(lambda: camera.frames_captured == 1, 5)
+        port.write(lp.encode_control(lp.FrameRatePacket(50.0)))
+        assert wait_for(lambda: camera.frames_captured >= 5, 3)  # not 10 s after the first
+        assert camera.settings.fps == 50.0
         port.close()
     finally:
         camera.stop()
