@@ -88,13 +88,18 @@ class VideoClip:
 
 
 def _sample(image: NDArray[np.float64], rows: NDArray, cols: NDArray) -> NDArray[np.float64]:
-    """Bilinear samples of ``image`` at fractional (row, col), wrapping around horizontally."""
-    return map_coordinates(image, [rows, cols], order=1, mode="grid-wrap")
+    """Bilinear samples of ``image`` at fractional (row, col) pixel indices: columns wrap
+    around (a 360-degree panorama, the last column next to the first), rows outside
+    0..H-1 take the edge row."""
+    seamless = np.concatenate([image, image[:, :1]], axis=1)
+    cols = np.mod(cols, image.shape[1])
+    return map_coordinates(seamless, [rows, cols], order=1, mode="nearest")
 
 
 def _centre_view(panorama: NDArray[np.float64], size: int) -> NDArray[np.float64]:
-    """The ``size x size`` view at the panorama's centre (nearest rows, no resampling)."""
-    top = max((panorama.shape[0] - size) // 2, 0)
+    """The ``size x size`` view at the panorama's centre (whole pixels, no resampling);
+    a view taller than the panorama repeats its top and bottom rows."""
+    top = (panorama.shape[0] - size) // 2
     left = (panorama.shape[1] - size) // 2
     grid = np.mgrid[top : top + size, left : left + size].astype(np.float64)
     return _sample(panorama, grid[0], grid[1])
@@ -103,7 +108,7 @@ def _centre_view(panorama: NDArray[np.float64], size: int) -> NDArray[np.float64
 def pan_zoom_frames(panorama: NDArray[np.float64], frames: int, size: int) -> NDArray[np.float64]:
     """The camera pans right by ``PAN_SPEED`` px/frame while its crop shrinks to ``ZOOM_END``."""
     side0 = min(panorama.shape[0], size)
-    centre_row = panorama.shape[0] / 2
+    centre_row = (panorama.shape[0] - 1) / 2
     steps = np.linspace(0.0, 1.0, size)
     out = np.empty((frames, size, size))
     for t in range(frames):

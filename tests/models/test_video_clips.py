@@ -13,8 +13,10 @@ from models.video_clips import (
     CLIP_KINDS,
     SUNRISE_STOPS,
     VIDEO_ENCODINGS,
+    _centre_view,
     clip_scene,
     make_clip,
+    pan_zoom_frames,
 )
 
 FRAMES, SIZE = 4, 32
@@ -85,6 +87,25 @@ def test_pan_zoom_moves_the_view() -> None:
     scene = clip_scene("pan_zoom", frames=3, size=SIZE)
     assert not np.allclose(scene[0], scene[1])
     assert np.corrcoef(np.log(scene[0]).ravel(), np.log(scene[1]).ravel())[0, 1] > 0.7
+
+
+def test_pan_zoom_wraps_columns_only_and_starts_on_whole_rows() -> None:
+    """Rows are a ramp 0..7: frame 0 (the full height) shows them exactly, and no row of
+    any frame blends the bottom of the panorama with its top."""
+    height, width = 8, 16
+    ramp = np.repeat(np.arange(height, dtype=np.float64)[:, None], width, axis=1)
+    frames = pan_zoom_frames(ramp, frames=12, size=height)  # pans over the seam at col 16
+    np.testing.assert_allclose(frames[0], ramp[:, :height])
+    assert frames.min() >= 0 and frames.max() <= height - 1
+    assert np.all(np.diff(frames, axis=1) > 0)
+
+
+def test_centre_view_wraps_columns_and_repeats_edge_rows() -> None:
+    height, width, size = 8, 16, 20
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float64)
+    view = _centre_view(rows * 100 + cols, size)
+    np.testing.assert_array_equal(view[:, 0] // 100, np.clip(np.arange(-6, 14), 0, height - 1))
+    np.testing.assert_array_equal(view[0] % 100, np.arange(-2, 18) % width)
 
 
 @pytest.mark.parametrize(
