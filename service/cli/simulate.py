@@ -40,7 +40,13 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--max-wraps", type=float, help="clip x at this many wrap units")
     parser.add_argument("--read-noise", type=float, help="read noise sigma, in wraps (0..1)")
     parser.add_argument("--full-well", type=float, help="electrons at x = 1, for shot noise")
-    parser.add_argument("--seed", type=int, help="noise seed")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="noise seed (default 0): the same seed draws the same noise; .png and .tiff "
+        "frames store it",
+    )
     parser.add_argument("--gray", action="store_true", help="encode Rec.709 luminance of RGB")
     add_clip_negative_flag(parser)
     parser.add_argument("--ground-truth", metavar="W.png", help="also write the true W map")

@@ -62,6 +62,18 @@ def test_simulate_rgb_tiff_with_noise_and_max_wraps(tmp_path: Path) -> None:
     assert read_hdr(tmp_path / "ref.exr").pixels.max() == 16.0 / 0.5
 
 
+def test_simulate_without_seed_draws_the_noise_of_seed_0(tmp_path: Path) -> None:
+    write_exr(tmp_path / "scene.exr", blob_scene(size=16))
+    noisy = ("--read-noise", "0.05", "--full-well", "1000")
+    for name, seed in (("a.png", ()), ("b.png", ()), ("c.png", ("--seed", "0"))):
+        result = run_mcam("simulate", "scene.exr", "-o", name, *noisy, *seed, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+    frames = [read_frame(tmp_path / name) for name in ("a.png", "b.png", "c.png")]
+    assert all(frame.params.seed == 0 for frame in frames)
+    np.testing.assert_array_equal(frames[0].codes, frames[1].codes)
+    np.testing.assert_array_equal(frames[0].codes, frames[2].codes)
+
+
 def test_simulate_bad_input(tmp_path: Path) -> None:
     write_exr(tmp_path / "rgb.exr", blob_scene(size=16, rgb=True))
     assert_one_line_error(
