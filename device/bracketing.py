@@ -7,7 +7,7 @@ Debevec-style merge for a linear sensor: each exposure's estimate of the scene
 ``z / gain`` is weighted by a hat function of its code value ``z`` that is zero
 for dark and saturated samples. :class:`BracketCollector` assembles the packets
 and :func:`save_pair` writes a new folder of ``data_dir/datasets/<device>/``
-(:func:`device.datasets.new_pair_folder`: named by the host's clock, then the sequence)
+(:mod:`device.datasets`: named by the host's clock, then the sequence; whole or not at all)
 with ``wrapped.png`` (codes + params), ``reference.exr`` (scene-referred irradiance,
 the wrapped frame's ``x`` is ``gain * reference``) and ``meta.json``.
 """
@@ -15,6 +15,7 @@ the wrapped frame's ``x`` is ``gain * reference``) and ``meta.json``.
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from device.datasets import new_pair_folder
+from device.datasets import finish_pair, new_pair_folder
 from device.link_protocol import FLAG_BRACKET, DataPacket
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize
@@ -130,12 +131,24 @@ class BracketCollector:
 
 
 def save_pair(root: Path, device: str, bracket: Bracket) -> Path:
-    """Write the (wrapped frame, reference HDR) pair in a new folder; return the folder."""
+    """Write the (wrapped frame, reference HDR) pair in a new folder; return the folder.
+    The pair is saved whole or not at all: when a file cannot be written (a reference
+    float32 cannot hold, a full disk) the error is raised and no folder is left."""
+    folder = new_pair_folder(root, device, bracket.wrapped.sequence)
+    try:
+        write_pair(folder, device, bracket)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    return finish_pair(folder)
+
+
+def write_pair(folder: Path, device: str, bracket: Bracket) -> None:
+    """Write ``wrapped.png``, ``reference.exr`` and ``meta.json`` of ``bracket`` in ``folder``."""
     wrapped = bracket.wrapped
     params = SensorParams.parse({"encoding": wrapped.encoding, "alpha": wrapped.alpha,
                                  "bits": wrapped.bits, "gain": wrapped.gain or None})
     reference = bracket.reference()
-    folder = new_pair_folder(root, device, wrapped.sequence)
     write_frame(folder / "wrapped.png", wrapped.codes, params)
     write_exr(folder / "reference.exr", reference,
               {"comments": "bracketed reference, scene-referred; x = gain * value"})
@@ -149,4 +162,3 @@ def save_pair(root: Path, device: str, bracket: Bracket) -> Path:
                   "saturation_level": SATURATION_LEVEL},
     }
     (folder / "meta.json").write_text(json.dumps(meta, indent=2))
-    return folder

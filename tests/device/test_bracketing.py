@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -10,12 +12,15 @@ from hypothesis import strategies as st
 from device.bracketing import (
     DARK_LEVEL,
     SATURATION_LEVEL,
+    Bracket,
     BracketCollector,
     hat_weight,
     merge_exposures,
+    save_pair,
 )
+from device.datasets import device_dir
 from device.link_protocol import FLAG_BRACKET, DataPacket
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, OutputOverflowError
 from models.formation import SensorParams, simulate
 
 GAINS = [1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0]
@@ -107,3 +112,31 @@ def test_an_exposure_that_does_not_fit_abandons_the_bracket(misfit: dict) -> Non
     collector.add(packet(20, 0))
     collector.add(exposure(21, 1))
     assert collector.add(exposure(22, 2)) is not None
+
+
+def bracket_of(gain: float) -> Bracket:
+    """A 4-exposure bracket of an 8 x 8 mid-grey scene, the wrapped frame at ``gain``."""
+    codes = np.full((8, 8), 128, np.uint8)
+
+    def packet(index: int, encoding: str, packet_gain: float) -> DataPacket:
+        return DataPacket(100 + index, 0, encoding, 2.0, 8, packet_gain, codes, FLAG_BRACKET,
+                          index, 4)
+
+    exposures = [packet(i, "clip", gain / 2 ** (3 - i)) for i in (1, 2, 3)]
+    return Bracket(packet(0, "modulo", gain), exposures)
+
+
+def test_a_pair_is_saved_whole(tmp_path: Path) -> None:
+    folder = save_pair(tmp_path, "cam", bracket_of(1.0))
+    assert sorted(path.name for path in folder.iterdir()) == [
+        "meta.json", "reference.exr", "wrapped.png"]
+    assert list(device_dir(tmp_path, "cam").iterdir()) == [folder]
+
+
+def test_a_pair_whose_reference_cannot_be_written_leaves_no_folder(tmp_path: Path) -> None:
+    """Gains near 1e-300 put the reference past float32: the EXR is refused after
+    wrapped.png was written, and no folder (finished or not) is left."""
+    save_pair(tmp_path, "cam", bracket_of(1.0))
+    with pytest.raises(OutputOverflowError, match="float32"):
+        save_pair(tmp_path, "cam", bracket_of(1e-300))
+    assert len(list(device_dir(tmp_path, "cam").iterdir())) == 1

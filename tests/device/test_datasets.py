@@ -8,7 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from device.datasets import DatasetLimits, device_dir, new_pair_folder, prune_pairs
+from device.datasets import (
+    DatasetLimits,
+    device_dir,
+    finish_pair,
+    new_pair_folder,
+    pair_folders,
+    prune_pairs,
+)
 
 
 def pairs(root: Path, count: int, size: int = 100) -> list[Path]:
@@ -16,7 +23,7 @@ def pairs(root: Path, count: int, size: int = 100) -> list[Path]:
     folders = [new_pair_folder(root, "cam1", sequence=7) for _ in range(count)]
     for folder in folders:
         (folder / "reference.exr").write_bytes(bytes(size))
-    return folders
+    return [finish_pair(folder) for folder in folders]
 
 
 def test_the_same_sequence_gets_a_new_folder_each_time(tmp_path: Path) -> None:
@@ -49,3 +56,16 @@ def test_the_newest_pair_is_kept_even_when_it_alone_is_too_large(tmp_path: Path)
     folders = pairs(tmp_path, 2, size=1000)
     assert prune_pairs(tmp_path, "cam1", DatasetLimits(max_bytes=10)) == folders[:1]
     assert folders[1].is_dir()
+
+
+def test_a_pair_being_written_is_hidden_and_never_counted_or_pruned(tmp_path: Path) -> None:
+    folders = pairs(tmp_path, 2)
+    unfinished = new_pair_folder(tmp_path, "cam1", sequence=8)
+    (unfinished / "wrapped.png").write_bytes(bytes(10))
+    assert unfinished.name.startswith(".") and unfinished.parent == folders[0].parent
+    assert pair_folders(tmp_path, "cam1") == folders
+    assert prune_pairs(tmp_path, "cam1", DatasetLimits(max_pairs=2)) == []
+    assert unfinished.is_dir()
+    finished = finish_pair(unfinished)
+    assert finished.name == unfinished.name[1:] and (finished / "wrapped.png").is_file()
+    assert pair_folders(tmp_path, "cam1") == [*folders, finished]
