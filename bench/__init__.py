@@ -94,15 +94,23 @@ def json_safe(value: Any) -> Any:
     return value
 
 
-def publish(report: dict[str, Any], markdown: str, out: Path) -> int:
-    """Write the report (JSON + Markdown), print the Markdown table; exit code 0."""
-    write_report(report, markdown, out)
+def publish(report: dict[str, Any], markdown: str, out: Path, *, rows: str) -> int:
+    """Write the report (JSON + Markdown, see :func:`write_report`), print the Markdown
+    table; exit code 0."""
+    write_report(report, markdown, out, rows=rows)
     print(markdown)
     return 0
 
 
-def write_report(report: dict[str, Any], markdown: str, out: Path) -> None:
-    """Write ``report`` as JSON to ``out`` and ``markdown`` next to it (``.md``)."""
+def write_report(report: dict[str, Any], markdown: str, out: Path, *, rows: str) -> None:
+    """Write ``report`` as JSON to ``out`` and ``markdown`` next to it (``.md``). A report
+    whose ``rows`` (the key of its measurements) is empty is refused and nothing is
+    written: it would replace the results at ``out`` with a report of nothing."""
+    if not report[rows]:
+        raise InvalidInputError(
+            f"nothing was measured (the report's {rows!r} is empty), so {out} and its .md "
+            "are left as they were; name at least one decoder or model to measure"
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n")
     out.with_suffix(".md").write_text(markdown + "\n")
@@ -170,12 +178,15 @@ def entry_point(
     parse_args: Callable[[list[str] | None], Any],
     run: Callable[[Any], dict[str, Any]],
     markdown: Callable[[dict[str, Any]], str],
+    *,
+    rows: str,
 ) -> Callable[[list[str] | None], int]:
-    """A benchmark's ``main(argv)``: parse (the arguments carry ``out``), run, publish."""
+    """A benchmark's ``main(argv)``: parse (the arguments carry ``out``), run, publish
+    (``rows``: the report's key of its measurements, which must not be empty)."""
 
     def main(argv: list[str] | None = None) -> int:
         args = parse_args(argv)
         report = run(args)
-        return publish(report, markdown(report), args.out)
+        return publish(report, markdown(report), args.out, rows=rows)
 
     return main

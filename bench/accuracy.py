@@ -305,7 +305,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-main = entry_point(parse_args, run, markdown)
+main = entry_point(parse_args, run, markdown, rows="results")
 
 
 if __name__ == "__main__":

@@ -200,7 +200,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-main = entry_point(parse_args, run, markdown)
+main = entry_point(parse_args, run, markdown, rows="rows")
 
 
 if __name__ == "__main__":

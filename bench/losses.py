@@ -114,7 +114,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-main = entry_point(parse_args, run, markdown)
+main = entry_point(parse_args, run, markdown, rows="results")
 
 
 if __name__ == "__main__":

@@ -33,7 +33,15 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from bench import RESULTS, at_least, machine, refuse_unknown, utc_now, versions, write_report
+from bench import (
+    RESULTS,
+    at_least,
+    entry_point,
+    machine,
+    refuse_unknown,
+    utc_now,
+    versions,
+)
 from bench.tradeoff import header, matmul_gflops
 from models.decoders.learned import load_cards, make_session, worker_threads
 
@@ -220,7 +228,7 @@ def time_levers(path: str, repeats: int) -> list[dict[str, Any]]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    cards = [c for c in load_cards() if c["decoder"] in args.models and c["encoding"] == "mantissa"]
+    cards = [card for card in mantissa_cards() if card["decoder"] in args.models]
     rates = matmul_gflops()
     profiles = [profile_model(card, args.runs, max(rates.values())) for card in cards]
     levers = {card["name"]: time_levers(card["path"], args.repeats) for card in cards}
@@ -289,9 +297,9 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> None:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models", nargs="*", default=list(MODELS), help="decoders to profile")
+    parser.add_argument("--models", nargs="+", default=list(MODELS), help="decoders to profile")
     parser.add_argument(
         "--runs", type=at_least(1), default=10, help="profiled inferences per model"
     )
@@ -300,12 +308,18 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--out", type=Path, default=RESULTS / "profile.json")
     args = parser.parse_args(argv)
-    profiled = sorted({card["decoder"] for card in load_cards()})
+    profiled = sorted({card["decoder"] for card in mantissa_cards()})
     refuse_unknown(parser, "models", args.models, profiled)
-    report = run(args)
-    write_report(report, markdown(report), args.out)
-    print(markdown(report))
+    return args
+
+
+def mantissa_cards() -> list[dict[str, Any]]:
+    """The cards of the mantissa models, the ones profiled (:func:`frame` is mantissa)."""
+    return [card for card in load_cards() if card["encoding"] == "mantissa"]
+
+
+main = entry_point(parse_args, run, markdown, rows="profiles")
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

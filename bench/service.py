@@ -245,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     result = measure(args.decoder, args.jobs_per_client)
     report = markdown(result)
-    write_report(result, report, args.out)
+    write_report(result, report, args.out, rows="levels")
     print(report)
     return 1 if result["lost_total"] else 0
 

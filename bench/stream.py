@@ -306,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {name} | {metric} | {shown} |")
     markdown = "\n".join(lines)
     print(markdown)
-    write_report(report, markdown, args.out)
+    write_report(report, markdown, args.out, rows="results")
     return 0
 
 

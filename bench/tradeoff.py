@@ -449,7 +449,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders, extra=tile_variants())
     report = run(args)
-    write_report(report, markdown(report), args.out)
+    write_report(report, markdown(report), args.out, rows="results")
     plot(report, args.plot)
     print(markdown(report))
 

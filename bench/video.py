@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         "rows": rows,
         "summary": summary,
     }
-    return publish(report, markdown_table(summary, load), args.output)
+    return publish(report, markdown_table(summary, load), args.output, rows="rows")
 
 
 if __name__ == "__main__":

@@ -82,3 +82,16 @@ def test_tiny_run_writes_json_and_markdown(tmp_path: Path) -> None:
     assert sum(row["share"] for row in result["ops"]) == pytest.approx(1.0)
     assert len(report["levers"][card["name"]]) == len(profile.LEVERS)
     assert "| convolution |" in out.with_suffix(".md").read_text()
+
+
+def test_an_empty_model_list_is_a_usage_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--models`` with no name profiled nothing and wrote an empty report over the
+    committed one."""
+    out = tmp_path / "profile.json"
+    with pytest.raises(SystemExit) as exc:
+        profile.main(["--models", "--runs", "1", "--repeats", "1", "--out", str(out)])
+    assert exc.value.code == 2
+    assert "--models: expected at least one argument" in capsys.readouterr().err
+    assert not out.exists()

@@ -1,0 +1,26 @@
+"""Tests of bench/__init__.py, the code the benchmarks share (no timings asserted)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from bench import write_report
+from models.errors import InvalidInputError
+
+
+def test_a_report_of_nothing_is_refused_and_the_old_results_are_kept(tmp_path: Path) -> None:
+    out = tmp_path / "profile.json"
+    out.write_text('{"profiles": ["committed"]}\n')
+    with pytest.raises(InvalidInputError, match="nothing was measured"):
+        write_report({"date": "today", "profiles": []}, "empty", out, rows="profiles")
+    assert out.read_text() == '{"profiles": ["committed"]}\n'
+    assert not out.with_suffix(".md").exists()
+
+
+def test_a_report_with_rows_is_written_as_json_and_markdown(tmp_path: Path) -> None:
+    out = tmp_path / "sub" / "colour.json"
+    write_report({"rows": [{"psnr": float("inf")}]}, "| table |", out, rows="rows")
+    assert out.read_text() == '{\n  "rows": [\n    {\n      "psnr": null\n    }\n  ]\n}\n'
+    assert out.with_suffix(".md").read_text() == "| table |\n"
