@@ -8,25 +8,29 @@ Importing it keeps freed memory in the process, as ``mcam`` does
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
 import platform
 import subprocess
+import sys
 from collections.abc import Callable, Collection, Iterable
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from models.allocator import keep_freed_memory
 from models.decoders import available_decoders
-from models.decoders.registry import name_patterns, resolve
-from models.errors import InvalidInputError
-from models.formation import SensorParams
+from models.decoders.registry import get_decoder, name_patterns, resolve
+from models.errors import InvalidInputError, McamError
+from models.formation import Encoding, SensorParams
 
 keep_freed_memory()
 RESULTS = Path(__file__).resolve().parent / "results"
+#: A benchmark's ``main(argv)``: its exit code.
+Main = Callable[[list[str] | None], int]
 #: Distributions whose versions a report records.
 PACKAGES = ("numpy", "scipy", "scikit-image", "onnxruntime", "PyMaxflow")
 
@@ -146,14 +150,35 @@ def refuse_unknown_decoders(
     parser: argparse.ArgumentParser,
     names: Iterable[str] | None,
     extra: Collection[str] = (),
+    encodings: Collection[str] = (),
 ) -> None:
     """Stop with the parser's usage error when any of ``names`` is neither a decoder the
     registry resolves (installed or parametrized, e.g. ``<net>+puma2``) nor one of the
-    benchmark's own ``extra`` names, listing what it accepts."""
-    unknown = sorted({name for name in names or () if name not in extra and not _resolves(name)})
+    benchmark's own ``extra`` names, listing what it accepts; or when a decoder cannot
+    decode one of the ``encodings`` the benchmark will give it (a net trained on one
+    encoding, e.g. ``mantissanet-base-noise`` on modulo frames), naming what it decodes."""
+    chosen = list(dict.fromkeys(names or ()))
+    unknown = sorted({name for name in chosen if name not in extra and not _resolves(name)})
     if unknown:
         accepted = [spec.name for spec in available_decoders()] + list(extra) + name_patterns()
         parser.error(f"unknown decoders {', '.join(unknown)}; choose from: {', '.join(accepted)}")
+    lacking = [
+        f"{name} decodes {'/'.join(decodes)}, not {'/'.join(sorted(set(encodings) - set(decodes)))}"
+        for name in chosen
+        if name not in extra and not set(encodings) <= set(decodes := decoded_encodings(name))
+    ]
+    if lacking:
+        parser.error(f"{'; '.join(lacking)}: choose other decoders or encodings")
+
+
+def decoded_encodings(name: str) -> list[str]:
+    """The encodings decoder ``name`` can decode (a learned one: those it has a model for)."""
+    decoder = get_decoder(name)
+    return [
+        encoding
+        for encoding in get_args(Encoding)
+        if decoder.supports(SensorParams(encoding=encoding))
+    ]
 
 
 def refuse_unknown(
@@ -180,13 +205,37 @@ def entry_point(
     markdown: Callable[[dict[str, Any]], str],
     *,
     rows: str,
-) -> Callable[[list[str] | None], int]:
+) -> Main:
     """A benchmark's ``main(argv)``: parse (the arguments carry ``out``), run, publish
-    (``rows``: the report's key of its measurements, which must not be empty)."""
+    (``rows``: the report's key of its measurements, which must not be empty); a
+    :class:`models.errors.McamError` ends it as :func:`one_line_errors` says."""
 
     def main(argv: list[str] | None = None) -> int:
         args = parse_args(argv)
         report = run(args)
         return publish(report, markdown(report), args.out, rows=rows)
 
-    return main
+    main.__module__ = run.__module__
+    return one_line_errors(main)
+
+
+def one_line_errors(main: Main) -> Main:
+    """``main`` that ends on a :class:`models.errors.McamError` (a mistake in what it
+    was asked to measure, found while measuring) with the error's message on one line of
+    stderr and exit code 2, as argparse ends a usage error, instead of a traceback."""
+
+    @functools.wraps(main)
+    def guarded(argv: list[str] | None = None) -> int:
+        try:
+            return main(argv)
+        except McamError as exc:
+            sys.stderr.write(f"{module_name(main.__module__)}: error: {exc.message}\n")
+            raise SystemExit(2) from None
+
+    return guarded
+
+
+def module_name(module: str) -> str:
+    """The dotted name of ``module``, also when it runs as ``__main__`` (``python -m``)."""
+    spec = getattr(sys.modules.get(module), "__spec__", None)
+    return spec.name if spec is not None else module

@@ -195,7 +195,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--read-noise", type=read_noise, default=0.0, help="wrap units (default 0)")
     parser.add_argument("--out", type=Path, default=RESULTS / "colour.json")
     args = parser.parse_args(argv)
-    refuse_unknown_decoders(parser, args.decoders)
+    refuse_unknown_decoders(parser, args.decoders, encodings=args.encodings)
     refuse_joint_decoders(parser, args.decoders)
     return args
 

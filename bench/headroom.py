@@ -199,7 +199,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--frames", type=at_least(1), default=24, help="first N val-256 frames")
     parser.add_argument("--out", type=Path, default=RESULTS / "headroom.json")
     args = parser.parse_args(argv)
-    refuse_unknown_decoders(parser, args.decoders)
+    refuse_unknown_decoders(parser, args.decoders, encodings=args.encodings)
     return args
 
 

@@ -27,7 +27,16 @@ from typing import Any
 import httpx
 import numpy as np
 
-from bench import RESULTS, at_least, machine, utc_now, versions, write_report
+from bench import (
+    RESULTS,
+    at_least,
+    machine,
+    one_line_errors,
+    refuse_unknown_decoders,
+    utc_now,
+    versions,
+    write_report,
+)
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams, simulate
 from models.frames import encode_frame
@@ -237,12 +246,14 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+@one_line_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoder", default="itoh", help="decoder to benchmark (default itoh)")
     parser.add_argument("--jobs-per-client", type=at_least(1), default=5)
     parser.add_argument("--out", type=Path, default=RESULTS / "service.json")
     args = parser.parse_args(argv)
+    refuse_unknown_decoders(parser, [args.decoder], encodings=[PARAMS.encoding])
     result = measure(args.decoder, args.jobs_per_client)
     report = markdown(result)
     write_report(result, report, args.out, rows="levels")

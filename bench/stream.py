@@ -46,6 +46,7 @@ from bench import (
     RESULTS,
     at_least,
     machine,
+    one_line_errors,
     refuse_unknown_decoders,
     utc_now,
     versions,
@@ -67,6 +68,8 @@ from worker.result_store import RESULTS_DIR
 
 DECODER = "itoh"
 DISTINCT = 16
+#: The frames ``--scenes`` sends, and their encoding.
+SCENES = {"camera": "modulo", "val256": "mantissa"}
 
 
 def template_packets(scenes: str = "camera") -> list[DataPacket]:
@@ -250,6 +253,7 @@ def start_workers(
             for _ in range(n)]
 
 
+@one_line_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.stream", description=__doc__)
     parser.add_argument("--frames", type=at_least(1), default=300, help="frames per link run")
@@ -261,11 +265,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--decoder", default=DECODER, help=f"stream decoder (default {DECODER})")
     parser.add_argument("--stream-processes", type=at_least(1),
                         help="MCAM_STREAM_PROCESSES of the workers (default: theirs)")
-    parser.add_argument("--scenes", choices=("camera", "val256"), default="camera",
+    parser.add_argument("--scenes", choices=tuple(SCENES), default="camera",
                         help="frames of the virtual camera (easy) or val-256 (dense wraps)")
     parser.add_argument("--out", type=Path, default=RESULTS / "stream.json")
     args = parser.parse_args(argv)
-    refuse_unknown_decoders(parser, [args.decoder])
+    refuse_unknown_decoders(parser, [args.decoder], encodings=[SCENES[args.scenes]])
     templates = template_packets(args.scenes)
     rows: dict[str, Any] = {"parse_only": bench_parse(stream_bytes(templates, args.frames,
                                                                      False)),

@@ -320,7 +320,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--cores", type=at_least(1), help="cores to fill (default: all)")
     parser.add_argument("--out", type=Path, default=RESULTS / "throughput.json")
     args = parser.parse_args(argv)
-    refuse_unknown_decoders(parser, args.decoders)
+    refuse_unknown_decoders(parser, args.decoders, encodings=[args.encoding])
     return args
 
 

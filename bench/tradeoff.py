@@ -40,6 +40,7 @@ from bench import (
     RESULTS,
     at_least,
     machine,
+    one_line_errors,
     refuse_unknown_decoders,
     utc_now,
     versions,
@@ -436,7 +437,8 @@ def plot(report: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> None:
+@one_line_errors
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=at_least(1), default=24, help="val-256 frames to use")
     parser.add_argument("--dark", type=at_least(1), default=3, help="mostly-dark crops per kind")
@@ -447,12 +449,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=RESULTS / "tradeoff.json")
     parser.add_argument("--plot", type=Path, default=RESULTS / "tradeoff.png")
     args = parser.parse_args(argv)
-    refuse_unknown_decoders(parser, args.decoders, extra=tile_variants())
+    refuse_unknown_decoders(
+        parser, args.decoders, extra=tile_variants(), encodings=[VAL_PARAMS.encoding]
+    )
     report = run(args)
     write_report(report, markdown(report), args.out, rows="results")
     plot(report, args.plot)
     print(markdown(report))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -25,6 +25,7 @@ from bench import RESULTS as RESULTS_DIR
 from bench import (
     at_least,
     machine,
+    one_line_errors,
     publish,
     refuse_unknown,
     refuse_unknown_decoders,
@@ -148,6 +149,7 @@ def markdown_table(summary: list[dict[str, Any]], load: list[list[float]]) -> st
     return "\n".join(lines)
 
 
+@one_line_errors
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark, print the tables, write the JSON and Markdown reports."""
     parser = argparse.ArgumentParser(prog="python -m bench.video", description=__doc__)
@@ -156,7 +158,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--decoders", default=",".join(DEFAULT_DECODERS),
                         help="comma-separated, or 'all' for every installed decoder")
     parser.add_argument("--frames", type=at_least(2), default=DEFAULT_FRAMES)
-    parser.add_argument("--keyframe-interval", type=int, default=TemporalConfig.keyframe_interval)
+    parser.add_argument(
+        "--keyframe-interval",
+        type=at_least(0),
+        default=TemporalConfig.keyframe_interval,
+        help="frames between periodic keyframes (0: none)",
+    )
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     decoders = (
@@ -164,9 +171,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.decoders == "all"
         else tuple(args.decoders.split(","))
     )
-    refuse_unknown_decoders(parser, decoders)
     refuse_unknown(parser, "clips", args.clips.split(","), CLIP_KINDS)
     refuse_unknown(parser, "encodings", args.encodings.split(","), VIDEO_ENCODINGS)
+    refuse_unknown_decoders(parser, decoders, encodings=args.encodings.split(","))
     config = TemporalConfig(keyframe_interval=args.keyframe_interval)
     load = [[round(value, 2) for value in os.getloadavg()]]
     print(

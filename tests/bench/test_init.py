@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bench import write_report
+from bench import colour, write_report
 from models.errors import InvalidInputError
 
 
@@ -24,3 +24,21 @@ def test_a_report_with_rows_is_written_as_json_and_markdown(tmp_path: Path) -> N
     write_report({"rows": [{"psnr": float("inf")}]}, "| table |", out, rows="rows")
     assert out.read_text() == '{\n  "rows": [\n    {\n      "psnr": null\n    }\n  ]\n}\n'
     assert out.with_suffix(".md").read_text() == "| table |\n"
+
+
+def test_a_mistake_found_while_measuring_ends_in_one_line_and_exit_code_2(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A McamError raised in a benchmark's run (here: the frames refused) was a traceback."""
+
+    def refused(*_: object) -> None:
+        raise InvalidInputError("no frames of that kind; choose another set")
+
+    monkeypatch.setattr(colour, "frame_set", refused)
+    with pytest.raises(SystemExit) as exc:
+        colour.main(["--decoders", "itoh", "--out", str(tmp_path / "colour.json")])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err == (
+        "bench.colour: error: no frames of that kind; choose another set\n"
+    )
+    assert not (tmp_path / "colour.json").exists()

@@ -9,17 +9,25 @@ from typing import Any
 
 import pytest
 
-from bench import accuracy, colour, headroom, profile, stream, tradeoff, video
+from bench import accuracy, colour, headroom, profile, service, stream, throughput, tradeoff, video
+from models.decoders.learned import load_cards
 
 MAINS: dict[str, Callable[[list[str] | None], Any]] = {
     "accuracy": accuracy.main,
     "colour": colour.main,
     "headroom": headroom.main,
     "profile": profile.main,
+    "service": service.main,
     "stream": stream.main,
+    "throughput": throughput.main,
     "tradeoff": tradeoff.main,
     "video": video.main,
 }
+#: Installed nets with a mantissa model and none for modulo (e.g. mantissanet-base-noise).
+MANTISSA_ONLY = sorted(
+    {card["decoder"] for card in load_cards()}
+    - {card["decoder"] for card in load_cards() if card["encoding"] == "modulo"}
+)
 
 
 @pytest.mark.parametrize(
@@ -29,6 +37,7 @@ MAINS: dict[str, Callable[[list[str] | None], Any]] = {
         ("headroom", ["--decoders", "nope"], "unknown decoders nope"),
         ("profile", ["--models", "itoh"], "unknown models itoh; choose from: mantissanet-"),
         ("stream", ["--decoder", "nope"], "unknown decoders nope"),
+        ("service", ["--decoder", "nope"], "unknown decoders nope; choose from: itoh"),
         ("stream", ["--stream-processes", "0"], "must be at least 1, got 0"),
         ("stream", ["--scenes", "mars"], "invalid choice: 'mars'"),
         ("tradeoff", ["--decoders", "auto-fast-tile48"], "unknown decoders auto-fast-tile48"),
@@ -45,6 +54,7 @@ MAINS: dict[str, Callable[[list[str] | None], Any]] = {
         ("accuracy", ["--noise-levels", "nan"], "a read noise is in [0, 1] wraps, got nan"),
         ("colour", ["--read-noise", "2"], "a read noise is in [0, 1] wraps, got 2"),
         ("video", ["--frames", "1"], "--frames: must be at least 2, got 1"),
+        ("video", ["--keyframe-interval", "-5"], "--keyframe-interval: must be at least 0, got -5"),
         ("profile", ["--runs", "x"], "'x' is not a whole number"),
     ],
 )
@@ -56,6 +66,31 @@ def test_unknown_names_are_usage_errors(
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert message in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.skipif(not MANTISSA_ONLY, reason="no installed net lacks a modulo model")
+@pytest.mark.parametrize(
+    ("bench", "argv"),
+    [
+        ("colour", ["--decoders", "itoh", "{net}", "--encodings", "modulo"]),
+        ("headroom", ["--decoders", "{net}+puma2", "--encodings", "mantissa", "modulo"]),
+        ("throughput", ["--decoders", "{net}", "--encoding", "modulo"]),
+        ("stream", ["--decoder", "{net}"]),
+        ("video", ["--decoders", "itoh,{net}", "--encodings", "modulo"]),
+    ],
+)
+def test_a_decoder_without_a_model_for_an_encoding_is_a_usage_error(
+    bench: str, argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It passed as a known decoder, then crashed in the middle of the run (the stream
+    benchmark's camera frames are modulo)."""
+    net = MANTISSA_ONLY[0]
+    with pytest.raises(SystemExit) as exc:
+        MAINS[bench]([arg.format(net=net) for arg in argv])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"{net}" in err and "decodes mantissa, not modulo: choose other decoders" in err
     assert "Traceback" not in err
 
 
