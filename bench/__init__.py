@@ -1,6 +1,7 @@
 """Benchmarks, run as ``python -m bench.NAME``; each prints a Markdown table and writes
 ``bench/results/NAME.json`` (plus a Markdown copy). Shared here: the facts every
-report records (date, machine, package versions) and JSON writing (inf/NaN -> null).
+report records (:func:`host_facts`: date, machine, package versions, load average) and
+JSON writing (inf/NaN -> null).
 Importing it keeps freed memory in the process, as ``mcam`` does
 (:func:`models.allocator.keep_freed_memory`), so the benchmarks time what the service runs.
 """
@@ -80,6 +81,19 @@ def git_commit() -> str | None:
     except (OSError, subprocess.CalledProcessError):
         return None
     return done.stdout.strip()
+
+
+def host_facts() -> dict[str, Any]:
+    """What every report records of where and when it was measured: the date, the
+    machine, the package versions and the load average (1, 5 and 15 min) when the
+    measuring ended (other processes share the cores, and timings grow with their load).
+    Taken once everything is measured."""
+    return {
+        "date": utc_now(),
+        "machine": machine(),
+        "versions": versions(),
+        "load_average": os.getloadavg(),
+    }
 
 
 def utc_now() -> str:

@@ -25,16 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import (
-    RESULTS,
-    at_least,
-    entry_point,
-    machine,
-    read_noise,
-    refuse_unknown_decoders,
-    utc_now,
-    versions,
-)
+from bench import RESULTS, at_least, entry_point, host_facts, read_noise, refuse_unknown_decoders
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.errors import McamError
@@ -195,12 +186,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for encoding in ENCODINGS:
         frames = val256_frames(encoding)[: args.frames]
         rows += [bench_row(name, encoding, frames, args) for name in names]
+    noise = noise_table(rows, args)
     return {
         "benchmark": "accuracy",
-        "date": utc_now(),
-        "machine": machine(),
+        **host_facts(),
         "threads": int(os.environ["MCAM_WORKER_THREADS"]),
-        "versions": versions(),
         "protocol": {
             "name": "val-256",
             "frames": len(frames),
@@ -212,7 +202,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "timed_frames": min(args.time_frames, len(frames)),
         },
         "results": rows,
-        "noise": noise_table(rows, args),
+        "noise": noise,
     }
 
 

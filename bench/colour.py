@@ -27,16 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import (
-    RESULTS,
-    at_least,
-    entry_point,
-    machine,
-    read_noise,
-    refuse_unknown_decoders,
-    utc_now,
-    versions,
-)
+from bench import RESULTS, at_least, entry_point, host_facts, read_noise, refuse_unknown_decoders
 from models import metrics
 from models.decoders import Decoder, get_decoder
 from models.decoders.adaptive import AdaptiveDecoder
@@ -148,9 +139,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 print(markdown_row(rows[-1]), flush=True)
     return {
         "benchmark": "colour",
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
+        **host_facts(),
         "read_noise": args.read_noise,
         "rows": rows,
     }

@@ -31,15 +31,7 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from bench import (
-    RESULTS,
-    at_least,
-    entry_point,
-    machine,
-    refuse_unknown_decoders,
-    utc_now,
-    versions,
-)
+from bench import RESULTS, at_least, entry_point, host_facts, refuse_unknown_decoders
 from models.decoders import get_decoder
 from models.decoders.adaptive_policy import most_accurate_net
 from models.formation import SensorParams, dequantize, from_unwrapped, to_unwrapped
@@ -142,7 +134,7 @@ def default_decoders(encoding: str) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    """Measure every encoding; the report with date, machine and versions."""
+    """Measure every encoding; the report with :func:`bench.host_facts`."""
     os.environ.setdefault("MCAM_WORKER_THREADS", str(THREADS))
     reports = [
         encoding_report(encoding, args.decoders or default_decoders(encoding), args.frames)
@@ -150,9 +142,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     ]
     return {
         "benchmark": "headroom",
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
+        **host_facts(),
         "protocol": {"name": "val-256", "high_w": HIGH_W},
         "results": reports,
     }

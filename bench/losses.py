@@ -17,7 +17,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench import RESULTS, at_least, entry_point, machine, utc_now, versions
+from bench import RESULTS, at_least, entry_point, host_facts
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.training.config import RUNS_DIR, TrainConfig
 from models.training.export import export_run
@@ -68,9 +68,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     best = max(rows, key=lambda r: r["read_noise_0"]["psnr"])["loss"]
     return {
         "benchmark": "losses",
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
+        **host_facts(),
         "protocol": {"name": "val-256", "tier": args.tier, "encoding": args.encoding,
                      "stage_steps": list(args.stages), "frames": args.frames,
                      "read_noise": list(NOISE_LEVELS)},

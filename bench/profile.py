@@ -33,15 +33,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from bench import (
-    RESULTS,
-    at_least,
-    entry_point,
-    machine,
-    refuse_unknown,
-    utc_now,
-    versions,
-)
+from bench import RESULTS, at_least, entry_point, host_facts, refuse_unknown
 from bench.tradeoff import header, matmul_gflops
 from models.decoders.learned import load_cards, make_session, worker_threads
 
@@ -233,10 +225,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     profiles = [profile_model(card, args.runs, max(rates.values())) for card in cards]
     levers = {card["name"]: time_levers(card["path"], args.repeats) for card in cards}
     return {
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
-        "load_average": os.getloadavg(),
+        **host_facts(),
         "size": SIZE,
         "threads": worker_threads(),
         "runs": args.runs,

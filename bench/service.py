@@ -30,11 +30,9 @@ import numpy as np
 from bench import (
     RESULTS,
     at_least,
-    machine,
+    host_facts,
     one_line_errors,
     refuse_unknown_decoders,
-    utc_now,
-    versions,
     write_report,
 )
 from models.decoders.registry import get_decoder
@@ -209,10 +207,7 @@ def measure(decoder: str, jobs_per_client: int) -> dict[str, Any]:
                 ]
     single = levels[0]
     return {
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
-        "load_average": os.getloadavg(),
+        **host_facts(),
         "decoder": decoder,
         "size": f"{SIZE}x{SIZE}",
         "in_process_decode_ms": decode_ms,

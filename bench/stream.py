@@ -45,11 +45,9 @@ import numpy as np
 from bench import (
     RESULTS,
     at_least,
-    machine,
+    host_facts,
     one_line_errors,
     refuse_unknown_decoders,
-    utc_now,
-    versions,
     write_report,
 )
 from device.daemon import DaemonConfig, DeviceDaemon, packet_params
@@ -298,8 +296,7 @@ def main(argv: list[str] | None = None) -> int:
                     worker.terminate()
                 for worker in workers:
                     worker.wait(30)
-    report = {"date": utc_now(), "machine": machine(), "versions": versions(),
-              "decoder": args.decoder, "stream_processes": args.stream_processes,
+    report = {**host_facts(), "decoder": args.decoder, "stream_processes": args.stream_processes,
               "frames": "256x256 8-bit " + (
                   "val-256 mantissa" if args.scenes == "val256" else "virtual camera, modulo"),
               "exr_compression": args.exr_compression, "results": rows}

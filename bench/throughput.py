@@ -48,15 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import (
-    RESULTS,
-    at_least,
-    entry_point,
-    machine,
-    refuse_unknown_decoders,
-    utc_now,
-    versions,
-)
+from bench import RESULTS, at_least, entry_point, host_facts, refuse_unknown_decoders
 from models import metrics
 from models.decoders import get_decoder
 from models.decoders.learned import THREAD_VARIABLES
@@ -273,10 +265,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             row["stream_pool"] = measure_stream_pool(decoder, frames, cores, args.repeats)
         rows.append(row)
     return {
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
-        "load_average": os.getloadavg(),
+        **host_facts(),
         "encoding": args.encoding,
         "frames": len(frames),
         "repeats": args.repeats,

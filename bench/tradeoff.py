@@ -26,7 +26,6 @@ against each quality of ``auto``: predicted over measured ms, frame by frame.
 from __future__ import annotations
 
 import argparse
-import os
 from collections import Counter
 from collections.abc import Callable
 from functools import partial
@@ -39,11 +38,9 @@ from onnx import TensorProto, helper
 from bench import (
     RESULTS,
     at_least,
-    machine,
+    host_facts,
     one_line_errors,
     refuse_unknown_decoders,
-    utc_now,
-    versions,
     write_report,
 )
 from models import metrics
@@ -311,10 +308,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         predictions[set_name] = prediction_ratios(frames, repeats)
     dark_speedups = speedups(table["mostly-dark"])
     return {
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
-        "load_average": os.getloadavg(),
+        **host_facts(),
         "peak_gflops_per_s": peak,
         "matmul_gflops_per_s": rates,
         "repeats": args.repeats,

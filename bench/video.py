@@ -16,6 +16,7 @@ import argparse
 import dataclasses
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +25,11 @@ import numpy as np
 from bench import RESULTS as RESULTS_DIR
 from bench import (
     at_least,
-    machine,
+    host_facts,
     one_line_errors,
     publish,
     refuse_unknown,
     refuse_unknown_decoders,
-    utc_now,
-    versions,
 )
 from models.decoders.registry import available_decoders
 from models.video_clips import CLIP_KINDS, DEFAULT_FRAMES, VIDEO_ENCODINGS, ClipEncoding, make_clip
@@ -125,10 +124,12 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return summary
 
 
-def markdown_table(summary: list[dict[str, Any]], load: list[list[float]]) -> str:
-    """The summary as Markdown, with the machine load the timings were taken under."""
+def markdown_table(summary: list[dict[str, Any]], load: list[Sequence[float]]) -> str:
+    """The summary as Markdown, with the machine load the timings were taken under
+    (``load``: the load averages at the start and at the end)."""
+    start, end = ([round(value, 2) for value in values] for values in load)
     lines = [
-        f"Load average (1/5/15 min) at start {load[0]}, at end {load[1]} on "
+        f"Load average (1/5/15 min) at start {start}, at end {end} on "
         f"{os.cpu_count()} cores: ms/frame are noisy (shared machine).",
         "",
         "| clip | encoding | decoder | wrap flicker ind -> tem | x less | PSNR ind -> tem (dB) "
@@ -175,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     refuse_unknown(parser, "encodings", args.encodings.split(","), VIDEO_ENCODINGS)
     refuse_unknown_decoders(parser, decoders, encodings=args.encodings.split(","))
     config = TemporalConfig(keyframe_interval=args.keyframe_interval)
-    load = [[round(value, 2) for value in os.getloadavg()]]
+    load_at_start = os.getloadavg()
     print(
         f"{'clip':13s} {'encoding':8s} {'decoder':9s} {'mode':11s} {'PSNR':>7s} {'PU21':>7s} "
         f"{'W acc':>7s} {'tcons':>8s} {'flicker':>8s} {'ms/fr':>7s} {'local':>6s} {'spat':>6s}"
@@ -184,18 +185,16 @@ def main(argv: list[str] | None = None) -> int:
         tuple(args.clips.split(",")), tuple(args.encodings.split(",")), decoders,
         args.frames, config,
     )
-    load.append([round(value, 2) for value in os.getloadavg()])
     summary = summarize(rows)
     report = {
-        "date": utc_now(),
-        "machine": machine(),
-        "versions": versions(),
-        "load_average": load,
+        **host_facts(),
+        "load_average_at_start": load_at_start,
         "frames": args.frames,
         "config": dataclasses.asdict(config),
         "rows": rows,
         "summary": summary,
     }
+    load = [load_at_start, report["load_average"]]
     return publish(report, markdown_table(summary, load), args.output, rows="rows")
 
 

@@ -43,6 +43,7 @@ def test_smoke_run_as_a_module_writes_json_and_markdown(tmp_path: Path) -> None:
         assert row["psnr"] > 0.0 and row["pu21_psnr"] > 0.0
     assert report["protocol"]["frames"] == 2
     assert report["machine"]["cores"] >= 1
+    assert len(report["load_average"]) == 3
     assert report["noise"]["decoders"] == ["itoh"]
     assert [r["read_noise"] for r in report["noise"]["results"]] == [0.0]
     assert out.with_suffix(".md").read_text().strip() == done.stdout.strip()

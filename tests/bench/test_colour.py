@@ -33,7 +33,9 @@ def test_report_compares_both_modes_frame_by_frame(tmp_path: Path) -> None:
     out = tmp_path / "colour.json"
     colour.main(["--decoders", "itoh", "--encodings", "mantissa", "--sets", "val",
                  "--frames", "2", "--out", str(out)])  # fmt: skip
-    row = json.loads(out.read_text())["rows"][0]
+    report = json.loads(out.read_text())
+    assert len(report["load_average"]) == 3 and report["versions"]["numpy"]
+    row = report["rows"][0]
     assert (row["set"], row["encoding"], row["decoder"]) == ("val", "mantissa", "itoh")
     for mode in ("alone", "joint"):
         assert len(row[mode]["psnr_per_frame_db"]) == 2

@@ -34,7 +34,9 @@ def test_report_puts_true_w_back_per_group(tmp_path: Path) -> None:
     out = tmp_path / "headroom.json"
     headroom.main(["--decoders", "itoh", "--encodings", "mantissa", "--frames", "2",
                    "--out", str(out)])  # fmt: skip
-    result = json.loads(out.read_text())["results"][0]
+    report = json.loads(out.read_text())
+    assert len(report["load_average"]) == 3 and report["versions"]["numpy"]
+    result = report["results"][0]
     assert 0.8 < result["reachable"]["overall"] <= 1.0
     assert result["reachable"]["per_w"]["0"] == 1.0
     psnr = result["decoders"][0]["psnr"]

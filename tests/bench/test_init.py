@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bench import colour, write_report
+from bench import colour, host_facts, write_report
 from models.errors import InvalidInputError
 
 
@@ -42,3 +42,10 @@ def test_a_mistake_found_while_measuring_ends_in_one_line_and_exit_code_2(
         "bench.colour: error: no frames of that kind; choose another set\n"
     )
     assert not (tmp_path / "colour.json").exists()
+
+
+def test_host_facts_name_the_date_machine_versions_and_load() -> None:
+    facts = host_facts()
+    assert set(facts) == {"date", "machine", "versions", "load_average"}
+    assert facts["machine"]["cores"] >= 1 and facts["versions"]["numpy"]
+    assert len(facts["load_average"]) == 3

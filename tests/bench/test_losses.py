@@ -15,6 +15,7 @@ def test_study_trains_exports_and_measures_every_loss(tmp_path: Path) -> None:
     losses.main(["--stages", "1,1,1", "--frames", "1", "--runs-dir", str(tmp_path / "runs"),
                  "--out", str(out)])  # fmt: skip
     report = json.loads(out.read_text())
+    assert len(report["load_average"]) == 3 and report["machine"]["cores"] >= 1
     assert [row["loss"] for row in report["results"]] == ["ce", "ce-risk", "mse", "jumps"]
     for row in report["results"]:
         assert 0.0 <= row["read_noise_0"]["winding_accuracy"] <= 1.0

@@ -35,5 +35,6 @@ def test_tiny_run_writes_json_and_markdown(tmp_path: Path) -> None:
     assert [row["mode"] for row in report["rows"]] == ["independent", "temporal"]
     assert report["rows"][1]["keyframes"] == 1
     assert report["config"]["motion"]["search"] > 0
-    assert len(report["load_average"]) == 2
+    assert len(report["load_average"]) == len(report["load_average_at_start"]) == 3
+    assert "Load average (1/5/15 min) at start [" in out.with_suffix(".md").read_text()
     assert "| static_noise | modulo | itoh |" in out.with_suffix(".md").read_text()
