@@ -96,6 +96,17 @@ def host_facts() -> dict[str, Any]:
     }
 
 
+def host_line(report: dict[str, Any]) -> str:
+    """The date and host of a report's :func:`host_facts`, as its Markdown header says
+    them: ``<date>, <cpu> (<cores> cores); load average at the end [1, 5, 15 min]``."""
+    load = [round(value, 2) for value in report["load_average"]]
+    host = report["machine"]
+    return (
+        f"{report['date']}, {host['cpu']} ({host['cores']} cores); "
+        f"load average at the end {load}"
+    )
+
+
 def utc_now() -> str:
     """The current UTC time, ISO 8601 to the second."""
     return datetime.now(UTC).isoformat(timespec="seconds")
@@ -149,6 +160,18 @@ def at_least(minimum: int) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def above_zero(text: str) -> float:
+    """An argparse ``type``: a finite number above 0 (a rate), else the parser's usage
+    error naming the value."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
+    return value
 
 
 def read_noise(text: str) -> float:

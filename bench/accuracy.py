@@ -25,7 +25,15 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, at_least, entry_point, host_facts, read_noise, refuse_unknown_decoders
+from bench import (
+    RESULTS,
+    at_least,
+    entry_point,
+    host_facts,
+    host_line,
+    read_noise,
+    refuse_unknown_decoders,
+)
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
 from models.errors import McamError
@@ -215,11 +223,11 @@ def _cell(row: dict[str, Any], key: str, scale: float = 1.0, digits: int = 2) ->
 
 def markdown(report: dict[str, Any]) -> str:
     """The report as two Markdown tables with a header line (date, machine)."""
-    proto, host = report["protocol"], report["machine"]
+    proto = report["protocol"]
     lines = [
         f"val-256 ({proto['frames']} frames of {proto['size']}x{proto['size']}, overexposed "
         f"{proto['overexposed']}, max_wraps {proto['max_wraps']:g}, {proto['bits']} bits), "
-        f"{report['date']}, {host['cpu']} ({host['cores']} cores), {report['threads']} threads",
+        f"{host_line(report)}; {report['threads']} threads",
         "",
         "| decoder | kind | encoding | W acc % | PSNR dB | PU21-PSNR dB | SSIM | MS-SSIM "
         "| ms/frame |",

@@ -27,7 +27,15 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, at_least, entry_point, host_facts, read_noise, refuse_unknown_decoders
+from bench import (
+    RESULTS,
+    at_least,
+    entry_point,
+    host_facts,
+    host_line,
+    read_noise,
+    refuse_unknown_decoders,
+)
 from models import metrics
 from models.decoders import Decoder, get_decoder
 from models.decoders.adaptive import AdaptiveDecoder
@@ -162,8 +170,7 @@ def markdown_row(row: dict[str, Any]) -> str:
 def markdown(report: dict[str, Any]) -> str:
     lines = [
         f"Colour frames (read noise {report['read_noise']:g}), channels alone -> made "
-        f"consistent, {report['date']}, "
-        f"{report['machine']['cpu']} ({report['machine']['cores']} cores)",
+        f"consistent, {host_line(report)}",
         "",
         "| set | encoding | decoder | PSNR dB | PU21-PSNR dB | W acc % | all 3 right % "
         "| frames +/- 0.5 dB | worst frame dB | ms/frame |",

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from bench import RESULTS, at_least, entry_point, host_facts, refuse_unknown_decoders
+from bench import RESULTS, at_least, entry_point, host_facts, host_line, refuse_unknown_decoders
 from models.decoders import get_decoder
 from models.decoders.adaptive_policy import most_accurate_net
 from models.formation import SensorParams, dequantize, from_unwrapped, to_unwrapped
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def markdown(report: dict[str, Any]) -> str:
     """Per encoding: the reachable share per true W, then each decoder's PSNR headroom."""
-    lines = [f"PSNR headroom on val-256, {report['date']}, {report['machine']['cpu']}", ""]
+    lines = [f"PSNR headroom on val-256, {host_line(report)}", ""]
     for result in report["results"]:
         share = result["reachable"]
         labels = list(share["per_w"])

@@ -17,7 +17,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench import RESULTS, at_least, entry_point, host_facts
+from bench import RESULTS, at_least, entry_point, host_facts, host_line
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.training.config import RUNS_DIR, TrainConfig
 from models.training.export import export_run
@@ -82,7 +82,7 @@ def markdown(report: dict[str, Any]) -> str:
     proto = report["protocol"]
     lines = [
         f"Winding loss study: mantissanet-{proto['tier']} on {proto['encoding']} val-256, "
-        f"stages {proto['stage_steps']}, {report['date']}, {report['machine']['cpu']}",
+        f"stages {proto['stage_steps']}, {host_line(report)}",
         "",
         "| loss | W acc % | PSNR dB | PU21-PSNR dB | SSIM | PSNR at noise 0.01 | ms/frame |",
         "|---|---|---|---|---|---|---|",

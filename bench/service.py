@@ -31,6 +31,7 @@ from bench import (
     RESULTS,
     at_least,
     host_facts,
+    host_line,
     one_line_errors,
     refuse_unknown_decoders,
     write_report,
@@ -220,10 +221,8 @@ def measure(decoder: str, jobs_per_client: int) -> dict[str, Any]:
 
 def markdown(result: dict[str, Any]) -> str:
     """The report as Markdown: a header line (date, machine, load) and one row per level."""
-    load = [round(value, 2) for value in result["load_average"]]
     lines = [
-        f"bench.service, {result['date']}, {result['machine']['cpu']} "
-        f"({result['machine']['cores']} cores); load average at the end {load}. Decoder "
+        f"bench.service, {host_line(result)}. Decoder "
         f"{result['decoder']} at {result['size']}: in-process decode "
         f"{result['in_process_decode_ms']:.1f} ms; API+queue overhead at 1 client "
         f"{result['overhead_ms']:.1f} ms ({result['overhead_pct']:.0f}% of decode).",

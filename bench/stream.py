@@ -44,11 +44,12 @@ import numpy as np
 
 from bench import (
     RESULTS,
+    above_zero,
     at_least,
+    entry_point,
     host_facts,
-    one_line_errors,
+    host_line,
     refuse_unknown_decoders,
-    write_report,
 )
 from device.daemon import DaemonConfig, DeviceDaemon, packet_params
 from device.link_parser import LinkParser
@@ -251,13 +252,12 @@ def start_workers(
             for _ in range(n)]
 
 
-@one_line_errors
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m bench.stream", description=__doc__)
     parser.add_argument("--frames", type=at_least(1), default=300, help="frames per link run")
     parser.add_argument("--workers", type=at_least(1), nargs="+", default=[1, 2])
-    parser.add_argument("--latency-fps", type=float, default=5.0,
-                        help="paced rate for the latency runs")
+    parser.add_argument("--latency-fps", type=above_zero, default=5.0,
+                        help="paced rate for the latency runs (frames/s, above 0)")
     parser.add_argument("--exr-compression", choices=tuple(EXR_COMPRESSIONS),
                         default=STREAM_EXR_COMPRESSION, help="of the device frames' EXRs")
     parser.add_argument("--decoder", default=DECODER, help=f"stream decoder (default {DECODER})")
@@ -268,6 +268,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS / "stream.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, [args.decoder], encodings=[SCENES[args.scenes]])
+    if args.frames < max(args.workers):
+        parser.error(
+            f"--frames {args.frames} is fewer than --workers {max(args.workers)}: the flood "
+            f"run with {max(args.workers)} devices would give each of them no frame; give "
+            f"--frames of at least {max(args.workers)}"
+        )
+    return args
+
+
+def measure(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """Every run of the benchmark, by name."""
     templates = template_packets(args.scenes)
     rows: dict[str, Any] = {"parse_only": bench_parse(stream_bytes(templates, args.frames,
                                                                      False)),
@@ -296,19 +307,38 @@ def main(argv: list[str] | None = None) -> int:
                     worker.terminate()
                 for worker in workers:
                     worker.wait(30)
-    report = {**host_facts(), "decoder": args.decoder, "stream_processes": args.stream_processes,
-              "frames": "256x256 8-bit " + (
-                  "val-256 mantissa" if args.scenes == "val256" else "virtual camera, modulo"),
-              "exr_compression": args.exr_compression, "results": rows}
-    lines = ["| run | metric | value |", "|---|---|---|"]
-    for name, values in rows.items():
+    return rows
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The whole benchmark as a JSON-ready report."""
+    return report(args, measure(args))
+
+
+def report(args: argparse.Namespace, rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The report of measured ``rows``: the host, the settings and the rows."""
+    return {**host_facts(), "decoder": args.decoder, "stream_processes": args.stream_processes,
+            "frames": "256x256 8-bit " + (
+                "val-256 mantissa" if args.scenes == "val256" else "virtual camera, modulo"),
+            "exr_compression": args.exr_compression, "latency_fps": args.latency_fps,
+            "results": rows}
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The report as Markdown: a header line (date, machine, load, settings), then one row
+    per run and metric."""
+    lines = [f"bench.stream, {host_line(report)}. Decoder {report['decoder']} on "
+             f"{report['frames']} frames, EXR compression {report['exr_compression']}; the "
+             f"paced runs at {report['latency_fps']:g} frames/s.",
+             "", "| run | metric | value |", "|---|---|---|"]
+    for name, values in report["results"].items():
         for metric, value in values.items():
             shown = f"{value:.3f}" if isinstance(value, float) else str(value)
             lines.append(f"| {name} | {metric} | {shown} |")
-    markdown = "\n".join(lines)
-    print(markdown)
-    write_report(report, markdown, args.out, rows="results")
-    return 0
+    return "\n".join(lines)
+
+
+main = entry_point(parse_args, run, markdown, rows="results")
 
 
 if __name__ == "__main__":

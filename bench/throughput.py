@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from bench import RESULTS, at_least, entry_point, host_facts, refuse_unknown_decoders
+from bench import RESULTS, at_least, entry_point, host_facts, host_line, refuse_unknown_decoders
 from models import metrics
 from models.decoders import get_decoder
 from models.decoders.learned import THREAD_VARIABLES
@@ -280,9 +280,8 @@ def markdown(report: dict[str, Any]) -> str:
     pool = f"one stream in order, {report['cores']} processes"
     lines = [
         f"Throughput on val-256 ({report['encoding']}, {report['frames']} frames x "
-        f"{report['repeats']} per worker), {report['date']}, {report['machine']['cpu']} "
-        f"({report['cores']} cores); load average at the end "
-        f"{[round(value, 2) for value in report['load_average']]}. Layout: processes x "
+        f"{report['repeats']} per worker, {report['cores']} cores filled), "
+        f"{host_line(report)}. Layout: processes x "
         "job threads per process x onnxruntime threads per job; frames/s over all the "
         "workers (ms a frame per job thread in brackets); the last column: one stream "
         "through the device consumer's decode pool, taken in stream order.",

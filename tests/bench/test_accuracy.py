@@ -99,6 +99,7 @@ def test_markdown_shows_missing_rows() -> None:
     report = {
         "date": "2026-01-01T00:00:00+00:00",
         "machine": {"cpu": "cpu", "cores": 2},
+        "load_average": (0.5, 1.0, 1.5),
         "threads": 2,
         "protocol": {"frames": 1, "size": 256, "overexposed": 0.2, "max_wraps": 16, "bits": 8},
         "results": [

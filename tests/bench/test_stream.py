@@ -33,3 +33,35 @@ def test_the_in_process_decoder_uses_each_packet_s_own_parameters() -> None:
     ]
     assert packets[0].codes.max() > 255
     assert stream.bench_decoder(packets, "none", "itoh", repeat=2)["frames_per_s"] > 0
+
+
+@pytest.mark.parametrize("fps", ["0", "-5", "nan", "inf"])
+def test_a_latency_rate_that_is_not_above_zero_is_a_usage_error(
+    fps: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """0 or less paced nothing: the latency run became a flood run still named paced."""
+    with pytest.raises(SystemExit) as exc:
+        stream.parse_args(["--latency-fps", fps])
+    assert exc.value.code == 2
+    assert f"--latency-fps: must be a finite number above 0, got {fps}" in capsys.readouterr().err
+
+
+def test_fewer_frames_than_workers_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    """Each of the flood run's devices got 0 frames and the run waited 300 s."""
+    with pytest.raises(SystemExit) as exc:
+        stream.parse_args(["--frames", "1", "--workers", "1", "2"])
+    assert exc.value.code == 2
+    assert "--frames 1 is fewer than --workers 2" in capsys.readouterr().err
+    assert stream.parse_args(["--frames", "2", "--workers", "1", "2"]).frames == 2
+
+
+def test_the_report_records_the_paced_rate_and_its_markdown_names_date_host_and_load() -> None:
+    args = stream.parse_args(["--latency-fps", "2.5", "--decoder", "herraez"])
+    rows = {"e2e_1w_paced": {"frames_sent": 20, "latency_ms_p50": 72.4}}
+    report = stream.report(args, rows)
+    assert report["latency_fps"] == 2.5 and report["results"] == rows
+    assert len(report["load_average"]) == 3
+    head, _, *table = stream.markdown(report).splitlines()
+    assert head.startswith(f"bench.stream, {report['date']}, {report['machine']['cpu']} (")
+    assert "load average at the end [" in head and "paced runs at 2.5 frames/s" in head
+    assert table[-1] == "| e2e_1w_paced | latency_ms_p50 | 72.400 |"
