@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from types import TracebackType
 from typing import Any
+from urllib.parse import urlsplit
 
 import redis
 import redis.asyncio
@@ -58,11 +59,30 @@ class RedisStartError(McamError):
     http_status = 503
 
 
+def redacted_url(url: str) -> str:
+    """``url`` with its password (``redis://:secret@host``, ``?password=``) masked, for
+    logs and error messages."""
+    parts = urlsplit(url)
+    netloc = parts.netloc
+    if "@" in url and "@" not in netloc:  # malformed: mask all before the last @
+        scheme, _, rest = url.partition(":")
+        return f"{scheme}:***@{rest.rpartition('@')[2]}"
+    if "@" in netloc:
+        credentials, _, host = netloc.rpartition("@")
+        user, colon, _ = credentials.partition(":")
+        netloc = f"{user}{colon and ':***'}@{host}"
+    query = "&".join(
+        "password=***" if pair.lower().startswith("password=") else pair
+        for pair in parts.query.split("&")
+    ) if parts.query else ""
+    return f"{parts.scheme}://{netloc}{parts.path}" + (f"?{query}" if query else "")
+
+
 def _check_url(url: str) -> None:
     if not url.startswith(("redis://", "rediss://", "unix://")):
         raise McamError(
-            f"unsupported Redis URL {url!r}: use redis://host:port, rediss://host:port "
-            "or unix:///path/to/redis.sock"
+            f"unsupported Redis URL {redacted_url(url)!r}: use redis://host:port, "
+            "rediss://host:port or unix:///path/to/redis.sock"
         )
 
 

@@ -15,7 +15,7 @@ import redis
 
 from service.core.config import Settings
 from service.core.security import KeyRing, RateLimiter
-from worker.embedded_redis import EmbeddedRedis, connect, durability_problem
+from worker.embedded_redis import EmbeddedRedis, connect, durability_problem, redacted_url
 from worker.queue import JobQueue
 from worker.result_store import RESULTS_DIR, ResultStore
 
@@ -104,7 +104,7 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
     client = connect(url, timeout_s=settings.redis_timeout_s, fail_fast=True)
     problem = durability_problem(client)
     if problem is not None:
-        log.warning("Redis at %s may lose accepted jobs: %s", url, problem)
+        log.warning("Redis at %s may lose accepted jobs: %s", redacted_url(url), problem)
     return ServiceState(
         settings=settings,
         client=client,

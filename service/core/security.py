@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
 import math
 import os
 import secrets
+import stat
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +25,8 @@ from models.errors import McamError
 from service.core.config import Settings
 from worker.private_dirs import make_private_dirs
 from worker.redis_keys import rate_limit_key
+
+log = logging.getLogger(__name__)
 
 SCOPES: tuple[str, ...] = ("read", "submit")
 KEY_FILE_NAME = "api_keys"
@@ -50,19 +55,21 @@ def key_id(secret: str) -> str:
 
 
 def parse_api_keys(text: str) -> dict[str, frozenset[str]]:
-    """Parse ``KEY[:scope]`` entries separated by commas or new lines into key -> scopes."""
+    """Parse ``KEY[:scope]`` entries separated by commas or new lines into key -> scopes.
+    A malformed entry is named by its position, never by its text (a key is a secret)."""
     keys: dict[str, frozenset[str]] = {}
-    for entry in text.replace("\n", ",").split(","):
-        entry = entry.strip()
-        if not entry:
-            continue
-        secret, _, scope = entry.partition(":")
-        if not secret or any(ch.isspace() for ch in secret):
-            raise ApiKeyConfigError(f"malformed API key entry {entry[:4]!r}...: use KEY[:scope]")
-        if scope and scope not in SCOPES:
+    entries = [entry.strip() for entry in text.replace("\n", ",").split(",")]
+    for number, entry in enumerate((e for e in entries if e), start=1):
+        secret, colon, scope = entry.partition(":")
+        if not secret or any(ch.isspace() or not ch.isprintable() for ch in secret):
             raise ApiKeyConfigError(
-                f"unknown API key scope {scope!r}; use one of: {', '.join(SCOPES)} "
-                "(or no scope for both)"
+                f"API key entry {number} is malformed: use KEY[:scope], a key of printable "
+                "characters without spaces"
+            )
+        if colon and scope not in SCOPES:
+            raise ApiKeyConfigError(
+                f"API key entry {number} has the scope {scope!r}; use one of: "
+                f"{', '.join(SCOPES)} (or no colon at all for both)"
             )
         keys[secret] = keys.get(secret, frozenset()) | frozenset([scope] if scope else SCOPES)
     return keys
@@ -77,19 +84,62 @@ def ensure_key_file(data_dir: Path) -> tuple[Path, str | None]:
     """The key file in ``data_dir``, created with one new key (mode 0600) if absent; a
 missing data dir is created owner-only (0700).
 
-    Returns the path and the new key when one was generated (for printing), else None.
+    The key is written and synced to a temporary file first, then linked into place,
+    which fails if the file exists: two services starting at once on a fresh data dir,
+    or a full disk, never leave an empty key file. Returns the path and the new key when
+    one was generated (for printing), else None.
     """
     path = Path(data_dir) / KEY_FILE_NAME
     make_private_dirs(path.parent)
-    secret = generate_key()
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        os.chmod(path, 0o600)
+    if path.exists():
+        _narrow_mode(path)
         return path, None
-    with os.fdopen(fd, "w") as handle:
-        handle.write(secret + "\n")
+    secret = generate_key()
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{KEY_FILE_NAME}-")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(secret + "\n")
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.link(temporary, path)
+    except FileExistsError:
+        return path, None  # another process made it first: its key stands
+    finally:
+        os.unlink(temporary)
     return path, secret
+
+
+def _narrow_mode(path: Path) -> None:
+    """Make the key file owner-only when others may read it. A file mounted read-only
+    (a container secret) that is owner-only already is left alone; one others can read
+    and that cannot be changed is logged."""
+    if not stat.S_IMODE(path.stat().st_mode) & 0o077:
+        return
+    try:
+        os.chmod(path, 0o600)
+    except OSError as exc:
+        log.warning("the API key file %s is readable by others and cannot be narrowed "
+                    "to mode 0600: %s", path, exc.strerror)
+
+
+def read_key_file(path: Path) -> dict[str, frozenset[str]]:
+    """The keys in the key file (UTF-8, a byte-order mark allowed); a file that is not
+    UTF-8 or holds no key is named with what to do."""
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ApiKeyConfigError(
+            f"the API key file {path} is not UTF-8 text (byte {exc.start}); write one "
+            "KEY[:scope] per line"
+        ) from None
+    keys = parse_api_keys(text)
+    if not keys:
+        raise ApiKeyConfigError(
+            f"the API key file {path} holds no key: put KEY[:scope] lines in it, or delete "
+            "it to have a new key generated"
+        )
+    return keys
 
 
 @dataclass(frozen=True)
@@ -109,7 +159,7 @@ class KeyRing:
             new = None
         else:
             path, new = ensure_key_file(settings.data_dir)
-            keys = parse_api_keys(path.read_text())
+            keys = read_key_file(path)
         if not keys:
             raise ApiKeyConfigError(
                 "no API keys configured: set MCAM_API_KEYS or put keys in the data dir's api_keys"

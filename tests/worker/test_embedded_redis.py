@@ -19,6 +19,7 @@ from worker.embedded_redis import (
     RedisStartError,
     connect,
     durability_problem,
+    redacted_url,
 )
 
 
@@ -91,6 +92,27 @@ def test_long_data_dir_uses_a_short_socket_path(tmp_path: Path) -> None:
 def test_connect_rejects_unknown_schemes(url: str) -> None:
     with pytest.raises(McamError, match="unsupported Redis URL"):
         connect(url)
+
+
+@pytest.mark.parametrize(
+    ("url", "shown"),
+    [
+        ("redis://:s3cret@h:6379/0", "redis://:***@h:6379/0"),
+        ("redis://user:s3cret@h/1", "redis://user:***@h/1"),
+        ("rediss://user@h", "rediss://user@h"),
+        ("unix:///run/r.sock?password=s3cret&db=2", "unix:///run/r.sock?password=***&db=2"),
+        ("redis://h:6379", "redis://h:6379"),
+    ],
+)
+def test_a_logged_url_has_its_password_masked(url: str, shown: str) -> None:
+    """The API logged 'Redis at redis://:<password>@...' when the server could lose jobs."""
+    assert redacted_url(url) == shown
+
+
+def test_an_unsupported_url_is_refused_without_its_password() -> None:
+    with pytest.raises(McamError, match="unsupported Redis URL") as refused:
+        connect("redis:/:s3cret@h:6379")
+    assert "s3cret" not in refused.value.message
 
 
 def test_connect_accepts_tcp_urls_without_connecting() -> None:

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import httpx
+import pytest
 
 from service.main import create_app
 from tests.service.conftest import FULL_KEY, make_settings, serve
+from worker.embedded_redis import EmbeddedRedis
 
 
 def test_missing_wrong_and_malformed_keys_are_401(api: str) -> None:
@@ -40,3 +43,19 @@ def test_generated_key_works(tmp_path: Path, redis_url: str) -> None:
         key = (settings.data_dir / "api_keys").read_text().strip()
         reply = httpx.get(f"{url}/v1/decoders", headers={"Authorization": f"Bearer {key}"})
         assert reply.status_code == 200
+
+
+def test_a_redis_outage_warns_once_not_once_a_request(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """With Redis down every request's rate-limit check failed and logged a warning."""
+    embedded = EmbeddedRedis(tmp_path / "r")
+    settings = make_settings(tmp_path, embedded.start())
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    with serve(create_app(settings)) as url:
+        embedded.stop()
+        with caplog.at_level(logging.WARNING, logger="service.api.deps"):
+            replies = [httpx.get(f"{url}/v1/decoders", headers=headers) for _ in range(20)]
+    assert {reply.status_code for reply in replies} == {200}  # needs no Redis: served
+    warnings = [r for r in caplog.records if r.name == "service.api.deps"]
+    assert len(warnings) == 1 and "not enforced" in warnings[0].getMessage()

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import errno
+import os
 import stat
+import threading
 from pathlib import Path
 
 import pytest
@@ -31,10 +34,17 @@ def test_parse_scopes() -> None:
     }
 
 
-@pytest.mark.parametrize("text", ["key:admin", ":read", "two words"])
-def test_malformed_entries(text: str) -> None:
-    with pytest.raises(ApiKeyConfigError):
+@pytest.mark.parametrize(
+    "text", ["zqx9secret:admin", ":read", "two words", "secretkey:", "ok,k\x00ey"]
+)
+def test_malformed_entries_are_refused_without_echoing_the_key(text: str) -> None:
+    """'KEY:' (an unset scope variable) granted both scopes; errors showed the key's
+    first four characters."""
+    with pytest.raises(ApiKeyConfigError) as refused:
         parse_api_keys(text)
+    secret = text.split(",")[-1].partition(":")[0]
+    assert "entry" in refused.value.message
+    assert not secret[:3] or secret[:3] not in refused.value.message
 
 
 @given(st.text(alphabet="abcdefXYZ0123456789_-", min_size=1, max_size=40))
@@ -51,6 +61,60 @@ def test_key_file_is_generated_once_with_mode_0600(tmp_path: Path) -> None:
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
     again, second = ensure_key_file(tmp_path / "data")
     assert again == path and second is None and path.read_text().strip() == first
+
+
+def test_two_services_starting_at_once_share_one_whole_key_file(tmp_path: Path) -> None:
+    """The file was created empty and written after: the loser of the race (24 in 300
+    tries) read it empty and refused to start."""
+    for attempt in range(30):
+        data = tmp_path / str(attempt)
+        results: list[tuple[Path, str | None]] = []
+        threads = [threading.Thread(target=lambda d=data, r=results: r.append(ensure_key_file(d)))
+                   for _ in range(2)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        generated = [key for _, key in results if key is not None]
+        assert len(generated) == 1
+        assert (data / "api_keys").read_text() == generated[0] + "\n"
+        assert [p.name for p in data.iterdir()] == ["api_keys"]  # no temporary left
+
+
+def test_a_key_file_with_a_byte_order_mark_works(tmp_path: Path) -> None:
+    (tmp_path / "api_keys").write_bytes("\ufeffbomkey-0123456789:read\n".encode())
+    ring, _ = KeyRing.from_settings(Settings(_env_file=None, data_dir=tmp_path))
+    assert ring.authenticate("bomkey-0123456789") is not None  # it read as '\ufeffbomkey-'
+
+
+@pytest.mark.parametrize(
+    ("content", "fragment"),
+    [(b"Ren\xe9key\n", r"not UTF-8 text \(byte 3\)"), (b"", "holds no key"),
+     (b"\n \n", "holds no key")],
+)
+def test_an_unusable_key_file_is_named_with_what_to_do(
+    tmp_path: Path, content: bytes, fragment: str
+) -> None:
+    """A Latin-1 file gave a bare traceback; an empty one (a full disk at creation) 'no
+    API keys configured' without naming the file."""
+    (tmp_path / "api_keys").write_bytes(content)
+    with pytest.raises(ApiKeyConfigError, match=fragment) as refused:
+        KeyRing.from_settings(Settings(_env_file=None, data_dir=tmp_path))
+    assert str(tmp_path / "api_keys") in refused.value.message
+
+
+def test_an_owner_only_key_file_is_not_touched(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A key file mounted read-only (a container secret) stopped the service: it was
+    chmodded whatever its mode, and the read-only file system refused."""
+    path, _ = ensure_key_file(tmp_path)
+
+    def read_only(*_: object) -> None:
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(os, "chmod", read_only)
+    assert ensure_key_file(tmp_path) == (path, None)
 
 
 def test_keyring_from_settings(tmp_path: Path) -> None:
