@@ -18,12 +18,14 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 from starlette.routing import BaseRoute
+from swagger_ui_bundle import swagger_ui_path
 
 from models.decoders.registry import available_decoders
 from service.api.body_limit import BodyLimitMiddleware
 from service.api.body_timeout import BodyTimeoutMiddleware
 from service.api.errors import install_error_handlers
 from service.api.head_requests import HeadRequestMiddleware
+from service.api.routes.docs import ASSETS as DOCS_ASSETS
 from service.api.security_headers import API_HEADERS, VIEWER_HEADERS, SecurityHeaders
 from service.api.state import ServiceState, open_state
 from service.api.telemetry import RequestTimer, build_registry
@@ -45,6 +47,7 @@ ROUTERS: tuple[str, ...] = (
     "service.api.routes.device_events",
     "service.api.routes.videos",
     "service.api.routes.recordings",
+    "service.api.routes.docs",
 )
 STATIC_DIR = Path(__file__).parent / "static"
 API_VERSION = "1.0.0"
@@ -77,6 +80,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=API_VERSION,
         summary="Snapshot HDR from wrapping sensors: simulate, reconstruct, inspect jobs",
         lifespan=lifespan,
+        docs_url=None,  # served from this server by service.api.routes.docs
+        redoc_url=None,
     )
     app.state.settings = settings
     install_error_handlers(app)
@@ -96,6 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(HeadRequestMiddleware)
     app.add_middleware(RequestTimer, histogram=requests, routes=routes)
     app.add_middleware(SecurityHeaders, headers=API_HEADERS)
+    app.mount(DOCS_ASSETS, StaticFiles(directory=swagger_ui_path), name="docs-assets")
     viewer = SecurityHeaders(StaticFiles(directory=STATIC_DIR, html=True), VIEWER_HEADERS)
     app.mount("/", ViewerMount(viewer, routes), name="viewer")
     return app

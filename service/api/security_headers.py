@@ -4,7 +4,8 @@ The web viewer keeps the API key in ``localStorage``, so its pages get a Content
 Security Policy that runs only the viewer's own scripts and styles, loads images only
 from itself, ``blob:`` (decoded results) and ``data:`` (the inline SVG favicon), talks
 only to its own origin and cannot be framed (clickjacking), plus ``no-referrer``.
-The policy is not applied to the API's own pages (``/docs`` loads Swagger UI from a CDN).
+The API documentation (``/docs``, :mod:`service.api.routes.docs`) has a policy of its
+own that still allows no other origin.
 """
 
 from __future__ import annotations
@@ -26,15 +27,39 @@ VIEWER_CSP = "; ".join(
         "object-src 'none'",
     )
 )
+#: The API documentation's policy (``/docs``): Swagger UI from this server only; its page
+#: starts it with an inline script and styles its own elements inline.
+DOCS_CSP = "; ".join(
+    (
+        "default-src 'self'",
+        "img-src 'self' data:",
+        "script-src 'self' 'unsafe-inline'",
+        "style-src 'self' 'unsafe-inline'",
+        "connect-src 'self'",
+        "frame-ancestors 'none'",
+        "base-uri 'none'",
+        "object-src 'none'",
+    )
+)
 #: Headers of every response: no content-type sniffing of results or errors.
 API_HEADERS: dict[str, str] = {"X-Content-Type-Options": "nosniff"}
+
+
+def page_headers(policy: str) -> dict[str, str]:
+    """Headers of a page for a browser: ``policy`` as its Content Security Policy, no
+    framing, no referrer."""
+    return {
+        **API_HEADERS,
+        "Content-Security-Policy": policy,
+        "X-Frame-Options": "DENY",
+        "Referrer-Policy": "no-referrer",
+    }
+
+
 #: Headers of the viewer's files (``service/static``).
-VIEWER_HEADERS: dict[str, str] = {
-    **API_HEADERS,
-    "Content-Security-Policy": VIEWER_CSP,
-    "X-Frame-Options": "DENY",
-    "Referrer-Policy": "no-referrer",
-}
+VIEWER_HEADERS = page_headers(VIEWER_CSP)
+#: Headers of the API documentation page (``/docs``).
+DOCS_HEADERS = page_headers(DOCS_CSP)
 
 
 class SecurityHeaders:
