@@ -62,6 +62,18 @@ def register(subparsers: Any) -> None:
         help="ce-risk only: weight of the expected log-MSE term (>= 0)",
     )
     one.add_argument("--crop", type=int, default=64, help="training crop (px, multiple of 16)")
+    one.add_argument(
+        "--large-crop", type=int,
+        help="stage 4's crop (px, multiple of 16; a quarter of the batch; default 128)",
+    )  # fmt: skip
+    one.add_argument(
+        "--own-states", type=float,
+        help="unmodnet: share of batches trained from the model's own states (default 0)",
+    )  # fmt: skip
+    one.add_argument(
+        "--own-passes", type=int,
+        help="unmodnet: passes rolled out for those batches (default 4)",
+    )  # fmt: skip
     one.add_argument("--batch", type=int, default=8)
     one.add_argument("--read-noise", type=float, default=0.0, help="max read noise (wrap units)")
     one.add_argument(
@@ -223,6 +235,12 @@ def keep(card_path: Path, checkpoint: Path, measure: bool) -> None:
         measure_and_show(card_path, measure)
 
 
+def given(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
+    """The options among ``names`` given on the command line (the others keep the
+    configuration's defaults, which live beside torch)."""
+    return {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the action; a run stopped by SIGINT or SIGTERM (after saving its checkpoint)
     says where it will resume and exits 128 + the signal's number (130, 143), as a shell
@@ -265,7 +283,7 @@ def dispatch(args: argparse.Namespace) -> int:
         glow_fraction=args.glow_fraction, risk_weight=args.risk_weight,
         init_from=args.init_from, label=args.label, seed=args.seed, threads=args.threads,
         runs_dir=args.runs_dir or RUNS_DIR, device=args.device, precision=args.precision,
-        workers=args.workers,
+        workers=args.workers, **given(args, ("large_crop", "own_states", "own_passes")),
     )  # fmt: skip
     print(f"checkpoint: {train(config, Progress(config.name, config.total_steps))}")
     return 0

@@ -73,12 +73,17 @@ def test_exporting_an_unfinished_run_warns(tmp_path: Path) -> None:
 
 
 def test_train_run_trains_the_unmodnet_family(tmp_path: Path) -> None:
+    """With the recipes' own options (the shipped unmodnet learns from its own states;
+    ``mcam train run`` could not set them)."""
     trained = run_mcam(
-        "train", "run", "--family", "unmodnet", "--tier", "tiny", "--stages", "1,1,1",
-        "--crop", "32", "--batch", "2", "--runs-dir", tmp_path / "runs", cwd=tmp_path,
+        "train", "run", "--family", "unmodnet", "--tier", "tiny", "--stages", "1,1,1,1",
+        "--crop", "32", "--large-crop", "48", "--batch", "4", "--own-states", "0.5",
+        "--own-passes", "2", "--runs-dir", tmp_path / "runs", cwd=tmp_path,
     )  # fmt: skip
     assert trained.returncode == 0, trained.stderr
-    assert (tmp_path / "runs" / "unmodnet-tiny-mantissa" / "checkpoint.pt").exists()
+    checkpoint = tmp_path / "runs" / "unmodnet-tiny-mantissa" / "checkpoint.pt"
+    saved = torch.load(checkpoint, weights_only=False)["config"]
+    assert (saved["large_crop"], saved["own_states"], saved["own_passes"]) == (48, 0.5, 2)
 
 
 def test_bad_stage_list_is_one_clear_line(tmp_path: Path) -> None:
@@ -136,6 +141,9 @@ def test_a_device_this_machine_lacks_is_one_clear_line(
         (("--stages", "0,0,0"), ("stage steps (0, 0, 0) train nothing",)),
         (("--label", "a/b"), ("label must be one folder name", "'a/b'")),
         (("--init-from", "../x"), ("init_from must be one folder name",)),
+        (("--own-states", "2"), ("own_states must be in [0, 1]", "got 2.0")),
+        (("--own-passes", "0"), ("own_passes must be at least 1", "got 0")),
+        (("--stages", "1,1,1,1", "--large-crop", "40"), ("large_crop must be a multiple",)),
     ],
     ids=lambda value: "_".join(value) if isinstance(value, tuple) else value,
 )
