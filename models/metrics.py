@@ -8,7 +8,11 @@ shape mismatches with :class:`InvalidInputError`.
 - ``psnr``: on linear values, peak = reference max. Identical images give
   ``float('inf')`` (callers writing JSON must map it, e.g. to ``null``).
 - ``pu21_psnr``: both images scaled so the reference max is 4000 cd/m^2, PU21
-  encoded per channel (see :mod:`models.pu21`), peak = PU21(10000 cd/m^2).
+  encoded per channel (see :mod:`models.pu21`), peak = PU21(10000 cd/m^2) = 595.4.
+  The PU21 reference's ``pu21_metric`` takes a peak of 256 instead: its figures are
+  20 log10(595.4 / 256) = 7.33 dB below these on the same images.
+- ``capped_psnr``: a PSNR averaged over frames, capped at ``PSNR_CAP`` dB (an exact
+  frame's inf counts as the cap, so one bad frame among exact ones still shows).
 - ``ssim`` / ``ms_ssim``: on Reinhard-tonemapped luminance (key 0.18 of the
   reference's log-average luminance, the same scale applied to both images).
   SSIM uses an 11 x 11 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, data
@@ -104,11 +108,24 @@ def pu21_psnr(estimate: ArrayLike, reference: ArrayLike) -> float:
     """PSNR in dB of PU21-encoded absolute luminance (reference max -> 4000 cd/m^2).
 
     Each channel is encoded as luminance, as the PU21 reference's colour PSNR
-    does; the peak is PU21(10000 cd/m^2).
+    does; the peak is PU21(10000 cd/m^2) = 595.4, where the reference's
+    ``pu21_metric`` takes 256 (its figures are 7.33 dB lower).
     """
     x, ref = validate_pair(estimate, reference)
     scale = PU21_DISPLAY_PEAK / _reference_peak(ref)
     return _psnr(pu21_encode(x * scale), pu21_encode(ref * scale), PU21_PEAK)
+
+
+#: Per-frame PSNR (dB) counted for a frame reconstructed exactly (its PSNR is inf).
+PSNR_CAP = 100.0
+
+
+def capped_psnr(value: float) -> float:
+    """A per-frame PSNR (dB) to average: at most :data:`PSNR_CAP` (an exact frame's inf
+    counts as the cap). NaN or -inf is a bug upstream and is refused."""
+    if np.isnan(value) or value == -np.inf:
+        raise InvalidInputError(f"a PSNR of {value} cannot be averaged: it is not a number")
+    return min(float(value), PSNR_CAP)
 
 
 def reinhard(image: ArrayLike, reference: ArrayLike) -> NDArray[np.float64]:
@@ -164,6 +181,12 @@ def _check_planes(a: ArrayLike, b: ArrayLike) -> tuple[NDArray[np.float64], NDAr
         raise InvalidInputError(
             f"SSIM compares two single-channel images of one shape, got {a64.shape}, {b64.shape}"
         )
+    for name, plane in (("first", a64), ("second", b64)):
+        bad = int(np.count_nonzero(~np.isfinite(plane) | (plane < 0)))
+        if bad:
+            raise InvalidInputError(
+                f"SSIM takes finite values >= 0: the {name} image has {bad} that are not"
+            )
     return a64, b64
 
 

@@ -4,8 +4,8 @@ Clips are ``T x H x W`` (or ``T x H x W x 3``) linear HDR values on one scale
 (wrap units); winding maps are ``T x H x W[x3]`` int64. Per-frame metrics come
 from :mod:`models.metrics` and are averaged over frames:
 
-- ``psnr`` / ``pu21_psnr``: mean per-frame PSNR in dB (a frame reconstructed
-  exactly counts as ``PSNR_CAP`` so the mean stays finite);
+- ``psnr`` / ``pu21_psnr``: mean per-frame PSNR in dB, each frame's at most
+  :data:`models.metrics.PSNR_CAP` (an exact frame's inf counts as the cap);
 - ``winding_accuracy``: fraction of all pixels of all frames with the right W;
 - ``temporal_consistency``: mean absolute difference between the frame-to-frame
   changes of the tonemapped reconstruction and of the tonemapped truth (Reinhard,
@@ -21,10 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from models.errors import InvalidInputError
-from models.metrics import psnr, pu21_psnr, reinhard, winding_accuracy
-
-#: Per-frame PSNR (dB) counted for a frame reconstructed exactly.
-PSNR_CAP = 100.0
+from models.metrics import capped_psnr, psnr, pu21_psnr, reinhard, winding_accuracy
 
 
 def _check_clips(estimate: ArrayLike, reference: ArrayLike) -> tuple[NDArray, NDArray]:
@@ -42,20 +39,16 @@ def _check_clips(estimate: ArrayLike, reference: ArrayLike) -> tuple[NDArray, ND
     return est, ref
 
 
-def _capped(value: float) -> float:
-    return min(value, PSNR_CAP)
-
-
 def mean_psnr(estimate: ArrayLike, reference: ArrayLike) -> float:
     """Mean per-frame linear PSNR (dB), each frame peak = its reference maximum."""
     est, ref = _check_clips(estimate, reference)
-    return float(np.mean([_capped(psnr(e, r)) for e, r in zip(est, ref, strict=True)]))
+    return float(np.mean([capped_psnr(psnr(e, r)) for e, r in zip(est, ref, strict=True)]))
 
 
 def mean_pu21_psnr(estimate: ArrayLike, reference: ArrayLike) -> float:
     """Mean per-frame PU21-PSNR (dB)."""
     est, ref = _check_clips(estimate, reference)
-    return float(np.mean([_capped(pu21_psnr(e, r)) for e, r in zip(est, ref, strict=True)]))
+    return float(np.mean([capped_psnr(pu21_psnr(e, r)) for e, r in zip(est, ref, strict=True)]))
 
 
 def temporal_consistency(estimate: ArrayLike, reference: ArrayLike) -> float:

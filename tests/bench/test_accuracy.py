@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from bench import accuracy, json_safe, machine, versions
+from models.errors import InvalidInputError
+from models.metrics import PSNR_CAP
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -63,16 +65,28 @@ def test_counts_must_be_positive(flags: list[str]) -> None:
         accuracy.parse_args(flags)
 
 
-def test_mean_metrics_counts_exact_frames_apart() -> None:
+def test_mean_metrics_counts_an_exact_frame_at_the_cap_as_the_video_bench_does() -> None:
+    """An exact frame (PSNR inf) was left out of the mean: a decoder exact on every frame
+    but one at 20 dB read 20 dB, below one at 40 dB on every frame."""
     frames = [
         {"winding_accuracy": 1.0, "psnr": math.inf, "pu21_psnr": math.inf, "ssim": 1.0},
         {"winding_accuracy": 0.5, "psnr": 20.0, "pu21_psnr": 30.0, "ssim": 0.5},
     ]
     summary = accuracy.mean_metrics(frames)
-    assert summary["psnr"] == 20.0
+    assert summary["psnr"] == (PSNR_CAP + 20.0) / 2
+    assert summary["pu21_psnr"] == (PSNR_CAP + 30.0) / 2
     assert summary["winding_accuracy"] == 0.75
     assert summary["exact_frames"] == 1
     assert math.isnan(summary["ms_ssim"])
+
+
+@pytest.mark.parametrize(("key", "value"), [("psnr", -math.inf), ("psnr", math.nan),
+                                             ("ssim", math.nan)])
+def test_mean_metrics_refuses_a_metric_that_is_not_a_number(key: str, value: float) -> None:
+    """-inf (an overflowed estimate) was counted as an exact frame, NaN dropped."""
+    frame = {"winding_accuracy": 1.0, "psnr": 30.0, "pu21_psnr": 30.0, "ssim": 0.9, key: value}
+    with pytest.raises(InvalidInputError):
+        accuracy.mean_metrics([frame])
 
 
 def test_noise_candidates_pick_the_best_tier_and_name_missing_twins() -> None:

@@ -27,6 +27,14 @@ def test_summary_compares_the_two_modes_and_names_the_targets_met() -> None:
     assert "| sunrise | modulo | itoh |" in table and "flicker_10x, psnr_gain |" in table
 
 
+def test_a_clip_with_no_flicker_in_either_mode_meets_the_flicker_target() -> None:
+    """It read '0.0 x less' and the 10x target as missed."""
+    rows = [mode_row("independent", 0.0, 20.0, 10.0), mode_row("temporal", 0.0, 20.5, 8.0)]
+    (item,) = video.summarize(rows)
+    assert item["flicker_reduction"] is None and item["targets_met"]["flicker_10x"]
+    assert "| - |" in video.markdown_table([item], [[1.0] * 3, [1.0] * 3])
+
+
 def test_tiny_run_writes_json_and_markdown(tmp_path: Path) -> None:
     out = tmp_path / "video.json"
     video.main(["--clips", "static_noise", "--encodings", "modulo", "--decoders", "itoh",

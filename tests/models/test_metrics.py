@@ -13,6 +13,8 @@ from skimage.metrics import structural_similarity
 from models.errors import InvalidInputError
 from models.metrics import (
     MS_SSIM_WEIGHTS,
+    PSNR_CAP,
+    capped_psnr,
     evaluate,
     flip_inputs,
     hdr_flip,
@@ -253,3 +255,23 @@ def test_evaluate_accepts_single_channel_stacks() -> None:
 def test_evaluate_needs_both_winding_maps() -> None:
     with pytest.raises(InvalidInputError, match="needs both"):
         evaluate(np.ones((4, 4)), np.ones((4, 4)), winding=np.zeros((4, 4), int))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -0.5])
+@pytest.mark.parametrize("metric", [ssim_ldr, ms_ssim_ldr])
+def test_display_referred_ssim_refuses_values_that_are_not_finite_or_negative(
+    metric: Callable[..., float], bad: float
+) -> None:
+    """They returned NaN for one NaN pixel, and took negative values."""
+    a = np.full((32, 32), 0.5)
+    b = a.copy()
+    b[3, 4] = bad
+    with pytest.raises(InvalidInputError, match="finite values >= 0"):
+        metric(a, b)
+
+
+def test_capped_psnr_caps_an_exact_frame_and_refuses_nan() -> None:
+    assert capped_psnr(np.inf) == PSNR_CAP and capped_psnr(31.5) == 31.5
+    for bad in (np.nan, -np.inf):
+        with pytest.raises(InvalidInputError):
+            capped_psnr(bad)

@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from models.errors import InvalidInputError
 from models.pu21 import L_MAX, L_MIN, PU21_PEAK, pu21_decode, pu21_encode
 
 # PU21 values of the reference MATLAB encoder (gfxdisp/pu21 pu21_encoder.m, banding_glare),
@@ -52,3 +53,17 @@ def test_encode_is_strictly_increasing_and_keeps_shape() -> None:
     values = pu21_encode(luminance)
     assert values.shape == (10, 100)
     assert np.all(np.diff(values.ravel()) > 0)
+
+
+def test_nan_is_refused_not_passed_through() -> None:
+    """np.clip passes NaN: pu21_encode([nan, 1]) gave [nan, 36.54]."""
+    with pytest.raises(InvalidInputError, match="NaN"):
+        pu21_encode(np.array([np.nan, 1.0]))
+    with pytest.raises(InvalidInputError, match="NaN"):
+        pu21_decode(np.array([np.nan]))
+
+
+def test_decode_clamps_values_past_the_encodings_range() -> None:
+    """pu21_decode(2000) was NaN and pu21_decode(600) above L_MAX."""
+    assert pu21_decode(np.array([600.0, 2000.0])) == pytest.approx([L_MAX, L_MAX])
+    assert pu21_decode(np.array([-5.0])) == pytest.approx([L_MIN])

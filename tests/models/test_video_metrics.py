@@ -9,9 +9,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from models.errors import InvalidInputError
-from models.metrics import psnr
+from models.metrics import PSNR_CAP, psnr
 from models.video_metrics import (
-    PSNR_CAP,
     clip_metrics,
     mean_psnr,
     temporal_consistency,
