@@ -95,8 +95,15 @@ Keyframes
 ---------
 Whole frames are decoded spatially (*keyframes*) for: the first frame of a stream, a
 frame flagged DISCONT (device reconnect), a sequence gap, a change of shape or sensor
-parameters, and every ``keyframe_interval`` frames (0: never) so that errors cannot
-persist. The first four (:data:`ANCHOR_KEYFRAMES`) anchor the stream, which carries
+parameters, a *cut*, and every ``keyframe_interval`` frames (0: never) so that errors
+cannot persist. A cut is a frame the previous one, moved and brightened, does not
+explain: its mean misfit over the pixels the move covers is above ``cut_misfit`` (0.1
+wraps; above ``cut_sigmas`` sigmas of the sensor's frame-to-frame noise when that is
+more). Scene cuts (0.26 wraps), pans past the motion search (0.16-0.24 at 8-12 px a
+frame) and jumps in light past the brightness search are; the bench clips' frames stay
+below 0.025. The safety checks alone let 41-53% of a cut's pixels pass by chance, and
+the stream carried their wrong W to the next periodic keyframe. All but the periodic
+(:data:`ANCHOR_KEYFRAMES`) anchor the stream, which carries
 their errors on, so their spatial answer is refined by guided PUMA to convergence
 (``refine_keyframes``; one refinement per stream start, 20-100 ms at 256x256) and,
 with a decoder that fills clipped blobs, filled again, each blob judged on the spatial
@@ -148,7 +155,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -180,7 +187,19 @@ from worker.temporal_rule import Prediction, temporal_prediction
 #: Keyframes that anchor a stream (its start, a reconnect, a gap, new sensor parameters):
 #: their spatial answer is refined by guided PUMA to convergence, since the stream
 #: carries its errors on (see the module doc); periodic keyframes are not.
-ANCHOR_KEYFRAMES: tuple[str, ...] = ("first", "discont", "gap", "params")
+ANCHOR_KEYFRAMES: tuple[str, ...] = ("first", "discont", "gap", "params", "cut")
+
+
+class Predicted(NamedTuple):
+    """:meth:`StreamDecoder.predict`'s answer: the prediction, the global shift (dy, dx)
+    px of the move, the mean misfit (wraps) of the moved, brightened previous frame over
+    the pixels the move covers, and the sigma (wraps) of a pixel's frame-to-frame change
+    from sensor noise."""
+
+    prediction: Prediction
+    shift: tuple[int, int]
+    misfit: float
+    noise: float
 
 
 def _planes(codes: NDArray[Any], params: SensorParams) -> NDArray[np.float64]:
@@ -231,8 +250,13 @@ class StreamDecoder:
         start = time.perf_counter_ns()
         m = _planes(codes, params)
         keyframe = self.keyframe_reason(state, m, params, sequence, discont)
+        predicted = None
         if keyframe is None:
-            winding, paths = self._temporal_step(m, params, state)
+            assert state.u is not None
+            predicted = self.predict(m, state.u, params)
+            keyframe = "cut" if self.is_cut(predicted) else None
+        if predicted is not None and keyframe is None:
+            winding, paths = self._temporal_step(m, params, state, predicted)
         else:
             winding, paths = self._keyframe_step(m, params, state, keyframe)
         limit = max_winding(params)
@@ -279,13 +303,20 @@ class StreamDecoder:
             return "periodic"
         return None
 
+    def is_cut(self, predicted: Predicted) -> bool:
+        """Whether the moved, brightened previous frame fails to explain this one: a
+        scene cut, a pan past the motion search or a jump in light past the brightness
+        search, which the safety checks let through (module doc)."""
+        limit = max(self.config.cut_misfit, self.config.cut_sigmas * predicted.noise)
+        return predicted.misfit > limit
+
     def predict(
         self, m: NDArray[np.float64], prev_u: NDArray[np.float64], params: SensorParams
-    ) -> tuple[Prediction, tuple[int, int]]:
+    ) -> Predicted:
         """The temporal answer for ``m`` from ``prev_u`` moved onto it (:mod:`worker.motion`)
-        and brightened by the frame's gain (:mod:`worker.brightness`), and the global
-        shift (dy, dx) px of the move; the move is kept only if it predicts ``m`` better
-        than the unmoved ``prev_u`` (module doc)."""
+        and brightened by the frame's gain (:mod:`worker.brightness`), with the global
+        shift (dy, dx) px of the move and how well it explains ``m``; the move is kept
+        only if it predicts ``m`` better than the unmoved ``prev_u`` (module doc)."""
         moved = compensate(prev_u, m, self.config.motion)
         gain, cost = frame_gain(moved.u, m, params, self.config.brightness)
         if moved.shift != (0, 0):
@@ -296,7 +327,9 @@ class StreamDecoder:
         previous = brighten(moved.u, gain, params)
         noise = np.sqrt(2.0) * largest_noise_sigma(float(previous.max()), params)
         prediction = temporal_prediction(m, previous, self.config, moved.inside, noise)
-        return prediction, moved.shift
+        seen = prediction.change[moved.inside]
+        misfit = float(seen.mean()) if seen.size else 0.5
+        return Predicted(prediction, moved.shift, misfit, noise)
 
     def _spatial_planes(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         if params.encoding == "clip":
@@ -324,9 +357,10 @@ class StreamDecoder:
         return tracked, path_shares(local, fell_back)
 
     def _temporal_step(
-        self, m: NDArray[np.float64], params: SensorParams, state: StreamState
+        self, m: NDArray[np.float64], params: SensorParams, state: StreamState,
+        predicted: Predicted,
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
-        winding, local, spatial = self._tracked(m, params, state)
+        winding, local, spatial = self._tracked(m, params, state, predicted=predicted)
         return winding, path_shares(local, spatial)
 
     def _tracked(
@@ -335,12 +369,14 @@ class StreamDecoder:
         params: SensorParams,
         state: StreamState,
         whole_frame: NDArray[np.int64] | None = None,
+        predicted: Predicted | None = None,
     ) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
         """The temporal rule's W for ``m`` and where it took the local and the spatial
         fallback (module doc). ``whole_frame``: the frame's spatial W (H x W x C) when a
-        keyframe already decoded it, so the whole-frame fallback does not decode it again."""
+        keyframe already decoded it, so the whole-frame fallback does not decode it again;
+        ``predicted``: :meth:`predict`'s answer when the caller has it."""
         assert state.u is not None
-        prediction, shift = self.predict(m, state.u, params)
+        prediction, shift, _, _ = predicted or self.predict(m, state.u, params)
         crop = self.config.crop if shift != (0, 0) else CropConfig(min_cluster=0)
         winding = prediction.winding.copy()
         local = np.zeros(m.shape, bool)

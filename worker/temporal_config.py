@@ -32,6 +32,9 @@ class TemporalConfig:
     first and again after a whole refinement that changed W beyond that reach, and
     ``refine_whole_max`` the longest wait (frames) it doubles to while they change nothing,
     ``refine_keyframes`` whether a stream's anchoring keyframes are refined,
+    ``cut_misfit`` the mean misfit (wraps) of the moved, brightened previous frame
+    above which a frame is a cut and anchors the stream anew (also above
+    ``cut_sigmas`` sigmas of the sensor's frame-to-frame noise; 0.5: never),
     ``motion`` / ``brightness`` / ``crop`` the knobs of motion and brightness
     compensation, of the crop vote, of arrival refinement and of clip tracking
     (:class:`worker.motion.MotionConfig`, :class:`worker.brightness.BrightnessConfig`,
@@ -50,6 +53,8 @@ class TemporalConfig:
     refine_whole_every: int = 4
     refine_whole_max: int = 16
     refine_keyframes: bool = True
+    cut_misfit: float = 0.1
+    cut_sigmas: float = 2.4
     motion: MotionConfig = MotionConfig()
     brightness: BrightnessConfig = BrightnessConfig()
     crop: CropConfig = CropConfig()
@@ -70,6 +75,8 @@ class TemporalConfig:
                 "refine_moves must be >= 0": self.refine_moves >= 0,
                 "refine_reach must be >= 0": self.refine_reach >= 0,
                 "refine_whole_every must be >= 0": self.refine_whole_every >= 0,
+                "cut_misfit must be in (0, 0.5]": 0.0 < self.cut_misfit <= 0.5,
+                "cut_sigmas must be >= 0": self.cut_sigmas >= 0.0,
                 "refine_whole_max must be >= refine_whole_every": (
                     self.refine_whole_max >= self.refine_whole_every
                 ),

@@ -69,9 +69,10 @@ def test_exact_on_a_slowly_panning_clip_only_with_motion_compensation(
         assert result.winding.shape == size
         np.testing.assert_array_equal(result.winding, frame.winding)
     assert all(r.paths["spatial"] == 0.0 for r in results[1:])
-    plain = StreamDecoder(
-        "temporal", "itoh", TemporalConfig(keyframe_interval=0, motion=MotionConfig(search=0))
-    )
+    plain = StreamDecoder(  # no cut keyframes either: they would decode it spatially
+        "temporal", "itoh",
+        TemporalConfig(keyframe_interval=0, motion=MotionConfig(search=0), cut_misfit=0.5),
+    )  # fmt: skip
     wrong = sum(
         int((result.winding != frame.winding).sum())
         for result, frame in zip(
@@ -267,6 +268,47 @@ def test_sequence_gap_and_parameter_change_force_keyframes(temporal: StreamDecod
     assert temporal.decode(codes, noisy_seed, state, sequence=11).keyframe is None
     state.reset()
     assert temporal.decode(codes, PARAMS, state).keyframe == "first"
+
+
+@pytest.mark.parametrize("encoding", ["modulo", "mantissa"])
+def test_a_scene_cut_anchors_the_stream_anew(encoding: str) -> None:
+    """Same sensor, consecutive frames, no DISCONT: the safety checks let about half of
+    the new scene's pixels pass with the old scene's W, which the stream carried to the
+    next periodic keyframe (W accuracy 0.57 modulo, 0.49 mantissa)."""
+    params = SensorParams(encoding=encoding, bits=10)
+    first, second = smooth_scene(96, 96, 3.0, 3), smooth_scene(96, 96, 3.0, 7)
+    if encoding == "mantissa":
+        first, second = 2**first - 0.5, 2**second - 0.5
+    decoder, state = StreamDecoder("temporal", "herraez"), StreamState()
+    reasons = []
+    for sequence, scene in enumerate([first, first, second, second]):
+        truth = encode(scene, params)
+        result = decoder.decode(truth.codes, params, state, sequence=sequence)
+        np.testing.assert_array_equal(result.winding, truth.winding)
+        reasons.append(result.keyframe)
+    assert reasons == ["first", None, "cut", None]
+
+
+def test_a_pan_past_the_motion_search_is_a_cut_not_carried_wrong() -> None:
+    """8 px a frame (the search reaches 4): a wrong shift was accepted and a quarter of
+    the frame's W went wrong (accuracy down to 0.75)."""
+    decoder, state = StreamDecoder("temporal", "itoh"), StreamState()
+    for frame in pan_clip(12, speed=8):
+        result = decoder.decode(frame.codes, PAN_PARAMS, state)
+        np.testing.assert_array_equal(result.winding, frame.winding)
+    assert state.frames == 12
+
+
+def test_a_noisy_still_stream_is_not_taken_for_cuts() -> None:
+    """Read noise raises every frame's misfit; the cut test rises with it."""
+    params = SensorParams(encoding="modulo", bits=10, read_noise=0.08)
+    decoder, state = StreamDecoder("temporal", "itoh"), StreamState()
+    reasons = [
+        decoder.decode(encode(blob(1.0), params.model_copy(update={"seed": t})).codes,
+                       params, state, sequence=t).keyframe
+        for t in range(6)
+    ]
+    assert reasons == ["first"] + [None] * 5
 
 
 def test_periodic_keyframes_keep_the_stream_constant() -> None:
