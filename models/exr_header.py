@@ -40,6 +40,17 @@ def values_unit(params: SensorParams) -> str:
     return "wrap units x (gain unknown)" if params.gain is None else "scene-referred x / gain"
 
 
+def values_scene_referred(attributes: dict[str, Any]) -> bool | None:
+    """Whether an EXR written here holds scene-referred values (``x / gain``: True) or wrap
+    units (the gain unknown: False), from its ``comments``; None for any other file."""
+    comments = str(attributes.get("comments", ""))
+    if "scene-referred" in comments:
+        return True
+    if "wrap units" in comments:
+        return False
+    return None
+
+
 def reconstruction_attributes(
     params: SensorParams, info: dict[str, Any], source: str
 ) -> dict[str, str]:

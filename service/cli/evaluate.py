@@ -7,6 +7,8 @@ import json
 import math
 from typing import Any
 
+from models.errors import InvalidInputError
+from models.exr_header import values_scene_referred
 from models.frames import read_winding
 from models.hdr_io import read_hdr
 from service.cli.options import add_clip_negative_flag
@@ -51,6 +53,23 @@ def format_table(results: dict[str, float]) -> str:
     )
 
 
+def check_same_units(estimate: dict[str, Any], reference: dict[str, Any]) -> None:
+    """Refuse a reconstruction in wrap units (its gain unknown) against a scene-referred
+    reference, or the other way round: their PSNRs compared two scales."""
+    units = values_scene_referred(estimate), values_scene_referred(reference)
+    if None in units or units[0] == units[1]:
+        return
+    gain = reference.get("gain") or estimate.get("gain")
+    hint = f" (--gain {gain})" if gain else ""
+    raise InvalidInputError(
+        "the reconstruction is in "
+        + ("scene-referred x / gain" if units[0] else "wrap units (its gain was unknown)")
+        + " but the reference is in "
+        + ("scene-referred x / gain" if units[1] else "wrap units")
+        + f": reconstruct the frame with its gain{hint} so that both are on one scale"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     """Read both images (and W maps), compute the metrics, print them."""
     # imported here: scipy.ndimage would add ~0.4 s to the start of every mcam command
@@ -58,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
 
     estimate = read_hdr(args.image, clip_negative=args.clip_negative)
     reference = read_hdr(args.reference, clip_negative=args.clip_negative)
+    check_same_units(estimate.attributes, reference.attributes)
     winding = read_winding(args.winding) if args.winding else None
     winding_ref = read_winding(args.winding_reference) if args.winding_reference else None
     results = evaluate(

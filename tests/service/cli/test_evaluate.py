@@ -87,3 +87,21 @@ def test_evaluate_measures_hdr_flip_on_tiny_values(tmp_path: Path) -> None:
         result = run_mcam("evaluate", name, "--reference", name, "--json", cwd=tmp_path)
         assert result.returncode == 0, result.stderr
         assert json.loads(result.stdout)["hdr_flip"] == 0.0
+
+
+def test_a_reconstruction_in_wrap_units_is_not_compared_with_a_scene_referred_one(
+    tmp_path: Path, pipeline: Path
+) -> None:
+    """A frame reconstructed without its gain is in wrap units (x, not x / gain): its PSNR
+    against the scene-referred reference compared two scales without a word."""
+    reference = read_hdr(pipeline / "reference.exr")
+    wrap_units = {"comments": "MantissaCam reconstruction of f.npy; values in wrap units x "
+                              "(gain unknown)"}
+    write_exr(tmp_path / "hdr.exr", reference.pixels * 7.0, wrap_units)
+    gain = reference.attributes["gain"]
+    assert_one_line_error(
+        run_mcam("evaluate", tmp_path / "hdr.exr", "--reference", pipeline / "reference.exr",
+                 cwd=tmp_path),
+        "mcam evaluate: error:", "in wrap units (its gain was unknown)",
+        "reference is in scene-referred x / gain", f"--gain {gain}",
+    )  # fmt: skip
