@@ -36,6 +36,7 @@ import numpy as np
 from av.video.reformatter import ColorPrimaries, ColorRange, Colorspace, ColorTrc
 from numpy.typing import NDArray
 
+from models.display import srgb8
 from models.errors import InvalidInputError
 from models.formation import to_scene
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
@@ -65,8 +66,15 @@ MASTERING_PRIMARIES = "G(13250,34500)B(7500,3000)R(34000,16000)WP(15635,16450)"
 FPS_RANGE = (0.1, 1000.0)
 #: NTSC rates n * 1000/1001 that a rounded rate (23.976, 29.97, 59.94) stands for.
 NTSC_RATES = tuple(Fraction(n * 1000, 1001) for n in (24, 30, 48, 60, 120, 240))
-#: How close (relative) a rate must be to an NTSC rate to be taken for it.
-NTSC_TOLERANCE = 1e-4
+#: How close (relative) a rate must be to an NTSC rate to be taken for it: 23.98, the
+#: label editors show for 24000/1001, is 1.7e-4 off; 24 and 30 are 1e-3 off theirs.
+NTSC_TOLERANCE = 5e-4
+#: x265's quality scale (``crf``: lower is better) and its presets, fastest first.
+CRF_RANGE = (0, 51)
+X265_PRESETS = (
+    "ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower",
+    "veryslow", "placebo",
+)  # fmt: skip
 #: ``white_level`` (wrap units) a video may show at its reference white: from below a
 #: 16-bit code step (x = 2^-16) to far past any wrap count a 16-bit code reaches.
 WHITE_LEVEL_RANGE = (1e-6, 1e30)
@@ -77,14 +85,21 @@ Target = str | IO[bytes]
 Progress = Callable[[int], None]
 
 
+def check_range(name: str, value: float, bounds: tuple[float, float], unit: str) -> None:
+    """Refuse ``value`` outside ``bounds`` (inclusive; NaN is outside), naming ``unit``."""
+    low, high = bounds
+    if not low <= value <= high:  # False for NaN too
+        raise InvalidInputError(f"{name} must be from {low:g} to {high:g} {unit}, got {value:g}")
+
+
 @dataclass(frozen=True)
 class Hdr10Settings:
     """HDR10 encoding choices. ``fps``: frames per second (:data:`FPS_RANGE`);
     ``white_level``: the ``x`` (wrap units, :data:`WHITE_LEVEL_RANGE`) shown at
     ``reference_white`` cd/m^2 (:data:`REFERENCE_WHITE_RANGE`); ``mastering_peak`` /
     ``mastering_floor`` in cd/m^2; ``crf``: x265 quality (lower is better); ``lossless``:
-    x265 lossless mode. Values out of range (NaN, inf) are refused: they render a clip
-    all black or all white, or no clip at all."""
+    x265 lossless mode; ``preset``: one of :data:`X265_PRESETS`. Values out of range (NaN,
+    inf) are refused: they render a clip all black or all white, or no clip at all."""
 
     fps: float = 30.0
     white_level: float = 1.0
@@ -96,16 +111,14 @@ class Hdr10Settings:
     lossless: bool = False
 
     def __post_init__(self) -> None:
-        for name, (low, high), unit in (
-            ("fps", FPS_RANGE, "frames per second"),
-            ("white_level", WHITE_LEVEL_RANGE, "wrap units"),
-            ("reference_white", REFERENCE_WHITE_RANGE, "cd/m^2"),
-        ):
-            value = getattr(self, name)
-            if not low <= value <= high:  # False for NaN too
-                raise InvalidInputError(
-                    f"{name} must be from {low:g} to {high:g} {unit}, got {value:g}"
-                )
+        check_range("fps", self.fps, FPS_RANGE, "frames per second")
+        check_range("white_level", self.white_level, WHITE_LEVEL_RANGE, "wrap units")
+        check_range("reference_white", self.reference_white, REFERENCE_WHITE_RANGE, "cd/m^2")
+        check_range("crf", self.crf, CRF_RANGE, "(x265 quality, lower is better)")
+        if self.preset not in X265_PRESETS:
+            raise InvalidInputError(
+                f"preset must be one of {', '.join(X265_PRESETS)}, got {self.preset!r}"
+            )
         if not 0 < self.mastering_floor < self.mastering_peak <= PQ_PEAK:
             raise InvalidInputError(
                 f"mastering luminance must satisfy 0 < floor < peak <= {PQ_PEAK:g} cd/m^2"
@@ -115,10 +128,13 @@ class Hdr10Settings:
 @dataclass(frozen=True)
 class LightLevels:
     """Content light levels in cd/m^2: MaxCLL (brightest pixel, max of R, G, B) and
-    MaxFALL (the largest frame-average of max(R, G, B)), both clipped to 10000."""
+    MaxFALL (the largest frame-average of max(R, G, B)), both clipped to 10000; and the
+    share of the clip's pixels past 10000 cd/m^2, which PQ shows all at its peak (raise
+    ``white_level`` to keep them apart)."""
 
     max_cll: int
     max_fall: int
+    clipped_share: float = 0.0
 
 
 def pq_encode(nits: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -161,11 +177,14 @@ def to_nits(frame: NDArray[np.floating], settings: Hdr10Settings) -> NDArray[np.
 
 def light_levels(frames: Sequence[NDArray[np.floating]], settings: Hdr10Settings) -> LightLevels:
     """MaxCLL and MaxFALL of a clip (see :class:`LightLevels`)."""
-    cll, fall = 0.0, 0.0
+    cll, fall, clipped, pixels = 0.0, 0.0, 0, 0
     for frame in frames:
-        brightest = np.minimum(to_nits(frame, settings).max(axis=2), PQ_PEAK)
+        brightest = to_nits(frame, settings).max(axis=2)
+        clipped += int(np.count_nonzero(brightest > PQ_PEAK))
+        pixels += brightest.size
+        brightest = np.minimum(brightest, PQ_PEAK)
         cll, fall = max(cll, float(brightest.max())), max(fall, float(brightest.mean()))
-    return LightLevels(int(np.ceil(cll)), int(np.ceil(fall)))
+    return LightLevels(int(np.ceil(cll)), int(np.ceil(fall)), clipped / max(pixels, 1))
 
 
 def hdr10_yuv(
@@ -220,6 +239,7 @@ def x265_params(settings: Hdr10Settings, levels: LightLevels, frame_count: int) 
         "transfer=smpte2084",
         "colormatrix=bt2020nc",
         "range=limited",
+        "chromaloc=1",  # chroma averaged over 2 x 2 blocks sits at their centre (type 1)
         f"master-display={MASTERING_PRIMARIES}L({peak},{floor})",
         f"max-cll={levels.max_cll},{levels.max_fall}",
         "log-level=error",
@@ -318,9 +338,7 @@ def sdr_frames(frames: Sequence[NDArray[np.floating]]) -> list[NDArray[np.uint8]
         rgb = as_rgb(frame)
         lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
         tone = reinhard(rgb, key)
-        scaled = np.clip(rgb * (tone / np.maximum(lum, 1e-12))[:, :, None], 0.0, 1.0)
-        srgb = np.where(scaled <= 0.0031308, 12.92 * scaled, 1.055 * scaled ** (1 / 2.4) - 0.055)
-        out.append(pad_even(np.rint(srgb * 255).astype(np.uint8)))
+        out.append(pad_even(srgb8(rgb * (tone / np.maximum(lum, 1e-12))[:, :, None])))
     return out
 
 
@@ -331,7 +349,10 @@ def write_sdr_preview(
     crf: int = 20,
     progress: Progress | None = None,
 ) -> None:
-    """Encode the tonemapped clip as 8-bit H.264 (yuv420p, BT.709 tags) MP4."""
+    """Encode the tonemapped clip as 8-bit H.264 (yuv420p, BT.709 tags) MP4 at ``fps``
+    (:data:`FPS_RANGE`) and x264 quality ``crf`` (:data:`CRF_RANGE`)."""
+    check_range("fps", fps, FPS_RANGE, "frames per second")
+    check_range("crf", crf, CRF_RANGE, "(x264 quality, lower is better)")
     height, width = _check_clip(frames)
     with av.open(target, mode="w", format="mp4") as container:
         stream = container.add_stream("libx264", rate=frame_rate(fps))
@@ -385,11 +406,20 @@ def check_exr_sequence(
     """Raise :class:`models.errors.OutputOverflowError` or
     :class:`models.errors.OutputUnderflowError` if a pixel of ``frames`` (wrap units,
     stored divided by ``scene_gain`` when given) would be stored as inf or 0 in float32
-    (or float16 with ``half``). A pipeline calls it before encoding any other output, so
-    a clip that cannot be stored fails before minutes of video encoding."""
+    (or float16 with ``half``), and :class:`InvalidInputError` for a value that is not
+    finite or is negative. A pipeline calls it before encoding any other output, so a
+    clip that cannot be stored fails before minutes of video encoding. Half floats keep
+    values below 6.1e-5 (their subnormals) to an absolute 3e-8, not to their relative
+    precision."""
     _check_clip(frames)
     dtype = np.float16 if half else np.float32
     for index, frame in enumerate(frames):
+        values = np.asarray(frame)
+        if not np.isfinite(values).all() or (values < 0).any():
+            raise InvalidInputError(
+                f"video frame {index} has values that are not finite or are negative; "
+                "reconstructions are finite and non-negative"
+            )
         stored = frame if scene_gain is None else to_scene(frame, scene_gain)
         ensure_fits(stored, dtype, f"video frame {index}", scene_gain)
         ensure_nonzero_kept(stored, dtype, f"video frame {index}", scene_gain)

@@ -190,7 +190,10 @@ def write_outputs(
 
         if name == "hdr10":
             levels = write_hdr10(decoded.irradiance, target, options.hdr10, step)
-            facts["hdr10"] = {"max_cll": levels.max_cll, "max_fall": levels.max_fall}
+            facts["hdr10"] = {
+                "max_cll": levels.max_cll, "max_fall": levels.max_fall,
+                "clipped_share": round(levels.clipped_share, 6),
+            }  # fmt: skip
         elif name == "sdr":
             write_sdr_preview(decoded.irradiance, target, options.hdr10.fps, progress=step)
         else:

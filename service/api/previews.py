@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
+from models.display import srgb8
 from models.formation import luminance
 
 #: Colours of W = 0, 1, 2, ... (cycled): dark to bright, neighbours clearly distinct.
@@ -38,13 +39,6 @@ def png_bytes(pixels: NDArray[np.uint8]) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(pixels)).save(buffer, format="PNG")
     return buffer.getvalue()
-
-
-def srgb8(linear: NDArray[np.floating]) -> NDArray[np.uint8]:
-    """Linear [0, 1] values (clipped) through the sRGB transfer curve, as 0..255."""
-    v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    encoded = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
-    return np.round(encoded * 255.0).astype(np.uint8)
 
 
 def scene_to_wrap_units(

@@ -33,6 +33,7 @@ from worker.video_output import (
     sdr_frames,
     write_hdr10,
     write_sdr_preview,
+    x265_params,
     yuv_frame,
 )
 
@@ -219,7 +220,7 @@ def test_bad_clips_are_refused(frames: list[np.ndarray]) -> None:
         {"fps": 0}, {"fps": float("inf")}, {"fps": 0.0003}, {"fps": 1e9}, {"fps": float("nan")},
         {"white_level": -1}, {"white_level": float("inf")}, {"white_level": 1e-300},
         {"reference_white": 1e-300}, {"reference_white": 10_001}, {"reference_white": 1e308},
-        {"mastering_peak": 20_000},
+        {"mastering_peak": 20_000}, {"crf": 99}, {"crf": -3}, {"preset": "bogus"},
     ],
 )  # fmt: skip
 def test_bad_settings_are_refused(settings: dict) -> None:
@@ -231,7 +232,43 @@ def test_bad_settings_are_refused(settings: dict) -> None:
     ("fps", "rate"),
     [(23.976, Fraction(24000, 1001)), (29.97, Fraction(30000, 1001)),
      (59.94, Fraction(60000, 1001)), (24, Fraction(24)), (12.5, Fraction(25, 2)),
+     (23.98, Fraction(24000, 1001)), (30, Fraction(30)),
      (0.1, Fraction(1, 10))],
 )  # fmt: skip
 def test_frame_rates_are_exact_and_ntsc_rates_recognised(fps: float, rate: Fraction) -> None:
     assert frame_rate(fps) == rate
+
+
+@pytest.mark.parametrize(
+    ("fps", "crf"), [(0, 20), (-5, 20), (float("nan"), 20), (1e9, 20), (30, 99)]
+)
+def test_the_sdr_preview_refuses_rates_and_qualities_it_cannot_encode(
+    fps: float, crf: int
+) -> None:
+    """fps 0 gave a 24 fps file, 1e9 a file of no frames, -5 and NaN bare errors."""
+    with pytest.raises(InvalidInputError, match="fps|crf"):
+        write_sdr_preview(grey_clip(16, 16), io.BytesIO(), fps=fps, crf=crf)
+
+
+@pytest.mark.parametrize("bad", [-1e-9, np.inf, np.nan])
+def test_the_exr_sequence_refuses_what_the_videos_refuse(bad: float) -> None:
+    """A negative pixel was stored, and inf was called an overflow to fix with the gain."""
+    frame = np.ones((4, 4))
+    frame[1, 2] = bad
+    with pytest.raises(InvalidInputError, match="not finite or are negative"):
+        exr_sequence_zip([np.ones((4, 4)), frame], io.BytesIO())
+
+
+def test_light_levels_count_the_pixels_pq_clips() -> None:
+    """Past 10000 cd/m^2 (x > 49.3 at the defaults) PQ shows every pixel at its peak;
+    only MaxCLL = 10000 said so."""
+    levels = light_levels([np.array([[1.0, 49.0], [50.0, 1000.0]])], Hdr10Settings())
+    assert levels.max_cll == 10_000 and levels.clipped_share == 0.5
+    assert light_levels(grey_clip(), Hdr10Settings(white_level=40.0)).clipped_share == 0.0
+
+
+def test_hdr10_signals_where_its_chroma_samples_sit() -> None:
+    """Chroma averaged over 2 x 2 blocks sits at their centre; unsaid, decoders assume
+    the left column (a half-pixel shift at colour edges)."""
+    stream_params = x265_params(Hdr10Settings(), light_levels(grey_clip(), Hdr10Settings()), 6)
+    assert "chromaloc=1" in stream_params.split(":")

@@ -80,7 +80,9 @@ class VideoOptionFields(BaseModel):
     keyframe_interval: int = Field(
         TemporalConfig.keyframe_interval, ge=0, description="temporal: spatial keyframe period"
     )
-    half: bool = Field(False, description="EXR frames as half floats")
+    half: bool = Field(
+        False, description="EXR frames as half floats (values under 6.1e-5 kept to 3e-8)"
+    )
     exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
         DEFAULT_EXR_COMPRESSION,
         description="lossless compression of the EXR frames: zip (smaller) or none",

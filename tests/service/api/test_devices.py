@@ -16,9 +16,9 @@ from PIL import Image
 
 from device.simulator import VirtualScamp5
 from models.decoders.registry import get_decoder
+from models.display import srgb8
 from models.formation import SensorParams, simulate
 from models.hdr_io import read_hdr
-from service.api.previews import srgb8
 from service.core.config import Settings
 from service.main import create_app
 from tests.device.conftest import wait_for
