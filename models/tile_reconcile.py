@@ -6,8 +6,8 @@ Across every border between two tiles, the stored values tell what W should do
 (:func:`models.scene_analysis.neighbour_jumps`: ``W_q - W_p = -jump``), so each
 pair of border pixels votes for the offset between the two tiles. We keep the
 most common vote per border and fix offsets along a maximum spanning tree of
-the tile graph, most-agreeing borders first, so one bad border cannot spoil the
-rest. W is global: tiles are reconciled, never blended.
+the tile graph, the borders with the most votes beyond their dissent first, so one
+bad border (or a border of a few pixels) cannot spoil the rest. W is global: tiles are reconciled, never blended.
 """
 
 from __future__ import annotations
@@ -55,8 +55,14 @@ def common_offset(target: NDArray[np.int64], relative: NDArray[np.int64]) -> int
 def _border_vote(
     left: NDArray[np.int64], right: NDArray[np.int64], jumps: NDArray[np.int64]
 ) -> tuple[int, float]:
-    """Most common implied offset between two facing pixel lines, and its share of votes."""
-    return most_common(left - jumps - right)
+    """Most common implied offset between two facing pixel lines, and its support: the
+    votes for it beyond all the others. (Its share of the votes put a 1-pixel border's
+    single vote level with a 64-pixel border's unanimous one: a frame one pixel past a
+    multiple of the tile size took a wrong vote at a residue first and set half the
+    frame a wrap off.)"""
+    votes = left - jumps - right
+    delta, share = most_common(votes)
+    return delta, (2.0 * share - 1.0) * votes.size
 
 
 def _borders(
