@@ -7,7 +7,8 @@ Across every border between two tiles, the stored values tell what W should do
 pair of border pixels votes for the offset between the two tiles. We keep the
 most common vote per border and fix offsets along a maximum spanning tree of
 the tile graph, the borders with the most votes beyond their dissent first, so one
-bad border (or a border of a few pixels) cannot spoil the rest. W is global: tiles are reconciled, never blended.
+bad border (or a border of a few pixels) cannot spoil the rest. W is global: tiles
+are reconciled, never blended.
 """
 
 from __future__ import annotations
