@@ -36,6 +36,7 @@ from models.decoders.cost_model import (
     unscaled_options,
 )
 from models.decoders.registry import DecoderSpec, get_decoder
+from models.decoders.saturation import fill_saturated
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 from models.scene_analysis import analyse
@@ -119,7 +120,11 @@ SPEED = SpeedFactors()
 
 
 class BudgetDecoder(Decoder):
-    """``auto`` at the most accurate quality predicted to fit ``budget_ms``."""
+    """``auto`` at the most accurate quality predicted to fit ``budget_ms``. Like ``auto``
+    it fills clipped blobs (also on the itoh fallback), which temporal decoding and
+    ``+puma`` rely on (:attr:`fills_saturation`)."""
+
+    fills_saturation = True
 
     def __init__(self, budget_ms: float) -> None:
         check_budget(budget_ms)
@@ -198,8 +203,11 @@ class BudgetDecoder(Decoder):
         decode_start = time.perf_counter_ns()
         if chosen == CLASSICAL:
             winding = get_decoder(CLASSICAL).predict_winding(m, params)
+            winding, saturation = fill_saturated(winding, m, params)
             reason = f"no quality of auto is predicted within {budget_ms:g} ms"
             info: dict[str, Any] = {"routes": {CLASSICAL: 1.0}, "reason": reason}
+            if saturation:
+                info["saturation"] = saturation
         else:
             winding, info = adaptive(chosen).explain_analysed(m, params, analysis)
         done = time.perf_counter_ns()

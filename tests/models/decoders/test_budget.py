@@ -12,7 +12,7 @@ from models.decoders import budget, get_decoder
 from models.decoders.budget import JOIN_SHARE, SPEED_RANGE, BudgetDecoder, SpeedFactors, resolve
 from models.decoders.registry import name_patterns
 from models.errors import InvalidInputError
-from models.formation import SensorParams, quantize
+from models.formation import SensorParams, encode, quantize
 from models.scenes import synthetic_val256_frame
 
 MODULO = SensorParams(encoding="modulo", bits=8)
@@ -62,6 +62,22 @@ def test_an_impossible_budget_runs_the_quickest_option_and_says_so() -> None:
     predicted = budget["predicted_ms"]
     assert predicted[budget["chosen"]] == min(predicted.values())
     assert np.isfinite(result.irradiance).all()
+
+
+def test_a_budget_fills_clipped_blobs_as_auto_does_even_on_the_itoh_fallback() -> None:
+    """It said it did not fill them (the base class's flag): temporal decoding and +puma
+    then left a clipped lamp unfilled (373 of 373 lamp pixels wrong in a stream), and
+    the itoh fallback did not fill at all."""
+    assert BudgetDecoder(40.0).fills_saturation and get_decoder("auto-40ms+puma").fills_saturation
+    params = SensorParams(encoding="mantissa", bits=8, max_wraps=16.0, seed=3)
+    rows, cols = np.mgrid[0:64, 0:64].astype(np.float64)
+    scene = 0.2 + 2.3 * cols / 64 + 2000.0 * np.exp(-((rows - 32) ** 2 + (cols - 32) ** 2) / 32)
+    truth = encode(scene, params)
+    clipped = truth.irradiance >= 16.0
+    result = get_decoder("auto-0.1ms").decode(truth.codes, params)
+    assert result.info["details"]["budget"]["chosen"] == "itoh"
+    np.testing.assert_array_equal(result.winding[clipped], truth.winding[clipped])
+    assert result.info["details"]["saturation"]["filled_fraction"] > 0
 
 
 def test_speed_factors_follow_each_option_within_their_bounds() -> None:
