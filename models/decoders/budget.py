@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -39,7 +40,7 @@ from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.saturation import fill_saturated
 from models.errors import InvalidInputError
 from models.formation import SensorParams
-from models.scene_analysis import analyse
+from models.scene_analysis import FrameAnalysis, analyse
 
 NAME = re.compile(r"auto-(\d+(?:\.\d+)?)ms")
 NAME_PATTERNS = ("auto-<N>ms (the most accurate quality predicted to decode within N ms)",)
@@ -117,6 +118,16 @@ class SpeedFactors:
 
 #: The running corrections shared by every ``auto-<N>ms`` decoder of this process.
 SPEED = SpeedFactors()
+
+
+def factor_key(analysis: FrameAnalysis) -> Callable[[str], str]:
+    """The speed factor an option's prediction is scaled by on this frame: a frame
+    without residues (only integration and anchoring) learns its own, since the cost
+    model's per-pixel rest fits it less well (measured 1.7x its prediction at 512x512),
+    and it had taught frames with residues that every quality runs slow (auto-200ms:
+    balanced instead of best on 24 of 25 busy frames)."""
+    smooth = analysis.frame.difficulty in ("none", "smooth")
+    return lambda option: f"{option} without residues" if smooth else option
 
 
 class BudgetDecoder(Decoder):
@@ -197,7 +208,8 @@ class BudgetDecoder(Decoder):
         analysis = analyse(m, params, DEFAULT_TILE)
         analysis_ms = (time.perf_counter_ns() - start) / 1e6
         model = unscaled_options(analysis, analysis_ms, m.shape, params)
-        options = {name: ms * SPEED.value(name) for name, ms in model.items()}
+        factor = factor_key(analysis)
+        options = {name: ms * SPEED.value(factor(name)) for name, ms in model.items()}
         fitting = [name for name, ms in options.items() if ms <= budget_ms]
         chosen = fitting[0] if fitting else min(options, key=options.__getitem__)
         decode_start = time.perf_counter_ns()
@@ -211,8 +223,8 @@ class BudgetDecoder(Decoder):
         else:
             winding, info = adaptive(chosen).explain_analysed(m, params, analysis)
         done = time.perf_counter_ns()
-        speed = SPEED.value(chosen)
-        SPEED.update(chosen, model[chosen], analysis_ms + (done - decode_start) / 1e6)
+        speed = SPEED.value(factor(chosen))
+        SPEED.update(factor(chosen), model[chosen], analysis_ms + (done - decode_start) / 1e6)
         measured_ms = (done - start) / 1e6
         info["budget"] = {
             "budget_ms": round(budget_ms, 2),

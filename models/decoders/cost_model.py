@@ -223,10 +223,13 @@ def predicted_ms(
     quality: str, analysis: FrameAnalysis, shape: tuple[int, int], params: SensorParams
 ) -> float:
     """Predicted W time (ms, without the analysis) of ``auto-<quality>`` on this frame:
-    its stages (:func:`stage_ns`) and the rest, per pixel (:func:`overhead_ns_per_pixel`)."""
-    if analysis.frame.difficulty in ("none", "smooth"):
-        return 0.0
+    its stages (:func:`stage_ns`) and the rest, per pixel (:func:`overhead_ns_per_pixel`).
+    A frame without residues has no costly stage, only the rest (integration,
+    anchoring): predicted at 0 ms, its measured time had taught the budget's speed
+    factors that every quality runs slow."""
     overhead_ns = shape[0] * shape[1] * overhead_ns_per_pixel(quality, params.encoding)
+    if analysis.frame.difficulty in ("none", "smooth"):
+        return overhead_ns / 1e6
     return (stage_ns(quality, analysis, shape, params) + overhead_ns) / 1e6
 
 

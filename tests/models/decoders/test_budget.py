@@ -80,6 +80,19 @@ def test_a_budget_fills_clipped_blobs_as_auto_does_even_on_the_itoh_fallback() -
     assert result.info["details"]["saturation"]["filled_fraction"] > 0
 
 
+def test_frames_without_residues_learn_a_speed_factor_of_their_own(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Predicted at 0 ms, a smooth 512x512 frame's integration (1.7x the cost model's
+    rest) went into best's factor: busy frames then fell back to balanced."""
+    monkeypatch.setattr(budget, "SPEED", SpeedFactors())
+    smooth = quantize(np.linspace(0.0, 0.9, 512 * 512).reshape(512, 512), 8)
+    for _ in range(2):
+        facts = get_decoder("auto-200ms").decode(smooth, MODULO).info["details"]["budget"]
+    assert facts["predicted_ms"]["best"] > 0.0
+    assert set(budget.SPEED.moments) == {"best without residues"}
+
+
 def test_speed_factors_follow_each_option_within_their_bounds() -> None:
     speed = SpeedFactors()
     assert speed.value("fast") == 1.0

@@ -10,6 +10,7 @@ from models.decoders import get_decoder
 from models.decoders.cost_model import (
     call_cost,
     colour_ns_per_pixel,
+    overhead_ns_per_pixel,
     predicted_ms,
     refined_shapes,
     refinement_ns,
@@ -23,12 +24,13 @@ from models.scene_analysis import analyse
 MODULO = SensorParams(encoding="modulo", bits=8)
 
 
-def test_a_frame_without_wraps_costs_no_network_time() -> None:
+def test_a_frame_without_wraps_costs_no_network_time_only_the_rest() -> None:
     x = np.full((64, 64), 0.3)
     frame = encode(x, MODULO)
     analysis = analyse(frame.codes / 256.0, MODULO, 64)
     for quality in ("fast", "balanced", "best"):
-        assert predicted_ms(quality, analysis, x.shape, MODULO) == 0.0
+        rest = x.size * overhead_ns_per_pixel(quality, "modulo") / 1e6
+        assert predicted_ms(quality, analysis, x.shape, MODULO) == pytest.approx(rest)
     result = get_decoder("auto-600000ms").decode(frame.codes, MODULO)
     assert result.info["details"]["budget"]["chosen"] == "best"
     assert result.info["details"]["routes"] == {"pass-through": 1.0}
