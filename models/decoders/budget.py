@@ -251,6 +251,7 @@ def resolve(name: str) -> DecoderSpec | None:
         kind="adaptive",
         description=f"auto at the most accurate quality predicted to decode in {budget_ms:g} ms",
         factory=lambda: BudgetDecoder(budget_ms),
+        budgeted=True,
     )
 
 

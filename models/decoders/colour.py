@@ -78,7 +78,7 @@ from models.decoders.base import Decoder, anchor_offset
 from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import JUMPS, pair_weights
 from models.decoders.region_moves import best_region_move
-from models.decoders.registry import DecoderSpec, get_decoder
+from models.decoders.registry import DecoderSpec, get_decoder, refuse_budget_inside
 from models.decoders.registry import resolve as resolve_inner
 from models.formation import SensorParams, clip_winding
 
@@ -209,7 +209,7 @@ def resolve(name: str) -> DecoderSpec | None:
     if match is None:
         return None
     inner = match.group("inner")
-    resolve_inner(inner)
+    refuse_budget_inside("+colour", resolve_inner(inner), "+colour gives it to each channel")
     return DecoderSpec(
         name=name,
         kind="colour",

@@ -96,7 +96,7 @@ from models.decoders.graphcut import (
 )
 from models.decoders.learned import load_cards, stitch_overlapping
 from models.decoders.region_moves import best_region_move, region_descent
-from models.decoders.registry import DecoderSpec, get_decoder
+from models.decoders.registry import DecoderSpec, get_decoder, refuse_budget_inside
 from models.decoders.registry import resolve as resolve_guide
 from models.decoders.saturation import fill_saturated
 from models.formation import SensorParams, clip_winding
@@ -388,7 +388,9 @@ def resolve(name: str) -> DecoderSpec | None:
     if match is None:
         return None
     guide_name = match.group("guide")
-    resolve_guide(guide_name)
+    refuse_budget_inside(
+        "+puma", resolve_guide(guide_name), "+puma refines after it, past the budget"
+    )
     moves = match.group("moves")
     return _spec(guide_name, int(moves) if moves else MAX_MOVES)
 

@@ -41,6 +41,18 @@ class DecoderSpec:
     description: str
     factory: Callable[[], Decoder] = field(repr=False, compare=False)
     figures: dict[str, Any] = field(default_factory=dict, compare=False)
+    budgeted: bool = field(default=False, compare=False)
+
+
+def refuse_budget_inside(wrapper: str, inner: DecoderSpec, why: str) -> None:
+    """Refuse a latency-budgeted decoder (``auto-<N>ms``) inside ``wrapper`` (a name such
+    as ``+colour``): its budget bounds one frame, and the wrapper ``why``."""
+    if inner.budgeted:
+        raise InvalidInputError(
+            f"{inner.name}{wrapper}: a latency budget bounds the whole frame, but {why}; "
+            f"use {inner.name} alone, or a quality (auto-fast, auto-balanced, auto-best) "
+            f"with {wrapper}"
+        )
 
 
 @cache

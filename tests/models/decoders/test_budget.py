@@ -68,7 +68,7 @@ def test_a_budget_fills_clipped_blobs_as_auto_does_even_on_the_itoh_fallback() -
     """It said it did not fill them (the base class's flag): temporal decoding and +puma
     then left a clipped lamp unfilled (373 of 373 lamp pixels wrong in a stream), and
     the itoh fallback did not fill at all."""
-    assert BudgetDecoder(40.0).fills_saturation and get_decoder("auto-40ms+puma").fills_saturation
+    assert BudgetDecoder(40.0).fills_saturation
     params = SensorParams(encoding="mantissa", bits=8, max_wraps=16.0, seed=3)
     rows, cols = np.mgrid[0:64, 0:64].astype(np.float64)
     scene = 0.2 + 2.3 * cols / 64 + 2000.0 * np.exp(-((rows - 32) ** 2 + (cols - 32) ** 2) / 32)
@@ -91,6 +91,14 @@ def test_frames_without_residues_learn_a_speed_factor_of_their_own(
         facts = get_decoder("auto-200ms").decode(smooth, MODULO).info["details"]["budget"]
     assert facts["predicted_ms"]["best"] > 0.0
     assert set(budget.SPEED.moments) == {"best without residues"}
+
+
+@pytest.mark.parametrize("wrapper", ["+colour", "+puma", "+puma2"])
+def test_a_budget_inside_a_wrapper_is_refused(wrapper: str) -> None:
+    """+colour gave the budget to each channel and +puma refined past it, while each
+    channel's facts said the budget was met (44.5 ms for auto-30ms+colour)."""
+    with pytest.raises(InvalidInputError, match="a latency budget bounds the whole frame"):
+        get_decoder(f"auto-30ms{wrapper}")
 
 
 def test_speed_factors_follow_each_option_within_their_bounds() -> None:
