@@ -42,7 +42,7 @@ from models.errors import InvalidInputError
 from models.formation import SensorParams
 from models.scene_analysis import FrameAnalysis, analyse
 
-NAME = re.compile(r"auto-(\d+(?:\.\d+)?)ms")
+NAME = re.compile(r"auto-([0-9]+(?:\.[0-9]+)?)ms")  # ASCII digits: one spelling a budget
 NAME_PATTERNS = ("auto-<N>ms (the most accurate quality predicted to decode within N ms)",)
 #: Budgets outside this range (ms) are refused.
 BUDGET_RANGE_MS = (0.1, 600_000.0)
@@ -164,7 +164,7 @@ class BudgetDecoder(Decoder):
         if planes.shape[2] == 1:
             return super().explain_planes(planes, params)
         calibration_start = time.perf_counter_ns()
-        calibrate(params, planes.shape[:2])
+        calibrate(params, planes.shape[:2], colour=True)
         join_model_ms = planes[:, :, 0].size * colour_ns_per_pixel(params.encoding) / 1e6
         start = time.perf_counter_ns()
         join_ms = join_model_ms * SPEED.value(COLOUR)

@@ -37,6 +37,7 @@ per pixel than the calibration frame's). bench.tradeoff reports these ratios.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from functools import cache
@@ -265,17 +266,26 @@ def colour_ns_per_pixel(encoding: str) -> float:
     return runs / (planes.shape[0] * planes.shape[1])
 
 
-def calibrate(params: SensorParams, shape: tuple[int, int]) -> None:
+#: One calibration at a time: two threads' first frames timed each other's calibrations
+#: under their load (costs up to 1.9x, so a quality predicted too dear never ran again).
+_CALIBRATING = threading.Lock()
+
+
+def calibrate(params: SensorParams, shape: tuple[int, int], colour: bool = False) -> None:
     """Measure (once; cached) every cost :func:`unscaled_options` needs for frames of
-    ``params.encoding`` and of ``shape``'s size class."""
+    ``params.encoding`` and of ``shape``'s size class (and, with ``colour``, the cost of
+    making channels consistent), one thread at a time."""
     sizes = [size for size in REFINEMENT_CALIBRATION_SIZES if size <= refinement_size(shape)]
-    call_cost(CLASSICAL, params.encoding)
-    for quality in QUALITIES:
-        call_cost(adaptive(quality).hard_tile_decoder(params).name, params.encoding)
-        check_ns_per_pixel(quality, params.encoding)
-        overhead_ns_per_pixel(quality, params.encoding)
-        for size in sizes:
-            refinement_ns_per_pixel(quality, params.encoding, size)
+    with _CALIBRATING:
+        call_cost(CLASSICAL, params.encoding)
+        for quality in QUALITIES:
+            call_cost(adaptive(quality).hard_tile_decoder(params).name, params.encoding)
+            check_ns_per_pixel(quality, params.encoding)
+            overhead_ns_per_pixel(quality, params.encoding)
+            for size in sizes:
+                refinement_ns_per_pixel(quality, params.encoding, size)
+        if colour:
+            colour_ns_per_pixel(params.encoding)
 
 
 def unscaled_options(

@@ -34,6 +34,8 @@ def test_budget_names_resolve_and_others_do_not() -> None:
 def test_an_unknown_name_lists_the_budget_pattern() -> None:
     with pytest.raises(InvalidInputError, match="auto-<N>ms"):
         get_decoder("auto-soon")
+    for other_digits in ("auto-\u0665\u0660ms", "auto-\uff15\uff10ms"):  # Arabic, fullwidth 50
+        assert resolve(other_digits) is None  # ran as auto-50ms, reported under another name
     assert any("auto-<N>ms" in text for text in name_patterns())
 
 
