@@ -113,9 +113,10 @@ class DeviceDaemon:
         self.brackets = BracketCollector()
         self._parser = self._new_parser()
         self._parser_base: Counter[str] = Counter()
-        self._outbox: queue.Queue[bytes] = queue.Queue(maxsize=64)
-        # A command whose write failed (the link broke): sent first on the next link.
-        self._unsent: bytes | None = None
+        # Control entries (id, packet; None: refused) for the camera, in order.
+        self._outbox: queue.Queue[tuple[str, bytes | None]] = queue.Queue(maxsize=64)
+        # An entry whose write failed (the link broke): sent first on the next link.
+        self._unsent: tuple[str, bytes | None] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_sequence: int | None = None
@@ -126,26 +127,34 @@ class DeviceDaemon:
         return LinkParser(self.config.max_payload, self.config.partial_timeout_s)
 
     # ---- control ----
-    def send_command(self, command: Command) -> None:
-        """Queue a command for the camera (dropped, counted, if 64 are already waiting)."""
+    def send_command(self, entry_id: str, command: Command | None) -> bool:
+        """Queue control entry ``entry_id``'s command for the camera (None: refused, kept
+        in line so that the device's cursor moves past it in order); False, and nothing
+        queued, when 64 wait already (the entry stays in Redis until there is room)."""
+        packet = None if command is None else encode_control(to_packet(command))
         try:
-            self._outbox.put_nowait(encode_control(to_packet(command)))
+            self._outbox.put_nowait((entry_id, packet))
         except queue.Full:
-            self.health.add("control_rejected")
+            return False
+        return True
 
     def _flush_outbox(self, port: Any) -> None:
-        """Write the queued commands to the camera, in order. A write that fails (a
-        timeout, the link gone) keeps its command for the next link, where it goes
-        first (it was dropped, uncounted); the failure itself ends this link."""
+        """Write the queued commands to the camera, in order, each then recorded as
+        delivered (the device's cursor). A write that fails (a timeout, the link gone)
+        keeps its command for the next link, where it goes first; the failure itself
+        ends this link."""
         while True:
             if self._unsent is None:
                 try:
                     self._unsent = self._outbox.get_nowait()
                 except queue.Empty:
                     return
-            port.write(self._unsent)
+            entry_id, packet = self._unsent
+            if packet is not None:
+                port.write(packet)
+                self.health.add("control_sent")
             self._unsent = None
-            self.health.add("control_sent")
+            self.publisher.delivered(entry_id)
 
     # ---- frames ----
     def _on_data(self, packet: DataPacket) -> None:

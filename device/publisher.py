@@ -49,10 +49,16 @@ EVENTS_MAXLEN = 1000
 
 
 class FramePublisher:
-    """Publishes frames and health of one device; hands control commands to ``on_command``."""
+    """Publishes frames and health of one device; hands control commands to ``on_command``.
+
+    ``on_command(entry_id, command)`` takes each control entry in order (``command`` None
+    when the entry was refused) and returns False when it has no room for it now (the
+    entry is handed over again later). The device's control cursor, where its next
+    daemon goes on, moves only as far as :meth:`delivered` says the camera got them: a
+    daemon that stops with commands not yet sent leaves them to the next one."""
 
     def __init__(self, client: redis.Redis, device: str, health: DeviceHealth,
-                 on_command: Callable[[Command], None], frames_maxlen: int = 256,
+                 on_command: Callable[[str, Command | None], bool], frames_maxlen: int = 256,
                  queue_size: int = 64) -> None:
         self.client = client
         self.device = device
@@ -70,6 +76,9 @@ class FramePublisher:
         self._retry_at = 0.0
         self._backoff = 0.05
         self._control_id: str | None = None  # read from Redis when it is first reachable
+        # The last entry the camera got (set by the link's thread), and the last written.
+        self._delivered: str | None = None
+        self._cursor_written: str | None = None
         self._next_health = 0.0
         self._reported = {"dropped": 0, "reconnects": 0}
 
@@ -173,14 +182,27 @@ class FramePublisher:
             pipe.execute()
 
         if self._redis(write_health):
+            self._redis(self._write_cursor)
             self._redis(self._read_control)
         else:
             self._reported = reported
 
+    def delivered(self, entry_id: str) -> None:
+        """Control entry ``entry_id`` (and every one before it) reached the camera or was
+        refused; the device's cursor moves there at the next housekeeping."""
+        self._delivered = entry_id
+
+    def _write_cursor(self) -> None:
+        delivered = self._delivered
+        if delivered is not None and delivered != self._cursor_written:
+            self.client.set(control_cursor_key(self.device), delivered)
+            self._cursor_written = delivered
+
     def _read_control(self) -> None:
-        """Forward the control commands after the last one handled (by this daemon or,
-        for the first read, by the device's previous daemon: commands the API accepted
-        while no daemon ran are not lost; a device's first daemon skips older ones)."""
+        """Forward the control commands after the last one handed over (by this daemon
+        or, for the first read, after the last the device's previous daemon delivered:
+        commands the API accepted while no daemon ran, or that a stopped daemon had not
+        sent yet, are not lost; a device's first daemon skips older ones)."""
         stream = control_stream(self.device)
         if self._control_id is None:
             done = self.client.get(control_cursor_key(self.device))
@@ -191,16 +213,20 @@ class FramePublisher:
                 self.client.set(control_cursor_key(self.device), self._control_id, nx=True)
         reply = self.client.xread({stream: self._control_id}, count=16)
         for _, entries in reply or []:
-            for entry_id, fields in entries:
-                self._control_id = entry_id.decode() if isinstance(entry_id, bytes) else entry_id
-                try:
-                    self.on_command(fields_to_command(fields))
-                except InvalidInputError as exc:
-                    log.warning("control entry %s of %s refused: %s",
-                                self._control_id, self.device, exc.message)
-                    self.health.add("control_rejected")
-                except Exception:
-                    # One bad entry must not stop publishing; the cursor still moves past it.
-                    log.exception("control entry %s of %s failed", self._control_id, self.device)
-                    self.health.add("control_rejected")
-                self.client.set(control_cursor_key(self.device), self._control_id)
+            for raw_id, fields in entries:
+                entry_id = raw_id.decode() if isinstance(raw_id, bytes) else raw_id
+                if not self.on_command(entry_id, self._command(entry_id, fields)):
+                    return  # no room now: handed over again from here next time
+                self._control_id = entry_id
+
+    def _command(self, entry_id: str, fields: dict[bytes | str, bytes | str]) -> Command | None:
+        """The command of a control entry, or None (counted and logged) when it is refused."""
+        try:
+            return fields_to_command(fields)
+        except InvalidInputError as exc:
+            log.warning("control entry %s of %s refused: %s", entry_id, self.device, exc.message)
+        except Exception:
+            # One bad entry must not stop publishing; the cursor still moves past it.
+            log.exception("control entry %s of %s failed", entry_id, self.device)
+        self.health.add("control_rejected")
+        return None

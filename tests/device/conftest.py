@@ -10,8 +10,11 @@ from pathlib import Path
 import pytest
 import redis
 
+from device.commands import Command
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.faults import Faults
+from device.health import DeviceHealth
+from device.publisher import FramePublisher
 from device.sim_link import Endpoint, PtyEndpoint
 from device.simulator import CameraSettings, VirtualScamp5
 from worker.embedded_redis import EmbeddedRedis, connect
@@ -92,3 +95,30 @@ class Link:
 def link(client: redis.Redis, tmp_path: Path) -> Callable[..., Link]:
     """Factory: ``link(frames, faults=..., settings=...)`` -> a :class:`Link` to enter."""
     return lambda frames, **kw: Link(client, tmp_path, frames, **kw)
+
+
+class Camera:
+    """The daemon's side of ``on_command`` with a camera always reachable: every command
+    is sent (kept in ``seen``) and reported delivered at once."""
+
+    def __init__(self) -> None:
+        self.seen: list[Command] = []
+        self.publisher: FramePublisher | None = None
+
+    def __call__(self, entry_id: str, command: Command | None) -> bool:
+        if command is not None:
+            self.seen.append(command)
+        assert self.publisher is not None
+        self.publisher.delivered(entry_id)
+        return True
+
+    def publisher_for(self, client: redis.Redis, health: DeviceHealth) -> FramePublisher:
+        self.publisher = FramePublisher(client, "cam0", health, self)
+        return self.publisher
+
+
+def poll_control(publisher: FramePublisher) -> None:
+    """One housekeeping's control step: record what was delivered, read what is new."""
+    publisher._write_cursor()
+    publisher._read_control()
+    publisher._write_cursor()

@@ -17,10 +17,11 @@ from device.daemon import DaemonConfig, DeviceDaemon
 from device.datasets import DatasetLimits
 from device.faults import Faults
 from device.link_parser import LinkParser
-from device.sim_link import TcpEndpoint
-from tests.device.conftest import health, stream_frames, wait_for
+from device.sim_link import PtyEndpoint, TcpEndpoint
+from device.simulator import CameraSettings, VirtualScamp5
+from tests.device.conftest import health, start_streaming, stream_frames, wait_for
 from worker.embedded_redis import EmbeddedRedis
-from worker.redis_keys import DEVICES_SET, control_stream, events_stream
+from worker.redis_keys import DEVICES_SET, control_cursor_key, control_stream, events_stream
 
 
 def finish_clean(link, frames: int) -> None:
@@ -314,8 +315,8 @@ def test_a_command_whose_write_timed_out_goes_first_on_the_next_link(
     """The timeout ends the link (the daemon reconnects); the command is not lost but
     written first once the port is back, before commands queued after it."""
     daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client)
-    daemon.send_command(FrameRateCommand(command="set_frame_rate", fps=5.0))
-    daemon.send_command(FrameRateCommand(command="set_frame_rate", fps=7.0))
+    daemon.send_command("1-0", FrameRateCommand(command="set_frame_rate", fps=5.0))
+    daemon.send_command("2-0", FrameRateCommand(command="set_frame_rate", fps=7.0))
     port = StuckThenFreePort()
     with pytest.raises(serial.SerialTimeoutException):
         daemon._flush_outbox(port)
@@ -324,3 +325,28 @@ def test_a_command_whose_write_timed_out_goes_first_on_the_next_link(
     sent = [packet for data in port.written for packet in parser.feed(data)]
     assert [getattr(packet, "fps", None) for packet in sent] == [5.0, 7.0]
     assert daemon.health.counts["control_sent"] == 2
+
+
+def test_a_command_a_stopped_daemon_never_sent_reaches_the_next_one(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """The camera is unplugged: the daemon takes the command but cannot send it, then
+    stops. The device's cursor had moved past it when it was taken, so the next daemon
+    never sent it, although the API had answered 202."""
+    port = tmp_path / "scamp5"
+    config = DaemonConfig(port=str(port), device="cam1", data_dir=tmp_path / "data",
+                          backoff_max_s=0.2)
+    first = DeviceDaemon(config, client)
+    first.start()
+    assert wait_for(lambda: client.exists(control_cursor_key("cam1")), 10)  # its place
+    client.xadd(control_stream("cam1"), {"command": "set_frame_rate", "fps": "7"})
+    assert wait_for(lambda: first._outbox.qsize() == 1, 10)  # taken, not sent
+    first.stop()
+    camera = VirtualScamp5(PtyEndpoint(port), settings=CameraSettings(fps=50), seed=7)
+    second = DeviceDaemon(config, client)
+    try:
+        start_streaming(second, camera)
+        assert wait_for(lambda: camera.settings.fps == 7.0, 10)
+        assert wait_for(lambda: second.health.counts["control_sent"] == 1, 5)
+    finally:
+        camera.stop()
+        second.stop()

@@ -9,6 +9,7 @@ from device.commands import Command, FrameRateCommand, command_fields
 from device.health import DeviceHealth
 from device.publisher import FramePublisher
 from models.formation import SensorParams
+from tests.device.conftest import Camera, poll_control
 from worker.frame_message import FrameMessage
 from worker.redis_keys import DEVICES_SET, control_stream, frame_stream
 
@@ -20,7 +21,7 @@ def message(sequence: int, discont: bool = False) -> FrameMessage:
 
 def test_full_stream_evicts_the_oldest_and_counts_them(client: redis.Redis) -> None:
     health = DeviceHealth("cam0", "loop://")
-    publisher = FramePublisher(client, "cam0", health, lambda _: None, frames_maxlen=3)
+    publisher = FramePublisher(client, "cam0", health, lambda *_: True, frames_maxlen=3)
     publisher.start()
     for sequence in range(10):
         publisher.offer(message(sequence))
@@ -39,29 +40,68 @@ def send_frame_rate(client: redis.Redis, fps: float) -> None:
 
 def test_commands_sent_while_no_daemon_ran_reach_the_next_one(client: redis.Redis) -> None:
     """A daemon forwards what came after the last command any daemon of the device
-    handled: the API accepted it, so a restart must not lose it."""
+    delivered: the API accepted it, so a restart must not lose it."""
     health = DeviceHealth("cam0", "loop://")
-    seen: list[Command] = []
-    first = FramePublisher(client, "cam0", health, seen.append)
-    first._read_control()  # a device's first daemon skips older commands
+    camera = Camera()
+    first = camera.publisher_for(client, health)
+    poll_control(first)  # a device's first daemon skips older commands
     send_frame_rate(client, 5.0)
-    first._read_control()
+    poll_control(first)
     send_frame_rate(client, 7.0)  # while no daemon runs
-    second = FramePublisher(client, "cam0", health, seen.append)
-    second._read_control()
-    second._read_control()
-    assert [getattr(command, "fps", None) for command in seen] == [5.0, 7.0]
+    poll_control(camera.publisher_for(client, health))
+    assert [getattr(command, "fps", None) for command in camera.seen] == [5.0, 7.0]
 
 
 def test_a_daemon_that_handled_no_command_yet_keeps_its_place(client: redis.Redis) -> None:
     """The first daemon's starting point is the device's cursor from its first read: a
     command sent while it was down after handling none still reaches the next daemon."""
     health = DeviceHealth("cam0", "loop://")
-    seen: list[Command] = []
-    FramePublisher(client, "cam0", health, seen.append)._read_control()
+    camera = Camera()
+    poll_control(camera.publisher_for(client, health))
     send_frame_rate(client, 7.0)  # while no daemon runs
-    FramePublisher(client, "cam0", health, seen.append)._read_control()
-    assert [getattr(command, "fps", None) for command in seen] == [7.0]
+    poll_control(camera.publisher_for(client, health))
+    assert [getattr(command, "fps", None) for command in camera.seen] == [7.0]
+
+
+def test_a_command_taken_but_not_delivered_is_handed_to_the_next_daemon(
+        client: redis.Redis) -> None:
+    """The camera was away: the daemon took the command, could not send it, and stopped.
+    The cursor had moved past it when taken, so no daemon ever sent it."""
+    health = DeviceHealth("cam0", "loop://")
+    taken: list[str] = []
+    away = FramePublisher(client, "cam0", health, lambda entry, _: taken.append(entry) or True)
+    poll_control(away)
+    send_frame_rate(client, 5.0)
+    poll_control(away)
+    assert len(taken) == 1  # taken, never delivered
+    camera = Camera()
+    poll_control(camera.publisher_for(client, health))
+    assert [getattr(command, "fps", None) for command in camera.seen] == [5.0]
+
+
+def test_a_full_outbox_leaves_commands_in_redis_until_there_is_room(
+        client: redis.Redis) -> None:
+    health = DeviceHealth("cam0", "loop://")
+    room = [0]
+    handed: list[str] = []
+
+    def take(entry_id: str, _: Command | None) -> bool:
+        if not room[0]:
+            return False
+        room[0] -= 1
+        handed.append(entry_id)
+        return True
+
+    publisher = FramePublisher(client, "cam0", health, take)
+    poll_control(publisher)
+    for fps in (1.0, 2.0, 3.0):
+        send_frame_rate(client, fps)
+    poll_control(publisher)
+    room[0] = 2
+    poll_control(publisher)
+    room[0] = 5
+    poll_control(publisher)
+    assert handed == [entry.decode() for entry, _ in client.xrange(control_stream("cam0"))]
 
 
 def published(client: redis.Redis) -> list[tuple[int, bool]]:
@@ -76,7 +116,7 @@ def test_after_a_full_queue_drops_a_frame_the_next_one_queued_is_the_discontinui
     queued after it (here the camera restarted its counter) carries discont, so the
     worker does not discard it and the ones after as stale."""
     health = DeviceHealth("cam0", "loop://")
-    publisher = FramePublisher(client, "cam0", health, lambda _: None, queue_size=4)
+    publisher = FramePublisher(client, "cam0", health, lambda *_: True, queue_size=4)
     for sequence in (100, 101, 102, 103):
         publisher.offer(message(sequence))
     publisher.offer(message(0, discont=True))  # dropped: the queue is full
@@ -94,13 +134,13 @@ def test_after_a_full_queue_drops_a_frame_the_next_one_queued_is_the_discontinui
 def test_a_control_entry_that_is_not_text_is_refused_and_publishing_goes_on(
         client: redis.Redis) -> None:
     health = DeviceHealth("cam0", "loop://")
-    seen: list[Command] = []
-    publisher = FramePublisher(client, "cam0", health, seen.append)
-    publisher._read_control()
+    camera = Camera()
+    publisher = camera.publisher_for(client, health)
+    poll_control(publisher)
     client.xadd(control_stream("cam0"), {"command": b"st\xffart"})
     send_frame_rate(client, 5.0)
-    publisher._read_control()
-    assert [getattr(command, "fps", None) for command in seen] == [5.0]
+    poll_control(publisher)
+    assert [getattr(command, "fps", None) for command in camera.seen] == [5.0]
     assert health.counts["control_rejected"] == 1
     publisher.start()
     publisher.offer(message(7))

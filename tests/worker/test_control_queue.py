@@ -7,7 +7,7 @@ import redis
 
 from device.commands import FrameRateCommand, command_fields
 from device.health import DeviceHealth
-from device.publisher import FramePublisher
+from tests.device.conftest import Camera, poll_control
 from worker.control_queue import ControlBacklogError, queue_command
 from worker.redis_keys import control_stream
 
@@ -32,14 +32,13 @@ def test_past_the_backlog_a_command_is_refused_and_none_is_lost(client: redis.Re
 
 
 def test_once_the_daemon_read_them_more_are_queued_and_reach_it(client: redis.Redis) -> None:
-    seen: list[float] = []
-    publisher = FramePublisher(client, "cam0", DeviceHealth("cam0", "loop://"),
-                               lambda command: seen.append(getattr(command, "fps", 0.0)))
-    publisher._read_control()  # the device's place: commands after now reach its daemons
+    camera = Camera()
+    publisher = camera.publisher_for(client, DeviceHealth("cam0", "loop://"))
+    poll_control(publisher)  # the device's place: commands after now reach its daemons
     for fps in range(1, 4):
         queue_command(client, "cam0", fields(float(fps)), backlog=3, maxlen=4)
-    publisher._read_control()
+    poll_control(publisher)
     for fps in range(4, 7):
         queue_command(client, "cam0", fields(float(fps)), backlog=3, maxlen=4)
-    publisher._read_control()
-    assert seen == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    poll_control(publisher)
+    assert [getattr(c, "fps", None) for c in camera.seen] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
