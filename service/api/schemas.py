@@ -13,6 +13,7 @@ from service.api.state import Slots
 from worker.jobs import JobRecord, JobState
 from worker.queue import JobQueue
 from worker.redis_memory import is_transient, redis_trouble
+from worker.video_pipeline import OUTPUTS as VIDEO_OUTPUTS
 
 log = logging.getLogger(__name__)
 
@@ -75,10 +76,19 @@ class JobView(JobRecord):
 
 
 def job_view(record: JobRecord) -> JobView:
-    """The API view of a job record."""
+    """The API view of a job record. A succeeded video job links each file it made
+    (``result_hdr10`` ...) and, as ``result``, the first of hdr10, sdr, exr_zip: its
+    files come from ``/v1/videos/{id}/result`` (``/v1/jobs/{id}/result`` answers 409)."""
     base = f"/v1/jobs/{record.id}"
     links = {"self": base}
-    if record.state == JobState.SUCCEEDED:
+    if record.state == JobState.SUCCEEDED and record.kind == "video":
+        files = {
+            f"result_{name}": f"/v1/videos/{record.id}/result?output={name}"
+            for name in VIDEO_OUTPUTS if name in record.results
+        }
+        links |= {"result": next(iter(files.values()))} if files else {}
+        links |= files
+    elif record.state == JobState.SUCCEEDED:
         links["result"] = f"{base}/result"
     return JobView(**record.model_dump(), links=links)
 

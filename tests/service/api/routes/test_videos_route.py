@@ -85,7 +85,10 @@ def test_zip_of_pngs_independent_exr_only(client: Client, worker: Worker) -> Non
     job = finished_job(http, reply.json()["id"])
     assert job["state"] == "succeeded" and set(job["results"]) == {"exr_zip"}
     assert job["options"]["outputs"] == ["exr_zip"]
-    frames = http.get(f"/v1/videos/{job['id']}/result", params={"output": "exr_zip"})
+    files = f"/v1/videos/{job['id']}/result?output=exr_zip"  # it linked /v1/jobs/.../result
+    assert job["links"] == {"self": f"/v1/jobs/{job['id']}", "result": files,
+                            "result_exr_zip": files}
+    frames = http.get(job["links"]["result"])
     with zipfile.ZipFile(io.BytesIO(frames.content)) as archive:
         headers = [
             OpenEXR.File(io.BytesIO(archive.read(name)), header_only=True).header()
