@@ -59,7 +59,9 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
     body's pauses have theirs in the app (:mod:`service.api.body_timeout`).
     ``limit_concurrency`` bounds the connections and requests at once, beyond which
     requests get a 503; ``h11_max_incomplete_event_size`` bounds the bytes of an
-    unfinished request line and headers.
+    unfinished request line and headers; ``timeout_graceful_shutdown`` ends a stop that
+    waits on open requests (an event stream never ends by itself: one kept the server
+    from stopping for as long as its client stayed).
     """
     return {
         "host": settings.host,
@@ -69,6 +71,7 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
         "timeout_keep_alive": settings.http_keep_alive_s,
         "limit_concurrency": settings.http_max_connections,
         "h11_max_incomplete_event_size": settings.http_max_header_bytes,
+        "timeout_graceful_shutdown": settings.http_shutdown_grace_s,
     }
 
 

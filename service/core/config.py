@@ -42,6 +42,11 @@ class Settings(BaseSettings):
     http_keep_alive_s: int = Field(
         5, ge=1, description="an idle keep-alive connection is closed after this many seconds"
     )
+    http_shutdown_grace_s: float = Field(
+        5.0, gt=0, le=300,
+        description="on SIGTERM, seconds open requests (an event stream) may run on before "
+        "they are closed and the server stops",
+    )  # fmt: skip
     http_max_connections: int = Field(
         256, ge=2,
         description="open HTTP connections and requests at once; a request beyond them: 503",

@@ -11,6 +11,7 @@ import socket
 import stat
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -27,7 +28,7 @@ from service.cli.serve import WorkerSupervisor
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.job_store import JobStore
 from worker.jobs import JobState
-from worker.redis_keys import WORKERS_HEARTBEAT
+from worker.redis_keys import DEVICES_SET, WORKERS_HEARTBEAT
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -269,3 +270,33 @@ def test_a_restarted_worker_gets_one_sigterm_and_its_watch_outlives_it(tmp_path:
     supervisor.wait()
     assert log.read_text().count("TERM") == 1
     assert supervisor.process.returncode == 0
+
+
+def test_an_open_event_stream_does_not_keep_serve_from_stopping(tmp_path: Path) -> None:
+    """uvicorn waited for every connection to close: with one client on a device's
+    events, SIGTERM left the server half-stopped (no new connections, worker and Redis
+    still running) for as long as the client stayed."""
+    with serving(tmp_path) as (process, data_dir, port):
+        lines = read_until(process, r"^use it as: Authorization: Bearer ", 90)
+        key = lines[-1].split("Bearer ", 1)[1].strip()
+        base = f"http://127.0.0.1:{port}"
+        wait_ready(base)
+        connect(f"unix://{EmbeddedRedis(data_dir).socket}").sadd(DEVICES_SET, "cam1")
+        opened = threading.Event()
+
+        def listen() -> None:
+            with httpx.stream("GET", f"{base}/v1/devices/cam1/events",
+                              headers={"Authorization": f"Bearer {key}"}, timeout=120) as reply:
+                assert reply.status_code == 200
+                opened.set()
+                try:
+                    for _ in reply.iter_bytes():
+                        pass
+                except httpx.HTTPError:
+                    pass  # the stopping server cut the stream: what this test wants
+
+        listener = threading.Thread(target=listen, daemon=True)
+        listener.start()
+        assert opened.wait(30)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(60) == 0  # it hung until the client left
