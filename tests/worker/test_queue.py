@@ -73,6 +73,8 @@ def test_int_codes_are_stored_as_sensor_dtype(queue: JobQueue, client: redis.Red
         ("reconstruction", CODES, "no-such-decoder", "unknown decoder"),
         ("sculpture", CODES, "itoh", "unknown job kind"),
         ("reconstruction", np.zeros((0, 4), np.uint8), "itoh", "empty"),
+        # accepted, then failed in the worker: the net has no modulo model
+        ("reconstruction", CODES, "mantissanet-base-noise", "no model for modulo frames"),
     ],
 )
 def test_bad_submissions_rejected(
