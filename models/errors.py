@@ -14,6 +14,9 @@ class McamError(ValueError):
 
     code = "invalid_input"
     http_status = 422
+    #: Seconds a client should wait before retrying (the API's ``Retry-After``); None
+    #: for a mistake that retrying does not mend.
+    retry_after_s: int | None = None
 
     def __init__(self, message: str) -> None:
         super().__init__(message)

@@ -36,6 +36,7 @@ class ControlBacklogError(McamError):
 
     code = "control_backlog_full"
     http_status = 503
+    retry_after_s = 5
 
 
 def queue_command(client: redis.Redis, device: str, fields: dict[str, str], *,

@@ -113,6 +113,7 @@ class QueueFullError(McamError):
 
     code = "queue_full"
     http_status = 503
+    retry_after_s = 5
 
 
 class TooManyJobsError(McamError):
@@ -121,6 +122,7 @@ class TooManyJobsError(McamError):
 
     code = "too_many_jobs"
     http_status = 429
+    retry_after_s = 5
 
 
 def ensure_group(client: redis.Redis, stream: str) -> None:

@@ -48,6 +48,7 @@ class StoreFullError(McamError):
 
     code = "store_full"
     http_status = 503
+    retry_after_s = 30
 
 
 def server_config(maxmemory: int) -> list[str]:

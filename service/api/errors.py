@@ -61,8 +61,13 @@ def _location(loc: tuple[Any, ...] | list[Any]) -> str:
 
 
 async def mcam_error(_: Request, exc: Exception) -> JSONResponse:
+    """The error's JSON, with ``Retry-After`` when retrying later mends it (a full
+    queue, a key's share of it, a full store)."""
     assert isinstance(exc, McamError)
-    return JSONResponse(error_body(exc.code, exc.message), status_code=exc.http_status)
+    headers = None if exc.retry_after_s is None else {"Retry-After": str(exc.retry_after_s)}
+    return JSONResponse(
+        error_body(exc.code, exc.message), status_code=exc.http_status, headers=headers
+    )
 
 
 def _problem(error: dict[str, Any]) -> dict[str, str]:
@@ -135,9 +140,7 @@ async def redis_refusal(request: Request, exc: Exception) -> JSONResponse:
     the request was stored, retry later), else a bug (logged, 500)."""
     if is_out_of_memory(exc):
         log.warning("Redis is full (maxmemory): %s %s refused", request.method, request.url.path)
-        response = await mcam_error(request, store_full_error())
-        response.headers["Retry-After"] = "30"
-        return response
+        return await mcam_error(request, store_full_error())
     log.error("Redis refused a command on %s %s", request.method, request.url.path, exc_info=exc)
     return internal_error()
 

@@ -19,7 +19,7 @@ from service.api.errors import ApiError
 from service.api.previews import scene_to_wrap_units, tonemap_png
 from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, error_response
 from service.api.state import ServiceState
-from worker.control_queue import ControlBacklogError, queue_command
+from worker.control_queue import queue_command
 from worker.device_registry import forget_device
 from worker.redis_keys import (
     DEVICES_SET,
@@ -117,10 +117,7 @@ def control(device_id: str, command: Annotated[Command, Body()], state: StateDep
     """503 ``control_backlog_full`` (nothing queued) while the daemon has not read the
     commands already waiting for it."""
     device = known_device(state, device_id)
-    try:
-        entry = queue_command(state.client, device, command_fields(command))
-    except ControlBacklogError as exc:
-        raise ApiError(503, exc.code, exc.message, headers={"Retry-After": "5"}) from exc
+    entry = queue_command(state.client, device, command_fields(command))
     return {"device": device, "entry": entry, "command": command.model_dump()}
 
 

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import httpx
 import pytest
 
 from service.core.config import Settings
 from service.main import create_app
-from tests.service.conftest import FULL_KEY, serve
+from tests.service.conftest import FULL_KEY, frame_png, make_settings, serve
 
 Client = Callable[[str], httpx.Client]
 
@@ -78,3 +79,18 @@ def test_a_body_that_is_not_sent_as_json_is_named(client: Client) -> None:
     )
     assert reply.status_code == 422, reply.text
     assert "'text/plain' and was not read" in reply.json()["message"]
+
+
+def test_a_full_queue_says_when_to_retry(tmp_path: Path, redis_url: str) -> None:
+    """503 queue_full said 'retry in a few seconds' with no Retry-After."""
+    settings = make_settings(tmp_path, redis_url, jobs_maxlen=1)
+    data, _ = frame_png()
+    with serve(create_app(settings)) as url:
+        replies = [
+            httpx.post(f"{url}/v1/reconstructions", files={"file": ("f.png", data)},
+                       headers={"Authorization": f"Bearer {FULL_KEY}"}, timeout=60)
+            for _ in range(2)
+        ]
+    assert replies[0].status_code == 202
+    assert replies[1].status_code == 503 and replies[1].json()["code"] == "queue_full"
+    assert replies[1].headers["retry-after"] == "5"

@@ -339,6 +339,7 @@ def test_a_key_with_its_limit_of_jobs_in_the_queue_gets_429_and_other_keys_do_no
         refused = upload(FULL_KEY)
         assert refused.status_code == 429, refused.text
         assert refused.json()["code"] == "too_many_jobs"
+        assert refused.headers["retry-after"] == "5"  # it had none (the viewer waits on it)
         assert "MCAM_MAX_QUEUED_JOBS_PER_KEY" in refused.json()["message"]
         assert upload(SUBMIT_KEY).status_code == 202
         assert connect(redis_url).xlen(JOBS_STREAM) == 3
