@@ -34,10 +34,12 @@ def sensor_attributes(params: SensorParams) -> dict[str, str]:
     return attributes
 
 
-def values_unit(params: SensorParams) -> str:
-    """The unit of a reconstruction written scene-referred: ``x / gain`` when the gain
-    is known, else wrap units ``x``."""
-    return "wrap units x (gain unknown)" if params.gain is None else "scene-referred x / gain"
+def values_unit(params: SensorParams, scene_referred: bool = True) -> str:
+    """The unit of a reconstruction: ``x / gain`` when written scene-referred with the
+    gain known, else wrap units ``x``."""
+    if params.gain is None:
+        return "wrap units x (gain unknown)"
+    return "scene-referred x / gain" if scene_referred else "wrap units x"
 
 
 def values_scene_referred(attributes: dict[str, Any]) -> bool | None:
@@ -52,14 +54,16 @@ def values_scene_referred(attributes: dict[str, Any]) -> bool | None:
 
 
 def reconstruction_attributes(
-    params: SensorParams, info: dict[str, Any], source: str
+    params: SensorParams, info: dict[str, Any], source: str, scene_referred: bool = True
 ) -> dict[str, str]:
-    """Sensor and decode attributes of a scene-referred reconstruction of ``source`` (a
-    file name, ``video frame 3``), with a ``comments`` line stating its units."""
+    """Sensor and decode attributes of a reconstruction of ``source`` (a file name,
+    ``video frame 3``), with a ``comments`` line stating its units (see
+    :func:`values_unit`)."""
+    unit = values_unit(params, scene_referred)
     return (
         sensor_attributes(params)
         | decode_attributes(info)
-        | {"comments": f"MantissaCam reconstruction of {source}; values in {values_unit(params)}"}
+        | {"comments": f"MantissaCam reconstruction of {source}; values in {unit}"}
     )
 
 

@@ -296,7 +296,8 @@ class DeviceConsumer:
             frame = self.decode(state, message)
         start = time.perf_counter_ns()
         data = encode_exr_result(
-            message.codes, frame.winding, message.params, frame.info, self.exr_options
+            message.codes, frame.winding, message.params, frame.info, self.exr_options,
+            f"frame {message.sequence} of device {device}",
         )
         key = result_key(device, message.sequence, delivery.entry_id)
         # A frame's file is never replaced: an owner that lost its lease mid-frame would

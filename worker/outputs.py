@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from models.exr_header import decode_attributes, sensor_attributes
+from models.exr_header import reconstruction_attributes
 from models.formation import SensorParams, reconstruct
 from models.frames import encode_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
@@ -37,19 +37,19 @@ def encode_exr_result(
     params: SensorParams,
     info: dict[str, Any],
     options: dict[str, Any],
+    source: str = "an uploaded frame",
 ) -> bytes:
-    """The reconstruction as EXR bytes (raises OutputOverflowError if it does not fit)."""
+    """The reconstruction as EXR bytes, its units stated in ``comments`` (raises
+    OutputOverflowError if it does not fit); ``source`` names the frame there."""
     half = bool(options.get("half", False))
+    scene_referred = bool(options.get("scene_referred", True))
     x_hat = reconstruct(
-        codes,
-        winding,
-        params,
-        np.float16 if half else np.float32,
-        scene_referred=bool(options.get("scene_referred", True)),
-    )
+        codes, winding, params, np.float16 if half else np.float32,
+        scene_referred=scene_referred,
+    )  # fmt: skip
     return encode_exr(
         x_hat,
-        sensor_attributes(params) | decode_attributes(info),
+        reconstruction_attributes(params, info, source, scene_referred),
         half=half,
         compression=str(options.get("exr_compression", DEFAULT_EXR_COMPRESSION)),
     )

@@ -43,3 +43,19 @@ def test_the_exr_compression_option_reaches_the_file() -> None:
         header = OpenEXR.File(io.BytesIO(data), header_only=True).header()
         assert header["compression"] == EXR_COMPRESSIONS[name]
     np.testing.assert_array_equal(read_hdr(files["none"]).pixels, read_hdr(files["zip"]).pixels)
+
+
+def test_the_exr_says_which_units_its_values_are_in() -> None:
+    """Scene-referred or not, a job's EXR said only 'written by MantissaCam': values a
+    factor of the gain apart could not be told apart."""
+    frame = encode(np.linspace(0.0, 5.0, 48).reshape(6, 8), PARAMS)
+    result = get_decoder("itoh").decode(frame.codes, PARAMS)
+
+    def comments(options: dict, params: SensorParams = PARAMS) -> str:
+        files = encode_outputs(frame.codes, result.winding, params, result.info, options)
+        return str(read_hdr(files["exr"]).attributes["comments"])
+
+    assert comments({}).endswith("values in scene-referred x / gain")
+    assert comments({"scene_referred": False}).endswith("values in wrap units x")
+    no_gain = PARAMS.model_copy(update={"gain": None})
+    assert comments({}, no_gain).endswith("values in wrap units x (gain unknown)")
