@@ -93,7 +93,13 @@ class SimulateFields(SensorFields):
     )
     gray: bool = Field(False, description="encode Rec.709 luminance instead of RGB")
     clip_negative: bool = Field(False, description="set negative irradiance to 0")
-    format: Literal["png", "npy", "tiff"] = Field("png", description="output file format")
+    seed: int | None = Field(
+        0, description="noise seed (0 by default, as mcam simulate: a request gives the same "
+        "frame every time)",
+    )
+    format: Literal["png", "npy", "tiff"] | None = Field(
+        None, description="output file format (default: png for one channel, tiff for colour)"
+    )
     part: Literal["codes", "winding"] = Field(
         "codes", description="the wrapped frame, or the true winding numbers W"
     )

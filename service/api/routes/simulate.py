@@ -33,12 +33,13 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
         {k: v for k, v in fields.sensor_overrides().items() if v is not None}
     )
     frame = simulate(image.pixels, params, overexposed=fields.overexposed, gray=fields.gray)
+    fmt = fields.format or ("tiff" if frame.codes.ndim == 3 else "png")  # PNG frames are grey
     if fields.part == "winding":
-        content = winding_bytes(frame.winding, fields.format)
+        content = winding_bytes(frame.winding, fmt)
     else:
-        content = encode_frame(frame.codes, frame.params, fields.format)
+        content = encode_frame(frame.codes, frame.params, fmt)
     stem = "winding" if fields.part == "winding" else "frame"
-    return download(content, fields.format, stem, {PARAMS_HEADER: frame.params.model_dump_json()})
+    return download(content, fmt, stem, {PARAMS_HEADER: frame.params.model_dump_json()})
 
 
 @router.post(

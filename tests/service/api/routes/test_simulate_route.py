@@ -117,11 +117,25 @@ def test_needs_the_submit_scope(client: Client) -> None:
 
 
 def test_colour_scene_as_png_names_the_http_fields(client: Client) -> None:
+    """By default a colour scene comes back as TIFF (the default PNG refused every colour
+    scene); asked for PNG, the refusal names the fields to change."""
     colour = np.repeat(scene()[:, :, None], 3, axis=2)
     files = {"file": ("s.exr", encode_exr(colour))}
-    reply = client().post("/v1/simulate", files=files, data=FIELDS)
+    default = client().post("/v1/simulate", files=files, data=FIELDS)
+    assert default.status_code == 200 and default.headers["content-type"] == "image/tiff"
+    assert decode_frame(default.content, "tiff").codes.shape == (64, 64, 3)
+    reply = client().post("/v1/simulate", files=files, data={**FIELDS, "format": "png"})
     assert reply.status_code == 415
     assert "format=tiff" in reply.json()["message"] and "gray=true" in reply.json()["message"]
     gray = client().post("/v1/simulate", files=files, data={**FIELDS, "gray": "true"})
     assert gray.status_code == 200
     assert decode_frame(gray.content, "png").codes.shape == (64, 64)
+
+
+def test_noise_is_seeded_by_default_as_in_mcam_simulate(client: Client) -> None:
+    """The seed was None: the same request gave other noise every time."""
+    noisy = {**FIELDS, "read_noise": "0.02"}
+    replies = [client().post("/v1/simulate", files={"file": ("s.exr", exr_bytes())}, data=noisy)
+               for _ in range(2)]
+    assert replies[0].content == replies[1].content
+    assert json.loads(replies[0].headers["X-Mcam-Params"])["seed"] == 0
