@@ -84,6 +84,11 @@ class DeviceHealth:
             span = self._arrivals[-1] - self._arrivals[0]
             return (len(self._arrivals) - 1) / span if span > 0 else 0.0
 
+    def drop_counts(self) -> dict[str, int]:
+        """Frames dropped so far, by cause (:data:`ALL_DROP_CAUSES`)."""
+        with self._lock:
+            return {cause: self.counts[f"dropped_{cause}"] for cause in ALL_DROP_CAUSES}
+
     def dropped(self) -> int:
         """Frames dropped for any cause."""
         with self._lock:

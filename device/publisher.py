@@ -37,6 +37,7 @@ from worker.redis_keys import (
     events_stream,
     health_key,
 )
+from worker.redis_memory import TroubleLog
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,8 @@ class FramePublisher:
         self._cursor_written: str | None = None
         self._next_health = 0.0
         self._reported = {"dropped": 0, "reconnects": 0}
+        self._reported_causes: dict[str, int] = {}
+        self._trouble = TroubleLog(log)
 
     def offer(self, message: FrameMessage) -> None:
         """Queue a frame for publishing; drop it (counted) if the queue is full. The frame
@@ -128,7 +131,11 @@ class FramePublisher:
             return False
         try:
             action()
-        except (redis.RedisError, OSError):
+        except (redis.RedisError, OSError) as exc:
+            self._trouble.warn(
+                f"device {self.device}", exc,
+                then="frames are dropped (dropped_redis_unavailable) until it answers",
+            )  # fmt: skip
             self._redis_ok = False
             self._retry_at = time.monotonic() + self._backoff
             self._backoff = min(self._backoff * 2, MAX_REDIS_BACKOFF_S)
@@ -157,9 +164,14 @@ class FramePublisher:
         """``drop`` / ``reconnect`` events for counters that grew since the last report."""
         now = {"dropped": self.health.dropped(), "reconnects": self.health.counts["reconnects"]}
         events = []
+        causes = self.health.drop_counts()
         if now["dropped"] > self._reported["dropped"]:
+            new = {cause: count - self._reported_causes.get(cause, 0)
+                   for cause, count in causes.items()}
             events.append({"type": "drop", "dropped": str(now["dropped"]),
-                           "new": str(now["dropped"] - self._reported["dropped"])})
+                           "new": str(now["dropped"] - self._reported["dropped"]),
+                           "causes": ",".join(f"{c}:{n}" for c, n in new.items() if n > 0)})
+        self._reported_causes = causes
         if now["reconnects"] > self._reported["reconnects"]:
             events.append({"type": "reconnect", "reconnects": str(now["reconnects"])})
         self._reported = now
@@ -169,7 +181,7 @@ class FramePublisher:
         """Write the health hash and link events, and forward new control commands."""
         self._next_health = time.monotonic() + HEALTH_INTERVAL_S
         fields = self.health.to_fields()
-        reported = dict(self._reported)
+        reported, reported_causes = dict(self._reported), dict(self._reported_causes)
         events = self._new_events()
 
         def write_health() -> None:
@@ -185,7 +197,7 @@ class FramePublisher:
             self._redis(self._write_cursor)
             self._redis(self._read_control)
         else:
-            self._reported = reported
+            self._reported, self._reported_causes = reported, reported_causes
 
     def delivered(self, entry_id: str) -> None:
         """Control entry ``entry_id`` (and every one before it) reached the camera or was

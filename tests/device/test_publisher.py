@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
+import pytest
 import redis
 
 from device.commands import Command, FrameRateCommand, command_fields
@@ -10,6 +13,7 @@ from device.health import DeviceHealth
 from device.publisher import FramePublisher
 from models.formation import SensorParams
 from tests.device.conftest import Camera, poll_control
+from worker.embedded_redis import connect
 from worker.frame_message import FrameMessage
 from worker.redis_keys import DEVICES_SET, control_stream, frame_stream
 
@@ -146,3 +150,30 @@ def test_a_control_entry_that_is_not_text_is_refused_and_publishing_goes_on(
     publisher.offer(message(7))
     publisher.stop()
     assert published(client) == [(7, False)]
+
+
+def test_frames_dropped_while_redis_is_away_are_warned_of_once(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """They were counted without a log line: an operator saw nothing of 33 lost frames."""
+    away = connect("redis://127.0.0.1:1", timeout_s=0.2)
+    health = DeviceHealth("cam0", "loop://")
+    publisher = FramePublisher(away, "cam0", health, lambda *_: True)
+    with caplog.at_level(logging.WARNING, logger="device.publisher"):
+        for sequence in range(5):
+            publisher._publish(message(sequence))
+            publisher._retry_at = 0.0  # try Redis again for each frame
+    assert health.counts["dropped_redis_unavailable"] == 5
+    warnings = [r.getMessage() for r in caplog.records if r.name == "device.publisher"]
+    assert len(warnings) == 1 and "dropped_redis_unavailable" in warnings[0]
+
+
+def test_a_drop_event_names_its_causes(client: redis.Redis) -> None:
+    health = DeviceHealth("cam0", "loop://")
+    publisher = FramePublisher(client, "cam0", health, lambda *_: True)
+    health.add("dropped_redis_unavailable", 33)
+    health.add("dropped_bad_crc", 2)
+    [event] = publisher._new_events()
+    assert event["type"] == "drop" and event["new"] == "35"
+    assert set(event["causes"].split(",")) == {"redis_unavailable:33", "bad_crc:2"}
+    health.add("dropped_bad_crc", 1)
+    assert publisher._new_events()[0]["causes"] == "bad_crc:1"

@@ -1,5 +1,8 @@
 """``/v1/devices/{id}/events``: a server-sent event stream of what happens to a device's
-frames (reconstructed, failed, dropped, reconnected), resumable by event id.
+frames, resumable by event id. Event types: ``frame`` (reconstructed), ``failed``,
+``stale`` (a frame whose sequence number is not past the last stored one: a repeat, or a
+second daemon under the same device id), ``drop`` (``new`` frames dropped, ``causes`` as
+``cause:count`` pairs, e.g. ``redis_unavailable:33``) and ``reconnect``.
 
 Each open stream holds a Redis connection blocked on ``XREAD``, so at most
 ``MCAM_MAX_EVENT_STREAMS`` are open at once; past that a new one gets 503 with
@@ -129,7 +132,7 @@ async def _event_lines(
                 "too_many_streams (MCAM_MAX_EVENT_STREAMS open; see Retry-After) or the queue "
                 "(Redis) is unavailable"
             )},
-            summary="Server-sent events: frame reconstructed, failed, drop, reconnect",
+            summary="Server-sent events: frame, failed, stale, drop (with causes), reconnect",
             response_class=StreamingResponse)
 def events(device_id: str, state: StateDep, _key: ReadKey,
            since: Annotated[str, Query(pattern=r"^(\$|0|[0-9]+-[0-9]+)$")] = "$",
