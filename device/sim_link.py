@@ -89,6 +89,12 @@ class PtyEndpoint:
                     f"{path} exists and is not a link to a pseudo-terminal; the simulated "
                     "camera's port is a symlink it makes and removes: name a new path"
                 )
+        if os.path.exists(self.link_path):  # a link to a pty that is open: a live camera's
+            raise InvalidInputError(
+                f"{self.link_path} is the port of a simulated camera that is running (it "
+                f"links to {os.path.realpath(self.link_path)}); stop that one, or name "
+                "another path (remove the link if no camera runs)"
+            )
         self.url = str(self.link_path)
         self._master = -1
         self._slave = -1

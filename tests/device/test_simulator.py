@@ -221,3 +221,15 @@ def test_a_pty_link_path_never_replaces_a_users_file(tmp_path) -> None:  # type:
     assert os.readlink(left_over) != "/dev/pts/999"
     endpoint.close()
     assert not os.path.lexists(left_over)
+
+
+def test_a_running_cameras_pty_link_is_not_taken_over(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """A second simulated camera on the same path re-pointed the link, and removed it on
+    exit while the first still ran: its daemon could not reconnect."""
+    first = open_endpoint(f"pty:{tmp_path / 'scamp5'}")
+    try:
+        with pytest.raises(InvalidInputError, match="a simulated camera that is running"):
+            open_endpoint(f"pty:{tmp_path / 'scamp5'}")
+        assert os.path.exists(tmp_path / "scamp5")
+    finally:
+        first.close()
