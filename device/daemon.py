@@ -294,6 +294,7 @@ class DeviceDaemon:
                         port.close()
                     self._link_lost()
         finally:
+            self.health.state = "stopped"  # the publisher's last health write says so
             self.publisher.stop()
 
     def start(self) -> DeviceDaemon:

@@ -54,7 +54,8 @@ def _refusal(pipe: redis.client.Pipeline, device: str, silent_after_s: float,
     """Why ``device`` must stay (read inside the WATCH; ``waiting``: its undecoded
     frames), or None."""
     updated = pipe.hget(health_key(device), "updated_ns")
-    if updated is not None and time.time_ns() - int(updated) < silent_after_s * 1e9:
+    stopped = pipe.hget(health_key(device), "state") == b"stopped"  # its daemon said so
+    if not stopped and updated is not None and time.time_ns() - int(updated) < silent_after_s * 1e9:
         return (f"the daemon of device {device!r} reported {silent_after_s:g} s ago or less; "
                 "stop it (mcam device ... ends with Ctrl-C or SIGTERM) and retry")
     if pipe.hget(recording_key(device), "state") in _ACTIVE_RECORDING:

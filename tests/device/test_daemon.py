@@ -20,6 +20,7 @@ from device.link_parser import LinkParser
 from device.sim_link import PtyEndpoint, TcpEndpoint
 from device.simulator import CameraSettings, VirtualScamp5
 from tests.device.conftest import health, start_streaming, stream_frames, wait_for
+from worker.device_registry import forget_device
 from worker.embedded_redis import EmbeddedRedis
 from worker.redis_keys import DEVICES_SET, control_cursor_key, control_stream, events_stream
 
@@ -208,10 +209,11 @@ def test_a_port_that_will_not_open_is_reported(
             assert wait_for(lambda: health(client, "cam1").get("port_error", ""), 10)
             assert wait_for(lambda: daemon.health.counts["reconnects"] == 0
                             and len(caplog.records) >= 1, 5)
+            assert health(client, "cam1")["state"] == "connecting"
         finally:
             daemon.stop()
     fields = health(client, "cam1")
-    assert fields["state"] == "connecting" and str(missing) in fields["port_error"]
+    assert fields["state"] == "stopped" and str(missing) in fields["port_error"]
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert warnings and f"cannot open {missing}" in warnings[0]
     assert len(warnings) < 5  # one per outage, then every WARN_EVERY attempts
@@ -350,3 +352,17 @@ def test_a_command_a_stopped_daemon_never_sent_reaches_the_next_one(
     finally:
         camera.stop()
         second.stop()
+
+
+def test_a_cleanly_stopped_daemon_says_so_and_its_device_can_be_forgotten_at_once(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """It left 'disconnected', and forgetting the device was refused for 10 s with
+    'stop it and retry' although it had stopped."""
+    daemon = DeviceDaemon(DaemonConfig(port=str(tmp_path / "none"), device="cam1",
+                                       data_dir=tmp_path / "data", backoff_max_s=0.2), client)
+    daemon.start()
+    assert wait_for(lambda: health(client, "cam1").get("state") == "connecting", 10)
+    daemon.stop()
+    assert health(client, "cam1")["state"] == "stopped"
+    assert forget_device(client, "cam1", silent_after_s=10.0) == 0
+    assert not client.sismember(DEVICES_SET, "cam1")

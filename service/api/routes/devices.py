@@ -71,7 +71,7 @@ def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
     updated = view.get("updated_ns")
     if isinstance(updated, int):
         view["age_s"] = round((time.time_ns() - updated) / 1e9, 3)
-        if view["age_s"] > DAEMON_SILENT_S:
+        if view["age_s"] > DAEMON_SILENT_S and view.get("state") != "stopped":
             view["last_state"], view["state"], view["fps"] = view.get("state"), "silent", 0.0
     return view
 
