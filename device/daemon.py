@@ -28,6 +28,7 @@ import serial
 
 from device.bracketing import BracketCollector, save_pair
 from device.commands import Command, to_packet
+from device.daemon_claim import DaemonClaim
 from device.datasets import DatasetLimits, prune_pairs
 from device.health import DeviceHealth
 from device.link_parser import DROP_CAUSES, LinkParser
@@ -107,8 +108,9 @@ class DeviceDaemon:
         self.config = config
         self.device = validate_device_id(config.device)
         self.health = DeviceHealth(self.device, config.port)
+        self.claim = DaemonClaim(client, self.device)
         self.publisher = FramePublisher(client, self.device, self.health, self.send_command,
-                                        config.frames_maxlen, config.queue_size)
+                                        config.frames_maxlen, config.queue_size, self.claim)
         self.opener = opener or serial_opener(config.port, config.read_timeout_s)
         self.brackets = BracketCollector()
         self._parser = self._new_parser()
@@ -296,6 +298,8 @@ class DeviceDaemon:
         finally:
             self.health.state = "stopped"  # the publisher's last health write says so
             self.publisher.stop()
+            with contextlib.suppress(redis.RedisError, OSError):
+                self.claim.release()
 
     def start(self) -> DeviceDaemon:
         """Run in a daemon thread."""

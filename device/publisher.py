@@ -26,6 +26,7 @@ from collections.abc import Callable
 import redis
 
 from device.commands import Command, fields_to_command
+from device.daemon_claim import DaemonClaim
 from device.health import DeviceHealth
 from models.errors import InvalidInputError
 from worker.frame_message import FrameMessage
@@ -60,7 +61,7 @@ class FramePublisher:
 
     def __init__(self, client: redis.Redis, device: str, health: DeviceHealth,
                  on_command: Callable[[str, Command | None], bool], frames_maxlen: int = 256,
-                 queue_size: int = 64) -> None:
+                 queue_size: int = 64, claim: DaemonClaim | None = None) -> None:
         self.client = client
         self.device = device
         self.health = health
@@ -84,6 +85,7 @@ class FramePublisher:
         self._reported = {"dropped": 0, "reconnects": 0}
         self._reported_causes: dict[str, int] = {}
         self._trouble = TroubleLog(log)
+        self.claim = claim
 
     def offer(self, message: FrameMessage) -> None:
         """Queue a frame for publishing; drop it (counted) if the queue is full. The frame
@@ -194,10 +196,20 @@ class FramePublisher:
             pipe.execute()
 
         if self._redis(write_health):
+            self._redis(self._renew_claim)
             self._redis(self._write_cursor)
             self._redis(self._read_control)
         else:
             self._reported, self._reported_causes = reported, reported_causes
+
+    def _renew_claim(self) -> None:
+        """Keep this daemon's claim on the device fresh; another daemon holding it (Redis
+        lost the claim and a second daemon took it) is logged, at most every 30 s."""
+        if self.claim is not None and not self.claim.renew():
+            self._trouble.warn(
+                f"device {self.device}", redis.ResponseError("another daemon holds its claim"),
+                then="two daemons stream under one device id: stop one",
+            )  # fmt: skip
 
     def delivered(self, entry_id: str) -> None:
         """Control entry ``entry_id`` (and every one before it) reached the camera or was

@@ -20,6 +20,7 @@ from worker.redis_keys import (
     DEVICES_SET,
     control_cursor_key,
     control_stream,
+    daemon_key,
     events_stream,
     frame_stream,
     health_key,
@@ -45,7 +46,7 @@ def device_keys(device: str) -> list[str]:
     return [
         health_key(device), control_stream(device), control_cursor_key(device),
         events_stream(device), latest_key(device), last_sequence_key(device),
-        lease_key(device), recording_key(device), frame_stream(device),
+        lease_key(device), recording_key(device), frame_stream(device), daemon_key(device),
     ]  # fmt: skip
 
 

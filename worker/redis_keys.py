@@ -61,6 +61,11 @@ def control_cursor_key(device: str) -> str:
     return f"control:{validate_device_id(device)}:done"
 
 
+def daemon_key(device: str) -> str:
+    """The claim of the daemon streaming the device (:mod:`device.daemon_claim`)."""
+    return f"daemon:{validate_device_id(device)}"
+
+
 def events_stream(device: str) -> str:
     """Stream of events (frame reconstructed, drop, reconnect) for server-sent events."""
     return f"events:{validate_device_id(device)}"

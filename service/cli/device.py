@@ -15,8 +15,11 @@ by ``mcam serve`` or ``mcam api``). Bracketed reference pairs go to
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import threading
+
+import redis
 
 from device.daemon import DaemonConfig, DeviceDaemon, check_port_url
 from device.datasets import DatasetLimits
@@ -51,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
     config = DaemonConfig(port=args.port, device=device, frames_maxlen=settings.frames_maxlen,
                           data_dir=settings.data_dir, dataset_limits=limits)
     daemon = DeviceDaemon(config, client)
+    with contextlib.suppress(redis.RedisError, OSError):  # Redis away: claimed once it answers
+        daemon.claim.take()
     stopped = threading.Event()
 
     def stop(_signum: int, _frame: object) -> None:

@@ -91,3 +91,21 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and fragment in lines[0], result.stderr
+
+
+def test_a_second_daemon_under_the_same_device_id_exits_with_one_line(
+        redis_server: EmbeddedRedis, client: redis.Redis, tmp_path: Path) -> None:
+    env = env_for(redis_server.url, tmp_path / "data")
+    first = subprocess.Popen([MCAM, "device", "--port", "loop://", "--device-id", "rig-1"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                             cwd=tmp_path)
+    try:
+        assert wait_for(lambda: health(client, "rig-1").get("state") is not None, 60)
+        second = subprocess.run([MCAM, "device", "--port", "loop://", "--device-id", "rig-1"],
+                                capture_output=True, text=True, env=env, timeout=60)
+        assert second.returncode == 2
+        [line] = second.stderr.strip().splitlines()
+        assert line.startswith("mcam device: error: device 'rig-1' already has a daemon")
+    finally:
+        first.send_signal(signal.SIGTERM)
+    assert first.wait(20) == 0
