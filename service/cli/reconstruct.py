@@ -9,10 +9,10 @@ import numpy as np
 
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
-from models.errors import MissingParameterError
+from models.errors import MissingParameterError, UnsupportedFormatError
 from models.exr_header import reconstruction_attributes, values_unit
 from models.formation import reconstruct
-from models.frames import FRAME_SUFFIXES, read_frame, write_winding
+from models.frames import FRAME_SUFFIXES, frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
 from service.cli.options import (
     add_exr_compression_flag,
@@ -77,6 +77,11 @@ def run(args: argparse.Namespace) -> int:
     with staged_outputs(outputs(args), [args.frame]) as paths:
         decoder = get_decoder(args.decoder)
         frame = read_frame(args.frame, sensor_values(args))
+        if args.winding_out and frame.codes.ndim == 3 and frame_format(args.winding_out) == "png":
+            raise UnsupportedFormatError(  # before the decode, not after it
+                f"{args.frame} is a colour frame: its W map has 3 channels, which a PNG W "
+                "map cannot hold; give --winding-out a .tiff or .npy name"
+            )
         result = decoder.decode(frame.codes, frame.params)
         dtype = np.float16 if args.half else np.float32
         pixels = reconstruct(frame.codes, result.winding, frame.params, dtype, scene_referred=True)

@@ -153,3 +153,16 @@ def test_reconstruct_checks_its_outputs_before_decoding(tmp_path: Path, pipeline
     folder = run_mcam("reconstruct", frame, "-o", "adir.exr/", cwd=tmp_path)
     assert_one_line_error(folder, "-o adir.exr/ names a folder")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_colour_frames_w_map_as_png_is_refused_before_decoding(tmp_path: Path) -> None:
+    """It was refused after the decode (seconds at best), and the EXR not written."""
+    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
+    scene = blob_scene(size=48, peak=6.0, halving=10.0)
+    frame = simulate(np.stack([scene, 0.7 * scene, 0.4 * scene], axis=2), params)
+    write_frame(tmp_path / "colour.npy", frame.codes, None)
+    result = run_mcam("reconstruct", "colour.npy", "-o", "x.exr", "--encoding", "modulo",
+                      "--bits", "8", "--decoder", "itoh", "--winding-out", "W.png",
+                      cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(result, "colour.npy is a colour frame", ".tiff or .npy")
+    assert "decoder" not in result.stdout  # nothing decoded, nothing written
