@@ -85,11 +85,16 @@ def test_reconstruct_within_a_latency_budget(tmp_path: Path, pipeline: Path) -> 
     assert "(once per process)" in summary
 
 
-def test_a_colour_frame_shares_its_latency_budget(tmp_path: Path) -> None:
+def write_colour_npy(folder: Path) -> None:
+    """A 48 x 48 colour modulo frame (8 bits) as ``colour.npy`` in ``folder``."""
     params = SensorParams(encoding="modulo", bits=8, gain=1.0)
     scene = blob_scene(size=48, peak=6.0, halving=10.0)
     frame = simulate(np.stack([scene, 0.7 * scene, 0.4 * scene], axis=2), params)
-    write_frame(tmp_path / "colour.npy", frame.codes, None)
+    write_frame(folder / "colour.npy", frame.codes, None)
+
+
+def test_a_colour_frame_shares_its_latency_budget(tmp_path: Path) -> None:
+    write_colour_npy(tmp_path)
     result = run_mcam("reconstruct", "colour.npy", "-o", "x.exr", "--encoding", "modulo",
                       "--bits", "8", "--decoder", "auto-5000ms", cwd=tmp_path)  # fmt: skip
     assert result.returncode == 0, result.stderr
@@ -157,10 +162,7 @@ def test_reconstruct_checks_its_outputs_before_decoding(tmp_path: Path, pipeline
 
 def test_a_colour_frames_w_map_as_png_is_refused_before_decoding(tmp_path: Path) -> None:
     """It was refused after the decode (seconds at best), and the EXR not written."""
-    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
-    scene = blob_scene(size=48, peak=6.0, halving=10.0)
-    frame = simulate(np.stack([scene, 0.7 * scene, 0.4 * scene], axis=2), params)
-    write_frame(tmp_path / "colour.npy", frame.codes, None)
+    write_colour_npy(tmp_path)
     result = run_mcam("reconstruct", "colour.npy", "-o", "x.exr", "--encoding", "modulo",
                       "--bits", "8", "--decoder", "itoh", "--winding-out", "W.png",
                       cwd=tmp_path)  # fmt: skip
