@@ -281,10 +281,16 @@ def _missing(values: dict[str, Any]) -> dict[str, str]:
 
 
 def _asking_for(missing: dict[str, str]) -> str:
-    """How to give ``missing`` parameters, as flags and as form fields."""
+    """How to give ``missing`` parameters, as flags and as form fields (and, when the
+    encoding is missing, that a mantissa frame needs its alpha too: asked for only after
+    the encoding came, it took a second refusal)."""
     flags = " ".join(f"--{key} {example}" for key, example in missing.items())
     fields = ", ".join(f"{key}={example}" for key, example in missing.items())
-    return f"command line: {flags}; HTTP: the form fields {fields}"
+    mantissa = (
+        "; a mantissa frame also needs its alpha (--alpha 2, alpha=2)"
+        if "encoding" in missing else ""
+    )
+    return f"command line: {flags}; HTTP: the form fields {fields}{mantissa}"
 
 
 def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> SensorParams:

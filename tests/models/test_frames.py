@@ -164,6 +164,7 @@ def test_missing_params_name_the_flags_and_fields(fmt: str) -> None:
         decode_frame(data, fmt)
     assert err.value.code == "missing_parameter"
     assert "form fields encoding=mantissa, bits=8" in str(err.value)
+    assert "a mantissa frame also needs its alpha" in str(err.value)  # not a 2nd refusal
     with pytest.raises(MissingParameterError, match="--alpha 2; HTTP: the form fields alpha=2"):
         decode_frame(data, fmt, {"encoding": "mantissa", "bits": 8})
     frame = decode_frame(data, fmt, {"encoding": "modulo", "bits": 8})
