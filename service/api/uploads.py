@@ -194,5 +194,22 @@ def sniff_frame_format(upload: Upload, declared: str | None, raw_size: bool) -> 
         return "raw"
     raise UnsupportedFormatError(
         "cannot tell the frame's format: send a .png, .tiff or .npy file, or raw codes with "
-        "format=raw, width, height, bits and encoding"
+        f"format=raw, width, height, bits and encoding{_elsewhere(upload.data)}"
     )
+
+
+#: Leading bytes of files another route takes, and what to say.
+_OTHER_ROUTES = (
+    (b"v/1\x01", "an OpenEXR image (scene irradiance): POST /v1/simulate makes a frame of it"),
+    (b"#?RADIANCE", "a Radiance HDR image: POST /v1/simulate makes a frame of it"),
+    (b"#?RGBE", "a Radiance HDR image: POST /v1/simulate makes a frame of it"),
+    (b"PK\x03\x04", "a zip (of video frames?): POST /v1/videos takes those"),
+)
+
+
+def _elsewhere(data: bytes) -> str:
+    """What to do with an upload that is a file another route takes ('' otherwise)."""
+    for magic, advice in _OTHER_ROUTES:
+        if data.startswith(magic):
+            return f"; this file is {advice}"
+    return ""

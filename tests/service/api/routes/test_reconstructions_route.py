@@ -24,6 +24,7 @@ from tests.service.conftest import (
     PARAMS,
     READ_KEY,
     SUBMIT_KEY,
+    exr_bytes,
     frame_png,
     make_settings,
     npy_bytes,
@@ -272,6 +273,18 @@ def test_missing_file_field_and_wrong_content_type(client: Client) -> None:
         "/v1/reconstructions", content=b"{}", headers={"Content-Type": "application/json"}
     )
     assert reply.status_code == 415 and reply.json()["code"] == "unsupported_format"
+
+
+@pytest.mark.parametrize(
+    ("data", "route"), [(None, "/v1/simulate"), (b"PK\x03\x04rest", "/v1/videos")]
+)
+def test_an_hdr_image_or_a_zip_is_pointed_to_its_route(
+    client: Client, data: bytes | None, route: str
+) -> None:
+    """Both got only 'cannot tell the frame's format'."""
+    reply = client().post("/v1/reconstructions",
+                          files={"file": ("upload", data if data is not None else exr_bytes())})
+    assert reply.status_code == 415 and route in reply.json()["message"]
 
 
 def test_malformed_multipart_bodies_say_how_to_send_one(client: Client) -> None:
