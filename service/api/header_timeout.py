@@ -22,12 +22,14 @@ import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from service.api.errors import error_body
+from service.api.security_headers import API_HEADERS
 
 log = logging.getLogger(__name__)
 
 
 def timeout_response(timeout_s: float) -> bytes:
-    """The raw ``408`` sent to a client whose request head did not arrive in time."""
+    """The raw ``408`` sent to a client whose request head did not arrive in time, with
+    the headers every response has (``nosniff``: it had none)."""
     body = json.dumps(
         error_body(
             "request_timeout",
@@ -35,9 +37,10 @@ def timeout_response(timeout_s: float) -> bytes:
             "(MCAM_HTTP_HEADER_TIMEOUT_S); send the whole head at once",
         )
     ).encode()
+    extra = "".join(f"{name}: {value}\r\n" for name, value in API_HEADERS.items())
     head = (
         "HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
-        f"content-length: {len(body)}\r\nconnection: close\r\n\r\n"
+        f"{extra}content-length: {len(body)}\r\nconnection: close\r\n\r\n"
     )
     return head.encode() + body
 

@@ -19,6 +19,7 @@ import uvicorn
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
+from service.api.header_timeout import timeout_response
 from service.cli.api import settings_with, uvicorn_options
 from service.core.config import Settings
 from tests.service.conftest import free_port, read_response
@@ -119,6 +120,12 @@ def test_a_request_head_that_never_finishes_gets_408_and_is_closed() -> None:
         with sock:
             assert status == 408 and sock.recv(1) == b""
         assert time.monotonic() - started > 0.8
+
+
+def test_the_408_carries_the_headers_every_response_has() -> None:
+    """It had only content-type, content-length and connection: no nosniff."""
+    head = timeout_response(1.0).split(b"\r\n\r\n", 1)[0].decode().lower()
+    assert "x-content-type-options: nosniff" in head.splitlines()
 
 
 def test_a_connection_that_sends_nothing_is_closed_after_the_header_timeout() -> None:
