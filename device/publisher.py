@@ -206,8 +206,8 @@ class FramePublisher:
         """Keep this daemon's claim on the device fresh; another daemon holding it (Redis
         lost the claim and a second daemon took it) is logged, at most every 30 s."""
         if self.claim is not None and not self.claim.renew():
-            self._trouble.warn(
-                f"device {self.device}", redis.ResponseError("another daemon holds its claim"),
+            self._trouble.report(
+                f"device {self.device}'s claim", "another daemon holds the device id",
                 then="two daemons stream under one device id: stop one",
             )  # fmt: skip
 

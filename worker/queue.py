@@ -34,7 +34,7 @@ import numpy as np
 import redis
 from numpy.typing import NDArray
 
-from models.decoders.registry import get_decoder, resolve
+from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams, validate_codes
 from worker.frame_message import FrameMessage
@@ -170,8 +170,7 @@ def _check_submission(
     if codes.ndim not in want_ndim:
         layout = "H x W or H x W x C" if kind == "reconstruction" else "T x H x W or T x H x W x C"
         raise InvalidInputError(f"a {kind} job takes {layout} codes, got shape {codes.shape}")
-    resolve(decoder)
-    if not get_decoder(decoder).supports(params):  # learned models are loaded when first used
+    if not get_decoder(decoder).supports(params):  # unknown names refused; models load lazily
         raise InvalidInputError(
             f"decoder {decoder!r} has no model for {params.encoding} frames (GET /v1/decoders "
             "lists what each decodes); choose another decoder, or a quality"

@@ -128,16 +128,21 @@ class TroubleLog:
     def warn(self, where: str, exc: BaseException, then: str = "retrying") -> None:
         """Log ``exc`` (transient) at ``where`` (a phrase naming the place), and ``then``,
         what the caller does about it."""
+        self.report(where, redis_trouble(exc), then)
+
+    def report(self, where: str, trouble: str, then: str) -> None:
+        """Log ``trouble`` (words) at ``where`` and ``then``, at most once per
+        ``every_s`` per place."""
         now = time.monotonic()
         with self._lock:
             last, held_back = self._last.get(where, (-math.inf, 0))
             if now - last < self.every_s:
                 self._last[where] = (last, held_back + 1)
-                self.logger.debug("%s: %s", where, redis_trouble(exc))
+                self.logger.debug("%s: %s", where, trouble)
                 return
             self._last[where] = (now, 0)
         since = f" ({held_back} more times since the last warning)" if held_back else ""
-        self.logger.warning("%s: %s; %s%s", where, redis_trouble(exc), then, since)
+        self.logger.warning("%s: %s; %s%s", where, trouble, then, since)
 
 
 def store_full_error() -> StoreFullError:
