@@ -53,11 +53,6 @@ STATIC_DIR = Path(__file__).parent / "static"
 API_VERSION = "1.0.0"
 
 
-def api_routes() -> list[BaseRoute]:
-    """The routes of every router in :data:`ROUTERS`, with their full path templates."""
-    return [route for name in ROUTERS for route in importlib.import_module(name).router.routes]
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The API app. Redis is connected (or the embedded one started) at startup."""
     settings = settings or get_settings()
@@ -85,9 +80,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_error_handlers(app)
-    routes = api_routes()
-    for name in ROUTERS:
-        app.include_router(importlib.import_module(name).router)
+    routers = [importlib.import_module(name).router for name in ROUTERS]
+    for router in routers:
+        app.include_router(router)
+    # The API's routes with their full path templates (a router's paths carry its prefix).
+    routes: list[BaseRoute] = [route for router in routers for route in router.routes]
 
     def current_state() -> ServiceState:
         state: ServiceState = app.state.mcam

@@ -45,7 +45,7 @@ def viewer_error(exc: HTTPException, scope: Scope) -> HTTPException:
 class ViewerMount:
     """ASGI app for the ``/`` mount: the API's 405s and 404s, else the viewer ``app``.
 
-    ``routes`` are the API's (:func:`service.main.api_routes`).
+    ``routes`` are the API's routers' routes (their full path templates).
     """
 
     def __init__(self, viewer: ASGIApp, routes: list[BaseRoute]) -> None:
