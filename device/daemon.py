@@ -88,6 +88,16 @@ def check_port_url(url: str) -> None:
         )
 
 
+def port_problem(url: str, exc: Exception) -> str:
+    """Why the port at ``url`` did not open. For a device path whose directory does not
+    exist, that and what to do: pyserial said only 'No such file or directory'."""
+    folder = Path(url).parent
+    if "://" not in url and not folder.exists():
+        return (f"directory {folder} does not exist: check --port, or plug the camera in "
+                "or start mcam simulate-device (it prints the path to give)")
+    return str(exc) or type(exc).__name__
+
+
 def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
     """Open ``url`` with pyserial (any URL :func:`serial.serial_for_url` knows).
 
@@ -245,11 +255,11 @@ class DeviceDaemon:
     def _port_failed(self, exc: Exception, failures: int) -> None:
         """Record why the port did not open; warn on the first failure of an outage and
         then every :data:`WARN_EVERY` attempts, so a wrong ``--port`` is seen at once."""
-        reason = str(exc) or type(exc).__name__
+        reason = port_problem(self.config.port, exc)
         self.health.port_error = reason
         if failures == 1 or failures % WARN_EVERY == 0:
             log.warning(
-                "cannot open %s (%s); retrying every %.1f s at most (attempt %d)",
+                "cannot open %s: %s; retrying every %.1f s at most (attempt %d)",
                 self.config.port, reason, self.config.backoff_max_s, failures,
             )
         else:

@@ -83,6 +83,12 @@ class PtyEndpoint:
             self._own_dir = Path(tempfile.mkdtemp(prefix="mcam-pty-"))
             link_path = self._own_dir / "scamp5"
         self.link_path = Path(link_path)
+        if not self.link_path.parent.exists():
+            raise InvalidInputError(
+                f"directory {self.link_path.parent} does not exist, so the simulated "
+                f"camera's port {self.link_path} cannot be made there; create the "
+                "directory, or name a path in an existing one (pty alone picks a temporary one)"
+            )
         for path in (self.link_path, self._new_link()):
             if os.path.lexists(path) and not _is_pty_link(path):
                 raise InvalidInputError(

@@ -86,9 +86,10 @@ def open_port(url: str) -> Endpoint:
     try:
         return open_endpoint(url)
     except OSError as exc:
+        advice = ("name a path in a directory you can write" if url.startswith("pty:")
+                  else "give a local address and a free port")
         raise InvalidInputError(
-            f"--port {url}: cannot open it ({exc.strerror or exc}); give a local address "
-            "and a free port, or pty"
+            f"--port {url}: cannot open it ({exc.strerror or exc}); {advice}, or pty"
         ) from None
 
 

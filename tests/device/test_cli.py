@@ -75,6 +75,10 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         (("--port", "socket://127.0.0.1:99999"), "PORT from 0 to 65535"),
         (("--port", "socket://no.such.host.invalid:5555"), "--port socket://no.such.host.invalid"),
         (("--port", "loop://"), "--port loop:// only reaches readers in this same process"),
+        (("--port", f"pty:{tmp_path / 'no-dir' / 'cam'}"),
+         f"directory {tmp_path / 'no-dir'} does not exist, so the simulated camera's port"),
+        (("--port", f"pty:{tmp_path / 'file' / 'cam'}"),
+         "cannot open it (Not a directory); name a path in a directory you can write, or pty"),
         (("--fps", "1e-300"), "--fps must be from 0.1 to 10000"),
         (("--frames", "-5"), "--frames must be at least 1"),
         (("--seed", "-1"), f"--seed must be from 0 to {MAX_SEED}, got -1"),
@@ -85,6 +89,7 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
          "disconnect_s must be a finite number of seconds, 0 or more, got nan"),
         (("--stall-every", "-1"), "stall_every must be a whole number of packets, 0 (never)"),
     ]
+    (tmp_path / "file").touch()
     for flags, fragment in cases:
         result = subprocess.run([MCAM, "simulate-device", *flags], capture_output=True,
                                 text=True, timeout=60, cwd=tmp_path)

@@ -219,6 +219,23 @@ def test_a_port_that_will_not_open_is_reported(
     assert len(warnings) < 5  # one per outage, then every WARN_EVERY attempts
 
 
+def test_a_port_in_a_directory_that_does_not_exist_says_so_and_what_to_do(
+        client: redis.Redis, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """pyserial said only 'No such file or directory', naming the path three times."""
+    port = tmp_path / "no-such-dir" / "tty"
+    config = DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05)
+    with caplog.at_level(logging.WARNING, logger="device.daemon"):
+        daemon = DeviceDaemon(config, client).start()
+        try:
+            assert wait_for(lambda: health(client, "cam1").get("port_error", ""), 10)
+        finally:
+            daemon.stop()
+    reason = (f"directory {port.parent} does not exist: check --port, or plug the camera in "
+              "or start mcam simulate-device (it prints the path to give)")
+    assert health(client, "cam1")["port_error"] == reason
+    assert f"cannot open {port}: {reason}; retrying" in caplog.records[0].getMessage()
+
+
 def test_a_wild_sequence_jump_is_a_gap_not_trillions_of_missing_frames(
         client: redis.Redis) -> None:
     daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client)
