@@ -11,6 +11,10 @@ wall clock, ns since the epoch), ``last_sequence``, ``fps`` (measured over the
 last frames), ``brackets_saved``, ``brackets_incomplete``, ``control_sent``,
 ``control_rejected``, ``settings`` (JSON: encoding, alpha, bits, gain, width,
 height of the newest frame), ``updated_ns``.
+
+The counters are the device's, not one daemon's: a daemon that takes over the device
+(:meth:`DeviceHealth.carry_over`) goes on from those its previous daemon left in the
+hash. The gauges (state, port error, fps) are this daemon's own.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import json
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Mapping
 from typing import Any
 
 from device.link_parser import DROP_CAUSES
@@ -42,6 +47,7 @@ class DeviceHealth:
         self.state = "connecting"
         self.port_error = ""
         self.counts: Counter[str] = Counter({name: 0 for name in _COUNTERS})
+        self._carried: Counter[str] = Counter()  # the previous daemons' counts
         self.last_frame_ns = 0
         self.last_sequence = -1
         self.settings: dict[str, Any] = {}
@@ -54,17 +60,30 @@ class DeviceHealth:
             self.counts[name] += n
 
     def set(self, name: str, value: int) -> None:
-        """Set counter ``name`` (for counts kept elsewhere)."""
+        """Set counter ``name`` to this daemon's ``value`` (for counts kept elsewhere)."""
         with self._lock:
-            self.counts[name] = value
+            self.counts[name] = self._carried[name] + value
 
     def set_parser_counts(self, drops: Counter[str], garbage_bytes: int,
                           base: Counter[str]) -> None:
         """Counters of the current parser, on top of those of parsers before a reconnect."""
         with self._lock:
             for cause in DROP_CAUSES:
-                self.counts[f"dropped_{cause}"] = base[cause] + drops[cause]
-            self.counts["garbage_bytes"] = base["garbage_bytes"] + garbage_bytes
+                name = f"dropped_{cause}"
+                self.counts[name] = self._carried[name] + base[cause] + drops[cause]
+            self.counts["garbage_bytes"] = (self._carried["garbage_bytes"]
+                                            + base["garbage_bytes"] + garbage_bytes)
+
+    def carry_over(self, previous: Mapping[str, bytes | str]) -> Counter[str]:
+        """Go on from the counters of the device's previous daemon (``previous``: the
+        health hash it left; a counter missing there, or not a whole number, counts 0):
+        they are added to this daemon's, now and at every later :meth:`set`. Returns
+        them."""
+        carried = Counter({name: _count(previous.get(name)) for name in _COUNTERS})
+        with self._lock:
+            self._carried = carried
+            self.counts.update(carried)
+        return carried
 
     def frame_received(self, sequence: int, settings: dict[str, Any]) -> None:
         """Record a valid data packet's arrival (for fps and last-frame gauges)."""
@@ -107,3 +126,12 @@ class DeviceHealth:
                 updated_ns=str(time.time_ns()),
             )
         return fields
+
+
+def _count(value: bytes | str | None) -> int:
+    """A counter read back from the health hash: a whole number, 0 or more (0 if missing
+    or malformed)."""
+    try:
+        return max(int(value or 0), 0)
+    except ValueError:
+        return 0

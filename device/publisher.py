@@ -11,7 +11,9 @@ any drop the frame that follows the dropped one carries ``discont`` (temporal st
 broke): the next frame queued after a full queue's drop (frames queued before it
 still follow their predecessors), the next frame published after a failed publish.
 Growing drop and reconnect counters are also appended to ``events:<device>`` as
-``drop`` / ``reconnect`` events for the API's server-sent events.
+``drop`` / ``reconnect`` events for the API's server-sent events. Before its first health
+write the publisher takes the device over: holding the device's claim, it goes on from
+the counters the previous daemon left in the health hash (not reported again as events).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import redis
 
 from device.commands import Command, fields_to_command
 from device.daemon_claim import DaemonClaim
-from device.health import DeviceHealth
+from device.health import ALL_DROP_CAUSES, DeviceHealth
 from models.errors import InvalidInputError
 from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
@@ -82,6 +84,7 @@ class FramePublisher:
         self._delivered: str | None = None
         self._cursor_written: str | None = None
         self._next_health = 0.0
+        self._taken_over = False
         self._reported = {"dropped": 0, "reconnects": 0}
         self._reported_causes: dict[str, int] = {}
         self._trouble = TroubleLog(log)
@@ -182,6 +185,8 @@ class FramePublisher:
     def _housekeeping(self) -> None:
         """Write the health hash and link events, and forward new control commands."""
         self._next_health = time.monotonic() + HEALTH_INTERVAL_S
+        if not self._taken_over and not self._redis(self._take_over):
+            return
         fields = self.health.to_fields()
         reported, reported_causes = dict(self._reported), dict(self._reported_causes)
         events = self._new_events()
@@ -201,6 +206,19 @@ class FramePublisher:
             self._redis(self._read_control)
         else:
             self._reported, self._reported_causes = reported, reported_causes
+
+    def _take_over(self) -> None:
+        """Go on from the counters the device's previous daemon left in its health hash,
+        if the device's claim is this daemon's (with no claim, or another daemon's, they
+        start from 0). The counts carried over are not new drops or reconnects."""
+        if self.claim is not None and self.claim.renew():
+            raw = self.client.hgetall(health_key(self.device))
+            carried = self.health.carry_over(
+                {(k.decode() if isinstance(k, bytes) else k): v for k, v in raw.items()})
+            self._reported_causes = {c: carried[f"dropped_{c}"] for c in ALL_DROP_CAUSES}
+            self._reported = {"dropped": sum(self._reported_causes.values()),
+                              "reconnects": carried["reconnects"]}
+        self._taken_over = True
 
     def _renew_claim(self) -> None:
         """Keep this daemon's claim on the device fresh; another daemon holding it (Redis

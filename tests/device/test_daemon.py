@@ -383,3 +383,77 @@ def test_a_cleanly_stopped_daemon_says_so_and_its_device_can_be_forgotten_at_onc
     assert health(client, "cam1")["state"] == "stopped"
     assert forget_device(client, "cam1", silent_after_s=10.0) == 0
     assert not client.sismember(DEVICES_SET, "cam1")
+
+
+def wire(*sequences: int, damaged: int | None = None) -> bytes:
+    """What a camera sends: intact data packets, then one whose CRC fails (``damaged``)."""
+    data = b"".join(lp.encode_packet(lp.DataPacket(s, 0, "modulo", 2.0, 8, 1.0,
+                                                   np.zeros((4, 4), np.uint8)))
+                    for s in sequences)
+    if damaged is None:
+        return data
+    bad = bytearray(wire(damaged))
+    bad[-1] ^= 0xFF
+    return data + bytes(bad)
+
+
+def events_since(client: redis.Redis, device: str, count: int) -> list[dict[str, str]]:
+    """The events of ``device`` after its first ``count``."""
+    entries = client.xrange(events_stream(device))[count:]
+    return [{k.decode(): v.decode() for k, v in fields.items() if k != b"written_ns"}
+            for _, fields in entries]
+
+
+@pytest.mark.parametrize("frames_first", [True, False],
+                         ids=["frames-before-take-over", "take-over-before-frames"])
+def test_a_restarted_daemon_goes_on_from_its_predecessors_counters(
+        client: redis.Redis, frames_first: bool) -> None:
+    """A restart reset frames, drops, gaps and reconnects to 0, and an operator watching
+    them lost their history. The gauges start afresh; the counts carried over are not
+    reported again as events, whether the new daemon's first frames come before it
+    reaches Redis or after."""
+    config = DaemonConfig(port="loop://", device="cam9")
+    first = DeviceDaemon(config, client)
+    first.claim.take()
+    first.health.add("reconnects", 2)
+    first.health.port_error = "unplugged"
+    first._feed(wire(0, 1, 2, damaged=3) + wire(4))
+    first.publisher.start()
+    first.publisher.stop()
+    first.claim.release()  # a clean stop, as run() ends
+    before = health(client, "cam9")
+    assert (before["frames_ok"], before["dropped_bad_crc"], before["frames_missing"]) == (
+        "4", "1", "1")
+    events = client.xlen(events_stream("cam9"))
+
+    second = DeviceDaemon(config, client)
+    second.claim.take()
+    if not frames_first:
+        second.publisher._housekeeping()
+    second._feed(wire(5, damaged=6))
+    second.publisher.start()
+    second.publisher.stop()
+    after = health(client, "cam9")
+    assert {name: after[name] for name in (
+        "frames_received", "frames_ok", "dropped_bad_crc", "sequence_gaps", "frames_missing",
+        "reconnects", "state", "port_error")} == {
+        "frames_received": "5", "frames_ok": "5", "dropped_bad_crc": "2",
+        "sequence_gaps": "1", "frames_missing": "1", "reconnects": "2",
+        "state": "connecting", "port_error": ""}
+    assert int(after["garbage_bytes"]) > int(before["garbage_bytes"])
+    assert events_since(client, "cam9", events) == [
+        {"type": "drop", "dropped": "2", "new": "1", "causes": "bad_crc:1"}]
+
+
+def test_a_daemon_whose_device_another_daemon_holds_takes_none_of_its_counters(
+        client: redis.Redis) -> None:
+    """The hash is the other daemon's: its counts are not this camera's history."""
+    config = DaemonConfig(port="loop://", device="cam9")
+    first = DeviceDaemon(config, client)
+    first.claim.take()
+    first._feed(wire(0, 1, 2))
+    first.publisher._housekeeping()
+    second = DeviceDaemon(config, client)
+    second._feed(wire(0))
+    second.publisher._housekeeping()
+    assert second.health.counts["frames_received"] == 1
