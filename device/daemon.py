@@ -47,10 +47,6 @@ MAX_READ = 1 << 20
 #: While the port stays closed, a warning every this many failed attempts (about a
 #: minute at the longest backoff); the others are logged at debug level.
 WARN_EVERY = 30
-#: A forward sequence jump counts its frames as missing up to this many (an hour at
-#: 250 frames/s); a larger one is a counter that reset or was corrupted, not frames
-#: lost, and counts as a gap only (a jump to 2^64 - 1 added 1.8e19 missing frames).
-MAX_MISSING_PER_GAP = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -172,10 +168,7 @@ class DeviceDaemon:
     def _on_data(self, packet: DataPacket) -> None:
         expected = None if self._last_sequence is None else self._last_sequence + 1
         if expected is not None and packet.sequence != expected:
-            self.health.add("sequence_gaps")
-            missing = packet.sequence - expected
-            if 0 < missing <= MAX_MISSING_PER_GAP:
-                self.health.add("frames_missing", missing)
+            self.health.sequence_gap(expected, packet.sequence)
             self._discont = True
             self.brackets.interrupt()
         self._last_sequence = packet.sequence

@@ -7,14 +7,18 @@ Fields (all strings in Redis): ``state`` (connecting / connected / disconnected)
 queue), ``stream_full`` (oldest frames evicted from the Redis stream unread),
 ``redis_unavailable`` and ``rejected``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
 (sequence numbers never received), ``reconnects``, ``last_frame_ns`` (host
-wall clock, ns since the epoch), ``last_sequence``, ``fps`` (measured over the
-last frames), ``brackets_saved``, ``brackets_incomplete``, ``control_sent``,
-``control_rejected``, ``settings`` (JSON: encoding, alpha, bits, gain, width,
-height of the newest frame), ``updated_ns``.
+wall clock, ns since the epoch) and ``last_sequence`` of the device's newest frame (-1:
+none yet), ``fps`` (measured over the last frames), ``brackets_saved``,
+``brackets_incomplete``, ``control_sent``, ``control_rejected``, ``settings`` (JSON:
+encoding, alpha, bits, gain, width, height of the newest frame), ``updated_ns``.
 
 The counters are the device's, not one daemon's: a daemon that takes over the device
 (:meth:`DeviceHealth.carry_over`) goes on from those its previous daemon left in the
-hash. The gauges (state, port error, fps) are this daemon's own.
+hash, and its first frame is seen against the previous daemon's last one (frames the
+camera sent while no daemon ran are a gap); until that frame the newest frame's
+``last_sequence`` and ``last_frame_ns`` stay the previous daemon's. A killed daemon's
+hash is up to one health write old (0.25 s): the frames it got after that count as
+missing. The gauges (state, port error, fps, settings) are this daemon's own.
 """
 
 from __future__ import annotations
@@ -32,6 +36,10 @@ from device.link_parser import DROP_CAUSES
 #: unreachable, or a frame whose header the formation model rejects.
 HOST_DROP_CAUSES: tuple[str, ...] = ("queue_full", "stream_full", "redis_unavailable", "rejected")
 ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + HOST_DROP_CAUSES
+#: A forward sequence jump counts its frames as missing up to this many (an hour at
+#: 250 frames/s); a larger one is a counter that reset or was corrupted, not frames
+#: lost, and counts as a gap only (a jump to 2^64 - 1 added 1.8e19 missing frames).
+MAX_MISSING_PER_GAP = 1_000_000
 _COUNTERS: tuple[str, ...] = (
     "frames_ok", "frames_received", "garbage_bytes", "sequence_gaps", "frames_missing",
     "reconnects", "brackets_saved", "brackets_incomplete", "control_sent", "control_rejected",
@@ -48,6 +56,8 @@ class DeviceHealth:
         self.port_error = ""
         self.counts: Counter[str] = Counter({name: 0 for name in _COUNTERS})
         self._carried: Counter[str] = Counter()  # the previous daemons' counts
+        self._first_sequence: int | None = None  # this daemon's first frame
+        self._resume_after: int | None = None  # the previous daemon's last, until then
         self.last_frame_ns = 0
         self.last_sequence = -1
         self.settings: dict[str, Any] = {}
@@ -77,17 +87,46 @@ class DeviceHealth:
     def carry_over(self, previous: Mapping[str, bytes | str]) -> Counter[str]:
         """Go on from the counters of the device's previous daemon (``previous``: the
         health hash it left; a counter missing there, or not a whole number, counts 0):
-        they are added to this daemon's, now and at every later :meth:`set`. Returns
-        them."""
-        carried = Counter({name: _count(previous.get(name)) for name in _COUNTERS})
+        they are added to this daemon's, now and at every later :meth:`set`. This
+        daemon's first frame, now or when it comes, is seen against the previous
+        daemon's last (:meth:`sequence_gap`). Returns the counters carried over."""
+        carried = Counter({name: max(_whole(previous.get(name)), 0) for name in _COUNTERS})
+        last = _whole(previous.get("last_sequence"))
         with self._lock:
             self._carried = carried
             self.counts.update(carried)
+            if last >= 0 and self._first_sequence is not None:
+                self._count_gap(last + 1, self._first_sequence)
+            elif last >= 0:
+                self._resume_after = last
+                self.last_sequence = last
+                self.last_frame_ns = max(_whole(previous.get("last_frame_ns")), 0)
         return carried
 
-    def frame_received(self, sequence: int, settings: dict[str, Any]) -> None:
-        """Record a valid data packet's arrival (for fps and last-frame gauges)."""
+    def sequence_gap(self, expected: int, sequence: int) -> None:
+        """Count frame ``sequence`` coming where ``expected`` was due: a gap, and the
+        frames skipped as missing (none for a step back or one past
+        :data:`MAX_MISSING_PER_GAP`)."""
         with self._lock:
+            self._count_gap(expected, sequence)
+
+    def _count_gap(self, expected: int, sequence: int) -> None:
+        """:meth:`sequence_gap` with the lock held; nothing when ``sequence`` is due."""
+        if sequence == expected:
+            return
+        self.counts["sequence_gaps"] += 1
+        missing = sequence - expected
+        if 0 < missing <= MAX_MISSING_PER_GAP:
+            self.counts["frames_missing"] += missing
+
+    def frame_received(self, sequence: int, settings: dict[str, Any]) -> None:
+        """Record a valid data packet's arrival (for fps and last-frame gauges); this
+        daemon's first is seen against the previous daemon's last (:meth:`carry_over`)."""
+        with self._lock:
+            if self._first_sequence is None:
+                self._first_sequence = sequence
+                if self._resume_after is not None:
+                    self._count_gap(self._resume_after + 1, sequence)
             self.counts["frames_received"] += 1
             self.last_sequence = sequence
             self.last_frame_ns = time.time_ns()
@@ -128,10 +167,9 @@ class DeviceHealth:
         return fields
 
 
-def _count(value: bytes | str | None) -> int:
-    """A counter read back from the health hash: a whole number, 0 or more (0 if missing
-    or malformed)."""
+def _whole(value: bytes | str | None) -> int:
+    """A whole number read back from the health hash; -1 if missing or malformed."""
     try:
-        return max(int(value or 0), 0)
+        return int(value or -1)
     except ValueError:
-        return 0
+        return -1

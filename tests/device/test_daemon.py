@@ -457,3 +457,39 @@ def test_a_daemon_whose_device_another_daemon_holds_takes_none_of_its_counters(
     second._feed(wire(0))
     second.publisher._housekeeping()
     assert second.health.counts["frames_received"] == 1
+
+
+def restart(client: redis.Redis, data: bytes, *, take_over_first: bool) -> DeviceDaemon:
+    """A daemon of cam9 that reads ``data`` from its camera, publishes it and stops
+    cleanly; with ``take_over_first`` it reaches Redis before its first frame."""
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client)
+    daemon.claim.take()
+    if take_over_first:
+        daemon.publisher._housekeeping()
+    daemon._feed(data)
+    daemon.publisher.start()
+    daemon.publisher.stop()
+    daemon.claim.release()
+    return daemon
+
+
+@pytest.mark.parametrize("take_over_first", [False, True],
+                         ids=["frames-before-take-over", "take-over-before-frames"])
+def test_frames_sent_while_no_daemon_ran_are_a_gap_of_missing_frames(
+        client: redis.Redis, take_over_first: bool) -> None:
+    """The camera counted on while no daemon read it: the first frame after the restart
+    is seen against the last one before it (also across a daemon that got no frame),
+    the worker still gets a discont, and a wild jump is a counter reset, not frames."""
+    restart(client, wire(0, 1, 2), take_over_first=take_over_first)
+    restart(client, b"", take_over_first=take_over_first)  # the camera was unplugged
+    assert health(client, "cam9")["last_sequence"] == "2"
+    restart(client, wire(10, 11), take_over_first=take_over_first)
+    counts = health(client, "cam9")
+    assert (counts["sequence_gaps"], counts["frames_missing"]) == ("1", "7")
+    assert [(f.sequence, f.discont) for f in stream_frames(client, "cam9")] == [
+        (0, True), (1, False), (2, False), (10, True), (11, False)]
+    restart(client, wire(12), take_over_first=take_over_first)  # no frame lost: no gap
+    assert stream_frames(client, "cam9")[-1].discont  # as every new daemon's first frame
+    restart(client, wire(2**40), take_over_first=take_over_first)
+    counts = health(client, "cam9")
+    assert (counts["sequence_gaps"], counts["frames_missing"]) == ("2", "7")
