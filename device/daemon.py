@@ -272,12 +272,13 @@ class DeviceDaemon:
         return bytes(port.read(min(max(port.in_waiting, 1), MAX_READ)))
 
     def _link_lost(self) -> None:
-        """Forget partial packets and sequence state: the next frame starts a new run."""
+        """Forget partial packets: the next frame starts a new run (discont). It is still
+        seen against the last sequence before the link was lost, so frames the camera sent
+        meanwhile are a gap (:meth:`DeviceHealth.sequence_gap`)."""
         self._parser.reset()
         self._parser_base.update({cause: self._parser.drops[cause] for cause in DROP_CAUSES})
         self._parser_base["garbage_bytes"] += self._parser.garbage_bytes
         self._parser = self._new_parser()
-        self._last_sequence = None
         self._discont = True
         self.brackets.interrupt()
         self.health.state = "disconnected"

@@ -246,6 +246,34 @@ def test_a_wild_sequence_jump_is_a_gap_not_trillions_of_missing_frames(
     assert daemon.health.counts["frames_missing"] == 3
 
 
+def test_frames_sent_while_the_link_was_down_are_a_gap_of_missing_frames(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """The cable was pulled while the camera counted on: the reconnect forgot the last
+    sequence and counted no gap, unlike a daemon restart. The first frame of each link is
+    seen against the last of the one before (a counter that restarted or jumped wildly
+    is a gap only) and still carries discont."""
+    camera = PtyEndpoint(tmp_path / "scamp5")
+    config = DaemonConfig(port=camera.url, device="cam1", backoff_max_s=0.05)
+    daemon = DeviceDaemon(config, client).start()
+    try:
+        for reconnects, sequences in enumerate([(0, 1, 2), (3,), (10, 11), (0,), (2**40,)]):
+            if reconnects:
+                camera.disconnect()  # the cable is pulled and plugged back
+                camera.reconnect()
+            assert wait_for(lambda n=reconnects: daemon.health.counts["reconnects"] == n
+                            and daemon.health.state == "connected", 10)
+            camera.write(wire(*sequences))
+            assert wait_for(lambda last=sequences[-1]: daemon.health.last_sequence == last, 10)
+    finally:
+        daemon.stop()
+        camera.close()
+    counts = health(client, "cam1")
+    assert (counts["sequence_gaps"], counts["frames_missing"]) == ("3", "6")
+    assert [(f.sequence, f.discont) for f in stream_frames(client, "cam1")] == [
+        (0, True), (1, False), (2, False), (3, True), (10, True), (11, False), (0, True),
+        (2**40, True)]
+
+
 def bracket_packets(first: int) -> list[lp.DataPacket]:
     """A 3-packet bracket from sequence ``first``: the wrapped frame, two clipped images."""
     codes = np.full((4, 4), 100, np.uint8)
