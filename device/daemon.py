@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import logging
+import os
 import queue
 import select
 import threading
@@ -85,13 +86,23 @@ def check_port_url(url: str) -> None:
 
 
 def port_problem(url: str, exc: Exception) -> str:
-    """Why the port at ``url`` did not open. For a device path whose directory does not
-    exist, that and what to do: pyserial said only 'No such file or directory'."""
-    folder = Path(url).parent
-    if "://" not in url and not folder.exists():
-        return (f"directory {folder} does not exist: check --port, or plug the camera in "
-                "or start mcam simulate-device (it prints the path to give)")
+    """Why the port at ``url`` did not open. For a device path where nothing is (no
+    directory, no file, a link to nothing), that and what to do: pyserial said only 'No
+    such file or directory', naming the path three times."""
+    if "://" not in url and not os.path.exists(url):
+        return (f"{_missing(Path(url))}: check --port, or plug the camera in or start "
+                "mcam simulate-device (it prints the path to give)")
     return str(exc) or type(exc).__name__
+
+
+def _missing(path: Path) -> str:
+    """What is missing of ``path``, which does not exist. os.path, as it never raises
+    (Path.exists raises under a directory the daemon may not search)."""
+    if not os.path.exists(path.parent):
+        return f"directory {path.parent} does not exist"
+    with contextlib.suppress(OSError):  # not a link (or no longer one)
+        return f"{path} is a link to {os.readlink(path)}, which does not exist"
+    return f"{path} does not exist"
 
 
 def serial_opener(url: str, read_timeout_s: float) -> PortOpener:

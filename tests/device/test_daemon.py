@@ -219,21 +219,34 @@ def test_a_port_that_will_not_open_is_reported(
     assert len(warnings) < 5  # one per outage, then every WARN_EVERY attempts
 
 
-def test_a_port_in_a_directory_that_does_not_exist_says_so_and_what_to_do(
-        client: redis.Redis, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """pyserial said only 'No such file or directory', naming the path three times."""
-    port = tmp_path / "no-such-dir" / "tty"
+@pytest.mark.parametrize(("name", "missing"), [
+    ("no-such-dir/tty", "directory {port.parent} does not exist"),
+    ("no-such-tty", "{port} does not exist"),
+    ("dangling", "{port} is a link to {port.parent}/gone, which does not exist"),
+], ids=["directory", "file", "dangling-link"])
+def test_a_port_that_does_not_exist_says_so_and_what_to_do_and_is_retried(
+        client: redis.Redis, tmp_path: Path, caplog: pytest.LogCaptureFixture, name: str,
+        missing: str) -> None:
+    """pyserial said only 'No such file or directory', naming the path three times; the
+    daemon goes on trying, and opens the port once it appears."""
+    port = tmp_path / name
+    (tmp_path / "dangling").symlink_to(tmp_path / "gone")
+    reason = (f"{missing.format(port=port)}: check --port, or plug the camera in or start "
+              "mcam simulate-device (it prints the path to give)")
     config = DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05)
     with caplog.at_level(logging.WARNING, logger="device.daemon"):
         daemon = DeviceDaemon(config, client).start()
         try:
-            assert wait_for(lambda: health(client, "cam1").get("port_error", ""), 10)
+            assert wait_for(lambda: health(client, "cam1").get("port_error") == reason, 10)
+            port.parent.mkdir(exist_ok=True)
+            port.unlink(missing_ok=True)
+            camera = PtyEndpoint(port)
+            assert wait_for(lambda: daemon.health.state == "connected", 10)
+            camera.close()
         finally:
             daemon.stop()
-    reason = (f"directory {port.parent} does not exist: check --port, or plug the camera in "
-              "or start mcam simulate-device (it prints the path to give)")
-    assert health(client, "cam1")["port_error"] == reason
     assert f"cannot open {port}: {reason}; retrying" in caplog.records[0].getMessage()
+    assert daemon.health.port_error == ""
 
 
 def test_a_wild_sequence_jump_is_a_gap_not_trillions_of_missing_frames(
