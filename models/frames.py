@@ -40,14 +40,20 @@ from models.errors import (
     MissingParameterError,
     UnsupportedFormatError,
 )
+from models.file_magic import (
+    FRAME_MAGICS,
+    HDR_MAGICS,
+    PNG_SIGNATURE,
+    ZIP_MAGIC,
+    content_first,
+    format_by_content,
+)
 from models.formation import SensorParams, validate_codes
 from models.tiff_pages import open_tiff, page_codes, page_shape
 
 FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
 #: PNG text-chunk keyword holding the parameters as JSON.
 PNG_KEYWORD = "mantissacam"
-#: The eight bytes every PNG file starts with.
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
 #: File-name suffixes of wrapped frames and winding maps.
 FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in _ALIASES)
@@ -75,6 +81,24 @@ def frame_format(name: str | os.PathLike[str]) -> str:
             "use one of: .png (grayscale), .tiff/.tif (grey or RGB), .npy"
         )
     return _ALIASES[key]
+
+
+#: What a file of another reader's format is, and where it goes.
+_NOT_FRAMES = {
+    "exr": "an OpenEXR image (scene irradiance), not a wrapped frame: make a frame of it "
+    "with mcam simulate or POST /v1/simulate",
+    "hdr": "a Radiance HDR image (scene irradiance), not a wrapped frame: make a frame of it "
+    "with mcam simulate or POST /v1/simulate",
+    "zip": "a zip (of video frames?), not a wrapped frame: decode it as a video with "
+    "mcam video or POST /v1/videos",
+}
+
+
+def not_a_frame(data: bytes) -> str | None:
+    """What ``data`` is when it is a file another reader takes (an HDR image, a zip), and
+    where to send it; None otherwise."""
+    fmt = format_by_content(data, (*HDR_MAGICS, (ZIP_MAGIC, "zip")))
+    return None if fmt is None else _NOT_FRAMES[fmt]
 
 
 def check_pixel_count(width: int, height: int, max_pixels: int | None) -> None:
@@ -337,8 +361,14 @@ def decode_frame(
     overrides: dict[str, Any] | None = None,
     max_pixels: int | None = None,
 ) -> WrappedFrame:
-    """Decode a wrapped-frame file's bytes; ``overrides`` fill in or replace stored params."""
-    fmt = frame_format(fmt)
+    """Decode a wrapped-frame file's bytes; ``overrides`` fill in or replace stored params.
+
+    ``fmt`` (a format name, suffix or file name) is the format unless the leading bytes
+    show another frame format: the content wins (see :mod:`models.file_magic`). An HDR
+    image or a zip is refused with where to send it."""
+    fmt = content_first(data, frame_format(fmt), FRAME_MAGICS)
+    if (other := not_a_frame(data)) is not None:
+        raise UnsupportedFormatError(f"the file is {other}")
     with decoding(f"the {fmt.upper()} frame"):
         codes, stored = _READERS[fmt](data, max_pixels)
     _check_layout(codes)
@@ -353,7 +383,7 @@ def read_frame(
     overrides: dict[str, Any] | None = None,
     max_pixels: int | None = None,
 ) -> WrappedFrame:
-    """Read a wrapped-frame file; the format follows the file's suffix."""
+    """Read a wrapped-frame file; the format is its content's, else its suffix's."""
     fmt = frame_format(path)
     return decode_frame(Path(path).read_bytes(), fmt, overrides, max_pixels)
 
@@ -398,8 +428,10 @@ def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) ->
 
 
 def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
-    """Read a winding-number map written by :func:`write_winding` (int64)."""
-    return decode_winding(Path(path).read_bytes(), frame_format(path))
+    """Read a winding-number map written by :func:`write_winding` (int64); the format is
+    its content's, else its suffix's."""
+    data = Path(path).read_bytes()
+    return decode_winding(data, content_first(data, frame_format(path), FRAME_MAGICS))
 
 
 def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:

@@ -30,12 +30,11 @@ from models.errors import InvalidInputError, McamError, UnsupportedFormatError
 from models.exr_chunks import missing_chunks
 from models.exr_limits import check_exr_size, part_size
 from models.exr_parts import check_flat, image_part
+from models.file_magic import FRAME_MAGICS, HDR_MAGICS, format_by_content
 from models.formation import validate_irradiance
 from models.frames import check_pixel_count, decoding
 from models.output_range import ensure_fits
 
-EXR_MAGIC = b"\x76\x2f\x31\x01"
-RADIANCE_MAGICS = (b"#?RADIANCE", b"#?RGBE")
 _EXR_TRUNCATED = "the OpenEXR pixel data is truncated or corrupt; send the complete file"
 #: RGBE exponent bias plus the 8 mantissa bits: value = (m + 0.5) * 2^(e - 136).
 _RGBE_SHIFT = 136
@@ -250,20 +249,32 @@ def read_hdr(
         with source.open("rb") as handle:
             label, head = name or str(source), handle.read(16)
     try:
-        if head.startswith(EXR_MAGIC):
+        fmt = format_by_content(head, HDR_MAGICS)
+        if fmt == "exr":
             with decoding("the OpenEXR file"):
                 pixels, attributes = _read_exr(source, max_pixels)
-        elif head.startswith(RADIANCE_MAGICS):
+        elif fmt == "hdr":
             data = source if isinstance(source, bytes) else source.read_bytes()
             pixels, attributes = _read_radiance(data, max_pixels)
         else:
-            raise UnsupportedFormatError(
-                "not an OpenEXR or Radiance HDR (.hdr, .pic) image; convert it to OpenEXR"
-            )
+            raise UnsupportedFormatError(_not_hdr(head))
         values, clipped = validate_irradiance(pixels, clip_negative=clip_negative)
     except McamError as exc:
         raise type(exc)(f"{label}: {exc.message}") from None
     return HdrImage(pixels=values, attributes=attributes, negatives_clipped=clipped)
+
+
+def _not_hdr(head: bytes) -> str:
+    """Why a file whose leading bytes are ``head`` is refused as an HDR image, and what
+    to do: a wrapped frame's file (PNG, TIFF, npy) is pointed to the reconstructions."""
+    fmt = format_by_content(head, FRAME_MAGICS)
+    if fmt is None:
+        return "not an OpenEXR or Radiance HDR (.hdr, .pic) image; convert it to OpenEXR"
+    return (
+        f"a {fmt.upper()} file, not an OpenEXR or Radiance HDR (.hdr, .pic) image: if it is "
+        "a wrapped frame, mcam reconstruct or POST /v1/reconstructions decodes it; else "
+        "convert it to OpenEXR"
+    )
 
 
 def _exr_text(value: str) -> str:

@@ -41,6 +41,7 @@ from models.errors import (
     McamError,
     UnsupportedFormatError,
 )
+from models.file_magic import VIDEO_MAGICS, content_first
 from models.formation import SensorParams, validate_codes
 from models.frames import (
     WrappedFrame,
@@ -304,9 +305,11 @@ def decode_video(
 ) -> WrappedVideo:
     """Decode a wrapped video's bytes; ``overrides`` fill in or replace stored params.
 
-    Frames a decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
+    ``fmt`` (a format name, suffix or file name) is the format unless the leading bytes
+    show another video format: the content wins (see :mod:`models.file_magic`). Frames a
+    decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
     here, before a job is queued."""
-    fmt = video_format(fmt)
+    fmt = content_first(data, video_format(fmt), VIDEO_MAGICS)
     limits = limits or VideoLimits()
     if fmt == "zip":
         with decoding("the ZIP video"):
@@ -330,6 +333,6 @@ def read_video(
     overrides: dict[str, Any] | None = None,
     limits: VideoLimits | None = None,
 ) -> WrappedVideo:
-    """Read a wrapped-video file; the format follows the file's suffix."""
+    """Read a wrapped-video file; the format is its content's, else its suffix's."""
     fmt = video_format(path)
     return decode_video(Path(path).read_bytes(), fmt, overrides, limits)

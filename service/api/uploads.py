@@ -20,21 +20,17 @@ from starlette.exceptions import HTTPException
 
 from models.decoders.adaptive_policy import QUALITIES
 from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
+from models.file_magic import FRAME_MAGICS, format_by_content
 from models.formation import SensorParams
-from models.frames import PNG_SIGNATURE
+from models.frames import FRAME_FORMATS, not_a_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.errors import ApiError
 from service.api.media_types import media_type
 
 Model = TypeVar("Model", bound=BaseModel)
-#: Leading bytes of the frame file formats we accept.
-_MAGIC: tuple[tuple[bytes, str], ...] = (
-    (PNG_SIGNATURE, "png"),
-    (b"II*\x00", "tiff"),
-    (b"MM\x00*", "tiff"),
-    (b"\x93NUMPY", "npy"),
-)
 _MAX_FORM_FIELDS = 64
+#: File-name suffixes that name a frame format as they are.
+_NAMED = ("png", "tiff", "npy", "raw")
 
 
 class SensorFields(BaseModel):
@@ -70,7 +66,9 @@ class ReconstructionFields(SensorFields):
         "predicted to find W within this many ms (decoder auto-<N>ms)",
     )  # fmt: skip
     format: Literal["png", "tiff", "npy", "raw"] | None = Field(
-        None, description="frame file format; default: from the file name or its first bytes"
+        None, description="frame file format; default: from the file name or its first bytes. "
+        "A PNG, TIFF or npy is read as what its first bytes show, whatever this or the name "
+        "says",
     )
     width: int | None = Field(None, ge=1, le=1 << 16, description="raw frames: pixels per row")
     height: int | None = Field(None, ge=1, le=1 << 16, description="raw frames: rows")
@@ -178,38 +176,33 @@ async def read_upload_fields(
         raise RequestValidationError(exc.errors()) from None
 
 
+def _named_format(filename: str | None) -> str | None:
+    """The frame format the file name's suffix names (``raw`` for .raw/.bin); None if none."""
+    if not filename or "." not in filename:
+        return None
+    suffix = filename.rsplit(".", 1)[-1].lower()
+    return {"tif": "tiff", "bin": "raw"}.get(suffix, suffix if suffix in _NAMED else None)
+
+
 def sniff_frame_format(upload: Upload, declared: str | None, raw_size: bool) -> str:
-    """The frame format: declared, else the file name's suffix, else the leading bytes,
-    else ``raw`` when a raw frame size (``raw_size``) was given."""
-    if declared:
-        return declared
-    if upload.filename and "." in upload.filename:
-        suffix = upload.filename.rsplit(".", 1)[-1].lower()
-        if suffix in ("png", "tif", "tiff", "npy", "raw", "bin"):
-            return {"tif": "tiff", "bin": "raw"}.get(suffix, suffix)
-    for magic, fmt in _MAGIC:
-        if upload.data.startswith(magic):
-            return fmt
-    if raw_size:
-        return "raw"
+    """The frame format to decode the upload as: the declared one, else the file name's
+    suffix's, else the leading bytes', else ``raw`` when a raw frame size (``raw_size``)
+    was given. A PNG, TIFF or npy is decoded as what its leading bytes show whatever
+    its name says (:func:`models.frames.decode_frame`); raw codes have no leading bytes
+    to judge by, so declared or named raw with a size given, they are raw."""
+    named = declared or _named_format(upload.filename)
+    if (named == "raw" and raw_size) or named in FRAME_FORMATS:
+        return named
+    fmt = format_by_content(upload.data, FRAME_MAGICS) or named or ("raw" if raw_size else None)
+    if fmt is not None:
+        return fmt
     raise UnsupportedFormatError(
         "cannot tell the frame's format: send a .png, .tiff or .npy file, or raw codes with "
         f"format=raw, width, height, bits and encoding{_elsewhere(upload.data)}"
     )
 
 
-#: Leading bytes of files another route takes, and what to say.
-_OTHER_ROUTES = (
-    (b"v/1\x01", "an OpenEXR image (scene irradiance): POST /v1/simulate makes a frame of it"),
-    (b"#?RADIANCE", "a Radiance HDR image: POST /v1/simulate makes a frame of it"),
-    (b"#?RGBE", "a Radiance HDR image: POST /v1/simulate makes a frame of it"),
-    (b"PK\x03\x04", "a zip (of video frames?): POST /v1/videos takes those"),
-)
-
-
 def _elsewhere(data: bytes) -> str:
     """What to do with an upload that is a file another route takes ('' otherwise)."""
-    for magic, advice in _OTHER_ROUTES:
-        if data.startswith(magic):
-            return f"; this file is {advice}"
-    return ""
+    other = not_a_frame(data)
+    return "" if other is None else f"; this file is {other}"

@@ -400,3 +400,53 @@ def test_a_corrupt_npy_header_is_reported_without_memory_addresses() -> None:
     with pytest.raises(InvalidInputError, match="truncated or corrupt") as caught:
         decode_frame(data, "npy", PARAMS_8.model_dump())
     assert " at 0x" not in caught.value.message
+
+
+@pytest.mark.parametrize(
+    ("content", "name"),
+    [(content, name) for content in FRAME_FORMATS for name in FRAME_FORMATS if content != name],
+)
+def test_a_frame_is_decoded_by_its_content_whatever_its_name(
+    tmp_path: Path, content: str, name: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A PNG named .tiff was called a corrupt TIFF ('not a TIFF file: header=b'\\x89PNG''):
+    each format is decoded as what its leading bytes show, with a warning naming both."""
+    codes = random_codes((6, 5), 8)
+    path = tmp_path / f"frame.{name}"
+    path.write_bytes(encode_frame(codes, PARAMS_8, content))
+    frame = read_frame(path, PARAMS_8.model_dump())
+    np.testing.assert_array_equal(frame.codes, codes)
+    assert f"content is {content.upper()} although its name or declared format says " \
+        f"{name.upper()}" in caplog.text
+
+
+def test_a_bigtiff_is_known_by_its_leading_bytes() -> None:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, random_codes((6, 5), 8), bigtiff=True)
+    frame = decode_frame(buffer.getvalue(), "png", PARAMS_8.model_dump())
+    assert frame.codes.shape == (6, 5)
+
+
+def test_a_winding_map_is_read_by_its_content_whatever_its_name(tmp_path: Path) -> None:
+    winding = np.array([[0, 3], [-2, 9]])
+    write_winding(tmp_path / "w.npy", winding)
+    (tmp_path / "w.npy").rename(tmp_path / "w.tiff")
+    np.testing.assert_array_equal(read_winding(tmp_path / "w.tiff"), winding)
+
+
+@pytest.mark.parametrize(
+    ("data", "fragments"),
+    [
+        (b"v/1\x01" + bytes(60), ("an OpenEXR image", "mcam simulate", "POST /v1/simulate")),
+        (b"#?RADIANCE\n" + bytes(60), ("a Radiance HDR image", "POST /v1/simulate")),
+        (b"PK\x03\x04" + bytes(60), ("a zip", "mcam video", "POST /v1/videos")),
+    ],
+    ids=["exr", "radiance", "zip"],
+)
+def test_an_hdr_image_or_a_zip_named_as_a_frame_is_pointed_to_its_command(
+    data: bytes, fragments: tuple[str, ...]
+) -> None:
+    """Named .png, they were 'not a PNG image (bad or missing signature)'."""
+    with pytest.raises(UnsupportedFormatError, match="not a wrapped frame") as caught:
+        decode_frame(data, "png", PARAMS_8.model_dump())
+    assert all(fragment in caught.value.message for fragment in fragments)

@@ -205,7 +205,7 @@ def test_truncated_and_foreign_files(tmp_path: Path, capfd: pytest.CaptureFixtur
             read_hdr(data[:cut], name="upload.exr")
     assert capfd.readouterr().err == ""
     with pytest.raises(UnsupportedFormatError, match="OpenEXR or Radiance"):
-        read_hdr(b"\x89PNG\r\n\x1a\n" + bytes(100))
+        read_hdr(b"GIF89a" + bytes(100))
     with pytest.raises(FileNotFoundError):
         read_hdr(tmp_path / "missing.exr")
 
@@ -350,3 +350,17 @@ def test_header_text_that_is_not_utf8_is_named() -> None:
     latin1 = buffer.getvalue().replace(b"Rene", b"Ren\xe9")
     with pytest.raises(UnsupportedFormatError, match=r"not UTF-8: byte 0xe9 in b'Ren\\xe9'"):
         read_hdr(latin1)
+
+
+@pytest.mark.parametrize(
+    ("head", "fmt"), [(b"\x89PNG\r\n\x1a\n", "PNG"), (b"II*\x00", "TIFF"), (b"\x93NUMPY", "NPY")],
+    ids=["png", "tiff", "npy"],
+)
+def test_a_wrapped_frame_given_as_an_hdr_image_is_pointed_to_the_reconstructions(
+    head: bytes, fmt: str
+) -> None:
+    """It got only 'not an OpenEXR or Radiance HDR image; convert it to OpenEXR'."""
+    with pytest.raises(UnsupportedFormatError) as caught:
+        read_hdr(head + bytes(100), name="frame.exr")
+    assert caught.value.message.startswith(f"frame.exr: a {fmt} file, not an OpenEXR")
+    assert "mcam reconstruct or POST /v1/reconstructions" in caught.value.message

@@ -7,6 +7,7 @@ import struct
 import tracemalloc
 import zipfile
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -260,6 +261,18 @@ def test_format_names() -> None:
     assert [video_format(n) for n in ("a.TIF", "b.tiff", "c.npy", "zip")] == [
         "tiff", "tiff", "npy", "zip"
     ]
+
+
+@pytest.mark.parametrize("content", ["tiff", "npy", "zip"])
+@pytest.mark.parametrize("name", ["video.tiff", "video.npy", "video.zip"])
+def test_a_video_is_decoded_by_its_content_whatever_its_name(
+    tmp_path: Path, content: str, name: str
+) -> None:
+    """A zip named .tiff was called a corrupt TIFF: the leading bytes decide."""
+    video = codes()
+    data = {"tiff": tiff_bytes, "npy": npy_bytes, "zip": zip_bytes}[content](video)
+    (tmp_path / name).write_bytes(data)
+    np.testing.assert_array_equal(read_video(tmp_path / name, FLAGS).codes, video)
 
 
 def test_zip_without_pngs_says_what_it_holds() -> None:

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from models.errors import UnsupportedFormatError
+from models.file_magic import VIDEO_MAGICS, format_by_content
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import stored_file
@@ -44,12 +45,6 @@ from worker.video_pipeline import OUTPUTS
 
 router = APIRouter(prefix="/v1/videos", tags=["videos"])
 
-_MAGIC: tuple[tuple[bytes, str], ...] = (
-    (b"II*\x00", "tiff"),
-    (b"MM\x00*", "tiff"),
-    (b"\x93NUMPY", "npy"),
-    (b"PK\x03\x04", "zip"),
-)
 _MEDIA = {"hdr10": "video/mp4", "sdr": "video/mp4", "exr_zip": "application/zip"}
 
 
@@ -108,21 +103,24 @@ class VideoFields(SensorFields, VideoOptionFields):
     """Parameters of ``POST /v1/videos``."""
 
     format: Literal["tiff", "npy", "zip"] | None = Field(
-        None, description="video file format; default: from the file name or its first bytes"
+        None, description="video file format; default: from the file name or its first bytes. "
+        "A TIFF, npy or zip is read as what its first bytes show, whatever this or the name "
+        "says",
     )
 
 
 def sniff_video_format(upload: Upload, declared: str | None) -> str:
-    """The video format: declared, else the file name's suffix, else the leading bytes."""
+    """The video format: declared, else the file name's suffix, else the leading bytes.
+    A TIFF, npy or zip is decoded as what its leading bytes show whatever its name says
+    (:func:`worker.video_input.decode_video`)."""
     if declared:
         return declared
     if upload.filename and "." in upload.filename:
         suffix = upload.filename.rsplit(".", 1)[-1].lower()
         if suffix in ("tif", "tiff", "npy", "zip"):
             return "tiff" if suffix == "tif" else suffix
-    for magic, fmt in _MAGIC:
-        if upload.data.startswith(magic):
-            return fmt
+    if (fmt := format_by_content(upload.data, VIDEO_MAGICS)) is not None:
+        return fmt
     raise UnsupportedFormatError(
         "cannot tell the video's format: send a multi-page .tiff, a .npy (T x H x W[x C]) "
         "or a .zip of PNG frames"

@@ -168,3 +168,14 @@ def test_a_colour_frames_w_map_as_png_is_refused_before_decoding(tmp_path: Path)
                       cwd=tmp_path)  # fmt: skip
     assert_one_line_error(result, "colour.npy is a colour frame", ".tiff or .npy")
     assert "decoder" not in result.stdout  # nothing decoded, nothing written
+
+
+def test_a_png_named_tiff_is_decoded_as_the_png_it_is(tmp_path: Path, pipeline: Path) -> None:
+    """It was 'the TIFF frame is truncated or corrupt (not a TIFF file: header=b'\\x89PNG')'."""
+    (tmp_path / "wrapped.tiff").write_bytes((pipeline / "wrapped.png").read_bytes())
+    result = run_mcam("reconstruct", "wrapped.tiff", "-o", "x.exr", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "content is PNG although its name or declared format says TIFF" in result.stderr
+    np.testing.assert_array_equal(
+        read_hdr(tmp_path / "x.exr").pixels, read_hdr(pipeline / "hdr.exr").pixels
+    )

@@ -236,6 +236,39 @@ def test_truncated_png_is_a_clear_422(client: Client) -> None:
     assert "truncated" in reply.json()["message"]
 
 
+@pytest.mark.parametrize(
+    ("content", "name", "declared"),
+    [
+        ("png", "frame.tiff", None),
+        ("png", "frame.png", "tiff"),
+        ("tiff", "frame.png", None),
+        ("npy", "frame.tif", None),
+        ("png", "frame.npy", None),
+        ("png", "frame.raw", None),
+    ],
+)
+def test_a_frame_is_decoded_by_its_content_whatever_its_name(
+    client: Client, content: str, name: str, declared: str | None
+) -> None:
+    """A PNG named .tiff was refused as a corrupt TIFF ('not a TIFF file')."""
+    _, codes = frame_png()
+    fields = {**PARAMS.model_dump(exclude_none=True), **({"format": declared} if declared else {})}
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": (name, encode_frame(codes, PARAMS, content))},
+        data={key: str(value) for key, value in fields.items()},
+    )
+    assert reply.status_code == 202, reply.text
+
+
+def test_an_hdr_image_named_as_a_frame_is_pointed_to_simulate(client: Client) -> None:
+    """It was 'the data is not a PNG image (bad or missing signature)'."""
+    reply = client().post("/v1/reconstructions", files={"file": ("scene.png", exr_bytes())})
+    assert reply.status_code == 415, reply.text
+    assert "an OpenEXR image" in reply.json()["message"]
+    assert "POST /v1/simulate" in reply.json()["message"]
+
+
 def test_too_many_pixels_is_413_before_decoding(client: Client) -> None:
     bomb = encode_frame(np.zeros((1024, 1024), np.uint8), PARAMS, "png")
     assert len(bomb) < 20_000  # a small file that would expand to a large image

@@ -170,3 +170,14 @@ def test_a_video_counts_against_its_keys_unfinished_jobs(tmp_path: Path, redis_u
             assert reply.status_code == expected, reply.text
         assert reply.json()["code"] == "too_many_jobs"
         http.close()
+
+
+def test_a_video_is_decoded_by_its_content_whatever_its_name(client: Client) -> None:
+    """A zip of PNG frames named .tiff was refused as a corrupt TIFF."""
+    codes = np.stack([encode(x, PARAMS).codes for x in slow_clip()[:3]])
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for t, frame in enumerate(codes):
+            archive.writestr(f"frame_{t}.png", encode_frame(frame, PARAMS, "png"))
+    reply = client().post("/v1/videos", files={"file": ("clip.tiff", buffer.getvalue())})
+    assert reply.status_code == 202, reply.text

@@ -1,0 +1,58 @@
+"""The leading bytes ("magic numbers") of the file formats the readers take.
+
+A file's format is judged by its content first and by its name only when the content
+shows none of the formats a reader takes: a PNG named ``.tiff`` is decoded as the PNG it
+is (it was called a corrupt TIFF), with a warning naming both.
+"""
+
+from __future__ import annotations
+
+import logging
+
+#: The eight bytes every PNG file starts with.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Leading bytes of TIFF files: little- and big-endian, classic and BigTIFF.
+TIFF_MAGICS: tuple[bytes, ...] = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+#: Leading bytes of NumPy ``.npy`` files.
+NPY_MAGIC = b"\x93NUMPY"
+#: Leading bytes of a zip archive (its first local file header).
+ZIP_MAGIC = b"PK\x03\x04"
+#: Leading bytes of OpenEXR files.
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+#: Leading bytes of Radiance RGBE (.hdr, .pic) files.
+RADIANCE_MAGICS: tuple[bytes, ...] = (b"#?RADIANCE", b"#?RGBE")
+
+#: (leading bytes, format name) pairs.
+Magics = tuple[tuple[bytes, str], ...]
+#: Wrapped-frame formats (:mod:`models.frames`).
+FRAME_MAGICS: Magics = (
+    (PNG_SIGNATURE, "png"), *((magic, "tiff") for magic in TIFF_MAGICS), (NPY_MAGIC, "npy")
+)
+#: Wrapped-video formats (:mod:`worker.video_input`).
+VIDEO_MAGICS: Magics = (
+    *((magic, "tiff") for magic in TIFF_MAGICS), (NPY_MAGIC, "npy"), (ZIP_MAGIC, "zip")
+)
+#: HDR image formats (:mod:`models.hdr_io`).
+HDR_MAGICS: Magics = ((EXR_MAGIC, "exr"), *((magic, "hdr") for magic in RADIANCE_MAGICS))
+
+logger = logging.getLogger(__name__)
+
+
+def format_by_content(data: bytes, magics: Magics) -> str | None:
+    """The format of ``magics`` whose leading bytes ``data`` starts with; None if none."""
+    return next((fmt for magic, fmt in magics if data.startswith(magic)), None)
+
+
+def content_first(data: bytes, named: str, magics: Magics) -> str:
+    """The format to decode ``data`` as: the one of ``magics`` its leading bytes show,
+    else ``named`` (the format its file name or the caller gave). A disagreement is
+    logged as a warning naming both."""
+    content = format_by_content(data, magics)
+    if content is None or content == named:
+        return named
+    logger.warning(
+        "the file's content is %s although its name or declared format says %s: decoding "
+        "it as %s",
+        content.upper(), named.upper(), content.upper(),
+    )  # fmt: skip
+    return content
