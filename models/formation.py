@@ -149,20 +149,77 @@ def luminance(rgb: NDArray[np.floating]) -> NDArray[np.float64]:
     return arr @ REC709_WEIGHTS
 
 
-def exposure_gain(scene: NDArray[np.floating], overexposed: float) -> float:
-    """Gain such that a fraction ``overexposed`` of pixels reach ``x >= 1``.
-
-    ``gain = 1 / quantile(luminance, 1 - overexposed)``.
-    """
-    if not 0.0 < overexposed < 1.0:
-        raise InvalidInputError(f"overexposed must be in (0, 1), got {overexposed}")
-    level = float(np.quantile(luminance(scene), 1.0 - overexposed))
-    if level <= 0.0:
-        raise InvalidInputError(
-            f"the scene is too dark to set the exposure: the brightest {overexposed:.0%} "
-            "of pixels have zero luminance; give an explicit gain instead"
+def check_overexposed(overexposed: float) -> None:
+    """Refuse an ``overexposed`` fraction outside the open interval (0, 1), saying why
+    and what to give instead."""
+    if 0.0 < overexposed < 1.0:
+        return
+    if np.isnan(overexposed):
+        problem = "got NaN (not a number)"
+    elif overexposed == 1.0:
+        problem = (
+            "got 1: every pixel, the darkest included, at x >= 1 leaves no pixel below "
+            "its first wrap"
         )
-    gain = 1.0 / level
+    elif overexposed > 1.0:
+        meant = f" (for {overexposed:g}%, give {overexposed / 100:g})" if overexposed <= 100 else ""
+        problem = f"got {overexposed:g}, more than every pixel{meant}"
+    else:
+        problem = f"got {overexposed:g}, which overexposes no pixel"
+    raise InvalidInputError(
+        f"overexposed is the fraction of pixels the gain brings to x >= 1, strictly between 0 "
+        f"and 1; {problem}: give a fraction such as 0.2 (or 0.99 for nearly all), or the gain "
+        "instead"
+    )
+
+
+def _round_down(value: float, digits: int = 3) -> float:
+    """``value`` (> 0) rounded down to ``digits`` significant digits."""
+    scale = 10.0 ** (digits - 1 - int(np.floor(np.log10(value))))
+    return float(np.floor(value * scale) / scale)
+
+
+def _black_share_error(lum: NDArray[np.float64], overexposed: float) -> InvalidInputError:
+    """The error for an ``overexposed`` whose exposure level (a luminance quantile of
+    ``lum``) is 0: more pixels are black than ``1 - overexposed``, and no gain brings
+    them to x >= 1."""
+    black = int(np.count_nonzero(lum <= 0.0))
+    if black == lum.size:
+        return InvalidInputError(
+            "the scene is black (every pixel has zero luminance): no gain exposes it; check "
+            "that the image holds the scene (negative values clipped to 0 count as black)"
+        )
+    share = black / lum.size
+    return InvalidInputError(
+        f"overexposed {overexposed:g} asks for all but the darkest "
+        f"{100 * (1.0 - overexposed):.3g}% of pixels at x >= 1, but {black} of {lum.size} "
+        f"pixels ({100 * share:.3g}%) have zero luminance (black, or negative values clipped "
+        "to 0) and no gain raises them: give "
+        f"overexposed at most {_round_down(1.0 - share)} (the share of pixels that are not "
+        "black), or the gain instead"
+    )
+
+
+def exposure_gain(scene: NDArray[np.floating], overexposed: float) -> float:
+    """Gain such that a fraction ``overexposed`` (strictly between 0 and 1) of pixels
+    reach ``x >= 1``.
+
+    ``gain = 1 / quantile(luminance, 1 - overexposed)``; an exposure level of 0 (more
+    pixels black than ``1 - overexposed``) or one whose inverse overflows is refused.
+    """
+    check_overexposed(overexposed)
+    lum = luminance(scene)
+    level = float(np.quantile(lum, 1.0 - overexposed))
+    if level <= 0.0:
+        raise _black_share_error(lum, overexposed)
+    with np.errstate(over="ignore"):
+        gain = 1.0 / level
+    if not np.isfinite(gain):
+        raise InvalidInputError(
+            f"overexposed {overexposed:g} sets the exposure at a luminance of {level:.3g}, "
+            "so small that its gain (1 / luminance) overflows float64: scale the scene up, "
+            "or give the gain instead"
+        )
     # 1 / level can round down (49 * (1 / 49) < 1): one ulp up keeps the quantile pixel at x >= 1.
     return gain if level * gain >= 1.0 else float(np.nextafter(gain, np.inf))
 

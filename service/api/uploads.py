@@ -87,7 +87,8 @@ class SimulateFields(SensorFields):
     """Parameters of ``POST /v1/simulate``."""
 
     overexposed: float | None = Field(
-        None, description="instead of gain: the fraction of pixels at x >= 1"
+        None, description="instead of gain: the fraction of pixels at x >= 1, strictly "
+        "between 0 and 1"
     )
     gray: bool = Field(False, description="encode Rec.709 luminance instead of RGB")
     clip_negative: bool = Field(False, description="set negative irradiance to 0")

@@ -35,7 +35,8 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--overexposed",
         type=float,
-        help="set the gain so this fraction of pixels (0..1) reaches x >= 1 (instead of --gain)",
+        help="set the gain so this fraction of pixels (strictly between 0 and 1) reaches "
+        "x >= 1 (instead of --gain)",
     )
     parser.add_argument("--max-wraps", type=float, help="clip x at this many wrap units")
     parser.add_argument("--read-noise", type=float, help="read noise sigma, in wraps (0..1)")

@@ -270,15 +270,69 @@ def test_exposure_of_rgb_uses_rec709_luminance() -> None:
     assert luminance(np.ones((1, 1, 3)))[0, 0] == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("overexposed", [0.0, 1.0, -0.1])
-def test_exposure_fraction_outside_open_interval_is_rejected(overexposed: float) -> None:
-    with pytest.raises(InvalidInputError, match="overexposed must be in"):
+@pytest.mark.parametrize(
+    ("overexposed", "fragment"),
+    [
+        (1.0, "got 1: every pixel, the darkest included"),
+        (1.5, "got 1.5, more than every pixel (for 1.5%, give 0.015)"),
+        (250.0, "got 250, more than every pixel:"),
+        (np.inf, "got inf, more than every pixel"),
+        (0.0, "got 0, which overexposes no pixel"),
+        (-0.1, "got -0.1, which overexposes no pixel"),
+        (np.nan, "got NaN (not a number)"),
+    ],
+)
+def test_exposure_fraction_outside_open_interval_is_explained(
+    overexposed: float, fragment: str
+) -> None:
+    """It was 'overexposed must be in (0, 1), got 1.0': no reason, nothing to do."""
+    with pytest.raises(InvalidInputError) as caught:
         exposure_gain(np.ones((4, 4)), overexposed)
+    message = caught.value.message
+    assert fragment in message
+    assert "strictly between 0 and 1" in message and "or the gain instead" in message
 
 
-def test_exposure_of_a_black_scene_asks_for_a_gain() -> None:
-    with pytest.raises(InvalidInputError, match="too dark"):
+def test_exposure_of_a_black_scene_says_so() -> None:
+    with pytest.raises(InvalidInputError, match="the scene is black"):
         simulate(np.zeros((4, 4)), SensorParams(), overexposed=0.1)
+
+
+@pytest.mark.parametrize("overexposed", [0.999, 0.9999])
+def test_overexposing_more_pixels_than_are_not_black_gives_the_largest_fraction(
+    overexposed: float,
+) -> None:
+    """At 0.999 with 1.8% black pixels it said 'the brightest 100% of pixels have zero
+    luminance' (the fraction rounded to a whole percent, and the black ones called the
+    brightest). It names the black pixels and the largest fraction that works."""
+    scene = np.linspace(0.5, 2.0, 10_000).reshape(100, 100)
+    scene.flat[::57] = 0.0  # 176 black pixels: 1.76%
+    with pytest.raises(InvalidInputError) as caught:
+        simulate(scene, SensorParams(), overexposed=overexposed)
+    message = caught.value.message
+    assert f"overexposed {overexposed:g} asks for all but the darkest" in message
+    assert "176 of 10000 pixels (1.76%) have zero luminance" in message
+    assert "give overexposed at most 0.982" in message
+    frame = simulate(scene, SensorParams(), overexposed=0.982)
+    assert np.isfinite(frame.params.gain) and np.mean(frame.irradiance >= 1.0) >= 0.982
+
+
+@pytest.mark.parametrize("overexposed", [0.5, 0.99, 0.999, 0.999999])
+def test_fractions_near_1_give_finite_frames(overexposed: float) -> None:
+    scene = np.geomspace(1e-6, 1e6, 4096).reshape(64, 64)
+    for encoding in ("mantissa", "modulo", "clip"):
+        frame = simulate(scene, SensorParams(encoding=encoding), overexposed=overexposed)
+        assert np.isfinite(frame.params.gain) and np.all(np.isfinite(frame.irradiance))
+        assert np.mean(frame.irradiance >= 1.0) >= overexposed - 1 / scene.size
+
+
+def test_an_exposure_level_whose_gain_overflows_is_refused_by_name() -> None:
+    """A subnormal exposure level made the gain inf, then 'pixels of the exposed
+    irradiance are NaN' (0 x inf)."""
+    scene = np.full((4, 4), 1e-310)
+    scene[0, 0] = 0.0
+    with pytest.raises(InvalidInputError, match=r"gain \(1 / luminance\) overflows float64"):
+        simulate(scene, SensorParams(), overexposed=0.5)
 
 
 def test_gain_and_overexposed_together_are_rejected() -> None:

@@ -84,6 +84,26 @@ def test_simulate_bad_input(tmp_path: Path) -> None:
     )
 
 
+def test_overexposed_near_or_at_1_is_explained(tmp_path: Path) -> None:
+    """At 0.999 on a scene whose clipped negatives are 2% of it, it said 'the brightest
+    100% of pixels have zero luminance'; at 1.0, 'overexposed must be in (0, 1)'."""
+    scene = blob_scene(size=50)
+    scene.flat[::50] = -1e-3  # 50 of 2500 pixels: lossy EXR's negatives
+    write_exr(tmp_path / "scene.exr", scene)
+    flags = ("simulate", "scene.exr", "-o", "w.png", "--clip-negative", "--overexposed")
+    near = run_mcam(*flags, "0.999", cwd=tmp_path)
+    assert_one_line_error(
+        near, "50 of 2500 pixels (2%) have zero luminance", "negative values clipped to 0",
+        "give overexposed at most 0.98",
+    )  # fmt: skip
+    at_1 = run_mcam(*flags, "1.0", cwd=tmp_path)
+    assert_one_line_error(at_1, "strictly between 0 and 1", "got 1:", "or the gain instead")
+    assert not (tmp_path / "w.png").exists()
+    largest = run_mcam(*flags, "0.98", cwd=tmp_path)
+    assert largest.returncode == 0, largest.stderr
+    assert "clipped 50 negative scene values to 0" in largest.stdout
+
+
 def test_simulate_checks_every_output_before_writing_any(tmp_path: Path) -> None:
     write_exr(tmp_path / "scene.exr", blob_scene(size=16))
     bad_suffix = run_mcam("simulate", "scene.exr", "-o", "w.png", "--ground-truth", "W.exr",

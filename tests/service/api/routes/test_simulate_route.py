@@ -70,6 +70,28 @@ def test_overexposed_sets_the_gain(client: Client) -> None:
     assert json.loads(reply.headers["X-Mcam-Params"])["gain"] > 0
 
 
+@pytest.mark.parametrize(
+    ("overexposed", "fragments"),
+    [
+        ("1.0", ("strictly between 0 and 1", "got 1:")),
+        ("1.5", ("strictly between 0 and 1", "for 1.5%, give 0.015")),
+        ("0.999", ("82 of 4096 pixels (2%) have zero luminance", "at most 0.979")),
+    ],
+)
+def test_overexposed_near_or_above_1_is_explained(
+    client: Client, overexposed: str, fragments: tuple[str, ...]
+) -> None:
+    values = scene()
+    values.flat[::50] = 0.0  # 82 of 4096 pixels black: 2%
+    reply = client().post(
+        "/v1/simulate",
+        files={"file": ("s.exr", encode_exr(values))},
+        data={"encoding": "modulo", "bits": "8", "overexposed": overexposed},
+    )
+    assert reply.status_code == 422, reply.text
+    assert all(fragment in reply.json()["message"] for fragment in fragments)
+
+
 def nan_exr() -> bytes:
     values = scene()
     values[3, 3] = np.nan
