@@ -356,6 +356,15 @@ def figures(cards: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def figures_source(cards: list[dict[str, Any]]) -> str:
+    """Where :func:`figures` come from: the cards' files (val-256 measured at export)."""
+    files = ", ".join(f"models/onnx/{Path(card['file']).stem}.json" for card in cards)
+    return (
+        f"model cards {files}: size, cost and val-256 figures measured at export "
+        "(mcam train measure re-measures them)"
+    )
+
+
 @cache
 def _grouped_cards() -> dict[str, list[dict[str, Any]]]:
     groups: dict[str, list[dict[str, Any]]] = {}
@@ -373,6 +382,7 @@ def specs() -> list[DecoderSpec]:
             description=describe(name, cards),
             factory=lambda name=name, cards=cards: LearnedDecoder(name, cards),
             figures=figures(cards),
+            figures_source=figures_source(cards),
         )
         for name, cards in _grouped_cards().items()
     ]

@@ -34,13 +34,15 @@ PROVIDERS: tuple[str, ...] = (
 @dataclass(frozen=True)
 class DecoderSpec:
     """A selectable decoder: its name, family, a one-line description, a factory, and
-    measured figures (from a model card or the benchmark) to help users choose."""
+    the figures its model cards state, with where they come from (``figures_source``);
+    :func:`models.decoders.measured.measured_figures` adds the benchmark's for the others."""
 
     name: str
     kind: str
     description: str
     factory: Callable[[], Decoder] = field(repr=False, compare=False)
     figures: dict[str, Any] = field(default_factory=dict, compare=False)
+    figures_source: str = field(default="", compare=False)
     budgeted: bool = field(default=False, compare=False)
 
 

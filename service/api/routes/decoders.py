@@ -1,12 +1,13 @@
-"""``GET /v1/decoders``: the installed decoders with their speed/accuracy figures."""
+"""``GET /v1/decoders``: the installed decoders with their measured figures and their source."""
 
 from __future__ import annotations
 
 from typing import Any
 
 from fastapi import APIRouter
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
+from models.decoders.measured import benchmark_figures, measured_figures
 from models.decoders.registry import available_decoders
 from service.api.deps import ReadKey, SettingsDep
 from service.api.schemas import AUTH_ERRORS
@@ -15,12 +16,22 @@ router = APIRouter(prefix="/v1", tags=["decoders"])
 
 
 class DecoderInfo(BaseModel):
-    """A selectable decoder; ``figures`` come from its model card or the benchmark."""
+    """A selectable decoder, with the figures measured for it and where they come from."""
 
     name: str
     kind: str
     description: str
-    figures: dict[str, Any]
+    figures: dict[str, Any] = Field(
+        description="per encoding: {'val256': {'read_noise_<sigma>': {winding_accuracy, "
+        "psnr, pu21_psnr (dB), ssim, ms_ssim, ms_per_frame}}}, measured on the val-256 "
+        "frames (256x256, overexposed 0.2, max_wraps 16, 8 bits); learned decoders add "
+        "parameters, gflops_256 and val256_refined (with +puma). Empty when none are "
+        "measured: figures_source says why and where to find them"
+    )
+    figures_source: str = Field(
+        description="where the figures come from (model cards, or the val-256 benchmark's "
+        "report with its date, machine and commit), or why there are none"
+    )
     default: bool
 
 
@@ -32,13 +43,18 @@ class DecoderInfo(BaseModel):
 )
 def list_decoders(settings: SettingsDep, _: ReadKey) -> list[DecoderInfo]:
     """Every decoder in registration order; ``default`` marks the one used when none is named."""
-    return [
-        DecoderInfo(
-            name=spec.name,
-            kind=spec.kind,
-            description=spec.description,
-            figures=spec.figures,
-            default=spec.name == settings.default_decoder,
+    bench = benchmark_figures()
+    found = []
+    for spec in available_decoders():
+        figures, source = measured_figures(spec, bench)
+        found.append(
+            DecoderInfo(
+                name=spec.name,
+                kind=spec.kind,
+                description=spec.description,
+                figures=figures,
+                figures_source=source,
+                default=spec.name == settings.default_decoder,
+            )
         )
-        for spec in available_decoders()
-    ]
+    return found
