@@ -19,6 +19,8 @@ from service.core.config import Settings
 router = APIRouter(prefix="/v1", tags=["simulate"])
 
 PARAMS_HEADER = "X-Mcam-Params"
+#: How many negative scene values ``clip_negative`` set to 0 (lossy EXR leaves some).
+CLIPPED_HEADER = "X-Mcam-Clipped-Negative"
 
 
 def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) -> Response:
@@ -39,7 +41,11 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
     else:
         content = encode_frame(frame.codes, frame.params, fmt)
     stem = "winding" if fields.part == "winding" else "frame"
-    return download(content, fmt, stem, {PARAMS_HEADER: frame.params.model_dump_json()})
+    headers = {
+        PARAMS_HEADER: frame.params.model_dump_json(),
+        CLIPPED_HEADER: str(image.negatives_clipped),
+    }
+    return download(content, fmt, stem, headers)
 
 
 @router.post(
@@ -49,8 +55,21 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
     responses={
         200: {
             "description": "the wrapped frame (codes in DN, parameters embedded in PNG/TIFF) or W; "
-            f"the parameters used (with the gain) are in the {PARAMS_HEADER} header",
+            f"the parameters used (with the gain) are in the {PARAMS_HEADER} header, the "
+            f"count of negative scene values set to 0 in {CLIPPED_HEADER}",
             "content": {MEDIA_TYPES[fmt]: {} for fmt in ("png", "tiff", "npy")},
+            "headers": {
+                PARAMS_HEADER: {
+                    "description": "the sensor parameters used, with the gain (JSON)",
+                    "schema": {"type": "string"},
+                },
+                CLIPPED_HEADER: {
+                    "description": "how many negative scene values (samples: pixels x "
+                    "channels) clip_negative set to 0, as mcam simulate --clip-negative "
+                    "prints; 0 when none were or clip_negative is false",
+                    "schema": {"type": "integer", "minimum": 0},
+                },
+            },
         },
         **UPLOAD_ERRORS,
     },

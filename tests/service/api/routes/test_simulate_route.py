@@ -125,12 +125,19 @@ def test_nan_pixels_are_refused(client: Client) -> None:
     assert reply.status_code == 422 and "NaN" in reply.json()["message"]
 
 
-def test_clip_negative_allows_negative_pixels(client: Client) -> None:
-    values = scene()
-    values[0, 0] = -1.0
+def test_clip_negative_allows_negative_pixels_and_counts_them(client: Client) -> None:
+    """mcam simulate printed how many negative values it clipped; the API did not say."""
+    values = np.repeat(scene()[:, :, None], 3, axis=2)
+    values[0, 0] = -1.0  # three samples of one pixel
+    values[5, 7, 1] = -1e-3
     data = {**FIELDS, "clip_negative": "true"}
     reply = client().post("/v1/simulate", files={"file": ("s.exr", encode_exr(values))}, data=data)
     assert reply.status_code == 200, reply.text
+    assert reply.headers["X-Mcam-Clipped-Negative"] == "4"
+    clean = client().post("/v1/simulate", files={"file": ("s.exr", exr_bytes())}, data=data)
+    assert clean.headers["X-Mcam-Clipped-Negative"] == "0"
+    documented = client().get("/openapi.json").json()["paths"]["/v1/simulate"]["post"]
+    assert "X-Mcam-Clipped-Negative" in documented["responses"]["200"]["headers"]
 
 
 def test_needs_the_submit_scope(client: Client) -> None:
