@@ -10,7 +10,10 @@ The Radiance reader handles new-style run-length-encoded and flat scanlines, and
 refuses old-style runs (of early Radiance versions); an RGBE pixel decodes at its
 mantissa bin centre, ``(m + 0.5) * 2^(e - 136)``, as Radiance's own ``colr_color``
 does. Header variables (``FORMAT``, ``EXPOSURE``, ...) are returned as attributes;
-``EXPOSURE`` is not divided out.
+``EXPOSURE`` is not divided out. Only the run headers are walked in Python (one
+step per run); the bytes of a block of scanlines are expanded by one ``np.repeat``:
+a 1024 x 512 RLE file reads 4-5x faster than with a numpy copy per run (docs/changelog.md,
+session 35).
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ _EXR_TRUNCATED = "the OpenEXR pixel data is truncated or corrupt; send the compl
 #: RGBE exponent bias plus the 8 mantissa bits: value = (m + 0.5) * 2^(e - 136).
 _RGBE_SHIFT = 136
 _RLE_MIN_WIDTH, _RLE_MAX_WIDTH = 8, 0x7FFF
+#: Bytes of Radiance pixels read at a time: bounds the arrays that expand their runs
+#: (:func:`_expand_runs`; ``np.repeat`` takes 8 bytes per byte of the file).
+_BLOCK_BYTES = 1 << 20
 #: EXR compressions a writer may choose, both lossless. ``zip`` is the smaller file,
 #: ``none`` the faster write: on a 256x256 float32 frame (2026-11-26, AMD EPYC) ZIP took
 #: 3-5 ms for 225 KiB, none 0.8 ms for 260 KiB (float32 pixels compress by only ~14%).
@@ -133,31 +139,54 @@ def _truncated(row: int) -> InvalidInputError:
     )
 
 
-def _rle_scanline(data: bytes, pos: int, width: int, row: int) -> tuple[NDArray[np.uint8], int]:
-    """One new-style RLE scanline (components stored one after the other) as width x 4."""
-    line = np.empty((4, width), np.uint8)
-    for component in range(4):
-        x = 0
-        while x < width:
-            if pos >= len(data):
-                raise _truncated(row)
-            count = data[pos]
-            run = count - 128 if count > 128 else count
-            if run == 0 or x + run > width:
-                raise _truncated(row)
-            if count > 128:
-                if pos + 1 >= len(data):
+def _rle_headers(
+    data: bytes, pos: int, width: int, row: int, repeats: list[int], literals: list[int]
+) -> int:
+    """Walk the run headers of new-style RLE scanline ``row`` (its four components one
+    after the other) from ``pos``, its first header, appending each header's position to
+    ``repeats`` (a count above 128: one byte repeated) or ``literals`` (a count of bytes
+    that follow); return the position after the scanline. Only the headers are read
+    here; :func:`_expand_runs` expands the runs."""
+    try:
+        for _component in range(4):
+            x = 0
+            while x < width:
+                count = data[pos]
+                if count > 128:
+                    repeats.append(pos)
+                    pos += 2
+                    x += count - 128
+                elif count:
+                    literals.append(pos)
+                    pos += 1 + count
+                    x += count
+                else:
                     raise _truncated(row)
-                line[component, x : x + run] = data[pos + 1]
-                pos += 2
-            else:
-                chunk = data[pos + 1 : pos + 1 + run]
-                if len(chunk) != run:
-                    raise _truncated(row)
-                line[component, x : x + run] = np.frombuffer(chunk, np.uint8)
-                pos += 1 + run
-            x += run
-    return line.T, pos
+            if x != width:
+                raise _truncated(row)
+    except IndexError:
+        raise _truncated(row) from None
+    if pos > len(data):
+        raise _truncated(row)
+    return pos
+
+
+def _expand_runs(
+    data: bytes, start: int, stop: int, repeats: list[int], literals: list[int]
+) -> NDArray[np.uint8]:
+    """The bytes that the runs of ``data[start:stop]`` (headers at ``repeats`` and
+    ``literals``, positions in ``data``) stand for, in file order: each byte of
+    ``data[start:stop]`` repeated by its count (a repeat's value byte its run length, a
+    literal's bytes once, headers and other bytes never) in one ``np.repeat``."""
+    block = np.frombuffer(data, np.uint8, stop - start, start)
+    repeat = np.asarray(repeats, np.intp) - start
+    literal = np.asarray(literals, np.intp) - start
+    edges = np.zeros(block.size + 1, np.int8)
+    edges[literal + 1] = 1
+    edges[literal + 1 + block[literal]] = -1
+    counts = np.cumsum(edges[:-1], dtype=np.int8).view(np.uint8)
+    counts[repeat + 1] = block[repeat] - 128
+    return np.repeat(block, counts)
 
 
 def _refuse_old_style(flat: bytes, row: int) -> None:
@@ -173,21 +202,58 @@ def _refuse_old_style(flat: bytes, row: int) -> None:
         )
 
 
-def _scanline(data: bytes, pos: int, width: int, row: int) -> tuple[NDArray[np.uint8], int]:
-    """One scanline of RGBE pixels (width x 4): new-style RLE or flat."""
-    head = data[pos : pos + 4]
-    rle = _RLE_MIN_WIDTH <= width <= _RLE_MAX_WIDTH and head[:2] == b"\x02\x02" and len(head) == 4
-    if rle and head[2] < 128:
-        if (head[2] << 8 | head[3]) != width:
-            raise InvalidInputError(
-                f"Radiance scanline {row} declares width {head[2] << 8 | head[3]}, not {width}"
-            )
-        return _rle_scanline(data, pos + 4, width, row)
+def _flat_scanline(data: bytes, pos: int, width: int, row: int) -> NDArray[np.uint8]:
+    """Scanline ``row`` stored flat at ``pos``: RGBE pixels (width x 4)."""
     flat = data[pos : pos + 4 * width]
     _refuse_old_style(flat, row)
     if len(flat) != 4 * width:
         raise _truncated(row)
-    return np.frombuffer(flat, np.uint8).reshape(width, 4), pos + 4 * width
+    return np.frombuffer(flat, np.uint8).reshape(width, 4)
+
+
+def _is_rle(data: bytes, pos: int, width: int, row: int) -> bool:
+    """Whether scanline ``row`` at ``pos`` is new-style RLE (its 4-byte start ``2 2``
+    and its width), not flat; a start that declares another width is refused."""
+    head = data[pos : pos + 4]
+    rle = _RLE_MIN_WIDTH <= width <= _RLE_MAX_WIDTH and head[:2] == b"\x02\x02" and len(head) == 4
+    if not (rle and head[2] < 128):
+        return False
+    if (head[2] << 8 | head[3]) != width:
+        raise InvalidInputError(
+            f"Radiance scanline {row} declares width {head[2] << 8 | head[3]}, not {width}"
+        )
+    return True
+
+
+def _read_rows(data: bytes, pos: int, rows: range, rgbe: NDArray[np.uint8]) -> int:
+    """Read scanlines ``rows`` from ``pos`` into ``rgbe`` (height x 4 x width, component
+    by component); return the position after them. The run headers of the RLE ones are
+    walked first (:func:`_rle_headers`), then their runs expanded all at once."""
+    width = rgbe.shape[2]
+    start, rle_rows = pos, []
+    repeats: list[int] = []
+    literals: list[int] = []
+    for row in rows:
+        if _is_rle(data, pos, width, row):
+            pos = _rle_headers(data, pos + 4, width, row, repeats, literals)
+            rle_rows.append(row)
+        else:
+            rgbe[row] = _flat_scanline(data, pos, width, row).T
+            pos += 4 * width
+    if rle_rows:
+        runs = _expand_runs(data, start, pos, repeats, literals)
+        rgbe[rle_rows] = runs.reshape(len(rle_rows), 4, width)
+    return pos
+
+
+def _read_scanlines(data: bytes, pos: int, width: int, height: int) -> NDArray[np.uint8]:
+    """The RGBE pixels (height x width x 4) of the scanlines from ``pos``, each
+    new-style RLE or flat, read :data:`_BLOCK_BYTES` of pixels at a time."""
+    rgbe = np.empty((height, 4, width), np.uint8)
+    block = max(1, _BLOCK_BYTES // (4 * width))
+    for first in range(0, height, block):
+        pos = _read_rows(data, pos, range(first, min(first + block, height)), rgbe)
+    return rgbe.transpose(0, 2, 1)
 
 
 def rgbe_to_float(rgbe: NDArray[np.uint8]) -> NDArray[np.float64]:
@@ -218,10 +284,7 @@ def _read_radiance(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], d
             f"{height} pixels, which take at least {height * smallest_scanline(width)} bytes, "
             f"and {len(data) - pos} bytes follow it; send the complete file"
         )
-    rgbe = np.empty((height, width, 4), np.uint8)
-    for row in range(height):
-        rgbe[row], pos = _scanline(data, pos, width, row)
-    pixels = rgbe_to_float(rgbe)
+    pixels = rgbe_to_float(_read_scanlines(data, pos, width, height))
     if flip_rows:
         pixels = pixels[::-1]
     if flip_columns:

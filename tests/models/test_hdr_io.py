@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from models import hdr_io
 from models.errors import (
     ImageTooLargeError,
     InvalidInputError,
@@ -281,6 +283,82 @@ def test_radiance_orientation_flips_rows() -> None:
     rgbe = np.random.default_rng(1).integers(1, 256, (3, 9, 4)).astype(np.uint8)
     bottom_up = read_hdr(radiance_rle(rgbe, orientation="+Y")).pixels
     np.testing.assert_array_equal(bottom_up, rgbe_to_float(rgbe)[::-1])
+
+
+#: Scanlines of a 4 x 300 file, each a list of components (R, G, B, E) of segments:
+#: +n a literal of n bytes, -n a run of n equal bytes (None: the scanline is flat).
+#: Components and scanlines end on a run or a literal, runs and literals of one pixel
+#: and of the most a count holds (127 and 128) sit next to every boundary.
+SEGMENTS = (
+    ([128, 45, -127], [-127, -127, 46], [1, -1, 128, -127, 43], [-100, 100, -100]),
+    ([-127, 128, 45], [-1, 1, -1, 128, 128, 41], [-127, -127, -46], [-127, -45, 128]),
+    None,
+    ([1, -127, 1, -127, 44], [100, -100, 100], [128, 128, 44], [-127, -127, -46]),
+)
+SEGMENTS_WIDTH = 300
+
+
+def segmented_radiance(seed: int = 5) -> tuple[bytes, np.ndarray, list[int]]:
+    """The file of :data:`SEGMENTS` with random bytes, its RGBE pixels (H x W x 4), and
+    the byte offset where each scanline ends."""
+    rng = np.random.default_rng(seed)
+    height, width = len(SEGMENTS), SEGMENTS_WIDTH
+    rgbe = np.zeros((height, width, 4), np.uint8)
+    body = bytearray(RADIANCE_HEADER + f"-Y {height} +X {width}\n".encode())
+    ends = []
+    for row, components in enumerate(SEGMENTS):
+        if components is None:
+            rgbe[row] = rng.integers(3, 256, (width, 4))  # no RLE start, no old-style run
+            body += rgbe[row].tobytes()
+            ends.append(len(body))
+            continue
+        body += bytes([2, 2, width >> 8, width & 0xFF])
+        for component, segments in enumerate(components):
+            values = bytearray()
+            for n in segments:
+                chunk = rng.integers(0, 256, abs(n)).astype(np.uint8).tobytes()
+                if n < 0:
+                    chunk = chunk[:1] * -n
+                    body += bytes([128 - n, chunk[0]])
+                else:
+                    body += bytes([n]) + chunk
+                values += chunk
+            rgbe[row, :, component] = np.frombuffer(bytes(values), np.uint8)
+        ends.append(len(body))
+    return bytes(body), rgbe, ends
+
+
+@pytest.mark.parametrize("rows_per_block", [None, 1, 2])
+def test_radiance_runs_and_literals_at_scanline_boundaries(
+    monkeypatch: pytest.MonkeyPatch, rows_per_block: int | None
+) -> None:
+    """Runs and literals ending components and scanlines, a flat scanline between RLE
+    ones, and the reader's blocks of scanlines ending anywhere (every scanline, every
+    second one, or all in one block) give the pixels exactly."""
+    if rows_per_block is not None:
+        monkeypatch.setattr(hdr_io, "_BLOCK_BYTES", rows_per_block * 4 * SEGMENTS_WIDTH)
+    data, rgbe, _ = segmented_radiance()
+    np.testing.assert_array_equal(read_hdr(data).pixels, rgbe_to_float(rgbe))
+
+
+@pytest.mark.parametrize(
+    ("broken", "row"),
+    [
+        (lambda data, ends: data[: ends[0]], 1),
+        (lambda data, ends: data[: ends[1] - 1], 1),
+        (lambda data, ends: data[: ends[3] - 1], 3),
+        (lambda data, ends: data[: ends[2] + 4] + b"\x00" + data[ends[2] + 5 :], 3),
+    ],
+    ids=["cut-after-scanline-0", "last-literal-cut", "last-run-without-value", "run-of-0"],
+)
+def test_radiance_cut_or_broken_at_a_scanline_boundary_names_the_scanline(
+    broken: Callable[[bytes, list[int]], bytes], row: int
+) -> None:
+    """A file cut where a scanline ends, one whose last literal or run is cut short, and
+    a count of 0 opening a scanline are refused naming the scanline at fault."""
+    data, _, ends = segmented_radiance()
+    with pytest.raises(InvalidInputError, match=f"corrupt at scanline {row};"):
+        read_hdr(broken(data, ends))
 
 
 def test_rgbe_to_float_is_the_bin_centre() -> None:
