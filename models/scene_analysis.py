@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from models.decoders.base import refuse_empty
 from models.formation import SensorParams, max_winding
 
 Difficulty = Literal["none", "smooth", "sparse", "dense"]
@@ -132,11 +133,13 @@ def analyse(m: NDArray[np.floating], params: SensorParams, tile: int = 64) -> Fr
 
     Each tile's figures count the neighbour pairs inside it and the 2x2 loops that touch
     it: a residue on the border between tiles counts in each (in none, the tiles each
-    side were integrated, and the frame routed, as if it were not there).
+    side were integrated, and the frame routed, as if it were not there). A frame
+    without pixels is refused (:func:`models.decoders.base.refuse_empty`).
     """
     m = np.asarray(m, dtype=np.float64)
     if m.ndim != 2:
         raise ValueError(f"analyse takes one channel (H x W), got shape {m.shape}")
+    refuse_empty(m)
     if tile < 2:
         raise ValueError(f"tile must be at least 2 pixels, got {tile}")
     along_cols, along_rows = neighbour_jumps(m)

@@ -171,6 +171,23 @@ def test_degenerate_shapes_are_clear_errors(decoder: str, shape: tuple[int, int]
         get_decoder(decoder).decode(np.zeros(shape, np.uint8), SensorParams())
 
 
+@pytest.mark.parametrize("decoder", [*DECODERS, "itoh+colour", "auto+puma"])
+@pytest.mark.parametrize("shape", [(0, 40), (40, 0), (0, 0)])
+def test_empty_channels_are_clear_errors(decoder: str, shape: tuple[int, int]) -> None:
+    """A channel without pixels handed to a decoder's own entry points (``decode``
+    refuses it first): ``auto`` raised ZeroDivisionError, the learned decoders returned
+    an empty W, ``+puma`` a numpy padding error."""
+    params = SensorParams(encoding="mantissa", alpha=2.0)
+    chosen = get_decoder(decoder)
+    message = f"a {shape[0]} x {shape[1]}( x 3)? frame .*2 x 2 pixels"
+    with pytest.raises(InvalidInputError, match=message):
+        chosen.predict_winding(np.zeros(shape), params)
+    with pytest.raises(InvalidInputError, match=message):
+        chosen.explain_winding(np.zeros(shape), params)
+    with pytest.raises(InvalidInputError, match=message):
+        chosen.explain_planes(np.zeros((*shape, 3)), params)
+
+
 @pytest.mark.parametrize("decoder", DECODERS)
 def test_bad_codes_are_clear_errors(decoder: str) -> None:
     with pytest.raises(InvalidInputError, match="2\\^4"):

@@ -57,6 +57,17 @@ def check_frame_shape(codes: NDArray[Any]) -> None:
         )
 
 
+def refuse_empty(m: NDArray[Any]) -> None:
+    """Reject a frame or channel (H x W, or H x W x C) that holds no pixel: there is
+    nothing to unwrap, and a decoder's per-pixel figures (route shares, fractions
+    changed) would divide by zero."""
+    if m.size == 0:
+        raise InvalidInputError(
+            f"a {' x '.join(map(str, m.shape))} frame holds no pixels; decoders need at "
+            "least 2 x 2 pixels"
+        )
+
+
 def integer_percentile(values: NDArray[np.integer], percentile: float) -> int:
     """``np.percentile(values, percentile, method="higher")`` of integers, by counting:
     the value at sorted index ``ceil((n - 1) * (percentile / 100))`` (in numpy's order of

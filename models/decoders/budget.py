@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decoders.adaptive_policy import DEFAULT_TILE
-from models.decoders.base import Decoder
+from models.decoders.base import Decoder, refuse_empty
 from models.decoders.colour import harmonise
 from models.decoders.cost_model import (
     CLASSICAL,
@@ -160,7 +160,9 @@ class BudgetDecoder(Decoder):
         channels: each gets the time left divided by the channels left. The frame's
         facts (``budget``: the budget, whether the channels were joined and the join's
         predicted ms, the measured ms of it all, whether the budget was met) come with
-        each channel's (``channels``) and the join's (``colour``)."""
+        each channel's (``channels``) and the join's (``colour``). A frame without pixels
+        is refused before anything is calibrated."""
+        refuse_empty(planes)
         if planes.shape[2] == 1:
             return super().explain_planes(planes, params)
         calibration_start = time.perf_counter_ns()
@@ -201,7 +203,9 @@ class BudgetDecoder(Decoder):
         and the facts: the choice, each option's predicted ms, the factor applied, the
         measured ms (from the analysis to the W) and whether ``budget_ms`` was met, and
         the ms spent calibrating the costs first (once per process, encoding and size
-        class: seconds, not part of the frame's time)."""
+        class: seconds, not part of the frame's time). A channel without pixels is
+        refused before anything is calibrated."""
+        refuse_empty(m)
         calibration_start = time.perf_counter_ns()
         calibrate(params, m.shape)
         start = time.perf_counter_ns()

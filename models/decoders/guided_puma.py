@@ -85,7 +85,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from models.decoders.band_moves import best_band_move, confined_move
-from models.decoders.base import Decoder
+from models.decoders.base import Decoder, refuse_empty
 from models.decoders.classical import wrap_difference
 from models.decoders.graphcut import (
     PairWeights,
@@ -280,8 +280,9 @@ class GuidedPumaDecoder(Decoder):
         ``doubtful`` (bool, H x W; None: everywhere) marks the pixels whose guide may
         be wrong; the others keep the guide. Each connected group of them is refined on
         its own box, grown by :data:`DOUBTFUL_CONTEXT` px of context, whose constant is
-        aligned to the guide on the box's other pixels.
+        aligned to the guide on the box's other pixels. A frame without pixels is refused.
         """
+        refuse_empty(m)
         if doubtful is None or doubtful.all():
             return self._refine_frame(m, guide, params)
         winding = guide.copy()
@@ -307,7 +308,8 @@ class GuidedPumaDecoder(Decoder):
         """``guide`` (int W, H x W) refined by pixel moves confined to ``band`` (bool,
         H x W; :func:`models.decoders.band_moves.confined_move`): every other pixel keeps
         the guide, and frames of any size are cut whole (the graph is the band's).
-        Facts as :meth:`refine` reports them."""
+        Facts as :meth:`refine` reports them; a frame without pixels is refused."""
+        refuse_empty(m)
         result = minimise(
             m, guide, self._energy(m, guide), JUMPS, self.max_moves, confined_move(band)
         )

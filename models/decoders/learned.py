@@ -30,7 +30,7 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
-from models.decoders.base import Decoder, anchor_winding
+from models.decoders.base import Decoder, anchor_winding, refuse_empty
 from models.decoders.classical import integrate_gradient
 from models.decoders.registry import DecoderSpec
 from models.errors import InvalidInputError
@@ -322,7 +322,8 @@ class LearnedDecoder(Decoder):
         of where one W ends and another begins, so it gets one W, anchored to 0 as every
         decoder anchors (the nets alone answered W 0..2 on an all-zero frame, UnModNet
         0..15 on all-max codes, and up to W = 5 on a smooth ramp below x = 1: an invented
-        image)."""
+        image). A frame without pixels is refused."""
+        refuse_empty(m)
         model = self.model_for(params)
         if not has_wrap_edge(m):
             return np.zeros(m.shape, np.int64)

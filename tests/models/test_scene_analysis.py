@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, split_unwrapped
 from models.scene_analysis import (
     DENSE_EDGE_DENSITY,
@@ -42,6 +43,14 @@ def test_rejects_bad_shapes() -> None:
         analyse(np.zeros((4, 4, 3)), MODULO)
     with pytest.raises(ValueError, match="tile"):
         analyse(np.zeros((4, 4)), MODULO, tile=1)
+
+
+@pytest.mark.parametrize("shape", [(0, 5), (5, 0), (0, 0)])
+def test_a_frame_without_pixels_is_refused(shape: tuple[int, int]) -> None:
+    """Its analysis had no pixels in its one tile, and ``auto`` divided its routes'
+    pixel counts by 0 (ZeroDivisionError)."""
+    with pytest.raises(InvalidInputError, match=f"a {shape[0]} x {shape[1]} frame holds no"):
+        analyse(np.zeros(shape), MODULO)
 
 
 def test_unwrapped_frame_has_no_edges() -> None:

@@ -22,7 +22,7 @@ from models.decoders.guided_puma import (
     curvature,
     pair_weights,
 )
-from models.decoders.registry import available_decoders, resolve
+from models.decoders.registry import available_decoders, get_decoder, resolve
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, encode
 from models.scene_analysis import residue_pixels
@@ -332,6 +332,18 @@ def test_no_doubtful_pixel_keeps_the_guide_and_all_doubtful_refines_whole() -> N
     assert facts == {"windows": 0, "region_moves": 0, "moves": 0, "changed_fraction": 0.0}
     whole, _ = decoder.refine(m, guide, PARAMS, np.ones(m.shape, bool))
     np.testing.assert_array_equal(whole, decoder.refine(m, guide, PARAMS)[0])
+
+
+@pytest.mark.parametrize("shape", [(0, 5), (5, 0)])
+def test_a_frame_without_pixels_is_refused_by_each_refinement(shape: tuple[int, int]) -> None:
+    """Refined whole or within a band, an empty frame was a numpy padding error."""
+    decoder = get_decoder("itoh+puma")
+    assert isinstance(decoder, GuidedPumaDecoder)
+    m, guide = np.zeros(shape), np.zeros(shape, np.int64)
+    with pytest.raises(InvalidInputError, match="holds no pixels"):
+        decoder.refine(m, guide, PARAMS)
+    with pytest.raises(InvalidInputError, match="holds no pixels"):
+        decoder.refine_within(m, guide, PARAMS, np.ones(shape, bool))
 
 
 def test_a_refinement_within_a_band_changes_only_the_band() -> None:
