@@ -10,6 +10,12 @@ and :func:`save_pair` writes a new folder of ``data_dir/datasets/<device>/``
 (:mod:`device.datasets`: named by the host's clock, then the sequence; whole or not at all)
 with ``wrapped.png`` (codes + params), ``reference.exr`` (scene-referred irradiance,
 the wrapped frame's ``x`` is ``gain * reference``) and ``meta.json``.
+
+A pixel saturated in every exposure (:func:`clipped_pixels`) has only a lower bound in
+the reference; ``meta.json`` gives their share (``merge.clipped_fraction``), and a
+bracket saturated at every pixel is not saved at all (:class:`SaturatedBracketError`):
+its reference would be the darkest exposure's clip everywhere, a target that says
+nothing of the scene the wrapped frame recorded.
 """
 
 from __future__ import annotations
@@ -42,27 +48,51 @@ def hat_weight(z: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.clip(1.0 - np.abs(z - middle) / half, 0.0, None)
 
 
-def merge_exposures(
-    codes: Sequence[NDArray[np.unsignedinteger]], gains: Sequence[float], bits: int
-) -> NDArray[np.float64]:
-    """Scene-referred irradiance from clipped exposures (``x = gain * scene``, clipped at 1).
+class SaturatedBracketError(InvalidInputError):
+    """Every pixel of a bracket is saturated in every exposure: its reference would hold
+    only a lower bound, no measurement, so the pair is not saved."""
 
-    Pixels with no usable sample take the darkest exposure's value where it is
-    saturated (a lower bound) and the brightest exposure's value elsewhere.
-    """
+
+def _sorted_exposures(
+    codes: Sequence[NDArray[np.unsignedinteger]], gains: Sequence[float], bits: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The exposures' normalised codes (n x H x W, in [0, 1)) and gains (n x 1 x 1),
+    darkest (lowest gain) first; fewer than two exposures or a gain <= 0 are refused."""
     if len(codes) != len(gains) or len(codes) < 2:
         raise InvalidInputError("a bracket needs at least two exposures, each with its gain")
     if any(g <= 0 for g in gains):
         raise InvalidInputError(f"bracket gains must be positive, got {list(gains)}")
     order = np.argsort(gains)
     z = np.stack([dequantize(codes[i], bits) for i in order])
-    g = np.asarray(gains, np.float64)[order].reshape(-1, *([1] * (z.ndim - 1)))
+    return z, np.asarray(gains, np.float64)[order].reshape(-1, *([1] * (z.ndim - 1)))
+
+
+def merge_exposures(
+    codes: Sequence[NDArray[np.unsignedinteger]], gains: Sequence[float], bits: int
+) -> NDArray[np.float64]:
+    """Scene-referred irradiance from clipped exposures (``x = gain * scene``, clipped at 1).
+
+    Pixels with no usable sample take the darkest exposure's value where it is
+    saturated (a lower bound, see :func:`clipped_pixels`) and the brightest exposure's
+    value elsewhere.
+    """
+    z, g = _sorted_exposures(codes, gains, bits)
     weights = hat_weight(z)
     estimates = z / g
     total = weights.sum(axis=0)
     merged = (weights * estimates).sum(axis=0) / np.where(total > 0, total, 1.0)
     fallback = np.where(z[0] >= SATURATION_LEVEL, estimates[0], estimates[-1])
     return np.where(total > 0, merged, fallback)
+
+
+def clipped_pixels(
+    codes: Sequence[NDArray[np.unsignedinteger]], gains: Sequence[float], bits: int
+) -> NDArray[np.bool_]:
+    """The pixels (bool, H x W) saturated in every exposure: no sample inside the hat's
+    support, the darkest exposure at or above :data:`SATURATION_LEVEL`. There
+    :func:`merge_exposures` gives only a lower bound (the darkest exposure's clip)."""
+    z, _ = _sorted_exposures(codes, gains, bits)
+    return ~(hat_weight(z) > 0).any(axis=0) & (z[0] >= SATURATION_LEVEL)
 
 
 @dataclass
@@ -74,11 +104,18 @@ class Bracket:
 
     def reference(self) -> NDArray[np.float64]:
         """The merged scene-referred reference HDR."""
+        return merge_exposures(*self._exposures())
+
+    def clipped(self) -> NDArray[np.bool_]:
+        """The pixels saturated in every exposure (:func:`clipped_pixels`)."""
+        return clipped_pixels(*self._exposures())
+
+    def _exposures(self) -> tuple[list[NDArray[np.unsignedinteger]], list[float], int]:
+        """The exposures' codes, gains and their one bit depth."""
         bits = {p.bits for p in self.exposures}
         if len(bits) != 1:
             raise InvalidInputError(f"bracket exposures mix bit depths {sorted(bits)}")
-        return merge_exposures([p.codes for p in self.exposures],
-                               [p.gain for p in self.exposures], bits.pop())
+        return [p.codes for p in self.exposures], [p.gain for p in self.exposures], bits.pop()
 
 
 class BracketCollector:
@@ -133,7 +170,10 @@ class BracketCollector:
 def save_pair(root: Path, device: str, bracket: Bracket) -> Path:
     """Write the (wrapped frame, reference HDR) pair in a new folder; return the folder.
     The pair is saved whole or not at all: when a file cannot be written (a reference
-    float32 cannot hold, a full disk) the error is raised and no folder is left."""
+    float32 cannot hold, a full disk) the error is raised and no folder is left. A
+    bracket saturated at every pixel is refused before anything is written
+    (:func:`refuse_saturated`)."""
+    refuse_saturated(bracket)
     folder = new_pair_folder(root, device, bracket.wrapped.sequence)
     try:
         write_pair(folder, device, bracket)
@@ -141,6 +181,19 @@ def save_pair(root: Path, device: str, bracket: Bracket) -> Path:
         shutil.rmtree(folder, ignore_errors=True)
         raise
     return finish_pair(folder)
+
+
+def refuse_saturated(bracket: Bracket) -> None:
+    """Raise :class:`SaturatedBracketError` when every pixel of ``bracket`` is saturated
+    in every exposure (see the module docstring)."""
+    if bracket.clipped().all():
+        darkest = min(p.gain for p in bracket.exposures)
+        raise SaturatedBracketError(
+            f"every pixel is saturated, even in the bracket's darkest exposure (gain "
+            f"{darkest:g}): its reference would hold only a lower bound, so no pair is "
+            "saved; request the bracket again with a darker first exposure (a lower "
+            "base_gain, or more exposures or a larger ratio)"
+        )
 
 
 def write_pair(folder: Path, device: str, bracket: Bracket) -> None:
@@ -159,6 +212,7 @@ def write_pair(folder: Path, device: str, bracket: Bracket) -> None:
         "params": params.model_dump(),
         "exposure_gains": [p.gain for p in bracket.exposures],
         "merge": {"weights": "hat", "dark_level": DARK_LEVEL,
-                  "saturation_level": SATURATION_LEVEL},
+                  "saturation_level": SATURATION_LEVEL,
+                  "clipped_fraction": float(bracket.clipped().mean())},
     }
     (folder / "meta.json").write_text(json.dumps(meta, indent=2))

@@ -27,7 +27,7 @@ from typing import Any
 import redis
 import serial
 
-from device.bracketing import BracketCollector, save_pair
+from device.bracketing import BracketCollector, SaturatedBracketError, save_pair
 from device.commands import Command, to_packet
 from device.daemon_claim import DaemonClaim
 from device.datasets import DatasetLimits, prune_pairs
@@ -203,7 +203,9 @@ class DeviceDaemon:
         try:
             folder = save_pair(self.config.data_dir, self.device, bracket)
         except (McamError, OSError) as exc:
-            log.warning("bracket at sequence %d not saved: %s", packet.sequence, exc)
+            if isinstance(exc, SaturatedBracketError):
+                self.health.add("brackets_saturated")
+            log.warning("bracket at sequence %d not saved: %s", bracket.wrapped.sequence, exc)
             return
         self.health.add("brackets_saved")
         log.info("bracketed reference pair saved in %s", folder)

@@ -9,8 +9,9 @@ queue), ``stream_full`` (oldest frames evicted from the Redis stream unread),
 (sequence numbers never received), ``reconnects``, ``last_frame_ns`` (host
 wall clock, ns since the epoch) and ``last_sequence`` of the device's newest frame (-1:
 none yet), ``fps`` (measured over the last frames), ``brackets_saved``,
-``brackets_incomplete``, ``control_sent``, ``control_rejected``, ``settings`` (JSON:
-encoding, alpha, bits, gain, width, height of the newest frame), ``updated_ns``.
+``brackets_incomplete``, ``brackets_saturated`` (complete, but saturated at every pixel:
+not saved), ``control_sent``, ``control_rejected``, ``settings`` (JSON: encoding, alpha,
+bits, gain, width, height of the newest frame), ``updated_ns``.
 
 The counters are the device's, not one daemon's: a daemon that takes over the device
 (:meth:`DeviceHealth.carry_over`) goes on from those its previous daemon left in the
@@ -42,7 +43,8 @@ ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + HOST_DROP_CAUSES
 MAX_MISSING_PER_GAP = 1_000_000
 _COUNTERS: tuple[str, ...] = (
     "frames_ok", "frames_received", "garbage_bytes", "sequence_gaps", "frames_missing",
-    "reconnects", "brackets_saved", "brackets_incomplete", "control_sent", "control_rejected",
+    "reconnects", "brackets_saved", "brackets_incomplete", "brackets_saturated", "control_sent",
+    "control_rejected",
 ) + tuple(f"dropped_{cause}" for cause in ALL_DROP_CAUSES)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,8 @@ from device.bracketing import (
     SATURATION_LEVEL,
     Bracket,
     BracketCollector,
+    SaturatedBracketError,
+    clipped_pixels,
     hat_weight,
     merge_exposures,
     save_pair,
@@ -114,9 +117,10 @@ def test_an_exposure_that_does_not_fit_abandons_the_bracket(misfit: dict) -> Non
     assert collector.add(exposure(22, 2)) is not None
 
 
-def bracket_of(gain: float) -> Bracket:
-    """A 4-exposure bracket of an 8 x 8 mid-grey scene, the wrapped frame at ``gain``."""
-    codes = np.full((8, 8), 128, np.uint8)
+def bracket_of(gain: float, codes: np.ndarray | None = None) -> Bracket:
+    """A 4-exposure bracket of an 8 x 8 scene, mid-grey unless every exposure reads
+    ``codes``, the wrapped frame at ``gain``."""
+    codes = np.full((8, 8), 128, np.uint8) if codes is None else codes
 
     def packet(index: int, encoding: str, packet_gain: float) -> DataPacket:
         return DataPacket(100 + index, 0, encoding, 2.0, 8, packet_gain, codes, FLAG_BRACKET,
@@ -140,3 +144,34 @@ def test_a_pair_whose_reference_cannot_be_written_leaves_no_folder(tmp_path: Pat
     with pytest.raises(OutputOverflowError, match="float32"):
         save_pair(tmp_path, "cam", bracket_of(1e-300))
     assert len(list(device_dir(tmp_path, "cam").iterdir())) == 1
+
+
+def test_a_bracket_saturated_at_every_pixel_is_refused_and_nothing_written(
+    tmp_path: Path,
+) -> None:
+    """Its reference would be the darkest exposure's clip everywhere (was saved as a
+    pair, with nothing to tell a training set that its target holds no measurement)."""
+    saturated = bracket_of(1.0, np.full((8, 8), 250, np.uint8))
+    assert saturated.clipped().all()
+    with pytest.raises(SaturatedBracketError, match="every pixel is saturated.*gain 0.25"):
+        save_pair(tmp_path, "cam", saturated)
+    assert not device_dir(tmp_path, "cam").exists()
+
+
+def test_a_pair_records_the_share_of_pixels_saturated_in_every_exposure(
+    tmp_path: Path,
+) -> None:
+    codes = np.full((8, 8), 128, np.uint8)
+    codes[:2] = 255
+    folder = save_pair(tmp_path, "cam", bracket_of(1.0, codes))
+    meta = json.loads((folder / "meta.json").read_text())
+    assert meta["merge"]["clipped_fraction"] == 0.25
+
+
+def test_clipped_pixels_are_those_no_exposure_measured_below_saturation() -> None:
+    """Saturated in the darkest exposure but below saturation in a brighter one (noise):
+    measured, not clipped; dark in every exposure: an estimate, not clipped."""
+    darkest = np.array([[255, 255, 0, 128]], np.uint8)
+    brighter = np.array([[255, 200, 0, 255]], np.uint8)
+    clipped = clipped_pixels([brighter, darkest], [1.0, 0.5], 8)
+    np.testing.assert_array_equal(clipped, [[True, False, False, False]])

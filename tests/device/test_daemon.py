@@ -287,9 +287,10 @@ def test_frames_sent_while_the_link_was_down_are_a_gap_of_missing_frames(
         (2**40, True)]
 
 
-def bracket_packets(first: int) -> list[lp.DataPacket]:
-    """A 3-packet bracket from sequence ``first``: the wrapped frame, two clipped images."""
-    codes = np.full((4, 4), 100, np.uint8)
+def bracket_packets(first: int, code: int = 100) -> list[lp.DataPacket]:
+    """A 3-packet bracket from sequence ``first``: the wrapped frame, two clipped images,
+    every pixel of each at ``code``."""
+    codes = np.full((4, 4), code, np.uint8)
     return [lp.DataPacket(first + i, 0, "clip" if i else "modulo", 2.0, 8, 0.5 * 2**i, codes,
                           lp.FLAG_BRACKET, i, 3) for i in range(3)]
 
@@ -310,6 +311,26 @@ def test_a_restarted_sequence_keeps_earlier_pairs_within_the_dataset_bound(
     assert kept[2] == ["0000000010", "0000000010", "0000000020"]
     assert kept[3] == ["0000000010", "0000000020", "0000000030"]
     assert all((folder / "meta.json").is_file() for folder in folders.iterdir())
+
+
+def test_a_bracket_saturated_at_every_pixel_is_counted_and_not_saved(
+        client: redis.Redis, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Its reference would hold only the darkest exposure's clip: no pair is stored, the
+    bracket is counted in ``brackets_saturated`` and the log says why; the next bracket
+    is saved."""
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9", data_dir=tmp_path),
+                          client)
+    with caplog.at_level(logging.WARNING, logger="device.daemon"):
+        for packet in bracket_packets(10, code=255):
+            daemon._on_data(packet)
+    assert daemon.health.counts["brackets_saturated"] == 1
+    assert daemon.health.counts["brackets_saved"] == 0
+    assert not (tmp_path / "datasets").exists()
+    assert "bracket at sequence 10 not saved: every pixel is saturated" in caplog.text
+    for packet in bracket_packets(13):
+        daemon._on_data(packet)
+    assert daemon.health.counts["brackets_saved"] == 1
+    assert daemon.health.counts["brackets_saturated"] == 1
 
 
 def test_a_bracket_whose_exposures_do_not_fit_is_abandoned_and_streaming_goes_on(
