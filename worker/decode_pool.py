@@ -31,6 +31,14 @@ A process that dies (killed, out of memory) breaks the pool: the frame whose res
 was awaited fails (the device consumer retries it, and dead-letters it after
 ``max_deliveries``: a frame that kills its process every time), a new pool starts and
 every other pending frame is submitted to it again.
+
+A worker killed outright (SIGKILL, out of memory) while it holds a pool leaves the
+pool's 9 named POSIX semaphores (its two queues' locks, its barrier) to multiprocessing's
+resource tracker, which unlinks them and warns ``There appear to be 9 leaked semaphore
+objects to clean up at shutdown``: nothing is left in /dev/shm (checked on Python 3.11).
+It is inherent to the spawn start method, whose semaphores must be named until every
+process has opened them, and to SIGKILL, which gives their owner no chance to unlink
+them; a gracefully stopped worker (SIGTERM, Ctrl-C) closes the pool and prints nothing.
 """
 
 from __future__ import annotations
