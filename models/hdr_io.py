@@ -12,7 +12,7 @@ mantissa bin centre, ``(m + 0.5) * 2^(e - 136)``, as Radiance's own ``colr_color
 does. Header variables (``FORMAT``, ``EXPOSURE``, ...) are returned as attributes;
 ``EXPOSURE`` is not divided out. Only the run headers are walked in Python (one
 step per run); the bytes of a block of scanlines are expanded by one ``np.repeat``:
-a 1024 x 512 RLE file reads 4-5x faster than with a numpy copy per run (docs/changelog.md,
+a 1024 x 512 RLE file reads 3-5x faster than with a numpy copy per run (docs/changelog.md,
 session 35).
 """
 
