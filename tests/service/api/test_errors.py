@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import logging
+import socket
 from collections.abc import Callable
 from pathlib import Path
 
 import httpx
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from service.core.config import Settings
 from service.main import create_app
+from tests.device.conftest import wait_for
 from tests.service.conftest import FULL_KEY, frame_png, make_settings, serve
 
 Client = Callable[[str], httpx.Client]
@@ -94,3 +98,46 @@ def test_a_full_queue_says_when_to_retry(tmp_path: Path, redis_url: str) -> None
     assert replies[0].status_code == 202
     assert replies[1].status_code == 503 and replies[1].json()["code"] == "queue_full"
     assert replies[1].headers["retry-after"] == "5"
+
+
+CUT_BODIES = {
+    "octet-stream": ("application/octet-stream", b"\x89PNG"),
+    "multipart": ("multipart/form-data; boundary=XYZ",
+                  b'--XYZ\r\nContent-Disposition: form-data; name="file"; filename="a.png"'
+                  b"\r\n\r\n\x89PNG"),
+    "json": ("application/json", b'{"comm'),
+}
+
+
+@pytest.mark.parametrize("kind", CUT_BODIES)
+def test_a_client_that_leaves_mid_body_is_a_quiet_499(
+    api: str, client: Client, kind: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Headers promising 1000 bytes, a few sent, then the connection closed: the upload was
+    logged as an internal error with a 50-line ClientDisconnect traceback and counted as
+    a 500 (a JSON body as a 400 'could not be parsed')."""
+    media, body = CUT_BODIES[kind]
+    path, route = ("/v1/devices/cam1/control", "/v1/devices/{device_id}/control") \
+        if kind == "json" else ("/v1/reconstructions", "/v1/reconstructions")
+    host, port = api.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(f"POST {path} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {FULL_KEY}"
+                     f"\r\nContent-Type: {media}\r\nContent-Length: 1000\r\n\r\n".encode()
+                     + body)
+    http = client(FULL_KEY)
+
+    def statuses() -> set[str]:
+        return {labels["status"] for labels in request_labels(http.get("/metrics").text)
+                if labels["route"] == route}
+
+    assert wait_for(lambda: bool(statuses()), 30)
+    assert statuses() == {"499"}
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+    assert http.get("/health/live").status_code == 200
+
+
+def request_labels(metrics: str) -> list[dict[str, str]]:
+    """The labels of each ``mcam_http_request_duration_seconds_count`` sample."""
+    return [sample.labels for family in text_string_to_metric_families(metrics)
+            for sample in family.samples
+            if sample.name == "mcam_http_request_duration_seconds_count"]
