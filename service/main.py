@@ -94,7 +94,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics_registry = registry
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes,
                        json_limit=settings.max_json_bytes)
-    app.add_middleware(BodyTimeoutMiddleware, timeout_s=settings.http_body_timeout_s)
+    app.add_middleware(BodyTimeoutMiddleware, timeout_s=settings.http_body_timeout_s,
+                       deadline_s=settings.http_body_deadline_s)
     app.add_middleware(HeadRequestMiddleware)
     app.add_middleware(RequestTimer, histogram=requests, routes=routes)
     app.add_middleware(SecurityHeaders, headers=API_HEADERS)

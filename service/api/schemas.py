@@ -106,7 +106,10 @@ AUTH_ERRORS: dict[int | str, dict[str, Any]] = {
 }
 #: Responses of a route that reads a request body (``service.api.body_timeout``).
 BODY_ERRORS: dict[int | str, dict[str, Any]] = {
-    408: error_response("the request body paused longer than MCAM_HTTP_BODY_TIMEOUT_S"),
+    408: error_response(
+        "the request body paused longer than MCAM_HTTP_BODY_TIMEOUT_S, or took longer "
+        "than MCAM_HTTP_BODY_DEADLINE_S in all"
+    ),
 }
 UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
     **AUTH_ERRORS,

@@ -66,6 +66,12 @@ class Settings(BaseSettings):
         30.0, gt=0, le=3600,
         description="longest pause in a request body before 408 (a slow upload holds a task)",
     )  # fmt: skip
+    http_body_deadline_s: float = Field(
+        300.0, gt=0, le=86_400,
+        description="longest a request body may take in all, from the app's first read of "
+        "it, before 408: a body trickling in never pauses for MCAM_HTTP_BODY_TIMEOUT_S "
+        "(the 64 MiB upload limit in 300 s needs 1.8 Mbit/s)",
+    )  # fmt: skip
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
     max_json_bytes: int = Field(
         64 * 1024, gt=0, description="a JSON or URL-encoded body (commands, form fields)"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import select
 import socket
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -84,17 +85,43 @@ def test_a_second_content_type_does_not_lift_the_json_limit(client: Client) -> N
     assert reply.status_code == 413 and reply.json()["code"] == "body_too_large"
 
 
+def upload_socket(url: str, framing: bytes) -> socket.socket:
+    """A connection to the API at ``url`` that sent an upload's head, with ``framing``
+    (its Content-Length or Transfer-Encoding line), and none of its body."""
+    host, port = url.removeprefix("http://").split(":")
+    sock = socket.create_connection((host, int(port)), timeout=10)
+    sock.sendall(b"POST /v1/reconstructions HTTP/1.1\r\nHost: x\r\n"
+                 b"Authorization: Bearer " + FULL_KEY.encode() + b"\r\n"
+                 b"Content-Type: application/octet-stream\r\n" + framing + b"\r\n\r\n")
+    return sock
+
+
 def test_a_body_that_stops_arriving_gets_408(tmp_path: Path, redis_url: str) -> None:
     """A client that sends half a body and waits held a connection and a task for ever."""
     settings = make_settings(tmp_path, redis_url, http_body_timeout_s=0.5)
     with serve(create_app(settings)) as url:
-        host, port = url.removeprefix("http://").split(":")
-        with socket.create_connection((host, int(port)), timeout=10) as sock:
-            sock.sendall(b"POST /v1/reconstructions HTTP/1.1\r\nHost: x\r\n"
-                         b"Authorization: Bearer " + FULL_KEY.encode() + b"\r\n"
-                         b"Content-Type: application/octet-stream\r\n"
-                         b"Content-Length: 1000\r\n\r\n" + bytes(10))
+        with upload_socket(url, b"Content-Length: 1000") as sock:
+            sock.sendall(bytes(10))
             reply = read_response(sock).decode()
         assert reply.startswith("HTTP/1.1 408"), reply
         assert "request_timeout" in reply and "MCAM_HTTP_BODY_TIMEOUT_S" in reply
+        assert httpx.get(f"{url}/health/live", timeout=5).status_code == 200
+
+
+def test_a_body_trickling_in_past_the_deadline_gets_408(tmp_path: Path, redis_url: str) -> None:
+    """A chunked upload sending a byte at a time, never pausing as long as the body
+    timeout, stayed open for good: 260 such sockets held 123 of the server's connections."""
+    settings = make_settings(tmp_path, redis_url, http_body_timeout_s=30,
+                             http_body_deadline_s=1)
+    with serve(create_app(settings)) as url:
+        with upload_socket(url, b"Transfer-Encoding: chunked") as sock:
+            for _ in range(100):  # 20 s at most: the body ends then, if nothing came back
+                if select.select([sock], [], [], 0.2)[0]:
+                    break
+                sock.sendall(b"1\r\nA\r\n")
+            else:
+                sock.sendall(b"0\r\n\r\n")
+            reply = read_response(sock).decode()
+        assert reply.startswith("HTTP/1.1 408"), reply
+        assert "request_timeout" in reply and "MCAM_HTTP_BODY_DEADLINE_S" in reply
         assert httpx.get(f"{url}/health/live", timeout=5).status_code == 200
