@@ -10,9 +10,11 @@ import numpy as np
 from fastapi import Response
 from fastapi.responses import FileResponse
 from numpy.typing import NDArray
+from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
 
 from models.errors import UnsupportedFormatError
 from models.frames import encode_frame
+from service.api.errors import ApiError
 from worker.outputs import encode_winding
 from worker.result_store import ResultStore
 
@@ -52,6 +54,32 @@ class HeldFileResponse(FileResponse):
         path = held if held.exists() else Path(handle.name)
         super().__init__(path, stat_result=os.fstat(handle.fileno()), **kwargs)
         self.handle = handle
+
+    @classmethod
+    def _parse_range_header(cls, http_range: str, file_size: int) -> list[tuple[int, int]]:
+        """Starlette's byte ranges of ``http_range`` in a file of ``file_size`` bytes
+        ([] for the whole file), where a range in a unit other than bytes is ignored (RFC
+        9110 14.2: it was 400) and a malformed or unsatisfiable one is the API's JSON 400
+        or 416 (they were plain text)."""
+        unit, equals, _ = http_range.partition("=")
+        if equals and unit.strip().lower() != "bytes":
+            return []
+        try:
+            return super()._parse_range_header(http_range, file_size)
+        except MalformedRangeHeader:
+            raise ApiError(
+                400, "bad_range",
+                "the Range header is malformed; ask for bytes=FIRST-LAST, bytes=FIRST- or "
+                "bytes=-LENGTH (FIRST <= LAST), or send none for the whole file",
+            ) from None  # fmt: skip
+        except RangeNotSatisfiable:
+            raise ApiError(
+                416, "range_not_satisfiable",
+                f"the Range header asks for bytes past the end of this {file_size}-byte "
+                "file; " + (f"ask for bytes within 0-{file_size - 1}" if file_size
+                            else "send no Range for it"),
+                headers={"Content-Range": f"bytes */{file_size}"},
+            ) from None  # fmt: skip
 
 
 def stored_file(

@@ -11,6 +11,7 @@ import pytest
 from fastapi import FastAPI
 
 from service.api.downloads import stored_file
+from service.api.errors import install_error_handlers
 from tests.service.conftest import serve
 from worker.result_store import ResultNotFoundError, ResultStore
 
@@ -60,3 +61,40 @@ def test_a_result_purged_before_it_was_opened_is_not_found(store: ResultStore) -
     store.delete(KEY)
     with pytest.raises(ResultNotFoundError, match="never written or expired"):
         stored_file(store, KEY, "image/x-exr", "r.exr")
+
+
+@pytest.fixture
+def api_download(store: ResultStore) -> Iterator[httpx.Client]:
+    """A live app with the API's error handlers whose route sends the stored result."""
+    app = FastAPI()
+    install_error_handlers(app)
+
+    @app.get("/result")
+    def result() -> object:
+        return stored_file(store, KEY, "image/x-exr", "r.exr")
+
+    with serve(app) as url, httpx.Client(base_url=url) as client:
+        yield client
+
+
+def test_a_range_in_another_unit_is_ignored(api_download: httpx.Client) -> None:
+    """RFC 9110 14.2: a server ignores a range unit it does not understand; it was 400."""
+    whole = api_download.get("/result", headers={"Range": "items=0-1"})
+    assert whole.status_code == 200 and whole.content == DATA
+
+
+@pytest.mark.parametrize("value", ["bytes=abc", "bytes=5-2", "bytes", "bytes=,"])
+def test_a_malformed_range_is_a_json_400(api_download: httpx.Client, value: str) -> None:
+    reply = api_download.get("/result", headers={"Range": value})
+    assert reply.status_code == 400, reply.text
+    assert reply.headers["content-type"] == "application/json"  # it was text/plain
+    assert reply.json()["code"] == "bad_range" and "bytes=FIRST-LAST" in reply.json()["message"]
+
+
+def test_a_range_past_the_end_is_a_json_416(api_download: httpx.Client) -> None:
+    reply = api_download.get("/result", headers={"Range": f"bytes={len(DATA)}-"})
+    assert reply.status_code == 416, reply.text
+    assert reply.headers["content-type"] == "application/json"  # it was text/plain
+    assert reply.headers["content-range"] == f"bytes */{len(DATA)}"
+    assert reply.json()["code"] == "range_not_satisfiable"
+    assert f"0-{len(DATA) - 1}" in reply.json()["message"]
