@@ -25,6 +25,7 @@ from service.api.body_limit import BodyLimitMiddleware
 from service.api.body_timeout import BodyTimeoutMiddleware
 from service.api.errors import install_error_handlers
 from service.api.head_requests import HeadRequestMiddleware
+from service.api.request_target import RequestTargetMiddleware
 from service.api.routes.docs import ASSETS as DOCS_ASSETS
 from service.api.security_headers import API_HEADERS, VIEWER_HEADERS, SecurityHeaders
 from service.api.state import ServiceState, open_state
@@ -97,6 +98,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyTimeoutMiddleware, timeout_s=settings.http_body_timeout_s,
                        deadline_s=settings.http_body_deadline_s)
     app.add_middleware(HeadRequestMiddleware)
+    app.add_middleware(RequestTargetMiddleware)
     app.add_middleware(RequestTimer, histogram=requests, routes=routes)
     app.add_middleware(SecurityHeaders, headers=API_HEADERS)
     app.mount(DOCS_ASSETS, StaticFiles(directory=swagger_ui_path), name="docs-assets")
