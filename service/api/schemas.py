@@ -122,6 +122,11 @@ UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
         "queue reach MCAM_MAX_QUEUED_JOBS_PER_KEY or MCAM_MAX_QUEUED_BYTES_PER_KEY "
         "(too_many_jobs)"
     ),
+    503: error_response(
+        "the queue (Redis) is unreachable or full, or the API is decoding "
+        "MCAM_MAX_CONCURRENT_DECODES uploads already and none finished within "
+        "MCAM_DECODE_WAIT_S (server_busy, see Retry-After)"
+    ),
 }
 
 

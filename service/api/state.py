@@ -7,8 +7,10 @@ data dir itself (the embedded default when the API runs alone).
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 
 import redis
@@ -21,10 +23,13 @@ from worker.result_store import RESULTS_DIR, ResultStore
 
 log = logging.getLogger(__name__)
 
+#: Seconds between looks for a free slot while a request waits for one.
+SLOT_POLL_S = 0.05
+
 
 class Slots:
     """At most ``limit`` of something held at once (thread-safe): requests waiting for
-    their job, open event streams."""
+    their job, open event streams, uploads being decoded."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
@@ -42,6 +47,17 @@ class Slots:
                 return False
             self._held += 1
             return True
+
+    async def wait_take(self, wait_s: float) -> bool:
+        """Hold a slot, waiting up to ``wait_s`` seconds for one to be freed (on the
+        event loop: a waiting request holds no server thread); False if none was."""
+        deadline = time.monotonic() + wait_s
+        while not self.take():
+            left_s = deadline - time.monotonic()
+            if left_s <= 0:
+                return False
+            await asyncio.sleep(min(SLOT_POLL_S, left_s))
+        return True
 
     def release(self) -> None:
         with self._lock:
@@ -62,6 +78,8 @@ class ServiceState:
     wait_slots: Slots
     #: Server-sent event streams open at once (each holds a blocked Redis connection).
     event_slots: Slots
+    #: Uploads decoded or simulated in this process at once (each may take gigabytes).
+    decode_slots: Slots
     embedded: EmbeddedRedis | None = None
     _queue: JobQueue | None = field(default=None, repr=False)
 
@@ -115,4 +133,5 @@ def open_state(settings: Settings, keyring: KeyRing) -> ServiceState:
         embedded=embedded,
         wait_slots=Slots(settings.max_waiting_requests),
         event_slots=Slots(settings.max_event_streams),
+        decode_slots=Slots(settings.max_concurrent_decodes),
     )

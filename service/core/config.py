@@ -96,6 +96,17 @@ class Settings(BaseSettings):
         16, ge=0, le=32,
         description="requests held open at once by 'Prefer: wait' (the API has 40 threads)",
     )  # fmt: skip
+    max_concurrent_decodes: int = Field(
+        2, ge=1, le=40,
+        description="uploads the API decodes or simulates at once (POST /v1/simulate, "
+        "/v1/reconstructions, /v1/videos), in its own memory: a 4096 x 4096 simulate "
+        "peaks at 3.6 GB; one more waits up to MCAM_DECODE_WAIT_S for its turn, then 503",
+    )  # fmt: skip
+    decode_wait_s: float = Field(
+        10.0, ge=0, le=300,
+        description="longest an upload waits for one of MCAM_MAX_CONCURRENT_DECODES "
+        "before 503 server_busy with Retry-After (it holds no server thread meanwhile)",
+    )  # fmt: skip
     max_event_streams: int = Field(
         64, ge=1, le=10_000,
         description="server-sent event streams open at once (each holds a Redis connection)",

@@ -23,10 +23,12 @@ from service.api.state import ServiceState
 from service.api.uploads import (
     ReconstructionFields,
     Upload,
+    decode_in_turn,
     read_upload_fields,
     sniff_frame_format,
 )
 from service.core.security import ApiKey
+from worker.jobs import JobRecord
 
 router = APIRouter(prefix="/v1", tags=["reconstructions"])
 
@@ -78,14 +80,13 @@ def choose_decoder(fields: ReconstructionFields, default: str) -> str:
 
 
 def submit(
-    state: ServiceState, upload: Upload, fields: ReconstructionFields, wait_s: float, key: ApiKey
-) -> Response:
-    """Decode the upload, queue the job for ``key``, and wait up to ``wait_s`` for it to
-    finish."""
+    state: ServiceState, upload: Upload, fields: ReconstructionFields, key: ApiKey
+) -> JobRecord:
+    """Decode the upload and queue its job for ``key``."""
     settings = state.settings
     frame = read_wrapped_frame(upload, fields, settings.max_pixels)
     decoder = choose_decoder(fields, settings.default_decoder)
-    record = state.queue.submit(
+    return state.queue.submit(
         "reconstruction",
         frame.codes,
         frame.params,
@@ -97,7 +98,6 @@ def submit(
         },
         owner=key.id,
     )
-    return job_response(state.queue, record, wait_s, state.wait_slots)
 
 
 @router.post(
@@ -121,7 +121,9 @@ async def post_reconstruction(
         str | None, Header(description="`wait=N`: answer 200 with the job if done within N s")
     ] = None,
 ) -> Response:
-    """Queue a wrapped frame; the job's state is at ``GET /v1/jobs/{id}``."""
+    """Queue a wrapped frame; the job's state is at ``GET /v1/jobs/{id}``. Only the
+    decode and the submit hold a decode slot, not the ``Prefer: wait`` for the job."""
     upload, fields = await read_upload_fields(request, ReconstructionFields, query)
     wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
-    return await run_in_threadpool(submit, state, upload, fields, wait_s, key)
+    record = await decode_in_turn(state, submit, state, upload, fields, key)
+    return await run_in_threadpool(job_response, state.queue, record, wait_s, state.wait_slots)

@@ -5,15 +5,14 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
-from starlette.concurrency import run_in_threadpool
 
 from models.formation import SensorParams, simulate
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
-from service.api.deps import SettingsDep, SubmitKey
+from service.api.deps import StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, winding_bytes
 from service.api.schemas import UPLOAD_ERRORS, upload_body
-from service.api.uploads import SimulateFields, Upload, read_upload_fields
+from service.api.uploads import SimulateFields, Upload, decode_in_turn, read_upload_fields
 from service.core.config import Settings
 
 router = APIRouter(prefix="/v1", tags=["simulate"])
@@ -78,9 +77,9 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
 async def post_simulate(
     request: Request,
     query: Annotated[SimulateFields, Query()],
-    settings: SettingsDep,
+    state: StateDep,
     _: SubmitKey,
 ) -> Response:
     """Encode an HDR image with the given sensor parameters (form fields or query)."""
     upload, fields = await read_upload_fields(request, SimulateFields, query)
-    return await run_in_threadpool(simulate_upload, upload, fields, settings)
+    return await decode_in_turn(state, simulate_upload, upload, fields, state.settings)

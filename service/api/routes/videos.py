@@ -13,7 +13,6 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
-from starlette.concurrency import run_in_threadpool
 
 from models.errors import UnsupportedFormatError
 from models.file_magic import VIDEO_MAGICS, format_by_content
@@ -30,7 +29,7 @@ from service.api.schemas import (
     upload_body,
 )
 from service.api.state import ServiceState
-from service.api.uploads import SensorFields, Upload, read_upload_fields
+from service.api.uploads import SensorFields, Upload, decode_in_turn, read_upload_fields
 from service.core.security import ApiKey
 from worker.temporal_config import TemporalConfig
 from worker.video_input import VideoLimits, decode_video
@@ -158,7 +157,7 @@ async def post_video(
 ) -> Response:
     """Queue a wrapped video; poll ``GET /v1/jobs/{id}`` for progress (frames done)."""
     upload, fields = await read_upload_fields(request, VideoFields, query)
-    return await run_in_threadpool(submit, state, upload, fields, key)
+    return await decode_in_turn(state, submit, state, upload, fields, key)
 
 
 @router.get(

@@ -348,7 +348,9 @@ def test_only_so_many_requests_wait_for_their_jobs_at_once(
 ) -> None:
     """A wait holds one of the server's threads: past ``max_waiting_requests`` an
     upload gets its 202 at once (no worker runs, so a waiting one waits it out)."""
-    settings = make_settings(tmp_path, redis_url, max_waiting_requests=1)
+    # One decode slot: the waiting upload must not hold it while it waits.
+    settings = make_settings(tmp_path, redis_url, max_waiting_requests=1,
+                             max_concurrent_decodes=1)
     data, _ = frame_png()
 
     def upload(url: str, wait_s: int) -> httpx.Response:
@@ -365,6 +367,41 @@ def test_only_so_many_requests_wait_for_their_jobs_at_once(
         assert hurried.status_code == 202 and "preference-applied" not in hurried.headers
         assert not waiting.done(), "the first upload should still be waiting for its job"
         assert waiting.result().status_code == 202
+
+
+def test_uploads_are_decoded_a_few_at_a_time(tmp_path: Path, redis_url: str) -> None:
+    """Nothing bounded the decodes and simulates the API runs in its own memory: six
+    4096 x 4096 simulates from one key took the host's (3.6 GB each). Past
+    MCAM_MAX_CONCURRENT_DECODES an upload waits MCAM_DECODE_WAIT_S (here 0), then 503;
+    a slot is freed however its upload ends."""
+    settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
+    app = create_app(settings)
+    frame, _ = frame_png()
+    video = npy_bytes(np.zeros((3, 16, 16), np.uint8))
+    sensor = {"encoding": "mantissa", "alpha": "2", "bits": "8"}
+    uploads = {"/v1/simulate": ("s.exr", exr_bytes(), {**sensor, "gain": "1"}),
+               "/v1/reconstructions": ("f.png", frame, {}),
+               "/v1/videos": ("v.npy", video, {**sensor, "outputs": "exr_zip"})}
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    with serve(app) as url, httpx.Client(base_url=url, headers=headers, timeout=60) as http:
+
+        def post(path: str, content: bytes | None = None) -> httpx.Response:
+            name, data, fields = uploads[path]
+            return http.post(path, files={"file": (name, content or data)}, data=fields)
+
+        slots = app.state.mcam.decode_slots
+        assert slots.take()  # another upload being decoded
+        for path in uploads:
+            refused = post(path)
+            assert refused.status_code == 503, (path, refused.text)
+            assert refused.json()["code"] == "server_busy"
+            assert refused.headers["retry-after"] == "5"
+            assert "MCAM_MAX_CONCURRENT_DECODES" in refused.json()["message"]
+        slots.release()
+        for path in uploads:  # refused in the decode: each frees its slot
+            assert post(path, b"\x89PNG not a file").status_code in (415, 422), path
+        assert [post(path).status_code for path in uploads] == [200, 202, 202]
+        assert not slots.full
 
 
 def test_a_key_with_its_limit_of_jobs_in_the_queue_gets_429_and_other_keys_do_not(
