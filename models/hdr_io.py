@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from models.errors import InvalidInputError, McamError, UnsupportedFormatError
 from models.exr_chunks import missing_chunks
-from models.exr_limits import check_exr_size, part_size
+from models.exr_limits import EXR_HEAD_BYTES, check_exr_headers, check_exr_size, part_size
 from models.exr_parts import check_flat, image_part
 from models.file_magic import FRAME_MAGICS, HDR_MAGICS, format_by_content
 from models.formation import validate_irradiance
@@ -80,14 +80,25 @@ def _exr_file(source: Path | bytes, header_only: bool) -> Any:
         ) from None
 
 
+def _exr_head(source: Path | bytes) -> bytes:
+    """The first :data:`EXR_HEAD_BYTES` bytes of an OpenEXR file (its headers)."""
+    if isinstance(source, bytes):
+        return source[:EXR_HEAD_BYTES]
+    with source.open("rb") as handle:
+        return handle.read(EXR_HEAD_BYTES)
+
+
 def _read_exr(source: Path | bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, str]]:
     """Pixels and string attributes of the first part holding Y or R,G,B.
 
-    Bytes (an upload) missing pixel chunks are refused before the library reads them
+    The headers' parts, attributes and bytes are counted on the file's bytes
+    (:func:`check_exr_headers`) before the library parses them. Bytes (an upload)
+    missing pixel chunks are refused before the library reads them
     (:func:`models.exr_chunks.missing_chunks`: it would print its complaint to stderr).
     Every part is checked on the headers (:func:`check_flat`, :func:`check_exr_size`)
     before the binding decodes all parts and channels.
     """
+    check_exr_headers(_exr_head(source))
     if isinstance(source, bytes) and missing_chunks(source):
         raise InvalidInputError(_EXR_TRUNCATED)
     headers = [part.header for part in _exr_file(source, header_only=True).parts]

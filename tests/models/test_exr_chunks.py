@@ -9,7 +9,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from models.exr_chunks import missing_chunks
+from models.exr_chunks import attribute_parts, missing_chunks
 from models.hdr_io import encode_exr
 
 HDRI = Path(__file__).resolve().parents[2] / "models" / "data" / "hdri" / "venice.exr"
@@ -49,6 +49,24 @@ def test_multi_part_files_are_left_to_the_library(tmp_path: Path) -> None:
     OpenEXR.File(parts).write(str(path))
     assert missing_chunks(path.read_bytes()) is None
 
+
+def test_the_header_walk_counts_each_part_s_attributes_as_the_library_does() -> None:
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    extras = ({}, {"owner": "me"}, {f"m{i}": i for i in range(40)})
+    parts = [
+        OpenEXR.Part(dict(header) | extra, {"Y": np.ones((4, 4), np.float32)}, f"p{i}")
+        for i, extra in enumerate(extras)
+    ]
+    buffer = io.BytesIO()
+    OpenEXR.File(parts).write(buffer)
+    data = buffer.getvalue()
+    read = OpenEXR.File(io.BytesIO(data), separate_channels=True, header_only=True)
+    walked = list(attribute_parts(data))
+    assert [walked.count(i) for i in range(3)] == [len(part.header) for part in read.parts]
+    single = encode_exr(np.ones((2, 2)))
+    assert len(list(attribute_parts(single))) == len(
+        OpenEXR.File(io.BytesIO(single), header_only=True).parts[0].header
+    )
 
 
 KNOWN = ["NO", "RLE", "ZIPS", "ZIP", "PIZ", "PXR24", "B44", "B44A", "DWAA", "DWAB"]

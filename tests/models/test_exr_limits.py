@@ -3,20 +3,27 @@
 from __future__ import annotations
 
 import io
+from pathlib import Path
 
 import numpy as np
 import OpenEXR
 import pytest
 
-from models.errors import ImageTooLargeError
-from models.exr_limits import MAX_EXR_PARTS, check_exr_size
+from models.errors import ImageTooLargeError, InvalidInputError
+from models.exr_limits import (
+    MAX_EXR_ATTRIBUTES,
+    MAX_EXR_HEADER_BYTES,
+    MAX_EXR_PARTS,
+    check_exr_size,
+)
 from models.hdr_io import read_hdr
 
 LIMIT = 64 * 64
 
 
-def exr_bytes(*parts: dict[str, np.ndarray]) -> bytes:
-    """A multi-part scanline EXR, part i named ``p<i>``, all with a 64 x 64 display window."""
+def exr_bytes(*parts: dict[str, np.ndarray], extra: dict[str, object] | None = None) -> bytes:
+    """A multi-part scanline EXR, part i named ``p<i>``, all with a 64 x 64 display window;
+    the last part's header also holds the attributes ``extra``."""
     header = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,
@@ -24,6 +31,7 @@ def exr_bytes(*parts: dict[str, np.ndarray]) -> bytes:
     }
     buffer = io.BytesIO()
     exr_parts = [OpenEXR.Part(dict(header), ch, f"p{i}") for i, ch in enumerate(parts)]
+    exr_parts[-1].header.update(extra or {})
     OpenEXR.File(exr_parts).write(buffer)
     return buffer.getvalue()
 
@@ -69,7 +77,7 @@ def test_rgba_at_the_limit_and_small_extra_parts_are_read() -> None:
 
 def test_too_many_parts_are_refused_even_without_a_pixel_limit() -> None:
     data = exr_bytes(*({"Y": plane(2)} for _ in range(MAX_EXR_PARTS + 1)))
-    with pytest.raises(ImageTooLargeError, match=f"{MAX_EXR_PARTS + 1} parts"):
+    with pytest.raises(ImageTooLargeError, match=f"more than {MAX_EXR_PARTS} parts"):
         read_hdr(data)
     check_exr_size(headers_of(data)[:MAX_EXR_PARTS], max_pixels=None)
 
@@ -80,3 +88,46 @@ def test_subsampled_channels_count_their_stored_samples() -> None:
     headers[0]["channels"].append(OpenEXR.Channel("C", 2, 2))  # type: ignore[attr-defined]
     with pytest.raises(ImageTooLargeError, match="17408 samples"):
         check_exr_size(headers, max_pixels=LIMIT)
+
+
+def numbered(count: int) -> dict[str, object]:
+    """``count`` int attributes ``m0``, ``m1``, ..."""
+    return {f"m{i}": i for i in range(count)}
+
+
+def test_a_part_of_too_many_attributes_is_refused_before_the_library_parses_it(
+    tmp_path: Path,
+) -> None:
+    """The library's header parse grows faster than the attribute count, holding the GIL:
+    160,000 attributes (2.8 MB) took 18 s and stalled the API."""
+    plain = headers_of(exr_bytes({"Y": plane(4)}))[0]
+    at_limit = exr_bytes({"Y": plane(4)}, extra=numbered(MAX_EXR_ATTRIBUTES - len(plain)))
+    assert read_hdr(at_limit).pixels.shape == (4, 4)
+    over = exr_bytes({"Y": plane(4)}, extra=numbered(MAX_EXR_ATTRIBUTES - len(plain) + 1))
+    path = tmp_path / "over.exr"
+    path.write_bytes(over)
+    for source in (over, path):
+        with pytest.raises(
+            ImageTooLargeError, match=f"part 1 .* more than {MAX_EXR_ATTRIBUTES} header attr"
+        ):
+            read_hdr(source)
+    second = exr_bytes({"Y": plane(4)}, {"Z": plane(4)}, extra=numbered(MAX_EXR_ATTRIBUTES))
+    with pytest.raises(ImageTooLargeError, match="part 2 of the OpenEXR file has more than"):
+        read_hdr(second)
+
+
+def test_headers_over_the_byte_limit_are_refused(tmp_path: Path) -> None:
+    data = exr_bytes({"Y": plane(4)}, extra={"note": "x" * MAX_EXR_HEADER_BYTES})
+    path = tmp_path / "long.exr"
+    path.write_bytes(data)
+    for source in (data, path):
+        with pytest.raises(ImageTooLargeError, match=f"more than {MAX_EXR_HEADER_BYTES} bytes"):
+            read_hdr(source)
+    shorter = exr_bytes({"Y": plane(4)}, extra={"note": "x" * (MAX_EXR_HEADER_BYTES // 2)})
+    assert read_hdr(shorter).pixels.shape == (4, 4)
+
+
+def test_a_file_ending_in_a_later_part_s_header_is_truncated() -> None:
+    data = exr_bytes({"Y": plane(4)}, {"Z": plane(4)}, extra={"note": "x" * 100})
+    with pytest.raises(InvalidInputError, match="header is truncated or corrupt"):
+        read_hdr(data[: data.index(b"x" * 100) + 50])

@@ -110,6 +110,8 @@ def nan_exr() -> bytes:
         (exr_bytes(), {**FIELDS, "seed": "-1"}, 422, "invalid_input"),
         (exr_bytes(), {**FIELDS, "format": "jpeg"}, 422, "invalid_input"),
         (encode_exr(np.ones((600, 600))), FIELDS, 413, "image_too_large"),
+        (encode_exr(np.ones((2, 2)), {f"m{i}": "" for i in range(600)}), FIELDS, 413,
+         "image_too_large"),  # fmt: skip
         (encode_exr(-scene()), FIELDS, 422, "invalid_input"),
     ],
 )
