@@ -114,18 +114,19 @@ def validate_irradiance(
 
     Negative values (lossy EXR compression leaves some) are set to 0 only when
     ``clip_negative`` is true; the second return value is how many were clipped.
+    A float64 array with nothing clipped is returned as it is, not copied (a 4096 x
+    4096 RGB scene is 400 MB; the simulate path checked it three times, a copy each).
     """
     arr = np.asarray(values)
     if arr.size == 0:
         raise InvalidInputError("the image is empty; give an image with at least one pixel")
     if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
         raise InvalidInputError(f"irradiance must be real numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64)
-    bad = ~np.isfinite(arr)
-    if bad.any():
+    arr = arr.astype(np.float64, copy=False)
+    if not np.isfinite(arr).all():
         raise InvalidInputError(
-            f"irradiance has {int(bad.sum())} NaN or infinite values; "
-            "replace them (e.g. with the neighbouring value) before encoding"
+            f"irradiance has {arr.size - int(np.count_nonzero(np.isfinite(arr)))} NaN or "
+            "infinite values; replace them (e.g. with the neighbouring value) before encoding"
         )
     negative = arr < 0
     n_negative = int(negative.sum())
@@ -232,8 +233,12 @@ def to_unwrapped(x: NDArray[np.floating], params: SensorParams) -> NDArray[np.fl
     if params.encoding == "clip":
         return np.minimum(x, 1.0)
     above = x >= 1.0
-    log_part = 1.0 + np.log(np.where(above, x, 1.0)) / np.log(params.alpha)
-    return np.where(above, log_part, x)
+    u = np.where(above, x, 1.0)  # 1 + log_alpha(x) above saturation, x below; in place
+    np.log(u, out=u)
+    u /= np.log(params.alpha)
+    u += 1.0
+    np.copyto(u, x, where=~above)
+    return u
 
 
 def split_unwrapped(
@@ -248,21 +253,25 @@ def split_unwrapped(
             f"{int((~np.isfinite(u)).sum())} pixels have no finite unwrapped value; the "
             "irradiance must be finite (check the gain)"
         )
-    floor = np.floor(u)
+    floor = np.floor(u, out=np.empty_like(u))  # an array even for a 0-d u: m is made in it
     too_many = floor > float(MAX_WINDING) / 2
     if too_many.any():
         raise InvalidInputError(
             f"{int(too_many.sum())} pixels wrap more than {MAX_WINDING // 2} times, beyond int64 "
             "winding numbers; lower the gain, set max_wraps, or use the mantissa encoding"
         )
-    return floor.astype(np.int64), u - floor
+    winding = floor.astype(np.int64)
+    return winding, np.subtract(u, floor, out=floor)
 
 
 def quantize(m: NDArray[np.floating], bits: int) -> NDArray[np.unsignedinteger]:
     """Codes in DN: ``min(floor(m * 2^bits), 2^bits - 1)``, uint8 or uint16."""
     levels = 1 << bits
-    codes = np.clip(np.floor(np.asarray(m, np.float64) * levels), 0, levels - 1)
-    return codes.astype(np.uint8 if bits <= 8 else np.uint16)
+    scaled = np.array(m, np.float64)  # a copy, scaled, floored and clipped in place
+    scaled *= levels
+    np.floor(scaled, out=scaled)
+    np.clip(scaled, 0, levels - 1, out=scaled)
+    return scaled.astype(np.uint8 if bits <= 8 else np.uint16)
 
 
 def validate_codes(codes: NDArray[Any], bits: int) -> NDArray[np.unsignedinteger]:
@@ -370,15 +379,25 @@ def encode(x: NDArray[np.floating], params: SensorParams) -> SensorFrame:
     x, _ = validate_irradiance(x)
     if params.max_wraps is not None:
         x = np.minimum(x, params.max_wraps)
+    winding, m = split_unwrapped(_noisy_unwrapped(x, params), params)
+    return SensorFrame(quantize(m, params.bits), winding, x, params)
+
+
+def _noisy_unwrapped(x: NDArray[np.float64], params: SensorParams) -> NDArray[np.float64]:
+    """``u`` of wrap units ``x`` with the params' shot noise (on ``x``) and read noise (on
+    ``u``, ``max(u + n, 0)``), drawn from a generator seeded with ``params.seed``. Its
+    own function so that :func:`encode` holds ``u`` (a full-size array) only while it is
+    split."""
     rng = np.random.default_rng(params.seed)
     noisy_x = apply_shot_noise(x, params.full_well, rng) if params.full_well else x
     u = to_unwrapped(noisy_x, params)
     if params.read_noise > 0:
-        u = np.maximum(u + params.read_noise * rng.standard_normal(u.shape), 0.0)
+        noise = rng.standard_normal(u.shape)
+        noise *= params.read_noise
+        u = np.maximum(np.add(u, noise, out=noise), 0.0, out=noise)
         if params.encoding == "clip":
-            u = np.minimum(u, 1.0)
-    winding, m = split_unwrapped(u, params)
-    return SensorFrame(quantize(m, params.bits), winding, x, params)
+            np.minimum(u, 1.0, out=u)
+    return u
 
 
 def simulate(

@@ -229,6 +229,40 @@ def test_clip_negative_zeroes_and_counts() -> None:
     assert np.array_equal(frame.winding, [[0, 0], [0, 2]])
 
 
+def test_a_float64_scene_is_checked_without_a_copy_and_never_changed() -> None:
+    """The simulate path checked a scene three times (read, simulate, encode), each a
+    float64 copy: a 4096 x 4096 RGB upload peaked at 3.5 GB."""
+    scene = np.array([[0.5, 3.0], [2.0, 0.0]])
+    assert validate_irradiance(scene)[0] is scene
+    assert validate_irradiance(scene.astype(np.float16))[0].dtype == np.float64
+    before = scene.copy()
+    for encoding in ("modulo", "mantissa", "clip"):
+        params = SensorParams(encoding=encoding, read_noise=0.1, full_well=100.0, seed=1)
+        simulate(scene, params)
+        encode(scene, params)
+    assert np.array_equal(scene, before)
+    negative = np.array([[0.5, -1e-3]])
+    clipped, count = validate_irradiance(negative, clip_negative=True)
+    assert count == 1 and clipped[0, 1] == 0.0 and negative[0, 1] == -1e-3
+
+
+def test_the_frame_of_a_scene_is_exactly_the_formula_s() -> None:
+    """u, W, m and the codes (computed in place to save full-size arrays) are the
+    model's formulas written out, bit for bit."""
+    x = np.random.default_rng(3).lognormal(0.0, 3.0, (40, 30))
+    for encoding, alpha in (("modulo", 2.0), ("mantissa", 1.7)):
+        params = SensorParams(encoding=encoding, alpha=alpha, bits=10)
+        above = x >= 1.0
+        log_part = 1.0 + np.log(np.where(above, x, 1.0)) / np.log(alpha)
+        u = np.where(above, log_part, x) if encoding == "mantissa" else x
+        frame = encode(x, params)
+        assert np.array_equal(frame.winding, np.floor(u).astype(np.int64))
+        m = u - np.floor(u)
+        assert np.array_equal(frame.codes, np.clip(np.floor(m * 1024), 0, 1023))
+        assert np.array_equal(to_unwrapped(x, params), u)
+        assert np.array_equal(split_unwrapped(u, params)[1], m)
+
+
 def test_empty_and_non_numeric_irradiance_are_rejected() -> None:
     with pytest.raises(InvalidInputError, match="empty"):
         validate_irradiance(np.zeros((0, 3)))
