@@ -60,6 +60,10 @@ FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in _ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
+#: The longest stored parameter text that is parsed, in characters: ours (the sensor
+#: parameters as JSON) is under 250. A 60 MB TIFF ImageDescription of ``[[],[],...]``
+#: took ``json.loads`` 5-7 s and 1.2 GB, stalling the API.
+MAX_PARAMS_TEXT = 64 * 1024
 logger = logging.getLogger(__name__)
 
 
@@ -212,12 +216,18 @@ StoredParams = dict[str, Any] | UnreadableParams
 
 
 def _stored_params(text: str | None, where: str) -> StoredParams:
-    """Parameters parsed from stored JSON text; {} when there is none."""
+    """Parameters parsed from stored JSON text; {} when there is none. Text longer than
+    :data:`MAX_PARAMS_TEXT` is not parsed."""
     if not text:
         return {}
+    if len(text) > MAX_PARAMS_TEXT:
+        return UnreadableParams(
+            f"the {where} holds {len(text)} characters, more than sensor parameters take "
+            f"(at most {MAX_PARAMS_TEXT} are read)"
+        )
     try:
         values = json.loads(text)
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, RecursionError):
         return UnreadableParams(f"the {where} is not valid JSON sensor parameters")
     if not isinstance(values, dict):
         return UnreadableParams(f"the {where} holds JSON but not an object of sensor parameters")
@@ -230,14 +240,10 @@ def _stored_params(text: str | None, where: str) -> StoredParams:
 def tiff_params(description: str | None) -> dict[str, Any]:
     """Our sensor parameters from a TIFF ImageDescription; {} when it holds none, or
     holds text that other software wrote there (any text that is not a JSON object of
-    sensor parameter names): those frames take their parameters from the caller."""
-    try:
-        values = json.loads(description or "")
-    except json.JSONDecodeError:
-        return {}
-    if not isinstance(values, dict) or not set(values) <= set(SensorParams.model_fields):
-        return {}
-    return values
+    sensor parameter names, or longer than :data:`MAX_PARAMS_TEXT`: OME-XML runs to
+    megabytes): those frames take their parameters from the caller."""
+    stored = _stored_params(description, "TIFF ImageDescription")
+    return {} if isinstance(stored, UnreadableParams) else stored
 
 
 def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:

@@ -24,6 +24,7 @@ from models.errors import (
 from models.formation import SensorParams
 from models.frames import (
     FRAME_FORMATS,
+    MAX_PARAMS_TEXT,
     PNG_KEYWORD,
     PNG_SIGNATURE,
     WrappedFrame,
@@ -232,7 +233,15 @@ def test_bad_params_json_is_invalid_input() -> None:
         decode_frame(buffer.getvalue(), "tiff")
 
 
-@pytest.mark.parametrize("description", ['{"shape": [4, 4]}', "[1, 2]", "hello", "{"])
+#: Our parameters padded past the length that is parsed (json.loads of a 60 MB
+#: description took 5-7 s and 1.2 GB), and JSON nested past the parser's recursion limit.
+OVERLONG = '{"encoding": "modulo",' + " " * MAX_PARAMS_TEXT + '"bits": 8}'
+NESTED = "[" * 5000 + "]" * 5000
+
+
+@pytest.mark.parametrize(
+    "description", ['{"shape": [4, 4]}', "[1, 2]", "hello", "{", OVERLONG, NESTED]
+)
 def test_foreign_tiff_description_is_not_taken_for_params(description: str) -> None:
     """Text other software wrote in the description: the caller's parameters decide."""
     buffer = io.BytesIO()
@@ -367,6 +376,8 @@ def test_an_lzw_tiff_is_refused_as_unsupported_compression_not_damage() -> None:
         ("{not json", "not valid JSON"),
         ("[1, 2]", "not an object"),
         ('{"encoding": "mantissa", "alpha": 2.0, "bits": 8, "foo": 1}', r"unknown .*\['foo'\]"),
+        (OVERLONG, rf"holds {len(OVERLONG)} characters, more than .* \(at most {MAX_PARAMS_TEXT}"),
+        (NESTED, "not valid JSON"),
     ],
 )
 def test_a_damaged_png_chunk_gives_way_to_the_callers_parameters(
