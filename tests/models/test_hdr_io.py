@@ -24,6 +24,7 @@ from models.errors import (
 )
 from models.hdr_io import (
     EXR_COMPRESSIONS,
+    MAX_RADIANCE_HEADER,
     HdrImage,
     encode_exr,
     read_hdr,
@@ -393,6 +394,21 @@ def test_a_radiance_header_larger_than_its_data_is_refused_before_allocating() -
         read_hdr(header)
     assert smallest_scanline(8) == 4 + 8 and smallest_scanline(128) == 4 + 16
     assert smallest_scanline(7) == 28  # too narrow for RLE: flat
+
+
+def test_a_radiance_header_over_its_limit_is_refused_before_it_is_split() -> None:
+    """A 65 MB header of 6 million ``aN=b`` lines was split and read (+1.1 GB, 4-11 s)."""
+    pixel = b"-Y 1 +X 1\n" + bytes([128, 128, 128, 129])
+
+    def with_variables(count: int) -> bytes:
+        return RADIANCE_HEADER[:-1] + b"a=bcdef\n" * count + b"\n" + pixel
+
+    under = (MAX_RADIANCE_HEADER - len(RADIANCE_HEADER)) // 8
+    assert read_hdr(with_variables(under)).attributes["a"] == "bcdef"
+    with pytest.raises(ImageTooLargeError, match=f"header runs past {MAX_RADIANCE_HEADER} bytes"):
+        read_hdr(with_variables(under + 1))
+    with pytest.raises(InvalidInputError, match="no blank line"):
+        read_hdr(RADIANCE_HEADER[:-1])
 
 
 def test_attribute_text_utf8_cannot_hold_is_escaped() -> None:
