@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import logging
+import struct
 import threading
 
 import numpy as np
@@ -11,8 +12,14 @@ import pytest
 import tifffile
 from PIL import Image
 
-from models.errors import UnsupportedFormatError
-from models.tiff_pages import TiffDamaged, open_tiff, page_codes, page_shape
+from models.errors import ImageTooLargeError, UnsupportedFormatError
+from models.tiff_pages import (
+    MAX_TIFF_SEGMENTS,
+    TiffDamaged,
+    open_tiff,
+    page_codes,
+    page_shape,
+)
 
 
 def tiff(array: np.ndarray, **options: object) -> bytes:
@@ -94,3 +101,44 @@ def test_pages_are_counted_up_to_one_past_the_limit(most: int | None, counted: i
             writer.write(np.zeros((4, 4), np.uint8))
     with open_tiff(buffer.getvalue(), max_pages=most) as (_, pages):
         assert pages == counted
+
+
+def one_row_strips(pages: int, rows: int) -> bytes:
+    """A TIFF of ``pages`` pages of ``rows`` x 2 8-bit pixels, a row a strip, every strip
+    of every page the same 2 bytes (7, 9): a file of 8 bytes a strip."""
+    offsets = 16
+    counts = offsets + 4 * rows
+    first_ifd = counts + 4 * rows
+    entries = (
+        (256, 3, 1, 2), (257, 4, 1, rows), (258, 3, 1, 8), (259, 3, 1, 1), (262, 3, 1, 1),
+        (273, 4, rows, offsets), (277, 3, 1, 1), (278, 3, 1, 1), (279, 4, rows, counts),
+    )  # fmt: skip
+    ifd_size = 2 + 12 * len(entries) + 4
+    data = bytearray(b"II*\0" + struct.pack("<I", first_ifd) + bytes([7, 9]) + bytes(6))
+    data += struct.pack(f"<{rows}I", *[8] * rows) + struct.pack(f"<{rows}I", *[2] * rows)
+    for page in range(pages):
+        following = first_ifd + (page + 1) * ifd_size if page + 1 < pages else 0
+        data += struct.pack("<H", len(entries))
+        for tag, kind, count, value in entries:
+            width = 2 if kind == 3 and count == 1 else 4  # a SHORT sits left in the 4 bytes
+            data += struct.pack("<HHI", tag, kind, count)
+            data += value.to_bytes(width, "little").ljust(4, b"\0")
+        data += struct.pack("<I", following)
+    return bytes(data)
+
+
+def test_a_tiff_of_too_many_strips_is_refused_before_any_is_decoded() -> None:
+    """8 million one-row strips of a 2 x 8M frame (32 MB) took 22 s and +2.2 GB to
+    decode; the strips of all pages of a video count together."""
+    with open_tiff(one_row_strips(2, 3)) as (tif, pages):
+        assert pages == 2
+        np.testing.assert_array_equal(page_codes(tif.pages[1]), [[7, 9]] * 3)
+    with open_tiff(one_row_strips(1, MAX_TIFF_SEGMENTS)) as (_, pages):
+        assert pages == 1
+    too_many = rf"stored in {MAX_TIFF_SEGMENTS + 1} strips or tiles, more than the"
+    with pytest.raises(ImageTooLargeError, match=too_many):
+        with open_tiff(one_row_strips(1, MAX_TIFF_SEGMENTS + 1)):
+            pass
+    with pytest.raises(ImageTooLargeError, match=rf"stored in {MAX_TIFF_SEGMENTS + 2} strips"):
+        with open_tiff(one_row_strips(2, MAX_TIFF_SEGMENTS // 2 + 1)):
+            pass
