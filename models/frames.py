@@ -9,10 +9,12 @@ Formats
   alpha); the parameters as JSON in the ImageDescription tag.
 - ``npy``: the codes array only; parameters come from the caller.
 
-Reading merges the stored parameters with overrides (command-line flags or form
-fields, which win) and validates them. The pixel count is checked from the
-header before any pixel data is decoded, so a small file cannot expand into a
-huge image. Winding maps (``W``, int64) are written with :func:`write_winding`.
+Reading merges the stored parameters with overrides (command-line flags or form fields,
+which win) and validates them; a stored parameter other than the encoding must be a JSON
+number (or null), and text over :data:`MAX_PARAMS_TEXT` is not parsed. The pixel count
+is checked from the header before any pixel data is decoded, so a small file cannot
+expand into a huge image. Winding maps (``W``, int64) are written with
+:func:`write_winding`.
 """
 
 from __future__ import annotations
@@ -215,9 +217,9 @@ class UnreadableParams:
 StoredParams = dict[str, Any] | UnreadableParams
 
 
-def _stored_params(text: str | None, where: str) -> StoredParams:
-    """Parameters parsed from stored JSON text; {} when there is none. Text longer than
-    :data:`MAX_PARAMS_TEXT` is not parsed."""
+def _parameter_object(text: str | None, where: str) -> StoredParams:
+    """The JSON object of sensor parameter names that stored ``text`` holds; {} when
+    there is none. Text longer than :data:`MAX_PARAMS_TEXT` is not parsed."""
     if not text:
         return {}
     if len(text) > MAX_PARAMS_TEXT:
@@ -227,7 +229,7 @@ def _stored_params(text: str | None, where: str) -> StoredParams:
         )
     try:
         values = json.loads(text)
-    except (json.JSONDecodeError, RecursionError):
+    except (ValueError, RecursionError):  # JSONDecodeError, an int of over 4300 digits
         return UnreadableParams(f"the {where} is not valid JSON sensor parameters")
     if not isinstance(values, dict):
         return UnreadableParams(f"the {where} holds JSON but not an object of sensor parameters")
@@ -237,13 +239,35 @@ def _stored_params(text: str | None, where: str) -> StoredParams:
     return values
 
 
-def tiff_params(description: str | None) -> dict[str, Any]:
+def _numbers_checked(values: dict[str, Any], where: str) -> StoredParams:
+    """``values``, or :class:`UnreadableParams` naming the first parameter other than
+    the encoding stored as anything but a JSON number (or null): validated as given,
+    ``"bits": true`` became 1 bit (then "not 1-bit"), ``"gain": true`` a gain of 1."""
+    for name, value in values.items():
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if name != "encoding" and value is not None and not number:
+            shown = json.dumps(value)
+            shown = shown if len(shown) <= 40 else shown[:37] + "..."
+            return UnreadableParams(f"the {where} stores {name} as {shown}, not a number")
+    return values
+
+
+def _stored_params(text: str | None, where: str) -> StoredParams:
+    """Parameters parsed from stored JSON text (:func:`_parameter_object`), their
+    numbers checked (:func:`_numbers_checked`); {} when there is none."""
+    values = _parameter_object(text, where)
+    return values if isinstance(values, UnreadableParams) else _numbers_checked(values, where)
+
+
+def tiff_params(description: str | None) -> StoredParams:
     """Our sensor parameters from a TIFF ImageDescription; {} when it holds none, or
     holds text that other software wrote there (any text that is not a JSON object of
     sensor parameter names, or longer than :data:`MAX_PARAMS_TEXT`: OME-XML runs to
-    megabytes): those frames take their parameters from the caller."""
-    stored = _stored_params(description, "TIFF ImageDescription")
-    return {} if isinstance(stored, UnreadableParams) else stored
+    megabytes): those frames take their parameters from the caller. Ours with a
+    parameter that is not a number are :class:`UnreadableParams`."""
+    where = "TIFF ImageDescription"
+    values = _parameter_object(description, where)
+    return {} if isinstance(values, UnreadableParams) else _numbers_checked(values, where)
 
 
 def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
@@ -268,7 +292,7 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
     return np.asarray(image), _stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")
 
 
-def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
     with open_tiff(data, max_pages=1) as (tif, pages):
         if pages > 1:
             raise InvalidInputError(

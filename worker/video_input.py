@@ -44,6 +44,7 @@ from models.errors import (
 from models.file_magic import VIDEO_MAGICS, content_first
 from models.formation import SensorParams, validate_codes
 from models.frames import (
+    StoredParams,
     WrappedFrame,
     check_pixel_count,
     decode_frame,
@@ -128,7 +129,7 @@ def png_entry_limit(max_pixels: int | None) -> int | None:
 
 def _read_tiff(
     data: bytes, overrides: dict[str, Any] | None, limits: VideoLimits
-) -> tuple[NDArray[Any], dict[str, Any]]:
+) -> tuple[NDArray[Any], StoredParams]:
     with open_tiff(data, limits.frames) as (tif, count):
         if limits.frames is not None and count > limits.frames:
             raise ImageTooLargeError(
@@ -152,7 +153,7 @@ def _check_page(
     page: tifffile.TiffPage,
     index: int,
     first: tifffile.TiffPage,
-    stored: dict[str, Any],
+    stored: StoredParams,
     overrides: dict[str, Any] | None,
 ) -> None:
     """Refuse page ``index`` when its size, sample type or sensor parameters (its own

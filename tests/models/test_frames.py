@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 import struct
 import tracemalloc
 import zlib
@@ -378,6 +379,10 @@ def test_an_lzw_tiff_is_refused_as_unsupported_compression_not_damage() -> None:
         ('{"encoding": "mantissa", "alpha": 2.0, "bits": 8, "foo": 1}', r"unknown .*\['foo'\]"),
         (OVERLONG, rf"holds {len(OVERLONG)} characters, more than .* \(at most {MAX_PARAMS_TEXT}"),
         (NESTED, "not valid JSON"),
+        ('{"encoding": "modulo", "bits": true}', "stores bits as true, not a number"),
+        ('{"encoding": "modulo", "bits": 8, "gain": true}', "stores gain as true, not a"),
+        ('{"encoding": "modulo", "bits": "8"}', 'stores bits as "8", not a number'),
+        ('{"encoding": "modulo", "bits": ' + "9" * 5000 + "}", "not valid JSON"),
     ],
 )
 def test_a_damaged_png_chunk_gives_way_to_the_callers_parameters(
@@ -392,6 +397,26 @@ def test_a_damaged_png_chunk_gives_way_to_the_callers_parameters(
     given = {"encoding": "modulo", "bits": 8}
     assert decode_frame(buffer.getvalue(), "png", given).params.encoding == "modulo"
     assert "ignored it: decoding with the parameters given" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("stored", "name", "shown"),
+    [('"bits": true', "bits", "true"), ('"bits": 8, "gain": true', "gain", "true"),
+     ('"bits": "8"', "bits", '"8"'), ('"bits": 8, "seed": [1]', "seed", "[1]")],
+)  # fmt: skip
+def test_a_tiff_storing_a_parameter_as_no_number_names_it(
+    stored: str, name: str, shown: str
+) -> None:
+    """A JSON true was validated as 1: ``"bits": true`` refused the frame as "not 1-bit",
+    ``"gain": true`` decoded it with a gain of 1."""
+    buffer = io.BytesIO()
+    description = '{"encoding": "modulo", ' + stored + "}"
+    tifffile.imwrite(buffer, random_codes((4, 4), 8), description=description)
+    problem = rf"ImageDescription stores {name} as {re.escape(shown)}, not a number"
+    with pytest.raises(InvalidInputError, match=problem):
+        decode_frame(buffer.getvalue(), "tiff")
+    given = decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
+    assert (given.params.bits, given.params.gain) == (8, None)
 
 
 def test_8_bit_codes_read_as_16_bit_are_warned_about(caplog: pytest.LogCaptureFixture) -> None:
