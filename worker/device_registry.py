@@ -41,6 +41,16 @@ class DeviceBusyError(McamError):
     http_status = 409
 
 
+class DeviceNotFoundError(McamError):
+    """No daemon has registered the device, or it was forgotten."""
+
+    code = "not_found"
+    http_status = 404
+
+    def __init__(self, device: str) -> None:
+        super().__init__(f"no device {device!r}; GET /v1/devices lists them")
+
+
 def device_keys(device: str) -> list[str]:
     """Every per-device key, in the order :func:`forget_device` deletes them."""
     return [
@@ -54,8 +64,8 @@ def _refusal(pipe: redis.client.Pipeline, device: str, silent_after_s: float,
              waiting: int, discard_frames: bool) -> str | None:
     """Why ``device`` must stay (read inside the WATCH; ``waiting``: its undecoded
     frames), or None."""
-    updated = pipe.hget(health_key(device), "updated_ns")
-    stopped = pipe.hget(health_key(device), "state") == b"stopped"  # its daemon said so
+    updated, state = pipe.hmget(health_key(device), "updated_ns", "state")  # one snapshot
+    stopped = state == b"stopped"  # its daemon said so
     if not stopped and updated is not None and time.time_ns() - int(updated) < silent_after_s * 1e9:
         return (f"the daemon of device {device!r} reported {silent_after_s:g} s ago or less; "
                 "stop it (mcam device ... ends with Ctrl-C or SIGTERM) and retry")
@@ -73,12 +83,16 @@ def forget_device(client: redis.Redis, device: str, *, silent_after_s: float,
     """Remove ``device`` and its keys atomically; returns how many undecoded frames went
     with it. Raises :class:`DeviceBusyError` when its daemon reported within the last
     ``silent_after_s`` seconds, while it records, or while frames wait and
-    ``discard_frames`` is false. Retried if a daemon or worker writes meanwhile."""
+    ``discard_frames`` is false, and :class:`DeviceNotFoundError` when it is not registered
+    (never, or another caller forgot it first). Retried if a daemon or worker writes
+    meanwhile."""
     keys = device_keys(device)
     while True:
         with client.pipeline() as pipe:
             try:
-                pipe.watch(*keys)
+                pipe.watch(DEVICES_SET, *keys)
+                if not pipe.sismember(DEVICES_SET, device):
+                    raise DeviceNotFoundError(device)
                 waiting = int(pipe.xlen(frame_stream(device)))
                 refusal = _refusal(pipe, device, silent_after_s, waiting, discard_frames)
                 if refusal is not None:

@@ -7,9 +7,16 @@ import time
 import numpy as np
 import pytest
 import redis
+from redis.client import Pipeline
 
 from models.formation import SensorParams
-from worker.device_registry import DeviceBusyError, device_keys, forget_device
+from worker.device_registry import (
+    DeviceBusyError,
+    DeviceNotFoundError,
+    device_keys,
+    forget_device,
+)
+from worker.embedded_redis import EmbeddedRedis
 from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
 from worker.recordings import request_stop, start_recording
@@ -70,3 +77,50 @@ def test_a_device_without_health_can_be_forgotten(client: redis.Redis) -> None:
     client.sadd(DEVICES_SET, "orphan")
     assert forget_device(client, "orphan", silent_after_s=10) == 0
     assert not client.sismember(DEVICES_SET, "orphan")
+
+
+def test_a_device_never_registered_is_not_found(client: redis.Redis) -> None:
+    with pytest.raises(DeviceNotFoundError, match="no device 'nobody'") as error:
+        forget_device(client, "nobody", silent_after_s=10)
+    assert error.value.http_status == 404 and error.value.code == "not_found"
+
+
+class _RacingClient(redis.Redis):
+    """A client whose first read of ``rig1``'s health hash inside a transaction is
+    followed, on the connection ``other``, by another caller forgetting the device (as a
+    concurrent DELETE does)."""
+
+    def __init__(self, url: str, other: redis.Redis) -> None:
+        super().__init__(connection_pool=redis.ConnectionPool.from_url(url))
+        self.other, self.raced = other, False
+
+    def pipeline(self, transaction: bool = True, shard_hint: object = None) -> Pipeline:
+        racing = self
+
+        class ForgottenMidRead(Pipeline):
+            def immediate_execute_command(self, *args: object, **options: object) -> object:
+                reply = super().immediate_execute_command(*args, **options)
+                read = args[0] in ("HGET", "HMGET") and args[1] == health_key("rig1")
+                if read and not racing.raced:
+                    racing.raced = True
+                    assert forget_device(racing.other, "rig1", silent_after_s=10) == 0
+                return reply
+
+        return ForgottenMidRead(self.connection_pool, self.response_callbacks,
+                                transaction, shard_hint)
+
+
+def test_a_device_forgotten_meanwhile_is_not_found_rather_than_busy(
+        client: redis.Redis, embedded: EmbeddedRedis) -> None:
+    """Six concurrent DELETEs of a stopped device: one that read the health hash as
+    another deleted it saw 'updated_ns' from before and no 'stopped' state after, and was
+    refused as if its daemon reported (409); the others forgot it again (200)."""
+    client.hset(health_key("rig1"), mapping={"state": "stopped", "updated_ns": time.time_ns()})
+    client.sadd(DEVICES_SET, "rig1")
+    racing = _RacingClient(embedded.url, client)
+    try:
+        with pytest.raises(DeviceNotFoundError):
+            forget_device(racing, "rig1", silent_after_s=10)
+    finally:
+        racing.close()
+    assert racing.raced and client.exists(*device_keys("rig1")) == 0

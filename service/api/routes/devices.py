@@ -20,7 +20,7 @@ from service.api.previews import scene_to_wrap_units, tonemap_png
 from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, error_response
 from service.api.state import ServiceState
 from worker.control_queue import queue_command
-from worker.device_registry import forget_device
+from worker.device_registry import DeviceNotFoundError, forget_device
 from worker.redis_keys import (
     DEVICES_SET,
     health_key,
@@ -80,7 +80,7 @@ def known_device(state: ServiceState, device: str) -> str:
     """``device`` if valid and registered by a daemon; 404 otherwise."""
     validate_device_id(device)
     if not state.client.sismember(DEVICES_SET, device):
-        raise ApiError(404, "not_found", f"no device {device!r}; GET /v1/devices lists them")
+        raise DeviceNotFoundError(device)
     return device
 
 
@@ -100,8 +100,9 @@ def get_device(device_id: str, state: StateDep, _key: ReadKey) -> dict[str, Any]
 def forget(device_id: str, state: StateDep, _key: SubmitKey,
            discard_frames: bool = False) -> dict[str, Any]:
     """409 ``device_busy`` while its daemon reports, it records, or frames wait to be
-    decoded (``discard_frames=true`` drops those). Stored reconstructions stay until
-    their retention ends; a daemon that comes back registers the device again."""
+    decoded (``discard_frames=true`` drops those); 404 when another request forgot it
+    first. Stored reconstructions stay until their retention ends; a daemon that comes
+    back registers the device again."""
     device = known_device(state, device_id)
     dropped = forget_device(state.client, device, silent_after_s=DAEMON_SILENT_S,
                             discard_frames=discard_frames)
