@@ -34,9 +34,22 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
+from pydantic_core import PydanticCustomError
 
-from models.errors import InvalidInputError, OutputOverflowError, describe_validation_error
+from models.errors import (
+    InvalidInputError,
+    OutputOverflowError,
+    OutputUnderflowError,
+    describe_validation_error,
+)
 from models.output_range import ensure_fits, ensure_nonzero_kept, overflow_remedy
 
 Encoding = Literal["modulo", "mantissa", "clip"]
@@ -48,6 +61,21 @@ MAX_WINDING = np.iinfo(np.int64).max
 MAX_NOISE_SEED = 2**63 - 1
 #: Above this expected electron count, shot noise uses the Gaussian approximation.
 _POISSON_LIMIT = 1e7
+#: The smallest value of parameters that physics bounds below, its unit and why:
+#: ``max_wraps`` (wrap units) clips x at or above the first wrap, and ``full_well``
+#: (electrons at x = 1) counts at least one electron there (at 1e-300 every code was 0).
+PHYSICAL_MINIMA: dict[str, tuple[float, str, str]] = {
+    "max_wraps": (
+        1.0, "wrap (x = 1, the first wrap)",
+        "a sensor clipped below its first wrap never wraps and every W would be 0; for a "
+        "conventional sensor give encoding clip",
+    ),
+    "full_well": (
+        1.0, "electron (the charge at x = 1)",
+        "a first wrap of less than one electron leaves no charge to count (far below it "
+        "every code is 0); leave it unset for no shot noise",
+    ),
+}  # fmt: skip
 
 
 class SensorParams(BaseModel):
@@ -56,7 +84,8 @@ class SensorParams(BaseModel):
     ``gain`` maps scene irradiance to wrap units (``x = gain * scene``); it is
     ``None`` when unknown (the frame is then reconstructed in wrap units).
     ``read_noise`` is a Gaussian sigma in units of one wrap; ``full_well`` is the
-    electron count at ``x = 1`` for Poisson shot noise; ``max_wraps`` clips ``x``.
+    electron count at ``x = 1`` for Poisson shot noise; ``max_wraps`` clips ``x``. Both
+    are at least 1 (:data:`PHYSICAL_MINIMA`: the first wrap, one electron).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -65,10 +94,25 @@ class SensorParams(BaseModel):
     alpha: float = Field(2.0, gt=1.0, le=1e6, allow_inf_nan=False)
     bits: int = Field(8, ge=1, le=16)
     gain: float | None = Field(None, gt=0.0, allow_inf_nan=False)
-    max_wraps: float | None = Field(None, gt=0.0, allow_inf_nan=False)
+    max_wraps: float | None = Field(None, allow_inf_nan=False)
     read_noise: float = Field(0.0, ge=0.0, le=1.0, allow_inf_nan=False)
-    full_well: float | None = Field(None, gt=0.0, allow_inf_nan=False)
+    full_well: float | None = Field(None, allow_inf_nan=False)
     seed: int | None = Field(None, ge=0, le=MAX_NOISE_SEED)
+
+    @field_validator("max_wraps", "full_well")
+    @classmethod
+    def _at_least_the_physical_minimum(
+        cls, value: float | None, info: ValidationInfo
+    ) -> float | None:
+        """Refuse a ``max_wraps`` or ``full_well`` below :data:`PHYSICAL_MINIMA`, saying why."""
+        name = str(info.field_name)
+        least, unit, why = PHYSICAL_MINIMA[name]
+        if value is not None and value < least:
+            raise PydanticCustomError(
+                f"{name}_range",
+                f"must be at least {least:g} {unit} or unset, got {value:g}: {why}",
+            )
+        return value
 
     @classmethod
     def parse(cls, values: dict[str, Any]) -> SensorParams:
@@ -433,6 +477,27 @@ def simulate(
     return encode(x, params.model_copy(update={"gain": gain}))
 
 
+def check_not_black(frame: SensorFrame) -> None:
+    """Refuse a simulated frame whose every code and W is 0 although the scene it saw is not
+    black: every pixel lies under one code step (``2^-bits`` wrap units), so the frame holds
+    nothing of the scene; the error gives the smallest gain that lifts the brightest pixel
+    to one step."""
+    brightest = float(frame.irradiance.max())
+    if brightest <= 0 or frame.codes.any() or frame.winding.any():
+        return
+    step = 2.0**-frame.params.bits
+    gain = frame.params.gain if frame.params.gain is not None else 1.0
+    with np.errstate(over="ignore"):
+        least = gain * (step / brightest)
+    raise_to = f" to at least {least:.4g}" if np.isfinite(least) else ""
+    raise InvalidInputError(
+        f"every pixel quantises to code 0 (the brightest is x = {brightest:.4g} wrap units, "
+        f"under one {frame.params.bits}-bit code step of {step:.4g}, at gain {gain:.4g}): "
+        f"raise the gain{raise_to}, or let overexposed set it (e.g. 0.01; --gain and "
+        "--overexposed on the command line)"
+    )
+
+
 def to_scene(x: NDArray[np.floating], gain: float) -> NDArray[np.float64]:
     """Scene-referred values ``x / gain`` of wrap units ``x``; an overflow to inf is left
     for the caller's :func:`ensure_fits` to count and refuse (no numpy warning)."""
@@ -478,6 +543,41 @@ def max_winding(params: SensorParams) -> int | None:
         return None
     u_max = float(to_unwrapped(np.array(params.max_wraps), params))
     return int(np.floor(u_max + 6 * largest_noise_sigma(u_max, params)))
+
+
+def largest_winding(params: SensorParams) -> int:
+    """The largest W a decoding of a frame of ``params`` may hold: :func:`max_winding` where
+    the parameters bound it; else int64's limit (modulo, whose x = W + m float64 holds) or,
+    for mantissa, a wrap below the last whose x ``alpha^(W + m - 1)`` float64 holds."""
+    bound = max_winding(params)
+    if bound is not None:
+        return bound
+    if params.encoding == "modulo":
+        return int(MAX_WINDING)
+    return int(np.log(np.finfo(np.float64).max) / np.log(params.alpha)) - 1
+
+
+def check_decodable(
+    codes: NDArray[Any],
+    params: SensorParams,
+    dtype: type[np.floating],
+    *,
+    scene_referred: bool,
+) -> None:
+    """Raise, before any decoding, the error :func:`reconstruct` would raise whatever
+    winding numbers a decoder finds. x grows with W (W >= 0), so values that exceed
+    ``dtype`` at W = 0 exceed it at every W (:class:`OutputOverflowError`: a gain far too
+    small, say), and values ``dtype`` stores as 0 at :func:`largest_winding` are lost at
+    every W (:class:`OutputUnderflowError`: a gain far too large)."""
+    certain = ((0, OutputOverflowError), (largest_winding(params), OutputUnderflowError))
+    for winding, error in certain:
+        try:
+            reconstruct(codes, np.full(np.shape(codes), winding, np.int64), params, dtype,
+                        scene_referred=scene_referred)  # fmt: skip
+        except error as exc:
+            raise error(f"whatever winding numbers a decoder finds, {exc.message}") from None
+        except (OutputOverflowError, OutputUnderflowError):
+            continue  # another W may fit
 
 
 def clip_winding(winding: NDArray[np.integer], params: SensorParams) -> NDArray[np.int64]:

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.exr_header import reconstruction_attributes
-from models.formation import SensorParams, reconstruct
+from models.formation import SensorParams, check_decodable, reconstruct
 from models.frames import encode_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 
@@ -31,6 +31,25 @@ OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy", "codes": "codes.n
 #: third of its time (bench.stream, itoh) to save 14% of the disk; uploads and video jobs,
 #: whose files travel to clients, default to ``zip``.
 STREAM_EXR_COMPRESSION = "none"
+
+
+def _exr_form(options: dict[str, Any]) -> tuple[type[np.floating], bool]:
+    """The job ``options``' EXR pixel type (half or float32) and whether it is
+    scene-referred."""
+    half = bool(options.get("half", False))
+    return np.float16 if half else np.float32, bool(options.get("scene_referred", True))
+
+
+def check_result_storable(
+    codes: NDArray[Any], params: SensorParams, options: dict[str, Any]
+) -> None:
+    """Refuse, before a job is queued, a frame whose EXR cannot be stored whatever the
+    decoder finds (:func:`models.formation.check_decodable` with the job's ``options``):
+    the worker would fail it with output_overflow or output_underflow."""
+    dtype, scene_referred = _exr_form(options)
+    check_decodable(codes, params, dtype, scene_referred=scene_referred)
+
+
 def encode_exr_result(
     codes: NDArray[Any],
     winding: NDArray[np.integer],
@@ -41,16 +60,12 @@ def encode_exr_result(
 ) -> bytes:
     """The reconstruction as EXR bytes, its units stated in ``comments`` (raises
     OutputOverflowError if it does not fit); ``source`` names the frame there."""
-    half = bool(options.get("half", False))
-    scene_referred = bool(options.get("scene_referred", True))
-    x_hat = reconstruct(
-        codes, winding, params, np.float16 if half else np.float32,
-        scene_referred=scene_referred,
-    )  # fmt: skip
+    dtype, scene_referred = _exr_form(options)
+    x_hat = reconstruct(codes, winding, params, dtype, scene_referred=scene_referred)
     return encode_exr(
         x_hat,
         reconstruction_attributes(params, info, source, scene_referred),
-        half=half,
+        half=dtype is np.float16,
         compression=str(options.get("exr_compression", DEFAULT_EXR_COMPRESSION)),
     )
 

@@ -49,9 +49,13 @@ class SensorFields(BaseModel):
     alpha: float | None = Field(None, description="mantissa base: one wrap per factor alpha")
     bits: int | None = Field(None, description="bits per code (1..16)")
     gain: float | None = Field(None, description="scene irradiance to wrap units")
-    max_wraps: float | None = Field(None, description="clip x at this many wrap units")
+    max_wraps: float | None = Field(
+        None, description="clip x at this many wrap units (at least 1, the first wrap)"
+    )
     read_noise: float | None = Field(None, description="Gaussian sigma in wraps")
-    full_well: float | None = Field(None, description="electrons at x = 1 (shot noise)")
+    full_well: float | None = Field(
+        None, description="electrons at x = 1 (shot noise; at least 1)"
+    )
     seed: int | None = Field(None, description="noise seed")
 
     def sensor_overrides(self) -> dict[str, Any]:

@@ -11,7 +11,7 @@ from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError, UnsupportedFormatError
 from models.exr_header import reconstruction_attributes, values_unit
-from models.formation import reconstruct
+from models.formation import check_decodable, reconstruct
 from models.frames import FRAME_SUFFIXES, frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
 from service.cli.options import (
@@ -82,8 +82,9 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.frame} is a colour frame: its W map has 3 channels, which a PNG W "
                 "map cannot hold; give --winding-out a .tiff or .npy name"
             )
-        result = decoder.decode(frame.codes, frame.params)
         dtype = np.float16 if args.half else np.float32
+        check_decodable(frame.codes, frame.params, dtype, scene_referred=True)
+        result = decoder.decode(frame.codes, frame.params)
         pixels = reconstruct(frame.codes, result.winding, frame.params, dtype, scene_referred=True)
         attributes = reconstruction_attributes(frame.params, result.info, args.frame)
         write_exr(

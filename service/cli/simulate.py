@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from models.errors import InvalidInputError
 from models.exr_header import sensor_attributes
-from models.formation import SensorFrame, SensorParams, simulate
+from models.formation import SensorParams, check_not_black, simulate
 from models.frames import FRAME_SUFFIXES, frame_format, write_frame, write_winding
 from models.hdr_io import read_hdr, write_exr
 from service.cli.options import (
@@ -38,9 +37,13 @@ def register(subparsers: Any) -> None:
         help="set the gain so this fraction of pixels (strictly between 0 and 1) reaches "
         "x >= 1 (instead of --gain)",
     )
-    parser.add_argument("--max-wraps", type=float, help="clip x at this many wrap units")
+    parser.add_argument(
+        "--max-wraps", type=float, help="clip x at this many wrap units (at least 1)"
+    )
     parser.add_argument("--read-noise", type=float, help="read noise sigma, in wraps (0..1)")
-    parser.add_argument("--full-well", type=float, help="electrons at x = 1, for shot noise")
+    parser.add_argument(
+        "--full-well", type=float, help="electrons at x = 1, for shot noise (at least 1)"
+    )
     parser.add_argument(
         "--seed",
         type=int,
@@ -74,17 +77,6 @@ def outputs(args: argparse.Namespace) -> list[OutputFile]:
             OutputFile("--reference-out", args.reference_out, "the reference is OpenEXR", (".exr",))
         )
     return files
-
-
-def check_not_black(frame: SensorFrame) -> None:
-    """Refuse a frame whose every code and W is 0 although the scene it saw is not black."""
-    brightest = float(frame.irradiance.max())
-    if brightest > 0 and not frame.codes.any() and not frame.winding.any():
-        raise InvalidInputError(
-            f"every pixel quantises to code 0 (the brightest is x = {brightest:.4g} wrap "
-            f"units, under one {frame.params.bits}-bit code step of {2.0**-frame.params.bits:.4g})"
-            "; raise --gain, or let --overexposed set it (e.g. --overexposed 0.01)"
-        )
 
 
 def reconstruct_flags(params: SensorParams) -> str:

@@ -12,6 +12,8 @@ from hypothesis import strategies as st
 from models.errors import InvalidInputError, OutputOverflowError, OutputUnderflowError
 from models.formation import (
     SensorParams,
+    check_decodable,
+    check_not_black,
     dequantize,
     encode,
     exposure_gain,
@@ -535,6 +537,72 @@ def test_sensor_params_parse_gives_readable_errors() -> None:
     with pytest.raises(InvalidInputError, match="bits"):
         SensorParams.parse({"bits": 17})
     assert SensorParams.parse({"encoding": "modulo", "bits": 12}).levels == 4096
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "why"),
+    [
+        ("max_wraps", 1e-300, "at least 1 wrap .* never wraps and every W would be 0"),
+        ("max_wraps", 0.999, "at least 1 wrap .*encoding clip"),
+        ("full_well", 1e-300, "at least 1 electron .*no charge to count"),
+        ("full_well", 0.5, "at least 1 electron .*unset for no shot noise"),
+    ],
+)
+def test_parameters_below_their_physical_minimum_are_refused_saying_why(
+    field: str, value: float, why: str
+) -> None:
+    """max_wraps 1e-300 clipped every pixel to W = 0 (an all-zero W map from any frame, an
+    all-zero simulated frame); full_well 1e-300 counted no electron anywhere."""
+    with pytest.raises(InvalidInputError, match=f"{field}: must be {why}"):
+        SensorParams.parse({field: value})
+    assert getattr(SensorParams.parse({field: 1.0}), field) == 1.0
+
+
+def test_a_simulated_frame_of_a_lit_scene_under_one_code_step_is_refused() -> None:
+    """gain 1e-300 made every code 0 and the frame said nothing of the scene; the error
+    gives the gain that lifts the brightest pixel to one code step."""
+    frame = simulate(np.array([[0.0, 2.0], [1.0, 4.0]]), SensorParams(bits=8, gain=1e-300))
+    with pytest.raises(InvalidInputError, match=r"code 0 .*gain to at least 0\.0009766"):
+        check_not_black(frame)
+    check_not_black(simulate(np.zeros((2, 2)), SensorParams(gain=1e-300)))  # black is black
+    check_not_black(simulate(np.full((2, 2), 1 / 256), SensorParams(bits=8, gain=1.0)))
+
+
+@pytest.mark.parametrize(
+    ("params", "dtype", "error"),
+    [
+        (SensorParams(encoding="mantissa", gain=1e-320), np.float32, OutputOverflowError),
+        (SensorParams(encoding="modulo", gain=1e-8), np.float16, OutputOverflowError),
+        (SensorParams(encoding="modulo", gain=1e308), np.float32, OutputUnderflowError),
+        (SensorParams(encoding="mantissa", gain=1e308, max_wraps=16), np.float32,
+         OutputUnderflowError),
+        (SensorParams(encoding="clip", gain=1e30), np.float16, OutputUnderflowError),
+    ],
+)  # fmt: skip
+def test_a_reconstruction_certain_to_fail_is_refused_before_decoding(
+    params: SensorParams, dtype: type[np.floating], error: type[Exception]
+) -> None:
+    """gain 1e-320 or 1e308 was queued and failed in the worker: x / gain exceeds the
+    output type at W = 0, or is lost as 0 at the largest W the parameters allow."""
+    codes = np.array([[0, 3], [128, 255]], np.uint8)
+    with pytest.raises(error, match="^whatever winding numbers a decoder finds, 4 "):
+        check_decodable(codes, params, dtype, scene_referred=True)
+    check_decodable(codes, params, dtype, scene_referred=False)  # wrap units fit
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        SensorParams(encoding="mantissa", gain=1e-30),  # x / gain fits float32 at W = 0
+        SensorParams(encoding="mantissa", gain=1e308),  # fits at W ~ 1000 (no max_wraps)
+        SensorParams(encoding="modulo", gain=1e20),  # fits at W ~ 1e15
+    ],
+)
+def test_a_reconstruction_that_some_winding_numbers_store_is_left_to_the_decoder(
+    params: SensorParams,
+) -> None:
+    codes = np.array([[0, 3], [128, 255]], np.uint8)
+    check_decodable(codes, params, np.float32, scene_referred=True)
 
 
 @pytest.mark.filterwarnings("error")

@@ -29,6 +29,7 @@ from service.api.uploads import (
 )
 from service.core.security import ApiKey
 from worker.jobs import JobRecord
+from worker.outputs import check_result_storable
 
 router = APIRouter(prefix="/v1", tags=["reconstructions"])
 
@@ -86,17 +87,14 @@ def submit(
     settings = state.settings
     frame = read_wrapped_frame(upload, fields, settings.max_pixels)
     decoder = choose_decoder(fields, settings.default_decoder)
+    options = {
+        "scene_referred": fields.scene_referred,
+        "half": fields.half,
+        "exr_compression": fields.exr_compression,
+    }
+    check_result_storable(frame.codes, frame.params, options)
     return state.queue.submit(
-        "reconstruction",
-        frame.codes,
-        frame.params,
-        decoder,
-        {
-            "scene_referred": fields.scene_referred,
-            "half": fields.half,
-            "exr_compression": fields.exr_compression,
-        },
-        owner=key.id,
+        "reconstruction", frame.codes, frame.params, decoder, options, owner=key.id
     )
 
 

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
 
-from models.formation import SensorParams, simulate
+from models.formation import SensorParams, check_not_black, simulate
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
 from service.api.deps import StateDep, SubmitKey
@@ -34,6 +34,7 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
         {k: v for k, v in fields.sensor_overrides().items() if v is not None}
     )
     frame = simulate(image.pixels, params, overexposed=fields.overexposed, gray=fields.gray)
+    check_not_black(frame)
     fmt = fields.format or ("tiff" if frame.codes.ndim == 3 else "png")  # PNG frames are grey
     if fields.part == "winding":
         content = winding_bytes(frame.winding, fmt)

@@ -160,6 +160,17 @@ def test_reconstruct_checks_its_outputs_before_decoding(tmp_path: Path, pipeline
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_gain_no_winding_numbers_can_store_is_refused_before_decoding(
+    tmp_path: Path, pipeline: Path
+) -> None:
+    """x / gain at gain 1e-320 exceeds float32 at W = 0 already: it was found after the
+    decode."""
+    result = run_mcam("reconstruct", pipeline / "wrapped.png", "-o", "x.exr", "--gain",
+                      "1e-320", cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(result, "whatever winding numbers a decoder finds", "higher gain")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_colour_frames_w_map_as_png_is_refused_before_decoding(tmp_path: Path) -> None:
     """It was refused after the decode (seconds at best), and the EXR not written."""
     write_colour_npy(tmp_path)

@@ -191,6 +191,27 @@ def test_a_nan_parameter_is_named_as_not_finite(client: Client, field: str) -> N
     assert f"{field}: Input should be a finite number" in reply.json()["message"]
 
 
+@pytest.mark.parametrize(
+    ("fields", "code", "fragment"),
+    [
+        ({"max_wraps": "1e-300"}, "invalid_input", "max_wraps: must be at least 1 wrap"),
+        ({"gain": "1e-320"}, "output_overflow", "whatever winding numbers a decoder finds"),
+        ({"gain": "1e308", "max_wraps": "16"}, "output_underflow",
+         "whatever winding numbers a decoder finds"),
+    ],
+)  # fmt: skip
+def test_parameters_that_cannot_give_a_result_are_refused_at_submit(
+    client: Client, redis_url: str, fields: dict[str, str], code: str, fragment: str
+) -> None:
+    """max_wraps 1e-300 gave a job that succeeded with W = 0 everywhere; gain 1e-320 or
+    1e308 a job the worker failed (output_overflow / output_underflow) after decoding."""
+    data, _ = frame_png()
+    reply = client().post("/v1/reconstructions", files={"file": ("f.png", data)}, data=fields)
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["code"] == code and fragment in reply.json()["message"]
+    assert connect(redis_url).xlen(JOBS_STREAM) == 0
+
+
 def test_codes_above_bit_depth_are_refused(client: Client) -> None:
     codes = np.full((8, 8), 300, np.uint16)
     reply = client().post(

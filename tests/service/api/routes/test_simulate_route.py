@@ -122,6 +122,25 @@ def test_bad_inputs(client: Client, data: bytes, fields: dict, status: int, code
     assert reply.json()["message"]
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "fragment"),
+    [
+        ("max_wraps", "1e-300", "max_wraps: must be at least 1 wrap"),
+        ("full_well", "1e-300", "full_well: must be at least 1 electron"),
+        ("gain", "1e-300", "every pixel quantises to code 0"),
+    ],
+)
+def test_an_exposure_that_leaves_every_code_0_is_refused_not_returned(
+    client: Client, field: str, value: str, fragment: str
+) -> None:
+    """Each of these at 1e-300 answered 200 with a frame of zeros."""
+    reply = client().post(
+        "/v1/simulate", files={"file": ("s.exr", exr_bytes())}, data={**FIELDS, field: value}
+    )
+    assert reply.status_code == 422, reply.text
+    assert fragment in reply.json()["message"]
+
+
 def test_nan_pixels_are_refused(client: Client) -> None:
     reply = client().post("/v1/simulate", files={"file": ("s.exr", nan_exr())}, data=FIELDS)
     assert reply.status_code == 422 and "NaN" in reply.json()["message"]
