@@ -19,6 +19,11 @@ from worker.motion import MotionConfig
 
 #: How a stream's frames are decoded: each on its own, or along time.
 MODES: tuple[str, ...] = ("independent", "temporal")
+#: The longest period of keyframes (frames): the most frames a video job holds, 2 x 2
+#: frames of ``2 * MAX_RECORDING_SAMPLES`` code values (the largest
+#: ``MCAM_MAX_VIDEO_SAMPLES``, :mod:`worker.recordings`): a longer one never comes (0
+#: says "no periodic keyframes").
+MAX_KEYFRAME_INTERVAL = 2**25
 
 
 @dataclass(frozen=True)
@@ -69,7 +74,9 @@ class TemporalConfig:
                 "still must be in [0, 0.5]": 0.0 <= self.still <= 0.5,
                 "steady_sigmas must be >= 0": self.steady_sigmas >= 0.0,
                 "motion_radius must be >= 0": self.motion_radius >= 0,
-                "keyframe_interval must be >= 0": self.keyframe_interval >= 0,
+                f"keyframe_interval must be from 0 (no periodic keyframes) to "
+                f"{MAX_KEYFRAME_INTERVAL} frames (the most a video holds), got "
+                f"{self.keyframe_interval}": 0 <= self.keyframe_interval <= MAX_KEYFRAME_INTERVAL,
                 "local_limit must be in [0, 1]": 0.0 <= self.local_limit <= 1.0,
                 "local_passes must be >= 1": self.local_passes >= 1,
                 "refine_moves must be >= 0": self.refine_moves >= 0,

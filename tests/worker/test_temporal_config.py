@@ -6,7 +6,8 @@ import pytest
 
 from models.errors import InvalidInputError
 from worker.crop_vote import CropConfig
-from worker.temporal_config import MODES, TemporalConfig
+from worker.recordings import MAX_RECORDING_SAMPLES
+from worker.temporal_config import MAX_KEYFRAME_INTERVAL, MODES, TemporalConfig
 
 
 def test_defaults_are_valid_and_name_both_modes() -> None:
@@ -31,3 +32,13 @@ def test_bad_settings_are_refused(bad: dict) -> None:
     name = next(iter(bad))
     with pytest.raises(InvalidInputError, match=f"invalid temporal settings.*{name}"):
         TemporalConfig(**bad)
+
+
+def test_a_keyframe_period_longer_than_any_video_is_refused() -> None:
+    """10^30 was accepted and stored with a video job. The bound is the most frames a video
+    holds: 2 x 2 frames of the largest MCAM_MAX_VIDEO_SAMPLES (2 x MAX_RECORDING_SAMPLES)."""
+    assert MAX_KEYFRAME_INTERVAL == 2 * MAX_RECORDING_SAMPLES // (2 * 2)
+    assert TemporalConfig(keyframe_interval=MAX_KEYFRAME_INTERVAL).keyframe_interval > 0
+    with pytest.raises(InvalidInputError, match=r"from 0 \(no periodic keyframes\) to 33554432 "
+                       r"frames .*got 1000000000000000000000000000000"):
+        TemporalConfig(keyframe_interval=10**30)

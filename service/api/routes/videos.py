@@ -31,7 +31,7 @@ from service.api.schemas import (
 from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, decode_in_turn, read_upload_fields
 from service.core.security import ApiKey
-from worker.temporal_config import TemporalConfig
+from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
 from worker.video_input import VideoLimits, decode_video
 from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
 from worker.video_output import (
@@ -72,8 +72,9 @@ class VideoOptionFields(BaseModel):
         description="cd/m^2 (default: ITU-R BT.2408)",
     )  # fmt: skip
     keyframe_interval: int = Field(
-        TemporalConfig.keyframe_interval, ge=0, description="temporal: spatial keyframe period"
-    )
+        TemporalConfig.keyframe_interval, ge=0, le=MAX_KEYFRAME_INTERVAL,
+        description="temporal: spatial keyframe period in frames (0: none but the first)",
+    )  # fmt: skip
     half: bool = Field(
         False, description="EXR frames as half floats (values under 6.1e-5 kept to 3e-8)"
     )

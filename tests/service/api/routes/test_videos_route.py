@@ -135,6 +135,10 @@ def test_bad_uploads_are_refused(client: Client) -> None:
             {"file": ("a.npy", small)}, {**FLAGS, "white_level": "inf"}, 422,
             "white_level: Input should be a finite",
         ),
+        (
+            {"file": ("a.npy", small)}, {**FLAGS, "keyframe_interval": str(10**30)}, 422,
+            "keyframe_interval: Input should be less than or equal to 33554432",
+        ),
     ]
     for files, data, status, fragment in cases:
         reply = http.post("/v1/videos", files=files, data=data)
