@@ -61,6 +61,19 @@ class ImageTooLargeError(McamError):
     http_status = 413
 
 
+#: Characters of a caller's text an error message quotes; past them it says how long
+#: the text was (a 100 KB decoder name came back whole, in a 101 KB error body).
+ECHO_CHARS = 80
+
+
+def echo(text: str, limit: int = ECHO_CHARS) -> str:
+    """``text`` quoted for an error message (``repr``): whole up to ``limit`` characters,
+    else its first ``limit`` and the count of the rest."""
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... (and {len(text) - limit} more characters)"
+
+
 def describe_validation_error(exc: ValidationError, subject: str) -> str:
     """One line naming each invalid field of a pydantic error (``field: problem; ...``)."""
     return "; ".join(

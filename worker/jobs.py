@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-from models.errors import McamError
+from models.errors import McamError, echo
 from models.formation import SensorParams
 
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
@@ -71,5 +71,5 @@ class JobNotFoundError(McamError):
 def validate_job_id(job_id: str) -> str:
     """Job ids are 32 lowercase hex digits; anything else is not found (never a path)."""
     if not _JOB_ID.fullmatch(job_id):
-        raise JobNotFoundError(f"no job {job_id!r}: job ids are 32 hexadecimal digits")
+        raise JobNotFoundError(f"no job {echo(job_id)}: job ids are 32 hexadecimal digits")
     return job_id

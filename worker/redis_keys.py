@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, echo
 
 DEVICES_SET = "devices"
 JOBS_STREAM = "jobs"
@@ -35,7 +35,7 @@ def validate_device_id(device: str) -> str:
     """Device ids are 1-64 letters, digits, '_' or '-' (they become key and path parts)."""
     if not _DEVICE_ID.fullmatch(device):
         raise InvalidInputError(
-            f"invalid device id {device!r}: use 1-64 letters, digits, '_' or '-'"
+            f"invalid device id {echo(device)}: use 1-64 letters, digits, '_' or '-'"
         )
     return device
 

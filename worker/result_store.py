@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import BinaryIO
 
-from models.errors import McamError
+from models.errors import McamError, echo
 from worker.private_dirs import PRIVATE_FILE_MODE, make_private_dirs, private_dir
 
 #: Sub-folder of the data dir that holds the result store (API and workers share it).
@@ -62,7 +62,7 @@ def validate_key(key: str) -> str:
         or key.endswith(_TMP_SUFFIX)
     ):
         raise InvalidKeyError(
-            f"invalid result key {key!r}: use a relative path of letters, digits and '_.-/' "
+            f"invalid result key {echo(key)}: use a relative path of letters, digits and '_.-/' "
             "without '..' components"
         )
     return key

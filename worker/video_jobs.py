@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, echo
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from worker.job_processor import JobContext, JobOutcome
 from worker.temporal_config import TemporalConfig
@@ -69,7 +69,8 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
     bad = [name for name in outputs if name not in OUTPUTS]
     if bad or not outputs:
         raise InvalidInputError(
-            f"video outputs must be a non-empty subset of {', '.join(OUTPUTS)}, got {outputs}"
+            f"video outputs must be a non-empty subset of {', '.join(OUTPUTS)}, got "
+            f"{echo(','.join(map(str, outputs)))}"
         )
     if values["exr_compression"] not in EXR_COMPRESSIONS:
         raise InvalidInputError(

@@ -83,7 +83,9 @@ from models.decoders.registry import resolve as resolve_inner
 from models.formation import SensorParams, clip_winding
 
 SUFFIX = "+colour"
-NAME = re.compile(rf"(?P<inner>.+){re.escape(SUFFIX)}")
+#: The suffix as the registry finds it in a name (:func:`models.decoders.registry.resolve`).
+SUFFIX_PATTERN = re.escape(SUFFIX)
+NAME = re.compile(rf"(?P<inner>.+){SUFFIX_PATTERN}")
 NAME_PATTERNS = (
     "<decoder>+colour (colour frames: each channel decoded by the decoder, then the "
     "channels' W made consistent through their wrapped chroma, e.g. herraez+colour)",

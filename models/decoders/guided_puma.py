@@ -104,7 +104,9 @@ from models.scene_analysis import residue_pixels
 from models.tile_reconcile import common_offset
 
 SUFFIX = "+puma"
-NAME = re.compile(rf"(?P<guide>.+){re.escape(SUFFIX)}(?P<moves>[1-9][0-9]*)?")
+#: The suffix as the registry finds it in a name (:func:`models.decoders.registry.resolve`).
+SUFFIX_PATTERN = rf"{re.escape(SUFFIX)}(?P<moves>[1-9][0-9]*)?"
+NAME = re.compile(rf"(?P<guide>.+){SUFFIX_PATTERN}")
 NAME_PATTERNS = (
     "<decoder>+puma (the decoder's W refined by guided graph-cut unwrapping, "
     "e.g. mantissanet-small+puma)",

@@ -4,12 +4,18 @@ Each decoder module exposes ``specs() -> list[DecoderSpec]``; the registry
 collects them from :data:`PROVIDERS` in order. A provider whose optional
 files are missing (e.g. no ONNX models) simply offers no specs. A provider may
 also resolve parametrized names (``resolve(name) -> DecoderSpec | None``, e.g.
-``auto-40ms``) and describe them in ``NAME_PATTERNS``.
+``auto-40ms``) and describe them in ``NAME_PATTERNS``. One that wraps any decoder in a
+suffix (``+puma``, ``+colour``) gives its ``SUFFIX`` and a ``SUFFIX_PATTERN`` (a regex):
+a name takes each suffix at most once, in the order of :data:`PROVIDERS`
+(``herraez+puma+colour``), and other compositions are refused by name.
 """
 
 from __future__ import annotations
 
 import importlib
+import itertools
+import re
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cache
@@ -17,7 +23,7 @@ from types import ModuleType
 from typing import Any
 
 from models.decoders.base import Decoder
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, echo
 
 #: Modules that offer decoders, each with a ``specs()`` function.
 PROVIDERS: tuple[str, ...] = (
@@ -84,9 +90,62 @@ def name_patterns() -> list[str]:
     return [text for module in _providers() for text in getattr(module, "NAME_PATTERNS", ())]
 
 
+@cache
+def _suffixes() -> tuple[tuple[str, re.Pattern[str]], ...]:
+    """Each wrapping suffix and its pattern, in the order they compose."""
+    return tuple(
+        (module.SUFFIX, re.compile(module.SUFFIX_PATTERN))
+        for module in _providers()
+        if hasattr(module, "SUFFIX_PATTERN")
+    )
+
+
+def _composition_problem(found: list[tuple[int, str]]) -> str | None:
+    """What is wrong with suffixes ``found`` ((rank, label) in the name's order): a
+    repeat or one out of order; None when they compose."""
+    ranks = [rank for rank, _ in found]
+    counts = Counter(ranks)
+    repeated = sorted({label for rank, label in found if counts[rank] > 1})
+    if repeated:
+        return f"repeats {' and '.join(repeated)}"
+    late = next((i for i in range(1, len(ranks)) if ranks[i] < ranks[i - 1]), None)
+    if late is not None:
+        return f"puts {found[late - 1][1]} before {found[late][1]}"
+    return None
+
+
+def check_composition(name: str) -> None:
+    """Refuse a name whose suffixes repeat or come out of order (``graphcut+puma+colour+
+    puma``), naming the valid forms and, as a suggestion, the name composed in order."""
+    base, *parts = name.split("+")
+    suffixes = _suffixes()
+    found = [  # (rank, part) of each part that is a suffix, in the name's order
+        (rank, part) for part in parts for rank, (_, pattern) in enumerate(suffixes)
+        if pattern.fullmatch(f"+{part}")
+    ]  # fmt: skip
+    problem = _composition_problem([(rank, suffixes[rank][0]) for rank, _ in found])
+    if problem is None:
+        return
+    labels = [label for label, _ in suffixes]
+    masks = sorted(itertools.product((False, True), repeat=len(labels)), key=sum)
+    forms = ", ".join(
+        "<decoder>" + "".join(label for label, used in zip(labels, mask, strict=True) if used)
+        for mask in masks
+    )
+    first = dict(reversed(found))  # each suffix as first written
+    written = {part for _, part in found}
+    plain = "".join(f"+{part}" for part in parts if part not in written)
+    meant = base + plain + "".join(f"+{first[rank]}" for rank in sorted(first))
+    raise InvalidInputError(
+        f"decoder {echo(name)} {problem}: each of {', '.join(labels)} comes at most once, "
+        f"in that order ({forms}); did you mean {echo(meant)}?"
+    )
+
+
 def resolve(name: str) -> DecoderSpec:
     """The spec of decoder ``name`` (listed, or parametrized); a clear error lists the
-    valid names."""
+    valid names and refuses a composition out of order (:func:`check_composition`)."""
+    check_composition(name)
     specs = _specs()
     if name in specs:
         return specs[name]
@@ -95,7 +154,7 @@ def resolve(name: str) -> DecoderSpec:
         if resolver is not None and (spec := resolver(name)) is not None:
             return spec
     choices = ", ".join([*specs, *name_patterns()]) or "(none installed)"
-    raise InvalidInputError(f"unknown decoder {name!r}; choose one of: {choices}")
+    raise InvalidInputError(f"unknown decoder {echo(name)}; choose one of: {choices}")
 
 
 @cache

@@ -8,7 +8,7 @@ import redis
 
 from models.formation import SensorParams
 from worker.job_store import JobStore
-from worker.jobs import JobError, JobNotFoundError, JobState
+from worker.jobs import JobError, JobNotFoundError, JobState, validate_job_id
 from worker.queue import JobQueue
 from worker.redis_keys import job_done_channel
 
@@ -92,3 +92,8 @@ def test_finished_transition_announces(client: redis.Redis, job_id: str) -> None
 def test_load_rejects_bad_ids(client: redis.Redis) -> None:
     with pytest.raises(JobNotFoundError, match="32 hexadecimal"):
         JobStore(client).load("job:1")
+
+
+def test_a_long_malformed_job_id_is_echoed_cut_short() -> None:
+    with pytest.raises(JobNotFoundError, match=r"\(and 9920 more characters\): job ids are"):
+        validate_job_id("z" * 10_000)

@@ -35,5 +35,12 @@ def test_invalid_device_ids_are_refused_with_the_rule(device: str) -> None:
         frame_stream(device)
 
 
+def test_a_long_invalid_device_id_is_echoed_cut_short() -> None:
+    with pytest.raises(InvalidInputError) as error:
+        validate_device_id("a b" * 10_000)
+    assert "(and 29920 more characters): use 1-64 letters" in error.value.message
+    assert len(error.value.message) < 200
+
+
 def test_rate_limit_keys_hold_the_key_id_only() -> None:
     assert rate_limit_key("0123abcd") == "ratelimit:0123abcd"

@@ -89,6 +89,11 @@ def test_unsafe_keys_rejected(store: ResultStore, key: str) -> None:
         store.write(key, b"x")
 
 
+def test_a_long_unsafe_key_is_echoed_cut_short() -> None:
+    with pytest.raises(InvalidKeyError, match=r"\(and 39920 more characters\): use a relative"):
+        validate_key("../" * 13_333 + "x")
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.text(min_size=1, max_size=40))
 def test_any_accepted_key_stays_inside_root(key: str) -> None:

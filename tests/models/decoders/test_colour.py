@@ -18,6 +18,7 @@ from models.decoders.colour import (
     has_jumps,
     relative_winding,
 )
+from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.registry import get_decoder, name_patterns, resolve
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, encode
@@ -171,11 +172,11 @@ def test_names_resolve_and_wrong_ones_say_why() -> None:
 
 
 def test_a_refined_decoder_joins_the_channels_as_its_guide_does() -> None:
-    """``<decoder>+colour+puma`` refines each channel, then makes them consistent, as
-    ``<decoder>+puma+colour`` does."""
+    """PUMA guided by ``<decoder>+colour`` refines each channel, then makes them
+    consistent, as ``<decoder>+puma+colour`` does (the name composes in that order only)."""
     params = SensorParams(encoding="mantissa", bits=12)
     frame = encode(colour_scene(), params)
-    first = get_decoder("herraez+colour+puma").decode(frame.codes, params)
+    first = GuidedPumaDecoder(get_decoder("herraez+colour")).decode(frame.codes, params)
     second = get_decoder("herraez+puma+colour").decode(frame.codes, params)
     np.testing.assert_array_equal(first.winding, second.winding)
     assert "colour" in first.info and "colour" in second.info

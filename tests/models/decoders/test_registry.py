@@ -6,7 +6,7 @@ import pytest
 
 from models.decoders.base import Decoder
 from models.decoders.classical import HerraezDecoder, ItohDecoder
-from models.decoders.registry import available_decoders, get_decoder
+from models.decoders.registry import available_decoders, get_decoder, resolve
 from models.errors import InvalidInputError
 
 
@@ -36,3 +36,35 @@ def test_unknown_decoder_lists_the_valid_names() -> None:
         InvalidInputError, match=r"unknown decoder 'itho'; choose one of: itoh, herraez"
     ):
         get_decoder("itho")
+
+
+@pytest.mark.parametrize(
+    ("name", "problem", "meant"),
+    [
+        ("graphcut+puma+colour+puma", "repeats +puma", "graphcut+puma+colour"),
+        ("herraez+colour+puma", "puts +colour before +puma", "herraez+puma+colour"),
+        ("itoh+colour+colour", "repeats +colour", "itoh+colour"),
+        ("itoh+puma2+puma", "repeats +puma", "itoh+puma2"),
+    ],
+)
+def test_suffixes_repeated_or_out_of_order_are_refused_with_the_valid_forms(
+    name: str, problem: str, meant: str
+) -> None:
+    """graphcut+puma+colour+puma was accepted (and decoded: PUMA twice)."""
+    with pytest.raises(InvalidInputError) as error:
+        resolve(name)
+    assert error.value.message == (
+        f"decoder {name!r} {problem}: each of +puma, +colour comes at most once, in that "
+        "order (<decoder>, <decoder>+colour, <decoder>+puma, <decoder>+puma+colour); did "
+        f"you mean {meant!r}?"
+    )
+    assert resolve(meant).name == meant
+
+
+def test_an_unknown_decoder_is_echoed_cut_short() -> None:
+    """A 100 KB name came back whole in a 101 KB error."""
+    with pytest.raises(InvalidInputError) as error:
+        resolve("x" * 100_000)
+    message = error.value.message
+    assert message.startswith(f"unknown decoder {'x' * 80!r}... (and 99920 more characters);")
+    assert len(message) < 2_000 and "choose one of: itoh" in message

@@ -302,6 +302,7 @@ def test_too_many_pixels_is_413_before_decoding(client: Client) -> None:
     ("fields", "fragment"),
     [
         ({"decoder": "nope"}, "unknown decoder"),
+        ({"decoder": "graphcut+puma+colour+puma"}, "repeats +puma"),
         ({"decoder": "itoh", "quality": "fast"}, "not decoder and quality"),
         ({"quality": "fast", "latency_ms": "40"}, "not quality and latency_ms"),
         ({"latency_ms": "0"}, "latency_ms"),
@@ -318,6 +319,16 @@ def test_bad_form_fields(client: Client, fields: dict[str, str], fragment: str) 
     assert reply.status_code == 422, reply.text
     assert reply.json()["code"] in ("invalid_input", "missing_parameter")
     assert fragment in reply.json()["message"]
+
+
+def test_a_long_decoder_name_is_not_echoed_whole(client: Client) -> None:
+    """A 100 KB decoder name made a 101 KB error body."""
+    data, _ = frame_png()
+    reply = client().post(
+        "/v1/reconstructions", files={"file": ("f.png", data)}, data={"decoder": "x" * 100_000}
+    )
+    assert reply.status_code == 422
+    assert len(reply.content) < 2_000 and "(and 99920 more characters)" in reply.text
 
 
 def test_missing_file_field_and_wrong_content_type(client: Client) -> None:
