@@ -27,6 +27,7 @@ from service.api.previews import (
 from service.api.schemas import AUTH_ERRORS, JobView, error_response, job_view
 from service.api.state import ServiceState
 from worker.jobs import JobRecord, JobState
+from worker.video_pipeline import OUTPUTS
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -154,10 +155,11 @@ def get_result(
         )
     record = finished_record(state, job_id)
     if record.kind == "video":
+        made = [name for name in OUTPUTS if name in record.results]
         raise ApiError(
             409, "video_job",
             f"job {job_id} is a video job: fetch its files from /v1/videos/{job_id}/result"
-            "?output=hdr10, sdr or exr_zip",
+            f"?output={made[0]} (it made {', '.join(made)})",
         )  # fmt: skip
     return result_file(state, record, part, fmt, exposure)
 
