@@ -12,9 +12,9 @@ $(STAMP): pyproject.toml constraints.txt
 	$(BIN)/pip install -q -c constraints.txt -e '.[test]'
 	touch $(STAMP)
 
-## serve: set up and run the service (API + worker + embedded Redis) on 127.0.0.1:8000
+## serve: set up and run the service (API + worker + embedded Redis) on MCAM_HOST:MCAM_PORT (127.0.0.1:8000)
 serve: $(STAMP)
-	$(BIN)/mcam serve --host 127.0.0.1 --port 8000
+	$(BIN)/mcam serve
 
 ## test: set up and run lint and the whole test suite
 test: $(STAMP)
