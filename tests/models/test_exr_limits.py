@@ -21,16 +21,30 @@ from models.hdr_io import read_hdr
 LIMIT = 64 * 64
 
 
-def exr_bytes(*parts: dict[str, np.ndarray], extra: dict[str, object] | None = None) -> bytes:
+def exr_bytes(
+    *parts: dict[str, np.ndarray],
+    origins: dict[int, tuple[int, int]] | None = None,
+    extra: dict[str, object] | None = None,
+) -> bytes:
     """A multi-part scanline EXR, part i named ``p<i>``, all with a 64 x 64 display window;
-    the last part's header also holds the attributes ``extra``."""
+    the last part's header also holds the attributes ``extra``.
+
+    ``origins`` maps a part's index to its data window's top-left corner (x, y) in pixels;
+    a part not named there has its data window at (0, 0). The binding replaces the arrays
+    of each ``parts`` dictionary by its channel objects: pass a fresh dictionary each time.
+    """
     header = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,
         "displayWindow": ((0, 0), (63, 63)),
     }
     buffer = io.BytesIO()
-    exr_parts = [OpenEXR.Part(dict(header), ch, f"p{i}") for i, ch in enumerate(parts)]
+    exr_parts = []
+    for i, channels in enumerate(parts):
+        x0, y0 = (origins or {}).get(i, (0, 0))
+        height, width = next(iter(channels.values())).shape
+        window = ((x0, y0), (x0 + width - 1, y0 + height - 1))
+        exr_parts.append(OpenEXR.Part({**header, "dataWindow": window}, channels, f"p{i}"))
     exr_parts[-1].header.update(extra or {})
     OpenEXR.File(exr_parts).write(buffer)
     return buffer.getvalue()
@@ -49,6 +63,27 @@ def test_a_large_second_part_is_refused() -> None:
     data = exr_bytes({"Y": plane(64)}, {"Z": plane(65)})
     with pytest.raises(ImageTooLargeError, match=r"part 2 \('p1'\).* 65 x 65 = 4225 pixels"):
         read_hdr(data, max_pixels=LIMIT)
+
+
+#: Data-window origins (x, y) in pixels: each axis once negative, once positive, far
+#: enough from 0 that adding the corners instead of subtracting them changes the size.
+ORIGINS = [(-200, 100), (100, -200), (-1000, -1000), (1000, 1000)]
+
+
+@pytest.mark.parametrize("origin", ORIGINS)
+def test_a_part_away_from_the_origin_is_measured_from_its_corners(origin: tuple[int, int]) -> None:
+    """64 x 64 at the limit is read wherever the window lies; 65 x 64 and 64 x 65 are not."""
+    at_limit = exr_bytes({"Y": plane(8)}, {"Z": plane(64)}, origins={1: origin})
+    assert read_hdr(at_limit, max_pixels=LIMIT).pixels.shape == (8, 8)
+    for width, height in ((65, 64), (64, 65)):
+        wide = np.ones((height, width), np.float16)
+        over = exr_bytes({"Y": plane(8)}, {"Z": wide}, origins={1: origin})
+        refusal = rf"part 2 \('p1'\).* {width} x {height} = {width * height} pixels"
+        with pytest.raises(ImageTooLargeError, match=refusal):
+            read_hdr(over, max_pixels=LIMIT)
+    image_over = exr_bytes({"Y": np.ones((64, 65), np.float16)}, origins={0: origin})
+    with pytest.raises(ImageTooLargeError):
+        read_hdr(image_over, max_pixels=LIMIT)
 
 
 def test_the_size_is_refused_before_the_pixels_are_decoded() -> None:
