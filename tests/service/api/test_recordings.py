@@ -147,3 +147,22 @@ def test_a_stop_waits_for_its_job_only_in_a_free_wait_slot(tmp_path: Path, redis
         stopped = http.post(URL, json={"action": "stop"})
         assert stopped.status_code == 202 and stopped.json()["state"] == "stopping"
         assert wait_for(lambda: recording(http)["job"] is not None, 30)
+
+
+def test_a_stop_waits_for_its_video_job_no_longer_than_the_servers_limit(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """``Prefer: wait=600`` on a stop under ``MCAM_MAX_PREFER_WAIT_S`` 30 waits for the video
+    job 30 s at the most: a 200 names the limit as the applied preference, a 202 none."""
+    settings = make_settings(tmp_path, redis_url, max_prefer_wait_s=30.0)
+    with serve(create_app(settings)) as url, live_camera(settings, tmp_path, fps=15, seed=5), \
+            httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"},
+                         timeout=60) as http:
+        assert wait_for(lambda: http.get("/v1/devices/cam1").status_code == 200, 30)
+        start = {"action": "start", "outputs": "exr_zip", "mode": "independent"}
+        assert http.post(URL, json=start).status_code == 201
+        assert wait_for(lambda: recording(http)["frames"] >= 2, 30)
+        stopped = http.post(URL, json={"action": "stop"}, headers={"Prefer": "wait=600"})
+    assert stopped.status_code in (200, 202), stopped.text
+    applied = "wait=30" if stopped.status_code == 200 else None
+    assert stopped.headers.get("Preference-Applied") == applied

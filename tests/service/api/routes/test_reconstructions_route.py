@@ -78,6 +78,25 @@ def test_prefer_wait_returns_the_finished_job(client: Client, worker: Worker) ->
     assert reply.headers["Location"] == f"/v1/jobs/{job['id']}"
 
 
+def test_a_prefer_wait_longer_than_the_servers_limit_is_cut_to_it(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """``Prefer: wait=600`` under ``MCAM_MAX_PREFER_WAIT_S`` 30 waits 30 s at the most: the
+    applied preference names the limit, not the asked-for 600 s."""
+    settings = make_settings(tmp_path, redis_url, max_prefer_wait_s=30.0)
+    data, _ = frame_png()
+    with serve(create_app(settings)) as url, running_worker(settings):
+        reply = httpx.post(
+            f"{url}/v1/reconstructions",
+            files={"file": ("f.png", data)},
+            data={"decoder": "itoh"},
+            timeout=60,
+            headers={"Authorization": f"Bearer {FULL_KEY}", "Prefer": "wait=600"},
+        )
+    assert reply.status_code == 200, reply.text
+    assert reply.headers["Preference-Applied"] == "wait=30"
+
+
 def test_without_prefer_the_job_is_accepted(client: Client) -> None:
     data, _ = frame_png()
     reply = client(SUBMIT_KEY).post(
