@@ -49,6 +49,8 @@ def test_idle_entries_are_reclaimed_with_delivery_count(client: redis.Redis) -> 
     [again] = bob.reclaim(min_idle_ms=10)
     assert again.entry_id == first.entry_id and again.deliveries == 2
     bob.retry(again)
+    [pending] = client.xpending_range("s", GROUP, "-", "+", 10)
+    assert pending["consumer"] == b"bob" and pending["times_delivered"] == 3
     assert again.deliveries == 3
     redeliveries = {f.name: f for f in read_metrics(client)}["redeliveries_total"]
     assert redeliveries.samples[0].value == 1
@@ -97,6 +99,7 @@ def test_give_back_requeues_as_new_entry(client: redis.Redis) -> None:
     client.xadd("s", {"n": "1"})
     [delivery] = alice.read_new(block_ms=None)
     alice.give_back(delivery)
+    assert client.xpending("s", GROUP)["pending"] == 0 and client.xlen("s") == 1
     [again] = alice.read_new(block_ms=None)
     assert again.fields == {"n": b"1"} and again.entry_id != delivery.entry_id
     assert entry_order(again.entry_id) > entry_order(delivery.entry_id)
