@@ -87,14 +87,43 @@ def test_fuzz_emits_exactly_the_intact_packets(segments: list[tuple[bytes, bool]
     assert parser.packets_ok == len(intact)
 
 
-@given(stream=st.binary(max_size=5000), chunk=st.integers(1, 600))
-@settings(max_examples=200, deadline=None)
-def test_fuzz_random_bytes_never_raise_and_stay_bounded(stream: bytes, chunk: int) -> None:
-    parser = LinkParser(max_payload=MAX_PAYLOAD)
+#: A payload limit above every packet of PACKETS (48 + 8 x 8 x 2 bytes) and below most
+#: fake lengths, so a parser that trusted a length would hold more than a packet.
+SMALL_MAX_PAYLOAD = 512
+
+
+#: A header whose length is near the limit of SMALL_MAX_PAYLOAD (either side of it).
+NEAR_LIMIT_HEADERS = st.builds(lp.pack_header, st.integers(0, 255),
+                               st.integers(0, 2 * SMALL_MAX_PAYLOAD))
+
+
+#: Random bytes, up to three packets' worth (hypothesis draws short binaries).
+FILLER = st.builds(lambda size, seed: np.random.default_rng(seed).bytes(size),
+                   st.integers(0, 3 * (SMALL_MAX_PAYLOAD + 12)), st.integers(0, 2**32 - 1))
+
+
+@given(pieces=st.lists(st.one_of(FILLER, NEAR_LIMIT_HEADERS, damaged().map(lambda s: s[0])),
+                       max_size=25),
+       chunk=st.integers(1, 600))
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_fuzz_emits_only_crc_valid_slices_of_its_input_and_stays_bounded(
+    pieces: list[bytes], chunk: int
+) -> None:
+    """Random bytes mixed with intact, damaged and fake packets: each packet emitted is,
+    byte for byte, a slice of the bytes fed so far after the previous one's (its encoding
+    carries a valid CRC, so the slice does), and the parser never holds a whole packet's
+    worth of bytes."""
+    stream = b"".join(pieces)
+    parser = LinkParser(max_payload=SMALL_MAX_PAYLOAD)
+    after = 0  # where the last emitted packet ended in the stream
     for start in range(0, len(stream), chunk):
-        for packet in parser.feed(stream[start : start + chunk]):
-            assert lp.packet_crc_ok(lp.encode_packet(packet))
-        assert parser.buffered <= parser.max_packet + 64 * 1024
+        fed = start + chunk
+        for packet in parser.feed(stream[start:fed]):
+            wire = lp.encode_packet(packet)
+            at = stream.find(wire, after, fed)
+            assert at >= 0, f"emitted {packet!r}, which is not in the bytes fed after {after}"
+            after = at + len(wire)
+        assert parser.buffered < parser.max_packet
 
 
 def test_resynchronises_after_garbage_and_counts_it() -> None:

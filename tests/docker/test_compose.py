@@ -45,12 +45,27 @@ def test_every_mcam_variable_is_a_setting() -> None:
     assert unknown == set()
 
 
-@pytest.mark.parametrize(("service", "variable", "value"), mcam_environment())
+def operator_supplied(value: str) -> bool:
+    """Whether a compose value is substituted from the operator's environment (``${...}``)."""
+    return value.startswith("${")
+
+
+@pytest.mark.parametrize(
+    ("service", "variable", "value"),
+    [entry for entry in mcam_environment() if not operator_supplied(entry[2])],
+)
 def test_each_value_is_accepted(service: str, variable: str, value: str) -> None:
-    if value.startswith("${"):
-        return  # supplied by the operator at `docker compose up`
     field = variable[len(PREFIX) :].lower()
     Settings.model_validate({"data_dir": "/data", field: value})
+
+
+def test_only_the_api_keys_come_from_the_operator_and_compose_requires_them() -> None:
+    """``${VAR:?message}``: compose refuses to start without the keys (``${VAR}`` or
+    ``${VAR:-}`` would start the API with none)."""
+    supplied = {(v, value) for _, v, value in mcam_environment() if operator_supplied(value)}
+    assert {v for v, _ in supplied} == {"MCAM_API_KEYS"}
+    for _, value in supplied:
+        assert re.fullmatch(r"\$\{MCAM_API_KEYS:\?[^}]*MCAM_API_KEYS[^}]*\}", value), value
 
 
 def test_services_and_persistence() -> None:

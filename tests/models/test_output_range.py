@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -51,6 +51,36 @@ def test_zeros_and_storable_subnormals_pass(values: np.ndarray) -> None:
 
 def test_a_type_no_wider_than_the_target_loses_nothing() -> None:
     ensure_nonzero_kept(np.array([1e-45], np.float32), np.float32, "frame")
+
+
+#: Half the smallest float32 subnormal: a float64 value there rounds (to even) to 0.
+HALF_TINY_32 = float(np.finfo(np.float32).smallest_subnormal) / 2
+
+
+def test_a_float64_value_that_rounds_to_zero_in_float32_is_refused_and_one_above_kept() -> None:
+    assert np.float32(HALF_TINY_32) == 0 and np.float32(np.nextafter(HALF_TINY_32, 1)) != 0
+    for value in (HALF_TINY_32, -HALF_TINY_32, np.nextafter(HALF_TINY_32, 0)):
+        with pytest.raises(OutputUnderflowError, match="1 nonzero pixels"):
+            ensure_nonzero_kept(np.array([1.0, value]), np.float32, "frame")
+    ensure_nonzero_kept(np.array([np.nextafter(HALF_TINY_32, 1), 0.0]), np.float32, "frame")
+
+
+@given(st.floats(min_value=-4, max_value=4), st.sampled_from([np.float32, np.float16]))
+@example(factor=1.0, dtype=np.float16)  # the tie: rounds to even, 0
+def test_refused_exactly_when_the_cast_would_turn_a_nonzero_value_into_zero(
+    factor: float, dtype: type[np.floating]
+) -> None:
+    """numpy's own cast is the oracle: a float64 value (``factor`` times half the smallest
+    subnormal of ``dtype``, so around the edge) is refused iff it is nonzero and stored
+    as 0 in ``dtype``."""
+    value = factor * float(np.finfo(dtype).smallest_subnormal) / 2
+    lost = value != 0 and np.array([value]).astype(dtype)[0] == 0
+    try:
+        ensure_nonzero_kept(np.array([value]), dtype, "frame")
+    except OutputUnderflowError:
+        assert lost, f"{value!r} is kept as {dtype.__name__} but was refused"
+    else:
+        assert not lost, f"{value!r} becomes 0 as {dtype.__name__} but was not refused"
 
 
 def test_remedies_point_the_right_way_for_scene_referred_output() -> None:

@@ -94,8 +94,13 @@ def test_a_long_unsafe_key_is_echoed_cut_short() -> None:
         validate_key("../" * 13_333 + "x")
 
 
+#: Characters of keys: allowed ones, dots and slashes among them to make
+#: '.' and '..' components (over any text, only 13 in 200 keys passed validate_key).
+KEY_ALPHABET = "a0_-./"
+
+
 @settings(max_examples=200, deadline=None)
-@given(st.text(min_size=1, max_size=40))
+@given(st.text(KEY_ALPHABET, min_size=1, max_size=40))
 def test_any_accepted_key_stays_inside_root(key: str) -> None:
     root = Path("/srv/results")
     try:

@@ -17,7 +17,10 @@ def test_the_docs_page_and_its_assets_come_from_this_server(api: str) -> None:
     assert not re.search(r"(src|href)=['\"]https?://", page.text), "an external asset"
     policy = page.headers["content-security-policy"]
     assert "default-src 'self'" in policy and "http" not in policy
-    for asset in re.findall(r"(?:src|href)=['\"](/docs/assets/[^'\"]+)", page.text):
+    assets = re.findall(r"(?:src|href)=['\"](/[^'\"]+)", page.text)
+    suffixes = {asset.rsplit(".", 1)[-1] for asset in assets}
+    assert len(assets) >= 2 and {"js", "css"} <= suffixes, f"assets found: {assets}"
+    for asset in assets:
         assert httpx.get(f"{api}{asset}").status_code == 200, asset
     assert httpx.get(f"{api}/redoc").status_code == 404  # Redoc came from a CDN too
 
