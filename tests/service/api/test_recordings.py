@@ -4,6 +4,7 @@ worker (device frames and jobs), real HTTP; the recorded video's files read back
 from __future__ import annotations
 
 import io
+import re
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -166,3 +167,25 @@ def test_a_stop_waits_for_its_video_job_no_longer_than_the_servers_limit(
     assert stopped.status_code in (200, 202), stopped.text
     applied = "wait=30" if stopped.status_code == 200 else None
     assert stopped.headers.get("Preference-Applied") == applied
+
+
+def test_a_stop_answers_409_when_the_worker_could_not_make_the_video_job(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """Under a limit of 1000 code values a 256 x 256 frame cannot be recorded: the worker
+    fails the recording (one frame over the limit, or no frame yet when the stop came)
+    and the stop says why instead of answering 202 with a job that will never come."""
+    settings = make_settings(tmp_path, redis_url, max_video_samples=1000)
+    with serve(create_app(settings)) as url, live_camera(settings, tmp_path, fps=15, seed=6), \
+            httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"},
+                         timeout=60) as http:
+        assert wait_for(lambda: http.get("/v1/devices/cam1").status_code == 200, 30)
+        started = http.post(URL, json={"action": "start"})
+        assert started.status_code == 201, started.text
+        stopped = http.post(URL, json={"action": "stop"})
+        assert stopped.status_code == 409, stopped.text
+        body = stopped.json()
+        assert body["code"] == "recording_failed"
+        assert f"recording {started.json()['id']} failed" in body["message"]
+        assert re.search(r"MCAM_MAX_VIDEO_SAMPLES|no frames were recorded", body["message"])
+        assert recording(http)["state"] == "failed"
