@@ -168,3 +168,53 @@ def test_delete(store: ResultStore) -> None:
     store.write("k", b"v")
     assert store.delete("k") is True
     assert store.delete("k") is False
+
+
+Event = tuple[str | int, ...]
+
+
+def record_durability_calls(monkeypatch: pytest.MonkeyPatch) -> list[Event]:
+    """Spy on ``os.fsync``, ``os.replace`` and ``os.link`` (each still runs): a list of
+    ``("fsync file", inode, bytes in the file)``, ``("fsync dir", inode)`` and
+    ``("replace" | "link", inode of the source, destination)``, in call order."""
+    events: list[Event] = []
+    real_fsync, real_replace, real_link = os.fsync, os.replace, os.link
+
+    def fsync(fd: int) -> None:
+        info = os.fstat(fd)
+        if stat.S_ISDIR(info.st_mode):
+            events.append(("fsync dir", info.st_ino))
+        else:
+            events.append(("fsync file", info.st_ino, info.st_size))
+        real_fsync(fd)
+
+    def replace(src: Path, dst: Path) -> None:
+        events.append(("replace", os.stat(src).st_ino, str(dst)))
+        real_replace(src, dst)
+
+    def link(src: Path, dst: Path) -> None:
+        events.append(("link", os.stat(src).st_ino, str(dst)))
+        real_link(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(os, "link", link)
+    return events
+
+
+@pytest.mark.parametrize(("replace", "naming"), [(True, "replace"), (False, "link")])
+def test_a_write_syncs_its_file_before_naming_it_and_the_folder_after(
+    store: ResultStore, monkeypatch: pytest.MonkeyPatch, replace: bool, naming: str
+) -> None:
+    """A crash can leave the old result or the new one, never a named empty or partial
+    file: the data is flushed and fsynced, then the file named, then its folder fsynced
+    (which makes the name itself durable)."""
+    events = record_durability_calls(monkeypatch)
+    data = b"\x00payload" * 100
+    final = store.write("jobs/a/result.exr", data, replace=replace)
+    file, folder = final.stat().st_ino, final.parent.stat().st_ino
+    assert events == [
+        ("fsync file", file, len(data)),
+        (naming, file, str(final)),
+        ("fsync dir", folder),
+    ]
