@@ -8,6 +8,9 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 from skimage.metrics import structural_similarity
 
 from models.errors import InvalidInputError
@@ -275,3 +278,98 @@ def test_capped_psnr_caps_an_exact_frame_and_refuses_nan() -> None:
     for bad in (np.nan, -np.inf):
         with pytest.raises(InvalidInputError):
             capped_psnr(bad)
+
+
+@st.composite
+def hdr_images(draw: st.DrawFn, min_side: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A reference spanning up to 6 decades and an estimate off it by up to 20 % per
+    pixel (H x W, or H x W x 3), from a drawn seed: cheap to draw at any size."""
+    rows, cols = draw(st.integers(min_side, 40)), draw(st.integers(min_side, 40))
+    shape = (rows, cols, 3) if draw(st.booleans()) else (rows, cols)
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    reference = 10.0 ** rng.uniform(-3, draw(st.floats(-2.0, 3.0)), shape)
+    estimate = reference * (1 + draw(st.floats(0.0, 0.2)) * rng.uniform(-1, 1, shape))
+    return estimate, reference
+
+
+SCALES = st.floats(1e-6, 1e6)
+
+
+@settings(max_examples=40)
+@given(pair=hdr_images(), scale=SCALES)
+def test_psnrs_do_not_depend_on_a_common_scale(pair: tuple[np.ndarray, np.ndarray],
+                                               scale: float) -> None:
+    estimate, reference = pair
+    for metric in (psnr, pu21_psnr):
+        assert metric(estimate * scale, reference * scale) == pytest.approx(
+            metric(estimate, reference), rel=1e-9, abs=1e-9
+        )
+
+
+@settings(max_examples=40)
+@given(pair=hdr_images(), scale=SCALES)
+def test_identical_images_have_infinite_psnr_and_ssims_of_one(
+    pair: tuple[np.ndarray, np.ndarray], scale: float
+) -> None:
+    _, reference = pair
+    image = reference * scale
+    assert psnr(image, image) == pu21_psnr(image, image) == math.inf
+    assert capped_psnr(psnr(image, image)) == PSNR_CAP
+    if min(image.shape[:2]) >= 11:
+        assert ssim(image, image) == pytest.approx(1.0)
+        assert ms_ssim(image, image) == pytest.approx(1.0)
+
+
+@settings(max_examples=40)
+@given(pair=hdr_images())
+def test_psnr_is_symmetric_between_images_of_the_same_peak(
+    pair: tuple[np.ndarray, np.ndarray],
+) -> None:
+    """Squared errors are symmetric; only the peak (the reference's) is not."""
+    estimate, reference = pair
+    estimate = np.minimum(estimate, reference.max())
+    estimate.flat[np.argmax(reference)] = reference.max()
+    assert psnr(estimate, reference) == pytest.approx(psnr(reference, estimate), rel=1e-12)
+
+
+@settings(max_examples=40)
+@given(pair=hdr_images())
+def test_doubling_every_error_costs_20_log10_2_db_of_psnr(
+    pair: tuple[np.ndarray, np.ndarray],
+) -> None:
+    """The error of an estimate at most 20 % off, doubled, stays non-negative: the MSE
+    goes up 4 times, the PSNR down 20 log10(2) = 6.02 dB."""
+    estimate, reference = pair
+    doubled = reference + 2 * (estimate - reference)
+    if np.array_equal(estimate, reference):
+        assert psnr(doubled, reference) == math.inf
+        return
+    drop = psnr(estimate, reference) - psnr(doubled, reference)
+    assert drop == pytest.approx(20 * math.log10(2), rel=1e-9)
+
+
+@settings(max_examples=25)
+@given(pair=hdr_images(min_side=11))
+def test_ssims_are_symmetric_and_at_most_one(pair: tuple[np.ndarray, np.ndarray]) -> None:
+    """On display-referred images (the tonemapped reference and estimate)."""
+    estimate, reference = pair
+    a, b = reinhard(estimate, reference), reinhard(reference, reference)
+    for metric in (ssim_ldr, ms_ssim_ldr):
+        forward, backward = metric(a, b), metric(b, a)
+        assert forward == pytest.approx(backward, abs=1e-12)
+        assert forward <= 1.0 + 1e-12
+
+
+@settings(max_examples=40)
+@given(
+    winding=arrays(np.int64, st.tuples(st.integers(1, 8), st.integers(1, 8)),
+                   elements=st.integers(0, 5)),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_winding_accuracy_is_the_share_of_equal_pixels_either_way(
+    winding: np.ndarray, seed: int
+) -> None:
+    other = np.where(np.random.default_rng(seed).random(winding.shape) < 0.5, winding, 9)
+    share = winding_accuracy(winding, other)
+    assert share == winding_accuracy(other, winding) == np.mean(winding == other)
+    assert winding_accuracy(winding, winding) == 1.0

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from models.decoders.base import anchor_winding
 from models.decoders.classical import (
     HerraezDecoder,
     ItohDecoder,
@@ -186,3 +189,35 @@ def test_specs_offer_both_decoders_as_classical() -> None:
     assert {spec.kind for spec in offered.values()} == {"classical"}
     assert isinstance(offered["itoh"].factory(), ItohDecoder)
     assert isinstance(offered["herraez"].factory(), HerraezDecoder)
+
+
+def smooth_u(rows: int, cols: int, seed: int, largest_step: float, floor: float) -> np.ndarray:
+    """A random unwrapped field (wraps) from ``floor`` up, whose largest step between
+    neighbours (across rows or columns) is ``largest_step``: integrated noise, so it
+    spans many wraps."""
+    field = np.random.default_rng(seed).standard_normal((rows, cols)).cumsum(0).cumsum(1)
+    steps = max(np.abs(np.diff(field, axis=0)).max(), np.abs(np.diff(field, axis=1)).max())
+    return floor + (field - field.min()) * largest_step / steps
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    shape=st.tuples(st.integers(2, 32), st.integers(2, 32)),
+    seed=st.integers(0, 2**32 - 1),
+    largest_step=st.floats(0.01, 0.49),
+    floor=st.floats(0.0, 3.0),
+    bits=st.sampled_from([8, 12, 16]),
+)
+def test_itoh_is_exact_whenever_every_neighbour_step_is_under_half_a_wrap(
+    shape: tuple[int, int], seed: int, largest_step: float, floor: float, bits: int
+) -> None:
+    """The Itoh condition as a property: over random fields of any size and range whose
+    measured u (W + the codes' bin centre) steps less than half a wrap between any two
+    neighbours, W is recovered exactly up to one constant, and that constant is the
+    anchor's (the darkest pixels' W is 0)."""
+    params = SensorParams(encoding="modulo", bits=bits)
+    frame = encode(smooth_u(*shape, seed, largest_step, floor), params)
+    assert _max_step(frame.winding, frame.codes, bits) < 0.5  # quantising adds < 2^-bits
+    result = ItohDecoder().decode(frame.codes, params)
+    assert np.unique(result.winding - frame.winding).size == 1
+    assert np.array_equal(result.winding, anchor_winding(frame.winding, params))
