@@ -5,9 +5,9 @@ from __future__ import annotations
 import io
 import json
 import os
+import queue
 import re
 import signal
-import socket
 import stat
 import subprocess
 import sys
@@ -25,6 +25,7 @@ import redis
 from models.formation import SensorParams, simulate
 from service.cli.main import main
 from service.cli.serve import WorkerSupervisor
+from tests.service.conftest import free_port
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.job_store import JobStore
 from worker.jobs import JobState
@@ -33,25 +34,46 @@ from worker.redis_keys import DEVICES_SET, WORKERS_HEARTBEAT
 REPO = Path(__file__).resolve().parents[3]
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def read_until(process: subprocess.Popen[str], pattern: str, timeout_s: float) -> list[str]:
-    """stdout lines up to the first one matching ``pattern``."""
+    """stdout lines up to the first one matching ``pattern``; fails once ``timeout_s``
+    has passed, or when the output ends first. A thread reads the lines (it stops after
+    the match), so a process that prints nothing cannot hold the wait past its deadline
+    (``readline`` here blocked until the process wrote or exited)."""
+    stdout = process.stdout
+    assert stdout is not None
+    arrived: queue.Queue[str | None] = queue.Queue()
+
+    def read() -> None:
+        for line in iter(stdout.readline, ""):
+            arrived.put(line)
+            if re.search(pattern, line):
+                return
+        arrived.put(None)  # the output ended: the process exited
+
+    threading.Thread(target=read, daemon=True).start()
     deadline = time.monotonic() + timeout_s
     lines: list[str] = []
-    assert process.stdout is not None
-    while time.monotonic() < deadline:
-        line = process.stdout.readline()
-        if not line:
+    while True:
+        try:
+            line = arrived.get(timeout=max(0.0, deadline - time.monotonic()))
+        except queue.Empty:
+            pytest.fail(f"no {pattern!r} within {timeout_s}s: {''.join(lines)}")
+        if line is None:
             pytest.fail(f"mcam serve exited ({process.poll()}): {''.join(lines)}")
         lines.append(line)
         if re.search(pattern, line):
             return lines
-    pytest.fail(f"no {pattern!r} within {timeout_s}s: {''.join(lines)}")
+
+
+def test_read_until_gives_up_at_its_deadline_on_a_silent_process() -> None:
+    silent = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(20)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        with pytest.raises(pytest.fail.Exception, match="no 'ready' within 0.5s"):
+            read_until(silent, "ready", 0.5)
+    finally:
+        silent.kill()
+        silent.wait()
 
 
 def wait_ready(base: str, timeout_s: float = 60.0) -> None:
