@@ -6,13 +6,17 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
+import pytest
 import redis
 
 from device.simulator import MAX_SEED
 from tests.device.conftest import health, stream_frames, wait_for
 from worker.embedded_redis import EmbeddedRedis
+from worker.redis_keys import control_stream
 
 MCAM = Path(sys.executable).parent / "mcam"
 
@@ -21,12 +25,15 @@ def env_for(redis_url: str, data_dir: Path) -> dict[str, str]:
     return {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": str(data_dir)}
 
 
-def test_simulate_device_feeds_mcam_device(redis_server: EmbeddedRedis, client: redis.Redis,
-                                           tmp_path: Path) -> None:
-    env = env_for(redis_server.url, tmp_path / "data")
+@contextmanager
+def camera_and_daemon(env: dict[str, str], client: redis.Redis, tmp_path: Path,
+                      *camera_flags: str) -> Iterator[None]:
+    """``mcam simulate-device`` on a pty and ``mcam device`` (device ``rig-1``) reading
+    it, both run with ``env``; once the daemon has a frame (``client``: its Redis),
+    yields; both must then stop cleanly on SIGTERM."""
     camera = subprocess.Popen(
         [MCAM, "simulate-device", "--port", f"pty:{tmp_path / 'cam'}", "--fps", "30",
-         "--encoding", "mantissa", "--alpha", "4"],
+         *camera_flags],
         stdout=subprocess.PIPE, stderr=(tmp_path / "camera.log").open("w"), text=True, env=env,
         cwd=tmp_path)
     daemon = None
@@ -39,15 +46,44 @@ def test_simulate_device_feeds_mcam_device(redis_server: EmbeddedRedis, client: 
                                   stderr=(tmp_path / "daemon.log").open("w"), text=True,
                                   env=env, cwd=tmp_path)
         assert wait_for(lambda: health(client, "rig-1").get("frames_ok", "0") != "0", 60)
-        frames = stream_frames(client, "rig-1")
-        assert frames[0].discont and frames[0].params.encoding == "mantissa"
-        assert frames[0].params.alpha == 4.0 and frames[0].codes.shape == (256, 256)
+        yield
     finally:
         for process in (daemon, camera):
             if process is not None:
                 process.send_signal(signal.SIGTERM)
     assert daemon is not None and daemon.wait(20) == 0
     assert camera.wait(20) == 0
+
+
+def test_simulate_device_feeds_mcam_device(redis_server: EmbeddedRedis, client: redis.Redis,
+                                           tmp_path: Path) -> None:
+    env = env_for(redis_server.url, tmp_path / "data")
+    with camera_and_daemon(env, client, tmp_path, "--encoding", "mantissa", "--alpha", "4"):
+        frames = stream_frames(client, "rig-1")
+        assert frames[0].discont and frames[0].params.encoding == "mantissa"
+        assert frames[0].params.alpha == 4.0 and frames[0].codes.shape == (256, 256)
+
+
+@pytest.mark.parametrize(("setting", "value", "brackets", "kept"), [
+    ("MCAM_DATASET_MAX_PAIRS", "2", 3, 2),
+    ("MCAM_DATASET_MAX_BYTES", "1", 2, 1),  # the newest pair is kept, however large
+])
+def test_mcam_device_keeps_the_dataset_within_the_settings(
+    redis_server: EmbeddedRedis, client: redis.Redis, tmp_path: Path, setting: str, value: str,
+    brackets: int, kept: int,
+) -> None:
+    """``brackets`` bracketed captures, one after the other: ``kept`` pairs stay (the
+    default limits, 1000 pairs and 1 GiB, would keep them all)."""
+    env = {**env_for(redis_server.url, tmp_path / "data"), setting: value}
+    with camera_and_daemon(env, client, tmp_path):
+        for saved in range(1, brackets + 1):
+            client.xadd(control_stream("rig-1"), {"command": "bracket"})
+            assert wait_for(
+                lambda saved=saved: health(client, "rig-1").get("brackets_saved") == str(saved),
+                60,
+            )
+    folders = sorted((tmp_path / "data" / "datasets" / "rig-1").iterdir())
+    assert len(folders) == kept, folders
 
 
 def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_path: Path) -> None:

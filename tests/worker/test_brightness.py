@@ -41,6 +41,24 @@ def test_a_global_gain_is_found(params: SensorParams, stops: float) -> None:
 
 
 @pytest.mark.parametrize("params", [MODULO, MANTISSA], ids=["modulo", "mantissa"])
+def test_a_gain_is_kept_only_when_its_misfit_is_below_switch_times_no_changes(
+    params: SensorParams,
+) -> None:
+    """With r the best gain's misfit over the misfit with no change, a switch just above r
+    keeps the gain, one just below keeps 1 (and the misfit with no change)."""
+    scene = 0.3 * smooth_scene(64, 64)
+    prev_u, _ = planes(scene, params)
+    _, now_m = planes(scene * 2.0**0.2, params)
+    gain, cost = frame_gain(prev_u, now_m, params, BrightnessConfig(switch=1.0))
+    _, unchanged = frame_gain(prev_u, now_m, params, BrightnessConfig(search=0.0))
+    ratio = cost / unchanged
+    assert gain != 1.0 and 0.0 < ratio < 1.0
+    above, below = BrightnessConfig(switch=ratio * 1.01), BrightnessConfig(switch=ratio * 0.99)
+    assert frame_gain(prev_u, now_m, params, above) == (gain, cost)
+    assert frame_gain(prev_u, now_m, params, below) == (1.0, unchanged)
+
+
+@pytest.mark.parametrize("params", [MODULO, MANTISSA], ids=["modulo", "mantissa"])
 def test_no_change_or_no_search_gives_gain_one(params: SensorParams) -> None:
     u, m = planes(smooth_scene(64, 64), params)
     assert frame_gain(u, m, params, BrightnessConfig()) == (1.0, pytest.approx(0.0, abs=1e-3))

@@ -42,10 +42,17 @@ def test_texture_ignores_a_brightness_offset_and_wrapping() -> None:
     assert texture(u, False)[-1, -1, 0] == 0.0
 
 
-@pytest.mark.parametrize("shift", [(0, 2), (1, -2), (-3, 0)])
+#: The default search (px per frame): a pan this far in each direction is still found.
+EDGE = MotionConfig().search
+
+
+@pytest.mark.parametrize(
+    "shift", [(0, 2), (1, -2), (-3, 0), (EDGE, EDGE), (-EDGE, -EDGE), (EDGE, -EDGE)]
+)
 def test_a_pan_is_found_and_undone(shift: tuple[int, int]) -> None:
     """The current frame shows the previous one moved by ``-shift``: the warped previous
-    u equals the current u wherever its source lay inside the previous frame."""
+    u equals the current u wherever its source lay inside the previous frame (pans of
+    the whole search distance included)."""
     scene = smooth_scene(96, 128)
     prev_u, _ = planes(scene[16:80, 16:80])
     now_u, now_m = planes(scene[16 + shift[0] : 80 + shift[0], 16 + shift[1] : 80 + shift[1]])

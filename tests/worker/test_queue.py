@@ -33,6 +33,7 @@ CODES = np.arange(64, dtype=np.uint8).reshape(8, 8)
 def test_submit_stores_record_and_raw_codes(queue: JobQueue, client: redis.Redis) -> None:
     record = queue.submit("reconstruction", CODES, PARAMS, "itoh", {"half": True})
     assert record.state is JobState.QUEUED and len(record.id) == 32
+    assert record.frames_total == 1
     assert queue.get(record.id) == record
     [(_entry_id, fields)] = client.xrange(JOBS_STREAM)
     fields = {k.decode(): v for k, v in fields.items()}
@@ -174,6 +175,22 @@ def test_codes_past_the_queues_bytes_are_refused_until_a_job_is_released(
     with pytest.raises(InvalidInputError, match="the queue holds for all jobs"):
         queue.submit("video", np.zeros((3, 8, 8), np.uint8), PARAMS, "itoh")
     assert client.xlen(JOBS_STREAM) == 3
+
+
+@pytest.mark.parametrize(
+    ("bounds", "owner", "refusal"),
+    [({"max_bytes": CODES.nbytes}, "", "the queue holds for all jobs"),
+     ({"per_key_bytes": CODES.nbytes}, "alice", "one key's jobs may hold")],
+)  # fmt: skip
+def test_codes_exactly_as_large_as_a_bound_are_taken_one_byte_more_is_not(
+    client: redis.Redis, bounds: dict[str, int], owner: str, refusal: str
+) -> None:
+    queue = bounded_queue(client, **bounds)
+    too_large = np.zeros(CODES.nbytes + 1, np.uint8).reshape(1, -1)
+    with pytest.raises(InvalidInputError, match=refusal):
+        queue.submit("reconstruction", too_large, PARAMS, "itoh", owner=owner)
+    queue.submit("reconstruction", CODES, PARAMS, "itoh", owner=owner)
+    assert client.xlen(JOBS_STREAM) == 1
 
 
 def test_full_device_stream_drops_oldest_and_counts(client: redis.Redis, queue: JobQueue) -> None:
