@@ -282,13 +282,16 @@ def test_capped_psnr_caps_an_exact_frame_and_refuses_nan() -> None:
 
 @st.composite
 def hdr_images(draw: st.DrawFn, min_side: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """A reference spanning up to 6 decades and an estimate off it by up to 20 % per
-    pixel (H x W, or H x W x 3), from a drawn seed: cheap to draw at any size."""
+    """A reference spanning up to 6 decades and an estimate equal to it or off it by up
+    to 0.1-20 % per pixel (H x W, or H x W x 3), from a drawn seed: cheap to draw at any
+    size. (Errors far below 0.1 % give PSNRs above 200 dB, where rounding the scaled
+    pixel values moves the figure more than the tests' tolerance.)"""
     rows, cols = draw(st.integers(min_side, 40)), draw(st.integers(min_side, 40))
     shape = (rows, cols, 3) if draw(st.booleans()) else (rows, cols)
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     reference = 10.0 ** rng.uniform(-3, draw(st.floats(-2.0, 3.0)), shape)
-    estimate = reference * (1 + draw(st.floats(0.0, 0.2)) * rng.uniform(-1, 1, shape))
+    error = draw(st.one_of(st.just(0.0), st.floats(1e-3, 0.2)))
+    estimate = reference * (1 + error * rng.uniform(-1, 1, shape))
     return estimate, reference
 
 
