@@ -123,9 +123,9 @@ UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
         "(too_many_jobs)"
     ),
     503: error_response(
-        "the queue (Redis) is unreachable or full, or the API is decoding "
-        "MCAM_MAX_CONCURRENT_DECODES uploads already and none finished within "
-        "MCAM_DECODE_WAIT_S (server_busy, see Retry-After)"
+        "the queue (Redis) is unreachable or full, or the API is decoding uploads or "
+        "making result previews MCAM_MAX_CONCURRENT_DECODES at a time and none finished "
+        "within MCAM_DECODE_WAIT_S (server_busy, see Retry-After)"
     ),
 }
 

@@ -6,19 +6,17 @@ parameters as form fields) or a raw ``application/octet-stream`` body
 requests; form fields win. The body size limit is enforced while streaming
 (:mod:`service.api.body_limit`). Decoding an upload (or simulating a frame from it)
 takes up to gigabytes of the API's memory, so at most ``MCAM_MAX_CONCURRENT_DECODES`` run
-at once (:func:`decode_in_turn`).
+at once (:func:`service.api.in_turn.decode_in_turn`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
 
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
@@ -30,10 +28,8 @@ from models.frames import FRAME_FORMATS, not_a_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.errors import ApiError
 from service.api.media_types import media_type
-from service.api.state import ServiceState
 
 Model = TypeVar("Model", bound=BaseModel)
-Result = TypeVar("Result")
 _MAX_FORM_FIELDS = 64
 #: File-name suffixes that name a frame format as they are.
 _NAMED = ("png", "tiff", "npy", "raw")
@@ -217,27 +213,3 @@ def _elsewhere(data: bytes) -> str:
     """What to do with an upload that is a file another route takes ('' otherwise)."""
     other = not_a_frame(data)
     return "" if other is None else f"; this file is {other}"
-
-
-def server_busy(limit: int, wait_s: float) -> ApiError:
-    """The 503 for an upload that found all ``limit`` decode slots held for ``wait_s`` s."""
-    return ApiError(
-        503, "server_busy",
-        f"the API is decoding {limit} uploads already (MCAM_MAX_CONCURRENT_DECODES) and none "
-        f"finished within {wait_s:g} s (MCAM_DECODE_WAIT_S); send it again after Retry-After",
-        headers={"Retry-After": "5"},
-    )  # fmt: skip
-
-
-async def decode_in_turn(state: ServiceState, work: Callable[..., Result], *args: Any) -> Result:
-    """``work(*args)`` on a server thread while holding one of the API's decode slots
-    (``MCAM_MAX_CONCURRENT_DECODES``), waited for up to ``MCAM_DECODE_WAIT_S`` seconds;
-    503 ``server_busy`` if none came free. The slot is freed however the work ends, and
-    only once it has: a request cancelled meanwhile waits for its thread to finish."""
-    slots, wait_s = state.decode_slots, state.settings.decode_wait_s
-    if not await slots.wait_take(wait_s):
-        raise server_busy(slots.limit, wait_s)
-    try:
-        return await run_in_threadpool(work, *args)
-    finally:
-        slots.release()

@@ -98,13 +98,15 @@ class Settings(BaseSettings):
     )  # fmt: skip
     max_concurrent_decodes: int = Field(
         2, ge=1, le=40,
-        description="uploads the API decodes or simulates at once (POST /v1/simulate, "
-        "/v1/reconstructions, /v1/videos), in its own memory: a 4096 x 4096 simulate "
-        "peaks at 3.6 GB; one more waits up to MCAM_DECODE_WAIT_S for its turn, then 503",
+        description="uploads the API decodes or simulates (POST /v1/simulate, "
+        "/v1/reconstructions, /v1/videos) and results it previews (GET /v1/jobs/{id}/result "
+        "but the EXR, a device's PNG frame) at once, all in its own memory: a 4096 x 4096 "
+        "simulate peaks at 3.6 GB; one more waits up to MCAM_DECODE_WAIT_S for its turn, "
+        "then 503",
     )  # fmt: skip
     decode_wait_s: float = Field(
         10.0, ge=0, le=300,
-        description="longest an upload waits for one of MCAM_MAX_CONCURRENT_DECODES "
+        description="longest an upload or preview waits for one of MCAM_MAX_CONCURRENT_DECODES "
         "before 503 server_busy with Retry-After (it holds no server thread meanwhile)",
     )  # fmt: skip
     max_event_streams: int = Field(

@@ -9,6 +9,7 @@ from typing import Annotated, Any, Literal
 
 import redis
 from fastapi import APIRouter, Body, Response
+from starlette.concurrency import run_in_threadpool
 
 from device.commands import Command, command_fields
 from device.health import ALL_DROP_CAUSES
@@ -16,6 +17,7 @@ from models.hdr_io import read_hdr
 from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
+from service.api.in_turn import decode_in_turn
 from service.api.previews import scene_to_wrap_units, tonemap_png
 from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, error_response
 from service.api.state import ServiceState
@@ -122,21 +124,43 @@ def control(device_id: str, command: Annotated[Command, Body()], state: StateDep
     return {"device": device, "entry": entry, "command": command.model_dump()}
 
 
-@router.get("/{device_id}/frames/latest", responses=DEVICE_ERRORS,
-            summary="The newest reconstructed frame: EXR, or a tonemapped PNG preview")
-def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
-                 format: Literal["exr", "png"] = "exr",
-                 exposure: Exposure = 0.0) -> Response:
+#: The newest frame's 503 (all but the EXR: its preview is made in the API's memory).
+_PREVIEW_BUSY = error_response(
+    "Redis is unreachable, or (format=png) the API is decoding uploads or making previews "
+    "MCAM_MAX_CONCURRENT_DECODES at a time and none finished within MCAM_DECODE_WAIT_S "
+    "(server_busy, see Retry-After)"
+)
+
+
+def latest_result(state: ServiceState, device_id: str) -> tuple[str, str]:
+    """The device's name and the result-store key of its newest reconstruction (404 if
+    the device is unknown or has none yet)."""
     device = known_device(state, device_id)
     key = state.client.get(latest_key(device))
     if not key:
         raise ApiError(404, "not_found", f"device {device!r} has no reconstructed frame yet")
-    stem = f"{device}-latest"
-    if format == "exr":
-        return stored_file(state.store, as_text(key), MEDIA_TYPES["exr"], f"{stem}.exr",
-                           immutable=False)
-    exr = state.store.read(as_text(key))
-    image = read_hdr(exr, name="the stored result")
+    return device, as_text(key)
+
+
+def frame_preview(state: ServiceState, key: str, exposure: float, stem: str) -> Response:
+    """The stored frame ``key`` tonemapped at ``exposure`` EV, as a PNG."""
+    image = read_hdr(state.store.read(key), name="the stored result")
     gain = image.attributes.get("gain")  # device frames are stored scene-referred
     x = scene_to_wrap_units(image.pixels, float(gain) if gain else None)
     return download(tonemap_png(x, exposure), "png", stem)
+
+
+@router.get("/{device_id}/frames/latest", responses={**DEVICE_ERRORS, 503: _PREVIEW_BUSY},
+            summary="The newest reconstructed frame: EXR, or a tonemapped PNG preview")
+async def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
+                       format: Literal["exr", "png"] = "exr",
+                       exposure: Exposure = 0.0) -> Response:
+    """The EXR is streamed as stored; the PNG is made in the API's memory, a few at a
+    time (``MCAM_MAX_CONCURRENT_DECODES``, shared with uploads and job previews)."""
+    device, key = await run_in_threadpool(latest_result, state, device_id)
+    stem = f"{device}-latest"
+    if format == "exr":
+        return await run_in_threadpool(
+            stored_file, state.store, key, MEDIA_TYPES["exr"], f"{stem}.exr", immutable=False
+        )
+    return await decode_in_turn(state, frame_preview, state, key, exposure, stem)

@@ -9,6 +9,7 @@ import numpy as np
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import JSONResponse
 from numpy.typing import NDArray
+from starlette.concurrency import run_in_threadpool
 
 from models.errors import InvalidInputError
 from models.formation import encode
@@ -17,6 +18,7 @@ from models.hdr_io import read_hdr
 from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
 from service.api.errors import ApiError
+from service.api.in_turn import decode_in_turn
 from service.api.previews import (
     codes_png,
     log_luminance_histogram,
@@ -78,7 +80,8 @@ def wrapped_codes(record: JobRecord, x: NDArray[np.float64]) -> NDArray[np.unsig
 
 
 def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev: float) -> Response:
-    """The bytes of ``part`` in ``fmt`` for a succeeded job."""
+    """The bytes of ``part`` in ``fmt`` for a succeeded job, made in memory from its
+    stored files (all but the EXR itself: :func:`stored_exr`)."""
     stem = f"{record.id}-{part}"
     if part == "winding":
         key = record.results["winding"]
@@ -86,8 +89,6 @@ def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev:
         if fmt == "png":
             return download(winding_png(winding), fmt, stem)
         return download(winding_bytes(winding, fmt), fmt, stem)
-    if part == "image" and fmt == "exr":
-        return stored_file(state.store, record.results["exr"], MEDIA_TYPES["exr"], f"{stem}.exr")
     exr = state.store.read(record.results["exr"])
     x = wrap_units(record, read_hdr(exr, name="the stored result").pixels)
     if part == "image":
@@ -102,6 +103,27 @@ def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev:
     if fmt == "png":
         return download(codes_png(codes, record.params.bits), fmt, stem)
     return download(encode_frame(codes, record.params, fmt), fmt, stem)
+
+
+def stored_exr(state: ServiceState, record: JobRecord) -> Response:
+    """The job's EXR streamed from disk as stored (Range requests, caching)."""
+    return stored_file(
+        state.store, record.results["exr"], MEDIA_TYPES["exr"], f"{record.id}-image.exr"
+    )
+
+
+def still_record(state: ServiceState, job_id: str) -> JobRecord:
+    """The record of a succeeded single-frame job; 409 for a video job, whose files come
+    from ``/v1/videos/{id}/result`` (and as :func:`finished_record` otherwise)."""
+    record = finished_record(state, job_id)
+    if record.kind == "video":
+        made = [name for name in OUTPUTS if name in record.results]
+        raise ApiError(
+            409, "video_job",
+            f"job {job_id} is a video job: fetch its files from /v1/videos/{job_id}/result"
+            f"?output={made[0]} (it made {', '.join(made)})",
+        )  # fmt: skip
+    return record
 
 
 @router.get(
@@ -130,9 +152,14 @@ def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
             "/v1/videos/{id}/result"
         ),
         **JOB_ERRORS,
+        503: error_response(
+            "the queue (Redis) is unreachable, or (all but the EXR) the API is decoding "
+            "uploads or making previews MCAM_MAX_CONCURRENT_DECODES at a time and none "
+            "finished within MCAM_DECODE_WAIT_S (server_busy, see Retry-After)"
+        ),
     },
 )
-def get_result(
+async def get_result(
     job_id: str,
     state: StateDep,
     _: ReadKey,
@@ -146,22 +173,19 @@ def get_result(
 ) -> Response:
     """``image`` as EXR (``png``: tonemapped at ``exposure`` EV), ``winding`` as npy/tiff
     (``png``: colour-coded), ``codes`` re-encoded (``png``: 8-bit), ``histogram``: log10
-    luminance counts."""
+    luminance counts. All but the EXR are made in the API's memory, a few at a time
+    (``MCAM_MAX_CONCURRENT_DECODES``, shared with uploads: 503 ``server_busy`` past
+    ``MCAM_DECODE_WAIT_S``)."""
     allowed = PART_FORMATS[part]
     fmt = format or allowed[0]
     if fmt not in allowed:
         raise InvalidInputError(
             f"part {part!r} comes as {', '.join(allowed)}, not {fmt!r}; pick one of those"
         )
-    record = finished_record(state, job_id)
-    if record.kind == "video":
-        made = [name for name in OUTPUTS if name in record.results]
-        raise ApiError(
-            409, "video_job",
-            f"job {job_id} is a video job: fetch its files from /v1/videos/{job_id}/result"
-            f"?output={made[0]} (it made {', '.join(made)})",
-        )  # fmt: skip
-    return result_file(state, record, part, fmt, exposure)
+    record = await run_in_threadpool(still_record, state, job_id)
+    if part == "image" and fmt == "exr":
+        return await run_in_threadpool(stored_exr, state, record)
+    return await decode_in_turn(state, result_file, state, record, part, fmt, exposure)
 
 
 @router.delete(

@@ -12,6 +12,7 @@ from models.decoders.base import check_frame_shape
 from models.errors import InvalidInputError, MissingParameterError
 from models.frames import WrappedFrame, check_pixel_count, decode_frame, decode_raw, merge_params
 from service.api.deps import StateDep, SubmitKey
+from service.api.in_turn import decode_in_turn
 from service.api.schemas import (
     UPLOAD_ERRORS,
     JobAccepted,
@@ -23,7 +24,6 @@ from service.api.state import ServiceState
 from service.api.uploads import (
     ReconstructionFields,
     Upload,
-    decode_in_turn,
     read_upload_fields,
     sniff_frame_format,
 )

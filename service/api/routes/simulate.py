@@ -11,8 +11,9 @@ from models.frames import encode_frame
 from models.hdr_io import read_hdr
 from service.api.deps import StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, winding_bytes
+from service.api.in_turn import decode_in_turn
 from service.api.schemas import UPLOAD_ERRORS, upload_body
-from service.api.uploads import SimulateFields, Upload, decode_in_turn, read_upload_fields
+from service.api.uploads import SimulateFields, Upload, read_upload_fields
 from service.core.config import Settings
 
 router = APIRouter(prefix="/v1", tags=["simulate"])

@@ -20,6 +20,7 @@ from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import stored_file
 from service.api.errors import ApiError
+from service.api.in_turn import decode_in_turn
 from service.api.routes.jobs import JOB_ERRORS, finished_record
 from service.api.schemas import (
     UPLOAD_ERRORS,
@@ -29,7 +30,7 @@ from service.api.schemas import (
     upload_body,
 )
 from service.api.state import ServiceState
-from service.api.uploads import SensorFields, Upload, decode_in_turn, read_upload_fields
+from service.api.uploads import SensorFields, Upload, read_upload_fields
 from service.core.security import ApiKey
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
 from worker.video_input import VideoLimits, decode_video

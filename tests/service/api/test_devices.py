@@ -220,6 +220,36 @@ def test_the_live_preview_shares_the_job_previews_wrap_units(
     np.testing.assert_array_equal(shown, srgb8(read_hdr(exr).pixels * 8.0))
 
 
+def test_the_live_preview_is_made_in_turn(tmp_path: Path, redis_url: str) -> None:
+    """A device's PNG frame reads and tonemaps the stored EXR in the API's memory, as a
+    job's preview does: it takes a turn of MCAM_MAX_CONCURRENT_DECODES (503 server_busy
+    with Retry-After past MCAM_DECODE_WAIT_S); the EXR itself is streamed without one."""
+    settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
+    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
+    codes = simulate(np.linspace(0, 3, 16 * 16).reshape(16, 16), params).codes
+    decoded = get_decoder("itoh").decode(codes, params)
+    key = "devices/cam9/000000000001-1-0.exr"
+    ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s).write(
+        key, encode_exr_result(codes, decoded.winding, params, decoded.info, {})
+    )
+    redis_client = connect(redis_url)
+    redis_client.sadd(DEVICES_SET, "cam9")
+    redis_client.set(latest_key("cam9"), key)
+    app = create_app(settings)
+    with serve(app) as url:
+        latest = f"{url}/v1/devices/cam9/frames/latest"
+        headers = {"Authorization": f"Bearer {READ_KEY}"}
+        slots = app.state.mcam.decode_slots
+        assert slots.take()
+        refused = httpx.get(latest, params={"format": "png"}, headers=headers)
+        assert refused.status_code == 503 and refused.json()["code"] == "server_busy"
+        assert refused.headers["retry-after"] == "5"
+        assert httpx.get(latest, headers=headers).status_code == 200
+        slots.release()
+        assert httpx.get(latest, params={"format": "png"}, headers=headers).status_code == 200
+        assert not slots.full
+
+
 @pytest.mark.slow
 @needs_chromium
 def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) -> None:

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import io
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -13,8 +16,19 @@ from PIL import Image
 from models.decoders.registry import get_decoder
 from models.frames import decode_frame
 from models.hdr_io import read_hdr
+from service.api.state import Slots
 from service.core.config import Settings
-from tests.service.conftest import PARAMS, READ_KEY, SUBMIT_KEY, frame_png
+from service.main import create_app
+from tests.service.conftest import (
+    FULL_KEY,
+    PARAMS,
+    READ_KEY,
+    SUBMIT_KEY,
+    frame_png,
+    make_settings,
+    running_worker,
+    serve,
+)
 from tests.worker.conftest import overflowing_codes
 from worker.result_store import RESULTS_DIR
 from worker.runner import Worker
@@ -200,3 +214,70 @@ def test_stored_results_support_range_head_and_caching(client: Client, worker: W
     assert http.head(f"/v1/jobs/{'0' * 32}").status_code == 404
     for path in ("/health/live", "/v1/decoders", "/"):
         assert http.head(path).status_code == 200, path
+
+
+#: The result parts read whole into the API's memory to answer (all but the stored EXR).
+IN_MEMORY_PARTS = (
+    {"format": "png"},
+    {"part": "winding"},
+    {"part": "winding", "format": "png"},
+    {"part": "codes"},
+    {"part": "codes", "format": "tiff"},
+    {"part": "histogram"},
+)
+
+
+@contextmanager
+def one_decode_slot(
+    tmp_path: Path, redis_url: str, wait_s: float
+) -> Iterator[tuple[httpx.Client, str, Slots]]:
+    """A live API with one decode slot (waited for ``wait_s`` s) and a worker: an HTTP
+    client, the result URL of a succeeded job, and the slots."""
+    settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=wait_s)
+    app = create_app(settings)
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    with (
+        serve(app) as url,
+        running_worker(settings),
+        httpx.Client(base_url=url, headers=headers, timeout=60) as http,
+    ):
+        job = reconstructed_job(http)
+        yield http, f"/v1/jobs/{job['id']}/result", app.state.mcam.decode_slots
+
+
+def test_previews_are_made_a_few_at_a_time(tmp_path: Path, redis_url: str) -> None:
+    """A preview, W map, codes or histogram reads the whole result and works on it in
+    the API's memory, and nothing bounded how many ran at once (a viewer asks for four
+    per job). They share the uploads' MCAM_MAX_CONCURRENT_DECODES: past it one waits
+    MCAM_DECODE_WAIT_S (here 0), then 503 server_busy with Retry-After; the stored EXR is
+    streamed from disk and needs no slot."""
+    with one_decode_slot(tmp_path, redis_url, 0) as (http, result, slots):
+        assert slots.take()  # an upload being decoded
+        for params in IN_MEMORY_PARTS:
+            refused = http.get(result, params=params)
+            assert refused.status_code == 503, (params, refused.text)
+            assert refused.json()["code"] == "server_busy"
+            assert refused.headers["retry-after"] == "5"
+            assert "MCAM_MAX_CONCURRENT_DECODES" in refused.json()["message"]
+        assert http.get(result).status_code == 200  # the EXR: streamed, no slot
+        slots.release()
+        for params in IN_MEMORY_PARTS:
+            assert http.get(result, params=params).status_code == 200, params
+        assert http.get(result, params={"part": "codes", "format": "gif"}).status_code == 422
+        assert not slots.full
+
+
+def test_a_preview_waits_its_turn(tmp_path: Path, redis_url: str) -> None:
+    """Within MCAM_DECODE_WAIT_S a preview waits for a slot (on the event loop) and is
+    answered once one is freed; it is not refused."""
+    with (
+        one_decode_slot(tmp_path, redis_url, 60) as (http, result, slots),
+        ThreadPoolExecutor(1) as pool,
+    ):
+        assert slots.take()
+        waiting = pool.submit(http.get, result, params={"part": "histogram"})
+        assert http.get(result.removesuffix("/result")).status_code == 200
+        assert not waiting.done(), "the preview did not wait for the held slot"
+        slots.release()
+        assert waiting.result().status_code == 200
+        assert not slots.full
