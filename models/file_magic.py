@@ -2,12 +2,14 @@
 
 A file's format is judged by its content first and by its name only when the content
 shows none of the formats a reader takes: a PNG named ``.tiff`` is decoded as the PNG it
-is (it was called a corrupt TIFF), with a warning naming both.
+is (it was called a corrupt TIFF), with a warning naming both, logged and returned to
+the caller (:func:`content_first`).
 """
 
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 #: The eight bytes every PNG file starts with.
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -43,16 +45,26 @@ def format_by_content(data: bytes, magics: Magics) -> str | None:
     return next((fmt for magic, fmt in magics if data.startswith(magic)), None)
 
 
-def content_first(data: bytes, named: str, magics: Magics) -> str:
+class Judged(NamedTuple):
+    """The format to decode a file as, and the warning naming both formats when its
+    name or declared format said another (None when they agree)."""
+
+    format: str
+    warning: str | None
+
+
+def content_first(data: bytes, named: str, magics: Magics) -> Judged:
     """The format to decode ``data`` as: the one of ``magics`` its leading bytes show,
     else ``named`` (the format its file name or the caller gave). A disagreement is
-    logged as a warning naming both."""
+    logged as a warning naming both, and returned for the caller to pass on (the API
+    tells its client: a job's ``warnings``)."""
     content = format_by_content(data, magics)
     if content is None or content == named:
-        return named
-    logger.warning(
-        "the file's content is %s although its name or declared format says %s: decoding "
-        "it as %s",
-        content.upper(), named.upper(), content.upper(),
-    )  # fmt: skip
-    return content
+        return Judged(named, None)
+    warning = (
+        f"the file's content is {content.upper()} although its name or declared format "
+        f"says {named.upper()}: decoding it as {content.upper()}; name or declare it "
+        f"{content.upper()} to match"
+    )
+    logger.warning("%s", warning)
+    return Judged(content, warning)

@@ -71,10 +71,13 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class WrappedFrame:
-    """A wrapped frame: codes in DN (uint8 or uint16, ``H x W`` or ``H x W x C``) and params."""
+    """A wrapped frame: codes in DN (uint8 or uint16, ``H x W`` or ``H x W x C``) and
+    params; ``warnings``: what its reading noticed that the sender should know (a file
+    named as another format than its content)."""
 
     codes: NDArray[np.unsignedinteger]
     params: SensorParams
+    warnings: tuple[str, ...] = ()
 
 
 def frame_format(name: str | os.PathLike[str]) -> str:
@@ -396,7 +399,7 @@ def decode_frame(
     ``fmt`` (a format name, suffix or file name) is the format unless the leading bytes
     show another frame format: the content wins (see :mod:`models.file_magic`). An HDR
     image or a zip is refused with where to send it."""
-    fmt = content_first(data, frame_format(fmt), FRAME_MAGICS)
+    fmt, warning = content_first(data, frame_format(fmt), FRAME_MAGICS)
     if (other := not_a_frame(data)) is not None:
         raise UnsupportedFormatError(f"the file is {other}")
     with decoding(f"the {fmt.upper()} frame"):
@@ -405,7 +408,7 @@ def decode_frame(
     params = merge_params(stored, overrides)
     codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
     warn_if_8bit(codes, params)
-    return WrappedFrame(codes=codes, params=params)
+    return WrappedFrame(codes=codes, params=params, warnings=(warning,) if warning else ())
 
 
 def read_frame(
@@ -461,7 +464,7 @@ def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
     """Read a winding-number map written by :func:`write_winding` (int64); the format is
     its content's, else its suffix's."""
     data = Path(path).read_bytes()
-    return decode_winding(data, content_first(data, frame_format(path), FRAME_MAGICS))
+    return decode_winding(data, content_first(data, frame_format(path), FRAME_MAGICS).format)
 
 
 def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:

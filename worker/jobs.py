@@ -59,6 +59,9 @@ class JobRecord(BaseModel):
     results: dict[str, str] = Field(default_factory=dict)
     info: dict[str, Any] = Field(default_factory=dict)
     attempts: int = 0
+    #: What reading the uploaded file noticed that its sender should know (a file named
+    #: as another format than its content: read as its content), set when it is queued.
+    warnings: list[str] = Field(default_factory=list)
 
 
 class JobNotFoundError(McamError):

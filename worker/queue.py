@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import time
 import uuid
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -236,11 +237,13 @@ class JobQueue:
         options: dict[str, Any] | None = None,
         owner: str = "",
         job_id: str | None = None,
+        warnings: Sequence[str] = (),
     ) -> JobRecord:
         """Queue a job (codes in DN: one frame, or T frames for ``video``) for the API key
         ``owner`` (its id; ``""``: no key, as for a device's recording); returns its record.
         ``job_id`` (default: a new uuid) makes a retried submit safe: a job of that id that
-        already exists is returned, not queued again.
+        already exists is returned, not queued again. ``warnings`` (what reading the
+        uploaded file noticed) are kept with the job for its client.
 
         Raises :class:`InvalidInputError` for bad codes/kind/decoder or codes larger than
         a bound, :class:`TooManyJobsError` when ``owner`` has ``max_per_key`` jobs or
@@ -256,6 +259,7 @@ class JobQueue:
             options=dict(options or {}),
             frames_total=codes.shape[0] if kind == "video" else 1,
             created_ns=time.time_ns(),
+            warnings=list(warnings),
         )
         fields = record_fields(record)
         entry = job_entry(record, codes)

@@ -26,7 +26,7 @@ import io
 import os
 import re
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -78,6 +78,8 @@ class WrappedVideo:
 
     codes: NDArray[np.unsignedinteger]
     params: SensorParams
+    #: What reading the file noticed that the sender should know (as a frame's).
+    warnings: tuple[str, ...] = ()
 
     @property
     def frames(self) -> int:
@@ -239,7 +241,8 @@ def _read_zip(
             if differences:
                 raise _frame_differs(entry.filename, entries[0].filename, differences)
             frames.append(frame)
-    return WrappedVideo(np.stack([f.codes for f in frames]), first.params)
+    warnings = tuple(dict.fromkeys(w for frame in frames for w in frame.warnings))
+    return WrappedVideo(np.stack([f.codes for f in frames]), first.params, warnings)
 
 
 def _size(shape: tuple[int, ...]) -> str:
@@ -310,7 +313,7 @@ def decode_video(
     show another video format: the content wins (see :mod:`models.file_magic`). Frames a
     decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
     here, before a job is queued."""
-    fmt = content_first(data, video_format(fmt), VIDEO_MAGICS)
+    fmt, warning = content_first(data, video_format(fmt), VIDEO_MAGICS)
     limits = limits or VideoLimits()
     if fmt == "zip":
         with decoding("the ZIP video"):
@@ -326,7 +329,7 @@ def decode_video(
         warn_if_8bit(codes, params)
         video = WrappedVideo(codes, params)
     check_frame_shape(video.codes[0])
-    return video
+    return video if warning is None else replace(video, warnings=(warning, *video.warnings))
 
 
 def read_video(

@@ -7,7 +7,7 @@ from typing import Any
 
 import redis
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from service.api.state import Slots
 from worker.jobs import JobRecord, JobState
@@ -26,17 +26,23 @@ class ErrorBody(BaseModel):
 
 
 class JobAccepted(BaseModel):
-    """A queued job: poll ``url`` for its state."""
+    """A queued job: poll ``url`` for its state. ``warnings``: what reading the upload
+    noticed that the sender should know (also in the job's state)."""
 
     id: str
     url: str
     state: JobState
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="e.g. a file named as another format than its content, which was read "
+        "as its content",
+    )
 
 
 def accepted_response(record: JobRecord) -> JSONResponse:
-    """202 with the queued job's id and URL (also in ``Location``)."""
+    """202 with the queued job's id, URL (also in ``Location``) and warnings."""
     url = f"/v1/jobs/{record.id}"
-    accepted = JobAccepted(id=record.id, url=url, state=record.state)
+    accepted = JobAccepted(id=record.id, url=url, state=record.state, warnings=record.warnings)
     return JSONResponse(
         accepted.model_dump(mode="json"), status_code=202, headers={"Location": url}
     )

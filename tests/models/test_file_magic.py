@@ -32,8 +32,10 @@ def test_format_by_content(data: bytes, magics: tuple, expected: str | None) -> 
 def test_content_first_keeps_the_name_unless_the_content_says_otherwise(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    assert content_first(b"no magic here", "tiff", FRAME_MAGICS) == "tiff"
-    assert content_first(b"II*\x00", "tiff", FRAME_MAGICS) == "tiff"
+    assert content_first(b"no magic here", "tiff", FRAME_MAGICS) == ("tiff", None)
+    assert content_first(b"II*\x00", "tiff", FRAME_MAGICS) == ("tiff", None)
     assert caplog.text == ""
-    assert content_first(b"\x89PNG\r\n\x1a\n", "tiff", FRAME_MAGICS) == "png"
-    assert "content is PNG although its name or declared format says TIFF" in caplog.text
+    judged = content_first(b"\x89PNG\r\n\x1a\n", "tiff", FRAME_MAGICS)
+    assert judged.format == "png" and judged.warning is not None
+    assert "content is PNG although its name or declared format says TIFF" in judged.warning
+    assert judged.warning in caplog.text

@@ -83,7 +83,8 @@ def choose_decoder(fields: ReconstructionFields, default: str) -> str:
 def submit(
     state: ServiceState, upload: Upload, fields: ReconstructionFields, key: ApiKey
 ) -> JobRecord:
-    """Decode the upload and queue its job for ``key``."""
+    """Decode the upload and queue its job for ``key``, with what the decode noticed
+    (the file read as another format than its name says) as the job's ``warnings``."""
     settings = state.settings
     frame = read_wrapped_frame(upload, fields, settings.max_pixels)
     decoder = choose_decoder(fields, settings.default_decoder)
@@ -94,7 +95,8 @@ def submit(
     }
     check_result_storable(frame.codes, frame.params, options)
     return state.queue.submit(
-        "reconstruction", frame.codes, frame.params, decoder, options, owner=key.id
+        "reconstruction", frame.codes, frame.params, decoder, options, owner=key.id,
+        warnings=frame.warnings,
     )
 
 

@@ -129,7 +129,8 @@ def sniff_video_format(upload: Upload, declared: str | None) -> str:
 
 
 def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey) -> Response:
-    """Decode the upload, check the options and queue the job for ``key``."""
+    """Decode the upload, check the options and queue the job for ``key``, with what the
+    decode noticed as the job's ``warnings``."""
     settings = state.settings
     fmt = sniff_video_format(upload, fields.format)
     limits = VideoLimits(
@@ -141,7 +142,8 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey
     video_options(decoder, options)
     check_hdr10_size(options["outputs"], video.codes.shape)
     record = state.queue.submit(
-        "video", video.codes, video.params, decoder, options, owner=key.id
+        "video", video.codes, video.params, decoder, options, owner=key.id,
+        warnings=video.warnings,
     )
     return accepted_response(record)
 

@@ -301,6 +301,26 @@ def test_a_frame_is_decoded_by_its_content_whatever_its_name(
     assert reply.status_code == 202, reply.text
 
 
+def test_a_frame_read_by_its_content_tells_the_client(client: Client, worker: Worker) -> None:
+    """A PNG named .tiff is read as a PNG, and that was said only in the server's log:
+    the job's ``warnings`` say it, in the 202, the 200 of ``Prefer: wait`` and the job's
+    state. A frame named as what it is has none."""
+    data, _ = frame_png()
+    http = client()
+    accepted = http.post("/v1/reconstructions", files={"file": ("frame.tiff", data)})
+    assert accepted.status_code == 202, accepted.text
+    (warning,) = accepted.json()["warnings"]
+    assert "content is PNG although its name or declared format says TIFF" in warning
+    assert http.get(accepted.json()["url"]).json()["warnings"] == [warning]
+    waited = http.post("/v1/reconstructions", files={"file": ("frame.npy", data)},
+                       headers={"Prefer": "wait=30"})
+    assert waited.status_code == 200 and waited.json()["state"] == "succeeded", waited.text
+    assert waited.json()["warnings"] == [warning.replace("TIFF", "NPY")]
+    named = http.post("/v1/reconstructions", files={"file": ("frame.png", data)})
+    assert named.json()["warnings"] == []
+    assert http.get(named.json()["url"]).json()["warnings"] == []
+
+
 def test_an_hdr_image_named_as_a_frame_is_pointed_to_simulate(client: Client) -> None:
     """It was 'the data is not a PNG image (bad or missing signature)'."""
     reply = client().post("/v1/reconstructions", files={"file": ("scene.png", exr_bytes())})

@@ -178,7 +178,8 @@ def test_a_video_counts_against_its_keys_unfinished_jobs(tmp_path: Path, redis_u
 
 
 def test_a_video_is_decoded_by_its_content_whatever_its_name(client: Client) -> None:
-    """A zip of PNG frames named .tiff was refused as a corrupt TIFF."""
+    """A zip of PNG frames named .tiff was refused as a corrupt TIFF; it is read as the
+    zip it is, and the job's ``warnings`` say so."""
     codes = np.stack([encode(x, PARAMS).codes for x in slow_clip()[:3]])
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
@@ -186,3 +187,5 @@ def test_a_video_is_decoded_by_its_content_whatever_its_name(client: Client) -> 
             archive.writestr(f"frame_{t}.png", encode_frame(frame, PARAMS, "png"))
     reply = client().post("/v1/videos", files={"file": ("clip.tiff", buffer.getvalue())})
     assert reply.status_code == 202, reply.text
+    (warning,) = reply.json()["warnings"]  # it was said only in the server's log
+    assert "content is ZIP although its name or declared format says TIFF" in warning
