@@ -29,6 +29,13 @@ class InvalidInputError(McamError):
     code = "invalid_input"
 
 
+class NegativeIrradianceError(InvalidInputError):
+    """A scene holds negative values (lossy EXR compression leaves some) and the caller
+    did not ask for them to be set to 0 (``clip_negative``)."""
+
+    code = "negative_irradiance"
+
+
 class MissingParameterError(McamError):
     """A wrapped frame lacks encoding parameters and none were given on the command line or form."""
 

@@ -46,6 +46,7 @@ from pydantic_core import PydanticCustomError
 
 from models.errors import (
     InvalidInputError,
+    NegativeIrradianceError,
     OutputOverflowError,
     OutputUnderflowError,
     describe_validation_error,
@@ -176,7 +177,7 @@ def validate_irradiance(
     n_negative = int(negative.sum())
     if n_negative:
         if not clip_negative:
-            raise InvalidInputError(
+            raise NegativeIrradianceError(
                 f"irradiance has {n_negative} negative values (min {arr.min():.3g}); "
                 "irradiance is non-negative: pass clip_negative / --clip-negative to set them to 0"
             )

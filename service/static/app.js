@@ -10,19 +10,26 @@ const KEY_STORAGE = "mcam-api-key";
 const POLL_FIRST_MS = 250;
 const POLL_MAX_MS = 2000;
 const RETRY_MAX_MS = 8000;
+// A result the server is too busy to make (429, or 503 past MCAM_MAX_CONCURRENT_DECODES
+// previews and uploads at once) is asked for again after Retry-After, this many times
+// in all.
+const RESULT_TRIES = 5;
+const BUSY = [429, 503];
 const FINISHED = ["succeeded", "failed", "cancelled"];
 let shownJob = null; // the succeeded job whose results the panels show (null: none)
 let watched = null; // the job in flight: { id, stop: AbortController }
 let histogram = null;
 let exposureTimer = null;
+let inputNotes = []; // what the page notes of this run's input (the simulate's clipping)
 
-// An API call that failed: the HTTP status (0: the server could not be reached) and the
-// seconds a 429 or 503 asked to wait (Retry-After).
+// An API call that failed: the HTTP status (0: the server could not be reached), the
+// seconds a 429 or 503 asked to wait (Retry-After) and the error's code (null: none).
 class ApiError extends Error {
-  constructor(message, status = 0, retryAfterS = null) {
+  constructor(message, status = 0, retryAfterS = null, code = null) {
     super(message);
     this.status = status;
     this.retryAfterS = retryAfterS;
+    this.code = code;
   }
 }
 
@@ -32,12 +39,14 @@ function apiKey() {
 
 async function replyError(reply) {
   let message = `${reply.status} ${reply.statusText}`;
+  let code = null;
   try {
     const body = await reply.json();
     message = `${body.code}: ${body.message}`;
+    code = body.code;
   } catch (_) { /* not JSON: keep the status line */ }
   const retryAfterS = Number(reply.headers.get("Retry-After")) || null;
-  return new ApiError(message, reply.status, retryAfterS);
+  return new ApiError(message, reply.status, retryAfterS, code);
 }
 
 // An API key is sent in a header: visible ASCII only (a pasted zero-width space or dash
@@ -61,12 +70,12 @@ async function api(path, options = {}) {
   return reply;
 }
 
-// A wait of ms that ends early when signal aborts.
-function sleep(ms, signal) {
+// A wait of ms that ends early when signal (if any) aborts.
+function sleep(ms, signal = null) {
   return new Promise((resolve) => {
     const onAbort = () => { clearTimeout(timer); resolve(); };
-    const timer = setTimeout(() => { signal.removeEventListener("abort", onAbort); resolve(); }, ms);
-    signal.addEventListener("abort", onAbort, { once: true });
+    const timer = setTimeout(() => { signal?.removeEventListener("abort", onAbort); resolve(); }, ms);
+    signal?.addEventListener("abort", onAbort, { once: true });
   });
 }
 
@@ -112,22 +121,42 @@ async function loadDecoders() {
   }
 }
 
-function sensorFields(form, includeExposure) {
+// The sensor fields of the form; simulating: the simulate's own too (exposure, clipping).
+function sensorFields(form, simulating) {
   for (const name of ["encoding", "alpha", "bits"]) {
     if ($(name).value) form.append(name, $(name).value);
   }
-  if (includeExposure && $("overexposed").value) form.append("overexposed", $("overexposed").value);
+  if (!simulating) return;
+  if ($("overexposed").value) form.append("overexposed", $("overexposed").value);
+  if ($("clip-negative").checked) form.append("clip_negative", "true");
+}
+
+// The error for a simulate the API refused: for negative scene values, which box to tick.
+function simulateRefused(error) {
+  if (error.code !== "negative_irradiance") return error;
+  $("clip-negative").focus();
+  return new ApiError(`the scene holds negative values, as lossy EXR compression leaves ` +
+    `(${error.message}); tick “clip negative values to 0” under Sensor to set them to 0 ` +
+    "and press Reconstruct again", error.status, null, error.code);
 }
 
 // The sensor's frame of an HDR image, as a TIFF: it holds grey and colour frames alike
-// (a PNG frame is grey only, and every Radiance .hdr is colour).
+// (a PNG frame is grey only, and every Radiance .hdr is colour). Notes how many negative
+// scene values were set to 0 (X-Mcam-Clipped-Negative) when that was asked for.
 async function simulateFrame(file) {
   setStatus("simulating the sensor…");
   const form = new FormData();
   form.append("file", file);
   form.append("format", "tiff");
   sensorFields(form, true);
-  const reply = await api("/v1/simulate", { method: "POST", body: form });
+  const reply = await api("/v1/simulate", { method: "POST", body: form }).catch((error) => {
+    throw simulateRefused(error);
+  });
+  if (form.has("clip_negative")) {
+    const clipped = reply.headers.get("X-Mcam-Clipped-Negative");
+    inputNotes = [`simulate: ${clipped} negative scene values set to 0 (clip negative values)`];
+    showNotes();
+  }
   return new File([await reply.blob()], "frame.tiff", { type: "image/tiff" });
 }
 
@@ -179,7 +208,16 @@ function describeDecode(info) {
   return lines.join("\n");
 }
 
+// The notes on this run's input, and the job's warnings (a file read as another format
+// than its name says: the API tells it in the job's "warnings").
+function showNotes(warnings = []) {
+  const lines = [...inputNotes, ...warnings.map((warning) => `warning: ${warning}`)];
+  $("notes").textContent = lines.join("\n");
+  $("notes").className = warnings.length ? "warning" : "";
+}
+
 function showJob(job) {
+  showNotes(job.warnings);
   $("progress").value = job.progress;
   const stages = Object.entries(job.timings_ns || {})
     .map(([stage, ns]) => `${stage}: ${(ns / 1e6).toFixed(1)} ms`);
@@ -190,6 +228,8 @@ function showJob(job) {
 }
 
 function clearJob() {
+  inputNotes = [];
+  showNotes();
   $("progress").value = 0;
   $("timings").textContent = "";
   $("routing").textContent = "";
@@ -227,8 +267,21 @@ async function waitForJob(id, signal) {
   return null;
 }
 
+// The reply of the job's result for query; one the server was too busy to make is
+// asked for again after its Retry-After (RESULT_TRIES in all).
+async function result(job, query) {
+  for (let tries = 1; ; tries += 1) {
+    try {
+      return await api(`/v1/jobs/${job}/result?${query}`);
+    } catch (error) {
+      if (tries >= RESULT_TRIES || !BUSY.includes(error.status)) throw error;
+      await sleep(retryDelayMs(error, tries));
+    }
+  }
+}
+
 async function resultBlob(job, query) {
-  return (await api(`/v1/jobs/${job}/result?${query}`)).blob();
+  return (await result(job, query)).blob();
 }
 
 // Show blob in the image element id (null: empty it).
@@ -288,7 +341,7 @@ async function showResult(job) {
     resultBlob(job, "part=codes&format=png"),
     resultBlob(job, "part=winding&format=png"),
     resultBlob(job, hdrQuery()),
-    api(`/v1/jobs/${job}/result?part=histogram`).then((reply) => reply.json()),
+    result(job, "part=histogram").then((reply) => reply.json()),
   ]);
   setImage("img-codes", codes);
   setImage("img-winding", winding);

@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from tests.service.conftest import FULL_KEY
+
 if TYPE_CHECKING:
     from playwright.sync_api import Browser, Page
 
@@ -53,3 +55,34 @@ def chromium() -> Iterator[Browser]:
             yield browser
         finally:
             browser.close()
+
+
+def open_viewer(browser: Browser, url: str, *, fake_clock: bool = False) -> Page:
+    """The viewer at ``url`` with the key saved and the decoders listed; with
+    ``fake_clock`` the page's timers run only as the test moves its clock on."""
+    page = browser.new_page()
+    page.set_default_timeout(30_000)
+    if fake_clock:
+        page.clock.install()
+    page.goto(f"{url}/")
+    page.fill("#api-key", FULL_KEY)
+    page.click("#key-form button")
+    page.wait_for_selector("#decoder option[value=itoh]", state="attached")
+    return page
+
+
+def wait_for_status(page: Page, text: str, timeout_ms: int = 30_000) -> str:
+    """The page's status line once it holds ``text``."""
+    wait_for_js(
+        page,
+        f"document.getElementById('status').textContent.includes({text!r})",
+        timeout_ms=timeout_ms,
+    )
+    return page.inner_text("#status")
+
+
+@pytest.fixture
+def browser() -> Iterator[Browser]:
+    """Headless Debian chromium for the test (see :func:`chromium`)."""
+    with chromium() as launched:
+        yield launched

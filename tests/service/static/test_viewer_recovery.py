@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,7 +28,12 @@ from tests.service.conftest import (
     running_worker,
     serve,
 )
-from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
+from tests.service.static.conftest import (
+    needs_chromium,
+    open_viewer,
+    wait_for_js,
+    wait_for_status,
+)
 from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import connect
 from worker.redis_keys import DEVICES_SET, health_key, job_key
@@ -45,30 +49,10 @@ pytestmark = [pytest.mark.slow, needs_chromium]
 
 
 @pytest.fixture
-def browser() -> Iterator[Browser]:
-    with chromium() as launched:
-        yield launched
-
-
-@pytest.fixture
 def frame(tmp_path: Path) -> Path:
     path = tmp_path / "frame.png"
     path.write_bytes(frame_png(SIZE)[0])
     return path
-
-
-def open_viewer(browser: Browser, url: str, *, fake_clock: bool = False) -> Page:
-    """The viewer at ``url`` with the key saved and the decoders listed; with
-    ``fake_clock`` the page's timers run only as the test moves its clock on."""
-    page = browser.new_page()
-    page.set_default_timeout(30_000)
-    if fake_clock:
-        page.clock.install()
-    page.goto(f"{url}/")
-    page.fill("#api-key", FULL_KEY)
-    page.click("#key-form button")
-    page.wait_for_selector("#decoder option[value=itoh]", state="attached")
-    return page
 
 
 def api_requests(page: Page, prefix: str) -> list[str]:
@@ -92,15 +76,6 @@ def submit(page: Page, path: Path) -> str:
     found = JOB_ID.search(page.inner_text("#status"))
     assert found is not None
     return found.group(1)
-
-
-def wait_for_status(page: Page, text: str, timeout_ms: int = 30_000) -> str:
-    wait_for_js(
-        page,
-        f"document.getElementById('status').textContent.includes({text!r})",
-        timeout_ms=timeout_ms,
-    )
-    return page.inner_text("#status")
 
 
 def panels_empty(page: Page) -> bool:
@@ -221,6 +196,33 @@ def test_panels_show_only_a_succeeded_job(
     page.click("#cancel")
     wait_for_status(page, "cancelled")
     assert errors == []
+
+
+def test_results_the_server_is_too_busy_to_make_are_asked_for_again(
+    browser: Browser, redis_url: str, frame: Path, tmp_path: Path
+) -> None:
+    """Previews take a turn of MCAM_MAX_CONCURRENT_DECODES and answer 503 server_busy
+    past MCAM_DECODE_WAIT_S (here 0): the page asks again after Retry-After, and shows
+    the results once a turn comes (it gave up at the first 503)."""
+    settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
+    app = create_app(settings)
+    with serve(app) as url:
+        page = open_viewer(browser, url)
+        refused: list[str] = []
+        page.on("response", lambda reply: refused.append(reply.url)
+                if reply.status == 503 and "/result" in reply.url else None)  # fmt: skip
+        job_id = submit(page, frame)  # no worker yet: the job waits in the queue
+        slots = app.state.mcam.decode_slots
+        assert slots.take()  # another request's preview
+        with running_worker(settings):
+            wait_for_js(page, "document.getElementById('status').textContent.includes('succeeded')")
+            deadline = time.monotonic() + 30
+            while not refused and time.monotonic() < deadline:
+                page.wait_for_timeout(50)
+            assert refused, "no result was refused while the one slot was held"
+            slots.release()
+            wait_for_panels(page)
+        assert page.inner_text("#status") == f"job {job_id}: succeeded"
 
 
 def test_a_rate_limited_poll_waits_as_retry_after_says(

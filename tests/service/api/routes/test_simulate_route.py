@@ -112,7 +112,7 @@ def nan_exr() -> bytes:
         (encode_exr(np.ones((600, 600))), FIELDS, 413, "image_too_large"),
         (encode_exr(np.ones((2, 2)), {f"m{i}": "" for i in range(600)}), FIELDS, 413,
          "image_too_large"),  # fmt: skip
-        (encode_exr(-scene()), FIELDS, 422, "invalid_input"),
+        (encode_exr(-scene()), FIELDS, 422, "negative_irradiance"),
     ],
 )
 def test_bad_inputs(client: Client, data: bytes, fields: dict, status: int, code: str) -> None:
@@ -151,8 +151,12 @@ def test_clip_negative_allows_negative_pixels_and_counts_them(client: Client) ->
     values = np.repeat(scene()[:, :, None], 3, axis=2)
     values[0, 0] = -1.0  # three samples of one pixel
     values[5, 7, 1] = -1e-3
+    files = {"file": ("s.exr", encode_exr(values))}
+    refused = client().post("/v1/simulate", files=files, data=FIELDS)
+    assert refused.status_code == 422  # its own code: the viewer offers the clipping
+    assert refused.json()["code"] == "negative_irradiance" and "4 negative" in refused.text
     data = {**FIELDS, "clip_negative": "true"}
-    reply = client().post("/v1/simulate", files={"file": ("s.exr", encode_exr(values))}, data=data)
+    reply = client().post("/v1/simulate", files=files, data=data)
     assert reply.status_code == 200, reply.text
     assert reply.headers["X-Mcam-Clipped-Negative"] == "4"
     clean = client().post("/v1/simulate", files={"file": ("s.exr", exr_bytes())}, data=data)

@@ -1,0 +1,82 @@
+"""What the viewer tells the API about its inputs and what it shows of the API's answer,
+in headless Debian chromium (Playwright, no browser download), against real uvicorn,
+Redis and a worker: a scene with negative values (lossy EXR) is simulated once the page
+asks for them clipped, and a frame read as another format than its name says is noted.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pytest
+
+from models.hdr_io import read_hdr
+from tests.service.conftest import frame_png
+from tests.service.static.conftest import (
+    needs_chromium,
+    open_viewer,
+    wait_for_js,
+    wait_for_status,
+)
+from worker.runner import Worker
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Browser, Page
+
+#: A shipped scene: DWAB-compressed (lossy), it holds negative values, as they all do.
+SCENE = Path(__file__).resolve().parents[3] / "models" / "data" / "hdri" / "sky.exr"
+
+pytestmark = [pytest.mark.slow, needs_chromium]
+
+
+def run_and_wait(page: Page) -> str:
+    """Press Reconstruct; the status once the page is ready for another run."""
+    page.click("#run")
+    wait_for_js(page, "!document.getElementById('run').disabled", timeout_ms=60_000)
+    return page.inner_text("#status")
+
+
+def test_a_scene_with_negative_values_is_simulated_once_they_are_clipped(
+    browser: Browser, api: str, worker: Worker
+) -> None:
+    """The API refuses negative scene values unless ``clip_negative`` is sent, and the
+    viewer never sent it: no shipped scene could be simulated from the page. Refused,
+    the page names the box to tick; ticked, the scene is simulated and reconstructed,
+    and the page shows how many values were set to 0 (``X-Mcam-Clipped-Negative``)."""
+    clipped = read_hdr(SCENE, clip_negative=True).negatives_clipped
+    assert clipped > 0
+    page = open_viewer(browser, api)
+    page.check("input[name=kind][value=hdr]")
+    page.set_input_files("#file", str(SCENE))
+    refused = run_and_wait(page)
+    assert page.get_attribute("#status", "class") == "error"
+    assert f"{clipped} negative values" in refused, refused
+    assert "tick “clip negative values to 0”" in refused, refused
+    page.check("#clip-negative")
+    assert "succeeded" in run_and_wait(page)
+    assert page.is_enabled("#download")
+    assert page.inner_text("#notes") == (
+        f"simulate: {clipped} negative scene values set to 0 (clip negative values)"
+    )
+
+
+def test_a_frame_read_as_another_format_than_its_name_is_noted(
+    browser: Browser, api: str, worker: Worker, tmp_path: Path
+) -> None:
+    """The API reads a PNG named .tiff as the PNG it is and says so in the job's
+    ``warnings``; the page shows them beside the job, and a later job's replace them."""
+    misnamed = tmp_path / "frame.tiff"
+    misnamed.write_bytes(frame_png(32)[0])
+    page = open_viewer(browser, api)
+    page.set_input_files("#file", str(misnamed))
+    assert "succeeded" in run_and_wait(page)
+    notes = page.inner_text("#notes")
+    assert notes.startswith("warning: the file's content is PNG although its name"), notes
+    assert page.get_attribute("#notes", "class") == "warning"
+    named = tmp_path / "frame.png"
+    named.write_bytes(misnamed.read_bytes())
+    page.set_input_files("#file", str(named))
+    page.click("#run")
+    wait_for_status(page, "succeeded")
+    assert page.inner_text("#notes") == ""
