@@ -58,5 +58,5 @@ def test_api_replies_and_errors_are_nosniff_without_the_viewer_policy(client: Cl
         assert reply.status_code == status, path
         assert reply.headers.get_list("x-content-type-options") == ["nosniff"], path
         assert "content-security-policy" not in reply.headers, path
-    docs = client("").get("/docs")  # its own policy (tests/service/api/routes/test_docs_route)
+    docs = client("").get("/docs")  # its own policy (tests/service/api/routes/test_docs)
     assert directives(docs.headers["content-security-policy"]) != README_VIEWER_POLICY

@@ -11,7 +11,7 @@ import redis
 
 from service.core.config import Settings
 from service.main import create_app
-from tests.service.api.routes.test_metrics_route import samples
+from tests.service.api.routes.test_metrics import samples
 from tests.service.conftest import (
     FULL_KEY,
     PARAMS,

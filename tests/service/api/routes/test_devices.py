@@ -1,10 +1,9 @@
-"""``/v1/devices``: a virtual camera on a real pty, the real daemon, a real worker, real HTTP."""
+"""``/v1/devices``: a virtual camera on a real pty, the real daemon, a real worker, real HTTP
+(the event stream's own limits: test_device_events.py)."""
 
 from __future__ import annotations
 
 import io
-import os
-import signal
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -26,15 +25,9 @@ from tests.service.api.conftest import live_camera
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, make_settings, serve
 from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 from worker.control_queue import CONTROL_BACKLOG
-from worker.embedded_redis import EmbeddedRedis, connect
+from worker.embedded_redis import connect
 from worker.outputs import encode_exr_result
-from worker.redis_keys import (
-    DEVICES_SET,
-    control_stream,
-    events_stream,
-    health_key,
-    latest_key,
-)
+from worker.redis_keys import DEVICES_SET, control_stream, health_key, latest_key
 from worker.result_store import RESULTS_DIR, ResultStore
 
 
@@ -140,62 +133,6 @@ def test_commands_for_a_stopped_daemon_are_refused_past_the_backlog(
     assert refused.status_code == 503 and refused.headers["retry-after"] == "5"
     assert refused.json()["code"] == "control_backlog_full"
     assert redis_client.xlen(control_stream("idle")) == CONTROL_BACKLOG
-
-
-def test_event_streams_are_capped_and_a_closed_one_frees_its_slot(
-    tmp_path: Path, redis_url: str
-) -> None:
-    """Each stream holds a Redis connection blocked on XREAD: 200 from one key took 213
-    connections and nothing ended them. Past MCAM_MAX_EVENT_STREAMS a new one is 503."""
-    settings = make_settings(tmp_path, redis_url, max_event_streams=2)
-    connect(redis_url).sadd(DEVICES_SET, "cam1")
-    connect(redis_url).xadd(events_stream("cam1"), {"type": "frame"})  # one for limit=1
-    headers = {"Authorization": f"Bearer {READ_KEY}"}
-    with serve(create_app(settings)) as url, httpx.Client(base_url=url, headers=headers) as http:
-        opened = [http.stream("GET", "/v1/devices/cam1/events") for _ in range(2)]
-        for stream in opened:
-            assert stream.__enter__().status_code == 200
-        refused = http.get("/v1/devices/cam1/events")
-        assert refused.status_code == 503 and refused.json()["code"] == "too_many_streams"
-        assert "MCAM_MAX_EVENT_STREAMS" in refused.text and refused.headers["retry-after"]
-        opened[0].__exit__(None, None, None)
-        one = {"since": "0", "limit": 1}
-        assert wait_for(lambda: http.get("/v1/devices/cam1/events", params=one).status_code
-                        == 200, 10)
-        opened[1].__exit__(None, None, None)
-
-
-def test_an_event_stream_that_loses_redis_ends_with_an_error_event(tmp_path: Path) -> None:
-    """Redis killed under an open stream: it ends with an ``error`` event and a retry
-    time (the client resumes from its last id), not a connection cut after a traceback."""
-    embedded = EmbeddedRedis(tmp_path / "redis-home")
-    with embedded as redis_url, serve(create_app(make_settings(tmp_path, redis_url))) as url:
-        connect(redis_url).sadd(DEVICES_SET, "cam1")
-        headers = {"Authorization": f"Bearer {READ_KEY}"}
-        with httpx.Client(base_url=url, headers=headers, timeout=30) as http, http.stream(
-            "GET", "/v1/devices/cam1/events"
-        ) as stream:
-            assert stream.status_code == 200
-            lines = stream.iter_lines()
-            assert next(lines) == "retry: 2000"
-            pid = embedded.pid
-            assert pid is not None
-            os.kill(pid, signal.SIGKILL)
-            rest = list(lines)
-        assert "event: error" in rest and "retry: 5000" in rest
-        assert any('"code": "queue_unavailable"' in line for line in rest)
-
-
-def test_an_event_id_in_other_scripts_digits_is_refused(
-    client: Callable[..., httpx.Client], settings: Settings
-) -> None:
-    """Arabic-Indic digits pass \\d and int(), then Redis refuses the id inside the
-    started stream: a 200, a broken stream and a traceback, repeated by every retry."""
-    assert settings.redis_url is not None
-    connect(settings.redis_url).sadd(DEVICES_SET, "cam1")
-    http = client(READ_KEY)
-    reply = http.get("/v1/devices/cam1/events", params={"since": "\u0661-\u0660"})
-    assert reply.status_code == 422, reply.text
 
 
 def test_the_live_preview_shares_the_job_previews_wrap_units(
