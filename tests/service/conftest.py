@@ -1,4 +1,5 @@
-"""Real parts for the API tests: a redis-server, uvicorn on 127.0.0.1, a worker, HTTP clients."""
+"""Real parts for the API tests: a redis-server, uvicorn on 127.0.0.1, a worker, HTTP clients,
+and a bare ASGI app under ``mcam api``'s uvicorn options for tests of its connection limits."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -19,6 +21,7 @@ from fastapi import FastAPI
 from models.formation import SensorParams, simulate
 from models.frames import encode_frame
 from models.hdr_io import encode_exr
+from service.cli.api import uvicorn_options
 from service.core.config import Settings
 from service.main import create_app
 from worker.embedded_redis import EmbeddedRedis
@@ -187,3 +190,42 @@ def read_response(sock: socket.socket) -> bytes:
         body += chunk
     return head + b"\r\n\r\n" + body
 
+
+async def hello(scope: dict[str, Any], receive: Any, send: Any) -> None:
+    """A minimal ASGI app: 200 'ok' to every HTTP request."""
+    if scope["type"] != "http":
+        return
+    await send({"type": "http.response.start", "status": 200,
+                "headers": [(b"content-type", b"text/plain"), (b"content-length", b"2")]})
+    await send({"type": "http.response.body", "body": b"ok"})
+
+
+@contextmanager
+def listening(settings: Settings) -> Iterator[int]:
+    """uvicorn with :func:`uvicorn_options` serving :func:`hello` in a thread; its port."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    options = uvicorn_options(settings) | {"log_level": "warning"}
+    server = uvicorn.Server(uvicorn.Config(hello, **options))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [listener]}, daemon=True)
+    thread.start()
+    while not server.started:
+        assert thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.02)
+    try:
+        yield int(listener.getsockname()[1])
+    finally:
+        server.should_exit = True
+        thread.join(15)
+        listener.close()
+
+
+def status_of(port: int, request: bytes) -> tuple[int, socket.socket]:
+    """Send ``request`` on a new connection; the reply's status code and the open socket."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    sock.sendall(request)
+    reply = read_response(sock)
+    return int(reply.split(b" ", 2)[1]), sock
+
+
+GET = b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"

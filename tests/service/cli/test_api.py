@@ -1,28 +1,38 @@
-"""Tests of ``mcam api``'s settings: flags override the environment, and are blamed as flags;
-uvicorn's connection limits, on real sockets."""
+"""Tests of ``mcam api`` (``service/cli/api.py``): its settings (flags override the
+environment, and are blamed as flags); uvicorn's connection limits, on real sockets; and
+``mcam api`` as a real subprocess: the embedded default alone (own redis-server, a generated
+key printed once and kept in the data dir), and restarts that keep accepted jobs."""
 
 from __future__ import annotations
 
 import os
+import re
+import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
 
+import httpx
 import pytest
-import uvicorn
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
-from service.api.header_timeout import timeout_response
-from service.cli.api import settings_with, uvicorn_options
+from service.cli.api import settings_with
 from service.core.config import Settings
-from tests.service.conftest import free_port, read_response
+from tests.service.conftest import (
+    FULL_KEY,
+    GET,
+    frame_png,
+    free_port,
+    listening,
+    make_settings,
+    running_worker,
+    status_of,
+)
 from worker.embedded_redis import EmbeddedRedis
 
 REPO = Path(__file__).resolve().parents[3]
@@ -37,46 +47,6 @@ def test_a_good_flag_overrides_and_a_bad_setting_stays_a_settings_error() -> Non
     assert settings_with(Settings(), port=8123, host=None).port == 8123
     with pytest.raises(ValidationError):
         settings_with(Settings.model_construct(port=99999), host="127.0.0.1")
-
-
-async def hello(scope: dict[str, Any], receive: Any, send: Any) -> None:
-    """A minimal ASGI app: 200 'ok' to every HTTP request."""
-    if scope["type"] != "http":
-        return
-    await send({"type": "http.response.start", "status": 200,
-                "headers": [(b"content-type", b"text/plain"), (b"content-length", b"2")]})
-    await send({"type": "http.response.body", "body": b"ok"})
-
-
-@contextmanager
-def listening(settings: Settings) -> Iterator[int]:
-    """uvicorn with :func:`uvicorn_options` serving :func:`hello` in a thread; its port."""
-    listener = socket.socket()
-    listener.bind(("127.0.0.1", 0))
-    options = uvicorn_options(settings) | {"log_level": "warning"}
-    server = uvicorn.Server(uvicorn.Config(hello, **options))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [listener]}, daemon=True)
-    thread.start()
-    while not server.started:
-        assert thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.02)
-    try:
-        yield int(listener.getsockname()[1])
-    finally:
-        server.should_exit = True
-        thread.join(15)
-        listener.close()
-
-
-def status_of(port: int, request: bytes) -> tuple[int, socket.socket]:
-    """Send ``request`` on a new connection; the reply's status code and the open socket."""
-    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
-    sock.sendall(request)
-    reply = read_response(sock)
-    return int(reply.split(b" ", 2)[1]), sock
-
-
-GET = b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"
 
 
 def status_soon(port: int, wanted: int, within_s: float = 10.0) -> int:
@@ -118,59 +88,6 @@ def test_headers_longer_than_the_setting_are_refused() -> None:
         assert status == 400
 
 
-def test_a_request_head_that_never_finishes_gets_408_and_is_closed() -> None:
-    """A slow-headers client held its connection for as long as it liked."""
-    with listening(Settings(http_header_timeout_s=1)) as port:
-        started = time.monotonic()
-        status, sock = status_of(port, b"GET / HTTP/1.1\r\nHost: x\r\nX-Slow: ")
-        with sock:
-            assert status == 408 and sock.recv(1) == b""
-        assert time.monotonic() - started > 0.8
-
-
-def test_the_408_carries_the_headers_every_response_has() -> None:
-    """It had only content-type, content-length and connection: no nosniff."""
-    head = timeout_response(1.0).split(b"\r\n\r\n", 1)[0].decode().lower()
-    assert "x-content-type-options: nosniff" in head.splitlines()
-
-
-def test_a_connection_that_sends_nothing_is_closed_after_the_header_timeout() -> None:
-    with listening(Settings(http_header_timeout_s=1)) as port:
-        started = time.monotonic()
-        with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
-            assert sock.recv(1) == b""
-        assert 0.8 < time.monotonic() - started < 8
-
-
-def test_the_header_timeout_applies_to_each_request_of_a_keep_alive_connection() -> None:
-    """The deadline is per request head: one armed at the connection's start must not cut
-    off a later request, and a later request's unfinished head gets its own 408."""
-    with listening(Settings(http_header_timeout_s=1, http_keep_alive_s=5)) as port:
-        status, sock = status_of(port, GET)
-        with sock:
-            assert status == 200
-            time.sleep(1.2)  # past the first deadline, within keep-alive
-            sock.sendall(GET)
-            assert int(read_response(sock).split(b" ", 2)[1]) == 200
-            sock.sendall(b"GET / HTTP/1.1\r\nHo")
-            assert int(read_response(sock).split(b" ", 2)[1]) == 408
-            assert sock.recv(1) == b""
-
-
-def test_the_header_timeout_covers_a_request_after_a_body_the_app_did_not_read() -> None:
-    """The app answered before reading the body; the body's last bytes then end that
-    request and start the next, with uvicorn's keep-alive timer cancelled: the next
-    request's unfinished head still gets its 408."""
-    with listening(Settings(http_header_timeout_s=1, http_keep_alive_s=5)) as port:
-        head = b"POST / HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n\r\n"
-        status, sock = status_of(port, head)
-        with sock:
-            assert status == 200
-            sock.sendall(b"0123456789GET / HT")
-            assert int(read_response(sock).split(b" ", 2)[1]) == 408
-            assert sock.recv(1) == b""
-
-
 def test_a_data_dir_whose_embedded_redis_already_runs_is_refused_in_one_line(
     tmp_path: Path,
 ) -> None:
@@ -185,3 +102,111 @@ def test_a_data_dir_whose_embedded_redis_already_runs_is_refused_in_one_line(
         )  # fmt: skip
     assert done.returncode == 2 and "already serves this data dir" in done.stderr
     assert "Traceback" not in done.stderr and "MantissaCam API on" not in done.stdout
+
+
+def start_api(data_dir: Path, port: int, **env: str) -> subprocess.Popen[str]:
+    variables = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
+    variables |= {"MCAM_DATA_DIR": str(data_dir), **env}
+    return subprocess.Popen(
+        [sys.executable, "-m", "service.cli.main", "api", "--port", str(port)],
+        env=variables,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+@contextmanager
+def running_api(data_dir: Path, port: int, **env: str) -> Iterator[subprocess.Popen[str]]:
+    """:func:`start_api`, killed on the way out if the test left it running."""
+    process = start_api(data_dir, port, **env)
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate(timeout=30)
+
+
+def wait_live(url: str, process: subprocess.Popen[str]) -> None:
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and process.poll() is None:
+        try:
+            if httpx.get(f"{url}/health/live", timeout=1).status_code == 200:
+                return
+        except httpx.HTTPError:
+            time.sleep(0.1)
+    if process.poll() is None:
+        process.kill()
+    raise AssertionError(f"mcam api did not come up: {process.communicate(timeout=30)[0]}")
+
+
+def stop(process: subprocess.Popen[str]) -> str:
+    process.send_signal(signal.SIGINT)
+    output, _ = process.communicate(timeout=30)
+    return output
+
+
+@pytest.mark.slow
+def test_embedded_default_generates_prints_and_reuses_a_key(tmp_path: Path) -> None:
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    with running_api(tmp_path, port) as first:
+        wait_live(url, first)
+        key = (tmp_path / "api_keys").read_text().strip()
+        reply = httpx.get(f"{url}/v1/decoders", headers={"Authorization": f"Bearer {key}"})
+        assert reply.status_code == 200
+        assert (tmp_path / "redis" / "appendonly.aof").exists()  # the private redis-server ran
+        output = stop(first)
+    assert key in output and f"http://127.0.0.1:{port}/" in output
+    with running_api(tmp_path, port) as second:
+        wait_live(url, second)
+        assert key not in stop(second)  # printed once, on first start only
+    assert (tmp_path / "api_keys").read_text().strip() == key
+
+
+@pytest.mark.slow
+def test_accepted_jobs_survive_api_and_redis_restarts(tmp_path: Path) -> None:
+    redis = EmbeddedRedis(tmp_path / "redis-home")
+    redis_url = redis.start()
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    env = {"MCAM_REDIS_URL": redis_url, "MCAM_API_KEYS": FULL_KEY}
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    api = start_api(tmp_path / "data", port, **env)
+    try:
+        wait_live(url, api)
+        data, _ = frame_png()
+        job = httpx.post(
+            f"{url}/v1/reconstructions", files={"file": ("f.png", data)}, headers=headers
+        ).json()
+        assert job["state"] == "queued"
+        stop(api)
+        redis.stop()
+        assert redis.start() == redis_url
+        api = start_api(tmp_path / "data", port, **env)
+        wait_live(url, api)
+        assert httpx.get(f"{url}/v1/jobs/{job['id']}", headers=headers).json()["state"] == "queued"
+        with running_worker(make_settings(tmp_path, redis_url)):
+            deadline = time.monotonic() + 60
+            state = "queued"
+            while state != "succeeded" and time.monotonic() < deadline:
+                time.sleep(0.2)
+                state = httpx.get(f"{url}/v1/jobs/{job['id']}", headers=headers).json()["state"]
+        assert state == "succeeded"
+        result = httpx.get(f"{url}/v1/jobs/{job['id']}/result", headers=headers)
+        assert result.status_code == 200 and result.content[:4] == b"\x76\x2f\x31\x01"
+    finally:
+        if api.poll() is None:
+            stop(api)
+        redis.stop()
+
+
+@pytest.mark.slow
+def test_printed_key_line_format(tmp_path: Path) -> None:
+    port = free_port()
+    with running_api(tmp_path, port, MCAM_API_KEYS="k-0123456789") as process:
+        wait_live(f"http://127.0.0.1:{port}", process)
+        output = stop(process)
+    assert re.search(r"MantissaCam API on http://127\.0\.0\.1:\d+/", output)
+    assert "generated API key" not in output and not (tmp_path / "api_keys").exists()
