@@ -14,11 +14,16 @@ import pytest
 import redis
 
 from device.simulator import MAX_SEED
+from tests.device import conftest as device_fixtures
 from tests.device.conftest import health, stream_frames, wait_for
 from worker.embedded_redis import EmbeddedRedis
 from worker.redis_keys import control_stream
 
 MCAM = Path(sys.executable).parent / "mcam"
+#: The device tests' private redis-server and a redis client of it (in tests/service/,
+#: ``client`` is otherwise the API's HTTP client factory).
+redis_server = device_fixtures.redis_server
+client = device_fixtures.client
 
 
 def env_for(redis_url: str, data_dir: Path) -> dict[str, str]:
