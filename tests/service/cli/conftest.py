@@ -1,15 +1,22 @@
-"""Fixtures for the CLI tests: the real ``mcam`` console script in a subprocess."""
+"""Fixtures for the CLI tests: the real ``mcam`` console script in a subprocess (and, for
+``mcam device`` and ``mcam simulate-device``, a camera and its daemon wired by a pty path)."""
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
+import redis
 
 from models.hdr_io import write_exr
+from tests.device.conftest import health, wait_for
 
 MCAM = Path(sys.executable).parent / "mcam"
 #: The issue's example flags: mantissa, alpha 2, 8 bits, 20 % of pixels over x = 1.
@@ -87,3 +94,39 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (folder / "simulate.out").write_text(simulate.stdout)
     (folder / "reconstruct.out").write_text(reconstruct.stdout)
     return folder
+
+
+def env_for(redis_url: str, data_dir: Path) -> dict[str, str]:
+    """This environment with ``MCAM_REDIS_URL`` and ``MCAM_DATA_DIR`` set: an ``mcam``
+    process's settings."""
+    return {**os.environ, "MCAM_REDIS_URL": redis_url, "MCAM_DATA_DIR": str(data_dir)}
+
+
+@contextmanager
+def camera_and_daemon(env: dict[str, str], client: redis.Redis, tmp_path: Path,
+                      *camera_flags: str) -> Iterator[None]:
+    """``mcam simulate-device`` on a pty and ``mcam device`` (device ``rig-1``) reading
+    it, both run with ``env``; once the daemon has a frame (``client``: its Redis),
+    yields; both must then stop cleanly on SIGTERM."""
+    camera = subprocess.Popen(
+        [MCAM, "simulate-device", "--port", f"pty:{tmp_path / 'cam'}", "--fps", "30",
+         *camera_flags],
+        stdout=subprocess.PIPE, stderr=(tmp_path / "camera.log").open("w"), text=True, env=env,
+        cwd=tmp_path)
+    daemon = None
+    try:
+        assert camera.stdout is not None
+        url = camera.stdout.readline().strip()
+        assert url == str(tmp_path / "cam") and Path(url).exists()
+        daemon = subprocess.Popen([MCAM, "device", "--port", url, "--device-id", "rig-1"],
+                                  stdout=subprocess.DEVNULL,
+                                  stderr=(tmp_path / "daemon.log").open("w"), text=True,
+                                  env=env, cwd=tmp_path)
+        assert wait_for(lambda: health(client, "rig-1").get("frames_ok", "0") != "0", 60)
+        yield
+    finally:
+        for process in (daemon, camera):
+            if process is not None:
+                process.send_signal(signal.SIGTERM)
+    assert daemon is not None and daemon.wait(20) == 0
+    assert camera.wait(20) == 0

@@ -1,0 +1,57 @@
+"""``mcam simulate-device`` as a real process: it feeds ``mcam device`` through a pty
+path, and its out-of-range flags are named."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import redis
+
+from device.simulator import MAX_SEED
+from tests.device import conftest as device_fixtures
+from tests.device.conftest import stream_frames
+from tests.service.cli.conftest import MCAM, camera_and_daemon, env_for
+from worker.embedded_redis import EmbeddedRedis
+
+#: The device tests' private redis-server and a redis client of it (in tests/service/,
+#: ``client`` is otherwise the API's HTTP client factory).
+redis_server = device_fixtures.redis_server
+client = device_fixtures.client
+
+
+def test_simulate_device_feeds_mcam_device(redis_server: EmbeddedRedis, client: redis.Redis,
+                                           tmp_path: Path) -> None:
+    env = env_for(redis_server.url, tmp_path / "data")
+    with camera_and_daemon(env, client, tmp_path, "--encoding", "mantissa", "--alpha", "4"):
+        frames = stream_frames(client, "rig-1")
+        assert frames[0].discont and frames[0].params.encoding == "mantissa"
+        assert frames[0].params.alpha == 4.0 and frames[0].codes.shape == (256, 256)
+
+
+def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
+    cases = [
+        (("--port", "socket://127.0.0.1:99999"), "PORT from 0 to 65535"),
+        (("--port", "socket://no.such.host.invalid:5555"), "--port socket://no.such.host.invalid"),
+        (("--port", "loop://"), "--port loop:// only reaches readers in this same process"),
+        (("--port", f"pty:{tmp_path / 'no-dir' / 'cam'}"),
+         f"directory {tmp_path / 'no-dir'} does not exist, so the simulated camera's port"),
+        (("--port", f"pty:{tmp_path / 'file' / 'cam'}"),
+         "cannot open it (Not a directory); name a path in a directory you can write, or pty"),
+        (("--fps", "1e-300"), "--fps must be from 0.1 to 10000"),
+        (("--frames", "-5"), "--frames must be at least 1"),
+        (("--seed", "-1"), f"--seed must be from 0 to {MAX_SEED}, got -1"),
+        (("--seed", "9300000000000"), f"--seed must be from 0 to {MAX_SEED}, got 9300000000000"),
+        (("--stall-every", "1", "--stall-s", "-1"),
+         "stall_s must be a finite number of seconds, 0 or more, got -1.0"),
+        (("--disconnect-every", "2", "--disconnect-s", "nan"),
+         "disconnect_s must be a finite number of seconds, 0 or more, got nan"),
+        (("--stall-every", "-1"), "stall_every must be a whole number of packets, 0 (never)"),
+    ]
+    (tmp_path / "file").touch()
+    for flags, fragment in cases:
+        result = subprocess.run([MCAM, "simulate-device", *flags], capture_output=True,
+                                text=True, timeout=60, cwd=tmp_path)
+        assert result.returncode == 2, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and fragment in lines[0], result.stderr
