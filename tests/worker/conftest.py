@@ -18,6 +18,7 @@ from models.formation import SensorFrame, SensorParams, simulate
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.jobs import JobRecord
 from worker.queue import JobQueue
+from worker.result_store import RESULTS_DIR, ResultStore
 
 REPO = Path(__file__).resolve().parents[2]
 PARAMS = SensorParams(encoding="modulo", bits=8)
@@ -30,12 +31,20 @@ WORKER_ENV = {
     "MCAM_WORKER_THREADS": "1",
 }
 
+#: Mantissa with a huge alpha: a ramp of 16 wraps decodes fine but overflows float32.
+OVERFLOW = SensorParams(encoding="mantissa", alpha=1e6, bits=8)
+
 
 def overflowing_codes(size: int = 64) -> np.ndarray:
     """8-bit codes whose unwrapped values climb to ~16 wraps: at mantissa alpha 1e6,
     x ~ 1e90, beyond float32 (the decode fails with output_overflow)."""
     u = np.tile(np.linspace(0.0, 16.0, size), (size, 1))
     return np.floor((u - np.floor(u)) * 256).astype(np.uint8)
+
+
+def result_files(data_dir: Path) -> list[str]:
+    """Stored results (a worker killed mid-write may leave a hidden temp file: not a result)."""
+    return ResultStore(data_dir / RESULTS_DIR, retention_s=3600).keys()
 
 
 def ramp_frame(size: int = 64, peak: float = 6.0, params: SensorParams = PARAMS) -> SensorFrame:
