@@ -73,7 +73,8 @@ logger = logging.getLogger(__name__)
 class WrappedFrame:
     """A wrapped frame: codes in DN (uint8 or uint16, ``H x W`` or ``H x W x C``) and
     params; ``warnings``: what its reading noticed that the sender should know (a file
-    named as another format than its content)."""
+    named as another format than its content, codes that all fit in 8 bits although
+    bits says more)."""
 
     codes: NDArray[np.unsignedinteger]
     params: SensorParams
@@ -377,15 +378,18 @@ def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> Sens
     return SensorParams.parse(merged)
 
 
-def warn_if_8bit(codes: NDArray[Any], params: SensorParams) -> None:
-    """Log a warning when codes (DN) set to more than 8 bits all fit in 8: an 8-bit frame
-    read with a wider bit depth decodes as almost black, without any error."""
-    if params.bits > 8 and int(codes.max()) < 256:
-        logger.warning(
-            "every code is below 256 although bits is %d: if the frame is 8-bit, give "
-            "bits 8 (--bits 8, or the form field bits=8)",
-            params.bits,
-        )
+def eight_bit_warning(codes: NDArray[Any], params: SensorParams) -> str | None:
+    """The warning, logged and returned for the caller to pass on (a job's ``warnings``),
+    when codes (DN) set to more than 8 bits all fit in 8: an 8-bit frame read with a
+    wider bit depth decodes as almost black, without any error. None otherwise."""
+    if params.bits <= 8 or int(codes.max()) >= 256:
+        return None
+    warning = (
+        f"every code is below 256 although bits is {params.bits}: if the frame is 8-bit, "
+        "give bits 8 (--bits 8, or the form field bits=8)"
+    )
+    logger.warning("%s", warning)
+    return warning
 
 
 def decode_frame(
@@ -407,8 +411,8 @@ def decode_frame(
     _check_layout(codes)
     params = merge_params(stored, overrides)
     codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
-    warn_if_8bit(codes, params)
-    return WrappedFrame(codes=codes, params=params, warnings=(warning,) if warning else ())
+    warnings = tuple(filter(None, (warning, eight_bit_warning(codes, params))))
+    return WrappedFrame(codes=codes, params=params, warnings=warnings)
 
 
 def read_frame(

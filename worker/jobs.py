@@ -60,7 +60,8 @@ class JobRecord(BaseModel):
     info: dict[str, Any] = Field(default_factory=dict)
     attempts: int = 0
     #: What reading the uploaded file noticed that its sender should know (a file named
-    #: as another format than its content: read as its content), set when it is queued.
+    #: as another format than its content: read as its content; codes all below 256
+    #: although bits says more), set when it is queued.
     warnings: list[str] = Field(default_factory=list)
 
 

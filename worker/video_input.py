@@ -49,9 +49,9 @@ from models.frames import (
     check_pixel_count,
     decode_frame,
     decoding,
+    eight_bit_warning,
     merge_params,
     tiff_params,
-    warn_if_8bit,
 )
 from models.tiff_pages import open_tiff, page_codes, page_shape
 from worker.zip_directory import central_entries
@@ -326,8 +326,8 @@ def decode_video(
                 codes, stored = _read_npy(data, limits)
         params = merge_params(stored, overrides)
         codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
-        warn_if_8bit(codes, params)
-        video = WrappedVideo(codes, params)
+        eight_bit = eight_bit_warning(codes, params)
+        video = WrappedVideo(codes, params, (eight_bit,) if eight_bit else ())
     check_frame_shape(video.codes[0])
     return video if warning is None else replace(video, warnings=(warning, *video.warnings))
 

@@ -84,7 +84,8 @@ def submit(
     state: ServiceState, upload: Upload, fields: ReconstructionFields, key: ApiKey
 ) -> JobRecord:
     """Decode the upload and queue its job for ``key``, with what the decode noticed
-    (the file read as another format than its name says) as the job's ``warnings``."""
+    (the file read as another format than its name says, 8-bit codes sent as wider) as
+    the job's ``warnings``."""
     settings = state.settings
     frame = read_wrapped_frame(upload, fields, settings.max_pixels)
     decoder = choose_decoder(fields, settings.default_decoder)

@@ -190,3 +190,13 @@ def test_a_png_named_tiff_is_decoded_as_the_png_it_is(tmp_path: Path, pipeline: 
     np.testing.assert_array_equal(
         read_hdr(tmp_path / "x.exr").pixels, read_hdr(pipeline / "hdr.exr").pixels
     )
+
+
+def test_8_bit_codes_read_as_16_bit_are_warned_about_on_stderr(tmp_path: Path) -> None:
+    """The warning the API now returns in a job's ``warnings`` is still printed here."""
+    write_frame(tmp_path / "f.npy", np.arange(64, dtype=np.uint8).reshape(8, 8), None)
+    result = run_mcam("reconstruct", "f.npy", "-o", "x.exr", "--encoding", "modulo",
+                      "--bits", "16", cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "every code is below 256 although bits is 16" in result.stderr
+    assert "--bits 8" in result.stderr

@@ -321,6 +321,19 @@ def test_a_frame_read_by_its_content_tells_the_client(client: Client, worker: Wo
     assert http.get(named.json()["url"]).json()["warnings"] == []
 
 
+def test_8_bit_codes_sent_as_wider_tell_the_client(client: Client) -> None:
+    """Codes all below 256 with bits=16 (an 8-bit frame, or the wrong bits) decode as
+    almost black: that was said only in the server's log; the job's ``warnings`` say it."""
+    codes = npy_bytes(np.arange(64, dtype=np.uint8).reshape(8, 8))
+    http = client()
+    accepted = http.post("/v1/reconstructions", files={"file": ("f.npy", codes)},
+                         data={"encoding": "modulo", "bits": "16"})  # fmt: skip
+    assert accepted.status_code == 202, accepted.text
+    (warning,) = accepted.json()["warnings"]
+    assert "every code is below 256 although bits is 16" in warning and "bits=8" in warning
+    assert http.get(accepted.json()["url"]).json()["warnings"] == [warning]
+
+
 def test_an_hdr_image_named_as_a_frame_is_pointed_to_simulate(client: Client) -> None:
     """It was 'the data is not a PNG image (bad or missing signature)'."""
     reply = client().post("/v1/reconstructions", files={"file": ("scene.png", exr_bytes())})

@@ -189,3 +189,23 @@ def test_a_video_is_decoded_by_its_content_whatever_its_name(client: Client) -> 
     assert reply.status_code == 202, reply.text
     (warning,) = reply.json()["warnings"]  # it was said only in the server's log
     assert "content is ZIP although its name or declared format says TIFF" in warning
+
+
+def test_8_bit_codes_sent_as_wider_tell_the_client(client: Client) -> None:
+    """A clip of codes all below 256 with bits=12 (an npy) or 16 (a zip of 16-bit PNGs):
+    the warning was only in the server's log; the job's ``warnings`` say it, once."""
+    codes = np.stack([encode(x, PARAMS).codes for x in slow_clip()[:3]])
+    http = client()
+    reply = http.post("/v1/videos", files={"file": ("clip.npy", npy_bytes(codes))},
+                      data={**FLAGS, "bits": "12"})  # fmt: skip
+    assert reply.status_code == 202, reply.text
+    (warning,) = reply.json()["warnings"]
+    assert "every code is below 256 although bits is 12" in warning
+    wide = PARAMS.model_copy(update={"bits": 16})
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for t, frame in enumerate(codes.astype(np.uint16)):
+            archive.writestr(f"frame_{t}.png", encode_frame(frame, wide, "png"))
+    reply = http.post("/v1/videos", files={"file": ("clip.zip", buffer.getvalue())})
+    assert reply.status_code == 202, reply.text
+    assert reply.json()["warnings"] == [warning.replace("bits is 12", "bits is 16")]
