@@ -26,7 +26,7 @@ import os
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -402,7 +402,22 @@ def decode_frame(
 
     ``fmt`` (a format name, suffix or file name) is the format unless the leading bytes
     show another frame format: the content wins (see :mod:`models.file_magic`). An HDR
-    image or a zip is refused with where to send it."""
+    image or a zip is refused with where to send it. Its warnings say when the content
+    is not of ``fmt`` and when every code fits in 8 bits although ``bits`` is more."""
+    frame = decode_frame_codes(data, fmt, overrides, max_pixels)
+    eight_bit = eight_bit_warning(frame.codes, frame.params)
+    return frame if eight_bit is None else replace(frame, warnings=(*frame.warnings, eight_bit))
+
+
+def decode_frame_codes(
+    data: bytes,
+    fmt: str,
+    overrides: dict[str, Any] | None = None,
+    max_pixels: int | None = None,
+) -> WrappedFrame:
+    """:func:`decode_frame` without the 8-bit check, for a frame of a video whose codes
+    are checked together (one dark frame of a 16-bit clip is not an 8-bit clip): its
+    only warning is a content not of ``fmt``."""
     fmt, warning = content_first(data, frame_format(fmt), FRAME_MAGICS)
     if (other := not_a_frame(data)) is not None:
         raise UnsupportedFormatError(f"the file is {other}")
@@ -411,8 +426,7 @@ def decode_frame(
     _check_layout(codes)
     params = merge_params(stored, overrides)
     codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
-    warnings = tuple(filter(None, (warning, eight_bit_warning(codes, params))))
-    return WrappedFrame(codes=codes, params=params, warnings=warnings)
+    return WrappedFrame(codes=codes, params=params, warnings=(warning,) if warning else ())
 
 
 def read_frame(

@@ -47,7 +47,7 @@ from models.frames import (
     StoredParams,
     WrappedFrame,
     check_pixel_count,
-    decode_frame,
+    decode_frame_codes,
     decoding,
     eight_bit_warning,
     merge_params,
@@ -241,8 +241,10 @@ def _read_zip(
             if differences:
                 raise _frame_differs(entry.filename, entries[0].filename, differences)
             frames.append(frame)
-    warnings = tuple(dict.fromkeys(w for frame in frames for w in frame.warnings))
-    return WrappedVideo(np.stack([f.codes for f in frames]), first.params, warnings)
+    codes = np.stack([frame.codes for frame in frames])
+    warnings = [w for frame in frames for w in frame.warnings]
+    warnings.append(eight_bit_warning(codes, first.params))
+    return WrappedVideo(codes, first.params, tuple(dict.fromkeys(filter(None, warnings))))
 
 
 def _size(shape: tuple[int, ...]) -> str:
@@ -288,7 +290,7 @@ def _zip_frame(
             "frame once it is read); send smaller frames, without data after the image"
         )
     try:
-        return decode_frame(_inflate(archive, entry), "png", overrides, limits.pixels)
+        return decode_frame_codes(_inflate(archive, entry), "png", overrides, limits.pixels)
     except McamError as exc:
         raise type(exc)(f"{entry.filename}: {exc.message}") from None
 

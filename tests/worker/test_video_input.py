@@ -361,3 +361,17 @@ def test_a_zip_of_too_many_entries_is_refused_from_its_directory_record() -> Non
     with pytest.raises(ImageTooLargeError, match="more than 20 entries; .* at most 10 frames"):
         decode_video(data, "zip", FLAGS, VideoLimits(frames=10))
     assert central_entries(b"not a zip", 10) is None
+
+
+def test_a_dark_frame_of_a_zip_is_no_eight_bit_warning() -> None:
+    """A 16-bit clip whose first frame is dark (every code below 256) is not an 8-bit
+    clip: the check is of the whole clip's codes, as for a TIFF or an npy."""
+    params = PARAMS.model_copy(update={"bits": 16})
+    dark, bright = np.full((6, 5), 100, np.uint16), np.full((6, 5), 40000, np.uint16)
+    video = decode_video(zip_of({"a.png": (dark, params), "b.png": (bright, params)}), "zip")
+    assert video.warnings == ()
+    video = decode_video(zip_of({"a.png": (dark, params), "b.png": (dark, params)}), "zip")
+    assert video.warnings == (
+        "every code is below 256 although bits is 16: if the frame is 8-bit, give bits 8 "
+        "(--bits 8, or the form field bits=8)",
+    )
