@@ -12,8 +12,8 @@ per frame).
   (LZW, JPEG, ...) are refused by name (:func:`page_codes`), not reported as damage.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
-- A file stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles (all pages
-  together) is refused by :func:`open_tiff` before any is decoded.
+- A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
+  :func:`open_tiff` before any is decoded.
 """
 
 from __future__ import annotations
@@ -32,11 +32,13 @@ from numpy.typing import NDArray
 
 from models.errors import ImageTooLargeError, UnsupportedFormatError
 
-#: The most strips or tiles a TIFF's pages may be stored in, all pages together:
-#: tifffile decodes them one by one in Python (about 2.7 us and 250 bytes each: a 2 x
-#: 8,388,608 frame in one-row strips, 8 million pointing at the same 2 bytes of a 32 MB
-#: file, took 22 s and +2.2 GB). Every layout of a 4096 x 4096 frame fits: a row a strip
-#: (4096; 12,288 in separate planes) or 16 x 16 tiles (65,536; 196,608).
+#: The most strips or tiles one page of a TIFF may be stored in: tifffile decodes them
+#: one by one in Python (about 2.7 us and 250 bytes each: a 2 x 8,388,608 frame in
+#: one-row strips, 8 million pointing at the same 2 bytes of a 32 MB file, took 22 s and
+#: +2.2 GB). Every layout of a 4096 x 4096 frame fits: a row a strip (4096; 12,288 in
+#: separate planes) or 16 x 16 tiles (65,536; 196,608). A page, not the file: a video of
+#: 600 frames of 512 rows, a row a strip, is 307,200 strips; a video's strips are bounded
+#: by its code values (``MCAM_MAX_VIDEO_SAMPLES``), at least one a strip.
 MAX_TIFF_SEGMENTS = 1 << 18
 
 
@@ -103,7 +105,7 @@ def open_tiff(
     the file: indexing 11 million empty pages of a 66 MB upload took 6 s and 420 MB).
     :class:`TiffDamaged` if tifffile warns while indexing or reading it (callers wrap
     that with :func:`models.frames.decoding`, which names the file);
-    :class:`ImageTooLargeError` if the pages indexed are stored in more than
+    :class:`ImageTooLargeError` if a page indexed is stored in more than
     :data:`MAX_TIFF_SEGMENTS` strips or tiles."""
     logger = tifffile.logger()
     collector = _ThreadWarnings()
@@ -114,20 +116,22 @@ def open_tiff(
             most = None if max_pages is None else max_pages + 1
             indexed = list(itertools.islice(tif.pages, most))
             collector.check()
-            _check_segments(sum(len(page.dataoffsets) for page in indexed))
+            for index, page in enumerate(indexed):
+                _check_segments(len(page.dataoffsets), index)
             yield tif, len(indexed)
         collector.check()
     finally:
         logger.removeHandler(collector)
 
 
-def _check_segments(segments: int) -> None:
-    """Refuse a TIFF stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles."""
+def _check_segments(segments: int, index: int) -> None:
+    """Refuse page ``index`` (from 0) stored in more than :data:`MAX_TIFF_SEGMENTS`
+    strips or tiles."""
     if segments > MAX_TIFF_SEGMENTS:
         raise ImageTooLargeError(
-            f"the TIFF is stored in {segments} strips or tiles, more than the "
-            f"{MAX_TIFF_SEGMENTS} read; re-save it in fewer, larger ones (more rows per "
-            "strip, or larger tiles), as image tools do by default"
+            f"page {index} of the TIFF is stored in {segments} strips or tiles, more than "
+            f"the {MAX_TIFF_SEGMENTS} read a page; re-save it in fewer, larger ones (more "
+            "rows per strip, or larger tiles), as image tools do by default"
         )
 
 
