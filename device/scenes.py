@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import luminance
+from models.exposure import luminance
 
 #: Sensor side in pixels (SCAMP-5: 256 x 256 processing elements).
 SENSOR_SIZE = 256

@@ -48,14 +48,14 @@ from models.errors import (
     InvalidInputError,
     NegativeIrradianceError,
     OutputOverflowError,
-    OutputUnderflowError,
     describe_validation_error,
 )
+from models.exposure import check_not_black as check_not_black  # for routes/simulate.py
+from models.exposure import exposure_gain, luminance
 from models.output_range import ensure_fits, ensure_nonzero_kept, overflow_remedy
 
 Encoding = Literal["modulo", "mantissa", "clip"]
 ENCODINGS: tuple[str, ...] = ("modulo", "mantissa", "clip")
-REC709_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
 #: Largest winding number we represent (W is stored as int64).
 MAX_WINDING = np.iinfo(np.int64).max
 #: Largest noise seed a frame takes (:attr:`SensorParams.seed` is an int64).
@@ -183,91 +183,6 @@ def validate_irradiance(
             )
         arr = np.where(negative, 0.0, arr)
     return arr, n_negative
-
-
-def luminance(rgb: NDArray[np.floating]) -> NDArray[np.float64]:
-    """Rec.709 luminance of an ``H x W x 3`` image; a 2-D image is returned as is."""
-    arr = np.asarray(rgb, dtype=np.float64)
-    if arr.ndim == 2:
-        return arr
-    if arr.ndim != 3 or arr.shape[2] != 3:
-        raise InvalidInputError(f"expected H x W or H x W x 3, got shape {arr.shape}")
-    return arr @ REC709_WEIGHTS
-
-
-def check_overexposed(overexposed: float) -> None:
-    """Refuse an ``overexposed`` fraction outside the open interval (0, 1), saying why
-    and what to give instead."""
-    if 0.0 < overexposed < 1.0:
-        return
-    if np.isnan(overexposed):
-        problem = "got NaN (not a number)"
-    elif overexposed == 1.0:
-        problem = (
-            "got 1: every pixel, the darkest included, at x >= 1 leaves no pixel below "
-            "its first wrap"
-        )
-    elif overexposed > 1.0:
-        meant = f" (for {overexposed:g}%, give {overexposed / 100:g})" if overexposed <= 100 else ""
-        problem = f"got {overexposed:g}, more than every pixel{meant}"
-    else:
-        problem = f"got {overexposed:g}, which overexposes no pixel"
-    raise InvalidInputError(
-        f"overexposed is the fraction of pixels the gain brings to x >= 1, strictly between 0 "
-        f"and 1; {problem}: give a fraction such as 0.2 (or 0.99 for nearly all), or the gain "
-        "instead"
-    )
-
-
-def _round_down(value: float, digits: int = 3) -> float:
-    """``value`` (> 0) rounded down to ``digits`` significant digits."""
-    scale = 10.0 ** (digits - 1 - int(np.floor(np.log10(value))))
-    return float(np.floor(value * scale) / scale)
-
-
-def _black_share_error(lum: NDArray[np.float64], overexposed: float) -> InvalidInputError:
-    """The error for an ``overexposed`` whose exposure level (a luminance quantile of
-    ``lum``) is 0: more pixels are black than ``1 - overexposed``, and no gain brings
-    them to x >= 1."""
-    black = int(np.count_nonzero(lum <= 0.0))
-    if black == lum.size:
-        return InvalidInputError(
-            "the scene is black (every pixel has zero luminance): no gain exposes it; check "
-            "that the image holds the scene (negative values clipped to 0 count as black)"
-        )
-    share = black / lum.size
-    return InvalidInputError(
-        f"overexposed {overexposed:g} asks for all but the darkest "
-        f"{100 * (1.0 - overexposed):.3g}% of pixels at x >= 1, but {black} of {lum.size} "
-        f"pixels ({100 * share:.3g}%) have zero luminance (black, or negative values clipped "
-        "to 0) and no gain raises them: give "
-        f"overexposed at most {_round_down(1.0 - share)} (the share of pixels that are not "
-        "black), or the gain instead"
-    )
-
-
-def exposure_gain(scene: NDArray[np.floating], overexposed: float) -> float:
-    """Gain such that a fraction ``overexposed`` (strictly between 0 and 1) of pixels
-    reach ``x >= 1``.
-
-    ``gain = 1 / quantile(luminance, 1 - overexposed)``; an exposure level of 0 (more
-    pixels black than ``1 - overexposed``) or one whose inverse overflows is refused.
-    """
-    check_overexposed(overexposed)
-    lum = luminance(scene)
-    level = float(np.quantile(lum, 1.0 - overexposed))
-    if level <= 0.0:
-        raise _black_share_error(lum, overexposed)
-    with np.errstate(over="ignore"):
-        gain = 1.0 / level
-    if not np.isfinite(gain):
-        raise InvalidInputError(
-            f"overexposed {overexposed:g} sets the exposure at a luminance of {level:.3g}, "
-            "so small that its gain (1 / luminance) overflows float64: scale the scene up, "
-            "or give the gain instead"
-        )
-    # 1 / level can round down (49 * (1 / 49) < 1): one ulp up keeps the quantile pixel at x >= 1.
-    return gain if level * gain >= 1.0 else float(np.nextafter(gain, np.inf))
 
 
 def to_unwrapped(x: NDArray[np.floating], params: SensorParams) -> NDArray[np.float64]:
@@ -478,27 +393,6 @@ def simulate(
     return encode(x, params.model_copy(update={"gain": gain}))
 
 
-def check_not_black(frame: SensorFrame) -> None:
-    """Refuse a simulated frame whose every code and W is 0 although the scene it saw is not
-    black: every pixel lies under one code step (``2^-bits`` wrap units), so the frame holds
-    nothing of the scene; the error gives the smallest gain that lifts the brightest pixel
-    to one step."""
-    brightest = float(frame.irradiance.max())
-    if brightest <= 0 or frame.codes.any() or frame.winding.any():
-        return
-    step = 2.0**-frame.params.bits
-    gain = frame.params.gain if frame.params.gain is not None else 1.0
-    with np.errstate(over="ignore"):
-        least = gain * (step / brightest)
-    raise_to = f" to at least {least:.4g}" if np.isfinite(least) else ""
-    raise InvalidInputError(
-        f"every pixel quantises to code 0 (the brightest is x = {brightest:.4g} wrap units, "
-        f"under one {frame.params.bits}-bit code step of {step:.4g}, at gain {gain:.4g}): "
-        f"raise the gain{raise_to}, or let overexposed set it (e.g. 0.01; --gain and "
-        "--overexposed on the command line)"
-    )
-
-
 def to_scene(x: NDArray[np.floating], gain: float) -> NDArray[np.float64]:
     """Scene-referred values ``x / gain`` of wrap units ``x``; an overflow to inf is left
     for the caller's :func:`ensure_fits` to count and refuse (no numpy warning)."""
@@ -544,41 +438,6 @@ def max_winding(params: SensorParams) -> int | None:
         return None
     u_max = float(to_unwrapped(np.array(params.max_wraps), params))
     return int(np.floor(u_max + 6 * largest_noise_sigma(u_max, params)))
-
-
-def largest_winding(params: SensorParams) -> int:
-    """The largest W a decoding of a frame of ``params`` may hold: :func:`max_winding` where
-    the parameters bound it; else int64's limit (modulo, whose x = W + m float64 holds) or,
-    for mantissa, a wrap below the last whose x ``alpha^(W + m - 1)`` float64 holds."""
-    bound = max_winding(params)
-    if bound is not None:
-        return bound
-    if params.encoding == "modulo":
-        return int(MAX_WINDING)
-    return int(np.log(np.finfo(np.float64).max) / np.log(params.alpha)) - 1
-
-
-def check_decodable(
-    codes: NDArray[Any],
-    params: SensorParams,
-    dtype: type[np.floating],
-    *,
-    scene_referred: bool,
-) -> None:
-    """Raise, before any decoding, the error :func:`reconstruct` would raise whatever
-    winding numbers a decoder finds. x grows with W (W >= 0), so values that exceed
-    ``dtype`` at W = 0 exceed it at every W (:class:`OutputOverflowError`: a gain far too
-    small, say), and values ``dtype`` stores as 0 at :func:`largest_winding` are lost at
-    every W (:class:`OutputUnderflowError`: a gain far too large)."""
-    certain = ((0, OutputOverflowError), (largest_winding(params), OutputUnderflowError))
-    for winding, error in certain:
-        try:
-            reconstruct(codes, np.full(np.shape(codes), winding, np.int64), params, dtype,
-                        scene_referred=scene_referred)  # fmt: skip
-        except error as exc:
-            raise error(f"whatever winding numbers a decoder finds, {exc.message}") from None
-        except (OutputOverflowError, OutputUnderflowError):
-            continue  # another W may fit
 
 
 def clip_winding(winding: NDArray[np.integer], params: SensorParams) -> NDArray[np.int64]:

@@ -32,7 +32,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import correlate1d
 
 from models.errors import InvalidInputError
-from models.formation import luminance, validate_irradiance
+from models.exposure import luminance
+from models.formation import validate_irradiance
 from models.pu21 import PU21_PEAK, pu21_encode
 
 #: Absolute luminance (cd/m^2) the reference maximum is mapped to for PU21.

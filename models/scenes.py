@@ -20,7 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.errors import InvalidInputError
-from models.formation import SensorFrame, SensorParams, luminance, simulate
+from models.exposure import luminance
+from models.formation import SensorFrame, SensorParams, simulate
 from models.hdr_io import read_hdr
 
 HDRI_DIR = Path(__file__).resolve().parent / "data" / "hdri"

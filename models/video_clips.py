@@ -28,7 +28,8 @@ from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
 from models.errors import InvalidInputError
-from models.formation import SensorParams, exposure_gain, simulate
+from models.exposure import exposure_gain
+from models.formation import SensorParams, simulate
 from models.scenes import load_hdri_gray
 
 CLIP_KINDS: tuple[str, ...] = ("pan_zoom", "moving_light", "sunrise", "static_noise")

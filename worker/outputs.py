@@ -19,8 +19,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from models.decodable import check_decodable
 from models.exr_header import reconstruction_attributes
-from models.formation import SensorParams, check_decodable, reconstruct
+from models.formation import SensorParams, reconstruct
 from models.frames import encode_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
 
@@ -44,7 +45,7 @@ def check_result_storable(
     codes: NDArray[Any], params: SensorParams, options: dict[str, Any]
 ) -> None:
     """Refuse, before a job is queued, a frame whose EXR cannot be stored whatever the
-    decoder finds (:func:`models.formation.check_decodable` with the job's ``options``):
+    decoder finds (:func:`models.decodable.check_decodable` with the job's ``options``):
     the worker would fail it with output_overflow or output_underflow."""
     dtype, scene_referred = _exr_form(options)
     check_decodable(codes, params, dtype, scene_referred=scene_referred)

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from models.display import srgb8
-from models.formation import luminance
+from models.exposure import luminance
 
 #: Colours of W = 0, 1, 2, ... (cycled): dark to bright, neighbours clearly distinct.
 WINDING_PALETTE = np.array(

@@ -7,11 +7,12 @@ from typing import Any
 
 import numpy as np
 
+from models.decodable import check_decodable
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
 from models.errors import MissingParameterError, UnsupportedFormatError
 from models.exr_header import reconstruction_attributes, values_unit
-from models.formation import check_decodable, reconstruct
+from models.formation import reconstruct
 from models.frames import FRAME_SUFFIXES, frame_format, read_frame, write_winding
 from models.hdr_io import write_exr
 from service.cli.options import (

@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from models.exposure import check_not_black
 from models.exr_header import sensor_attributes
-from models.formation import SensorParams, check_not_black, simulate
+from models.formation import SensorParams, simulate
 from models.frames import FRAME_SUFFIXES, frame_format, write_frame, write_winding
 from models.hdr_io import read_hdr, write_exr
 from service.cli.options import (

@@ -9,17 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from models.decodable import check_decodable
 from models.errors import InvalidInputError, OutputOverflowError, OutputUnderflowError
+from models.exposure import check_not_black, exposure_gain, luminance
 from models.formation import (
     SensorParams,
-    check_decodable,
-    check_not_black,
     dequantize,
     encode,
-    exposure_gain,
     from_unwrapped,
     largest_noise_sigma,
-    luminance,
     max_winding,
     quantize,
     reconstruct,

@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from models import scenes
 from models.errors import InvalidInputError
-from models.formation import luminance, reconstruct
+from models.exposure import luminance
+from models.formation import reconstruct
 
 
 def test_split_is_disjoint_and_complete() -> None:
