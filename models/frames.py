@@ -9,9 +9,8 @@ Formats
   alpha); the parameters as JSON in the ImageDescription tag.
 - ``npy``: the codes array only; parameters come from the caller.
 
-Reading merges the stored parameters with overrides (command-line flags or form fields,
-which win) and validates them; a stored parameter other than the encoding must be a JSON
-number (or null), and text over :data:`MAX_PARAMS_TEXT` is not parsed. The pixel count
+Reading merges the stored parameters (parsed by :mod:`models.stored_params`) with
+overrides (command-line flags or form fields, which win) and validates them. The pixel count
 is checked from the header before any pixel data is decoded, so a small file cannot
 expand into a huge image. Winding maps (``W``, int64) are written with
 :func:`write_winding`.
@@ -20,7 +19,6 @@ expand into a huge image. Winding maps (``W``, int64) are written with
 from __future__ import annotations
 
 import io
-import json
 import logging
 import os
 import re
@@ -51,6 +49,12 @@ from models.file_magic import (
     format_by_content,
 )
 from models.formation import SensorParams, validate_codes
+from models.stored_params import (
+    StoredParams,
+    UnreadableParams,
+    parse_stored_params,
+    tiff_params,
+)
 from models.tiff_pages import open_tiff, page_codes, page_shape
 
 FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
@@ -62,10 +66,6 @@ FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in _ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
-#: The longest stored parameter text that is parsed, in characters: ours (the sensor
-#: parameters as JSON) is under 250. A 60 MB TIFF ImageDescription of ``[[],[],...]``
-#: took ``json.loads`` 5-7 s and 1.2 GB, stalling the API.
-MAX_PARAMS_TEXT = 64 * 1024
 logger = logging.getLogger(__name__)
 
 
@@ -209,71 +209,6 @@ def write_frame(
     Path(path).write_bytes(encode_frame(codes, params, frame_format(path)))
 
 
-@dataclass(frozen=True)
-class UnreadableParams:
-    """Stored parameter text that cannot be used (damaged, or written by other software):
-    ``problem`` says why. :func:`merge_params` ignores it when the caller gives every
-    parameter the frame needs, and refuses the frame otherwise."""
-
-    problem: str
-
-
-StoredParams = dict[str, Any] | UnreadableParams
-
-
-def _parameter_object(text: str | None, where: str) -> StoredParams:
-    """The JSON object of sensor parameter names that stored ``text`` holds; {} when
-    there is none. Text longer than :data:`MAX_PARAMS_TEXT` is not parsed."""
-    if not text:
-        return {}
-    if len(text) > MAX_PARAMS_TEXT:
-        return UnreadableParams(
-            f"the {where} holds {len(text)} characters, more than sensor parameters take "
-            f"(at most {MAX_PARAMS_TEXT} are read)"
-        )
-    try:
-        values = json.loads(text)
-    except (ValueError, RecursionError):  # JSONDecodeError, an int of over 4300 digits
-        return UnreadableParams(f"the {where} is not valid JSON sensor parameters")
-    if not isinstance(values, dict):
-        return UnreadableParams(f"the {where} holds JSON but not an object of sensor parameters")
-    unknown = sorted(set(values) - set(SensorParams.model_fields))
-    if unknown:
-        return UnreadableParams(f"the {where} holds unknown parameter names {unknown}")
-    return values
-
-
-def _numbers_checked(values: dict[str, Any], where: str) -> StoredParams:
-    """``values``, or :class:`UnreadableParams` naming the first parameter other than
-    the encoding stored as anything but a JSON number (or null): validated as given,
-    ``"bits": true`` became 1 bit (then "not 1-bit"), ``"gain": true`` a gain of 1."""
-    for name, value in values.items():
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        if name != "encoding" and value is not None and not number:
-            shown = json.dumps(value)
-            shown = shown if len(shown) <= 40 else shown[:37] + "..."
-            return UnreadableParams(f"the {where} stores {name} as {shown}, not a number")
-    return values
-
-
-def _stored_params(text: str | None, where: str) -> StoredParams:
-    """Parameters parsed from stored JSON text (:func:`_parameter_object`), their
-    numbers checked (:func:`_numbers_checked`); {} when there is none."""
-    values = _parameter_object(text, where)
-    return values if isinstance(values, UnreadableParams) else _numbers_checked(values, where)
-
-
-def tiff_params(description: str | None) -> StoredParams:
-    """Our sensor parameters from a TIFF ImageDescription; {} when it holds none, or
-    holds text that other software wrote there (any text that is not a JSON object of
-    sensor parameter names, or longer than :data:`MAX_PARAMS_TEXT`: OME-XML runs to
-    megabytes): those frames take their parameters from the caller. Ours with a
-    parameter that is not a number are :class:`UnreadableParams`."""
-    where = "TIFF ImageDescription"
-    values = _parameter_object(description, where)
-    return {} if isinstance(values, UnreadableParams) else _numbers_checked(values, where)
-
-
 def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
@@ -293,7 +228,7 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
             "store colour frames as TIFF"
         )
     image.load()
-    return np.asarray(image), _stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")
+    return np.asarray(image), parse_stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")
 
 
 def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:

@@ -44,15 +44,14 @@ from models.errors import (
 from models.file_magic import VIDEO_MAGICS, content_first
 from models.formation import SensorParams, validate_codes
 from models.frames import (
-    StoredParams,
     WrappedFrame,
     check_pixel_count,
     decode_frame_codes,
     decoding,
     eight_bit_warning,
     merge_params,
-    tiff_params,
 )
+from models.stored_params import StoredParams, tiff_params
 from models.tiff_pages import open_tiff, page_codes, page_shape
 from worker.zip_directory import central_entries
 

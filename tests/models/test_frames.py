@@ -25,7 +25,6 @@ from models.errors import (
 from models.formation import SensorParams
 from models.frames import (
     FRAME_FORMATS,
-    MAX_PARAMS_TEXT,
     PNG_KEYWORD,
     PNG_SIGNATURE,
     WrappedFrame,
@@ -38,6 +37,7 @@ from models.frames import (
     write_frame,
     write_winding,
 )
+from models.stored_params import MAX_PARAMS_TEXT
 
 PARAMS_8 = SensorParams(encoding="mantissa", alpha=2.0, bits=8, gain=3.5, seed=7)
 PARAMS_12 = SensorParams(encoding="modulo", bits=12, read_noise=0.01, max_wraps=16.0)
