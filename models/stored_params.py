@@ -23,8 +23,8 @@ MAX_PARAMS_TEXT = 64 * 1024
 @dataclass(frozen=True)
 class UnreadableParams:
     """Stored parameter text that cannot be used (damaged, or written by other software):
-    ``problem`` says why. :func:`merge_params` ignores it when the caller gives every
-    parameter the frame needs, and refuses the frame otherwise."""
+    ``problem`` says why. :func:`models.frames.merge_params` ignores it when the caller
+    gives every parameter the frame needs, and refuses the frame otherwise."""
 
     problem: str
 

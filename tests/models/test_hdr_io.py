@@ -1,4 +1,4 @@
-"""Tests of models/hdr_io.py: OpenEXR read/write and the Radiance RGBE reader."""
+"""Tests of models/hdr_io.py (OpenEXR read/write) and models/radiance.py (Radiance RGBE)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from models import hdr_io
+from models import radiance
 from models.errors import (
     ImageTooLargeError,
     InvalidInputError,
@@ -24,14 +24,12 @@ from models.errors import (
 )
 from models.hdr_io import (
     EXR_COMPRESSIONS,
-    MAX_RADIANCE_HEADER,
     HdrImage,
     encode_exr,
     read_hdr,
-    rgbe_to_float,
-    smallest_scanline,
     write_exr,
 )
+from models.radiance import MAX_RADIANCE_HEADER, rgbe_to_float, smallest_scanline
 
 HDRI = Path(__file__).resolve().parents[2] / "models" / "data" / "hdri" / "lab.exr"
 RADIANCE_HEADER = b"#?RADIANCE\n# made by hand\nFORMAT=32-bit_rle_rgbe\nEXPOSURE=1.0\n\n"
@@ -337,7 +335,7 @@ def test_radiance_runs_and_literals_at_scanline_boundaries(
     ones, and the reader's blocks of scanlines ending anywhere (every scanline, every
     second one, or all in one block) give the pixels exactly."""
     if rows_per_block is not None:
-        monkeypatch.setattr(hdr_io, "_BLOCK_BYTES", rows_per_block * 4 * SEGMENTS_WIDTH)
+        monkeypatch.setattr(radiance, "_BLOCK_BYTES", rows_per_block * 4 * SEGMENTS_WIDTH)
     data, rgbe, _ = segmented_radiance()
     np.testing.assert_array_equal(read_hdr(data).pixels, rgbe_to_float(rgbe))
 
