@@ -29,8 +29,12 @@ def origin_form(scope: Scope) -> bool:
     if scope["path"].startswith("/"):
         return True
     raw = scope.get("raw_path") or scope["path"].encode()
-    url = urlsplit(raw.decode("latin-1"))
-    if url.scheme.lower() not in SCHEMES or not url.hostname:
+    try:
+        url = urlsplit(raw.decode("latin-1"))
+        hostname = url.hostname
+    except ValueError:  # e.g. "Invalid IPv6 URL" for http://[/x
+        return False
+    if url.scheme.lower() not in SCHEMES or not hostname:
         return False
     path = url.path or "/"
     scope["path"] = unquote(path)

@@ -35,7 +35,7 @@ def test_an_absolute_form_target_is_the_route_its_path_names(api: str, target: s
     assert "/v1/decoders" in routes and "unmatched" not in routes
 
 
-@pytest.mark.parametrize("target", ["v1/decoders", "*", "ftp://x/v1/decoders"])
+@pytest.mark.parametrize("target", ["v1/decoders", "*", "ftp://x/v1/decoders", "http://[/x"])
 def test_a_target_that_is_neither_a_path_nor_a_url_is_400(api: str, target: str) -> None:
     status, body = raw_get(api, target)
     assert status.startswith("HTTP/1.1 400"), body
