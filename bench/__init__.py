@@ -141,8 +141,20 @@ def write_report(report: dict[str, Any], markdown: str, out: Path, *, rows: str)
             "are left as they were; name at least one decoder or model to measure"
         )
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n")
-    out.with_suffix(".md").write_text(markdown + "\n")
+    replace_text(out, json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n")
+    replace_text(out.with_suffix(".md"), markdown + "\n")
+
+
+def replace_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically: to a temporary file next to it, then renamed
+    over it, so a reader (``GET /v1/decoders`` reads accuracy.json) never sees it half
+    written."""
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        partial.write_text(text)
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
 
 
 def at_least(minimum: int) -> Callable[[str], int]:

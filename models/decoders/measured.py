@@ -12,12 +12,15 @@ is part of a repository checkout, not of an installed package or the Docker imag
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
 
 from models.decoders.registry import DecoderSpec
+
+log = logging.getLogger(__name__)
 
 #: The repository's root folder.
 ROOT = Path(__file__).resolve().parents[2]
@@ -58,11 +61,24 @@ def _figures(report: dict[str, Any]) -> dict[str, dict[str, Any]]:
 
 @cache
 def benchmark_figures(path: Path = ACCURACY_REPORT) -> BenchmarkFigures | None:
-    """The figures of the val-256 benchmark report at ``path``; None when there is none."""
+    """The figures of the val-256 benchmark report at ``path``; None when there is none
+    or it cannot be read (logged once: the result is cached)."""
     try:
-        report = json.loads(path.read_text(encoding="utf-8"))
+        return _read_report(path)
     except FileNotFoundError:
         return None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        log.warning(
+            "%s is not a complete val-256 benchmark report (%s: %s), so decoders without a "
+            "model card show no figures; rerun python -m bench.accuracy to write it again",
+            path, type(exc).__name__, exc,
+        )
+        return None
+
+
+def _read_report(path: Path) -> BenchmarkFigures:
+    """The figures of the report at ``path``; raises what reading or a missing field raises."""
+    report = json.loads(path.read_text(encoding="utf-8"))
     name = str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
     machine = report.get("machine", {})
     source = (

@@ -26,6 +26,20 @@ def test_a_report_with_rows_is_written_as_json_and_markdown(tmp_path: Path) -> N
     assert out.with_suffix(".md").read_text() == "| table |\n"
 
 
+def test_a_report_replaces_the_old_one_whole(tmp_path: Path) -> None:
+    """The report was written in place, so a reader could read it half written; now a new
+    file is renamed over it (a hard link to the old one keeps the old text)."""
+    out = tmp_path / "accuracy.json"
+    out.write_text('{"rows": ["old"]}\n')
+    old = tmp_path / "old.json"
+    old.hardlink_to(out)
+    write_report({"rows": ["new"]}, "| new |", out, rows="rows")
+    assert old.read_text() == '{"rows": ["old"]}\n'
+    assert '"new"' in out.read_text()
+    assert sorted(path.name for path in tmp_path.iterdir()) == [
+        "accuracy.json", "accuracy.md", "old.json"]
+
+
 def test_a_mistake_found_while_measuring_ends_in_one_line_and_exit_code_2(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

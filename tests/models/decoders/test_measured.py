@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
+
+import pytest
 
 from models.decoders.measured import benchmark_figures, measured_figures
 from models.decoders.registry import DecoderSpec, available_decoders
@@ -63,3 +66,23 @@ def test_no_figures_say_why_and_where_to_find_them(tmp_path: Path) -> None:
     bench = benchmark_figures(write_report(tmp_path / "accuracy.json"))
     figures, source = measured_figures(spec("graphcut"), bench)
     assert figures == {} and "has no row for graphcut" in source
+
+
+@pytest.mark.parametrize("text", [
+    '{"date": "2026-11-27", "results": [',  # written partly
+    '{"results": []}',  # no date
+    '{"date": "2026-11-27", "results": [{"decoder": "itoh", "encoding": "mantissa", "psnr": 1}]}',
+    '["not", "a", "report"]',
+])
+def test_an_unreadable_report_is_no_figures_logged_once(
+    tmp_path: Path, text: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A partly written report, or one missing a field, was a 500 on every GET /v1/decoders."""
+    path = tmp_path / "accuracy.json"
+    path.write_text(text)
+    with caplog.at_level(logging.WARNING, logger="models.decoders.measured"):
+        assert benchmark_figures(path) is None
+        assert benchmark_figures(path) is None
+    assert len(caplog.records) == 1 and "python -m bench.accuracy" in caplog.text
+    figures, source = measured_figures(spec("itoh"), None)
+    assert figures == {} and source.startswith("none measured in this installation")
