@@ -95,9 +95,9 @@ class SensorParams(BaseModel):
     alpha: float = Field(2.0, gt=1.0, le=1e6, allow_inf_nan=False)
     bits: int = Field(8, ge=1, le=16)
     gain: float | None = Field(None, gt=0.0, allow_inf_nan=False)
-    max_wraps: float | None = Field(None, allow_inf_nan=False)
+    max_wraps: float | None = Field(None, allow_inf_nan=False, json_schema_extra={"minimum": 1})
     read_noise: float = Field(0.0, ge=0.0, le=1.0, allow_inf_nan=False)
-    full_well: float | None = Field(None, allow_inf_nan=False)
+    full_well: float | None = Field(None, allow_inf_nan=False, json_schema_extra={"minimum": 1})
     seed: int | None = Field(None, ge=0, le=MAX_NOISE_SEED)
 
     @field_validator("max_wraps", "full_well")

@@ -11,6 +11,7 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis.specs.openapi.checks import positive_data_acceptance
 
+from models.formation import PHYSICAL_MINIMA
 from service.core.config import Settings
 from service.main import ROUTERS, create_app
 from tests.service.conftest import FULL_KEY, make_settings, running_worker, serve
@@ -45,6 +46,15 @@ def test_openapi_lists_the_api(settings: Settings) -> None:
     assert form["required"] == ["file"] and {"encoding", "bits", "decoder", "quality"} <= set(
         form["properties"]
     )
+
+
+def test_the_openapi_states_the_physical_minima_of_sensor_parameters(settings: Settings) -> None:
+    """max_wraps and full_well are checked by a validator (for its message), and their
+    schema had lost the lower bound that gt=0 gave it."""
+    properties = create_app(settings).openapi()["components"]["schemas"]["SensorParams"][
+        "properties"]
+    for name, (least, _, _) in PHYSICAL_MINIMA.items():
+        assert properties[name]["minimum"] == least, name
 
 
 def test_unknown_routes_and_methods_are_json(api: str) -> None:
