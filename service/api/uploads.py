@@ -22,7 +22,7 @@ from starlette.exceptions import HTTPException
 
 from models.decoders.adaptive_policy import QUALITIES
 from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
-from models.file_magic import FRAME_MAGICS, format_by_content
+from models.file_magic import FRAME_MAGICS, Judged, content_first, format_by_content
 from models.formation import SensorParams
 from models.frames import FRAME_FORMATS, not_a_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
@@ -191,18 +191,22 @@ def _named_format(filename: str | None) -> str | None:
     return {"tif": "tiff", "bin": "raw"}.get(suffix, suffix if suffix in _NAMED else None)
 
 
-def sniff_frame_format(upload: Upload, declared: str | None, raw_size: bool) -> str:
+def sniff_frame_format(upload: Upload, declared: str | None, raw_size: bool) -> Judged:
     """The frame format to decode the upload as: the declared one, else the file name's
     suffix's, else the leading bytes', else ``raw`` when a raw frame size (``raw_size``)
     was given. A PNG, TIFF or npy is decoded as what its leading bytes show whatever
     its name says (:func:`models.frames.decode_frame`); raw codes have no leading bytes
-    to judge by, so declared or named raw with a size given, they are raw."""
+    to judge by, so declared or named raw with a size given, they are raw. Declared or
+    named raw without a size, a PNG, TIFF or npy is decoded as what it is, with the
+    warning naming both (:func:`models.file_magic.content_first`)."""
     named = declared or _named_format(upload.filename)
     if (named == "raw" and raw_size) or named in FRAME_FORMATS:
-        return named
-    fmt = format_by_content(upload.data, FRAME_MAGICS) or named or ("raw" if raw_size else None)
+        return Judged(named, None)
+    if named is not None:
+        return content_first(upload.data, named, FRAME_MAGICS)
+    fmt = format_by_content(upload.data, FRAME_MAGICS) or ("raw" if raw_size else None)
     if fmt is not None:
-        return fmt
+        return Judged(fmt, None)
     raise UnsupportedFormatError(
         "cannot tell the frame's format: send a .png, .tiff or .npy file, or raw codes with "
         f"format=raw, width, height, bits and encoding{_elsewhere(upload.data)}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
@@ -47,10 +48,12 @@ def read_wrapped_frame(
 ) -> WrappedFrame:
     """The codes and parameters of the uploaded frame (file, or raw codes + fields)."""
     raw_size = fields.width is not None and fields.height is not None
-    fmt = sniff_frame_format(upload, fields.format, raw_size)
+    fmt, warning = sniff_frame_format(upload, fields.format, raw_size)
     overrides = fields.sensor_overrides()
     if fmt != "raw":
         frame = decode_frame(upload.data, fmt, overrides, max_pixels)
+        if warning is not None:  # declared or named raw, a PNG, TIFF or npy by its bytes
+            frame = replace(frame, warnings=(warning, *frame.warnings))
     else:
         if fields.width is None or fields.height is None or fields.bits is None:
             raise MissingParameterError(

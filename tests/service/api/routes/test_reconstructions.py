@@ -321,6 +321,22 @@ def test_a_frame_read_by_its_content_tells_the_client(client: Client, worker: Wo
     assert http.get(named.json()["url"]).json()["warnings"] == []
 
 
+@pytest.mark.parametrize(("name", "declared"), [("frame", "raw"), ("frame.raw", None)])
+def test_a_frame_declared_raw_without_a_size_but_a_png_says_so(
+    client: Client, name: str, declared: str | None
+) -> None:
+    """Declared or named raw with no width and height, a PNG was decoded as a PNG with no
+    warning, although the README says the name decides only when the bytes show no format."""
+    data, _ = frame_png()
+    http = client()
+    accepted = http.post("/v1/reconstructions", files={"file": (name, data)},
+                         data={"format": declared} if declared else {})
+    assert accepted.status_code == 202, accepted.text
+    (warning,) = accepted.json()["warnings"]
+    assert "content is PNG although its name or declared format says RAW" in warning
+    assert http.get(accepted.json()["url"]).json()["warnings"] == [warning]
+
+
 def test_8_bit_codes_sent_as_wider_tell_the_client(client: Client) -> None:
     """Codes all below 256 with bits=16 (an 8-bit frame, or the wrong bits) decode as
     almost black: that was said only in the server's log; the job's ``warnings`` say it."""
