@@ -9,6 +9,7 @@ the caller (:func:`content_first`).
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import NamedTuple
 
 #: The eight bytes every PNG file starts with.
@@ -43,6 +44,14 @@ logger = logging.getLogger(__name__)
 def format_by_content(data: bytes, magics: Magics) -> str | None:
     """The format of ``magics`` whose leading bytes ``data`` starts with; None if none."""
     return next((fmt for magic, fmt in magics if data.startswith(magic)), None)
+
+
+def named_format(name: str | None, aliases: Mapping[str, str]) -> str | None:
+    """The format the suffix of the file name ``name`` names, by ``aliases`` (suffix ->
+    format, lower case, no dot); None for no name, no suffix or one ``aliases`` lacks."""
+    if not name or "." not in name:
+        return None
+    return aliases.get(name.rsplit(".", 1)[-1].lower())
 
 
 class Judged(NamedTuple):

@@ -81,6 +81,12 @@ class JobView(JobRecord):
     links: dict[str, str]
 
 
+def video_outputs_made(record: JobRecord) -> list[str]:
+    """The outputs (:data:`worker.video_pipeline.OUTPUTS`, in that order) whose files the
+    video job ``record`` made."""
+    return [name for name in VIDEO_OUTPUTS if name in record.results]
+
+
 def job_view(record: JobRecord) -> JobView:
     """The API view of a job record. A succeeded video job links each file it made
     (``result_hdr10`` ...) and, as ``result``, the first of hdr10, sdr, exr_zip: its
@@ -90,13 +96,21 @@ def job_view(record: JobRecord) -> JobView:
     if record.state == JobState.SUCCEEDED and record.kind == "video":
         files = {
             f"result_{name}": f"/v1/videos/{record.id}/result?output={name}"
-            for name in VIDEO_OUTPUTS if name in record.results
+            for name in video_outputs_made(record)
         }
         links |= {"result": next(iter(files.values()))} if files else {}
         links |= files
     elif record.state == JobState.SUCCEEDED:
         links["result"] = f"{base}/result"
     return JobView(**record.model_dump(), links=links)
+
+
+#: Why a route that decodes or makes previews in the API's memory may answer 503
+#: server_busy (:func:`service.api.in_turn.decode_in_turn`).
+DECODES_BUSY = (
+    "the API is decoding uploads or making previews MCAM_MAX_CONCURRENT_DECODES at a time "
+    "and none finished within MCAM_DECODE_WAIT_S (server_busy, see Retry-After)"
+)
 
 
 def error_response(description: str) -> dict[str, Any]:
@@ -128,11 +142,7 @@ UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
         "queue reach MCAM_MAX_QUEUED_JOBS_PER_KEY or MCAM_MAX_QUEUED_BYTES_PER_KEY "
         "(too_many_jobs)"
     ),
-    503: error_response(
-        "the queue (Redis) is unreachable or full, or the API is decoding uploads or "
-        "making result previews MCAM_MAX_CONCURRENT_DECODES at a time and none finished "
-        "within MCAM_DECODE_WAIT_S (server_busy, see Retry-After)"
-    ),
+    503: error_response(f"the queue (Redis) is unreachable or full, or {DECODES_BUSY}"),
 }
 
 

@@ -22,8 +22,15 @@ from starlette.exceptions import HTTPException
 
 from models.decoders.adaptive_policy import QUALITIES
 from models.errors import InvalidInputError, MissingParameterError, UnsupportedFormatError
-from models.file_magic import FRAME_MAGICS, Judged, content_first, format_by_content
+from models.file_magic import (
+    FRAME_MAGICS,
+    Judged,
+    content_first,
+    format_by_content,
+    named_format,
+)
 from models.formation import SensorParams
+from models.frames import _ALIASES as FRAME_ALIASES
 from models.frames import FRAME_FORMATS, not_a_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.errors import ApiError
@@ -31,8 +38,9 @@ from service.api.media_types import media_type
 
 Model = TypeVar("Model", bound=BaseModel)
 _MAX_FORM_FIELDS = 64
-#: File-name suffixes that name a frame format as they are.
-_NAMED = ("png", "tiff", "npy", "raw")
+#: The frame format each file-name suffix names: the readers' (:mod:`models.frames`)
+#: and raw codes.
+_NAMED = {**FRAME_ALIASES, "raw": "raw", "bin": "raw"}
 
 
 class SensorFields(BaseModel):
@@ -183,14 +191,6 @@ async def read_upload_fields(
         raise RequestValidationError(exc.errors()) from None
 
 
-def _named_format(filename: str | None) -> str | None:
-    """The frame format the file name's suffix names (``raw`` for .raw/.bin); None if none."""
-    if not filename or "." not in filename:
-        return None
-    suffix = filename.rsplit(".", 1)[-1].lower()
-    return {"tif": "tiff", "bin": "raw"}.get(suffix, suffix if suffix in _NAMED else None)
-
-
 def sniff_frame_format(upload: Upload, declared: str | None, raw_size: bool) -> Judged:
     """The frame format to decode the upload as: the declared one, else the file name's
     suffix's, else the leading bytes', else ``raw`` when a raw frame size (``raw_size``)
@@ -199,7 +199,7 @@ def sniff_frame_format(upload: Upload, declared: str | None, raw_size: bool) -> 
     to judge by, so declared or named raw with a size given, they are raw. Declared or
     named raw without a size, a PNG, TIFF or npy is decoded as what it is, with the
     warning naming both (:func:`models.file_magic.content_first`)."""
-    named = declared or _named_format(upload.filename)
+    named = declared or named_format(upload.filename, _NAMED)
     if (named == "raw" and raw_size) or named in FRAME_FORMATS:
         return Judged(named, None)
     if named is not None:

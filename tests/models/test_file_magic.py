@@ -10,6 +10,7 @@ from models.file_magic import (
     VIDEO_MAGICS,
     content_first,
     format_by_content,
+    named_format,
 )
 
 
@@ -39,3 +40,13 @@ def test_content_first_keeps_the_name_unless_the_content_says_otherwise(
     assert judged.format == "png" and judged.warning is not None
     assert "content is PNG although its name or declared format says TIFF" in judged.warning
     assert judged.warning in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("name", "expected"),
+    [("frame.TIF", "tiff"), ("a.b.npy", "npy"), ("frame.bmp", None), ("frame", None), (None, None)],
+)
+def test_a_file_name_names_the_format_its_suffix_aliases(
+    name: str | None, expected: str | None
+) -> None:
+    assert named_format(name, {"tif": "tiff", "tiff": "tiff", "npy": "npy"}) == expected

@@ -19,7 +19,7 @@ from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.in_turn import decode_in_turn
 from service.api.previews import scene_to_wrap_units, tonemap_png
-from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, error_response
+from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, DECODES_BUSY, error_response
 from service.api.state import ServiceState
 from worker.control_queue import queue_command
 from worker.device_registry import DeviceNotFoundError, forget_device
@@ -125,11 +125,7 @@ def control(device_id: str, command: Annotated[Command, Body()], state: StateDep
 
 
 #: The newest frame's 503 (all but the EXR: its preview is made in the API's memory).
-_PREVIEW_BUSY = error_response(
-    "Redis is unreachable, or (format=png) the API is decoding uploads or making previews "
-    "MCAM_MAX_CONCURRENT_DECODES at a time and none finished within MCAM_DECODE_WAIT_S "
-    "(server_busy, see Retry-After)"
-)
+_PREVIEW_BUSY = error_response(f"Redis is unreachable, or (format=png) {DECODES_BUSY}")
 
 
 def latest_result(state: ServiceState, device_id: str) -> tuple[str, str]:

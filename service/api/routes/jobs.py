@@ -26,10 +26,16 @@ from service.api.previews import (
     tonemap_png,
     winding_png,
 )
-from service.api.schemas import AUTH_ERRORS, JobView, error_response, job_view
+from service.api.schemas import (
+    AUTH_ERRORS,
+    DECODES_BUSY,
+    JobView,
+    error_response,
+    job_view,
+    video_outputs_made,
+)
 from service.api.state import ServiceState
 from worker.jobs import JobRecord, JobState
-from worker.video_pipeline import OUTPUTS
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -117,7 +123,7 @@ def still_record(state: ServiceState, job_id: str) -> JobRecord:
     from ``/v1/videos/{id}/result`` (and as :func:`finished_record` otherwise)."""
     record = finished_record(state, job_id)
     if record.kind == "video":
-        made = [name for name in OUTPUTS if name in record.results]
+        made = video_outputs_made(record)
         raise ApiError(
             409, "video_job",
             f"job {job_id} is a video job: fetch its files from /v1/videos/{job_id}/result"
@@ -153,9 +159,7 @@ def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
         ),
         **JOB_ERRORS,
         503: error_response(
-            "the queue (Redis) is unreachable, or (all but the EXR) the API is decoding "
-            "uploads or making previews MCAM_MAX_CONCURRENT_DECODES at a time and none "
-            "finished within MCAM_DECODE_WAIT_S (server_busy, see Retry-After)"
+            f"the queue (Redis) is unreachable, or (all but the EXR) {DECODES_BUSY}"
         ),
     },
 )

@@ -15,7 +15,7 @@ from fastapi import APIRouter, Query, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from models.errors import UnsupportedFormatError
-from models.file_magic import VIDEO_MAGICS, format_by_content
+from models.file_magic import VIDEO_MAGICS, format_by_content, named_format
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import stored_file
@@ -33,6 +33,7 @@ from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
 from service.core.security import ApiKey
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
+from worker.video_input import _ALIASES as VIDEO_ALIASES
 from worker.video_input import VideoLimits, decode_video
 from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
 from worker.video_output import (
@@ -114,13 +115,12 @@ def sniff_video_format(upload: Upload, declared: str | None) -> str:
     """The video format: declared, else the file name's suffix, else the leading bytes.
     A TIFF, npy or zip is decoded as what its leading bytes show whatever its name says
     (:func:`worker.video_input.decode_video`)."""
-    if declared:
-        return declared
-    if upload.filename and "." in upload.filename:
-        suffix = upload.filename.rsplit(".", 1)[-1].lower()
-        if suffix in ("tif", "tiff", "npy", "zip"):
-            return "tiff" if suffix == "tif" else suffix
-    if (fmt := format_by_content(upload.data, VIDEO_MAGICS)) is not None:
+    fmt = (
+        declared
+        or named_format(upload.filename, VIDEO_ALIASES)
+        or format_by_content(upload.data, VIDEO_MAGICS)
+    )
+    if fmt is not None:
         return fmt
     raise UnsupportedFormatError(
         "cannot tell the video's format: send a multi-page .tiff, a .npy (T x H x W[x C]) "
