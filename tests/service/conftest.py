@@ -4,6 +4,7 @@ and a bare ASGI app under ``mcam api``'s uvicorn options for tests of its connec
 from __future__ import annotations
 
 import io
+import select
 import socket
 import threading
 import time
@@ -226,6 +227,12 @@ def status_of(port: int, request: bytes) -> tuple[int, socket.socket]:
     sock.sendall(request)
     reply = read_response(sock)
     return int(reply.split(b" ", 2)[1]), sock
+
+
+def nothing_to_read(sock: socket.socket) -> bool:
+    """True while ``sock`` has no reply and is not closed: the server has not answered
+    yet (a check of behaviour, not of time)."""
+    return not select.select([sock], [], [], 0)[0]
 
 
 GET = b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"
