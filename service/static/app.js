@@ -268,20 +268,22 @@ async function waitForJob(id, signal) {
 }
 
 // The reply of the job's result for query; one the server was too busy to make is
-// asked for again after its Retry-After (RESULT_TRIES in all).
-async function result(job, query) {
+// asked for again after its Retry-After (RESULT_TRIES in all). Once signal (if any)
+// aborts (Cancel, another job or exposure shown), it asks no more: AbortError.
+async function result(job, query, signal = null) {
   for (let tries = 1; ; tries += 1) {
     try {
-      return await api(`/v1/jobs/${job}/result?${query}`);
+      return await api(`/v1/jobs/${job}/result?${query}`, { signal });
     } catch (error) {
       if (tries >= RESULT_TRIES || !BUSY.includes(error.status)) throw error;
-      await sleep(retryDelayMs(error, tries));
+      await sleep(retryDelayMs(error, tries), signal);
+      signal?.throwIfAborted();
     }
   }
 }
 
-async function resultBlob(job, query) {
-  return (await result(job, query)).blob();
+async function resultBlob(job, query, signal = null) {
+  return (await result(job, query, signal)).blob();
 }
 
 // Show blob in the image element id (null: empty it).
@@ -327,6 +329,7 @@ function drawHistogram() {
 // Empty the result panels: nothing of an earlier job stays beside a new one.
 function clearResult() {
   shownJob = null;
+  hdrStop.abort();
   clearTimeout(exposureTimer);
   for (const id of ["img-codes", "img-winding", "img-hdr"]) setImage(id, null);
   histogram = null;
@@ -334,14 +337,15 @@ function clearResult() {
   $("download").disabled = true;
 }
 
-// Fetch every panel of the succeeded job, then show them together.
-async function showResult(job) {
+// Fetch every panel of the succeeded job, then show them together; none once signal
+// aborts.
+async function showResult(job, signal) {
   const ev = exposure();
   const [codes, winding, hdr, counts] = await Promise.all([
-    resultBlob(job, "part=codes&format=png"),
-    resultBlob(job, "part=winding&format=png"),
-    resultBlob(job, hdrQuery()),
-    result(job, "part=histogram").then((reply) => reply.json()),
+    resultBlob(job, "part=codes&format=png", signal),
+    resultBlob(job, "part=winding&format=png", signal),
+    resultBlob(job, hdrQuery(), signal),
+    result(job, "part=histogram", signal).then((reply) => reply.json()),
   ]);
   setImage("img-codes", codes);
   setImage("img-winding", winding);
@@ -353,19 +357,20 @@ async function showResult(job) {
   if (exposure() !== ev) refreshHdr();
 }
 
-// Tonemap the shown job's HDR again at the slider's exposure. Only the reply to the
-// latest request is shown: an earlier one arriving late would show another exposure.
-let hdrRequest = 0;
+// Tonemap the shown job's HDR again at the slider's exposure. Only the latest request
+// goes on: a later one or other panels abort it (an earlier reply arriving late would
+// show another exposure, and its retries would go on for a job no longer shown).
+let hdrStop = new AbortController();
 async function refreshHdr() {
   const job = shownJob;
   if (!job) return;
-  const request = ++hdrRequest;
-  const current = () => shownJob === job && request === hdrRequest;
+  hdrStop.abort();
+  const { signal } = (hdrStop = new AbortController());
   try {
-    const blob = await resultBlob(job, hdrQuery());
-    if (current()) setImage("img-hdr", blob);
+    const blob = await resultBlob(job, hdrQuery(), signal);
+    if (!signal.aborted) setImage("img-hdr", blob);
   } catch (error) {
-    if (current()) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
+    if (!signal.aborted) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
   }
 }
 
@@ -383,7 +388,9 @@ async function run(event) {
     watched = { id, stop: new AbortController() };
     $("cancel").disabled = false;
     const job = await waitForJob(id, watched.stop.signal);
-    if (job?.state === "succeeded") await showResult(id).catch(resultsUnreachable(id));
+    if (job?.state === "succeeded") {
+      await showResult(id, watched.stop.signal).catch(resultsUnreachable(id));
+    }
   } catch (error) {
     setStatus(error.message, "error");
   } finally {
@@ -396,6 +403,7 @@ async function run(event) {
 // An error handler for the results of job id that could not be fetched.
 function resultsUnreachable(id) {
   return (error) => {
+    if (error.name === "AbortError") return; // stopped by Cancel, which said so
     throw new ApiError(`job ${id} succeeded, but its results could not be fetched ` +
       `(${error.message}); press Reconstruct to run it again`);
   };

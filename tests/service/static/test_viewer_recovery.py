@@ -352,3 +352,26 @@ def test_an_exposure_refresh_without_a_shown_job_asks_for_nothing(
     page.wait_for_timeout(300)
     assert requests == []
     assert page.get_attribute("#status", "class") != "error"
+
+
+def test_a_busy_preview_of_a_job_no_longer_shown_is_not_asked_for_again(
+    browser: Browser, redis_url: str, frame: Path, tmp_path: Path
+) -> None:
+    """A preview refused 503 server_busy was asked for again after each Retry-After (five
+    times in all, about 20 s) even once the panels were cleared for another job (a new
+    Run clears them): its retries now stop with it."""
+    settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
+    app = create_app(settings)
+    with serve(app) as url, running_worker(settings):
+        done = httpx.post(f"{url}/v1/reconstructions", files={"file": frame.read_bytes()},
+                          headers={"Authorization": f"Bearer {FULL_KEY}",
+                                   "Prefer": "wait=30"}, timeout=60)
+        assert done.json()["state"] == "succeeded", done.text
+        page = open_viewer(browser, url, fake_clock=True)
+        requests = api_requests(page, "/result")
+        assert app.state.mcam.decode_slots.take()  # another request's preview: 503s
+        page.evaluate(f"shownJob = {done.json()['id']!r}; refreshHdr(); clearResult()")
+        for _ in range(30):  # past five Retry-Afters of the page's clock, each reply in
+            page.clock.run_for(1_000)
+            page.wait_for_timeout(100)
+        assert len(requests) <= 1, requests
