@@ -50,7 +50,6 @@ from models.errors import (
     OutputOverflowError,
     describe_validation_error,
 )
-from models.exposure import check_not_black as check_not_black  # for routes/simulate.py
 from models.exposure import exposure_gain, luminance
 from models.output_range import ensure_fits, ensure_nonzero_kept, overflow_remedy
 

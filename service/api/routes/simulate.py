@@ -6,7 +6,8 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
 
-from models.formation import SensorParams, check_not_black, simulate
+from models.exposure import check_not_black
+from models.formation import SensorParams, simulate
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
 from service.api.deps import StateDep, SubmitKey
