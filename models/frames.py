@@ -60,9 +60,10 @@ from models.tiff_pages import open_tiff, page_codes, page_shape
 FRAME_FORMATS: tuple[str, ...] = ("png", "tiff", "npy")
 #: PNG text-chunk keyword holding the parameters as JSON.
 PNG_KEYWORD = "mantissacam"
-_ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
+#: File-name suffixes (and format names) of wrapped frames and the format each names.
+FRAME_ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
 #: File-name suffixes of wrapped frames and winding maps.
-FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in _ALIASES)
+FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in FRAME_ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
@@ -85,12 +86,12 @@ def frame_format(name: str | os.PathLike[str]) -> str:
     """The frame format (one of :data:`FRAME_FORMATS`) of a file name, suffix or format name."""
     text = str(name).lower()
     key = text.rsplit(".", 1)[-1]
-    if key not in _ALIASES:
+    if key not in FRAME_ALIASES:
         raise UnsupportedFormatError(
             f"unsupported wrapped-frame format {str(name)!r}; "
             "use one of: .png (grayscale), .tiff/.tif (grey or RGB), .npy"
         )
-    return _ALIASES[key]
+    return FRAME_ALIASES[key]
 
 
 #: What a file of another reader's format is, and where it goes.

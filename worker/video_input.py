@@ -56,7 +56,8 @@ from models.tiff_pages import open_tiff, page_codes, page_shape
 from worker.zip_directory import central_entries
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
-_ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
+#: File-name suffixes (and format names) of wrapped videos and the format each names.
+VIDEO_ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
 #: Bytes inflated per read of a zip entry (bounds the memory one read can take).
 INFLATE_CHUNK = 1 << 20
 
@@ -89,12 +90,12 @@ class WrappedVideo:
 def video_format(name: str | os.PathLike[str]) -> str:
     """The video format (one of :data:`VIDEO_FORMATS`) of a file name, suffix or format name."""
     key = str(name).lower().rsplit(".", 1)[-1]
-    if key not in _ALIASES:
+    if key not in VIDEO_ALIASES:
         raise UnsupportedFormatError(
             f"unsupported wrapped-video format {str(name)!r}; use a multi-page .tiff, "
             "a .npy of shape T x H x W[x C], or a .zip of PNG frames"
         )
-    return _ALIASES[key]
+    return VIDEO_ALIASES[key]
 
 
 def check_frame_count(count: int, max_frames: int | None) -> None:

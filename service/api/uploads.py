@@ -30,8 +30,7 @@ from models.file_magic import (
     named_format,
 )
 from models.formation import SensorParams
-from models.frames import _ALIASES as FRAME_ALIASES
-from models.frames import FRAME_FORMATS, not_a_frame
+from models.frames import FRAME_ALIASES, FRAME_FORMATS, not_a_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.errors import ApiError
 from service.api.media_types import media_type

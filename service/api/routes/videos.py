@@ -33,8 +33,7 @@ from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
 from service.core.security import ApiKey
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
-from worker.video_input import _ALIASES as VIDEO_ALIASES
-from worker.video_input import VideoLimits, decode_video
+from worker.video_input import VIDEO_ALIASES, VideoLimits, decode_video
 from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
 from worker.video_output import (
     FPS_RANGE,
