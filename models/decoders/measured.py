@@ -6,7 +6,8 @@ size, cost and the val-256 metrics measured at export). Decoders without a card
 benchmark, ``bench/results/accuracy.json`` (``python -m bench.accuracy``), in the cards'
 shape: ``{encoding: {"val256": {"read_noise_<sigma>": {metric: value}}}}``. A decoder
 measured by neither has no figures, and its source says so and where to look: that file
-is part of a repository checkout, not of an installed package or the Docker image.
+is part of a repository checkout, not of an installed package (the service reads a copy
+named by ``MCAM_ACCURACY_REPORT``; the Docker image ships one and names it).
 """
 
 from __future__ import annotations
@@ -103,8 +104,8 @@ def measured_figures(
         return {}, (
             "none measured in this installation: the val-256 figures of classical, refined "
             "and adaptive decoders are in bench/results/accuracy.json of a repository "
-            "checkout (python -m bench.accuracy writes it) and in the README's 'Accuracy "
-            "on val-256'"
+            "checkout (python -m bench.accuracy writes it; the service reads another copy "
+            "named by MCAM_ACCURACY_REPORT) and in the README's 'Accuracy on val-256'"
         )
     return {}, (
         f"none measured: {bench.report} has no row for {spec.name}; "

@@ -119,6 +119,12 @@ class Settings(BaseSettings):
     default_decoder: str = Field(
         "auto", description="decoder when a request names neither decoder nor quality"
     )
+    accuracy_report: Path | None = Field(
+        None,
+        description="the val-256 benchmark's report (python -m bench.accuracy) that gives "
+        "GET /v1/decoders the figures of decoders without a model card (classical, +puma, "
+        "auto); unset: bench/results/accuracy.json of the repository checkout",
+    )
     worker_concurrency: int = Field(1, ge=1, description="jobs decoded at once per worker")
     worker_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")
     ort_spin: bool = Field(
@@ -195,6 +201,18 @@ class Settings(BaseSettings):
             resolve(value)
         except McamError as exc:
             raise ValueError(exc.message) from None
+        return value
+
+    @field_validator("accuracy_report")
+    @classmethod
+    def _report_exists(cls, value: Path | None) -> Path | None:
+        """A report named but missing would leave those decoders without figures, with
+        only a log line to say why."""
+        if value is not None and not value.is_file():
+            raise ValueError(
+                f"no file at {value}: name the accuracy.json that python -m bench.accuracy "
+                "wrote, or unset it to use the repository's bench/results/accuracy.json"
+            )
         return value
 
     @field_validator("redis_maxmemory")

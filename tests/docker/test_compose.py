@@ -121,3 +121,20 @@ def test_the_build_context_leaves_out_local_state() -> None:
     local service's data (its API keys, Redis files) and the git history."""
     ignored = (DOCKER.parent / ".dockerignore").read_text().split()
     assert {".git", ".venv", "data", "runs"} <= set(ignored)
+
+
+def test_the_image_ships_the_benchmark_report_it_names() -> None:
+    """GET /v1/decoders in the image gave classical and auto decoders no figures: their
+    report lives in bench/results, which neither the image nor the build context had."""
+    text = (DOCKER / "Dockerfile").read_text()
+    named = dockerfile_environment()["MCAM_ACCURACY_REPORT"]
+    workdir = re.search(r"^WORKDIR (\S+)", text, re.M)
+    assert workdir is not None
+    copies = dict(
+        (str(Path(workdir.group(1)) / target), source)
+        for source, target in re.findall(r"^COPY (\S+) (\S+)$", text, re.M)
+    )
+    assert named in copies
+    assert (DOCKER.parent / copies[named]).is_file()
+    ignored = (DOCKER.parent / ".dockerignore").read_text().split()
+    assert f"!{copies[named]}" in ignored

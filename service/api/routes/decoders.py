@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
-from models.decoders.measured import benchmark_figures, measured_figures
+from models.decoders.measured import ACCURACY_REPORT, benchmark_figures, measured_figures
 from models.decoders.registry import available_decoders
 from service.api.deps import ReadKey, SettingsDep
 from service.api.schemas import AUTH_ERRORS
@@ -43,7 +43,7 @@ class DecoderInfo(BaseModel):
 )
 def list_decoders(settings: SettingsDep, _: ReadKey) -> list[DecoderInfo]:
     """Every decoder in registration order; ``default`` marks the one used when none is named."""
-    bench = benchmark_figures()
+    bench = benchmark_figures(settings.accuracy_report or ACCURACY_REPORT)
     found = []
     for spec in available_decoders():
         figures, source = measured_figures(spec, bench)

@@ -86,11 +86,13 @@ def test_frames_without_residues_learn_a_speed_factor_of_their_own(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Predicted at 0 ms, a smooth 512x512 frame's integration (1.7x the cost model's
-    rest) went into best's factor: busy frames then fell back to balanced."""
+    rest) went into best's factor: busy frames then fell back to balanced. (A budget
+    best always fits: at 200 ms a loaded machine's first decode made the second pick
+    balanced.)"""
     monkeypatch.setattr(budget, "SPEED", SpeedFactors())
     smooth = quantize(np.linspace(0.0, 0.9, 512 * 512).reshape(512, 512), 8)
     for _ in range(2):
-        facts = get_decoder("auto-200ms").decode(smooth, MODULO).info["details"]["budget"]
+        facts = get_decoder("auto-600000ms").decode(smooth, MODULO).info["details"]["budget"]
     assert facts["predicted_ms"]["best"] > 0.0
     assert set(budget.SPEED.moments) == {"best without residues"}
 

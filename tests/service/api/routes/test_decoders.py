@@ -7,9 +7,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import httpx
+import pytest
+from pydantic import ValidationError
 
 from models.decoders.registry import available_decoders
-from tests.service.conftest import READ_KEY, SUBMIT_KEY
+from service.core.config import Settings
+from service.main import create_app
+from tests.service.conftest import READ_KEY, SUBMIT_KEY, make_settings, serve
 
 Client = Callable[[str], httpx.Client]
 ACCURACY = Path(__file__).resolve().parents[4] / "bench" / "results" / "accuracy.json"
@@ -40,6 +44,29 @@ def test_every_decoder_has_figures_or_says_why_not(client: Client) -> None:
     small = listed["mantissanet-small"]
     assert small["figures"]["mantissa"]["gflops_256"] > 0
     assert "models/onnx/mantissanet-small-mantissa.json" in small["figures_source"]
+
+
+def test_figures_from_the_report_the_settings_name(tmp_path: Path, redis_url: str) -> None:
+    """An installed package (the Docker image) has no checkout's bench/results: the
+    report named by MCAM_ACCURACY_REPORT gives those decoders their figures."""
+    report = json.loads(ACCURACY.read_text())
+    for row in report["results"]:
+        if "psnr" in row:
+            row["psnr"] = 12.3456
+    named = tmp_path / "elsewhere" / "accuracy.json"
+    named.parent.mkdir()
+    named.write_text(json.dumps(report))
+    settings = make_settings(tmp_path, redis_url, accuracy_report=named)
+    with serve(create_app(settings)) as url:
+        reply = httpx.get(f"{url}/v1/decoders", headers={"Authorization": f"Bearer {READ_KEY}"})
+    itoh = next(d for d in reply.json() if d["name"] == "itoh")
+    assert itoh["figures"]["mantissa"]["val256"]["read_noise_0"]["psnr"] == 12.3456
+    assert itoh["figures_source"].startswith(str(named))
+
+
+def test_a_named_report_that_is_missing_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValidationError, match="no file at .*python -m bench.accuracy"):
+        Settings(_env_file=None, accuracy_report=tmp_path / "gone.json")  # type: ignore[call-arg]
 
 
 def test_needs_the_read_scope(client: Client) -> None:
