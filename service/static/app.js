@@ -409,9 +409,9 @@ function resultsUnreachable(id) {
   };
 }
 
-// Cancel the job in flight (DELETE /v1/jobs/{id}) and stop waiting for it. One that
-// finished meanwhile (409) is left to the poll; if the server cannot be told, the page
-// stops waiting all the same and says so.
+// Cancel the job in flight (DELETE /v1/jobs/{id}) and stop waiting for it and its
+// results. One that finished meanwhile (409) is not fetched further either: the page
+// says so. If the server cannot be told, the page stops waiting all the same and says so.
 async function cancel() {
   const { id, stop } = watched;
   $("cancel").disabled = true;
@@ -420,8 +420,11 @@ async function cancel() {
     stop.abort();
     showJob(job);
   } catch (error) {
-    if (error.status === 409) return;
     stop.abort();
+    if (error.status === 409) {
+      return setStatus(`job ${id} had finished before Cancel (${error.message}): stopped ` +
+        "fetching its results; press Reconstruct to run it again", "warning");
+    }
     setStatus(`job ${id}: stopped waiting, but the server could not cancel it ` +
       `(${error.message}); it may still run`, "error");
   }

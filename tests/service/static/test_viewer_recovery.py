@@ -225,6 +225,35 @@ def test_results_the_server_is_too_busy_to_make_are_asked_for_again(
         assert page.inner_text("#status") == f"job {job_id}: succeeded"
 
 
+def test_cancel_after_the_job_finished_stops_fetching_its_results(
+    browser: Browser, redis_url: str, frame: Path, tmp_path: Path
+) -> None:
+    """Cancel pressed while a succeeded job's previews were refused 503 server_busy: the
+    server answered 409 (already succeeded) and the page went on asking for them, after
+    each Retry-After, with nothing said; now it stops and says why."""
+    settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
+    app = create_app(settings)
+    with serve(app) as url:
+        page = open_viewer(browser, url)
+        results = api_requests(page, "/result")
+        job_id = submit(page, frame)  # no worker yet: the job waits in the queue
+        slots = app.state.mcam.decode_slots
+        assert slots.take()  # another request's preview
+        with running_worker(settings):
+            wait_for_js(page, "document.getElementById('status').textContent.includes('succeeded')")
+            deadline = time.monotonic() + 30
+            while not results and time.monotonic() < deadline:
+                page.wait_for_timeout(50)
+            page.click("#cancel")
+            status = wait_for_status(page, "stopped fetching")
+            assert f"job {job_id} already succeeded" in status, status
+            asked = len(results)
+            slots.release()
+            page.wait_for_timeout(3_000)  # past the refused previews' Retry-After
+        assert len(results) == asked
+        assert panels_empty(page) and page.is_enabled("#run") and page.is_disabled("#cancel")
+
+
 def test_a_rate_limited_poll_waits_as_retry_after_says(
     browser: Browser, redis_url: str, frame: Path, tmp_path: Path
 ) -> None:
