@@ -11,12 +11,16 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import httpx
 import pytest
 
+from service.api.in_turn import BUSY_RETRY_AFTER_S
+from service.api.state import Slots
 from service.core.config import Settings
 from service.main import create_app
 from tests.service.conftest import (
@@ -198,12 +202,14 @@ def test_panels_show_only_a_succeeded_job(
     assert errors == []
 
 
-def test_results_the_server_is_too_busy_to_make_are_asked_for_again(
+@contextmanager
+def previews_refused(
     browser: Browser, redis_url: str, frame: Path, tmp_path: Path
-) -> None:
-    """Previews take a turn of MCAM_MAX_CONCURRENT_DECODES and answer 503 server_busy
-    past MCAM_DECODE_WAIT_S (here 0): the page asks again after Retry-After, and shows
-    the results once a turn comes (it gave up at the first 503)."""
+) -> Iterator[tuple[Page, str, Slots]]:
+    """A viewer whose job succeeded while the API's one decode turn (MCAM_MAX_CONCURRENT
+    _DECODES 1, MCAM_DECODE_WAIT_S 0) was held, so that its previews are refused 503
+    server_busy: yields the page, the job id and the turns (release one to end the refusals)
+    once a preview was refused, with the worker still running."""
     settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
     app = create_app(settings)
     with serve(app) as url:
@@ -220,8 +226,18 @@ def test_results_the_server_is_too_busy_to_make_are_asked_for_again(
             while not refused and time.monotonic() < deadline:
                 page.wait_for_timeout(50)
             assert refused, "no result was refused while the one slot was held"
-            slots.release()
-            wait_for_panels(page)
+            yield page, job_id, slots
+
+
+def test_results_the_server_is_too_busy_to_make_are_asked_for_again(
+    browser: Browser, redis_url: str, frame: Path, tmp_path: Path
+) -> None:
+    """Previews take a turn of MCAM_MAX_CONCURRENT_DECODES and answer 503 server_busy
+    past MCAM_DECODE_WAIT_S (here 0): the page asks again after Retry-After, and shows
+    the results once a turn comes (it gave up at the first 503)."""
+    with previews_refused(browser, redis_url, frame, tmp_path) as (page, job_id, slots):
+        slots.release()
+        wait_for_panels(page)
         assert page.inner_text("#status") == f"job {job_id}: succeeded"
 
 
@@ -231,26 +247,14 @@ def test_cancel_after_the_job_finished_stops_fetching_its_results(
     """Cancel pressed while a succeeded job's previews were refused 503 server_busy: the
     server answered 409 (already succeeded) and the page went on asking for them, after
     each Retry-After, with nothing said; now it stops and says why."""
-    settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
-    app = create_app(settings)
-    with serve(app) as url:
-        page = open_viewer(browser, url)
+    with previews_refused(browser, redis_url, frame, tmp_path) as (page, job_id, slots):
         results = api_requests(page, "/result")
-        job_id = submit(page, frame)  # no worker yet: the job waits in the queue
-        slots = app.state.mcam.decode_slots
-        assert slots.take()  # another request's preview
-        with running_worker(settings):
-            wait_for_js(page, "document.getElementById('status').textContent.includes('succeeded')")
-            deadline = time.monotonic() + 30
-            while not results and time.monotonic() < deadline:
-                page.wait_for_timeout(50)
-            page.click("#cancel")
-            status = wait_for_status(page, "stopped fetching")
-            assert f"job {job_id} already succeeded" in status, status
-            asked = len(results)
-            slots.release()
-            page.wait_for_timeout(3_000)  # past the refused previews' Retry-After
-        assert len(results) == asked
+        page.click("#cancel")
+        status = wait_for_status(page, "stopped fetching")
+        assert f"job {job_id} already succeeded" in status, status
+        slots.release()
+        page.wait_for_timeout((BUSY_RETRY_AFTER_S + 1) * 1000)
+        assert results == []
         assert panels_empty(page) and page.is_enabled("#run") and page.is_disabled("#cancel")
 
 
