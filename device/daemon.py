@@ -17,6 +17,7 @@ import logging
 import os
 import queue
 import select
+import stat
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -87,12 +88,50 @@ def check_port_url(url: str) -> None:
 
 def port_problem(url: str, exc: Exception) -> str:
     """Why the port at ``url`` did not open. For a device path where nothing is (no
-    directory, no file, a link to nothing), that and what to do: pyserial said only 'No
-    such file or directory', naming the path three times."""
-    if "://" not in url and not os.path.exists(url):
+    directory, no file, a link to nothing) or something that is not a terminal (a
+    directory, a regular file, /dev/null), that and what to do: pyserial said only 'No
+    such file or directory', naming the path three times, or 'Could not configure port:
+    (25, 'Inappropriate ioctl for device')', naming none."""
+    if "://" in url:
+        return str(exc) or type(exc).__name__
+    if not os.path.exists(url):
         return (f"{_missing(Path(url))}: check --port, or plug the camera in or start "
                 "mcam simulate-device (it prints the path to give)")
-    return str(exc) or type(exc).__name__
+    kind = _not_a_terminal(url)
+    if kind is None:
+        return str(exc) or type(exc).__name__
+    return (f"{url} is {kind}, not a serial port: check --port (a camera is a terminal "
+            "device such as /dev/ttyACM0; mcam simulate-device prints the path to give)")
+
+
+def _not_a_terminal(path: str) -> str | None:
+    """What ``path`` is when it is plainly no terminal (None when it may be one: a
+    character device that opens as a tty, or one that cannot be looked at)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    kinds = ((stat.S_ISDIR, "a directory"), (stat.S_ISREG, "a regular file"),
+             (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket file"))  # fmt: skip
+    for test, kind in kinds:
+        if test(mode):
+            return kind
+    if stat.S_ISCHR(mode) and not _is_tty(path):
+        return "a character device that is not a terminal"
+    return None
+
+
+def _is_tty(path: str) -> bool:
+    """Whether the character device at ``path`` is a terminal (True when it cannot be
+    opened to tell: the port's own error says why)."""
+    try:
+        descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
+    except OSError:
+        return True
+    try:
+        return os.isatty(descriptor)
+    finally:
+        os.close(descriptor)
 
 
 def _missing(path: Path) -> str:

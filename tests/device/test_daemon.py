@@ -251,6 +251,28 @@ def test_a_port_that_does_not_exist_says_so_and_what_to_do_and_is_retried(
     assert f"cannot open {port}: {reason}; retrying" in caplog.records[0].getMessage()
 
 
+@pytest.mark.parametrize(("name", "kind"), [
+    ("folder", "a directory"),
+    ("plain", "a regular file"),
+    ("/dev/null", "a character device that is not a terminal"),
+], ids=["directory", "regular-file", "dev-null"])
+def test_a_port_that_is_no_terminal_says_what_it_is(
+        client: redis.Redis, tmp_path: Path, name: str, kind: str) -> None:
+    """pyserial said 'Could not configure port: (25, 'Inappropriate ioctl for device')'
+    for a regular file or /dev/null, naming neither the path nor what to do."""
+    port = tmp_path / name
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "plain").write_bytes(b"")
+    reason = (f"{port} is {kind}, not a serial port: check --port (a camera is a terminal "
+              "device such as /dev/ttyACM0; mcam simulate-device prints the path to give)")
+    daemon = DeviceDaemon(DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05),
+                          client).start()
+    try:
+        assert wait_for(lambda: health(client, "cam1").get("port_error") == reason, 10)
+    finally:
+        daemon.stop()
+
+
 def test_a_wild_sequence_jump_is_a_gap_not_trillions_of_missing_frames(
         client: redis.Redis) -> None:
     daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client)
