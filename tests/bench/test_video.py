@@ -6,13 +6,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from bench import video
-from models.decoders.classical import ItohDecoder
-from models.formation import SensorParams
 from models.video_clips import make_clip
+from tests.bench.virtual_clock import LATER_NS, SlowFirstItoh, VirtualClock
 from worker.temporal import StreamDecoder
 
 
@@ -53,30 +51,6 @@ def test_tiny_run_writes_json_and_markdown(tmp_path: Path) -> None:
     assert "| static_noise | modulo | itoh |" in out.with_suffix(".md").read_text()
 
 
-class VirtualClock:
-    """Nanoseconds that pass only when a decoder spends them (no real timing)."""
-
-    def __init__(self) -> None:
-        self.now = 0
-
-    def __call__(self) -> int:
-        return self.now
-
-
-class SlowFirstItoh(ItohDecoder):
-    """itoh whose first frame costs 1 s of ``clock`` (as a net's session creation does)
-    and every later frame 1 ms."""
-
-    def __init__(self, clock: VirtualClock) -> None:
-        self.clock = clock
-        self.calls = 0
-
-    def predict_winding(self, m: np.ndarray, params: SensorParams) -> np.ndarray:
-        self.clock.now += 10**9 if self.calls == 0 else 10**6
-        self.calls += 1
-        return super().predict_winding(m, params)
-
-
 def test_a_mode_s_time_per_frame_leaves_out_the_decoder_s_first_call() -> None:
     """The first mode timed paid for the decoder's warm-up (a net's ONNX session), which
     made the temporal mode look cheaper than the independent one."""
@@ -84,4 +58,4 @@ def test_a_mode_s_time_per_frame_leaves_out_the_decoder_s_first_call() -> None:
     clock = VirtualClock()
     decoder = StreamDecoder("independent", SlowFirstItoh(clock))
     row = video.run_mode(enc, decoder, clock)
-    assert row["ms_per_frame"] == pytest.approx(1.0)
+    assert row["ms_per_frame"] == pytest.approx(LATER_NS / 1e6)
