@@ -4,8 +4,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
 
 from bench import tradeoff
+from models.decoders.budget import BudgetDecoder
+from models.decoders.classical import ItohDecoder
+from models.formation import SensorParams
+from models.scenes import val256_frames
+from tests.bench.virtual_clock import LATER_NS, VirtualClock
 
 
 def test_pareto_marks_only_undominated_rows() -> None:
@@ -54,3 +63,33 @@ def test_quick_run_writes_json_markdown_and_plot(tmp_path: Path) -> None:
     assert plot.read_bytes()[:4] == b"\x89PNG"
     assert "| itoh |" in out.with_suffix(".md").read_text()
     assert "(numpy " in out.with_suffix(".md").read_text()
+
+
+class LabelledBudget(BudgetDecoder):
+    """A latency budget that chooses a new "quality" on every decode (as a learning budget
+    may) and spends its call count in ms of ``clock``: call k is labelled ``k``, takes k
+    ms and decodes as itoh."""
+
+    def __init__(self, clock: VirtualClock) -> None:
+        super().__init__(2.6)
+        self.clock = clock
+        self.calls = 0
+
+    def explain_within(
+        self, m: np.ndarray, params: SensorParams, budget_ms: float
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        self.calls += 1
+        self.clock.now += self.calls * LATER_NS
+        return ItohDecoder().predict_winding(m, params), {"budget": {"chosen": str(self.calls)}}
+
+
+def test_a_budget_s_ms_choices_and_share_in_time_come_from_the_same_decodes() -> None:
+    """The choices and PSNR came from each frame's first decode, the ms from the median of
+    three later ones (which may choose otherwise), and the medians hid decodes over
+    budget."""
+    clock = VirtualClock()
+    frames = val256_frames("mantissa")[:2]
+    row = tradeoff.measure(LabelledBudget(clock), frames, repeats=3, clock=clock)
+    assert row["chosen"] == {"2": 1, "3": 1}
+    assert row["ms_per_frame"] == pytest.approx(2.5)
+    assert row["within_budget"] == 0.5
