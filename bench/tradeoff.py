@@ -193,14 +193,23 @@ def prediction_ratios(frames: list[ValFrame], repeats: int) -> dict[str, dict[st
 
 def pareto(rows: list[dict[str, Any]]) -> None:
     """Mark rows no other row beats on both ms/frame and PSNR."""
-    for row in rows:
-        row["pareto"] = not any(
+    for row, front in zip(rows, undominated(rows, "psnr_db"), strict=True):
+        row["pareto"] = front
+
+
+def undominated(rows: list[dict[str, Any]], key: str) -> list[bool]:
+    """Whether each row is on the Pareto front of ms/frame against ``key`` (a PSNR, dB):
+    no other row is at least as fast and as accurate and better in one of them."""
+    return [
+        not any(
             other is not row
             and other["ms_per_frame"] <= row["ms_per_frame"]
-            and other["psnr_db"] >= row["psnr_db"]
-            and (other["ms_per_frame"], other["psnr_db"]) != (row["ms_per_frame"], row["psnr_db"])
+            and other[key] >= row[key]
+            and (other["ms_per_frame"], other[key]) != (row["ms_per_frame"], row[key])
             for other in rows
         )
+        for row in rows
+    ]
 
 
 #: ONNX opset of the peak's MatMul graph (that of the exported nets).
@@ -428,7 +437,9 @@ def budget_lines(report: dict[str, Any]) -> list[str]:
 
 
 def plot(report: dict[str, Any], path: Path) -> None:
-    """PSNR and PU21-PSNR against ms/frame on val-256, Pareto front joined."""
+    """PSNR and PU21-PSNR against ms/frame on val-256, each panel's own Pareto front
+    marked and joined (the PU21 panel showed the PSNR front, which leaves out decoders
+    on the PU21 one: mantissanet-small and -small-noise on 2026-11-27)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -438,10 +449,14 @@ def plot(report: dict[str, Any], path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     panels = (("psnr_db", "PSNR"), ("pu21_psnr_db", "PU21-PSNR"))
     for ax, (key, label) in zip(axes, panels, strict=True):
-        for r in rows:
-            ax.scatter(r["ms_per_frame"], r[key], color="C1" if r["pareto"] else "C0")
+        on_front = undominated(rows, key)
+        for r, marked in zip(rows, on_front, strict=True):
+            ax.scatter(r["ms_per_frame"], r[key], color="C1" if marked else "C0")
             ax.annotate(r["decoder"], (r["ms_per_frame"], r[key]), fontsize=7)
-        front = sorted((r for r in rows if r["pareto"]), key=lambda r: r["ms_per_frame"])
+        front = sorted(
+            (r for r, marked in zip(rows, on_front, strict=True) if marked),
+            key=lambda r: r["ms_per_frame"],
+        )
         ax.plot([r["ms_per_frame"] for r in front], [r[key] for r in front], "C1--")
         ax.set_xscale("log")
         ax.set_xlabel("ms per 256x256 frame (2 cores)")

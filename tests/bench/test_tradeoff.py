@@ -28,6 +28,18 @@ def test_pareto_marks_only_undominated_rows() -> None:
     assert [r["pareto"] for r in rows] == [True, True, False, True]
 
 
+def test_the_pu21_front_is_taken_on_pu21_psnr() -> None:
+    """The plot's PU21-PSNR panel joined the PSNR front (val-256, 2026-11-27: it left out
+    mantissanet-small, on the PU21 front but not on the PSNR one)."""
+    rows = [
+        {"decoder": "fast", "ms_per_frame": 1.0, "psnr_db": 20.0, "pu21_psnr_db": 30.0},
+        {"decoder": "psnr-best", "ms_per_frame": 10.0, "psnr_db": 25.0, "pu21_psnr_db": 31.0},
+        {"decoder": "pu21-best", "ms_per_frame": 12.0, "psnr_db": 24.0, "pu21_psnr_db": 33.0},
+    ]
+    assert tradeoff.undominated(rows, "psnr_db") == [True, True, False]
+    assert tradeoff.undominated(rows, "pu21_psnr_db") == [True, True, True]
+
+
 def test_speedups_compare_auto_with_networks_alone_or_refined_at_most_as_accurate() -> None:
     rows = [
         {"decoder": "auto-fast", "ms_per_frame": 2.0, "winding_accuracy": 0.99, "psnr_db": 40.0},
