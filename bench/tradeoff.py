@@ -55,7 +55,7 @@ from models.decoders.cost_model import adaptive as budget_adaptive
 from models.decoders.cost_model import predicted_ms
 from models.decoders.learned import make_session, ort_spinning, worker_threads
 from models.formation import SensorParams, dequantize, simulate
-from models.scene_analysis import analyse
+from models.scene_analysis import FrameAnalysis, analyse
 from models.scenes import (
     VAL256_BITS,
     VAL256_MAX_WRAPS,
@@ -163,19 +163,30 @@ def measure(
     return row
 
 
-def prediction_ratios(frames: list[ValFrame], repeats: int) -> dict[str, dict[str, float]]:
-    """How well the latency-budget cost model (:func:`models.decoders.cost_model.predicted_ms`)
-    predicts each quality of ``auto``: per quality, the geometric mean, least and
-    greatest ratio of predicted to measured ms (median of ``repeats``) of the W
-    prediction after the scene analysis, over the frames with residues."""
+#: A cost model's predicted ms of a quality of ``auto`` on a frame (its analysis, shape
+#: and parameters): :func:`models.decoders.cost_model.predicted_ms`.
+Predictor = Callable[[str, FrameAnalysis, tuple[int, int], SensorParams], float]
+
+
+def prediction_ratios(
+    frames: list[ValFrame], repeats: int, predict: Predictor = predicted_ms
+) -> dict[str, dict[str, float]]:
+    """How well the latency-budget cost model (``predict``:
+    :func:`models.decoders.cost_model.predicted_ms`) predicts each quality of ``auto``:
+    per quality, the geometric mean, least and greatest ratio of predicted to measured ms
+    (median of ``repeats``) of the W prediction after the scene analysis, over the
+    frames with residues. A frame without residues is known by its analysis; it was
+    known by a prediction of 0 ms, which it gets only when the routing's own cost per
+    pixel calibrates to 0 (on this host it measures 0 or 3-13 ns a pixel from process to
+    process), so in some runs such frames were counted."""
     ratios: dict[str, list[float]] = {quality: [] for quality in QUALITIES}
     for frame in frames:
         m = dequantize(frame.codes, frame.params.bits)
         analysis = analyse(m, frame.params, DEFAULT_TILE)
+        if analysis.itoh_likely:
+            continue
         for quality in QUALITIES:
-            predicted = predicted_ms(quality, analysis, m.shape, frame.params)
-            if predicted == 0.0:
-                continue
+            predicted = predict(quality, analysis, m.shape, frame.params)
             decode = partial(budget_adaptive(quality).explain_analysed, m, frame.params, analysis)
             measured = median_ms(decode, repeats)
             ratios[quality].append(predicted / measured)

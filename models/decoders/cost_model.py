@@ -226,8 +226,9 @@ def predicted_ms(
     """Predicted W time (ms, without the analysis) of ``auto-<quality>`` on this frame:
     its stages (:func:`stage_ns`) and the rest, per pixel (:func:`overhead_ns_per_pixel`).
     A frame without residues has no costly stage, only the rest (integration,
-    anchoring): predicted at 0 ms, its measured time had taught the budget's speed
-    factors that every quality runs slow."""
+    anchoring): predicted as the rest alone (0 ms when its cost per pixel calibrates to
+    0), its measured time had taught the budget's speed factors that every quality runs
+    slow."""
     overhead_ns = shape[0] * shape[1] * overhead_ns_per_pixel(quality, params.encoding)
     if analysis.frame.difficulty in ("none", "smooth"):
         return overhead_ns / 1e6

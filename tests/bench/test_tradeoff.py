@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from bench import tradeoff
+from models.decoders.adaptive_policy import DEFAULT_TILE
 from models.decoders.budget import BudgetDecoder
 from models.decoders.classical import ItohDecoder
-from models.formation import SensorParams
+from models.formation import SensorParams, dequantize
+from models.scene_analysis import analyse
 from models.scenes import val256_frames
 from tests.bench.virtual_clock import LATER_NS, VirtualClock
 
@@ -105,3 +107,19 @@ def test_a_budget_s_ms_choices_and_share_in_time_come_from_the_same_decodes() ->
     assert row["chosen"] == {"2": 1, "3": 1}
     assert row["ms_per_frame"] == pytest.approx(2.5)
     assert row["within_budget"] == 0.5
+
+
+def test_cost_model_ratios_leave_out_frames_without_residues_by_their_analysis() -> None:
+    """They were left out by a prediction of 0 ms, which a frame without residues gets
+    only when the routing's own cost per pixel calibrates to 0 (it measures 0 or 3-13
+    ns a pixel on one host from process to process); a constant prediction stands for
+    a host where it does not."""
+    frames = tradeoff.glow_frames(12)
+    smooth = [
+        f
+        for f in frames
+        if analyse(dequantize(f.codes, f.params.bits), f.params, DEFAULT_TILE).itoh_likely
+    ]
+    assert smooth
+    ratios = tradeoff.prediction_ratios(smooth[:1], 1, predict=lambda *_: 1.0)
+    assert ratios == {}
