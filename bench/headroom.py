@@ -35,7 +35,7 @@ from bench import RESULTS, at_least, entry_point, host_facts, host_line, refuse_
 from models.decoders import get_decoder
 from models.decoders.adaptive_policy import most_accurate_net
 from models.formation import SensorParams, dequantize, from_unwrapped, to_unwrapped
-from models.metrics import psnr, winding_accuracy
+from models.metrics import mean_capped_psnr, psnr, winding_accuracy
 from models.scenes import ValFrame, val256_frames
 
 ENCODINGS = ("mantissa", "modulo")
@@ -95,7 +95,9 @@ def reachable_share(frames: list[ValFrame], reach: list[NDArray[np.bool_]]) -> d
 
 
 def decoder_row(name: str, frames: list[ValFrame], reach: list[NDArray[np.bool_]]) -> dict:
-    """Mean PSNR and W accuracy of ``name`` as decoded and with each group's W put right."""
+    """Mean PSNR and W accuracy of ``name`` as decoded and with each group's W put right;
+    an exact frame's PSNR counts at :data:`models.metrics.PSNR_CAP` (its inf made the mean
+    inf)."""
     decoder = get_decoder(name)
     scores: dict[str, list[float]] = {"as_decoded": [], **{g: [] for g in GROUPS}}
     accuracy = []
@@ -110,7 +112,7 @@ def decoder_row(name: str, frames: list[ValFrame], reach: list[NDArray[np.bool_]
     return {
         "decoder": name,
         "winding_accuracy": float(np.mean(accuracy)),
-        "psnr": {key: float(np.mean(values)) for key, values in scores.items()},
+        "psnr": {key: mean_capped_psnr(values) for key, values in scores.items()},
     }
 
 

@@ -12,7 +12,8 @@ shape mismatches with :class:`InvalidInputError`.
   The PU21 reference's ``pu21_metric`` takes a peak of 256 instead: its figures are
   20 log10(595.4 / 256) = 7.33 dB below these on the same images.
 - ``capped_psnr``: a PSNR averaged over frames, capped at ``PSNR_CAP`` dB (an exact
-  frame's inf counts as the cap, so one bad frame among exact ones still shows).
+  frame's inf counts as the cap, so one bad frame among exact ones still shows);
+  ``mean_capped_psnr`` averages them.
 - ``ssim`` / ``ms_ssim``: on Reinhard-tonemapped luminance (key 0.18 of the
   reference's log-average luminance, the same scale applied to both images).
   SSIM uses an 11 x 11 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, data
@@ -26,6 +27,8 @@ shape mismatches with :class:`InvalidInputError`.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -127,6 +130,13 @@ def capped_psnr(value: float) -> float:
     if np.isnan(value) or value == -np.inf:
         raise InvalidInputError(f"a PSNR of {value} cannot be averaged: it is not a number")
     return min(float(value), PSNR_CAP)
+
+
+def mean_capped_psnr(values: Iterable[float]) -> float:
+    """Mean of per-frame PSNRs (dB), each at most :data:`PSNR_CAP` (:func:`capped_psnr`);
+    NaN for no frame."""
+    capped = [capped_psnr(value) for value in values]
+    return float(np.mean(capped)) if capped else float("nan")
 
 
 def reinhard(image: ArrayLike, reference: ArrayLike) -> NDArray[np.float64]:

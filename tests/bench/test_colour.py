@@ -10,6 +10,7 @@ import pytest
 from bench import colour
 from models.decoders.adaptive import AdaptiveDecoder
 from models.decoders.colour import ColourDecoder
+from models.metrics import PSNR_CAP
 
 
 def test_the_tuning_set_holds_two_crops_of_every_training_scene_apart_from_val() -> None:
@@ -59,3 +60,15 @@ def test_decoders_joint_already_are_a_usage_error(
         colour.parse_args(["--decoders", "itoh", name])
     assert exited.value.code == 2
     assert f"decoders {name} make the channels consistent themselves" in capsys.readouterr().err
+
+
+def test_an_exact_frame_counts_at_the_psnr_cap_in_means_and_changes() -> None:
+    """It was left out of both: a frame exact alone and at 30 dB made consistent counted
+    as no loss, and the alone mean read 30 dB."""
+    decoded = {"winding_accuracy": 1.0, "all_channels_right": 1.0, "ms_per_frame": 1.0}
+    alone = {**decoded, "psnr_db": [float("inf"), 30.0], "pu21_psnr_db": [float("inf"), 30.0]}
+    joint = {**decoded, "psnr_db": [30.0, 30.0], "pu21_psnr_db": [30.0, 30.0]}
+    row = colour.summary(alone, joint)
+    assert row["alone"]["psnr_db"] == row["alone"]["pu21_psnr_db"] == (PSNR_CAP + 30.0) / 2
+    assert row["worst_frame_change_db"] == 30.0 - PSNR_CAP
+    assert row["frames_losing_0_5_db"] == 1

@@ -6,8 +6,12 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bench import headroom
+from models.formation import to_unwrapped
+from models.metrics import PSNR_CAP
+from tests.bench.exact_frames import exact_and_wrong
 
 
 def test_a_smooth_ramp_is_reachable_everywhere() -> None:
@@ -43,3 +47,12 @@ def test_report_puts_true_w_back_per_group(tmp_path: Path) -> None:
     assert set(psnr) == {"as_decoded", *headroom.GROUPS}
     assert psnr["low_w"] >= psnr["as_decoded"] and psnr["high_w"] >= psnr["as_decoded"]
     assert "| itoh |" in out.with_suffix(".md").read_text()
+
+
+def test_an_exact_frame_counts_at_the_psnr_cap() -> None:
+    """Its inf made every mean PSNR of the decoder inf."""
+    frames = exact_and_wrong()
+    reach = [headroom.reachable(to_unwrapped(f.x, f.params), f.winding) for f in frames]
+    both = headroom.decoder_row("itoh", frames, reach)["psnr"]
+    wrong = headroom.decoder_row("itoh", frames[1:], reach[1:])["psnr"]
+    assert both["as_decoded"] == pytest.approx((PSNR_CAP + wrong["as_decoded"]) / 2)

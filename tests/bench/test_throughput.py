@@ -11,6 +11,8 @@ import pytest
 
 from bench import throughput
 from models.decoders.learned import THREADS_ENV
+from models.metrics import PSNR_CAP
+from tests.bench.exact_frames import exact_and_wrong
 
 
 def test_layouts_fill_the_cores_three_ways_and_one_core_one_way() -> None:
@@ -70,3 +72,11 @@ def test_a_worker_process_that_fails_ends_the_run_with_one_line() -> None:
             "no-such-decoder", throughput.FrameSet("mantissa", 1), (2, 1, 1), 1
         )
     assert "a worker process failed (exit code 1)" in str(stopped.value.code)
+
+
+def test_an_exact_frame_counts_at_the_psnr_cap() -> None:
+    """Its inf made the decoder's mean PSNR inf."""
+    frames = exact_and_wrong()
+    assert throughput.mean_psnr("itoh", frames) == pytest.approx(
+        (PSNR_CAP + throughput.mean_psnr("itoh", frames[1:])) / 2
+    )

@@ -10,12 +10,15 @@ import numpy as np
 import pytest
 
 from bench import tradeoff
+from models import metrics
 from models.decoders.adaptive_policy import DEFAULT_TILE
 from models.decoders.budget import BudgetDecoder
 from models.decoders.classical import ItohDecoder
+from models.decoders.registry import get_decoder
 from models.formation import SensorParams, dequantize
 from models.scene_analysis import analyse
 from models.scenes import val256_frames
+from tests.bench.exact_frames import exact_and_wrong
 from tests.bench.virtual_clock import LATER_NS, VirtualClock
 
 
@@ -123,3 +126,13 @@ def test_cost_model_ratios_leave_out_frames_without_residues_by_their_analysis()
     assert smooth
     ratios = tradeoff.prediction_ratios(smooth[:1], 1, predict=lambda *_: 1.0)
     assert ratios == {}
+
+
+def test_an_exact_frame_counts_at_the_psnr_cap() -> None:
+    """It was left out of the mean: one 20 dB frame beside an exact one read 20 dB."""
+    frames = exact_and_wrong()
+    row = tradeoff.measure(get_decoder("itoh"), frames, repeats=1)
+    wrong = metrics.psnr(get_decoder("itoh").decode(frames[1].codes, frames[1].params)
+                         .irradiance, frames[1].x)  # fmt: skip
+    assert row["exact_frames"] == 1
+    assert row["psnr_db"] == pytest.approx((metrics.PSNR_CAP + wrong) / 2)
