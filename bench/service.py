@@ -3,8 +3,9 @@
 Run as ``python -m bench.service``. Starts a private redis-server, the API
 (uvicorn, own process) and one worker (own process) on 127.0.0.1, then submits
 wrapped frames with ``Prefer: wait`` from 1, 4 and 16 concurrent clients. Reports
-jobs/s, p50/p99 request latency (ms), lost requests (any job not succeeded),
-and the overhead of the API + queue path over calling the decoder in-process:
+jobs/s and p50/p99 request latency (ms) of the jobs that succeeded, lost requests
+(any job not succeeded), and the overhead of the API + queue path over calling the
+decoder in-process:
 ``(p50 latency at 1 client - in-process decode time) / in-process decode time``.
 Prints a Markdown table and writes ``bench/results/service.json`` and ``service.md``, with
 the date, the machine, the package versions and the load average at the end.
@@ -143,15 +144,26 @@ def run_level(url: str, clients: int, jobs: int, data: bytes, decoder: str) -> d
                 executor.map(lambda i: one_job(pool[i % clients], data, decoder), range(jobs))
             )
         elapsed = time.perf_counter() - start
-    latencies = np.array([latency for latency, _ in outcomes]) * 1e3
+    return level_figures(clients, outcomes, elapsed)
+
+
+def level_figures(
+    clients: int, outcomes: list[tuple[float, dict[str, Any]]], elapsed_s: float
+) -> dict[str, Any]:
+    """One level's figures from its requests' ``outcomes`` (latency in s, the job's final
+    record) over ``elapsed_s`` of wall time: the jobs that succeeded per second, their
+    p50 and p99 latency in ms (None when none did), and how many were lost. A lost
+    request (refused, failed) counted as a job done: answered at once, it raised jobs/s
+    and lowered the percentiles."""
     done = [(latency, job) for latency, job in outcomes if job.get("state") == "succeeded"]
+    latencies_ms = [1e3 * latency for latency, _ in done]
     return {
         "clients": clients,
-        "jobs": jobs,
-        "jobs_per_s": jobs / elapsed,
-        "p50_ms": float(np.percentile(latencies, 50)),
-        "p99_ms": float(np.percentile(latencies, 99)),
-        "lost": jobs - len(done),
+        "jobs": len(outcomes),
+        "jobs_per_s": len(done) / elapsed_s,
+        "p50_ms": float(np.percentile(latencies_ms, 50)) if done else None,
+        "p99_ms": float(np.percentile(latencies_ms, 99)) if done else None,
+        "lost": len(outcomes) - len(done),
         "median_stage_ms": median_stages(done),
     }
 
@@ -206,14 +218,15 @@ def measure(decoder: str, jobs_per_client: int) -> dict[str, Any]:
                 levels = [
                     run_level(url, n, max(jobs_per_client * n, 10), data, decoder) for n in CLIENTS
                 ]
-    single = levels[0]
+    single_ms = levels[0]["p50_ms"]
+    overhead_ms = None if single_ms is None else single_ms - decode_ms
     return {
         **host_facts(),
         "decoder": decoder,
         "size": f"{SIZE}x{SIZE}",
         "in_process_decode_ms": decode_ms,
-        "overhead_ms": single["p50_ms"] - decode_ms,
-        "overhead_pct": 100.0 * (single["p50_ms"] - decode_ms) / decode_ms,
+        "overhead_ms": overhead_ms,
+        "overhead_pct": None if overhead_ms is None else 100.0 * overhead_ms / decode_ms,
         "levels": levels,
         "lost_total": sum(level["lost"] for level in levels),
     }
@@ -221,11 +234,16 @@ def measure(decoder: str, jobs_per_client: int) -> dict[str, Any]:
 
 def markdown(result: dict[str, Any]) -> str:
     """The report as Markdown: a header line (date, machine, load) and one row per level."""
+    overhead = (
+        "none measured (no job succeeded)"
+        if result["overhead_ms"] is None
+        else f"{result['overhead_ms']:.1f} ms ({result['overhead_pct']:.0f}% of decode)"
+    )
     lines = [
         f"bench.service, {host_line(result)}. Decoder "
         f"{result['decoder']} at {result['size']}: in-process decode "
         f"{result['in_process_decode_ms']:.1f} ms; API+queue overhead at 1 client "
-        f"{result['overhead_ms']:.1f} ms ({result['overhead_pct']:.0f}% of decode).",
+        f"{overhead}.",
         "",
         "| clients | jobs | jobs/s | p50 ms | p99 ms | lost "
         "| median stages (ms; api_http = latency - worker total) |",
@@ -235,9 +253,15 @@ def markdown(result: dict[str, Any]) -> str:
         stages = ", ".join(f"{k} {v:.1f}" for k, v in level["median_stage_ms"].items())
         lines.append(
             f"| {level['clients']} | {level['jobs']} | {level['jobs_per_s']:.1f} "
-            f"| {level['p50_ms']:.1f} | {level['p99_ms']:.1f} | {level['lost']} | {stages} |"
+            f"| {shown_ms(level['p50_ms'])} | {shown_ms(level['p99_ms'])} | {level['lost']} "
+            f"| {stages} |"
         )
     return "\n".join(lines)
+
+
+def shown_ms(value: float | None) -> str:
+    """A latency in ms for the table (``-``: no job succeeded)."""
+    return "-" if value is None else f"{value:.1f}"
 
 
 @one_line_errors

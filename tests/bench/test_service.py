@@ -34,3 +34,26 @@ def test_markdown_names_date_machine_and_load_and_has_a_row_per_level() -> None:
     assert "load average at the end [0.98, 1.14, 1.03]" in head
     assert rows[-1].startswith("| 1 | 10 | 61.4 | 14.8 | 22.2 | 0 | queue_wait 1.5")
     assert len(rows) == 3
+
+
+def test_a_lost_request_counts_in_neither_jobs_per_second_nor_latency() -> None:
+    """A refused or failed request, answered at once, counted as a job done: it raised
+    jobs/s and lowered the percentiles."""
+    outcomes = [
+        (0.020, {"state": "succeeded", "timings_ns": {"total": 10_000_000}}),
+        (0.001, {"state": "failed", "timings_ns": {"total": 500_000}}),
+        (0.001, {"error": {"code": "rate_limited"}}),
+    ]
+    level = service.level_figures(4, outcomes, elapsed_s=0.5)
+    assert level["jobs"] == 3 and level["lost"] == 2
+    assert level["jobs_per_s"] == 2.0
+    assert level["p50_ms"] == level["p99_ms"] == 20.0
+
+
+def test_a_level_where_no_job_succeeded_shows_no_latency() -> None:
+    level = service.level_figures(1, [(0.001, {"state": "failed"})], elapsed_s=0.5)
+    assert level["p50_ms"] is None and level["jobs_per_s"] == 0.0
+    result = {**report(), "levels": [level], "overhead_ms": None, "overhead_pct": None}
+    text = service.markdown(result)
+    assert "overhead at 1 client none measured (no job succeeded)" in text
+    assert text.splitlines()[-1].startswith("| 1 | 1 | 0.0 | - | - | 1 |")
