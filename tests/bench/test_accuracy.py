@@ -14,7 +14,10 @@ import pytest
 
 from bench import accuracy, json_safe, machine, versions
 from models.errors import InvalidInputError
+from models.formation import dequantize
 from models.metrics import PSNR_CAP
+from models.scenes import val256_frames
+from tests.bench.virtual_clock import LATER_NS, PricedItoh, VirtualClock
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -144,3 +147,15 @@ def test_winding_recall_counts_right_pixels_per_true_winding() -> None:
     recall = accuracy.winding_recall([(estimate, truth)])
     assert recall["0"] == 2 / 3 and recall["1"] == 0.5 and recall["2"] == 1.0
     assert recall["3"] is None and recall["5+"] == 0.5
+
+
+def test_ms_per_frame_is_the_median_over_frames_of_each_frame_s_median() -> None:
+    """The times were pooled: the frames timed repeatedly (the first scene's) counted
+    ``repeats`` times, so one slow frame timed 3 times among 3 frames made the median."""
+    clock = VirtualClock()
+    frames = val256_frames("mantissa")[:3]
+    slow = dequantize(frames[0].codes, frames[0].params.bits).tobytes()
+    decoder = PricedItoh(clock, lambda m: (10 if m.tobytes() == slow else 1) * LATER_NS)
+    row = accuracy.measure(decoder, frames, repeats=3, time_frames=1, clock=clock)
+    assert row["ms_per_frame"] == LATER_NS / 1e6
+    assert row["timed_runs"] == 5

@@ -1,8 +1,11 @@
 """A clock that only a decoder moves, to check what a benchmark's timing includes without
-timing anything: :class:`SlowFirstItoh` spends 1 s of it on its first frame (as a net's
-ONNX session creation does) and 1 ms on every later one."""
+timing anything: :class:`PricedItoh` spends on each channel what its price says, and
+:class:`SlowFirstItoh` 1 s on its first channel (as a net's ONNX session creation does)
+and 1 ms on every later one."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -24,15 +27,26 @@ class VirtualClock:
         return self.now
 
 
-class SlowFirstItoh(ItohDecoder):
+class PricedItoh(ItohDecoder):
+    """itoh that spends ``price(m)`` ns of ``clock`` on each channel ``m`` it decodes."""
+
+    def __init__(self, clock: VirtualClock, price: Callable[[np.ndarray], int]) -> None:
+        self.clock = clock
+        self.price = price
+
+    def predict_winding(self, m: np.ndarray, params: SensorParams) -> np.ndarray:
+        self.clock.now += self.price(m)
+        return super().predict_winding(m, params)
+
+
+class SlowFirstItoh(PricedItoh):
     """itoh whose first channel decoded costs :data:`FIRST_NS` of ``clock``, every later
     one :data:`LATER_NS`."""
 
     def __init__(self, clock: VirtualClock) -> None:
-        self.clock = clock
+        super().__init__(clock, self.first_dearer)
         self.calls = 0
 
-    def predict_winding(self, m: np.ndarray, params: SensorParams) -> np.ndarray:
-        self.clock.now += FIRST_NS if self.calls == 0 else LATER_NS
+    def first_dearer(self, m: np.ndarray) -> int:
         self.calls += 1
-        return super().predict_winding(m, params)
+        return FIRST_NS if self.calls == 1 else LATER_NS
