@@ -27,6 +27,7 @@ from models.decoders import available_decoders
 from models.decoders.registry import get_decoder, name_patterns, resolve
 from models.errors import InvalidInputError, McamError
 from models.formation import Encoding, SensorParams
+from models.scenes import VAL256_CROPS_PER_SCENE, VAL_SCENES
 
 keep_freed_memory()
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -172,6 +173,22 @@ def at_least(minimum: int) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+#: Frames of the val-256 set (:func:`models.scenes.val256_frames`).
+VAL256_FRAMES = len(VAL_SCENES) * VAL256_CROPS_PER_SCENE
+
+
+def val256_count(text: str) -> int:
+    """An argparse ``type``: how many val-256 frames to use, 1 to :data:`VAL256_FRAMES`,
+    else the parser's usage error naming the value (more ran the whole set, and
+    bench.losses' report gave the count asked as the frames measured)."""
+    value = at_least(1)(text)
+    if value > VAL256_FRAMES:
+        raise argparse.ArgumentTypeError(
+            f"val-256 has {VAL256_FRAMES} frames, got {value}; give 1 to {VAL256_FRAMES}"
+        )
+    return value
 
 
 def above_zero(text: str) -> float:

@@ -31,7 +31,15 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from bench import RESULTS, at_least, entry_point, host_facts, host_line, refuse_unknown_decoders
+from bench import (
+    RESULTS,
+    VAL256_FRAMES,
+    entry_point,
+    host_facts,
+    host_line,
+    refuse_unknown_decoders,
+    val256_count,
+)
 from models.decoders import get_decoder
 from models.decoders.adaptive_policy import most_accurate_net
 from models.formation import SensorParams, dequantize, from_unwrapped, to_unwrapped
@@ -188,7 +196,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoders", nargs="+", help="default: itoh and the best winding net")
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
-    parser.add_argument("--frames", type=at_least(1), default=24, help="first N val-256 frames")
+    parser.add_argument(
+        "--frames", type=val256_count, default=VAL256_FRAMES, help="first N val-256 frames"
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "headroom.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders, encodings=args.encodings)

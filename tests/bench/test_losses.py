@@ -27,3 +27,12 @@ def test_study_trains_exports_and_measures_every_loss(tmp_path: Path) -> None:
 def test_bad_stages_are_refused_with_the_format() -> None:
     with pytest.raises(SystemExit):
         losses.parse_args(["--stages", "10,x"])
+
+
+def test_more_frames_than_val256_has_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    """The study ran the 24 frames and its report said the count asked."""
+    with pytest.raises(SystemExit) as exc:
+        losses.parse_args(["--frames", "30"])
+    assert exc.value.code == 2
+    assert "--frames: val-256 has 24 frames, got 30; give 1 to 24" in capsys.readouterr().err
+    assert losses.parse_args(["--frames", "24"]).frames == 24

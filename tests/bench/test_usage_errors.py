@@ -56,6 +56,11 @@ MANTISSA_ONLY = sorted(
         ("video", ["--frames", "1"], "--frames: must be at least 2, got 1"),
         ("video", ["--keyframe-interval", "-5"], "--keyframe-interval: must be at least 0, got -5"),
         ("profile", ["--runs", "x"], "'x' is not a whole number"),
+        # More val-256 frames than the set has ran the whole set under the count asked.
+        ("accuracy", ["--frames", "25"], "--frames: val-256 has 24 frames, got 25"),
+        ("headroom", ["--frames", "30"], "--frames: val-256 has 24 frames, got 30"),
+        ("throughput", ["--frames", "25"], "--frames: val-256 has 24 frames, got 25"),
+        ("tradeoff", ["--frames", "100"], "--frames: val-256 has 24 frames, got 100"),
     ],
 )
 def test_unknown_names_are_usage_errors(
