@@ -133,15 +133,20 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def flicker_reduction(independent: float, temporal: float) -> float | None:
     """How many times less wrap flicker temporal decoding has; None when neither mode
-    flickers (it read 0.0, and the 10x target as missed, on a clip with no flicker)."""
-    if independent == 0 and temporal == 0:
-        return None
-    return independent / max(temporal, 1e-12)
+    flickers (it read 0.0, and the 10x target as missed, on a clip with no flicker), inf
+    when only the independent mode does (it read the independent flicker over 1e-12: a
+    figure like 5e10 times, which no measurement made)."""
+    if temporal == 0:
+        return None if independent == 0 else float("inf")
+    return independent / temporal
 
 
 def shown_reduction(reduction: float | None) -> str:
-    """A flicker reduction in the table (``-``: neither mode flickers)."""
-    return "-" if reduction is None else f"{reduction:.1f}"
+    """A flicker reduction in the table (``-``: neither mode flickers; ``all``: temporal
+    decoding has none left)."""
+    if reduction is None:
+        return "-"
+    return "all" if reduction == float("inf") else f"{reduction:.1f}"
 
 
 def markdown_table(summary: list[dict[str, Any]], load: list[Sequence[float]]) -> str:

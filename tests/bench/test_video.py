@@ -59,3 +59,11 @@ def test_a_mode_s_time_per_frame_leaves_out_the_decoder_s_first_call() -> None:
     decoder = StreamDecoder("independent", SlowFirstItoh(clock))
     row = video.run_mode(enc, decoder, clock)
     assert row["ms_per_frame"] == pytest.approx(LATER_NS / 1e6)
+
+
+def test_flicker_all_gone_reads_as_such_not_as_a_ratio_over_a_tiny_floor() -> None:
+    """Independent flicker over a floor of 1e-12 read '50000000000.0 x less'."""
+    rows = [mode_row("independent", 0.05, 20.0, 10.0), mode_row("temporal", 0.0, 21.0, 8.0)]
+    (item,) = video.summarize(rows)
+    assert item["flicker_reduction"] == float("inf") and item["targets_met"]["flicker_10x"]
+    assert "| 0.05000 -> 0.00000 | all |" in video.markdown_table([item], [[1.0] * 3] * 2)
