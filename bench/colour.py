@@ -139,7 +139,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             for name in args.decoders:
                 alone, joint = pair(name)
                 row = summary(measure(alone, frames), measure(joint, frames))
-                rows.append({"set": set_name, "encoding": encoding, "decoder": name, **row})
+                rows.append(
+                    {"set": set_name, "encoding": encoding, "decoder": name,
+                     "frames": len(frames), **row}
+                )  # fmt: skip
                 print(markdown_row(rows[-1]), flush=True)
     return {
         "benchmark": "colour",
@@ -150,9 +153,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def markdown_row(row: dict[str, Any]) -> str:
+    """One table row, with the frames measured (a ``--frames`` subset showed as the whole
+    set)."""
     alone, joint = row["alone"], row["joint"]
     return (
-        f"| {row['set']} | {row['encoding']} | {row['decoder']} | "
+        f"| {row['set']} | {row['encoding']} | {row['decoder']} | {row['frames']} | "
         f"{alone['psnr_db']:.2f} -> {joint['psnr_db']:.2f} | "
         f"{alone['pu21_psnr_db']:.2f} -> {joint['pu21_psnr_db']:.2f} | "
         f"{100 * alone['winding_accuracy']:.2f} -> {100 * joint['winding_accuracy']:.2f} | "
@@ -168,9 +173,9 @@ def markdown(report: dict[str, Any]) -> str:
         f"Colour frames (read noise {report['read_noise']:g}), channels alone -> made "
         f"consistent, {host_line(report)}",
         "",
-        "| set | encoding | decoder | PSNR dB | PU21-PSNR dB | W acc % | all 3 right % "
-        "| frames +/- 0.5 dB | worst frame dB | ms/frame |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| set | encoding | decoder | frames | PSNR dB | PU21-PSNR dB | W acc % "
+        "| all 3 right % | frames +/- 0.5 dB | worst frame dB | ms/frame |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     lines += [markdown_row(row) for row in report["rows"]]
     return "\n".join(lines)
