@@ -280,6 +280,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=RESULTS / "stream.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, [args.decoder], encodings=[SCENES[args.scenes]])
+    if len(set(args.workers)) < len(args.workers):
+        parser.error(
+            f"--workers {' '.join(map(str, args.workers))} names a count twice: each count's "
+            "runs are reported under its name (e2e_<N>w_...), so a second run replaced the "
+            "first; give each count once"
+        )
     if args.frames < max(args.workers):
         parser.error(
             f"--frames {args.frames} is fewer than --workers {max(args.workers)}: the flood "

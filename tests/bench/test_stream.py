@@ -65,6 +65,14 @@ def test_fewer_frames_than_workers_is_a_usage_error(capsys: pytest.CaptureFixtur
     assert stream.parse_args(["--frames", "2", "--workers", "1", "2"]).frames == 2
 
 
+def test_a_worker_count_given_twice_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    """The second run's rows replaced the first's under the same names."""
+    with pytest.raises(SystemExit) as exc:
+        stream.parse_args(["--workers", "1", "2", "1"])
+    assert exc.value.code == 2
+    assert "--workers 1 2 1 names a count twice" in capsys.readouterr().err
+
+
 def test_the_report_records_the_paced_rate_and_its_markdown_names_date_host_and_load() -> None:
     args = stream.parse_args(["--latency-fps", "2.5", "--decoder", "herraez"])
     rows = {"e2e_1w_paced": {"frames_sent": 20, "latency_ms_p50": 72.4}}
