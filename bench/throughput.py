@@ -320,6 +320,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=RESULTS / "throughput.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders, encodings=[args.encoding])
+    cores = os.cpu_count() or 1
+    if args.cores is not None and args.cores > cores:
+        parser.error(
+            f"--cores {args.cores} is more than this machine's {cores} cores: the layouts "
+            f"would share them and the report say {args.cores} cores filled; give at most "
+            f"{cores}"
+        )
     return args
 
 

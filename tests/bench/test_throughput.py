@@ -66,6 +66,20 @@ def test_unknown_decoders_and_counts_below_one_are_refused(
     assert "must be at least 1, got 0" in capsys.readouterr().err
 
 
+def test_more_cores_than_the_machine_has_is_a_usage_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The layouts shared the cores and the report said that many cores were filled."""
+    cores = os.cpu_count() or 1
+    with pytest.raises(SystemExit) as exc:
+        throughput.parse_args(["--cores", str(cores + 1)])
+    assert exc.value.code == 2
+    assert f"--cores {cores + 1} is more than this machine's {cores} cores" in (
+        capsys.readouterr().err
+    )
+    assert throughput.parse_args(["--cores", str(cores)]).cores == cores
+
+
 def test_a_worker_process_that_fails_ends_the_run_with_one_line() -> None:
     with pytest.raises(SystemExit) as stopped:
         throughput.measure_layout(
