@@ -13,10 +13,10 @@
 
 for each decoder: PSNR and PU21-PSNR against the true irradiance, winding
 accuracy, ms/frame (median of repeats; a latency budget's: one decode per frame) and
-frames/s. It marks the Pareto front
-(no other point is both faster and more accurate), measures the machine's peak
-GFLOP/s with a float32 matrix multiply and reports each network's achieved
-GFLOP/s against it, prints Markdown tables and writes JSON and a PNG plot.
+frames/s. It marks the Pareto front (no other point is both faster and more
+accurate), measures the machine's peak GFLOP/s with a float32 matrix multiply and
+reports each network's achieved GFLOP/s against it, prints Markdown tables and writes
+JSON and a PNG plot.
 
 Latency budgets: ``auto-<N>ms`` for each of :data:`BUDGETS_MS` is measured like any
 decoder but on one timed decode per frame (:func:`measure`), plus the share of frames
