@@ -1,7 +1,9 @@
-"""service/cli/main.py: a file the command cannot read or write is one clear line, exit 2."""
+"""service/cli/main.py: a file the command cannot read or write is one clear line, exit 2;
+a command imports only its own module."""
 
 from __future__ import annotations
 
+import argparse
 import errno
 import os
 import subprocess
@@ -11,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cli.main import READER_GONE, file_problem, main
+from service.cli.main import COMMAND_MODULES, READER_GONE, build_parser, file_problem, main
 
 FLAGS = ("--encoding", "mantissa", "--alpha", "2", "--bits", "8")
 
@@ -69,3 +71,32 @@ def test_a_reader_that_goes_away_ends_the_command_quietly(tmp_path: Path) -> Non
         os.close(write_end)
     assert done.returncode == READER_GONE
     assert done.stderr == ""
+
+
+def commands(parser: argparse.ArgumentParser) -> set[str]:
+    """The command names ``parser`` accepts."""
+    [sub] = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return set(sub.choices)
+
+
+def test_a_named_command_builds_its_own_parser_alone() -> None:
+    assert commands(build_parser()) == set(COMMAND_MODULES)
+    for name in COMMAND_MODULES:
+        assert commands(build_parser(name)) == {name}
+    for other in (None, "", "simulat", "simulate_device", "--help"):
+        assert commands(build_parser(other)) == set(COMMAND_MODULES)
+
+
+def test_a_command_does_not_import_the_others() -> None:
+    """Every command imported every command's module (the service, the worker): 1.3 s
+    before mcam simulate-device could refuse a flag."""
+    probe = (
+        "import sys; from service.cli.main import main; "
+        "status = main(['simulate-device', '--fps', '1e-300']); "
+        "print(status, sorted(m for m in ('fastapi', 'service.api.state', 'worker.runner') "
+        "if m in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          timeout=60, check=False)  # fmt: skip
+    assert done.stdout.strip() == "2 []", done.stdout + done.stderr
+    assert "--fps must be from 0.1 to 10000" in done.stderr
