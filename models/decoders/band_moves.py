@@ -39,21 +39,37 @@ encodings), the mostly-dark, glows and colour frames (hash-checked), 512x512 and
 1024x1024; mostly-dark 25.5 -> 23.5 ms a frame (the full cut cost 3-4 ms on each
 frame with wraps, after a band cut that found nothing), 6 glows frames 51.3 -> 48.7
 ms, 12 val-256 frames 78.4 -> 78.9 ms.
+
+The temporal decoder's refinement confines its moves to a fixed band round the pixels
+that fell back (:class:`BandGraph`; :meth:`GuidedPumaDecoder.refine_within
+<models.decoders.guided_puma.GuidedPumaDecoder.refine_within>`). Its band holds
+13-14% of a panning frame's pixels, so its graph is built once, each cut computes the
+terms of the pairs that touch the band only, and the moves are compared by the share
+of the energy they can change (2026-11-27, pan/zoom with herraez, modulo, cProfile:
+8.3 -> 5.2 ms a refinement; the same W on every frame of bench.video's clips).
+Skipping a cut whose band holds no pixel that gains by moving alone (every folded cost
+non-negative, so the empty move is the best) was measured and not kept: none of the
+110 band cuts of a pan/zoom stream (herraez or auto-fast, either encoding) had one;
+each had 290-350 such pixels and moved 70-110.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from models.decoders.graphcut import (
+    Edges,
+    EnergyValue,
     MoveCapacities,
-    MoveSolver,
     PumaEnergy,
     cut_pixels,
     min_cut,
     move_capacities,
+    move_terms,
+    pair_capacities,
 )
 
 #: Pixels within this many pixels (Chebyshev) of a seed join the band's graph.
@@ -84,10 +100,31 @@ def band_seeds(
 
 
 def band_of(seeds: NDArray[np.bool_], reach: int = BAND_REACH) -> NDArray[np.bool_]:
-    """The pixels within ``reach`` px (Chebyshev distance) of a seed."""
+    """The pixels within ``reach`` px (Chebyshev distance) of a seed: what
+    ``scipy.ndimage.maximum_filter(seeds, 2 * reach + 1, mode="constant")`` gives, by
+    shifted slices (256x256, 2026-11-27: 0.06 ms at reach 4 and 0.09 at 16, against the
+    filter's 0.3)."""
     if reach <= 0 or not seeds.any():
         return seeds
-    return ndimage.maximum_filter(seeds, size=2 * reach + 1, mode="constant")
+    return _grown_along(_grown_along(seeds, reach, 0), reach, 1)
+
+
+def _grown_along(mask: NDArray[np.bool_], reach: int, axis: int) -> NDArray[np.bool_]:
+    """``mask`` (bool, H x W) grown by ``reach`` px both ways along ``axis``: each pass
+    ORs in the mask shifted by up to one more than the reach covered so far, which
+    leaves no gap, so ``reach`` takes about log2(reach) + 1 passes."""
+    covered = 0
+    while covered < reach:
+        step = min(covered + 1, reach - covered)
+        grown = mask.copy()
+        if step < mask.shape[axis]:
+            ahead = [slice(None), slice(None)]
+            behind = [slice(None), slice(None)]
+            ahead[axis], behind[axis] = slice(step, None), slice(None, -step)
+            grown[tuple(ahead)] |= mask[tuple(behind)]
+            grown[tuple(behind)] |= mask[tuple(ahead)]
+        mask, covered = grown, covered + step
+    return mask
 
 
 def _band_unary(capacities: MoveCapacities, band: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -152,14 +189,134 @@ def best_band_move(
     return cut_band(capacities, band)
 
 
-def confined_move(band: NDArray[np.bool_]) -> MoveSolver:
-    """A move solver that cuts only ``band`` (bool, H x W), every other pixel kept: for a
-    refinement whose errors can only lie near known pixels (the temporal decoder's
-    fallback pixels, :mod:`worker.temporal`)."""
+@dataclass(frozen=True)
+class BandPairs:
+    """The neighbour pairs of one direction (to the right or to the lower neighbour) with
+    at least one end in a band, in row-major order of the pair grid: ``first`` /
+    ``second`` the flat pixel indices of their ends (left or upper, right or lower),
+    ``pair`` their flat indices into the direction's pair grid (its weights), and
+    ``first_node`` / ``second_node`` the ends' node numbers in the band's graph (-1 for
+    an end outside the band)."""
 
-    def solve(
-        winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
+    first: NDArray[np.int64]
+    second: NDArray[np.int64]
+    pair: NDArray[np.int64]
+    first_node: NDArray[np.int64]
+    second_node: NDArray[np.int64]
+
+    def terms(
+        self, u: NDArray[np.float64], jump: int, energy: PumaEnergy, axis: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The pairs' (forward, backward, unary_shift) for the move adding ``jump``
+        (:func:`models.decoders.graphcut.pair_capacities`) from the flat ``u`` (wraps),
+        each the value :func:`models.decoders.graphcut.move_capacities` gives the pair;
+        ``axis`` 0 for pairs to the right, 1 for pairs to the lower neighbour."""
+        c, w = move_terms(u[self.second] - u[self.first], jump, energy.p)
+        if energy.weights is not None:
+            weights = energy.weights[axis].ravel()[self.pair]
+            c, w = c * weights, w * weights
+        return pair_capacities(c, w)
+
+
+def _band_pairs(band: NDArray[np.bool_], node: NDArray[np.int64], axis: int) -> BandPairs:
+    """The pairs along ``axis`` (1: to the right, 0: to the lower neighbour) that touch
+    ``band`` (H x W), ``node`` holding each pixel's node number (-1 outside)."""
+    pixels = np.arange(band.size).reshape(band.shape)
+    first = (slice(None), slice(None, -1)) if axis == 1 else (slice(None, -1), slice(None))
+    second = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))
+    touching = band[first] | band[second]
+    return BandPairs(
+        pixels[first][touching], pixels[second][touching], np.flatnonzero(touching),
+        node[first][touching], node[second][touching],
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class BandGraph:
+    """Moves confined to a fixed band, every other pixel kept: for a refinement whose
+    errors can only lie near known pixels (the temporal decoder's fallback pixels,
+    :mod:`worker.temporal`). Built once for every cut of a refinement: the band's pixels
+    (flat indices, row-major: node ``i`` is ``pixels[i]``) and the pairs to the right
+    and to the lower neighbour that touch it. :meth:`cut` (a
+    :data:`models.decoders.graphcut.MoveSolver`) then computes the terms of those pairs
+    only, about a quarter of a panning frame's, where :func:`cut_band` takes the whole
+    frame's :class:`models.decoders.graphcut.MoveCapacities`: each node's cost and each
+    edge's capacities are the same floats :func:`cut_band` gives them, added in the same
+    order, so the cut is the same. :meth:`energy` is the share of the energy such moves
+    can change."""
+
+    shape: tuple[int, int]
+    pixels: NDArray[np.int64]
+    right: BandPairs
+    down: BandPairs
+
+    @classmethod
+    def of(cls, band: NDArray[np.bool_]) -> BandGraph:
+        """The graph of ``band`` (bool, H x W)."""
+        pixels = np.flatnonzero(band)
+        node = np.full(band.shape, -1, np.int64)
+        node.ravel()[pixels] = np.arange(pixels.size)
+        shape = (int(band.shape[0]), int(band.shape[1]))
+        return cls(shape, pixels, _band_pairs(band, node, 1), _band_pairs(band, node, 0))
+
+    def cut(
+        self, winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
     ) -> NDArray[np.bool_]:
-        return cut_band(move_capacities(winding, m, jump, energy), band)
+        """The pixels (H x W) whose K should grow by ``jump``: the minimum cut over the
+        band with every other pixel kept (what :func:`cut_band` of the whole frame's
+        :func:`models.decoders.graphcut.move_capacities` gives)."""
+        moved = np.zeros(self.shape, bool)
+        if self.pixels.size == 0:
+            return moved
+        u = winding.ravel() + m.ravel()
+        unary = energy.prior_move_cost(winding, jump, self.pixels)
+        terms = [(pairs, pairs.terms(u, jump, energy, axis)) for axis, pairs in enumerate(
+            (self.right, self.down)
+        )]  # fmt: skip
+        for pairs, (_, _, shift) in terms:
+            _add_at_nodes(unary, pairs.first_node, shift)
+            _add_at_nodes(unary, pairs.second_node, -shift)
+        edges: list[Edges] = []
+        for pairs, (forward, backward, _) in terms:
+            first_in, second_in = pairs.first_node >= 0, pairs.second_node >= 0
+            # A pair with one end outside (kept) folds into the inside end's cost, as
+            # :func:`_band_unary` folds it.
+            _add_at_nodes(unary, np.where(second_in, -1, pairs.first_node), backward)
+            _add_at_nodes(unary, np.where(first_in, -1, pairs.second_node), forward)
+            inner = first_in & second_in
+            edges.append((
+                pairs.first_node[inner], pairs.second_node[inner],
+                forward[inner], backward[inner],
+            ))  # fmt: skip
+        moved.ravel()[self.pixels] = min_cut(unary, edges)
+        return moved
 
-    return solve
+
+    def energy(self, energy: PumaEnergy) -> EnergyValue:
+        """The share of ``energy`` that moves within the band can change (``(winding, m)
+        -> float``): its pairs that touch the band and its prior on the band's pixels.
+        The rest (pairs and prior outside) is constant under such moves, so comparing
+        this share compares the whole energy, at a fraction of its cost."""
+
+        def value(winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
+            u = winding.ravel() + m.ravel()
+            total = energy.prior_energy(winding, self.pixels)
+            for axis, pairs in enumerate((self.right, self.down)):
+                lengths = np.abs(u[pairs.second] - u[pairs.first]) ** energy.p
+                if energy.weights is not None:
+                    lengths = energy.weights[axis].ravel()[pairs.pair] * lengths
+                total += float(np.sum(lengths))
+            return total
+
+        return value
+
+
+def _add_at_nodes(
+    unary: NDArray[np.float64], nodes: NDArray[np.int64], values: NDArray[np.float64]
+) -> None:
+    """``unary[nodes] += values`` over the entries whose node is in the band (>= 0); each
+    node appears at most once in ``nodes``."""
+    inside = nodes >= 0
+    unary[nodes[inside]] += values[inside]
+
+

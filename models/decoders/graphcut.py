@@ -122,26 +122,50 @@ class PumaEnergy:
     def __call__(self, winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
         return clique_energy(winding + m, self.p, self.weights) + self.prior_energy(winding)
 
-    def prior_energy(self, winding: NDArray[np.int64]) -> float:
-        """The prior term ``prior_weight * sum c(K - prior)`` (0 without a prior)."""
+    def prior_energy(
+        self, winding: NDArray[np.int64], pixels: NDArray[np.int64] | None = None
+    ) -> float:
+        """The prior term ``prior_weight * sum c(K - prior)`` (0 without a prior), summed
+        over every pixel of ``winding`` (H x W) or only over ``pixels`` (flat indices)."""
         if self.prior is None:
             return 0.0
-        cost = self.prior_cost(winding - self.prior)
-        if np.ndim(self.prior_weight) == 0:
-            return float(self.prior_weight) * float(cost.sum())
-        return float(np.sum(self.prior_weight * cost))
+        winding, prior, weight = self._at(winding, self.prior, pixels)
+        cost = self.prior_cost(winding - prior)
+        if np.ndim(weight) == 0:
+            return float(weight) * float(cost.sum())
+        return float(np.sum(weight * cost))
+
+    def _at(
+        self,
+        winding: NDArray[np.int64],
+        prior: NDArray[np.int64],
+        pixels: NDArray[np.int64] | None,
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], float | NDArray[np.float64]]:
+        """``winding``, ``prior`` and ``prior_weight`` whole (``pixels`` None) or at
+        ``pixels`` (flat indices; 1-D)."""
+        weight = self.prior_weight
+        if pixels is None:
+            return winding, prior, weight
+        if np.ndim(weight) != 0:
+            weight = np.ravel(weight)[pixels]
+        return winding.ravel()[pixels], prior.ravel()[pixels], weight
 
     def prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:
         """``c(K - prior)`` per pixel, in units of ``prior_weight``: ``max(-d, above * d)``,
         which is ``c`` for any ``above_factor >= 0``."""
         return np.maximum(-offset, self.above_factor * offset)
 
-    def prior_move_cost(self, winding: NDArray[np.int64], jump: int) -> NDArray[np.float64]:
-        """Change of the prior term per pixel if that pixel's ``K`` grows by ``jump``."""
+    def prior_move_cost(
+        self, winding: NDArray[np.int64], jump: int, pixels: NDArray[np.int64] | None = None
+    ) -> NDArray[np.float64]:
+        """Change of the prior term per pixel if that pixel's ``K`` grows by ``jump``: for
+        every pixel of ``winding`` (H x W), or only at ``pixels`` (flat indices into it;
+        1-D, in their order)."""
         if self.prior is None:
-            return np.zeros(winding.shape)
-        offset = winding - self.prior
-        return self.prior_weight * (self.prior_cost(offset + jump) - self.prior_cost(offset))
+            return np.zeros(winding.shape if pixels is None else pixels.shape)
+        winding, prior, weight = self._at(winding, self.prior, pixels)
+        offset = winding - prior
+        return weight * (self.prior_cost(offset + jump) - self.prior_cost(offset))
 
 
 def move_terms(
@@ -215,6 +239,10 @@ def move_capacities(
     return MoveCapacities(unary, (forward_right, backward_right), (forward_down, backward_down))
 
 
+#: An energy as a function of ``(winding, m) -> float``, what :func:`minimise` compares
+#: moves by.
+EnergyValue = Callable[[NDArray[np.int64], NDArray[np.float64]], float]
+
 #: A move solver: ``(winding, m, jump, energy) -> moved`` (bool H x W), the pixels whose
 #: K grows by ``jump`` in the best move it can find.
 MoveSolver = Callable[[NDArray[np.int64], NDArray[np.float64], int, PumaEnergy], NDArray[np.bool_]]
@@ -282,27 +310,32 @@ def minimise(
     jumps: tuple[int, ...],
     max_moves: int,
     solver: MoveSolver = best_pixel_move,
+    value: EnergyValue | None = None,
 ) -> PumaResult:
     """PUMA's binary moves from ``winding`` (absolute K, not normalised).
 
     The jump sizes are tried in turn, cyclically; each move is found by ``solver``
     (one min-cut) and kept when it lowers the energy. It stops once every jump size
-    in a row failed, or after ``max_moves`` min-cuts.
+    in a row failed, or after ``max_moves`` min-cuts. ``value`` (default ``energy``)
+    is what moves are compared by and what ``energies`` records: a solver whose moves
+    leave part of the frame alone may pass the share of the energy they can change
+    (:meth:`models.decoders.band_moves.BandGraph.energy`).
     """
-    energies = [energy(winding, m)]
+    value = value or energy
+    energies = [value(winding, m)]
     moves = 0
     failed = 0
     while failed < len(jumps) and moves < max_moves:
         jump = jumps[moves % len(jumps)]
         moves += 1
         candidate = winding + jump * solver(winding, m, jump, energy).astype(np.int64)
-        value = energy(candidate, m)
-        if not accepts(value, energies[-1]):
+        reached = value(candidate, m)
+        if not accepts(reached, energies[-1]):
             failed += 1
             continue
         failed = 0
         winding = candidate
-        energies.append(value)
+        energies.append(reached)
     return PumaResult(winding, energies, moves)
 
 

@@ -84,7 +84,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from models.decoders.band_moves import best_band_move, confined_move
+from models.decoders.band_moves import BandGraph, best_band_move
 from models.decoders.base import Decoder, refuse_empty
 from models.decoders.classical import wrap_difference
 from models.decoders.graphcut import (
@@ -308,12 +308,14 @@ class GuidedPumaDecoder(Decoder):
         band: NDArray[np.bool_],
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         """``guide`` (int W, H x W) refined by pixel moves confined to ``band`` (bool,
-        H x W; :func:`models.decoders.band_moves.confined_move`): every other pixel keeps
-        the guide, and frames of any size are cut whole (the graph is the band's).
-        Facts as :meth:`refine` reports them; a frame without pixels is refused."""
+        H x W; :class:`models.decoders.band_moves.BandGraph`): every other pixel keeps
+        the guide, and frames of any size are cut whole (the graph is the band's). The
+        moves are compared by the share of the energy they can change. Facts as
+        :meth:`refine` reports them; a frame without pixels is refused."""
         refuse_empty(m)
+        graph, energy = BandGraph.of(band), self._energy(m, guide)
         result = minimise(
-            m, guide, self._energy(m, guide), JUMPS, self.max_moves, confined_move(band)
+            m, guide, energy, JUMPS, self.max_moves, graph.cut, value=graph.energy(energy)
         )
         winding = clip_winding(result.winding, params)
         return winding, _facts(winding, guide, windows=1, region_moves=0, moves=result.moves)

@@ -9,13 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy import ndimage
 
 from models.decoders import band_moves
 from models.decoders.band_moves import (
+    BandGraph,
     band_of,
     band_seeds,
     best_band_move,
-    confined_move,
     cut_band,
 )
 from models.decoders.graphcut import (
@@ -71,6 +72,18 @@ def test_the_band_reaches_its_distance_in_every_direction() -> None:
     expected[3:8, 3:8] = True
     np.testing.assert_array_equal(band, expected)
     np.testing.assert_array_equal(band_of(seeds, 0), seeds)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    seeds=arrays(bool, st.tuples(st.integers(1, 12), st.integers(1, 12))),
+    reach=st.integers(1, 20),
+)
+def test_the_band_is_the_maximum_filter_of_its_seeds(seeds: np.ndarray, reach: int) -> None:
+    """The shifted-slice band is the Chebyshev maximum filter it replaced, reaches past
+    the frame's side included."""
+    expected = ndimage.maximum_filter(seeds, size=2 * reach + 1, mode="constant")
+    np.testing.assert_array_equal(band_of(seeds, reach), expected)
 
 
 def test_a_frame_that_agrees_with_its_guide_does_not_move() -> None:
@@ -145,7 +158,62 @@ def test_a_confined_move_keeps_every_pixel_outside_its_band() -> None:
     energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
     band = np.zeros(m.shape, bool)
     band[:, :16] = True
-    moved = confined_move(band)(guide, m, 1, energy)
+    moved = BandGraph.of(band).cut(guide, m, 1, energy)
     assert not moved[~band].any()
     assert moved.any()
     np.testing.assert_array_equal((guide + moved)[band], np.where(moved, truth, guide)[band])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    m=arrays(np.float64, st.tuples(st.integers(1, 7), st.integers(1, 7)),
+             elements=st.floats(0.0, 0.999)),
+    seed=st.integers(0, 2**32 - 1),
+    jump=st.sampled_from([1, -1]),
+    per_pixel=st.booleans(),
+)  # fmt: skip
+def test_a_band_graph_cuts_as_the_whole_frames_capacities_do(
+    m: np.ndarray, seed: int, jump: int, per_pixel: bool
+) -> None:
+    """The band's own terms (the pairs touching it) give the very cut that the whole
+    frame's capacities give, bands at the frame's border included."""
+    rng = np.random.default_rng(seed)
+    winding, prior = rng.integers(0, 3, m.shape), rng.integers(0, 3, m.shape)
+    band = rng.random(m.shape) < rng.random()
+    weight = rng.random(m.shape) if per_pixel else 0.01
+    weights = pair_weights(m) if min(m.shape) > 1 else None
+    energy = PumaEnergy(1.0, weights, prior, weight, above_factor=0.5)
+    np.testing.assert_array_equal(
+        BandGraph.of(band).cut(winding, m, jump, energy),
+        cut_band(move_capacities(winding, m, jump, energy), band),
+    )
+
+
+def test_the_band_energy_differs_from_the_whole_by_a_constant() -> None:
+    """Under moves that keep every pixel outside the band, the band's share of the energy
+    changes exactly as the whole energy does."""
+    m, _, guide = _hill(24)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
+    band = np.zeros(m.shape, bool)
+    band[4:15, 6:20] = True
+    share = BandGraph.of(band).energy(energy)
+    rng = np.random.default_rng(3)
+    offset = energy(guide, m) - share(guide, m)
+    for _ in range(5):
+        moved = guide + rng.integers(-1, 2, m.shape) * band
+        assert share(moved, m) + offset == pytest.approx(energy(moved, m), rel=1e-12)
+
+
+def test_a_band_refinement_compared_by_its_share_reaches_the_whole_energys_answer() -> None:
+    """Moves compared by the band's share of the energy make the same moves as moves
+    compared by the whole energy."""
+    m, _, guide = _hill(32, short_by=1)
+    energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
+    band = np.zeros(m.shape, bool)
+    band[:, :20] = True
+    graph = BandGraph.of(band)
+    whole = minimise(m, guide, energy, (1, -1), 6, graph.cut)
+    shared = minimise(m, guide, energy, (1, -1), 6, graph.cut, value=graph.energy(energy))
+    np.testing.assert_array_equal(shared.winding, whole.winding)
+    assert shared.moves == whole.moves
+    assert (shared.winding != guide).any()
