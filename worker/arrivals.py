@@ -51,10 +51,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from models.decoders.guided_puma import GuidedPumaDecoder
 from models.formation import SensorParams, unwrapped_noise_sigma
+from models.scene_analysis import cross_dilation
 from worker.config_checks import refuse_invalid
 from worker.crop_vote import CropConfig, cluster_boxes
 
@@ -120,7 +120,7 @@ def refine_arrivals(
     if changed.sum() < max(config.min_cluster, 1):
         return merged, taken
     for box in cluster_boxes(changed, config.crops()):
-        around = ndimage.binary_dilation(changed[box], iterations=REACH)
+        around = cross_dilation(changed[box], REACH)
         if changed[box].all() or np.median(change[box][around]) < ALIASED_MEDIAN:
             continue
         refined, _ = refiner.refine_within(m[box], merged[box], params, around)

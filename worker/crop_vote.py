@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from models.decoders.region_vote import region_vote
+from models.scene_analysis import cross_dilation
 from models.tile_reconcile import common_offset
 from worker.config_checks import refuse_invalid
 from worker.temporal_rule import Prediction
@@ -89,7 +90,7 @@ def cluster_boxes(
     spatial decode, largest first, while their total area stays within ``limit``."""
     if config.min_cluster == 0 or not unsafe.any():
         return []
-    labels, count = ndimage.label(ndimage.binary_dilation(unsafe, iterations=GROW))
+    labels, count = ndimage.label(cross_dilation(unsafe, GROW))
     sizes = np.bincount(labels.ravel(), weights=unsafe.ravel(), minlength=count + 1)
     boxes, budget = [], config.limit * unsafe.size
     for index, found in enumerate(ndimage.find_objects(labels), start=1):

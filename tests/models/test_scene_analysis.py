@@ -6,12 +6,15 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy import ndimage
 
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, split_unwrapped
 from models.scene_analysis import (
     DENSE_EDGE_DENSITY,
     analyse,
+    cross_dilation,
     has_wrap_edge,
     neighbour_jumps,
     residue_map,
@@ -144,3 +147,15 @@ def test_a_residue_on_a_tile_border_counts_in_the_tiles_it_touches() -> None:
     hard = [(t.row, t.col) for t in analysis.tiles if t.residues]
     assert hard == [(0, 0), (64, 0)]
     assert all(t.difficulty in ("sparse", "dense") for t in analysis.tiles if t.residues)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    mask=arrays(bool, st.tuples(st.integers(1, 9), st.integers(1, 9))),
+    iterations=st.integers(0, 3),
+)
+def test_cross_dilation_is_scipys_binary_dilation(mask: np.ndarray, iterations: int) -> None:
+    """The shifted-slice dilation grows a mask exactly as ``binary_dilation`` does with its
+    default cross, frames of one row or column included."""
+    expected = ndimage.binary_dilation(mask, iterations=iterations) if iterations else mask
+    np.testing.assert_array_equal(cross_dilation(mask, iterations), expected)
