@@ -85,3 +85,17 @@ def test_pixels_outside_the_moved_frame_are_unsafe_and_unbounded() -> None:
     prediction = temporal_prediction(m, np.full((4, 4, 1), 2.3), TemporalConfig(), inside)
     assert not prediction.safe[:, 0].any() and prediction.safe[:, 1:].all()
     assert (prediction.hi[:, 0] == UNBOUNDED).all() and (prediction.lo[:, 0] == 0).all()
+
+
+def test_marking_pixels_outside_leaves_the_previous_frame_alone() -> None:
+    """Without a motion window the bounds start as the previous ``u`` itself: marking the
+    pixels outside the move sets them on copies, each bound its own."""
+    m = np.full((3, 4, 2), 0.3)
+    prev = np.full((3, 4, 2), 2.3)
+    inside = np.ones((3, 4), bool)
+    inside[0] = False
+    prediction = temporal_prediction(m, prev, TemporalConfig(motion_radius=0), inside, 0.01)
+    np.testing.assert_array_equal(prev, np.full((3, 4, 2), 2.3))
+    assert (prediction.lo[0] == 0).all() and (prediction.hi[0] == UNBOUNDED).all()
+    assert (prediction.lo[1:] == 2.3).all() and (prediction.hi[1:] == 2.3).all()
+    assert (prediction.change[0] == 0.5).all() and not prediction.steady[0].any()
