@@ -120,14 +120,13 @@ def crop_vote(
     Returns the merged W and where the spatial answer was taken.
     """
     merged, taken = fixed.copy(), np.zeros(fixed.shape, bool)
-    lowest, highest = prediction.bounds()
     for box in cluster_boxes(~prediction.safe, config):
         safe = prediction.safe[box]
         if not safe.any():
             continue
         spatial = np.asarray(decode(prediction.m[box]), np.int64)
         aligned = spatial + common_offset(merged[box][safe], spatial[safe])
-        aligned = np.clip(aligned, lowest[box], highest[box])
+        aligned = np.clip(aligned, *prediction.crop(box).bounds())
         merged[box], took = region_vote(merged[box], aligned, prediction.m[box], ~safe)
         taken[box] |= took
     return merged, taken

@@ -55,6 +55,28 @@ SELF_WEIGHT = 2.0
 _NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
 
 
+def _best_neighbour(
+    u: NDArray[np.float64],
+    settled: NDArray[np.bool_],
+    sources: NDArray[np.int64],
+    m: NDArray[np.float64],
+    lowest: NDArray[np.int64],
+    highest: NDArray[np.int64],
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """For each open pixel (``m``, wraps, and its W range ``lowest`` to ``highest``), the
+    W (clipped into its range) that brings its ``u`` closest to a settled neighbour's
+    and that distance (wraps; inf where no neighbour is settled). ``sources``: the
+    neighbours' flat indices into the padded ``u`` and ``settled`` (8 x open pixels,
+    in :data:`_NEIGHBOURS` order: ties go to the first). All 8 neighbours at once: a
+    pan/zoom frame's fix took 0.6 ms looping over them."""
+    other = u[sources]
+    candidate = np.clip(np.rint(other - m), lowest, highest)
+    distance = np.where(settled[sources], np.abs(other - candidate - m), np.inf)
+    nearest = np.argmin(distance, axis=0)[None]
+    best = np.take_along_axis(distance, nearest, 0)[0]
+    return best, np.take_along_axis(candidate, nearest, 0)[0].astype(np.int64)
+
+
 def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
     """One channel's W with its unsafe pixels set from their best-matching settled
     8-neighbour or their own temporal answer (see module doc); pixels no settled
@@ -68,17 +90,11 @@ def neighbour_fix(prediction: Prediction, passes: int) -> NDArray[np.int64]:
     lowest, highest = unsafe.bounds()
     m_open = unsafe.m
     where = (rows + 1) * width + cols + 1
-    offsets = [dy * width + dx for dy, dx in _NEIGHBOURS]
+    offsets = np.array([dy * width + dx for dy, dx in _NEIGHBOURS])[:, None]
     own_cost = np.where(unsafe.steady, 0.0, SELF_WEIGHT * unsafe.change)
     own = unsafe.winding
     for _ in range(passes):
-        best, choice = np.full(where.shape, np.inf), np.zeros(where.shape, np.int64)
-        for offset in offsets:
-            other = u[where + offset]
-            candidate = np.clip(np.rint(other - m_open), lowest, highest)
-            distance = np.abs(other - candidate - m_open)
-            better = settled[where + offset] & (distance < best)
-            best[better], choice[better] = distance[better], candidate[better]
+        best, choice = _best_neighbour(u, settled, where + offsets, m_open, lowest, highest)
         done = np.isfinite(best)
         choice = np.where(done & (own_cost <= best), own, choice)
         u[where[done]] = choice[done] + m_open[done]

@@ -72,3 +72,20 @@ def test_merge_spatial_aligns_the_constant_and_fills_unsafe_pixels() -> None:
     assert taken[2:5, 2:5].all()
     none_safe = replace(prediction, safe=np.zeros_like(safe))
     assert merge_spatial(none_safe, prediction.winding) is None
+
+
+def test_neighbour_fix_breaks_a_tie_for_the_first_neighbour() -> None:
+    """Two settled neighbours that match an unsafe pixel equally well with different W:
+    the first in reading order (the upper-left one here) decides."""
+    m = np.full((3, 3, 1), 0.5)
+    u = np.full((3, 3, 1), 1.5)
+    prediction = temporal_prediction(m, u, TemporalConfig(motion_radius=0)).channel(0)
+    winding, safe = prediction.winding.copy(), np.zeros((3, 3), bool)
+    winding[0, 0], winding[2, 2] = 2, 0  # u 2.5 and 0.5: each one wrap from 1.5
+    safe[0, 0] = safe[2, 2] = True
+    change = np.full((3, 3), 0.45)
+    damaged = replace(
+        prediction, winding=winding, safe=safe, change=change, steady=np.zeros((3, 3), bool),
+        lo=np.zeros((3, 3)), hi=np.full((3, 3), 5.0),
+    )
+    assert neighbour_fix(damaged, passes=1)[1, 1] == 2
