@@ -46,7 +46,10 @@ that fell back (:class:`BandGraph`; :meth:`GuidedPumaDecoder.refine_within
 13-14% of a panning frame's pixels, so its graph is built once, each cut computes the
 terms of the pairs that touch the band only, and the moves are compared by the share
 of the energy they can change (2026-11-27, pan/zoom with herraez, modulo, cProfile:
-8.3 -> 5.2 ms a refinement; the same W on every frame of bench.video's clips).
+8.3 -> 5.2 ms a refinement; the same W on every frame of bench.video's clips). Which
+pair gives a term to which node, and the pairs' weights, are then found once for both
+cuts (:class:`BandPairs`, :meth:`BandGraph.moves`): 3.87 -> 3.67 ms a refinement
+(timeit, one frame, medians of 3 interleaved runs).
 Skipping a cut whose band holds no pixel that gains by moving alone (every folded cost
 non-negative, so the empty move is the best) was measured and not kept: none of the
 110 band cuts of a pan/zoom stream (herraez or auto-fast, either encoding) had one;
@@ -56,6 +59,7 @@ each had 290-350 such pixels and moved 70-110.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,6 +68,7 @@ from models.decoders.graphcut import (
     Edges,
     EnergyValue,
     MoveCapacities,
+    MoveSolver,
     PumaEnergy,
     cut_pixels,
     min_cut,
@@ -189,46 +194,82 @@ def best_band_move(
     return cut_band(capacities, band)
 
 
+class Slots(NamedTuple):
+    """Entries of a list of pairs (``at``, positions in it) and the band nodes they give
+    a term to (``nodes``, one each, none twice)."""
+
+    at: NDArray[np.int64]
+    nodes: NDArray[np.int64]
+
+    def add(self, unary: NDArray[np.float64], values: NDArray[np.float64]) -> None:
+        """``unary[nodes] += values[at]`` (``values``: one per pair of the list)."""
+        unary[self.nodes] += values[self.at]
+
+
+def _slots(where: NDArray[np.bool_], nodes: NDArray[np.int64]) -> Slots:
+    """The :class:`Slots` of the pairs where ``where`` holds, giving to ``nodes``."""
+    at = np.flatnonzero(where)
+    return Slots(at, nodes[at])
+
+
 @dataclass(frozen=True)
 class BandPairs:
     """The neighbour pairs of one direction (to the right or to the lower neighbour) with
     at least one end in a band, in row-major order of the pair grid: ``first`` /
-    ``second`` the flat pixel indices of their ends (left or upper, right or lower),
-    ``pair`` their flat indices into the direction's pair grid (its weights), and
-    ``first_node`` / ``second_node`` the ends' node numbers in the band's graph (-1 for
-    an end outside the band)."""
+    ``second`` the flat pixel indices of their ends (left or upper, right or lower) and
+    ``pair`` their flat indices into the direction's pair grid (its weights). Which
+    pairs give a term to which node, found once for every cut: ``first_end`` /
+    ``second_end`` the pairs whose first / second end is in the band (its unary shift),
+    ``first_only`` / ``second_only`` those whose other end is outside (the pair folds
+    into that node's cost), and ``inner`` those with both ends in (an edge; ``inner``
+    gives its first node, ``inner_second`` its second)."""
 
     first: NDArray[np.int64]
     second: NDArray[np.int64]
     pair: NDArray[np.int64]
-    first_node: NDArray[np.int64]
-    second_node: NDArray[np.int64]
+    first_end: Slots
+    second_end: Slots
+    first_only: Slots
+    second_only: Slots
+    inner: Slots
+    inner_second: NDArray[np.int64]
+
+    @classmethod
+    def of(cls, band: NDArray[np.bool_], node: NDArray[np.int64], axis: int) -> BandPairs:
+        """The pairs along ``axis`` (1: to the right, 0: to the lower neighbour) that
+        touch ``band`` (H x W), ``node`` holding each pixel's node number (-1 outside)."""
+        pixels = np.arange(band.size).reshape(band.shape)
+        first = (slice(None), slice(None, -1)) if axis == 1 else (slice(None, -1), slice(None))
+        second = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))
+        touching = band[first] | band[second]
+        first_node, second_node = node[first][touching], node[second][touching]
+        first_in, second_in = first_node >= 0, second_node >= 0
+        inner = _slots(first_in & second_in, first_node)
+        return cls(
+            pixels[first][touching], pixels[second][touching], np.flatnonzero(touching),
+            _slots(first_in, first_node), _slots(second_in, second_node),
+            _slots(first_in & ~second_in, first_node), _slots(second_in & ~first_in, second_node),
+            inner, second_node[inner.at],
+        )  # fmt: skip
 
     def terms(
-        self, u: NDArray[np.float64], jump: int, energy: PumaEnergy, axis: int
+        self, u: NDArray[np.float64], jump: int, p: float, weights: NDArray[np.float64] | None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """The pairs' (forward, backward, unary_shift) for the move adding ``jump``
         (:func:`models.decoders.graphcut.pair_capacities`) from the flat ``u`` (wraps),
-        each the value :func:`models.decoders.graphcut.move_capacities` gives the pair;
-        ``axis`` 0 for pairs to the right, 1 for pairs to the lower neighbour."""
-        c, w = move_terms(u[self.second] - u[self.first], jump, energy.p)
-        if energy.weights is not None:
-            weights = energy.weights[axis].ravel()[self.pair]
+        the potential's power ``p`` and the pairs' ``weights`` (None: 1): each the value
+        :func:`models.decoders.graphcut.move_capacities` gives the pair."""
+        c, w = move_terms(u[self.second] - u[self.first], jump, p)
+        if weights is not None:
             c, w = c * weights, w * weights
         return pair_capacities(c, w)
 
-
-def _band_pairs(band: NDArray[np.bool_], node: NDArray[np.int64], axis: int) -> BandPairs:
-    """The pairs along ``axis`` (1: to the right, 0: to the lower neighbour) that touch
-    ``band`` (H x W), ``node`` holding each pixel's node number (-1 outside)."""
-    pixels = np.arange(band.size).reshape(band.shape)
-    first = (slice(None), slice(None, -1)) if axis == 1 else (slice(None, -1), slice(None))
-    second = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))
-    touching = band[first] | band[second]
-    return BandPairs(
-        pixels[first][touching], pixels[second][touching], np.flatnonzero(touching),
-        node[first][touching], node[second][touching],
-    )  # fmt: skip
+    def lengths(
+        self, u: NDArray[np.float64], p: float, weights: NDArray[np.float64] | None
+    ) -> float:
+        """The pairs' share of the clique energy, ``sum w |u_j - u_i| ** p``."""
+        lengths = np.abs(u[self.second] - u[self.first]) ** p
+        return float(np.sum(lengths if weights is None else weights * lengths))
 
 
 @dataclass(frozen=True)
@@ -237,13 +278,12 @@ class BandGraph:
     errors can only lie near known pixels (the temporal decoder's fallback pixels,
     :mod:`worker.temporal`). Built once for every cut of a refinement: the band's pixels
     (flat indices, row-major: node ``i`` is ``pixels[i]``) and the pairs to the right
-    and to the lower neighbour that touch it. :meth:`cut` (a
-    :data:`models.decoders.graphcut.MoveSolver`) then computes the terms of those pairs
-    only, about a quarter of a panning frame's, where :func:`cut_band` takes the whole
-    frame's :class:`models.decoders.graphcut.MoveCapacities`: each node's cost and each
-    edge's capacities are the same floats :func:`cut_band` gives them, added in the same
-    order, so the cut is the same. :meth:`energy` is the share of the energy such moves
-    can change."""
+    and to the lower neighbour that touch it (:class:`BandPairs`). The solver of
+    :meth:`moves` then computes the terms of those pairs only, about a quarter of a
+    panning frame's, where :func:`cut_band` takes the whole frame's
+    :class:`models.decoders.graphcut.MoveCapacities`: each node's cost and each edge's
+    capacities are the same floats :func:`cut_band` gives them, added in the same order,
+    so the cut is the same; its energy is the share that such moves can change."""
 
     shape: tuple[int, int]
     pixels: NDArray[np.int64]
@@ -257,66 +297,73 @@ class BandGraph:
         node = np.full(band.shape, -1, np.int64)
         node.ravel()[pixels] = np.arange(pixels.size)
         shape = (int(band.shape[0]), int(band.shape[1]))
-        return cls(shape, pixels, _band_pairs(band, node, 1), _band_pairs(band, node, 0))
+        return cls(shape, pixels, BandPairs.of(band, node, 1), BandPairs.of(band, node, 0))
 
-    def cut(
-        self, winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, energy: PumaEnergy
+    def moves(self, energy: PumaEnergy) -> tuple[MoveSolver, EnergyValue]:
+        """For moves of ``energy`` within the band: a move solver (the minimum cut over
+        the band with every other pixel kept, what :func:`cut_band` of the whole frame's
+        :func:`models.decoders.graphcut.move_capacities` gives) and the share of
+        ``energy`` that such moves can change (its pairs that touch the band and its prior
+        on the band's pixels; the rest is constant, so comparing this share compares the
+        whole energy, at a fraction of its cost). The pairs' weights are gathered once,
+        so the solver refuses any other energy."""
+        directions = (self.right, self.down)
+        weights = tuple(
+            None if energy.weights is None else grid.ravel()[pairs.pair]
+            for grid, pairs in zip(energy.weights or (None, None), directions, strict=True)
+        )
+
+        def solve(
+            winding: NDArray[np.int64], m: NDArray[np.float64], jump: int, moving: PumaEnergy
+        ) -> NDArray[np.bool_]:
+            if moving is not energy:
+                raise ValueError(
+                    "this band solver was made for another energy: make one for this "
+                    "energy with BandGraph.moves(energy)"
+                )
+            return self._cut(winding, m, jump, energy, weights)
+
+        def value(winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
+            u = winding.ravel() + m.ravel()
+            total = energy.prior_energy(winding, self.pixels)
+            for pairs, pair_weights in zip(directions, weights, strict=True):
+                total += pairs.lengths(u, energy.p, pair_weights)
+            return total
+
+        return solve, value
+
+    def _cut(
+        self,
+        winding: NDArray[np.int64],
+        m: NDArray[np.float64],
+        jump: int,
+        energy: PumaEnergy,
+        weights: tuple[NDArray[np.float64] | None, ...],
     ) -> NDArray[np.bool_]:
-        """The pixels (H x W) whose K should grow by ``jump``: the minimum cut over the
-        band with every other pixel kept (what :func:`cut_band` of the whole frame's
-        :func:`models.decoders.graphcut.move_capacities` gives)."""
+        """The band's minimum cut for the move adding ``jump`` (see :meth:`moves`), with
+        the pairs' ``weights`` gathered."""
         moved = np.zeros(self.shape, bool)
         if self.pixels.size == 0:
             return moved
         u = winding.ravel() + m.ravel()
         unary = energy.prior_move_cost(winding, jump, self.pixels)
-        terms = [(pairs, pairs.terms(u, jump, energy, axis)) for axis, pairs in enumerate(
-            (self.right, self.down)
-        )]  # fmt: skip
-        for pairs, (_, _, shift) in terms:
-            _add_at_nodes(unary, pairs.first_node, shift)
-            _add_at_nodes(unary, pairs.second_node, -shift)
+        directions = (self.right, self.down)
+        terms = [
+            pairs.terms(u, jump, energy.p, pair_weights)
+            for pairs, pair_weights in zip(directions, weights, strict=True)
+        ]
+        for pairs, (_, _, shift) in zip(directions, terms, strict=True):
+            pairs.first_end.add(unary, shift)
+            pairs.second_end.add(unary, -shift)
         edges: list[Edges] = []
-        for pairs, (forward, backward, _) in terms:
-            first_in, second_in = pairs.first_node >= 0, pairs.second_node >= 0
+        for pairs, (forward, backward, _) in zip(directions, terms, strict=True):
             # A pair with one end outside (kept) folds into the inside end's cost, as
             # :func:`_band_unary` folds it.
-            _add_at_nodes(unary, np.where(second_in, -1, pairs.first_node), backward)
-            _add_at_nodes(unary, np.where(first_in, -1, pairs.second_node), forward)
-            inner = first_in & second_in
-            edges.append((
-                pairs.first_node[inner], pairs.second_node[inner],
-                forward[inner], backward[inner],
-            ))  # fmt: skip
+            pairs.first_only.add(unary, backward)
+            pairs.second_only.add(unary, forward)
+            at = pairs.inner.at
+            edges.append((pairs.inner.nodes, pairs.inner_second, forward[at], backward[at]))
         moved.ravel()[self.pixels] = min_cut(unary, edges)
         return moved
-
-
-    def energy(self, energy: PumaEnergy) -> EnergyValue:
-        """The share of ``energy`` that moves within the band can change (``(winding, m)
-        -> float``): its pairs that touch the band and its prior on the band's pixels.
-        The rest (pairs and prior outside) is constant under such moves, so comparing
-        this share compares the whole energy, at a fraction of its cost."""
-
-        def value(winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
-            u = winding.ravel() + m.ravel()
-            total = energy.prior_energy(winding, self.pixels)
-            for axis, pairs in enumerate((self.right, self.down)):
-                lengths = np.abs(u[pairs.second] - u[pairs.first]) ** energy.p
-                if energy.weights is not None:
-                    lengths = energy.weights[axis].ravel()[pairs.pair] * lengths
-                total += float(np.sum(lengths))
-            return total
-
-        return value
-
-
-def _add_at_nodes(
-    unary: NDArray[np.float64], nodes: NDArray[np.int64], values: NDArray[np.float64]
-) -> None:
-    """``unary[nodes] += values`` over the entries whose node is in the band (>= 0); each
-    node appears at most once in ``nodes``."""
-    inside = nodes >= 0
-    unary[nodes[inside]] += values[inside]
 
 

@@ -313,10 +313,9 @@ class GuidedPumaDecoder(Decoder):
         moves are compared by the share of the energy they can change. Facts as
         :meth:`refine` reports them; a frame without pixels is refused."""
         refuse_empty(m)
-        graph, energy = BandGraph.of(band), self._energy(m, guide)
-        result = minimise(
-            m, guide, energy, JUMPS, self.max_moves, graph.cut, value=graph.energy(energy)
-        )
+        energy = self._energy(m, guide)
+        solve, value = BandGraph.of(band).moves(energy)
+        result = minimise(m, guide, energy, JUMPS, self.max_moves, solve, value=value)
         winding = clip_winding(result.winding, params)
         return winding, _facts(winding, guide, windows=1, region_moves=0, moves=result.moves)
 

@@ -158,7 +158,7 @@ def test_a_confined_move_keeps_every_pixel_outside_its_band() -> None:
     energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
     band = np.zeros(m.shape, bool)
     band[:, :16] = True
-    moved = BandGraph.of(band).cut(guide, m, 1, energy)
+    moved = BandGraph.of(band).moves(energy)[0](guide, m, 1, energy)
     assert not moved[~band].any()
     assert moved.any()
     np.testing.assert_array_equal((guide + moved)[band], np.where(moved, truth, guide)[band])
@@ -184,7 +184,7 @@ def test_a_band_graph_cuts_as_the_whole_frames_capacities_do(
     weights = pair_weights(m) if min(m.shape) > 1 else None
     energy = PumaEnergy(1.0, weights, prior, weight, above_factor=0.5)
     np.testing.assert_array_equal(
-        BandGraph.of(band).cut(winding, m, jump, energy),
+        BandGraph.of(band).moves(energy)[0](winding, m, jump, energy),
         cut_band(move_capacities(winding, m, jump, energy), band),
     )
 
@@ -196,7 +196,7 @@ def test_the_band_energy_differs_from_the_whole_by_a_constant() -> None:
     energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
     band = np.zeros(m.shape, bool)
     band[4:15, 6:20] = True
-    share = BandGraph.of(band).energy(energy)
+    share = BandGraph.of(band).moves(energy)[1]
     rng = np.random.default_rng(3)
     offset = energy(guide, m) - share(guide, m)
     for _ in range(5):
@@ -211,9 +211,16 @@ def test_a_band_refinement_compared_by_its_share_reaches_the_whole_energys_answe
     energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
     band = np.zeros(m.shape, bool)
     band[:, :20] = True
-    graph = BandGraph.of(band)
-    whole = minimise(m, guide, energy, (1, -1), 6, graph.cut)
-    shared = minimise(m, guide, energy, (1, -1), 6, graph.cut, value=graph.energy(energy))
+    solve, share = BandGraph.of(band).moves(energy)
+    whole = minimise(m, guide, energy, (1, -1), 6, solve)
+    shared = minimise(m, guide, energy, (1, -1), 6, solve, value=share)
     np.testing.assert_array_equal(shared.winding, whole.winding)
     assert shared.moves == whole.moves
     assert (shared.winding != guide).any()
+
+
+def test_a_band_solver_refuses_an_energy_it_was_not_made_for() -> None:
+    m, _, guide = _hill(12)
+    solve, _ = BandGraph.of(np.ones(m.shape, bool)).moves(PumaEnergy(1.0, pair_weights(m)))
+    with pytest.raises(ValueError, match="another energy"):
+        solve(guide, m, 1, PumaEnergy(1.0, pair_weights(m), guide, 0.01))
