@@ -91,7 +91,9 @@ def cluster_boxes(
     if config.min_cluster == 0 or not unsafe.any():
         return []
     labels, count = ndimage.label(cross_dilation(unsafe, GROW))
-    sizes = np.bincount(labels.ravel(), weights=unsafe.ravel(), minlength=count + 1)
+    # Unsafe pixels per cluster, counted on the unsafe pixels alone (0.01 ms against
+    # 0.25 for a bincount weighted over the whole frame, 256x256).
+    sizes = np.bincount(labels[unsafe], minlength=count + 1)
     boxes, budget = [], config.limit * unsafe.size
     for index, found in enumerate(ndimage.find_objects(labels), start=1):
         if found is None or sizes[index] < config.min_cluster:
