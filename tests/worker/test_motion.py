@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from models.errors import InvalidInputError
 from models.formation import dequantize, encode
 from tests.worker.panning import PAN_PARAMS, smooth_scene
-from worker.motion import MotionConfig, compensate, misfit, texture
+from worker.motion import MotionConfig, compensate, misfit, resample, texture
 
 
 def planes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -119,3 +119,26 @@ def test_any_frame_shape_keeps_its_shape(shape: tuple[int, ...]) -> None:
 def test_bad_motion_settings_are_refused(bad: dict) -> None:
     with pytest.raises(InvalidInputError, match="invalid motion settings"):
         MotionConfig(**bad)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    rows=st.integers(1, 40), cols=st.integers(1, 40), block=st.sampled_from([2, 4, 16]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_resample_takes_each_pixel_from_its_blocks_offset(
+    rows: int, cols: int, block: int, seed: int
+) -> None:
+    """Every pixel, in the last, partial blocks too, reads the padded previous frame at
+    its own position plus its block's offset, and is inside when that source is."""
+    rng = np.random.default_rng(seed)
+    pad = 2
+    padded = rng.random((rows + 2 * pad, cols + 2 * pad, 2))
+    blocks = (-(-rows // block), -(-cols // block), 2)
+    offsets = rng.integers(-pad, pad + 1, blocks)
+    warped, inside = resample(padded, pad, (rows, cols), offsets, block)
+    for y in range(rows):
+        for x in range(cols):
+            dy, dx = offsets[y // block, x // block]
+            np.testing.assert_array_equal(warped[y, x], padded[y + dy + pad, x + dx + pad])
+            assert inside[y, x] == (0 <= y + dy < rows and 0 <= x + dx < cols)
