@@ -60,6 +60,11 @@ def _figures(report: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return found
 
 
+#: What reading a report raises when it gives no figures: no file, or one that cannot be
+#: read (OSError), or not a complete report.
+REPORT_ERRORS = (OSError, ValueError, KeyError, TypeError, AttributeError)
+
+
 @cache
 def benchmark_figures(path: Path = ACCURACY_REPORT) -> BenchmarkFigures | None:
     """The figures of the val-256 benchmark report at ``path``; None when there is none
@@ -68,13 +73,35 @@ def benchmark_figures(path: Path = ACCURACY_REPORT) -> BenchmarkFigures | None:
         return _read_report(path)
     except FileNotFoundError:
         return None
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+    except REPORT_ERRORS as exc:
         log.warning(
-            "%s is not a complete val-256 benchmark report (%s: %s), so decoders without a "
-            "model card show no figures; rerun python -m bench.accuracy to write it again",
-            path, type(exc).__name__, exc,
+            "%s, so decoders without a model card show no figures; make it readable or "
+            "rerun python -m bench.accuracy to write it again",
+            _problem(path, exc),
         )
         return None
+
+
+def report_problem(path: Path) -> str | None:
+    """Why the report at ``path`` would give no figures (no file, a directory, a file
+    that cannot be read or is not a complete val-256 report); None when it gives them.
+    Read afresh, not cached: for a setting that names the report."""
+    try:
+        _read_report(path)
+    except REPORT_ERRORS as exc:
+        return _problem(path, exc)
+    return None
+
+
+def _problem(path: Path, exc: Exception) -> str:
+    """What ``exc``, raised reading the report at ``path``, says is wrong with it."""
+    if isinstance(exc, FileNotFoundError):
+        return f"no file at {path}"
+    if isinstance(exc, IsADirectoryError):
+        return f"{path} is a directory, not a report"
+    if isinstance(exc, OSError):
+        return f"cannot read {path} ({exc.strerror or exc})"
+    return f"{path} is not a complete val-256 benchmark report ({type(exc).__name__}: {exc})"
 
 
 def _read_report(path: Path) -> BenchmarkFigures:

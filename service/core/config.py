@@ -14,6 +14,7 @@ from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
+from models.decoders.measured import report_problem
 from models.decoders.registry import resolve
 from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
@@ -205,13 +206,15 @@ class Settings(BaseSettings):
 
     @field_validator("accuracy_report")
     @classmethod
-    def _report_exists(cls, value: Path | None) -> Path | None:
-        """A report named but missing would leave those decoders without figures, with
-        only a log line to say why."""
-        if value is not None and not value.is_file():
+    def _report_gives_figures(cls, value: Path | None) -> Path | None:
+        """A report named but missing, unreadable or incomplete would leave those
+        decoders without figures, with only a log line to say why."""
+        problem = None if value is None else report_problem(value)
+        if problem:
             raise ValueError(
-                f"no file at {value}: name the accuracy.json that python -m bench.accuracy "
-                "wrote, or unset it to use the repository's bench/results/accuracy.json"
+                f"{problem}: name the accuracy.json that python -m bench.accuracy wrote "
+                "(readable by the service), or unset it to use the repository's "
+                "bench/results/accuracy.json"
             )
         return value
 

@@ -86,3 +86,14 @@ def test_an_unreadable_report_is_no_figures_logged_once(
     assert len(caplog.records) == 1 and "python -m bench.accuracy" in caplog.text
     figures, source = measured_figures(spec("itoh"), None)
     assert figures == {} and source.startswith("none measured in this installation")
+
+
+def test_a_report_that_cannot_be_read_is_no_figures_logged(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A report path the service cannot read (a directory here; in the image, which runs
+    as an unprivileged user, a mounted file it may not read) was a 500 on every
+    GET /v1/decoders: only a missing file or a bad report's content was caught."""
+    with caplog.at_level(logging.WARNING, logger="models.decoders.measured"):
+        assert benchmark_figures(tmp_path) is None
+    assert f"{tmp_path} is a directory" in caplog.text

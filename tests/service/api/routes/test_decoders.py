@@ -69,5 +69,21 @@ def test_a_named_report_that_is_missing_is_refused(tmp_path: Path) -> None:
         Settings(_env_file=None, accuracy_report=tmp_path / "gone.json")  # type: ignore[call-arg]
 
 
+@pytest.mark.parametrize(("named", "problem"), [
+    ("folder", "folder is a directory, not a report"),
+    ("tradeoff.json", "tradeoff.json is not a complete val-256 benchmark report"),
+], ids=["directory", "another-report"])
+def test_a_named_report_that_gives_no_figures_is_refused(
+    tmp_path: Path, named: str, problem: str
+) -> None:
+    """A directory was refused as 'no file at' it, and a file that is no accuracy report
+    (bench.tradeoff's, say) was taken: the service started with those decoders'
+    figures empty and only a log line to say why."""
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "tradeoff.json").write_text('{"benchmark": "tradeoff", "rows": []}')
+    with pytest.raises(ValidationError, match=f"{problem}.*python -m bench.accuracy"):
+        Settings(_env_file=None, accuracy_report=tmp_path / named)  # type: ignore[call-arg]
+
+
 def test_needs_the_read_scope(client: Client) -> None:
     assert client(SUBMIT_KEY).get("/v1/decoders").status_code == 403
