@@ -305,8 +305,11 @@ class BandGraph:
         :func:`models.decoders.graphcut.move_capacities` gives) and the share of
         ``energy`` that such moves can change (its pairs that touch the band and its prior
         on the band's pixels; the rest is constant, so comparing this share compares the
-        whole energy, at a fraction of its cost). The pairs' weights are gathered once,
-        so the solver refuses any other energy."""
+        whole energy, at a fraction of its cost, but for the tolerance of
+        :func:`models.decoders.graphcut.accepts`, relative to the share: a move gaining
+        less than 1e-12 of the whole energy and more than 1e-12 of the share is kept,
+        where comparing the whole energy refuses it). The pairs' weights are gathered
+        once, so the solver refuses any other energy."""
         directions = (self.right, self.down)
         weights = tuple(
             None if energy.weights is None else grid.ravel()[pairs.pair]

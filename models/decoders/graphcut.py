@@ -319,7 +319,9 @@ def minimise(
     in a row failed, or after ``max_moves`` min-cuts. ``value`` (default ``energy``)
     is what moves are compared by and what ``energies`` records: a solver whose moves
     leave part of the frame alone may pass the share of the energy they can change
-    (:meth:`models.decoders.band_moves.BandGraph.energy`).
+    (:meth:`models.decoders.band_moves.BandGraph.moves`). A move must then gain more
+    than :func:`accepts`' tolerance of that share, not of the whole energy, so a gain
+    between the two is kept where comparing the whole energy refuses it.
     """
     value = value or energy
     energies = [value(winding, m)]

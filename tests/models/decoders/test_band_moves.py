@@ -206,7 +206,8 @@ def test_the_band_energy_differs_from_the_whole_by_a_constant() -> None:
 
 def test_a_band_refinement_compared_by_its_share_reaches_the_whole_energys_answer() -> None:
     """Moves compared by the band's share of the energy make the same moves as moves
-    compared by the whole energy."""
+    compared by the whole energy when their gains lie far above either's rounding
+    tolerance (as on a real frame: see the next test for where they differ)."""
     m, _, guide = _hill(32, short_by=1)
     energy = PumaEnergy(1.0, pair_weights(m), guide, 0.01, above_factor=0.5)
     band = np.zeros(m.shape, bool)
@@ -224,3 +225,23 @@ def test_a_band_solver_refuses_an_energy_it_was_not_made_for() -> None:
     solve, _ = BandGraph.of(np.ones(m.shape, bool)).moves(PumaEnergy(1.0, pair_weights(m)))
     with pytest.raises(ValueError, match="another energy"):
         solve(guide, m, 1, PumaEnergy(1.0, pair_weights(m), guide, 0.01))
+
+
+def test_a_band_refinement_keeps_a_gain_above_the_rounding_of_its_share() -> None:
+    """A move must gain more than 1e-12 of what it is compared by (:func:`accepts`): of
+    the band's share, not of the whole energy. A pixel a wrap off inside the band (a
+    gain of 4) beside 4e13 of energy outside it (a step of 1e13 wraps) is put right when
+    moves are compared by the share and left when by the whole energy: the two W differ
+    where a gain lies between the two tolerances."""
+    m = np.zeros((4, 10))
+    guide = np.zeros(m.shape, np.int64)
+    guide[1, 1] = 1
+    guide[:, 8:] = 10**13
+    band = np.zeros(m.shape, bool)
+    band[:, :4] = True
+    energy = PumaEnergy(1.0)
+    solve, share = BandGraph.of(band).moves(energy)
+    whole = minimise(m, guide, energy, (1, -1), 6, solve)
+    shared = minimise(m, guide, energy, (1, -1), 6, solve, value=share)
+    assert whole.winding[1, 1] == 1 and whole.energies == [energy(guide, m)]
+    assert shared.winding[1, 1] == 0 and shared.energies == [4.0, 0.0]
