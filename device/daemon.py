@@ -89,9 +89,10 @@ def check_port_url(url: str) -> None:
 def port_problem(url: str, exc: Exception) -> str:
     """Why the port at ``url`` did not open. For a device path where nothing is (no
     directory, no file, a link to nothing) or something that is not a terminal (a
-    directory, a regular file, /dev/null), that and what to do: pyserial said only 'No
-    such file or directory', naming the path three times, or 'Could not configure port:
-    (25, 'Inappropriate ioctl for device')', naming none."""
+    directory, a regular file, a disk, /dev/null), that and what to do: pyserial said
+    only 'No such file or directory', naming the path three times, or 'Could not
+    configure port: (25, 'Inappropriate ioctl for device')' ('(22, 'Invalid argument')'
+    for a disk), naming none."""
     if "://" in url:
         return str(exc) or type(exc).__name__
     if not os.path.exists(url):
@@ -112,7 +113,8 @@ def _not_a_terminal(path: str) -> str | None:
     except OSError:
         return None
     kinds = ((stat.S_ISDIR, "a directory"), (stat.S_ISREG, "a regular file"),
-             (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket file"))  # fmt: skip
+             (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket file"),
+             (stat.S_ISBLK, "a block device (a disk)"))  # fmt: skip
     for test, kind in kinds:
         if test(mode):
             return kind

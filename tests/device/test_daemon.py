@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -265,6 +267,26 @@ def test_a_port_that_is_no_terminal_says_what_it_is(
     (tmp_path / "plain").write_bytes(b"")
     reason = (f"{port} is {kind}, not a serial port: check --port (a camera is a terminal "
               "device such as /dev/ttyACM0; mcam simulate-device prints the path to give)")
+    daemon = DeviceDaemon(DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05),
+                          client).start()
+    try:
+        assert wait_for(lambda: health(client, "cam1").get("port_error") == reason, 10)
+    finally:
+        daemon.stop()
+
+
+def test_a_port_that_is_a_block_device_says_so(client: redis.Redis, tmp_path: Path) -> None:
+    """pyserial said 'Could not configure port: (22, 'Invalid argument')' for a block
+    device (a disk: a camera plugged in as USB storage shows as /dev/sdb), naming
+    neither the path nor what to do. The node here is loop0's."""
+    port = tmp_path / "disk"
+    try:
+        os.mknod(port, stat.S_IFBLK | 0o600, os.makedev(7, 0))
+    except PermissionError:
+        pytest.skip("making a block device node needs root (CAP_MKNOD)")
+    reason = (f"{port} is a block device (a disk), not a serial port: check --port (a "
+              "camera is a terminal device such as /dev/ttyACM0; mcam simulate-device "
+              "prints the path to give)")
     daemon = DeviceDaemon(DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05),
                           client).start()
     try:
