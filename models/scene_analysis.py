@@ -107,11 +107,12 @@ def residue_pixels(m: NDArray[np.float64], reach: int) -> NDArray[np.bool_]:
 
 
 def cross_dilation(mask: NDArray[np.bool_], iterations: int) -> NDArray[np.bool_]:
-    """``mask`` (bool, H x W) grown ``iterations`` times by its 4-neighbours: what
-    ``scipy.ndimage.binary_dilation(mask, iterations=iterations)`` gives (its default
-    cross, nothing beyond the border), by shifted slices. On 256x256 masks (2026-11-27,
-    AMD EPYC) one step took 0.02 ms against scipy's 0.3-0.6 ms, two 0.03 against 0.3-1.0.
-    """
+    """``mask`` (bool, H x W) grown ``iterations`` times by its 4-neighbours: for
+    ``iterations >= 1`` what ``scipy.ndimage.binary_dilation(mask, iterations=iterations)``
+    gives (its default cross, nothing beyond the border), by shifted slices; 0 returns
+    ``mask`` itself (scipy's 0 grows it until it no longer changes). On 256x256 masks
+    (2026-11-27, AMD EPYC) one step took 0.02 ms against scipy's 0.3-0.6 ms, two 0.03
+    against 0.3-1.0."""
     out = mask
     for _ in range(iterations):
         grown = out.copy()
