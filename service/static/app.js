@@ -411,7 +411,8 @@ function resultsUnreachable(id) {
 
 // Cancel the job in flight (DELETE /v1/jobs/{id}) and stop waiting for it and its
 // results. One that finished meanwhile (409) is not fetched further either: the page
-// says so. If the server cannot be told, the page stops waiting all the same and says so.
+// shows its record (why it failed) and says so. If the server cannot be told, the page
+// stops waiting all the same and says so.
 async function cancel() {
   const { id, stop } = watched;
   $("cancel").disabled = true;
@@ -421,13 +422,27 @@ async function cancel() {
     showJob(job);
   } catch (error) {
     stop.abort();
-    if (error.status === 409) {
-      return setStatus(`job ${id} had finished before Cancel (${error.message}): stopped ` +
-        "fetching its results; press Reconstruct to run it again", "warning");
-    }
+    if (error.status === 409) return finishedBeforeCancel(id, error);
     setStatus(`job ${id}: stopped waiting, but the server could not cancel it ` +
       `(${error.message}); it may still run`, "error");
   }
+}
+
+// Job id had finished when Cancel reached the server (refused: error). A failed one is
+// shown as its record says (why it failed: it has no results to stop fetching); for
+// one that succeeded, or whose record cannot be read, the page says that it stopped
+// fetching its results. Nothing is shown once another job is watched.
+async function finishedBeforeCancel(id, error) {
+  let job = null;
+  try {
+    job = await (await api(`/v1/jobs/${id}`)).json();
+  } catch {
+    // the record is out of reach: the refusal's own message says what happened
+  }
+  if (watched && watched.id !== id) return;
+  if (job?.state === "failed") return showJob(job);
+  setStatus(`job ${id} had finished before Cancel (${error.message}): stopped fetching ` +
+    "its results; press Reconstruct to run it again", "warning");
 }
 
 function onExposure() {

@@ -258,6 +258,34 @@ def test_cancel_after_the_job_finished_stops_fetching_its_results(
         assert panels_empty(page) and page.is_enabled("#run") and page.is_disabled("#cancel")
 
 
+def test_cancel_after_the_job_failed_shows_why_it_failed(
+    browser: Browser, api: str, settings: Settings, tmp_path: Path
+) -> None:
+    """Cancel pressed before the page saw its job fail: the server answered 409 (already
+    failed) and the page said it had 'stopped fetching its results', which a failed job
+    has none of, and never showed why the job failed. It now shows the job's record."""
+    overflow = tmp_path / "overflow.npy"
+    overflow.write_bytes(npy_bytes(overflowing_codes(SIZE)))
+    page = open_viewer(browser, api, fake_clock=True)
+    page.select_option("#encoding", "mantissa")
+    page.fill("#alpha", "1e6")
+    page.fill("#bits", "8")
+    job_id = submit(page, overflow)  # no worker yet: the job stays queued
+    page.clock.pause_at(page.evaluate("Date.now()") + 1)  # no poll after the first
+    wait_for_status(page, f"job {job_id}: queued")
+    headers = {"Authorization": f"Bearer {FULL_KEY}"}
+    with running_worker(settings):
+        deadline = time.monotonic() + 30
+        while httpx.get(f"{api}/v1/jobs/{job_id}", headers=headers).json()["state"] != "failed":
+            assert time.monotonic() < deadline, "the worker did not fail the job"
+            time.sleep(0.1)
+    assert page.inner_text("#status") == f"job {job_id}: queued"
+    page.click("#cancel")
+    status = wait_for_status(page, "output_overflow")
+    assert status.startswith(f"job {job_id}: failed"), status
+    assert page.is_enabled("#run") and page.is_disabled("#cancel")
+
+
 def test_a_rate_limited_poll_waits_as_retry_after_says(
     browser: Browser, redis_url: str, frame: Path, tmp_path: Path
 ) -> None:
