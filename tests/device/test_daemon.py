@@ -253,6 +253,19 @@ def test_a_port_that_does_not_exist_says_so_and_what_to_do_and_is_retried(
     assert f"cannot open {port}: {reason}; retrying" in caplog.records[0].getMessage()
 
 
+def assert_port_named(client: redis.Redis, port: Path, kind: str) -> None:
+    """A daemon on ``port`` reports it as ``kind`` (a directory, a disk...), not a serial
+    port, with what to do."""
+    reason = (f"{port} is {kind}, not a serial port: check --port (a camera is a terminal "
+              "device such as /dev/ttyACM0; mcam simulate-device prints the path to give)")
+    daemon = DeviceDaemon(DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05),
+                          client).start()
+    try:
+        assert wait_for(lambda: health(client, "cam1").get("port_error") == reason, 10)
+    finally:
+        daemon.stop()
+
+
 @pytest.mark.parametrize(("name", "kind"), [
     ("folder", "a directory"),
     ("plain", "a regular file"),
@@ -262,17 +275,9 @@ def test_a_port_that_is_no_terminal_says_what_it_is(
         client: redis.Redis, tmp_path: Path, name: str, kind: str) -> None:
     """pyserial said 'Could not configure port: (25, 'Inappropriate ioctl for device')'
     for a regular file or /dev/null, naming neither the path nor what to do."""
-    port = tmp_path / name
     (tmp_path / "folder").mkdir()
     (tmp_path / "plain").write_bytes(b"")
-    reason = (f"{port} is {kind}, not a serial port: check --port (a camera is a terminal "
-              "device such as /dev/ttyACM0; mcam simulate-device prints the path to give)")
-    daemon = DeviceDaemon(DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05),
-                          client).start()
-    try:
-        assert wait_for(lambda: health(client, "cam1").get("port_error") == reason, 10)
-    finally:
-        daemon.stop()
+    assert_port_named(client, tmp_path / name, kind)
 
 
 def test_a_port_that_is_a_block_device_says_so(client: redis.Redis, tmp_path: Path) -> None:
@@ -284,15 +289,7 @@ def test_a_port_that_is_a_block_device_says_so(client: redis.Redis, tmp_path: Pa
         os.mknod(port, stat.S_IFBLK | 0o600, os.makedev(7, 0))
     except PermissionError:
         pytest.skip("making a block device node needs root (CAP_MKNOD)")
-    reason = (f"{port} is a block device (a disk), not a serial port: check --port (a "
-              "camera is a terminal device such as /dev/ttyACM0; mcam simulate-device "
-              "prints the path to give)")
-    daemon = DeviceDaemon(DaemonConfig(port=str(port), device="cam1", backoff_max_s=0.05),
-                          client).start()
-    try:
-        assert wait_for(lambda: health(client, "cam1").get("port_error") == reason, 10)
-    finally:
-        daemon.stop()
+    assert_port_named(client, port, "a block device (a disk)")
 
 
 def test_a_wild_sequence_jump_is_a_gap_not_trillions_of_missing_frames(
