@@ -27,7 +27,11 @@ from worker.redis_memory import DEFAULT_MAXMEMORY
 class Settings(BaseSettings):
     """All ``MCAM_*`` settings. Sizes in bytes or pixels, times in seconds unless named ``_ms``."""
 
-    model_config = SettingsConfigDict(env_prefix="MCAM_", env_file=".env", extra="ignore")
+    #: An empty variable (``MCAM_PORT=``, or compose's ``${VAR}`` of an unset one) is
+    #: unset: it took ``MCAM_DATA_DIR=`` as the working folder and refused ``MCAM_PORT=``.
+    model_config = SettingsConfigDict(
+        env_prefix="MCAM_", env_file=".env", extra="ignore", env_ignore_empty=True
+    )
 
     data_dir: Path = Field(Path("data"), description="results, embedded Redis, API key file")
     redis_url: str | None = Field(

@@ -37,6 +37,19 @@ def test_environment_and_dotenv_override_with_the_prefix(
     assert settings.redis_url == "redis://cache:6379/0"
 
 
+def test_an_empty_variable_is_unset(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """MCAM_DATA_DIR= put the data (API keys, Redis files) in the working folder, and
+    MCAM_PORT= or MCAM_ACCURACY_REPORT= stopped the service; each now means the default."""
+    defaults = Settings()
+    for name in Settings.model_fields:
+        monkeypatch.setenv(f"MCAM_{name.upper()}", "")
+    assert Settings() == defaults
+    for name in Settings.model_fields:
+        monkeypatch.delenv(f"MCAM_{name.upper()}")
+    (tmp_path / ".env").write_text("MCAM_DATA_DIR=\nMCAM_PORT=\n")
+    assert Settings() == defaults
+
+
 @pytest.mark.parametrize(
     ("name", "value"),
     [("MCAM_PORT", "70000"), ("MCAM_WORKER_THREADS", "0"), ("MCAM_HEARTBEAT_S", "-1"),
