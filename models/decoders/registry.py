@@ -1,4 +1,5 @@
-"""Decoder lookup by name: one cached instance per decoder (ONNX sessions are created once).
+"""Decoder lookup by name: one shared instance per decoder (ONNX sessions are created once;
+of the parametrized names, the :data:`PARAMETRIZED_KEPT` most recently used are kept).
 
 Each decoder module exposes ``specs() -> list[DecoderSpec]``; the registry
 collects them from :data:`PROVIDERS` in order. A provider whose optional
@@ -18,7 +19,7 @@ import re
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, lru_cache
 from types import ModuleType
 from typing import Any
 
@@ -35,6 +36,13 @@ PROVIDERS: tuple[str, ...] = (
     "models.decoders.budget",
     "models.decoders.colour",
 )
+#: Parametrized decoders (``auto-<N>ms``, ``<decoder>+puma<K>``, ``<decoder>+colour``)
+#: kept built at once, the least recently used dropped first: a request may name any of
+#: unboundedly many (``latency_ms`` is any number), and a long-running worker kept every
+#: one it had been asked for. Their expensive parts (a network's ONNX session, the cost
+#: calibration) belong to listed decoders and to :mod:`models.decoders.cost_model`,
+#: which stay built, so one rebuilt after it was dropped costs microseconds.
+PARAMETRIZED_KEPT = 64
 
 
 @dataclass(frozen=True)
@@ -157,7 +165,20 @@ def resolve(name: str) -> DecoderSpec:
     raise InvalidInputError(f"unknown decoder {echo(name)}; choose one of: {choices}")
 
 
-@cache
 def get_decoder(name: str) -> Decoder:
-    """The shared instance of decoder ``name``; a clear error lists the valid names."""
+    """The shared instance of decoder ``name``; a clear error lists the valid names. A
+    listed decoder's is built once; a parametrized one's is kept among the
+    :data:`PARAMETRIZED_KEPT` most recently used."""
+    if name in _specs():
+        return _listed_decoder(name)
+    return _parametrized_decoder(name)
+
+
+@cache
+def _listed_decoder(name: str) -> Decoder:
+    return _specs()[name].factory()
+
+
+@lru_cache(maxsize=PARAMETRIZED_KEPT)
+def _parametrized_decoder(name: str) -> Decoder:
     return resolve(name).factory()

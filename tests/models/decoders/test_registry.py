@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import gc
+import weakref
+
 import pytest
 
 from models.decoders.base import Decoder
 from models.decoders.classical import HerraezDecoder, ItohDecoder
-from models.decoders.registry import available_decoders, get_decoder, resolve
+from models.decoders.registry import (
+    PARAMETRIZED_KEPT,
+    available_decoders,
+    get_decoder,
+    resolve,
+)
 from models.errors import InvalidInputError
 
 
@@ -24,6 +32,20 @@ def test_get_decoder_returns_one_cached_instance(name: str, cls: type[Decoder]) 
     assert isinstance(decoder, cls)
     assert decoder.name == name
     assert get_decoder(name) is decoder
+
+
+def test_parametrized_decoders_kept_are_bounded() -> None:
+    """Every latency budget a request named (``latency_ms`` is any number) stayed built
+    for the life of the worker: 500 budgets kept 500 decoders."""
+    itoh = get_decoder("itoh")
+    names = [f"auto-{budget}ms" for budget in range(1, 501)] + [
+        f"itoh+puma{moves}" for moves in range(1, 501)
+    ]
+    built = [weakref.ref(get_decoder(name)) for name in names]
+    gc.collect()
+    assert sum(ref() is not None for ref in built) == PARAMETRIZED_KEPT
+    assert get_decoder(names[-1]) is built[-1]()  # the recently used is shared
+    assert get_decoder("itoh") is itoh  # listed decoders are never dropped
 
 
 def test_every_available_decoder_builds() -> None:
