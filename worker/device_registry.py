@@ -3,7 +3,8 @@
 A daemon registers its device in ``devices`` with its first health write or frame, and
 nothing else takes it out, so a camera retired for good stayed in ``GET /v1/devices``.
 :func:`forget_device` removes it with its health, control stream and cursor, events,
-newest-result pointer, sequence record, lease and recording record, but only while no
+newest-result pointer, sequence record, lease and recording record, and its series of
+the device-labelled counters (:func:`worker.metrics.forget_label`), but only while no
 daemon reports for it, no recording is running and (unless the caller says to discard
 them) no frame waits to be decoded. Reconstructions already stored stay in the result
 store until their retention ends. A daemon that comes back registers the device again.
@@ -16,6 +17,7 @@ import time
 import redis
 
 from models.errors import McamError
+from worker.metrics import forget_label
 from worker.redis_keys import (
     DEVICES_SET,
     control_cursor_key,
@@ -100,6 +102,7 @@ def forget_device(client: redis.Redis, device: str, *, silent_after_s: float,
                 pipe.multi()
                 pipe.srem(DEVICES_SET, device)
                 pipe.delete(*keys)
+                forget_label(pipe, "device", device)
                 pipe.execute()
                 return waiting
             except redis.WatchError:

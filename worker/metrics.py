@@ -146,6 +146,15 @@ class Metrics:
         (pipe if pipe is not None else self.client).hincrby(counter_key(name), value, amount)
 
 
+def forget_label(pipe: redis.client.Pipeline, label: str, value: str) -> None:
+    """Queue on ``pipe`` the removal of every counter's series labelled ``label`` =
+    ``value`` (a forgotten device's ``frames_processed_total`` and
+    ``frames_dropped_total``), so that label values that come and go do not pile up."""
+    for name, (_help, counter_label) in COUNTERS.items():
+        if counter_label == label:
+            pipe.hdel(counter_key(name), value)
+
+
 def _read_histogram(raw: dict[bytes, bytes]) -> Sample:
     counts = {k.decode(): float(v) for k, v in raw.items()}
     running = 0.0

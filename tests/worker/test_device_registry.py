@@ -18,6 +18,7 @@ from worker.device_registry import (
 )
 from worker.embedded_redis import EmbeddedRedis
 from worker.frame_message import FrameMessage
+from worker.metrics import Metrics, read_metrics
 from worker.queue import publish_frame
 from worker.recordings import request_stop, start_recording
 from worker.redis_keys import DEVICES_SET, events_stream, health_key, recording_key
@@ -43,6 +44,30 @@ def test_forgets_a_silent_device_and_all_its_keys(client: redis.Redis) -> None:
     assert client.smembers(DEVICES_SET) == {b"kept"}
     assert client.exists(*device_keys("gone")) == 0
     assert client.exists(health_key("kept"), events_stream("kept")) == 2
+
+
+def _device_series(client: redis.Redis) -> dict[str, list[str]]:
+    """The devices each device-labelled counter has a series for."""
+    return {
+        family.name: [sample.labels["device"] for sample in family.samples]
+        for family in read_metrics(client)
+        if family.name.startswith("frames_")
+    }
+
+
+def test_a_forgotten_device_leaves_no_counter_series(client: redis.Redis) -> None:
+    """A camera that came and went kept its frames_processed_total and
+    frames_dropped_total series (fields of their Redis hashes) for good: the scrape grew
+    by two series per device ever seen."""
+    metrics = Metrics(client)
+    for device in ("gone", "kept"):
+        _register(client, device, reported_s_ago=60, frames=0)
+        metrics.inc("frames_processed_total", 5, device=device)
+        metrics.inc("frames_dropped_total", 2, device=device)
+    forget_device(client, "gone", silent_after_s=10)
+    assert _device_series(client) == {
+        "frames_processed_total": ["kept"], "frames_dropped_total": ["kept"],
+    }  # fmt: skip
 
 
 def test_a_reporting_daemon_keeps_its_device(client: redis.Redis) -> None:
