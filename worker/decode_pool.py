@@ -5,7 +5,8 @@ Usage (inside the worker's device consumer)::
     pool = DecodePool("auto", processes=2)           # starts and warms the processes
     pool.prefetch("cam1", [(entry_id, message), ...]) # a batch read from the stream
     frame = pool.result("cam1", entry_id, message)    # in stream order: DecodedFrame
-    pool.discard("cam1")                               # lease lost: drop what is pending
+    pool.discard("cam1")                               # drop what is pending
+    pool.forget("cam1")                                # lease lost: drop all kept for it
     pool.close()
 
 Why: the frames of one stream are written in order by the one worker that owns it,
@@ -234,6 +235,13 @@ class DecodePool:
         frames are decoded here)."""
         for _message, future in self._pending.pop(device, {}).values():
             future.cancel()
+
+    def forget(self, device: str) -> None:
+        """Drop everything kept for ``device``: its pending frames and its average decode
+        time (a worker that saw cameras come and go kept one average per camera ever
+        owned); its next frames start on the pool, as a new device's do."""
+        self.discard(device)
+        self._cost_ms.pop(device, None)
 
     def close(self) -> None:
         """Cancel what is pending and stop the processes (waits for running decodes)."""

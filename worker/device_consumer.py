@@ -218,7 +218,7 @@ class DeviceConsumer:
         self.states.pop(device, None)
         self._consumers.pop(device, None)
         if isinstance(self.decode, DecodePool):
-            self.decode.discard(device)
+            self.decode.forget(device)
 
     def _drain(self, device: str) -> bool:
         consumer = self._consumers[device]

@@ -11,6 +11,7 @@ import pytest
 import redis
 
 from tests.worker.conftest import ramp_frame
+from worker.decode_pool import DecodePool
 from worker.device_consumer import DeviceConsumer, LeaseLost
 from worker.device_registry import forget_device
 from worker.device_state import DecodedFrame, DeviceState, make_frame_decoder
@@ -91,6 +92,28 @@ def test_a_device_forgotten_from_the_registry_is_let_go(
     forget_device(client, "a", silent_after_s=0.0)
     consumer.poll()
     assert set(consumer.states) == {"b"}
+
+
+def test_a_device_let_go_leaves_nothing_in_the_decode_pool(
+    client: redis.Redis, tmp_path: Path
+) -> None:
+    """The pool kept each device's average decode time for good: a worker that saw
+    cameras come and go for weeks kept one per camera ever owned."""
+    pool = DecodePool("itoh", 2)
+    try:
+        consumer = DeviceConsumer(
+            client, ResultStore(tmp_path / RESULTS_DIR, retention_s=3600), owner="w1",
+            lease_ms=5000, max_deliveries=3, decode=pool, stop=threading.Event(),
+        )  # fmt: skip
+        for device in ("a", "b"):
+            publish_frame(client, frame(device, 0), maxlen=10)
+        consumer.poll()
+        assert set(pool._cost_ms) == {"a", "b"}
+        forget_device(client, "a", silent_after_s=0.0)
+        consumer.poll()
+        assert set(pool._cost_ms) == {"b"}
+    finally:
+        pool.close()
 
 
 def test_entries_a_lapsed_owner_read_after_the_take_over_are_decoded_by_the_new_one(
