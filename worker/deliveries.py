@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import redis
@@ -60,6 +61,29 @@ local reply = redis.call('XREADGROUP', 'GROUP', ARGV[2], ARGV[3], 'COUNT', ARGV[
 if not reply then return {} end
 return reply[1][2]
 """
+
+#: Delete consumer ARGV[2] of group ARGV[1] of stream KEYS[1] unless an entry is pending
+#: at it (deleting it would drop the entry from the pending list: never reclaimed); 1 if
+#: it was deleted, else 0.
+_DELETE_IF_IDLE = """
+if #redis.call('XPENDING', KEYS[1], ARGV[1], '-', '+', 1, ARGV[2]) > 0 then return 0 end
+redis.call('XGROUP', 'DELCONSUMER', KEYS[1], ARGV[1], ARGV[2])
+return 1
+"""
+
+
+def prune_consumers(client: redis.Redis, stream: str, keep: Callable[[str], bool]) -> int:
+    """Delete the consumers of ``stream``'s group whose name ``keep`` refuses and at
+    which no entry is pending; returns how many. Every worker that ever started left its
+    consumers in the groups for good (six starts of ``mcam serve``, six consumers of
+    ``jobs``). One deleted while its worker lives comes back with its next read."""
+    try:
+        consumers = client.xinfo_consumers(stream, GROUP)
+    except redis.ResponseError:  # no such stream or group (yet): no consumer either
+        return 0
+    delete = client.register_script(_DELETE_IF_IDLE)
+    names = [consumer["name"].decode() for consumer in consumers]
+    return sum(delete(keys=[stream], args=[GROUP, name]) for name in names if not keep(name))
 
 
 @dataclass

@@ -44,7 +44,7 @@ import redis
 
 from models.errors import InvalidInputError, McamError
 from worker.decode_pool import DecodePool
-from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order
+from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order, prune_consumers
 from worker.device_share import device_to_hand_over, frame_clock
 from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
@@ -205,6 +205,8 @@ class DeviceConsumer:
             self.client, frame_stream(device), self.owner, max_deliveries=self.max_deliveries
         )
         consumer.claim_idle(0, count=None)
+        # The stream's earlier owners: their entries are ours now, their names go.
+        prune_consumers(self.client, frame_stream(device), lambda name: name == self.owner)
         raw = self.client.hgetall(last_sequence_key(device))
         self.states[device] = DeviceState(
             device,

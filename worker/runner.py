@@ -42,7 +42,7 @@ from models.hdr_io import EXR_COMPRESSIONS
 from worker.child_process import ChildProcess
 from worker.config_checks import heartbeat_problem
 from worker.decode_pool import DecodePool
-from worker.deliveries import Delivery, StreamConsumer
+from worker.deliveries import Delivery, StreamConsumer, prune_consumers
 from worker.device_consumer import DeviceConsumer
 from worker.device_state import FrameDecoder, make_frame_decoder, warm_up
 from worker.embedded_redis import connect
@@ -72,6 +72,8 @@ RECONNECT_DOUBLINGS = 16
 PURGE_EVERY_S = 300.0
 #: Heartbeats older than this many heartbeat periods are removed by any worker.
 STALE_HEARTBEATS = 30
+#: Between a worker's id and its job thread's index in the name of its consumer.
+JOB_CONSUMER_SEPARATOR = "-j"
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,16 @@ class WorkerConfig:
 def new_worker_id() -> str:
     """A unique, readable worker id: host, pid and a random suffix."""
     return f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+
+
+def job_consumer(worker_id: str, index: int) -> str:
+    """The name of worker ``worker_id``'s job thread ``index`` in the jobs stream's group."""
+    return f"{worker_id}{JOB_CONSUMER_SEPARATOR}{index}"
+
+
+def worker_of(consumer: str) -> str:
+    """The worker id of a job consumer named by :func:`job_consumer`."""
+    return consumer.rpartition(JOB_CONSUMER_SEPARATOR)[0]
 
 
 def reconnect_delay(failures: int, jitter: float) -> float:
@@ -218,7 +230,7 @@ class Worker:
                 consumer = StreamConsumer(
                     self.client,
                     JOBS_STREAM,
-                    f"{self.id}-j{index}",
+                    job_consumer(self.id, index),
                     max_deliveries=self.config.max_deliveries,
                 )
             deliveries = consumer.read_own_pending(1)
@@ -361,9 +373,14 @@ class Worker:
         }
         self.client.hset(WORKERS_HEARTBEAT, self.id, json.dumps(beat))
         stale_ns = STALE_HEARTBEATS * self.config.heartbeat_s * 1e9
+        live = set()
         for worker_id, raw in self.client.hgetall(WORKERS_HEARTBEAT).items():
             if now - int(json.loads(raw).get("ts_ns", 0)) > stale_ns:
                 self.client.hdel(WORKERS_HEARTBEAT, worker_id)
+            else:
+                live.add(worker_id.decode())
+        # Consumers of workers gone (stopped, or silent too long) with nothing pending.
+        prune_consumers(self.client, JOBS_STREAM, lambda name: worker_of(name) in live)
 
     def _device_workers(self) -> int:
         """Workers consuming device streams whose heartbeat is fresh (3 periods)."""

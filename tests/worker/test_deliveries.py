@@ -6,7 +6,7 @@ import time
 
 import redis
 
-from worker.deliveries import StreamConsumer, entry_order
+from worker.deliveries import StreamConsumer, entry_order, prune_consumers
 from worker.metrics import read_metrics
 from worker.queue import GROUP
 from worker.redis_keys import DEAD_LETTER_STREAM
@@ -131,3 +131,22 @@ def test_a_touch_keeps_an_entry_idle_free_only_for_its_owner(client: redis.Redis
     assert bob.touch(reclaimed)
     alice.done(delivery)
     assert not bob.touch(reclaimed)
+
+
+def consumer_names(client: redis.Redis, stream: str) -> set[str]:
+    return {consumer["name"].decode() for consumer in client.xinfo_consumers(stream, GROUP)}
+
+
+def test_consumers_not_kept_go_unless_an_entry_is_pending_at_them(client: redis.Redis) -> None:
+    """Deleting a consumer drops its pending entries from the group: those never come back."""
+    for name in ("gone-idle", "gone-busy", "kept"):
+        StreamConsumer(client, "s", name, max_deliveries=3)
+        client.xgroup_createconsumer("s", GROUP, name)
+    client.xadd("s", {"n": "1"})
+    (busy,) = StreamConsumer(client, "s", "gone-busy", max_deliveries=3).read_new(block_ms=None)
+    assert prune_consumers(client, "s", lambda name: name == "kept") == 1
+    assert consumer_names(client, "s") == {"gone-busy", "kept"}
+    assert client.xpending_range("s", GROUP, "-", "+", 10)[0]["message_id"].decode() == (
+        busy.entry_id
+    )
+    assert prune_consumers(client, "no-such-stream", lambda name: False) == 0

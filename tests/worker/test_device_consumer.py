@@ -12,12 +12,13 @@ import redis
 
 from tests.worker.conftest import ramp_frame
 from worker.decode_pool import DecodePool
+from worker.deliveries import GROUP
 from worker.device_consumer import DeviceConsumer, LeaseLost
 from worker.device_registry import forget_device
 from worker.device_state import DecodedFrame, DeviceState, make_frame_decoder
 from worker.frame_message import FrameMessage
 from worker.metrics import read_metrics
-from worker.queue import publish_frame
+from worker.queue import ensure_group, publish_frame
 from worker.recordings import load_recording, start_recording
 from worker.redis_keys import DEAD_LETTER_STREAM, DEVICES_SET, events_stream, frame_stream
 from worker.result_store import RESULTS_DIR, ResultStore
@@ -114,6 +115,24 @@ def test_a_device_let_go_leaves_nothing_in_the_decode_pool(
         assert set(pool._cost_ms) == {"b"}
     finally:
         pool.close()
+
+
+def test_a_take_over_deletes_the_earlier_owners_consumers(
+    client: redis.Redis, consumer: DeviceConsumer
+) -> None:
+    """Each worker that ever owned a device left its consumer in the device stream's
+    group: a camera streaming for weeks through worker restarts kept one per start. The
+    earlier owner's frame pending there is decoded by the new owner."""
+    publish_frame(client, frame("a", 0), maxlen=10)
+    ensure_group(client, frame_stream("a"))
+    client.xgroup_createconsumer(frame_stream("a"), GROUP, "w0-idle")
+    client.xreadgroup(GROUP, "w0-busy", {frame_stream("a"): ">"})
+    publish_frame(client, frame("a", 1), maxlen=10)
+    consumer.poll()
+    names = {row["name"].decode() for row in client.xinfo_consumers(frame_stream("a"), GROUP)}
+    assert names == {"w1"}
+    consumer.poll()  # the new frame, after the one taken over
+    assert consumer.states["a"].last_sequence == 1 and client.xlen(frame_stream("a")) == 0
 
 
 def test_entries_a_lapsed_owner_read_after_the_take_over_are_decoded_by_the_new_one(

@@ -109,6 +109,28 @@ def test_long_job_is_not_reclaimed_from_a_live_worker(
     assert redelivered.samples[0].value == 0
 
 
+def test_the_job_consumers_of_workers_gone_leave_the_group(
+    queue: JobQueue, client: redis.Redis, workers, make_frame, finished, wait_until
+) -> None:
+    """Each worker start added consumers (``<worker id>-j<thread>``) to the jobs stream's
+    group and none ever left: a service restarted for weeks kept every one. A live
+    worker deletes those of workers without a heartbeat that hold no entry."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    gone = {"host-1-aaaaaa-j0", "host-2-bbbbbb-j0", "host-2-bbbbbb-j1"}
+    for name in gone:
+        client.xgroup_createconsumer(JOBS_STREAM, GROUP, name)
+    workers.start(MCAM_HEARTBEAT_S="0.1")
+    assert finished(queue, job.id).state is JobState.SUCCEEDED
+
+    def names() -> set[str]:
+        return {row["name"].decode() for row in client.xinfo_consumers(JOBS_STREAM, GROUP)}
+
+    wait_until(lambda: not names() & gone, 30, "the gone workers' consumers deleted")
+    (live,) = queue.workers(max_age_s=10)
+    assert names() and all(name.startswith(f"{live}-j") for name in names())
+
+
 def test_a_job_the_input_makes_impossible_fails_at_once_without_a_dead_letter(
     queue: JobQueue, client: redis.Redis, workers, data_dir: Path, wait_until, finished
 ) -> None:
