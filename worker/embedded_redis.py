@@ -302,9 +302,14 @@ class EmbeddedRedis:
             watcher.join()
 
     def _end_process(self, timeout_s: float) -> None:
-        """SIGTERM the server (SIGKILL after ``timeout_s``), reap it, remove its socket."""
+        """SIGTERM the server (SIGKILL after ``timeout_s``), reap it, remove its socket.
+        Without a server of its own (never started, or refused because another serves
+        the data dir) the socket is not ours: removing it cut the running service off
+        its Redis."""
         process, self._process = self._process, None
-        if process is not None and process.poll() is None:
+        if process is None:
+            return
+        if process.poll() is None:
             process.terminate()
             try:
                 process.wait(timeout_s)

@@ -126,6 +126,18 @@ def test_second_server_on_the_same_data_dir_is_refused(tmp_path: Path) -> None:
             EmbeddedRedis(tmp_path).start()
 
 
+def test_a_refused_second_server_leaves_the_running_one_its_socket(tmp_path: Path) -> None:
+    """A second ``mcam serve`` on the same data dir was refused, then stopped its
+    EmbeddedRedis on the way out, which removed the running server's socket: the
+    running API and workers said 'queue unreachable' until restarted."""
+    with EmbeddedRedis(tmp_path) as url:
+        second = EmbeddedRedis(tmp_path)
+        with pytest.raises(RedisStartError, match="already serves"):
+            second.start()
+        second.stop()
+        assert connect(url).ping()
+
+
 def test_server_stops_when_its_parent_is_killed(tmp_path: Path) -> None:
     script = (
         "import sys, time; from pathlib import Path; from worker.embedded_redis import "
