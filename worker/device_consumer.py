@@ -219,6 +219,7 @@ class DeviceConsumer:
     def _forget(self, device: str) -> None:
         self.states.pop(device, None)
         self._consumers.pop(device, None)
+        self._trouble.forget(_trouble_place(device))
         if isinstance(self.decode, DecodePool):
             self.decode.forget(device)
 
@@ -322,7 +323,7 @@ class DeviceConsumer:
             if not is_transient(exc):
                 raise
             # The frame is committed: a retry would only redo it as stale.
-            self._trouble.warn(f"device {device}", exc, then="frame metrics not recorded")
+            self._trouble.warn(_trouble_place(device), exc, then="frame metrics not recorded")
 
     def _record(
         self,
@@ -374,6 +375,11 @@ class DeviceConsumer:
         last = state.last_sequence if state.last_sequence is not None else -1
         self._record(device, state, delivery, max(sequence_number, last), "", event)
         consumer.dead_letter(delivery, error.code, error.message, device=device, sequence=sequence)
+
+
+def _trouble_place(device: str) -> str:
+    """The place a device's transient Redis errors are logged under (:class:`TroubleLog`)."""
+    return f"device {device}"
 
 
 def _sequence_number(text: str) -> int:

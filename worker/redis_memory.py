@@ -145,6 +145,13 @@ class TroubleLog:
         self.logger.warning("%s: %s; %s%s", where, trouble, then, since)
 
 
+    def forget(self, where: str) -> None:
+        """Drop what is kept for place ``where`` (a device the worker let go: one entry
+        per device ever troubled, for the life of the worker, otherwise)."""
+        with self._lock:
+            self._last.pop(where, None)
+
+
 def store_full_error() -> StoreFullError:
     """The client's answer to a refused write: nothing was stored, retry later."""
     return StoreFullError(

@@ -18,6 +18,7 @@ import redis
 
 from models.formation import SensorFrame, SensorParams
 from worker.device_consumer import DeviceConsumer
+from worker.device_registry import forget_device
 from worker.device_state import make_frame_decoder
 from worker.embedded_redis import EmbeddedRedis, connect, durability_problem
 from worker.frame_message import FrameMessage
@@ -199,6 +200,31 @@ def test_a_device_frame_decoded_while_redis_is_full_is_committed_once(
     assert events == [b"frame", b"frame"]
     assert client.xlen(frame_stream(device)) == 0
     assert "metrics not recorded" in caplog.text and "Traceback" not in caplog.text
+
+
+def test_a_device_let_go_leaves_no_trouble_behind(
+    client: redis.Redis, data_dir: Path, make_frame
+) -> None:
+    """The worker's once-per-30-s warning kept an entry per device whose frame metrics a
+    full Redis refused, for the life of the worker: one per camera ever troubled."""
+    frame: SensorFrame = make_frame()
+    consumer = DeviceConsumer(
+        client, ResultStore(data_dir / RESULTS_DIR, retention_s=3600), owner="w-1",
+        lease_ms=5000, max_deliveries=3, decode=make_frame_decoder("independent", "itoh"),
+        stop=threading.Event(),
+    )  # fmt: skip
+    for device in ("cam-a", "cam-b"):
+        publish_frame(client, FrameMessage(device, 0, 0, frame.codes, frame.params), maxlen=10)
+    assert consumer.poll()
+    for device in ("cam-a", "cam-b"):
+        publish_frame(client, FrameMessage(device, 1, 1000, frame.codes, frame.params), maxlen=10)
+    fill(client)
+    consumer.poll()
+    make_room(client)
+    assert set(consumer._trouble._last) == {"device cam-a", "device cam-b"}
+    forget_device(client, "cam-a", silent_after_s=0.0)
+    consumer.poll()
+    assert set(consumer._trouble._last) == {"device cam-b"}
 
 
 def test_a_queue_opened_on_a_full_redis_with_its_group_reads_on(
