@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from models.errors import InvalidInputError
-from models.metrics import capped_psnr, psnr, pu21_psnr, reinhard, winding_accuracy
+from models.metrics import mean_capped_psnr, psnr, pu21_psnr, reinhard, winding_accuracy
 
 
 def _check_clips(estimate: ArrayLike, reference: ArrayLike) -> tuple[NDArray, NDArray]:
@@ -42,13 +42,13 @@ def _check_clips(estimate: ArrayLike, reference: ArrayLike) -> tuple[NDArray, ND
 def mean_psnr(estimate: ArrayLike, reference: ArrayLike) -> float:
     """Mean per-frame linear PSNR (dB), each frame peak = its reference maximum."""
     est, ref = _check_clips(estimate, reference)
-    return float(np.mean([capped_psnr(psnr(e, r)) for e, r in zip(est, ref, strict=True)]))
+    return mean_capped_psnr(psnr(e, r) for e, r in zip(est, ref, strict=True))
 
 
 def mean_pu21_psnr(estimate: ArrayLike, reference: ArrayLike) -> float:
     """Mean per-frame PU21-PSNR (dB)."""
     est, ref = _check_clips(estimate, reference)
-    return float(np.mean([capped_psnr(pu21_psnr(e, r)) for e, r in zip(est, ref, strict=True)]))
+    return mean_capped_psnr(pu21_psnr(e, r) for e, r in zip(est, ref, strict=True))
 
 
 def temporal_consistency(estimate: ArrayLike, reference: ArrayLike) -> float:

@@ -144,7 +144,6 @@ class TroubleLog:
         since = f" ({held_back} more times since the last warning)" if held_back else ""
         self.logger.warning("%s: %s; %s%s", where, trouble, then, since)
 
-
     def forget(self, where: str) -> None:
         """Drop what is kept for place ``where`` (a device the worker let go: one entry
         per device ever troubled, for the life of the worker, otherwise)."""
