@@ -187,6 +187,8 @@ class FramePublisher:
         self._next_health = time.monotonic() + HEALTH_INTERVAL_S
         if not self._taken_over and not self._redis(self._take_over):
             return
+        if self._control_id is None and not self._redis(self._find_control_start):
+            return
         fields = self.health.to_fields()
         reported, reported_causes = dict(self._reported), dict(self._reported_causes)
         events = self._new_events()
@@ -240,19 +242,26 @@ class FramePublisher:
             self.client.set(control_cursor_key(self.device), delivered)
             self._cursor_written = delivered
 
-    def _read_control(self) -> None:
-        """Forward the control commands after the last one handed over (by this daemon
-        or, for the first read, after the last the device's previous daemon delivered:
-        commands the API accepted while no daemon ran, or that a stopped daemon had not
-        sent yet, are not lost; a device's first daemon skips older ones)."""
+    def _find_control_start(self) -> None:
+        """Fix where control commands start, before the first health write shows the
+        daemon up: after the last command the device's previous daemon delivered
+        (commands the API accepted while no daemon ran, or that a stopped daemon had not
+        sent yet, are not lost), or, for a device's first daemon, after the newest one
+        (older ones are skipped, and one sent once the daemon shows up is not)."""
         stream = control_stream(self.device)
+        done = self.client.get(control_cursor_key(self.device))
+        newest = self.client.xrevrange(stream, count=1) if done is None else []
+        start = done or (newest[0][0] if newest else b"0-0")
+        self._control_id = start.decode() if isinstance(start, bytes) else start
+        if done is None:  # the device's place from now on, for its next daemon
+            self.client.set(control_cursor_key(self.device), self._control_id, nx=True)
+
+    def _read_control(self) -> None:
+        """Forward the control commands after the last one handed over (by this daemon,
+        or from the start :meth:`_find_control_start` fixed)."""
         if self._control_id is None:
-            done = self.client.get(control_cursor_key(self.device))
-            newest = self.client.xrevrange(stream, count=1) if done is None else []
-            start = done or (newest[0][0] if newest else b"0-0")
-            self._control_id = start.decode() if isinstance(start, bytes) else start
-            if done is None:  # the device's place from now on, for its next daemon
-                self.client.set(control_cursor_key(self.device), self._control_id, nx=True)
+            self._find_control_start()
+        stream = control_stream(self.device)
         reply = self.client.xread({stream: self._control_id}, count=16)
         for _, entries in reply or []:
             for raw_id, fields in entries:

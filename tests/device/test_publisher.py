@@ -15,7 +15,7 @@ from models.formation import SensorParams
 from tests.device.conftest import Camera, poll_control
 from worker.embedded_redis import connect
 from worker.frame_message import FrameMessage
-from worker.redis_keys import DEVICES_SET, control_stream, frame_stream
+from worker.redis_keys import DEVICES_SET, control_stream, frame_stream, health_key
 
 
 def message(sequence: int, discont: bool = False) -> FrameMessage:
@@ -54,6 +54,27 @@ def test_commands_sent_while_no_daemon_ran_reach_the_next_one(client: redis.Redi
     send_frame_rate(client, 7.0)  # while no daemon runs
     poll_control(camera.publisher_for(client, health))
     assert [getattr(command, "fps", None) for command in camera.seen] == [5.0, 7.0]
+
+
+def test_a_command_sent_once_the_daemon_shows_up_reaches_the_camera(
+        client: redis.Redis, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A client waits for the device's health hash, then sends a command: it arrives
+    after the first health write, before that housekeeping reads the control stream.
+    The first daemon's start was fixed before the daemon showed up, so the command is
+    forwarded (it was skipped as 'older' when the start was fixed at the first read)."""
+    health = DeviceHealth("cam0", "loop://")
+    camera = Camera()
+    publisher = camera.publisher_for(client, health)
+    read_control = publisher._read_control
+
+    def sent_on_seeing_the_health() -> None:
+        assert client.exists(health_key("cam0"))
+        send_frame_rate(client, 5.0)
+        read_control()
+
+    monkeypatch.setattr(publisher, "_read_control", sent_on_seeing_the_health)
+    publisher._housekeeping()
+    assert [getattr(command, "fps", None) for command in camera.seen] == [5.0]
 
 
 def test_a_daemon_that_handled_no_command_yet_keeps_its_place(client: redis.Redis) -> None:
