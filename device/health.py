@@ -18,8 +18,9 @@ The counters are the device's, not one daemon's: a daemon that takes over the de
 hash, and its first frame is seen against the previous daemon's last one (frames the
 camera sent while no daemon ran are a gap); until that frame the newest frame's
 ``last_sequence`` and ``last_frame_ns`` stay the previous daemon's. A killed daemon's
-hash is up to one health write old (0.25 s): the frames it got after that count as
-missing. The gauges (state, port error, fps, settings) are this daemon's own.
+hash is up to one health write old (0.25 s): the frames it published after that are
+read from the device's frame stream, and only those it got but never published count
+as missing. The gauges (state, port error, fps, settings) are this daemon's own.
 """
 
 from __future__ import annotations
@@ -86,14 +87,20 @@ class DeviceHealth:
             self.counts["garbage_bytes"] = (self._carried["garbage_bytes"]
                                             + base["garbage_bytes"] + garbage_bytes)
 
-    def carry_over(self, previous: Mapping[str, bytes | str]) -> Counter[str]:
+    def carry_over(self, previous: Mapping[str, bytes | str],
+                   published: int | None = None) -> Counter[str]:
         """Go on from the counters of the device's previous daemon (``previous``: the
         health hash it left; a counter missing there, or not a whole number, counts 0):
         they are added to this daemon's, now and at every later :meth:`set`. This
         daemon's first frame, now or when it comes, is seen against the previous
-        daemon's last (:meth:`sequence_gap`). Returns the counters carried over."""
+        daemon's last (:meth:`sequence_gap`): the hash's ``last_sequence``, or
+        ``published`` (the newest frame on the device's stream) when that is later, as
+        when the previous daemon was killed after publishing frames its hash does not
+        show. Returns the counters carried over."""
         carried = Counter({name: max(_whole(previous.get(name)), 0) for name in _COUNTERS})
         last = _whole(previous.get("last_sequence"))
+        if last >= 0 and published is not None:
+            last = max(last, published)
         with self._lock:
             self._carried = carried
             self.counts.update(carried)

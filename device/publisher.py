@@ -38,6 +38,7 @@ from worker.redis_keys import (
     control_cursor_key,
     control_stream,
     events_stream,
+    frame_stream,
     health_key,
 )
 from worker.redis_memory import TroubleLog
@@ -154,6 +155,8 @@ class FramePublisher:
             message = dataclasses.replace(message, discont=True)
 
         def xadd() -> None:
+            if not self._taken_over:  # before this daemon's first frame is on the stream
+                self._take_over()
             evicted = publish_frame(self.client, message, maxlen=self.frames_maxlen)
             if evicted:
                 self.health.add("dropped_stream_full", evicted)
@@ -212,11 +215,14 @@ class FramePublisher:
     def _take_over(self) -> None:
         """Go on from the counters the device's previous daemon left in its health hash,
         if the device's claim is this daemon's (with no claim, or another daemon's, they
-        start from 0). The counts carried over are not new drops or reconnects."""
+        start from 0). The counts carried over are not new drops or reconnects. The
+        newest frame on the device's stream tells which frames the previous daemon
+        published after its last health write (one killed in between wrote no more)."""
         if self.claim is not None and self.claim.renew():
             raw = self.client.hgetall(health_key(self.device))
             carried = self.health.carry_over(
-                {(k.decode() if isinstance(k, bytes) else k): v for k, v in raw.items()})
+                {(k.decode() if isinstance(k, bytes) else k): v for k, v in raw.items()},
+                self._newest_published())
             self._reported_causes = {c: carried[f"dropped_{c}"] for c in ALL_DROP_CAUSES}
             self._reported = {"dropped": sum(self._reported_causes.values()),
                               "reconnects": carried["reconnects"]}
@@ -241,6 +247,11 @@ class FramePublisher:
         if delivered is not None and delivered != self._cursor_written:
             self.client.set(control_cursor_key(self.device), delivered)
             self._cursor_written = delivered
+
+    def _newest_published(self) -> int | None:
+        """The sequence number of the newest frame on the device's stream (None: none)."""
+        newest = self.client.xrevrange(frame_stream(self.device), count=1)
+        return int(newest[0][1][b"seq"]) if newest else None
 
     def _find_control_start(self) -> None:
         """Fix where control commands start, before the first health write shows the

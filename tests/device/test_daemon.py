@@ -21,9 +21,12 @@ from device.faults import Faults
 from device.link_parser import LinkParser
 from device.sim_link import PtyEndpoint, TcpEndpoint
 from device.simulator import CameraSettings, VirtualScamp5
+from models.formation import SensorParams
 from tests.device.conftest import health, start_streaming, stream_frames, wait_for
 from worker.device_registry import forget_device
 from worker.embedded_redis import EmbeddedRedis
+from worker.frame_message import FrameMessage
+from worker.queue import publish_frame
 from worker.redis_keys import DEVICES_SET, control_cursor_key, control_stream, events_stream
 
 
@@ -548,6 +551,26 @@ def test_a_restarted_daemon_goes_on_from_its_predecessors_counters(
     assert int(after["garbage_bytes"]) > int(before["garbage_bytes"])
     assert events_since(client, "cam9", events) == [
         {"type": "drop", "dropped": "2", "new": "1", "causes": "bad_crc:1"}]
+
+
+def test_frames_a_killed_daemon_published_after_its_last_health_write_are_not_missing(
+        client: redis.Redis) -> None:
+    """A daemon killed (SIGKILL) 0.25 s after its last health write had published frames
+    its hash does not show: the stream has them, so they are not counted missing."""
+    config = DaemonConfig(port="loop://", device="cam9")
+    first = DeviceDaemon(config, client)
+    first.claim.take()
+    first._feed(wire(0, 1))
+    first.publisher.start()
+    first.publisher.stop()  # its last health write: last_sequence 1
+    for sequence in (2, 3):  # published, then killed before the next health write
+        publish_frame(client, FrameMessage("cam9", sequence, 0, np.zeros((4, 4), np.uint8),
+                                           SensorParams(), False), maxlen=100)
+    first.claim.release()  # as a killed daemon's claim lapses
+    restart(client, wire(4, 6), take_over_first=False)
+    counts = health(client, "cam9")
+    assert (counts["sequence_gaps"], counts["frames_missing"], counts["last_sequence"]) == (
+        "1", "1", "6")
 
 
 def test_a_daemon_whose_device_another_daemon_holds_takes_none_of_its_counters(
