@@ -20,7 +20,13 @@ from worker.frame_message import FrameMessage
 from worker.metrics import read_metrics
 from worker.queue import ensure_group, publish_frame
 from worker.recordings import load_recording, start_recording
-from worker.redis_keys import DEAD_LETTER_STREAM, DEVICES_SET, events_stream, frame_stream
+from worker.redis_keys import (
+    DEAD_LETTER_STREAM,
+    DEVICES_SET,
+    events_stream,
+    frame_stream,
+    lease_key,
+)
 from worker.result_store import RESULTS_DIR, ResultStore
 
 
@@ -141,11 +147,13 @@ def test_entries_a_lapsed_owner_read_after_the_take_over_are_decoded_by_the_new_
     """Worker A's lease lapses (a pause), B takes the device over with nothing pending,
     then A, waking, reads frames 1 and 2 into its own pending list (its commit would fail:
     it no longer holds the lease). B takes them over before new entries and decodes
-    them in order; they used to stay pending at A, and a later owner acked them unread."""
-    a, b = device_worker(client, tmp_path, "A", 100), device_worker(client, tmp_path, "B")
+    them in order; they used to stay pending at A, and a later owner acked them unread.
+    A's lease lapses once A has committed frame 0 (a lease short enough to lapse by
+    itself could lapse before that commit on a loaded machine: B then did frame 0)."""
+    a, b = device_worker(client, tmp_path, "A"), device_worker(client, tmp_path, "B")
     publish_frame(client, frame("cam", 0), maxlen=10)
     a.poll()
-    time.sleep(0.3)  # A's lease lapses
+    client.delete(lease_key("cam"))  # A's lease lapses
     b.poll()
     assert "cam" in b.states
     publish_frame(client, frame("cam", 1), maxlen=10)
