@@ -458,11 +458,14 @@ def test_only_so_many_requests_wait_for_their_jobs_at_once(
                           headers={"Authorization": f"Bearer {FULL_KEY}",
                                    "Prefer": f"wait={wait_s}"}, timeout=60)
 
-    with serve(create_app(settings)) as url, ThreadPoolExecutor(1) as pool:
+    app = create_app(settings)
+    with serve(app) as url, ThreadPoolExecutor(1) as pool:
         waiting = pool.submit(upload, url, 8)
-        while not waiting.done() and not connect(redis_url).xlen(JOBS_STREAM):
+        deadline = time.monotonic() + 30
+        while not app.state.mcam.wait_slots.full:  # its job is queued and it waits for it
+            assert not waiting.done(), f"the first upload did not wait: {waiting.result()}"
+            assert time.monotonic() < deadline, "the first upload never waited for its job"
             time.sleep(0.05)
-        time.sleep(0.5)  # from queued to waiting: one Redis read
         hurried = upload(url, 8)
         assert hurried.status_code == 202 and "preference-applied" not in hurried.headers
         assert not waiting.done(), "the first upload should still be waiting for its job"
