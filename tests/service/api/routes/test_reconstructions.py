@@ -18,6 +18,7 @@ import pytest
 
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
+from service.api.state import Slots
 from service.main import create_app
 from tests.service.conftest import (
     FULL_KEY,
@@ -38,17 +39,32 @@ from worker.runner import Worker
 Client = Callable[[str], httpx.Client]
 
 
+def kill_once_waiting(slots: Slots, pid: int, timeout_s: float = 60.0) -> None:
+    """SIGKILL process ``pid`` once a request holds the one wait slot of ``slots`` (its
+    job is queued and it waits for it), or after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not slots.full and time.monotonic() < deadline:
+        time.sleep(0.01)
+    os.kill(pid, signal.SIGKILL)
+
+
 def test_a_wait_cut_short_by_redis_answers_202_for_the_accepted_job(tmp_path: Path) -> None:
     """Redis dies while a submit waits for its job (no worker runs): the job is stored,
     so the answer is its 202, not a 503 that would have the client submit it twice.
-    Once Redis is back (its append-only file kept the job) the job is there, queued."""
+    Once Redis is back (its append-only file kept the job) the job is there, queued.
+    Redis is killed once the submit waits (a kill 1 s after the start came before the
+    submit on a loaded machine: a 503 for a job never stored)."""
     embedded = EmbeddedRedis(tmp_path / "redis-home")
-    with embedded as redis_url, serve(create_app(make_settings(tmp_path, redis_url))) as url:
-        pid = embedded.pid
-        assert pid is not None
-        threading.Timer(1.0, os.kill, (pid, signal.SIGKILL)).start()
-        data, _ = frame_png()
-        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"}) as http:
+    with embedded as redis_url:
+        app = create_app(make_settings(tmp_path, redis_url, max_waiting_requests=1))
+        with serve(app) as url, httpx.Client(
+            base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"}
+        ) as http:
+            pid = embedded.pid
+            assert pid is not None
+            threading.Thread(target=kill_once_waiting, args=(app.state.mcam.wait_slots, pid),
+                             daemon=True).start()
+            data, _ = frame_png()
             reply = http.post(
                 "/v1/reconstructions", files={"file": ("frame.png", data, "image/png")},
                 headers={"Prefer": "wait=30"}, timeout=60,
