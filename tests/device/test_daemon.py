@@ -28,6 +28,13 @@ from worker.embedded_redis import EmbeddedRedis
 from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
 from worker.redis_keys import DEVICES_SET, control_cursor_key, control_stream, events_stream
+from worker.redis_keys import (
+    DEVICES_SET,
+    control_cursor_key,
+    control_stream,
+    events_stream,
+    frame_stream,
+)
 
 
 def finish_clean(link, frames: int) -> None:
@@ -43,6 +50,12 @@ def finish_clean(link, frames: int) -> None:
     last = link.camera.sequence - 1
     client = link.daemon.publisher.client
     assert wait_for(lambda: stream_frames(client, "cam1")[-1].sequence == last, 10)
+
+
+def newest_sequence(client: redis.Redis, device: str) -> int | None:
+    """The sequence number of the newest frame on the device's stream (None: no frame)."""
+    newest = client.xrevrange(frame_stream(device), count=1)
+    return int(newest[0][1][b"seq"]) if newest else None
 
 
 def event_types(client: redis.Redis) -> set[str]:
@@ -172,6 +185,9 @@ def test_control_stream_commands_reach_the_camera(link, client: redis.Redis) -> 
         assert wait_for(lambda: run.daemon.health.last_sequence > seen + 2, 10)
         client.xadd(control_stream("cam1"), {"command": "stop"})
         assert wait_for(lambda: not run.camera.settings.running, 10)
+        # The daemon got frames past ``seen``; its publisher may still have them queued.
+        assert wait_for(lambda: newest_sequence(client, "cam1")
+                        == run.daemon.health.last_sequence, 30)
         frames = [f for f in stream_frames(client, "cam1") if f.sequence > seen]
         assert frames and all(f.params.encoding == "mantissa" and f.params.alpha == 4.0
                               and f.params.bits == 10 and f.codes.dtype == np.uint16
