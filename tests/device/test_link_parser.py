@@ -165,9 +165,14 @@ def test_byte_by_byte_feeding_equals_one_feed() -> None:
     assert [lp.encode_packet(p) for p in out] == wires
 
 
+#: Long enough that no pause of the test's own between two lines expires a partial
+#: packet ("not yet timed out"); the tests expire it by asking at ``now=math.inf``.
+PARTIAL_TIMEOUT_S = 60.0
+
+
 def test_partial_packet_waits_then_expires_as_truncated() -> None:
     wire = lp.encode_packet(small_data(4, 6, 6, 8))
-    parser = LinkParser(MAX_PAYLOAD, partial_timeout_s=0.5)
+    parser = LinkParser(MAX_PAYLOAD, partial_timeout_s=PARTIAL_TIMEOUT_S)
     assert parser.feed(wire[:30]) == []
     assert parser.expire() == []  # not yet timed out
     assert parser.buffered == 30
@@ -181,7 +186,7 @@ def test_while_bytes_keep_coming_a_partial_packet_expires_only_once_overtaken() 
     behind it) is kept past the timeout; a header whose corrupt length swallows the
     packets behind it is given up once one of them is complete, and they survive."""
     wire = lp.encode_packet(small_data(4, 6, 6, 8))
-    parser = LinkParser(MAX_PAYLOAD, partial_timeout_s=0.5)
+    parser = LinkParser(MAX_PAYLOAD, partial_timeout_s=PARTIAL_TIMEOUT_S)
     assert parser.feed(wire[:30]) == []
     assert parser.expire(now=math.inf, quiet=False) == []
     assert parser.feed(wire[30:]) != []
