@@ -125,15 +125,17 @@ class TroubleLog:
         self._lock = threading.Lock()
         self._last: dict[str, tuple[float, int]] = {}
 
-    def warn(self, where: str, exc: BaseException, then: str = "retrying") -> None:
+    def warn(self, where: str, exc: BaseException, then: str = "retrying",
+             now_s: float | None = None) -> None:
         """Log ``exc`` (transient) at ``where`` (a phrase naming the place), and ``then``,
-        what the caller does about it."""
-        self.report(where, redis_trouble(exc), then)
+        what the caller does about it (``now_s``: as for :meth:`report`)."""
+        self.report(where, redis_trouble(exc), then, now_s)
 
-    def report(self, where: str, trouble: str, then: str) -> None:
+    def report(self, where: str, trouble: str, then: str, now_s: float | None = None) -> None:
         """Log ``trouble`` (words) at ``where`` and ``then``, at most once per
-        ``every_s`` per place."""
-        now = time.monotonic()
+        ``every_s`` per place. ``now_s``: the time of the trouble on the
+        :func:`time.monotonic` clock, in s (default: now)."""
+        now = time.monotonic() if now_s is None else now_s
         with self._lock:
             last, held_back = self._last.get(where, (-math.inf, 0))
             if now - last < self.every_s:

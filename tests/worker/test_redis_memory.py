@@ -245,14 +245,15 @@ def test_a_queue_opened_on_a_full_redis_with_its_group_reads_on(
 
 
 def test_trouble_is_warned_once_per_period_and_place(caplog: pytest.LogCaptureFixture) -> None:
+    """At given times: on the wall clock, a pause of the test as long as the period
+    between the first warnings (a loaded machine) let one more through."""
     trouble = TroubleLog(logging.getLogger("test.trouble"), every_s=0.2)
     full = redis.exceptions.OutOfMemoryError("command not allowed when used memory > 'maxmemory'.")
     with caplog.at_level(logging.WARNING, logger="test.trouble"):
-        for _ in range(5):
-            trouble.warn("jobs", full)
-        trouble.warn("heartbeat", redis.exceptions.ConnectionError("gone"))
-        time.sleep(0.25)
-        trouble.warn("jobs", full)
+        for step in range(5):
+            trouble.warn("jobs", full, now_s=100.0 + 0.01 * step)
+        trouble.warn("heartbeat", redis.exceptions.ConnectionError("gone"), now_s=100.05)
+        trouble.warn("jobs", full, now_s=100.25)
     lines = [record.getMessage() for record in caplog.records]
     assert len(lines) == 3
     assert lines[0].startswith("jobs: Redis is full") and "more times" not in lines[0]
