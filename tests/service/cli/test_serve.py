@@ -251,17 +251,17 @@ def test_a_worker_that_keeps_dying_is_restarted_ever_more_slowly(
 SIGNAL_RECORDER = """
 import signal, sys, time
 from pathlib import Path
-log = Path(sys.argv[1])
+log, release = Path(sys.argv[1]), Path(sys.argv[2])
 stop_at = None
 def on_term(*_):
     global stop_at
     with log.open("a") as f:
         f.write("TERM\\n")
-    stop_at = stop_at or time.monotonic() + 1.0
+    stop_at = stop_at or time.monotonic() + 60.0
 signal.signal(signal.SIGTERM, on_term)
 with log.open("a") as f:
     f.write("start\\n")
-while stop_at is None or time.monotonic() < stop_at:
+while stop_at is None or (time.monotonic() < stop_at and not release.exists()):
     time.sleep(0.02)
 """
 
@@ -271,8 +271,10 @@ def test_a_restarted_worker_gets_one_sigterm_and_its_watch_outlives_it(tmp_path:
     must stay until that worker exits, or the worker gets a second SIGTERM (which makes
     a real worker drop the job in hand)."""
     script, log = tmp_path / "recorder.py", tmp_path / "signals.log"
+    release = tmp_path / "release"  # the worker exits after SIGTERM once this exists
     script.write_text(SIGNAL_RECORDER)
-    supervisor = WorkerSupervisor([sys.executable, str(script), str(log)], "unused", "unused")
+    supervisor = WorkerSupervisor([sys.executable, str(script), str(log), str(release)],
+                                  "unused", "unused")
     supervisor.start()
 
     def starts() -> int:
@@ -289,6 +291,7 @@ def test_a_restarted_worker_gets_one_sigterm_and_its_watch_outlives_it(tmp_path:
     supervisor.terminate()
     time.sleep(0.3)
     assert supervisor._thread.is_alive()  # the worker still runs: its watch must too
+    release.touch()
     supervisor.wait()
     assert log.read_text().count("TERM") == 1
     assert supervisor.process.returncode == 0
