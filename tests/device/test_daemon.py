@@ -27,7 +27,6 @@ from worker.device_registry import forget_device
 from worker.embedded_redis import EmbeddedRedis
 from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
-from worker.redis_keys import DEVICES_SET, control_cursor_key, control_stream, events_stream
 from worker.redis_keys import (
     DEVICES_SET,
     control_cursor_key,
