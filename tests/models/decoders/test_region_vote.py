@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
 
 from models.decoders.region_vote import region_vote
 
@@ -77,3 +80,71 @@ def test_regions_larger_than_max_region_keep_the_kept_answer() -> None:
     np.testing.assert_array_equal(merged[2:4, 18:22], truth[2:4, 18:22])
     np.testing.assert_array_equal(merged[12:16, 2:9], kept[12:16, 2:9])
     assert taken.sum() == 2 * 4
+
+
+def vote_pixel_by_pixel(kept: np.ndarray, candidate: np.ndarray, m: np.ndarray,
+                        eligible: np.ndarray | None, max_region: int | None) -> np.ndarray:
+    """The module doc's rule, one neighbour pair at a time (an oracle for the test below):
+    the candidate's W per pixel where its region takes it, else the kept one."""
+    labels, count = ndimage.label(kept != candidate)
+    u_kept, u_candidate = kept + m, candidate + m
+    votes = np.zeros(count + 1)
+    rows, cols = kept.shape
+    for r in range(rows):
+        for c in range(cols):
+            for nr, nc in ((r + 1, c), (r, c + 1), (r - 1, c), (r, c - 1)):
+                if 0 <= nr < rows and 0 <= nc < cols and labels[r, c] != labels[nr, nc]:
+                    was = abs(u_kept[r, c] - u_kept[nr, nc]) > 0.5
+                    now = abs(u_candidate[r, c] - u_kept[nr, nc]) > 0.5
+                    votes[labels[r, c]] += int(was) - int(now)
+    merged = kept.copy()
+    for region in range(1, count + 1):
+        inside = labels == region
+        if (votes[region] > 0 and (eligible is None or eligible[inside].any())
+                and (max_region is None or inside.sum() <= max_region)):
+            merged[inside] = candidate[inside]
+    return merged
+
+
+def shifted(truth: np.ndarray, box: tuple[int, int, int, int], by: int) -> np.ndarray:
+    """``truth`` with ``by`` wraps added in ``box`` (top, left, bottom, right; may be empty)."""
+    top, left, bottom, right = box
+    out = truth.copy()
+    out[top:bottom, left:right] += by
+    return out
+
+
+boxes = st.tuples(st.integers(0, 12), st.integers(0, 12), st.integers(0, 12), st.integers(0, 12))
+
+
+@settings(max_examples=300, deadline=None)
+@example(rows=8, cols=8, slope=(0.1, 0.1), kept_box=(3, 0, 12, 12), candidate_box=(0, 0, 0, 0),
+         kept_by=1, candidate_by=1, with_eligible=False, max_region=None)
+@example(rows=8, cols=8, slope=(0.1, 0.1), kept_box=(0, 0, 5, 12), candidate_box=(0, 0, 0, 0),
+         kept_by=1, candidate_by=1, with_eligible=False, max_region=None)
+@example(rows=8, cols=8, slope=(0.1, 0.1), kept_box=(0, 5, 12, 12), candidate_box=(0, 0, 0, 0),
+         kept_by=1, candidate_by=1, with_eligible=False, max_region=None)
+@example(rows=8, cols=8, slope=(0.1, 0.1), kept_box=(0, 0, 12, 3), candidate_box=(0, 0, 0, 0),
+         kept_by=1, candidate_by=1, with_eligible=False, max_region=None)
+@given(rows=st.integers(1, 12), cols=st.integers(1, 12), slope=st.tuples(
+    st.floats(0.0, 0.45), st.floats(0.0, 0.45)), kept_box=boxes, candidate_box=boxes,
+    kept_by=st.sampled_from([-1, 1, 2]), candidate_by=st.sampled_from([-1, 1]),
+    with_eligible=st.booleans(), max_region=st.none() | st.integers(1, 20))
+def test_the_vote_is_the_module_docs_rule_wherever_the_answers_differ(
+        rows: int, cols: int, slope: tuple[float, float], kept_box: tuple[int, int, int, int],
+        candidate_box: tuple[int, int, int, int], kept_by: int, candidate_by: int,
+        with_eligible: bool, max_region: int | None) -> None:
+    """Answers a wrap off in two rectangles of a smooth ramp, anywhere (at the frame's
+    edges, in a corner, overlapping), are merged as the rule says, neighbour pair by
+    neighbour pair. The examples: a region bordered on
+    one side only (above, below, left, right), the kept answer a wrap off there."""
+    u = np.add.outer(np.arange(rows) * slope[0], np.arange(cols) * slope[1])
+    truth = np.floor(u).astype(np.int64)
+    m = u - truth
+    kept, candidate = shifted(truth, kept_box, kept_by), shifted(truth, candidate_box,
+                                                                 candidate_by)
+    eligible = np.arange(rows * cols).reshape(rows, cols) % 3 == 0 if with_eligible else None
+    merged, taken = region_vote(kept, candidate, m, eligible, max_region)
+    expected = vote_pixel_by_pixel(kept, candidate, m, eligible, max_region)
+    np.testing.assert_array_equal(merged, expected)
+    np.testing.assert_array_equal(taken, merged != kept)
