@@ -191,6 +191,14 @@ def val256_count(text: str) -> int:
     return value
 
 
+def add_val256_frames_option(parser: argparse.ArgumentParser) -> None:
+    """``--frames N``: the first N val-256 frames (1 to :data:`VAL256_FRAMES`, default
+    all), the same option in every benchmark that measures on val-256."""
+    parser.add_argument(
+        "--frames", type=val256_count, default=VAL256_FRAMES, help="first N val-256 frames"
+    )
+
+
 def above_zero(text: str) -> float:
     """An argparse ``type``: a finite number above 0 (a rate), else the parser's usage
     error naming the value."""

@@ -29,14 +29,13 @@ import numpy as np
 
 from bench import (
     RESULTS,
-    VAL256_FRAMES,
+    add_val256_frames_option,
     at_least,
     entry_point,
     host_facts,
     host_line,
     read_noise,
     refuse_unknown_decoders,
-    val256_count,
 )
 from models import metrics
 from models.decoders import Decoder, available_decoders, get_decoder
@@ -303,9 +302,7 @@ def recall_table(rows: list[dict[str, Any]]) -> list[str]:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoders", nargs="+", help="only these decoders (default: all)")
-    parser.add_argument(
-        "--frames", type=val256_count, default=VAL256_FRAMES, help="first N val-256 frames"
-    )
+    add_val256_frames_option(parser)
     parser.add_argument(
         "--repeats", type=at_least(1), default=3, help="timed decodes per timed frame"
     )

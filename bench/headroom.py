@@ -33,12 +33,11 @@ from scipy.sparse.csgraph import connected_components
 
 from bench import (
     RESULTS,
-    VAL256_FRAMES,
+    add_val256_frames_option,
     entry_point,
     host_facts,
     host_line,
     refuse_unknown_decoders,
-    val256_count,
 )
 from models.decoders import get_decoder
 from models.decoders.adaptive_policy import most_accurate_net
@@ -196,9 +195,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoders", nargs="+", help="default: itoh and the best winding net")
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
-    parser.add_argument(
-        "--frames", type=val256_count, default=VAL256_FRAMES, help="first N val-256 frames"
-    )
+    add_val256_frames_option(parser)
     parser.add_argument("--out", type=Path, default=RESULTS / "headroom.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders, encodings=args.encodings)

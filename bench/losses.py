@@ -17,7 +17,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench import RESULTS, VAL256_FRAMES, entry_point, host_facts, host_line, val256_count
+from bench import RESULTS, add_val256_frames_option, entry_point, host_facts, host_line
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.training.config import RUNS_DIR, TrainConfig
 from models.training.export import export_run
@@ -106,9 +106,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--stages", type=parse_stages, default=TINY_STAGES,
         help="steps per stage, comma separated (default: the shipped tiny recipe's)",
     )  # fmt: skip
-    parser.add_argument(
-        "--frames", type=val256_count, default=VAL256_FRAMES, help="first N val-256 frames"
-    )
+    add_val256_frames_option(parser)
     parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR, help="checkpoints (resumed)")
     parser.add_argument("--out", type=Path, default=RESULTS / "losses.json")
     return parser.parse_args(argv)

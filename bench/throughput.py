@@ -50,13 +50,12 @@ import numpy as np
 
 from bench import (
     RESULTS,
-    VAL256_FRAMES,
+    add_val256_frames_option,
     at_least,
     entry_point,
     host_facts,
     host_line,
     refuse_unknown_decoders,
-    val256_count,
 )
 from models import metrics
 from models.decoders import get_decoder
@@ -312,9 +311,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoders", nargs="+", default=list(DECODERS))
     parser.add_argument("--encoding", choices=("mantissa", "modulo"), default="mantissa")
-    parser.add_argument(
-        "--frames", type=val256_count, default=VAL256_FRAMES, help="first N val-256 frames"
-    )
+    add_val256_frames_option(parser)
     parser.add_argument("--repeats", type=at_least(1), default=3, help="passes over the frames")
     parser.add_argument("--cores", type=at_least(1), help="cores to fill (default: all)")
     parser.add_argument("--out", type=Path, default=RESULTS / "throughput.json")

@@ -40,12 +40,11 @@ from onnx import TensorProto, helper
 
 from bench import (
     RESULTS,
-    VAL256_FRAMES,
+    add_val256_frames_option,
     at_least,
     host_facts,
     one_line_errors,
     refuse_unknown_decoders,
-    val256_count,
     write_report,
 )
 from models import metrics
@@ -485,9 +484,7 @@ def plot(report: dict[str, Any], path: Path) -> None:
 @one_line_errors
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--frames", type=val256_count, default=VAL256_FRAMES, help="val-256 frames to use"
-    )
+    add_val256_frames_option(parser)
     parser.add_argument("--dark", type=at_least(1), default=3, help="mostly-dark crops per kind")
     parser.add_argument("--glows", type=at_least(0), default=12, help="glows frames (0: none)")
     parser.add_argument("--repeats", type=at_least(1), default=3)
