@@ -269,11 +269,8 @@ class FramePublisher:
 
     def _read_control(self) -> None:
         """Forward the control commands after the last one handed over (by this daemon,
-        or from the start :meth:`_find_control_start` fixed)."""
-        if self._control_id is None:
-            self._find_control_start()
-        stream = control_stream(self.device)
-        reply = self.client.xread({stream: self._control_id}, count=16)
+        or from the start :meth:`_find_control_start` fixed, which comes first)."""
+        reply = self.client.xread({control_stream(self.device): self._control_id}, count=16)
         for _, entries in reply or []:
             for raw_id, fields in entries:
                 entry_id = raw_id.decode() if isinstance(raw_id, bytes) else raw_id

@@ -118,7 +118,10 @@ class Camera:
 
 
 def poll_control(publisher: FramePublisher) -> None:
-    """One housekeeping's control step: record what was delivered, read what is new."""
+    """One housekeeping's control step: fix where commands start (the first time),
+    record what was delivered, read what is new."""
+    if publisher._control_id is None:
+        publisher._find_control_start()
     publisher._write_cursor()
     publisher._read_control()
     publisher._write_cursor()
