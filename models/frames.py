@@ -75,11 +75,14 @@ class WrappedFrame:
     """A wrapped frame: codes in DN (uint8 or uint16, ``H x W`` or ``H x W x C``) and
     params; ``warnings``: what its reading noticed that the sender should know (a file
     named as another format than its content, codes that all fit in 8 bits although
-    bits says more)."""
+    bits says more); ``sample_type``: the numpy type of the codes as the file stores
+    them (``uint8``, ``uint16``), before they take the params' type ("" if not from a
+    file)."""
 
     codes: NDArray[np.unsignedinteger]
     params: SensorParams
     warnings: tuple[str, ...] = ()
+    sample_type: str = ""
 
 
 def frame_format(name: str | os.PathLike[str]) -> str:
@@ -361,8 +364,9 @@ def decode_frame_codes(
         codes, stored = _READERS[fmt](data, max_pixels)
     _check_layout(codes)
     params = merge_params(stored, overrides)
+    sample_type = codes.dtype.name
     codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
-    return WrappedFrame(codes=codes, params=params, warnings=(warning,) if warning else ())
+    return WrappedFrame(codes, params, (warning,) if warning else (), sample_type)
 
 
 def read_frame(

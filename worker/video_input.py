@@ -233,11 +233,7 @@ def _read_zip(
         frames = [first]
         for entry in entries[1:]:
             frame = _zip_frame(archive, entry, overrides, limits, most)
-            differences = first.params.differences(frame.params)
-            if frame.codes.shape != first.codes.shape:
-                differences.insert(
-                    0, f"size ({_size(frame.codes.shape)} against {_size(first.codes.shape)})"
-                )
+            differences = _frame_differences(frame, first)
             if differences:
                 raise _frame_differs(entry.filename, entries[0].filename, differences)
             frames.append(frame)
@@ -245,6 +241,17 @@ def _read_zip(
     warnings = [w for frame in frames for w in frame.warnings]
     warnings.append(eight_bit_warning(codes, first.params))
     return WrappedVideo(codes, first.params, tuple(dict.fromkeys(filter(None, warnings))))
+
+
+def _frame_differences(frame: WrappedFrame, first: WrappedFrame) -> list[str]:
+    """How a zip's ``frame`` differs from its ``first``: size, sample type as stored (an
+    8-bit PNG among 16-bit ones holds codes of another scale) and sensor parameters."""
+    differences = []
+    if frame.codes.shape != first.codes.shape:
+        differences.append(f"size ({_size(frame.codes.shape)} against {_size(first.codes.shape)})")
+    if frame.sample_type != first.sample_type:
+        differences.append(f"sample type ({frame.sample_type} against {first.sample_type})")
+    return differences + first.params.differences(frame.params)
 
 
 def _size(shape: tuple[int, ...]) -> str:

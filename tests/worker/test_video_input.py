@@ -237,6 +237,22 @@ def test_zip_frames_must_match_and_the_error_names_what_differs(
         decode_video(data, "zip")
 
 
+def test_zip_frames_must_share_their_sample_type() -> None:
+    """An 8-bit PNG among 16-bit ones (no stored parameters, bits 12 given) was taken as
+    12-bit codes 0..255, a frame decoded almost black without a word; the TIFF reader
+    refused such pages. The zip is refused, naming the frame."""
+    wide = encode_frame(codes()[0].astype(np.uint16) * 16, None, "png")
+    narrow = encode_frame(codes()[1], None, "png")
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("a.png", wide)
+        archive.writestr("b.png", narrow)
+    with pytest.raises(
+        InvalidInputError, match=r"b.png differs from a.png in sample type \(uint8 against uint16\)"
+    ):
+        decode_video(buffer.getvalue(), "zip", {**FLAGS, "bits": 12})
+
+
 def test_zip_frames_may_differ_in_noise_seed() -> None:
     """Frames simulated one by one (``mcam simulate --seed k``) each carry their seed."""
     frames = {f"f{k}.png": (codes()[k], PARAMS.model_copy(update={"seed": k})) for k in range(3)}
