@@ -44,7 +44,7 @@ from worker.frame_message import FrameMessage
 from worker.queue import JobQueue
 from worker.redis_keys import recording_key
 from worker.result_store import ResultStore
-from worker.video_jobs import check_hdr10_size, video_options
+from worker.video_jobs import check_frame_size, video_options
 
 #: States of a recording that still collects frames or waits for its video job.
 ACTIVE_STATES = ("recording", "stopping")
@@ -298,7 +298,7 @@ class Recorder:
              for i in range(recording.frames)]
         )
         options = {**recording.options, "keyframes": recording.keyframes}
-        check_hdr10_size(video_options(recording.decoder, options)[1], codes.shape)
+        check_frame_size(video_options(recording.decoder, options)[1], codes.shape)
         params = SensorParams.model_validate_json(recording.params)
         # The recording's id names its job: if noting the job below fails (Redis down),
         # the next try finds the job queued instead of queueing it twice.

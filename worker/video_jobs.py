@@ -28,7 +28,12 @@ from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from worker.job_processor import JobContext, JobOutcome
 from worker.temporal_config import TemporalConfig
 from worker.video_input import WrappedVideo
-from worker.video_output import REFERENCE_WHITE, Hdr10Settings, check_hdr10_frame_size
+from worker.video_output import (
+    MAX_MP4_SIDES,
+    REFERENCE_WHITE,
+    Hdr10Settings,
+    mp4_size_problem,
+)
 from worker.video_pipeline import OUTPUTS, VideoOptions, decode_video_frames, write_outputs
 
 #: Result file name of each output.
@@ -95,10 +100,15 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
     )
 
 
-def check_hdr10_size(outputs: list[str], shape: tuple[int, ...]) -> None:
-    """Refuse an HDR10 output for frames (T x H x W[x C]) smaller than the encoder takes."""
-    if "hdr10" in outputs:
-        check_hdr10_frame_size(shape[1], shape[2], "ask for outputs=exr_zip,sdr")
+def check_frame_size(outputs: list[str], shape: tuple[int, ...]) -> None:
+    """Refuse an MP4 output (HDR10, SDR) for frames (T x H x W[x C]) of a size its
+    encoder does not take, before a job decodes them all, naming the outputs that
+    frames of that size can have."""
+    problems = {name: mp4_size_problem(name, shape[1], shape[2]) for name in MAX_MP4_SIDES}
+    refused = [name for name in outputs if problems.get(name)]
+    if refused:
+        fitting = ",".join(name for name in OUTPUTS if not problems.get(name))
+        raise InvalidInputError(f"{problems[refused[0]]}; ask for outputs={fitting}")
 
 
 class StageProgress:

@@ -13,7 +13,8 @@ non-constant-luminance Y'CbCr, 10-bit limited range, chroma averaged over 2 x 2
 the codec context and in the bitstream (x265-params), with mastering-display (P3-D65
 primaries, ``mastering_peak`` cd/m^2) and content-light-level (MaxCLL / MaxFALL
 measured from the frames) SEI metadata. Odd sizes are padded by repeating the last
-row / column; sides below ``MIN_HDR10_SIDE`` are refused (libx265 crashes on them).
+row / column; sides below ``MIN_HDR10_SIDE`` are refused (libx265 crashes on them), and
+sides past what each MP4 output takes (:data:`MAX_MP4_SIDES`) by both videos.
 
 The SDR preview (:func:`write_sdr_preview`) is Reinhard-tonemapped (one key for the
 whole clip, from its middle frame, so the preview does not pump), sRGB-encoded,
@@ -57,6 +58,12 @@ BT2020_KR, BT2020_KB = 0.2627, 0.0593
 LUMA_OFFSET, LUMA_SCALE, CHROMA_OFFSET, CHROMA_SCALE = 64, 876, 512, 896
 #: libx265 corrupts its heap on frames smaller than this (pixels per side, measured).
 MIN_HDR10_SIDE = 64
+#: The longest side (pixels, once an odd side is padded) of each MP4 output: libx264
+#: refuses frames past 16384 ("Generic error in an external library", measured at 16386)
+#: and the MP4 track header holds sides below 65536 ("Invalid argument" at 65536).
+MAX_MP4_SIDES = {"hdr10": 65534, "sdr": 16384}
+#: What each MP4 output is called in messages.
+MP4_OUTPUT_NAMES = {"hdr10": "HDR10 video", "sdr": "the SDR preview (H.264)"}
 #: x265's B-frame delay with b-pyramid (frames): shorter clips need B-frames off (see below).
 X265_BFRAME_DELAY = 2
 #: Mastering display: P3-D65 primaries in x265's units of 0.00002.
@@ -262,15 +269,30 @@ def _check_clip(frames: Sequence[NDArray[np.floating]]) -> tuple[int, int]:
     return height + height % 2, width + width % 2
 
 
-def check_hdr10_frame_size(height: int, width: int, remedy: str) -> None:
-    """Refuse frames (px) smaller than the HEVC encoder takes once an odd side is padded
-    by a pixel (as :func:`write_hdr10` does); ``remedy`` says what the caller can ask for
-    instead."""
-    if min(height + height % 2, width + width % 2) < MIN_HDR10_SIDE:
-        raise InvalidInputError(
+def mp4_size_problem(output: str, height: int, width: int) -> str | None:
+    """Why the encoder of MP4 ``output`` (``hdr10`` or ``sdr``) does not take frames of
+    ``height`` x ``width`` px once an odd side is padded by a pixel (as the writers do):
+    smaller than :data:`MIN_HDR10_SIDE` for HDR10, or a side past :data:`MAX_MP4_SIDES`;
+    None when it does."""
+    padded = (height + height % 2, width + width % 2)
+    if output == "hdr10" and min(padded) < MIN_HDR10_SIDE:
+        return (
             f"HDR10 video needs frames of at least {MIN_HDR10_SIDE} x {MIN_HDR10_SIDE} pixels, "
-            f"got {height} x {width}; {remedy}"
+            f"got {height} x {width}"
         )
+    if max(padded) > MAX_MP4_SIDES[output]:
+        return (
+            f"{MP4_OUTPUT_NAMES[output]} takes frames of at most {MAX_MP4_SIDES[output]} "
+            f"pixels a side, got {height} x {width}"
+        )
+    return None
+
+
+def check_mp4_frame_size(output: str, height: int, width: int, remedy: str) -> None:
+    """Refuse frames (px) that MP4 ``output`` does not take (:func:`mp4_size_problem`);
+    ``remedy`` says what the caller can ask for instead."""
+    if problem := mp4_size_problem(output, height, width):
+        raise InvalidInputError(f"{problem}; {remedy}")
 
 
 def write_hdr10(
@@ -283,7 +305,7 @@ def write_hdr10(
     levels. ``progress(n)`` is called after each of the n frames written."""
     settings = settings or Hdr10Settings()
     height, width = _check_clip(frames)
-    check_hdr10_frame_size(height, width, "ask for the EXR sequence for smaller frames")
+    check_mp4_frame_size("hdr10", *np.shape(frames[0])[:2], "ask for the EXR sequence instead")
     levels = light_levels(frames, settings)
     with av.open(target, mode="w", format="mp4") as container:
         stream = add_hdr10_stream(container, settings, levels, (height, width), len(frames))
@@ -354,6 +376,7 @@ def write_sdr_preview(
     check_range("fps", fps, FPS_RANGE, "frames per second")
     check_range("crf", crf, CRF_RANGE, "(x264 quality, lower is better)")
     height, width = _check_clip(frames)
+    check_mp4_frame_size("sdr", *np.shape(frames[0])[:2], "ask for the EXR sequence instead")
     with av.open(target, mode="w", format="mp4") as container:
         stream = container.add_stream("libx264", rate=frame_rate(fps))
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"

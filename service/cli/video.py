@@ -19,7 +19,8 @@ from worker.video_output import (
     REFERENCE_WHITE_RANGE,
     WHITE_LEVEL_RANGE,
     Hdr10Settings,
-    check_hdr10_frame_size,
+    check_mp4_frame_size,
+    mp4_size_problem,
 )
 from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs
 
@@ -93,6 +94,20 @@ def output_files(args: argparse.Namespace) -> dict[str, OutputFile]:
     return files
 
 
+def check_frame_size(files: dict[str, OutputFile], shape: tuple[int, ...]) -> None:
+    """Refuse an MP4 output whose encoder does not take frames of the video's size
+    (T x H x W[x C]), before they are decoded, saying what to write instead."""
+    height, width = shape[1], shape[2]
+    preview = "" if mp4_size_problem("sdr", height, width) else ", with --preview for an SDR video"
+    remedies = {
+        "hdr10": f"write the EXR frames instead (-o clip.zip{preview})",
+        "sdr": "drop --preview, and write the EXR frames (-o clip.zip, or --exr frames.zip)",
+    }
+    for output, remedy in remedies.items():
+        if output in files:
+            check_mp4_frame_size(output, height, width, remedy)
+
+
 def progress_bar(stage: str, done: int, total: int) -> None:
     """Draw ``stage [#####.....] done/total`` on stderr, ending the line when done; when
     stderr is not a terminal (a log, a pipe), only the finished line of each stage."""
@@ -123,11 +138,7 @@ def run(args: argparse.Namespace) -> int:
     )
     with staged_outputs(list(files.values()), [args.video]) as paths:
         video = read_video(args.video, sensor_values(args))
-        if "hdr10" in files:
-            check_hdr10_frame_size(
-                video.codes.shape[1], video.codes.shape[2],
-                "write the EXR frames instead (-o clip.zip, with --preview for an SDR video)",
-            )
+        check_frame_size(files, video.codes.shape)
         progress = None if args.quiet else progress_bar
         start = time.perf_counter()
         decoded = decode_video_frames(video, options, progress)

@@ -22,7 +22,7 @@ from worker.metrics import read_metrics
 from worker.queue import JobQueue
 from worker.redis_keys import JOBS_STREAM
 from worker.result_store import RESULTS_DIR, ResultStore
-from worker.video_jobs import DEFAULT_OPTIONS, run_video_job, video_options
+from worker.video_jobs import DEFAULT_OPTIONS, check_frame_size, run_video_job, video_options
 
 
 def test_defaults_give_every_output_and_zip_compressed_exrs() -> None:
@@ -50,6 +50,29 @@ def test_bad_options_are_refused_with_the_choices(options: dict, fragment: str) 
     with pytest.raises(InvalidInputError) as caught:
         video_options("itoh", options)
     assert fragment in caught.value.message and len(caught.value.message) < 300
+
+
+@pytest.mark.parametrize(
+    ("outputs", "shape", "message"),
+    [
+        (["hdr10", "sdr"], (3, 64, 20_000),
+         "the SDR preview (H.264) takes frames of at most 16384 pixels a side, got 64 x "
+         "20000; ask for outputs=hdr10,exr_zip"),
+        (["sdr"], (3, 32, 70_000),
+         "at most 16384 pixels a side, got 32 x 70000; ask for outputs=exr_zip"),
+        (["hdr10", "exr_zip"], (3, 32, 32), "got 32 x 32; ask for outputs=sdr,exr_zip"),
+    ],
+)  # fmt: skip
+def test_mp4_outputs_of_frames_their_encoders_cannot_take_are_refused(
+    outputs: list[str], shape: tuple[int, ...], message: str
+) -> None:
+    """A job was queued for frames wider than libx264 encodes, decoded them all, then
+    failed with "Generic error in an external library"; the refusal names the outputs
+    frames of that size can have."""
+    with pytest.raises(InvalidInputError) as caught:
+        check_frame_size(outputs, shape)
+    assert caught.value.message.endswith(message)
+    check_frame_size(["exr_zip"], shape)
 
 
 class _RecordingJobs(JobStore):

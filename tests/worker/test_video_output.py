@@ -23,7 +23,7 @@ from worker.video_output import (
     REFERENCE_WHITE,
     Hdr10Settings,
     add_hdr10_stream,
-    check_hdr10_frame_size,
+    check_mp4_frame_size,
     exr_sequence_zip,
     frame_rate,
     hdr10_yuv,
@@ -153,10 +153,25 @@ def test_hdr10_refuses_frames_libx265_cannot_take() -> None:
 def test_the_hdr10_size_check_counts_the_padding_of_an_odd_side() -> None:
     """63 x 63 frames are padded to 64 x 64 and encoded, so the early checks of the API
     and the CLI (which see the frame's own size) must let them through."""
-    check_hdr10_frame_size(63, 63, "")
+    check_mp4_frame_size("hdr10", 63, 63, "")
     with pytest.raises(InvalidInputError, match="got 62 x 63"):
-        check_hdr10_frame_size(62, 63, "")
+        check_mp4_frame_size("hdr10", 62, 63, "")
     assert write_hdr10([np.ones((63, 63))] * 2, io.BytesIO()).max_cll > 0
+
+
+def test_the_mp4_videos_refuse_sides_their_encoders_cannot_take() -> None:
+    """Frames within the pixel limit but wider than libx264 (16384) or an MP4 track
+    (65535) encodes failed, after every frame was decoded, with "Generic error in an
+    external library" or "Invalid argument"; they are refused by name, odd sides counted
+    padded, and the widest side the SDR preview takes is encoded."""
+    with pytest.raises(InvalidInputError, match="at most 16384 pixels a side, got 2 x 16385"):
+        write_sdr_preview([np.ones((2, 16385))] * 2, io.BytesIO())
+    write_sdr_preview([np.ones((2, 16384))] * 2, io.BytesIO())
+    with pytest.raises(InvalidInputError, match="at most 65534 pixels a side, got 64 x 65536"):
+        write_hdr10([np.ones((64, 65536))] * 2, io.BytesIO())
+    check_mp4_frame_size("hdr10", 64, 65534, "")
+    with pytest.raises(InvalidInputError, match="got 65535 x 64; write less"):
+        check_mp4_frame_size("hdr10", 65535, 64, "write less")
 
 
 def test_sdr_preview_reads_back() -> None:

@@ -34,7 +34,7 @@ from service.api.uploads import SensorFields, Upload, read_upload_fields
 from service.core.security import ApiKey
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
 from worker.video_input import VIDEO_ALIASES, VideoLimits, decode_video
-from worker.video_jobs import VIDEO_FILES, check_hdr10_size, video_options
+from worker.video_jobs import VIDEO_FILES, check_frame_size, video_options
 from worker.video_output import (
     FPS_RANGE,
     REFERENCE_WHITE,
@@ -139,7 +139,7 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey
     decoder = fields.decoder or settings.default_decoder
     options = fields.video_job_options()
     video_options(decoder, options)
-    check_hdr10_size(options["outputs"], video.codes.shape)
+    check_frame_size(options["outputs"], video.codes.shape)
     record = state.queue.submit(
         "video", video.codes, video.params, decoder, options, owner=key.id,
         warnings=video.warnings,

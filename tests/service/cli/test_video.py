@@ -83,6 +83,19 @@ def test_frames_too_small_for_hdr10_are_refused_before_decoding(tmp_path: Path) 
     assert_one_line_error(result, "64 x 64", "got 32 x 32", "-o clip.zip")
 
 
+def test_frames_too_wide_for_the_sdr_preview_are_refused_before_decoding(
+    tmp_path: Path,
+) -> None:
+    """libx264 takes sides up to 16384: wider frames were decoded, then the preview
+    failed with "Generic error in an external library"."""
+    np.save(tmp_path / "wrapped.npy", np.zeros((2, 2, 16386), np.uint8))
+    result = run_mcam(
+        "video", "wrapped.npy", "-o", "f.zip", "--preview", "p.mp4", *FLAGS, cwd=tmp_path
+    )
+    assert_one_line_error(result, "at most 16384 pixels a side, got 2 x 16386", "drop --preview")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["wrapped.npy"]
+
+
 def test_video_refuses_clashing_or_misnamed_outputs_before_decoding(tmp_path: Path) -> None:
     np.save(tmp_path / "wrapped.npy", np.zeros((2, 64, 64), np.uint8))
     cases = [

@@ -140,6 +140,11 @@ def test_bad_uploads_are_refused(client: Client) -> None:
             {"file": ("a.npy", small)}, {**FLAGS, "keyframe_interval": str(10**30)}, 422,
             "keyframe_interval: Input should be less than or equal to 33554432",
         ),
+        (
+            {"file": ("a.npy", npy_bytes(np.zeros((2, 2, 16386), np.uint8)))},
+            {**FLAGS, "outputs": "sdr,exr_zip"}, 422,
+            "takes frames of at most 16384 pixels a side, got 2 x 16386; ask for outputs=exr_zip",
+        ),
     ]
     for files, data, status, fragment in cases:
         reply = http.post("/v1/videos", files=files, data=data)
