@@ -115,7 +115,10 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
     """Check the options and write the recording's record (409 if one is running)."""
     limit = state.settings.max_video_frames
     if fields.max_frames > limit:
-        raise InvalidInputError(f"max_frames {fields.max_frames} is above this server's {limit}")
+        raise InvalidInputError(
+            f"max_frames {fields.max_frames} is above this server's limit of {limit} frames; "
+            f"ask for at most {limit}, or raise the limit (MCAM_MAX_VIDEO_FRAMES)"
+        )
     decoder = fields.decoder or state.settings.default_decoder
     resolve(decoder)
     options = fields.video_job_options()
