@@ -195,8 +195,10 @@ def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str,
 
 
 def _natural_key(name: str) -> list[Any]:
-    """Sort key putting ``frame_2`` before ``frame_10``."""
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+    """Sort key putting ``frame_2`` before ``frame_10``: runs of decimal digits (what
+    ``\\d`` matches) as numbers. ``str.isdigit`` also takes superscripts (``²``), which
+    ``int`` refuses."""
+    return [int(part) if part.isdecimal() else part for part in re.split(r"(\d+)", name)]
 
 
 def _read_zip(

@@ -88,6 +88,15 @@ def test_zip_of_pngs_in_natural_order() -> None:
     assert result.params == PARAMS
 
 
+def test_frame_names_with_other_digits_sort_by_their_decimal_numbers() -> None:
+    """A superscript digit between digits (``frame_1²2.png``) made the sort key call
+    ``int("²")``: the zip was refused as truncated or corrupt."""
+    video = codes(3)
+    names = ["frame_2.png", "frame_1²10.png", "frame_1²2.png"]
+    result = decode_video(zip_bytes(video[::-1], names), "zip")
+    np.testing.assert_array_equal(result.codes, video)
+
+
 def test_macos_resource_forks_in_a_zip_are_not_frames() -> None:
     """Archivers on macOS store ``._name`` resource forks beside the files (outside
     ``__MACOSX/`` too): they are not PNGs and not frames."""
