@@ -249,20 +249,40 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Store
         return page_codes(page), tiff_params(page.description)
 
 
-def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+def npy_shape(data: bytes) -> tuple[int, ...]:
+    """The array shape an npy file's header declares, read before any array data (so
+    that size limits are checked before the array is loaded)."""
     buffer = io.BytesIO(data)
     version = np.lib.format.read_magic(buffer)
     if version == (1, 0):
         shape, _, _ = np.lib.format.read_array_header_1_0(buffer)
     else:
         shape, _, _ = np.lib.format.read_array_header_2_0(buffer)
+    return tuple(shape)
+
+
+def load_npy(data: bytes) -> NDArray[Any]:
+    """The one array of an npy file. Bytes after it are refused: numpy would ignore
+    them, and they are most often a second array saved into the same file (whose
+    frames would be lost without a word) or a damaged upload."""
+    buffer = io.BytesIO(data)
+    array = np.load(buffer, allow_pickle=False)
+    if (extra := len(data) - buffer.tell()) > 0:
+        raise InvalidInputError(
+            f"the npy file has {extra} bytes after its array of shape {array.shape}; send "
+            "a file holding one array (np.save once per file; stack frames into one array)"
+        )
+    return array
+
+
+def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+    shape = npy_shape(data)
     if len(shape) not in (2, 3):
         raise InvalidInputError(
             f"a wrapped frame is H x W or H x W x C codes, got an array of shape {shape}"
         )
     check_pixel_count(shape[1], shape[0], max_pixels)
-    buffer.seek(0)
-    return np.load(buffer, allow_pickle=False), {}
+    return load_npy(data), {}
 
 
 _READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}
@@ -434,7 +454,7 @@ def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
         elif fmt == "tiff":
             arr = tifffile.imread(io.BytesIO(data))
         else:
-            arr = np.load(io.BytesIO(data), allow_pickle=False)
+            arr = load_npy(data)
     if arr.dtype.kind not in "iu":
         raise InvalidInputError(f"a winding map holds integers, got dtype {arr.dtype}")
     return arr.astype(np.int64)

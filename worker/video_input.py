@@ -49,7 +49,9 @@ from models.frames import (
     decode_frame_codes,
     decoding,
     eight_bit_warning,
+    load_npy,
     merge_params,
+    npy_shape,
 )
 from models.stored_params import StoredParams, tiff_params
 from models.tiff_pages import open_tiff, page_codes, page_shape
@@ -174,14 +176,7 @@ def _check_page(
 
 
 def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
-    buffer = io.BytesIO(data)
-    version = np.lib.format.read_magic(buffer)
-    header = (
-        np.lib.format.read_array_header_1_0
-        if version == (1, 0)
-        else np.lib.format.read_array_header_2_0
-    )
-    shape, _, _ = header(buffer)
+    shape = npy_shape(data)
     if len(shape) not in (3, 4):
         raise InvalidInputError(
             f"a wrapped video is an array T x H x W or T x H x W x C, got shape {shape}; "
@@ -190,8 +185,7 @@ def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str,
     check_frame_count(shape[0], limits.frames)
     check_pixel_count(shape[2], shape[1], limits.pixels)
     check_sample_count(shape[0], shape[1:], limits.samples)
-    buffer.seek(0)
-    return np.load(buffer, allow_pickle=False), {}
+    return load_npy(data), {}
 
 
 def _natural_key(name: str) -> list[Any]:

@@ -486,3 +486,16 @@ def test_an_hdr_image_or_a_zip_named_as_a_frame_is_pointed_to_its_command(
     with pytest.raises(UnsupportedFormatError, match="not a wrapped frame") as caught:
         decode_frame(data, "png", PARAMS_8.model_dump())
     assert all(fragment in caught.value.message for fragment in fragments)
+
+
+@pytest.mark.parametrize(
+    "tail",
+    [b"\x00", bytes(7), encode_frame(np.zeros((6, 5), np.uint8), None, "npy")],
+    ids=["one byte", "seven bytes", "a second array"],
+)
+def test_bytes_after_an_npy_array_are_refused(tail: bytes) -> None:
+    """numpy stops at the end of the first array; a second np.save into the same file
+    (or a damaged upload) would otherwise be dropped without a word."""
+    data = encode_frame(random_codes((6, 5), 8), None, "npy")
+    with pytest.raises(InvalidInputError, match=rf"{len(tail)} bytes after its array of shape"):
+        decode_frame(data + tail, "npy", PARAMS_8.model_dump())

@@ -121,6 +121,12 @@ def test_read_video_from_a_path(tmp_path) -> None:
     assert read_video(path, FLAGS).frames == 4
 
 
+def test_a_second_array_in_the_npy_file_is_refused_not_dropped() -> None:
+    data = npy_bytes(codes()) + npy_bytes(codes())
+    with pytest.raises(InvalidInputError, match="bytes after its array of shape .4, 6, 5.; send"):
+        decode_video(data, "npy", FLAGS)
+
+
 def test_limits_are_checked() -> None:
     with pytest.raises(ImageTooLargeError, match="frames"):
         decode_video(npy_bytes(codes(5)), "npy", FLAGS, VideoLimits(frames=4))
