@@ -171,12 +171,18 @@ def _check_submission(
     if codes.ndim not in want_ndim:
         layout = "H x W or H x W x C" if kind == "reconstruction" else "T x H x W or T x H x W x C"
         raise InvalidInputError(f"a {kind} job takes {layout} codes, got shape {codes.shape}")
-    if not get_decoder(decoder).supports(params):  # unknown names refused; models load lazily
+    check_decoder_supports(decoder, params)
+    return codes
+
+
+def check_decoder_supports(decoder: str, params: SensorParams) -> None:
+    """Refuse ``decoder`` (an unknown name too) for frames with ``params`` it has no
+    model for (a learned decoder decodes only the encodings it was trained on)."""
+    if not get_decoder(decoder).supports(params):  # models load lazily
         raise InvalidInputError(
             f"decoder {decoder!r} has no model for {params.encoding} frames (GET /v1/decoders "
             "lists what each decodes); choose another decoder, or a quality"
         )
-    return codes
 
 
 def job_entry(record: JobRecord, codes: NDArray[np.unsignedinteger]) -> dict[str, bytes | str]:

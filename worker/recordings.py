@@ -23,6 +23,18 @@ result store until the job is queued. A frame flagged DISCONT, or one after a
 sequence gap, is listed in ``keyframes`` (its index in the video), which the video
 job decodes as a keyframe. A redelivered frame (stream entry at or before
 ``last_entry``) is not recorded twice; a new owner of the device goes on recording.
+
+A recording whose video job could never be made from the device's frames (a decoder
+with no model for their encoding, or ``hdr10`` among the outputs of frames under 64 px:
+the checks ``POST /v1/videos`` makes, :func:`check_recordable`) is refused before any
+frame is kept: at the start, when the device's daemon reports its newest frame's
+encoding and size (its health ``settings``), and otherwise on the first frame recorded.
+A start refused is an :class:`InvalidInputError` (the API's 422) and leaves no record.
+A recording refused on its first frame ends ``failed`` with reason ``frames_refused``
+and ``error`` saying what was wrong and what to ask for instead; that frame is not
+stored (it is still reconstructed as a device frame), so nothing already recorded is
+lost, and a stop answers with that error. Frames of one recording keep one encoding
+and size (a change ends it), so its first frame stands for all of them.
 """
 
 from __future__ import annotations
@@ -41,8 +53,8 @@ from models.formation import SensorParams
 from models.frames import encode_frame
 from worker.deliveries import entry_order
 from worker.frame_message import FrameMessage
-from worker.queue import JobQueue
-from worker.redis_keys import recording_key
+from worker.queue import JobQueue, check_decoder_supports
+from worker.redis_keys import health_key, recording_key
 from worker.result_store import ResultStore
 from worker.video_jobs import check_frame_size, video_options
 
@@ -166,6 +178,42 @@ def load_recording(client: redis.Redis, device: str) -> Recording | None:
     return Recording.from_hash(raw) if raw else None
 
 
+def check_recordable(
+    device: str, decoder: str, options: dict[str, Any], params: SensorParams,
+    shape: tuple[int, ...], seen: str,
+) -> None:
+    """Refuse a recording (``decoder``, video ``options``) whose video job could never be
+    made from the device's frames: codes of ``shape`` (H x W[x C], px) with ``params``,
+    as ``seen`` says (its newest frame, its first recorded frame). The checks are those a
+    video job gets on ``POST /v1/videos``."""
+    try:
+        check_decoder_supports(decoder, params)
+        check_frame_size(video_options(decoder, options)[1], (1, *shape))
+    except InvalidInputError as exc:
+        raise InvalidInputError(
+            f"device {device!r} sends {params.encoding} frames of {shape[0]} x {shape[1]} px "
+            f"({seen}), which this recording cannot make into a video: {exc.message}"
+        ) from None
+
+
+def reported_frames(
+    client: redis.Redis, device: str
+) -> tuple[SensorParams, tuple[int, int]] | None:
+    """The sensor parameters and size (H, W px) of the device's newest frame, as its
+    daemon reports them in its health ``settings``; None before any frame, or when the
+    daemon reports parameters its frames are refused for (its frames then record none)."""
+    settings = json.loads(client.hget(health_key(device), "settings") or "{}")
+    if not {"encoding", "alpha", "bits", "height", "width"} <= settings.keys():
+        return None
+    try:
+        params = SensorParams.parse(
+            {name: settings[name] for name in ("encoding", "alpha", "bits")}
+        )
+    except InvalidInputError:
+        return None
+    return params, (int(settings["height"]), int(settings["width"]))
+
+
 def start_recording(
     client: redis.Redis,
     device: str,
@@ -176,7 +224,11 @@ def start_recording(
     max_samples: int = MAX_RECORDING_SAMPLES,
 ) -> Recording | None:
     """Start a recording (options: those of a video job; ``max_samples``: most code
-    values of the video); None if one is already active."""
+    values of the video); None if one is already active. Refused when the device's newest
+    frame shows its video job could never be made (:func:`check_recordable`)."""
+    reported = reported_frames(client, device)
+    if reported is not None:
+        check_recordable(device, decoder, options, *reported, "its newest frame")
     if max_frames < 1:
         raise InvalidInputError(f"max_frames must be at least 1, got {max_frames}")
     if not 1 <= max_samples <= MAX_RECORDING_SAMPLES * 2:
@@ -239,6 +291,8 @@ class Recorder:
         shape = ",".join(map(str, message.codes.shape))
         update: dict[str, Any] = {"last_entry": entry_id, "last_sequence": message.sequence}
         if index == 0:
+            if not self._recordable(recording, message):
+                return
             update |= {
                 "params": message.params.model_dump_json(),
                 "shape": shape,
@@ -261,6 +315,19 @@ class Recorder:
         if index + 1 >= recording.max_frames:
             self._finish(load_recording(self.client, message.device) or recording, "max_frames")
 
+    def _recordable(self, recording: Recording, message: FrameMessage) -> bool:
+        """Whether the recording's video job can be made from frames like ``message``'s
+        (its first); if not, the recording ends failed with the reason."""
+        try:
+            check_recordable(
+                recording.device, recording.decoder, recording.options, message.params,
+                message.codes.shape, "its first recorded frame",
+            )
+        except InvalidInputError as exc:
+            self._fail(recording, "frames_refused", exc.message)
+            return False
+        return True
+
     def finish_if_stopping(self, device: str) -> None:
         """Queue the video job of a recording the API asked to stop."""
         if self.client.hget(recording_key(device), "state") != b"stopping":
@@ -271,15 +338,18 @@ class Recorder:
 
     def _finish(self, recording: Recording, reason: str) -> None:
         """Assemble the recorded frames (T x H x W codes), queue the video job, note its id."""
-        done = {"reason": reason, "stopped_ns": recording.stopped_ns or time.time_ns()}
         try:
             job = self._submit(recording, reason)
         except McamError as exc:
-            self._set(recording, {**done, "state": "failed", "error": exc.message})
+            self._fail(recording, reason, exc.message)
         else:
-            self._set(recording, {**done, "state": "submitted", "job": job})
+            self._set(recording, {**_ended(recording, reason), "state": "submitted", "job": job})
         for key in self.store.keys(f"recordings/{recording.id}"):
             self.store.delete(key)
+
+    def _fail(self, recording: Recording, reason: str, error: str) -> None:
+        """End the recording as failed, ``error`` saying why (no video job comes)."""
+        self._set(recording, {**_ended(recording, reason), "state": "failed", "error": error})
 
     def _submit(self, recording: Recording, reason: str) -> str:
         if recording.frames == 0 and reason == "max_samples":
@@ -298,10 +368,15 @@ class Recorder:
              for i in range(recording.frames)]
         )
         options = {**recording.options, "keyframes": recording.keyframes}
-        check_frame_size(video_options(recording.decoder, options)[1], codes.shape)
         params = SensorParams.model_validate_json(recording.params)
         # The recording's id names its job: if noting the job below fails (Redis down),
         # the next try finds the job queued instead of queueing it twice.
         return self.queue.submit(
             "video", codes, params, recording.decoder, options, job_id=recording.id
         ).id
+
+
+def _ended(recording: Recording, reason: str) -> dict[str, Any]:
+    """The fields of a recording that ends for ``reason`` (its stop time: when the API
+    asked, else now; ns since the epoch)."""
+    return {"reason": reason, "stopped_ns": recording.stopped_ns or time.time_ns()}

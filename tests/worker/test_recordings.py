@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import redis
 
+from models.errors import InvalidInputError
 from models.formation import SensorFrame
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue, entry_codes
@@ -18,7 +20,7 @@ from worker.recordings import (
     request_stop,
     start_recording,
 )
-from worker.redis_keys import JOBS_STREAM
+from worker.redis_keys import JOBS_STREAM, health_key
 from worker.result_store import ResultStore
 from worker.video_input import WrappedVideo
 from worker.video_jobs import video_options
@@ -138,19 +140,46 @@ def test_stop_without_frames_fails_with_a_reason(
     assert "no frames were recorded" in failed.error
 
 
-@pytest.mark.parametrize("options", [
-    {"mode": "temporal", "outputs": ["hdr10"]},
-    {"mode": "temporal"},  # the default outputs include hdr10
+@pytest.mark.parametrize(("decoder", "options", "fragment"), [
+    ("itoh", {"mode": "temporal", "outputs": ["hdr10"]}, "HDR10 video needs frames"),
+    ("itoh", {"mode": "temporal"}, "HDR10 video needs frames"),  # default outputs: hdr10 too
+    ("mantissanet-base-noise", OPTIONS, "has no model for modulo frames"),
 ])
-def test_hdr10_of_small_frames_fails_with_a_reason(
-    client: redis.Redis, recorder: Recorder, make_frame, options: dict
+def test_a_recording_that_cannot_make_its_video_fails_on_its_first_frame(
+    client: redis.Redis, recorder: Recorder, store: ResultStore, make_frame, decoder: str,
+    options: dict, fragment: str,
 ) -> None:
-    start(client, options=options)
+    """32 x 32 modulo frames can make no HDR10 video, nor any video with a decoder that has
+    no model for modulo: the recording fails on its first frame, with the reason, instead
+    of recording frames that its stop would then throw away."""
+    start_recording(client, "cam1", decoder=decoder, options=options, max_frames=100)
     recorder.add_frame(message(make_frame(size=32), 0), "4000-0")
-    request_stop(client, "cam1")
-    recorder.finish_if_stopping("cam1")
     failed = load_recording(client, "cam1")
-    assert failed.state == "failed" and "HDR10 video needs frames" in failed.error
+    assert failed.state == "failed" and failed.reason == "frames_refused", failed
+    assert fragment in failed.error and "its first recorded frame" in failed.error
+    assert failed.frames == 0 and failed.stopped_ns and store.keys() == []
+    recorder.add_frame(message(make_frame(size=32), 1), "4000-1")
+    assert load_recording(client, "cam1").frames == 0
+    assert request_stop(client, "cam1").error == failed.error
+
+
+def test_a_start_is_refused_when_the_devices_newest_frame_cannot_make_its_video(
+    client: redis.Redis,
+) -> None:
+    """The daemon reports its newest frame's encoding and size: a decoder with no model for
+    it, or HDR10 of frames too small, is refused at the start, leaving no recording."""
+    settings = {"encoding": "modulo", "alpha": 2.0, "bits": 8, "gain": 0, "width": 48,
+                "height": 40}
+    client.hset(health_key("cam1"), "settings", json.dumps(settings))
+    with pytest.raises(InvalidInputError, match="has no model for modulo frames") as refused:
+        start_recording(client, "cam1", decoder="mantissanet-base-noise", options=OPTIONS,
+                        max_frames=10)
+    assert "'cam1' sends modulo frames of 40 x 48 px (its newest frame)" in str(refused.value)
+    with pytest.raises(InvalidInputError, match="HDR10 video needs frames.*outputs=exr_zip"):
+        start_recording(client, "cam1", decoder="itoh", options={"outputs": ["hdr10"]},
+                        max_frames=10)
+    assert load_recording(client, "cam1") is None
+    assert start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=10)
 
 
 def test_a_recording_ends_before_a_frame_that_would_pass_its_sample_limit(

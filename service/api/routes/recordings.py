@@ -6,7 +6,11 @@ each frame it reconstructs. ``action=stop`` ends it: the worker queues the video
 job and the answer is that job (202, or 200 with the finished job under
 ``Prefer: wait=N``); its files come from ``GET /v1/videos/{job}/result``. Fields
 come as JSON, form fields or query parameters. ``GET`` shows the current (or last)
-recording with its frame count. See ``worker/recordings.py``.
+recording with its frame count. A start is refused (422) when the device's newest frame
+shows that its video could never be made (a decoder with no model for the frames'
+encoding, ``hdr10`` of frames under 64 px); before any frame, the first one recorded is
+checked, and a refusal ends the recording ``failed`` with the reason (``GET``, and the
+stop's 409). See ``worker/recordings.py``.
 """
 
 from __future__ import annotations

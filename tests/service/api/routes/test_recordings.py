@@ -135,6 +135,15 @@ def test_stop_mid_stream_and_bad_requests(camera: VirtualScamp5, client: Client)
     assert job["frames_total"] == record["frames"] >= 3
     assert job["options"]["mode"] == "independent" and job["options"]["outputs"] == ["exr_zip"]
 
+    # No model for the camera's modulo frames: refused at the start (it was accepted, and
+    # its stop failed, throwing the recorded frames away); the last recording stays.
+    unmade = {"action": "start", "decoder": "mantissanet-base-noise", "outputs": "exr_zip"}
+    refused = http.post(URL, json=unmade)
+    assert refused.status_code == 422 and refused.json()["code"] == "invalid_input"
+    assert "sends modulo frames of 256 x 256 px (its newest frame)" in refused.text
+    assert "has no model for modulo frames (GET /v1/decoders" in refused.text
+    assert recording(http) == record
+
 
 def test_a_stop_waits_for_its_job_only_in_a_free_wait_slot(tmp_path: Path, redis_url: str) -> None:
     """Each stop waiting for the worker holds a server thread; with no 'Prefer: wait'
