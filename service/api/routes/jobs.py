@@ -36,6 +36,7 @@ from service.api.schemas import (
 )
 from service.api.state import ServiceState
 from worker.jobs import JobRecord, JobState
+from worker.video_jobs import video_options
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -55,7 +56,12 @@ def finished_record(state: ServiceState, job_id: str) -> JobRecord:
     """The job's record if it succeeded; otherwise 409 saying why there is no result, with
     code ``job_not_finished`` (queued or running: poll again) or ``job_failed`` /
     ``job_cancelled`` (there never will be one: do not poll)."""
-    record = state.queue.get(job_id)
+    return succeeded(state.queue.get(job_id))
+
+
+def succeeded(record: JobRecord) -> JobRecord:
+    """``record`` if its job succeeded; otherwise the 409 of :func:`finished_record`."""
+    job_id = record.id
     if record.state == JobState.SUCCEEDED:
         return record
     if record.state.finished:
@@ -118,16 +124,31 @@ def stored_exr(state: ServiceState, record: JobRecord) -> Response:
     )
 
 
+def video_files(record: JobRecord) -> str:
+    """Where the video job ``record``'s files come from, with the outputs it made (or,
+    not finished, will make)."""
+    if record.state == JobState.SUCCEEDED:
+        outputs, verb = video_outputs_made(record), "made"
+    else:
+        outputs, verb = video_options(record.decoder, record.options)[1], "will make"
+    return f"/v1/videos/{record.id}/result?output={outputs[0]} (it {verb} {', '.join(outputs)})"
+
+
 def still_record(state: ServiceState, job_id: str) -> JobRecord:
     """The record of a succeeded single-frame job; 409 for a video job, whose files come
-    from ``/v1/videos/{id}/result`` (and as :func:`finished_record` otherwise)."""
-    record = finished_record(state, job_id)
-    if record.kind == "video":
-        made = video_outputs_made(record)
+    from ``/v1/videos/{id}/result``: ``job_not_finished`` saying so while it is queued or
+    running, ``video_job`` once it succeeded (and as :func:`finished_record` otherwise)."""
+    record = state.queue.get(job_id)
+    if record.kind == "video" and not record.state.finished:
+        raise ApiError(
+            409, "job_not_finished",
+            f"job {job_id} is {record.state.value}; it is a video job: once it has "
+            f"succeeded, fetch its files from {video_files(record)}",
+        )  # fmt: skip
+    if succeeded(record).kind == "video":
         raise ApiError(
             409, "video_job",
-            f"job {job_id} is a video job: fetch its files from /v1/videos/{job_id}/result"
-            f"?output={made[0]} (it made {', '.join(made)})",
+            f"job {job_id} is a video job: fetch its files from {video_files(record)}",
         )  # fmt: skip
     return record
 

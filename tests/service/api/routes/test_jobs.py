@@ -26,6 +26,7 @@ from tests.service.conftest import (
     SUBMIT_KEY,
     frame_png,
     make_settings,
+    npy_bytes,
     running_worker,
     serve,
 )
@@ -143,6 +144,24 @@ def test_queued_job_has_no_result_and_can_be_cancelled(client: Client) -> None:
     gone = client().get(f"/v1/jobs/{job['id']}/result")
     assert gone.status_code == 409 and gone.json()["code"] == "job_cancelled"
     assert "cancelled" in gone.json()["message"]
+
+
+def test_an_unfinished_video_job_says_where_its_files_will_come_from(client: Client) -> None:
+    """A video job's files never come from /v1/jobs/{id}/result: while it is not finished
+    the answer says where they will come from and which it will make (it said only to poll
+    until it succeeded, and then answered 409 ``video_job``)."""
+    clip = npy_bytes(np.zeros((2, 64, 64), np.uint8))
+    job = client(SUBMIT_KEY).post(
+        "/v1/videos", files={"file": ("clip.npy", clip)},
+        data={"encoding": "modulo", "bits": "8", "outputs": "exr_zip,hdr10"},
+    ).json()
+    reply = client().get(f"/v1/jobs/{job['id']}/result")
+    assert reply.status_code == 409 and reply.json()["code"] == "job_not_finished"
+    message = reply.json()["message"]
+    assert message.startswith(f"job {job['id']} is queued")
+    assert message.endswith(
+        f"/v1/videos/{job['id']}/result?output=exr_zip (it will make exr_zip, hdr10)"
+    ), message
 
 
 def test_finished_job_cannot_be_cancelled(client: Client, worker: Worker) -> None:
