@@ -6,6 +6,9 @@ the CLI) and a human message that says what was wrong and what to do about it.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 from pydantic import ValidationError
 
 
@@ -86,3 +89,13 @@ def describe_validation_error(exc: ValidationError, subject: str) -> str:
     return "; ".join(
         f"{'.'.join(str(p) for p in err['loc']) or subject}: {err['msg']}" for err in exc.errors()
     )
+
+
+@contextmanager
+def naming(label: str) -> Iterator[None]:
+    """Prefix ``label`` (a file's path) to the message of a :class:`McamError` raised
+    inside, so that a command reading several files says which one was bad."""
+    try:
+        yield
+    except McamError as exc:
+        raise type(exc)(f"{label}: {exc.message}") from None

@@ -39,6 +39,7 @@ from models.errors import (
     McamError,
     MissingParameterError,
     UnsupportedFormatError,
+    naming,
 )
 from models.file_magic import (
     FRAME_MAGICS,
@@ -394,9 +395,12 @@ def read_frame(
     overrides: dict[str, Any] | None = None,
     max_pixels: int | None = None,
 ) -> WrappedFrame:
-    """Read a wrapped-frame file; the format is its content's, else its suffix's."""
+    """Read a wrapped-frame file; the format is its content's, else its suffix's. An
+    error about the file's content names its path."""
     fmt = frame_format(path)
-    return decode_frame(Path(path).read_bytes(), fmt, overrides, max_pixels)
+    data = Path(path).read_bytes()
+    with naming(str(path)):
+        return decode_frame(data, fmt, overrides, max_pixels)
 
 
 def decode_raw(data: bytes, width: int, height: int, channels: int, bits: int) -> NDArray[Any]:
@@ -440,9 +444,11 @@ def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) ->
 
 def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
     """Read a winding-number map written by :func:`write_winding` (int64); the format is
-    its content's, else its suffix's."""
+    its content's, else its suffix's. An error about the file's content names its path."""
+    fmt = frame_format(path)
     data = Path(path).read_bytes()
-    return decode_winding(data, content_first(data, frame_format(path), FRAME_MAGICS).format)
+    with naming(str(path)):
+        return decode_winding(data, content_first(data, fmt, FRAME_MAGICS).format)
 
 
 def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:

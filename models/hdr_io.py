@@ -22,7 +22,7 @@ import numpy as np
 import OpenEXR
 from numpy.typing import NDArray
 
-from models.errors import InvalidInputError, McamError, UnsupportedFormatError
+from models.errors import InvalidInputError, UnsupportedFormatError, naming
 from models.exr_chunks import missing_chunks
 from models.exr_limits import EXR_HEAD_BYTES, check_exr_headers, check_exr_size, part_size
 from models.exr_parts import check_flat, image_part
@@ -124,7 +124,7 @@ def read_hdr(
         source = Path(source)
         with source.open("rb") as handle:
             label, head = name or str(source), handle.read(16)
-    try:
+    with naming(label):
         fmt = format_by_content(head, HDR_MAGICS)
         if fmt == "exr":
             with decoding("the OpenEXR file"):
@@ -135,8 +135,6 @@ def read_hdr(
         else:
             raise UnsupportedFormatError(_not_hdr(head))
         values, clipped = validate_irradiance(pixels, clip_negative=clip_negative)
-    except McamError as exc:
-        raise type(exc)(f"{label}: {exc.message}") from None
     return HdrImage(pixels=values, attributes=attributes, negatives_clipped=clipped)
 
 

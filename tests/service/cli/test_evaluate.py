@@ -105,3 +105,16 @@ def test_a_reconstruction_in_wrap_units_is_not_compared_with_a_scene_referred_on
         "mcam evaluate: error:", "in wrap units (its gain was unknown)",
         "reference is in scene-referred x / gain", f"--gain {gain}",
     )  # fmt: skip
+
+
+def test_a_bad_winding_map_is_named_among_the_two(tmp_path: Path, pipeline: Path) -> None:
+    """With --winding and --winding-reference both given, an empty or float map was refused
+    as 'the PNG winding map is truncated' or 'a winding map holds integers' without
+    saying which of the two files it was."""
+    (tmp_path / "empty.png").write_bytes(b"")
+    np.save(tmp_path / "float.npy", np.zeros((64, 64), np.float32))
+    images = (pipeline / "hdr.exr", "--reference", pipeline / "reference.exr", "--no-flip")
+    for bad, fragment in (("empty.png", "truncated or corrupt"), ("float.npy", "integers")):
+        result = run_mcam("evaluate", *images, "--winding", pipeline / "W.png",
+                          "--winding-reference", bad, cwd=tmp_path)  # fmt: skip
+        assert_one_line_error(result, f"error: {bad}: ", fragment)
