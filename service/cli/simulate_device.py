@@ -34,34 +34,40 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Render an HDR scene sequence, encode it in-pixel and stream mcam-link v1.",
     )
     parser.add_argument("--port", default="pty",
-                        help="pty, pty:SYMLINK, socket://HOST:PORT (server) or loop://")
+                        help="pty (default), pty:SYMLINK or socket://HOST:PORT (a server)")
     parser.add_argument("--exr", type=Path, action="append",
                         help="HDR image(s) to pan across (default: a procedural scene)")
+    low, high = FPS_RANGE
     parser.add_argument("--fps", type=float, default=30.0,
-                        help=f"frames per second, {FPS_RANGE[0]:g} to {FPS_RANGE[1]:g}")
+                        help=f"frames per second, {low:g} to {high:g} (default 30)")
     parser.add_argument("--frames", type=int, help="stop streaming after this many frames")
     parser.add_argument("--encoding", choices=("modulo", "mantissa", "clip"), default="modulo",
                         help="how the pixels wrap (default: modulo)")
     parser.add_argument("--alpha", type=float, default=2.0, help="mantissa base (default 2)")
     parser.add_argument("--bits", type=int, default=8, help="code bits (default 8)")
-    parser.add_argument("--gain", type=float, default=1.0, help="wrap units per scene unit")
-    parser.add_argument("--read-noise", type=float, default=0.002, help="sigma in wraps")
+    parser.add_argument("--gain", type=float, default=1.0,
+                        help="wrap units per scene unit (default 1)")
+    parser.add_argument("--read-noise", type=float, default=0.002,
+                        help="sigma in wraps (default 0.002; 0: none)")
     parser.add_argument("--seed", type=int, default=0,
-                        help=f"noise and fault seed, 0 to {MAX_SEED}")
+                        help=f"noise and fault seed, 0 to {MAX_SEED} (default 0)")
     faults = parser.add_argument_group("fault injection")
     faults.add_argument("--corrupt-bytes", type=float, default=0.0,
                         help="fraction of bytes overwritten, in bursts")
-    faults.add_argument("--burst-len", type=int, default=256, help="bytes per corrupt burst")
+    faults.add_argument("--burst-len", type=int, default=256,
+                        help="bytes per corrupt burst (default 256)")
     faults.add_argument("--drop", type=float, default=0.0, help="fraction of packets not sent")
     faults.add_argument("--truncate", type=float, default=0.0, help="fraction cut in half")
     faults.add_argument("--oversize", type=float, default=0.0,
                         help="fraction preceded by a bogus 16 MiB length header")
     faults.add_argument("--stall-every", type=int, default=0,
                         help="stall every N-th packet (0: never)")
-    faults.add_argument("--stall-s", type=float, default=0.2, help="stall length in seconds")
+    faults.add_argument("--stall-s", type=float, default=0.2,
+                        help="stall length in seconds (default 0.2)")
     faults.add_argument("--disconnect-every", type=int, default=0,
                         help="unplug the link every N-th packet (0: never)")
-    faults.add_argument("--disconnect-s", type=float, default=0.5, help="how long it stays out")
+    faults.add_argument("--disconnect-s", type=float, default=0.5,
+                        help="seconds it stays out (default 0.5)")
     parser.set_defaults(func=run)
 
 

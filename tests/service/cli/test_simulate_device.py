@@ -55,3 +55,16 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and fragment in lines[0], result.stderr
+
+
+def test_help_offers_only_the_ports_it_opens_and_gives_the_defaults() -> None:
+    """--help offered 'loop://', which the command then refused, and hid the defaults
+    of --gain, --read-noise (a noise the camera adds unless told 0) and the fault flags."""
+    result = subprocess.run([MCAM, "simulate-device", "--help"], capture_output=True,
+                            text=True, timeout=60, check=True)
+    text = " ".join(result.stdout.split())
+    assert "loop://" not in text
+    for fragment in ("pty (default), pty:SYMLINK or socket://HOST:PORT", "(default 30)",
+                     "scene unit (default 1)", "(default 0.002; 0: none)", "(default 256)",
+                     "seconds (default 0.2)", "stays out (default 0.5)"):
+        assert fragment in text, fragment
