@@ -9,17 +9,22 @@ suffixes its format allows) and runs inside :func:`staged_outputs`, which
   folder is found at once, and a rename puts it in place atomically) with the final
   suffix (writers pick the format from it);
 - moves every temporary file into place only when the whole command succeeded, and
-  removes them all otherwise: a failed command leaves no partial or stale-looking output.
+  removes them all otherwise: a failed command leaves no partial or stale-looking output;
+- meanwhile ends the command on SIGTERM (``timeout``, ``kill``) as on Ctrl-C, through
+  that cleanup, with exit status 143 (128 + SIGTERM).
 """
 
 from __future__ import annotations
 
 import os
 import secrets
+import signal
+import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 
 from models.errors import InvalidInputError, UnsupportedFormatError
 
@@ -106,22 +111,44 @@ def _named_for_its_output(
     return exc
 
 
+def _exit_on_signal(signum: int, _frame: FrameType | None) -> None:
+    raise SystemExit(128 + signum)
+
+
+@contextmanager
+def _sigterm_unwinds() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`SystemExit` (143) so that the cleanup of
+    :func:`staged_outputs` runs: by default it ended the process at once, leaving the
+    hidden temporary files behind. Signal handlers belong to the main thread; elsewhere
+    the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _exit_on_signal)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @contextmanager
 def staged_outputs(
     outputs: Sequence[OutputFile], inputs: Sequence[str] = ()
 ) -> Iterator[dict[str, Path]]:
     """Check the outputs (:func:`check_outputs`), then yield the temporary path to write
-    for each flag; on success move each into place, on any failure remove them all."""
+    for each flag; on success move each into place, on any failure (SIGTERM included:
+    :func:`_sigterm_unwinds`) remove them all."""
     check_outputs(outputs, inputs)
     temporaries: dict[str, Path] = {}
-    try:
-        for output in outputs:
-            temporaries[output.flag] = _create_temporary(output)
-        yield temporaries
-        for output in outputs:
-            os.replace(temporaries.pop(output.flag), output.path)
-    except OSError as exc:
-        raise _named_for_its_output(exc, outputs, temporaries) from None
-    finally:
-        for temporary in temporaries.values():
-            temporary.unlink(missing_ok=True)
+    with _sigterm_unwinds():
+        try:
+            for output in outputs:
+                temporaries[output.flag] = _create_temporary(output)
+            yield temporaries
+            for output in outputs:
+                os.replace(temporaries.pop(output.flag), output.path)
+        except OSError as exc:
+            raise _named_for_its_output(exc, outputs, temporaries) from None
+        finally:
+            for temporary in temporaries.values():
+                temporary.unlink(missing_ok=True)

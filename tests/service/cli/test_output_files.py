@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -67,3 +68,22 @@ def test_a_writer_failing_on_its_temporary_file_names_the_output(tmp_path: Path)
             raise OSError(28, "No space left on device", str(paths["-o"]))
     assert failure.value.filename == str(target) and failure.value.strerror.startswith("No space")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_sigterm_removes_the_temporary_files_and_exits_143(tmp_path: Path) -> None:
+    """SIGTERM (``timeout``, ``kill``) during a long decode ended the process at once and
+    left the hidden temporary output behind; now it unwinds like Ctrl-C, exiting 143.
+    The caller's handler (here the test's, standing in for the default) comes back."""
+    received: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, _frame: received.append(signum))
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            with staged_outputs([exr("-o", tmp_path / "a.exr")]) as paths:
+                assert paths["-o"].exists()
+                os.kill(os.getpid(), signal.SIGTERM)
+        assert stopped.value.code == 143 and received == []
+        assert list(tmp_path.iterdir()) == []
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert received == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
