@@ -23,6 +23,9 @@ from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.recordings import MAX_RECORDING_SAMPLES
 from worker.redis_memory import DEFAULT_MAXMEMORY
 
+#: Longest ``MCAM_RESULT_RETENTION_S`` (s): 100 years.
+MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
+
 
 class Settings(BaseSettings):
     """All ``MCAM_*`` settings. Sizes in bytes or pixels, times in seconds unless named ``_ms``."""
@@ -174,7 +177,12 @@ class Settings(BaseSettings):
         description="processes decoding one device stream's frames in independent mode, "
         "results kept in stream order; unset: one per core (at most 8); 1: in the worker",
     )
-    result_retention_s: float = Field(7 * 24 * 3600.0, gt=0)
+    result_retention_s: float = Field(
+        7 * 24 * 3600.0, gt=0, le=MAX_RESULT_RETENTION_S,
+        description="seconds a finished job's record and results are kept (at most 100 "
+        "years: Redis expires a record by a whole number of seconds, and a longer or "
+        "infinite retention failed every finished job)",
+    )  # fmt: skip
     dataset_max_pairs: int = Field(
         DEFAULT_MAX_PAIRS, gt=0,
         description="bracketed reference pairs kept per device; the oldest are removed",

@@ -110,3 +110,19 @@ def test_a_heartbeat_too_slow_for_the_leases_is_refused_at_start(
         Settings()
     monkeypatch.setenv("MCAM_HEARTBEAT_S", "0.5")
     assert Settings().heartbeat_s == 0.5
+
+
+@pytest.mark.parametrize("value", ["inf", "1e20"])
+def test_a_retention_redis_cannot_expire_by_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch, value: str
+) -> None:
+    """MCAM_RESULT_RETENTION_S=inf was accepted, and no decoded job could then be marked
+    finished (its record's expiry: int(inf) raised OverflowError, and Redis refuses
+    1e20 s): the worker handed it back, delivery after delivery. 100 years is the
+    longest accepted."""
+    monkeypatch.setenv("MCAM_RESULT_RETENTION_S", value)
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    assert caught.value.errors()[0]["loc"] == ("result_retention_s",)
+    monkeypatch.setenv("MCAM_RESULT_RETENTION_S", str(100 * 365.25 * 24 * 3600))
+    assert Settings().result_retention_s == 100 * 365.25 * 24 * 3600
