@@ -8,6 +8,7 @@ jobs then need a worker on the same data dir (``mcam worker``) or use
 from __future__ import annotations
 
 import argparse
+import socket
 import sys
 from typing import Any
 
@@ -37,6 +38,28 @@ def settings_with(settings: Settings, **updates: Any) -> Settings:
                 f"--{str(error['loc'][0]).replace('_', '-')} {error['input']}: {error['msg']}"
                 for error in flagged
             )
+        ) from None
+
+
+def check_listen_address(settings: Settings) -> None:
+    """Refuse, before anything starts, a host and port this machine cannot listen on
+    (an unknown name, an address not its own, a port in use or reserved): uvicorn found
+    them only after the API had been announced, and said "[Errno -2] Name or service
+    not known" without the host, exiting 3. Each address the host resolves to is bound
+    once and released, as uvicorn then binds it."""
+    host, port = settings.host, settings.port
+    try:
+        addresses = socket.getaddrinfo(
+            host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )
+        for family, kind, protocol, _, address in addresses:
+            with socket.socket(family, kind, protocol) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                probe.bind(address)
+    except OSError as exc:
+        raise InvalidInputError(
+            f"cannot listen on {host}:{port} ({exc.strerror or exc}); give --host "
+            "(MCAM_HOST) an address of this machine and --port (MCAM_PORT) a free port"
         ) from None
 
 
@@ -98,6 +121,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
+    check_listen_address(settings)
     embedded = embedded_redis_for(settings)
     try:
         if embedded is not None:

@@ -34,7 +34,7 @@ import time
 from types import FrameType
 
 from service.api.state import embedded_redis_for
-from service.cli.api import announce, serve_http, settings_with
+from service.cli.api import announce, check_listen_address, serve_http, settings_with
 from service.core.config import get_settings
 from service.core.security import KeyRing
 from worker.embedded_redis import terminate_with_parent
@@ -163,6 +163,7 @@ def _interrupt(_signum: int, _frame: FrameType | None) -> None:
 
 def run(args: argparse.Namespace) -> int:
     settings = settings_with(get_settings(), host=args.host, port=args.port)
+    check_listen_address(settings)
     embedded = embedded_redis_for(settings)
     workers: list[WorkerSupervisor] = []
     signal.signal(signal.SIGTERM, _interrupt)

@@ -23,6 +23,7 @@ from pydantic import ValidationError
 from models.errors import InvalidInputError
 from service.cli.api import settings_with
 from service.core.config import Settings
+from tests.service.cli.conftest import assert_one_line_error, run_mcam
 from tests.service.conftest import (
     FULL_KEY,
     GET,
@@ -48,6 +49,31 @@ def test_a_good_flag_overrides_and_a_bad_setting_stays_a_settings_error() -> Non
     assert settings_with(Settings(), port=8123, host=None).port == 8123
     with pytest.raises(ValidationError):
         settings_with(Settings.model_construct(port=99999), host="127.0.0.1")
+
+
+@pytest.mark.parametrize("command", ["api", "serve"])
+def test_an_address_it_cannot_listen_on_is_refused_before_anything_starts(
+    tmp_path: Path, command: str
+) -> None:
+    """A port in use, or a host not of this machine (192.0.2.1: a documentation
+    address): uvicorn found them only after the API was announced, its key generated and
+    the embedded Redis (and serve's workers) started, logged '[Errno 98] ...' or, for a
+    name, '[Errno -2] Name or service not known' without the host, and exited 3."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        in_use = run_mcam(command, "--port", str(port), cwd=tmp_path)
+    assert_one_line_error(
+        in_use, f"cannot listen on 127.0.0.1:{port} (Address already in use)",
+        "--port (MCAM_PORT) a free port",
+    )  # fmt: skip
+    foreign = run_mcam(command, "--host", "192.0.2.1", "--port", str(port), cwd=tmp_path)
+    assert_one_line_error(
+        foreign, f"cannot listen on 192.0.2.1:{port}", "give --host (MCAM_HOST) an address"
+    )
+    assert in_use.stdout == foreign.stdout == ""
+    assert list(tmp_path.iterdir()) == [], "the data dir was made: something started"
 
 
 def status_soon(port: int, wanted: int, within_s: float = 10.0) -> int:
