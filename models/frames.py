@@ -453,14 +453,23 @@ def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
 
 def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
     """A winding-number map (int64) from the bytes of a ``png``, ``tiff`` or ``npy``
-    file as :func:`write_winding` writes them."""
+    file as :func:`write_winding` writes them. A PNG or TIFF that stores sensor
+    parameters is a wrapped frame, refused: its codes read as winding numbers gave a
+    winding accuracy without a word."""
     with decoding(f"the {fmt.upper()} winding map"):
         if fmt == "png":
-            arr = np.asarray(Image.open(io.BytesIO(data), formats=["PNG"]))
+            image = Image.open(io.BytesIO(data), formats=["PNG"])
+            arr, frame = np.asarray(image), PNG_KEYWORD in image.text
         elif fmt == "tiff":
-            arr = tifffile.imread(io.BytesIO(data))
+            with tifffile.TiffFile(io.BytesIO(data)) as tif:
+                arr, frame = tif.asarray(), bool(tiff_params(tif.pages.first.description))
         else:
-            arr = load_npy(data)
+            arr, frame = load_npy(data), False
+    if frame:
+        raise InvalidInputError(
+            "this is a wrapped frame (it stores sensor parameters), not a winding map: give "
+            "the W map that mcam reconstruct --winding-out or mcam simulate --ground-truth wrote"
+        )
     if arr.dtype.kind not in "iu":
         raise InvalidInputError(f"a winding map holds integers, got dtype {arr.dtype}")
     return arr.astype(np.int64)

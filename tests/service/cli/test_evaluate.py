@@ -118,3 +118,14 @@ def test_a_bad_winding_map_is_named_among_the_two(tmp_path: Path, pipeline: Path
         result = run_mcam("evaluate", *images, "--winding", pipeline / "W.png",
                           "--winding-reference", bad, cwd=tmp_path)  # fmt: skip
         assert_one_line_error(result, f"error: {bad}: ", fragment)
+
+
+def test_a_wrapped_frame_given_as_a_winding_map_is_refused(tmp_path: Path, pipeline: Path) -> None:
+    """The frame (wrapped.png) given for the true W map (W_true.png), a name away, had
+    its codes read as winding numbers: a winding accuracy of 0.03, without a word."""
+    result = run_mcam(
+        "evaluate", pipeline / "hdr.exr", "--reference", pipeline / "reference.exr",
+        "--no-flip", "--winding", pipeline / "W.png",
+        "--winding-reference", pipeline / "wrapped.png", cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(result, "wrapped.png: this is a wrapped frame", "not a winding map")
