@@ -16,7 +16,8 @@ import argparse
 import os
 
 from models.decoders.learned import THREAD_VARIABLES
-from models.errors import McamError
+from models.decoders.registry import resolve
+from models.errors import McamError, naming
 from service.cli.options import add_log_level_flag, start_logging
 from service.core.config import Settings, get_settings
 from worker.embedded_redis import EmbeddedRedis
@@ -100,6 +101,9 @@ def run(args: argparse.Namespace) -> int:
         processes = settings.stream_processes or min(usable_cores(), MAX_STREAM_PROCESSES)
     if concurrency < 1 or threads < 1 or processes < 1:
         raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
+    if args.decoder:
+        with naming("--decoder"):  # else each job child died at start, with a traceback
+            resolve(args.decoder)
     start_logging(args)
     set_thread_limits(threads, settings.ort_spin)
     from worker.runner import Worker, WorkerConfig

@@ -122,3 +122,14 @@ def test_the_settings_and_the_models_read_the_spin_words_alike(
     for word, spinning in SPIN_WORDS.items():
         monkeypatch.setenv("MCAM_ORT_SPIN", word)
         assert Settings().ort_spin is spinning is ort_spinning(), word
+
+
+def test_an_unknown_decoder_is_refused_with_one_line(tmp_path: Path) -> None:
+    """``--decoder magic --no-devices`` ran: each job child then died at its start with a
+    traceback (its warm-up builds that decoder), and every job, whatever decoder it
+    named, failed as 'decoder_crashed: the decoding process died'."""
+    process = mcam("worker", "--decoder", "magic", "--no-devices",
+                   env={"MCAM_DATA_DIR": str(tmp_path)})  # fmt: skip
+    _out, err = process.communicate(timeout=60)
+    assert process.returncode == 2 and "Traceback" not in err
+    assert err.startswith("mcam worker: error: --decoder: unknown decoder 'magic'; choose")
