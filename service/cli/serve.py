@@ -35,7 +35,8 @@ from types import FrameType
 
 from service.api.state import embedded_redis_for
 from service.cli.api import announce, check_listen_address, serve_http, settings_with
-from service.core.config import get_settings
+from service.cli.worker import threads_problem
+from service.core.config import MAX_WORKER_THREADS, get_settings
 from service.core.security import KeyRing
 from worker.embedded_redis import terminate_with_parent
 
@@ -63,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     parser.add_argument("--concurrency", type=positive, help="each worker's concurrent jobs")
     parser.add_argument(
-        "--threads", type=positive, help="each worker's ONNX intra-op threads"
+        "--threads", type=thread_count, help="each worker's ONNX intra-op threads"
     )
     parser.set_defaults(func=run)
 
@@ -73,6 +74,15 @@ def positive(text: str) -> int:
     if not text.isdigit() or int(text) < 1:
         raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
     return int(text)
+
+
+def thread_count(text: str) -> int:
+    """An argparse type: a whole number from 1 to :data:`MAX_WORKER_THREADS` (the worker
+    refuses more, and a worker that exits at start is restarted for ever)."""
+    threads = positive(text)
+    if threads > MAX_WORKER_THREADS:
+        raise argparse.ArgumentTypeError(threads_problem(threads).removeprefix("--threads "))
+    return threads
 
 
 def worker_command(args: argparse.Namespace) -> list[str]:

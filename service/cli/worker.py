@@ -19,7 +19,7 @@ from models.decoders.learned import THREAD_VARIABLES
 from models.decoders.registry import resolve
 from models.errors import McamError, naming
 from service.cli.options import add_log_level_flag, start_logging
-from service.core.config import Settings, get_settings
+from service.core.config import MAX_WORKER_THREADS, Settings, get_settings
 from worker.embedded_redis import EmbeddedRedis
 from worker.temporal_config import MODES
 
@@ -48,6 +48,14 @@ def usable_cores() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
+
+
+def threads_problem(threads: int) -> str:
+    """Why ``--threads`` above :data:`MAX_WORKER_THREADS` is refused, and what to give."""
+    return (
+        f"--threads must be at most {MAX_WORKER_THREADS} (onnxruntime threads per session; "
+        f"this machine has {usable_cores()} cores), got {threads}"
+    )
 
 
 def set_thread_limits(threads: int, spin: bool = False) -> None:
@@ -101,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
         processes = settings.stream_processes or min(usable_cores(), MAX_STREAM_PROCESSES)
     if concurrency < 1 or threads < 1 or processes < 1:
         raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
+    if threads > MAX_WORKER_THREADS:
+        raise McamError(threads_problem(threads))
     if args.decoder:
         with naming("--decoder"):  # else each job child died at start, with a traceback
             resolve(args.decoder)

@@ -23,6 +23,8 @@ from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.recordings import MAX_RECORDING_SAMPLES
 from worker.redis_memory import DEFAULT_MAXMEMORY
 
+#: Most onnxruntime intra-op threads a worker's session may have (``--threads``).
+MAX_WORKER_THREADS = 256
 #: Longest ``MCAM_RESULT_RETENTION_S`` (s): 100 years.
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 
@@ -134,7 +136,11 @@ class Settings(BaseSettings):
         "auto); unset: bench/results/accuracy.json of the repository checkout",
     )
     worker_concurrency: int = Field(1, ge=1, description="jobs decoded at once per worker")
-    worker_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads per session")
+    worker_threads: int = Field(
+        2, ge=1, le=MAX_WORKER_THREADS,
+        description="onnxruntime intra-op threads per session (at most 256: 100000 had a "
+        "job's decoding process grow by 4.5 GB a minute and never finish a 64 x 64 frame)",
+    )  # fmt: skip
     ort_spin: bool = Field(
         False,
         description="idle onnxruntime threads spin: faster on cores nothing else uses, "

@@ -23,7 +23,7 @@ import pytest
 import redis
 
 from models.formation import SensorParams, simulate
-from service.cli.main import main
+from service.cli.main import build_parser, main
 from service.cli.serve import WorkerSupervisor
 from tests.service.conftest import free_port
 from worker.embedded_redis import EmbeddedRedis, connect
@@ -325,3 +325,16 @@ def test_an_open_event_stream_does_not_keep_serve_from_stopping(tmp_path: Path) 
         assert opened.wait(30)
         process.send_signal(signal.SIGTERM)
         assert process.wait(60) == 0  # it hung until the client left
+
+
+def test_more_threads_than_a_worker_takes_are_refused_with_one_line(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--threads 100000`` was passed on to workers (whose decoding processes then grew
+    without end); refused at once, as the worker now refuses it. (The arguments are
+    only parsed: a regression must not start a service.)"""
+    with pytest.raises(SystemExit) as stopped:
+        build_parser("serve").parse_args(["serve", "--threads", "100000"])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --threads: must be at most 256 (" in err and "got 100000" in err

@@ -133,3 +133,13 @@ def test_an_unknown_decoder_is_refused_with_one_line(tmp_path: Path) -> None:
     _out, err = process.communicate(timeout=60)
     assert process.returncode == 2 and "Traceback" not in err
     assert err.startswith("mcam worker: error: --decoder: unknown decoder 'magic'; choose")
+
+
+def test_more_threads_than_a_session_can_use_are_refused(tmp_path: Path) -> None:
+    """``--threads 100000`` ran: a job's decoding process grew by 4.5 GB in a minute, at
+    100 % of a core, and never finished a 64 x 64 frame."""
+    process = mcam("worker", "--threads", "100000", env={"MCAM_DATA_DIR": str(tmp_path)})
+    _out, err = process.communicate(timeout=60)
+    assert process.returncode == 2 and "Traceback" not in err
+    assert err.startswith("mcam worker: error: --threads must be at most 256 (")
+    assert err.rstrip().endswith("got 100000")

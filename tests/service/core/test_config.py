@@ -126,3 +126,13 @@ def test_a_retention_redis_cannot_expire_by_is_refused_at_start(
     assert caught.value.errors()[0]["loc"] == ("result_retention_s",)
     monkeypatch.setenv("MCAM_RESULT_RETENTION_S", str(100 * 365.25 * 24 * 3600))
     assert Settings().result_retention_s == 100 * 365.25 * 24 * 3600
+
+
+def test_more_worker_threads_than_a_session_can_use_are_refused(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv("MCAM_WORKER_THREADS", "100000")
+    with pytest.raises(ValidationError, match="less than or equal to 256"):
+        Settings()
+    monkeypatch.setenv("MCAM_WORKER_THREADS", "256")
+    assert Settings().worker_threads == 256
