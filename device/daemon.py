@@ -76,8 +76,13 @@ def packet_params(packet: DataPacket) -> SensorParams:
 
 
 def check_port_url(url: str) -> None:
-    """Refuse a port URL whose scheme pyserial does not know: retrying could never open
-    it, unlike a tty that is not plugged in yet."""
+    """Refuse an empty port, or a port URL whose scheme pyserial does not know: retrying
+    could never open them, unlike a tty that is not plugged in yet."""
+    if not url.strip():
+        raise InvalidInputError(
+            "the port is empty; give a device path (/dev/ttyACM0), socket://HOST:PORT or "
+            "rfc2217://HOST:PORT"
+        )
     scheme, separator, _ = url.partition("://")
     if separator and importlib.util.find_spec(f"serial.urlhandler.protocol_{scheme}") is None:
         raise InvalidInputError(

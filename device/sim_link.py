@@ -280,5 +280,6 @@ def open_endpoint(url: str) -> Endpoint:
     if url == "loop://":
         return LoopEndpoint()
     raise InvalidInputError(
-        f"unsupported simulator port {url!r}: use pty, pty:PATH, socket://HOST:PORT or loop://"
+        f"unsupported simulator port {url!r}: use pty, pty:PATH or socket://HOST:PORT "
+        "(loop:// reaches readers in the same process only)"
     )

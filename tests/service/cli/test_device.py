@@ -56,9 +56,15 @@ def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_pat
     assert result.returncode == 2 and result.stderr.strip().splitlines() == [
         "mcam device: error: pyserial does not know the port URL scheme 'bogus' (bogus://x); "
         "use a device path (/dev/ttyACM0), socket://HOST:PORT, rfc2217://HOST:PORT or loop://"]
+    result = subprocess.run([MCAM, "device", "--port", " ", "--device-id", "rig1"],
+                            capture_output=True, text=True, env=env, timeout=60)
+    assert result.returncode == 2 and result.stderr.strip().splitlines() == [
+        "mcam device: error: the port is empty; give a device path (/dev/ttyACM0), "
+        "socket://HOST:PORT or rfc2217://HOST:PORT"]
     result = subprocess.run([MCAM, "simulate-device", "--port", "/dev/ttyS0"],
                             capture_output=True, text=True, env=env, timeout=60)
     assert result.returncode == 2 and "unsupported simulator port" in result.stderr
+    assert "loop:// reaches readers in the same process only" in result.stderr
     result = subprocess.run([MCAM, "simulate-device", "--bits", "40"],
                             capture_output=True, text=True, env=env, timeout=60)
     assert result.returncode == 2 and "bits" in result.stderr
