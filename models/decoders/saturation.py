@@ -75,6 +75,7 @@ from scipy import ndimage
 
 from models.decoders.classical import wrap_difference
 from models.formation import (
+    MAX_WINDING,
     SensorParams,
     clip_winding,
     to_unwrapped,
@@ -104,10 +105,14 @@ _CROSS = ndimage.generate_binary_structure(2, 1)
 
 
 def clipped_value(params: SensorParams) -> float | None:
-    """``u_max = u(max_wraps)`` (wraps), what every clipped pixel stores; None without a clip."""
+    """``u_max = u(max_wraps)`` (wraps), what every clipped pixel stores; None without a
+    clip, or with one past ``MAX_WINDING / 2`` wraps (a modulo ``max_wraps`` of 2^62 and
+    more): :func:`models.formation.encode` refuses a pixel wrapped that often, so no
+    frame holds one, and its W ``round(u_max - m)`` would overflow int64."""
     if params.max_wraps is None or params.encoding == "clip":
         return None
-    return float(to_unwrapped(np.array(params.max_wraps), params))
+    u_max = float(to_unwrapped(np.array(params.max_wraps), params))
+    return u_max if u_max <= float(MAX_WINDING) / 2 else None
 
 
 def clip_tolerance(params: SensorParams, u_max: float) -> float:

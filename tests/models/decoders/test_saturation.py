@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -124,6 +124,25 @@ def test_without_a_clip_nothing_changes() -> None:
     filled, facts = fill_saturated(guess, m, params)
     np.testing.assert_array_equal(filled, guess)
     assert facts == {}
+
+
+@settings(max_examples=40, deadline=None)
+@given(max_wraps=st.integers(min_value=16, max_value=2**1000).map(float))
+@example(max_wraps=2.0**64)
+def test_a_fill_puts_the_lamp_at_the_clip_or_leaves_it(max_wraps: float) -> None:
+    """A modulo lamp clipped at a whole number of wraps reads code 0 at any clip; a filled
+    pixel's ``u = W + m`` lies within half a wrap of ``u_max``. A clip past 2^63 wraps
+    overflowed ``round(u_max - m)`` in int64 (a RuntimeWarning), and the lamp was
+    "filled" to W = 0, as dark as the frame's darkest pixels."""
+    truth, m, clipped = _lamp(_params("modulo"))
+    guess = _under_counted(truth, clipped)
+    params = _params("modulo").model_copy(update={"max_wraps": max_wraps})
+    filled, _ = fill_saturated(guess, m, params)
+    changed = filled != guess
+    assert (filled >= guess).all()
+    assert np.abs(filled[changed] + m[changed] - max_wraps).max(initial=0.0) <= max(
+        0.5, max_wraps * 1e-15
+    )
 
 
 def test_a_dark_patch_that_reads_the_clip_code_stays_dark() -> None:
