@@ -16,14 +16,15 @@ from models.formation import MAX_WINDING, SensorParams, max_winding, reconstruct
 
 def largest_winding(params: SensorParams) -> int:
     """The largest W a decoding of a frame of ``params`` may hold: :func:`max_winding` where
-    the parameters bound it; else int64's limit (modulo, whose x = W + m float64 holds) or,
+    the parameters bound it, and at most the encoding's own limit: int64's (modulo, whose
+    x = W + m float64 holds; a modulo ``max_wraps`` of 2^63 or more bounds W past it) or,
     for mantissa, a wrap below the last whose x ``alpha^(W + m - 1)`` float64 holds."""
-    bound = max_winding(params)
-    if bound is not None:
-        return bound
     if params.encoding == "modulo":
-        return int(MAX_WINDING)
-    return int(np.log(np.finfo(np.float64).max) / np.log(params.alpha)) - 1
+        limit = int(MAX_WINDING)
+    else:
+        limit = int(np.log(np.finfo(np.float64).max) / np.log(params.alpha)) - 1
+    bound = max_winding(params)
+    return limit if bound is None else min(bound, limit)
 
 
 def check_decodable(

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from models.decodable import check_decodable
@@ -586,6 +587,26 @@ def test_a_reconstruction_certain_to_fail_is_refused_before_decoding(
     with pytest.raises(error, match="^whatever winding numbers a decoder finds, 4 "):
         check_decodable(codes, params, dtype, scene_referred=True)
     check_decodable(codes, params, dtype, scene_referred=False)  # wrap units fit
+
+
+@PROPERTY
+@given(
+    encoding=st.sampled_from(["modulo", "mantissa"]),
+    max_wraps=st.floats(1.0, 1e308),
+    full_well=st.none() | st.floats(1.0, 1e300),
+    gain=st.none() | st.floats(1e-300, 1e300),
+)
+@example(encoding="modulo", max_wraps=2.0**63, full_well=None, gain=None)
+def test_any_clip_is_judged_decodable_or_refused_clearly(
+    encoding: str, max_wraps: float, full_well: float | None, gain: float | None
+) -> None:
+    """A modulo max_wraps of 2^63 or more bounds W past int64: the check built its
+    largest-W map with ``np.full(..., W, np.int64)`` and raised OverflowError, a 500 at
+    POST /v1/reconstructions and a traceback from mcam reconstruct."""
+    params = SensorParams(encoding=encoding, max_wraps=max_wraps, full_well=full_well, gain=gain)
+    codes = np.array([[0, 3], [128, 255]], np.uint8)
+    with contextlib.suppress(OutputOverflowError, OutputUnderflowError):
+        check_decodable(codes, params, np.float32, scene_referred=True)
 
 
 @pytest.mark.parametrize(
