@@ -246,7 +246,9 @@ class StreamDecoder:
         sequence: int | None = None,
         discont: bool = False,
     ) -> FrameDecode:
-        """Decode the next frame of the stream ``state`` (which is updated)."""
+        """Decode the next frame of the stream ``state``, which takes the frame's ``u``
+        only once it has decoded: after a refused frame (an ``x`` past float64, say) the
+        next one follows the last frame that decoded."""
         start = time.perf_counter_ns()
         m = _planes(codes, params)
         keyframe = self.keyframe_reason(state, m, params, sequence, discont)
@@ -262,6 +264,8 @@ class StreamDecoder:
         limit = max_winding(params)
         winding = np.clip(winding, 0, limit)
         u = winding + m
+        squeeze = np.asarray(codes).ndim == 2
+        irradiance = from_unwrapped(u[:, :, 0] if squeeze else u, params)
         state.u, state.params, state.sequence = u, params, sequence
         if keyframe is not None:
             state.last_keyframe = state.frames
@@ -269,8 +273,6 @@ class StreamDecoder:
             state.whole_interval = self.config.refine_whole_every
             state.next_whole = state.frames + state.whole_interval
         state.frames += 1
-        squeeze = np.asarray(codes).ndim == 2
-        irradiance = from_unwrapped(u[:, :, 0] if squeeze else u, params)
         return FrameDecode(
             winding=winding[:, :, 0] if squeeze else winding,
             irradiance=irradiance,

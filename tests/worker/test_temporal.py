@@ -9,8 +9,8 @@ from device.scenes import ProceduralScene
 from models.decoders.base import Decoder
 from models.decoders.colour import ColourDecoder
 from models.decoders.registry import get_decoder
-from models.errors import InvalidInputError
-from models.formation import SensorParams, encode, simulate
+from models.errors import InvalidInputError, OutputOverflowError
+from models.formation import SensorParams, encode, quantize, simulate, split_unwrapped
 from tests.models.decoders.fixed_planes import FixedPlanesDecoder
 from tests.worker.panning import PAN_PARAMS, pan_clip, smooth_scene
 from worker.brightness import BrightnessConfig
@@ -268,6 +268,29 @@ def test_sequence_gap_and_parameter_change_force_keyframes(temporal: StreamDecod
     assert temporal.decode(codes, noisy_seed, state, sequence=11).keyframe is None
     state.reset()
     assert temporal.decode(codes, PARAMS, state).keyframe == "first"
+
+
+@pytest.mark.parametrize("sequence", [True, False])
+def test_a_frame_past_float64_leaves_the_stream_as_it_was(sequence: bool) -> None:
+    """Mantissa alpha 1e6: a plateau at u = 52.2 (x 1.6e307) brightens by 0.3 wraps, past
+    float64 (u 52.375), and that frame is refused. The stream had already taken its u,
+    so the next frame, the first one again, failed too ("u up to 52.502"), and without
+    sequence numbers every later frame did; now it is a gap keyframe (or a temporal step
+    from the first frame) and decodes exactly."""
+    params = SensorParams(encoding="mantissa", alpha=1e6)
+    rows, cols = np.mgrid[0:64, 0:128]
+    u = np.clip(0.45 * (rows + cols) - 15.0, 0.05, 52.2)
+    truth, m = split_unwrapped(u, params)
+    _, brighter = split_unwrapped(u + 0.3, params)
+    decoder = StreamDecoder("temporal", "itoh", TemporalConfig(keyframe_interval=0))
+    state = StreamState()
+    numbers = iter([1, 2, 3] if sequence else [None] * 3)
+    decoder.decode(quantize(m, params.bits), params, state, sequence=next(numbers))
+    with pytest.raises(OutputOverflowError, match="exceed the float64 limit"):
+        decoder.decode(quantize(brighter, params.bits), params, state, sequence=next(numbers))
+    again = decoder.decode(quantize(m, params.bits), params, state, sequence=next(numbers))
+    assert again.keyframe == ("gap" if sequence else None)
+    np.testing.assert_array_equal(again.winding, truth)
 
 
 @pytest.mark.parametrize("encoding", ["modulo", "mantissa"])
