@@ -58,17 +58,25 @@ class BrightnessConfig:
 
 
 def _unwrapped_at(x: NDArray[np.float64], params: SensorParams) -> NDArray[np.float64]:
-    """``u(min(x, max_wraps))``: what the sensor stores (before wrapping) for ``x``."""
-    if params.max_wraps is not None:
-        x = np.minimum(x, params.max_wraps)
-    return to_unwrapped(x, params)
+    """``u(min(x, max_wraps))``: what the sensor stores (before wrapping) for ``x``. An
+    ``x`` past float64 (inf) is taken at float64's largest value, the most a frame
+    that decodes holds: its ``u`` was inf, its misfit NaN."""
+    top = float(np.finfo(np.float64).max) if params.max_wraps is None else params.max_wraps
+    return to_unwrapped(np.minimum(x, top), params)
+
+
+def _gained(gain: NDArray[np.float64] | float, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``gain * x`` (wrap units, broadcast), inf where it passes float64 (a gain tried on
+    a pixel near the top), without numpy's overflow warning."""
+    with np.errstate(over="ignore"):
+        return np.multiply(gain, x)
 
 
 def brighten(u: NDArray[np.float64], gain: float, params: SensorParams) -> NDArray[np.float64]:
     """``u(min(gain * x, max_wraps))`` for the ``x`` of ``u`` (any shape, wraps)."""
     if gain == 1.0:
         return u
-    return _unwrapped_at(gain * from_unwrapped(u, params), params)
+    return _unwrapped_at(_gained(gain, from_unwrapped(u, params)), params)
 
 
 def frame_gain(
@@ -85,7 +93,8 @@ def frame_gain(
     gains = 2.0 ** stops[np.argsort(np.abs(stops), kind="stable")]
     x = from_unwrapped(prev_u[:: config.stride, :: config.stride].ravel(), params)
     sample_m = m[:: config.stride, :: config.stride].ravel()
-    costs = misfit(_unwrapped_at(gains[:, None] * x[None], params), sample_m[None]).mean(axis=1)
+    tried = _unwrapped_at(_gained(gains[:, None], x[None]), params)
+    costs = misfit(tried, sample_m[None]).mean(axis=1)
     best = int(np.argmin(costs))
     if costs[best] < config.switch * costs[0]:
         return float(gains[best]), float(costs[best])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from models.errors import InvalidInputError
@@ -77,6 +77,25 @@ def test_brighten_is_the_formation_model_at_the_gained_exposure(x: float, gain: 
         expected = to_unwrapped(np.array([min(gain * min(x, 16.0), 16.0)]), params)
         np.testing.assert_allclose(brighten(u, gain, params), expected, rtol=1e-9, atol=1e-12)
         assert brighten(u, 1.0, params) is u
+
+
+@pytest.mark.filterwarnings("error")
+@settings(max_examples=40, deadline=None)
+@given(top=st.floats(1e300, 1.79e308), steps=st.integers(5, 25))  # bin centres fit float64
+@example(top=1.7e308, steps=15)
+def test_a_darkening_near_the_top_of_float64_is_found(top: float, steps: int) -> None:
+    """Mantissa frames (no clip) whose brightest third sits at ``top``, then darkened by
+    ``steps`` grid steps: a tried gain above 1 took those pixels past float64, their u to
+    inf and the costs to NaN (numpy's overflow and invalid warnings), and argmin stopped
+    at the first NaN: gain 1 with a misfit of 0.3 wraps for a 0.3-stop darkening."""
+    params = SensorParams(encoding="mantissa", bits=10)
+    rows, cols = np.mgrid[0:64, 0:64]
+    x = np.exp(np.log(1e-3) + (np.log(top) - np.log(1e-3)) * np.minimum((rows + cols) / 84, 1))
+    gain = 2.0 ** (-BrightnessConfig().step * steps)
+    u, _ = planes(x, params)
+    _, darker = planes(gain * x, params)
+    found, cost = frame_gain(u, darker, params, BrightnessConfig())
+    assert found == pytest.approx(gain) and cost < 0.01
 
 
 @pytest.mark.parametrize("shape", [(1, 5, 1), (5, 1, 1), (2, 2, 1), (3, 7, 3)])
