@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,7 +11,14 @@ from hypothesis import strategies as st
 
 from models.formation import SensorParams, split_unwrapped
 from models.scene_analysis import neighbour_jumps
-from models.tile_reconcile import Tile, _border_vote, common_offset, integrate_jumps, stitch
+from models.tile_reconcile import (
+    Tile,
+    _border_vote,
+    common_offset,
+    integrate_jumps,
+    most_common,
+    stitch,
+)
 
 MODULO = SensorParams(encoding="modulo")
 
@@ -110,6 +119,27 @@ def test_common_offset_aligns_a_shifted_map_with_a_few_errors(shift: int, seed: 
     relative = target - shift
     relative[rng.random(target.shape) < 0.2] += 1
     assert common_offset(target, relative) == shift
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(st.integers(-(2**61), 2**61), max_size=40),
+    st.lists(st.integers(0, 41), max_size=40),
+)
+def test_most_common_is_the_smallest_mode_over_a_2_62_span(
+    values: list[int], repeats: list[int]
+) -> None:
+    """Values spanning 2^62 (a tracked W against a spatial one on a mantissa stream
+    with alpha 1 + 1e-11, where one gain step moves u by 1e9 wraps): the histogram was
+    allocated over the whole span, a MemoryError (39 GiB for a 5e9 span). Every example
+    holds both ends, so that no example has a span a histogram could still allocate."""
+    values = [-(2**61), *values, 2**61]
+    values += [values[i % len(values)] for i in repeats]
+    counts = Counter(values)
+    top = max(counts.values())
+    value, share = most_common(np.array(values, np.int64))
+    assert value == min(v for v, n in counts.items() if n == top)
+    assert share == pytest.approx(top / len(values))
 
 
 def test_a_one_pixel_border_does_not_outvote_a_long_one() -> None:
