@@ -297,7 +297,8 @@ def unwrapped_noise_sigma(u: NDArray[np.floating], params: SensorParams) -> NDAr
     shot = np.sqrt(x / params.full_well)
     if params.encoding == "mantissa":
         above = x >= 1.0
-        shot = np.where(above, shot / (np.where(above, x, 1.0) * np.log(params.alpha)), shot)
+        # divided in turn: x * ln(alpha) overflows float64 for x near its top
+        shot = np.where(above, shot / np.where(above, x, 1.0) / np.log(params.alpha), shot)
     return np.sqrt(params.read_noise**2 + shot**2)
 
 

@@ -462,6 +462,16 @@ def test_largest_noise_sigma_bounds_every_level_up_to_the_top(
     assert float(unwrapped_noise_sigma(np.array(share * top), params)) <= bound * 1.02 + 1e-12
 
 
+@pytest.mark.filterwarnings("error")
+def test_unwrapped_noise_sigma_near_float64s_top_is_finite_without_warnings() -> None:
+    """x * ln(alpha) passed float64 for x near its top (numpy's overflow warning in the
+    log); the shot noise there is about 1e-155 wraps, the read noise alone remains."""
+    params = SensorParams(encoding="mantissa", alpha=1e6, full_well=100.0, read_noise=0.01)
+    top = float(np.log(np.finfo(np.float64).max) / np.log(1e6))  # u of x near 1.8e308
+    sigma = unwrapped_noise_sigma(np.array([52.3, top]), params)
+    np.testing.assert_allclose(sigma, 0.01)
+
+
 def test_unwrapped_noise_sigma_without_full_well_is_the_read_noise() -> None:
     params = SensorParams(read_noise=0.02)
     np.testing.assert_array_equal(unwrapped_noise_sigma(np.array([0.0, 3.0]), params), 0.02)
