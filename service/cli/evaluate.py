@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from typing import Any
 
 from models.errors import InvalidInputError
@@ -73,7 +74,7 @@ def check_same_units(estimate: dict[str, Any], reference: dict[str, Any]) -> Non
 def run(args: argparse.Namespace) -> int:
     """Read both images (and W maps), compute the metrics, print them."""
     # imported here: scipy.ndimage would add ~0.4 s to the start of every mcam command
-    from models.metrics import evaluate
+    from models.metrics import SSIM_WINDOW, evaluate
 
     estimate = read_hdr(args.image, clip_negative=args.clip_negative)
     reference = read_hdr(args.reference, clip_negative=args.clip_negative)
@@ -83,6 +84,13 @@ def run(args: argparse.Namespace) -> int:
     results = evaluate(
         estimate.pixels, reference.pixels, winding, winding_ref, flip=not args.no_flip
     )
+    if "ssim" not in results:
+        height, width = estimate.pixels.shape[:2]
+        print(
+            f"mcam evaluate: note: no SSIM or MS-SSIM: they need images of at least "
+            f"{SSIM_WINDOW} x {SSIM_WINDOW} pixels (their window), these are {height} x {width}",
+            file=sys.stderr,
+        )
     if args.json:
         print(json.dumps({k: v if math.isfinite(v) else None for k, v in results.items()}))
     else:

@@ -89,6 +89,20 @@ def test_evaluate_measures_hdr_flip_on_tiny_values(tmp_path: Path) -> None:
         assert json.loads(result.stdout)["hdr_flip"] == 0.0
 
 
+def test_images_too_small_for_ssim_say_why_it_is_missing(tmp_path: Path) -> None:
+    write_exr(tmp_path / "small.exr", np.linspace(0.5, 2.0, 40).reshape(4, 10))
+    write_exr(tmp_path / "large.exr", np.linspace(0.5, 2.0, 121).reshape(11, 11))
+    small = run_mcam("evaluate", "small.exr", "--reference", "small.exr", "--json", cwd=tmp_path)
+    assert small.returncode == 0 and "ssim" not in json.loads(small.stdout)
+    assert small.stderr.strip() == (
+        "mcam evaluate: note: no SSIM or MS-SSIM: they need images of at least 11 x 11 "
+        "pixels (their window), these are 4 x 10"
+    )
+    large = run_mcam("evaluate", "large.exr", "--reference", "large.exr", "--json", cwd=tmp_path)
+    assert large.returncode == 0 and "ssim" in json.loads(large.stdout)
+    assert large.stderr == ""
+
+
 def test_a_reconstruction_in_wrap_units_is_not_compared_with_a_scene_referred_one(
     tmp_path: Path, pipeline: Path
 ) -> None:
