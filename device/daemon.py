@@ -40,6 +40,7 @@ from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
 from worker.frame_message import FrameMessage
 from worker.redis_keys import validate_device_id
+from worker.redis_memory import TroubleLog
 
 log = logging.getLogger(__name__)
 
@@ -187,6 +188,7 @@ class DeviceDaemon:
         self._last_sequence: int | None = None
         self._discont = True
         self._connected_once = False
+        self._trouble = TroubleLog(log)
 
     def _new_parser(self) -> LinkParser:
         return LinkParser(self.config.max_payload, self.config.partial_timeout_s)
@@ -263,8 +265,11 @@ class DeviceDaemon:
     def _feed(self, data: bytes) -> None:
         # A partial packet also expires while bytes keep coming, once complete packets
         # arrive behind it: a corrupt length must not hold them back for long.
+        malformed = self._parser.drops["malformed"]
         packets = self._parser.feed(data) if data else []
         packets += self._parser.expire(quiet=not data)
+        if self._parser.drops["malformed"] > malformed:
+            self._report_malformed()
         for packet in packets:
             if not isinstance(packet, DataPacket):
                 continue  # control packets only travel host -> device
@@ -279,6 +284,16 @@ class DeviceDaemon:
                 self.health.add("dropped_rejected")
         self.health.set_parser_counts(self._parser.drops, self._parser.garbage_bytes,
                                       self._parser_base)
+
+    def _report_malformed(self) -> None:
+        """Say why the camera's packets are dropped as malformed (a counter alone did not:
+        a camera set to 17 bits or alpha 1 lost every frame without a word), at most
+        every 30 s."""
+        self._trouble.report(
+            f"device {self.device}'s camera",
+            f"packets dropped as malformed, the newest because {self._parser.last_malformed}",
+            then="fix the camera's settings or firmware (docs/mcam-link-v1.md, section 2)",
+        )  # fmt: skip
 
     # ---- the link ----
     def _open(self) -> Any | None:

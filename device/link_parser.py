@@ -10,7 +10,8 @@ chunk, and counts every packet it throws away by cause:
 - ``truncated``: a packet cut short (the next packet's header starts inside it,
   the link closed, or it waited longer than the partial-packet timeout);
 - ``unknown_type``: CRC ok but the type byte is not a v1 packet type;
-- ``malformed``: CRC ok but the payload contradicts its header.
+- ``malformed``: CRC ok but the payload contradicts its header (why the last one was
+  dropped is kept in ``last_malformed``).
 
 Bytes skipped while hunting for a signature are counted in ``garbage_bytes``.
 """
@@ -58,6 +59,8 @@ class LinkParser:
         self.drops: Counter[str] = Counter({cause: 0 for cause in DROP_CAUSES})
         self.garbage_bytes = 0
         self.packets_ok = 0
+        #: Why the newest malformed packet was dropped ('' until one is).
+        self.last_malformed = ""
         self._buf = bytearray()
         self._partial_since: float | None = None
 
@@ -166,8 +169,9 @@ class LinkParser:
             return None
         try:
             packet = decode_payload(ptype, payload)
-        except ProtocolError:
+        except ProtocolError as exc:
             self.drops["malformed"] += 1
+            self.last_malformed = exc.message
             return None
         self.packets_ok += 1
         return packet

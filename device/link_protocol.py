@@ -243,7 +243,10 @@ def decode_data(payload: bytes | memoryview) -> DataPacket:
     if version != VERSION or dtype_id != DATA_TYPE_CODES:
         raise ProtocolError(f"unsupported data version {version} / data type {dtype_id}")
     if enc not in ENCODING_NAMES or not 1 <= bits <= 16 or width == 0 or height == 0:
-        raise ProtocolError(f"bad data header: encoding {enc}, bits {bits}, {width}x{height}")
+        raise ProtocolError(
+            f"bad data header: encoding id {enc} (must be one of {ENCODING_NAMES}), bits {bits} "
+            f"(must be 1..16), {width}x{height} pixels (neither may be 0)"
+        )
     if not (1.0 < alpha <= MAX_ALPHA and (gain == 0.0 or sys.float_info.min <= gain < math.inf)):
         raise ProtocolError(f"bad data header: alpha {alpha} (must be in (1, {MAX_ALPHA}]), "
                             f"gain {gain} (must be 0 for unknown, or a normal positive number)")

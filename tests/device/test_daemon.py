@@ -6,6 +6,7 @@ import json
 import logging
 import os
 import stat
+import tty
 from pathlib import Path
 
 import numpy as np
@@ -636,3 +637,30 @@ def test_frames_sent_while_no_daemon_ran_are_a_gap_of_missing_frames(
     restart(client, wire(2**40), take_over_first=take_over_first)
     counts = health(client, "cam9")
     assert (counts["sequence_gaps"], counts["frames_missing"]) == ("2", "7")
+
+
+def test_packets_dropped_as_malformed_are_logged_with_why(
+        client: redis.Redis, caplog: pytest.LogCaptureFixture) -> None:
+    """A camera on a real pty sends a frame whose header says 17 bits: it is dropped as
+    malformed, and the log says which field is wrong and what range it must be in (a
+    counter alone left a camera set wrong losing every frame without a word)."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    codes = np.zeros((4, 4), np.uint16)
+    payload = lp.encode_data(lp.DataPacket(0, 0, "modulo", 2.0, 16, 1.0, codes))[8:-4]
+    bits_17 = lp.frame_packet(lp.PacketType.DATA, payload[:22] + bytes([17]) + payload[23:])
+    intact = lp.encode_data(lp.DataPacket(1, 0, "modulo", 2.0, 16, 1.0, codes))
+    daemon = DeviceDaemon(DaemonConfig(port=os.ttyname(slave), device="cam1"), client)
+    try:
+        with caplog.at_level(logging.WARNING, logger="device.daemon"):
+            daemon.start()
+            assert wait_for(lambda: daemon.health.state == "connected", 30)
+            os.write(master, bits_17 + intact)
+            assert wait_for(lambda: daemon.health.counts["frames_received"] == 1, 30)
+    finally:
+        daemon.stop()
+        os.close(master)
+        os.close(slave)
+    assert daemon.health.counts["dropped_malformed"] == 1
+    assert "dropped as malformed" in caplog.text and "bits 17 (must be 1..16)" in caplog.text
