@@ -19,10 +19,14 @@ from pydantic import (
     Tag,
     TypeAdapter,
     ValidationError,
+    field_validator,
+    model_validator,
 )
 from pydantic_core import PydanticCustomError
 
 from device.link_protocol import (
+    MIN_GAIN,
+    REFERENCE_INTEGRATION_NS,
     BracketPacket,
     ControlPacket,
     EncodingPacket,
@@ -74,7 +78,21 @@ class ExposureCommand(BaseModel):
     model_config = _STRICT
     command: Literal["set_exposure"]
     gain: Real = Field(gt=0, le=1e9, allow_inf_nan=False)
-    integration_ns: Whole = Field(1_000_000, gt=0, lt=1 << 63)
+    integration_ns: Whole = Field(REFERENCE_INTEGRATION_NS, gt=0, lt=1 << 63)
+
+    @model_validator(mode="after")
+    def _frames_can_carry_the_gain(self) -> ExposureCommand:
+        """The gain the camera's frames report (``gain * integration_ns / 1 ms``) must be
+        one a data header carries: below it every frame would be dropped as malformed."""
+        reported = self.gain * self.integration_ns / REFERENCE_INTEGRATION_NS
+        if reported < MIN_GAIN:
+            raise PydanticCustomError(
+                "gain_range",
+                f"gain x integration_ns / {REFERENCE_INTEGRATION_NS} is {reported:g}, below "
+                f"the smallest gain a frame can carry ({MIN_GAIN:g}); raise gain or "
+                "integration_ns",
+            )
+        return self
 
 
 class EncodingCommand(BaseModel):
@@ -103,6 +121,18 @@ class BracketCommand(BaseModel):
     count: Whole = Field(5, ge=2, le=16)
     base_gain: Real = Field(0.0, ge=0, le=1e9, allow_inf_nan=False)
     ratio: Real = Field(2.0, gt=1.0, le=64, allow_inf_nan=False)
+
+    @field_validator("base_gain")
+    @classmethod
+    def _frames_can_carry_the_base_gain(cls, value: float) -> float:
+        """A base gain is 0 (the device's choice) or one a data header carries."""
+        if 0 < value < MIN_GAIN:
+            raise PydanticCustomError(
+                "gain_range",
+                f"{value:g} is below the smallest gain a frame can carry ({MIN_GAIN:g}); "
+                "give 0 (the device's choice) or a larger gain",
+            )
+        return value
 
 
 COMMANDS: tuple[str, ...] = (

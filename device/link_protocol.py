@@ -54,6 +54,11 @@ MAX_PAYLOAD_FIELD = (1 << 24) - 1
 #: Default parser limit: a 256 x 256 16-bit frame plus its data header, with headroom.
 DEFAULT_MAX_PAYLOAD = DATA_HEADER_SIZE + 512 * 512 * 2
 
+#: Integration time at which a frame's gain is the analog gain (ns): a frame reports
+#: ``analog gain * integration / REFERENCE_INTEGRATION_NS``.
+REFERENCE_INTEGRATION_NS = 1_000_000
+#: Smallest nonzero gain a data header may carry: the smallest normal f64.
+MIN_GAIN = sys.float_info.min
 #: Largest alpha a data header may carry (as :class:`models.formation.SensorParams`).
 MAX_ALPHA = 1e6
 #: Data header ``data_type`` of an image of sensor codes (the SCAMP-5 analog-register image).
@@ -247,7 +252,7 @@ def decode_data(payload: bytes | memoryview) -> DataPacket:
             f"bad data header: encoding id {enc} (must be one of {ENCODING_NAMES}), bits {bits} "
             f"(must be 1..16), {width}x{height} pixels (neither may be 0)"
         )
-    if not (1.0 < alpha <= MAX_ALPHA and (gain == 0.0 or sys.float_info.min <= gain < math.inf)):
+    if not (1.0 < alpha <= MAX_ALPHA and (gain == 0.0 or MIN_GAIN <= gain < math.inf)):
         raise ProtocolError(f"bad data header: alpha {alpha} (must be in (1, {MAX_ALPHA}]), "
                             f"gain {gain} (must be 0 for unknown, or a normal positive number)")
     itemsize = 1 if bits <= 8 else 2

@@ -29,7 +29,12 @@ from device.commands import (
 )
 from device.faults import Faults
 from device.link_parser import LinkParser
-from device.link_protocol import FLAG_BRACKET, DataPacket, encode_data
+from device.link_protocol import (
+    FLAG_BRACKET,
+    REFERENCE_INTEGRATION_NS,
+    DataPacket,
+    encode_data,
+)
 from device.scenes import ProceduralScene, SceneSequence
 from device.sim_link import Endpoint
 from models.errors import InvalidInputError, McamError
@@ -37,8 +42,6 @@ from models.formation import MAX_NOISE_SEED, SensorFrame, SensorParams, simulate
 
 log = logging.getLogger(__name__)
 
-#: Integration time at which the exposure gain is the analog gain (ns).
-REFERENCE_INTEGRATION_NS = 1_000_000
 #: A frame's noise seed is ``seed * SEED_STRIDE + sequence`` (recorded frames rely on it).
 SEED_STRIDE = 1_000_003
 #: Sequence numbers a camera seed leaves room for: 2**40 frames, over three years at

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import pytest
 
+from device import link_protocol as lp
 from device.commands import (
     COMMANDS,
     FPS_RANGE,
@@ -88,3 +90,27 @@ def test_a_json_boolean_is_not_a_number(values: dict[str, Any]) -> None:
     name = next(key for key, value in values.items() if isinstance(value, bool))
     with pytest.raises(InvalidInputError, match=f"{values['command']}.{name}: .*not (true|false)"):
         validate_command(values)
+
+
+@pytest.mark.parametrize(
+    ("values", "field"),
+    [
+        ({"command": "set_exposure", "gain": 5e-324}, "set_exposure"),
+        ({"command": "set_exposure", "gain": 1e-305, "integration_ns": 1}, "set_exposure"),
+        ({"command": "bracket", "base_gain": 1e-320}, "bracket.base_gain"),
+    ],
+)
+def test_a_gain_no_frame_can_carry_is_refused(values: dict[str, Any], field: str) -> None:
+    """A frame's gain is a normal f64 or 0 (mcam-link v1): a camera set below that sent
+    frames the daemon dropped, every one, as malformed."""
+    with pytest.raises(InvalidInputError,
+                       match=f"^invalid device command: {field}: .*smallest gain a frame can"):
+        validate_command(values)
+
+
+def test_the_smallest_exposure_accepted_gives_frames_the_link_carries() -> None:
+    smallest = validate_command({"command": "set_exposure", "gain": lp.MIN_GAIN})
+    reported = smallest.gain * smallest.integration_ns / lp.REFERENCE_INTEGRATION_NS
+    wire = lp.encode_data(lp.DataPacket(0, 0, "modulo", 2.0, 8, reported,
+                                        np.zeros((2, 2), np.uint8)))
+    assert lp.decode_data(wire[lp.HEADER_SIZE:-lp.CRC_SIZE]).gain == reported
