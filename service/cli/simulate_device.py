@@ -20,6 +20,7 @@ from pathlib import Path
 
 from device.commands import FPS_RANGE
 from device.faults import Faults
+from device.link_protocol import MIN_GAIN
 from device.scenes import ExrScene, ProceduralScene, SceneSequence
 from device.sim_link import Endpoint, open_endpoint
 from device.simulator import MAX_SEED, CameraSettings, VirtualScamp5
@@ -76,6 +77,11 @@ def check_flags(args: argparse.Namespace) -> None:
     low, high = FPS_RANGE
     if not low <= args.fps <= high:
         raise InvalidInputError(f"--fps must be from {low:g} to {high:g}, got {args.fps:g}")
+    if not args.gain >= MIN_GAIN:  # NaN too
+        raise InvalidInputError(
+            f"--gain must be at least {MIN_GAIN:g}, the smallest gain a frame can carry "
+            f"(the daemon drops frames with a smaller one), got {args.gain:g}"
+        )
     if args.frames is not None and args.frames < 1:
         raise InvalidInputError(f"--frames must be at least 1, got {args.frames}")
     if not 0 <= args.seed <= MAX_SEED:

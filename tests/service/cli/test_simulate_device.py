@@ -40,6 +40,8 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
          "cannot open it (Not a directory); name a path in a directory you can write, or pty"),
         (("--fps", "1e-300"), "--fps must be from 0.1 to 10000"),
         (("--frames", "-5"), "--frames must be at least 1"),
+        (("--gain", "5e-324"), "--gain must be at least 2.22507e-308, the smallest gain a frame"),
+        (("--gain", "nan"), "--gain must be at least 2.22507e-308"),
         (("--seed", "-1"), f"--seed must be from 0 to {MAX_SEED}, got -1"),
         (("--seed", "9300000000000"), f"--seed must be from 0 to {MAX_SEED}, got 9300000000000"),
         (("--stall-every", "1", "--stall-s", "-1"),
