@@ -111,7 +111,14 @@ class Bracket:
         return clipped_pixels(*self._exposures())
 
     def _exposures(self) -> tuple[list[NDArray[np.unsignedinteger]], list[float], int]:
-        """The exposures' codes, gains and their one bit depth."""
+        """The exposures' codes, gains and their one bit depth; fewer than two refused."""
+        if len(self.exposures) < 2:
+            raise InvalidInputError(
+                f"a bracket needs at least two clipped exposures, this one has "
+                f"{len(self.exposures)} (the camera sent bracket count "
+                f"{self.wrapped.bracket_count}: the wrapped frame and its exposures); request "
+                "brackets of count 2 or more"
+            )
         bits = {p.bits for p in self.exposures}
         if len(bits) != 1:
             raise InvalidInputError(f"bracket exposures mix bit depths {sorted(bits)}")

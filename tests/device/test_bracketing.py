@@ -175,3 +175,17 @@ def test_clipped_pixels_are_those_no_exposure_measured_below_saturation() -> Non
     brighter = np.array([[255, 200, 0, 255]], np.uint8)
     clipped = clipped_pixels([brighter, darkest], [1.0, 0.5], 8)
     np.testing.assert_array_equal(clipped, [[True, False, False, False]])
+
+
+@pytest.mark.parametrize("count", [1, 2])
+def test_a_bracket_of_fewer_than_two_exposures_says_so(tmp_path: Path, count: int) -> None:
+    """A camera that sends bracket count 1 (the wrapped frame alone) or 2 completes a
+    bracket no reference can be merged from: the refusal says how many exposures it had
+    and what the camera sent (count 1 read 'bracket exposures mix bit depths []')."""
+    collector = BracketCollector()
+    brackets = [collector.add(packet(10 + i, i, count)) for i in range(count)]
+    assert brackets[-1] is not None
+    with pytest.raises(InvalidInputError, match=f"at least two clipped exposures, this one has "
+                       f"{count - 1} .*bracket count {count}"):
+        save_pair(tmp_path, "cam1", brackets[-1])
+    assert not (tmp_path / "datasets").exists()
