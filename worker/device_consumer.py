@@ -371,15 +371,25 @@ class DeviceConsumer:
             "code": error.code,
             "message": error.message,
         }
-        sequence_number = _sequence_number(sequence)
-        last = state.last_sequence if state.last_sequence is not None else -1
-        self._record(device, state, delivery, max(sequence_number, last), "", event)
+        self._record(device, state, delivery, _newest_done(state, delivery, sequence), "", event)
         consumer.dead_letter(delivery, error.code, error.message, device=device, sequence=sequence)
 
 
 def _trouble_place(device: str) -> str:
     """The place a device's transient Redis errors are logged under (:class:`TroubleLog`)."""
     return f"device {device}"
+
+
+def _newest_done(state: DeviceState, delivery: Delivery, sequence: str) -> int:
+    """The device's newest done sequence once failed entry ``delivery`` (its seq field
+    ``sequence``) is given up: the entry's own for a DISCONT frame, which starts a new
+    run (a camera that restarted counts from 0 again: keeping the old run's number made
+    the frames after it stale), else never lower than before."""
+    sequence_number = _sequence_number(sequence)
+    if delivery.fields.get("discont") == b"1":
+        return sequence_number
+    last = state.last_sequence if state.last_sequence is not None else -1
+    return max(sequence_number, last)
 
 
 def _sequence_number(text: str) -> int:

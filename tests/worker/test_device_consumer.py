@@ -238,3 +238,27 @@ def test_a_frames_queue_wait_ends_when_it_is_read_not_when_it_is_stored(
     waited = {f.name: f for f in read_metrics(client)}["queue_wait_seconds"].samples[0]
     assert waited.count == 1
     assert waited.value * 1000 <= decode_started_ms[0] - published_ms + 1e-6
+
+
+def test_after_a_restarted_cameras_first_frame_fails_its_next_frames_are_decoded(
+    client: redis.Redis, consumer: DeviceConsumer
+) -> None:
+    """The camera restarts its counter (DISCONT at 0) and that first frame cannot be
+    decoded (1 x 1 pixels): it is dead-lettered, and frames 1 and 2 that follow it are
+    decoded. The device's newest done sequence used to stay at the old run's 5, so
+    frames 1..5 of the new run were passed over as stale."""
+    for sequence in range(6):
+        publish_frame(client, frame("a", sequence), maxlen=100)
+    restart = frame("a", 0)
+    tiny = FrameMessage("a", 0, 0, restart.codes[:1, :1], restart.params, discont=True)
+    publish_frame(client, tiny, maxlen=100)
+    for sequence in (1, 2):
+        publish_frame(client, frame("a", sequence), maxlen=100)
+    while consumer.poll():
+        pass
+    (letter,) = dead_letters(client)
+    assert b"no neighbours" in letter[b"message"]
+    events = [fields for _, fields in client.xrange(events_stream("a"))]
+    assert [(e[b"type"], e[b"sequence"]) for e in events][-3:] == [
+        (b"failed", b"0"), (b"frame", b"1"), (b"frame", b"2")]
+    assert consumer.states["a"].last_sequence == 2
