@@ -3,8 +3,9 @@
 The link reader calls :meth:`FramePublisher.offer`, which never blocks: a full
 queue drops the frame (``queue_full``). A thread publishes each frame with
 :func:`worker.queue.publish_frame` (which registers the device; when the stream is
-full the oldest unread frames are evicted, counted as ``stream_full``), writes the health
-hash, and reads ``control:<device>`` for commands to forward to the camera.
+full the oldest unread frames are evicted, a DISCONT one at the front excepted, counted
+as ``stream_full``), writes the health hash, and reads ``control:<device>`` for
+commands to forward to the camera.
 While Redis is unreachable, queued frames are dropped (``redis_unavailable``)
 and the connection is retried with backoff; the link keeps being read. After
 any drop the frame that follows the dropped one carries ``discont`` (temporal state

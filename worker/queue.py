@@ -96,14 +96,32 @@ redis.call('INCRBY', KEYS[7], bytes)
 return 1
 """
 
+# KEYS: frame stream, devices set, dropped counter. ARGV: maxlen, device, then fields.
+# Over maxlen the oldest frame goes, unless it is a DISCONT frame followed by one that is
+# not: then that second frame goes (the run's start is kept, the next frame of it is not).
 _PUBLISH = """
-local before = redis.call('XLEN', KEYS[1])
+local function discont(fields)
+  for i = 1, #fields, 2 do
+    if fields[i] == 'discont' then return fields[i + 1] == '1' end
+  end
+  return false
+end
+local maxlen = tonumber(ARGV[1])
 local entry = {}
 for i = 3, #ARGV do entry[#entry + 1] = ARGV[i] end
-redis.call('XADD', KEYS[1], 'MAXLEN', ARGV[1], '*', unpack(entry))
+redis.call('XADD', KEYS[1], '*', unpack(entry))
 redis.call('SADD', KEYS[2], ARGV[2])
-local dropped = before + 1 - tonumber(ARGV[1])
-if dropped > 0 then redis.call('HINCRBY', KEYS[3], ARGV[2], dropped) else dropped = 0 end
+local dropped = 0
+while redis.call('XLEN', KEYS[1]) > maxlen do
+  local oldest = redis.call('XRANGE', KEYS[1], '-', '+', 'COUNT', 2)
+  local victim = oldest[1][1]
+  if maxlen > 1 and discont(oldest[1][2]) and not discont(oldest[2][2]) then
+    victim = oldest[2][1]
+  end
+  redis.call('XDEL', KEYS[1], victim)
+  dropped = dropped + 1
+end
+if dropped > 0 then redis.call('HINCRBY', KEYS[3], ARGV[2], dropped) end
 return dropped
 """
 
@@ -149,7 +167,10 @@ def _has_group(client: redis.Redis, stream: str) -> bool:
 
 def publish_frame(client: redis.Redis, message: FrameMessage, *, maxlen: int) -> int:
     """Append a frame to ``frames:<device>`` (registering the device); when the stream
-    holds ``maxlen`` frames the oldest are dropped. Returns how many were dropped."""
+    holds ``maxlen`` frames the oldest are dropped, but a DISCONT frame at the front is
+    kept (the frame after it goes instead): the worker sees each frame against its run's
+    first, and without it took the frames of a camera that restarted its counter for
+    stale ones of the old run. Returns how many were dropped."""
     args: list[Any] = [maxlen, message.device]
     for name, value in message.to_fields().items():
         args += [name, value]

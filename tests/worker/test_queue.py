@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import redis
 
 from models.errors import InvalidInputError
 from models.formation import SensorParams
+from tests.worker.test_device_consumer import device_worker, frame
 from worker.frame_message import FrameMessage
 from worker.job_store import JobStore
 from worker.jobs import JobNotFoundError, JobState
@@ -24,7 +26,13 @@ from worker.queue import (
     publish_frame,
 )
 from worker.queue_holds import QueueHolds
-from worker.redis_keys import JOB_BYTES_PER_KEY, JOBS_PER_KEY, JOBS_STREAM, frame_stream
+from worker.redis_keys import (
+    JOB_BYTES_PER_KEY,
+    JOBS_PER_KEY,
+    JOBS_STREAM,
+    events_stream,
+    frame_stream,
+)
 
 PARAMS = SensorParams(encoding="modulo", bits=8)
 CODES = np.arange(64, dtype=np.uint8).reshape(8, 8)
@@ -264,3 +272,30 @@ def test_stats_shape(queue: JobQueue, client: redis.Redis) -> None:
     assert stats["held_bytes"] == CODES.nbytes
     assert stats["dead_letters"] == 0 and stats["devices"] == {}
     assert queue.workers(max_age_s=10) == {}
+
+
+def test_a_full_device_stream_keeps_the_discont_frame_that_starts_a_run(
+    client: redis.Redis, tmp_path: Path
+) -> None:
+    """A camera restarts its counter while the worker is behind: the stream is full when
+    the new run's DISCONT frame 0 comes, and eviction reaches it. It is kept (frame 1
+    after it goes), so the worker decodes the new run; evicting it made every frame of
+    the new run up to the old run's newest sequence 'stale', without a result."""
+    worker = device_worker(client, tmp_path)
+    for seq in range(10):
+        publish_frame(client, frame("a", seq), maxlen=5)
+    while worker.poll():
+        pass
+    restart = frame("a", 0)
+    publish_frame(client, FrameMessage("a", 0, 0, restart.codes, restart.params, discont=True),
+                  maxlen=5)
+    dropped = [publish_frame(client, frame("a", seq), maxlen=5) for seq in range(1, 6)]
+    assert dropped == [0, 0, 0, 0, 1]
+    kept = [FrameMessage.from_fields(f) for _id, f in client.xrange(frame_stream("a"))]
+    assert [(m.sequence, m.discont) for m in kept] == [
+        (0, True), (2, False), (3, False), (4, False), (5, False)]
+    while worker.poll():
+        pass
+    events = [fields for _, fields in client.xrange(events_stream("a"))][-5:]
+    assert [(e[b"type"], int(e[b"sequence"])) for e in events] == [
+        (b"frame", seq) for seq in (0, 2, 3, 4, 5)]
