@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import redis
 import serial
@@ -36,6 +37,7 @@ from device.health import DeviceHealth
 from device.link_parser import DROP_CAUSES, LinkParser
 from device.link_protocol import DEFAULT_MAX_PAYLOAD, FLAG_BRACKET, DataPacket, encode_control
 from device.publisher import FramePublisher
+from device.sim_link import MAX_TCP_PORT
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
 from worker.frame_message import FrameMessage
@@ -45,6 +47,8 @@ from worker.redis_memory import TroubleLog
 log = logging.getLogger(__name__)
 
 PortOpener = Callable[[], Any]
+#: Port URL schemes that name a host and a TCP port.
+NETWORK_SCHEMES = ("socket", "rfc2217")
 #: Most bytes taken from the port in one read.
 MAX_READ = 1 << 20
 #: While the port stays closed, a warning every this many failed attempts (about a
@@ -77,8 +81,9 @@ def packet_params(packet: DataPacket) -> SensorParams:
 
 
 def check_port_url(url: str) -> None:
-    """Refuse an empty port, or a port URL whose scheme pyserial does not know: retrying
-    could never open them, unlike a tty that is not plugged in yet."""
+    """Refuse an empty port, a port URL whose scheme pyserial does not know, or a network
+    one without a host and port (:func:`check_host_port`): retrying could never open
+    them, unlike a tty that is not plugged in yet."""
     if not url.strip():
         raise InvalidInputError(
             "the port is empty; give a device path (/dev/ttyACM0), socket://HOST:PORT or "
@@ -89,6 +94,24 @@ def check_port_url(url: str) -> None:
         raise InvalidInputError(
             f"pyserial does not know the port URL scheme {scheme!r} ({url}); use a device "
             "path (/dev/ttyACM0), socket://HOST:PORT, rfc2217://HOST:PORT or loop://"
+        )
+    if scheme in NETWORK_SCHEMES:
+        check_host_port(url, scheme)
+
+
+def check_host_port(url: str, scheme: str) -> None:
+    """Refuse a network port URL without a host, or without a port from 1 to 65535:
+    pyserial said "'<=' not supported between instances of 'int' and 'NoneType'" or
+    "'debug|info|warning|error'", and the daemon retried it for good."""
+    parts = urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:  # not a number, or beyond 65535
+        port = None
+    if not parts.hostname or not port:
+        raise InvalidInputError(
+            f"bad port URL {url!r}: use {scheme}://HOST:PORT with a host and a PORT from 1 "
+            f"to {MAX_TCP_PORT}"
         )
 
 

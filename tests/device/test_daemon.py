@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import stat
 import tty
 from pathlib import Path
@@ -22,6 +23,7 @@ from device.faults import Faults
 from device.link_parser import LinkParser
 from device.sim_link import PtyEndpoint, TcpEndpoint
 from device.simulator import CameraSettings, VirtualScamp5
+from models.errors import InvalidInputError
 from models.formation import SensorParams
 from tests.device.conftest import health, start_streaming, stream_frames, wait_for
 from worker.device_registry import forget_device
@@ -664,3 +666,18 @@ def test_packets_dropped_as_malformed_are_logged_with_why(
         os.close(slave)
     assert daemon.health.counts["dropped_malformed"] == 1
     assert "dropped as malformed" in caplog.text and "bits 17 (must be 1..16)" in caplog.text
+
+
+@pytest.mark.parametrize("port", [
+    "socket://127.0.0.1", "socket://127.0.0.1:99999", "socket://127.0.0.1:abc",
+    "socket://:5555", "rfc2217://127.0.0.1:0",
+])
+def test_a_network_port_url_without_host_or_valid_port_is_refused(
+        client: redis.Redis, port: str) -> None:
+    """pyserial could never open these and said "'<=' not supported between instances
+    of 'int' and 'NoneType'" or "'debug|info|warning|error'"; the daemon retried them for
+    good. They are refused up front, saying what a port URL needs."""
+    scheme = port.partition("://")[0]
+    with pytest.raises(InvalidInputError, match=f"bad port URL '{re.escape(port)}': use "
+                       f"{scheme}://HOST:PORT with a host and a PORT from 1 to 65535"):
+        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
