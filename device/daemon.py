@@ -12,6 +12,7 @@ as a training pair instead of being streamed. Control commands from
 from __future__ import annotations
 
 import contextlib
+import errno
 import importlib.util
 import logging
 import os
@@ -121,12 +122,16 @@ def port_problem(url: str, exc: Exception) -> str:
     directory, a regular file, a disk, /dev/null), that and what to do: pyserial said
     only 'No such file or directory', naming the path three times, or 'Could not
     configure port: (25, 'Inappropriate ioctl for device')' ('(22, 'Invalid argument')'
-    for a disk), naming none."""
+    for a disk), naming none. A port another daemon has open (locked) says so."""
     if "://" in url:
         return str(exc) or type(exc).__name__
     if not os.path.exists(url):
         return (f"{_missing(Path(url))}: check --port, or plug the camera in or start "
                 "mcam simulate-device (it prints the path to give)")
+    if getattr(exc, "errno", None) == errno.EWOULDBLOCK:  # the exclusive lock is taken
+        return (f"{url} is open in another process that locked it (another mcam device "
+                "on this camera?): stop that one, or check --port; this daemon takes the "
+                "port once it is free")
     kind = _not_a_terminal(url)
     if kind is None:
         return str(exc) or type(exc).__name__
@@ -180,11 +185,14 @@ def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
 
     ``socket://`` ports are opened non-blocking (timeout 0): their ``in_waiting`` only
     says whether data is there, not how much, so the reader waits with ``select``
-    and then takes everything available in one read.
+    and then takes everything available in one read. A device path is locked while
+    open (``exclusive``): two daemons reading one camera each got a share of its bytes,
+    and lost most frames as garbage, with pyserial's 'multiple access on port?'.
     """
     check_port_url(url)
     timeout = 0 if url.startswith("socket://") else read_timeout_s
-    return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=1.0)
+    return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=1.0,
+                                         exclusive=True)
 
 
 class DeviceDaemon:

@@ -681,3 +681,33 @@ def test_a_network_port_url_without_host_or_valid_port_is_refused(
     with pytest.raises(InvalidInputError, match=f"bad port URL '{re.escape(port)}': use "
                        f"{scheme}://HOST:PORT with a host and a PORT from 1 to 65535"):
         DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+
+
+def test_a_second_daemon_on_one_port_waits_and_says_who_holds_it(client: redis.Redis) -> None:
+    """Two daemons (two device ids) on one camera's pty each got a share of its bytes:
+    most frames were lost as garbage and truncated packets. The first locks the port;
+    the second says another process holds it, and the first gets every frame whole."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    port = os.ttyname(slave)
+    first = DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+    second = DeviceDaemon(DaemonConfig(port=port, device="cam2", backoff_max_s=0.1), client)
+    try:
+        first.start()
+        assert wait_for(lambda: first.health.state == "connected", 30)
+        second.start()
+        assert wait_for(lambda: "open in another process that locked it"
+                        in second.health.port_error, 30)
+        codes = np.zeros((32, 32), np.uint8)
+        for sequence in range(20):
+            os.write(master, lp.encode_data(lp.DataPacket(sequence, 0, "modulo", 2.0, 8, 1.0,
+                                                          codes)))
+        assert wait_for(lambda: first.health.counts["frames_received"] == 20, 30)
+    finally:
+        second.stop()
+        first.stop()
+        os.close(master)
+        os.close(slave)
+    assert first.health.counts["garbage_bytes"] == 0
+    assert second.health.counts["frames_received"] == 0
