@@ -27,8 +27,8 @@ from worker.redis_memory import DEFAULT_MAXMEMORY
 MAX_WORKER_THREADS = 256
 #: Longest ``MCAM_RESULT_RETENTION_S`` (s): 100 years.
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
-#: Longest ``MCAM_DEVICE_LEASE_MS`` (ms): a day.
-MAX_DEVICE_LEASE_MS = 24 * 3600 * 1000
+#: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
+MAX_TAKEOVER_MS = 24 * 3600 * 1000
 
 
 class Settings(BaseSettings):
@@ -167,10 +167,14 @@ class Settings(BaseSettings):
         description="bytes of codes one API key's jobs may hold in the queue; more: 429",
     )  # fmt: skip
     frames_maxlen: int = Field(256, gt=0, description="per-device frame stream bound (drop oldest)")
-    claim_idle_ms: int = Field(30_000, gt=0, description="reclaim entries pending this long")
+    claim_idle_ms: int = Field(
+        30_000, gt=0, le=MAX_TAKEOVER_MS,
+        description="reclaim entries pending this long (at most a day: Redis refuses an "
+        "idle time of 2^63 ms or more, and 1e19 left every job queued, never read)",
+    )  # fmt: skip
     max_deliveries: int = Field(3, ge=1, description="then the entry goes to the dead letters")
     device_lease_ms: int = Field(
-        5_000, gt=0, le=MAX_DEVICE_LEASE_MS,
+        5_000, gt=0, le=MAX_TAKEOVER_MS,
         description="one worker owns a device stream; a dead worker's devices wait this "
         "long for another (at most a day: Redis refuses a lease of 2^63 ms or more, and "
         "1e19 left every device's frames undecoded, a traceback logged at each try)",

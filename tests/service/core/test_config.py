@@ -138,15 +138,17 @@ def test_more_worker_threads_than_a_session_can_use_are_refused(
     assert Settings().worker_threads == 256
 
 
-def test_a_device_lease_redis_cannot_set_is_refused_at_start(
-    monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.parametrize("name", ["device_lease_ms", "claim_idle_ms"])
+def test_a_time_redis_cannot_take_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch, name: str
 ) -> None:
-    """MCAM_DEVICE_LEASE_MS=1e19 (in digits) was accepted, and no worker could then take a
-    device: Redis refuses SET PX of 2^63 ms or more ('value is not an integer or out of
-    range'), so every device's frames stayed undecoded. A day is the longest accepted."""
-    monkeypatch.setenv("MCAM_DEVICE_LEASE_MS", str(10**19))
+    """1e19 (in digits) was accepted, and Redis then refused it ('value is not an integer
+    or out of range': 2^63 ms or more): as MCAM_DEVICE_LEASE_MS (SET PX) no worker could
+    take a device, so every device's frames stayed undecoded; as MCAM_CLAIM_IDLE_MS
+    (XPENDING IDLE) no job was ever read. A day is the longest accepted."""
+    monkeypatch.setenv(f"MCAM_{name.upper()}", str(10**19))
     with pytest.raises(ValidationError) as caught:
         Settings()
-    assert caught.value.errors()[0]["loc"] == ("device_lease_ms",)
-    monkeypatch.setenv("MCAM_DEVICE_LEASE_MS", str(24 * 3600 * 1000))
-    assert Settings().device_lease_ms == 24 * 3600 * 1000
+    assert caught.value.errors()[0]["loc"] == (name,)
+    monkeypatch.setenv(f"MCAM_{name.upper()}", str(24 * 3600 * 1000))
+    assert getattr(Settings(), name) == 24 * 3600 * 1000
