@@ -29,6 +29,8 @@ MAX_WORKER_THREADS = 256
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 #: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
 MAX_TAKEOVER_MS = 24 * 3600 * 1000
+#: Most frames ``MCAM_FRAMES_MAXLEN`` keeps per device stream: 2^20.
+MAX_FRAMES_MAXLEN = 2**20
 
 
 class Settings(BaseSettings):
@@ -166,7 +168,11 @@ class Settings(BaseSettings):
         512 * 1024**2, gt=0,
         description="bytes of codes one API key's jobs may hold in the queue; more: 429",
     )  # fmt: skip
-    frames_maxlen: int = Field(256, gt=0, description="per-device frame stream bound (drop oldest)")
+    frames_maxlen: int = Field(
+        256, gt=0, le=MAX_FRAMES_MAXLEN,
+        description="per-device frame stream bound (drop oldest); at most 2^20 (64 GiB of "
+        "256 x 256 codes): Redis refuses a MAXLEN of 2^63, and 1e19 dropped every frame",
+    )  # fmt: skip
     claim_idle_ms: int = Field(
         30_000, gt=0, le=MAX_TAKEOVER_MS,
         description="reclaim entries pending this long (at most a day: Redis refuses an "

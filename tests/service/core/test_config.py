@@ -152,3 +152,17 @@ def test_a_time_redis_cannot_take_is_refused_at_start(
     assert caught.value.errors()[0]["loc"] == (name,)
     monkeypatch.setenv(f"MCAM_{name.upper()}", str(24 * 3600 * 1000))
     assert getattr(Settings(), name) == 24 * 3600 * 1000
+
+
+def test_a_frame_stream_bound_redis_cannot_take_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """MCAM_FRAMES_MAXLEN=1e19 (in digits) was accepted, and each device daemon then
+    dropped every frame: Redis refuses XADD MAXLEN of 2^63 or more, which the daemon
+    counted as dropped_redis_unavailable. 2^20 frames is the most accepted."""
+    monkeypatch.setenv("MCAM_FRAMES_MAXLEN", str(10**19))
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    assert caught.value.errors()[0]["loc"] == ("frames_maxlen",)
+    monkeypatch.setenv("MCAM_FRAMES_MAXLEN", str(2**20))
+    assert Settings().frames_maxlen == 2**20
