@@ -31,12 +31,13 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from types import FrameType
 
 from service.api.state import embedded_redis_for
 from service.cli.api import announce, check_listen_address, serve_http, settings_with
-from service.cli.worker import threads_problem
-from service.core.config import MAX_WORKER_THREADS, get_settings
+from service.cli.worker import limit_problem
+from service.core.config import get_settings
 from service.core.security import KeyRing
 from worker.embedded_redis import terminate_with_parent
 
@@ -62,9 +63,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument(
         "--workers", type=positive, default=1, help="worker processes to run (default: 1)"
     )
-    parser.add_argument("--concurrency", type=positive, help="each worker's concurrent jobs")
     parser.add_argument(
-        "--threads", type=thread_count, help="each worker's ONNX intra-op threads"
+        "--concurrency", type=within_limit("--concurrency"), help="each worker's concurrent jobs"
+    )
+    parser.add_argument(
+        "--threads", type=within_limit("--threads"), help="each worker's ONNX intra-op threads"
     )
     parser.set_defaults(func=run)
 
@@ -76,13 +79,19 @@ def positive(text: str) -> int:
     return int(text)
 
 
-def thread_count(text: str) -> int:
-    """An argparse type: a whole number from 1 to :data:`MAX_WORKER_THREADS` (the worker
-    refuses more, and a worker that exits at start is restarted for ever)."""
-    threads = positive(text)
-    if threads > MAX_WORKER_THREADS:
-        raise argparse.ArgumentTypeError(threads_problem(threads).removeprefix("--threads "))
-    return threads
+def within_limit(flag: str) -> Callable[[str], int]:
+    """An argparse type for the worker's ``flag``: a whole number from 1 to its limit
+    (:data:`service.cli.worker.FLAG_LIMITS`; the worker refuses more, and a worker that
+    exits at start is restarted for ever)."""
+
+    def parse(text: str) -> int:
+        value = positive(text)
+        problem = limit_problem(flag, value)
+        if problem:
+            raise argparse.ArgumentTypeError(problem.removeprefix(f"{flag} "))
+        return value
+
+    return parse
 
 
 def worker_command(args: argparse.Namespace) -> list[str]:

@@ -19,7 +19,12 @@ from models.decoders.learned import THREAD_VARIABLES
 from models.decoders.registry import resolve
 from models.errors import McamError, naming
 from service.cli.options import add_log_level_flag, start_logging
-from service.core.config import MAX_WORKER_THREADS, Settings, get_settings
+from service.core.config import (
+    MAX_WORKER_CONCURRENCY,
+    MAX_WORKER_THREADS,
+    Settings,
+    get_settings,
+)
 from worker.embedded_redis import EmbeddedRedis
 from worker.temporal_config import MODES
 
@@ -50,11 +55,22 @@ def usable_cores() -> int:
     return os.cpu_count() or 1
 
 
-def threads_problem(threads: int) -> str:
-    """Why ``--threads`` above :data:`MAX_WORKER_THREADS` is refused, and what to give."""
+#: The flags of ``mcam worker`` with an upper bound: their most, and what they count.
+FLAG_LIMITS: dict[str, tuple[int, str]] = {
+    "--threads": (MAX_WORKER_THREADS, "onnxruntime threads per session"),
+    "--concurrency": (MAX_WORKER_CONCURRENCY, "jobs decoded at once, each in a process of its own"),
+}
+
+
+def limit_problem(flag: str, value: int) -> str | None:
+    """Why ``value`` of ``flag`` (one of :data:`FLAG_LIMITS`) is refused, and what to
+    give; None when it is within the flag's limit."""
+    most, what = FLAG_LIMITS[flag]
+    if value <= most:
+        return None
     return (
-        f"--threads must be at most {MAX_WORKER_THREADS} (onnxruntime threads per session; "
-        f"this machine has {usable_cores()} cores), got {threads}"
+        f"{flag} must be at most {most} ({what}; this machine has {usable_cores()} cores), "
+        f"got {value}"
     )
 
 
@@ -109,8 +125,10 @@ def run(args: argparse.Namespace) -> int:
         processes = settings.stream_processes or min(usable_cores(), MAX_STREAM_PROCESSES)
     if concurrency < 1 or threads < 1 or processes < 1:
         raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
-    if threads > MAX_WORKER_THREADS:
-        raise McamError(threads_problem(threads))
+    for flag, value in (("--threads", threads), ("--concurrency", concurrency)):
+        problem = limit_problem(flag, value)
+        if problem:
+            raise McamError(problem)
     if args.decoder:
         with naming("--decoder"):  # else each job child died at start, with a traceback
             resolve(args.decoder)

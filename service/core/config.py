@@ -25,6 +25,10 @@ from worker.redis_memory import DEFAULT_MAXMEMORY
 
 #: Most onnxruntime intra-op threads a worker's session may have (``--threads``).
 MAX_WORKER_THREADS = 256
+#: Most jobs one worker decodes at once (``--concurrency``): each job thread keeps a
+#: decoding process of its own (about 165 MB before it decodes), one per core of the
+#: largest machines.
+MAX_WORKER_CONCURRENCY = 256
 #: Longest ``MCAM_RESULT_RETENTION_S`` (s): 100 years.
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 #: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
@@ -139,7 +143,11 @@ class Settings(BaseSettings):
         "GET /v1/decoders the figures of decoders without a model card (classical, +puma, "
         "auto); unset: bench/results/accuracy.json of the repository checkout",
     )
-    worker_concurrency: int = Field(1, ge=1, description="jobs decoded at once per worker")
+    worker_concurrency: int = Field(
+        1, ge=1, le=MAX_WORKER_CONCURRENCY,
+        description="jobs decoded at once per worker, each in a process of about 165 MB "
+        "(at most 256: 1e19 grew the worker until it ran out of memory)",
+    )  # fmt: skip
     worker_threads: int = Field(
         2, ge=1, le=MAX_WORKER_THREADS,
         description="onnxruntime intra-op threads per session (at most 256: 100000 had a "

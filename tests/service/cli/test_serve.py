@@ -327,14 +327,17 @@ def test_an_open_event_stream_does_not_keep_serve_from_stopping(tmp_path: Path) 
         assert process.wait(60) == 0  # it hung until the client left
 
 
-def test_more_threads_than_a_worker_takes_are_refused_with_one_line(
-    capsys: pytest.CaptureFixture[str],
+@pytest.mark.parametrize("flag", ["--threads", "--concurrency"])
+def test_more_than_a_worker_takes_is_refused_with_one_line(
+    flag: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """``--threads 100000`` was passed on to workers (whose decoding processes then grew
-    without end); refused at once, as the worker now refuses it. (The arguments are
-    only parsed: a regression must not start a service.)"""
+    without end), and so was ``--concurrency 100000`` (the worker grew by a job thread
+    and its process after another until memory ran out); refused at once, as the worker
+    now refuses them. (The arguments are only parsed: a regression must not start a
+    service.)"""
     with pytest.raises(SystemExit) as stopped:
-        build_parser("serve").parse_args(["serve", "--threads", "100000"])
+        build_parser("serve").parse_args(["serve", flag, "100000"])
     assert stopped.value.code == 2
     err = capsys.readouterr().err
-    assert "argument --threads: must be at most 256 (" in err and "got 100000" in err
+    assert f"argument {flag}: must be at most 256 (" in err and "got 100000" in err
