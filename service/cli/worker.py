@@ -20,6 +20,7 @@ from models.decoders.registry import resolve
 from models.errors import McamError, naming
 from service.cli.options import add_log_level_flag, start_logging
 from service.core.config import (
+    MAX_STREAM_POOL_PROCESSES,
     MAX_WORKER_CONCURRENCY,
     MAX_WORKER_THREADS,
     Settings,
@@ -59,6 +60,7 @@ def usable_cores() -> int:
 FLAG_LIMITS: dict[str, tuple[int, str]] = {
     "--threads": (MAX_WORKER_THREADS, "onnxruntime threads per session"),
     "--concurrency": (MAX_WORKER_CONCURRENCY, "jobs decoded at once, each in a process of its own"),
+    "--stream-processes": (MAX_STREAM_POOL_PROCESSES, "processes decoding device streams"),
 }
 
 
@@ -125,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
         processes = settings.stream_processes or min(usable_cores(), MAX_STREAM_PROCESSES)
     if concurrency < 1 or threads < 1 or processes < 1:
         raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
-    for flag, value in (("--threads", threads), ("--concurrency", concurrency)):
+    given = {"--threads": threads, "--concurrency": concurrency, "--stream-processes": processes}
+    for flag, value in given.items():
         problem = limit_problem(flag, value)
         if problem:
             raise McamError(problem)

@@ -29,6 +29,9 @@ MAX_WORKER_THREADS = 256
 #: decoding process of its own (about 165 MB before it decodes), one per core of the
 #: largest machines.
 MAX_WORKER_CONCURRENCY = 256
+#: Most processes decoding one worker's device streams (``--stream-processes``), each
+#: holding its own networks: one per core of the largest machines.
+MAX_STREAM_POOL_PROCESSES = 256
 #: Longest ``MCAM_RESULT_RETENTION_S`` (s): 100 years.
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 #: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
@@ -205,8 +208,11 @@ class Settings(BaseSettings):
     stream_processes: int | None = Field(
         None,
         ge=1,
+        le=MAX_STREAM_POOL_PROCESSES,
         description="processes decoding one device stream's frames in independent mode, "
-        "results kept in stream order; unset: one per core (at most 8); 1: in the worker",
+        "results kept in stream order; unset: one per core (at most 8); 1: in the worker; "
+        "at most 256 (1e19 stopped each worker at start with a traceback, 2e9 started "
+        "processes by the hundred)",
     )
     result_retention_s: float = Field(
         7 * 24 * 3600.0, gt=0, le=MAX_RESULT_RETENTION_S,

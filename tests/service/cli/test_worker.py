@@ -145,12 +145,16 @@ def test_more_threads_than_a_session_can_use_are_refused(tmp_path: Path) -> None
     assert err.rstrip().endswith("got 100000")
 
 
-def test_more_concurrent_jobs_than_a_machine_can_hold_are_refused(tmp_path: Path) -> None:
+@pytest.mark.parametrize("flag", ["--concurrency", "--stream-processes"])
+def test_more_processes_than_a_machine_can_hold_are_refused(tmp_path: Path, flag: str) -> None:
     """``--concurrency 10000000000000000000`` ran: the worker made one job thread object
     after another (each thread then starts a decoding process of about 165 MB) and grew
-    by about 150 MB/s until it ran out of memory, ending in a MemoryError traceback."""
-    process = mcam("worker", "--concurrency", str(10**19), env={"MCAM_DATA_DIR": str(tmp_path)})
+    by about 150 MB/s until it ran out of memory, ending in a MemoryError traceback.
+    ``--stream-processes`` 1e19 ended the worker at start with an OverflowError
+    traceback (the pool's barrier), and 2e9 started over a hundred decoding processes
+    within 8 s."""
+    process = mcam("worker", flag, str(10**19), env={"MCAM_DATA_DIR": str(tmp_path)})
     _out, err = process.communicate(timeout=60)
     assert process.returncode == 2 and "Traceback" not in err
-    assert err.startswith("mcam worker: error: --concurrency must be at most 256 (")
+    assert err.startswith(f"mcam worker: error: {flag} must be at most 256 (")
     assert err.rstrip().endswith(f"got {10**19}")

@@ -168,14 +168,16 @@ def test_a_frame_stream_bound_redis_cannot_take_is_refused_at_start(
     assert Settings().frames_maxlen == 2**20
 
 
-def test_more_concurrent_jobs_than_a_machine_can_hold_are_refused_at_start(
-    monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.parametrize("name", ["worker_concurrency", "stream_processes"])
+def test_more_processes_than_a_machine_can_hold_are_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch, name: str
 ) -> None:
     """MCAM_WORKER_CONCURRENCY=1e19 (in digits) was accepted, and each worker then grew
-    until it ran out of memory (a job thread, and a decoding process, per job at once)."""
-    monkeypatch.setenv("MCAM_WORKER_CONCURRENCY", str(10**19))
+    until it ran out of memory (a job thread, and a decoding process, per job at once);
+    MCAM_STREAM_PROCESSES=1e19 ended each worker at start with a traceback."""
+    monkeypatch.setenv(f"MCAM_{name.upper()}", str(10**19))
     with pytest.raises(ValidationError) as caught:
         Settings()
-    assert caught.value.errors()[0]["loc"] == ("worker_concurrency",)
-    monkeypatch.setenv("MCAM_WORKER_CONCURRENCY", "256")
-    assert Settings().worker_concurrency == 256
+    assert caught.value.errors()[0]["loc"] == (name,)
+    monkeypatch.setenv(f"MCAM_{name.upper()}", "256")
+    assert getattr(Settings(), name) == 256
