@@ -61,7 +61,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--host", help="listen address (default: MCAM_HOST or 127.0.0.1)")
     parser.add_argument("--port", type=int, help="listen port (default: MCAM_PORT or 8000)")
     parser.add_argument(
-        "--workers", type=positive, default=1, help="worker processes to run (default: 1)"
+        "--workers", type=within_limit("--workers"), default=1,
+        help="worker processes to run (default: 1, at most 256)",
     )
     parser.add_argument(
         "--concurrency", type=within_limit("--concurrency"), help="each worker's concurrent jobs"
@@ -80,9 +81,9 @@ def positive(text: str) -> int:
 
 
 def within_limit(flag: str) -> Callable[[str], int]:
-    """An argparse type for the worker's ``flag``: a whole number from 1 to its limit
-    (:data:`service.cli.worker.FLAG_LIMITS`; the worker refuses more, and a worker that
-    exits at start is restarted for ever)."""
+    """An argparse type for ``flag``: a whole number from 1 to its limit
+    (:data:`service.cli.worker.FLAG_LIMITS`: a worker refuses more, and a worker that
+    exits at start is restarted for ever; more workers than that only exhaust memory)."""
 
     def parse(text: str) -> int:
         value = positive(text)

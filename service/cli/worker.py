@@ -20,6 +20,7 @@ from models.decoders.registry import resolve
 from models.errors import McamError, naming
 from service.cli.options import add_log_level_flag, start_logging
 from service.core.config import (
+    MAX_SERVE_WORKERS,
     MAX_STREAM_POOL_PROCESSES,
     MAX_WORKER_CONCURRENCY,
     MAX_WORKER_THREADS,
@@ -56,11 +57,13 @@ def usable_cores() -> int:
     return os.cpu_count() or 1
 
 
-#: The flags of ``mcam worker`` with an upper bound: their most, and what they count.
+#: The flags of ``mcam worker`` and ``mcam serve`` that count threads or processes:
+#: their most, and what they count.
 FLAG_LIMITS: dict[str, tuple[int, str]] = {
     "--threads": (MAX_WORKER_THREADS, "onnxruntime threads per session"),
     "--concurrency": (MAX_WORKER_CONCURRENCY, "jobs decoded at once, each in a process of its own"),
     "--stream-processes": (MAX_STREAM_POOL_PROCESSES, "processes decoding device streams"),
+    "--workers": (MAX_SERVE_WORKERS, "worker processes, each with its decoding processes"),
 }
 
 

@@ -32,6 +32,9 @@ MAX_WORKER_CONCURRENCY = 256
 #: Most processes decoding one worker's device streams (``--stream-processes``), each
 #: holding its own networks: one per core of the largest machines.
 MAX_STREAM_POOL_PROCESSES = 256
+#: Most workers ``mcam serve --workers`` runs, each a process of about 300 MB with its
+#: decoding processes: one per core of the largest machines.
+MAX_SERVE_WORKERS = 256
 #: Longest ``MCAM_RESULT_RETENTION_S`` (s): 100 years.
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 #: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
