@@ -39,6 +39,8 @@ MAX_SERVE_WORKERS = 256
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 #: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
 MAX_TAKEOVER_MS = 24 * 3600 * 1000
+#: Shortest ``MCAM_HEARTBEAT_S`` (s).
+MIN_HEARTBEAT_S = 0.1
 #: Most frames ``MCAM_FRAMES_MAXLEN`` keeps per device stream: 2^20.
 MAX_FRAMES_MAXLEN = 2**20
 
@@ -199,7 +201,13 @@ class Settings(BaseSettings):
         "long for another (at most a day: Redis refuses a lease of 2^63 ms or more, and "
         "1e19 left every device's frames undecoded, a traceback logged at each try)",
     )  # fmt: skip
-    heartbeat_s: float = Field(2.0, gt=0)
+    heartbeat_s: float = Field(
+        2.0, ge=MIN_HEARTBEAT_S,
+        description="each worker beats, renews its device leases and touches its jobs this "
+        "often (at least 0.1 s: each beat is fsynced Redis writes, and at 1e-9 a worker sent "
+        "4000 commands a second while /health/ready, which counts beats younger than three "
+        "heartbeats, found no worker)",
+    )  # fmt: skip
     redis_timeout_s: float = Field(
         2.0, gt=0, le=60,
         description="longest the API waits for one Redis reply before answering 503",

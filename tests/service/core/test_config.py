@@ -112,6 +112,20 @@ def test_a_heartbeat_too_slow_for_the_leases_is_refused_at_start(
     assert Settings().heartbeat_s == 0.5
 
 
+def test_a_heartbeat_too_fast_to_be_seen_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """MCAM_HEARTBEAT_S=1e-9 was accepted: each worker then beat in a busy loop (4000
+    fsynced Redis commands a second) and /health/ready, which counts beats younger than
+    three heartbeats (3 ns), answered 503 'no worker heartbeat' while workers ran."""
+    monkeypatch.setenv("MCAM_HEARTBEAT_S", "1e-9")
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    assert caught.value.errors()[0]["loc"] == ("heartbeat_s",)
+    monkeypatch.setenv("MCAM_HEARTBEAT_S", "0.1")
+    assert Settings().heartbeat_s == 0.1
+
+
 @pytest.mark.parametrize("value", ["inf", "1e20"])
 def test_a_retention_redis_cannot_expire_by_is_refused_at_start(
     monkeypatch: pytest.MonkeyPatch, value: str
