@@ -39,6 +39,9 @@ MAX_SERVE_WORKERS = 256
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 #: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
 MAX_TAKEOVER_MS = 24 * 3600 * 1000
+#: Shortest ``MCAM_HTTP_*_TIMEOUT_S`` and ``MCAM_HTTP_BODY_DEADLINE_S`` (s): one lost
+#: packet alone stalls a connection for TCP's initial retransmission timeout, 1 s.
+MIN_HTTP_TIMEOUT_S = 1.0
 #: Shortest ``MCAM_HEARTBEAT_S`` (s).
 MIN_HEARTBEAT_S = 0.1
 #: Most frames ``MCAM_FRAMES_MAXLEN`` keeps per device stream: 2^20.
@@ -84,9 +87,11 @@ class Settings(BaseSettings):
         "ones that arrive in one read may be longer)",
     )  # fmt: skip
     http_header_timeout_s: float = Field(
-        10.0, gt=0, le=3600,
+        10.0, ge=MIN_HTTP_TIMEOUT_S, le=3600,
         description="longest a request's line and headers may take (from the connection's "
-        "start or the request's first byte) before 408 and the connection closed",
+        "start or the request's first byte) before 408 and the connection closed; at "
+        "least 1 s (TCP's first retransmission: at 1e-9 the local host's curl got no "
+        "answer to 4 requests in 10)",
     )  # fmt: skip
     http_body_timeout_s: float = Field(
         30.0, gt=0, le=3600,

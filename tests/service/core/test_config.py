@@ -157,6 +157,8 @@ FAILED_LATER = [
     # The API answered 503 to requests Redis served in time (8 of 200 reads of a job on
     # an idle host; 18 at 0.001).
     ("redis_timeout_s", "1e-9", "0.1"),
+    # The API closed 4 in 10 connections of a local client before their head was read.
+    ("http_header_timeout_s", "1e-9", "1"),
 ]
 
 
