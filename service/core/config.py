@@ -99,10 +99,11 @@ class Settings(BaseSettings):
         "task); at least 1 s: at 1e-9 every 4 MB upload got 408, its client blamed",
     )  # fmt: skip
     http_body_deadline_s: float = Field(
-        300.0, gt=0, le=86_400,
+        300.0, ge=MIN_HTTP_TIMEOUT_S, le=86_400,
         description="longest a request body may take in all, from the app's first read of "
         "it, before 408: a body trickling in never pauses for MCAM_HTTP_BODY_TIMEOUT_S "
-        "(the 64 MiB upload limit in 300 s needs 1.8 Mbit/s)",
+        "(the 64 MiB upload limit in 300 s needs 1.8 Mbit/s); at least 1 s: at 1e-9 "
+        "every upload got 408",
     )  # fmt: skip
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0)
     max_json_bytes: int = Field(
