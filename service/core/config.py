@@ -147,8 +147,11 @@ class Settings(BaseSettings):
         description="server-sent event streams open at once (each holds a Redis connection)",
     )  # fmt: skip
     max_prefer_wait_s: float = Field(
-        60.0, ge=0, description="longest 'Prefer: wait=N' a request may block for its job"
-    )
+        60.0, ge=0, le=3600,
+        description="longest 'Prefer: wait=N' a request may block for its job (at most an "
+        "hour: a wait holds a server thread and one of MCAM_MAX_WAITING_REQUESTS even once "
+        "its client has gone, and at inf one that gave up held them for good)",
+    )  # fmt: skip
     default_decoder: str = Field(
         "auto", description="decoder when a request names neither decoder nor quality"
     )
