@@ -39,6 +39,8 @@ MAX_SERVE_WORKERS = 256
 MAX_RESULT_RETENTION_S = 100 * 365.25 * 24 * 3600
 #: Longest ``MCAM_DEVICE_LEASE_MS`` and ``MCAM_CLAIM_IDLE_MS`` (ms): a day.
 MAX_TAKEOVER_MS = 24 * 3600 * 1000
+#: Most deliveries of an entry (``MCAM_MAX_DELIVERIES``).
+MAX_DELIVERIES = 10
 #: Shortest ``MCAM_HTTP_*_TIMEOUT_S`` and ``MCAM_HTTP_BODY_DEADLINE_S`` (s): one lost
 #: packet alone stalls a connection for TCP's initial retransmission timeout, 1 s.
 MIN_HTTP_TIMEOUT_S = 1.0
@@ -204,7 +206,11 @@ class Settings(BaseSettings):
         description="reclaim entries pending this long (at most a day: Redis refuses an "
         "idle time of 2^63 ms or more, and 1e19 left every job queued, never read)",
     )  # fmt: skip
-    max_deliveries: int = Field(3, ge=1, description="then the entry goes to the dead letters")
+    max_deliveries: int = Field(
+        3, ge=1, le=MAX_DELIVERIES,
+        description="then the entry goes to the dead letters; at most 10 (retries wait 0.05 s "
+        "doubled per delivery: 1000 stalled a failing job for days, deaf to SIGTERM)",
+    )  # fmt: skip
     device_lease_ms: int = Field(
         5_000, gt=0, le=MAX_TAKEOVER_MS,
         description="one worker owns a device stream; a dead worker's devices wait this "

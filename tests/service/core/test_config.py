@@ -166,6 +166,9 @@ FAILED_LATER = [
     # A client asking 'Prefer: wait=1000000000' that gave up after 2 s held a server
     # thread and a waiting slot for good: 70 s later another's wait=3 got 202 at once.
     ("max_prefer_wait_s", "inf", "3600"),
+    # A job failing for the worker was retried after pauses doubling from 0.05 s (51 s
+    # before its 12th try, 155 days before its 30th), the worker deaf to SIGTERM meanwhile.
+    ("max_deliveries", "1000", "10"),
 ]
 
 
