@@ -221,7 +221,7 @@ class Settings(BaseSettings):
         2.0, ge=MIN_HEARTBEAT_S,
         description="each worker beats, renews its device leases and touches its jobs this "
         "often (at least 0.1 s: each beat is fsynced Redis writes, and at 1e-9 a worker sent "
-        "4000 commands a second while /health/ready, which counts beats younger than three "
+        "800 commands a second while /health/ready, which counts beats younger than three "
         "heartbeats, found no worker)",
     )  # fmt: skip
     redis_timeout_s: float = Field(

@@ -151,7 +151,7 @@ FAILED_LATER = [
     ("worker_concurrency", str(10**19), "256"),
     # Each worker stopped at start with a traceback (the decode pool's barrier).
     ("stream_processes", str(10**19), "256"),
-    # Workers beat in a busy loop (4000 fsynced Redis commands a second), and
+    # Workers beat in a busy loop (800 fsynced Redis commands a second), and
     # /health/ready, counting beats younger than three heartbeats (3 ns), found none.
     ("heartbeat_s", "1e-9", "0.1"),
     # The API answered 503 to requests Redis served in time (8 of 200 reads of a job on
