@@ -26,6 +26,7 @@ so stream length is the backlog.
 from __future__ import annotations
 
 import json
+import threading
 import time
 import uuid
 from collections.abc import Sequence
@@ -65,6 +66,8 @@ UNBOUNDED = 2**62
 #: Consumer group every worker joins on the jobs stream and on each frame stream.
 GROUP = "workers"
 JOB_KINDS = ("reconstruction", "video")
+#: Longest pause (s) of :meth:`JobQueue.wait` between looks at its job and its stop event.
+WAIT_POLL_S = 0.5
 #: The submit script's refusal codes, as mcam_jobs_rejected_total's ``reason`` label.
 REFUSALS: dict[int, str] = {
     0: "queue_full", -2: "queue_bytes", -1: "key_jobs", -3: "key_bytes",
@@ -362,8 +365,11 @@ class JobQueue:
             self.metrics.inc("jobs_processed_total", state=JobState.CANCELLED.value)
         return self.jobs.load(job_id)
 
-    def wait(self, job_id: str, timeout_s: float) -> JobRecord:
-        """Block until the job finishes or ``timeout_s`` passes; returns the latest record."""
+    def wait(
+        self, job_id: str, timeout_s: float, stop: threading.Event | None = None
+    ) -> JobRecord:
+        """Block until the job finishes, ``timeout_s`` passes or ``stop`` is set (checked
+        every :data:`WAIT_POLL_S`); returns the latest record."""
         record = self.jobs.load(job_id)
         if record.state.finished or timeout_s <= 0:
             return record
@@ -374,9 +380,9 @@ class JobQueue:
             while True:
                 record = self.jobs.load(job_id)
                 remaining = deadline - time.monotonic()
-                if record.state.finished or remaining <= 0:
+                if record.state.finished or remaining <= 0 or (stop and stop.is_set()):
                     return record
-                pubsub.get_message(timeout=min(remaining, 0.5))
+                pubsub.get_message(timeout=min(remaining, WAIT_POLL_S))
         finally:
             pubsub.close()
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 from typing import Any
 
 import redis
@@ -49,15 +50,17 @@ def accepted_response(record: JobRecord) -> JSONResponse:
 
 
 def job_response(
-    queue: JobQueue, record: JobRecord, wait_s: float, slots: Slots
+    queue: JobQueue, record: JobRecord, wait_s: float, slots: Slots, stop: threading.Event
 ) -> JSONResponse:
     """200 with the job if it finishes within ``wait_s`` (``Prefer: wait``), else 202.
     A wait holds a server thread, so only as many requests as ``slots`` allows wait at
     once; the others get their 202 at once (42 waiting uploads from one key made every
-    other request wait 22 s for a thread)."""
+    other request wait 22 s for a thread). A wait ends with the 202 once ``stop`` is set
+    (the server is stopping): it held the stop for the whole grace period, and its client
+    then got a 500 for a job that was stored."""
     if wait_s > 0 and slots.take():
         try:
-            record = queue.wait(record.id, wait_s)
+            record = queue.wait(record.id, wait_s, stop)
         except redis.exceptions.RedisError as exc:
             if not is_transient(exc):
                 raise

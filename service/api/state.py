@@ -81,6 +81,9 @@ class ServiceState:
     #: Uploads decoded or simulated in this process at once (each may take gigabytes).
     decode_slots: Slots
     embedded: EmbeddedRedis | None = None
+    #: Set when the server begins to stop (:class:`service.cli.api.StoppingServer`):
+    #: requests waiting for their jobs answer at once.
+    stopping: threading.Event = field(default_factory=threading.Event)
     _queue: JobQueue | None = field(default=None, repr=False)
 
     @property

@@ -8,12 +8,15 @@ jobs then need a worker on the same data dir (``mcam worker``) or use
 from __future__ import annotations
 
 import argparse
+import contextlib
 import socket
 import sys
+from types import FrameType
 from typing import Any
 
 import uvicorn
 from pydantic import ValidationError
+from uvicorn.config import STARTUP_FAILURE
 
 from models.errors import InvalidInputError
 from service.api.header_timeout import header_timeout_protocol
@@ -98,9 +101,28 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
     }
 
 
+class StoppingServer(uvicorn.Server):
+    """uvicorn's server that, on a stop signal, first tells the app's requests waiting
+    for their jobs (``Prefer: wait``) to answer (202) at once
+    (:attr:`service.api.state.ServiceState.stopping`): they held the stop for the whole
+    grace period (``MCAM_HTTP_SHUTDOWN_GRACE_S``), and then their clients got a 500
+    for jobs that were stored, and might submit them again."""
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        state = getattr(self.config.app.state, "mcam", None)  # set once the app started
+        if state is not None:
+            state.stopping.set()
+        super().handle_exit(sig, frame)
+
+
 def serve_http(settings: Settings) -> None:
-    """Run the API (``service.main:create_app``) under uvicorn until it is stopped."""
-    uvicorn.run(create_app(settings), **uvicorn_options(settings))
+    """Run the API (``service.main:create_app``) under uvicorn until it is stopped; exit
+    3 (uvicorn's startup failure) if it never started."""
+    server = StoppingServer(uvicorn.Config(create_app(settings), **uvicorn_options(settings)))
+    with contextlib.suppress(KeyboardInterrupt):
+        server.run()
+    if not server.started:
+        sys.exit(STARTUP_FAILURE)
 
 
 def add_listen_arguments(parser: argparse.ArgumentParser) -> None:

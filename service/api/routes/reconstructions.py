@@ -130,4 +130,6 @@ async def post_reconstruction(
     upload, fields = await read_upload_fields(request, ReconstructionFields, query)
     wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
     record = await decode_in_turn(state, submit, state, upload, fields, key)
-    return await run_in_threadpool(job_response, state.queue, record, wait_s, state.wait_slots)
+    return await run_in_threadpool(
+        job_response, state.queue, record, wait_s, state.wait_slots, state.stopping
+    )

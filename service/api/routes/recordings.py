@@ -142,7 +142,8 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
 def _wait_for_job(state: ServiceState, device: str, recording: Recording) -> Recording:
     """The recording once the worker queued its job or failed (or as it is after a while)."""
     deadline = time.monotonic() + STOP_WAIT_S
-    while recording.state == "stopping" and time.monotonic() < deadline:
+    while (recording.state == "stopping" and time.monotonic() < deadline
+           and not state.stopping.is_set()):
         time.sleep(0.05)
         recording = load_recording(state.client, device) or recording
     return recording
@@ -169,7 +170,7 @@ def stop(state: ServiceState, device: str, wait_s: float) -> Response:
     if recording.job is None:
         return _recording_response(recording, 202)
     return job_response(state.queue, state.queue.get(recording.job), wait_s,
-                        state.wait_slots)
+                        state.wait_slots, state.stopping)
 
 
 @router.post(

@@ -13,11 +13,13 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
 import pytest
+import redis as redis_module
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
@@ -36,6 +38,7 @@ from tests.service.conftest import (
     status_of,
 )
 from worker.embedded_redis import EmbeddedRedis
+from worker.redis_keys import JOBS_STREAM
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -236,3 +239,34 @@ def test_printed_key_line_format(tmp_path: Path) -> None:
         output = stop(process)
     assert re.search(r"MantissaCam API on http://127\.0\.0\.1:\d+/", output)
     assert "generated API key" not in output and not (tmp_path / "api_keys").exists()
+
+
+@pytest.mark.slow
+def test_a_request_waiting_for_its_job_gets_its_202_when_the_api_stops(tmp_path: Path) -> None:
+    """A ``Prefer: wait`` request held the stop (SIGTERM) for the whole grace period and
+    then got a 500, although its job was stored: its client might submit it again."""
+    redis = EmbeddedRedis(tmp_path / "redis-home")
+    redis_url = redis.start()
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    headers = {"Authorization": f"Bearer {FULL_KEY}", "Prefer": "wait=60"}
+    data, _ = frame_png()
+    try:
+        with running_api(tmp_path / "data", port, MCAM_REDIS_URL=redis_url,
+                         MCAM_API_KEYS=FULL_KEY) as api, ThreadPoolExecutor(1) as pool:
+            wait_live(url, api)
+            waiting = pool.submit(httpx.post, f"{url}/v1/reconstructions",
+                                  files={"file": ("f.png", data)}, headers=headers, timeout=60)
+            client = redis_module.Redis.from_url(redis_url)
+            deadline = time.monotonic() + 30
+            while client.xlen(JOBS_STREAM) == 0:  # submitted: the request waits (no worker)
+                assert time.monotonic() < deadline and not waiting.done(), "no job was queued"
+                time.sleep(0.05)
+            api.send_signal(signal.SIGTERM)
+            reply = waiting.result()
+            api.communicate(timeout=30)
+        assert reply.status_code == 202, reply.text
+        job = reply.json()
+        assert job["state"] == "queued" and client.xlen(JOBS_STREAM) == 1
+    finally:
+        redis.stop()
