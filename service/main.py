@@ -14,7 +14,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 from starlette.routing import BaseRoute
@@ -28,6 +28,7 @@ from service.api.head_requests import HeadRequestMiddleware
 from service.api.request_target import RequestTargetMiddleware
 from service.api.routes.docs import ASSETS as DOCS_ASSETS
 from service.api.security_headers import API_HEADERS, VIEWER_HEADERS, SecurityHeaders
+from service.api.single_values import single_query_values
 from service.api.state import ServiceState, open_state
 from service.api.telemetry import RequestTimer, build_registry
 from service.api.viewer_mount import ViewerMount
@@ -83,7 +84,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     routers = [importlib.import_module(name).router for name in ROUTERS]
     for router in routers:
-        app.include_router(router)
+        app.include_router(router, dependencies=[Depends(single_query_values)])
     # The API's routes with their full path templates (a router's paths carry its prefix).
     routes: list[BaseRoute] = [route for router in routers for route in router.routes]
 

@@ -34,6 +34,7 @@ from models.frames import FRAME_ALIASES, FRAME_FORMATS, not_a_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.errors import ApiError
 from service.api.media_types import media_type
+from service.api.single_values import refuse_repeated
 
 Model = TypeVar("Model", bound=BaseModel)
 _MAX_FORM_FIELDS = 64
@@ -145,14 +146,15 @@ async def _read_multipart(request: Request) -> Upload:
                 "no file uploaded: send it in the multipart/form-data field 'file' (a body "
                 "cut short before its closing boundary loses the file too)"
             )
-        fields: dict[str, str] = {}
+        fields: list[tuple[str, str]] = []
         for name, value in form.multi_items():
             if name == "file":
                 continue
             if not isinstance(value, str):
                 raise InvalidInputError(f"form field {name!r} must be text, not a file")
-            fields[name] = value
-        return Upload(await file.read(), file.filename, fields)
+            fields.append((name, value))
+        refuse_repeated(fields)
+        return Upload(await file.read(), file.filename, dict(fields))
     finally:
         await form.close()
 
