@@ -73,7 +73,12 @@ class JobNotFoundError(McamError):
 
 
 def validate_job_id(job_id: str) -> str:
-    """Job ids are 32 lowercase hex digits; anything else is not found (never a path)."""
+    """Job ids are 32 lowercase hex digits; anything else is not found (never a path),
+    with an error that says lower case (an id in capitals was told "job ids are 32
+    hexadecimal digits", which it is)."""
     if not _JOB_ID.fullmatch(job_id):
-        raise JobNotFoundError(f"no job {echo(job_id)}: job ids are 32 hexadecimal digits")
+        raise JobNotFoundError(
+            f"no job {echo(job_id)}: job ids are 32 hexadecimal digits in lower case "
+            "(0-9, a-f), as the job's url gives them"
+        )
     return job_id
