@@ -10,6 +10,12 @@ with no timer), and disarmed once h11 has the whole head. At the deadline
 a connection that sent part of a request gets ``408`` (with a JSON body naming the
 limit) and is closed; one that sent nothing is closed. Request bodies have their own
 timeout (``MCAM_HTTP_BODY_TIMEOUT_S``, :mod:`service.api.body_timeout`).
+
+A request head h11 cannot parse (a space or a raw non-ASCII character in the URL, a
+header line without a colon, a head past ``MCAM_HTTP_MAX_HEADER_BYTES``) got uvicorn's
+plain-text 400 "Invalid HTTP request received.", which named neither the fault nor
+the fix and lacked the headers every response has; the protocol answers it with the
+API's JSON error (:func:`malformed_response`) instead.
 """
 
 from __future__ import annotations
@@ -27,22 +33,38 @@ from service.api.security_headers import API_HEADERS
 log = logging.getLogger(__name__)
 
 
-def timeout_response(timeout_s: float) -> bytes:
-    """The raw ``408`` sent to a client whose request head did not arrive in time, with
-    the headers every response has (``nosniff``: it had none)."""
-    body = json.dumps(
-        error_body(
-            "request_timeout",
-            f"the request line and headers did not arrive within {timeout_s:g} s "
-            "(MCAM_HTTP_HEADER_TIMEOUT_S); send the whole head at once",
-        )
-    ).encode()
+def raw_error(status: str, code: str, message: str) -> bytes:
+    """A raw JSON error response (``status``: e.g. ``408 Request Timeout``) that closes
+    the connection, with the headers every response has."""
+    body = json.dumps(error_body(code, message)).encode()
     extra = "".join(f"{name}: {value}\r\n" for name, value in API_HEADERS.items())
     head = (
-        "HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
+        f"HTTP/1.1 {status}\r\ncontent-type: application/json\r\n"
         f"{extra}content-length: {len(body)}\r\nconnection: close\r\n\r\n"
     )
     return head.encode() + body
+
+
+def timeout_response(timeout_s: float) -> bytes:
+    """The raw ``408`` sent to a client whose request head did not arrive in time, with
+    the headers every response has (``nosniff``: it had none)."""
+    return raw_error(
+        "408 Request Timeout", "request_timeout",
+        f"the request line and headers did not arrive within {timeout_s:g} s "
+        "(MCAM_HTTP_HEADER_TIMEOUT_S); send the whole head at once",
+    )  # fmt: skip
+
+
+def malformed_response() -> bytes:
+    """The raw ``400`` sent to a client whose request head is not HTTP/1.1 that h11 can
+    parse, saying what usually makes it so."""
+    return raw_error(
+        "400 Bad Request", "bad_request",
+        "the request line or headers could not be parsed as HTTP/1.1: percent-encode "
+        "spaces and non-ASCII characters in the URL (%20, %C3%A9), send each header as "
+        "'Name: value' in ASCII, and keep the request line and headers within "
+        "MCAM_HTTP_MAX_HEADER_BYTES",
+    )  # fmt: skip
 
 
 class HeaderDeadlineProtocol(H11Protocol):
@@ -67,6 +89,13 @@ class HeaderDeadlineProtocol(H11Protocol):
             # before reading): uvicorn cancelled its keep-alive timer on them and armed
             # nothing, and what follows is the next request's head, if any.
             self._arm()
+
+    def send_400_response(self, msg: str) -> None:
+        """Answer a head h11 could not parse with :func:`malformed_response` (uvicorn's
+        ``msg`` is always "Invalid HTTP request received.") and close the connection."""
+        self._disarm()
+        self.transport.write(malformed_response())
+        self.transport.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()

@@ -3,8 +3,11 @@ under uvicorn with ``mcam api``'s options, on real sockets."""
 
 from __future__ import annotations
 
+import json
 import socket
 import time
+
+import pytest
 
 from service.api.header_timeout import timeout_response
 from service.core.config import Settings
@@ -61,3 +64,29 @@ def test_the_header_timeout_covers_a_request_after_a_body_the_app_did_not_read()
             sock.sendall(b"0123456789GET / HT")
             assert int(read_response(sock).split(b" ", 2)[1]) == 408
             assert sock.recv(1) == b""
+
+
+
+@pytest.mark.parametrize(
+    "request_head",
+    [
+        "GET /?x=\u0661 HTTP/1.1\r\nHost: x\r\n\r\n".encode(),  # a raw non-ASCII digit
+        b"GET /a b HTTP/1.1\r\nHost: x\r\n\r\n",
+        b"GET / HTTP/1.1\r\nHost: x\r\nNoColon\r\n\r\n",
+    ],
+)
+def test_a_head_that_is_not_http_gets_a_json_400_saying_what_to_fix(request_head: bytes) -> None:
+    """It got uvicorn's plain-text 'Invalid HTTP request received.', naming neither the
+    fault nor the fix, without nosniff."""
+    with listening(Settings()) as port:
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+            sock.sendall(request_head)
+            head, _, body = read_response(sock).partition(b"\r\n\r\n")
+            assert sock.recv(1) == b""  # closed
+    lines = head.decode().lower().splitlines()
+    assert lines[0] == "http/1.1 400 bad request"
+    assert "content-type: application/json" in lines
+    assert "x-content-type-options: nosniff" in lines
+    error = json.loads(body)
+    assert error["code"] == "bad_request"
+    assert "percent-encode spaces and non-ASCII characters in the URL" in error["message"]
