@@ -28,7 +28,7 @@ from service.api.head_requests import HeadRequestMiddleware
 from service.api.request_target import RequestTargetMiddleware
 from service.api.routes.docs import ASSETS as DOCS_ASSETS
 from service.api.security_headers import API_HEADERS, VIEWER_HEADERS, SecurityHeaders
-from service.api.single_values import single_query_values
+from service.api.single_values import known_query_names, single_query_values
 from service.api.state import ServiceState, open_state
 from service.api.telemetry import RequestTimer, build_registry
 from service.api.viewer_mount import ViewerMount
@@ -84,7 +84,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     routers = [importlib.import_module(name).router for name in ROUTERS]
     for router in routers:
-        app.include_router(router, dependencies=[Depends(single_query_values)])
+        app.include_router(
+            router, dependencies=[Depends(single_query_values), Depends(known_query_names)]
+        )
     # The API's routes with their full path templates (a router's paths carry its prefix).
     routes: list[BaseRoute] = [route for router in routers for route in router.routes]
 

@@ -53,3 +53,44 @@ def test_a_form_field_given_twice_is_refused(client: Client) -> None:
     message = reply.json()["message"]
     assert "gain: given 2 times ('2', '3'); give it once" in message
     assert "JSON" not in message
+
+
+@pytest.mark.parametrize(
+    ("target", "name", "takes"),
+    [
+        (f"/v1/jobs/{JOB}/result?format=png&exposur=2", "exposur", "exposure, format, part"),
+        (f"/v1/jobs/{JOB}/result?fromat=png", "fromat", "exposure, format, part"),
+        ("/v1/devices/cam1/events?sinse=0", "sinse", "limit, since"),
+        ("/v1/devices/cam1/frames/latest?formt=png", "formt", "exposure, format"),
+    ],
+)
+def test_a_query_parameter_the_route_does_not_take_is_refused(
+    client: Client, target: str, name: str, takes: str
+) -> None:
+    """A misspelt exposure was ignored (the preview came at EV 0), a misspelt format gave
+    the EXR, while the upload routes refused a parameter they do not take."""
+    reply = client().get(target)
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["code"] == "invalid_input"
+    message = reply.json()["message"]
+    assert f"{name}: not a query parameter of GET " in message and takes in message
+
+
+def test_the_parameters_a_route_takes_are_accepted(client: Client) -> None:
+    """Every parameter a result takes, given once: the job's 404, not a 422; a route
+    that declares no query parameter is left to read its query itself."""
+    reply = client().get(f"/v1/jobs/{JOB}/result?part=image&format=png&exposure=1")
+    assert reply.status_code == 404, reply.text
+    reply = client().get(f"/v1/jobs/{JOB}?cache_buster=1")
+    assert reply.status_code == 404, reply.text
+    reply = client().post("/v1/simulate?gain=2&format=npy", content=exr_bytes(),
+                          headers={"Content-Type": "application/octet-stream"})
+    assert reply.status_code == 200, reply.text
+
+
+def test_a_long_unknown_or_repeated_name_is_not_echoed_whole(client: Client) -> None:
+    name = "x" * 10_000
+    for query in (f"{name}=1", f"{name}=1&{name}=2"):
+        reply = client().get(f"/v1/jobs/{JOB}/result?{query}")
+        assert reply.status_code == 422
+        assert len(reply.content) < 2_000 and "(and 9920 more characters)" in reply.text
