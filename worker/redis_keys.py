@@ -32,10 +32,13 @@ _DEVICE_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
 def validate_device_id(device: str) -> str:
-    """Device ids are 1-64 letters, digits, '_' or '-' (they become key and path parts)."""
+    """Device ids are 1-64 ASCII letters, digits, '_' or '-' (they become key and path
+    parts); the error says ASCII (an id of other scripts' letters, 'caméra', was told to
+    use letters)."""
     if not _DEVICE_ID.fullmatch(device):
         raise InvalidInputError(
-            f"invalid device id {echo(device)}: use 1-64 letters, digits, '_' or '-'"
+            f"invalid device id {echo(device)}: use 1-64 letters, digits, '_' or '-' "
+            "(ASCII: A-Z, a-z, 0-9)"
         )
     return device
 

@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--port", required=True,
                         help="pyserial URL: /dev/ttyACM0, a pty path, socket://HOST:PORT, "
                              "rfc2217://HOST:PORT, loop://")
-    parser.add_argument("--device-id", required=True, help="1-64 letters, digits, '_' or '-'")
+    parser.add_argument("--device-id", required=True, help="1-64 ASCII letters, digits, '_' or '-'")
     add_log_level_flag(parser)
     parser.set_defaults(func=run)
 

@@ -35,6 +35,13 @@ def test_invalid_device_ids_are_refused_with_the_rule(device: str) -> None:
         frame_stream(device)
 
 
+@pytest.mark.parametrize("device", ["caméra", "cam\u0661"])
+def test_an_id_of_other_scripts_letters_or_digits_is_told_to_use_ascii(device: str) -> None:
+    """'caméra' was told to use letters, digits, '_' or '-', which it does."""
+    with pytest.raises(InvalidInputError, match=r"\(ASCII: A-Z, a-z, 0-9\)"):
+        validate_device_id(device)
+
+
 def test_a_long_invalid_device_id_is_echoed_cut_short() -> None:
     with pytest.raises(InvalidInputError) as error:
         validate_device_id("a b" * 10_000)

@@ -50,7 +50,8 @@ def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_pat
                             capture_output=True, text=True, env=env, timeout=60)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
-        "mcam device: error: invalid device id 'no spaces': use 1-64 letters, digits, '_' or '-'"]
+        "mcam device: error: invalid device id 'no spaces': use 1-64 letters, digits, '_' or '-' "
+        "(ASCII: A-Z, a-z, 0-9)"]
     result = subprocess.run([MCAM, "device", "--port", "bogus://x", "--device-id", "rig1"],
                             capture_output=True, text=True, env=env, timeout=60)
     assert result.returncode == 2 and result.stderr.strip().splitlines() == [
