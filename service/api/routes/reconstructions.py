@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import re
 from dataclasses import replace
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, Request, Response
+from numpy.typing import NDArray
 from starlette.concurrency import run_in_threadpool
 
 from models.decoders.base import check_frame_shape
 from models.errors import InvalidInputError, MissingParameterError
+from models.file_magic import FRAME_MAGICS, format_by_content
 from models.frames import WrappedFrame, check_pixel_count, decode_frame, decode_raw, merge_params
 from service.api.deps import StateDep, SubmitKey
 from service.api.in_turn import decode_in_turn
@@ -60,12 +62,28 @@ def read_wrapped_frame(
                 "a raw frame needs width, height and bits (and encoding, alpha) as parameters"
             )
         check_pixel_count(fields.width, fields.height, max_pixels)
-        codes = decode_raw(
+        codes = raw_codes(
             upload.data, fields.width, fields.height, fields.channels or 1, fields.bits
         )
         frame = WrappedFrame(codes, merge_params({}, overrides))
     check_frame_shape(frame.codes)
     return frame
+
+
+def raw_codes(data: bytes, width: int, height: int, channels: int, bits: int) -> NDArray[Any]:
+    """The raw codes of ``data`` (:func:`models.frames.decode_raw`); a refusal of a file
+    that starts as a PNG, TIFF or npy does says so (a PNG named .bin with a size given
+    was told only that its byte count is wrong for the size, to check size and bits)."""
+    try:
+        return decode_raw(data, width, height, channels, bits)
+    except InvalidInputError as exc:
+        content = format_by_content(data, FRAME_MAGICS)
+        if content is None:
+            raise
+        raise InvalidInputError(
+            f"{exc.message}; its first bytes are a {content.upper()} file's: to decode it "
+            f"as one, send it without format=raw, width and height (or as format={content})"
+        ) from None
 
 
 def choose_decoder(fields: ReconstructionFields, default: str) -> str:

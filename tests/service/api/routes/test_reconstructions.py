@@ -213,6 +213,18 @@ def test_bad_raw_uploads(client: Client, kwargs: dict, status: int, code: str) -
     assert reply.json()["code"] == code
 
 
+def test_a_png_sent_as_raw_codes_is_named_as_a_png(client: Client) -> None:
+    """A PNG named .bin with a raw size was told only that its byte count is wrong for
+    the size: 'check the size and bit depth'."""
+    data, _ = frame_png()
+    reply = client().post("/v1/reconstructions", files={"file": ("frame.bin", data)},
+                          data={"width": "8", "height": "8", "bits": "8"})
+    assert reply.status_code == 422, reply.text
+    message = reply.json()["message"]
+    assert "is 64 bytes (1 per code)" in message
+    assert "its first bytes are a PNG file's" in message and "without format=raw" in message
+
+
 @pytest.mark.parametrize("field", ["latency_ms", "gain", "read_noise"])
 def test_a_nan_parameter_is_named_as_not_finite(client: Client, field: str) -> None:
     reply = client().post(
