@@ -78,9 +78,11 @@ async def mcam_error(_: Request, exc: Exception) -> JSONResponse:
     )
 
 
-def _problem(error: dict[str, Any]) -> dict[str, str]:
+def _problem(error: dict[str, Any], empty_body: bool) -> dict[str, str]:
     """One validation error as ``{"field", "message"}``; a body that is not JSON at all
-    is named as such (FastAPI reports it at the character offset where parsing failed)."""
+    is named as such (FastAPI reports it at the character offset where parsing failed),
+    and so is a request without a body (``empty_body``) where one is required (it was
+    "request: Field required")."""
     if error.get("type") == "json_invalid":
         reason = error.get("ctx", {}).get("error", "not JSON")
         offset = error["loc"][-1]
@@ -89,17 +91,30 @@ def _problem(error: dict[str, Any]) -> dict[str, str]:
             "message": f"not valid JSON ({reason} at character {offset}); send a JSON "
             "object with the header 'Content-Type: application/json'",
         }
+    if empty_body and error.get("type") == "missing" and tuple(error["loc"]) == ("body",):
+        return {
+            "field": "body",
+            "message": "the request has no body; send a JSON object with the header "
+            "'Content-Type: application/json'",
+        }
     return {"field": _location(error["loc"]), "message": error["msg"]}
+
+
+def _without_body(request: Request) -> bool:
+    """Whether ``request`` came without a body (no length, or length 0, and not chunked)."""
+    headers = request.headers
+    return headers.get("content-length", "0") == "0" and "transfer-encoding" not in headers
 
 
 async def validation_error(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
-    details = [_problem(err) for err in exc.errors()]
+    empty_body = _without_body(request)
+    details = [_problem(err, empty_body) for err in exc.errors()]
     problems = [f"{detail['field']}: {detail['message']}" for detail in details]
     message = "invalid request: " + "; ".join(problems)
     media = media_type(request)
     body_errors = any(tuple(err["loc"][:1]) == ("body",) for err in exc.errors())
-    if body_errors and media != "application/json":
+    if body_errors and media != "application/json" and not empty_body:
         message += (
             f" (the body came as {media or 'no content type'!r} and was not read: send a "
             "JSON object with the header 'Content-Type: application/json')"

@@ -33,6 +33,26 @@ def test_a_body_that_is_not_json_is_named_as_such(client: Client) -> None:
     assert "Content-Type: application/json" in body["message"]
 
 
+@pytest.mark.parametrize(
+    "headers", [{"Content-Type": "application/json"}, {}, {"Content-Type": "text/plain"}]
+)
+def test_a_json_route_without_a_body_says_so(client: Client, headers: dict[str, str]) -> None:
+    """It said "invalid request: request: Field required"."""
+    reply = client(FULL_KEY).post("/v1/devices/cam1/control", headers=headers)
+    assert reply.status_code == 422
+    body = reply.json()
+    assert body["details"] == [{"field": "body", "message": "the request has no body; send a "
+                                "JSON object with the header 'Content-Type: application/json'"}]
+    assert "Field required" not in body["message"] and "was not read" not in body["message"]
+
+
+def test_a_body_sent_as_another_type_than_json_is_not_called_missing(client: Client) -> None:
+    reply = client(FULL_KEY).post("/v1/devices/cam1/control", content=b'{"command": "stop"}',
+                                  headers={"Content-Type": "text/plain"})
+    assert reply.status_code == 422
+    assert "no body" not in reply.text and "'text/plain' and was not read" in reply.text
+
+
 def test_field_errors_name_the_field(client: Client) -> None:
     reply = client(FULL_KEY).post(
         "/v1/devices/cam1/control", json={"command": "set_frame_rate", "fps": -1}
