@@ -61,25 +61,48 @@ class HeldFileResponse(FileResponse):
         ([] for the whole file), where a range in a unit other than bytes is ignored (RFC
         9110 14.2: it was 400) and a malformed or unsatisfiable one is the API's JSON 400
         or 416 (they were plain text)."""
-        unit, equals, _ = http_range.partition("=")
+        unit, equals, spec = http_range.partition("=")
         if equals and unit.strip().lower() != "bytes":
             return []
         try:
             return super()._parse_range_header(http_range, file_size)
+        except RangeNotSatisfiable:
+            satisfiable = cls._satisfiable_parts(spec, file_size)
+            if not satisfiable:
+                raise cls._unsatisfiable(file_size) from None
+            return super()._parse_range_header(f"bytes={','.join(satisfiable)}", file_size)
         except MalformedRangeHeader:
             raise ApiError(
                 400, "bad_range",
                 "the Range header is malformed; ask for bytes=FIRST-LAST, bytes=FIRST- or "
                 "bytes=-LENGTH (FIRST <= LAST), or send none for the whole file",
             ) from None  # fmt: skip
-        except RangeNotSatisfiable:
-            raise ApiError(
-                416, "range_not_satisfiable",
-                f"the Range header asks for bytes past the end of this {file_size}-byte "
-                "file; " + (f"ask for bytes within 0-{file_size - 1}" if file_size
-                            else "send no Range for it"),
-                headers={"Content-Range": f"bytes */{file_size}"},
-            ) from None  # fmt: skip
+
+    @classmethod
+    def _satisfiable_parts(cls, spec: str, file_size: int) -> list[str]:
+        """The ranges of the byte-range set ``spec`` that are satisfiable on their own in
+        a file of ``file_size`` bytes (RFC 9110 14.1.1: a set is satisfiable if any of
+        its ranges is, and then the others are left out; one range past the end made
+        ``bytes=0-1,99999-`` a 416)."""
+        satisfiable = []
+        for part in spec.split(","):
+            try:
+                super()._parse_range_header(f"bytes={part}", file_size)
+            except (MalformedRangeHeader, RangeNotSatisfiable):
+                continue
+            satisfiable.append(part)
+        return satisfiable
+
+    @staticmethod
+    def _unsatisfiable(file_size: int) -> ApiError:
+        """The API's JSON 416 for a Range none of whose ranges lies in the file."""
+        return ApiError(
+            416, "range_not_satisfiable",
+            f"the Range header asks for bytes past the end of this {file_size}-byte "
+            "file; " + (f"ask for bytes within 0-{file_size - 1}" if file_size
+                        else "send no Range for it"),
+            headers={"Content-Range": f"bytes */{file_size}"},
+        )  # fmt: skip
 
 
 def stored_file(

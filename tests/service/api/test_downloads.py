@@ -98,3 +98,23 @@ def test_a_range_past_the_end_is_a_json_416(api_download: httpx.Client) -> None:
     assert reply.headers["content-range"] == f"bytes */{len(DATA)}"
     assert reply.json()["code"] == "range_not_satisfiable"
     assert f"0-{len(DATA) - 1}" in reply.json()["message"]
+
+
+@pytest.mark.parametrize(
+    ("ranges", "sent"),
+    [(f"0-1,{len(DATA)}-", DATA[0:2]), (f"{len(DATA) + 5}-,-3", DATA[-3:]), ("0-1,-0", DATA[0:2])],
+)
+def test_a_range_set_with_one_satisfiable_range_sends_that_range(
+    api_download: httpx.Client, ranges: str, sent: bytes
+) -> None:
+    """RFC 9110 14.1.1: a range set is satisfiable if any of its ranges is; one range
+    past the end made the whole set a 416."""
+    reply = api_download.get("/result", headers={"Range": f"bytes={ranges}"})
+    assert reply.status_code == 206, reply.text
+    assert reply.content == sent
+
+
+def test_a_range_set_with_no_satisfiable_range_is_a_416(api_download: httpx.Client) -> None:
+    reply = api_download.get("/result", headers={"Range": f"bytes={len(DATA)}-,-0"})
+    assert reply.status_code == 416, reply.text
+    assert reply.json()["code"] == "range_not_satisfiable"
