@@ -11,6 +11,7 @@ at once (:func:`service.api.in_turn.decode_in_turn`).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
 
@@ -38,6 +39,10 @@ from service.api.single_values import refuse_repeated
 
 Model = TypeVar("Model", bound=BaseModel)
 _MAX_FORM_FIELDS = 64
+#: The start of a multipart/form-data body: a boundary line (RFC 2046: at most 70
+#: characters) and a part's Content-Disposition.
+_MULTIPART_START = re.compile(rb"--([^\r\n]{1,70})\r\nContent-Disposition:\s*form-data",
+                              re.IGNORECASE)
 #: The frame format each file-name suffix names: the readers' (:mod:`models.frames`)
 #: and raw codes.
 _NAMED = {**FRAME_ALIASES, "raw": "raw", "bin": "raw"}
@@ -159,6 +164,20 @@ async def _read_multipart(request: Request) -> Upload:
         await form.close()
 
 
+def _refuse_multipart_as_raw(body: bytes | bytearray) -> None:
+    """Refuse a multipart/form-data body labelled application/octet-stream: read as the
+    raw file, it was told to be converted to OpenEXR, or that its frame format could not
+    be told, which sent the client to the wrong fix."""
+    found = _MULTIPART_START.match(body)
+    if found is not None:
+        boundary = found.group(1).decode("latin-1")
+        raise UnsupportedFormatError(
+            "the body is a multipart/form-data body sent as application/octet-stream: send "
+            f"it with the header 'Content-Type: multipart/form-data; boundary={boundary}' "
+            "(curl -F file=@frame.png does), or send the raw file alone"
+        )
+
+
 async def read_upload(request: Request) -> Upload:
     """The request's file: multipart field ``file`` or the raw body."""
     media = media_type(request)
@@ -168,6 +187,7 @@ async def read_upload(request: Request) -> Upload:
         body = bytearray()
         async for chunk in request.stream():
             body += chunk
+        _refuse_multipart_as_raw(body)
         upload = Upload(bytes(body), None, {})
     else:
         raise UnsupportedFormatError(

@@ -1,0 +1,35 @@
+"""service/api/uploads.py: how an upload's file and fields are read, over real HTTP."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import httpx
+import pytest
+
+from tests.service.conftest import exr_bytes, frame_png
+
+Client = Callable[..., httpx.Client]
+
+
+@pytest.mark.parametrize("route", ["/v1/simulate", "/v1/reconstructions"])
+def test_a_multipart_body_sent_as_octet_stream_is_told_its_content_type(
+    client: Client, route: str
+) -> None:
+    """It was read as the raw file: 'convert it to OpenEXR', or 'cannot tell the frame's
+    format'."""
+    file = exr_bytes() if route == "/v1/simulate" else frame_png()[0]
+    multipart = httpx.Request("POST", "http://x", files={"file": ("upload", file)})
+    boundary = multipart.headers["Content-Type"].split("boundary=")[1]
+    reply = client().post(route, content=multipart.read(),
+                          headers={"Content-Type": "application/octet-stream"})
+    assert reply.status_code == 415, reply.text
+    message = reply.json()["message"]
+    assert "multipart/form-data body sent as application/octet-stream" in message
+    assert f"'Content-Type: multipart/form-data; boundary={boundary}'" in message
+
+
+def test_a_raw_file_is_still_read_as_one(client: Client) -> None:
+    reply = client().post("/v1/simulate", content=exr_bytes(),
+                          headers={"Content-Type": "application/octet-stream"})
+    assert reply.status_code == 200, reply.text
