@@ -106,5 +106,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(SecurityHeaders, headers=API_HEADERS)
     app.mount(DOCS_ASSETS, StaticFiles(directory=swagger_ui_path), name="docs-assets")
     viewer = SecurityHeaders(StaticFiles(directory=STATIC_DIR, html=True), VIEWER_HEADERS)
-    app.mount("/", ViewerMount(viewer, routes), name="viewer")
+    # FastAPI's own /openapi.json is the API's too, not a viewer file (its 405 said so).
+    schema = [route for route in app.routes if getattr(route, "path", None) == app.openapi_url]
+    app.mount("/", ViewerMount(viewer, [*routes, *schema]), name="viewer")
     return app

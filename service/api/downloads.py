@@ -98,8 +98,9 @@ class HeldFileResponse(FileResponse):
         """The API's JSON 416 for a Range none of whose ranges lies in the file."""
         return ApiError(
             416, "range_not_satisfiable",
-            f"the Range header asks for bytes past the end of this {file_size}-byte "
-            "file; " + (f"ask for bytes within 0-{file_size - 1}" if file_size
+            f"the Range header asks for no byte of this {file_size}-byte file (ranges "
+            "past its end, or a last 0 bytes: bytes=-0); "
+            + (f"ask for bytes within 0-{file_size - 1}" if file_size
                         else "send no Range for it"),
             headers={"Content-Range": f"bytes */{file_size}"},
         )  # fmt: skip

@@ -72,6 +72,7 @@ def test_unknown_routes_and_methods_are_json(api: str) -> None:
         ("POST", "/v1/decoders", "GET, HEAD"),
         ("PATCH", "/v1/jobs/abc123", "DELETE, GET, HEAD"),
         ("POST", "/health/ready", "GET, HEAD"),
+        ("OPTIONS", "/openapi.json", "GET, HEAD"),
     ],
 )
 def test_a_wrong_method_names_the_methods_the_api_route_takes(

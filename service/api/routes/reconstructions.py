@@ -36,13 +36,20 @@ from worker.outputs import check_result_storable
 
 router = APIRouter(prefix="/v1", tags=["reconstructions"])
 
-_WAIT = re.compile(r"(?:^|[,;\s])wait\s*=\s*(\d+(?:\.\d+)?)", re.IGNORECASE)
+#: ``wait=N`` or ``wait="N"`` in a Prefer header, N ending at the end of the
+#: preference (``wait=1e3`` or ``wait=5s`` is no wait: it was read as 1 and 5).
+_WAIT = re.compile(
+    r'(?:^|[,;\s])wait\s*=\s*(?:"(\d+(?:\.\d+)?)"|(\d+(?:\.\d+)?))(?=\s*(?:$|[,;]))',
+    re.IGNORECASE,
+)
 
 
 def prefer_wait_s(prefer: str | None, limit_s: float) -> float:
-    """Seconds asked for by ``Prefer: wait=N`` (RFC 7240), at most ``limit_s``; 0 if absent."""
+    """Seconds asked for by ``Prefer: wait=N`` (RFC 7240: delta-seconds, here also a
+    decimal, bare or quoted), at most ``limit_s``; 0 if absent or not a number of
+    seconds (a preference the server does not understand is ignored, RFC 7240 2)."""
     match = _WAIT.search(prefer or "")
-    return min(float(match.group(1)), limit_s) if match else 0.0
+    return min(float(match.group(1) or match.group(2)), limit_s) if match else 0.0
 
 
 def read_wrapped_frame(

@@ -114,7 +114,12 @@ def test_a_range_set_with_one_satisfiable_range_sends_that_range(
     assert reply.content == sent
 
 
-def test_a_range_set_with_no_satisfiable_range_is_a_416(api_download: httpx.Client) -> None:
-    reply = api_download.get("/result", headers={"Range": f"bytes={len(DATA)}-,-0"})
+@pytest.mark.parametrize("ranges", [f"{len(DATA)}-,-0", "-0"])
+def test_a_range_set_with_no_satisfiable_range_is_a_416(
+    api_download: httpx.Client, ranges: str
+) -> None:
+    """``bytes=-0`` (the last 0 bytes) was told it asked for bytes past the end."""
+    reply = api_download.get("/result", headers={"Range": f"bytes={ranges}"})
     assert reply.status_code == 416, reply.text
     assert reply.json()["code"] == "range_not_satisfiable"
+    assert "asks for no byte of this" in reply.json()["message"]

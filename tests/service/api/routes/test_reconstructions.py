@@ -18,6 +18,7 @@ import pytest
 
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
+from service.api.routes.reconstructions import prefer_wait_s
 from service.api.state import Slots
 from service.main import create_app
 from tests.service.conftest import (
@@ -566,3 +567,24 @@ def test_a_key_with_its_limit_of_jobs_in_the_queue_gets_429_and_other_keys_do_no
             while connect(redis_url).xlen(JOBS_STREAM) and time.monotonic() < deadline:
                 time.sleep(0.05)
         assert upload(FULL_KEY).status_code == 202
+
+
+@pytest.mark.parametrize(
+    ("prefer", "wait_s"),
+    [
+        (None, 0.0),
+        ("wait=5", 5.0),
+        ("WAIT = 2.5", 2.5),
+        ('wait="7"', 7.0),
+        ("respond-async, wait=10", 10.0),
+        ("wait=10; foo=bar", 10.0),
+        ("wait=100", 60.0),
+        ("wait=1e3", 0.0),
+        ("wait=5s", 0.0),
+        ("nowait=5", 0.0),
+    ],
+)
+def test_the_prefer_header_s_wait_is_read_whole(prefer: str | None, wait_s: float) -> None:
+    """``wait=1e3`` was read as 1 s and ``wait=5s`` as 5 s (the leading digits), and a
+    quoted ``wait="7"``, which RFC 7240 allows, as none."""
+    assert prefer_wait_s(prefer, 60.0) == wait_s
