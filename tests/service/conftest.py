@@ -164,10 +164,19 @@ def npy_bytes(array: np.ndarray) -> bytes:
 
 
 def finished_job(http: httpx.Client, job_id: str, timeout_s: float = 120.0) -> dict:
-    """The job's JSON once it succeeded, failed or was cancelled (polled every 0.1 s)."""
+    """The job's JSON once it succeeded, failed or was cancelled (polled every 0.1 s).
+
+    A 503 (Redis too slow to answer on a loaded host) is retried, as a client would, after
+    its Retry-After or a second, whichever is shorter; any other status than 200 fails the
+    test with the answer's body."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        job = http.get(f"/v1/jobs/{job_id}").json()
+        reply = http.get(f"/v1/jobs/{job_id}")
+        if reply.status_code == 503:
+            time.sleep(min(float(reply.headers["Retry-After"]), 1.0))
+            continue
+        assert reply.status_code == 200, reply.text
+        job = reply.json()
         if job["state"] in ("succeeded", "failed", "cancelled"):
             return job
         time.sleep(0.1)
