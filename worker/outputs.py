@@ -1,10 +1,9 @@
-"""Result files of one decoded frame: the HDR EXR and the winding-number map (and, for
-a half-float EXR, the codes).
+"""Result files of one decoded frame: the HDR EXR, the winding-number map and the codes.
 
 Usage::
 
     files = encode_outputs(codes, result.winding, params, result.info, options)
-    # {"exr": EXR bytes, "winding": .npy bytes (int64)[, "codes": .npy bytes]}
+    # {"exr": EXR bytes, "winding": .npy bytes (int64), "codes": .npy bytes}
 
 Options (from the job): ``scene_referred`` (default true: x / gain when the gain
 is known, else wrap units x), ``half`` (default false: float32 EXR) and
@@ -85,13 +84,13 @@ def encode_outputs(
     info: dict[str, Any],
     options: dict[str, Any],
 ) -> dict[str, bytes]:
-    """The outputs of a frame, by output name: ``exr``, ``winding`` and, when the EXR is
-    half-float, ``codes`` (.npy, DN): its 11-bit mantissa cannot carry the codes back
-    (16-bit codes re-encoded from it were off by up to 45 DN), a float32 EXR can."""
-    files = {
+    """The outputs of a frame, by output name: ``exr``, ``winding`` and ``codes`` (.npy,
+    DN). The codes are kept as uploaded: no EXR carries them back for every frame (16-bit
+    codes re-encoded from a half-float EXR were off by up to 45 DN, and from a float32
+    one, at a thousand wraps, by up to 3 DN: 24 bits hold W and 16 bits of fraction only
+    while W < 256)."""
+    return {
         "exr": encode_exr_result(codes, winding, params, info, options),
         "winding": encode_winding(winding),
+        "codes": encode_frame(codes, None, "npy"),
     }
-    if options.get("half", False):
-        files["codes"] = encode_frame(codes, None, "npy")
-    return files

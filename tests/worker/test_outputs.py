@@ -59,3 +59,12 @@ def test_the_exr_says_which_units_its_values_are_in() -> None:
     assert comments({"scene_referred": False}).endswith("values in wrap units x")
     no_gain = PARAMS.model_copy(update={"gain": None})
     assert comments({}, no_gain).endswith("values in wrap units x (gain unknown)")
+
+
+def test_the_codes_are_kept_whatever_the_exr_can_carry_back() -> None:
+    """16-bit codes a thousand wraps up do not survive a float32 EXR (24 bits hold W and
+    16 bits of fraction only below 256 wraps): the codes are stored as they came."""
+    params = SensorParams(encoding="modulo", bits=16)
+    frame = encode(np.linspace(0.0, 1000.0, 4096).reshape(64, 64), params)
+    files = encode_outputs(frame.codes, frame.winding, params, {}, {})
+    np.testing.assert_array_equal(np.load(io.BytesIO(files["codes"])), frame.codes)

@@ -83,8 +83,9 @@ def wrapped_codes(record: JobRecord, x: NDArray[np.float64]) -> NDArray[np.unsig
     """The frame's codes, re-encoded from the reconstruction with the formation model.
 
     ``x_hat`` keeps each pixel's stored fraction ``m`` whatever W the decoder chose,
-    so encoding it without noise gives back the uploaded codes (from a float32 EXR; a
-    half-float job stores its codes instead, :func:`worker.outputs.encode_outputs`)."""
+    so encoding it without noise gives back the uploaded codes while the EXR's precision
+    holds them: for a float32 job stored before every job kept its codes
+    (:func:`worker.outputs.encode_outputs`)."""
     exact = record.params.model_copy(
         update={"read_noise": 0.0, "full_well": None, "max_wraps": None}
     )
