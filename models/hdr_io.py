@@ -29,7 +29,7 @@ from models.exr_parts import check_flat, image_part
 from models.file_magic import FRAME_MAGICS, HDR_MAGICS, format_by_content
 from models.formation import validate_irradiance
 from models.frames import check_pixel_count, decoding
-from models.output_range import ensure_fits
+from models.output_range import ensure_fits, ensure_nonzero_kept
 from models.radiance import read_radiance
 
 _EXR_TRUNCATED = "the OpenEXR pixel data is truncated or corrupt; send the complete file"
@@ -168,6 +168,7 @@ def encode_exr(
     *,
     half: bool = False,
     compression: str = DEFAULT_EXR_COMPRESSION,
+    scene_gain: float | None = None,
 ) -> bytes:
     """An OpenEXR file (float32 or half) of ``H x W`` (channel Y) or ``H x W x 3`` (R,G,B),
     compressed as one of :data:`EXR_COMPRESSIONS`.
@@ -175,7 +176,9 @@ def encode_exr(
     ``attributes`` become string header attributes, after the standard ``capDate``
     (local time, ``YYYY:MM:DD HH:MM:SS``) and ``comments``, which they may replace;
     text UTF-8 cannot hold is escaped (:func:`_exr_text`).
-    Raises :class:`OutputOverflowError` when a value does not fit the pixel type.
+    Raises :class:`OutputOverflowError` when a value does not fit the pixel type and
+    :class:`OutputUnderflowError` when a nonzero one would be stored as 0; their remedy
+    names ``scene_gain``, the gain the values were divided by (None: not scene-referred).
     """
     if compression not in EXR_COMPRESSIONS:
         raise InvalidInputError(
@@ -190,7 +193,8 @@ def encode_exr(
             f"an HDR image is a non-empty H x W or H x W x 3 array, got shape {arr.shape}"
         )
     dtype = np.float16 if half else np.float32
-    ensure_fits(arr, dtype, "HDR image")
+    ensure_fits(arr, dtype, "HDR image", scene_gain)
+    ensure_nonzero_kept(np.asarray(pixels), dtype, "HDR image", scene_gain)
     values = arr.astype(dtype)
     if values.ndim == 2:
         channels = {"Y": values}
@@ -215,6 +219,10 @@ def write_exr(
     *,
     half: bool = False,
     compression: str = DEFAULT_EXR_COMPRESSION,
+    scene_gain: float | None = None,
 ) -> None:
     """Write :func:`encode_exr`'s bytes to ``path``."""
-    Path(path).write_bytes(encode_exr(pixels, attributes, half=half, compression=compression))
+    data = encode_exr(
+        pixels, attributes, half=half, compression=compression, scene_gain=scene_gain
+    )
+    Path(path).write_bytes(data)

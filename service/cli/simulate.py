@@ -107,7 +107,10 @@ def run(args: argparse.Namespace) -> int:
             attributes = sensor_attributes(frame.params) | {
                 "comments": "scene-referred irradiance the simulated sensor saw (x / gain)"
             }
-            write_exr(paths["--reference-out"], frame.irradiance / frame.params.gain, attributes)
+            gain = frame.params.gain
+            write_exr(
+                paths["--reference-out"], frame.irradiance / gain, attributes, scene_gain=gain
+            )
     shape = " x ".join(str(n) for n in frame.codes.shape)
     print(
         f"wrote {args.output}: {shape} {frame.params.encoding} codes, {frame.params.bits}-bit, "

@@ -20,6 +20,7 @@ from models.errors import (
     ImageTooLargeError,
     InvalidInputError,
     OutputOverflowError,
+    OutputUnderflowError,
     UnsupportedFormatError,
 )
 from models.hdr_io import (
@@ -121,7 +122,7 @@ def test_exr_single_channel_is_written_as_y(tmp_path: Path) -> None:
 
 
 @settings(max_examples=30, deadline=None)
-@given(arrays(np.float64, (3, 4), elements=st.floats(0, 6e4, allow_subnormal=False)))
+@given(arrays(np.float64, (3, 4), elements=st.just(0.0) | st.floats(2.0**-24, 6e4)))
 def test_exr_half_round_trip_within_half_precision(values: np.ndarray) -> None:
     back = read_hdr(encode_exr(values, half=True)).pixels
     np.testing.assert_allclose(back, values, rtol=2.0**-11, atol=2.0**-24)
@@ -135,7 +136,7 @@ def exr_compression_of(data: bytes) -> object:
 
 @settings(max_examples=20, deadline=None)
 @given(
-    arrays(np.float64, (5, 7), elements=st.floats(0, 3e38, allow_subnormal=False)),
+    arrays(np.float64, (5, 7), elements=st.just(0.0) | st.floats(2.0**-149, 3e38)),
     st.sampled_from(sorted(EXR_COMPRESSIONS)),
 )
 def test_every_compression_is_lossless_and_named_in_the_header(
@@ -170,6 +171,15 @@ def test_half_and_float32_overflow_are_errors() -> None:
         encode_exr(np.array([[1.0, -np.inf]]))
     with pytest.raises(InvalidInputError, match="^1 pixels of the HDR image are NaN"):
         encode_exr(np.array([[1.0, np.nan]]))
+
+
+def test_nonzero_values_the_pixel_type_would_store_as_zero_are_errors() -> None:
+    """They were written as 0 in silence: a reference image gone black."""
+    with pytest.raises(OutputUnderflowError, match="1 nonzero pixels.*float16.*float32"):
+        encode_exr(np.array([[1.0, 1e-9]]), half=True)
+    with pytest.raises(OutputUnderflowError, match="2 nonzero pixels.*gain 1e\\+50"):
+        encode_exr(np.array([[1e-46, 4e-50]]), scene_gain=1e50)
+    assert read_hdr(encode_exr(np.array([[0.0, 1e-9]]))).pixels[0, 1] == np.float32(1e-9)
 
 
 @pytest.mark.parametrize("shape", [(0, 4), (4,), (3, 3, 2), (2, 2, 4)])

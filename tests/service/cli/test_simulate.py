@@ -62,6 +62,19 @@ def test_simulate_rgb_tiff_with_noise_and_max_wraps(tmp_path: Path) -> None:
     assert read_hdr(tmp_path / "ref.exr").pixels.max() == 16.0 / 0.5
 
 
+def test_a_reference_float32_would_store_as_zero_is_refused(tmp_path: Path) -> None:
+    """x clipped at 3 wraps over a gain of 1e50 is 4e-50 in scene units, below float32's
+    smallest: the reference was written all 0, in silence."""
+    write_exr(tmp_path / "scene.exr", blob_scene(size=16))
+    result = run_mcam(
+        "simulate", "scene.exr", "-o", "f.npy", "--encoding", "modulo", "--gain", "1e50",
+        "--max-wraps", "3", "--reference-out", "ref.exr",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(result, "256 nonzero pixels", "stored as 0", "gain 1e+50")
+    assert not (tmp_path / "ref.exr").exists()
+
+
 def test_simulate_without_seed_draws_the_noise_of_seed_0(tmp_path: Path) -> None:
     write_exr(tmp_path / "scene.exr", blob_scene(size=16))
     noisy = ("--read-noise", "0.05", "--full-well", "1000")
