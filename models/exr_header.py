@@ -44,11 +44,15 @@ def values_unit(params: SensorParams, scene_referred: bool = True) -> str:
 
 def values_scene_referred(attributes: dict[str, Any]) -> bool | None:
     """Whether an EXR written here holds scene-referred values (``x / gain``: True) or wrap
-    units (the gain unknown: False), from its ``comments``; None for any other file."""
+    units (the gain unknown: False), from its ``comments``: the unit after its last
+    ``values in`` (:func:`reconstruction_attributes`; the source's name before it may
+    hold any words), else anywhere in it; None for any other file."""
     comments = str(attributes.get("comments", ""))
-    if "scene-referred" in comments:
+    _, found, unit = comments.rpartition("values in ")
+    text = unit if found else comments
+    if "scene-referred" in text:
         return True
-    if "wrap units" in comments:
+    if "wrap units" in text:
         return False
     return None
 

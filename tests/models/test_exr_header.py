@@ -7,7 +7,12 @@ import json
 import numpy as np
 
 from models.decoders import get_decoder
-from models.exr_header import decode_attributes, sensor_attributes
+from models.exr_header import (
+    decode_attributes,
+    reconstruction_attributes,
+    sensor_attributes,
+    values_scene_referred,
+)
 from models.formation import SensorParams, encode
 
 
@@ -33,3 +38,16 @@ def test_a_colour_frames_joined_channels_are_recorded() -> None:
     routing = json.loads(attributes["routing"])
     assert len(routing["channels"]) == 3
     assert set(routing["colour"]) == {"anchors", "majority_fraction", "changed_fraction"}
+
+
+def test_the_units_are_read_from_the_comments_not_the_sources_name() -> None:
+    """A frame named scene-referred.npy, reconstructed without its gain, was taken for
+    scene-referred: mcam evaluate compared its wrap units with a scene-referred
+    reference (13 dB) instead of refusing the pair."""
+    no_gain, gain = SensorParams(encoding="modulo"), SensorParams(encoding="modulo", gain=0.25)
+    for source in ("scene-referred.npy", "wrap units.npy", "values in scene-referred.npy"):
+        assert values_scene_referred(reconstruction_attributes(no_gain, {}, source)) is False
+        assert values_scene_referred(reconstruction_attributes(gain, {}, source)) is True
+    reference = {"comments": "scene-referred irradiance the simulated sensor saw (x / gain)"}
+    assert values_scene_referred(reference) is True
+    assert values_scene_referred({"comments": "written by MantissaCam"}) is None
