@@ -95,7 +95,11 @@ class ReconstructionFields(SensorFields):
     scene_referred: bool = Field(
         True, description="divide the result by the gain when known (false: wrap units)"
     )
-    half: bool = Field(False, description="write a half-float EXR (default float32)")
+    half: bool = Field(
+        False,
+        description="write a half-float EXR (default float32; values under 6.1e-5 are kept "
+        "to 3e-8 only, so dark scene-referred pixels lose precision)",
+    )
     exr_compression: Literal[tuple(EXR_COMPRESSIONS)] = Field(  # type: ignore[valid-type]
         DEFAULT_EXR_COMPRESSION,
         description="lossless EXR compression: zip (smaller) or none (faster)",
