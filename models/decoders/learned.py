@@ -19,6 +19,7 @@ already decoded pixels of its overlap, and only new pixels are written.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections.abc import Iterator
@@ -138,6 +139,75 @@ def load_cards(onnx_dir: Path = ONNX_DIR) -> list[dict[str, Any]]:
     return cards
 
 
+class ModelFileError(OSError):
+    """A model's ONNX file is missing, or not the file its card describes (cut short,
+    corrupt, replaced, a Git LFS pointer, or a graph of another family). A fault of the
+    installation, not of the caller (so not a :class:`McamError`): the CLI prints it as
+    one line, as any file it cannot use, and a job that meets it is retried and then
+    dead-lettered, to be run again once the file is restored."""
+
+
+#: What each family's graph takes and gives (:mod:`models.training.export`): its input
+#: names, and its output's element type by the card's ``output``.
+GRAPH_INPUTS = {"mantissanet": ("m",), "unmodnet": ("m", "winding")}
+GRAPH_OUTPUT_TYPES = {"winding": "tensor(int64)", "jumps": "tensor(float)"}
+#: What to do about a model file that is not its card's.
+RESTORE_ADVICE = (
+    "restore it (git checkout -- models/onnx, or git lfs pull for LFS pointers), or "
+    "export it again (mcam train export --force)"
+)
+
+
+def sha256_of(path: Path) -> str:
+    """Hex sha256 of a file (read in chunks)."""
+    with path.open("rb") as file:
+        return hashlib.file_digest(file, "sha256").hexdigest()
+
+
+def check_model_file(card: dict[str, Any]) -> None:
+    """A :class:`ModelFileError` naming the card's ONNX file (``card["path"]``) and what
+    to do when it is gone or its sha256 is not the card's."""
+    path = Path(card["path"])
+    try:
+        digest = sha256_of(path)
+    except FileNotFoundError:
+        raise ModelFileError(
+            f"model file {path} (decoder {card['decoder']!r}, {card['encoding']} frames) is "
+            f"missing; {RESTORE_ADVICE}"
+        ) from None
+    if digest != card["sha256"]:
+        raise ModelFileError(
+            f"model file {path} is not the one its card describes (sha256 {digest[:12]}..., "
+            f"the card's {str(card['sha256'])[:12]}...): it is cut short, corrupt, replaced "
+            f"or a Git LFS pointer; {RESTORE_ADVICE}"
+        )
+
+
+def check_graph(session: ort.InferenceSession, card: dict[str, Any]) -> None:
+    """A :class:`ModelFileError` when the session's inputs and output type are not those
+    of the card's family and ``output`` (:data:`GRAPH_INPUTS`, :data:`GRAPH_OUTPUT_TYPES`)."""
+    output = card.get("output", "winding")
+    expected = (GRAPH_INPUTS.get(card["family"]), GRAPH_OUTPUT_TYPES.get(output))
+    found = (tuple(item.name for item in session.get_inputs()), session.get_outputs()[0].type)
+    if found != expected:
+        raise ModelFileError(
+            f"model file {card['path']} takes inputs {list(found[0])} and gives a {found[1]}, "
+            f"but its card describes a {card['family']} net with {output} output, which "
+            f"takes {list(expected[0] or ())} and gives a {expected[1]}: the card does not "
+            f"belong to this file; {RESTORE_ADVICE}"
+        )
+
+
+def open_model(card: dict[str, Any]) -> ort.InferenceSession:
+    """The session of a card's ONNX file, checked to be the file the card describes
+    (:func:`check_model_file`, :func:`check_graph`) so that a broken install is one clear
+    error rather than onnxruntime's parse error or a wrong decode."""
+    check_model_file(card)
+    session = make_session(card["path"], worker_threads())
+    check_graph(session, card)
+    return session
+
+
 def make_session(
     path: str | bytes, threads: int, profile_prefix: str | None = None
 ) -> ort.InferenceSession:
@@ -217,7 +287,7 @@ class OnnxWindingModel:
     @property
     def session(self) -> ort.InferenceSession:
         if self._session is None:
-            self._session = make_session(self.card["path"], worker_threads())
+            self._session = open_model(self.card)
         return self._session
 
     def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:

@@ -17,7 +17,6 @@ from, so that ``mcam train all`` skips runs whose card is up to date
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -30,7 +29,7 @@ from numpy.typing import NDArray
 from torch import Tensor, nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from models.decoders.learned import ONNX_DIR, read_cards
+from models.decoders.learned import ONNX_DIR, read_cards, sha256_of
 from models.errors import InvalidInputError, McamError
 from models.scenes import TRAIN_SCENES
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
@@ -126,12 +125,6 @@ def export_onnx(module: nn.Module, path: Path) -> None:
         opset_version=OPSET,
         dynamo=False,
     )
-
-
-def sha256_of(path: Path) -> str:
-    """Hex sha256 of a file (read in chunks)."""
-    with path.open("rb") as file:
-        return hashlib.file_digest(file, "sha256").hexdigest()
 
 
 def check_inputs(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -261,3 +262,35 @@ def test_a_file_that_is_not_a_model_card_is_named_with_what_is_wrong(
 
 def test_every_shipped_card_reads() -> None:
     assert all(learned.read_card(path) == card for path, card in learned.read_cards())
+
+
+def shipped_card(name: str) -> dict[str, Any]:
+    """The loaded card (``path`` set to its ONNX file) of shipped model ``name``."""
+    return next(card for card in learned.load_cards() if card["name"] == name)
+
+
+def test_a_cut_short_model_file_is_named_at_session_creation(tmp_path: Path) -> None:
+    """onnxruntime's 'INVALID_PROTOBUF : Protobuf parsing failed' reached the job."""
+    card = shipped_card("mantissanet-tiny-modulo")
+    cut = tmp_path / card["file"]
+    cut.write_bytes(Path(card["path"]).read_bytes()[:5000])
+    model = learned.onnx_model({**card, "path": str(cut)})
+    with pytest.raises(learned.ModelFileError, match="cut short.*git lfs pull") as caught:
+        model.run(np.zeros((32, 32)))
+    assert str(cut) in str(caught.value)
+
+
+def test_a_missing_model_file_is_named_at_session_creation(tmp_path: Path) -> None:
+    card = {**shipped_card("mantissanet-tiny-modulo"), "path": str(tmp_path / "gone.onnx")}
+    with pytest.raises(learned.ModelFileError, match="gone.onnx .*is missing; restore it"):
+        learned.onnx_model(card).run(np.zeros((32, 32)))
+
+
+def test_a_card_of_another_family_than_its_file_is_refused() -> None:
+    """An UnModNet file under a MantissaNet card failed in onnxruntime with 'Required
+    inputs (['winding']) are missing from input feed'."""
+    unmodnet = shipped_card("unmodnet-tiny-modulo")
+    card = {**shipped_card("mantissanet-tiny-modulo"), "path": unmodnet["path"],
+            "sha256": unmodnet["sha256"]}  # fmt: skip
+    with pytest.raises(learned.ModelFileError, match=r"takes inputs \['m', 'winding'\].*does not"):
+        learned.onnx_model(card).run(np.zeros((32, 32)))
