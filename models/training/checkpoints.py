@@ -43,18 +43,32 @@ def sync_folder(folder: Path) -> None:
 UNREADABLE = (EOFError, RuntimeError, pickle.UnpicklingError, OSError, ValueError, KeyError)
 
 
+#: What every checkpoint holds (:func:`run_state`; ``segments`` came later, see
+#: :func:`checkpoint_segments`).
+CHECKPOINT_KEYS = ("model", "optimizer", "step", "wall_s", "config")
+
+
 def load_checkpoint(path: Path, *, resuming: bool = False) -> dict[str, Any]:
     """A checkpoint written by :func:`models.training.train.train` (model, optimizer,
-    step, wall_s, config, segments). An empty, cut short or corrupt file is an
-    InvalidInputError naming it and what to do (``resuming``: it is the run's own, which
-    the run can also start again without)."""
+    step, wall_s, config, segments). An empty, cut short or corrupt file, or one that
+    holds something else (a model's ``state_dict`` alone), is an InvalidInputError naming
+    it and what to do (``resuming``: it is the run's own, which the run can also start
+    again without)."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except UNREADABLE as exc:
         first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise unreadable(path, first_line, resuming) from exc
+        reason = f"{first_line}: it is empty, cut short or corrupt"
+        raise unreadable(path, reason, resuming) from exc
     if not isinstance(state, dict):
         reason = f"it holds a {type(state).__name__}, not a checkpoint's dict"
+        raise unreadable(path, reason, resuming)
+    missing = [key for key in CHECKPOINT_KEYS if key not in state]
+    if missing:
+        reason = (
+            f"it lacks {', '.join(missing)}: a model's weights alone (a state_dict) or "
+            "another program's file, not one training wrote"
+        )
         raise unreadable(path, reason, resuming)
     return state
 
@@ -69,10 +83,7 @@ def unreadable(path: Path, reason: str, resuming: bool) -> InvalidInputError:
         if resuming
         else "name a checkpoint.pt that training wrote (runs/<name>/checkpoint.pt)"
     )
-    return InvalidInputError(
-        f"{path} is not a readable checkpoint ({reason}): it is empty, cut short or "
-        f"corrupt; {advice}"
-    )
+    return InvalidInputError(f"{path} is not a readable checkpoint ({reason}); {advice}")
 
 
 def hardware_name(device: torch.device) -> str:
