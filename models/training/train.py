@@ -82,6 +82,7 @@ def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
             f"{config.init_from} first (mcam train all trains the recipes in order)"
         )
     state = load_checkpoint(source)
+    check_same_net(config, state["config"])
     planned = sum(state["config"]["stage_steps"])
     if state["step"] < planned:
         raise InvalidInputError(
@@ -90,6 +91,28 @@ def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
             "with its settings resumes it)"
         )
     return state["model"]
+
+
+def net_shape(family: str, tier: str, loss: str) -> str:
+    """The net a run trains, in words: family, tier and outputs per pixel (the loss's
+    head, :data:`models.training.losses.HEAD_OUTPUTS`)."""
+    outputs = 1 if family == "unmodnet" else HEAD_OUTPUTS.get(loss)
+    return f"a {family} {tier} net with {outputs} outputs per pixel"
+
+
+def check_same_net(config: TrainConfig, saved: dict[str, Any]) -> None:
+    """Refuse to start ``config`` from the weights of ``init_from``'s run (its
+    ``saved`` configuration) when they are those of another net (family, tier or head),
+    which the weights cannot be loaded into."""
+    source = net_shape(saved["family"], saved["tier"], saved.get("loss", "ce"))
+    target = net_shape(config.family, config.tier, config.loss)
+    if source != target:
+        raise InvalidInputError(
+            f"{config.name} starts from {config.init_from}, {source} ({saved.get('loss', 'ce')} "
+            f"loss), but it trains {target} ({config.loss} loss): the weights do not fit. "
+            "Start from a run of the same family and tier, with a loss of as many outputs, "
+            "or leave --init-from out to train from scratch"
+        )
 
 
 def restore(

@@ -126,6 +126,24 @@ def test_a_run_may_not_start_from_an_unfinished_one(tmp_path: Path) -> None:
         train(config)
 
 
+@pytest.mark.parametrize(
+    ("change", "target"),
+    [({"tier": "small"}, "mantissanet small net with 17"), ({"family": "unmodnet"}, "unmodnet"),
+     ({"loss": "mse"}, "mantissanet tiny net with 1 outputs")],
+)
+def test_a_run_may_not_start_from_another_nets_weights(
+    tmp_path: Path, change: dict[str, str], target: str
+) -> None:
+    """Another tier, family or head failed in load_state_dict with torch's 'Missing
+    key(s) in state_dict' or 'size mismatch' traceback."""
+    train(tiny_config(tmp_path, (1, 1, 1)))
+    config = replace(
+        tiny_config(tmp_path, (0, 0, 1)), init_from="mantissanet-tiny-mantissa", **change
+    )
+    with pytest.raises(InvalidInputError, match=f"trains a {target}.*the weights do not fit"):
+        train(config)
+
+
 def test_a_missing_initial_run_is_named_in_the_error(tmp_path: Path) -> None:
     config = TrainConfig(tier="tiny", stage_steps=(0, 0, 0, 1), runs_dir=tmp_path,
                          init_from="mantissanet-nothing")  # fmt: skip
