@@ -226,14 +226,15 @@ def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) ->
     """Measure the card's model on val-256 (onnxruntime) and store the means in the card:
     ``val256`` per read noise and, for winding nets, ``val256_refined``: the same at no
     read noise after guided PUMA to convergence (``<decoder>+puma``, what ``auto`` at
-    ``best`` runs)."""
+    ``best`` runs). A model file that is missing or not the card's is a
+    :class:`models.decoders.learned.ModelFileError` naming it."""
     from models.decoders.guided_puma import GuidedPumaDecoder
-    from models.decoders.learned import LearnedDecoder, load_cards, read_card
+    from models.decoders.learned import LearnedDecoder, read_card
     from models.training.validate import val256_metrics
 
     card = read_card(card_path)
-    cards = [c for c in load_cards(card_path.parent) if c["file"] == card["file"]]
-    decoder = LearnedDecoder(card["decoder"], cards)
+    model = {**card, "path": str(card_path.parent / card["file"])}
+    decoder = LearnedDecoder(card["decoder"], [model])
     card["val256"] = {
         f"read_noise_{noise:g}": val256_metrics(decoder, card["encoding"], noise)
         for noise in read_noises

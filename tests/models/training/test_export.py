@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import nn
 
-from models.decoders.learned import load_cards, onnx_model
+from models.decoders.learned import ModelFileError, load_cards, onnx_model
 from models.errors import InvalidInputError
 from models.formation import dequantize
 from models.scenes import val256_frames
@@ -22,6 +22,7 @@ from models.training.export import (
     ExportMismatchError,
     RolloverGraph,
     WindingGraph,
+    add_val256,
     card_is_current,
     check_onnx,
     export_run,
@@ -240,3 +241,20 @@ def test_the_card_records_every_share_that_changed_the_training_data(tmp_path: P
         TrainConfig(runs_dir=tmp_path), {"step": 0, "wall_s": 0.0, "segments": []}, "0" * 64
     )
     assert "colour_fraction" not in plain and "glow_fraction" not in plain
+
+
+@pytest.mark.parametrize("damage", ["missing", "cut-short"])
+def test_measuring_a_card_without_its_model_file_names_the_file(
+    exported: tuple[Path, Path], tmp_path: Path, damage: str
+) -> None:
+    """Without its .onnx, the card was measured by a decoder with no model at all:
+    "decoder 'mantissanet-tiny' has no model for the 'mantissa' encoding; it supports: "."""
+    _, card_path = exported
+    card = Path(shutil.copy(card_path, tmp_path / card_path.name))
+    onnx_path = tmp_path / json.loads(card_path.read_text())["file"]
+    if damage == "cut-short":
+        onnx_path.write_bytes(card_path.with_suffix(".onnx").read_bytes()[:1000])
+    words = "is missing" if damage == "missing" else "cut short"
+    with pytest.raises(ModelFileError, match=f"{onnx_path} .*{words}"):
+        add_val256(card)
+
