@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from torch import Tensor, nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from models.decoders.learned import ONNX_DIR, read_cards, sha256_of
+from models.decoders.learned import ONNX_DIR, read_card, read_cards, sha256_of
 from models.errors import InvalidInputError, McamError
 from models.scenes import TRAIN_SCENES
 from models.training.checkpoints import checkpoint_segments, load_checkpoint
@@ -229,7 +229,7 @@ def add_val256(card_path: Path, read_noises: tuple[float, ...] = (0.0, 0.01)) ->
     ``best`` runs). A model file that is missing or not the card's is a
     :class:`models.decoders.learned.ModelFileError` naming it."""
     from models.decoders.guided_puma import GuidedPumaDecoder
-    from models.decoders.learned import LearnedDecoder, read_card
+    from models.decoders.learned import LearnedDecoder
     from models.training.validate import val256_metrics
 
     card = read_card(card_path)
@@ -291,10 +291,11 @@ def remove_card(card_path: Path, keep: Path) -> str:
 
 def card_is_current(card_path: Path, checkpoint: Path) -> bool:
     """Whether ``card_path`` exists, was exported from ``checkpoint`` as it is now (the
-    sha256 in its ``training``), and its .onnx is the file it describes."""
+    sha256 in its ``training``), and its .onnx is the file it describes. A file there that
+    is not a model card is an InvalidInputError naming it (:func:`read_card`)."""
     if not card_path.exists():
         return False
-    card = json.loads(card_path.read_text())
+    card = read_card(card_path)
     onnx_path = card_path.parent / card["file"]
     return (
         card.get("training", {}).get("checkpoint_sha256") == sha256_of(checkpoint)

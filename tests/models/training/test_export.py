@@ -258,3 +258,14 @@ def test_measuring_a_card_without_its_model_file_names_the_file(
     with pytest.raises(ModelFileError, match=f"{onnx_path} .*{words}"):
         add_val256(card)
 
+
+def test_a_damaged_card_is_named_when_checked_for_being_current(
+    exported: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """``mcam train all`` failed on a damaged card of models/onnx with a bare
+    JSONDecodeError traceback (after training every recipe)."""
+    checkpoint, _ = exported
+    card_path = tmp_path / "mantissanet-tiny-mantissa.json"
+    card_path.write_text('{"file": ')
+    with pytest.raises(InvalidInputError, match=f"{card_path} is not a model card"):
+        card_is_current(card_path, checkpoint)
