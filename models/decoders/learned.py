@@ -91,9 +91,24 @@ CARD_FIELDS: tuple[str, ...] = (
 )
 
 
+#: What each family's graph takes and gives (:mod:`models.training.export`): its input
+#: names, and its output's element type by the card's ``output``.
+GRAPH_INPUTS = {"mantissanet": ("m",), "unmodnet": ("m", "winding")}
+GRAPH_OUTPUT_TYPES = {"winding": "tensor(int64)", "jumps": "tensor(float)"}
+#: The encodings the nets decode (trained on; a clipped frame has nothing to unwrap).
+LEARNED_ENCODINGS = ("mantissa", "modulo")
+#: A card's counts and the least each may be: the px a frame is padded to a multiple of,
+#: the side of the largest run (px; more than the tiles' :data:`OVERLAP`, so that tiles
+#: advance), and UnModNet's most passes. At the first decode a multiple of 0 divided by
+#: zero and text failed in int(); a tile of the overlap or less decoded only the last
+#: tile, leaving the rest of a large frame at W = 0.
+CARD_COUNTS = {"multiple": 1, "tile": OVERLAP + 1, "max_passes": 1}
+
+
 def read_card(path: Path) -> dict[str, Any]:
     """The model card at ``path``, or :class:`InvalidInputError` naming the file when it
-    is not one (not JSON text, not an object, or without :data:`CARD_FIELDS`)."""
+    is not one (not JSON text, not an object, or without :data:`CARD_FIELDS`) or is not
+    usable (:func:`card_problems`)."""
     try:
         card = json.loads(path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -106,7 +121,33 @@ def read_card(path: Path) -> dict[str, Any]:
             f"{path} is not a model card: it lacks {', '.join(missing)} "
             "(cards are models/onnx/<name>.json, written by mcam train export)"
         )
+    problems = card_problems(card)
+    if problems:
+        raise InvalidInputError(
+            f"{path} is not a usable model card: {'; '.join(problems)} (cards are written by "
+            "mcam train export: restore it, or export its model again)"
+        )
     return card
+
+
+def card_problems(card: dict[str, Any]) -> list[str]:
+    """What makes a card with :data:`CARD_FIELDS` unusable: an encoding, family or output
+    the runtime does not run, an UnModNet card without ``max_passes``, or a count out of
+    range (:data:`CARD_COUNTS`)."""
+    problems = []
+    if card["encoding"] not in LEARNED_ENCODINGS:
+        problems.append(f"encoding {card['encoding']!r} is not one of {LEARNED_ENCODINGS}")
+    if card["family"] not in GRAPH_INPUTS:
+        problems.append(f"family {card['family']!r} is not one of {tuple(GRAPH_INPUTS)}")
+    if card.get("output", "winding") not in GRAPH_OUTPUT_TYPES:
+        problems.append(f"output {card['output']!r} is not one of {tuple(GRAPH_OUTPUT_TYPES)}")
+    if card["family"] == "unmodnet" and "max_passes" not in card:
+        problems.append("an unmodnet card needs max_passes")
+    for name, least in CARD_COUNTS.items():
+        value = card.get(name, least)
+        if type(value) is not int or value < least:
+            problems.append(f"{name} must be a whole number >= {least}, got {value!r}")
+    return problems
 
 
 def read_cards(onnx_dir: Path = ONNX_DIR) -> list[tuple[Path, dict[str, Any]]]:
@@ -147,10 +188,6 @@ class ModelFileError(OSError):
     dead-lettered, to be run again once the file is restored."""
 
 
-#: What each family's graph takes and gives (:mod:`models.training.export`): its input
-#: names, and its output's element type by the card's ``output``.
-GRAPH_INPUTS = {"mantissanet": ("m",), "unmodnet": ("m", "winding")}
-GRAPH_OUTPUT_TYPES = {"winding": "tensor(int64)", "jumps": "tensor(float)"}
 #: What to do about a model file that is not its card's.
 RESTORE_ADVICE = (
     "restore it (git checkout -- models/onnx, or git lfs pull for LFS pointers), or "

@@ -294,3 +294,27 @@ def test_a_card_of_another_family_than_its_file_is_refused() -> None:
             "sha256": unmodnet["sha256"]}  # fmt: skip
     with pytest.raises(learned.ModelFileError, match=r"takes inputs \['m', 'winding'\].*does not"):
         learned.onnx_model(card).run(np.zeros((32, 32)))
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [({"multiple": 0}, "multiple must be a whole number >= 1, got 0"),
+     ({"tile": 32}, "tile must be a whole number >= 65, got 32"),
+     ({"tile": "256"}, "tile must be a whole number >= 65, got '256'"),
+     ({"family": "unmodnet"}, "an unmodnet card needs max_passes"),
+     ({"encoding": "clip"}, "encoding 'clip' is not one of"),
+     ({"family": "resnet"}, "family 'resnet' is not one of"),
+     ({"output": "mask"}, "output 'mask' is not one of")],
+)
+def test_a_card_with_values_the_runtime_cannot_use_is_refused_naming_them(
+    tmp_path: Path, change: dict[str, object], reason: str
+) -> None:
+    """Each was read, then failed at the first decode (ZeroDivisionError, int() of text,
+    KeyError 'max_passes') or, with a tile of the overlap or less, decoded only the last
+    tile of a large frame, the rest W = 0."""
+    card = {**shipped_card("mantissanet-tiny-modulo"), **change}
+    path = tmp_path / "card.json"
+    path.write_text(json.dumps(card))
+    expected = f"card.json is not a usable model card: .*{reason}"
+    with pytest.raises(InvalidInputError, match=expected):
+        learned.read_card(path)
