@@ -150,13 +150,15 @@ def card_problems(card: dict[str, Any]) -> list[str]:
     return problems
 
 
-def read_cards(onnx_dir: Path = ONNX_DIR) -> list[tuple[Path, dict[str, Any]]]:
-    """Every model card (``*.json``) whose ONNX file exists, with its path, sorted by
-    file name."""
+def read_cards(
+    onnx_dir: Path = ONNX_DIR, with_file: bool = True
+) -> list[tuple[Path, dict[str, Any]]]:
+    """Every model card (``*.json``) whose ONNX file exists (``with_file``, else whose
+    file is missing), with its path, sorted by file name."""
     found = []
     for path in sorted(onnx_dir.glob("*.json")):
         card = read_card(path)
-        if (onnx_dir / card["file"]).exists():
+        if (onnx_dir / card["file"]).exists() == with_file:
             found.append((path, card))
     return found
 
@@ -479,6 +481,25 @@ def _grouped_cards() -> dict[str, list[dict[str, Any]]]:
     for card in load_cards():
         groups.setdefault(card["decoder"], []).append(card)
     return groups
+
+
+@cache
+def _cards_without_files() -> tuple[tuple[Path, dict[str, Any]], ...]:
+    return tuple(read_cards(with_file=False))
+
+
+def resolve(name: str) -> DecoderSpec | None:
+    """None: the learned decoders are all listed (:func:`specs`). But a decoder whose
+    model cards are installed without their ONNX files (so it is not listed) is an
+    InvalidInputError naming the missing files and what to do, not an unknown decoder."""
+    missing = [path.with_name(card["file"]) for path, card in _cards_without_files()
+               if card["decoder"] == name]  # fmt: skip
+    if missing:
+        raise InvalidInputError(
+            f"decoder {name!r} is not available: its model card is installed but its model "
+            f"file {', '.join(map(str, missing))} is missing; {RESTORE_ADVICE}"
+        )
+    return None
 
 
 def specs() -> list[DecoderSpec]:

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from models import scenes
 from models.decoders import learned
-from models.decoders.registry import available_decoders, get_decoder
+from models.decoders.registry import available_decoders, get_decoder, resolve
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, simulate
 from models.scenes import synthetic_scene, val256_frames
@@ -318,3 +318,21 @@ def test_a_card_with_values_the_runtime_cannot_use_is_refused_naming_them(
     expected = f"card.json is not a usable model card: .*{reason}"
     with pytest.raises(InvalidInputError, match=expected):
         learned.read_card(path)
+
+
+def test_a_decoder_whose_model_file_is_missing_is_named_with_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its card without its .onnx made it 'unknown decoder 'mantissanet-gone'; choose one
+    of: ...', which named neither the file nor what to do."""
+    card = {**shipped_card("mantissanet-tiny-modulo"), "decoder": "mantissanet-gone",
+            "file": "mantissanet-gone-modulo.onnx"}  # fmt: skip
+    (tmp_path / "mantissanet-gone-modulo.json").write_text(json.dumps(card))
+    monkeypatch.setattr(
+        learned, "_cards_without_files", lambda: tuple(learned.read_cards(tmp_path, False))
+    )
+    expected = "decoder 'mantissanet-gone' is not available: .*gone-modulo.onnx is missing"
+    with pytest.raises(InvalidInputError, match=expected):
+        resolve("mantissanet-gone+puma")
+    with pytest.raises(InvalidInputError, match="unknown decoder 'mantissanet-other'"):
+        resolve("mantissanet-other")
