@@ -20,6 +20,7 @@ the run on any machine, seeded exactly as before.
 from __future__ import annotations
 
 import argparse
+import math
 import subprocess
 import sys
 import tempfile
@@ -28,7 +29,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from models.training.config import PRECISIONS, RUNS_DIR, TrainConfig
+from models.errors import InvalidInputError, McamError
+from models.training.config import PRECISIONS, RUNS_DIR, TrainConfig, check_config
 from models.training.recipes import TIMED_LANES
 from models.training.train import record_line, train
 
@@ -143,6 +145,17 @@ def lanes(args: argparse.Namespace) -> tuple[tuple[TrainConfig, ...], ...]:
     )
 
 
+def check_lanes(args: argparse.Namespace) -> None:
+    """Refuse, before any lane starts, a budget that is not a positive number of seconds
+    or a run of the lanes that :func:`models.training.config.check_config` refuses (each
+    lane's process raised it in a traceback of its own)."""
+    if not 0 < args.seconds < math.inf:
+        raise InvalidInputError(f"--seconds must be a positive number, got {args.seconds}")
+    for chain in lanes(args):
+        for config in chain:
+            check_config(config)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Start every lane in its own process and wait for them (or run one, ``--lane``)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -158,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lane", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--start", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    try:
+        check_lanes(args)
+    except McamError as exc:
+        parser.error(exc.message)
     if args.lane is not None:
         started = time.monotonic() + args.start - time.time()
         run_lane(lanes(args)[args.lane], started, started + args.seconds)

@@ -119,3 +119,20 @@ def test_an_unknown_lane_set_is_refused_with_the_known_ones(
     assert exit_info.value.code == 2
     error = capsys.readouterr().err
     assert "invalid choice: 'nope'" in error and "s2d" in error
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [(["--workers", "-1"], "workers must be >= 0"), (["--seconds", "0"], "--seconds must be"),
+     (["--seconds", "nan"], "--seconds must be")],
+)
+def test_bad_settings_are_refused_before_any_lane_starts(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, option: list[str], message: str
+) -> None:
+    """Each lane's process failed with a traceback of its own (with the default
+    --device cuda, on every machine without a GPU)."""
+    with pytest.raises(SystemExit) as exit_info:
+        timed.main(["--lanes", "large", "--device", "cpu", "--runs-dir", str(tmp_path), *option])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
