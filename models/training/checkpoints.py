@@ -41,6 +41,9 @@ def sync_folder(folder: Path) -> None:
 #: What ``torch.load`` raises on an empty, truncated or corrupt file (a file cut
 #: short can also give EINVAL, a flipped byte a UnicodeDecodeError or a missing key).
 UNREADABLE = (EOFError, RuntimeError, pickle.UnpicklingError, OSError, ValueError, KeyError)
+#: What ``torch.load`` raises for a path that is no file it may read: not a damaged
+#: checkpoint, so raised as it is (the CLI says "is a folder" or "permission denied").
+NOT_A_FILE = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError)
 
 
 #: What every checkpoint holds (:func:`run_state`; ``segments`` came later, see
@@ -56,6 +59,8 @@ def load_checkpoint(path: Path, *, resuming: bool = False) -> dict[str, Any]:
     again without)."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
+    except NOT_A_FILE:
+        raise
     except UNREADABLE as exc:
         first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         reason = f"{first_line}: it is empty, cut short or corrupt"

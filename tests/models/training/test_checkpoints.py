@@ -94,3 +94,10 @@ def test_a_state_dict_alone_is_refused_naming_what_it_lacks(tmp_path: Path) -> N
     with pytest.raises(InvalidInputError, match=f"{path} .*lacks step:") as caught:
         load_checkpoint(path, resuming=True)
     assert "delete the run folder" in caught.value.message
+
+
+def test_a_folder_is_not_called_a_damaged_checkpoint(tmp_path: Path) -> None:
+    """A folder was 'not a readable checkpoint ([Errno 21] Is a directory: ...): it is
+    empty, cut short or corrupt'; it is the OSError the CLI words as 'is a folder'."""
+    with pytest.raises(IsADirectoryError):
+        load_checkpoint(tmp_path)
