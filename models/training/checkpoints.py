@@ -91,6 +91,29 @@ def unreadable(path: Path, reason: str, resuming: bool) -> InvalidInputError:
     return InvalidInputError(f"{path} is not a readable checkpoint ({reason}); {advice}")
 
 
+#: Characters of PyTorch's first reason that weights do not fit a net that an error quotes
+#: (its list of missing keys may name every layer).
+REASON_CHARS = 160
+
+
+def load_weights(
+    model: torch.nn.Module, weights: dict[str, Any], path: Path, *, resuming: bool = False
+) -> None:
+    """Load the weights of checkpoint ``path`` into ``model``. Weights of another net
+    (the checkpoint written by a version of the code whose nets differed, or edited) are
+    the checkpoint's InvalidInputError (:func:`unreadable`) quoting PyTorch's first
+    reason, not its traceback."""
+    try:
+        model.load_state_dict(weights)
+    except RuntimeError as exc:
+        reasons = [line.strip() for line in str(exc).splitlines()[1:] if line.strip()]
+        first = (reasons or [str(exc)])[0]
+        if len(first) > REASON_CHARS:
+            first = first[:REASON_CHARS] + "..."
+        reason = f"its weights do not fit the net its settings build: {first}"
+        raise unreadable(path, reason, resuming) from None
+
+
 def hardware_name(device: torch.device) -> str:
     """The GPU's name, or the CPU's model name (``cpu`` where the system does not say)."""
     if device.type == "cuda":

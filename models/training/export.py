@@ -32,7 +32,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from models.decoders.learned import ONNX_DIR, read_card, read_cards, sha256_of
 from models.errors import InvalidInputError, McamError
 from models.scenes import TRAIN_SCENES
-from models.training.checkpoints import checkpoint_segments, load_checkpoint
+from models.training.checkpoints import checkpoint_segments, load_checkpoint, load_weights
 from models.training.config import TrainConfig
 from models.training.networks import (
     MULTIPLE,
@@ -183,7 +183,7 @@ def trained_model(
     raw["runs_dir"] = Path(raw["runs_dir"])
     config = TrainConfig(**raw)
     model = build_model(config)
-    model.load_state_dict(state["model"])
+    load_weights(model, state["model"], checkpoint)
     return model.eval(), config, state
 
 

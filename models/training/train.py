@@ -42,6 +42,7 @@ from models.training.checkpoints import (
     checkpoint_segments,
     hardware_name,
     load_checkpoint,
+    load_weights,
     run_state,
     save_checkpoint,
 )
@@ -72,9 +73,10 @@ def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
     return MantissaNet(TIERS[config.tier], HEAD_OUTPUTS[config.loss])
 
 
-def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
-    """The finished weights of the run ``config.init_from`` (same runs folder); a run
-    that has not reached its last step is refused."""
+def load_initial_weights(config: TrainConfig, model: torch.nn.Module) -> None:
+    """Load the finished weights of the run ``config.init_from`` (same runs folder) into
+    ``model``; a run of another net, or one that has not reached its last step, is
+    refused."""
     source = config.runs_dir / str(config.init_from) / "checkpoint.pt"
     if not source.exists():
         raise FileNotFoundError(
@@ -90,7 +92,7 @@ def initial_weights(config: TrainConfig) -> dict[str, Tensor]:
             f"{state['step']} of {planned}: train it to the end first (mcam train run "
             "with its settings resumes it)"
         )
-    return state["model"]
+    load_weights(model, state["model"], source)
 
 
 def net_shape(family: str, tier: str, loss: str) -> str:
@@ -126,11 +128,11 @@ def restore(
     if checkpoint.exists():
         state = load_checkpoint(checkpoint, resuming=True)
         check_same_training(config, state["config"], checkpoint)
-        model.load_state_dict(state["model"])
+        load_weights(model, state["model"], checkpoint, resuming=True)
         optimizer.load_state_dict(state["optimizer"])
         return state["step"], state["wall_s"], checkpoint_segments(state)
     if config.init_from:
-        model.load_state_dict(initial_weights(config))
+        load_initial_weights(config, model)
     return 0, 0.0, []
 
 

@@ -269,3 +269,17 @@ def test_a_damaged_card_is_named_when_checked_for_being_current(
     card_path.write_text('{"file": ')
     with pytest.raises(InvalidInputError, match=f"{card_path} is not a model card"):
         card_is_current(card_path, checkpoint)
+
+
+def test_a_checkpoint_whose_weights_do_not_fit_its_net_is_not_exported(
+    exported: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """It failed in load_state_dict with PyTorch's 'size mismatch' traceback."""
+    state = load_checkpoint(exported[0])
+    layer = next(iter(state["model"]))
+    state["model"][layer] = torch.zeros(3)
+    checkpoint = tmp_path / "checkpoint.pt"
+    torch.save(state, checkpoint)
+    with pytest.raises(InvalidInputError, match=f"weights do not fit .*size mismatch for {layer}"):
+        export_run(checkpoint, tmp_path / "onnx")
+    assert not (tmp_path / "onnx").exists()

@@ -308,3 +308,21 @@ def test_a_signal_stops_after_the_step_with_a_checkpoint_that_resumes(
     assert resumed["step"] == 5
     for key, value in whole["model"].items():
         torch.testing.assert_close(resumed["model"][key], value)
+
+
+def test_a_checkpoint_whose_weights_do_not_fit_its_net_is_one_clear_error(
+    tmp_path: Path,
+) -> None:
+    """A checkpoint of a version whose nets differed (here: one layer's weights gone)
+    failed to resume in load_state_dict with PyTorch's 'Missing key(s)' traceback."""
+    config = tiny_config(tmp_path, (1, 1, 1))
+    checkpoint = train(config)
+    state = load_checkpoint(checkpoint)
+    layer = next(iter(state["model"]))
+    del state["model"][layer]
+    torch.save(state, checkpoint)
+    expected = f"weights do not fit .*Missing key.*{layer}"
+    with pytest.raises(InvalidInputError, match=expected) as caught:
+        train(config)
+    assert str(checkpoint) in caught.value.message
+    assert "delete the run folder" in caught.value.message
