@@ -253,7 +253,7 @@ def check_names(config: TrainConfig) -> None:
 
 
 def check_device(config: TrainConfig) -> None:
-    """The device is a torch device this machine has."""
+    """The device is a torch device this machine has (a GPU's number included)."""
     try:
         device = torch.device(config.device)
     except RuntimeError as exc:
@@ -266,6 +266,11 @@ def check_device(config: TrainConfig) -> None:
         )
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InvalidInputError(f"device {config.device!r} asked for, but torch sees no CUDA GPU")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise InvalidInputError(
+            f"device {config.device!r} asked for, but torch sees {torch.cuda.device_count()} "
+            "CUDA GPU(s), numbered from 0: name one of them (cuda:0), or cuda"
+        )
 
 
 #: The settings a resumed run may change: they do not change which weights its steps

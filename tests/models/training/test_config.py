@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
@@ -49,3 +50,14 @@ def test_the_read_noise_limit_is_the_sensor_models() -> None:
 
 def test_the_largest_crop_is_the_smallest_panoramas_side() -> None:
     assert largest_crop() == min(min(load_hdri_gray(name).shape) for name in TRAIN_SCENES)
+
+
+def test_a_gpu_number_the_machine_lacks_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a one-GPU machine, cuda:5 passed the checks (only is_available was asked), so
+    the run went on to move its model to a device that does not exist."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(InvalidInputError, match="'cuda:5' asked for, but torch sees 1 CUDA"):
+        check_config(TrainConfig(device="cuda:5"))
+    check_config(TrainConfig(device="cuda:0"))
+    check_config(TrainConfig(device="cuda"))
