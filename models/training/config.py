@@ -302,6 +302,27 @@ def changed_settings(config: TrainConfig, saved: dict[str, Any]) -> list[str]:
     return changes
 
 
+def saved_config(saved: dict[str, Any], checkpoint: Path) -> TrainConfig:
+    """The configuration a checkpoint's ``saved`` settings describe, as this version of the
+    code knows it: settings of features since removed (``psnr_share`` of the ce-psnr
+    loss, ``saturation``) are left out, and a loss, tier or family this version lacks is
+    an InvalidInputError naming the checkpoint."""
+    known = {item.name for item in fields(TrainConfig)}
+    raw = {name: value for name, value in saved.items() if name in known}
+    config = TrainConfig(**{
+        **raw, "stage_steps": tuple(raw["stage_steps"]), "runs_dir": Path(raw["runs_dir"]),
+    })  # fmt: skip
+    try:
+        check_choices(config)
+    except InvalidInputError as exc:
+        raise InvalidInputError(
+            f"{checkpoint} was trained by another version of the code, with settings this "
+            f"one cannot build ({exc.message}, got loss {config.loss!r}, tier "
+            f"{config.tier!r}, family {config.family!r}); use the version that trained it"
+        ) from None
+    return config
+
+
 def check_same_training(config: TrainConfig, saved: dict[str, Any], checkpoint: Path) -> None:
     """Refuse to resume (or return) a checkpoint trained with other settings than
     ``config``'s, naming each that differs and what to do."""

@@ -33,7 +33,7 @@ from models.decoders.learned import ONNX_DIR, read_card, read_cards, sha256_of
 from models.errors import InvalidInputError, McamError
 from models.scenes import TRAIN_SCENES
 from models.training.checkpoints import checkpoint_segments, load_checkpoint, load_weights
-from models.training.config import TrainConfig
+from models.training.config import TrainConfig, saved_config
 from models.training.networks import (
     MULTIPLE,
     NUM_CLASSES,
@@ -178,10 +178,7 @@ def trained_model(
 ) -> tuple[MantissaNet | UnModNet, TrainConfig, dict[str, Any]]:
     """The eval-mode model of a checkpoint, its config and the raw checkpoint state."""
     state = load_checkpoint(checkpoint)
-    raw = dict(state["config"])
-    raw["stage_steps"] = tuple(raw["stage_steps"])
-    raw["runs_dir"] = Path(raw["runs_dir"])
-    config = TrainConfig(**raw)
+    config = saved_config(state["config"], checkpoint)
     model = build_model(config)
     load_weights(model, state["model"], checkpoint)
     return model.eval(), config, state

@@ -283,3 +283,21 @@ def test_a_checkpoint_whose_weights_do_not_fit_its_net_is_not_exported(
     with pytest.raises(InvalidInputError, match=f"weights do not fit .*size mismatch for {layer}"):
         export_run(checkpoint, tmp_path / "onnx")
     assert not (tmp_path / "onnx").exists()
+
+
+def test_a_checkpoint_with_settings_since_removed_exports_or_says_why(
+    exported: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Checkpoints of the ce-psnr era hold psnr_share, whatever their loss: exporting one
+    failed with "TrainConfig.__init__() got an unexpected keyword argument 'psnr_share'"
+    in a traceback. A ce run exports; a ce-psnr one (a loss since removed) says why not."""
+    state = load_checkpoint(exported[0])
+    state["config"] = {**state["config"], "psnr_share": 0.5}
+    checkpoint = tmp_path / "checkpoint.pt"
+    torch.save(state, checkpoint)
+    card = json.loads(export_run(checkpoint, tmp_path / "onnx").read_text())
+    assert card["training"]["loss"] == "ce" and "psnr_share" not in card["training"]
+    state["config"]["loss"] = "ce-psnr"
+    torch.save(state, checkpoint)
+    with pytest.raises(InvalidInputError, match="another version .*got loss 'ce-psnr'"):
+        export_run(checkpoint, tmp_path / "other")
