@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, McamError
 from models.exposure import luminance
 from models.formation import SensorFrame, SensorParams, simulate
 from models.hdr_io import read_hdr
@@ -49,11 +49,30 @@ class ValFrame(NamedTuple):
     params: SensorParams
 
 
+#: What to do about a shipped scene that is missing or cannot be read.
+RESTORE_SCENES = (
+    "the scenes ship in models/data/hdri: restore them (git checkout -- models/data/hdri), "
+    "or recreate them as its README.md says"
+)
+
+
 @cache
 def _load_hdri(name: str) -> tuple[NDArray[np.float64], int]:
+    """Scene ``name`` (linear RGB, negatives set to 0) and how many negatives it had; a
+    missing or unreadable file says so and how to restore the shipped scenes (it was
+    told to create the folder, or to convert the file to OpenEXR)."""
     if name not in SCENE_NAMES:
         raise InvalidInputError(f"unknown scene {name!r}; choose one of: {', '.join(SCENE_NAMES)}")
-    image = read_hdr(HDRI_DIR / f"{name}.exr", clip_negative=True)
+    path = HDRI_DIR / f"{name}.exr"
+    try:
+        image = read_hdr(path, clip_negative=True)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"scene {name!r} is missing ({path}); {RESTORE_SCENES}") from None
+    except McamError as exc:
+        reason = exc.message.split("; ")[0]  # its advice (convert it) does not apply here
+        raise InvalidInputError(
+            f"scene {name!r} cannot be read ({reason}); {RESTORE_SCENES}"
+        ) from None
     image.pixels.setflags(write=False)
     return image.pixels, image.negatives_clipped
 

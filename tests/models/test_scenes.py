@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -25,6 +28,30 @@ def test_load_hdri_is_non_negative_rgb() -> None:
     assert np.isfinite(rgb).all() and rgb.min() >= 0
     assert scenes.clipped_negatives("forest") > 0
     assert scenes.load_hdri_gray("forest").shape == (256, 512)
+
+
+@pytest.fixture
+def scene_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """An empty scene folder in place of models/data/hdri (the loaded scenes forgotten
+    before and after)."""
+    scenes._load_hdri.cache_clear()
+    monkeypatch.setattr(scenes, "HDRI_DIR", tmp_path)
+    yield tmp_path
+    scenes._load_hdri.cache_clear()
+
+
+def test_a_missing_scene_says_how_to_restore_the_shipped_ones(scene_folder: Path) -> None:
+    """It said 'no such folder: ...; create it or choose another path' (for the CLI)."""
+    with pytest.raises(FileNotFoundError, match="scene 'park' is missing .*git checkout"):
+        scenes.load_hdri("park")
+
+
+def test_an_unreadable_scene_says_how_to_restore_the_shipped_ones(scene_folder: Path) -> None:
+    """It said the file was not an OpenEXR image: 'convert it to OpenEXR'."""
+    (scene_folder / "park.exr").write_text("not an image")
+    with pytest.raises(InvalidInputError, match="scene .park. cannot be read .*git") as caught:
+        scenes.load_hdri("park")
+    assert "park.exr" in caught.value.message and "convert" not in caught.value.message
 
 
 def test_unknown_scene_is_a_clear_error() -> None:
