@@ -44,6 +44,14 @@ return {1, current}
 """
 
 
+#: Set fields ARGV (name, value, ...) of hash KEYS[1] only if it exists; 1 if it did.
+_UPDATE = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+redis.call('HSET', KEYS[1], unpack(ARGV))
+return 1
+"""
+
+
 def encode_fields(values: dict[str, Any]) -> dict[str, str]:
     """JSON-encode each field value (JobRecord fields, already in JSON mode)."""
     return {name: json.dumps(value, separators=(",", ":")) for name, value in values.items()}
@@ -60,6 +68,7 @@ class JobStore:
     def __init__(self, client: redis.Redis) -> None:
         self.client = client
         self._transition = client.register_script(_TRANSITION)
+        self._update = client.register_script(_UPDATE)
 
     def load(self, job_id: str) -> JobRecord:
         """The record of ``job_id``; :class:`JobNotFoundError` if unknown or malformed id."""
@@ -68,12 +77,17 @@ class JobStore:
             raise JobNotFoundError(f"no job {job_id!r} (unknown, or expired after retention)")
         return JobRecord.model_validate({k.decode(): json.loads(v) for k, v in raw.items()})
 
-    def update(self, job_id: str, **fields: Any) -> None:
-        """Set fields other than ``state`` (progress, timings, info, ...)."""
+    def update(self, job_id: str, **fields: Any) -> bool:
+        """Set fields other than ``state`` (progress, timings, info, ...) of an existing
+        record; returns whether there was one. A record that is gone (expired after a
+        worker that stalled past the claim idle time finished elsewhere, or lost with
+        Redis's data) is not made again from these fields alone: such a half record
+        broke every later read of the job (its other fields missing), for ever."""
         if "state" in fields:
             raise ValueError("change the state with transition()")
         values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
-        self.client.hset(job_key(job_id), mapping=encode_fields(values))
+        pairs = [item for pair in encode_fields(values).items() for item in pair]
+        return bool(self._update(keys=[job_key(job_id)], args=pairs))
 
     def transition(
         self,

@@ -78,6 +78,21 @@ def test_update_keeps_state_and_other_fields(client: redis.Redis, job_id: str) -
         store.update(job_id, state=JobState.QUEUED)
 
 
+def test_an_update_of_a_record_that_is_gone_makes_no_half_record(
+    client: redis.Redis, job_id: str
+) -> None:
+    """A worker's progress for a job whose record is gone (expired after a stalled
+    worker's job finished elsewhere, or lost with Redis's data) made a record of those
+    fields alone, never expiring: every later read of the job failed on its missing
+    fields, and the API answered 500 where it answers 404."""
+    store = JobStore(client)
+    client.delete(f"job:{job_id}")
+    assert store.update(job_id, progress=0.5, frames_done=3) is False
+    assert not client.exists(f"job:{job_id}")
+    with pytest.raises(JobNotFoundError):
+        store.load(job_id)
+
+
 def test_finished_transition_announces(client: redis.Redis, job_id: str) -> None:
     pubsub = client.pubsub(ignore_subscribe_messages=True)
     pubsub.subscribe(job_done_channel(job_id))
