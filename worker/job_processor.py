@@ -47,7 +47,7 @@ from worker.child_process import ChildDiedError, ChildProcess
 from worker.deliveries import Delivery, StreamConsumer
 from worker.device_state import warm_up
 from worker.job_store import JobStore
-from worker.jobs import JobError, JobNotFoundError, JobRecord, JobState
+from worker.jobs import JobError, JobNotFoundError, JobRecord, JobState, time_after
 from worker.metrics import Metrics
 from worker.outputs import OUTPUT_NAMES, encode_outputs
 from worker.queue import entry_codes
@@ -318,8 +318,7 @@ class JobProcessor:
         consumer.give_back(delivery)
 
     def _run(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
-        now = time.time_ns()
-        started = record.started_ns or now
+        started = record.started_ns or time_after(record.created_ns)
         changed, _ = self.jobs.transition(
             record.id,
             JobState.RUNNING,
@@ -332,7 +331,7 @@ class JobProcessor:
             return
         ctx = JobContext(record, self.jobs, self.store, self.stop, self.child, delivery.lost)
         outcome = load_handler(record.kind)(ctx, entry_codes(delivery.fields))
-        finished = time.time_ns()
+        finished = time_after(started)
         timings = {
             "queue_wait": started - record.created_ns,
             **outcome.timings_ns,
@@ -389,7 +388,7 @@ class JobProcessor:
             JobState.FAILED,
             (JobState.QUEUED, JobState.RUNNING),
             expire_s=self.store.retention_s,
-            finished_ns=time.time_ns(),
+            finished_ns=time_after(record.created_ns, record.started_ns),
             error=error,
         )
         self._drop(consumer, delivery, record.id, dead_letter=None if caller_error else error)

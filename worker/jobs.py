@@ -1,11 +1,14 @@
 """The record of one job as stored in Redis (``job:<id>``) and shown by the API.
 
-Times are in ns since the epoch (``time.time_ns()``); durations in ns.
+Times are in ns since the epoch (``time.time_ns()``); durations in ns. A job's times are
+taken on the clocks of the machines that handle it (the API's: created, cancelled; a
+worker's: started, finished), which may disagree: :func:`time_after` keeps them in order.
 """
 
 from __future__ import annotations
 
 import re
+import time
 from enum import StrEnum
 from typing import Any, Literal
 
@@ -82,3 +85,11 @@ def validate_job_id(job_id: str) -> str:
             "(0-9, a-f), as the job's url gives them"
         )
     return job_id
+
+
+def time_after(*earlier_ns: int | None) -> int:
+    """Now (ns since the epoch), or the latest of ``earlier_ns`` (times this job already
+    has, None: not set) where that is later: the clock of the machine that takes this
+    time may be behind the one that took those (an API and a worker on two machines),
+    and a job then showed a finish before its start, or a negative queue wait."""
+    return max(time.time_ns(), *(t for t in earlier_ns if t is not None))

@@ -41,7 +41,7 @@ from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams, validate_codes
 from worker.frame_message import FrameMessage
 from worker.job_store import JobStore, record_fields
-from worker.jobs import JobRecord, JobState
+from worker.jobs import JobRecord, JobState, time_after
 from worker.metrics import Metrics, counter_key
 from worker.redis_keys import (
     DEAD_LETTER_STREAM,
@@ -354,12 +354,12 @@ class JobQueue:
     def cancel(self, job_id: str) -> JobRecord:
         """Cancel a queued or running job (a worker stops at its next check); a finished
         job is returned unchanged."""
-        self.jobs.load(job_id)
+        record = self.jobs.load(job_id)
         cancelled, _ = self.jobs.transition(
             job_id,
             JobState.CANCELLED,
             (JobState.QUEUED, JobState.RUNNING),
-            finished_ns=time.time_ns(),
+            finished_ns=time_after(record.created_ns, record.started_ns),
         )
         if cancelled:
             self.metrics.inc("jobs_processed_total", state=JobState.CANCELLED.value)

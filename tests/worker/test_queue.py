@@ -247,6 +247,18 @@ def test_cancel_queued_job_and_finished_job_unchanged(
     }
 
 
+def test_a_job_started_on_a_clock_ahead_of_the_apis_is_not_cancelled_before_it_started(
+    queue: JobQueue, client: redis.Redis
+) -> None:
+    """A worker whose clock is 10 s ahead of the API's started the job; the API's cancel
+    took its finish on its own clock, 10 s before the start."""
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh")
+    started = record.created_ns + 10**10
+    queue.jobs.transition(record.id, JobState.RUNNING, (JobState.QUEUED,), started_ns=started)
+    cancelled = queue.cancel(record.id)
+    assert cancelled.finished_ns is not None and cancelled.finished_ns >= started
+
+
 def test_wait_returns_at_timeout_or_when_finished(queue: JobQueue, client: redis.Redis) -> None:
     record = queue.submit("reconstruction", CODES, PARAMS, "itoh")
     start = time.monotonic()

@@ -29,7 +29,13 @@ from worker.job_processor import JobProcessor, start_job_child
 from worker.jobs import JobState
 from worker.metrics import counter_key, read_metrics
 from worker.queue import JobQueue
-from worker.redis_keys import DEAD_LETTER_STREAM, JOBS_PER_KEY, JOBS_STREAM, WORKERS_HEARTBEAT
+from worker.redis_keys import (
+    DEAD_LETTER_STREAM,
+    JOBS_PER_KEY,
+    JOBS_STREAM,
+    WORKERS_HEARTBEAT,
+    job_key,
+)
 from worker.result_store import RESULTS_DIR, ResultStore
 from worker.runner import RECONNECT_MAX_S, RECONNECT_S, Worker, WorkerConfig, reconnect_delay
 
@@ -553,6 +559,27 @@ def test_a_finished_job_delivered_past_the_limit_is_dropped_not_dead_lettered(
     assert client.xlen(DEAD_LETTER_STREAM) == 0 and client.xlen(JOBS_STREAM) == 0
     record = queue.get(job.id)
     assert record.state is JobState.SUCCEEDED and record.error is None
+
+
+def test_a_job_from_an_api_whose_clock_is_ahead_shows_no_negative_time(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """The API (created) and the worker (started, finished) take a job's times on their
+    own clocks: with the API's 10 s ahead, the job started before it was created and
+    its queue wait and total were negative."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    client.hset(job_key(job.id), "created_ns", str(job.created_ns + 10**10))
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    processor.handle(consumer, delivery)
+    record = queue.get(job.id)
+    assert record.state is JobState.SUCCEEDED
+    assert record.started_ns is not None and record.finished_ns is not None
+    assert record.created_ns <= record.started_ns <= record.finished_ns
+    assert min(record.timings_ns.values()) >= 0, record.timings_ns
 
 
 def test_a_stalled_worker_whose_job_was_taken_over_stops_decoding_it(
