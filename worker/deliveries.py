@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import redis
 
 from worker.metrics import Metrics
-from worker.queue import GROUP, ensure_group
+from worker.queue import GROUP, ensure_group, is_missing_group
 from worker.redis_keys import DEAD_LETTER_STREAM
 
 #: The dead-letter stream keeps at most this many entries (oldest trimmed).
@@ -235,8 +235,14 @@ class StreamConsumer:
         """Reset the entry's idle time (no delivery counted) so that a long job is not
         reclaimed from this live consumer; only while this consumer owns it (a plain
         XCLAIM would take back an entry another worker reclaimed meanwhile, and both would
-        run it). Returns whether it still owns the entry."""
-        return bool(self._touch(keys=[self.stream], args=[GROUP, self.name, delivery.entry_id]))
+        run it). Returns whether it still owns the entry (not when the entry went with
+        its group: a Redis restarted without its data)."""
+        try:
+            return bool(self._touch(keys=[self.stream], args=[GROUP, self.name, delivery.entry_id]))
+        except redis.exceptions.ResponseError as exc:
+            if is_missing_group(exc):  # gone with its group (Redis lost its data)
+                return False
+            raise
 
     def done(self, delivery: Delivery) -> None:
         """Acknowledge and delete the entry (call only after its result is durable)."""

@@ -159,6 +159,14 @@ def ensure_group(client: redis.Redis, stream: str) -> None:
         raise
 
 
+def is_missing_group(exc: BaseException) -> bool:
+    """Whether ``exc`` is Redis saying a stream or its workers' group does not exist
+    (``NOGROUP``, also inside a script): a Redis restarted without its data (a lost
+    data dir, an external server that keeps none) lost both, and the API's next submit
+    makes the stream again, without the group."""
+    return isinstance(exc, redis.exceptions.ResponseError) and "NOGROUP" in str(exc)
+
+
 def _has_group(client: redis.Redis, stream: str) -> bool:
     """Whether ``stream`` exists with the workers' consumer group."""
     try:

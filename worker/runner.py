@@ -48,6 +48,7 @@ from worker.device_state import FrameDecoder, make_frame_decoder, warm_up
 from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
+from worker.queue import ensure_group, is_missing_group
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
 from worker.redis_memory import UNREACHABLE, TroubleLog, is_transient
 from worker.result_store import RESULTS_DIR, ResultStore
@@ -233,22 +234,37 @@ class Worker:
                     job_consumer(self.id, index),
                     max_deliveries=self.config.max_deliveries,
                 )
-            deliveries = consumer.read_own_pending(1)
-            for delivery in deliveries:  # again after a transient error: not idle meanwhile
-                consumer.touch(delivery)
-            if not deliveries:
+            try:
+                self._job_step(processor, consumer, index)
+            except redis.exceptions.ResponseError as exc:
+                if not is_missing_group(exc):
+                    raise
                 self._in_flight.pop(index, None)
-            deliveries = deliveries or consumer.reclaim(self.config.claim_idle_ms, count=1)
-            if not deliveries and not self.stop.is_set():
-                deliveries = consumer.read_new(block_ms=BLOCK_MS, count=1)
-            for delivery in deliveries:
-                self._in_flight[index] = (consumer, delivery)
-                self._handle(processor, consumer, delivery, index)
-                self._in_flight.pop(index, None)
-                self.jobs_done += 1
+                log.warning(
+                    "worker %s: the jobs stream's consumer group is gone (Redis restarted "
+                    "without its data?); making it again", self.id
+                )
+                ensure_group(self.client, JOBS_STREAM)
 
         self._resilient(step)
         child.close()
+
+    def _job_step(self, processor: JobProcessor, consumer: StreamConsumer, index: int) -> None:
+        """One turn of job thread ``index``: its own pending entry (kept after a
+        transient error), else an idle one reclaimed, else a new one; handled."""
+        deliveries = consumer.read_own_pending(1)
+        for delivery in deliveries:  # again after a transient error: not idle meanwhile
+            consumer.touch(delivery)
+        if not deliveries:
+            self._in_flight.pop(index, None)
+        deliveries = deliveries or consumer.reclaim(self.config.claim_idle_ms, count=1)
+        if not deliveries and not self.stop.is_set():
+            deliveries = consumer.read_new(block_ms=BLOCK_MS, count=1)
+        for delivery in deliveries:
+            self._in_flight[index] = (consumer, delivery)
+            self._handle(processor, consumer, delivery, index)
+            self._in_flight.pop(index, None)
+            self.jobs_done += 1
 
     def _handle(
         self, processor: JobProcessor, consumer: StreamConsumer, delivery: Delivery, index: int

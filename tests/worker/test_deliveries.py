@@ -133,6 +133,19 @@ def test_a_touch_keeps_an_entry_idle_free_only_for_its_owner(client: redis.Redis
     assert not bob.touch(reclaimed)
 
 
+def test_an_entry_lost_with_redis_data_is_no_longer_owned(client: redis.Redis) -> None:
+    """A Redis restarted without its data lost the stream and its group: the heartbeat's
+    touch of a job in hand failed with NOGROUP, which ended the worker's heartbeat loop
+    (and the worker), where the entry is simply no longer this consumer's."""
+    alice = consumer(client, "alice")
+    client.xadd("s", {"n": "1"})
+    [delivery] = alice.read_new(block_ms=None)
+    client.flushall()
+    assert not alice.touch(delivery)
+    client.xadd("s", {"n": "2"})  # the stream made again, without the group
+    assert not alice.touch(delivery)
+
+
 def consumer_names(client: redis.Redis, stream: str) -> set[str]:
     return {consumer["name"].decode() for consumer in client.xinfo_consumers(stream, GROUP)}
 

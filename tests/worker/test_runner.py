@@ -10,6 +10,7 @@ import errno
 import io
 import json
 import os
+import shutil
 import signal
 import threading
 from pathlib import Path
@@ -230,6 +231,25 @@ def test_accepted_jobs_survive_a_redis_restart(
     embedded.start()
     queue = JobQueue(connect(embedded.url), maxlen=100, max_deliveries=3, claim_idle_ms=1000)
     late = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    assert finished(queue, late.id).state is JobState.SUCCEEDED
+    assert worker.poll() is None
+
+
+def test_a_redis_restarted_without_its_data_runs_the_jobs_queued_after(
+    embedded: EmbeddedRedis, client: redis.Redis, queue: JobQueue, workers, make_frame, finished
+) -> None:
+    """A Redis that lost its data (its data dir, or an external server that keeps none)
+    lost the jobs stream's consumer group; the API's next submit makes the stream again,
+    without it. The worker failed every read with NOGROUP, and the job stayed queued."""
+    frame: SensorFrame = make_frame()
+    worker = workers.start()
+    first = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    assert finished(queue, first.id).state is JobState.SUCCEEDED
+    embedded.stop()
+    shutil.rmtree(embedded.dir)
+    embedded.start()
+    late = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    assert client.xinfo_groups(JOBS_STREAM) == []
     assert finished(queue, late.id).state is JobState.SUCCEEDED
     assert worker.poll() is None
 
