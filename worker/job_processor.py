@@ -356,8 +356,8 @@ class JobProcessor:
             self._finish(consumer, delivery, record.id)
 
     def _finish(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
-        """The job is final: its record expires with its results (set again here for
-        jobs the API cancelled, whose transition carried no expiry); drop the entry."""
+        """The job is final: its record expires with its results (set here for jobs the
+        API cancelled, whose transition carried no expiry); drop the entry."""
         self.jobs.expire(job_id, self.store.retention_s)
         self._drop(consumer, delivery, job_id)
 

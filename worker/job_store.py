@@ -51,6 +51,11 @@ redis.call('HSET', KEYS[1], unpack(ARGV))
 return 1
 """
 
+#: Let KEYS[1] expire ARGV[1] s from now unless it expires already.
+_EXPIRE_UNSET = """
+if redis.call('TTL', KEYS[1]) == -1 then redis.call('EXPIRE', KEYS[1], ARGV[1]) end
+"""
+
 
 def encode_fields(values: dict[str, Any]) -> dict[str, str]:
     """JSON-encode each field value (JobRecord fields, already in JSON mode)."""
@@ -69,6 +74,7 @@ class JobStore:
         self.client = client
         self._transition = client.register_script(_TRANSITION)
         self._update = client.register_script(_UPDATE)
+        self._expire_unset = client.register_script(_EXPIRE_UNSET)
 
     def load(self, job_id: str) -> JobRecord:
         """The record of ``job_id``; :class:`JobNotFoundError` if unknown or malformed id."""
@@ -115,8 +121,12 @@ class JobStore:
         return bool(changed), JobState(json.loads(previous)) if previous else None
 
     def expire(self, job_id: str, seconds: float) -> None:
-        """Let a finished job's record expire (with its results) after ``seconds``."""
-        self.client.expire(job_key(job_id), max(int(seconds), 1))
+        """Let a finished job's record expire (with its results) after ``seconds``,
+        unless it expires already: a job that succeeded or failed got its expiry with its
+        end, as its result files their age, and a later delivery of its entry (a worker
+        stopped before it dropped it) that set the full term again kept the record, with
+        its links, for that long after the retention purge had deleted its files."""
+        self._expire_unset(keys=[job_key(job_id)], args=[max(int(seconds), 1)])
 
     def states(self) -> dict[str, int]:
         """Jobs per state (every state listed, zeros included): queued and running count

@@ -557,6 +557,17 @@ def test_a_full_results_disk_keeps_the_job_waiting_not_failed(
     assert queue.get(job_id).state is JobState.SUCCEEDED
 
 
+def handled_here(client: redis.Redis, data_dir: Path) -> tuple[JobProcessor, StreamConsumer]:
+    """Handle the next queued job in this process (consumer ``w-j0``, no child process,
+    results kept an hour); the processor and the consumer, to handle more."""
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    processor.handle(consumer, delivery)
+    return processor, consumer
+
+
 def test_a_finished_job_delivered_past_the_limit_is_dropped_not_dead_lettered(
     client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
 ) -> None:
@@ -565,11 +576,7 @@ def test_a_finished_job_delivered_past_the_limit_is_dropped_not_dead_lettered(
     add a worker_lost dead letter for a job that had succeeded)."""
     frame: SensorFrame = make_frame()
     job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
-    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
-    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
-    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
-    [delivery] = consumer.read_new(block_ms=None)
-    processor.handle(consumer, delivery)
+    processor, consumer = handled_here(client, data_dir)
     assert queue.get(job.id).state is JobState.SUCCEEDED
     entry = client.xadd(JOBS_STREAM, {"job": job.id}).decode()
     [again] = consumer.read_new(block_ms=None)
@@ -590,16 +597,33 @@ def test_a_job_from_an_api_whose_clock_is_ahead_shows_no_negative_time(
     frame: SensorFrame = make_frame()
     job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
     client.hset(job_key(job.id), "created_ns", str(job.created_ns + 10**10))
-    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
-    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
-    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
-    [delivery] = consumer.read_new(block_ms=None)
-    processor.handle(consumer, delivery)
+    handled_here(client, data_dir)
     record = queue.get(job.id)
     assert record.state is JobState.SUCCEEDED
     assert record.started_ns is not None and record.finished_ns is not None
     assert record.created_ns <= record.started_ns <= record.finished_ns
     assert min(record.timings_ns.values()) >= 0, record.timings_ns
+
+
+def test_a_finished_job_delivered_again_keeps_the_expiry_of_its_results(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """A worker stopped between a job's success and its ack; the next took the entry an
+    hour later (no worker ran meanwhile) and set the record's full retention again: the
+    record outlived its files by that hour, a succeeded job whose result was gone."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    processor, consumer = handled_here(client, data_dir)
+    client.expire(job_key(job.id), 60)  # an hour of its retention has passed
+    client.xadd(JOBS_STREAM, {"job": job.id})
+    [again] = consumer.read_new(block_ms=None)
+    processor.handle(consumer, again)
+    assert 0 < client.ttl(job_key(job.id)) <= 60
+    cancelled = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    queue.cancel(cancelled.id)
+    [dropped] = consumer.read_new(block_ms=None)
+    processor.handle(consumer, dropped)
+    assert 3500 < client.ttl(job_key(cancelled.id)) <= 3600  # a cancel's: set on drop
 
 
 def test_a_stalled_worker_whose_job_was_taken_over_stops_decoding_it(
