@@ -306,7 +306,6 @@ class JobProcessor:
                     return
                 time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))
                 consumer.retry(delivery)
-                self.jobs.update(record.id, frames_done=0, progress=0.0)
                 record = self.jobs.load(record.id)
 
     def _hand_back(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
@@ -318,6 +317,8 @@ class JobProcessor:
         consumer.give_back(delivery)
 
     def _run(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
+        """One attempt at the job. Its progress starts at 0: another attempt (retried
+        here, or reclaimed from a worker that died) redoes the job from its start."""
         started = record.started_ns or time_after(record.created_ns)
         changed, _ = self.jobs.transition(
             record.id,
@@ -325,6 +326,8 @@ class JobProcessor:
             (JobState.QUEUED, JobState.RUNNING),
             started_ns=started,
             attempts=record.attempts + 1,
+            frames_done=0,
+            progress=0.0,
         )
         if not changed:
             self._finish(consumer, delivery, record.id)

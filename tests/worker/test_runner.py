@@ -27,7 +27,7 @@ from worker.child_process import ChildProcess
 from worker.deliveries import GROUP, Delivery, StreamConsumer
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.job_processor import JobProcessor, start_job_child
-from worker.jobs import JobState
+from worker.jobs import JobRecord, JobState
 from worker.metrics import counter_key, read_metrics
 from worker.queue import JobQueue
 from worker.redis_keys import (
@@ -624,6 +624,38 @@ def test_a_finished_job_delivered_again_keeps_the_expiry_of_its_results(
     [dropped] = consumer.read_new(block_ms=None)
     processor.handle(consumer, dropped)
     assert 3500 < client.ttl(job_key(cancelled.id)) <= 3600  # a cancel's: set on drop
+
+
+def test_a_job_reclaimed_from_a_dead_worker_shows_its_progress_from_0(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A worker SIGKILLed at 60 % of a video left that progress in the record; the worker
+    that reclaimed the job redid it from its first frame, but the record said 60 % (24
+    frames done) until that worker's first report."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    queue.jobs.transition(job.id, JobState.RUNNING, (JobState.QUEUED,), started_ns=job.created_ns,
+                          attempts=1, progress=0.6, frames_done=24)  # fmt: skip
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
+    at_start: list[JobRecord] = []
+    transition = processor.jobs.transition
+
+    def seen(job_id: str, to: JobState, *args: object, **fields: object) -> object:
+        changed = transition(job_id, to, *args, **fields)  # type: ignore[arg-type]
+        if to is JobState.RUNNING:
+            at_start.append(processor.jobs.load(job_id))
+        return changed
+
+    monkeypatch.setattr(processor.jobs, "transition", seen)
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    delivery.deliveries = 2
+    processor.handle(consumer, delivery)
+    [record] = at_start
+    assert (record.attempts, record.progress, record.frames_done) == (2, 0.0, 0)
+    assert queue.get(job.id).state is JobState.SUCCEEDED
 
 
 def test_a_stalled_worker_whose_job_was_taken_over_stops_decoding_it(
