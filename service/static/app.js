@@ -175,9 +175,10 @@ const percent = (share) => `${(100 * share).toFixed(1)}%`;
 
 // One line per fact of how the job's frame was decoded (GET /v1/jobs/{id} "info"):
 // each channel's routes, refinement, clipped blobs filled or latency budget, and a
-// colour frame's join.
+// colour frame's join. None before the decode (a queued, running, cancelled or failed
+// job's info is {}: it read "decoder: undefined").
 function describeDecode(info) {
-  if (!info) return "";
+  if (!info?.decoder) return "";
   const lines = [`decoder: ${info.decoder}`];
   const channels = info.channels || (info.details ? [info.details] : []);
   channels.forEach((facts, index) => {

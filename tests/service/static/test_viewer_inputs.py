@@ -1,7 +1,8 @@
 """What the viewer tells the API about its inputs and what it shows of the API's answer,
 in headless Debian chromium (Playwright, no browser download), against real uvicorn,
 Redis and a worker: a scene with negative values (lossy EXR) is simulated once the page
-asks for them clipped, and a frame read as another format than its name says is noted.
+asks for them clipped, a frame read as another format than its name says is noted, and
+a job not yet decoded shows no decode facts.
 """
 
 from __future__ import annotations
@@ -80,3 +81,21 @@ def test_a_frame_read_as_another_format_than_its_name_is_noted(
     page.click("#run")
     wait_for_status(page, "succeeded")
     assert page.inner_text("#notes") == ""
+
+
+def test_a_job_not_yet_decoded_shows_no_decode_facts(
+    browser: Browser, api: str, tmp_path: Path
+) -> None:
+    """A queued (then cancelled) job's ``info`` is ``{}``: the page's "how the frame was
+    decoded" read ``decoder: undefined`` until the job succeeded, and for good when it
+    was cancelled or failed. It stays empty until there is something to say."""
+    frame = tmp_path / "frame.png"
+    frame.write_bytes(frame_png(32)[0])
+    page = open_viewer(browser, api)  # no worker: the job stays queued
+    page.set_input_files("#file", str(frame))
+    page.click("#run")
+    wait_for_status(page, "queued")
+    assert page.inner_text("#routing") == ""
+    page.click("#cancel")
+    wait_for_status(page, "cancelled")
+    assert page.inner_text("#routing") == ""
