@@ -2,20 +2,23 @@
 // once a second (EventSource cannot send the API key header, so the page polls). The frame
 // is fetched only when a newer one came or the exposure changed. A failed poll is retried
 // after a growing wait (Retry-After on a 429 or 503); a device the server no longer knows
-// ends the watch. Uses api, sleep, retryDelayMs, retryNote, isGone and isFinal from app.js.
+// ends the watch. Uses api, sleep, retryDelayMs, retryNote, isGone, isFinal and setImage
+// from app.js.
 "use strict";
 
 const LIVE_POLL_MS = 1000;
 let liveWatch = null; // AbortController of the device being watched
-let liveUrl = null;
 
 function liveStatus(text) {
   document.getElementById("live-status").textContent = text;
 }
 
+// Stop watching the device, and empty its frame: nothing of one device stays on screen
+// beside another's health.
 function stopLiveWatch() {
   liveWatch?.abort();
   liveWatch = null;
+  setImage("live-frame", null);
 }
 
 async function listDevices() {
@@ -58,9 +61,8 @@ async function pollDevice(id, shown, signal) {
   if (!health.latest_result || wanted === shown) return shown;
   const reply = await api(`${path}/frames/latest?format=png&exposure=${ev}`, { signal });
   const blob = await reply.blob();
-  if (liveUrl) URL.revokeObjectURL(liveUrl);
-  liveUrl = URL.createObjectURL(blob);
-  document.getElementById("live-frame").src = liveUrl;
+  signal.throwIfAborted();
+  setImage("live-frame", blob);
   return wanted;
 }
 

@@ -4,7 +4,8 @@ Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A j
 a server restart; a 429 is waited out as Retry-After says; a stuck job is polled gently and
 can be cancelled; a job gone from the server is given up with a clear message; the result
 panels show a job's results only once it succeeded, never beside another job's. The live
-device view waits out a 429 too, and stops watching a device the server forgot.
+device view waits out a 429 too, stops watching a device the server forgot, and never shows
+one device's frame beside another's health.
 """
 
 from __future__ import annotations
@@ -17,8 +18,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import httpx
+import numpy as np
 import pytest
 
+from models.decoders.registry import get_decoder
+from models.formation import SensorParams, simulate
 from service.api.in_turn import BUSY_RETRY_AFTER_S
 from service.api.state import Slots
 from service.core.config import Settings
@@ -40,7 +44,9 @@ from tests.service.static.conftest import (
 )
 from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import connect
-from worker.redis_keys import DEVICES_SET, health_key, job_key
+from worker.outputs import encode_exr_result
+from worker.redis_keys import DEVICES_SET, health_key, job_key, latest_key
+from worker.result_store import RESULTS_DIR, ResultStore
 
 if TYPE_CHECKING:
     from playwright.sync_api import Browser, Page
@@ -330,6 +336,19 @@ def register_device(redis_url: str, device: str) -> None:
     client.hset(health_key(device), mapping={**health, "sequence_gaps": 0, "reconnects": 0})
 
 
+def store_latest_frame(settings: Settings, device: str) -> None:
+    """A SIZE x SIZE reconstruction stored as the device's newest frame, as the worker
+    stores one."""
+    assert settings.redis_url is not None
+    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
+    codes = simulate(np.linspace(0, 3, SIZE * SIZE).reshape(SIZE, SIZE), params).codes
+    decoded = get_decoder("itoh").decode(codes, params)
+    key = f"devices/{device}/000000000001-1-0.exr"
+    store = ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s)
+    store.write(key, encode_exr_result(codes, decoded.winding, params, decoded.info, {}))
+    connect(settings.redis_url).set(latest_key(device), key)
+
+
 def watch_device(page: Page, device: str) -> list[str]:
     """List the devices, pick ``device``; the device requests the page makes from then."""
     page.click("#live-refresh")
@@ -436,3 +455,20 @@ def test_a_busy_preview_of_a_job_no_longer_shown_is_not_asked_for_again(
             page.clock.run_for(1_000)
             page.wait_for_timeout(100)
         assert len(requests) <= 1, requests
+
+
+def test_another_device_is_not_shown_with_the_previous_ones_frame(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """Picking a device that has no frame yet left the previous device's frame on screen,
+    captioned as the newest reconstruction, beside the new device's health."""
+    assert settings.redis_url is not None
+    for device in ("cam1", "cam2"):
+        register_device(settings.redis_url, device)
+    store_latest_frame(settings, "cam1")
+    page = open_viewer(browser, api)
+    watch_device(page, "cam1")
+    wait_for_js(page, f"document.getElementById('live-frame').naturalWidth === {SIZE}")
+    page.select_option("#live-device", "cam2")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+    assert page.get_attribute("#live-frame", "src") is None
