@@ -27,14 +27,19 @@ async function listDevices() {
   select.replaceChildren(new Option("(choose a device)", ""));
   try {
     const { devices } = await (await api("/v1/devices")).json();
-    for (const device of devices) select.add(new Option(`${device.id} (${device.state})`, device.id));
+    for (const device of devices) select.add(new Option(`${device.id} (${deviceState(device)})`, device.id));
     liveStatus(`${devices.length} device(s)`);
   } catch (error) {
     liveStatus(`cannot list devices: ${error.message}`);
   }
 }
 
+// A device's state; none before its daemon's first health report (the daemon's first
+// frame can register the device just before it; the API then shows no health fields).
+const deviceState = (health) => health.state ?? "no health report yet";
+
 function describeHealth(health) {
+  if (!health.state) return `${deviceState(health)} from the device's daemon`;
   const dropped = Object.values(health.dropped).reduce((a, b) => a + b, 0);
   return `${health.state}: ${health.frames_ok} frames, ${health.fps} fps, ` +
     `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects`;

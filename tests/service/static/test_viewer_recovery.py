@@ -472,3 +472,18 @@ def test_another_device_is_not_shown_with_the_previous_ones_frame(
     page.select_option("#live-device", "cam2")
     wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
     assert page.get_attribute("#live-frame", "src") is None
+
+
+def test_a_device_without_a_health_report_reads_so(browser: Browser, api: str,
+                                                   settings: Settings) -> None:
+    """A device registered (by its daemon's first frame) before its daemon's first health
+    report: the list read 'cam1 (undefined)' and the live status 'undefined: undefined
+    frames, undefined fps, 0 dropped, undefined gaps, undefined reconnects'."""
+    assert settings.redis_url is not None
+    connect(settings.redis_url).sadd(DEVICES_SET, "cam1")
+    page = open_viewer(browser, api)
+    watch_device(page, "cam1")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('report')")
+    assert page.inner_text("#live-status") == "no health report yet from the device's daemon"
+    option = page.inner_text("#live-device option[value=cam1]")
+    assert option == "cam1 (no health report yet)"
