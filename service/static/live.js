@@ -38,11 +38,14 @@ async function listDevices() {
 // frame can register the device just before it; the API then shows no health fields).
 const deviceState = (health) => health.state ?? "no health report yet";
 
+// The device's health in one line; while its port does not open, why and what to do (the
+// daemon's port_error: a wrong --port, an unplugged camera, another daemon on it).
 function describeHealth(health) {
   if (!health.state) return `${deviceState(health)} from the device's daemon`;
   const dropped = Object.values(health.dropped).reduce((a, b) => a + b, 0);
+  const port = health.port_error ? `; its port does not open: ${health.port_error}` : "";
   return `${health.state}: ${health.frames_ok} frames, ${health.fps} fps, ` +
-    `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects`;
+    `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects${port}`;
 }
 
 // The device's health; an error marked deviceGone if the server no longer knows it.

@@ -487,3 +487,23 @@ def test_a_device_without_a_health_report_reads_so(browser: Browser, api: str,
     assert page.inner_text("#live-status") == "no health report yet from the device's daemon"
     option = page.inner_text("#live-device option[value=cam1]")
     assert option == "cam1 (no health report yet)"
+
+
+def test_a_device_whose_port_does_not_open_says_why(browser: Browser, api: str,
+                                                    settings: Settings) -> None:
+    """The daemon reports why the port does not open (``port_error``: a wrong --port, an
+    unplugged camera, another daemon holding it) and what to do; the live view showed
+    only 'connecting: 0 frames, ...', with the reason in the daemon's log alone."""
+    assert settings.redis_url is not None
+    reason = "/dev/ttyUSB7 does not exist: check --port, or plug the camera in"
+    register_device(settings.redis_url, "cam1")
+    fresh = time.time_ns() + 60 * 10**9  # not shown silent, however slow the test runs
+    connect(settings.redis_url).hset(health_key("cam1"), mapping={
+        "state": "connecting", "updated_ns": fresh, "port_error": reason,
+    })  # fmt: skip
+    page = open_viewer(browser, api)
+    watch_device(page, "cam1")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('frames')")
+    status = page.inner_text("#live-status")
+    assert status.startswith("connecting: 0 frames") and status.endswith(
+        f"; its port does not open: {reason}"), status
