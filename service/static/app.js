@@ -453,12 +453,15 @@ function onExposure() {
   if (shownJob) exposureTimer = setTimeout(refreshHdr, 120);
 }
 
+// Save the shown job's EXR as <job id>.exr (the id taken at the click: a Run pressed
+// while it downloads clears shownJob, and the file was saved as null.exr).
 async function download() {
+  const job = shownJob;
   try {
-    const blob = await resultBlob(shownJob, "part=image&format=exr");
+    const blob = await resultBlob(job, "part=image&format=exr");
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
-    link.download = `${shownJob}.exr`;
+    link.download = `${job}.exr`;
     link.click();
     URL.revokeObjectURL(link.href);
   } catch (error) {

@@ -37,6 +37,7 @@ from tests.service.conftest import (
     serve,
 )
 from tests.service.static.conftest import (
+    POLL_MS,
     needs_chromium,
     open_viewer,
     wait_for_js,
@@ -47,9 +48,10 @@ from worker.embedded_redis import connect
 from worker.outputs import encode_exr_result
 from worker.redis_keys import DEVICES_SET, health_key, job_key, latest_key
 from worker.result_store import RESULTS_DIR, ResultStore
+from worker.runner import Worker
 
 if TYPE_CHECKING:
-    from playwright.sync_api import Browser, Page
+    from playwright.sync_api import Browser, Page, Route
 
 SIZE = 32  # small frames: the tests are about the page, not the decoder
 JOB_ID = re.compile(r"job ([0-9a-f]{32})")
@@ -507,3 +509,24 @@ def test_a_device_whose_port_does_not_open_says_why(browser: Browser, api: str,
     status = page.inner_text("#live-status")
     assert status.startswith("connecting: 0 frames") and status.endswith(
         f"; its port does not open: {reason}"), status
+
+
+def test_a_download_is_named_after_its_job_when_a_run_starts_meanwhile(
+    browser: Browser, api: str, worker: Worker, frame: Path
+) -> None:
+    """Run pressed while the EXR downloads clears the shown job: the file was then saved
+    as null.exr."""
+    page = open_viewer(browser, api)
+    job_id = submit(page, frame)
+    wait_for_panels(page)
+    held: list[Route] = []
+    page.route("**/result?part=image&format=exr", lambda route: held.append(route))
+    page.click("#download")
+    deadline = time.monotonic() + 30
+    while not held:
+        assert time.monotonic() < deadline, "the page did not ask for the EXR"
+        page.wait_for_timeout(POLL_MS)
+    page.evaluate("clearResult()")  # as Run does first
+    with page.expect_download() as download:
+        held[0].continue_()
+    assert download.value.suggested_filename == f"{job_id}.exr"
