@@ -58,7 +58,8 @@ _TEXT_FIELDS = ("device", "port", "state", "port_error")
 
 
 def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
-    """A device's health hash as JSON: counters as numbers, drops grouped by cause."""
+    """A device's health hash as JSON: counters as numbers, drops grouped by cause; a
+    device whose daemon stopped or went silent at 0 fps."""
     fields = {as_text(k): as_text(v) for k, v in client.hgetall(health_key(device)).items()}
     view: dict[str, Any] = {"id": device, "dropped": {}}
     for name, value in fields.items():
@@ -75,6 +76,8 @@ def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
         view["age_s"] = round((time.time_ns() - updated) / 1e9, 3)
         if view["age_s"] > DAEMON_SILENT_S and view.get("state") != "stopped":
             view["last_state"], view["state"], view["fps"] = view.get("state"), "silent", 0.0
+    if view.get("state") == "stopped":  # its last write measured the frames before the stop
+        view["fps"] = 0.0
     return view
 
 

@@ -117,6 +117,23 @@ def test_a_device_whose_daemon_went_quiet_is_shown_silent_and_can_be_forgotten(
     assert client(SUBMIT_KEY).delete("/v1/devices/gone").status_code == 404
 
 
+def test_a_device_whose_daemon_stopped_streams_at_0_fps(
+    settings: Settings, client: Callable[..., httpx.Client]
+) -> None:
+    """A daemon's last health write, as it stops, measures the frames that came before
+    the stop: its device read 'stopped' at 19.285 fps for good (the web viewer showed
+    'stopped: 40 frames, 19.285 fps')."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "cam1")
+    redis_client.hset(health_key("cam1"), mapping={
+        "state": "stopped", "fps": "19.285", "frames_ok": "40", "updated_ns": str(time.time_ns()),
+    })  # fmt: skip
+    view = client(READ_KEY).get("/v1/devices/cam1").json()
+    assert view["state"] == "stopped" and view["frames_ok"] == 40
+    assert view["fps"] == 0.0
+
+
 def test_commands_for_a_stopped_daemon_are_refused_past_the_backlog(
     settings: Settings, client: Callable[..., httpx.Client]
 ) -> None:
