@@ -140,6 +140,19 @@ function simulateRefused(error) {
     "and press Reconstruct again", error.status, null, error.code);
 }
 
+// The choices of "Upload", by the kind of file each takes.
+const KINDS = { frame: ["a", "wrapped frame"], hdr: ["an", "HDR image"] };
+
+// The error for an upload the API cannot read as kind (415: an HDR image sent as a
+// frame, or a frame to be simulated): the API's words name its CLI and routes; this adds
+// the choice under Upload that takes a file of the other kind.
+function wrongKind(error, kind) {
+  if (error.status !== 415) return error;
+  const [article, other] = KINDS[kind === "hdr" ? "frame" : "hdr"];
+  return new ApiError(`${error.message}; if the file is ${article} ${other}, choose ` +
+    `“${other}” under Upload and press Reconstruct again`, error.status, null, error.code);
+}
+
 // The sensor's frame of an HDR image, as a TIFF: it holds grey and colour frames alike
 // (a PNG frame is grey only, and every Radiance .hdr is colour). Notes how many negative
 // scene values were set to 0 (X-Mcam-Clipped-Negative) when that was asked for.
@@ -150,7 +163,7 @@ async function simulateFrame(file) {
   form.append("format", "tiff");
   sensorFields(form, true);
   const reply = await api("/v1/simulate", { method: "POST", body: form }).catch((error) => {
-    throw simulateRefused(error);
+    throw wrongKind(simulateRefused(error), "hdr");
   });
   if (form.has("clip_negative")) {
     const clipped = reply.headers.get("X-Mcam-Clipped-Negative");
@@ -167,7 +180,9 @@ async function submitFrame(frame, simulated) {
   if (!simulated) sensorFields(form, false);
   if ($("quality").value) form.append("quality", $("quality").value);
   else form.append("decoder", $("decoder").value);
-  const reply = await api("/v1/reconstructions", { method: "POST", body: form });
+  const reply = await api("/v1/reconstructions", { method: "POST", body: form }).catch((error) => {
+    throw simulated ? error : wrongKind(error, "frame");
+  });
   return (await reply.json()).id;
 }
 

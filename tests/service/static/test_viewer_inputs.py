@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 from models.hdr_io import read_hdr
-from tests.service.conftest import frame_png
+from tests.service.conftest import exr_bytes, frame_png
 from tests.service.static.conftest import (
     needs_chromium,
     open_viewer,
@@ -99,3 +99,31 @@ def test_a_job_not_yet_decoded_shows_no_decode_facts(
     page.click("#cancel")
     wait_for_status(page, "cancelled")
     assert page.inner_text("#routing") == ""
+
+
+def test_a_file_of_the_other_kind_is_told_which_choice_takes_it(
+    browser: Browser, api: str, tmp_path: Path
+) -> None:
+    """An HDR image uploaded as a wrapped frame (the default choice), or a frame as an HDR
+    image: the API's 415 says to use mcam simulate or POST /v1/simulate (mcam reconstruct
+    or POST /v1/reconstructions), which the page's user does not call; the page now names
+    the choice under Upload that takes the file."""
+    scene = tmp_path / "scene.exr"
+    scene.write_bytes(exr_bytes(32))
+    frame = tmp_path / "frame.png"
+    frame.write_bytes(frame_png(32)[0])
+    page = open_viewer(browser, api)
+    page.set_input_files("#file", str(scene))
+    refused = run_and_wait(page)
+    assert refused.startswith("unsupported_format: "), refused
+    assert "not a wrapped frame" in refused and refused.endswith(
+        "; if the file is an HDR image, choose “HDR image” under Upload and press Reconstruct"
+        " again"
+    ), refused
+    page.check("input[name=kind][value=hdr]")
+    page.set_input_files("#file", str(frame))
+    refused = run_and_wait(page)
+    assert "if it is a wrapped frame" in refused and refused.endswith(
+        "; if the file is a wrapped frame, choose “wrapped frame” under Upload and press"
+        " Reconstruct again"
+    ), refused
