@@ -38,14 +38,24 @@ async function listDevices() {
 // frame can register the device just before it; the API then shows no health fields).
 const deviceState = (health) => health.state ?? "no health report yet";
 
-// The device's health in one line; while its port does not open, why and what to do (the
-// daemon's port_error: a wrong --port, an unplugged camera, another daemon on it).
+// Why the device sends no frames, and what to do: its daemon went silent (the API's state
+// "silent": no health report for age_s seconds), or its port does not open (the daemon's
+// port_error: a wrong --port, an unplugged camera, another daemon on it); else "".
+function healthTrouble(health) {
+  if (health.state === "silent") {
+    return `; its daemon has not reported for ${Math.round(health.age_s)} s (stopped, ` +
+      "killed, or cut off from Redis): check that mcam device runs";
+  }
+  return health.port_error ? `; its port does not open: ${health.port_error}` : "";
+}
+
+// The device's health in one line, with what keeps it from sending frames.
 function describeHealth(health) {
   if (!health.state) return `${deviceState(health)} from the device's daemon`;
   const dropped = Object.values(health.dropped).reduce((a, b) => a + b, 0);
-  const port = health.port_error ? `; its port does not open: ${health.port_error}` : "";
   return `${health.state}: ${health.frames_ok} frames, ${health.fps} fps, ` +
-    `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects${port}`;
+    `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects` +
+    healthTrouble(health);
 }
 
 // The device's health; an error marked deviceGone if the server no longer knows it.

@@ -530,3 +530,19 @@ def test_a_download_is_named_after_its_job_when_a_run_starts_meanwhile(
     with page.expect_download() as download:
         held[0].continue_()
     assert download.value.suggested_filename == f"{job_id}.exr"
+
+
+def test_a_device_whose_daemon_went_silent_says_what_to_check(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """A daemon killed (or cut off from Redis) a minute ago: the live view read 'silent:
+    0 frames, 0 fps, ...', with neither since when nor what to do."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api)
+    watch_device(page, "cam1")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+    status = page.inner_text("#live-status")
+    silent_for = re.search(r"; its daemon has not reported for (\d+) s \(stopped, killed, "
+                           r"or cut off from Redis\): check that mcam device runs$", status)
+    assert silent_for is not None and int(silent_for.group(1)) >= 60, status
