@@ -13,12 +13,13 @@ function liveStatus(text) {
   document.getElementById("live-status").textContent = text;
 }
 
-// Stop watching the device, and empty its frame: nothing of one device stays on screen
-// beside another's health.
+// Stop watching the device, and empty its frame and health: nothing of one device stays
+// on screen beside another's, or once none is chosen.
 function stopLiveWatch() {
   liveWatch?.abort();
   liveWatch = null;
   setImage("live-frame", null);
+  liveStatus("");
 }
 
 async function listDevices() {

@@ -476,6 +476,20 @@ def test_another_device_is_not_shown_with_the_previous_ones_frame(
     assert page.get_attribute("#live-frame", "src") is None
 
 
+def test_no_health_is_shown_once_no_device_is_chosen(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """Choosing '(choose a device)' stopped the watch but left the last device's health
+    on screen, as if it were still watched."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api)
+    watch_device(page, "cam1")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+    page.select_option("#live-device", "")
+    assert page.inner_text("#live-status") == ""
+
+
 def test_a_device_without_a_health_report_reads_so(browser: Browser, api: str,
                                                    settings: Settings) -> None:
     """A device registered (by its daemon's first frame) before its daemon's first health
