@@ -105,6 +105,8 @@ function setStatus(text, tone = "") {
   $("status").className = tone;
 }
 
+// Fill the decoder choice from GET /v1/decoders; a failure says how to list them again
+// (the page asks only at load and on Save key).
 async function loadDecoders() {
   const select = $("decoder");
   select.replaceChildren();
@@ -117,7 +119,8 @@ async function loadDecoders() {
       select.add(option);
     }
   } catch (error) {
-    setStatus(`cannot list decoders: ${error.message}`, "error");
+    setStatus(`cannot list decoders: ${error.message}; then press Save key to list them ` +
+      "again (Reconstruct meanwhile uses the server's default decoder or the quality)", "error");
   }
 }
 

@@ -560,3 +560,21 @@ def test_a_device_whose_daemon_went_silent_says_what_to_check(
     silent_for = re.search(r"; its daemon has not reported for (\d+) s \(stopped, killed, "
                            r"or cut off from Redis\): check that mcam device runs$", status)
     assert silent_for is not None and int(silent_for.group(1)) >= 60, status
+
+
+def test_a_decoder_list_that_failed_says_how_to_list_them_again(
+    browser: Browser, api: str
+) -> None:
+    """The decoders are listed only at load and on Save key: one that failed (the server
+    down, a 429) left the choice empty with no word of how to fill it once the server
+    answers."""
+    page = browser.new_page()
+    page.route("**/v1/decoders", lambda route: route.abort())
+    page.goto(f"{api}/")
+    page.fill("#api-key", FULL_KEY)
+    page.click("#key-form button")
+    status = wait_for_status(page, "cannot list decoders")
+    assert "cannot reach the server" in status and "press Save key to list them again" in status
+    page.unroute("**/v1/decoders")
+    page.click("#key-form button")
+    page.wait_for_selector("#decoder option[value=itoh]", state="attached")
