@@ -287,22 +287,25 @@ async function waitForJob(id, signal) {
 }
 
 // The reply of the job's result for query; one the server was too busy to make is
-// asked for again after its Retry-After (RESULT_TRIES in all). Once signal (if any)
-// aborts (Cancel, another job or exposure shown), it asks no more: AbortError.
-async function result(job, query, signal = null) {
+// asked for again after its Retry-After (RESULT_TRIES in all), told to onBusy (if any)
+// as (error, wait in ms). Once signal (if any) aborts (Cancel, another job or exposure
+// shown), it asks no more: AbortError.
+async function result(job, query, signal = null, onBusy = null) {
   for (let tries = 1; ; tries += 1) {
     try {
       return await api(`/v1/jobs/${job}/result?${query}`, { signal });
     } catch (error) {
       if (tries >= RESULT_TRIES || !BUSY.includes(error.status)) throw error;
-      await sleep(retryDelayMs(error, tries), signal);
+      const delayMs = retryDelayMs(error, tries);
+      onBusy?.(error, delayMs);
+      await sleep(delayMs, signal);
       signal?.throwIfAborted();
     }
   }
 }
 
-async function resultBlob(job, query, signal = null) {
-  return (await result(job, query, signal)).blob();
+async function resultBlob(job, query, signal = null, onBusy = null) {
+  return (await result(job, query, signal, onBusy)).blob();
 }
 
 // Show blob in the image element id (null: empty it).
@@ -357,15 +360,26 @@ function clearResult() {
 }
 
 // Fetch every panel of the succeeded job, then show them together; none once signal
-// aborts.
+// aborts. While the server is too busy to make them the status says they are asked for
+// again (the panels stayed empty beside "succeeded", up to four Retry-Afters: minutes
+// on a 429), and the first that cannot be fetched stops the others (whose notes would
+// hide why).
 async function showResult(job, signal) {
   const ev = exposure();
+  const stop = new AbortController();
+  const panels = AbortSignal.any([signal, stop.signal]);
+  const busy = (error, delayMs) =>
+    setStatus(`job ${job}: succeeded; its results: ${retryNote(error, delayMs)}`, "warning");
   const [codes, winding, hdr, counts] = await Promise.all([
-    resultBlob(job, "part=codes&format=png", signal),
-    resultBlob(job, "part=winding&format=png", signal),
-    resultBlob(job, hdrQuery(), signal),
-    result(job, "part=histogram", signal).then((reply) => reply.json()),
-  ]);
+    resultBlob(job, "part=codes&format=png", panels, busy),
+    resultBlob(job, "part=winding&format=png", panels, busy),
+    resultBlob(job, hdrQuery(), panels, busy),
+    result(job, "part=histogram", panels, busy).then((reply) => reply.json()),
+  ]).catch((error) => {
+    stop.abort();
+    throw error;
+  });
+  setStatus(`job ${job}: succeeded`);
   setImage("img-codes", codes);
   setImage("img-winding", winding);
   setImage("img-hdr", hdr);

@@ -249,6 +249,23 @@ def test_results_the_server_is_too_busy_to_make_are_asked_for_again(
         assert page.inner_text("#status") == f"job {job_id}: succeeded"
 
 
+def test_results_asked_for_again_are_said_to_be(
+    browser: Browser, redis_url: str, frame: Path, tmp_path: Path
+) -> None:
+    """While its previews were refused and asked for again (four Retry-Afters in all:
+    minutes on a 429), the page showed 'succeeded' beside empty panels, with no word."""
+    with previews_refused(browser, redis_url, frame, tmp_path) as (page, job_id, slots):
+        status = wait_for_status(page, "retrying in")
+        assert status.startswith(
+            f"job {job_id}: succeeded; its results: the server answered server_busy: "
+        ), status
+        assert page.get_attribute("#status", "class") == "warning"
+        slots.release()
+        wait_for_panels(page)
+        assert page.inner_text("#status") == f"job {job_id}: succeeded"
+        assert page.get_attribute("#status", "class") == ""
+
+
 def test_cancel_after_the_job_finished_stops_fetching_its_results(
     browser: Browser, redis_url: str, frame: Path, tmp_path: Path
 ) -> None:
