@@ -3,9 +3,11 @@
 Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
 a server restart; a 429 is waited out as Retry-After says; a stuck job is polled gently and
 can be cancelled; a job gone from the server is given up with a clear message; the result
-panels show a job's results only once it succeeded, never beside another job's. The live
-device view waits out a 429 too, stops watching a device the server forgot, and never shows
-one device's frame beside another's health.
+panels show a job's results only once it succeeded, never beside another job's, and previews
+asked for again are said to be; a decoder list that failed says how to list them again. The
+live device view waits out a 429 too, stops watching a device the server forgot, never shows
+one device's frame or health beside another's, and says why a device sends nothing (no
+health report yet, a port that does not open, a silent daemon).
 """
 
 from __future__ import annotations
