@@ -2,7 +2,8 @@
 in headless Debian chromium (Playwright, no browser download), against real uvicorn,
 Redis and a worker: a scene with negative values (lossy EXR) is simulated once the page
 asks for them clipped, a frame read as another format than its name says is noted, and
-a job not yet decoded shows no decode facts.
+a job not yet decoded shows no decode facts, a file of the other kind is told which choice
+takes it, and the file chooser offers every file the API reads.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import pytest
 
+from models.frames import FRAME_ALIASES
 from models.hdr_io import read_hdr
 from tests.service.conftest import exr_bytes, frame_png
 from tests.service.static.conftest import (
@@ -127,3 +129,13 @@ def test_a_file_of_the_other_kind_is_told_which_choice_takes_it(
         "; if the file is a wrapped frame, choose “wrapped frame” under Upload and press"
         " Reconstruct again"
     ), refused
+
+
+def test_the_file_chooser_offers_every_file_the_api_reads(browser: Browser, api: str) -> None:
+    """The chooser's ``accept`` hid Radiance ``.pic`` images, which the API reads as it
+    reads ``.hdr`` (by their first bytes)."""
+    page = open_viewer(browser, api)
+    accept = page.get_attribute("#file", "accept")
+    assert accept is not None
+    read = [*FRAME_ALIASES, "exr", "hdr", "pic"]  # frames, and HDR images by first bytes
+    assert set(accept.split(",")) == {f".{suffix}" for suffix in read}
