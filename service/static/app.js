@@ -21,6 +21,7 @@ let watched = null; // the job in flight: { id, stop: AbortController }
 let histogram = null;
 let exposureTimer = null;
 let inputNotes = []; // what the page notes of this run's input (the simulate's clipping)
+let resultsBusyShown = false; // the status says a result is asked for again (resultsBusy)
 
 // An API call that failed: the HTTP status (0: the server could not be reached), the
 // seconds a 429 or 503 asked to wait (Retry-After) and the error's code (null: none).
@@ -103,6 +104,7 @@ function retryNote(error, delayMs) {
 function setStatus(text, tone = "") {
   $("status").textContent = text;
   $("status").className = tone;
+  resultsBusyShown = false;
 }
 
 // Fill the decoder choice from GET /v1/decoders; a failure says how to list them again
@@ -308,6 +310,21 @@ async function resultBlob(job, query, signal = null, onBusy = null) {
   return (await result(job, query, signal, onBusy)).blob();
 }
 
+// The onBusy of result for the succeeded job: the status says its result is asked for
+// again (the panels stayed empty beside "succeeded", up to four Retry-Afters: minutes on
+// a 429) until resultCame.
+function resultsBusy(job) {
+  return (error, delayMs) => {
+    setStatus(`job ${job}: succeeded; its results: ${retryNote(error, delayMs)}`, "warning");
+    resultsBusyShown = true;
+  };
+}
+
+// A result of job came: a note that one was asked for again gives way to "succeeded".
+function resultCame(job) {
+  if (resultsBusyShown) setStatus(`job ${job}: succeeded`);
+}
+
 // Show blob in the image element id (null: empty it).
 function setImage(id, blob) {
   const img = $(id);
@@ -360,16 +377,13 @@ function clearResult() {
 }
 
 // Fetch every panel of the succeeded job, then show them together; none once signal
-// aborts. While the server is too busy to make them the status says they are asked for
-// again (the panels stayed empty beside "succeeded", up to four Retry-Afters: minutes
-// on a 429), and the first that cannot be fetched stops the others (whose notes would
-// hide why).
+// aborts. While the server is too busy to make them the status says so (resultsBusy),
+// and the first that cannot be fetched stops the others (whose notes would hide why).
 async function showResult(job, signal) {
   const ev = exposure();
   const stop = new AbortController();
   const panels = AbortSignal.any([signal, stop.signal]);
-  const busy = (error, delayMs) =>
-    setStatus(`job ${job}: succeeded; its results: ${retryNote(error, delayMs)}`, "warning");
+  const busy = resultsBusy(job);
   const [codes, winding, hdr, counts] = await Promise.all([
     resultBlob(job, "part=codes&format=png", panels, busy),
     resultBlob(job, "part=winding&format=png", panels, busy),
@@ -379,7 +393,7 @@ async function showResult(job, signal) {
     stop.abort();
     throw error;
   });
-  setStatus(`job ${job}: succeeded`);
+  resultCame(job);
   setImage("img-codes", codes);
   setImage("img-winding", winding);
   setImage("img-hdr", hdr);
@@ -400,8 +414,10 @@ async function refreshHdr() {
   hdrStop.abort();
   const { signal } = (hdrStop = new AbortController());
   try {
-    const blob = await resultBlob(job, hdrQuery(), signal);
-    if (!signal.aborted) setImage("img-hdr", blob);
+    const blob = await resultBlob(job, hdrQuery(), signal, resultsBusy(job));
+    if (signal.aborted) return;
+    setImage("img-hdr", blob);
+    resultCame(job);
   } catch (error) {
     if (!signal.aborted) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
   }

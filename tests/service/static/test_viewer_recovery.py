@@ -268,6 +268,26 @@ def test_results_asked_for_again_are_said_to_be(
         assert page.get_attribute("#status", "class") == ""
 
 
+def test_a_preview_at_another_exposure_asked_for_again_is_said_to_be(
+    browser: Browser, redis_url: str, frame: Path, tmp_path: Path
+) -> None:
+    """The exposure slider's preview refused 503 server_busy was asked for again with
+    nothing said: the old exposure stayed on screen for up to four Retry-Afters."""
+    with previews_refused(browser, redis_url, frame, tmp_path) as (page, job_id, slots):
+        slots.release()
+        wait_for_panels(page)
+        assert page.inner_text("#status") == f"job {job_id}: succeeded"
+        assert slots.take()  # another request's preview again
+        before = page.get_attribute("#img-hdr", "src")
+        page.fill("#exposure", "-2")
+        page.dispatch_event("#exposure", "input")
+        status = wait_for_status(page, "retrying in")
+        assert status.startswith(f"job {job_id}: succeeded; its results: "), status
+        slots.release()
+        wait_for_js(page, f"document.getElementById('img-hdr').src !== {before!r}")
+        assert page.inner_text("#status") == f"job {job_id}: succeeded"
+
+
 def test_cancel_after_the_job_finished_stops_fetching_its_results(
     browser: Browser, redis_url: str, frame: Path, tmp_path: Path
 ) -> None:
