@@ -382,7 +382,9 @@ function clearResult() {
 async function showResult(job, signal) {
   const ev = exposure();
   const stop = new AbortController();
-  const panels = AbortSignal.any([signal, stop.signal]);
+  if (signal.aborted) stop.abort();
+  signal.addEventListener("abort", () => stop.abort(), { once: true });
+  const panels = stop.signal;
   const busy = resultsBusy(job);
   const [codes, winding, hdr, counts] = await Promise.all([
     resultBlob(job, "part=codes&format=png", panels, busy),
