@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+from pathlib import Path
 
 import redis
 from fastapi import APIRouter
@@ -25,7 +28,8 @@ class Liveness(BaseModel):
 
 
 class Readiness(BaseModel):
-    """``checks``: decoders loaded, queue reachable, workers heartbeating (name -> ok)."""
+    """``checks``: decoders loaded, queue reachable, workers heartbeating, result store
+    writable with room for a result (name -> ok)."""
 
     status: str
     checks: dict[str, bool]
@@ -38,8 +42,29 @@ def live() -> Liveness:
     return Liveness(status="ok")
 
 
+def store_problem(root: Path, min_free_bytes: int) -> str | None:
+    """Why workers cannot store results under ``root`` now, or None when they can: the
+    folder is not writable (a read-only mount: every job fails), or its disk has less
+    than ``min_free_bytes`` free (every job waits, running, until there is room). A
+    folder removed since is judged by its nearest parent, where workers create it again."""
+    folder = next(folder for folder in (root, *root.parents) if folder.exists())
+    if not os.access(folder, os.W_OK):
+        return (
+            "the result store (MCAM_DATA_DIR's results folder) is not writable: every job "
+            "would fail; mount it read-write or give the service's user write access"
+        )
+    free = shutil.disk_usage(folder).free
+    if free < min_free_bytes:
+        return (
+            f"the result store's disk has {free} bytes free, less than one upload "
+            f"(MCAM_MAX_UPLOAD_BYTES, {min_free_bytes}): jobs would wait, running, until "
+            "there is room; free space or lower MCAM_RESULT_RETENTION_S"
+        )
+    return None
+
+
 def readiness(state: ServiceState) -> Readiness:
-    """Check the decoder registry, Redis and the workers' heartbeats."""
+    """Check the decoder registry, Redis, the workers' heartbeats and the result store."""
     detail: dict[str, str] = {}
     decoders_ok = True
     try:
@@ -58,7 +83,12 @@ def readiness(state: ServiceState) -> Readiness:
         detail["queue"] = "Redis unreachable (the API's log says why)"
     if queue_ok and not workers:
         detail["workers"] = "no worker heartbeat: start one with 'mcam worker'"
-    checks = {"decoders": decoders_ok, "queue": queue_ok, "workers": workers > 0}
+    problem = store_problem(state.store.root, state.settings.max_upload_bytes)
+    if problem:
+        detail["store"] = problem
+    checks = {
+        "decoders": decoders_ok, "queue": queue_ok, "workers": workers > 0, "store": not problem
+    }
     status = "ready" if all(checks.values()) else "not_ready"
     return Readiness(status=status, checks=checks, workers=workers, detail=detail)
 
@@ -67,7 +97,7 @@ def readiness(state: ServiceState) -> Readiness:
     "/ready",
     response_model=Readiness,
     responses={503: {"model": Readiness, "description": "not ready: see checks and detail"}},
-    summary="Decoders loaded, queue reachable, workers heartbeating",
+    summary="Decoders loaded, queue reachable, workers heartbeating, result store writable",
 )
 def ready(state: StateDep) -> JSONResponse:
     result = readiness(state)

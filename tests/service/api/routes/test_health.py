@@ -1,18 +1,25 @@
-"""/health/live and /health/ready: decoders, Redis and worker heartbeats, really checked."""
+"""/health/live and /health/ready: decoders, Redis, worker heartbeats and the result store,
+really checked."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import subprocess
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
+import pytest
 
 from service.core.config import Settings
 from service.main import create_app
 from tests.service.conftest import FULL_KEY, make_settings, running_worker, serve
 from worker.embedded_redis import EmbeddedRedis
+from worker.result_store import RESULTS_DIR
 
 
 def wait_ready(url: str, want: int, timeout_s: float = 10.0) -> httpx.Response:
@@ -20,6 +27,16 @@ def wait_ready(url: str, want: int, timeout_s: float = 10.0) -> httpx.Response:
     while True:
         reply = httpx.get(f"{url}/health/ready")
         if reply.status_code == want or time.monotonic() > deadline:
+            return reply
+        time.sleep(0.1)
+
+
+def with_a_worker(url: str, timeout_s: float = 30.0) -> httpx.Response:
+    """``/health/ready``'s answer once it counts a worker's heartbeat."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        reply = httpx.get(f"{url}/health/ready")
+        if reply.json()["workers"] or time.monotonic() > deadline:
             return reply
         time.sleep(0.1)
 
@@ -32,7 +49,7 @@ def test_ready_needs_a_worker_heartbeat(api: str, settings: Settings) -> None:
     reply = httpx.get(f"{api}/health/ready")
     assert reply.status_code == 503
     body = reply.json()
-    assert body["checks"] == {"decoders": True, "queue": True, "workers": False}
+    assert body["checks"] == {"decoders": True, "queue": True, "workers": False, "store": True}
     assert "mcam worker" in body["detail"]["workers"]
     with running_worker(settings):
         ready = wait_ready(api, 200)
@@ -86,3 +103,59 @@ def test_a_hung_redis_gets_a_quick_503_not_a_hang(tmp_path: Path) -> None:
             assert httpx.get(f"{api}/v1/jobs/{'0' * 32}", headers=auth).status_code == 404
     finally:
         embedded.stop()
+
+
+def test_ready_reports_a_result_store_disk_without_room(tmp_path: Path, redis_url: str) -> None:
+    """A results disk with less free than one upload was reported ready, while every
+    job's results waited (running, for ever) for room (made to happen on a 64 KiB
+    tmpfs: the worker logged "the results disk is full")."""
+    free = shutil.disk_usage(tmp_path).free
+    settings = make_settings(tmp_path, redis_url, max_upload_bytes=2 * free + 1)
+    with serve(create_app(settings)) as api, running_worker(settings):
+        reply = with_a_worker(api)
+        assert reply.status_code == 503
+        body = reply.json()
+        assert body["checks"] == {"decoders": True, "queue": True, "workers": True,
+                                  "store": False}
+        assert "MCAM_MAX_UPLOAD_BYTES" in body["detail"]["store"]
+
+
+@contextmanager
+def read_only(folder: Path) -> Iterator[None]:
+    """``folder`` unwritable: a read-only tmpfs mounted over it (root, whom modes do not
+    stop), else its mode; skips the test where neither can be done."""
+    if os.geteuid() != 0:
+        folder.chmod(0o500)
+        try:
+            yield
+        finally:
+            folder.chmod(0o700)
+        return
+    mount = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)],
+                           capture_output=True, check=False)
+    if mount.returncode:
+        pytest.skip(f"cannot mount a read-only tmpfs here: {mount.stderr.decode().strip()}")
+    try:
+        yield
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_ready_reports_a_read_only_result_store(settings: Settings, api: str) -> None:
+    """A read-only results folder was reported ready, while every job failed with
+    'OSError: [Errno 30] Read-only file system' (made to happen with a remounted tmpfs)."""
+    with running_worker(settings), read_only(settings.data_dir / RESULTS_DIR):
+        reply = with_a_worker(api)
+        assert reply.status_code == 503
+        assert reply.json()["checks"]["store"] is False
+        assert "not writable" in reply.json()["detail"]["store"]
+
+
+def test_a_removed_results_folder_is_not_reported_unwritable(
+    settings: Settings, api: str
+) -> None:
+    """Workers create the results folder again (at start, and for each result): a folder
+    an operator removed is judged by its parent, not called 'not writable'."""
+    shutil.rmtree(settings.data_dir / RESULTS_DIR)
+    body = httpx.get(f"{api}/health/ready").json()
+    assert body["checks"]["store"] is True, body["detail"]
