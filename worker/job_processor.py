@@ -354,7 +354,7 @@ class JobProcessor:
         )
         if changed:
             self._drop(consumer, delivery, record.id)
-            self._observe(timings, JobState.SUCCEEDED, record.frames_total)
+            self._observe(timings, record.frames_total)
         else:
             self._finish(consumer, delivery, record.id)
 
@@ -395,14 +395,13 @@ class JobProcessor:
             error=error,
         )
         self._drop(consumer, delivery, record.id, dead_letter=None if caller_error else error)
-        if changed:
-            self.metrics.inc("jobs_processed_total", state=JobState.FAILED.value)
-        else:
+        if not changed:
             self.jobs.expire(record.id, self.store.retention_s)
 
-    def _observe(self, timings_ns: dict[str, int], state: JobState, frames: int) -> None:
+    def _observe(self, timings_ns: dict[str, int], frames: int) -> None:
         """Record a succeeded job's stage times; its decode as ``frames`` frames, each at
-        the mean (a video's whole decode was one sample of 'time to decode one frame')."""
+        the mean (a video's whole decode was one sample of 'time to decode one frame').
+        The job itself was counted by its transition (:class:`worker.job_store.JobStore`)."""
         pipe = self.metrics.client.pipeline(transaction=False)
         for stage in ("queue_wait", "decode", "encode", "total"):
             if stage not in timings_ns:
@@ -411,5 +410,4 @@ class JobProcessor:
             if stage == "decode":
                 seconds, times = seconds / max(frames, 1), max(frames, 1)
             self.metrics.observe(f"{stage}_seconds", seconds, pipe=pipe, times=times)
-        self.metrics.inc("jobs_processed_total", pipe=pipe, state=state.value)
         pipe.execute()

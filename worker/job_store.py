@@ -10,7 +10,9 @@ Usage::
 Each top-level field of :class:`~worker.jobs.JobRecord` is one hash field holding
 its JSON value, so the API's cancel and the worker's progress writes never
 overwrite each other. State changes go through one Lua script that checks the
-current state and keeps the ``jobs:states`` counts.
+current state and keeps the ``jobs:states`` counts and, for a job that ends, the
+``jobs_processed_total`` counter (:mod:`worker.metrics`) in the same step: a process
+stopped right after the change still has the job counted, once.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any
 import redis
 
 from worker.jobs import JobNotFoundError, JobRecord, JobState, validate_job_id
+from worker.metrics import counter_key
 from worker.redis_keys import JOB_STATES, job_done_channel, job_key
 
 _TRANSITION = """
@@ -40,6 +43,7 @@ end
 if ttl > 0 then redis.call('EXPIRE', KEYS[1], ttl) end
 redis.call('HINCRBY', KEYS[2], cjson.decode(current), -1)
 redis.call('HINCRBY', KEYS[2], cjson.decode(ARGV[1]), 1)
+if KEYS[3] then redis.call('HINCRBY', KEYS[3], cjson.decode(ARGV[1]), 1) end
 return {1, current}
 """
 
@@ -107,13 +111,15 @@ class JobStore:
         ``fields`` with it, atomically; with ``expire_s``, the record expires that many
         seconds later, set in the same step (no reader sees a finished job that would
         never expire). Returns (changed, previous state or None if the record does not
-        exist). Finished states notify waiters."""
+        exist). Finished states are counted in ``jobs_processed_total`` (in the same
+        step) and notify waiters."""
         allowed = [json.dumps(state.value) for state in allowed_from]
         values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
         pairs = [item for pair in encode_fields(values).items() for item in pair]
         ttl = max(int(expire_s), 1) if expire_s is not None else 0
+        counted = [counter_key("jobs_processed_total")] if to.finished else []
         changed, previous = self._transition(
-            keys=[job_key(job_id), JOB_STATES],
+            keys=[job_key(job_id), JOB_STATES, *counted],
             args=[json.dumps(to.value), len(allowed), *allowed, ttl, *pairs],
         )
         if changed and to.finished:

@@ -54,7 +54,9 @@ HISTOGRAMS: dict[str, str] = {
 
 #: Counter name -> (help, label name or "" when unlabelled).
 COUNTERS: dict[str, tuple[str, str]] = {
-    "jobs_processed_total": ("jobs finished by a worker, by final state", "state"),
+    "jobs_processed_total": (
+        "jobs that ended, by final state (succeeded, failed, or cancelled)", "state"
+    ),
     "jobs_rejected_total": (
         "job submissions refused by a queue bound: queue_full (jobs), queue_bytes, or the "
         "API key's own key_jobs or key_bytes",

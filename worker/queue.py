@@ -363,14 +363,12 @@ class JobQueue:
         """Cancel a queued or running job (a worker stops at its next check); a finished
         job is returned unchanged."""
         record = self.jobs.load(job_id)
-        cancelled, _ = self.jobs.transition(
+        self.jobs.transition(
             job_id,
             JobState.CANCELLED,
             (JobState.QUEUED, JobState.RUNNING),
             finished_ns=time_after(record.created_ns, record.started_ns),
         )
-        if cancelled:
-            self.metrics.inc("jobs_processed_total", state=JobState.CANCELLED.value)
         return self.jobs.load(job_id)
 
     def wait(

@@ -690,3 +690,33 @@ def test_a_stalled_worker_whose_job_was_taken_over_stops_decoding_it(
         assert client.hget(counter_key("jobs_abandoned_total"), "") == b"1"
     finally:
         child.close()
+
+
+class _StoppedBeforeTheAck(JobProcessor):
+    """A processor whose worker stops (here: loses Redis) right after the job's result,
+    before the entry's ack: as a worker killed there, or a Redis restart, leaves it."""
+
+    def _drop(self, consumer: StreamConsumer, delivery: Delivery, job_id: str,
+              dead_letter: object = None) -> None:
+        raise redis.exceptions.ConnectionError("Redis went away before the ack")
+
+
+def test_a_job_that_ended_just_before_its_worker_stopped_is_counted_once(
+    embedded: EmbeddedRedis, client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """The succeeded job was counted after its entry's ack: a worker stopped between
+    them left it succeeded and never in jobs_processed_total (its redelivery, finding it
+    finished, only drops the entry)."""
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    job_id, worker, consumer, delivery = job_in_hand(
+        embedded.url, client, queue, data_dir, make_frame()
+    )
+    stopped = _StoppedBeforeTheAck(client, store, max_deliveries=3, stop=worker.stop)
+    with pytest.raises(redis.exceptions.ConnectionError):
+        worker._handle(stopped, consumer, delivery, 0)
+    assert queue.get(job_id).state is JobState.SUCCEEDED
+    processor = JobProcessor(client, store, max_deliveries=3, stop=worker.stop)
+    worker._handle(processor, consumer, delivery, 0)
+    assert client.xlen(JOBS_STREAM) == 0
+    ended = {f.name: f for f in read_metrics(client)}["jobs_processed_total"]
+    assert [(s.labels, s.value) for s in ended.samples] == [({"state": "succeeded"}, 1)]
