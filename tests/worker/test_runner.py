@@ -720,3 +720,24 @@ def test_a_job_that_ended_just_before_its_worker_stopped_is_counted_once(
     assert client.xlen(JOBS_STREAM) == 0
     ended = {f.name: f for f in read_metrics(client)}["jobs_processed_total"]
     assert [(s.labels, s.value) for s in ended.samples] == [({"state": "succeeded"}, 1)]
+
+
+def test_a_job_submitted_by_a_clock_ahead_has_no_negative_times(
+    embedded: EmbeddedRedis, client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """The queue wait and total were the worker's clock minus the submitting API's: an
+    API host a minute ahead gave a job's timings_ns and the histograms -60 s (their
+    _sum went down, which Prometheus reads as a counter reset)."""
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    job_id, worker, consumer, delivery = job_in_hand(
+        embedded.url, client, queue, data_dir, make_frame()
+    )
+    queue.jobs.update(job_id, created_ns=queue.get(job_id).created_ns + 60 * 10**9)
+    worker._handle(JobProcessor(client, store, max_deliveries=3, stop=worker.stop),
+                   consumer, delivery, 0)
+    record = queue.get(job_id)
+    assert record.state is JobState.SUCCEEDED
+    assert record.timings_ns["queue_wait"] == 0 and record.timings_ns["total"] == 0
+    families = {f.name: f for f in read_metrics(client)}
+    for name in ("queue_wait_seconds", "total_seconds"):
+        assert families[name].samples[0].value == 0.0, name
