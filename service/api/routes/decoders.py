@@ -1,4 +1,5 @@
-"""``GET /v1/decoders``: the installed decoders with their measured figures and their source."""
+"""``GET /v1/decoders``: the installed decoders with their measured figures and their source,
+and the default decoder where it is a parametrized name (``auto-40ms``) the list lacks."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
 from models.decoders.measured import ACCURACY_REPORT, benchmark_figures, measured_figures
-from models.decoders.registry import available_decoders
+from models.decoders.registry import DecoderSpec, available_decoders, resolve
 from service.api.deps import ReadKey, SettingsDep
 from service.api.schemas import AUTH_ERRORS
 
@@ -35,6 +36,16 @@ class DecoderInfo(BaseModel):
     default: bool
 
 
+def listed_specs(default: str) -> list[DecoderSpec]:
+    """Every installed decoder in registration order, then ``default`` when it is a
+    parametrized name (``auto-40ms``, ``itoh+puma4``) none of them has: a client that
+    offers the listed names, preselecting the default, would otherwise send another."""
+    specs = available_decoders()
+    if all(spec.name != default for spec in specs):
+        specs = [*specs, resolve(default)]
+    return specs
+
+
 @router.get(
     "/decoders",
     response_model=list[DecoderInfo],
@@ -42,10 +53,11 @@ class DecoderInfo(BaseModel):
     summary="The decoders this installation can run",
 )
 def list_decoders(settings: SettingsDep, _: ReadKey) -> list[DecoderInfo]:
-    """Every decoder in registration order; ``default`` marks the one used when none is named."""
+    """Every decoder in registration order; ``default`` marks the one used when none is named
+    (listed last when it is a parametrized name)."""
     bench = benchmark_figures(settings.accuracy_report or ACCURACY_REPORT)
     found = []
-    for spec in available_decoders():
+    for spec in listed_specs(settings.default_decoder):
         figures, source = measured_figures(spec, bench)
         found.append(
             DecoderInfo(

@@ -87,3 +87,16 @@ def test_a_named_report_that_gives_no_figures_is_refused(
 
 def test_needs_the_read_scope(client: Client) -> None:
     assert client(SUBMIT_KEY).get("/v1/decoders").status_code == 403
+
+
+def test_a_parametrized_default_is_listed_and_marked(tmp_path: Path, redis_url: str) -> None:
+    """MCAM_DEFAULT_DECODER=auto-40ms (a valid default) was in no entry, so none was
+    marked default: the viewer, which preselects the marked one and always sends its
+    choice, ran every job with the first listed (itoh) instead."""
+    settings = make_settings(tmp_path, redis_url, default_decoder="auto-40ms")
+    with serve(create_app(settings)) as api:
+        reply = httpx.get(f"{api}/v1/decoders", headers={"Authorization": f"Bearer {READ_KEY}"})
+    listed = reply.json()
+    assert [d["name"] for d in listed if d["default"]] == ["auto-40ms"]
+    assert listed[-1]["kind"] == "adaptive" and "40 ms" in listed[-1]["description"]
+    assert [d["name"] for d in listed[:-1]] == [spec.name for spec in available_decoders()]
