@@ -50,7 +50,7 @@ from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
 from worker.job_processor import RETRY_BACKOFF_S, error_of
 from worker.lease import Lease
-from worker.metrics import Metrics
+from worker.metrics import Metrics, counter_key
 from worker.outputs import STREAM_EXR_COMPRESSION, encode_exr_result
 from worker.recordings import Recorder
 from worker.redis_keys import (
@@ -73,18 +73,21 @@ HAND_OVER_REST = 4
 #: The events stream of a device keeps about this many entries.
 EVENTS_MAXLEN = 1000
 
-#: KEYS: lease, last sequence, latest, events, frames. ARGV: owner, sequence, entry id,
-#: result key ('' for none), events bound, lease ms, consumer group, then event fields.
+#: KEYS: lease, last sequence, latest, events, frames, and for a frame reconstructed the
+#: counter of frames processed (counted in the commit: a worker stopped right after it
+#: still has the frame counted). ARGV: owner, sequence, entry id, result key ('' for
+#: none), events bound, lease ms, consumer group, device, then event fields.
 _COMMIT = """
 if redis.call('GET', KEYS[1]) ~= ARGV[1] then return 0 end
 redis.call('PEXPIRE', KEYS[1], ARGV[6])
 redis.call('HSET', KEYS[2], 'seq', ARGV[2], 'entry', ARGV[3])
 if ARGV[4] ~= '' then redis.call('SET', KEYS[3], ARGV[4]) end
 local event = {}
-for i = 8, #ARGV do event[#event + 1] = ARGV[i] end
+for i = 9, #ARGV do event[#event + 1] = ARGV[i] end
 redis.call('XADD', KEYS[4], 'MAXLEN', '~', ARGV[5], '*', unpack(event))
 redis.call('XACK', KEYS[5], ARGV[7], ARGV[3])
 redis.call('XDEL', KEYS[5], ARGV[3])
+if KEYS[6] then redis.call('HINCRBY', KEYS[6], ARGV[8], 1) end
 return 1
 """
 
@@ -309,12 +312,11 @@ class DeviceConsumer:
         self.recorder.add_frame(message, delivery.entry_id)
         encode_ns = time.perf_counter_ns() - start
         event = _event("frame", message, key=key, decode_ns=frame.timings_ns.get("decode", 0))
-        self._record(device, state, delivery, message.sequence, key, event)
+        self._record(device, state, delivery, message.sequence, key, event, counted=True)
         state.frames += 1
         pipe = self.client.pipeline(transaction=False)
         self.metrics.observe("decode_seconds", frame.timings_ns.get("decode", 0) / 1e9, pipe=pipe)
         self.metrics.observe("encode_seconds", encode_ns / 1e9, pipe=pipe)
-        self.metrics.inc("frames_processed_total", pipe=pipe, device=device)
         waited_ms = delivery.read_ms - entry_order(delivery.entry_id)[0]
         self.metrics.observe("queue_wait_seconds", max(waited_ms, 0) / 1e3, pipe=pipe)
         try:
@@ -323,7 +325,7 @@ class DeviceConsumer:
             if not is_transient(exc):
                 raise
             # The frame is committed: a retry would only redo it as stale.
-            self._trouble.warn(_trouble_place(device), exc, then="frame metrics not recorded")
+            self._trouble.warn(_trouble_place(device), exc, then="frame timings not recorded")
 
     def _record(
         self,
@@ -333,12 +335,16 @@ class DeviceConsumer:
         sequence: int,
         key: str,
         event: dict[str, str],
+        *,
+        counted: bool = False,
     ) -> None:
         """Atomically, while we hold the lease (raises :class:`LeaseLost` otherwise): record
         ``sequence`` as the newest done frame, point ``latest`` at ``key`` (unless empty),
-        publish ``event``, extend the lease and acknowledge and delete the entry."""
+        publish ``event``, extend the lease, acknowledge and delete the entry and, when
+        ``counted``, count the frame in ``frames_processed_total``."""
         args: list[Any] = [
             self.owner, sequence, delivery.entry_id, key, EVENTS_MAXLEN, self.lease.ttl_ms, GROUP,
+            device,
         ]  # fmt: skip
         for name, value in {**event, "worker": self.owner}.items():
             args += [name, value]
@@ -348,6 +354,7 @@ class DeviceConsumer:
             latest_key(device),
             events_stream(device),
             frame_stream(device),
+            *([counter_key("frames_processed_total")] if counted else []),
         ]
         if not self._commit(keys=keys, args=args):
             raise LeaseLost(device)

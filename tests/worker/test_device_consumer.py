@@ -3,6 +3,7 @@ dead-lettered once, against a real Redis."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from pathlib import Path
@@ -262,3 +263,29 @@ def test_after_a_restarted_cameras_first_frame_fails_its_next_frames_are_decoded
     assert [(e[b"type"], e[b"sequence"]) for e in events][-3:] == [
         (b"failed", b"0"), (b"frame", b"1"), (b"frame", b"2")]
     assert consumer.states["a"].last_sequence == 2
+
+
+def test_a_frame_committed_just_before_redis_refused_writes_is_counted(
+    client: redis.Redis, consumer: DeviceConsumer
+) -> None:
+    """The frame was counted after its commit, in a separate write: Redis refusing
+    writes (full, or restarting) right after the commit left a stored frame out of
+    frames_processed_total for good ('frame metrics not recorded'). It is counted in
+    the commit now."""
+    commit = consumer._commit
+
+    def commit_then_fill_redis(**kwargs: object) -> object:
+        done = commit(**kwargs)
+        client.config_set("maxmemory", 1)
+        return done
+
+    consumer._commit = commit_then_fill_redis  # type: ignore[assignment]
+    publish_frame(client, frame("a", 0), maxlen=10)
+    try:
+        with contextlib.suppress(redis.exceptions.ResponseError):
+            consumer.poll()
+    finally:
+        client.config_set("maxmemory", 0)
+    assert client.xlen(frame_stream("a")) == 0
+    processed = {f.name: f for f in read_metrics(client)}["frames_processed_total"]
+    assert [(s.labels, s.value) for s in processed.samples] == [({"device": "a"}, 1)]
