@@ -176,6 +176,13 @@ def _has_group(client: redis.Redis, stream: str) -> bool:
     return any(group["name"] in (GROUP, GROUP.encode()) for group in groups)
 
 
+def server_time_ns(client: redis.Redis) -> int:
+    """Redis's clock in ns since the epoch: the one clock the API and workers on other
+    hosts share, for heartbeats stamped by one process and aged by another."""
+    seconds, microseconds = client.time()
+    return int(seconds) * 1_000_000_000 + int(microseconds) * 1_000
+
+
 def publish_frame(client: redis.Redis, message: FrameMessage, *, maxlen: int) -> int:
     """Append a frame to ``frames:<device>`` (registering the device); when the stream
     holds ``maxlen`` frames the oldest are dropped, but a DISCONT frame at the front is
@@ -393,8 +400,9 @@ class JobQueue:
             pubsub.close()
 
     def workers(self, max_age_s: float) -> dict[str, dict[str, Any]]:
-        """Workers whose last heartbeat is younger than ``max_age_s`` (id -> heartbeat)."""
-        now = time.time_ns()
+        """Workers whose last heartbeat is younger than ``max_age_s`` (id -> heartbeat),
+        aged by Redis's clock, which stamped them (:func:`server_time_ns`)."""
+        now = server_time_ns(self.client)
         alive: dict[str, dict[str, Any]] = {}
         for worker_id, raw in self.client.hgetall(WORKERS_HEARTBEAT).items():
             beat = json.loads(raw)

@@ -48,7 +48,7 @@ from worker.device_state import FrameDecoder, make_frame_decoder, warm_up
 from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
-from worker.queue import ensure_group, is_missing_group
+from worker.queue import ensure_group, is_missing_group, server_time_ns
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
 from worker.redis_memory import UNREACHABLE, TroubleLog, is_transient
 from worker.result_store import RESULTS_DIR, ResultStore
@@ -376,7 +376,7 @@ class Worker:
                 delivery.lost.set()
 
     def _beat(self) -> None:
-        now = time.time_ns()
+        now = server_time_ns(self.client)  # other hosts' clocks age the beat too
         beat = {
             "ts_ns": now,
             "started_ns": self.started_ns,
@@ -400,7 +400,7 @@ class Worker:
 
     def _device_workers(self) -> int:
         """Workers consuming device streams whose heartbeat is fresh (3 periods)."""
-        now = time.time_ns()
+        now = server_time_ns(self.client)
         beats = [json.loads(raw) for raw in self.client.hvals(WORKERS_HEARTBEAT)]
         return sum(
             1

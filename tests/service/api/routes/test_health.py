@@ -159,3 +159,28 @@ def test_a_removed_results_folder_is_not_reported_unwritable(
     shutil.rmtree(settings.data_dir / RESULTS_DIR)
     body = httpx.get(f"{api}/health/ready").json()
     assert body["checks"]["store"] is True, body["detail"]
+
+
+class _ClockBehind:
+    """The ``time`` module as seen on a host whose clock is ``behind_s`` seconds behind."""
+
+    def __init__(self, behind_s: float) -> None:
+        self.behind_ns = int(behind_s * 1e9)
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(time, name)
+
+    def time_ns(self) -> int:
+        return time.time_ns() - self.behind_ns
+
+
+def test_a_worker_on_a_host_whose_clock_is_behind_counts(
+    settings: Settings, api: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Heartbeats were stamped with the worker's clock and aged with the API's: a worker
+    on a host a minute behind was never counted, and /health/ready said to start one."""
+    monkeypatch.setattr("worker.runner.time", _ClockBehind(60))
+    with running_worker(settings):
+        reply = wait_ready(api, 200)
+    assert reply.status_code == 200, reply.json()
+    assert reply.json()["workers"] == 1
