@@ -16,6 +16,7 @@ import pytest
 import redis
 
 from models.hdr_io import write_exr
+from service.cli.main import main
 from tests.device.conftest import health, wait_for
 
 MCAM = Path(sys.executable).parent / "mcam"
@@ -33,6 +34,24 @@ def run_mcam(*args: str | Path, cwd: Path) -> subprocess.CompletedProcess[str]:
         timeout=120,
         check=False,
     )
+
+
+def mcam_in_process(
+    capsys: pytest.CaptureFixture[str], *args: str | Path
+) -> subprocess.CompletedProcess[str]:
+    """``mcam ARGS`` through the console script's own entry point (:func:`main`) in this
+    process: its exit code (argparse's ``SystemExit`` included) and what it printed. Only
+    for arguments refused before anything runs, which then cost no fresh interpreter (a
+    second or two of imports each); keep one :func:`run_mcam` check of such a refusal per
+    command, for what only the real console script shows."""
+    argv = [str(arg) for arg in args]
+    capsys.readouterr()
+    try:
+        code = main(argv)
+    except SystemExit as stopped:
+        code = stopped.code
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(["mcam", *argv], code, out, err)
 
 
 def assert_one_line_error(result: subprocess.CompletedProcess[str], *fragments: str) -> None:

@@ -24,7 +24,7 @@ from service.cli.train import (
     Progress,
     reproduce,
 )
-from tests.service.cli.conftest import MCAM, assert_one_line_error, run_mcam
+from tests.service.cli.conftest import MCAM, assert_one_line_error, mcam_in_process, run_mcam
 
 
 def test_train_run_then_export_makes_a_working_onnx_model(tmp_path: Path) -> None:
@@ -91,13 +91,17 @@ def test_bad_stage_list_is_one_clear_line(tmp_path: Path) -> None:
     assert_one_line_error(result, "--stages", "10,x")
 
 
-def test_missing_checkpoint_is_one_clear_line(tmp_path: Path) -> None:
-    result = run_mcam("train", "export", tmp_path / "nothing.pt", cwd=tmp_path)
+def test_missing_checkpoint_is_one_clear_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    result = mcam_in_process(capsys, "train", "export", tmp_path / "nothing.pt")
     assert_one_line_error(result, "nothing.pt")
 
 
-def test_missing_model_card_is_one_clear_line(tmp_path: Path) -> None:
-    result = run_mcam("train", "measure", tmp_path / "nothing.json", cwd=tmp_path)
+def test_missing_model_card_is_one_clear_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    result = mcam_in_process(capsys, "train", "measure", tmp_path / "nothing.json")
     assert_one_line_error(result, "nothing.json")
 
 
@@ -114,13 +118,13 @@ def test_the_command_line_offers_every_training_loss_tier_and_default() -> None:
      ("mps", "cpu or cuda[:N]")],
 )  # fmt: skip
 def test_a_device_this_machine_lacks_is_one_clear_line(
-    tmp_path: Path, device: str, message: str
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], device: str, message: str
 ) -> None:
     if device == "cuda" and torch.cuda.is_available():
         pytest.skip("this machine has a CUDA GPU")
-    result = run_mcam(
-        "train", "run", "--tier", "tiny", "--stages", "1,1,1", "--device", device,
-        "--runs-dir", tmp_path / "runs", cwd=tmp_path,
+    result = mcam_in_process(
+        capsys, "train", "run", "--tier", "tiny", "--stages", "1,1,1", "--device", device,
+        "--runs-dir", tmp_path / "runs",
     )  # fmt: skip
     assert_one_line_error(result, message)
     assert not (tmp_path / "runs").exists(), "a refused run left its folder behind"
@@ -148,11 +152,14 @@ def test_a_device_this_machine_lacks_is_one_clear_line(
     ids=lambda value: "_".join(value) if isinstance(value, tuple) else value,
 )
 def test_bad_run_settings_are_one_clear_line_before_training(
-    tmp_path: Path, flags: tuple[str, ...], fragments: tuple[str, ...]
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    flags: tuple[str, ...],
+    fragments: tuple[str, ...],
 ) -> None:
     runs = tmp_path / "runs"
-    result = run_mcam(
-        "train", "run", "--stages", "1,1,1", *flags, "--runs-dir", runs, cwd=tmp_path
+    result = mcam_in_process(
+        capsys, "train", "run", "--stages", "1,1,1", *flags, "--runs-dir", runs
     )
     assert_one_line_error(result, "mcam train: error:", *fragments)
     assert not runs.exists()
