@@ -104,11 +104,20 @@ def worker_pids(client: redis.Redis) -> set[int]:
 @contextmanager
 def serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str], Path, int]]:
     """``mcam serve`` on a free port with its data dir under ``tmp_path``: the process,
-    the data dir and the port; killed at the end if it is still running."""
+    the data dir and the port; killed at the end if it is still running.
+
+    Each worker decodes device frames in its own process (``MCAM_STREAM_PROCESSES=1``):
+    these tests stream from no device, and the default pool (one process per core, each
+    importing and warming up its decoder, tested in tests/worker/test_decode_pool.py)
+    took seconds of both cores at each worker's start and held up each stop. An open
+    request (an event stream) holds a stop for 0.5 s, not the default 5 s."""
     data_dir = tmp_path / "data"
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
-    env.update({"MCAM_DATA_DIR": str(data_dir), "MCAM_HEARTBEAT_S": "0.5"})
+    env.update({
+        "MCAM_DATA_DIR": str(data_dir), "MCAM_HEARTBEAT_S": "0.5", "MCAM_STREAM_PROCESSES": "1",
+        "MCAM_HTTP_SHUTDOWN_GRACE_S": "0.5",
+    })  # fmt: skip
     process = subprocess.Popen(
         [sys.executable, "-m", "service.cli.main", "serve", "--host", "127.0.0.1",
          "--port", str(port), *flags],
@@ -181,9 +190,9 @@ def test_serve_runs_everything_restarts_a_dead_worker_and_stops_cleanly(tmp_path
 
 
 def submit_slow_job(base: str, key: str) -> str:
-    """Graph cuts on 512 x 512 random codes (seconds); its job id."""
+    """Graph cuts on 384 x 384 random codes (seconds); its job id."""
     buffer = io.BytesIO()
-    np.save(buffer, np.random.default_rng(0).integers(0, 256, (512, 512)).astype(np.uint8))
+    np.save(buffer, np.random.default_rng(0).integers(0, 256, (384, 384)).astype(np.uint8))
     reply = httpx.post(
         f"{base}/v1/reconstructions",
         files={"file": ("frame.npy", buffer.getvalue(), "application/octet-stream")},
