@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import redis
+from redis.backoff import NoBackoff
+from redis.retry import Retry
 
 from models.formation import SensorFrame, SensorParams
 from worker.device_consumer import DeviceConsumer
@@ -112,7 +114,8 @@ def test_refusals_of_a_full_server_are_told_apart_from_other_errors(client: redi
     lost = redis.exceptions.ConnectionError("gone")
     assert is_transient(lost) and "unreachable" in redis_trouble(lost)
     path = client.connection_pool.connection_kwargs["path"]
-    impatient = redis.Redis(unix_socket_path=path, socket_timeout=0.05)
+    # Not retried: redis-py retries a timeout 3 times with backoff (5 s) by default.
+    impatient = redis.Redis(unix_socket_path=path, socket_timeout=0.05, retry=Retry(NoBackoff(), 0))
     with pytest.raises(redis.exceptions.TimeoutError) as slow:
         impatient.blpop(["nothing"], timeout=1)
     assert is_transient(slow.value) and "did not answer in time" in redis_trouble(slow.value)
@@ -148,13 +151,20 @@ def test_a_worker_waits_out_a_full_server_and_fails_no_job(
     """A worker that cannot record a job's start keeps the entry and retries, touching
     it so that an idle worker does not reclaim it meanwhile (each claim counts a
     delivery: the job used to fail as worker_lost once there was room again); the job
-    is neither failed nor dead-lettered, and runs once there is room."""
+    is neither failed nor dead-lettered, and runs once there is room.
+
+    The heartbeat touches the entry five times per claim period, and the workers
+    decode device frames in their own process (no decode pool to start on both cores:
+    this test streams from no device)."""
     frame: SensorFrame = make_frame()
     job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
     fill(client)
-    processes = [workers.start(MCAM_CLAIM_IDLE_MS="2500") for _ in range(2)]
+    processes = [
+        workers.start(MCAM_CLAIM_IDLE_MS="1500", MCAM_HEARTBEAT_S="0.3", MCAM_STREAM_PROCESSES="1")
+        for _ in range(2)
+    ]
     wait_until(lambda: client.xpending(JOBS_STREAM, GROUP)["pending"], 60, "a delivery")
-    time.sleep(8.0)  # over three claim periods
+    time.sleep(5.0)  # over three claim periods
     [pending] = client.xpending_range(JOBS_STREAM, GROUP, "-", "+", 10)
     assert pending["times_delivered"] == 1, "reclaimed from a live worker"
     assert all(p.poll() is None for p in processes), "a worker exited on a full Redis"
@@ -163,10 +173,9 @@ def test_a_worker_waits_out_a_full_server_and_fails_no_job(
     record = finished(queue, job.id)
     assert record.state is JobState.SUCCEEDED and record.attempts == 1, record.error
     assert queue.stats()["dead_letters"] == 0
-    outputs = []
     for process in processes:
-        process.terminate()
-        outputs.append(process.communicate(timeout=30)[0].decode())
+        process.terminate()  # both at once: each takes a second or two to stop
+    outputs = [process.communicate(timeout=30)[0].decode() for process in processes]
     assert any("Redis is full" in output for output in outputs)
     assert not any("Traceback" in output for output in outputs)
     # One warning per loop and heartbeat step in 30 s, not one a second each.
