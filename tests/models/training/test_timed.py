@@ -69,7 +69,7 @@ def test_a_lane_probes_plans_and_trains_its_chain_before_the_deadline(
     )  # fmt: skip
     noisy = replace(first, stage_steps=(0, 0, 0, 1), max_read_noise=0.02, init_from=first.name)
     started = time.monotonic()
-    checkpoints = timed.run_lane((first, noisy), started, started + 12.0)
+    checkpoints = timed.run_lane((first, noisy), started, started + 9.0)
     states = [load_checkpoint(path) for path in checkpoints]
     planned = [tuple(state["config"]["stage_steps"]) for state in states]
     assert planned[0][0] >= 1 and planned[1][:3] == (0, 0, 0)
