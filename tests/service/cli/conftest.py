@@ -36,6 +36,32 @@ def run_mcam(*args: str | Path, cwd: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
+def run_mcams(
+    commands: list[tuple[str | Path, ...]], cwd: Path, env: dict[str, str] | None = None
+) -> list[subprocess.CompletedProcess[str]]:
+    """``mcam ARGS`` for each ARGS in ``commands``, as :func:`run_mcam` runs it, but all
+    at once (each spends nearly all its time importing); results in the same order. Any
+    still running after 120 s is killed (a command that refused nothing may run on)."""
+    processes = [
+        subprocess.Popen(
+            [str(MCAM), *(str(arg) for arg in args)],
+            cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        for args in commands
+    ]
+    try:
+        return [
+            subprocess.CompletedProcess(process.args, process.returncode, out, err)
+            for process in processes
+            for out, err in [process.communicate(timeout=120)]
+        ]
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+
+
 def mcam_in_process(
     capsys: pytest.CaptureFixture[str], *args: str | Path
 ) -> subprocess.CompletedProcess[str]:

@@ -11,7 +11,7 @@ import redis
 from device.simulator import MAX_SEED
 from tests.device import conftest as device_fixtures
 from tests.device.conftest import stream_frames
-from tests.service.cli.conftest import MCAM, camera_and_daemon, env_for
+from tests.service.cli.conftest import MCAM, camera_and_daemon, env_for, run_mcams
 from worker.embedded_redis import EmbeddedRedis
 
 #: The device tests' private redis-server and a redis client of it (in tests/service/,
@@ -51,9 +51,8 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         (("--stall-every", "-1"), "stall_every must be a whole number of packets, 0 (never)"),
     ]
     (tmp_path / "file").touch()
-    for flags, fragment in cases:
-        result = subprocess.run([MCAM, "simulate-device", *flags], capture_output=True,
-                                text=True, timeout=60, cwd=tmp_path)
+    results = run_mcams([("simulate-device", *flags) for flags, _ in cases], cwd=tmp_path)
+    for result, (_, fragment) in zip(results, cases, strict=True):
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and fragment in lines[0], result.stderr
