@@ -12,7 +12,7 @@ import redis
 
 from tests.device import conftest as device_fixtures
 from tests.device.conftest import health, wait_for
-from tests.service.cli.conftest import MCAM, camera_and_daemon, env_for
+from tests.service.cli.conftest import MCAM, camera_and_daemon, env_for, run_mcams
 from worker.embedded_redis import EmbeddedRedis
 from worker.redis_keys import control_stream
 
@@ -46,29 +46,26 @@ def test_mcam_device_keeps_the_dataset_within_the_settings(
 
 def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_path: Path) -> None:
     env = env_for(redis_server.url, tmp_path / "data")
-    result = subprocess.run([MCAM, "device", "--port", "loop://", "--device-id", "no spaces"],
-                            capture_output=True, text=True, env=env, timeout=60)
-    assert result.returncode == 2
-    assert result.stderr.strip().splitlines() == [
+    wrong_id, scheme, empty, port, bits = run_mcams([
+        ("device", "--port", "loop://", "--device-id", "no spaces"),
+        ("device", "--port", "bogus://x", "--device-id", "rig1"),
+        ("device", "--port", " ", "--device-id", "rig1"),
+        ("simulate-device", "--port", "/dev/ttyS0"),
+        ("simulate-device", "--bits", "40"),
+    ], cwd=tmp_path, env=env)  # fmt: skip
+    assert wrong_id.returncode == 2
+    assert wrong_id.stderr.strip().splitlines() == [
         "mcam device: error: invalid device id 'no spaces': use 1-64 letters, digits, '_' or '-' "
         "(ASCII: A-Z, a-z, 0-9)"]
-    result = subprocess.run([MCAM, "device", "--port", "bogus://x", "--device-id", "rig1"],
-                            capture_output=True, text=True, env=env, timeout=60)
-    assert result.returncode == 2 and result.stderr.strip().splitlines() == [
+    assert scheme.returncode == 2 and scheme.stderr.strip().splitlines() == [
         "mcam device: error: pyserial does not know the port URL scheme 'bogus' (bogus://x); "
         "use a device path (/dev/ttyACM0), socket://HOST:PORT, rfc2217://HOST:PORT or loop://"]
-    result = subprocess.run([MCAM, "device", "--port", " ", "--device-id", "rig1"],
-                            capture_output=True, text=True, env=env, timeout=60)
-    assert result.returncode == 2 and result.stderr.strip().splitlines() == [
+    assert empty.returncode == 2 and empty.stderr.strip().splitlines() == [
         "mcam device: error: the port is empty; give a device path (/dev/ttyACM0), "
         "socket://HOST:PORT or rfc2217://HOST:PORT"]
-    result = subprocess.run([MCAM, "simulate-device", "--port", "/dev/ttyS0"],
-                            capture_output=True, text=True, env=env, timeout=60)
-    assert result.returncode == 2 and "unsupported simulator port" in result.stderr
-    assert "loop:// reaches readers in the same process only" in result.stderr
-    result = subprocess.run([MCAM, "simulate-device", "--bits", "40"],
-                            capture_output=True, text=True, env=env, timeout=60)
-    assert result.returncode == 2 and "bits" in result.stderr
+    assert port.returncode == 2 and "unsupported simulator port" in port.stderr
+    assert "loop:// reaches readers in the same process only" in port.stderr
+    assert bits.returncode == 2 and "bits" in bits.stderr
 
 
 def test_a_second_daemon_under_the_same_device_id_exits_with_one_line(
