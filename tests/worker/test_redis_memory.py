@@ -185,8 +185,8 @@ def test_a_worker_waits_out_a_full_server_and_fails_no_job(
 def test_a_device_frame_decoded_while_redis_is_full_is_committed_once(
     client: redis.Redis, data_dir: Path, make_frame, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """The frame's commit (its result key, event and ack) runs on a full Redis; its
-    metrics cannot be written and are skipped, not retried as a failure of the frame
+    """The frame's commit (its result key, event, ack and count) runs on a full Redis;
+    its timings cannot be written and are skipped, not retried as a failure of the frame
     (which redid it as a 'stale' frame, with a traceback)."""
     frame: SensorFrame = make_frame()
     device = "cam-full"
@@ -208,7 +208,7 @@ def test_a_device_frame_decoded_while_redis_is_full_is_committed_once(
     events = [fields[b"type"] for _id, fields in client.xrange(events_stream(device))]
     assert events == [b"frame", b"frame"]
     assert client.xlen(frame_stream(device)) == 0
-    assert "metrics not recorded" in caplog.text and "Traceback" not in caplog.text
+    assert "frame timings not recorded" in caplog.text and "Traceback" not in caplog.text
 
 
 def test_a_device_let_go_leaves_no_trouble_behind(
