@@ -65,6 +65,23 @@ class TrainingDivergedError(McamError):
     code = "training_diverged"
 
 
+def divergence_advice(config: TrainConfig) -> str:
+    """What to change, as ``mcam train run`` options, to train a run whose loss was not
+    finite again: a lower risk weight (``ce-risk``), float32 (``bf16``), or other batches
+    and initial weights (another seed). The learning rates are not an option: they are
+    :data:`STAGE_LR`'s, per stage."""
+    changes = []
+    if config.loss == "ce-risk":
+        changes.append(f"a lower --risk-weight (now {config.risk_weight:g})")
+    if config.precision == "bf16":
+        changes.append("--precision fp32")
+    changes.append("another --seed")
+    return (
+        f"train it again with {' or '.join(changes)}, as a new run (--label); the learning "
+        "rates are fixed per stage (STAGE_LR in models/training/config.py)"
+    )
+
+
 def build_model(config: TrainConfig) -> MantissaNet | UnModNet:
     """The seeded, freshly initialised net of the run's family, tier and loss."""
     torch.manual_seed(config.seed)
@@ -232,7 +249,7 @@ def run_steps(
                 raise TrainingDivergedError(
                     f"{config.name} diverged at step {step + 1}: its loss is "
                     f"{loss.item()}; nothing past it is saved, and resuming would repeat "
-                    "the same steps: start again with a lower learning rate or risk weight"
+                    f"the same steps: {divergence_advice(config)}"
                 )
             step += 1
             now = time.monotonic()

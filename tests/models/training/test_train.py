@@ -18,7 +18,7 @@ from models.training.checkpoints import checkpoint_segments, load_checkpoint
 from models.training.config import TrainConfig
 from models.training.losses import HEAD_OUTPUTS
 from models.training.run_control import Stopped, run_lock
-from models.training.train import TrainingDivergedError, train
+from models.training.train import TrainingDivergedError, divergence_advice, train
 
 
 def tiny_config(runs: Path, steps: tuple[int, int, int]) -> TrainConfig:
@@ -87,9 +87,18 @@ def test_a_run_whose_loss_is_not_finite_stops_with_the_reason(tmp_path: Path) ->
     the run stops there, saving nothing past it (it trained on to NaN weights)."""
     config = TrainConfig(tier="small", loss="ce-risk", risk_weight=1e300,
                          stage_steps=(1, 1, 1), crop=32, batch=2, runs_dir=tmp_path)  # fmt: skip
-    with pytest.raises(TrainingDivergedError, match="diverged at step 2: its loss is inf"):
+    diverged = "diverged at step 2: its loss is inf"
+    with pytest.raises(TrainingDivergedError, match=diverged) as caught:
         train(config)
     assert not (config.run_dir / "checkpoint.pt").exists()
+    assert "a lower --risk-weight (now 1e+300) or another --seed" in caught.value.message
+
+
+def test_the_divergence_advice_names_only_options_mcam_train_run_has() -> None:
+    """It said "a lower learning rate", which no option sets."""
+    advice = divergence_advice(TrainConfig(precision="bf16"))
+    assert "--precision fp32 or another --seed" in advice and "--risk-weight" not in advice
+    assert "learning rates are fixed per stage" in advice
 
 
 @pytest.mark.parametrize("loss", ["ce-risk", "mse", "jumps"])
