@@ -417,11 +417,18 @@ class LearnedDecoder(Decoder):
         return params.encoding in self.models
 
     def model_for(self, params: SensorParams) -> OnnxWindingModel:
-        """The model trained for ``params.encoding``; a clear error when there is none."""
+        """The model trained for ``params.encoding``; a clear error when there is none,
+        naming the model file when its card is installed without it."""
         if params.encoding not in self.models:
+            missing = missing_model_files(self.name, params.encoding)
+            cause = (
+                f": its model card is installed but its model file "
+                f"{', '.join(map(str, missing))} is missing; {RESTORE_ADVICE}"
+                if missing else ""
+            )  # fmt: skip
             raise InvalidInputError(
-                f"decoder {self.name!r} has no model for the {params.encoding!r} encoding; "
-                f"it supports: {', '.join(sorted(self.models))}"
+                f"decoder {self.name!r} has no model for the {params.encoding!r} encoding"
+                f"{cause}; it supports: {', '.join(sorted(self.models))}"
             )
         return self.models[params.encoding]
 
@@ -488,12 +495,18 @@ def _cards_without_files() -> tuple[tuple[Path, dict[str, Any]], ...]:
     return tuple(read_cards(with_file=False))
 
 
+def missing_model_files(name: str, encoding: str | None = None) -> list[Path]:
+    """The ONNX files, missing, of decoder ``name``'s installed model cards (of
+    ``encoding``'s card only, when given)."""
+    return [path.with_name(card["file"]) for path, card in _cards_without_files()
+            if card["decoder"] == name and encoding in (None, card["encoding"])]  # fmt: skip
+
+
 def resolve(name: str) -> DecoderSpec | None:
     """None: the learned decoders are all listed (:func:`specs`). But a decoder whose
     model cards are installed without their ONNX files (so it is not listed) is an
     InvalidInputError naming the missing files and what to do, not an unknown decoder."""
-    missing = [path.with_name(card["file"]) for path, card in _cards_without_files()
-               if card["decoder"] == name]  # fmt: skip
+    missing = missing_model_files(name)
     if missing:
         raise InvalidInputError(
             f"decoder {name!r} is not available: its model card is installed but its model "

@@ -78,6 +78,24 @@ def test_a_missing_encoding_model_is_a_clear_error() -> None:
         decoder.decode(codes, SensorParams(encoding="modulo"))
 
 
+def test_a_missing_encoding_model_file_is_named_with_what_to_do(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With the modulo .onnx gone and its card still there, the error said only "no
+    model for the 'modulo' encoding", naming neither the file nor what to do."""
+    modulo = next(c for c in learned.read_cards() if c[1]["name"] == "mantissanet-small-modulo")
+    (tmp_path / modulo[0].name).write_text(json.dumps(modulo[1]))
+    monkeypatch.setattr(
+        learned, "_cards_without_files", lambda: tuple(learned.read_cards(tmp_path, False))
+    )
+    cards = [c for c in learned.load_cards() if c["name"] == "mantissanet-small-mantissa"]
+    decoder = learned.LearnedDecoder("mantissanet-small", cards)
+    with pytest.raises(InvalidInputError, match="no model for the 'modulo' encoding") as caught:
+        decoder.decode(np.zeros((16, 16), np.uint8), SensorParams(encoding="modulo"))
+    assert str(tmp_path / "mantissanet-small-modulo.onnx") + " is missing" in caught.value.message
+    assert learned.RESTORE_ADVICE in caught.value.message
+
+
 def test_thread_setting_is_validated(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(learned.THREADS_ENV, "3")
     assert learned.worker_threads() == 3
