@@ -23,7 +23,14 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     tmp = path.with_suffix(".tmp")
     with tmp.open("wb") as file:
         torch.save(state, file)
-        file.flush()
+    replace_durably(tmp, path)
+
+
+def replace_durably(tmp: Path, path: Path) -> None:
+    """Flush the written file ``tmp`` to disk, rename it over ``path``, then flush the
+    folder so that the rename survives a power cut: ``path`` is the old file or the
+    whole new one, never a part."""
+    with tmp.open("rb") as file:
         os.fsync(file.fileno())
     tmp.replace(path)
     sync_folder(path.parent)

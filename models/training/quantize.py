@@ -21,6 +21,7 @@ from onnxruntime.quantization import (
 )
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
+from models.training.checkpoints import replace_durably
 from models.training.data import PairConfig, sample_batch
 from models.training.export import sha256_of, write_card
 
@@ -50,16 +51,21 @@ def quantized_card_path(card_path: Path) -> Path:
 
 
 def quantize_card(card_path: Path, batches: int = 32) -> Path:
-    """Quantize the model of ``card_path``; write ``<name>-int8.onnx`` and its card."""
+    """Quantize the model of ``card_path``; write ``<name>-int8.onnx`` and its card.
+
+    The model is written to a temporary file renamed over ``<name>-int8.onnx`` once
+    whole (:func:`models.training.checkpoints.replace_durably`): a run stopped part-way
+    leaves the previous int8 model, never a part of the new one."""
     card: dict[str, Any] = json.loads(card_path.read_text())
     source = card_path.parent / card["file"]
     prepared = source.with_name(source.stem + ".prep.onnx")
     target = quantized_card_path(card_path).with_suffix(".onnx")
+    tmp = target.with_name(target.name + ".tmp")
     quant_pre_process(str(source), str(prepared), skip_symbolic_shape=True)
     try:
         quantize_static(
             str(prepared),
-            str(target),
+            str(tmp),
             TrainingCrops(card["encoding"], batches),
             quant_format=QuantFormat.QDQ,
             per_channel=True,
@@ -67,6 +73,9 @@ def quantize_card(card_path: Path, batches: int = 32) -> Path:
             weight_type=QuantType.QInt8,
             calibrate_method=CalibrationMethod.MinMax,
         )
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     finally:
         prepared.unlink(missing_ok=True)
     quantized = {
@@ -75,7 +84,7 @@ def quantize_card(card_path: Path, batches: int = 32) -> Path:
         "decoder": card["decoder"] + "-int8",
         "tier": card["tier"] + "-int8",
         "file": target.name,
-        "sha256": sha256_of(target),
+        "sha256": sha256_of(tmp),
         "quantization": {
             "format": "QDQ",
             "weights": "int8 per-channel",
@@ -84,6 +93,7 @@ def quantize_card(card_path: Path, batches: int = 32) -> Path:
             "source": card["file"],
         },
     }
+    replace_durably(tmp, target)
     quantized_card = target.with_suffix(".json")
     write_card(quantized_card, quantized)
     return quantized_card
