@@ -48,7 +48,7 @@ from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order, prun
 from worker.device_share import device_to_hand_over, frame_clock
 from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
-from worker.job_processor import RETRY_BACKOFF_S, error_of
+from worker.job_processor import RETRY_BACKOFF_S, dead_letter_of, error_of
 from worker.lease import Lease
 from worker.metrics import Metrics, counter_key
 from worker.outputs import STREAM_EXR_COMPRESSION, encode_exr_result
@@ -369,7 +369,8 @@ class DeviceConsumer:
         delivery: Delivery,
         exc: Exception,
     ) -> None:
-        error = error_of(exc)
+        error = error_of(exc, logged_with="the device's name")
+        letter = dead_letter_of(exc)
         # The entry failed to parse, perhaps here: its seq is shown, never trusted.
         sequence = delivery.fields.get("seq", b"-1").decode(errors="replace")
         event = {
@@ -379,7 +380,9 @@ class DeviceConsumer:
             "message": error.message,
         }
         self._record(device, state, delivery, _newest_done(state, delivery, sequence), "", event)
-        consumer.dead_letter(delivery, error.code, error.message, device=device, sequence=sequence)
+        consumer.dead_letter(
+            delivery, letter.code, letter.message, device=device, sequence=sequence
+        )
 
 
 def _trouble_place(device: str) -> str:

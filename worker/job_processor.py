@@ -212,10 +212,25 @@ def load_handler(kind: str) -> JobHandler:
         raise McamError(f"this worker cannot run {kind} jobs ({target} is missing)") from None
 
 
-def error_of(exc: BaseException) -> JobError:
-    """A job error from an exception: the McamError code, else ``internal_error``."""
+def error_of(exc: BaseException, logged_with: str = "this job's id") -> JobError:
+    """The job error a client sees for an exception: the McamError's code and message,
+    else ``internal_error`` with a message that says what to do and shows none of the
+    host's internals (paths, exception text); the worker's log has the traceback, found
+    by ``logged_with``, and the dead letter the exception (:func:`dead_letter_of`)."""
     if isinstance(exc, McamError):
         return JobError(code=exc.code, message=exc.message)
+    return JobError(
+        code="internal_error",
+        message=f"the worker failed on an internal error (logged with {logged_with}); "
+        "retry later, or report it if it persists",
+    )
+
+
+def dead_letter_of(exc: BaseException) -> JobError:
+    """The error an operator reads in the dead letters for an exception: the client's
+    (:func:`error_of`), but an internal error's message is the exception's type and text."""
+    if isinstance(exc, McamError):
+        return error_of(exc)
     return JobError(code="internal_error", message=f"{type(exc).__name__}: {exc}")
 
 
@@ -302,7 +317,9 @@ class JobProcessor:
                 if not isinstance(exc, McamError):
                     log.exception("job %s failed (delivery %d)", record.id, delivery.deliveries)
                 if delivery.deliveries >= self.max_deliveries:
-                    self._fail(consumer, delivery, record, error_of(exc))
+                    self._fail(
+                        consumer, delivery, record, error_of(exc), dead_letter=dead_letter_of(exc)
+                    )
                     return
                 time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))
                 consumer.retry(delivery)
@@ -381,11 +398,12 @@ class JobProcessor:
 
     def _fail(
         self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord, error: JobError,
-        *, caller_error: bool = False,
+        *, caller_error: bool = False, dead_letter: JobError | None = None,
     ) -> None:
         """The job fails with ``error``. A ``caller_error`` (the input's fault: another try
         gives the same answer) fails at the first delivery and its entry is simply done;
-        any other failure, after its retries, goes to the dead letters for an operator."""
+        any other failure, after its retries, goes to the dead letters for an operator,
+        as ``dead_letter`` (default ``error``)."""
         changed, _ = self.jobs.transition(
             record.id,
             JobState.FAILED,
@@ -394,7 +412,8 @@ class JobProcessor:
             finished_ns=time_after(record.created_ns, record.started_ns),
             error=error,
         )
-        self._drop(consumer, delivery, record.id, dead_letter=None if caller_error else error)
+        letter = None if caller_error else dead_letter or error
+        self._drop(consumer, delivery, record.id, dead_letter=letter)
         if not changed:
             self.jobs.expire(record.id, self.store.retention_s)
 

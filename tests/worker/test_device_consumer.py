@@ -289,3 +289,26 @@ def test_a_frame_committed_just_before_redis_refused_writes_is_counted(
     assert client.xlen(frame_stream("a")) == 0
     processed = {f.name: f for f in read_metrics(client)}["frames_processed_total"]
     assert [(s.labels, s.value) for s in processed.samples] == [({"device": "a"}, 1)]
+
+
+def test_a_frame_failing_on_an_internal_error_tells_the_client_what_to_do_not_the_hosts_paths(
+    client: redis.Redis, consumer: DeviceConsumer, tmp_path: Path
+) -> None:
+    """A frame whose file cannot be stored (an OSError naming the results folder) is
+    retried, then given up: its 'failed' event used to carry the exception's text, the
+    host's paths included; it now says what happened and what to do, and the dead
+    letter keeps the exception for the operator."""
+
+    def read_only(key: str, data: bytes, *, replace: bool = True) -> Path:
+        raise OSError(30, "Read-only file system", str(tmp_path / RESULTS_DIR))
+
+    consumer.store.write = read_only  # type: ignore[method-assign]
+    publish_frame(client, frame("a", 0), maxlen=10)
+    consumer.poll()
+    (event,) = [fields for _, fields in client.xrange(events_stream("a"))]
+    assert event[b"type"] == b"failed" and event[b"code"] == b"internal_error"
+    assert str(tmp_path).encode() not in event[b"message"]
+    assert b"retry later" in event[b"message"]
+    (letter,) = dead_letters(client)
+    assert letter[b"code"] == b"internal_error"
+    assert letter[b"message"].startswith(b"OSError: [Errno 30] Read-only file system")

@@ -165,7 +165,9 @@ def test_a_job_failing_for_the_worker_goes_to_dead_letters_after_max_deliveries(
     make_frame,
 ) -> None:
     """A failure that is not the input's (here the job's result folder cannot be made:
-    a file stands in its place) is retried, then dead-lettered."""
+    a file stands in its place) is retried, then dead-lettered. The client's record says
+    what to do and shows no server path (it used to carry the exception's text); the
+    dead letter keeps the exception for the operator."""
     frame: SensorFrame = make_frame()
     job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
     blocker = data_dir / RESULTS_DIR / "jobs" / job.id
@@ -174,10 +176,13 @@ def test_a_job_failing_for_the_worker_goes_to_dead_letters_after_max_deliveries(
     workers.start()
     record = finished(queue, job.id)
     assert record.state is JobState.FAILED and record.attempts == 3
+    assert record.error is not None and record.error.code == "internal_error"
+    assert str(data_dir) not in record.error.message and "retry later" in record.error.message
     # The record turns FAILED first, then the entry moves to the dead letters.
     wait_until(lambda: client.xlen(DEAD_LETTER_STREAM), 10, "the dead letter")
     [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
     assert letter[b"job"].decode() == job.id and letter[b"deliveries"] == b"3"
+    assert letter[b"code"] == b"internal_error" and job.id.encode() in letter[b"message"]
     wait_until(lambda: client.xlen(JOBS_STREAM) == 0, 10, "the entry dead-lettered")
     wait_until(lambda: queue.stats()["held_bytes"] == 0, 10, "the job's hold released")
     assert queue.stats()["dead_letters"] == 1
