@@ -22,11 +22,11 @@ from models.errors import (
     MissingParameterError,
     UnsupportedFormatError,
 )
+from models.file_magic import PNG_SIGNATURE
 from models.formation import SensorParams
 from models.frames import (
     FRAME_FORMATS,
     PNG_KEYWORD,
-    PNG_SIGNATURE,
     WrappedFrame,
     decode_frame,
     decode_raw,
@@ -223,6 +223,19 @@ def test_a_png_with_a_zero_size_header_is_named_damaged() -> None:
         decode_frame(data, "png", {"encoding": "modulo", "bits": 8})
     with pytest.raises(InvalidInputError, match="not a PNG image"):
         decode_frame(b"GIF89a" + data, "png", {"encoding": "modulo", "bits": 8})
+
+
+@pytest.mark.parametrize("fmt", FRAME_FORMATS)
+@pytest.mark.parametrize("data", [b"\xff\xd8\xff\xe0 a JPEG", b"\x89PN"], ids=["jpeg", "cut"])
+def test_data_of_no_frame_format_is_refused_saying_what_to_send(fmt: str, data: bytes) -> None:
+    """A garbage .png was 'not a PNG image (bad or missing signature)', a garbage .tiff
+    or .npy 'truncated or corrupt (not a TIFF file: header=...)', none saying what to
+    send instead."""
+    with pytest.raises(InvalidInputError, match=r"^the data is not an? (PNG|TIFF|npy)") as caught:
+        decode_frame(data, fmt, {"encoding": "modulo", "bits": 8})
+    assert "send the frame's file itself, as written (.png, .tiff/.tif or .npy" in str(
+        caught.value
+    )
 
 
 def test_bad_params_json_is_invalid_input() -> None:
