@@ -84,7 +84,11 @@ class JobStore:
         """The record of ``job_id``; :class:`JobNotFoundError` if unknown or malformed id."""
         raw = self.client.hgetall(job_key(validate_job_id(job_id)))
         if not raw:
-            raise JobNotFoundError(f"no job {job_id!r} (unknown, or expired after retention)")
+            raise JobNotFoundError(
+                f"no job {job_id!r}: unknown, or finished longer ago than this server keeps "
+                "jobs (MCAM_RESULT_RETENTION_S), its record and results expired; check the "
+                "id, or submit the job again"
+            )
         return JobRecord.model_validate({k.decode(): json.loads(v) for k, v in raw.items()})
 
     def update(self, job_id: str, **fields: Any) -> bool:

@@ -32,6 +32,8 @@ from tests.service.conftest import (
     serve,
 )
 from tests.worker.conftest import overflowing_codes
+from worker.embedded_redis import connect
+from worker.redis_keys import job_key
 from worker.result_store import RESULTS_DIR
 from worker.runner import Worker
 
@@ -187,6 +189,24 @@ def test_unknown_or_malformed_ids_are_404(client: Client, job_id: str) -> None:
         reply = client().get(path)
         assert reply.status_code == 404, path
         assert reply.json()["code"] == "not_found"
+
+
+def test_an_expired_job_says_to_submit_it_again(
+    client: Client, worker: Worker, settings: Settings
+) -> None:
+    """A job whose record expired after retention answered 'not_found: no job ...
+    (unknown, or expired after retention)' for its state, result and previews, without
+    saying what to do."""
+    http = client()
+    job = reconstructed_job(http)
+    assert settings.redis_url is not None
+    connect(settings.redis_url, timeout_s=5.0).delete(job_key(job["id"]))
+    for path, params in ((f"/v1/jobs/{job['id']}", {}), (f"/v1/jobs/{job['id']}/result", {}),
+                         (f"/v1/jobs/{job['id']}/result", {"part": "image", "format": "png"})):
+        reply = http.get(path, params=params)
+        assert reply.status_code == 404 and reply.json()["code"] == "not_found", path
+        message = reply.json()["message"]
+        assert "MCAM_RESULT_RETENTION_S" in message and "submit the job again" in message
 
 
 def test_submit_only_key_cannot_read(client: Client) -> None:
