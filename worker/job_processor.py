@@ -327,10 +327,12 @@ class JobProcessor:
 
     def _hand_back(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
         """The worker is stopping: the job goes back to the queue, to be redone from its
-        start by the next worker (its progress starts again from 0)."""
+        start by the next worker (its progress starts again from 0, and it shows no start
+        until then: a queued job with a ``started_ns`` read as running)."""
         self.jobs.transition(
-            record.id, JobState.QUEUED, (JobState.RUNNING,), frames_done=0, progress=0.0
-        )
+            record.id, JobState.QUEUED, (JobState.RUNNING,),
+            started_ns=None, frames_done=0, progress=0.0,
+        )  # fmt: skip
         consumer.give_back(delivery)
 
     def _run(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:

@@ -55,7 +55,12 @@ class JobRecord(BaseModel):
     frames_done: int = 0
     frames_total: int = 1
     created_ns: int
-    started_ns: int | None = None
+    started_ns: int | None = Field(
+        None,
+        description="when a worker started the job (ns since the epoch; kept through its "
+        "retries and a takeover from a worker that died); null while it is queued, also "
+        "after a stopping worker handed it back to the queue",
+    )
     finished_ns: int | None = None
     timings_ns: dict[str, int] = Field(default_factory=dict)
     error: JobError | None = None

@@ -364,6 +364,8 @@ def test_sigterm_hands_a_video_back_at_once_with_its_progress_reset(
     record = queue.get(job.id)
     assert record.state is JobState.QUEUED and record.attempts == 1
     assert record.frames_done == 0 and record.progress == 0.0
+    # A queued job shows no start (it kept the first attempt's).
+    assert record.started_ns is None
     assert client.xpending(JOBS_STREAM, GROUP)["pending"] == 0
 
 
