@@ -29,6 +29,8 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Mapping
+from typing import Any
 
 import redis
 
@@ -67,6 +69,24 @@ def eviction_problem(config: dict[str, str]) -> str | None:
     return (
         f"it evicts keys when full (maxmemory-policy {policy!r}); set maxmemory-policy "
         f"{NO_EVICTION}"
+    )
+
+
+def full_problem(memory: Mapping[str, Any]) -> str | None:
+    """Why Redis refuses writes now, from its ``INFO memory`` reply: it is over its
+    ``maxmemory`` (less the buffers Redis leaves out of that count) and evicts nothing,
+    so every submit gets 503 ``store_full``; None when it has room (or is unbounded)."""
+    maxmemory = int(memory.get("maxmemory", 0))
+    used = int(memory.get("used_memory", 0)) - int(memory.get("mem_not_counted_for_evict", 0))
+    if maxmemory == 0 or used <= maxmemory:
+        return None
+    if memory.get("maxmemory_policy", NO_EVICTION) != NO_EVICTION:
+        return None
+    return (
+        f"Redis is full ({used} bytes used, maxmemory {maxmemory}) and refuses writes: "
+        "every submit gets 503 store_full and queued jobs wait; raise MCAM_REDIS_MAXMEMORY "
+        "(an external Redis: its maxmemory), or wait until finished jobs' records expire "
+        "(MCAM_RESULT_RETENTION_S)"
     )
 
 

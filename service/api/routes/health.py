@@ -16,6 +16,7 @@ from models.decoders.registry import resolve
 from models.errors import McamError
 from service.api.deps import StateDep
 from service.api.state import ServiceState
+from worker.redis_memory import full_problem
 
 router = APIRouter(prefix="/health", tags=["health"])
 log = logging.getLogger(__name__)
@@ -28,8 +29,9 @@ class Liveness(BaseModel):
 
 
 class Readiness(BaseModel):
-    """``checks``: decoders loaded, queue reachable, workers heartbeating, result store
-    writable with room for a result (name -> ok)."""
+    """``checks``: decoders loaded, queue reachable with room (Redis under its
+    maxmemory), workers heartbeating, result store writable with room for a result
+    (name -> ok)."""
 
     status: str
     checks: dict[str, bool]
@@ -64,7 +66,8 @@ def store_problem(root: Path, min_free_bytes: int) -> str | None:
 
 
 def readiness(state: ServiceState) -> Readiness:
-    """Check the decoder registry, Redis, the workers' heartbeats and the result store."""
+    """Check the decoder registry, Redis (reachable, not full), the workers' heartbeats
+    and the result store."""
     detail: dict[str, str] = {}
     decoders_ok = True
     try:
@@ -73,21 +76,26 @@ def readiness(state: ServiceState) -> Readiness:
         decoders_ok = False
         detail["decoders"] = f"default decoder: {exc.message}"
     workers = 0
+    full = None
     try:
         state.client.ping()
-        queue_ok = True
+        reachable = True
         workers = len(state.queue.workers(HEARTBEAT_PERIODS * state.settings.heartbeat_s))
+        full = full_problem(state.client.info("memory"))
     except redis.exceptions.RedisError as exc:
-        queue_ok = False
+        reachable = False
         log.warning("readiness: Redis unreachable: %s", exc)
         detail["queue"] = "Redis unreachable (the API's log says why)"
-    if queue_ok and not workers:
+    if full:
+        detail["queue"] = full
+    if reachable and not workers:
         detail["workers"] = "no worker heartbeat: start one with 'mcam worker'"
     problem = store_problem(state.store.root, state.settings.max_upload_bytes)
     if problem:
         detail["store"] = problem
     checks = {
-        "decoders": decoders_ok, "queue": queue_ok, "workers": workers > 0, "store": not problem
+        "decoders": decoders_ok, "queue": reachable and not full, "workers": workers > 0,
+        "store": not problem,
     }
     status = "ready" if all(checks.values()) else "not_ready"
     return Readiness(status=status, checks=checks, workers=workers, detail=detail)
@@ -97,7 +105,8 @@ def readiness(state: ServiceState) -> Readiness:
     "/ready",
     response_model=Readiness,
     responses={503: {"model": Readiness, "description": "not ready: see checks and detail"}},
-    summary="Decoders loaded, queue reachable, workers heartbeating, result store writable",
+    summary="Decoders loaded, queue reachable with room, workers heartbeating, result store "
+    "writable",
 )
 def ready(state: StateDep) -> JSONResponse:
     result = readiness(state)

@@ -17,8 +17,8 @@ import pytest
 
 from service.core.config import Settings
 from service.main import create_app
-from tests.service.conftest import FULL_KEY, make_settings, running_worker, serve
-from worker.embedded_redis import EmbeddedRedis
+from tests.service.conftest import FULL_KEY, frame_png, make_settings, running_worker, serve
+from worker.embedded_redis import EmbeddedRedis, connect
 from worker.result_store import RESULTS_DIR
 
 
@@ -118,6 +118,39 @@ def test_ready_reports_a_result_store_disk_without_room(tmp_path: Path, redis_ur
         assert body["checks"] == {"decoders": True, "queue": True, "workers": True,
                                   "store": False}
         assert "MCAM_MAX_UPLOAD_BYTES" in body["detail"]["store"]
+
+
+def test_ready_reports_a_full_redis(tmp_path: Path) -> None:
+    """Redis at its maxmemory (noeviction) refused every submit with 503 store_full while
+    /health/ready answered ready."""
+    embedded = EmbeddedRedis(tmp_path / "r")
+    url = embedded.start()
+    settings = make_settings(tmp_path, url)
+    auth = {"Authorization": f"Bearer {FULL_KEY}"}
+    direct = connect(url)
+    try:
+        with serve(create_app(settings)) as api, running_worker(settings):
+            assert with_a_worker(api).status_code == 200
+            # A maxmemory below what Redis holds, as once a backlog filled it (filling it
+            # to the byte leaves it full for one write and not the next).
+            used = int(direct.info("memory")["used_memory"])
+            direct.config_set("maxmemory", used // 2)
+            data, _ = frame_png()
+            submit = httpx.post(
+                f"{api}/v1/reconstructions", files={"file": ("f.png", data)}, headers=auth
+            )
+            assert submit.status_code == 503 and submit.json()["code"] == "store_full"
+            reply = httpx.get(f"{api}/health/ready")
+            assert reply.status_code == 503
+            body = reply.json()
+            assert body["checks"]["queue"] is False
+            assert "Redis is full" in body["detail"]["queue"]
+            assert "raise MCAM_REDIS_MAXMEMORY" in body["detail"]["queue"]
+            direct.config_set("maxmemory", 0)
+            assert with_a_worker(api).status_code == 200
+    finally:
+        direct.close()
+        embedded.stop()
 
 
 @contextmanager
