@@ -19,12 +19,14 @@ from typing import Any
 
 from bench import RESULTS, add_val256_frames_option, entry_point, host_facts, host_line
 from models.decoders.learned import LearnedDecoder, load_cards
+from models.errors import InvalidInputError
 from models.training.config import RUNS_DIR, TrainConfig
 from models.training.export import export_run
 from models.training.losses import LOSSES
 from models.training.recipes import TINY_STAGES
 from models.training.train import train
 from models.training.validate import val256_metrics
+from service.cli.options import take_dash_digit_values
 from service.cli.train import parse_stages
 
 NOISE_LEVELS = (0.0, 0.01)
@@ -98,12 +100,22 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def stage_list(text: str) -> tuple[int, ...]:
+    """``--stages``'s value (:func:`service.cli.train.parse_stages`), its refusal told by
+    argparse in its own words rather than as "invalid parse_stages value"."""
+    try:
+        return parse_stages(text)
+    except InvalidInputError as exc:
+        raise argparse.ArgumentTypeError(exc.message) from exc
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    take_dash_digit_values(parser)
     parser.add_argument("--tier", default="tiny", choices=("tiny", "small", "base"))
     parser.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))
     parser.add_argument(
-        "--stages", type=parse_stages, default=TINY_STAGES,
+        "--stages", type=stage_list, default=TINY_STAGES,
         help="steps per stage, comma separated (default: the shipped tiny recipe's)",
     )  # fmt: skip
     add_val256_frames_option(parser)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 from typing import Any
 
 from models.formation import ENCODINGS
@@ -11,6 +12,11 @@ from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 
 #: Levels ``--log-level`` takes (any case).
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+#: An argument that is an option's value although it starts with ``-``: a ``-`` then a
+#: digit (``--stages -1,2,3``, whose own check then says what is wrong). argparse 3.11
+#: takes only plain negative numbers, and refused it with "expected one argument".
+DASH_DIGIT = re.compile(r"^-\.?\d")
 
 #: Flags that set (simulate) or override (reconstruct) a frame's sensor parameters.
 SENSOR_FLAGS: tuple[str, ...] = ("encoding", "alpha", "bits", "gain")
@@ -67,3 +73,10 @@ def add_exr_compression_flag(parser: argparse.ArgumentParser) -> None:
 def sensor_values(args: argparse.Namespace) -> dict[str, Any]:
     """The sensor flags as a mapping, None where not given."""
     return {name: getattr(args, name) for name in SENSOR_FLAGS}
+
+
+def take_dash_digit_values(parser: argparse.ArgumentParser) -> None:
+    """Let ``parser`` take an argument starting with ``-`` and a digit as an option's value
+    (:data:`DASH_DIGIT`). argparse has no public setting for this; the parser's
+    ``_negative_number_matcher`` is the pattern it reads (Python 3.11 to 3.13)."""
+    parser._negative_number_matcher = DASH_DIGIT

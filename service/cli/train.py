@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from collections.abc import Iterable
 from dataclasses import replace
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from models.errors import InvalidInputError
+from service.cli.options import take_dash_digit_values
 
 if TYPE_CHECKING:
     from models.training.config import TrainConfig
@@ -36,10 +36,6 @@ TIER_CHOICES = ("tiny", "small", "base", "small-s2d", "tiny-s2d", "base-s2d", "l
 RISK_WEIGHT = 0.1
 #: ``models.training.config.PRECISIONS``, likewise.
 PRECISION_CHOICES = ("fp32", "bf16")
-#: What ``mcam train run`` takes as an option's value although it starts with ``-``: a
-#: ``-`` then a digit (``--stages -1,2,3``, whose check then says what is wrong; argparse
-#: 3.11 takes only plain negative numbers, and refused it with "expected one argument").
-NEGATIVE_VALUE = re.compile(r"^-\.?\d")
 
 
 def register(subparsers: Any) -> None:
@@ -55,7 +51,7 @@ def register(subparsers: Any) -> None:
     add_execution_options(every)
     every.set_defaults(func=run)
     one = actions.add_parser("run", help="train one configuration (resumes its checkpoint)")
-    one._negative_number_matcher = NEGATIVE_VALUE
+    take_dash_digit_values(one)
     one.add_argument("--family", default="mantissanet", choices=("mantissanet", "unmodnet"))
     one.add_argument("--tier", default="small", choices=TIER_CHOICES)
     one.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))

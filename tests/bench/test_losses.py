@@ -24,9 +24,15 @@ def test_study_trains_exports_and_measures_every_loss(tmp_path: Path) -> None:
     assert "| jumps |" in out.with_suffix(".md").read_text()
 
 
-def test_bad_stages_are_refused_with_the_format() -> None:
+@pytest.mark.parametrize("stages", ["10,x", "-1,2,3"])
+def test_bad_stages_are_refused_with_the_format(
+    stages: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A stage list starting with a minus sign was taken for an option ("expected one
+    argument"), and a bad one was "invalid parse_stages value", not what a list is."""
     with pytest.raises(SystemExit):
-        losses.parse_args(["--stages", "10,x"])
+        losses.parse_args(["--stages", stages])
+    assert "takes 3 or 4 comma-separated step counts" in capsys.readouterr().err
 
 
 def test_more_frames_than_val256_has_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
