@@ -314,6 +314,19 @@ def test_zip_without_pngs_says_what_it_holds() -> None:
         decode_video(buffer.getvalue(), "zip", FLAGS)
 
 
+@pytest.mark.parametrize(
+    ("fmt", "noun"),
+    [("tiff", "a TIFF video"), ("npy", "an npy file"), ("zip", "a zip of PNG frames")],
+)
+def test_data_of_no_video_format_says_what_to_send(fmt: str, noun: str) -> None:
+    """A JPEG named as a video was called a truncated or corrupt file of that format."""
+    with pytest.raises(InvalidInputError) as refused:
+        decode_video(b"\xff\xd8\xff\xe0 a JPEG" * 5, fmt, FLAGS)
+    message = refused.value.message
+    assert f"the data is not {noun}" in message and "send the wrapped video's file" in message
+    assert "truncated" not in message
+
+
 def test_a_truncated_tiff_video_is_refused_not_cut_short() -> None:
     video = np.zeros((12, 16, 16), np.uint8)  # pages' data first: the cut loses IFDs
     data = tiff_bytes(video)
