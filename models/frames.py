@@ -22,6 +22,7 @@ import io
 import logging
 import os
 import re
+import struct
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -213,6 +214,23 @@ def write_frame(
     Path(path).write_bytes(encode_frame(codes, params, frame_format(path)))
 
 
+def _png_bomb_error(data: bytes, max_pixels: int | None) -> ImageTooLargeError:
+    """The error for a PNG whose header declares more pixels than Pillow opens (twice
+    ``Image.MAX_IMAGE_PIXELS``): its size against ``max_pixels`` when that is the lower
+    limit, else against Pillow's. The size is the IHDR's, the first chunk (bytes 16-23)."""
+    width, height = struct.unpack(">II", data[16:24])
+    try:
+        check_pixel_count(width, height, max_pixels)
+    except ImageTooLargeError as exc:
+        return exc
+    most = 2 * (Image.MAX_IMAGE_PIXELS or 0)
+    return ImageTooLargeError(
+        f"the PNG image is {width} x {height} = {width * height} pixels, above the "
+        f"limit of {most} pixels the PNG reader decodes; send a smaller image (or split it "
+        "into tiles)"
+    )
+
+
 def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
@@ -223,7 +241,7 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
             "zero or impossible size, bad chunk); send the frame as written"
         ) from None
     except Image.DecompressionBombError:
-        raise ImageTooLargeError("the PNG image is too large to decode safely") from None
+        raise _png_bomb_error(data, max_pixels) from None
     check_pixel_count(image.width, image.height, max_pixels)
     if image.mode not in _PNG_MODES:
         raise UnsupportedFormatError(

@@ -299,6 +299,16 @@ def test_pixel_limit_is_checked_before_pixel_data() -> None:
         decode_frame(header.getvalue(), "npy", max_pixels=10**6)
 
 
+@pytest.mark.parametrize("max_pixels", [4096 * 4096, None])
+def test_png_past_the_readers_bomb_limit_names_its_size(max_pixels: int | None) -> None:
+    """A PNG header claiming more pixels than Pillow opens (20000^2, past its decompression
+    bomb limit) names its size and the limit, as a smaller one does, not "too large to
+    decode safely" with nothing to act on."""
+    with pytest.raises(ImageTooLargeError, match=r"20000 x 20000 = 400000000 pixels") as err:
+        decode_frame(png_header_only(20_000, 20_000), "png", max_pixels=max_pixels)
+    assert "send a smaller image" in err.value.message
+
+
 def test_decode_raw_known_bytes() -> None:
     eight = decode_raw(bytes([0, 1, 2, 3, 4, 5]), width=3, height=2, channels=1, bits=8)
     np.testing.assert_array_equal(eight, [[0, 1, 2], [3, 4, 5]])
