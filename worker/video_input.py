@@ -293,9 +293,35 @@ def _zip_frame(
             "frame once it is read); send smaller frames, without data after the image"
         )
     try:
+        _check_inflatable(entry)
         return decode_frame_codes(_inflate(archive, entry), "png", overrides, limits.pixels)
     except McamError as exc:
         raise type(exc)(f"{entry.filename}: {exc.message}") from None
+
+
+#: Compression methods :mod:`zipfile` inflates, by number, with their names.
+ZIP_METHODS: dict[int, str] = {
+    zipfile.ZIP_STORED: "stored",
+    zipfile.ZIP_DEFLATED: "Deflate",
+    zipfile.ZIP_BZIP2: "bzip2",
+    zipfile.ZIP_LZMA: "LZMA",
+}
+#: The general-purpose flag of an encrypted zip entry.
+ZIP_ENCRYPTED = 0x1
+
+
+def _check_inflatable(entry: zipfile.ZipInfo) -> None:
+    """Refuse an entry that is whole but cannot be inflated here (password-protected, or
+    compressed with a method :mod:`zipfile` lacks, such as Deflate64), saying how to zip
+    the frames instead: zipfile's errors were reported as a truncated or corrupt file."""
+    how = "zip the frames without a password, stored or with Deflate (zip -r, or Python's zipfile)"
+    if entry.flag_bits & ZIP_ENCRYPTED:
+        raise UnsupportedFormatError(f"the entry is encrypted; {how}")
+    if entry.compress_type not in ZIP_METHODS:
+        raise UnsupportedFormatError(
+            f"the entry is compressed with method {entry.compress_type}, which is "
+            f"not read here (only {', '.join(ZIP_METHODS.values())}); {how}"
+        )
 
 
 def _inflate(archive: zipfile.ZipFile, entry: zipfile.ZipInfo) -> bytes:

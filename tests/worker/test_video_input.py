@@ -157,6 +157,39 @@ def test_a_zip_entry_that_inflates_past_any_frame_is_not_inflated() -> None:
         decode_video(buffer.getvalue(), "zip", FLAGS, VideoLimits(pixels=64 * 64))
 
 
+def with_entry_fields(data: bytes, flags: int | None = None, method: int | None = None) -> bytes:
+    """``data``, a zip, with every entry's general-purpose flags and/or compression method
+    set in its local header and its central directory record (the data left as it is)."""
+    patched = bytearray(data)
+    for signature, flags_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        at = patched.find(signature)
+        while at >= 0:
+            if flags is not None:
+                struct.pack_into("<H", patched, at + flags_at, flags)
+            if method is not None:
+                struct.pack_into("<H", patched, at + flags_at + 2, method)
+            at = patched.find(signature, at + 4)
+    return bytes(patched)
+
+
+@pytest.mark.parametrize(
+    ("fields", "expected"),
+    [({"flags": 1}, "encrypted"), ({"method": 9}, "compressed with method 9")],
+    ids=["encrypted", "deflate64"],
+)
+def test_a_zip_it_cannot_inflate_says_why_not_truncated(
+    fields: dict[str, int], expected: str
+) -> None:
+    """A password-protected zip, or one compressed with a method zipfile lacks (Deflate64,
+    method 9), is whole: it was called "truncated or corrupt" with "send the complete,
+    unmodified file", which the client had done."""
+    data = with_entry_fields(zip_bytes(codes(2)), **fields)
+    with pytest.raises(UnsupportedFormatError, match=expected) as err:
+        decode_video(data, "zip")
+    assert "truncated" not in err.value.message
+    assert "Deflate" in err.value.message and "frame_0.png" in err.value.message
+
+
 def lying_zip(png: bytes, hidden_mib: int) -> bytes:
     """A zip whose one entry declares ``len(png)`` bytes (with the PNG's CRC) while its
     deflate stream goes on inflating ``hidden_mib`` MiB of zeros past them."""
