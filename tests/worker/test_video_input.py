@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import bz2
 import io
 import struct
 import tracemalloc
 import zipfile
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -190,18 +192,20 @@ def test_a_zip_it_cannot_inflate_says_why_not_truncated(
     assert "Deflate" in err.value.message and "frame_0.png" in err.value.message
 
 
-def lying_zip(png: bytes, hidden_mib: int) -> bytes:
+def lying_zip(png: bytes, hidden_mib: int, method: int = zipfile.ZIP_DEFLATED) -> bytes:
     """A zip whose one entry declares ``len(png)`` bytes (with the PNG's CRC) while its
-    deflate stream goes on inflating ``hidden_mib`` MiB of zeros past them."""
-    deflate = zlib.compressobj(9, zlib.DEFLATED, -15)
-    stream = deflate.compress(png)
+    stream, deflate or (``method``) bzip2, goes on inflating ``hidden_mib`` MiB of zeros
+    past them."""
+    packer: Any = (bz2.BZ2Compressor(9) if method == zipfile.ZIP_BZIP2
+                   else zlib.compressobj(9, zlib.DEFLATED, -15))  # fmt: skip
+    stream = packer.compress(png)
     for _ in range(hidden_mib):
-        stream += deflate.compress(bytes(2**20))
-    stream += deflate.flush()
+        stream += packer.compress(bytes(2**20))
+    stream += packer.flush()
     name, crc = b"frame_0.png", zlib.crc32(png)
     sizes = (crc, len(stream), len(png), len(name))
-    local = struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, 8, 0, 0, *sizes, 0) + name
-    central = struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, 20, 0, 8, 0, 0, *sizes,
+    local = struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, method, 0, 0, *sizes, 0) + name
+    central = struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, 20, 0, method, 0, 0, *sizes,
                           0, 0, 0, 0, 0, 0) + name  # fmt: skip
     end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 1, 1, len(central),
                       len(local) + len(stream), 0)  # fmt: skip
@@ -221,6 +225,22 @@ def test_a_zip_entry_lying_about_its_size_is_inflated_only_that_far() -> None:
         tracemalloc.stop()
     assert video.codes.shape == (1, *codes(1)[0].shape)
     assert peak < 32 * 2**20, f"{peak / 2**20:.0f} MiB held while decoding a {len(data)} B zip"
+
+
+def test_a_bzip2_zip_entry_is_refused_before_it_is_inflated() -> None:
+    """zipfile inflates a bzip2 (or LZMA) entry's whole read of compressed bytes at once,
+    past its declared size: 796 bytes of bzip2 declaring a 200-byte PNG took the API to
+    1.1 GB (512 MiB of zeros hidden). Only stored and Deflate entries are inflated."""
+    png = encode_frame(codes(1)[0], PARAMS, "png")
+    data = lying_zip(png, hidden_mib=16, method=zipfile.ZIP_BZIP2)
+    tracemalloc.start()
+    try:
+        with pytest.raises(UnsupportedFormatError, match="compressed with method 12"):
+            decode_video(data, "zip", None, VideoLimits(pixels=64 * 64))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 * 2**20, f"{peak / 2**20:.0f} MiB held while refusing a {len(data)} B zip"
 
 
 @pytest.mark.parametrize(
