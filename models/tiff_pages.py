@@ -14,6 +14,9 @@ per frame).
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
   :func:`open_tiff` before any is decoded.
+- tifffile inflates a deflate or LZMA strip or tile whole before it cuts out the rows
+  the page needs: :func:`page_codes` refuses a segment that inflates past what it holds,
+  inflating it only that far, and tiles far larger than their page, before decoding.
 """
 
 from __future__ import annotations
@@ -21,8 +24,10 @@ from __future__ import annotations
 import io
 import itertools
 import logging
+import lzma
 import threading
-from collections.abc import Iterator
+import zlib
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -145,6 +150,67 @@ def page_shape(page: tifffile.TiffPage) -> tuple[int, ...]:
     return (*shape[1:], shape[0]) if _separate(page) else shape
 
 
+#: Streaming decompressors of the compressions tifffile inflates without bound (each
+#: segment whole, past its size), by TIFF code: deflate (8, and its old code) and LZMA.
+_STREAMED: dict[int, Callable[[], Any]] = {
+    8: zlib.decompressobj,
+    32946: zlib.decompressobj,
+    34925: lzma.LZMADecompressor,
+}
+#: How many times a page's own bytes its strips or tiles may hold in all (padding), and
+#: a floor (bytes) for small pages: a 16 x 16 page may come in one 256 x 256 tile.
+SEGMENT_SLACK = 4
+SEGMENT_SLACK_FLOOR = 1 << 20
+
+
+def _sample_bytes(page: tifffile.TiffPage) -> int:
+    """Bytes of one sample of ``page`` (at least 1)."""
+    return max(1, -(-int(page.bitspersample) // 8))
+
+
+def _segment_samples(page: tifffile.TiffPage) -> tuple[str, int, int]:
+    """``page``'s segments: their kind ("tile" or "strip"), width and rows, and how many
+    samples one holds (a strip's rows cut to the page's)."""
+    planes = 1 if _separate(page) else int(page.samplesperpixel)
+    if page.is_tiled:
+        width, rows = int(page.tilewidth), int(page.tilelength) * max(1, int(page.tiledepth))
+        return "tile", f"{width} x {rows}", width * rows * planes
+    rows = min(int(page.rowsperstrip), int(page.imagelength))
+    return "strip", f"{int(page.imagewidth)} x {rows}", int(page.imagewidth) * rows * planes
+
+
+def check_inflation(page: tifffile.TiffPage) -> None:
+    """Refuse ``page`` (:class:`ImageTooLargeError`) when its strips or tiles hold more
+    than :data:`SEGMENT_SLACK` times its own bytes (and 1 MiB), or one of them inflates
+    past the bytes it holds; each is inflated only that far (a 64 x 64 frame's one
+    deflate strip of 522 KB inflated 512 MiB at once in tifffile). A segment that does
+    not inflate is left to tifffile's decoding, which reports it as damaged."""
+    kind, size, samples = _segment_samples(page)
+    most = samples * _sample_bytes(page)
+    page_bytes = int(np.prod(page.shape, dtype=np.int64)) * _sample_bytes(page)
+    if len(page.dataoffsets) * most > SEGMENT_SLACK * page_bytes + SEGMENT_SLACK_FLOOR:
+        raise ImageTooLargeError(
+            f"the TIFF page of {page_bytes} bytes is stored in {len(page.dataoffsets)} "
+            f"{kind}s of {size} samples ({most} bytes each), far more than it holds; re-save "
+            f"it with {kind}s no larger than the image"
+        )
+    streamed = _STREAMED.get(int(page.compression))
+    if streamed is None:
+        return
+    segments = page.parent.filehandle.read_segments(page.dataoffsets, page.databytecounts)
+    for data, index in segments:
+        try:
+            inflated = len(streamed().decompress(data or b"", most + 1))
+        except (zlib.error, lzma.LZMAError):
+            continue
+        if inflated > most:
+            raise ImageTooLargeError(
+                f"{kind} {index} of the TIFF page inflates past the {most} bytes a {kind} "
+                f"of {size} samples holds; send the frame as written, without data after "
+                "its pixels"
+            )
+
+
 def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last).
 
@@ -155,5 +221,6 @@ def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
             f"unsupported TIFF compression {compression.name}; save the TIFF uncompressed "
             "or with deflate (zlib) compression"
         )
+    check_inflation(page)
     codes = page.asarray()
     return np.moveaxis(codes, 0, -1) if _separate(page) else codes

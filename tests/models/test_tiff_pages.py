@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import io
 import logging
+import lzma
 import struct
 import threading
+import tracemalloc
+import zlib
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -148,3 +152,65 @@ def test_a_video_of_many_strips_in_all_is_read() -> None:
     with open_tiff(one_row_strips(600, 512)) as (tif, pages):
         assert pages == 600
         np.testing.assert_array_equal(page_codes(tif.pages[599]), [[7, 9]] * 512)
+
+
+def with_one_segment(data: bytes, payload: bytes) -> bytes:
+    """``data``, a TIFF of one page in one strip or tile, with that segment replaced by
+    ``payload`` appended at the end (its offset and byte count tags rewritten)."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        tags = tif.pages.first.tags
+        names = ("TileOffsets", "TileByteCounts") if "TileOffsets" in tags else (
+            "StripOffsets", "StripByteCounts")
+        entries = [tags[name].offset for name in names]
+    patched = bytearray(data)
+    for entry, value in zip(entries, (len(data), len(payload)), strict=True):
+        code = struct.unpack_from("<H", patched, entry)[0]
+        struct.pack_into("<HHII", patched, entry, code, 4, 1, value)
+    return bytes(patched) + payload
+
+
+@pytest.mark.parametrize(
+    "inflate", [lambda raw: zlib.compress(raw, 9), lzma.compress], ids=["deflate", "lzma"]
+)
+def test_a_strip_inflating_past_its_rows_is_refused_before_it_is_inflated(
+    inflate: Callable[[bytes], bytes],
+) -> None:
+    """A 64 x 64 8-bit frame in one strip holds 4 KiB; a deflate (or LZMA) strip of 64 KB
+    (or 10 KB) inflating to 64 MiB was decoded whole by tifffile before it cut the
+    rows out (a 522 KB upload took the API past 1 GB with 512 MiB). What is held is the
+    LZMA preset's 8 MiB dictionary at most."""
+    options = {"compression": "zlib" if inflate is not lzma.compress else "lzma"}
+    data = with_one_segment(tiff(np.zeros((64, 64), np.uint8), **options),
+                            inflate(bytes(64 * 2**20)))
+    tracemalloc.start()
+    try:
+        with open_tiff(data) as (tif, _), pytest.raises(ImageTooLargeError,
+                                                        match="strip 0 of the TIFF page"):
+            page_codes(tif.pages.first)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MiB held refusing a {len(data)} B TIFF"
+
+
+def test_tiles_far_larger_than_their_page_are_refused() -> None:
+    """A 16 x 16 page in one 65536 x 65536 tile: its one tile could inflate to 4 GiB
+    within the bound of a tile's own size."""
+    data = tiff(np.zeros((16, 16), np.uint8), tile=(16, 16), compression="zlib")
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        entries = [tif.pages.first.tags[name].offset for name in ("TileWidth", "TileLength")]
+    patched = bytearray(data)
+    for entry in entries:
+        code = struct.unpack_from("<H", patched, entry)[0]
+        struct.pack_into("<HHII", patched, entry, code, 4, 1, 65536)
+    with open_tiff(bytes(patched)) as (tif, _), pytest.raises(ImageTooLargeError,
+                                                              match="65536 x 65536"):
+        page_codes(tif.pages.first)
+
+
+def test_tiles_and_strips_of_every_usual_layout_are_read() -> None:
+    """A small page in one tile larger than itself, and rows in strips, are read."""
+    codes = np.arange(20 * 12, dtype=np.uint16).reshape(20, 12)
+    for options in ({"tile": (32, 32)}, {"rowsperstrip": 3}, {"rowsperstrip": 64}):
+        with open_tiff(tiff(codes, compression="zlib", **options)) as (tif, _):
+            np.testing.assert_array_equal(page_codes(tif.pages.first), codes)
