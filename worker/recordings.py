@@ -52,9 +52,10 @@ from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
 from models.frames import encode_frame
 from worker.deliveries import entry_order
+from worker.device_registry import DeviceNotFoundError
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue, check_decoder_supports
-from worker.redis_keys import health_key, recording_key
+from worker.redis_keys import DEVICES_SET, health_key, recording_key
 from worker.result_store import ResultStore
 from worker.video_jobs import check_frame_size, video_options
 
@@ -68,11 +69,16 @@ RECORDING_QUEUE_MAXLEN = 1 << 30
 #: and Redis takes at most 512 MB (a 618 MiB recording's job was refused on every try).
 MAX_RECORDING_SAMPLES = 2**26
 
+# KEYS: the recording, the devices set. ARGV: the device, then the record's fields.
+# -1: the device is not registered (a forget came first); 0: a recording is active.
 _START = """
+if redis.call('SISMEMBER', KEYS[2], ARGV[1]) == 0 then return -1 end
 local state = redis.call('HGET', KEYS[1], 'state')
 if state == 'recording' or state == 'stopping' then return 0 end
+local fields = {}
+for i = 2, #ARGV do fields[#fields + 1] = ARGV[i] end
 redis.call('DEL', KEYS[1])
-redis.call('HSET', KEYS[1], unpack(ARGV))
+redis.call('HSET', KEYS[1], unpack(fields))
 return 1
 """
 
@@ -225,7 +231,9 @@ def start_recording(
 ) -> Recording | None:
     """Start a recording (options: those of a video job; ``max_samples``: most code
     values of the video); None if one is already active. Refused when the device's newest
-    frame shows its video job could never be made (:func:`check_recordable`)."""
+    frame shows its video job could never be made (:func:`check_recordable`), and with
+    :class:`DeviceNotFoundError` when the device is not registered (checked in the same
+    step as the write: a forget that came first leaves no record behind)."""
     reported = reported_frames(client, device)
     if reported is not None:
         check_recordable(device, decoder, options, *reported, "its newest frame")
@@ -246,8 +254,11 @@ def start_recording(
         "frames": "0",
         "started_ns": str(time.time_ns()),
     }
-    args = [item for pair in fields.items() for item in pair]
-    if not client.register_script(_START)(keys=[recording_key(device)], args=args):
+    args = [device, *(item for pair in fields.items() for item in pair)]
+    started = client.register_script(_START)(keys=[recording_key(device), DEVICES_SET], args=args)
+    if started == -1:
+        raise DeviceNotFoundError(device)
+    if not started:
         return None
     return load_recording(client, device)
 

@@ -81,8 +81,8 @@ def test_a_frame_naming_another_device_is_dead_lettered_not_recorded_there(
 ) -> None:
     """The stream is the device's identity: a frame on a's stream that names b does not
     join b's recording."""
+    client.sadd(DEVICES_SET, "a", "b")
     start_recording(client, "b", decoder="itoh", options={"mode": "temporal"}, max_frames=10)
-    client.sadd(DEVICES_SET, "a")
     client.xadd(frame_stream("a"), frame("b", 0).to_fields())
     consumer.poll()
     (letter,) = dead_letters(client)

@@ -11,6 +11,7 @@ import redis
 
 from models.errors import InvalidInputError
 from models.formation import SensorFrame
+from worker.device_registry import DeviceNotFoundError
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue, entry_codes
 from worker.recordings import (
@@ -20,13 +21,19 @@ from worker.recordings import (
     request_stop,
     start_recording,
 )
-from worker.redis_keys import JOBS_STREAM, health_key
+from worker.redis_keys import DEVICES_SET, JOBS_STREAM, health_key, recording_key
 from worker.result_store import ResultStore
 from worker.video_input import WrappedVideo
 from worker.video_jobs import video_options
 from worker.video_pipeline import decode_video_frames
 
 OPTIONS = {"mode": "temporal", "outputs": ["exr_zip"]}
+
+
+@pytest.fixture(autouse=True)
+def registered(client: redis.Redis) -> None:
+    """cam1 is registered, as its daemon's first health write or frame does."""
+    client.sadd(DEVICES_SET, "cam1")
 
 
 @pytest.fixture
@@ -237,3 +244,13 @@ def test_frames_without_a_recording_are_ignored(
     assert load_recording(client, "cam1") is None and store.keys() == []
     with pytest.raises(ValueError, match="max_frames"):
         start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=0)
+
+
+def test_a_start_for_a_device_not_registered_leaves_no_record(client: redis.Redis) -> None:
+    """A device forgotten (or never registered) gets no recording: the registration is
+    checked in the step that writes the record, so a forget that came between the API's
+    look at the device and the start leaves nothing behind."""
+    client.srem(DEVICES_SET, "cam1")
+    with pytest.raises(DeviceNotFoundError, match="no device 'cam1'"):
+        start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=10)
+    assert client.exists(recording_key("cam1")) == 0

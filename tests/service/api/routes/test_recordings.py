@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import io
 import re
+import threading
+import time
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -21,7 +23,17 @@ from service.core.config import Settings
 from service.main import create_app
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
-from tests.service.conftest import FULL_KEY, READ_KEY, finished_job, make_settings, serve
+from tests.service.conftest import (
+    FULL_KEY,
+    READ_KEY,
+    SUBMIT_KEY,
+    finished_job,
+    make_settings,
+    serve,
+)
+from worker import recordings
+from worker.embedded_redis import connect
+from worker.redis_keys import DEVICES_SET, health_key, recording_key
 
 Client = Callable[[str], httpx.Client]
 FRAMES = 30
@@ -199,3 +211,50 @@ def test_a_stop_answers_409_when_the_worker_could_not_make_the_video_job(
         assert f"recording {started.json()['id']} failed" in body["message"]
         assert re.search(r"MCAM_MAX_VIDEO_SAMPLES|no frames were recorded", body["message"])
         assert recording(http)["state"] == "failed"
+
+
+def test_a_start_racing_the_devices_forget_leaves_no_recording(
+    settings: Settings, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A start and a DELETE of a stopped device at once, the DELETE landing after the
+    start found the device registered (held there until the DELETE answers: the order
+    that lost it). Before, the start answered 201 for a device already forgotten, and its
+    record, in state 'recording', stayed behind: it could not be stopped (404) and a
+    daemon coming back weeks later recorded into it unasked."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "cam1")
+    redis_client.hset(health_key("cam1"), mapping={
+        "state": "stopped", "updated_ns": str(time.time_ns()),
+    })  # fmt: skip
+    registered, forgotten = threading.Event(), threading.Event()
+    reported_frames = recordings.reported_frames
+
+    def held(*args: object) -> object:
+        registered.set()
+        forgotten.wait(30)
+        return reported_frames(*args)
+
+    monkeypatch.setattr(recordings, "reported_frames", held)
+    together = threading.Barrier(2)
+    replies: dict[str, httpx.Response] = {}
+
+    def start() -> None:
+        together.wait(10)
+        replies["start"] = client(SUBMIT_KEY).post(URL, json={"action": "start"})
+
+    def forget() -> None:
+        together.wait(10)
+        registered.wait(30)
+        replies["delete"] = client(SUBMIT_KEY).delete("/v1/devices/cam1")
+        forgotten.set()
+
+    threads = [threading.Thread(target=start), threading.Thread(target=forget)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert replies["delete"].status_code == 200, replies["delete"].text
+    assert replies["start"].status_code == 404, replies["start"].text
+    assert replies["start"].json()["code"] == "not_found"
+    assert redis_client.exists(recording_key("cam1")) == 0
