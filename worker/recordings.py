@@ -88,10 +88,14 @@ redis.call('HSET', KEYS[1], 'state', 'stopping', 'reason', 'requested', 'stopped
 return 1
 """
 
+# ARGV: the recording's id, the states it may be in (space-separated; '' any), the frames
+# it must have ('' any), then field, value pairs.
 _UPDATE = """
 if redis.call('HGET', KEYS[1], 'id') ~= ARGV[1] then return 0 end
 local state = redis.call('HGET', KEYS[1], 'state')
-if ARGV[2] ~= '' and state ~= ARGV[2] then return 0 end
+if ARGV[2] ~= '' and not string.find(' ' .. ARGV[2] .. ' ', ' ' .. state .. ' ', 1, true) then
+  return 0
+end
 if ARGV[3] ~= '' and redis.call('HGET', KEYS[1], 'frames') ~= ARGV[3] then return 0 end
 local fields = {}
 for i = 4, #ARGV do fields[#fields + 1] = ARGV[i] end
@@ -282,12 +286,14 @@ class Recorder:
         self._update = client.register_script(_UPDATE)
 
     def _set(
-        self, recording: Recording, fields: dict[str, Any], *, state: str = "",
-        frames: int | None = None,
+        self, recording: Recording, fields: dict[str, Any], *,
+        states: tuple[str, ...] = ACTIVE_STATES, frames: int | None = None,
     ) -> bool:
-        """Write ``fields`` if the record is still this recording (same id), in ``state``
-        with ``frames`` frames when those are given; returns whether it wrote."""
-        args: list[Any] = [recording.id, state, "" if frames is None else frames]
+        """Write ``fields`` if the record is still this recording (same id), in one of
+        ``states``, with ``frames`` frames when given; returns whether it wrote. An ended
+        recording is never written again: a second owner of the device (the first
+        stalled past its lease) finishing it too would fail it over its queued job."""
+        args: list[Any] = [recording.id, " ".join(states), "" if frames is None else frames]
         args += [item for pair in fields.items() for item in pair]
         return bool(self._update(keys=[recording_key(recording.device)], args=args))
 
@@ -321,7 +327,7 @@ class Recorder:
             update["keyframes"] = ",".join(map(str, [*recording.keyframes, index]))
         self.store.write(frame_key(recording.id, index), encode_frame(message.codes, None, "npy"))
         update["frames"] = index + 1
-        if not self._set(recording, update, state="recording", frames=index):
+        if not self._set(recording, update, states=("recording",), frames=index):
             return
         if index + 1 >= recording.max_frames:
             self._finish(load_recording(self.client, message.device) or recording, "max_frames")

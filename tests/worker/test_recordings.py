@@ -11,6 +11,7 @@ import redis
 
 from models.errors import InvalidInputError
 from models.formation import SensorFrame
+from worker import recordings
 from worker.device_registry import DeviceNotFoundError
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue, entry_codes
@@ -254,3 +255,32 @@ def test_a_start_for_a_device_not_registered_leaves_no_record(client: redis.Redi
     with pytest.raises(DeviceNotFoundError, match="no device 'cam1'"):
         start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=10)
     assert client.exists(recording_key("cam1")) == 0
+
+
+def test_a_stop_finished_by_two_owners_at_once_stays_submitted(
+    client: redis.Redis, store: ResultStore, queue: JobQueue, make_frame,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Two workers owning the device at once (one stalled past its lease) both finish a
+    stopping recording, the second having read it stopping just before the first queued
+    its job and removed its frames (the order is held here). Before, the second found the
+    frames gone and failed the recording over the first's 'submitted': the stop answered
+    409 recording_failed ("no result ... never written or expired") with its job queued."""
+    first, second = (Recorder(client, store, max_deliveries=3) for _ in range(2))
+    start(client)
+    for sequence, frame in enumerate(frames(make_frame, 3)):
+        first.add_frame(message(frame, sequence), f"{6000 + sequence}-0")
+    request_stop(client, "cam1")
+    read = recordings.load_recording
+
+    def read_then_first_finishes(*args: object) -> recordings.Recording | None:
+        recording = read(*args)
+        monkeypatch.setattr(recordings, "load_recording", read)
+        first.finish_if_stopping("cam1")
+        return recording
+
+    monkeypatch.setattr(recordings, "load_recording", read_then_first_finishes)
+    second.finish_if_stopping("cam1")
+    done = read(client, "cam1")
+    assert done.state == "submitted" and done.error is None, done
+    assert queue.get(done.job).frames_total == 3
