@@ -82,10 +82,12 @@ redis.call('HSET', KEYS[1], unpack(fields))
 return 1
 """
 
+# Stops a running recording; returns the record (after the stop) in the same step.
 _STOP = """
-if redis.call('HGET', KEYS[1], 'state') ~= 'recording' then return 0 end
-redis.call('HSET', KEYS[1], 'state', 'stopping', 'reason', 'requested', 'stopped_ns', ARGV[1])
-return 1
+if redis.call('HGET', KEYS[1], 'state') == 'recording' then
+  redis.call('HSET', KEYS[1], 'state', 'stopping', 'reason', 'requested', 'stopped_ns', ARGV[1])
+end
+return redis.call('HGETALL', KEYS[1])
 """
 
 # ARGV: the recording's id, the states it may be in (space-separated; '' any), the frames
@@ -268,9 +270,12 @@ def start_recording(
 
 
 def request_stop(client: redis.Redis, device: str) -> Recording | None:
-    """Ask the worker to end the device's recording; returns the record (None: never any)."""
-    client.register_script(_STOP)(keys=[recording_key(device)], args=[time.time_ns()])
-    return load_recording(client, device)
+    """Ask the worker to end the device's recording; returns the record as the stop left
+    it, read in the same step (None: never any). A start right after the stop is not
+    taken for the recording it stopped (read apart, the stop answered with it, still
+    recording)."""
+    raw = client.register_script(_STOP)(keys=[recording_key(device)], args=[time.time_ns()])
+    return Recording.from_hash(dict(zip(raw[::2], raw[1::2], strict=True))) if raw else None
 
 
 class Recorder:

@@ -10,11 +10,13 @@ import time
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import av
 import httpx
 import numpy as np
 import pytest
+from redis.commands.core import Script
 
 from device.simulator import VirtualScamp5
 from models.formation import reconstruct
@@ -34,6 +36,7 @@ from tests.service.conftest import (
 from worker import recordings
 from worker.embedded_redis import connect
 from worker.redis_keys import DEVICES_SET, health_key, recording_key
+from worker.result_store import RESULTS_DIR, ResultStore
 
 Client = Callable[[str], httpx.Client]
 FRAMES = 30
@@ -258,3 +261,49 @@ def test_a_start_racing_the_devices_forget_leaves_no_recording(
     assert replies["start"].status_code == 404, replies["start"].text
     assert replies["start"].json()["code"] == "not_found"
     assert redis_client.exists(recording_key("cam1")) == 0
+
+
+def test_a_stop_racing_a_start_answers_for_the_recording_it_found(
+    settings: Settings, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stop and a start at once on a device whose last recording has ended, the start
+    landing just after the stop's script ran (held there: the order that lost it). Before, the
+    stop found nothing to stop, then read the record again and answered 202 with the new
+    recording, still 'recording': the client was told it stopped a recording that ran
+    on. The stop now answers for the recording it found (its end), as if it came first."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "cam1")
+    http = client(FULL_KEY)
+    ended = http.post(URL, json={"action": "start"}).json()
+    recordings.request_stop(redis_client, "cam1")
+    store = ResultStore(settings.data_dir / RESULTS_DIR, retention_s=60)
+    recordings.Recorder(redis_client, store, max_deliveries=3).finish_if_stopping("cam1")
+    assert recording(http)["state"] == "failed"  # no frames: no worker ran
+    run_script = Script.__call__
+
+    def start_after_the_stop(script: Script, *args: Any, **kwargs: Any) -> Any:
+        result = run_script(script, *args, **kwargs)
+        if script.script == recordings._STOP:
+            monkeypatch.setattr(Script, "__call__", run_script)
+            recordings.start_recording(redis_client, "cam1", decoder="itoh", options={},
+                                       max_frames=10)
+        return result
+
+    monkeypatch.setattr(Script, "__call__", start_after_the_stop)
+    together = threading.Barrier(2)
+    replies: list[httpx.Response] = []
+
+    def stop() -> None:
+        together.wait(10)
+        replies.append(http.post(URL, json={"action": "stop"}))
+
+    thread = threading.Thread(target=stop)
+    thread.start()
+    together.wait(10)
+    thread.join(60)
+    (stopped,) = replies
+    assert stopped.status_code == 409, stopped.text
+    assert stopped.json()["code"] == "recording_failed"
+    assert f"recording {ended['id']} failed" in stopped.json()["message"]
+    assert recording(http)["state"] == "recording"
