@@ -16,6 +16,7 @@ stop's 409). See ``worker/recordings.py``.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Request, Response
@@ -40,6 +41,7 @@ from service.api.schemas import (
     job_response,
 )
 from service.api.state import ServiceState
+from worker.jobs import JobNotFoundError
 from worker.recordings import (
     Recording,
     load_recording,
@@ -139,13 +141,31 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
     return _recording_response(recording, 201)
 
 
+def _ended_and_replaced(state: ServiceState, recording: Recording) -> Recording:
+    """``recording`` (stopping) once a newer recording or a forget has taken its record:
+    it ended meanwhile, submitted if its video job (named by its id) exists, else failed."""
+    try:
+        state.queue.get(recording.id)
+    except JobNotFoundError:
+        return replace(recording, state="failed", error=(
+            "the worker made no video job of it, and a newer recording has replaced its "
+            "record (the reason went with it); start a new recording"
+        ))
+    return replace(recording, state="submitted", job=recording.id)
+
+
 def _wait_for_job(state: ServiceState, device: str, recording: Recording) -> Recording:
-    """The recording once the worker queued its job or failed (or as it is after a while)."""
+    """The recording once the worker queued its job or failed (or as it is after a while).
+    A newer recording in its place ended it between two looks: it is never taken for
+    this one (the stop answered 202 with it, still recording)."""
     deadline = time.monotonic() + STOP_WAIT_S
     while (recording.state == "stopping" and time.monotonic() < deadline
            and not state.stopping.is_set()):
         time.sleep(0.05)
-        recording = load_recording(state.client, device) or recording
+        latest = load_recording(state.client, device)
+        if latest is None or latest.id != recording.id:
+            return _ended_and_replaced(state, recording)
+        recording = latest
     return recording
 
 

@@ -19,22 +19,26 @@ import pytest
 from redis.commands.core import Script
 
 from device.simulator import VirtualScamp5
-from models.formation import reconstruct
+from models.formation import reconstruct, simulate
 from models.hdr_io import read_hdr
+from service.api.routes import recordings as recording_routes
 from service.core.config import Settings
 from service.main import create_app
 from tests.device.conftest import wait_for
 from tests.service.api.conftest import live_camera
 from tests.service.conftest import (
     FULL_KEY,
+    PARAMS,
     READ_KEY,
     SUBMIT_KEY,
     finished_job,
     make_settings,
+    scene,
     serve,
 )
 from worker import recordings
 from worker.embedded_redis import connect
+from worker.frame_message import FrameMessage
 from worker.redis_keys import DEVICES_SET, health_key, recording_key
 from worker.result_store import RESULTS_DIR, ResultStore
 
@@ -306,4 +310,46 @@ def test_a_stop_racing_a_start_answers_for_the_recording_it_found(
     assert stopped.status_code == 409, stopped.text
     assert stopped.json()["code"] == "recording_failed"
     assert f"recording {ended['id']} failed" in stopped.json()["message"]
+    assert recording(http)["state"] == "recording"
+
+
+@pytest.mark.parametrize("frames", [2, 0])
+def test_a_stop_whose_recording_a_new_start_replaced_meanwhile_answers_its_end(
+    settings: Settings, client: Client, monkeypatch: pytest.MonkeyPatch, frames: int
+) -> None:
+    """A stop waits for the worker to queue the video job, looking at the record again
+    and again. The worker queues it and another client starts a new recording between
+    two looks (held there: the order that lost it). Before, the stop took the new
+    recording for its own and answered 202 with it, still 'recording' and no job; it now
+    answers with the video job of the recording it stopped (named by its id), or, with
+    no frames recorded (no job made), with its failure."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "cam1")
+    http = client(FULL_KEY)
+    started = http.post(URL, json={"action": "start", "outputs": "exr_zip"}).json()
+    store = ResultStore(settings.data_dir / RESULTS_DIR, retention_s=60)
+    worker = recordings.Recorder(redis_client, store, max_deliveries=3)
+    frame = simulate(scene(64), PARAMS)
+    for sequence in range(frames):
+        worker.add_frame(FrameMessage("cam1", sequence, sequence * 1000, frame.codes,
+                                      frame.params, False), f"{7000 + sequence}-0")
+    read = recording_routes.load_recording
+
+    def finish_and_start_then_read(*args: Any) -> recordings.Recording | None:
+        monkeypatch.setattr(recording_routes, "load_recording", read)
+        worker.finish_if_stopping("cam1")
+        recordings.start_recording(redis_client, "cam1", decoder="itoh", options={},
+                                   max_frames=10)
+        return read(*args)
+
+    monkeypatch.setattr(recording_routes, "load_recording", finish_and_start_then_read)
+    stopped = http.post(URL, json={"action": "stop"})
+    if frames:
+        assert stopped.status_code == 202, stopped.text
+        assert stopped.json()["id"] == started["id"] and stopped.json()["state"] == "queued"
+    else:
+        assert stopped.status_code == 409, stopped.text
+        assert f"recording {started['id']} failed" in stopped.json()["message"]
+        assert "start a new recording" in stopped.json()["message"]
     assert recording(http)["state"] == "recording"
