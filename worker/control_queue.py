@@ -14,20 +14,23 @@ from __future__ import annotations
 import redis
 
 from models.errors import McamError
-from worker.redis_keys import control_cursor_key, control_stream
+from worker.device_registry import DeviceNotFoundError
+from worker.redis_keys import DEVICES_SET, control_cursor_key, control_stream
 
 #: Commands that may wait for a device's daemon; more are refused, not queued.
 CONTROL_BACKLOG = 100
 #: The control stream's bound, far above the backlog (handled commands are trimmed).
 CONTROL_MAXLEN = 1000
 
-# KEYS: stream, cursor. ARGV: backlog, maxlen, then field, value pairs.
+# KEYS: stream, cursor, devices set. ARGV: backlog, maxlen, device, then field, value
+# pairs. -1: the device is not registered (a forget came first); false: backlog full.
 _QUEUE = """
+if redis.call('SISMEMBER', KEYS[3], ARGV[3]) == 0 then return -1 end
 local cursor = redis.call('GET', KEYS[2]) or '0-0'
 local backlog = tonumber(ARGV[1])
 local waiting = redis.call('XRANGE', KEYS[1], '(' .. cursor, '+', 'COUNT', backlog)
 if #waiting >= backlog then return false end
-return redis.call('XADD', KEYS[1], 'MAXLEN', '~', ARGV[2], '*', unpack(ARGV, 3))
+return redis.call('XADD', KEYS[1], 'MAXLEN', '~', ARGV[2], '*', unpack(ARGV, 4))
 """
 
 
@@ -44,10 +47,15 @@ def queue_command(client: redis.Redis, device: str, fields: dict[str, str], *,
     """Append a command's ``fields`` to ``device``'s control stream; its entry id.
 
     Raises :class:`ControlBacklogError` when ``backlog`` commands already wait unread,
-    so that nothing accepted is trimmed away before the daemon reads it."""
+    so that nothing accepted is trimmed away before the daemon reads it, and
+    :class:`DeviceNotFoundError` when the device is not registered (checked in the same
+    step: a command accepted for a device being forgotten was skipped by its next
+    daemon, its cursor gone)."""
     flat = [part for pair in fields.items() for part in pair]
-    entry = client.eval(_QUEUE, 2, control_stream(device), control_cursor_key(device),
-                        backlog, maxlen, *flat)
+    entry = client.eval(_QUEUE, 3, control_stream(device), control_cursor_key(device),
+                        DEVICES_SET, backlog, maxlen, device, *flat)
+    if entry == -1:
+        raise DeviceNotFoundError(device)
     if entry is None:
         raise ControlBacklogError(
             f"{backlog} commands already wait for the daemon of device {device!r}, which "

@@ -9,7 +9,14 @@ from device.commands import FrameRateCommand, command_fields
 from device.health import DeviceHealth
 from tests.device.conftest import Camera, poll_control
 from worker.control_queue import ControlBacklogError, queue_command
-from worker.redis_keys import control_stream
+from worker.device_registry import DeviceNotFoundError
+from worker.redis_keys import DEVICES_SET, control_stream
+
+
+@pytest.fixture(autouse=True)
+def registered(client: redis.Redis) -> None:
+    """cam0 is registered, as its daemon's first health write or frame does."""
+    client.sadd(DEVICES_SET, "cam0")
 
 
 def fields(fps: float) -> dict[str, str]:
@@ -42,3 +49,13 @@ def test_once_the_daemon_read_them_more_are_queued_and_reach_it(client: redis.Re
         queue_command(client, "cam0", fields(float(fps)), backlog=3, maxlen=4)
     poll_control(publisher)
     assert [getattr(c, "fps", None) for c in camera.seen] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+
+
+def test_a_command_for_a_device_not_registered_is_refused(client: redis.Redis) -> None:
+    """A device forgotten (or never registered) gets no command: checked in the step that
+    appends it, so a forget between the API's look at the device and the append leaves
+    no stream behind (its next daemon would have skipped the command)."""
+    client.srem(DEVICES_SET, "cam0")
+    with pytest.raises(DeviceNotFoundError, match="no device 'cam0'"):
+        queue_command(client, "cam0", fields(5.0))
+    assert client.exists(control_stream("cam0")) == 0

@@ -7,6 +7,7 @@ import io
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -18,6 +19,7 @@ from models.decoders.registry import get_decoder
 from models.display import srgb8
 from models.formation import SensorParams, simulate
 from models.hdr_io import read_hdr
+from service.api.routes import devices as device_routes
 from service.core.config import Settings
 from service.main import create_app
 from tests.device.conftest import wait_for
@@ -222,3 +224,32 @@ def test_web_page_live_view_shows_the_device(camera: VirtualScamp5, api: str) ->
                     timeout_ms=60_000)
         assert "frames" in page.inner_text("#live-status")
     assert errors == []
+
+
+def test_a_command_racing_the_devices_forget_is_refused_not_lost(
+    settings: Settings, client: Callable[..., httpx.Client], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A command and a DELETE of a stopped device at once, the DELETE landing after the
+    command's route found the device registered (held there: the order that lost it).
+    Before, the command was accepted (202) into a stream of a device already forgotten,
+    and a daemon coming back skipped it (its cursor went with the device): accepted and
+    lost. It is now refused, 404 like any command for an unknown device."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "idle")
+    redis_client.hset(health_key("idle"), mapping={
+        "state": "stopped", "updated_ns": str(time.time_ns()),
+    })  # fmt: skip
+    http = client(SUBMIT_KEY)
+    append = device_routes.queue_command
+    forgotten: list[httpx.Response] = []
+
+    def forget_then_append(*args: Any, **kwargs: Any) -> str:
+        forgotten.append(client(SUBMIT_KEY).delete("/v1/devices/idle"))
+        return append(*args, **kwargs)
+
+    monkeypatch.setattr(device_routes, "queue_command", forget_then_append)
+    sent = http.post("/v1/devices/idle/control", json={"command": "set_frame_rate", "fps": 20})
+    assert [reply.status_code for reply in forgotten] == [200]
+    assert sent.status_code == 404 and sent.json()["code"] == "not_found", sent.text
+    assert redis_client.exists(control_stream("idle")) == 0
