@@ -4,9 +4,12 @@ and a real worker (device frames and jobs) on the test's Redis and data dir."""
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+import redis
 
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.sim_link import PtyEndpoint
@@ -14,6 +17,7 @@ from device.simulator import CameraSettings, VirtualScamp5
 from service.core.config import Settings
 from tests.device.conftest import start_streaming
 from worker.embedded_redis import connect
+from worker.redis_keys import DEVICES_SET, health_key
 from worker.runner import Worker, WorkerConfig
 
 
@@ -40,3 +44,13 @@ def live_camera(settings: Settings, tmp_path: Path, *, fps: float, seed: int,
         daemon.stop()
         worker.request_stop()
         thread.join(15)
+
+
+def stopped_device(settings: Settings, device: str) -> redis.Redis:
+    """Register ``device`` as a daemon that has just stopped cleanly leaves it (it may be
+    forgotten at once); returns a client of the test's Redis."""
+    assert settings.redis_url is not None
+    client = connect(settings.redis_url)
+    client.sadd(DEVICES_SET, device)
+    client.hset(health_key(device), mapping={"state": "stopped", "updated_ns": str(time.time_ns())})
+    return client

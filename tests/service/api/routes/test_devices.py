@@ -23,7 +23,7 @@ from service.api.routes import devices as device_routes
 from service.core.config import Settings
 from service.main import create_app
 from tests.device.conftest import wait_for
-from tests.service.api.conftest import live_camera
+from tests.service.api.conftest import live_camera, stopped_device
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, make_settings, serve
 from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 from worker.control_queue import CONTROL_BACKLOG
@@ -234,12 +234,7 @@ def test_a_command_racing_the_devices_forget_is_refused_not_lost(
     Before, the command was accepted (202) into a stream of a device already forgotten,
     and a daemon coming back skipped it (its cursor went with the device): accepted and
     lost. It is now refused, 404 like any command for an unknown device."""
-    assert settings.redis_url is not None
-    redis_client = connect(settings.redis_url)
-    redis_client.sadd(DEVICES_SET, "idle")
-    redis_client.hset(health_key("idle"), mapping={
-        "state": "stopped", "updated_ns": str(time.time_ns()),
-    })  # fmt: skip
+    redis_client = stopped_device(settings, "idle")
     http = client(SUBMIT_KEY)
     append = device_routes.queue_command
     forgotten: list[httpx.Response] = []

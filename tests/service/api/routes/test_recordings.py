@@ -6,7 +6,6 @@ from __future__ import annotations
 import io
 import re
 import threading
-import time
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -25,7 +24,7 @@ from service.api.routes import recordings as recording_routes
 from service.core.config import Settings
 from service.main import create_app
 from tests.device.conftest import wait_for
-from tests.service.api.conftest import live_camera
+from tests.service.api.conftest import live_camera, stopped_device
 from tests.service.conftest import (
     FULL_KEY,
     PARAMS,
@@ -39,7 +38,7 @@ from tests.service.conftest import (
 from worker import recordings
 from worker.embedded_redis import connect
 from worker.frame_message import FrameMessage
-from worker.redis_keys import DEVICES_SET, health_key, recording_key
+from worker.redis_keys import DEVICES_SET, recording_key
 from worker.result_store import RESULTS_DIR, ResultStore
 
 Client = Callable[[str], httpx.Client]
@@ -228,12 +227,7 @@ def test_a_start_racing_the_devices_forget_leaves_no_recording(
     that lost it). Before, the start answered 201 for a device already forgotten, and its
     record, in state 'recording', stayed behind: it could not be stopped (404) and a
     daemon coming back weeks later recorded into it unasked."""
-    assert settings.redis_url is not None
-    redis_client = connect(settings.redis_url)
-    redis_client.sadd(DEVICES_SET, "cam1")
-    redis_client.hset(health_key("cam1"), mapping={
-        "state": "stopped", "updated_ns": str(time.time_ns()),
-    })  # fmt: skip
+    redis_client = stopped_device(settings, "cam1")
     registered, forgotten = threading.Event(), threading.Event()
     reported_frames = recordings.reported_frames
 
