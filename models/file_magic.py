@@ -12,6 +12,8 @@ import logging
 from collections.abc import Mapping
 from typing import NamedTuple
 
+from models.errors import InvalidInputError
+
 #: The eight bytes every PNG file starts with.
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: Leading bytes of TIFF files: little- and big-endian, classic and BigTIFF.
@@ -52,6 +54,19 @@ def named_format(name: str | None, aliases: Mapping[str, str]) -> str | None:
     if not name or "." not in name:
         return None
     return aliases.get(name.rsplit(".", 1)[-1].lower())
+
+
+def check_signature(data: bytes, magics: Magics, named: str, kind: str, send: str) -> None:
+    """Refuse ``data`` whose leading bytes show none of the formats of ``magics`` (a JPEG
+    or a text file named as one of them, a file cut short), which the readers called a
+    truncated or corrupt file of the format its name gave. The message says it is not
+    ``named`` (what the name promised, e.g. "a PNG image") nor any ``kind`` format read
+    here, and to send ``send`` instead."""
+    if format_by_content(data, magics) is None:
+        raise InvalidInputError(
+            f"the data is not {named} (bad or missing signature), nor any {kind} format "
+            f"read here: send {send}"
+        )
 
 
 class Judged(NamedTuple):

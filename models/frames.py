@@ -46,6 +46,7 @@ from models.file_magic import (
     FRAME_MAGICS,
     HDR_MAGICS,
     ZIP_MAGIC,
+    check_signature,
     content_first,
     format_by_content,
 )
@@ -235,7 +236,7 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
     except UnidentifiedImageError:
-        # Only data with a PNG signature comes here (:func:`_check_signature`).
+        # Only data with a PNG signature comes here (:func:`check_signature`).
         raise InvalidInputError(
             "the PNG's header is damaged (PNG signature, but no readable image header: "
             "zero or impossible size, bad chunk); send the frame as written"
@@ -306,18 +307,12 @@ _READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}
 
 #: What a file of each frame format is, in an error message.
 _FORMAT_NOUNS = {"png": "a PNG image", "tiff": "a TIFF image", "npy": "an npy file"}
-
-
-def _check_signature(data: bytes, fmt: str) -> None:
-    """Refuse ``data`` named ``fmt`` whose leading bytes are no frame format's signature
-    (a JPEG or a text file named .png, a file cut short), saying what to send instead."""
-    if format_by_content(data, FRAME_MAGICS) is None:
-        raise InvalidInputError(
-            f"the data is not {_FORMAT_NOUNS[fmt]} (bad or missing signature), nor any "
-            "frame format read here: send the frame's file itself, as written (.png, "
-            ".tiff/.tif or .npy; not converted to another format, renamed or cut short), "
-            "or, over HTTP, raw codes with format=raw, width, height, bits and encoding"
-        )
+#: What to send instead of data of no frame format.
+_SEND_A_FRAME = (
+    "the frame's file itself, as written (.png, .tiff/.tif or .npy; not converted to "
+    "another format, renamed or cut short), or, over HTTP, raw codes with format=raw, "
+    "width, height, bits and encoding"
+)
 
 
 def _missing(values: dict[str, Any]) -> dict[str, str]:
@@ -412,7 +407,7 @@ def decode_frame_codes(
     fmt, warning = content_first(data, frame_format(fmt), FRAME_MAGICS)
     if (other := not_a_frame(data)) is not None:
         raise UnsupportedFormatError(f"the file is {other}")
-    _check_signature(data, fmt)
+    check_signature(data, FRAME_MAGICS, _FORMAT_NOUNS[fmt], "frame", _SEND_A_FRAME)
     with decoding(f"the {fmt.upper()} frame"):
         codes, stored = _READERS[fmt](data, max_pixels)
     _check_layout(codes)

@@ -41,7 +41,7 @@ from models.errors import (
     McamError,
     UnsupportedFormatError,
 )
-from models.file_magic import VIDEO_MAGICS, content_first, format_by_content
+from models.file_magic import VIDEO_MAGICS, check_signature, content_first
 from models.formation import SensorParams, validate_codes
 from models.frames import (
     WrappedFrame,
@@ -333,19 +333,11 @@ def _inflate(archive: zipfile.ZipFile, entry: zipfile.ZipInfo) -> bytes:
 
 #: What a file of each video format is, in an error message.
 _FORMAT_NOUNS = {"tiff": "a TIFF video", "npy": "an npy file", "zip": "a zip of PNG frames"}
-
-
-def _check_signature(data: bytes, fmt: str) -> None:
-    """Refuse ``data`` named ``fmt`` whose leading bytes are no video format's signature
-    (a JPEG or an MP4 named .tiff, a text file), saying what to send instead: such data
-    was called a truncated or corrupt file of the format its name gave."""
-    if format_by_content(data, VIDEO_MAGICS) is None:
-        raise InvalidInputError(
-            f"the data is not {_FORMAT_NOUNS[fmt]} (bad or missing signature), nor any "
-            "video format read here: send the wrapped video's file itself, as written (a "
-            "multi-page .tiff/.tif, a T x H x W[x3] .npy or a .zip of PNG frames; not "
-            "converted to another format, renamed or cut short)"
-        )
+#: What to send instead of data of no video format.
+_SEND_A_VIDEO = (
+    "the wrapped video's file itself, as written (a multi-page .tiff/.tif, a T x H x W[x3] "
+    ".npy or a .zip of PNG frames; not converted to another format, renamed or cut short)"
+)
 
 
 def decode_video(
@@ -361,7 +353,7 @@ def decode_video(
     decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
     here, before a job is queued."""
     fmt, warning = content_first(data, video_format(fmt), VIDEO_MAGICS)
-    _check_signature(data, fmt)
+    check_signature(data, VIDEO_MAGICS, _FORMAT_NOUNS[fmt], "video", _SEND_A_VIDEO)
     limits = limits or VideoLimits()
     if fmt == "zip":
         with decoding("the ZIP video"):
