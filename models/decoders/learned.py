@@ -421,11 +421,7 @@ class LearnedDecoder(Decoder):
         naming the model file when its card is installed without it."""
         if params.encoding not in self.models:
             missing = missing_model_files(self.name, params.encoding)
-            cause = (
-                f": its model card is installed but its model file "
-                f"{', '.join(map(str, missing))} is missing; {RESTORE_ADVICE}"
-                if missing else ""
-            )  # fmt: skip
+            cause = f": {files_missing(missing)}" if missing else ""
             raise InvalidInputError(
                 f"decoder {self.name!r} has no model for the {params.encoding!r} encoding"
                 f"{cause}; it supports: {', '.join(sorted(self.models))}"
@@ -502,16 +498,22 @@ def missing_model_files(name: str, encoding: str | None = None) -> list[Path]:
             if card["decoder"] == name and encoding in (None, card["encoding"])]  # fmt: skip
 
 
+def files_missing(missing: list[Path]) -> str:
+    """What is wrong, and what to do, when model cards are installed without their
+    ``missing`` ONNX files."""
+    return (
+        f"its model card is installed but its model file {', '.join(map(str, missing))} "
+        f"is missing; {RESTORE_ADVICE}"
+    )
+
+
 def resolve(name: str) -> DecoderSpec | None:
     """None: the learned decoders are all listed (:func:`specs`). But a decoder whose
     model cards are installed without their ONNX files (so it is not listed) is an
     InvalidInputError naming the missing files and what to do, not an unknown decoder."""
     missing = missing_model_files(name)
     if missing:
-        raise InvalidInputError(
-            f"decoder {name!r} is not available: its model card is installed but its model "
-            f"file {', '.join(map(str, missing))} is missing; {RESTORE_ADVICE}"
-        )
+        raise InvalidInputError(f"decoder {name!r} is not available: {files_missing(missing)}")
     return None
 
 
