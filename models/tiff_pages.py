@@ -168,9 +168,9 @@ def _sample_bytes(page: tifffile.TiffPage) -> int:
     return max(1, -(-int(page.bitspersample) // 8))
 
 
-def _segment_samples(page: tifffile.TiffPage) -> tuple[str, int, int]:
-    """``page``'s segments: their kind ("tile" or "strip"), width and rows, and how many
-    samples one holds (a strip's rows cut to the page's)."""
+def _segment_samples(page: tifffile.TiffPage) -> tuple[str, str, int]:
+    """``page``'s segments: their kind ("tile" or "strip"), their size as text ("width x
+    rows"), and how many samples one holds (a strip's rows cut to the page's)."""
     planes = 1 if _separate(page) else int(page.samplesperpixel)
     if page.is_tiled:
         width, rows = int(page.tilewidth), int(page.tilelength) * max(1, int(page.tiledepth))

@@ -78,10 +78,10 @@ def readiness(state: ServiceState) -> Readiness:
     workers = 0
     full = None
     try:
-        state.client.ping()
+        memory = state.client.info("memory")  # answered: Redis is reachable
         reachable = True
         workers = len(state.queue.workers(HEARTBEAT_PERIODS * state.settings.heartbeat_s))
-        full = full_problem(state.client.info("memory"))
+        full = full_problem(memory)
     except redis.exceptions.RedisError as exc:
         reachable = False
         log.warning("readiness: Redis unreachable: %s", exc)
