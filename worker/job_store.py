@@ -71,6 +71,12 @@ def record_fields(record: JobRecord) -> dict[str, str]:
     return encode_fields(record.model_dump(mode="json"))
 
 
+def field_pairs(fields: dict[str, Any]) -> list[str]:
+    """Record ``fields`` as a script's ARGV: name, JSON value, name, JSON value, ..."""
+    values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
+    return [item for pair in encode_fields(values).items() for item in pair]
+
+
 class JobStore:
     """Reads and updates job records."""
 
@@ -99,8 +105,7 @@ class JobStore:
         broke every later read of the job (its other fields missing), for ever."""
         if "state" in fields:
             raise ValueError("change the state with transition()")
-        values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
-        pairs = [item for pair in encode_fields(values).items() for item in pair]
+        pairs = field_pairs(fields)
         return bool(self._update(keys=[job_key(job_id)], args=pairs))
 
     def transition(
@@ -118,8 +123,7 @@ class JobStore:
         exist). Finished states are counted in ``jobs_processed_total`` (in the same
         step) and notify waiters."""
         allowed = [json.dumps(state.value) for state in allowed_from]
-        values = JobRecord.model_construct(**fields).model_dump(mode="json", include=set(fields))
-        pairs = [item for pair in encode_fields(values).items() for item in pair]
+        pairs = field_pairs(fields)
         ttl = max(int(expire_s), 1) if expire_s is not None else 0
         counted = [counter_key("jobs_processed_total")] if to.finished else []
         changed, previous = self._transition(
