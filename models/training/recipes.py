@@ -207,6 +207,13 @@ def large_chain(encoding: str) -> tuple[TrainConfig, TrainConfig]:
 #: tiny-s2d tiers use ce.
 TINY_MANTISSA_LOSS = "ce-risk"
 
+#: The three first runs of the ``large-prior`` lanes (:data:`TIMED_LANES`).
+_LARGE_PRIOR = (
+    timed_run("large", "mantissa", label="same"),
+    timed_run("large", "mantissa", crop=TIMED_LARGE_CROP, batch=4, label="context"),
+    timed_run("large", "mantissa", loss="ce-risk"),
+)
+
 #: Sets of lanes trained at once on a lent GPU (``python -m models.training.timed
 #: --lanes NAME``), each lane a chain of runs from scratch. ``first`` (2026-11-26, an
 #: H200): the base tier (then its noise-aware fine-tune, a fifth as long again) and the
@@ -219,8 +226,14 @@ TINY_MANTISSA_LOSS = "ce-risk"
 #: tiny-s2d nets continued end to end from a shipped recipe's run (its checkpoint copied
 #: into the runs folder first; see :data:`TINY_S2D_MORE_STAGES`). ``large`` then
 #: ``large-more`` (2026-11-27, an H100): the large tier per encoding, from scratch, then
-#: continued end to end (see :data:`LARGE_STAGES`). The device, precision and step counts
-#: of the runs that shipped are in their cards.
+#: continued end to end (see :data:`LARGE_STAGES`). ``large-prior`` (2026-11-28, an
+#: H200): why the nets leave val-256's bright W >= 3 regions at W = 0, three large
+#: mantissa lanes from scratch at once: as ``large`` (``same``), on 256-px crops in every
+#: stage (``context``: a batch of 4, the same pixels a step; stage 4 a batch of 1), and
+#: with the ``ce-risk`` loss; ``large-prior-more`` continues each end to end. val-256
+#: alone after both: 23.15 / 21.78 / 23.48 dB, 91.31 / 89.07 / 91.16% W against the
+#: shipped net's 23.37 dB, 91.71%: none shipped (``docs/experiments.md``, session 40).
+#: The device, precision and step counts of the runs that shipped are in their cards.
 TIMED_LANES: dict[str, tuple[tuple[TrainConfig, ...], ...]] = {
     "first": (
         (
@@ -255,6 +268,16 @@ TIMED_LANES: dict[str, tuple[tuple[TrainConfig, ...], ...]] = {
             ),
         )
         for encoding in ("mantissa", "modulo")
+    ),
+    "large-prior": tuple((config,) for config in _LARGE_PRIOR),
+    "large-prior-more": tuple(
+        (
+            replace(
+                config, stage_steps=(0, 0, 2, 1), init_from=config.name,
+                label=f"{config.label}-more" if config.label else "more",
+            ),  # fmt: skip
+        )
+        for config in _LARGE_PRIOR
     ),
     "tiny-s2d-more": (
         (
