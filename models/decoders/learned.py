@@ -132,11 +132,14 @@ def read_card(path: Path) -> dict[str, Any]:
 
 def card_problems(card: dict[str, Any]) -> list[str]:
     """What makes a card with :data:`CARD_FIELDS` unusable: an encoding, family or output
-    the runtime does not run, an UnModNet card without ``max_passes``, or a count out of
-    range (:data:`CARD_COUNTS`)."""
+    the runtime does not run, a file not named for the card's encoding
+    (:func:`encoding_problem`), an UnModNet card without ``max_passes``, or a count out
+    of range (:data:`CARD_COUNTS`)."""
     problems = []
     if card["encoding"] not in LEARNED_ENCODINGS:
         problems.append(f"encoding {card['encoding']!r} is not one of {LEARNED_ENCODINGS}")
+    elif problem := encoding_problem(card):
+        problems.append(problem)
     if card["family"] not in GRAPH_INPUTS:
         problems.append(f"family {card['family']!r} is not one of {tuple(GRAPH_INPUTS)}")
     if card.get("output", "winding") not in GRAPH_OUTPUT_TYPES:
@@ -148,6 +151,24 @@ def card_problems(card: dict[str, Any]) -> list[str]:
         if type(value) is not int or value < least:
             problems.append(f"{name} must be a whole number >= {least}, got {value!r}")
     return problems
+
+
+def encoding_problem(card: dict[str, Any]) -> str | None:
+    """Why the card's ``encoding`` is not that of its ``file``, or None. An export names
+    a model's file ``<name>-<encoding>.onnx`` after the encoding it was trained on
+    (:attr:`models.training.config.TrainConfig.name`, also for int8 models), and the
+    sha256 only ties the file to the card: a card whose encoding was edited, or pointed
+    at the file of another encoding with that file's sha256, was served as the card's
+    encoding without an error. (Decoding cannot tell them apart: on val-256, 2026-11-28,
+    the shipped small and tiny-s2d mantissa and modulo nets scored within half a point of
+    winding accuracy of each other on either encoding's frames.)"""
+    if Path(str(card["file"])).stem.endswith(f"-{card['encoding']}"):
+        return None
+    return (
+        f"its encoding is {card['encoding']!r} but its file {card['file']!r} is not named "
+        f"<name>-{card['encoding']}.onnx, as the export of a model trained on "
+        f"{card['encoding']} frames is: the card's encoding or file was changed"
+    )
 
 
 def read_cards(

@@ -322,14 +322,17 @@ def test_a_card_of_another_family_than_its_file_is_refused() -> None:
      ({"family": "unmodnet"}, "an unmodnet card needs max_passes"),
      ({"encoding": "clip"}, "encoding 'clip' is not one of"),
      ({"family": "resnet"}, "family 'resnet' is not one of"),
-     ({"output": "mask"}, "output 'mask' is not one of")],
+     ({"output": "mask"}, "output 'mask' is not one of"),
+     ({"encoding": "mantissa"}, "encoding is 'mantissa' but its file 'mantissanet-tiny-modulo"),
+     ({"file": "mantissanet-tiny-s2d-mantissa.onnx"}, "is not named <name>-modulo.onnx")],
 )
 def test_a_card_with_values_the_runtime_cannot_use_is_refused_naming_them(
     tmp_path: Path, change: dict[str, object], reason: str
 ) -> None:
     """Each was read, then failed at the first decode (ZeroDivisionError, int() of text,
     KeyError 'max_passes') or, with a tile of the overlap or less, decoded only the last
-    tile of a large frame, the rest W = 0."""
+    tile of a large frame, the rest W = 0; a card whose encoding was edited, or that
+    names the file of another encoding, served that file for its encoding unnoticed."""
     card = {**shipped_card("mantissanet-tiny-modulo"), **change}
     path = tmp_path / "card.json"
     path.write_text(json.dumps(card))
