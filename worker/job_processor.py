@@ -40,6 +40,7 @@ import redis
 from numpy.typing import NDArray
 
 from models.allocator import keep_freed_memory
+from models.decoders.learned import ModelFileError
 from models.decoders.registry import get_decoder
 from models.errors import McamError
 from models.formation import SensorParams, narrow_winding
@@ -226,6 +227,20 @@ def error_of(exc: BaseException, logged_with: str = "this job's id") -> JobError
     )
 
 
+def model_unavailable(record: JobRecord) -> JobError:
+    """The error a client sees for a job whose decoder's model file is not the one its
+    card describes (:class:`models.decoders.learned.ModelFileError`): the server's
+    install, not the request, is at fault, and no retry mends it until an operator
+    restores the file (its name is in the worker's log and the dead letter, not here)."""
+    return JobError(
+        code="model_unavailable",
+        message=f"decoder {record.decoder!r} cannot decode {record.params.encoding} frames "
+        "on this server: its model file is missing or not the one its card describes "
+        "(logged with this job's id for the operator to restore); choose another decoder, "
+        "or submit again once it is restored",
+    )
+
+
 def dead_letter_of(exc: BaseException) -> JobError:
     """The error an operator reads in the dead letters for an exception: the client's
     (:func:`error_of`), but an internal error's message is the exception's type and text."""
@@ -314,6 +329,9 @@ class JobProcessor:
                 if isinstance(exc, McamError) and not isinstance(exc, ChildDiedError):
                     self._fail(consumer, delivery, record, error_of(exc), caller_error=True)
                     return
+                if isinstance(exc, ModelFileError):
+                    self._fail_install(consumer, delivery, record, exc)
+                    return
                 if not isinstance(exc, McamError):
                     log.exception("job %s failed (delivery %d)", record.id, delivery.deliveries)
                 if delivery.deliveries >= self.max_deliveries:
@@ -324,6 +342,17 @@ class JobProcessor:
                 time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))
                 consumer.retry(delivery)
                 record = self.jobs.load(record.id)
+
+    def _fail_install(
+        self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord,
+        exc: ModelFileError,
+    ) -> None:
+        """The job's decoder met a model file that is not its card's: the same on every
+        try until an operator restores it, so the job fails now (:func:`model_unavailable`)
+        and its dead letter names the file and what to do."""
+        log.error("job %s: the server's model install is broken: %s", record.id, exc)
+        letter = JobError(code="model_unavailable", message=str(exc))
+        self._fail(consumer, delivery, record, model_unavailable(record), dead_letter=letter)
 
     def _hand_back(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
         """The worker is stopping: the job goes back to the queue, to be redone from its

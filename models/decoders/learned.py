@@ -207,8 +207,9 @@ class ModelFileError(OSError):
     """A model's ONNX file is missing, or not the file its card describes (cut short,
     corrupt, replaced, a Git LFS pointer, or a graph of another family). A fault of the
     installation, not of the caller (so not a :class:`McamError`): the CLI prints it as
-    one line, as any file it cannot use, and a job that meets it is retried and then
-    dead-lettered, to be run again once the file is restored."""
+    one line, as any file it cannot use, and a job that meets it fails at once as
+    ``model_unavailable`` (no retry mends a file), dead-lettered with this error's text
+    for the operator (:mod:`worker.job_processor`)."""
 
 
 #: What to do about a model file that is not its card's.

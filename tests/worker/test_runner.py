@@ -20,6 +20,8 @@ import OpenEXR
 import pytest
 import redis
 
+from models.decoders import learned
+from models.decoders.registry import get_decoder
 from models.errors import McamError
 from models.formation import SensorFrame, SensorParams
 from tests.worker.conftest import OVERFLOW, overflowing_codes, result_files
@@ -593,6 +595,34 @@ def test_a_finished_job_delivered_past_the_limit_is_dropped_not_dead_lettered(
     assert client.xlen(DEAD_LETTER_STREAM) == 0 and client.xlen(JOBS_STREAM) == 0
     record = queue.get(job.id)
     assert record.state is JobState.SUCCEEDED and record.error is None
+
+
+def test_a_job_meeting_a_broken_model_install_fails_at_once_for_the_operator(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A model file that is not its card's (cut short, replaced: here its sha256 differs)
+    raised ModelFileError, an OSError: the job was retried to its last delivery, though
+    no retry mends a file, then failed as ``internal_error`` ("retry later"), which told
+    its client nothing. It now fails at its first delivery as ``model_unavailable``,
+    naming the decoder but no server path, and the dead letter keeps the file's name and
+    what to do for the operator."""
+    decoder = get_decoder("mantissanet-tiny")
+    monkeypatch.setattr(decoder.models["modulo"], "_session", None)
+    monkeypatch.setattr(learned, "sha256_of", lambda path: "0" * 64)
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "mantissanet-tiny")
+    handled_here(client, data_dir)
+    record = queue.get(job.id)
+    assert record.state is JobState.FAILED and record.attempts == 1
+    assert record.error is not None and record.error.code == "model_unavailable"
+    assert "'mantissanet-tiny'" in record.error.message
+    assert str(learned.ONNX_DIR) not in record.error.message
+    [(_id, letter)] = client.xrange(DEAD_LETTER_STREAM)
+    assert letter[b"code"] == b"model_unavailable" and letter[b"deliveries"] == b"1"
+    assert b"mantissanet-tiny-modulo.onnx" in letter[b"message"]
+    assert b"restore it" in letter[b"message"]
+    assert client.xlen(JOBS_STREAM) == 0 and queue.stats()["held_bytes"] == 0
 
 
 def test_a_job_from_an_api_whose_clock_is_ahead_shows_no_negative_time(
