@@ -625,6 +625,21 @@ def test_a_job_meeting_a_broken_model_install_fails_at_once_for_the_operator(
     assert client.xlen(JOBS_STREAM) == 0 and queue.stats()["held_bytes"] == 0
 
 
+def test_a_job_child_whose_warm_up_meets_a_broken_model_still_serves(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """With ``mcam worker --decoder mantissanet-tiny --no-devices`` and that decoder's
+    model file not its card's, each job child's warm-up raised ModelFileError, so the
+    child died at start: every job, whatever decoder it named (itoh), failed after its
+    retries as "decoder_crashed: the decoding process died ... try a smaller frame".
+    The warm-up (an optimisation) now logs the file and lets the child serve."""
+    decoder = get_decoder("mantissanet-tiny")
+    monkeypatch.setattr(decoder.models["modulo"], "_session", None)
+    monkeypatch.setattr(learned, "sha256_of", lambda path: "0" * 64)
+    start_job_child("mantissanet-tiny")
+    assert "mantissanet-tiny-modulo.onnx is not the one its card describes" in caplog.text
+
+
 def test_a_job_from_an_api_whose_clock_is_ahead_shows_no_negative_time(
     client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
 ) -> None:
