@@ -8,8 +8,12 @@ per frame).
   While any thread is in it, tifffile's logger has its own level (WARNING), so a
   global level (CRITICAL) cannot hide the warning, and does not propagate: the
   warning is raised, not logged.
-- Compressions tifffile cannot decode without the optional ``imagecodecs`` package
-  (LZW, JPEG, ...) are refused by name (:func:`page_codes`), not reported as damage.
+- Only the compressions of :data:`ACCEPTED_COMPRESSIONS` are read: those tifffile
+  decodes itself, without the optional ``imagecodecs`` package (which, installed,
+  would bring decoders of its own that nothing here bounds). Any other (LZW, JPEG,
+  Zstandard, ..., a code of no known compression) is refused by name
+  (:func:`page_codes`), not reported as damage: tifffile claims Zstandard on Python
+  before 3.14 and fails only when a strip is decoded ("No module named 'compression'").
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
@@ -211,16 +215,38 @@ def check_inflation(page: tifffile.TiffPage) -> None:
             )
 
 
+#: The compressions :func:`page_codes` reads, by TIFF code, with their names in messages.
+ACCEPTED_COMPRESSIONS: dict[int, str] = {
+    1: "none",
+    8: "deflate (zlib)",
+    32946: "deflate (zlib)",
+    32773: "PackBits",
+    34925: "LZMA",
+}
+
+
+def check_compression(code: int) -> None:
+    """Refuse (:class:`UnsupportedFormatError`) a TIFF compression ``code`` not in
+    :data:`ACCEPTED_COMPRESSIONS`, naming it and those accepted."""
+    if code in ACCEPTED_COMPRESSIONS:
+        return
+    try:
+        name = f"{tifffile.COMPRESSION(code).name} ({code})"
+    except ValueError:
+        name = f"of unknown code {code}"
+    accepted = ", ".join(dict.fromkeys(ACCEPTED_COMPRESSIONS.values()))
+    raise UnsupportedFormatError(
+        f"unsupported TIFF compression {name}; the compressions accepted are {accepted}: "
+        "save the TIFF with one of them (deflate is the usual choice)"
+    )
+
+
 def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last).
 
-    Raises :class:`UnsupportedFormatError` for a compression this install cannot decode."""
-    compression = tifffile.COMPRESSION(page.compression)
-    if compression not in tifffile.TIFF.DECOMPRESSORS:
-        raise UnsupportedFormatError(
-            f"unsupported TIFF compression {compression.name}; save the TIFF uncompressed "
-            "or with deflate (zlib) compression"
-        )
+    Raises :class:`UnsupportedFormatError` for a compression not accepted
+    (:func:`check_compression`)."""
+    check_compression(int(page.compression))
     check_inflation(page)
     codes = page.asarray()
     return np.moveaxis(codes, 0, -1) if _separate(page) else codes

@@ -387,6 +387,19 @@ def test_a_truncated_tiff_video_is_refused_not_cut_short() -> None:
         decode_video(data[: len(data) // 2], "tiff")
 
 
+def test_a_zstandard_tiff_video_is_refused_as_unsupported_not_corrupt() -> None:
+    """Its pages were 'truncated or corrupt (No module named 'compression')' on Python
+    3.11."""
+    data = bytearray(tiff_bytes(codes(frames=3)))
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        entries = [page.tags["Compression"].offset for page in tif.pages]
+    assert len(entries) == 3
+    for entry in entries:
+        struct.pack_into("<HHIH", data, entry, 259, 3, 1, 50000)
+    with pytest.raises(UnsupportedFormatError, match=r"ZSTD \(50000\).*deflate"):
+        decode_video(bytes(data), "tiff")
+
+
 def test_a_separate_plane_tiff_video_is_read_samples_last() -> None:
     video = codes(frames=3, channels=3)
     buffer = io.BytesIO()

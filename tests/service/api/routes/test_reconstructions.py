@@ -15,6 +15,7 @@ import httpx
 import numpy as np
 import OpenEXR
 import pytest
+from PIL import Image
 
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
@@ -385,6 +386,19 @@ def test_an_hdr_image_named_as_a_frame_is_pointed_to_simulate(client: Client) ->
     assert reply.status_code == 415, reply.text
     assert "an OpenEXR image" in reply.json()["message"]
     assert "POST /v1/simulate" in reply.json()["message"]
+
+
+def test_a_zstandard_tiff_frame_is_415_naming_the_compressions_accepted(client: Client) -> None:
+    """A Zstandard TIFF (Pillow writes one) was a 422 'truncated or corrupt (No module
+    named 'compression')' on Python 3.11."""
+    buffer = io.BytesIO()
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(buffer, "TIFF", compression="zstd")
+    reply = client().post("/v1/reconstructions", files={"file": ("f.tiff", buffer.getvalue())},
+                          data={"encoding": "modulo", "bits": "8"})  # fmt: skip
+    assert reply.status_code == 415, reply.text
+    assert reply.json()["code"] == "unsupported_format"
+    assert "compression ZSTD (50000)" in reply.json()["message"]
+    assert "accepted are none, deflate (zlib), PackBits, LZMA" in reply.json()["message"]
 
 
 def test_too_many_pixels_is_413_before_decoding(client: Client) -> None:
