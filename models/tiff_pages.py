@@ -25,6 +25,7 @@ per frame).
 
 from __future__ import annotations
 
+import functools
 import io
 import itertools
 import logging
@@ -154,12 +155,18 @@ def page_shape(page: tifffile.TiffPage) -> tuple[int, ...]:
     return (*shape[1:], shape[0]) if _separate(page) else shape
 
 
+#: The most memory (bytes) an LZMA strip or tile may ask its decoder for: its header
+#: names a dictionary, allocated whole before any output (up to 4 GiB from a
+#: 345-byte upload). xz -9 (the largest preset) needs 65 MiB, the default -6 9 MiB.
+LZMA_MEMORY_LIMIT = 1 << 27
+#: What CPython's lzma raises (as :class:`lzma.LZMAError`) past its ``memlimit``.
+_LZMA_MEMORY_EXCEEDED = "Memory usage limit exceeded"
 #: Streaming decompressors of the compressions tifffile inflates without bound (each
 #: segment whole, past its size), by TIFF code: deflate (8, and its old code) and LZMA.
 _STREAMED: dict[int, Callable[[], Any]] = {
     8: zlib.decompressobj,
     32946: zlib.decompressobj,
-    34925: lzma.LZMADecompressor,
+    34925: functools.partial(lzma.LZMADecompressor, memlimit=LZMA_MEMORY_LIMIT),
 }
 #: How many times a page's own bytes its strips or tiles may hold in all (padding), and
 #: a floor (bytes) for small pages: a 16 x 16 page may come in one 256 x 256 tile.
@@ -181,6 +188,16 @@ def _segment_samples(page: tifffile.TiffPage) -> tuple[str, str, int]:
         return "tile", f"{width} x {rows}", width * rows * planes
     rows = min(int(page.rowsperstrip), int(page.imagelength))
     return "strip", f"{int(page.imagewidth)} x {rows}", int(page.imagewidth) * rows * planes
+
+
+def _lzma_memory_error(kind: str, index: int) -> ImageTooLargeError:
+    """The refusal of LZMA segment ``index`` whose decoder needs more than
+    :data:`LZMA_MEMORY_LIMIT`."""
+    return ImageTooLargeError(
+        f"{kind} {index} of the TIFF page is LZMA-compressed with a dictionary needing more "
+        f"than {LZMA_MEMORY_LIMIT >> 20} MiB to decode; re-save it with deflate, or with "
+        "LZMA at one of its presets (0 to 9: the largest needs 65 MiB)"
+    )
 
 
 def check_inflation(page: tifffile.TiffPage) -> None:
@@ -205,7 +222,11 @@ def check_inflation(page: tifffile.TiffPage) -> None:
     for data, index in segments:
         try:
             inflated = len(streamed().decompress(data or b"", most + 1))
-        except (zlib.error, lzma.LZMAError):
+        except lzma.LZMAError as exc:
+            if str(exc) == _LZMA_MEMORY_EXCEEDED:
+                raise _lzma_memory_error(kind, index) from None
+            continue
+        except zlib.error:
             continue
         if inflated > most:
             raise ImageTooLargeError(

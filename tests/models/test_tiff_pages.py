@@ -229,6 +229,19 @@ def with_one_segment(data: bytes, payload: bytes) -> bytes:
     return bytes(patched) + payload
 
 
+def refused_holding_little(data: bytes, refused: str) -> None:
+    """Reading the one page of TIFF ``data`` is refused (:class:`ImageTooLargeError`
+    matching ``refused``) while under 16 MiB is held."""
+    tracemalloc.start()
+    try:
+        with open_tiff(data) as (tif, _), pytest.raises(ImageTooLargeError, match=refused):
+            page_codes(tif.pages.first)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MiB held refusing a {len(data)} B TIFF"
+
+
 @pytest.mark.parametrize(
     "inflate", [lambda raw: zlib.compress(raw, 9), lzma.compress], ids=["deflate", "lzma"]
 )
@@ -242,15 +255,27 @@ def test_a_strip_inflating_past_its_rows_is_refused_before_it_is_inflated(
     options = {"compression": "zlib" if inflate is not lzma.compress else "lzma"}
     data = with_one_segment(tiff(np.zeros((64, 64), np.uint8), **options),
                             inflate(bytes(64 * 2**20)))
-    tracemalloc.start()
-    try:
-        with open_tiff(data) as (tif, _), pytest.raises(ImageTooLargeError,
-                                                        match="strip 0 of the TIFF page"):
-            page_codes(tif.pages.first)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
-    assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MiB held refusing a {len(data)} B TIFF"
+    refused_holding_little(data, "strip 0 of the TIFF page inflates past")
+
+
+def test_an_lzma_strip_asking_for_a_huge_dictionary_is_refused_before_it_is_allocated() -> None:
+    """An LZMA strip's header names its dictionary, allocated whole before any output:
+    a 345-byte frame naming 4 GiB made the API allocate 4 GiB (or, under a memory
+    limit, was 'truncated or corrupt (MemoryError)')."""
+    stream = bytearray(lzma.compress(bytes(64 * 64), format=lzma.FORMAT_ALONE))
+    struct.pack_into("<I", stream, 1, 2**32 - 1)  # the dictionary size, after the properties
+    data = with_one_segment(tiff(np.zeros((64, 64), np.uint8), compression="lzma"), bytes(stream))
+    refused_holding_little(
+        data, "strip 0 of the TIFF page is LZMA-compressed with a dictionary needing more"
+    )
+
+
+def test_an_lzma_strip_of_the_largest_preset_is_read() -> None:
+    codes = np.arange(64 * 64, dtype=np.uint8).reshape(64, 64)
+    stream = lzma.compress(codes.tobytes(), preset=9 | lzma.PRESET_EXTREME)
+    data = with_one_segment(tiff(np.zeros((64, 64), np.uint8), compression="lzma"), stream)
+    with open_tiff(data) as (tif, _):
+        np.testing.assert_array_equal(page_codes(tif.pages.first), codes)
 
 
 def test_tiles_far_larger_than_their_page_are_refused() -> None:
