@@ -20,12 +20,13 @@ per frame).
   :func:`open_tiff` before any is decoded.
 - tifffile inflates a deflate or LZMA strip or tile whole before it cuts out the rows
   the page needs: :func:`page_codes` refuses a segment that inflates past what it holds,
-  inflating it only that far, and tiles far larger than their page, before decoding.
+  inflating it only that far (LZMA: all its streams together, as tifffile reads them),
+  an LZMA one whose decoder asks for more than :data:`LZMA_MEMORY_LIMIT`, and tiles
+  far larger than their page, before decoding.
 """
 
 from __future__ import annotations
 
-import functools
 import io
 import itertools
 import logging
@@ -161,13 +162,6 @@ def page_shape(page: tifffile.TiffPage) -> tuple[int, ...]:
 LZMA_MEMORY_LIMIT = 1 << 27
 #: What CPython's lzma raises (as :class:`lzma.LZMAError`) past its ``memlimit``.
 _LZMA_MEMORY_EXCEEDED = "Memory usage limit exceeded"
-#: Streaming decompressors of the compressions tifffile inflates without bound (each
-#: segment whole, past its size), by TIFF code: deflate (8, and its old code) and LZMA.
-_STREAMED: dict[int, Callable[[], Any]] = {
-    8: zlib.decompressobj,
-    32946: zlib.decompressobj,
-    34925: functools.partial(lzma.LZMADecompressor, memlimit=LZMA_MEMORY_LIMIT),
-}
 #: How many times a page's own bytes its strips or tiles may hold in all (padding), and
 #: a floor (bytes) for small pages: a 16 x 16 page may come in one 256 x 256 tile.
 SEGMENT_SLACK = 4
@@ -190,14 +184,57 @@ def _segment_samples(page: tifffile.TiffPage) -> tuple[str, str, int]:
     return "strip", f"{int(page.imagewidth)} x {rows}", int(page.imagewidth) * rows * planes
 
 
-def _lzma_memory_error(kind: str, index: int) -> ImageTooLargeError:
-    """The refusal of LZMA segment ``index`` whose decoder needs more than
-    :data:`LZMA_MEMORY_LIMIT`."""
+def _deflated(data: bytes, most: int, where: str) -> int | None:
+    """Bytes the deflate stream of ``data`` inflates to, counted to ``most + 1`` at most
+    (tifffile's ``zlib.decompress`` reads one stream); None if it does not inflate.
+    ``where`` is unused: a deflate segment has no refusal of its own."""
+    try:
+        return len(zlib.decompressobj().decompress(data, most + 1))
+    except zlib.error:
+        return None
+
+
+def _lzma_inflated(data: bytes, most: int, where: str) -> int | None:
+    """Bytes the LZMA streams of ``data`` inflate to, counted to ``most + 1`` at most,
+    read as tifffile's ``lzma.decompress`` reads them: stream after stream (two streams
+    of 4 KiB and 256 MiB, 40 KB in all, were checked as 4 KiB, then inflated whole),
+    up to data that is not one. None if the first does not inflate.
+    :class:`ImageTooLargeError` naming ``where`` ("strip 3") if a stream's decoder needs
+    more than :data:`LZMA_MEMORY_LIMIT`."""
+    inflated = 0
+    first = True
+    while data and inflated <= most:
+        stream = lzma.LZMADecompressor(memlimit=LZMA_MEMORY_LIMIT)
+        try:
+            inflated += len(stream.decompress(data, most + 1 - inflated))
+        except lzma.LZMAError as exc:
+            if str(exc) == _LZMA_MEMORY_EXCEEDED:
+                raise _lzma_memory_error(where) from None
+            return None if first else inflated
+        if not stream.eof:
+            break
+        data, first = stream.unused_data, False
+    return inflated
+
+
+def _lzma_memory_error(where: str) -> ImageTooLargeError:
+    """The refusal of the LZMA segment ``where`` ("strip 3") whose decoder needs more
+    than :data:`LZMA_MEMORY_LIMIT`."""
     return ImageTooLargeError(
-        f"{kind} {index} of the TIFF page is LZMA-compressed with a dictionary needing more "
+        f"{where} of the TIFF page is LZMA-compressed with a dictionary needing more "
         f"than {LZMA_MEMORY_LIMIT >> 20} MiB to decode; re-save it with deflate, or with "
         "LZMA at one of its presets (0 to 9: the largest needs 65 MiB)"
     )
+
+
+#: How far a segment inflates (:func:`_deflated`, :func:`_lzma_inflated`), by TIFF code,
+#: for the compressions tifffile inflates without bound (each segment whole, past its
+#: size): deflate (8, and its old code) and LZMA.
+_STREAMED: dict[int, Callable[[bytes, int, str], int | None]] = {
+    8: _deflated,
+    32946: _deflated,
+    34925: _lzma_inflated,
+}
 
 
 def check_inflation(page: tifffile.TiffPage) -> None:
@@ -215,20 +252,13 @@ def check_inflation(page: tifffile.TiffPage) -> None:
             f"{kind}s of {size} samples ({most} bytes each), far more than it holds; re-save "
             f"it with {kind}s no larger than the image"
         )
-    streamed = _STREAMED.get(int(page.compression))
-    if streamed is None:
+    inflated_size = _STREAMED.get(int(page.compression))
+    if inflated_size is None:
         return
     segments = page.parent.filehandle.read_segments(page.dataoffsets, page.databytecounts)
     for data, index in segments:
-        try:
-            inflated = len(streamed().decompress(data or b"", most + 1))
-        except lzma.LZMAError as exc:
-            if str(exc) == _LZMA_MEMORY_EXCEEDED:
-                raise _lzma_memory_error(kind, index) from None
-            continue
-        except zlib.error:
-            continue
-        if inflated > most:
+        inflated = inflated_size(data or b"", most, f"{kind} {index}")
+        if inflated is not None and inflated > most:
             raise ImageTooLargeError(
                 f"{kind} {index} of the TIFF page inflates past the {most} bytes a {kind} "
                 f"of {size} samples holds; send the frame as written, without data after "

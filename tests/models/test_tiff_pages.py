@@ -270,6 +270,19 @@ def test_an_lzma_strip_asking_for_a_huge_dictionary_is_refused_before_it_is_allo
     )
 
 
+def test_an_lzma_strip_of_several_streams_is_bounded_in_all() -> None:
+    """tifffile's ``lzma.decompress`` reads stream after stream: a strip of a 4 KiB
+    stream then a 256 MiB one (40 KB) was checked as 4 KiB, then inflated whole (565 MiB
+    held). Streams that hold the page between them are read, data after them ignored."""
+    codes = np.arange(64 * 64, dtype=np.uint8).reshape(64, 64)
+    halves = lzma.compress(codes[:32].tobytes()) + lzma.compress(codes[32:].tobytes())
+    blank = tiff(np.zeros((64, 64), np.uint8), compression="lzma")
+    with open_tiff(with_one_segment(blank, halves + b"not a stream")) as (tif, _):
+        np.testing.assert_array_equal(page_codes(tif.pages.first), codes)
+    more = lzma.compress(codes.tobytes()) + lzma.compress(bytes(32 * 2**20))
+    refused_holding_little(with_one_segment(blank, more), "strip 0 of the TIFF page inflates")
+
+
 def test_an_lzma_strip_of_the_largest_preset_is_read() -> None:
     codes = np.arange(64 * 64, dtype=np.uint8).reshape(64, 64)
     stream = lzma.compress(codes.tobytes(), preset=9 | lzma.PRESET_EXTREME)
