@@ -18,11 +18,11 @@ per frame).
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
   :func:`open_tiff` before any is decoded.
-- tifffile inflates a deflate or LZMA strip or tile whole before it cuts out the rows
-  the page needs: :func:`page_codes` refuses a segment that inflates past what it holds,
-  inflating it only that far (LZMA: all its streams together, as tifffile reads them),
-  an LZMA one whose decoder asks for more than :data:`LZMA_MEMORY_LIMIT`, and tiles
-  far larger than their page, before decoding.
+- tifffile inflates a deflate, LZMA or PackBits strip or tile whole before it cuts out
+  the rows the page needs: :func:`page_codes` refuses a segment that inflates past what
+  it holds, inflating it only that far (LZMA: all its streams together, as tifffile
+  reads them), an LZMA one whose decoder asks for more than :data:`LZMA_MEMORY_LIMIT`,
+  and tiles far larger than their page, before decoding.
 """
 
 from __future__ import annotations
@@ -217,6 +217,29 @@ def _lzma_inflated(data: bytes, most: int, where: str) -> int | None:
     return inflated
 
 
+def _packbits_inflated(data: bytes, most: int, where: str) -> int:
+    """Bytes the PackBits runs of ``data`` decode to, counted to ``most + 1`` at most:
+    tifffile decodes a PackBits segment whole, in Python, into a list of 8 bytes an
+    output byte (a 64 x 64 frame's one strip of 2 MB held 1.2 GB). Data longer than
+    twice ``most`` counts as past it unread: every run (but a no-op header, which no
+    writer emits) decodes to at least half its length, and a strip of no-op headers
+    decodes to nothing after a Python step a byte. ``where`` is unused."""
+    if len(data) > 2 * most:
+        return most + 1
+    inflated = position = 0
+    while position < len(data) and inflated <= most:
+        header = data[position]
+        if header < 128:  # a literal run of header + 1 bytes
+            inflated += min(header + 1, len(data) - position - 1)
+            position += header + 2
+        elif header > 128:  # one byte repeated 257 - header times
+            inflated += 257 - header if position + 1 < len(data) else 0
+            position += 2
+        else:  # a no-op
+            position += 1
+    return inflated
+
+
 def _lzma_memory_error(where: str) -> ImageTooLargeError:
     """The refusal of the LZMA segment ``where`` ("strip 3") whose decoder needs more
     than :data:`LZMA_MEMORY_LIMIT`."""
@@ -227,13 +250,15 @@ def _lzma_memory_error(where: str) -> ImageTooLargeError:
     )
 
 
-#: How far a segment inflates (:func:`_deflated`, :func:`_lzma_inflated`), by TIFF code,
-#: for the compressions tifffile inflates without bound (each segment whole, past its
-#: size): deflate (8, and its old code) and LZMA.
+#: How far a segment inflates (:func:`_deflated`, :func:`_lzma_inflated`,
+#: :func:`_packbits_inflated`), by TIFF code, for the compressions tifffile inflates
+#: without bound (each segment whole, past its size): deflate (8, and its old code),
+#: LZMA and PackBits.
 _STREAMED: dict[int, Callable[[bytes, int, str], int | None]] = {
     8: _deflated,
     32946: _deflated,
     34925: _lzma_inflated,
+    32773: _packbits_inflated,
 }
 
 

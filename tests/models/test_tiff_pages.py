@@ -258,6 +258,22 @@ def test_a_strip_inflating_past_its_rows_is_refused_before_it_is_inflated(
     refused_holding_little(data, "strip 0 of the TIFF page inflates past")
 
 
+@pytest.mark.parametrize(
+    "payload",
+    [b"\x81\0" * 2**19, b"\x81\0" * 2**11, b"\x80" * 2**21],
+    ids=["runs-64-MiB", "runs-within-twice-the-strip", "no-ops"],
+)
+def test_a_packbits_strip_decoding_past_its_rows_is_refused_before_it_is_decoded(
+    payload: bytes,
+) -> None:
+    """tifffile decodes a PackBits strip whole, in Python (a list, 8 bytes an output
+    byte): a 64 x 64 frame's one strip of 1 MB of 128-byte runs held 1.2 GB, one of
+    2 MB of no-op headers took a Python step a byte. Its runs are counted first, only
+    as far as the strip holds, and a strip over twice that is refused unread."""
+    blank = with_compression(tiff(np.zeros((64, 64), np.uint8)), 32773)
+    refused_holding_little(with_one_segment(blank, payload), "strip 0 of the TIFF page inflates")
+
+
 def test_an_lzma_strip_asking_for_a_huge_dictionary_is_refused_before_it_is_allocated() -> None:
     """An LZMA strip's header names its dictionary, allocated whole before any output:
     a 345-byte frame naming 4 GiB made the API allocate 4 GiB (or, under a memory
