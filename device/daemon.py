@@ -12,6 +12,7 @@ as a training pair instead of being streamed. Control commands from
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import importlib.util
 import logging
@@ -34,7 +35,7 @@ from device.bracketing import BracketCollector, SaturatedBracketError, save_pair
 from device.commands import Command, to_packet
 from device.daemon_claim import DaemonClaim
 from device.datasets import DatasetLimits, prune_pairs
-from device.health import DeviceHealth
+from device.health import DeviceHealth, unwrap_sequence
 from device.link_parser import DROP_CAUSES, LinkParser
 from device.link_protocol import DEFAULT_MAX_PAYLOAD, FLAG_BRACKET, DataPacket, encode_control
 from device.publisher import FramePublisher
@@ -256,6 +257,7 @@ class DeviceDaemon:
 
     # ---- frames ----
     def _on_data(self, packet: DataPacket) -> None:
+        packet = dataclasses.replace(packet, sequence=self._host_sequence(packet.sequence))
         expected = None if self._last_sequence is None else self._last_sequence + 1
         if expected is not None and packet.sequence != expected:
             self.health.sequence_gap(expected, packet.sequence)
@@ -273,6 +275,13 @@ class DeviceDaemon:
         self.publisher.offer(FrameMessage(self.device, packet.sequence, packet.timestamp_ns,
                                           packet.codes, packet_params(packet), self._discont))
         self._discont = False
+
+    def _host_sequence(self, sequence: int) -> int:
+        """The host's number for the camera's ``sequence``: on from the last frame's (this
+        daemon's, or the previous daemon's until this one got a frame), past a wrap of
+        the firmware's 32-bit counter (:func:`unwrap_sequence`)."""
+        last = self._last_sequence if self._last_sequence is not None else self.health.last_sequence
+        return unwrap_sequence(sequence, last + 1) if last >= 0 else sequence
 
     def _on_bracket_packet(self, packet: DataPacket) -> None:
         bracket = self.brackets.add(packet)

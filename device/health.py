@@ -8,7 +8,8 @@ queue), ``stream_full`` (oldest frames evicted from the Redis stream unread),
 ``redis_unavailable`` and ``rejected``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
 (sequence numbers never received), ``reconnects``, ``last_frame_ns`` (host
 wall clock, ns since the epoch) and ``last_sequence`` of the device's newest frame (-1:
-none yet), ``fps`` (measured over the last frames), ``brackets_saved``,
+none yet; the host's number, on past wraps of the camera's 32-bit counter:
+:func:`unwrap_sequence`), ``fps`` (measured over the last frames), ``brackets_saved``,
 ``brackets_incomplete``, ``brackets_saturated`` (complete, but saturated at every pixel:
 not saved), ``control_sent``, ``control_rejected``, ``settings`` (JSON: encoding, alpha,
 bits, gain, width, height of the newest frame), ``updated_ns``.
@@ -42,6 +43,9 @@ ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + HOST_DROP_CAUSES
 #: 250 frames/s); a larger one is a counter that reset or was corrupted, not frames
 #: lost, and counts as a gap only (a jump to 2^64 - 1 added 1.8e19 missing frames).
 MAX_MISSING_PER_GAP = 1_000_000
+#: One lap of the camera firmware's 32-bit sequence counter: its step from 2^32 - 1 to 0
+#: is the next frame (:func:`unwrap_sequence`).
+COUNTER_LAP = 1 << 32
 _COUNTERS: tuple[str, ...] = (
     "frames_ok", "frames_received", "garbage_bytes", "sequence_gaps", "frames_missing",
     "reconnects", "brackets_saved", "brackets_incomplete", "brackets_saturated", "control_sent",
@@ -120,7 +124,9 @@ class DeviceHealth:
             self._count_gap(expected, sequence)
 
     def _count_gap(self, expected: int, sequence: int) -> None:
-        """:meth:`sequence_gap` with the lock held; nothing when ``sequence`` is due."""
+        """:meth:`sequence_gap` with the lock held; nothing when ``sequence`` is due (also
+        once unwrapped: :func:`unwrap_sequence`)."""
+        sequence = unwrap_sequence(sequence, expected)
         if sequence == expected:
             return
         self.counts["sequence_gaps"] += 1
@@ -174,6 +180,24 @@ class DeviceHealth:
                 updated_ns=str(time.time_ns()),
             )
         return fields
+
+
+def unwrap_sequence(sequence: int, expected: int) -> int:
+    """The host's number for the camera's ``sequence`` arriving where ``expected`` was due.
+
+    The firmware's counter is 32 bits: after 2^32 - 1 it sends 0. A number below
+    :data:`COUNTER_LAP` that lies, modulo a lap, 0 to :data:`MAX_MISSING_PER_GAP` frames
+    on from ``expected`` is read in the lap that makes it so (2^32 - 1 then 0 is 2^32 - 1
+    then 2^32: consecutive); any other number is taken as it is (a counter that
+    restarted, or jumped, is a gap). Idempotent: an unwrapped number maps to itself.
+    """
+    if sequence == expected or sequence >= COUNTER_LAP or expected < 0:
+        return sequence
+    lap_start = expected - expected % COUNTER_LAP
+    for candidate in (lap_start + sequence, lap_start + COUNTER_LAP + sequence):
+        if 0 <= candidate - expected <= MAX_MISSING_PER_GAP:
+            return candidate
+    return sequence
 
 
 def _whole(value: bytes | str | None) -> int:

@@ -20,7 +20,8 @@ from models.formation import SensorParams
 class FrameMessage:
     """One frame from a device.
 
-    ``sequence``: the device's frame counter; ``timestamp_ns``: device clock in ns;
+    ``sequence``: the device's frame counter (numbered on past a wrap of a 32-bit one:
+    :func:`device.health.unwrap_sequence`); ``timestamp_ns``: device clock in ns;
     ``discont``: true when temporal state was broken before this frame (reconnect,
     sequence gap); ``codes``: H x W (or H x W x C) uint8/uint16 in DN.
     """

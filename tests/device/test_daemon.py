@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -711,3 +712,56 @@ def test_a_second_daemon_on_one_port_waits_and_says_who_holds_it(client: redis.R
         os.close(slave)
     assert first.health.counts["garbage_bytes"] == 0
     assert second.health.counts["frames_received"] == 0
+
+
+#: One lap of a 32-bit firmware sequence counter.
+LAP = 2**32
+
+
+def test_a_32_bit_sequence_counter_that_wraps_reads_as_consecutive(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """The camera's firmware counts in 32 bits: its step from 2^32 - 1 to 0 was read as a
+    counter reset (a gap, and a DISCONT keyframe for the decoders), and frames lost across
+    the wrap were not counted missing. The host numbers the frames on from 2^32; a frame
+    lost after the wrap is a gap of one, and a true reset is still a reset."""
+    camera = PtyEndpoint(tmp_path / "scamp5")
+    daemon = DeviceDaemon(DaemonConfig(port=camera.url, device="cam1"), client).start()
+    try:
+        assert wait_for(lambda: daemon.health.state == "connected", 30)
+        for received, sequences in [(4, (LAP - 2, LAP - 1, 0, 1)), (5, (3,)), (6, (0,))]:
+            camera.write(wire(*sequences))
+            assert wait_for(lambda n=received: daemon.health.counts["frames_received"] == n, 30)
+    finally:
+        daemon.stop()
+        camera.close()
+    counts = health(client, "cam1")
+    assert (counts["sequence_gaps"], counts["frames_missing"]) == ("2", "1")
+    assert [(f.sequence, f.discont) for f in stream_frames(client, "cam1")] == [
+        (LAP - 2, True), (LAP - 1, False), (LAP, False), (LAP + 1, False), (LAP + 3, True),
+        (0, True)]
+
+
+@pytest.mark.parametrize("take_over_first", [False, True],
+                         ids=["frames-before-take-over", "take-over-before-frames"])
+def test_a_restarted_daemon_goes_on_past_a_wrapped_counter(
+        client: redis.Redis, take_over_first: bool) -> None:
+    """The counter wrapped under the previous daemon: the next one's first frame follows
+    the previous daemon's last (no gap), whether it reaches Redis before that frame or not."""
+    restart(client, wire(LAP - 1, 0), take_over_first=take_over_first)
+    restart(client, wire(1, 2), take_over_first=take_over_first)
+    counts = health(client, "cam9")
+    assert (counts["sequence_gaps"], counts["frames_missing"]) == ("0", "0")
+
+
+def test_a_bracket_across_the_wrap_is_saved_beside_the_one_before_it(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """A bracket whose packets straddle the wrap (2^32 - 1, 0, 1) was abandoned as out of
+    order. It is saved, after the pair of the bracket before the wrap (pairs are named by
+    the host's clock first, then the host's sequence number)."""
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9", data_dir=tmp_path), client)
+    for packet in [*bracket_packets(LAP - 4), *bracket_packets(LAP - 1)]:
+        daemon._on_data(dataclasses.replace(packet, sequence=packet.sequence % LAP))
+    assert (daemon.health.counts["brackets_saved"], daemon.health.counts["brackets_incomplete"],
+            daemon.health.counts["sequence_gaps"]) == (2, 0, 0)
+    names = sorted(folder.name for folder in (tmp_path / "datasets" / "cam9").iterdir())
+    assert [int(name.partition("-")[2]) for name in names] == [LAP - 4, LAP - 1]

@@ -5,7 +5,15 @@ from __future__ import annotations
 import json
 from collections import Counter
 
-from device.health import ALL_DROP_CAUSES, DeviceHealth
+import pytest
+
+from device.health import (
+    ALL_DROP_CAUSES,
+    COUNTER_LAP,
+    MAX_MISSING_PER_GAP,
+    DeviceHealth,
+    unwrap_sequence,
+)
 from device.link_parser import DROP_CAUSES
 
 
@@ -38,3 +46,26 @@ def test_fps_needs_two_recent_arrivals() -> None:
     assert health.fps == 0.0
     health.frame_received(0, {})
     assert health.fps == 0.0
+
+
+@pytest.mark.parametrize(("sequence", "expected", "host"), [
+    (0, COUNTER_LAP, COUNTER_LAP),  # 2^32 - 1, then the wrap: the next frame
+    (2, COUNTER_LAP - 1, COUNTER_LAP + 2),  # frames lost across the wrap
+    (5, COUNTER_LAP + 3, COUNTER_LAP + 5),  # later in the second lap
+    (COUNTER_LAP + 5, COUNTER_LAP + 3, COUNTER_LAP + 5),  # already unwrapped
+    (0, 12, 0),  # a counter that restarted: a reset
+    (0, COUNTER_LAP + 100, 0),  # one that restarted in the second lap
+    (MAX_MISSING_PER_GAP + 1, COUNTER_LAP, MAX_MISSING_PER_GAP + 1),  # too far: a jump
+    (2**40, 5, 2**40),  # a 64-bit counter is taken as it is
+])
+def test_a_wrapped_32_bit_counter_is_numbered_on_and_a_reset_is_not(
+        sequence: int, expected: int, host: int) -> None:
+    assert unwrap_sequence(sequence, expected) == host
+
+
+def test_a_wrap_is_no_gap_and_frames_lost_across_it_are_missing() -> None:
+    health = DeviceHealth("cam1", "loop://")
+    health.sequence_gap(COUNTER_LAP, 0)
+    assert (health.counts["sequence_gaps"], health.counts["frames_missing"]) == (0, 0)
+    health.sequence_gap(COUNTER_LAP - 1, 2)
+    assert (health.counts["sequence_gaps"], health.counts["frames_missing"]) == (1, 3)
