@@ -206,7 +206,8 @@ class DeviceDaemon:
         self.health = DeviceHealth(self.device, config.port)
         self.claim = DaemonClaim(client, self.device)
         self.publisher = FramePublisher(client, self.device, self.health, self.send_command,
-                                        config.frames_maxlen, config.queue_size, self.claim)
+                                        config.frames_maxlen, config.queue_size, self.claim,
+                                        on_failure=self._fail)
         self.opener = opener or serial_opener(config.port, config.read_timeout_s)
         self.brackets = BracketCollector()
         self._parser = self._new_parser()
@@ -216,7 +217,10 @@ class DeviceDaemon:
         # An entry whose write failed (the link broke): sent first on the next link.
         self._unsent: tuple[str, bytes | None] | None = None
         self._stop = threading.Event()
+        self._finished = threading.Event()
         self._thread: threading.Thread | None = None
+        #: Why the daemon stopped on its own (another daemon keeps the device), or None.
+        self.failure: McamError | None = None
         self._last_sequence: int | None = None
         self._discont = True
         self._connected_once = False
@@ -418,6 +422,12 @@ class DeviceDaemon:
             self.publisher.stop()
             with contextlib.suppress(redis.RedisError, OSError):
                 self.claim.release()
+            self._finished.set()
+
+    def _fail(self, error: McamError) -> None:
+        """Stop on the publisher's failure (another daemon holds the device's claim)."""
+        self.failure = error
+        self._stop.set()
 
     def start(self) -> DeviceDaemon:
         """Run in a daemon thread."""
@@ -425,6 +435,14 @@ class DeviceDaemon:
                                         daemon=True)
         self._thread.start()
         return self
+
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to stop (safe in a signal handler); :meth:`wait` for it."""
+        self._stop.set()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Wait until :meth:`run` has ended (stopped, or :attr:`failure`); True if it has."""
+        return self._finished.wait(timeout_s)
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Stop reading, publish what is queued, close the port."""

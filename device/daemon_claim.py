@@ -6,7 +6,10 @@ control commands between the cameras, without a word. A daemon claims
 ``daemon:<device>`` (its own random id, expiring after :data:`CLAIM_TTL_MS`) before it
 streams, and renews it at every health write; a second daemon finds the claim and
 refuses to start. A daemon that was killed leaves a claim that expires within the TTL,
-so a restarted one waits that long at most.
+so a restarted one waits that long at most. A daemon started while Redis is down
+takes the claim before it first publishes (:class:`device.publisher.FramePublisher`):
+one that finds another daemon's keeps its frames unpublished, waits the TTL, and stops
+with the same error.
 """
 
 from __future__ import annotations
@@ -59,13 +62,17 @@ class DaemonClaim:
         deadline = time.monotonic() + wait_s
         while not self.renew():
             if time.monotonic() >= deadline:
-                holder = self.client.get(daemon_key(self.device))
-                name = holder.decode() if isinstance(holder, bytes) else holder
-                raise DeviceTakenError(
-                    f"device {self.device!r} already has a daemon ({name}: host, process); "
-                    "stop it, or give this camera another --device-id"
-                )
+                raise self.taken_error()
             time.sleep(0.1)
+
+    def taken_error(self) -> DeviceTakenError:
+        """The error naming the daemon that holds the device (read from Redis now)."""
+        holder = self.client.get(daemon_key(self.device))
+        name = holder.decode() if isinstance(holder, bytes) else holder
+        return DeviceTakenError(
+            f"device {self.device!r} already has a daemon ({name}: host, process); "
+            "stop it, or give this camera another --device-id"
+        )
 
     def release(self) -> None:
         """Drop the claim if it is still this daemon's (a clean stop)."""

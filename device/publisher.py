@@ -13,8 +13,11 @@ broke): the next frame queued after a full queue's drop (frames queued before it
 still follow their predecessors), the next frame published after a failed publish.
 Growing drop and reconnect counters are also appended to ``events:<device>`` as
 ``drop`` / ``reconnect`` events for the API's server-sent events. Before its first health
-write the publisher takes the device over: holding the device's claim, it goes on from
-the counters the previous daemon left in the health hash (not reported again as events).
+write or frame the publisher takes the device over: holding the device's claim, it goes on
+from the counters the previous daemon left in the health hash (not reported again as
+events). It publishes, writes health and reads commands only while it holds the claim:
+one that finds another daemon's (both started while Redis was down) keeps its frames
+queued, waits out the claim's TTL and then stops (:attr:`FramePublisher.failure`).
 """
 
 from __future__ import annotations
@@ -29,9 +32,9 @@ from collections.abc import Callable
 import redis
 
 from device.commands import Command, fields_to_command
-from device.daemon_claim import DaemonClaim
+from device.daemon_claim import CLAIM_TTL_MS, DaemonClaim, DeviceTakenError
 from device.health import ALL_DROP_CAUSES, DeviceHealth
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, McamError
 from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
 from worker.redis_keys import (
@@ -61,11 +64,14 @@ class FramePublisher:
     when the entry was refused) and returns False when it has no room for it now (the
     entry is handed over again later). The device's control cursor, where its next
     daemon goes on, moves only as far as :meth:`delivered` says the camera got them: a
-    daemon that stops with commands not yet sent leaves them to the next one."""
+    daemon that stops with commands not yet sent leaves them to the next one.
+    ``on_failure`` is told when the publisher stops because another daemon holds the
+    device's claim (:meth:`_hold_claim`)."""
 
     def __init__(self, client: redis.Redis, device: str, health: DeviceHealth,
                  on_command: Callable[[str, Command | None], bool], frames_maxlen: int = 256,
-                 queue_size: int = 64, claim: DaemonClaim | None = None) -> None:
+                 queue_size: int = 64, claim: DaemonClaim | None = None,
+                 on_failure: Callable[[McamError], None] | None = None) -> None:
         self.client = client
         self.device = device
         self.health = health
@@ -91,6 +97,13 @@ class FramePublisher:
         self._reported_causes: dict[str, int] = {}
         self._trouble = TroubleLog(log)
         self.claim = claim
+        self.on_failure = on_failure
+        #: Why the publisher stopped on its own (another daemon keeps the device), or None.
+        self.failure: DeviceTakenError | None = None
+        # Since when (monotonic s) another daemon holds the claim; None while this one does.
+        self._refused_since: float | None = None
+        # The frame taken from the queue when the claim was found refused: published first.
+        self._held: FrameMessage | None = None
 
     def offer(self, message: FrameMessage) -> None:
         """Queue a frame for publishing; drop it (counted) if the queue is full. The frame
@@ -119,17 +132,34 @@ class FramePublisher:
             self._thread.join(timeout=timeout_s)
 
     def run(self) -> None:
-        """Loop until stopped and the queue is empty."""
-        while not (self._stop.is_set() and self._queue.empty()):
-            try:
-                message = self._queue.get(timeout=0.05)
-            except queue.Empty:
-                message = None
+        """Loop until stopped with every frame published (or kept back: another daemon
+        holds the device), or until the publisher fails (:attr:`failure`)."""
+        while self.failure is None and not (self._stop.is_set() and self._idle()):
+            message = self._next_message()
             if message is not None:
                 self._publish(message)
             if time.monotonic() >= self._next_health:
                 self._housekeeping()
-        self._housekeeping()
+        if self.failure is None:
+            self._housekeeping()
+
+    def _idle(self) -> bool:
+        """Nothing left that this daemon may publish."""
+        return self._refused_since is not None or (self._queue.empty() and self._held is None)
+
+    def _next_message(self) -> FrameMessage | None:
+        """The frame to publish next: none while another daemon holds the claim (frames
+        stay queued), then the one held back, then the queue's next (waiting 0.05 s)."""
+        if self._refused_since is not None:
+            time.sleep(0.05)
+            return None
+        if self._held is not None:
+            message, self._held = self._held, None
+            return message
+        try:
+            return self._queue.get(timeout=0.05)
+        except queue.Empty:
+            return None
 
     def _redis(self, action: Callable[[], object]) -> bool:
         """Run a Redis action unless Redis is known down; mark it down on any Redis error
@@ -158,11 +188,16 @@ class FramePublisher:
         def xadd() -> None:
             if not self._taken_over:  # before this daemon's first frame is on the stream
                 self._take_over()
+            if self._refused_since is not None:  # another daemon holds the device
+                return
             evicted = publish_frame(self.client, message, maxlen=self.frames_maxlen)
             if evicted:
                 self.health.add("dropped_stream_full", evicted)
 
-        if self._redis(xadd):
+        reached = self._redis(xadd)
+        if reached and self._refused_since is not None:
+            self._held = message  # published once this daemon holds the claim
+        elif reached:
             self._failed_publish = False
             self.health.add("frames_ok")
         else:
@@ -189,8 +224,10 @@ class FramePublisher:
     def _housekeeping(self) -> None:
         """Write the health hash and link events, and forward new control commands."""
         self._next_health = time.monotonic() + HEALTH_INTERVAL_S
-        if not self._taken_over and not self._redis(self._take_over):
+        if not self._redis(self._hold_claim if self._taken_over else self._take_over):
             return
+        if not self._taken_over or self._refused_since is not None:
+            return  # another daemon holds the device: its health and commands are not ours
         if self._control_id is None and not self._redis(self._find_control_start):
             return
         fields = self.health.to_fields()
@@ -207,19 +244,21 @@ class FramePublisher:
             pipe.execute()
 
         if self._redis(write_health):
-            self._redis(self._renew_claim)
             self._redis(self._write_cursor)
             self._redis(self._read_control)
         else:
             self._reported, self._reported_causes = reported, reported_causes
 
     def _take_over(self) -> None:
-        """Go on from the counters the device's previous daemon left in its health hash,
-        if the device's claim is this daemon's (with no claim, or another daemon's, they
-        start from 0). The counts carried over are not new drops or reconnects. The
-        newest frame on the device's stream tells which frames the previous daemon
-        published after its last health write (one killed in between wrote no more)."""
-        if self.claim is not None and self.claim.renew():
+        """Go on from the counters the device's previous daemon left in its health hash
+        once the device's claim is this daemon's (with no claim, they start from 0; while
+        another daemon holds it, the device is not taken over: :meth:`_hold_claim`). The
+        counts carried over are not new drops or reconnects. The newest frame on the
+        device's stream tells which frames the previous daemon published after its last
+        health write (one killed in between wrote no more)."""
+        if not self._hold_claim():
+            return
+        if self.claim is not None:
             raw = self.client.hgetall(health_key(self.device))
             carried = self.health.carry_over(
                 {(k.decode() if isinstance(k, bytes) else k): v for k, v in raw.items()},
@@ -229,14 +268,31 @@ class FramePublisher:
                               "reconnects": carried["reconnects"]}
         self._taken_over = True
 
-    def _renew_claim(self) -> None:
-        """Keep this daemon's claim on the device fresh; another daemon holding it (Redis
-        lost the claim and a second daemon took it) is logged, at most every 30 s."""
-        if self.claim is not None and not self.claim.renew():
-            self._trouble.report(
-                f"device {self.device}'s claim", "another daemon holds the device id",
-                then="two daemons stream under one device id: stop one",
-            )  # fmt: skip
+    def _hold_claim(self) -> bool:
+        """Take or renew this daemon's claim on the device; True when it holds it (or has
+        none to keep). Another daemon's claim (both started while Redis was down, or
+        Redis lost this one's and another took it) is waited out for its TTL, as a
+        killed daemon's lapses in that time, publishing nothing meanwhile; then the
+        publisher fails with the error naming the holder (:meth:`_fail`)."""
+        if self.claim is None or self.claim.renew():
+            self._refused_since = None
+            return True
+        now = time.monotonic()
+        if self._refused_since is None:
+            self._refused_since = now
+            log.warning("device %s: another daemon holds the device id; waiting up to %.1f s "
+                        "for its claim to lapse", self.device, CLAIM_TTL_MS / 1000)
+        elif now - self._refused_since >= CLAIM_TTL_MS / 1000:
+            self._fail(self.claim.taken_error())
+        return False
+
+    def _fail(self, error: DeviceTakenError) -> None:
+        """Stop publishing for good: another daemon keeps the device."""
+        self.failure = error
+        unpublished = self._queue.qsize() + (self._held is not None)
+        log.error("%s (%d frames of this daemon not published)", error.message, unpublished)
+        if self.on_failure is not None:
+            self.on_failure(error)
 
     def delivered(self, entry_id: str) -> None:
         """Control entry ``entry_id`` (and every one before it) reached the camera or was

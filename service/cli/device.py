@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import signal
-import threading
 
 import redis
 
@@ -56,14 +55,15 @@ def run(args: argparse.Namespace) -> int:
     daemon = DeviceDaemon(config, client)
     with contextlib.suppress(redis.RedisError, OSError):  # Redis away: claimed once it answers
         daemon.claim.take()
-    stopped = threading.Event()
 
     def stop(_signum: int, _frame: object) -> None:
-        stopped.set()
+        daemon.request_stop()
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     daemon.start()
-    stopped.wait()
+    daemon.wait()
     daemon.stop()
+    if daemon.failure is not None:  # another daemon took the device once Redis answered
+        raise daemon.failure
     return 0

@@ -7,9 +7,11 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import redis
 
+from device import link_protocol as lp
 from device.commands import Command
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.faults import Faults
@@ -58,6 +60,24 @@ def start_streaming(daemon: DeviceDaemon, camera: VirtualScamp5) -> None:
 def stream_frames(client: redis.Redis, device: str) -> list[FrameMessage]:
     """Every frame on the device's stream, oldest first."""
     return [FrameMessage.from_fields(fields) for _, fields in client.xrange(frame_stream(device))]
+
+
+def newest_sequence(client: redis.Redis, device: str) -> int | None:
+    """The sequence number of the newest frame on the device's stream (None: no frame)."""
+    newest = client.xrevrange(frame_stream(device), count=1)
+    return int(newest[0][1][b"seq"]) if newest else None
+
+
+def wire(*sequences: int, damaged: int | None = None) -> bytes:
+    """What a camera sends: intact data packets, then one whose CRC fails (``damaged``)."""
+    data = b"".join(lp.encode_packet(lp.DataPacket(s, 0, "modulo", 2.0, 8, 1.0,
+                                                   np.zeros((4, 4), np.uint8)))
+                    for s in sequences)
+    if damaged is None:
+        return data
+    bad = bytearray(wire(damaged))
+    bad[-1] ^= 0xFF
+    return data + bytes(bad)
 
 
 def health(client: redis.Redis, device: str) -> dict[str, str]:

@@ -26,7 +26,14 @@ from device.sim_link import PtyEndpoint, TcpEndpoint
 from device.simulator import CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
-from tests.device.conftest import health, start_streaming, stream_frames, wait_for
+from tests.device.conftest import (
+    health,
+    newest_sequence,
+    start_streaming,
+    stream_frames,
+    wait_for,
+    wire,
+)
 from worker.device_registry import forget_device
 from worker.embedded_redis import EmbeddedRedis
 from worker.frame_message import FrameMessage
@@ -36,7 +43,6 @@ from worker.redis_keys import (
     control_cursor_key,
     control_stream,
     events_stream,
-    frame_stream,
 )
 
 
@@ -53,12 +59,6 @@ def finish_clean(link, frames: int) -> None:
     last = link.camera.sequence - 1
     client = link.daemon.publisher.client
     assert wait_for(lambda: stream_frames(client, "cam1")[-1].sequence == last, 10)
-
-
-def newest_sequence(client: redis.Redis, device: str) -> int | None:
-    """The sequence number of the newest frame on the device's stream (None: no frame)."""
-    newest = client.xrevrange(frame_stream(device), count=1)
-    return int(newest[0][1][b"seq"]) if newest else None
 
 
 def event_types(client: redis.Redis) -> set[str]:
@@ -510,18 +510,6 @@ def test_a_cleanly_stopped_daemon_says_so_and_its_device_can_be_forgotten_at_onc
     assert health(client, "cam1")["state"] == "stopped"
     assert forget_device(client, "cam1", silent_after_s=10.0) == 0
     assert not client.sismember(DEVICES_SET, "cam1")
-
-
-def wire(*sequences: int, damaged: int | None = None) -> bytes:
-    """What a camera sends: intact data packets, then one whose CRC fails (``damaged``)."""
-    data = b"".join(lp.encode_packet(lp.DataPacket(s, 0, "modulo", 2.0, 8, 1.0,
-                                                   np.zeros((4, 4), np.uint8)))
-                    for s in sequences)
-    if damaged is None:
-        return data
-    bad = bytearray(wire(damaged))
-    bad[-1] ^= 0xFF
-    return data + bytes(bad)
 
 
 def events_since(client: redis.Redis, device: str, count: int) -> list[dict[str, str]]:

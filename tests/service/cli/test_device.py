@@ -84,3 +84,33 @@ def test_a_second_daemon_under_the_same_device_id_exits_with_one_line(
     finally:
         first.send_signal(signal.SIGTERM)
     assert first.wait(20) == 0
+
+
+def test_of_two_daemons_started_while_redis_is_down_the_second_exits_once_it_is_back(
+        redis_server: EmbeddedRedis, tmp_path: Path) -> None:
+    """Both runs skipped the claim while Redis was down, and both streamed once it was
+    back. The one that finds the other's claim then exits 2 with the one-line error a
+    second daemon gets when Redis is up; the other runs on."""
+    env = env_for(redis_server.url, tmp_path / "data")
+    redis_server.stop()
+    logs = [tmp_path / f"daemon-{n}.log" for n in range(2)]
+    runs = []
+    for log in logs:
+        with log.open("w") as stderr:
+            runs.append(subprocess.Popen(
+                [MCAM, "device", "--port", "loop://", "--device-id", "rig-1"],
+                stdout=subprocess.DEVNULL, stderr=stderr, env=env, cwd=tmp_path))
+    try:
+        assert wait_for(lambda: all("Redis unreachable" in log.read_text() for log in logs), 60)
+        redis_server.start()
+        assert wait_for(lambda: any(run.poll() is not None for run in runs), 60)
+        loser = next(n for n, run in enumerate(runs) if run.poll() is not None)
+        assert runs[loser].returncode == 2
+        assert logs[loser].read_text().strip().splitlines()[-1].startswith(
+            "mcam device: error: device 'rig-1' already has a daemon (")
+        assert runs[1 - loser].poll() is None
+    finally:
+        for run in runs:
+            if run.poll() is None:
+                run.send_signal(signal.SIGTERM)
+    assert runs[1 - loser].wait(20) == 0
