@@ -13,7 +13,10 @@ with ``ctx.write(name, data)``, reports progress with ``ctx.progress(n)``,
 calls ``ctx.check()`` between steps (raises when the job was cancelled) and, if
 it runs long, ``ctx.check_stop()`` (raises when the worker is stopping: the job
 is handed back to the queue). Results are keyed by job id (``jobs/<id>/...``), so a
-redelivered job overwrites identical files and never duplicates them.
+redelivered job overwrites identical files and never duplicates them. A cancelled job's
+folder is removed by each worker that drops its entry or stops working on it (as it
+finds the job cancelled): the API never removes it, as a worker may still be writing
+there, and a worker that wrote after another removed it removes it again.
 
 A reconstruction's decode runs in the job thread's child process
 (:class:`worker.child_process.ChildProcess`, warmed up on the worker's decoder when
@@ -148,7 +151,7 @@ class JobContext:
 
     def key(self, name: str) -> str:
         """The result-store key of output file ``name`` of this job."""
-        return f"jobs/{self.record.id}/{name}"
+        return f"{job_folder(self.record.id)}/{name}"
 
     def write(self, name: str, data: bytes) -> str:
         """Write output file ``name`` durably; returns its key."""
@@ -158,6 +161,11 @@ class JobContext:
 
 
 JobHandler = Callable[[JobContext, NDArray[np.unsignedinteger]], JobOutcome]
+
+
+def job_folder(job_id: str) -> str:
+    """The result-store folder of a job's files."""
+    return f"jobs/{job_id}"
 
 
 @dataclass(frozen=True)
@@ -413,10 +421,21 @@ class JobProcessor:
             self._finish(consumer, delivery, record.id)
 
     def _finish(self, consumer: StreamConsumer, delivery: Delivery, job_id: str) -> None:
-        """The job is final: its record expires with its results (set here for jobs the
-        API cancelled, whose transition carried no expiry); drop the entry."""
-        self.jobs.expire(job_id, self.store.retention_s)
+        """The job is final, settled here or elsewhere (:meth:`_settled`); drop the entry."""
+        self._settled(job_id)
         self._drop(consumer, delivery, job_id)
+
+    def _settled(self, job_id: str) -> None:
+        """The job ended elsewhere (a cancel, another worker): its record expires with its
+        results (set here for jobs the API cancelled, whose transition carried no
+        expiry), and a cancelled job's files go now, before its entry: those this worker
+        wrote before it saw the cancel, or a worker stopped or stalled mid-job left. They
+        used to stay, listed nowhere, until the retention purge."""
+        self.jobs.expire(job_id, self.store.retention_s)
+        if self.jobs.state(job_id) is JobState.CANCELLED:
+            removed = self.store.delete_folder(job_folder(job_id))
+            if removed:
+                log.info("job %s: cancelled; removed its %d files", job_id, removed)
 
     def _drop(
         self,
@@ -449,10 +468,10 @@ class JobProcessor:
             finished_ns=time_after(record.created_ns, record.started_ns),
             error=error,
         )
+        if not changed:
+            self._settled(record.id)
         letter = None if caller_error else dead_letter or error
         self._drop(consumer, delivery, record.id, dead_letter=letter)
-        if not changed:
-            self.jobs.expire(record.id, self.store.retention_s)
 
     def _observe(self, timings_ns: dict[str, int], frames: int) -> None:
         """Record a succeeded job's stage times; its decode as ``frames`` frames, each at

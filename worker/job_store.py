@@ -4,6 +4,7 @@ Usage::
 
     store = JobStore(client)
     record = store.load(job_id)                         # JobNotFoundError if absent
+    store.state(job_id)                                 # JobState, None if absent
     store.transition(job_id, JobState.RUNNING, {JobState.QUEUED}, started_ns=...)
     store.update(job_id, progress=0.5, frames_done=3)  # fields other than state
 
@@ -96,6 +97,11 @@ class JobStore:
                 "id, or submit the job again"
             )
         return JobRecord.model_validate({k.decode(): json.loads(v) for k, v in raw.items()})
+
+    def state(self, job_id: str) -> JobState | None:
+        """The job's state now; None when it has no record (expired, or never was)."""
+        raw = self.client.hget(job_key(job_id), "state")
+        return None if raw is None else JobState(json.loads(raw))
 
     def update(self, job_id: str, **fields: Any) -> bool:
         """Set fields other than ``state`` (progress, timings, info, ...) of an existing

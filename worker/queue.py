@@ -368,7 +368,8 @@ class JobQueue:
 
     def cancel(self, job_id: str) -> JobRecord:
         """Cancel a queued or running job (a worker stops at its next check); a finished
-        job is returned unchanged."""
+        job is returned unchanged. Its files, any written, are removed by the worker that
+        drops it (:mod:`worker.job_processor`), not here: a worker may still be writing."""
         record = self.jobs.load(job_id)
         self.jobs.transition(
             job_id,

@@ -6,6 +6,7 @@ Usage::
     path = store.write("jobs/0123abcd.../result.exr", exr_bytes)  # atomic + fsynced
     store.exists(key); store.read(key); store.existing_path(key)
     store.purge_expired()  # deletes files older than retention_s, returns how many
+    store.delete_folder("jobs/0123abcd...")  # a cancelled job's files, temp files too
 
 Keys are relative paths of letters, digits and ``_ . / -`` only: no ``..``
 component, no absolute path, no empty component. Anything else raises
@@ -20,6 +21,7 @@ import os
 import re
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
@@ -165,6 +167,11 @@ class ResultStore:
         except FileNotFoundError:
             return False
 
+    def delete_folder(self, prefix: str) -> int:
+        """Remove folder ``prefix`` whole: its files (a writer's temp files too) and its
+        folders. Returns how many files; 0 when there is no such folder."""
+        return self._sweep(self.path(prefix), lambda _file: True)
+
     def purge_expired(
         self, now_s: float | None = None, stop: threading.Event | None = None
     ) -> int:
@@ -177,15 +184,28 @@ class ResultStore:
         now = time.time() if now_s is None else now_s
         cutoff = now - self.retention_s
         tmp_cutoff = now - min(self.retention_s, TMP_MAX_AGE_S)
+
+        def expired(file: Path) -> bool:
+            limit = tmp_cutoff if file.name.endswith(_TMP_SUFFIX) else cutoff
+            return file.stat().st_mtime < limit
+
+        return self._sweep(self.root, expired, stop)
+
+    def _sweep(
+        self, base: Path, remove: Callable[[Path], bool], stop: threading.Event | None = None
+    ) -> int:
+        """Delete the files under ``base`` that ``remove`` picks, then the folders left
+        empty (``base`` too, unless it is the store's root), deepest first; a file gone
+        meanwhile is skipped, a folder a writer filled again kept. Returns how many
+        files; ``stop`` set ends the walk early."""
         removed = 0
-        for folder, _dirs, files in os.walk(self.root, topdown=False):
+        for folder, _dirs, files in os.walk(base, topdown=False):
             if stop is not None and stop.is_set():
                 break
             for name in files:
                 file = Path(folder, name)
-                limit = tmp_cutoff if name.endswith(_TMP_SUFFIX) else cutoff
                 try:
-                    if file.stat().st_mtime < limit:
+                    if remove(file):
                         file.unlink()
                         removed += 1
                 except FileNotFoundError:

@@ -170,6 +170,22 @@ def test_delete(store: ResultStore) -> None:
     assert store.delete("k") is False
 
 
+def test_delete_folder_removes_its_files_temp_files_and_folders_only(
+    store: ResultStore,
+) -> None:
+    """A cancelled job's folder goes whole (a writer's temp file too); its neighbours stay."""
+    store.write("jobs/a/result.exr", b"a")
+    store.write("jobs/a/sub/winding.npy", b"w")
+    (store.root / "jobs" / "a" / ".codes.npy.1.2.tmp").write_bytes(b"t")
+    store.write("jobs/ab/result.exr", b"kept")
+    assert store.delete_folder("jobs/a") == 3
+    assert not (store.root / "jobs" / "a").exists()
+    assert store.keys() == ["jobs/ab/result.exr"]
+    assert store.delete_folder("jobs/a") == 0
+    with pytest.raises(InvalidKeyError):
+        store.delete_folder("jobs/../..")
+
+
 Event = tuple[str | int, ...]
 
 

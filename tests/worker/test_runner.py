@@ -13,6 +13,7 @@ import os
 import shutil
 import signal
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -793,3 +794,92 @@ def test_a_job_submitted_by_a_clock_ahead_has_no_negative_times(
     families = {f.name: f for f in read_metrics(client)}
     for name in ("queue_wait_seconds", "total_seconds"):
         assert families[name].samples[0].value == 0.0, name
+
+
+class _CancelledWhileWriting(ResultStore):
+    """A result store whose first write lets the API's cancel in first: the job passed
+    its last check and the worker writes its files as the cancel lands."""
+
+    def __init__(self, root: Path, cancel: Callable[[], object]) -> None:
+        super().__init__(root, retention_s=3600)
+        self.cancel: Callable[[], object] | None = cancel
+
+    def write(self, key: str, data: bytes, *, replace: bool = True) -> Path:
+        if self.cancel is not None:
+            self.cancel()
+            self.cancel = None
+        return super().write(key, data, replace=replace)
+
+
+def test_a_job_cancelled_while_its_files_are_written_leaves_none(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame
+) -> None:
+    """A cancel that landed after the job's last check: the worker wrote the EXR, the
+    winding map and the codes, found the job cancelled and dropped it, and the files
+    stayed, listed nowhere, until the retention purge a week later. They now go when
+    the worker drops the job; another job's files stay."""
+    frame: SensorFrame = make_frame()
+    kept = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    handled_here(client, data_dir)
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    store = _CancelledWhileWriting(data_dir / RESULTS_DIR, lambda: queue.cancel(job.id))
+    processor = JobProcessor(client, store, max_deliveries=3, stop=threading.Event())
+    consumer = StreamConsumer(client, JOBS_STREAM, "w-j0", max_deliveries=3)
+    [delivery] = consumer.read_new(block_ms=None)
+    processor.handle(consumer, delivery)
+    assert queue.get(job.id).state is JobState.CANCELLED
+    assert client.xlen(JOBS_STREAM) == 0
+    assert store.keys() == sorted(queue.get(kept.id).results.values())
+    assert not (store.root / "jobs" / job.id).exists()
+
+
+class _StalledMidWrites(ResultStore):
+    """A result store whose writer stalls after its first file until ``resume`` is set,
+    as a worker paused mid-writes (SIGSTOP, a swapping host)."""
+
+    def __init__(self, root: Path) -> None:
+        super().__init__(root, retention_s=3600)
+        self.stalled = threading.Event()
+        self.resume = threading.Event()
+
+    def write(self, key: str, data: bytes, *, replace: bool = True) -> Path:
+        path = super().write(key, data, replace=replace)
+        if not self.stalled.is_set():
+            self.stalled.set()
+            self.resume.wait(60)
+        return path
+
+
+def test_a_cancelled_job_taken_from_a_stalled_worker_keeps_no_files(
+    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame, wait_until
+) -> None:
+    """Worker A stalled between two of a job's files; the job was cancelled and B,
+    which took the entry over, dropped it, leaving A's first file. The files now go
+    when B drops the job, and when A wakes and writes the rest, A removes them as it
+    finds the job cancelled: none is left, as none was written."""
+    frame: SensorFrame = make_frame()
+    job = queue.submit("reconstruction", frame.codes, frame.params, "itoh")
+    stalled_store = _StalledMidWrites(data_dir / RESULTS_DIR)
+    stalled = JobProcessor(client, stalled_store, max_deliveries=3, stop=threading.Event())
+    a = StreamConsumer(client, JOBS_STREAM, "a-j0", max_deliveries=3)
+    [delivery] = a.read_new(block_ms=None)
+    handler = threading.Thread(target=stalled.handle, args=(a, delivery))
+    handler.start()
+    try:
+        wait_until(stalled_store.stalled.is_set, 60, "A's first file written")
+        folder = stalled_store.root / "jobs" / job.id
+        assert folder.exists()
+        assert queue.cancel(job.id).state is JobState.CANCELLED
+        b = StreamConsumer(client, JOBS_STREAM, "b-j0", max_deliveries=3)
+        assert b.claim_idle(0) == 1
+        [taken] = b.read_own_pending(1)
+        store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+        JobProcessor(client, store, max_deliveries=3, stop=threading.Event()).handle(b, taken)
+        assert client.xlen(JOBS_STREAM) == 0
+        assert not folder.exists(), "B left the cancelled job's files"
+    finally:
+        stalled_store.resume.set()
+        handler.join(60)
+    assert not handler.is_alive()
+    assert not folder.exists(), "A's later files stayed"
+    assert queue.get(job.id).state is JobState.CANCELLED
