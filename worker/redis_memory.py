@@ -12,7 +12,10 @@ not allowed when used memory > 'maxmemory'``) and keeps everything it holds. So:
   (:func:`eviction_problem`, part of :func:`worker.embedded_redis.durability_problem`);
 - a refused write is told apart from a bug (:func:`is_out_of_memory`): the API answers
   503 ``store_full`` (:class:`StoreFullError`), and workers and device daemons wait and
-  retry, as when Redis is unreachable (:func:`is_transient`).
+  retry, as when Redis is unreachable (:func:`is_transient`);
+- the API is ready (``/health/ready``) only while Redis has room below its
+  ``maxmemory`` for the largest upload it accepts (:func:`submit_room`,
+  :func:`full_problem`), so that a load balancer stops sending work before it fails.
 
 A full server still reads, deletes, acknowledges and expires keys, so results can
 be fetched and job records lapse at the end of their retention; but a worker cannot
@@ -43,6 +46,17 @@ DEFAULT_MAXMEMORY = 4 * 1024**3
 NO_EVICTION = "noeviction"
 #: What Redis says when it refuses a write for want of memory (also inside a script).
 _OOM_REPLY = "OOM command not allowed"
+#: What a submit of a job's codes costs Redis at the moment it checks its ``maxmemory``
+#: (:func:`submit_room`). Measured on redis-server 6.2 with n bytes of codes sent on a
+#: new connection: refused with 2 n free, taken with 2 n + min(n, 1 MiB) + 40 KiB, for n
+#: from 128 KiB to 96 MiB. The codes arrive as one argument that Redis keeps as the
+#: command's value (n); it sets aside a query buffer as large for the connection's next
+#: argument (n), and grows one of them as it grows buffers: to twice the size, by at
+#: most :data:`QUERY_BUFFER_STEP`.
+QUERY_BUFFER_STEP = 1024**2
+#: Bytes of a submit besides its codes: the job's record, the script's other arguments
+#: and a new connection's buffers (together 25-40 KiB measured), with room to spare.
+SUBMIT_OVERHEAD_BYTES = 64 * 1024
 
 
 class StoreFullError(McamError):
@@ -72,21 +86,40 @@ def eviction_problem(config: dict[str, str]) -> str | None:
     )
 
 
-def full_problem(memory: Mapping[str, Any]) -> str | None:
-    """Why Redis refuses writes now, from its ``INFO memory`` reply: it is over its
-    ``maxmemory`` (less the buffers Redis leaves out of that count) and evicts nothing,
-    so every submit gets 503 ``store_full``; None when it has room (or is unbounded)."""
+def submit_room(codes_bytes: int) -> int:
+    """Bytes Redis must have free below its ``maxmemory`` to take a submit of a job
+    whose codes take ``codes_bytes``: twice them, the growth of a query buffer
+    (``codes_bytes``, at most :data:`QUERY_BUFFER_STEP`) and
+    :data:`SUBMIT_OVERHEAD_BYTES`."""
+    return 2 * codes_bytes + min(codes_bytes, QUERY_BUFFER_STEP) + SUBMIT_OVERHEAD_BYTES
+
+
+def full_problem(memory: Mapping[str, Any], room_bytes: int) -> str | None:
+    """Why Redis refuses, or would refuse, a submit now, from its ``INFO memory`` reply:
+    it evicts nothing and is over its ``maxmemory`` (less the buffers Redis leaves out
+    of that count), so every submit gets 503 ``store_full``, or it has less than
+    ``room_bytes`` free below it, the room the largest upload needs (:func:`submit_room`),
+    which would get 503 ``store_full``. None when it has that room (or is unbounded)."""
     maxmemory = int(memory.get("maxmemory", 0))
     used = int(memory.get("used_memory", 0)) - int(memory.get("mem_not_counted_for_evict", 0))
-    if maxmemory == 0 or used <= maxmemory:
+    if maxmemory == 0 or memory.get("maxmemory_policy", NO_EVICTION) != NO_EVICTION:
         return None
-    if memory.get("maxmemory_policy", NO_EVICTION) != NO_EVICTION:
+    if used > maxmemory:
+        return (
+            f"Redis is full ({used} bytes used, maxmemory {maxmemory}) and refuses writes: "
+            "every submit gets 503 store_full and queued jobs wait; raise "
+            "MCAM_REDIS_MAXMEMORY (an external Redis: its maxmemory), or wait until "
+            "finished jobs' records expire (MCAM_RESULT_RETENTION_S)"
+        )
+    if maxmemory - used >= room_bytes:
         return None
     return (
-        f"Redis is full ({used} bytes used, maxmemory {maxmemory}) and refuses writes: "
-        "every submit gets 503 store_full and queued jobs wait; raise MCAM_REDIS_MAXMEMORY "
-        "(an external Redis: its maxmemory), or wait until finished jobs' records expire "
-        "(MCAM_RESULT_RETENTION_S)"
+        f"Redis has {maxmemory - used} bytes free below its maxmemory ({maxmemory}), less "
+        f"than the largest upload needs ({room_bytes}: Redis holds its codes twice, and a "
+        "buffer's growth, while it takes them): that upload would get 503 store_full; raise "
+        "MCAM_REDIS_MAXMEMORY (an external Redis: its maxmemory), lower the largest upload "
+        "(MCAM_MAX_PIXELS, MCAM_MAX_VIDEO_SAMPLES), or wait until queued jobs finish and "
+        "finished jobs' records expire (MCAM_RESULT_RETENTION_S)"
     )
 
 

@@ -47,6 +47,14 @@ def result_files(data_dir: Path) -> list[str]:
     return ResultStore(data_dir / RESULTS_DIR, retention_s=3600).keys()
 
 
+def leave_free(client: redis.Redis, free: int) -> None:
+    """Set Redis's maxmemory ``free`` bytes above what it holds now (less the buffers it
+    leaves out of that count), as a backlog that filled it to there would."""
+    memory = client.info("memory")
+    used = int(memory["used_memory"]) - int(memory.get("mem_not_counted_for_evict", 0))
+    client.config_set("maxmemory", used + free)
+
+
 def ramp_frame(size: int = 64, peak: float = 6.0, params: SensorParams = PARAMS) -> SensorFrame:
     """A smooth scene wrapping several times (itoh decodes it exactly)."""
     y, x = np.mgrid[0:size, 0:size] / size

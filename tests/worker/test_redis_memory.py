@@ -19,6 +19,7 @@ from redis.backoff import NoBackoff
 from redis.retry import Retry
 
 from models.formation import SensorFrame, SensorParams
+from tests.worker.conftest import leave_free, wait_for
 from worker.device_consumer import DeviceConsumer
 from worker.device_registry import forget_device
 from worker.device_state import make_frame_decoder
@@ -33,10 +34,12 @@ from worker.redis_memory import (
     NO_EVICTION,
     TroubleLog,
     eviction_problem,
+    full_problem,
     is_out_of_memory,
     is_transient,
     redis_trouble,
     server_config,
+    submit_room,
 )
 from worker.result_store import RESULTS_DIR, ResultStore
 
@@ -135,6 +138,40 @@ def test_a_submit_to_a_full_server_stores_nothing_and_keeps_what_it_held(
     make_room(client)
     queue.submit("reconstruction", CODES, PARAMS, "itoh", owner="alice")
     assert client.xlen(JOBS_STREAM) == 2
+
+
+@pytest.mark.parametrize("side", [512, 1100])
+def test_a_submit_needs_submit_room_and_full_problem_asks_for_it(
+    embedded: EmbeddedRedis, client: redis.Redis, queue: JobQueue, side: int
+) -> None:
+    """What /health/ready asks Redis to have free for the largest upload (submit_room)
+    is what its submit needs on a new connection (the API's pool may open one), for
+    codes under and over the query buffer's growth step: with room for the codes
+    twice, Redis refuses it and full_problem says so; with submit_room, it takes it and
+    full_problem says nothing."""
+    queue.submit("reconstruction", CODES, PARAMS, "itoh")  # the submit script loaded
+    codes = np.zeros((side, side), np.uint16)  # 0.5 MiB; 2.3 MiB, no allocator class
+    room = submit_room(codes.nbytes)
+    clients = len(client.client_list())
+    for free, taken in ((2 * codes.nbytes, False), (room, True)):
+        leave_free(client, free)
+        problem = full_problem(client.info("memory"), room)
+        fresh = connect(embedded.url)
+        try:
+            try:
+                JobQueue(fresh, maxlen=10, max_deliveries=3, claim_idle_ms=1000).submit(
+                    "reconstruction", codes, PARAMS, "itoh"
+                )
+                accepted = True
+            except redis.exceptions.RedisError as exc:
+                assert is_out_of_memory(exc), exc
+                accepted = False
+        finally:
+            fresh.close()
+        make_room(client)
+        assert accepted is taken, f"{free} bytes free for {codes.nbytes} bytes of codes"
+        assert (problem is None) is taken, problem
+        wait_for(lambda: len(client.client_list()) == clients, 10, "the connection closed")
 
 
 def test_a_full_server_still_releases_holds(queue: JobQueue, client: redis.Redis) -> None:

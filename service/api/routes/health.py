@@ -16,7 +16,8 @@ from models.decoders.registry import resolve
 from models.errors import McamError
 from service.api.deps import StateDep
 from service.api.state import ServiceState
-from worker.redis_memory import full_problem
+from service.core.config import Settings
+from worker.redis_memory import full_problem, submit_room
 
 router = APIRouter(prefix="/health", tags=["health"])
 log = logging.getLogger(__name__)
@@ -29,9 +30,9 @@ class Liveness(BaseModel):
 
 
 class Readiness(BaseModel):
-    """``checks``: decoders loaded, queue reachable with room (Redis under its
-    maxmemory), workers heartbeating, result store writable with room for a result
-    (name -> ok)."""
+    """``checks``: decoders loaded, queue reachable with room (Redis has room below its
+    maxmemory for the largest upload: :func:`upload_room`), workers heartbeating, result
+    store writable with room for a result (name -> ok)."""
 
     status: str
     checks: dict[str, bool]
@@ -65,9 +66,30 @@ def store_problem(root: Path, min_free_bytes: int) -> str | None:
     return None
 
 
+def largest_upload_codes(settings: Settings) -> int:
+    """Bytes of codes of the largest job an upload can queue: a frame of
+    ``MCAM_MAX_PIXELS`` RGB pixels, or a video of ``MCAM_MAX_VIDEO_SAMPLES`` code values
+    (``MCAM_MAX_VIDEO_FRAMES`` such frames at most), 2 bytes a code value (16-bit
+    codes), and no more than one key's jobs may hold in the queue
+    (``MCAM_MAX_QUEUED_BYTES_PER_KEY``) nor the queue itself (``MCAM_JOBS_MAX_BYTES``)."""
+    frame = 3 * settings.max_pixels
+    video = min(settings.max_video_samples, settings.max_video_frames * frame)
+    return min(2 * max(frame, video), settings.max_queued_bytes_per_key,
+               settings.jobs_max_bytes)  # fmt: skip
+
+
+def upload_room(settings: Settings) -> int:
+    """Bytes Redis must have free below its maxmemory for the ``queue`` check to pass:
+    what the largest upload needs there while Redis takes it (its codes from
+    :func:`largest_upload_codes`; :func:`worker.redis_memory.submit_room`: twice them,
+    up to 1 MiB more, and 64 KiB), so that a load balancer stops sending uploads before
+    one gets 503 ``store_full``."""
+    return submit_room(largest_upload_codes(settings))
+
+
 def readiness(state: ServiceState) -> Readiness:
-    """Check the decoder registry, Redis (reachable, not full), the workers' heartbeats
-    and the result store."""
+    """Check the decoder registry, Redis (reachable, with room for the largest upload:
+    :func:`upload_room`), the workers' heartbeats and the result store."""
     detail: dict[str, str] = {}
     decoders_ok = True
     try:
@@ -81,7 +103,7 @@ def readiness(state: ServiceState) -> Readiness:
         memory = state.client.info("memory")  # answered: Redis is reachable
         reachable = True
         workers = len(state.queue.workers(HEARTBEAT_PERIODS * state.settings.heartbeat_s))
-        full = full_problem(memory)
+        full = full_problem(memory, upload_room(state.settings))
     except redis.exceptions.RedisError as exc:
         reachable = False
         log.warning("readiness: Redis unreachable: %s", exc)
@@ -105,8 +127,8 @@ def readiness(state: ServiceState) -> Readiness:
     "/ready",
     response_model=Readiness,
     responses={503: {"model": Readiness, "description": "not ready: see checks and detail"}},
-    summary="Decoders loaded, queue reachable with room, workers heartbeating, result store "
-    "writable",
+    summary="Decoders loaded, queue reachable with room for the largest upload, workers "
+    "heartbeating, result store writable",
 )
 def ready(state: StateDep) -> JSONResponse:
     result = readiness(state)

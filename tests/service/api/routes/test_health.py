@@ -13,11 +13,20 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from service.core.config import Settings
 from service.main import create_app
-from tests.service.conftest import FULL_KEY, frame_png, make_settings, running_worker, serve
+from tests.service.conftest import (
+    FULL_KEY,
+    frame_png,
+    make_settings,
+    npy_bytes,
+    running_worker,
+    serve,
+)
+from tests.worker.conftest import leave_free
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.result_store import RESULTS_DIR
 
@@ -148,6 +157,47 @@ def test_ready_reports_a_full_redis(tmp_path: Path) -> None:
             assert "raise MCAM_REDIS_MAXMEMORY" in body["detail"]["queue"]
             direct.config_set("maxmemory", 0)
             assert with_a_worker(api).status_code == 200
+    finally:
+        direct.close()
+        embedded.stop()
+
+
+def test_ready_only_with_room_for_the_largest_upload(tmp_path: Path) -> None:
+    """Redis with room for the largest upload's codes once, but not for what it holds
+    while it takes them (the codes as the command's argument, and a query buffer of
+    their size set aside for the next), answered ready while that upload got 503
+    store_full: a load balancer kept sending work that failed. It is now not ready
+    below the room that upload needs (:func:`worker.redis_memory.submit_room`), and
+    ready with room to spare, where it is accepted (Redis's maxmemory a few MB here)."""
+    side = 256
+    codes = np.random.default_rng(0).integers(0, 4096, (side, side, 3)).astype(np.uint16)
+    embedded = EmbeddedRedis(tmp_path / "r")
+    # The largest upload: a still frame of MCAM_MAX_PIXELS RGB 16-bit codes (a video may
+    # hold as many code values, no more).
+    settings = make_settings(tmp_path, embedded.start(), max_pixels=side * side,
+                             max_video_samples=codes.size)  # fmt: skip
+    direct = connect(settings.redis_url or "")
+    auth = {"Authorization": f"Bearer {FULL_KEY}"}
+    upload = {"file": ("f.npy", npy_bytes(codes))}
+    fields = {"bits": "12", "encoding": "modulo"}
+    try:
+        with serve(create_app(settings)) as api, running_worker(settings):
+            assert with_a_worker(api).status_code == 200
+            leave_free(direct, codes.nbytes * 3 // 2)
+            reply = httpx.get(f"{api}/health/ready")
+            refused = httpx.post(f"{api}/v1/reconstructions", files=upload, data=fields,
+                                 headers=auth)  # fmt: skip
+            assert refused.status_code == 503 and refused.json()["code"] == "store_full"
+            assert reply.status_code == 503, reply.json()
+            body = reply.json()
+            assert body["checks"]["queue"] is False
+            assert "largest upload" in body["detail"]["queue"]
+            assert "MCAM_REDIS_MAXMEMORY" in body["detail"]["queue"]
+            leave_free(direct, 4 * codes.nbytes)
+            assert wait_ready(api, 200).status_code == 200
+            accepted = httpx.post(f"{api}/v1/reconstructions", files=upload, data=fields,
+                                  headers=auth)  # fmt: skip
+            assert accepted.status_code == 202, accepted.text
     finally:
         direct.close()
         embedded.stop()
