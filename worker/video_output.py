@@ -19,7 +19,8 @@ sides past what each MP4 output takes (:data:`MAX_MP4_SIDES`) by both videos.
 The SDR preview (:func:`write_sdr_preview`) is Reinhard-tonemapped (one key for the
 whole clip, from its middle frame, so the preview does not pump), sRGB-encoded,
 8-bit 4:2:0 H.264. The EXR sequence (:func:`exr_sequence_zip`) is a zip of one
-float32 (or half) EXR per frame, ``frame_00000.exr`` ..., of the values it is given
+float32 (or half) EXR per frame, ``frame_00000.exr`` ... (:func:`exr_frame_name`), of the
+values it is given
 (the pipeline gives scene-referred ``x / gain`` when the gain is known, else wrap units)
 and the header attributes it is given per frame.
 """
@@ -68,6 +69,9 @@ MP4_OUTPUT_NAMES = {"hdr10": "HDR10 video", "sdr": "the SDR preview (H.264)"}
 X265_BFRAME_DELAY = 2
 #: Mastering display: P3-D65 primaries in x265's units of 0.00002.
 MASTERING_PRIMARIES = "G(13250,34500)B(7500,3000)R(34000,16000)WP(15635,16450)"
+
+#: Fewest digits of an EXR frame's number (``frame_00000.exr``, :func:`exr_frame_name`).
+EXR_INDEX_DIGITS = 5
 
 #: Frame rates a video may have (frames per second).
 FPS_RANGE = (0.1, 1000.0)
@@ -406,7 +410,7 @@ def exr_sequence_zip(
     scene_gain: float | None = None,
     checked: bool = False,
 ) -> None:
-    """A zip of one EXR per frame (``frame_00000.exr``, ...) of reconstructed ``frames``
+    """A zip of one EXR per frame (:func:`exr_frame_name`) of reconstructed ``frames``
     (wrap units ``x``; stored as scene units ``x / scene_gain`` when the gain is known,
     converted a frame at a time), each compressed as ``compression``
     (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and that frame's
@@ -420,7 +424,15 @@ def exr_sequence_zip(
             header = {"frameIndex": str(index)} | (attributes[index] if attributes else {})
             stored = frame if scene_gain is None else to_scene(frame, scene_gain)
             data = encode_exr(stored, header, half=half, compression=compression)
-            archive.writestr(f"frame_{index:05d}.exr", data)
+            archive.writestr(exr_frame_name(index, len(frames)), data)
+
+
+def exr_frame_name(index: int, count: int) -> str:
+    """The zip entry of frame ``index`` of a clip of ``count`` frames: ``frame_`` and the
+    index padded with zeros to :data:`EXR_INDEX_DIGITS` digits, or to as many as the last
+    index has, so that the names of a longer clip still sort in frame order."""
+    digits = max(EXR_INDEX_DIGITS, len(str(count - 1)))
+    return f"frame_{index:0{digits}d}.exr"
 
 
 def check_exr_sequence(

@@ -209,6 +209,19 @@ def test_exr_sequence_zip_round_trip(compression: str) -> None:
             assert header["compression"] == EXR_COMPRESSIONS[compression]
 
 
+def test_exr_names_of_a_clip_past_99999_frames_sort_in_frame_order(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """frame_100000.exr sorted before frame_10001.exr: five digits held 100000 frames."""
+    monkeypatch.setattr("worker.video_output.encode_exr", lambda *_args, **_kwargs: b"")
+    buffer = io.BytesIO()
+    exr_sequence_zip([np.ones((1, 1))] * 100_001, buffer, checked=True)
+    with zipfile.ZipFile(buffer) as archive:
+        names = archive.namelist()
+    assert names == sorted(names)
+    assert names[0] == "frame_000000.exr" and names[-1] == "frame_100000.exr"
+
+
 def test_frames_that_would_be_stored_as_zero_are_refused() -> None:
     """Scene units under a huge gain, or tiny values as half floats: no black EXRs."""
     frames = [np.full((4, 4), 2.0), np.full((4, 4), 1e-300)]
