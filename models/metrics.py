@@ -142,15 +142,20 @@ def mean_capped_psnr(values: Iterable[float]) -> float:
 def reinhard(image: ArrayLike, reference: ArrayLike) -> NDArray[np.float64]:
     """Reinhard global tonemap of the luminance of ``image``, keyed on ``reference``.
 
-    ``L = 0.18 * Y / Ybar_ref`` and ``L / (1 + L)`` in [0, 1), where ``Ybar_ref`` is
-    the log-average of the reference's luminance (offset by 1e-6 of its maximum).
+    ``L = 0.18 * Y / Ybar_ref`` and ``L / (1 + L)`` in [0, 1], where ``Ybar_ref`` is
+    the log-average of the reference's luminance (offset by 1e-6 of its maximum). A
+    pixel whose ``L`` is past float64 (``Y`` over about 1e309 times ``Ybar_ref``: a
+    frame of a clip keyed on a far darker one) maps to 1, the limit of ``L / (1 + L)``:
+    inf / inf made it NaN.
     """
     x, ref = validate_pair(image, reference)
     ref_luminance = luminance(ref)
     delta = LOG_AVERAGE_DELTA * _reference_peak(ref_luminance)
     log_average = float(np.exp(np.mean(np.log(delta + ref_luminance))))
-    scaled = luminance(x) * (REINHARD_KEY / log_average)
-    return scaled / (1.0 + scaled)
+    with np.errstate(over="ignore"):
+        scaled = luminance(x) * (REINHARD_KEY / log_average)
+    tone = np.ones_like(scaled)
+    return np.divide(scaled, 1.0 + scaled, out=tone, where=np.isfinite(scaled))
 
 
 def _gaussian_window() -> NDArray[np.float64]:

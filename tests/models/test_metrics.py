@@ -122,6 +122,15 @@ def test_reinhard_uses_luminance_of_rgb() -> None:
     assert np.allclose(reinhard(rgb, rgb), reinhard(gray, gray))
 
 
+def test_reinhard_of_a_pixel_past_float64_times_the_key_is_white() -> None:
+    """0.18 * 1e305 / 1e-5 is past float64: inf / inf made the pixel NaN."""
+    reference = np.full((2, 2), 1e-5)
+    image = np.array([[1e305, 1e-5], [1e-5, 0.0]])
+    tonemapped = reinhard(image, reference)
+    assert tonemapped[0, 0] == 1.0
+    assert tonemapped[0, 1] == pytest.approx(0.18 / 1.18, rel=1e-5) and tonemapped[1, 1] == 0.0
+
+
 def test_ssim_matches_scikit_image() -> None:
     a = _texture((48, 40))
     b = _noisy(a, 0.1)

@@ -193,6 +193,16 @@ def test_sdr_tonemap_keeps_order_and_range() -> None:
     assert np.all(np.diff(image.astype(int)) >= 0) and image[0] < 10 and image[-1] > 200
 
 
+def test_sdr_preview_of_a_flash_far_brighter_than_its_key_frame() -> None:
+    """A mantissa clip (alpha 1e6) reached x = 2.5e305 next to a middle frame of 1e-5:
+    the tonemap was NaN there and the preview (and the whole video job) was refused."""
+    dark = np.full((64, 64), 1e-5)
+    flash = dark.copy()
+    flash[:8, :8] = 2.5e305
+    images = sdr_frames([flash, dark, flash])
+    assert (images[0][:8, :8] == 255).all() and (images[0][8:, 8:] == images[1][8:, 8:]).all()
+
+
 @pytest.mark.parametrize("compression", sorted(EXR_COMPRESSIONS))
 def test_exr_sequence_zip_round_trip(compression: str) -> None:
     frames = [np.random.default_rng(t).uniform(0, 20, (6, 5, 3)) for t in range(3)]
