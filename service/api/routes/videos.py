@@ -21,7 +21,7 @@ from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import stored_file
 from service.api.errors import ApiError
 from service.api.in_turn import decode_in_turn
-from service.api.routes.jobs import JOB_ERRORS, finished_record
+from service.api.routes.jobs import JOB_ERRORS, succeeded
 from service.api.schemas import (
     UPLOAD_ERRORS,
     JobAccepted,
@@ -32,6 +32,7 @@ from service.api.schemas import (
 from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
 from service.core.security import ApiKey
+from worker.jobs import JobRecord
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
 from worker.video_input import VIDEO_ALIASES, VideoLimits, decode_video
 from worker.video_jobs import VIDEO_FILES, check_frame_size, video_options
@@ -171,7 +172,8 @@ async def post_video(
         200: {"content": {"video/mp4": {}, "application/zip": {}}},
         409: error_response(
             "the job has not succeeded (job_not_finished, job_failed, job_cancelled), is "
-            "not a video (not_a_video_job) or did not make that output (output_not_made)"
+            "not a video (not_a_video_job) or does not make that output (output_not_made, "
+            "while it is queued or running too)"
         ),
         **JOB_ERRORS,
     },
@@ -184,8 +186,14 @@ def get_video_result(
         Literal["hdr10", "sdr", "exr_zip"], Query(description="which file")
     ] = "hdr10",
 ) -> Response:
-    """The output file of a succeeded video job."""
-    record = finished_record(state, job_id)
+    """The output file of a succeeded video job. An output that a queued or running video
+    job will not make is refused at once (``output_not_made``, not ``job_not_finished``)."""
+    record = state.queue.get(job_id)
+    if record.kind == "video" and not record.state.finished:
+        planned = video_options(record.decoder, record.options)[1]
+        if output not in planned:
+            raise output_not_made(record, output, planned)
+    record = succeeded(record)
     if record.kind != "video":
         raise ApiError(
             409, "not_a_video_job",
@@ -193,10 +201,18 @@ def get_video_result(
             f"/v1/jobs/{job_id}/result",
         )  # fmt: skip
     if output not in record.results:
-        raise ApiError(
-            409, "output_not_made",
-            f"video job {job_id} did not make {output!r}; it made: "
-            f"{', '.join(sorted(record.results))} (choose the outputs when submitting)",
-        )  # fmt: skip
+        raise output_not_made(record, output, sorted(record.results))
     return stored_file(state.store, record.results[output], _MEDIA[output],
                        f"{job_id}-{VIDEO_FILES[output]}")
+
+
+def output_not_made(record: JobRecord, output: str, outputs: list[str]) -> ApiError:
+    """The 409 for ``output`` of the video job ``record``, which makes only ``outputs``
+    (made them, once it finished)."""
+    done = record.state.finished
+    return ApiError(
+        409, "output_not_made",
+        f"video job {record.id} {'did' if done else 'will'} not make {output!r}; it "
+        f"{'made' if done else 'makes'}: {', '.join(outputs)} (choose the outputs when "
+        "submitting)",
+    )  # fmt: skip

@@ -182,6 +182,22 @@ def test_a_video_counts_against_its_keys_unfinished_jobs(tmp_path: Path, redis_u
         http.close()
 
 
+def test_an_output_a_queued_video_job_will_not_make_is_refused_at_once(client: Client) -> None:
+    """It answered job_not_finished ("poll its state until it succeeded"), and only once
+    the job had finished that the job never makes it."""
+    codes = np.stack([encode(x, PARAMS).codes for x in slow_clip()[:2]])
+    http = client()
+    reply = http.post("/v1/videos", files={"file": ("clip.npy", npy_bytes(codes))},
+                      data={**FLAGS, "outputs": "exr_zip"})
+    assert reply.status_code == 202, reply.text
+    files = f"/v1/videos/{reply.json()['id']}/result"
+    never = http.get(files, params={"output": "hdr10"})
+    assert never.status_code == 409 and never.json()["code"] == "output_not_made"
+    assert "will not make 'hdr10'; it makes: exr_zip" in never.json()["message"]
+    later = http.get(files, params={"output": "exr_zip"})
+    assert later.status_code == 409 and later.json()["code"] == "job_not_finished"
+
+
 def test_a_video_is_decoded_by_its_content_whatever_its_name(client: Client) -> None:
     """A zip of PNG frames named .tiff was refused as a corrupt TIFF; it is read as the
     zip it is, and the job's ``warnings`` say so."""
