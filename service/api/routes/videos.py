@@ -172,8 +172,8 @@ async def post_video(
         200: {"content": {"video/mp4": {}, "application/zip": {}}},
         409: error_response(
             "the job has not succeeded (job_not_finished, job_failed, job_cancelled), is "
-            "not a video (not_a_video_job) or does not make that output (output_not_made, "
-            "while it is queued or running too)"
+            "not a video (not_a_video_job) or does not make that output (output_not_made); "
+            "the last two also while it is queued or running"
         ),
         **JOB_ERRORS,
     },
@@ -186,20 +186,21 @@ def get_video_result(
         Literal["hdr10", "sdr", "exr_zip"], Query(description="which file")
     ] = "hdr10",
 ) -> Response:
-    """The output file of a succeeded video job. An output that a queued or running video
-    job will not make is refused at once (``output_not_made``, not ``job_not_finished``)."""
+    """The output file of a succeeded video job. A job that is not a video, or an output
+    that a queued or running video job will not make, is refused at once
+    (``not_a_video_job``, ``output_not_made``; not ``job_not_finished``)."""
     record = state.queue.get(job_id)
-    if record.kind == "video" and not record.state.finished:
-        planned = video_options(record.decoder, record.options)[1]
-        if output not in planned:
-            raise output_not_made(record, output, planned)
-    record = succeeded(record)
     if record.kind != "video":
         raise ApiError(
             409, "not_a_video_job",
             f"job {job_id} is a {record.kind} job, not a video; fetch its result from "
             f"/v1/jobs/{job_id}/result",
         )  # fmt: skip
+    if not record.state.finished:
+        planned = video_options(record.decoder, record.options)[1]
+        if output not in planned:
+            raise output_not_made(record, output, planned)
+    record = succeeded(record)
     if output not in record.results:
         raise output_not_made(record, output, sorted(record.results))
     return stored_file(state.store, record.results[output], _MEDIA[output],

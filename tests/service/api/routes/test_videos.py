@@ -198,6 +198,19 @@ def test_an_output_a_queued_video_job_will_not_make_is_refused_at_once(client: C
     assert later.status_code == 409 and later.json()["code"] == "job_not_finished"
 
 
+def test_a_queued_still_job_is_not_a_video_at_once(client: Client) -> None:
+    """It answered job_not_finished ("poll its state until it succeeded"), and only once
+    the job had succeeded that it has no video files."""
+    http = client()
+    codes = encode(slow_clip()[0], PARAMS).codes
+    reply = http.post(
+        "/v1/reconstructions", files={"file": ("f.npy", npy_bytes(codes))}, data=FLAGS
+    )
+    assert reply.status_code == 202, reply.text
+    wrong = http.get(f"/v1/videos/{reply.json()['id']}/result")
+    assert wrong.status_code == 409 and wrong.json()["code"] == "not_a_video_job"
+
+
 def test_a_video_is_decoded_by_its_content_whatever_its_name(client: Client) -> None:
     """A zip of PNG frames named .tiff was refused as a corrupt TIFF; it is read as the
     zip it is, and the job's ``warnings`` say so."""
