@@ -93,8 +93,9 @@ def describe_validation_error(exc: ValidationError, subject: str) -> str:
 
 @contextmanager
 def naming(label: str) -> Iterator[None]:
-    """Prefix ``label`` (a file's path) to the message of a :class:`McamError` raised
-    inside, so that a command reading several files says which one was bad."""
+    """Prefix ``label`` (a file's path, a video frame's index) to the message of a
+    :class:`McamError` raised inside, so that a command reading several files (a job
+    decoding many frames) says which one was bad."""
     try:
         yield
     except McamError as exc:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, naming
 from models.exr_header import reconstruction_attributes, stream_attributes
 from models.formation import SensorParams
 from models.hdr_io import DEFAULT_EXR_COMPRESSION
@@ -124,13 +124,15 @@ def decode_chunk(
     state: StreamState,
 ) -> tuple[DecodedVideo, StreamState]:
     """Frames ``first`` .. ``first + len(codes) - 1`` of a video (codes, DN) decoded as one
-    stream continuing from ``state``; their results and the state after the last."""
+    stream continuing from ``state``; their results and the state after the last. A frame
+    that cannot be decoded (an ``x`` past float64, say) is refused naming its index."""
     decoder = stream_decoder(options.mode, options.decoder, options.temporal)
     spatial = {"decoder": decoder.spatial.name, "version": decoder.spatial.version}
     decoded = DecodedVideo([], [], spatial)
-    for offset, frame_codes in enumerate(codes):
-        discont = first + offset in options.keyframes
-        decoded.add(decoder.decode(frame_codes, params, state, discont=discont))
+    for index, frame_codes in enumerate(codes, start=first):
+        discont = index in options.keyframes
+        with naming(f"video frame {index}"):
+            decoded.add(decoder.decode(frame_codes, params, state, discont=discont))
     return decoded, state
 
 

@@ -70,6 +70,20 @@ def test_slow_frames_go_one_at_a_time() -> None:
     assert seen == list(range(1, FRAMES + 1))
 
 
+def test_a_frame_that_cannot_be_decoded_is_named(child: ChildProcess) -> None:
+    """Frame 2 of a mantissa clip (alpha 1e6) unwraps past float64: the job failed with
+    "192 pixels of the reconstruction exceed ...", naming no frame of its video."""
+    params = SensorParams(encoding="mantissa", alpha=1e6, bits=16)
+    u = np.tile(np.linspace(0.5, 56.0, 256), (64, 1))
+    ramp = np.floor((u % 1) * 65536).astype(np.uint16)
+    dark = np.full_like(ramp, 5)
+    video = WrappedVideo(np.stack([dark, dark, ramp, dark]), params)
+    with pytest.raises(OutputOverflowError, match=r"^video frame 2: \d+ pixels of the recon"):
+        decode_video_frames(
+            video, VideoOptions(mode="independent", decoder="itoh"), run=in_child(child), chunk=4
+        )
+
+
 def test_unknown_outputs_are_refused() -> None:
     video = clip()
     decoded = decode_video_frames(video, VideoOptions(decoder="itoh"))
