@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -10,7 +11,9 @@ import numpy as np
 from fastapi import Response
 from fastapi.responses import FileResponse
 from numpy.typing import NDArray
+from starlette.datastructures import Headers
 from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
+from starlette.types import Receive, Scope, Send
 
 from models.errors import UnsupportedFormatError
 from models.frames import encode_frame
@@ -42,6 +45,27 @@ def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
 IMMUTABLE = "private, max-age=31536000, immutable"
 
 
+#: The headers of a stored file's response that its 304 repeats (RFC 9110 15.4.5).
+NOT_MODIFIED_HEADERS = ("etag", "cache-control")
+
+
+def not_modified(request: Headers, response: Headers) -> bool:
+    """Whether a GET of a file with ``response``'s ``ETag`` and ``Last-Modified`` may be
+    answered 304: ``If-None-Match`` names its tag (weakly compared) or is ``*``; without
+    it, ``If-Modified-Since`` is a valid date no earlier than ``Last-Modified``."""
+    if_none_match = request.get("if-none-match")
+    if if_none_match is not None:
+        tags = {tag.strip().removeprefix("W/") for tag in if_none_match.split(",")}
+        return "*" in tags or response["etag"].removeprefix("W/") in tags
+    since = request.get("if-modified-since")
+    if since is None:
+        return False
+    try:
+        return parsedate_to_datetime(response["last-modified"]) <= parsedate_to_datetime(since)
+    except (TypeError, ValueError):
+        return False
+
+
 class HeldFileResponse(FileResponse):
     """A file response of a file opened before the response starts, so that removing
     the file (the retention purge) between the route and the send cannot turn the
@@ -54,6 +78,16 @@ class HeldFileResponse(FileResponse):
         path = held if held.exists() else Path(handle.name)
         super().__init__(path, stat_result=os.fstat(handle.fileno()), **kwargs)
         self.handle = handle
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Send the file, or a 304 without it to a GET or HEAD whose validators say the
+        client's copy is current (RFC 9110 13.1.2-13.1.3), so a viewer revalidating a
+        device's newest frame does not fetch it again."""
+        if scope["type"] == "http" and scope["method"].upper() in ("GET", "HEAD"):
+            if not_modified(Headers(scope=scope), self.headers):
+                kept = {name: self.headers[name] for name in NOT_MODIFIED_HEADERS}
+                return await Response(status_code=304, headers=kept)(scope, receive, send)
+        return await super().__call__(scope, receive, send)
 
     @classmethod
     def _parse_range_header(cls, http_range: str, file_size: int) -> list[tuple[int, int]]:
@@ -110,7 +144,8 @@ def stored_file(
     store: ResultStore, key: str, media_type: str, filename: str, *, immutable: bool = True
 ) -> FileResponse:
     """A stored result streamed from disk, with Range requests (a player seeks, a broken
-    download resumes), ``ETag`` and ``Last-Modified``; ``immutable``: cacheable for good
+    download resumes), ``ETag`` and ``Last-Modified`` (a current copy gets 304:
+    :func:`not_modified`); ``immutable``: cacheable for good
     (a job's result), else revalidated each time (a device's newest frame). A result
     purged meanwhile is 404 ``not_found`` or, once opened here, sent whole."""
     return HeldFileResponse(

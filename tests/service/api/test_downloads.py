@@ -123,3 +123,36 @@ def test_a_range_set_with_no_satisfiable_range_is_a_416(
     assert reply.status_code == 416, reply.text
     assert reply.json()["code"] == "range_not_satisfiable"
     assert "asks for no byte of this" in reply.json()["message"]
+
+
+def test_a_matching_if_none_match_is_a_304_without_the_file(api_download: httpx.Client) -> None:
+    first = api_download.get("/result")
+    etag = first.headers["etag"]
+    for tag in (etag, f'"other", {etag}', f"W/{etag}", "*"):
+        again = api_download.get("/result", headers={"If-None-Match": tag})
+        assert again.status_code == 304 and again.content == b""
+        assert again.headers["etag"] == etag
+        assert again.headers["cache-control"] == first.headers["cache-control"]
+
+
+def test_another_if_none_match_sends_the_file(api_download: httpx.Client) -> None:
+    again = api_download.get("/result", headers={"If-None-Match": '"other"'})
+    assert again.status_code == 200 and again.content == DATA
+
+
+def test_if_modified_since_is_a_304_only_for_a_file_not_changed_since(
+    api_download: httpx.Client,
+) -> None:
+    modified = api_download.get("/result").headers["last-modified"]
+    same = api_download.get("/result", headers={"If-Modified-Since": modified})
+    assert same.status_code == 304 and same.content == b""
+    before = "Mon, 01 Jan 2001 00:00:00 GMT"
+    assert api_download.get("/result", headers={"If-Modified-Since": before}).status_code == 200
+    garbled = api_download.get("/result", headers={"If-Modified-Since": "yesterday"})
+    assert garbled.status_code == 200 and garbled.content == DATA
+
+
+def test_if_none_match_wins_over_if_modified_since(api_download: httpx.Client) -> None:
+    modified = api_download.get("/result").headers["last-modified"]
+    headers = {"If-None-Match": '"other"', "If-Modified-Since": modified}
+    assert api_download.get("/result", headers=headers).status_code == 200
