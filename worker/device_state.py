@@ -13,6 +13,7 @@ decoding (``worker/temporal.py``) keeps its memory in ``state.temporal``.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,12 +22,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from models.decoders.learned import ModelFileError
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
 from models.formation import ENCODINGS
 from models.scenes import synthetic_val256_frame
 from worker.frame_message import FrameMessage
 from worker.temporal_config import MODES
+
+log = logging.getLogger(__name__)
 
 #: The frame a worker warms its stream decoder on (:func:`warm_up`): SCAMP-5's size,
 #: a seeded synthetic scene exposed as val-256 is.
@@ -103,7 +107,10 @@ def warm_up(decoder: str) -> dict[str, float]:
     """Decode one seeded synthetic frame (:data:`WARM_UP_SIZE` px) per wrapping encoding
     that spatial decoder ``decoder`` supports, so that a stream's first frame pays
     neither the ONNX sessions' creation nor a latency budget's cost calibration
-    (seconds); returns the ms each took. A clear error for an unknown decoder."""
+    (seconds); returns the ms each took. A clear error for an unknown decoder. Each
+    encoding is warmed on its own: one whose model file is not its card's
+    (:class:`models.decoders.learned.ModelFileError`) is logged and left cold, and the
+    others are still warmed (a frame of it fails as ``model_unavailable``)."""
     spatial = get_decoder(decoder)
     took = {}
     for encoding in (e for e in ENCODINGS if e != "clip"):
@@ -111,6 +118,11 @@ def warm_up(decoder: str) -> dict[str, float]:
         if not spatial.supports(frame.params):
             continue
         start = time.perf_counter_ns()
-        spatial.decode(frame.codes, frame.params)
+        try:
+            spatial.decode(frame.codes, frame.params)
+        except ModelFileError as exc:
+            log.error("decoder %s was not warmed up for %s frames, its model install is "
+                      "broken: %s", decoder, encoding, exc)  # fmt: skip
+            continue
         took[encoding] = (time.perf_counter_ns() - start) / 1e6
     return took

@@ -189,14 +189,12 @@ def decode_still(
 def start_job_child(decoder: str) -> None:
     """A job child's initializer: the command line's allocator settings, and
     ``decoder`` (the worker's) built and warmed so a first job does not wait for it. A
-    model file of ``decoder`` that is not its card's is logged, not raised: the child
-    would die at start and fail every job, whatever its decoder, as a crash; a job
-    that needs that model fails as ``model_unavailable`` instead."""
+    model file of ``decoder`` that is not its card's is logged, not raised
+    (:func:`worker.device_state.warm_up`): the child would die at start and fail every
+    job, whatever its decoder, as a crash; a job that needs that model fails as
+    ``model_unavailable`` instead."""
     keep_freed_memory()
-    try:
-        warm_up(decoder)
-    except ModelFileError as exc:
-        log.error("decoder %s was not warmed up, its model install is broken: %s", decoder, exc)
+    warm_up(decoder)
 
 
 def reconstruct_job(ctx: JobContext, codes: NDArray[np.unsignedinteger]) -> JobOutcome:
