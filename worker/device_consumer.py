@@ -29,6 +29,8 @@ A frame whose data cannot be reconstructed (a :class:`models.errors.McamError`: 
 codes or parameters, output beyond float32) goes to the dead letters at once with a
 ``failed`` event, since a retry would fail the same way and hold the stream up; one
 that fails otherwise (a bug, a crashed pool process) after ``max_deliveries`` attempts.
+A frame whose decoder's model file is broken (:class:`models.decoders.learned.ModelFileError`)
+also fails at once, as ``model_unavailable``, and the frames after it go on.
 """
 
 from __future__ import annotations
@@ -42,13 +44,15 @@ from typing import Any
 
 import redis
 
+from models.decoders.learned import ModelFileError
 from models.errors import InvalidInputError, McamError
 from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order, prune_consumers
 from worker.device_share import device_to_hand_over, frame_clock
 from worker.device_state import DeviceState, FrameDecoder
 from worker.frame_message import FrameMessage
-from worker.job_processor import RETRY_BACKOFF_S, dead_letter_of, error_of
+from worker.job_processor import RETRY_BACKOFF_S, dead_letter_of, error_of, model_unavailable
+from worker.jobs import JobError
 from worker.lease import Lease
 from worker.metrics import Metrics, counter_key
 from worker.outputs import STREAM_EXR_COMPRESSION, encode_exr_result
@@ -137,6 +141,7 @@ class DeviceConsumer:
         self._share_checked = -math.inf
         self._resting: dict[str, float] = {}
         self._trouble = TroubleLog(log)
+        self._broken_models = TroubleLog(log)
 
     def poll(self) -> bool:
         """Refresh leases, then handle up to :data:`BATCH` frames per owned device; then
@@ -223,6 +228,7 @@ class DeviceConsumer:
         self.states.pop(device, None)
         self._consumers.pop(device, None)
         self._trouble.forget(_trouble_place(device))
+        self._broken_models.forget(device)
         if isinstance(self.decode, DecodePool):
             self.decode.forget(device)
 
@@ -273,10 +279,14 @@ class DeviceConsumer:
             except Exception as exc:
                 if isinstance(exc, LeaseLost) or is_transient(exc):
                     raise  # the frame stays pending: this owner retries it, in order
+                if isinstance(exc, ModelFileError):
+                    self._give_up_on_install(device, state, consumer, delivery, exc)
+                    return
                 if not isinstance(exc, McamError):
                     log.exception("frame %s of %s failed", delivery.entry_id, device)
                 if isinstance(exc, McamError) or delivery.deliveries >= self.max_deliveries:
-                    self._give_up(device, state, consumer, delivery, exc)
+                    error = error_of(exc, logged_with="the device's name")
+                    self._give_up(device, state, consumer, delivery, error, dead_letter_of(exc))
                     return
                 time.sleep(RETRY_BACKOFF_S * 2 ** (delivery.deliveries - 1))
                 consumer.retry(delivery)
@@ -361,16 +371,42 @@ class DeviceConsumer:
         state.last_sequence = sequence
         state.last_entry = delivery.entry_id
 
+    def _give_up_on_install(
+        self,
+        device: str,
+        state: DeviceState,
+        consumer: StreamConsumer,
+        delivery: Delivery,
+        exc: ModelFileError,
+    ) -> None:
+        """The frame's decoder met a model file that is not its card's: every try would
+        fail the same way until an operator restores it, and retrying held the stream up,
+        so the frame fails now as ``model_unavailable`` (its ``failed`` event says so;
+        its dead letter names the file and what to do) and the stream goes on. Logged at
+        most once per :class:`TroubleLog` period per device, without a traceback."""
+        encoding = FrameMessage.from_fields(delivery.fields).params.encoding
+        self._broken_models.report(
+            f"device {device}", f"the server's model install is broken: {exc}",
+            f"its {encoding} frames fail as model_unavailable",
+        )
+        error = model_unavailable(
+            "this worker's stream decoder", encoding, "the device's name",
+            f"the device's {encoding} frames fail until then",
+        )
+        letter = JobError(code="model_unavailable", message=str(exc))
+        self._give_up(device, state, consumer, delivery, error, letter)
+
     def _give_up(
         self,
         device: str,
         state: DeviceState,
         consumer: StreamConsumer,
         delivery: Delivery,
-        exc: Exception,
+        error: JobError,
+        letter: JobError,
     ) -> None:
-        error = error_of(exc, logged_with="the device's name")
-        letter = dead_letter_of(exc)
+        """Fail the frame for good: a ``failed`` event with the client's ``error``, and
+        a dead letter with the operator's ``letter``."""
         # The entry failed to parse, perhaps here: its seq is shown, never trusted.
         sequence = delivery.fields.get("seq", b"-1").decode(errors="replace")
         event = {

@@ -239,17 +239,18 @@ def error_of(exc: BaseException, logged_with: str = "this job's id") -> JobError
     )
 
 
-def model_unavailable(record: JobRecord) -> JobError:
-    """The error a client sees for a job whose decoder's model file is not the one its
-    card describes (:class:`models.decoders.learned.ModelFileError`): the server's
-    install, not the request, is at fault, and no retry mends it until an operator
-    restores the file (its name is in the worker's log and the dead letter, not here)."""
+def model_unavailable(decoder: str, encoding: str, logged_with: str, then: str) -> JobError:
+    """The error a client sees for a job or frame whose decoder's model file is not the
+    one its card describes (:class:`models.decoders.learned.ModelFileError`): the
+    server's install, not the request, is at fault, and no retry mends it until an
+    operator restores the file (its name is in the worker's log, found by
+    ``logged_with``, and the dead letter, not here). ``decoder``: words naming the
+    decoder; ``then``: what the client can do."""
     return JobError(
         code="model_unavailable",
-        message=f"decoder {record.decoder!r} cannot decode {record.params.encoding} frames "
-        "on this server: its model file is missing or not the one its card describes "
-        "(logged with this job's id for the operator to restore); choose another decoder, "
-        "or submit again once it is restored",
+        message=f"{decoder} cannot decode {encoding} frames on this server: its model file "
+        "is missing or not the one its card describes (logged with "
+        f"{logged_with} for the operator to restore); {then}",
     )
 
 
@@ -364,7 +365,11 @@ class JobProcessor:
         and its dead letter names the file and what to do."""
         log.error("job %s: the server's model install is broken: %s", record.id, exc)
         letter = JobError(code="model_unavailable", message=str(exc))
-        self._fail(consumer, delivery, record, model_unavailable(record), dead_letter=letter)
+        error = model_unavailable(
+            f"decoder {record.decoder!r}", record.params.encoding, "this job's id",
+            "choose another decoder, or submit again once it is restored",
+        )
+        self._fail(consumer, delivery, record, error, dead_letter=letter)
 
     def _hand_back(self, consumer: StreamConsumer, delivery: Delivery, record: JobRecord) -> None:
         """The worker is stopping: the job goes back to the queue, to be redone from its

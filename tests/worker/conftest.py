@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import redis
 
+from models.decoders import learned
+from models.decoders.registry import get_decoder
 from models.formation import SensorFrame, SensorParams, simulate
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.jobs import JobRecord
@@ -40,6 +42,18 @@ def overflowing_codes(size: int = 64) -> np.ndarray:
     x ~ 1e90, beyond float32 (the decode fails with output_overflow)."""
     u = np.tile(np.linspace(0.0, 16.0, size), (size, 1))
     return np.floor((u - np.floor(u)) * 256).astype(np.uint8)
+
+
+def break_model_file(monkeypatch: pytest.MonkeyPatch, decoder: str, encoding: str) -> None:
+    """Make ``decoder``'s model file for ``encoding`` read as not its card's (its sha256
+    differs, as a file cut short), every model of ``decoder`` to be opened afresh."""
+    for model in get_decoder(decoder).models.values():
+        monkeypatch.setattr(model, "_session", None)
+    sha256_of = learned.sha256_of
+    monkeypatch.setattr(
+        learned, "sha256_of",
+        lambda path: "0" * 64 if path.name == f"{decoder}-{encoding}.onnx" else sha256_of(path),
+    )  # fmt: skip
 
 
 def result_files(data_dir: Path) -> list[str]:

@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 import redis
 
-from tests.worker.conftest import ramp_frame
+from models.decoders import learned
+from models.formation import SensorParams
+from tests.worker.conftest import break_model_file, ramp_frame
 from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP
 from worker.device_consumer import DeviceConsumer, LeaseLost
@@ -312,3 +314,40 @@ def test_a_frame_failing_on_an_internal_error_tells_the_client_what_to_do_not_th
     (letter,) = dead_letters(client)
     assert letter[b"code"] == b"internal_error"
     assert letter[b"message"].startswith(b"OSError: [Errno 30] Read-only file system")
+
+
+def test_a_frame_meeting_a_broken_model_install_fails_at_once_and_the_stream_goes_on(
+    client: redis.Redis, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A stream decoded by mantissanet-small, its modulo model file not its card's: each
+    modulo frame raised ModelFileError, an OSError, so it was retried to its last
+    delivery (a traceback each time, the stream held up meanwhile), then failed as
+    ``internal_error`` ("retry later, or report it"). Each now fails at its first
+    delivery as ``model_unavailable``, without the host's paths; its dead letter names
+    the file and what to do, the log says so in one line, and a mantissa frame after
+    them is decoded."""
+    break_model_file(monkeypatch, "mantissanet-small", "modulo")
+    consumer = DeviceConsumer(
+        client, ResultStore(tmp_path / RESULTS_DIR, retention_s=3600), owner="w1",
+        lease_ms=5000, max_deliveries=3, stop=threading.Event(),
+        decode=make_frame_decoder("independent", "mantissanet-small"),
+    )  # fmt: skip
+    for sequence in (0, 1):
+        publish_frame(client, frame("a", sequence), maxlen=10)
+    sensor = ramp_frame(size=16, params=SensorParams(encoding="mantissa", bits=8))
+    publish_frame(client, FrameMessage("a", 2, 2000, sensor.codes, sensor.params), maxlen=10)
+    while consumer.poll():
+        pass
+    events = [fields for _, fields in client.xrange(events_stream("a"))]
+    assert [(e[b"type"], e.get(b"code")) for e in events] == [
+        (b"failed", b"model_unavailable"), (b"failed", b"model_unavailable"), (b"frame", None)]
+    assert b"cannot decode modulo frames" in events[0][b"message"]
+    assert str(learned.ONNX_DIR).encode() not in events[0][b"message"]
+    letters = dead_letters(client)
+    assert [(letter[b"code"], letter[b"deliveries"]) for letter in letters] == [
+        (b"model_unavailable", b"1"), (b"model_unavailable", b"1")]
+    assert b"mantissanet-small-modulo.onnx" in letters[0][b"message"]
+    assert b"restore it" in letters[0][b"message"]
+    assert "Traceback" not in caplog.text and caplog.text.count("model install is broken") == 1
+    assert client.xlen(frame_stream("a")) == 0 and consumer.states["a"].last_sequence == 2

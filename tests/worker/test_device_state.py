@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.decoders import cost_model, learned
+from models.decoders import cost_model
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError
+from tests.worker.conftest import break_model_file
 from worker.device_state import DeviceState, make_frame_decoder, warm_up
 from worker.frame_message import FrameMessage
 
@@ -72,13 +73,8 @@ def test_warm_up_warms_each_encoding_whose_model_file_is_sound(
     ModelFileError at that first encoding, so the mantissa model was never warmed: a job
     child's first mantissa job paid the session's creation, and a worker with devices
     did not start. Each encoding is now warmed on its own, the broken one logged."""
+    break_model_file(monkeypatch, "mantissanet-small", "modulo")
     decoder = get_decoder("mantissanet-small")
-    for model in decoder.models.values():
-        monkeypatch.setattr(model, "_session", None)
-    sha256_of = learned.sha256_of
-    monkeypatch.setattr(
-        learned, "sha256_of", lambda path: "0" * 64 if "modulo" in path.name else sha256_of(path)
-    )
     took = warm_up("mantissanet-small")
     assert set(took) == {"mantissa"} and decoder.models["mantissa"]._session is not None
     assert "mantissanet-small-modulo.onnx is not the one its card describes" in caplog.text
