@@ -15,6 +15,11 @@ and ``should_stop`` (polled every :data:`POLL_S` while the child works) ends the
 at once: the child is killed, the exception ``should_stop`` raised propagates, and the
 next call starts a fresh child.
 
+The child's own exception is raised in the caller, the child's traceback added to it as
+a note (``logging``'s ``exception`` prints it) unless it is a :class:`McamError`: the
+caller logs it once, or, for an error it reports in one line (a broken model install),
+not at all.
+
 A child that dies while working (killed, out of memory) fails its call with
 :class:`ChildDiedError` (and a warning in the log); a new child is started at once
 after a kill or a death, so the next call does not wait for one to warm up. Children
@@ -154,7 +159,9 @@ class ChildProcess:
     ) -> Any:
         """``function(*args)`` in the child (both picklable: a module-level function);
         ``should_stop()`` is called while it runs, and whatever it raises kills the
-        child and propagates. The function's own exception is raised here."""
+        child and propagates. The function's own exception is raised here, with the
+        child's traceback as a note unless it is a McamError (not logged: the caller logs
+        what it needs)."""
         self.start()
         assert self._process is not None and self._conn is not None
         try:
@@ -176,8 +183,8 @@ class ChildProcess:
         if reply[0] == "ok":
             return reply[1]
         _, exc, text = reply
-        if not isinstance(exc, McamError):
-            log.error("call in child %s failed:\n%s", self.pid, text)
+        if not isinstance(exc, McamError):  # the caller's mistake: no traceback wanted
+            exc.add_note(f"raised in child {self.pid}:\n{text.rstrip()}")
         raise exc
 
     def restart(self) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import traceback
 from collections.abc import Iterator
 
 import pytest
@@ -50,6 +51,23 @@ def test_the_childs_exceptions_are_raised_here(child: ChildProcess) -> None:
     with pytest.raises(RuntimeError, match="a bug in the child"):
         child.call(child_calls.fail, (), never)
     assert child.call(child_calls.started, (), never) == "yes"
+
+
+def test_a_childs_exception_carries_its_traceback_for_the_caller_to_log_once(
+    child: ChildProcess, caplog: pytest.LogCaptureFixture
+) -> None:
+    """ChildProcess logged the child's traceback of every failed call itself ("call in
+    child N failed:"), beside what its caller logged: a job meeting a broken model
+    install, which the job processor reports in one line, logged a full traceback too.
+    The child's traceback now travels with its exception as a note, which the caller's
+    ``log.exception`` prints, and nothing is logged here."""
+    with pytest.raises(RuntimeError) as raised:
+        child.call(child_calls.fail, (), never)
+    assert caplog.records == []
+    (note,) = raised.value.__notes__
+    assert f"raised in child {child.pid}" in note
+    assert 'raise RuntimeError("a bug in the child")' in note
+    assert note in "".join(traceback.format_exception(raised.value))
 
 
 def test_should_stop_kills_the_child_and_the_next_call_starts_another(
