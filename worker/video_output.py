@@ -181,9 +181,12 @@ def pad_even(image: NDArray[Any]) -> NDArray[Any]:
 
 
 def to_nits(frame: NDArray[np.floating], settings: Hdr10Settings) -> NDArray[np.float64]:
-    """Absolute luminance in BT.2020 primaries (``H x W x 3``, cd/m^2) of a frame."""
-    rgb = as_rgb(frame) @ BT709_TO_BT2020.T
-    return np.maximum(rgb, 0.0) * (settings.reference_white / settings.white_level)
+    """Absolute luminance in BT.2020 primaries (``H x W x 3``, cd/m^2) of a frame; a
+    value past float64's range is ``inf``, which the PQ curve and the light levels clip
+    to :data:`PQ_PEAK` like any value above it."""
+    with np.errstate(over="ignore"):
+        rgb = as_rgb(frame) @ BT709_TO_BT2020.T
+        return np.maximum(rgb, 0.0) * (settings.reference_white / settings.white_level)
 
 
 def light_levels(frames: Sequence[NDArray[np.floating]], settings: Hdr10Settings) -> LightLevels:

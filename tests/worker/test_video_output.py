@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import warnings
 import zipfile
 from fractions import Fraction
 
@@ -31,6 +32,7 @@ from worker.video_output import (
     pq_decode,
     pq_encode,
     sdr_frames,
+    to_nits,
     write_hdr10,
     write_sdr_preview,
     x265_params,
@@ -310,3 +312,15 @@ def test_hdr10_signals_where_its_chroma_samples_sit() -> None:
     the left column (a half-pixel shift at colour edges)."""
     stream_params = x265_params(Hdr10Settings(), light_levels(grey_clip(), Hdr10Settings()), 6)
     assert "chromaloc=1" in stream_params.split(":")
+
+
+def test_a_frame_past_float64_in_nits_is_the_pq_peak_without_a_warning() -> None:
+    frame = np.full((4, 4), 1e308)
+    frame[0, 0] = 0.0
+    settings = Hdr10Settings(white_level=1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        nits = to_nits(frame, settings)
+        luma = hdr10_yuv(frame, settings)[0]
+    assert np.isposinf(nits[1:]).all() and (nits[0, 0] == 0.0).all()
+    assert luma[1:].min() == luma.max() > luma[0, 0]
