@@ -2,7 +2,8 @@
 
 Formats
 -------
-- ``png``: grayscale 8- or 16-bit; codes stored as-is (never rescaled); the
+- ``png``: grayscale 8- or 16-bit (1-, 2- and 4-bit PNGs of other software are read
+  as stored too); codes stored as-is (never rescaled); the
   parameters as JSON in a ``tEXt`` chunk with keyword ``mantissacam``. Colour
   frames are refused: store them as TIFF.
 - ``tiff``: ``H x W`` or ``H x W x C`` (decoders take C = 1 or 3: grey or RGB, no
@@ -68,7 +69,10 @@ FRAME_ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
 FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in FRAME_ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
-_PNG_MODES = ("L", "I;16", "I;16B", "I;16L", "I")
+_PNG_MODES = ("1", "L", "I;16", "I;16B", "I;16L", "I")
+#: Where a PNG's bit depth per sample is: after the signature (8 bytes), the IHDR
+#: chunk's length and type (8) and its width and height (8).
+_PNG_DEPTH_OFFSET = 24
 logger = logging.getLogger(__name__)
 
 
@@ -246,11 +250,26 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
     check_pixel_count(image.width, image.height, max_pixels)
     if image.mode not in _PNG_MODES:
         raise UnsupportedFormatError(
-            f"PNG frames are 8- or 16-bit grayscale, got PNG mode {image.mode}; "
+            f"PNG frames are grayscale (1 to 16 bits), got PNG mode {image.mode}; "
             "store colour frames as TIFF"
         )
     image.load()
-    return np.asarray(image), parse_stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")
+    stored = parse_stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")
+    return png_samples(image, data), stored
+
+
+def png_samples(image: Image.Image, data: bytes) -> NDArray[Any]:
+    """The samples of the grayscale PNG ``image`` (opened from ``data``) as stored.
+
+    Pillow widens 1-, 2- and 4-bit samples to 8 bits: mode ``1`` as booleans, mode
+    ``L`` scaled to 0..255 (a 2-bit 3 reads 255); this gives back the stored values."""
+    pixels = np.asarray(image)
+    depth = data[_PNG_DEPTH_OFFSET]
+    if pixels.dtype == np.bool_:
+        return pixels.astype(np.uint8)
+    if depth < 8:
+        return pixels // np.uint8(255 // ((1 << depth) - 1))
+    return pixels
 
 
 def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
@@ -486,7 +505,7 @@ def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
     with decoding(f"the {fmt.upper()} winding map"):
         if fmt == "png":
             image = Image.open(io.BytesIO(data), formats=["PNG"])
-            arr, frame = np.asarray(image), PNG_KEYWORD in image.text
+            arr, frame = png_samples(image, data), PNG_KEYWORD in image.text
         elif fmt == "tiff":
             with tifffile.TiffFile(io.BytesIO(data)) as tif:
                 arr, frame = tif.asarray(), bool(tiff_params(tif.pages.first.description))

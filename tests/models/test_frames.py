@@ -30,6 +30,7 @@ from models.frames import (
     WrappedFrame,
     decode_frame,
     decode_raw,
+    decode_winding,
     encode_frame,
     frame_format,
     read_frame,
@@ -199,6 +200,29 @@ def test_colour_png_is_refused_with_a_pointer_to_tiff() -> None:
     Image.fromarray(random_codes((4, 4, 3), 8)).save(buffer, format="PNG")
     with pytest.raises(UnsupportedFormatError, match="TIFF"):
         decode_frame(buffer.getvalue(), "png", {"encoding": "modulo", "bits": 8})
+
+
+def low_depth_png(values: np.ndarray, depth: int) -> bytes:
+    """A 1-, 2- or 4-bit grayscale PNG of ``values`` (< 2^depth), as other software
+    writes a low-bit-depth sensor's frame or a small W map."""
+    image = Image.fromarray(values.astype(bool) if depth == 1 else values.astype(np.uint8))
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG", bits=depth)
+    data = buffer.getvalue()
+    assert data[24] == depth  # the IHDR's bit depth
+    return data
+
+
+@pytest.mark.parametrize("depth", [1, 2, 4])
+def test_low_bit_depth_pngs_are_read_as_stored(depth: int) -> None:
+    """Pillow widens a 1-, 2- or 4-bit grayscale PNG's samples to 0..255 (a 2-bit 3
+    reads 255): such a frame with bits 2 or 4 was refused as 'not 2-bit', with bits 8
+    decoded codes 85 or 17 times too large without a word, and a 1-bit one was refused
+    as 'mode 1'; a W map written so read W 85 times too large."""
+    values = random_codes((5, 7), depth)
+    frame = decode_frame(low_depth_png(values, depth), "png", {"encoding": "modulo", "bits": depth})
+    np.testing.assert_array_equal(frame.codes, values)
+    np.testing.assert_array_equal(decode_winding(low_depth_png(values, depth), "png"), values)
 
 
 def test_single_channel_png_is_squeezed() -> None:
