@@ -318,11 +318,14 @@ def check_compression(code: int) -> None:
 
 
 def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
-    """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last).
+    """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last);
+    a 1-bit page's as uint8 0 and 1 (tifffile gives booleans).
 
     Raises :class:`UnsupportedFormatError` for a compression not accepted
     (:func:`check_compression`)."""
     check_compression(int(page.compression))
     check_inflation(page)
     codes = page.asarray()
+    if codes.dtype == np.bool_:
+        codes = codes.astype(np.uint8)
     return np.moveaxis(codes, 0, -1) if _separate(page) else codes

@@ -328,3 +328,15 @@ def test_tiles_and_strips_of_every_usual_layout_are_read() -> None:
     for options in ({"tile": (32, 32)}, {"rowsperstrip": 3}, {"rowsperstrip": 64}):
         with open_tiff(tiff(codes, compression="zlib", **options)) as (tif, _):
             np.testing.assert_array_equal(page_codes(tif.pages.first), codes)
+
+
+def test_a_bilevel_tiffs_codes_are_integers() -> None:
+    """A 1-bit TIFF (a 1-bit sensor's frame as Pillow or a camera writes it) read as
+    booleans, refused as 'codes must be integers ... not normalized floats'."""
+    codes = np.random.default_rng(0).integers(0, 2, (5, 7)).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(codes.astype(bool)).save(buffer, format="TIFF")
+    with open_tiff(buffer.getvalue(), max_pages=1) as (tif, _):
+        read = page_codes(tif.pages.first)
+    assert read.dtype == np.uint8
+    np.testing.assert_array_equal(read, codes)
