@@ -51,10 +51,20 @@ def check_frame_shape(codes: NDArray[Any]) -> None:
     if codes.ndim not in (2, 3):
         raise InvalidInputError(f"a frame is H x W or H x W x 3, got shape {codes.shape}")
     if codes.shape[0] < 2 or codes.shape[1] < 2:
-        raise InvalidInputError(
-            f"a {codes.shape[0]} x {codes.shape[1]} frame has no neighbours to unwrap against; "
-            "spatial decoders need at least 2 x 2 pixels"
-        )
+        raise InvalidInputError(_too_narrow(codes.shape[0], codes.shape[1]))
+
+
+def _too_narrow(height: int, width: int) -> str:
+    """Why a ``height x width`` frame (pixels) one pixel high or wide is refused, and
+    what to send instead (a classical decoder gives each copy of a row sent twice the
+    row's W)."""
+    lacks = f"a {height} x {width} frame has no neighbours to unwrap against"
+    need = "spatial decoders need at least 2 x 2 pixels: send the whole frame"
+    if height == 1 and width > 1:
+        return f"{lacks} above or below; {need}, or this row twice (a 2 x {width} frame)"
+    if width == 1 and height > 1:
+        return f"{lacks} left or right; {need}, or this column twice (a {height} x 2 frame)"
+    return f"{lacks}; {need}"
 
 
 def refuse_empty(m: NDArray[Any]) -> None:

@@ -62,6 +62,30 @@ def test_frames_a_decoder_cannot_unwrap_are_rejected(shape: tuple[int, ...], mes
         check_frame_shape(np.zeros(shape, np.uint8))
 
 
+@pytest.mark.parametrize(
+    ("shape", "remedy"),
+    [
+        ((1, 1), "send the whole frame$"),
+        ((1, 40), r"send the whole frame, or this row twice \(a 2 x 40 frame\)"),
+        ((40, 1, 3), r"send the whole frame, or this column twice \(a 40 x 2 frame\)"),
+    ],
+)
+def test_a_frame_one_pixel_wide_is_refused_saying_what_to_send(
+    shape: tuple[int, ...], remedy: str
+) -> None:
+    """A 1 x N frame was refused as having 'no neighbours to unwrap against' (each pixel
+    has two, along the row) with nothing to do about it."""
+    with pytest.raises(InvalidInputError, match=remedy):
+        check_frame_shape(np.zeros(shape, np.uint8))
+
+
+def test_a_row_sent_twice_decodes_as_that_row() -> None:
+    """What the refusal of a 1 x N frame advises works: each copy gets the row's W."""
+    row = encode(np.linspace(0.01, 20.0, 64)[None, :], MODULO)
+    result = ItohDecoder().decode(np.vstack([row.codes, row.codes]), MODULO)
+    np.testing.assert_array_equal(result.winding, np.vstack([row.winding, row.winding]))
+
+
 def test_anchor_shifts_the_darkest_pixels_to_zero() -> None:
     relative = np.array([[-3, -3, -2], [-1, 0, 4]])
     assert np.array_equal(anchor_winding(relative, MODULO), relative + 3)
