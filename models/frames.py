@@ -34,6 +34,7 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 from PIL import Image, PngImagePlugin, UnidentifiedImageError
+from pydantic import ValidationError
 
 from models.errors import (
     ImageTooLargeError,
@@ -347,7 +348,7 @@ def _asking_for(missing: dict[str, str]) -> str:
     """How to give ``missing`` parameters, as flags and as form fields (and, when the
     encoding is missing, that a mantissa frame needs its alpha too: asked for only after
     the encoding came, it took a second refusal)."""
-    flags = " ".join(f"--{key} {example}" for key, example in missing.items())
+    flags = " ".join(f"--{key.replace('_', '-')} {example}" for key, example in missing.items())
     fields = ", ".join(f"{key}={example}" for key, example in missing.items())
     mantissa = (
         "; a mantissa frame also needs its alpha (--alpha 2, alpha=2)"
@@ -380,7 +381,27 @@ def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> Sens
             f"the frame does not store its {', '.join(missing)}; give them as parameters "
             f"({_asking_for(missing)})"
         )
-    return SensorParams.parse(merged)
+    try:
+        return SensorParams.parse(merged)
+    except InvalidInputError as exc:
+        if stored_faults := _stored_faults(merged, given):
+            overrides = {key: "<value>" for key in stored_faults}
+            raise InvalidInputError(
+                f"{exc.message}; the frame stores {', '.join(stored_faults)}: give the right "
+                f"value as a parameter to override it ({_asking_for(overrides)})"
+            ) from None
+        raise
+
+
+def _stored_faults(merged: dict[str, Any], given: dict[str, Any]) -> list[str]:
+    """The parameters of ``merged`` that are out of range and come from the frame's
+    stored text, not from ``given`` (the caller's)."""
+    try:
+        SensorParams.model_validate(merged)
+    except ValidationError as exc:
+        fields = {str(error["loc"][0]) for error in exc.errors() if error["loc"]}
+        return sorted(fields - set(given))
+    return []
 
 
 def eight_bit_warning(codes: NDArray[Any], params: SensorParams) -> str | None:

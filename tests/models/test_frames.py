@@ -225,6 +225,33 @@ def test_low_bit_depth_pngs_are_read_as_stored(depth: int) -> None:
     np.testing.assert_array_equal(decode_winding(low_depth_png(values, depth), "png"), values)
 
 
+def png_storing(text: str) -> bytes:
+    """A 4 x 4 8-bit PNG frame whose parameter chunk holds ``text`` (another writer's)."""
+    info = PngImagePlugin.PngInfo()
+    info.add_text(PNG_KEYWORD, text)
+    buffer = io.BytesIO()
+    Image.fromarray(np.zeros((4, 4), np.uint8)).save(buffer, format="PNG", pnginfo=info)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("stored", "flag"),
+    [('"gain": 1e999', "--gain <value>; HTTP: the form fields gain=<value>"),
+     ('"max_wraps": 0.5', "--max-wraps <value>; HTTP: the form fields max_wraps=<value>")],
+)
+def test_a_bad_value_the_frame_stores_is_named_as_the_frames(stored: str, flag: str) -> None:
+    """A frame storing an out-of-range value (an infinite gain written by other software)
+    was refused with 'invalid sensor parameters: gain: Input should be a finite number',
+    as if the caller had given it, and without saying that a parameter overrides it."""
+    data = png_storing('{"encoding": "mantissa", "alpha": 2, "bits": 8, ' + stored + "}")
+    with pytest.raises(InvalidInputError, match=f"the frame stores .*{re.escape(flag)}"):
+        decode_frame(data, "png")
+    frame = encode_frame(np.zeros((4, 4), np.uint8), PARAMS_8, "png")
+    with pytest.raises(InvalidInputError) as given:
+        decode_frame(frame, "png", {"gain": -1.0})
+    assert "the frame stores" not in given.value.message
+
+
 def test_single_channel_png_is_squeezed() -> None:
     codes = random_codes((5, 6, 1), 8)
     frame = decode_frame(encode_frame(codes, PARAMS_8, "png"), "png")
