@@ -17,7 +17,12 @@ The record is the hash ``device:<id>:recording``; its ``state`` goes ``recording
 ``job``) or ``failed`` (``error`` says why). A recording also ends by itself after
 ``max_frames`` frames, before a frame that would take its code values past
 ``max_samples`` (a video job is one Redis value), or when the camera's sensor parameters
-(other than the noise seed) or frame shape change: the frames so far become the video. Each recorded
+(other than the noise seed) or frame shape change: the frames so far become the video.
+A recording holds the frames its camera sent between the start and the stop, however
+late the worker handles them (it was down, or behind): the start and the stop note the
+newest entry of the device's frame stream then (``start_entry``, ``stop_entry``), the
+frames after the first and up to the second are recorded, and a stopping recording
+becomes its video once no entry up to ``stop_entry`` is left on the stream. Each recorded
 frame's codes (DN) are stored as ``recordings/<recording id>/<index:06d>.npy`` in the
 result store until the job is queued. A frame flagged DISCONT, or one after a
 sequence gap, is listed in ``keyframes`` (its index in the video), which the video
@@ -55,7 +60,7 @@ from worker.deliveries import entry_order
 from worker.device_registry import DeviceNotFoundError
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue, check_decoder_supports
-from worker.redis_keys import DEVICES_SET, health_key, recording_key
+from worker.redis_keys import DEVICES_SET, frame_stream, health_key, recording_key
 from worker.result_store import ResultStore
 from worker.video_jobs import check_frame_size, video_options
 
@@ -69,13 +74,24 @@ RECORDING_QUEUE_MAXLEN = 1 << 30
 #: and Redis takes at most 512 MB (a 618 MiB recording's job was refused on every try).
 MAX_RECORDING_SAMPLES = 2**26
 
-# KEYS: the recording, the devices set. ARGV: the device, then the record's fields.
-# -1: the device is not registered (a forget came first); 0: a recording is active.
-_START = """
+# The id of the newest entry on the frame stream (KEYS[n]; '0-0' when none waits): the
+# frames sent up to then are those at or before it.
+_NEWEST_ENTRY = """
+local function newest_entry(stream)
+  local newest = redis.call('XREVRANGE', stream, '+', '-', 'COUNT', 1)
+  if #newest == 0 then return '0-0' end
+  return newest[1][1]
+end
+"""
+
+# KEYS: the recording, the devices set, the frame stream. ARGV: the device, then the
+# record's fields. -1: the device is not registered (a forget came first); 0: a
+# recording is active.
+_START = _NEWEST_ENTRY + """
 if redis.call('SISMEMBER', KEYS[2], ARGV[1]) == 0 then return -1 end
 local state = redis.call('HGET', KEYS[1], 'state')
 if state == 'recording' or state == 'stopping' then return 0 end
-local fields = {}
+local fields = {'start_entry', newest_entry(KEYS[3])}
 for i = 2, #ARGV do fields[#fields + 1] = ARGV[i] end
 redis.call('DEL', KEYS[1])
 redis.call('HSET', KEYS[1], unpack(fields))
@@ -83,9 +99,11 @@ return 1
 """
 
 # Stops a running recording; returns the record (after the stop) in the same step.
-_STOP = """
+# KEYS: the recording, the frame stream.
+_STOP = _NEWEST_ENTRY + """
 if redis.call('HGET', KEYS[1], 'state') == 'recording' then
-  redis.call('HSET', KEYS[1], 'state', 'stopping', 'reason', 'requested', 'stopped_ns', ARGV[1])
+  redis.call('HSET', KEYS[1], 'state', 'stopping', 'reason', 'requested', 'stopped_ns', ARGV[1],
+             'stop_entry', newest_entry(KEYS[2]))
 end
 return redis.call('HGETALL', KEYS[1])
 """
@@ -127,6 +145,8 @@ class Recording:
     first_sequence: int | None = None
     last_sequence: int | None = None
     last_entry: str | None = None
+    start_entry: str | None = None
+    stop_entry: str | None = None
     job: str | None = None
     error: str | None = None
 
@@ -152,9 +172,24 @@ class Recording:
             first_sequence=int(get["first_sequence"]) if get.get("first_sequence") else None,
             last_sequence=int(get["last_sequence"]) if get.get("last_sequence") else None,
             last_entry=get.get("last_entry") or None,
+            start_entry=get.get("start_entry") or None,
+            stop_entry=get.get("stop_entry") or None,
             job=get.get("job") or None,
             error=get.get("error") or None,
         )
+
+    def takes(self, entry_id: str) -> bool:
+        """Whether the frame of stream entry ``entry_id`` belongs to the recording: sent
+        after its start and, once stopping, at or before its stop (the newest entries then),
+        however late the worker handles it."""
+        if self.state not in ACTIVE_STATES:
+            return False
+        order = entry_order(entry_id)
+        if self.start_entry is not None and order <= entry_order(self.start_entry):
+            return False
+        if self.state == "stopping":
+            return self.stop_entry is not None and order <= entry_order(self.stop_entry)
+        return True
 
     def view(self) -> dict[str, Any]:
         """The recording as JSON for the API (frame codes and stream cursors left out)."""
@@ -261,7 +296,9 @@ def start_recording(
         "started_ns": str(time.time_ns()),
     }
     args = [device, *(item for pair in fields.items() for item in pair)]
-    started = client.register_script(_START)(keys=[recording_key(device), DEVICES_SET], args=args)
+    started = client.register_script(_START)(
+        keys=[recording_key(device), DEVICES_SET, frame_stream(device)], args=args
+    )
     if started == -1:
         raise DeviceNotFoundError(device)
     if not started:
@@ -274,7 +311,9 @@ def request_stop(client: redis.Redis, device: str) -> Recording | None:
     it, read in the same step (None: never any). A start right after the stop is not
     taken for the recording it stopped (read apart, the stop answered with it, still
     recording)."""
-    raw = client.register_script(_STOP)(keys=[recording_key(device)], args=[time.time_ns()])
+    raw = client.register_script(_STOP)(
+        keys=[recording_key(device), frame_stream(device)], args=[time.time_ns()]
+    )
     return Recording.from_hash(dict(zip(raw[::2], raw[1::2], strict=True))) if raw else None
 
 
@@ -303,9 +342,9 @@ class Recorder:
         return bool(self._update(keys=[recording_key(recording.device)], args=args))
 
     def add_frame(self, message: FrameMessage, entry_id: str) -> None:
-        """Record a reconstructed frame if the device's recording is collecting frames."""
+        """Record a reconstructed frame if it belongs to the device's recording."""
         recording = load_recording(self.client, message.device)
-        if recording is None or recording.state != "recording":
+        if recording is None or not recording.takes(entry_id):
             return
         if recording.last_entry and entry_order(entry_id) <= entry_order(recording.last_entry):
             return
@@ -332,7 +371,7 @@ class Recorder:
             update["keyframes"] = ",".join(map(str, [*recording.keyframes, index]))
         self.store.write(frame_key(recording.id, index), encode_frame(message.codes, None, "npy"))
         update["frames"] = index + 1
-        if not self._set(recording, update, states=("recording",), frames=index):
+        if not self._set(recording, update, frames=index):
             return
         if index + 1 >= recording.max_frames:
             self._finish(load_recording(self.client, message.device) or recording, "max_frames")
@@ -351,12 +390,23 @@ class Recorder:
         return True
 
     def finish_if_stopping(self, device: str) -> None:
-        """Queue the video job of a recording the API asked to stop."""
+        """Queue the video job of a recording the API asked to stop, once every frame sent
+        before the stop has been handled (none at or before its ``stop_entry`` is left on
+        the stream: the worker deletes each entry it is done with)."""
         if self.client.hget(recording_key(device), "state") != b"stopping":
             return
         recording = load_recording(self.client, device)
-        if recording is not None:
-            self._finish(recording, recording.reason or "requested")
+        if recording is None or self._frames_left(recording):
+            return
+        self._finish(recording, recording.reason or "requested")
+
+    def _frames_left(self, recording: Recording) -> bool:
+        """Whether frames sent before the recording's stop still wait on the stream."""
+        if recording.stop_entry is None:
+            return False
+        return bool(self.client.xrange(
+            frame_stream(recording.device), "-", recording.stop_entry, count=1
+        ))
 
     def _finish(self, recording: Recording, reason: str) -> None:
         """Assemble the recorded frames (T x H x W codes), queue the video job, note its id."""

@@ -22,7 +22,13 @@ from worker.recordings import (
     request_stop,
     start_recording,
 )
-from worker.redis_keys import DEVICES_SET, JOBS_STREAM, health_key, recording_key
+from worker.redis_keys import (
+    DEVICES_SET,
+    JOBS_STREAM,
+    frame_stream,
+    health_key,
+    recording_key,
+)
 from worker.result_store import ResultStore
 from worker.video_input import WrappedVideo
 from worker.video_jobs import video_options
@@ -284,3 +290,41 @@ def test_a_stop_finished_by_two_owners_at_once_stays_submitted(
     done = read(client, "cam1")
     assert done.state == "submitted" and done.error is None, done
     assert queue.get(done.job).frames_total == 3
+
+
+def test_frames_taken_while_the_worker_was_down_are_recorded_by_capture_time(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    """A recording holds the frames the camera sent between its start and its stop, also
+    when the worker handles them later (it was down, or behind). Before, it held the frames
+    the worker happened to handle while the record said ``recording``: a start and a stop
+    while the worker was down ended ``failed`` ("no frames were recorded") with the frames
+    of that time waiting on the stream, and a worker behind recorded frames from before
+    the start."""
+    clip = frames(make_frame, 5)
+    stream = frame_stream("cam1")
+
+    def published(sequence: int) -> str:
+        return client.xadd(stream, message(clip[sequence], sequence).to_fields()).decode()
+
+    def handled(entry_id: str) -> None:
+        """What the worker does with an entry: record the frame, commit (delete) it."""
+        fields = client.xrange(stream, entry_id, entry_id)[0][1]
+        recorder.add_frame(FrameMessage.from_fields(fields), entry_id)
+        client.xdel(stream, entry_id)
+        recorder.finish_if_stopping("cam1")
+
+    before = published(0)
+    start(client)
+    during = [published(1), published(2), published(3)]
+    request_stop(client, "cam1")
+    after = published(4)
+    for entry_id in [before, *during]:
+        handled(entry_id)
+        assert load_recording(client, "cam1").state == ("submitted" if entry_id == during[-1]
+                                                       else "stopping")
+    handled(after)
+    done = load_recording(client, "cam1")
+    assert done.frames == 3 and done.reason == "requested"
+    np.testing.assert_array_equal(queued_codes(client, done.job),
+                                  np.stack([f.codes for f in clip[1:4]]))

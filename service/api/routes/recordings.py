@@ -2,8 +2,9 @@
 
 ``POST`` with ``action=start`` (and the video options of ``POST /v1/videos``, plus
 ``max_frames``) starts a recording; the worker that owns the device stream stores
-each frame it reconstructs. ``action=stop`` ends it: the worker queues the video
-job and the answer is that job (202, or 200 with the finished job under
+each frame the camera sent from then on, until the stop. ``action=stop`` ends it: once
+it has handled the frames sent before the stop, the worker queues the video job and the
+answer is that job (202, or 200 with the finished job under
 ``Prefer: wait=N``); its files come from ``GET /v1/videos/{job}/result``. Fields
 come as JSON, form fields or query parameters. ``GET`` shows the current (or last)
 recording with its frame count. A start is refused (422) when the device's newest frame
