@@ -54,6 +54,9 @@ from worker.video_jobs import video_options
 router = APIRouter(prefix="/v1/devices", tags=["recordings"])
 #: How long a stop waits for the worker to queue the video job (s) before answering 202.
 STOP_WAIT_S = 10.0
+#: Most frames of a recording that names no ``max_frames`` (or the server's
+#: ``MCAM_MAX_VIDEO_FRAMES``, if lower).
+DEFAULT_MAX_FRAMES = 300
 RECORDING_ERRORS = {
     **DEVICE_ERRORS,
     **BODY_ERRORS,
@@ -68,8 +71,11 @@ class RecordingFields(VideoOptionFields):
     """Fields of ``POST /v1/devices/{id}/recordings`` (video options apply to ``start``)."""
 
     action: Literal["start", "stop"] = Field(description="start or stop the recording")
-    max_frames: int = Field(300, ge=1, lt=1 << 63,
-                            description="the recording stops by itself after these")
+    max_frames: int | None = Field(
+        None, ge=1, lt=1 << 63,
+        description=f"the recording stops by itself after these (default "
+        f"{DEFAULT_MAX_FRAMES}, or the server's MCAM_MAX_VIDEO_FRAMES if lower)",
+    )
 
 
 #: A recording form names a handful of fields; Starlette's default allows 1000 and files.
@@ -121,9 +127,10 @@ def _recording_response(recording: Recording, status: int) -> JSONResponse:
 def start(state: ServiceState, device: str, fields: RecordingFields) -> Response:
     """Check the options and write the recording's record (409 if one is running)."""
     limit = state.settings.max_video_frames
-    if fields.max_frames > limit:
+    max_frames = min(DEFAULT_MAX_FRAMES, limit) if fields.max_frames is None else fields.max_frames
+    if max_frames > limit:
         raise InvalidInputError(
-            f"max_frames {fields.max_frames} is above this server's limit of {limit} frames; "
+            f"max_frames {max_frames} is above this server's limit of {limit} frames; "
             f"ask for at most {limit}, or raise the limit (MCAM_MAX_VIDEO_FRAMES)"
         )
     decoder = fields.decoder or state.settings.default_decoder
@@ -131,7 +138,7 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
     options = fields.video_job_options()
     video_options(decoder, options)
     recording = start_recording(
-        state.client, device, decoder=decoder, options=options, max_frames=fields.max_frames,
+        state.client, device, decoder=decoder, options=options, max_frames=max_frames,
         max_samples=state.settings.max_video_samples,
     )
     if recording is None:

@@ -347,3 +347,21 @@ def test_a_stop_whose_recording_a_new_start_replaced_meanwhile_answers_its_end(
         assert f"recording {started['id']} failed" in stopped.json()["message"]
         assert "start a new recording" in stopped.json()["message"]
     assert recording(http)["state"] == "recording"
+
+
+def test_a_start_without_max_frames_takes_the_servers_lower_frame_limit(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """A start that gives no ``max_frames`` on a server whose ``MCAM_MAX_VIDEO_FRAMES`` is
+    below the default of 300 records up to that limit. Before, the README's plain
+    ``action=start`` was refused 422, "max_frames 300 is above this server's limit of
+    10 frames", a number the client never sent."""
+    settings = make_settings(tmp_path, redis_url, max_video_frames=10)
+    stopped_device(settings, "cam1")
+    with serve(create_app(settings)) as url, \
+            httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"}) as http:
+        started = http.post(URL, json={"action": "start"})
+        assert started.status_code == 201, started.text
+        assert started.json()["max_frames"] == 10
+        asked = http.post(URL, json={"action": "start", "max_frames": 11})
+        assert asked.status_code == 422 and "limit of 10 frames" in asked.text
