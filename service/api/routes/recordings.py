@@ -142,11 +142,22 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
         max_samples=state.settings.max_video_samples,
     )
     if recording is None:
-        raise ApiError(
-            409, "recording_running",
-            f"device {device!r} is already recording; stop it first (action=stop)",
-        )
+        raise ApiError(409, "recording_running", _running_message(state, device))
     return _recording_response(recording, 201)
+
+
+def _running_message(state: ServiceState, device: str) -> str:
+    """Why a start found the device's recording active, and what to do: stop it, or wait
+    for the worker to make the video of one already stopped."""
+    active = load_recording(state.client, device)
+    if active is None or active.state != "stopping":
+        return f"device {device!r} is already recording; stop it first (action=stop)"
+    return (
+        f"device {device!r}'s recording {active.id} was stopped and waits for the worker to "
+        "make its video from the frames sent before the stop (is a worker running, and "
+        f"keeping up with the camera?); start again once GET /v1/devices/{device}/recordings "
+        "shows it submitted or failed"
+    )
 
 
 def _ended_and_replaced(state: ServiceState, recording: Recording) -> Recording:

@@ -365,3 +365,21 @@ def test_a_start_without_max_frames_takes_the_servers_lower_frame_limit(
         assert started.json()["max_frames"] == 10
         asked = http.post(URL, json={"action": "start", "max_frames": 11})
         assert asked.status_code == 422 and "limit of 10 frames" in asked.text
+
+
+def test_a_start_while_the_last_recording_is_stopping_says_so(
+    settings: Settings, client: Client
+) -> None:
+    """A start while the last recording waits for the worker to make its video (stopped,
+    the worker down or behind) is refused saying that, and what to do. Before, it said the
+    device "is already recording; stop it first (action=stop)": a stop then changed
+    nothing and the start was refused again."""
+    redis_client = stopped_device(settings, "cam1")
+    http = client(SUBMIT_KEY)
+    assert http.post(URL, json={"action": "start"}).status_code == 201
+    stopping = recordings.request_stop(redis_client, "cam1")
+    refused = http.post(URL, json={"action": "start"})
+    assert refused.status_code == 409 and refused.json()["code"] == "recording_running"
+    message = refused.json()["message"]
+    assert f"recording {stopping.id} was stopped" in message and "stop it first" not in message
+    assert "is a worker running" in message and f"GET {URL}" in message
