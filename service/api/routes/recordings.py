@@ -4,9 +4,9 @@
 ``max_frames``) starts a recording; the worker that owns the device stream stores
 each frame the camera sent from then on, until the stop. ``action=stop`` ends it: once
 it has handled the frames sent before the stop, the worker queues the video job and the
-answer is that job (202, or 200 with the finished job under
-``Prefer: wait=N``); its files come from ``GET /v1/videos/{job}/result``. Fields
-come as JSON, form fields or query parameters. ``GET`` shows the current (or last)
+answer is that job (202, or 200 with the finished job under ``Prefer: wait=N``; a
+stop takes no other field: 422); its files come from ``GET /v1/videos/{job}/result``.
+Fields come as JSON, form fields or query parameters. ``GET`` shows the current (or last)
 recording with its frame count. A start is refused (422) when the device's newest frame
 shows that its video could never be made (a decoder with no model for the frames'
 encoding, ``hdr10`` of frames under 64 px); before any frame, the first one recorded is
@@ -88,6 +88,18 @@ def _refuse_booleans(values: dict[str, Any]) -> None:
         field = RecordingFields.model_fields.get(name)
         if isinstance(value, bool) and field is not None and field.annotation is not bool:
             raise InvalidInputError(f"{name} must be a number, not {str(value).lower()}")
+
+
+def _refuse_start_fields(fields: RecordingFields) -> None:
+    """A stop takes no video options nor ``max_frames``: they were dropped unseen, the
+    video made as its start asked."""
+    given = sorted(fields.model_fields_set - {"action"})
+    if given:
+        raise InvalidInputError(
+            f"a stop takes only action=stop, but {', '.join(given)} came with it: video "
+            "options and max_frames go with action=start; send action=stop alone (the "
+            "video is made as its start asked)"
+        )
 
 
 async def read_fields(request: Request) -> RecordingFields:
@@ -252,6 +264,7 @@ async def post_recording(
     fields = await read_fields(request)
     if fields.action == "start":
         return await run_in_threadpool(start, state, device, fields)
+    _refuse_start_fields(fields)
     wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
     return await run_in_threadpool(stop, state, device, wait_s)
 

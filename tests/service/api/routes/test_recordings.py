@@ -383,3 +383,20 @@ def test_a_start_while_the_last_recording_is_stopping_says_so(
     message = refused.json()["message"]
     assert f"recording {stopping.id} was stopped" in message and "stop it first" not in message
     assert "is a worker running" in message and f"GET {URL}" in message
+
+
+def test_a_stop_with_start_options_is_refused_and_stops_nothing(
+    settings: Settings, client: Client
+) -> None:
+    """Video options and ``max_frames`` go with the start: a stop that sends them is
+    refused naming them, and the recording goes on. Before, they were dropped without a
+    word: a stop asking for ``outputs=sdr`` answered 202 with a job making the start's
+    HDR10, SDR and EXR outputs."""
+    stopped_device(settings, "cam1")
+    http = client(FULL_KEY)
+    assert http.post(URL, json={"action": "start"}).status_code == 201
+    refused = http.post(URL, json={"action": "stop", "outputs": "sdr", "max_frames": 5})
+    assert refused.status_code == 422 and refused.json()["code"] == "invalid_input"
+    message = refused.json()["message"]
+    assert "max_frames, outputs" in message and "action=start" in message
+    assert recording(http)["state"] == "recording"
