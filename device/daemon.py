@@ -268,14 +268,16 @@ class DeviceDaemon:
             self._discont = True
             self.brackets.interrupt()
         self._last_sequence = packet.sequence
+        if packet.flags & FLAG_BRACKET:
+            # A bracket's exposures are not streamed: the settings stay the frames'.
+            self.health.frame_received(packet.sequence, None)
+            self._on_bracket_packet(packet)
+            return
         self.health.frame_received(packet.sequence, {
             "encoding": packet.encoding, "alpha": packet.alpha, "bits": packet.bits,
             "gain": packet.gain, "width": int(packet.codes.shape[1]),
             "height": int(packet.codes.shape[0]),
         })
-        if packet.flags & FLAG_BRACKET:
-            self._on_bracket_packet(packet)
-            return
         self.publisher.offer(FrameMessage(self.device, packet.sequence, packet.timestamp_ns,
                                           packet.codes, packet_params(packet), self._discont))
         self._discont = False

@@ -12,7 +12,8 @@ none yet; the host's number, on past wraps of the camera's 32-bit counter:
 :func:`unwrap_sequence`), ``fps`` (measured over the last frames), ``brackets_saved``,
 ``brackets_incomplete``, ``brackets_saturated`` (complete, but saturated at every pixel:
 not saved), ``control_sent``, ``control_rejected``, ``settings`` (JSON: encoding, alpha,
-bits, gain, width, height of the newest frame), ``updated_ns``.
+bits, gain, width, height of the newest streamed frame: a bracket's exposures are
+not), ``updated_ns``.
 
 The counters are the device's, not one daemon's: a daemon that takes over the device
 (:meth:`DeviceHealth.carry_over`) goes on from those its previous daemon left in the
@@ -134,9 +135,10 @@ class DeviceHealth:
         if 0 < missing <= MAX_MISSING_PER_GAP:
             self.counts["frames_missing"] += missing
 
-    def frame_received(self, sequence: int, settings: dict[str, Any]) -> None:
+    def frame_received(self, sequence: int, settings: dict[str, Any] | None) -> None:
         """Record a valid data packet's arrival (for fps and last-frame gauges); this
-        daemon's first is seen against the previous daemon's last (:meth:`carry_over`)."""
+        daemon's first is seen against the previous daemon's last (:meth:`carry_over`).
+        ``settings`` None (a bracket's packet, not streamed) keeps the streamed frames'."""
         with self._lock:
             if self._first_sequence is None:
                 self._first_sequence = sequence
@@ -145,7 +147,8 @@ class DeviceHealth:
             self.counts["frames_received"] += 1
             self.last_sequence = sequence
             self.last_frame_ns = time.time_ns()
-            self.settings = settings
+            if settings is not None:
+                self.settings = settings
             self._arrivals.append(time.monotonic())
 
     @property

@@ -753,3 +753,21 @@ def test_a_bracket_across_the_wrap_is_saved_beside_the_one_before_it(
             daemon.health.counts["sequence_gaps"]) == (2, 0, 0)
     names = sorted(folder.name for folder in (tmp_path / "datasets" / "cam9").iterdir())
     assert [int(name.partition("-")[2]) for name in names] == [LAP - 4, LAP - 1]
+
+
+def test_a_bracket_leaves_the_reported_settings_those_of_the_streamed_frames(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """The health's ``settings`` describe the frames the device streams: a bracket's
+    exposures (clip images at other gains, never streamed) do not take their place.
+    Before, the last exposure's showed until the next frame (10 s at 0.1 fps): ``GET
+    /v1/devices/{id}`` said ``clip``, and a recording start with a decoder for the
+    camera's encoding only was refused 422 "sends clip frames"."""
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9", data_dir=tmp_path),
+                          client)
+    daemon._on_data(lp.DataPacket(9, 0, "modulo", 2.0, 8, 1.0, np.full((4, 4), 100, np.uint8)))
+    streamed = daemon.health.settings
+    assert streamed["encoding"] == "modulo" and streamed["gain"] == 1.0
+    for packet in bracket_packets(10):
+        daemon._on_data(packet)
+    assert daemon.health.counts["brackets_saved"] == 1
+    assert daemon.health.settings == streamed and daemon.health.last_sequence == 12
