@@ -214,9 +214,28 @@ class Recording:
         }
 
 
+def recording_folder(recording_id: str) -> str:
+    """Result-store folder of a recording's frames."""
+    return f"recordings/{recording_id}"
+
+
 def frame_key(recording_id: str, index: int) -> str:
     """Result-store key of a recorded frame's codes (.npy)."""
-    return f"recordings/{recording_id}/{index:06d}.npy"
+    return f"{recording_folder(recording_id)}/{index:06d}.npy"
+
+
+def active_recording_folders(client: redis.Redis) -> list[str]:
+    """Result-store folders of the recordings still collecting frames or waiting for
+    their video job: their frames exist nowhere else, so no retention purges them."""
+    devices = sorted(device.decode() for device in client.smembers(DEVICES_SET))
+    pipe = client.pipeline(transaction=False)
+    for device in devices:
+        pipe.hmget(recording_key(device), "id", "state")
+    return [
+        recording_folder(recording_id.decode())
+        for recording_id, state in pipe.execute()
+        if recording_id and state and state.decode() in ACTIVE_STATES
+    ]
 
 
 def load_recording(client: redis.Redis, device: str) -> Recording | None:
@@ -416,7 +435,7 @@ class Recorder:
             self._fail(recording, reason, exc.message)
         else:
             self._set(recording, {**_ended(recording, reason), "state": "submitted", "job": job})
-        for key in self.store.keys(f"recordings/{recording.id}"):
+        for key in self.store.keys(recording_folder(recording.id)):
             self.store.delete(key)
 
     def _fail(self, recording: Recording, reason: str, error: str) -> None:

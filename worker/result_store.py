@@ -21,7 +21,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import BinaryIO
 
@@ -173,10 +173,12 @@ class ResultStore:
         return self._sweep(self.path(prefix), lambda _file: True)
 
     def purge_expired(
-        self, now_s: float | None = None, stop: threading.Event | None = None
+        self, now_s: float | None = None, stop: threading.Event | None = None,
+        keep: Collection[str] = (),
     ) -> int:
         """Delete results older than the retention time, and temp files a writer left
         when it died (older than an hour); empty folders go too. Returns how many files.
+        The results in the folders ``keep`` names (keys) stay, however old.
 
         A store of a week of 30 frames/s streams holds millions of files and takes
         minutes to walk (about 6 us a file here): run it off any loop with deadlines, and
@@ -184,8 +186,11 @@ class ResultStore:
         now = time.time() if now_s is None else now_s
         cutoff = now - self.retention_s
         tmp_cutoff = now - min(self.retention_s, TMP_MAX_AGE_S)
+        kept = {self.path(folder) for folder in keep}
 
         def expired(file: Path) -> bool:
+            if file.parent in kept:
+                return False
             limit = tmp_cutoff if file.name.endswith(_TMP_SUFFIX) else cutoff
             return file.stat().st_mtime < limit
 

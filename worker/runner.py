@@ -49,6 +49,7 @@ from worker.embedded_redis import connect
 from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.queue import ensure_group, is_missing_group, server_time_ns
+from worker.recordings import active_recording_folders
 from worker.redis_keys import JOBS_STREAM, WORKERS_HEARTBEAT
 from worker.redis_memory import UNREACHABLE, TroubleLog, is_transient
 from worker.result_store import RESULTS_DIR, ResultStore
@@ -351,8 +352,10 @@ class Worker:
         and tried again next time."""
         while not self.stop.is_set():
             try:
-                removed = self.store.purge_expired(stop=self.stop)
-            except OSError as exc:
+                removed = self.store.purge_expired(
+                    stop=self.stop, keep=active_recording_folders(self.client)
+                )
+            except (OSError, redis.exceptions.RedisError) as exc:
                 log.warning("worker %s: could not purge expired results: %s", self.id, exc)
             else:
                 if removed:

@@ -13,7 +13,8 @@ import os
 import shutil
 import signal
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +34,10 @@ from worker.job_processor import JobProcessor, start_job_child
 from worker.jobs import JobRecord, JobState
 from worker.metrics import counter_key, read_metrics
 from worker.queue import JobQueue
+from worker.recordings import frame_key, start_recording
 from worker.redis_keys import (
     DEAD_LETTER_STREAM,
+    DEVICES_SET,
     JOBS_PER_KEY,
     JOBS_STREAM,
     WORKERS_HEARTBEAT,
@@ -494,13 +497,14 @@ class _SlowStore(ResultStore):
         self.release = threading.Event()
         self.calls = 0
 
-    def purge_expired(self, now_s: float | None = None, stop: threading.Event | None = None) -> int:
+    def purge_expired(self, now_s: float | None = None, stop: threading.Event | None = None,
+                      keep: Collection[str] = ()) -> int:
         self.calls += 1
         if self.calls == 1:
             raise PermissionError("[Errno 13] Permission denied: 'results/devices'")
         self.purging.set()
         self.release.wait(60)
-        return super().purge_expired(now_s, stop)
+        return super().purge_expired(now_s, stop, keep)
 
 
 def test_a_long_purge_does_not_hold_up_the_heartbeat(
@@ -883,3 +887,32 @@ def test_a_cancelled_job_taken_from_a_stalled_worker_keeps_no_files(
     assert not handler.is_alive()
     assert not folder.exists(), "A's later files stayed"
     assert queue.get(job.id).state is JobState.CANCELLED
+
+
+def test_the_purge_keeps_the_frames_of_a_running_recording_however_old(
+    embedded: EmbeddedRedis, client: redis.Redis, data_dir: Path, monkeypatch, wait_until
+) -> None:
+    """A recording's frames exist nowhere else until its video job is queued: the
+    retention purge leaves them, however long the recording runs, and purges the rest.
+    Before, a recording longer than ``MCAM_RESULT_RETENTION_S`` (600 frames at 0.1 fps
+    under a retention of an hour; a camera unplugged for a week mid-recording) lost its
+    first frames, and its stop failed ("no result ... never written or expired")."""
+    monkeypatch.setattr("worker.runner.PURGE_EVERY_S", 0.05)
+    client.sadd(DEVICES_SET, "cam1")
+    recording = start_recording(client, "cam1", decoder="itoh", options={}, max_frames=10)
+    store = ResultStore(data_dir / RESULTS_DIR, retention_s=3600)
+    recorded, other = frame_key(recording.id, 0), "devices/cam1/000000000001-1-0.exr"
+    two_hours_ago = time.time() - 7200
+    for key in (recorded, other):
+        store.write(key, b"old")
+        os.utime(store.path(key), (two_hours_ago, two_hours_ago))
+    worker = Worker(WorkerConfig(redis_url=embedded.url, data_dir=data_dir, devices=False,
+                                 heartbeat_s=0.1, retention_s=3600), worker_id="w-purge")
+    running = threading.Thread(target=worker.run, daemon=True)
+    running.start()
+    try:
+        wait_until(lambda: not store.exists(other), 30, "the purge")
+        assert store.exists(recorded)
+    finally:
+        worker.request_stop()
+        running.join(30)
