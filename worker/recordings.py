@@ -63,6 +63,7 @@ from worker.queue import JobQueue, check_decoder_supports
 from worker.redis_keys import DEVICES_SET, frame_stream, health_key, recording_key
 from worker.result_store import ResultStore
 from worker.video_jobs import check_frame_size, video_options
+from worker.video_output import FPS_RANGE
 
 #: States of a recording that still collects frames or waits for its video job.
 ACTIVE_STATES = ("recording", "stopping")
@@ -144,6 +145,9 @@ class Recording:
     shape: str = ""
     first_sequence: int | None = None
     last_sequence: int | None = None
+    last_ts_ns: int | None = None
+    camera_steps: int = 0
+    camera_span_ns: int = 0
     last_entry: str | None = None
     start_entry: str | None = None
     stop_entry: str | None = None
@@ -171,6 +175,9 @@ class Recording:
             shape=get.get("shape", ""),
             first_sequence=int(get["first_sequence"]) if get.get("first_sequence") else None,
             last_sequence=int(get["last_sequence"]) if get.get("last_sequence") else None,
+            last_ts_ns=int(get["last_ts_ns"]) if get.get("last_ts_ns") else None,
+            camera_steps=int(get.get("camera_steps", "0")),
+            camera_span_ns=int(get.get("camera_span_ns", "0")),
             last_entry=get.get("last_entry") or None,
             start_entry=get.get("start_entry") or None,
             stop_entry=get.get("stop_entry") or None,
@@ -191,6 +198,17 @@ class Recording:
             return self.stop_entry is not None and order <= entry_order(self.stop_entry)
         return True
 
+    def camera_fps(self) -> float | None:
+        """The camera's frame rate over the recording (frames per s, 4 significant
+        digits, within :data:`FPS_RANGE`): its sequence steps between consecutive recorded
+        frames (dropped frames count) over the device clock's time between them, leaving
+        out steps across a discontinuity (a reconnect, a camera restart). None before two
+        frames have measured it."""
+        if self.camera_steps <= 0 or self.camera_span_ns <= 0:
+            return None
+        fps = self.camera_steps * 1e9 / self.camera_span_ns
+        return float(f"{min(max(fps, FPS_RANGE[0]), FPS_RANGE[1]):.4g}")
+
     def view(self) -> dict[str, Any]:
         """The recording as JSON for the API (frame codes and stream cursors left out)."""
         return {
@@ -205,6 +223,7 @@ class Recording:
             "keyframes": self.keyframes,
             "first_sequence": self.first_sequence,
             "last_sequence": self.last_sequence,
+            "camera_fps": self.camera_fps(),
             "started_ns": self.started_ns,
             "stopped_ns": self.stopped_ns,
             "reason": self.reason,
@@ -369,7 +388,12 @@ class Recorder:
             return
         index = recording.frames
         shape = ",".join(map(str, message.codes.shape))
-        update: dict[str, Any] = {"last_entry": entry_id, "last_sequence": message.sequence}
+        update: dict[str, Any] = {
+            "last_entry": entry_id,
+            "last_sequence": message.sequence,
+            "last_ts_ns": message.timestamp_ns,
+            **camera_timing(recording, message),
+        }
         if index == 0:
             if not self._recordable(recording, message):
                 return
@@ -459,12 +483,33 @@ class Recorder:
              for i in range(recording.frames)]
         )
         options = {**recording.options, "keyframes": recording.keyframes}
+        fps = recording.camera_fps()
+        if "fps" not in options and fps is not None:
+            options["fps"] = fps
         params = SensorParams.model_validate_json(recording.params)
         # The recording's id names its job: if noting the job below fails (Redis down),
         # the next try finds the job queued instead of queueing it twice.
         return self.queue.submit(
             "video", codes, params, recording.decoder, options, job_id=recording.id
         ).id
+
+
+def camera_timing(recording: Recording, message: FrameMessage) -> dict[str, int]:
+    """The recording's camera steps and device time (ns) with ``message``, the next
+    recorded frame, counted in: nothing when it follows a discontinuity or its sequence
+    number or timestamp does not advance (a camera restart)."""
+    if recording.frames == 0 or message.discont:
+        return {}
+    if recording.last_sequence is None or recording.last_ts_ns is None:
+        return {}
+    steps = message.sequence - recording.last_sequence
+    span_ns = message.timestamp_ns - recording.last_ts_ns
+    if steps <= 0 or span_ns <= 0:
+        return {}
+    return {
+        "camera_steps": recording.camera_steps + steps,
+        "camera_span_ns": recording.camera_span_ns + span_ns,
+    }
 
 
 def _ended(recording: Recording, reason: str) -> dict[str, Any]:

@@ -31,7 +31,7 @@ from worker.redis_keys import (
 )
 from worker.result_store import ResultStore
 from worker.video_input import WrappedVideo
-from worker.video_jobs import video_options
+from worker.video_jobs import DEFAULT_OPTIONS, video_options
 from worker.video_pipeline import decode_video_frames
 
 OPTIONS = {"mode": "temporal", "outputs": ["exr_zip"]}
@@ -328,3 +328,48 @@ def test_frames_taken_while_the_worker_was_down_are_recorded_by_capture_time(
     assert done.frames == 3 and done.reason == "requested"
     np.testing.assert_array_equal(queued_codes(client, done.job),
                                   np.stack([f.codes for f in clip[1:4]]))
+
+
+def timed(frame: SensorFrame, sequence: int, t_ns: int, discont: bool = False) -> FrameMessage:
+    return FrameMessage("cam1", sequence, t_ns, frame.codes, frame.params, discont)
+
+
+def test_a_video_without_fps_plays_at_the_cameras_rate(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    clip = frames(make_frame, 5)
+    start(client)
+    step_ns = 100_000_000  # a 10 frames/s camera
+    recorder.add_frame(timed(clip[0], 40, 5 * step_ns), "1000-0")
+    recorder.add_frame(timed(clip[1], 41, 6 * step_ns), "1000-1")
+    recorder.add_frame(timed(clip[2], 43, 8 * step_ns), "1000-2")  # one frame dropped
+    recorder.add_frame(timed(clip[3], 0, 10**15, discont=True), "1000-3")  # camera restarted
+    recorder.add_frame(timed(clip[4], 1, 10**15 + step_ns), "1000-4")
+    assert load_recording(client, "cam1").view()["camera_fps"] == 10.0
+    request_stop(client, "cam1")
+    recorder.finish_if_stopping("cam1")
+    assert queue.get(load_recording(client, "cam1").job).options["fps"] == 10.0
+
+
+def test_a_start_that_names_fps_keeps_it(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    clip = frames(make_frame, 2)
+    start(client, options={**OPTIONS, "fps": 24.0})
+    recorder.add_frame(timed(clip[0], 1, 0), "1000-0")
+    recorder.add_frame(timed(clip[1], 2, 100_000_000), "1000-1")
+    request_stop(client, "cam1")
+    recorder.finish_if_stopping("cam1")
+    assert queue.get(load_recording(client, "cam1").job).options["fps"] == 24.0
+
+
+def test_a_rate_not_measured_leaves_the_default_fps(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    start(client)
+    recorder.add_frame(timed(frames(make_frame, 1)[0], 1, 0), "1000-0")
+    assert load_recording(client, "cam1").view()["camera_fps"] is None
+    request_stop(client, "cam1")
+    recorder.finish_if_stopping("cam1")
+    job = queue.get(load_recording(client, "cam1").job)
+    assert video_options(job.decoder, job.options)[0].hdr10.fps == DEFAULT_OPTIONS["fps"]

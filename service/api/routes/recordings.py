@@ -148,6 +148,8 @@ def start(state: ServiceState, device: str, fields: RecordingFields) -> Response
     decoder = fields.decoder or state.settings.default_decoder
     resolve(decoder)
     options = fields.video_job_options()
+    if "fps" not in fields.model_fields_set:
+        del options["fps"]  # the video plays at the camera's measured rate (camera_fps)
     video_options(decoder, options)
     recording = start_recording(
         state.client, device, decoder=decoder, options=options, max_frames=max_frames,

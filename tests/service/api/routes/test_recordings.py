@@ -81,6 +81,8 @@ def test_thirty_frame_live_recording_into_hdr10_and_exr(
     job = finished_job(http, stop.json()["id"])
     assert job["id"] == done["job"] and job["state"] == "succeeded", job
     assert job["kind"] == "video" and job["frames_done"] == FRAMES
+    assert 1 < done["camera_fps"] <= 16  # the camera's 15 frames/s, slower on a busy host
+    assert job["options"]["fps"] == done["camera_fps"]  # no fps asked: the camera's rate
     assert job["info"]["keyframes"] >= 1 and job["info"]["paths"]["temporal"] > 0.5
 
     hdr10 = http.get(f"/v1/videos/{job['id']}/result", params={"output": "hdr10"})
