@@ -14,6 +14,7 @@ from models.formation import SensorFrame
 from worker import recordings
 from worker.device_registry import DeviceNotFoundError
 from worker.frame_message import FrameMessage
+from worker.jobs import JobRecord
 from worker.queue import JobQueue, entry_codes
 from worker.recordings import (
     Recorder,
@@ -334,6 +335,13 @@ def timed(frame: SensorFrame, sequence: int, t_ns: int, discont: bool = False) -
     return FrameMessage("cam1", sequence, t_ns, frame.codes, frame.params, discont)
 
 
+def stopped_job(client: redis.Redis, recorder: Recorder, queue: JobQueue) -> JobRecord:
+    """Stop cam1's recording and return the video job its frames made."""
+    request_stop(client, "cam1")
+    recorder.finish_if_stopping("cam1")
+    return queue.get(load_recording(client, "cam1").job)
+
+
 def test_a_video_without_fps_plays_at_the_cameras_rate(
     client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
 ) -> None:
@@ -346,9 +354,7 @@ def test_a_video_without_fps_plays_at_the_cameras_rate(
     recorder.add_frame(timed(clip[3], 0, 10**15, discont=True), "1000-3")  # camera restarted
     recorder.add_frame(timed(clip[4], 1, 10**15 + step_ns), "1000-4")
     assert load_recording(client, "cam1").view()["camera_fps"] == 10.0
-    request_stop(client, "cam1")
-    recorder.finish_if_stopping("cam1")
-    assert queue.get(load_recording(client, "cam1").job).options["fps"] == 10.0
+    assert stopped_job(client, recorder, queue).options["fps"] == 10.0
 
 
 def test_a_start_that_names_fps_keeps_it(
@@ -358,9 +364,7 @@ def test_a_start_that_names_fps_keeps_it(
     start(client, options={**OPTIONS, "fps": 24.0})
     recorder.add_frame(timed(clip[0], 1, 0), "1000-0")
     recorder.add_frame(timed(clip[1], 2, 100_000_000), "1000-1")
-    request_stop(client, "cam1")
-    recorder.finish_if_stopping("cam1")
-    assert queue.get(load_recording(client, "cam1").job).options["fps"] == 24.0
+    assert stopped_job(client, recorder, queue).options["fps"] == 24.0
 
 
 def test_a_rate_not_measured_leaves_the_default_fps(
@@ -369,7 +373,5 @@ def test_a_rate_not_measured_leaves_the_default_fps(
     start(client)
     recorder.add_frame(timed(frames(make_frame, 1)[0], 1, 0), "1000-0")
     assert load_recording(client, "cam1").view()["camera_fps"] is None
-    request_stop(client, "cam1")
-    recorder.finish_if_stopping("cam1")
-    job = queue.get(load_recording(client, "cam1").job)
+    job = stopped_job(client, recorder, queue)
     assert video_options(job.decoder, job.options)[0].hdr10.fps == DEFAULT_OPTIONS["fps"]
