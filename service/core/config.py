@@ -6,17 +6,21 @@ CLI reads them and passes plain values into ``worker/`` and ``device/``.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable
+from difflib import get_close_matches
 from functools import cache
 from pathlib import Path
 from typing import Literal
 
+from dotenv import dotenv_values
 from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
 from models.decoders.measured import report_problem
 from models.decoders.registry import resolve
-from models.errors import McamError
+from models.errors import InvalidInputError, McamError
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.config_checks import heartbeat_problem
 from worker.outputs import STREAM_EXR_COMPRESSION
@@ -50,6 +54,8 @@ MAX_DELIVERIES = 10
 MIN_HTTP_TIMEOUT_S = 1.0
 #: Shortest ``MCAM_HEARTBEAT_S`` (s).
 MIN_HEARTBEAT_S = 0.1
+#: What every setting's variable begins with.
+PREFIX = "MCAM_"
 #: Most frames ``MCAM_FRAMES_MAXLEN`` keeps per device stream: 2^20.
 MAX_FRAMES_MAXLEN = 2**20
 
@@ -60,7 +66,7 @@ class Settings(BaseSettings):
     #: An empty variable (``MCAM_PORT=``, or compose's ``${VAR}`` of an unset one) is
     #: unset: it took ``MCAM_DATA_DIR=`` as the working folder and refused ``MCAM_PORT=``.
     model_config = SettingsConfigDict(
-        env_prefix="MCAM_", env_file=".env", extra="ignore", env_ignore_empty=True
+        env_prefix=PREFIX, env_file=".env", extra="ignore", env_ignore_empty=True
     )
 
     data_dir: Path = Field(Path("data"), description="results, embedded Redis, API key file")
@@ -320,7 +326,37 @@ class Settings(BaseSettings):
         )
 
 
+def unknown_variables(names: Iterable[str], source: str) -> list[str]:
+    """One problem for each ``MCAM_*`` name among ``names`` that is no setting, found in
+    ``source`` (words for where it was set), with the setting it most resembles."""
+    known = [PREFIX + field.upper() for field in Settings.model_fields]
+    problems = []
+    for name in names:
+        if name.upper().startswith(PREFIX) and name.upper() not in known:
+            close = get_close_matches(name.upper(), known, n=1)
+            hint = f"did you mean {close[0]}? " if close else ""
+            problems.append(
+                f"{name} ({source}) is no setting: {hint}correct its name or remove it "
+                "(README lists the settings)"
+            )
+    return problems
+
+
+def environment_problem(environ: Iterable[str], env_file: Path) -> str | None:
+    """What is wrong with the ``MCAM_*`` variables of ``environ`` (names) and
+    ``env_file``, or None. A misspelt setting (``MCAM_MAX_PIXEL``) was ignored without a
+    word, leaving the default it was meant to change in force."""
+    problems = unknown_variables(environ, "environment")
+    if env_file.is_file():
+        problems += unknown_variables(dotenv_values(env_file), str(env_file))
+    return "; ".join(problems) or None
+
+
 @cache
 def get_settings() -> Settings:
-    """The process-wide settings (read once)."""
+    """The process-wide settings (read once); an ``MCAM_*`` variable that is no setting,
+    in the environment or ``.env``, is refused (:class:`InvalidInputError`)."""
+    problem = environment_problem(os.environ, Path(str(Settings.model_config["env_file"])))
+    if problem:
+        raise InvalidInputError(problem)
     return Settings()

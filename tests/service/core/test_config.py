@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
 
-from service.core.config import Settings
+from models.errors import InvalidInputError
+from service.core.config import Settings, get_settings
 
 
 @pytest.fixture(autouse=True)
@@ -17,6 +19,14 @@ def clean_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     for name in [n for n in os.environ if n.startswith("MCAM_")]:
         monkeypatch.delenv(name)
     monkeypatch.chdir(tmp_path)
+
+
+@pytest.fixture
+def fresh_settings() -> Iterator[None]:
+    """:func:`get_settings` reads the environment anew, and forgets what it read after."""
+    get_settings.cache_clear()
+    yield
+    get_settings.cache_clear()
 
 
 def test_defaults_are_the_embedded_local_service() -> None:
@@ -189,3 +199,23 @@ def test_a_value_that_failed_later_is_refused_at_start(
     assert caught.value.errors()[0]["loc"] == (name,)
     monkeypatch.setenv(f"MCAM_{name.upper()}", accepted)
     assert float(getattr(Settings(), name)) == float(accepted)
+
+
+@pytest.mark.usefixtures("fresh_settings")
+def test_a_misspelt_setting_is_refused_with_the_name_meant(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """MCAM_MAX_PIXEL (for MCAM_MAX_PIXELS) was ignored without a word: the service ran
+    on the default the operator meant to change. It is now refused, in the environment
+    or .env, naming the setting it resembles; other variables of .env are left alone."""
+    monkeypatch.setenv("MCAM_MAX_PIXEL", "1000")
+    with pytest.raises(InvalidInputError, match=r"MCAM_MAX_PIXEL \(environment\) is no "
+                       r"setting: did you mean MCAM_MAX_PIXELS\?"):
+        get_settings()
+    monkeypatch.delenv("MCAM_MAX_PIXEL")
+    (tmp_path / ".env").write_text("OTHER=1\nMCAM_PORT=9001\nmcam_heartbeat=1\n")
+    with pytest.raises(InvalidInputError, match=r"mcam_heartbeat \(\.env\) is no setting: "
+                       r"did you mean MCAM_HEARTBEAT_S\?"):
+        get_settings()
+    (tmp_path / ".env").write_text("OTHER=1\nMCAM_PORT=9001\n")
+    assert get_settings().port == 9001
