@@ -6,6 +6,7 @@ CLI reads them and passes plain values into ``worker/`` and ``device/``.
 
 from __future__ import annotations
 
+import io
 import os
 from collections.abc import Iterable
 from difflib import get_close_matches
@@ -13,7 +14,7 @@ from functools import cache
 from pathlib import Path
 from typing import Literal
 
-from dotenv import dotenv_values
+from dotenv.parser import parse_stream
 from pydantic import Field, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
@@ -346,16 +347,33 @@ def environment_problem(environ: Iterable[str], env_file: Path) -> str | None:
     """What is wrong with the ``MCAM_*`` variables of ``environ`` (names) and
     ``env_file``, or None. A misspelt setting (``MCAM_MAX_PIXEL``) was ignored without a
     word, leaving the default it was meant to change in force."""
-    problems = unknown_variables(environ, "environment")
-    if env_file.is_file():
-        problems += unknown_variables(dotenv_values(env_file), str(env_file))
+    problems = unknown_variables(environ, "environment") + env_file_problems(env_file)
     return "; ".join(problems) or None
+
+
+def env_file_problems(env_file: Path) -> list[str]:
+    """What is wrong with ``env_file``, if there is one: each line python-dotenv cannot
+    read (it logged "could not parse statement starting at line N" and dropped the line,
+    a setting in it included, and the service ran without it), then each ``MCAM_*``
+    name that is no setting."""
+    if not env_file.is_file():
+        return []
+    bindings = list(parse_stream(io.StringIO(env_file.read_text())))
+    problems = [
+        f"line {binding.original.line} of {env_file} is not NAME=value: correct it (quote "
+        "a value with spaces or a quote in it) or begin it with # to make it a comment"
+        for binding in bindings
+        if binding.error
+    ]
+    names = [binding.key for binding in bindings if binding.key is not None]
+    return problems + unknown_variables(names, str(env_file))
 
 
 @cache
 def get_settings() -> Settings:
     """The process-wide settings (read once); an ``MCAM_*`` variable that is no setting,
-    in the environment or ``.env``, is refused (:class:`InvalidInputError`)."""
+    in the environment or ``.env``, or a line of ``.env`` that does not parse, is refused
+    (:class:`InvalidInputError`)."""
     problem = environment_problem(os.environ, Path(str(Settings.model_config["env_file"])))
     if problem:
         raise InvalidInputError(problem)

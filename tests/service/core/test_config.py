@@ -219,3 +219,14 @@ def test_a_misspelt_setting_is_refused_with_the_name_meant(
         get_settings()
     (tmp_path / ".env").write_text("OTHER=1\nMCAM_PORT=9001\n")
     assert get_settings().port == 9001
+
+
+@pytest.mark.usefixtures("fresh_settings")
+def test_a_line_of_dotenv_that_does_not_parse_is_refused(tmp_path: Path) -> None:
+    """python-dotenv logged "could not parse statement starting at line 3" and dropped
+    the line: the service ran without the setting in it (here an unclosed quote)."""
+    (tmp_path / ".env").write_text('MCAM_PORT=9001\n# a comment\nMCAM_HOST="0.0.0.0\n')
+    with pytest.raises(InvalidInputError, match=r"line 3 of \.env is not NAME=value"):
+        get_settings()
+    (tmp_path / ".env").write_text('MCAM_PORT=9001\n# a comment\nMCAM_HOST="0.0.0.0"\n')
+    assert get_settings().host == "0.0.0.0"
