@@ -57,6 +57,8 @@ MIN_HTTP_TIMEOUT_S = 1.0
 MIN_HEARTBEAT_S = 0.1
 #: What every setting's variable begins with.
 PREFIX = "MCAM_"
+#: Encoding of ``.env``.
+ENV_FILE_ENCODING = "utf-8"
 #: Most frames ``MCAM_FRAMES_MAXLEN`` keeps per device stream: 2^20.
 MAX_FRAMES_MAXLEN = 2**20
 
@@ -67,7 +69,8 @@ class Settings(BaseSettings):
     #: An empty variable (``MCAM_PORT=``, or compose's ``${VAR}`` of an unset one) is
     #: unset: it took ``MCAM_DATA_DIR=`` as the working folder and refused ``MCAM_PORT=``.
     model_config = SettingsConfigDict(
-        env_prefix=PREFIX, env_file=".env", extra="ignore", env_ignore_empty=True
+        env_prefix=PREFIX, env_file=".env", env_file_encoding=ENV_FILE_ENCODING,
+        extra="ignore", env_ignore_empty=True,
     )
 
     data_dir: Path = Field(Path("data"), description="results, embedded Redis, API key file")
@@ -358,7 +361,14 @@ def env_file_problems(env_file: Path) -> list[str]:
     name that is no setting."""
     if not env_file.is_file():
         return []
-    bindings = list(parse_stream(io.StringIO(env_file.read_text())))
+    try:
+        text = env_file.read_text(encoding=ENV_FILE_ENCODING)
+    except UnicodeDecodeError as exc:
+        return [
+            f"{env_file} is not {ENV_FILE_ENCODING} text (byte {exc.start} is "
+            f"{exc.object[exc.start]:#04x}): save it as {ENV_FILE_ENCODING}"
+        ]
+    bindings = list(parse_stream(io.StringIO(text)))
     problems = [
         f"line {binding.original.line} of {env_file} is not NAME=value: correct it (quote "
         "a value with spaces or a quote in it) or begin it with # to make it a comment"
@@ -372,7 +382,7 @@ def env_file_problems(env_file: Path) -> list[str]:
 @cache
 def get_settings() -> Settings:
     """The process-wide settings (read once); an ``MCAM_*`` variable that is no setting,
-    in the environment or ``.env``, or a line of ``.env`` that does not parse, is refused
+    in the environment or ``.env``, or a ``.env`` that does not decode or parse, is refused
     (:class:`InvalidInputError`)."""
     problem = environment_problem(os.environ, Path(str(Settings.model_config["env_file"])))
     if problem:

@@ -230,3 +230,13 @@ def test_a_line_of_dotenv_that_does_not_parse_is_refused(tmp_path: Path) -> None
         get_settings()
     (tmp_path / ".env").write_text('MCAM_PORT=9001\n# a comment\nMCAM_HOST="0.0.0.0"\n')
     assert get_settings().host == "0.0.0.0"
+
+
+@pytest.mark.usefixtures("fresh_settings")
+def test_a_dotenv_that_is_not_utf8_is_refused(tmp_path: Path) -> None:
+    """A .env saved as UTF-16 (a Windows editor's "Unicode") stopped every command with
+    a UnicodeDecodeError traceback."""
+    (tmp_path / ".env").write_text("MCAM_PORT=9001\n", encoding="utf-16")
+    with pytest.raises(InvalidInputError, match=r"\.env is not utf-8 text \(byte 0 is 0xff\): "
+                       "save it as utf-8"):
+        get_settings()
