@@ -54,10 +54,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def settings_problems(exc: ValidationError) -> str:
-    """One line naming each ``MCAM_*`` setting that could not be read, and why."""
+    """One line naming each ``MCAM_*`` setting that could not be read, and why; a
+    problem of several settings together names them itself."""
     problems = [
         f"MCAM_{'.'.join(str(part) for part in error['loc']).upper()}="
-        f"{error.get('input')!r}: {error['msg']}"
+        f"{error.get('input')!r}: {error['msg']}" if error["loc"] else error["msg"]
         for error in exc.errors()
     ]
     return "invalid settings (environment or .env): " + "; ".join(problems)

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Literal
 
 from dotenv.parser import parse_stream
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from device.datasets import DEFAULT_MAX_BYTES, DEFAULT_MAX_PAIRS
@@ -26,7 +26,7 @@ from models.hdr_io import EXR_COMPRESSIONS
 from worker.config_checks import heartbeat_problem
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.recordings import MAX_RECORDING_SAMPLES
-from worker.redis_memory import DEFAULT_MAXMEMORY
+from worker.redis_memory import DEFAULT_MAXMEMORY, submit_room
 
 #: Most onnxruntime intra-op threads a worker's session may have (``--threads``).
 MAX_WORKER_THREADS = 256
@@ -55,6 +55,9 @@ MAX_DELIVERIES = 10
 MIN_HTTP_TIMEOUT_S = 1.0
 #: Shortest ``MCAM_HEARTBEAT_S`` (s).
 MIN_HEARTBEAT_S = 0.1
+#: Bytes an embedded Redis holds before any job (0.93 MB measured on an empty one),
+#: with room to spare.
+EMPTY_REDIS_BYTES = 2 * 1024**2
 #: What every setting's variable begins with.
 PREFIX = "MCAM_"
 #: Encoding of ``.env``.
@@ -328,6 +331,43 @@ class Settings(BaseSettings):
             "queue answers 503 queue_full before Redis fills up; raise it or lower "
             "MCAM_JOBS_MAX_BYTES"
         )
+
+    @model_validator(mode="after")
+    def _room_for_the_largest_upload(self) -> Settings:
+        """The embedded Redis must take the largest upload when it holds nothing else: a
+        smaller maxmemory started a service whose readiness never passed and whose
+        largest uploads got 503 store_full, with Retry-After, on an empty queue."""
+        room = upload_room(self) + EMPTY_REDIS_BYTES
+        if self.redis_url or self.redis_maxmemory >= room:
+            return self
+        raise ValueError(
+            f"MCAM_REDIS_MAXMEMORY ({self.redis_maxmemory}) is below the {room} bytes the "
+            "embedded Redis needs to take the largest upload (Redis holds its codes twice "
+            "while it takes them, and 2 MiB of its own): raise MCAM_REDIS_MAXMEMORY or lower "
+            "the largest upload (MCAM_MAX_PIXELS, MCAM_MAX_VIDEO_SAMPLES, MCAM_JOBS_MAX_BYTES, "
+            "MCAM_MAX_QUEUED_BYTES_PER_KEY)"
+        )
+
+
+def largest_upload_codes(settings: Settings) -> int:
+    """Bytes of codes of the largest job an upload can queue: a frame of
+    ``MCAM_MAX_PIXELS`` RGB pixels, or a video of ``MCAM_MAX_VIDEO_SAMPLES`` code values
+    (``MCAM_MAX_VIDEO_FRAMES`` such frames at most), 2 bytes a code value (16-bit
+    codes), and no more than one key's jobs may hold in the queue
+    (``MCAM_MAX_QUEUED_BYTES_PER_KEY``) nor the queue itself (``MCAM_JOBS_MAX_BYTES``)."""
+    frame = 3 * settings.max_pixels
+    video = min(settings.max_video_samples, settings.max_video_frames * frame)
+    return min(2 * max(frame, video), settings.max_queued_bytes_per_key,
+               settings.jobs_max_bytes)  # fmt: skip
+
+
+def upload_room(settings: Settings) -> int:
+    """Bytes Redis must have free below its maxmemory for ``/health/ready``'s ``queue``
+    check to pass: what the largest upload needs there while Redis takes it (its codes
+    from :func:`largest_upload_codes`; :func:`worker.redis_memory.submit_room`: twice
+    them, up to 1 MiB more, and 64 KiB), so that a load balancer stops sending uploads
+    before one gets 503 ``store_full``."""
+    return submit_room(largest_upload_codes(settings))
 
 
 def unknown_variables(names: Iterable[str], source: str) -> list[str]:

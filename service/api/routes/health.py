@@ -16,8 +16,8 @@ from models.decoders.registry import resolve
 from models.errors import McamError
 from service.api.deps import StateDep
 from service.api.state import ServiceState
-from service.core.config import Settings
-from worker.redis_memory import full_problem, submit_room
+from service.core.config import upload_room
+from worker.redis_memory import full_problem
 
 router = APIRouter(prefix="/health", tags=["health"])
 log = logging.getLogger(__name__)
@@ -64,27 +64,6 @@ def store_problem(root: Path, min_free_bytes: int) -> str | None:
             "there is room; free space or lower MCAM_RESULT_RETENTION_S"
         )
     return None
-
-
-def largest_upload_codes(settings: Settings) -> int:
-    """Bytes of codes of the largest job an upload can queue: a frame of
-    ``MCAM_MAX_PIXELS`` RGB pixels, or a video of ``MCAM_MAX_VIDEO_SAMPLES`` code values
-    (``MCAM_MAX_VIDEO_FRAMES`` such frames at most), 2 bytes a code value (16-bit
-    codes), and no more than one key's jobs may hold in the queue
-    (``MCAM_MAX_QUEUED_BYTES_PER_KEY``) nor the queue itself (``MCAM_JOBS_MAX_BYTES``)."""
-    frame = 3 * settings.max_pixels
-    video = min(settings.max_video_samples, settings.max_video_frames * frame)
-    return min(2 * max(frame, video), settings.max_queued_bytes_per_key,
-               settings.jobs_max_bytes)  # fmt: skip
-
-
-def upload_room(settings: Settings) -> int:
-    """Bytes Redis must have free below its maxmemory for the ``queue`` check to pass:
-    what the largest upload needs there while Redis takes it (its codes from
-    :func:`largest_upload_codes`; :func:`worker.redis_memory.submit_room`: twice them,
-    up to 1 MiB more, and 64 KiB), so that a load balancer stops sending uploads before
-    one gets 503 ``store_full``."""
-    return submit_room(largest_upload_codes(settings))
 
 
 def readiness(state: ServiceState) -> Readiness:

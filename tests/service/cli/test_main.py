@@ -12,8 +12,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
-from service.cli.main import COMMAND_MODULES, READER_GONE, build_parser, file_problem, main
+from service.cli.main import (
+    COMMAND_MODULES,
+    READER_GONE,
+    build_parser,
+    file_problem,
+    main,
+    settings_problems,
+)
+from service.core.config import Settings
 
 FLAGS = ("--encoding", "mantissa", "--alpha", "2", "--bits", "8")
 
@@ -44,6 +53,17 @@ def test_a_link_names_the_path_it_creates(tmp_path: Path) -> None:
 def test_missing_input_file_is_named(tmp_path: Path) -> None:
     error = FileNotFoundError(errno.ENOENT, "No such file", str(tmp_path / "nope.png"))
     assert file_problem(error) == f"no such file: {tmp_path / 'nope.png'}"
+
+
+def test_a_problem_of_several_settings_is_its_own_words() -> None:
+    """A check of settings together (no one setting to blame) was printed as
+    "MCAM_={...every setting...}: Value error, ..."."""
+    with pytest.raises(ValidationError) as caught:
+        Settings(_env_file=None, jobs_max_bytes=200_000_000, redis_maxmemory=250_000_000)
+    line = settings_problems(caught.value)
+    assert line.startswith("invalid settings (environment or .env): Value error, "
+                           "MCAM_REDIS_MAXMEMORY (250000000) is below")
+    assert "MCAM_=" not in line and "\n" not in line
 
 
 @pytest.mark.parametrize("output", [".", "missing/x.exr"], ids=["a-folder", "no-folder"])

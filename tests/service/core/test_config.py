@@ -10,7 +10,7 @@ import pytest
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
-from service.core.config import Settings, get_settings
+from service.core.config import EMPTY_REDIS_BYTES, Settings, get_settings, upload_room
 
 
 @pytest.fixture(autouse=True)
@@ -98,13 +98,33 @@ def test_the_embedded_redis_must_have_room_beyond_the_queues_bytes(
     """Else Redis fills (503 store_full, workers stalled) before the queue's own bound
     answers 503 queue_full."""
     monkeypatch.setenv("MCAM_JOBS_MAX_BYTES", "1000")
-    monkeypatch.setenv("MCAM_REDIS_MAXMEMORY", "1001")
-    assert Settings().redis_maxmemory == 1001
-    monkeypatch.setenv("MCAM_REDIS_MAXMEMORY", "1000")
-    with pytest.raises(ValidationError, match=r"must exceed MCAM_JOBS_MAX_BYTES \(1000\)"):
+    monkeypatch.setenv("MCAM_REDIS_MAXMEMORY", "4000000")
+    assert Settings().redis_maxmemory == 4_000_000
+    monkeypatch.setenv("MCAM_JOBS_MAX_BYTES", "4000000")
+    with pytest.raises(ValidationError, match=r"must exceed MCAM_JOBS_MAX_BYTES \(4000000\)"):
         Settings()
     monkeypatch.setenv("MCAM_REDIS_URL", "redis://queue:6379/0")  # its own maxmemory
-    assert Settings().redis_maxmemory == 1000
+    assert Settings().redis_maxmemory == 4_000_000
+
+
+def test_the_embedded_redis_must_have_room_for_the_largest_upload(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Redis holds an upload's codes twice while it takes them: with MCAM_JOBS_MAX_BYTES
+    200 MB and MCAM_REDIS_MAXMEMORY 250 MB the service started, /health/ready never
+    passed on an empty queue and a 64 M-sample video got 503 store_full, retried for
+    good. It is refused at start; a smaller largest upload is taken."""
+    monkeypatch.setenv("MCAM_JOBS_MAX_BYTES", "200000000")
+    monkeypatch.setenv("MCAM_REDIS_MAXMEMORY", "250000000")
+    with pytest.raises(ValidationError, match=r"MCAM_REDIS_MAXMEMORY \(250000000\) is below "
+                       r"the 271646720 bytes the embedded Redis needs"):
+        Settings()
+    monkeypatch.setenv("MCAM_MAX_VIDEO_SAMPLES", "50000000")
+    settings = Settings()
+    assert settings.redis_maxmemory >= upload_room(settings) + EMPTY_REDIS_BYTES
+    monkeypatch.delenv("MCAM_MAX_VIDEO_SAMPLES")
+    monkeypatch.setenv("MCAM_REDIS_URL", "redis://queue:6379/0")  # its own maxmemory
+    assert Settings().redis_maxmemory == 250_000_000
 
 
 @pytest.mark.parametrize(
