@@ -88,8 +88,11 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     http_keep_alive_s: int = Field(
-        5, ge=1, description="an idle keep-alive connection is closed after this many seconds"
-    )
+        5, ge=1, le=3600,
+        description="an idle keep-alive connection is closed after this many seconds (at "
+        "most an hour: each holds one of MCAM_HTTP_MAX_CONNECTIONS, and at 1e400 each "
+        "response logged an OverflowError traceback)",
+    )  # fmt: skip
     http_shutdown_grace_s: float = Field(
         5.0, gt=0, le=300,
         description="on SIGTERM, seconds open requests (an event stream) may run on before "
