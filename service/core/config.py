@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import os
+import shutil
 from collections.abc import Iterable
 from difflib import get_close_matches
 from functools import cache
@@ -282,6 +283,24 @@ class Settings(BaseSettings):
         description="bytes of bracketed reference pairs kept per device; the oldest are removed",
     )  # fmt: skip
 
+    @field_validator("max_upload_bytes")
+    @classmethod
+    def _upload_fits_the_disk(cls, value: int, info: ValidationInfo) -> int:
+        """``/health/ready`` wants room for one upload on the data dir's disk: a limit
+        past the whole disk started a service that was never ready."""
+        data_dir = info.data.get("data_dir")
+        if data_dir is None:
+            return value
+        folder = nearest_folder(data_dir)
+        total = shutil.disk_usage(folder).total
+        if value <= total:
+            return value
+        raise ValueError(
+            f"is more than the whole disk of the data dir holds ({folder}: {total} bytes), "
+            "and /health/ready wants room for one upload there, so the service would never "
+            "be ready; lower MCAM_MAX_UPLOAD_BYTES or move MCAM_DATA_DIR to a larger disk"
+        )
+
     @field_validator("heartbeat_s")
     @classmethod
     def _beats_within_lease(cls, value: float, info: ValidationInfo) -> float:
@@ -350,6 +369,11 @@ class Settings(BaseSettings):
             "the largest upload (MCAM_MAX_PIXELS, MCAM_MAX_VIDEO_SAMPLES, MCAM_JOBS_MAX_BYTES, "
             "MCAM_MAX_QUEUED_BYTES_PER_KEY)"
         )
+
+
+def nearest_folder(path: Path) -> Path:
+    """``path`` if it exists, else its nearest parent that does (where it would be made)."""
+    return next(folder for folder in (path, *path.parents) if folder.exists())
 
 
 def largest_upload_codes(settings: Settings) -> int:

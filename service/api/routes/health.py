@@ -16,7 +16,7 @@ from models.decoders.registry import resolve
 from models.errors import McamError
 from service.api.deps import StateDep
 from service.api.state import ServiceState
-from service.core.config import upload_room
+from service.core.config import nearest_folder, upload_room
 from worker.redis_memory import full_problem
 
 router = APIRouter(prefix="/health", tags=["health"])
@@ -50,7 +50,7 @@ def store_problem(root: Path, min_free_bytes: int) -> str | None:
     folder is not writable (a read-only mount: every job fails), or its disk has less
     than ``min_free_bytes`` free (every job waits, running, until there is room). A
     folder removed since is judged by its nearest parent, where workers create it again."""
-    folder = next(folder for folder in (root, *root.parents) if folder.exists())
+    folder = nearest_folder(root)
     if not os.access(folder, os.W_OK):
         return (
             "the result store (MCAM_DATA_DIR's results folder) is not writable: every job "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -263,3 +264,19 @@ def test_a_dotenv_that_is_not_utf8_is_refused(tmp_path: Path) -> None:
     with pytest.raises(InvalidInputError, match=r"\.env is not utf-8 text \(byte 0 is 0xff\): "
                        "save it as utf-8"):
         get_settings()
+
+
+def test_an_upload_limit_past_the_data_dirs_disk_is_refused(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """/health/ready wants room for one upload on the data dir's disk: with
+    MCAM_MAX_UPLOAD_BYTES past the whole disk the service started and was never ready
+    ("the result store's disk has ... bytes free, less than one upload")."""
+    total = shutil.disk_usage(tmp_path).total
+    monkeypatch.setenv("MCAM_DATA_DIR", str(tmp_path / "not" / "made" / "yet"))
+    monkeypatch.setenv("MCAM_MAX_UPLOAD_BYTES", str(total + 1))
+    with pytest.raises(ValidationError, match=r"is more than the whole disk of the data dir "
+                       rf"holds \({tmp_path}: {total} bytes\)"):
+        Settings()
+    monkeypatch.setenv("MCAM_MAX_UPLOAD_BYTES", str(total))
+    assert Settings().max_upload_bytes == total
