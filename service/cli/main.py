@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from pydantic import ValidationError
+from pydantic_core import ErrorDetails
 
 from models.allocator import keep_freed_memory
 from models.errors import McamError
@@ -53,15 +54,26 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+#: Settings whose value may hold a password: an error names them without the value
+#: (the message shows it masked).
+SECRET_SETTINGS = ("redis_url",)
+
+
 def settings_problems(exc: ValidationError) -> str:
     """One line naming each ``MCAM_*`` setting that could not be read, and why; a
     problem of several settings together names them itself."""
-    problems = [
-        f"MCAM_{'.'.join(str(part) for part in error['loc']).upper()}="
-        f"{error.get('input')!r}: {error['msg']}" if error["loc"] else error["msg"]
-        for error in exc.errors()
-    ]
+    problems = [setting_problem(error) for error in exc.errors()]
     return "invalid settings (environment or .env): " + "; ".join(problems)
+
+
+def setting_problem(error: ErrorDetails) -> str:
+    """One of :func:`settings_problems`: the variable, its value (unless secret), why."""
+    if not error["loc"]:
+        return error["msg"]
+    name = ".".join(str(part) for part in error["loc"])
+    if name in SECRET_SETTINGS:
+        return f"MCAM_{name.upper()}: {error['msg']}"
+    return f"MCAM_{name.upper()}={error.get('input')!r}: {error['msg']}"
 
 
 def file_problem(exc: OSError) -> str:

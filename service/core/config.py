@@ -25,6 +25,7 @@ from models.decoders.registry import resolve
 from models.errors import InvalidInputError, McamError
 from models.hdr_io import EXR_COMPRESSIONS
 from worker.config_checks import heartbeat_problem
+from worker.embedded_redis import url_problem
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.recordings import MAX_RECORDING_SAMPLES
 from worker.redis_memory import DEFAULT_MAXMEMORY, submit_room
@@ -282,6 +283,16 @@ class Settings(BaseSettings):
         DEFAULT_MAX_BYTES, gt=0,
         description="bytes of bracketed reference pairs kept per device; the oldest are removed",
     )  # fmt: skip
+
+    @field_validator("redis_url")
+    @classmethod
+    def _usable_redis_url(cls, value: str | None) -> str | None:
+        """A URL of the wrong form stopped ``mcam api`` and ``mcam serve`` after their
+        start with a traceback of 89 lines (exit 3), ``mcam worker`` with redis-py's."""
+        problem = None if value is None else url_problem(value)
+        if problem:
+            raise ValueError(f"{problem}; or unset MCAM_REDIS_URL for the embedded Redis")
+        return value
 
     @field_validator("max_upload_bytes")
     @classmethod

@@ -102,6 +102,8 @@ def test_connect_rejects_unknown_schemes(url: str) -> None:
         ("rediss://user@h", "rediss://user@h"),
         ("unix:///run/r.sock?password=s3cret&db=2", "unix:///run/r.sock?password=***&db=2"),
         ("redis://h:6379", "redis://h:6379"),
+        ("redis://:s3cret@[::1", "redis:***@[::1"),  # urlsplit refuses it
+        ("redis://[::1?password=s3cret", "redis://[::1"),
     ],
 )
 def test_a_logged_url_has_its_password_masked(url: str, shown: str) -> None:

@@ -66,6 +66,16 @@ def test_a_problem_of_several_settings_is_its_own_words() -> None:
     assert "MCAM_=" not in line and "\n" not in line
 
 
+def test_a_redis_url_refused_is_not_shown_with_its_password() -> None:
+    """MCAM_REDIS_URL holds the Redis password: the line names it, and the message shows
+    the URL masked."""
+    with pytest.raises(ValidationError) as caught:
+        Settings(_env_file=None, redis_url="redis://:s3cret@localhost:notaport")
+    line = settings_problems(caught.value)
+    assert "MCAM_REDIS_URL: " in line and "redis://:***@localhost:notaport" in line
+    assert "s3cret" not in line
+
+
 @pytest.mark.parametrize("output", [".", "missing/x.exr"], ids=["a-folder", "no-folder"])
 def test_unwritable_output_exits_2_without_a_traceback(
     tmp_path: Path, output: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch

@@ -280,3 +280,24 @@ def test_an_upload_limit_past_the_data_dirs_disk_is_refused(
         Settings()
     monkeypatch.setenv("MCAM_MAX_UPLOAD_BYTES", str(total))
     assert Settings().max_upload_bytes == total
+
+
+@pytest.mark.parametrize(
+    ("url", "problem"),
+    [("foo", "unsupported Redis URL"),
+     ("redis://:s3cret@localhost:notaport", "Port could not be cast to integer"),
+     ("redis://localhost:99999", "Port out of range"),
+     ("redis://:s3cret@[::1", "Invalid IPv6 URL")],
+)
+def test_a_redis_url_of_the_wrong_form_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch, url: str, problem: str
+) -> None:
+    """'foo' stopped mcam api and mcam serve after their start with an 89-line traceback
+    (exit 3); a port that is no number, or an unclosed IPv6 bracket, stopped mcam worker
+    with redis-py's ValueError traceback. Each is refused at start, its password masked."""
+    monkeypatch.setenv("MCAM_REDIS_URL", url)
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    message = caught.value.errors()[0]["msg"]
+    assert problem in message and "s3cret" not in message
+    assert "unset MCAM_REDIS_URL for the embedded Redis" in message
