@@ -7,15 +7,16 @@ CLI reads them and passes plain values into ``worker/`` and ``device/``.
 from __future__ import annotations
 
 import io
+import logging
 import os
 import shutil
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from difflib import get_close_matches
 from functools import cache
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
-from dotenv.parser import parse_stream
+from dotenv.parser import Binding, parse_stream
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
@@ -29,6 +30,8 @@ from worker.embedded_redis import url_problem
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.recordings import MAX_RECORDING_SAMPLES
 from worker.redis_memory import DEFAULT_MAXMEMORY, submit_room
+
+log = logging.getLogger(__name__)
 
 #: Most onnxruntime intra-op threads a worker's session may have (``--threads``).
 MAX_WORKER_THREADS = 256
@@ -428,25 +431,30 @@ def environment_problem(environ: Iterable[str], env_file: Path) -> str | None:
     """What is wrong with the ``MCAM_*`` variables of ``environ`` (names) and
     ``env_file``, or None. A misspelt setting (``MCAM_MAX_PIXEL``) was ignored without a
     word, leaving the default it was meant to change in force."""
-    problems = unknown_variables(environ, "environment") + env_file_problems(env_file)
+    try:
+        bindings = env_file_bindings(env_file)
+    except UnicodeDecodeError as exc:
+        return (
+            f"{env_file} is not {ENV_FILE_ENCODING} text (byte {exc.start} is "
+            f"{exc.object[exc.start]:#04x}): save it as {ENV_FILE_ENCODING}"
+        )
+    problems = unknown_variables(environ, "environment") + env_file_problems(bindings, env_file)
     return "; ".join(problems) or None
 
 
-def env_file_problems(env_file: Path) -> list[str]:
-    """What is wrong with ``env_file``, if there is one: each line python-dotenv cannot
+def env_file_bindings(env_file: Path) -> list[Binding]:
+    """The statements of ``env_file`` as python-dotenv reads them; none when there is no
+    such file. Raises :class:`UnicodeDecodeError` when it is not UTF-8."""
+    if not env_file.is_file():
+        return []
+    return list(parse_stream(io.StringIO(env_file.read_text(encoding=ENV_FILE_ENCODING))))
+
+
+def env_file_problems(bindings: list[Binding], env_file: Path) -> list[str]:
+    """What is wrong with the statements of ``env_file``: each line python-dotenv cannot
     read (it logged "could not parse statement starting at line N" and dropped the line,
     a setting in it included, and the service ran without it), then each ``MCAM_*``
     name that is no setting."""
-    if not env_file.is_file():
-        return []
-    try:
-        text = env_file.read_text(encoding=ENV_FILE_ENCODING)
-    except UnicodeDecodeError as exc:
-        return [
-            f"{env_file} is not {ENV_FILE_ENCODING} text (byte {exc.start} is "
-            f"{exc.object[exc.start]:#04x}): save it as {ENV_FILE_ENCODING}"
-        ]
-    bindings = list(parse_stream(io.StringIO(text)))
     problems = [
         f"line {binding.original.line} of {env_file} is not NAME=value: correct it (quote "
         "a value with spaces or a quote in it) or begin it with # to make it a comment"
@@ -457,12 +465,46 @@ def env_file_problems(env_file: Path) -> list[str]:
     return problems + unknown_variables(names, str(env_file))
 
 
+def overridden_settings(environ: Mapping[str, str], bindings: list[Binding]) -> list[str]:
+    """The ``MCAM_*`` names of ``bindings`` (``.env``) that ``environ`` gives another,
+    non-empty value: the environment's is used, and the line of ``.env`` is not."""
+    given = {name.upper(): value for name, value in environ.items() if value}
+    return [
+        binding.key
+        for binding in bindings
+        if binding.key is not None
+        and binding.key.upper().startswith(PREFIX)
+        and binding.key.upper() in given
+        and not same_value(binding.key, given[binding.key.upper()], binding.value)
+    ]
+
+
+def same_value(name: str, first: str, second: str | None) -> bool:
+    """Whether ``first`` and ``second``, values of the ``MCAM_*`` variable ``name``, mean
+    the same; paths are compared resolved (``mcam serve`` gives its workers the data
+    dir's absolute path, where ``.env`` may name it relative to the working folder)."""
+    if first == second:
+        return True
+    field = Settings.model_fields.get(name.upper().removeprefix(PREFIX).lower())
+    annotation = None if field is None else field.annotation
+    if second is None or Path not in (annotation, *get_args(annotation)):
+        return False
+    return Path(first).resolve() == Path(second).resolve()
+
+
 @cache
 def get_settings() -> Settings:
     """The process-wide settings (read once); an ``MCAM_*`` variable that is no setting,
     in the environment or ``.env``, or a ``.env`` that does not decode or parse, is refused
-    (:class:`InvalidInputError`)."""
-    problem = environment_problem(os.environ, Path(str(Settings.model_config["env_file"])))
+    (:class:`InvalidInputError`). A setting the environment gives another value than
+    ``.env`` is logged as a warning (the environment's is used)."""
+    env_file = Path(str(Settings.model_config["env_file"]))
+    problem = environment_problem(os.environ, env_file)
     if problem:
         raise InvalidInputError(problem)
+    for name in overridden_settings(os.environ, env_file_bindings(env_file)):
+        log.warning(
+            "%s is set both in the environment and in %s, to other values: the "
+            "environment's is used; remove one of them", name, env_file,
+        )
     return Settings()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from collections.abc import Iterator
@@ -301,3 +302,34 @@ def test_a_redis_url_of_the_wrong_form_is_refused_at_start(
     message = caught.value.errors()[0]["msg"]
     assert problem in message and "s3cret" not in message
     assert "unset MCAM_REDIS_URL for the embedded Redis" in message
+
+
+@pytest.mark.usefixtures("fresh_settings")
+def test_a_setting_the_environment_overrides_in_dotenv_is_warned_of(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """MCAM_PORT=9001 in .env and 9002 in the environment: the service listened on 9002
+    without a word on the line of .env it ignored. The same value twice, or an empty
+    one in the environment (unset), is not warned of."""
+    (tmp_path / ".env").write_text(
+        "MCAM_PORT=9001\nMCAM_HOST=0.0.0.0\nMCAM_DATA_DIR=d\nTZ=UTC\n"
+    )
+    monkeypatch.setenv("TZ", "Europe/Paris")  # not a setting: not ours to judge
+    monkeypatch.setenv("MCAM_PORT", "9002")
+    monkeypatch.setenv("MCAM_HOST", "0.0.0.0")
+    monkeypatch.setenv("MCAM_DATA_DIR", "")
+    with caplog.at_level(logging.WARNING, logger="service.core.config"):
+        settings = get_settings()
+    assert (settings.port, settings.data_dir) == (9002, Path("d"))
+    assert [record.getMessage() for record in caplog.records] == [
+        "MCAM_PORT is set both in the environment and in .env, to other values: the "
+        "environment's is used; remove one of them"
+    ]
+    caplog.clear()
+    get_settings.cache_clear()
+    # mcam serve gives its workers the data dir resolved: the same folder, no warning.
+    monkeypatch.setenv("MCAM_DATA_DIR", str(tmp_path / "d"))
+    monkeypatch.delenv("MCAM_PORT")
+    with caplog.at_level(logging.WARNING, logger="service.core.config"):
+        get_settings()
+    assert not caplog.records
