@@ -438,14 +438,21 @@ def environment_problem(environ: Iterable[str], env_file: Path) -> str | None:
             f"{env_file} is not {ENV_FILE_ENCODING} text (byte {exc.start} is "
             f"{exc.object[exc.start]:#04x}): save it as {ENV_FILE_ENCODING}"
         )
+    except OSError as exc:
+        return (
+            f"cannot read {env_file} ({exc.strerror}): make it a file of NAME=value lines "
+            "that the service's user may read, or remove it"
+        )
     problems = unknown_variables(environ, "environment") + env_file_problems(bindings, env_file)
     return "; ".join(problems) or None
 
 
 def env_file_bindings(env_file: Path) -> list[Binding]:
-    """The statements of ``env_file`` as python-dotenv reads them; none when there is no
-    such file. Raises :class:`UnicodeDecodeError` when it is not UTF-8."""
-    if not env_file.is_file():
+    """The statements of ``env_file`` as python-dotenv reads them; none when there is
+    nothing of that name. Raises :class:`UnicodeDecodeError` when it is not UTF-8, and
+    :class:`OSError` when it cannot be read (a folder: pydantic-settings skipped one
+    without a word, as docker makes of a bind mount whose file is missing)."""
+    if not env_file.exists():
         return []
     return list(parse_stream(io.StringIO(env_file.read_text(encoding=ENV_FILE_ENCODING))))
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import shutil
@@ -333,3 +334,25 @@ def test_a_setting_the_environment_overrides_in_dotenv_is_warned_of(
     with caplog.at_level(logging.WARNING, logger="service.core.config"):
         get_settings()
     assert not caplog.records
+
+
+@pytest.mark.usefixtures("fresh_settings")
+def test_a_dotenv_that_cannot_be_read_is_refused(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A folder named .env (what docker makes of a bind mount whose file is missing) was
+    skipped without a word, the service run on defaults; one the user may not read
+    was blamed as "permission denied: .env; choose a path you may read or write"."""
+    (tmp_path / ".env").mkdir()
+    with pytest.raises(InvalidInputError, match=r"cannot read \.env \(Is a directory\): make "
+                       "it a file of NAME=value lines that the service's user may read"):
+        get_settings()
+    (tmp_path / ".env").rmdir()
+    (tmp_path / ".env").write_text("MCAM_PORT=9001\n")
+
+    def refuse(*_: object, **__: object) -> str:
+        raise PermissionError(errno.EACCES, "Permission denied", ".env")
+
+    monkeypatch.setattr(Path, "read_text", refuse)  # root reads any file
+    with pytest.raises(InvalidInputError, match=r"cannot read \.env \(Permission denied\)"):
+        get_settings()
