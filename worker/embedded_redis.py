@@ -62,7 +62,9 @@ class RedisStartError(McamError):
 
 def redacted_url(url: str) -> str:
     """``url`` with its password (``redis://:secret@host``, ``?password=``) masked, for
-    logs and error messages."""
+    logs and error messages; one with neither is shown as given."""
+    if "@" not in url and "password=" not in url.lower():
+        return url
     try:
         parts = urlsplit(url)
     except ValueError:  # malformed ('redis://[::1'): nothing before the last @ is shown

@@ -104,6 +104,7 @@ def test_connect_rejects_unknown_schemes(url: str) -> None:
         ("redis://h:6379", "redis://h:6379"),
         ("redis://:s3cret@[::1", "redis:***@[::1"),  # urlsplit refuses it
         ("redis://[::1?password=s3cret", "redis://[::1"),
+        ("localhost:6379", "localhost:6379"),  # was shown as '://localhost:6379'
     ],
 )
 def test_a_logged_url_has_its_password_masked(url: str, shown: str) -> None:
