@@ -58,6 +58,7 @@ from worker.redis_keys import (
     job_key,
     last_sequence_key,
     lease_key,
+    recording_key,
 )
 from worker.redis_memory import is_out_of_memory
 
@@ -99,9 +100,13 @@ redis.call('INCRBY', KEYS[7], bytes)
 return 1
 """
 
-# KEYS: frame stream, devices set, dropped counter. ARGV: maxlen, device, then fields.
-# Over maxlen the oldest frame goes, unless it is a DISCONT frame followed by one that is
-# not: then that second frame goes (the run's start is kept, the next frame of it is not).
+# KEYS: frame stream, devices set, dropped counter, the device's recording. ARGV: maxlen,
+# device, the workers' group, then fields. Over maxlen the oldest frame goes, unless it is
+# a DISCONT frame followed by one that is not: then that second frame goes (the run's
+# start is kept, the next frame of it is not). A frame that goes before any worker read
+# it (after the group's last delivered id), sent within the window of the device's active
+# recording (after its start_entry and, once stopping, at or before its stop_entry),
+# counts in the recording's frames_lost: one a worker already read is in its hands.
 _PUBLISH = """
 local function discont(fields)
   for i = 1, #fields, 2 do
@@ -109,12 +114,36 @@ local function discont(fields)
   end
   return false
 end
+local function later(a, b)
+  local a_ms, a_seq = string.match(a, '^(%d+)-(%d+)$')
+  local b_ms, b_seq = string.match(b, '^(%d+)-(%d+)$')
+  a_ms, b_ms = tonumber(a_ms), tonumber(b_ms)
+  return a_ms > b_ms or (a_ms == b_ms and tonumber(a_seq) > tonumber(b_seq))
+end
+local function last_delivered(stream)
+  for _, group in ipairs(redis.call('XINFO', 'GROUPS', stream)) do
+    local info = {}
+    for i = 1, #group, 2 do info[group[i]] = group[i + 1] end
+    if info['name'] == ARGV[3] then return info['last-delivered-id'] end
+  end
+  return '0-0'
+end
+local function recording_window()
+  local r = redis.call('HMGET', KEYS[4], 'state', 'start_entry', 'stop_entry')
+  if r[1] ~= 'recording' and r[1] ~= 'stopping' then return nil end
+  return {start = r[2] or '0-0', stop = r[1] == 'stopping' and r[3] or nil,
+          read = last_delivered(KEYS[1])}
+end
+local function lost_to(window, victim)
+  return window ~= nil and later(victim, window.start) and later(victim, window.read)
+    and (window.stop == nil or not later(victim, window.stop))
+end
 local maxlen = tonumber(ARGV[1])
 local entry = {}
-for i = 3, #ARGV do entry[#entry + 1] = ARGV[i] end
+for i = 4, #ARGV do entry[#entry + 1] = ARGV[i] end
 redis.call('XADD', KEYS[1], '*', unpack(entry))
 redis.call('SADD', KEYS[2], ARGV[2])
-local dropped = 0
+local dropped, lost, window = 0, 0, nil
 while redis.call('XLEN', KEYS[1]) > maxlen do
   local oldest = redis.call('XRANGE', KEYS[1], '-', '+', 'COUNT', 2)
   local victim = oldest[1][1]
@@ -122,9 +151,12 @@ while redis.call('XLEN', KEYS[1]) > maxlen do
     victim = oldest[2][1]
   end
   redis.call('XDEL', KEYS[1], victim)
+  if dropped == 0 then window = recording_window() end
+  if lost_to(window, victim) then lost = lost + 1 end
   dropped = dropped + 1
 end
 if dropped > 0 then redis.call('HINCRBY', KEYS[3], ARGV[2], dropped) end
+if lost > 0 then redis.call('HINCRBY', KEYS[4], 'frames_lost', lost) end
 return dropped
 """
 
@@ -188,12 +220,17 @@ def publish_frame(client: redis.Redis, message: FrameMessage, *, maxlen: int) ->
     holds ``maxlen`` frames the oldest are dropped, but a DISCONT frame at the front is
     kept (the frame after it goes instead): the worker sees each frame against its run's
     first, and without it took the frames of a camera that restarted its counter for
-    stale ones of the old run. Returns how many were dropped."""
-    args: list[Any] = [maxlen, message.device]
+    stale ones of the old run. A dropped frame no worker had read, sent within the
+    window of the device's active recording, counts in its ``frames_lost``
+    (:mod:`worker.recordings`). Returns how many were dropped."""
+    args: list[Any] = [maxlen, message.device, GROUP]
     for name, value in message.to_fields().items():
         args += [name, value]
     script = client.register_script(_PUBLISH)
-    keys = [frame_stream(message.device), DEVICES_SET, counter_key("frames_dropped_total")]
+    keys = [
+        frame_stream(message.device), DEVICES_SET, counter_key("frames_dropped_total"),
+        recording_key(message.device),
+    ]
     return int(script(keys=keys, args=args))
 
 

@@ -40,6 +40,11 @@ and ``error`` saying what was wrong and what to ask for instead; that frame is n
 stored (it is still reconstructed as a device frame), so nothing already recorded is
 lost, and a stop answers with that error. Frames of one recording keep one encoding
 and size (a change ends it), so its first frame stands for all of them.
+
+A device's frame stream keeps its newest ``MCAM_FRAMES_MAXLEN`` frames: frames of the
+recording's window that it drops before any worker read them (no worker running, or one
+far behind) count in ``frames_lost`` (:func:`worker.queue.publish_frame`), and a recording
+that ends with no frame says how many were lost and what to do.
 """
 
 from __future__ import annotations
@@ -151,6 +156,7 @@ class Recording:
     last_entry: str | None = None
     start_entry: str | None = None
     stop_entry: str | None = None
+    frames_lost: int = 0
     job: str | None = None
     error: str | None = None
 
@@ -181,6 +187,7 @@ class Recording:
             last_entry=get.get("last_entry") or None,
             start_entry=get.get("start_entry") or None,
             stop_entry=get.get("stop_entry") or None,
+            frames_lost=int(get.get("frames_lost", "0")),
             job=get.get("job") or None,
             error=get.get("error") or None,
         )
@@ -473,6 +480,10 @@ class Recorder:
                 f"{recording.max_samples}; record smaller frames or raise the limit "
                 "(MCAM_MAX_VIDEO_SAMPLES)"
             )
+        if recording.frames == 0 and recording.frames_lost:
+            raise InvalidInputError(
+                f"no frames were recorded: {frames_lost_text(recording.frames_lost)}"
+            )
         if recording.frames == 0:
             raise InvalidInputError(
                 "no frames were recorded: is the camera streaming (GET /v1/devices/{id}) "
@@ -492,6 +503,20 @@ class Recorder:
         return self.queue.submit(
             "video", codes, params, recording.decoder, options, job_id=recording.id
         ).id
+
+
+def frames_lost_text(lost: int) -> str:
+    """What losing ``lost`` frames of a recording to a full device stream means, and
+    what to do."""
+    frames = "1 frame the camera sent between the start and the stop was" if lost == 1 else (
+        f"{lost} frames the camera sent between the start and the stop were"
+    )
+    return (
+        f"{frames} dropped from the device's frame stream before a worker read them (it "
+        "keeps the newest MCAM_FRAMES_MAXLEN frames; stream_full in GET /v1/devices/{id}); "
+        "keep a worker running while recording, or raise MCAM_FRAMES_MAXLEN on the device "
+        "daemon"
+    )
 
 
 def camera_timing(recording: Recording, message: FrameMessage) -> dict[str, int]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -12,12 +13,15 @@ import redis
 from models.errors import InvalidInputError
 from models.formation import SensorFrame
 from worker import recordings
+from worker.device_consumer import DeviceConsumer
 from worker.device_registry import DeviceNotFoundError
+from worker.device_state import make_frame_decoder
 from worker.frame_message import FrameMessage
 from worker.jobs import JobRecord
-from worker.queue import JobQueue, entry_codes
+from worker.queue import JobQueue, entry_codes, publish_frame
 from worker.recordings import (
     Recorder,
+    Recording,
     frame_key,
     load_recording,
     request_stop,
@@ -375,3 +379,41 @@ def test_a_rate_not_measured_leaves_the_default_fps(
     assert load_recording(client, "cam1").view()["camera_fps"] is None
     job = stopped_job(client, recorder, queue)
     assert video_options(job.decoder, job.options)[0].hdr10.fps == DEFAULT_OPTIONS["fps"]
+
+
+def late_worker(client: redis.Redis, store: ResultStore) -> DeviceConsumer:
+    """A worker's device side (itoh), started after the frames were sent."""
+    return DeviceConsumer(
+        client, store, owner="w1", lease_ms=5000, max_deliveries=3,
+        decode=make_frame_decoder("independent", "itoh"), stop=threading.Event(),
+    )  # fmt: skip
+
+
+def ended(client: redis.Redis, worker: DeviceConsumer, wait_until) -> Recording:  # type: ignore[no-untyped-def]
+    """Poll ``worker`` until cam1's recording has ended; return it."""
+    wait_until(lambda: worker.poll() or load_recording(client, "cam1").state
+               not in ("recording", "stopping"), what="the recording to end")
+    return load_recording(client, "cam1")
+
+
+def test_a_recording_whose_frames_were_all_trimmed_says_how_many_and_what_to_do(
+    client: redis.Redis, store: ResultStore, make_frame, wait_until
+) -> None:
+    """Frames wait on a stream of MCAM_FRAMES_MAXLEN entries; with no worker reading it,
+    the oldest are trimmed. Before, a recording whose frames were all trimmed failed with
+    "no frames were recorded: is the camera streaming ... and a worker running?", which
+    did not say that the camera did stream and the frames were lost."""
+    clip = frames(make_frame, 2)
+    for sequence in range(2):  # before the start: trimmed too, not the recording's
+        publish_frame(client, message(clip[0], sequence), maxlen=4)
+    start(client)
+    for sequence in range(2, 7):
+        publish_frame(client, message(clip[sequence % 2], sequence), maxlen=4)
+    request_stop(client, "cam1")
+    for sequence in range(7, 11):  # after the stop: they push the recording's frames out
+        publish_frame(client, message(clip[sequence % 2], sequence), maxlen=4)
+
+    failed = ended(client, late_worker(client, store), wait_until)
+    assert failed.state == "failed" and failed.frames == 0 and failed.frames_lost == 5
+    assert "5 frames the camera sent between the start and the stop" in failed.error
+    assert "keep a worker running" in failed.error and "MCAM_FRAMES_MAXLEN" in failed.error
