@@ -43,8 +43,9 @@ and size (a change ends it), so its first frame stands for all of them.
 
 A device's frame stream keeps its newest ``MCAM_FRAMES_MAXLEN`` frames: frames of the
 recording's window that it drops before any worker read them (no worker running, or one
-far behind) count in ``frames_lost`` (:func:`worker.queue.publish_frame`), and a recording
-that ends with no frame says how many were lost and what to do.
+far behind) count in ``frames_lost`` (:func:`worker.queue.publish_frame`): a recording
+that ends with no frame fails saying how many were lost and what to do, and the video
+job of one that lost some carries that as a warning.
 """
 
 from __future__ import annotations
@@ -223,6 +224,7 @@ class Recording:
             "device": self.device,
             "state": self.state,
             "frames": self.frames,
+            "frames_lost": self.frames_lost,
             "max_frames": self.max_frames,
             "max_samples": self.max_samples,
             "decoder": self.decoder,
@@ -498,10 +500,12 @@ class Recorder:
         if "fps" not in options and fps is not None:
             options["fps"] = fps
         params = SensorParams.model_validate_json(recording.params)
+        lost = [frames_lost_text(recording.frames_lost)] if recording.frames_lost else []
         # The recording's id names its job: if noting the job below fails (Redis down),
         # the next try finds the job queued instead of queueing it twice.
         return self.queue.submit(
-            "video", codes, params, recording.decoder, options, job_id=recording.id
+            "video", codes, params, recording.decoder, options, job_id=recording.id,
+            warnings=lost,
         ).id
 
 

@@ -13,6 +13,7 @@ import redis
 from models.errors import InvalidInputError
 from models.formation import SensorFrame
 from worker import recordings
+from worker.deliveries import StreamConsumer
 from worker.device_consumer import DeviceConsumer
 from worker.device_registry import DeviceNotFoundError
 from worker.device_state import make_frame_decoder
@@ -417,3 +418,30 @@ def test_a_recording_whose_frames_were_all_trimmed_says_how_many_and_what_to_do(
     assert failed.state == "failed" and failed.frames == 0 and failed.frames_lost == 5
     assert "5 frames the camera sent between the start and the stop" in failed.error
     assert "keep a worker running" in failed.error and "MCAM_FRAMES_MAXLEN" in failed.error
+
+
+def test_a_video_that_lost_frames_to_the_full_stream_says_how_many(
+    client: redis.Redis, store: ResultStore, queue: JobQueue, make_frame, wait_until
+) -> None:
+    """Before, a recording that lost some of its frames to the full device stream made
+    its video of the rest without a word: its record and its job said nothing of the
+    loss. Frames a worker read before the stream dropped them are in its hands, and
+    recorded: they are not counted."""
+    clip = frames(make_frame, 2)
+    start(client)
+    publish_frame(client, message(clip[0], 0), maxlen=3)
+    held = StreamConsumer(client, frame_stream("cam1"), "w0", max_deliveries=3)
+    [read] = held.read_new(block_ms=None)  # a worker holds frame 0 when the stream drops it
+    for sequence in range(1, 7):  # frames 1-3 are dropped before any worker read them
+        publish_frame(client, message(clip[sequence % 2], sequence), maxlen=3)
+    Recorder(client, store, max_deliveries=3).add_frame(FrameMessage.from_fields(read.fields),
+                                                        read.entry_id)
+    held.done(read)
+    request_stop(client, "cam1")
+
+    done = ended(client, late_worker(client, store), wait_until)
+    assert done.state == "submitted" and done.frames == 4 and done.frames_lost == 3
+    assert done.view()["frames_lost"] == 3
+    [warning] = queue.get(done.job).warnings
+    assert warning.startswith("3 frames the camera sent between the start and the stop")
+    assert "MCAM_FRAMES_MAXLEN" in warning
