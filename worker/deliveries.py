@@ -9,7 +9,8 @@ Usage::
 
 Entries of a dead consumer stay pending; :meth:`reclaim` takes those idle longer
 than ``min_idle_ms`` (XPENDING IDLE + XCLAIM, counting a delivery). Entries trimmed away
-while pending (a full device stream) come back without fields and are acked.
+while pending (a full device stream) come back without fields and are acked, each
+reported to ``on_trimmed`` when given (their frames are lost).
 """
 
 from __future__ import annotations
@@ -121,13 +122,18 @@ def _fields(raw: dict[bytes, bytes] | None) -> dict[str, bytes]:
 
 
 class StreamConsumer:
-    """Consumer ``name`` of the ``workers`` group on ``stream``."""
+    """Consumer ``name`` of the ``workers`` group on ``stream``; ``on_trimmed`` is told
+    the id of each entry found trimmed away while pending here."""
 
-    def __init__(self, client: redis.Redis, stream: str, name: str, *, max_deliveries: int) -> None:
+    def __init__(
+        self, client: redis.Redis, stream: str, name: str, *, max_deliveries: int,
+        on_trimmed: Callable[[str], None] | None = None,
+    ) -> None:
         self.client = client
         self.stream = stream
         self.name = name
         self.max_deliveries = max_deliveries
+        self.on_trimmed = on_trimmed
         self.metrics = Metrics(client)
         self._touch = client.register_script(_TOUCH)
         self._claim_others = client.register_script(_CLAIM_OTHERS)
@@ -160,7 +166,8 @@ class StreamConsumer:
 
     def read_own_pending(self, count: int = 100) -> list[Delivery]:
         """Entries delivered to this consumer and not acked, oldest first (reading them
-        does not count a delivery); entries trimmed away meanwhile are acked and skipped."""
+        does not count a delivery); entries trimmed away meanwhile are acked, reported to
+        ``on_trimmed`` and skipped."""
         rows = self.client.xpending_range(self.stream, GROUP, "-", "+", count, self.name)
         found = []
         for row in rows:
@@ -174,8 +181,10 @@ class StreamConsumer:
             )
             if delivery.fields:
                 found.append(delivery)
-            else:
-                self.done(delivery)
+                continue
+            self.done(delivery)
+            if self.on_trimmed is not None:
+                self.on_trimmed(entry_id)
         return found
 
     def claim_idle(self, min_idle_ms: int, count: int | None = 10) -> int:

@@ -210,7 +210,8 @@ class DeviceConsumer:
 
     def _take_over(self, device: str) -> None:
         consumer = StreamConsumer(
-            self.client, frame_stream(device), self.owner, max_deliveries=self.max_deliveries
+            self.client, frame_stream(device), self.owner, max_deliveries=self.max_deliveries,
+            on_trimmed=lambda entry_id: self.recorder.count_lost(device, entry_id),
         )
         consumer.claim_idle(0, count=None)
         # The stream's earlier owners: their entries are ours now, their names go.

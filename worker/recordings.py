@@ -43,7 +43,9 @@ and size (a change ends it), so its first frame stands for all of them.
 
 A device's frame stream keeps its newest ``MCAM_FRAMES_MAXLEN`` frames: frames of the
 recording's window that it drops before any worker read them (no worker running, or one
-far behind) count in ``frames_lost`` (:func:`worker.queue.publish_frame`): a recording
+far behind) count in ``frames_lost`` (:func:`worker.queue.publish_frame`), and so do those
+it drops while a worker that stopped before recording them held them
+(:meth:`Recorder.count_lost`, when the next owner finds them gone): a recording
 that ends with no frame fails saying how many were lost and what to do, and the video
 job of one that lost some carries that as a warning.
 """
@@ -131,6 +133,15 @@ return 1
 """
 
 
+# One more frame lost to the recording of KEYS[1] if it is still recording ARGV[1] (its
+# id): an increment, as the device daemon's publish counts there too.
+_COUNT_LOST = """
+local r = redis.call('HMGET', KEYS[1], 'id', 'state')
+if r[1] ~= ARGV[1] or (r[2] ~= 'recording' and r[2] ~= 'stopping') then return 0 end
+return redis.call('HINCRBY', KEYS[1], 'frames_lost', 1)
+"""
+
+
 @dataclass(frozen=True)
 class Recording:
     """One recording of a device (times in ns since the epoch; ``keyframes``: frame indices)."""
@@ -205,6 +216,13 @@ class Recording:
         if self.state == "stopping":
             return self.stop_entry is not None and order <= entry_order(self.stop_entry)
         return True
+
+    def wants(self, entry_id: str) -> bool:
+        """Whether the frame of stream entry ``entry_id`` belongs to the recording and is
+        not recorded yet (after ``last_entry``: a redelivery is not recorded twice)."""
+        if not self.takes(entry_id):
+            return False
+        return self.last_entry is None or entry_order(entry_id) > entry_order(self.last_entry)
 
     def camera_fps(self) -> float | None:
         """The camera's frame rate over the recording (frames per s, 4 significant
@@ -375,6 +393,7 @@ class Recorder:
             claim_idle_ms=1,
         )
         self._update = client.register_script(_UPDATE)
+        self._count_lost = client.register_script(_COUNT_LOST)
 
     def _set(
         self, recording: Recording, fields: dict[str, Any], *,
@@ -391,9 +410,7 @@ class Recorder:
     def add_frame(self, message: FrameMessage, entry_id: str) -> None:
         """Record a reconstructed frame if it belongs to the device's recording."""
         recording = load_recording(self.client, message.device)
-        if recording is None or not recording.takes(entry_id):
-            return
-        if recording.last_entry and entry_order(entry_id) <= entry_order(recording.last_entry):
+        if recording is None or not recording.wants(entry_id):
             return
         index = recording.frames
         shape = ",".join(map(str, message.codes.shape))
@@ -427,6 +444,14 @@ class Recorder:
             return
         if index + 1 >= recording.max_frames:
             self._finish(load_recording(self.client, message.device) or recording, "max_frames")
+
+    def count_lost(self, device: str, entry_id: str) -> None:
+        """Count in the device's recording (``frames_lost``) the frame of stream entry
+        ``entry_id`` if it belongs to it and is not recorded: the full stream dropped it
+        while a worker held it unrecorded (one that stopped after reading it)."""
+        recording = load_recording(self.client, device)
+        if recording is not None and recording.wants(entry_id):
+            self._count_lost(keys=[recording_key(device)], args=[recording.id])
 
     def _recordable(self, recording: Recording, message: FrameMessage) -> bool:
         """Whether the recording's video job can be made from frames like ``message``'s

@@ -392,8 +392,11 @@ def late_worker(client: redis.Redis, store: ResultStore) -> DeviceConsumer:
 
 def ended(client: redis.Redis, worker: DeviceConsumer, wait_until) -> Recording:  # type: ignore[no-untyped-def]
     """Poll ``worker`` until cam1's recording has ended; return it."""
-    wait_until(lambda: worker.poll() or load_recording(client, "cam1").state
-               not in ("recording", "stopping"), what="the recording to end")
+    def has_ended() -> bool:
+        worker.poll()
+        return load_recording(client, "cam1").state not in ("recording", "stopping")
+
+    wait_until(has_ended, what="the recording to end")
     return load_recording(client, "cam1")
 
 
@@ -445,3 +448,24 @@ def test_a_video_that_lost_frames_to_the_full_stream_says_how_many(
     [warning] = queue.get(done.job).warnings
     assert warning.startswith("3 frames the camera sent between the start and the stop")
     assert "MCAM_FRAMES_MAXLEN" in warning
+
+
+def test_frames_a_stopped_worker_held_when_the_stream_dropped_them_count_as_lost(
+    client: redis.Redis, store: ResultStore, make_frame, wait_until
+) -> None:
+    """A worker that read frames and stopped before recording them leaves them pending;
+    the full stream then drops them, and the next owner finds them without their data.
+    Before, it acked them without a word: the video lacked them and ``frames_lost`` said
+    0 (all lost: "is a worker running?")."""
+    clip = frames(make_frame, 2)
+    start(client)
+    for sequence in range(3):
+        publish_frame(client, message(clip[sequence % 2], sequence), maxlen=3)
+    stopped = StreamConsumer(client, frame_stream("cam1"), "w0", max_deliveries=3)
+    assert len(stopped.read_new(block_ms=None, count=10)) == 3
+    for sequence in range(3, 5):  # frames 0 and 1 go while w0 holds them
+        publish_frame(client, message(clip[sequence % 2], sequence), maxlen=3)
+    request_stop(client, "cam1")
+
+    done = ended(client, late_worker(client, store), wait_until)
+    assert done.state == "submitted" and done.frames == 3 and done.frames_lost == 2
