@@ -134,12 +134,21 @@ BODY_ERRORS: dict[int | str, dict[str, Any]] = {
         "than MCAM_HTTP_BODY_DEADLINE_S in all"
     ),
 }
-UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
+#: Responses of ``POST /v1/simulate``, which reads an upload and queues no job.
+SIMULATE_ERRORS: dict[int | str, dict[str, Any]] = {
     **AUTH_ERRORS,
     **BODY_ERRORS,
     400: error_response("malformed request body"),
     413: error_response("upload or image too large"),
     415: error_response("unsupported file format or content type"),
+    429: error_response("rate limit exceeded (rate_limited, see Retry-After)"),
+    503: error_response(
+        f"the queue (Redis) is unreachable (queue_unavailable), or {DECODES_BUSY}"
+    ),
+}
+#: Responses of a route that reads an upload and queues its job.
+UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
+    **SIMULATE_ERRORS,
     429: error_response(
         "rate limit exceeded (rate_limited, see Retry-After), or the key's jobs in the "
         "queue reach MCAM_MAX_QUEUED_JOBS_PER_KEY or MCAM_MAX_QUEUED_BYTES_PER_KEY "

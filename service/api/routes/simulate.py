@@ -13,7 +13,7 @@ from models.hdr_io import read_hdr
 from service.api.deps import StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, winding_bytes
 from service.api.in_turn import decode_in_turn
-from service.api.schemas import UPLOAD_ERRORS, upload_body
+from service.api.schemas import SIMULATE_ERRORS, upload_body
 from service.api.uploads import SimulateFields, Upload, read_upload_fields
 from service.core.config import Settings
 
@@ -73,7 +73,7 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
                 },
             },
         },
-        **UPLOAD_ERRORS,
+        **SIMULATE_ERRORS,
     },
     openapi_extra=upload_body(SimulateFields, "an OpenEXR or Radiance .hdr image"),
 )

@@ -1,11 +1,15 @@
-"""/docs: Swagger UI served by this server, under a policy that allows no other origin."""
+"""/docs (Swagger UI served by this server, under a policy that allows no other origin)
+and what the OpenAPI document says of each route's errors."""
 
 from __future__ import annotations
 
 import re
 
 import httpx
+import pytest
 
+from service.core.config import Settings
+from service.main import create_app
 from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 
 
@@ -38,3 +42,25 @@ def test_the_docs_render_the_api_in_a_browser_offline(api: str) -> None:
                              .some(e => e.textContent.includes('/v1/reconstructions'))""")
         assert origins == {api.split("/")[2]}
         assert not [e for e in errors if "Content Security Policy" in e]
+
+
+#: Codes a route's document named although the route can never answer them.
+NEVER_ANSWERED = [
+    ("post", "/v1/simulate", "429", "too_many_jobs"),  # it queues no job
+    ("post", "/v1/simulate", "503", "full"),
+]
+
+
+def _description(settings: Settings, method: str, path: str, status: str) -> str:
+    """The OpenAPI description of ``status`` for the operation (empty if undocumented)."""
+    operation = create_app(settings).openapi()["paths"][path][method]
+    return str(operation["responses"].get(status, {}).get("description", ""))
+
+
+@pytest.mark.parametrize(("method", "path", "status", "code"), NEVER_ANSWERED)
+def test_the_openapi_names_no_error_a_route_cannot_answer(
+    settings: Settings, method: str, path: str, status: str, code: str
+) -> None:
+    """``POST /v1/simulate`` shared the responses of the routes that queue a job: its 429
+    named too_many_jobs and its 503 a full queue, neither of which it can answer."""
+    assert code not in _description(settings, method, path, status)
