@@ -134,6 +134,16 @@ BODY_ERRORS: dict[int | str, dict[str, Any]] = {
         "than MCAM_HTTP_BODY_DEADLINE_S in all"
     ),
 }
+#: Responses of a route that reads a JSON or URL-encoded body (``service.api.body_limit``).
+SMALL_BODY_ERRORS: dict[int | str, dict[str, Any]] = {
+    **BODY_ERRORS,
+    413: error_response("body_too_large: the JSON or form body is over MCAM_MAX_JSON_BYTES"),
+}
+#: The 503 of a route that queues a job: Redis unreachable or full, the queue full.
+QUEUE_REFUSALS = (
+    "the queue (Redis) is unreachable (queue_unavailable) or full: queue_full (MCAM_JOBS_MAXLEN "
+    "jobs, or MCAM_JOBS_MAX_BYTES of codes, queued) or store_full (Redis at its maxmemory)"
+)
 #: Responses of ``POST /v1/simulate``, which reads an upload and queues no job.
 SIMULATE_ERRORS: dict[int | str, dict[str, Any]] = {
     **AUTH_ERRORS,
@@ -154,7 +164,7 @@ UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
         "queue reach MCAM_MAX_QUEUED_JOBS_PER_KEY or MCAM_MAX_QUEUED_BYTES_PER_KEY "
         "(too_many_jobs)"
     ),
-    503: error_response(f"the queue (Redis) is unreachable or full, or {DECODES_BUSY}"),
+    503: error_response(f"{QUEUE_REFUSALS}, or {DECODES_BUSY}"),
 }
 
 

@@ -19,7 +19,7 @@ from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.in_turn import decode_in_turn
 from service.api.previews import scene_to_wrap_units, tonemap_png
-from service.api.schemas import AUTH_ERRORS, BODY_ERRORS, DECODES_BUSY, error_response
+from service.api.schemas import AUTH_ERRORS, DECODES_BUSY, SMALL_BODY_ERRORS, error_response
 from service.api.state import ServiceState
 from worker.control_queue import queue_command
 from worker.device_registry import DeviceNotFoundError, forget_device
@@ -32,6 +32,20 @@ from worker.redis_keys import (
 
 router = APIRouter(prefix="/v1/devices", tags=["devices"])
 DEVICE_ERRORS = {**AUTH_ERRORS, 404: error_response("no such device")}
+#: ``DELETE /v1/devices/{id}``'s 409.
+_FORGET_BUSY = error_response(
+    "device_busy: its daemon reports, it records, or frames wait to be decoded"
+)
+#: Responses of ``POST /v1/devices/{id}/control``, whose body is a JSON command.
+CONTROL_ERRORS = {
+    **DEVICE_ERRORS,
+    **SMALL_BODY_ERRORS,
+    400: error_response("bad_request: the JSON body could not be parsed (nested too deeply)"),
+    503: error_response(
+        "control_backlog_full: commands already wait unread (nothing was queued); or the "
+        "queue (Redis) is unreachable or full (queue_unavailable, store_full)"
+    ),
+}
 #: A device whose daemon has not written its health for this long (s; it writes every
 #: 0.25 s) is shown as ``silent``: the daemon was stopped or killed, or lost Redis. Its
 #: last reported state stays in ``last_state``.
@@ -100,7 +114,7 @@ def get_device(device_id: str, state: StateDep, _key: ReadKey) -> dict[str, Any]
     return device_view(state.client, known_device(state, device_id))
 
 
-@router.delete("/{device_id}", responses={**DEVICE_ERRORS, 409: error_response("device busy")},
+@router.delete("/{device_id}", responses={**DEVICE_ERRORS, 409: _FORGET_BUSY},
                summary="Forget a device whose daemon has stopped (its keys, not its results)")
 def forget(device_id: str, state: StateDep, _key: SubmitKey,
            discard_frames: bool = False) -> dict[str, Any]:
@@ -115,8 +129,7 @@ def forget(device_id: str, state: StateDep, _key: SubmitKey,
 
 
 @router.post("/{device_id}/control", status_code=202,
-             responses={**DEVICE_ERRORS, **BODY_ERRORS,
-                        503: error_response("commands already wait unread")},
+             responses=CONTROL_ERRORS,
              summary="Send a control command to the camera (via its daemon)")
 def control(device_id: str, command: Annotated[Command, Body()], state: StateDep,
             _key: SubmitKey) -> dict[str, Any]:

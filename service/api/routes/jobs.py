@@ -217,7 +217,9 @@ async def get_result(
 @router.delete(
     "/{job_id}",
     response_model=JobView,
-    responses={409: error_response("the job already finished"), **JOB_ERRORS},
+    responses={
+        409: error_response("job_finished: the job already succeeded or failed"), **JOB_ERRORS
+    },
     summary="Cancel a queued or running job",
 )
 def delete_job(job_id: str, state: StateDep, _: SubmitKey) -> JobView:

@@ -35,7 +35,7 @@ from service.api.routes.devices import DEVICE_ERRORS, known_device
 from service.api.routes.reconstructions import prefer_wait_s
 from service.api.routes.videos import VideoOptionFields
 from service.api.schemas import (
-    BODY_ERRORS,
+    SMALL_BODY_ERRORS,
     JobAccepted,
     JobView,
     error_response,
@@ -59,7 +59,7 @@ STOP_WAIT_S = 10.0
 DEFAULT_MAX_FRAMES = 300
 RECORDING_ERRORS = {
     **DEVICE_ERRORS,
-    **BODY_ERRORS,
+    **SMALL_BODY_ERRORS,
     409: error_response(
         "start: recording_running (one is running); stop: no_recording (none is running) "
         "or recording_failed (the worker could not make its video job)"
@@ -274,7 +274,7 @@ async def post_recording(
 @router.get(
     "/{device_id}/recordings",
     summary="The device's current (or last) recording: state, frames so far, video job",
-    responses={404: error_response("no such device, or it never recorded"), **DEVICE_ERRORS},
+    responses={**DEVICE_ERRORS, 404: error_response("no such device, or it never recorded")},
 )
 def get_recording(device_id: str, state: StateDep, _: ReadKey) -> dict[str, Any]:
     device = known_device(state, device_id)
