@@ -1,16 +1,20 @@
 """/docs (Swagger UI served by this server, under a policy that allows no other origin)
-and what the OpenAPI document says of each route's errors."""
+and what the OpenAPI document and the README say of each route's errors."""
 
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import httpx
 import pytest
 
+from models.errors import OutputOverflowError, OutputUnderflowError
 from service.core.config import Settings
 from service.main import create_app
 from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
+from worker.child_process import ChildDiedError
+from worker.job_processor import error_of, model_unavailable
 
 
 def test_the_docs_page_and_its_assets_come_from_this_server(api: str) -> None:
@@ -98,3 +102,17 @@ def test_the_openapi_names_no_error_a_route_cannot_answer(
     """``POST /v1/simulate`` shared the responses of the routes that queue a job: its 429
     named too_many_jobs and its 503 a full queue, neither of which it can answer."""
     assert code not in _description(settings, method, path, status)
+
+def test_the_readme_names_every_code_a_failed_job_reports() -> None:
+    """``GET /v1/jobs/{id}`` reports a failed job's ``error.code``; the README named only
+    model_unavailable and output_overflow of them."""
+    codes = {
+        ChildDiedError.code,
+        OutputOverflowError.code,
+        OutputUnderflowError.code,
+        error_of(RuntimeError("a bug")).code,
+        model_unavailable("itoh", "mantissa", "its id", "retry later").code,
+        "worker_lost",
+    }
+    readme = (Path(__file__).parents[4] / "README.md").read_text()
+    assert [code for code in sorted(codes) if f"`{code}`" not in readme] == []
