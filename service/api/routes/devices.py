@@ -142,6 +142,8 @@ def control(device_id: str, command: Annotated[Command, Body()], state: StateDep
 
 #: The newest frame's 503 (all but the EXR: its preview is made in the API's memory).
 _PREVIEW_BUSY = error_response(f"Redis is unreachable, or (format=png) {DECODES_BUSY}")
+#: The newest frame's 404.
+_NO_FRAME = error_response("no such device, or it has no reconstructed frame yet")
 
 
 def latest_result(state: ServiceState, device_id: str) -> tuple[str, str]:
@@ -162,7 +164,8 @@ def frame_preview(state: ServiceState, key: str, exposure: float, stem: str) -> 
     return download(tonemap_png(x, exposure), "png", stem)
 
 
-@router.get("/{device_id}/frames/latest", responses={**DEVICE_ERRORS, 503: _PREVIEW_BUSY},
+@router.get("/{device_id}/frames/latest", responses={**DEVICE_ERRORS, 404: _NO_FRAME,
+                                                      503: _PREVIEW_BUSY},
             summary="The newest reconstructed frame: EXR, or a tonemapped PNG preview")
 async def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
                        format: Literal["exr", "png"] = "exr",

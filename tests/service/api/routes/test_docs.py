@@ -65,6 +65,7 @@ ANSWERED = [
     ("get", "/v1/jobs/{job_id}/result", "409", "video_job"),
     ("get", "/v1/jobs/{job_id}/result", "503", "server_busy"),
     ("get", "/v1/devices/{device_id}/frames/latest", "503", "server_busy"),
+    ("get", "/v1/devices/{device_id}/frames/latest", "404", "no reconstructed frame"),
     ("get", "/v1/videos/{job_id}/result", "409", "output_not_made"),
     ("post", "/v1/reconstructions", "429", "too_many_jobs"),
     ("post", "/v1/reconstructions", "503", "queue_full"),
@@ -91,7 +92,7 @@ def test_the_openapi_names_each_error_a_route_answers(
     """A route's responses merged from shared dicts lost the route's own words (the
     recordings' 404, the control's 503); the JSON routes' 413 ``body_too_large`` and the
     control's 400 were not documented, nor ``queue_full``, ``device_busy`` and
-    ``job_finished`` named."""
+    ``job_finished`` named; the newest frame's 404 said only "no such device"."""
     assert words in _description(settings, method, path, status)
 
 
