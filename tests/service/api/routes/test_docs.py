@@ -3,15 +3,21 @@ and what the OpenAPI document and the README say of each route's errors."""
 
 from __future__ import annotations
 
+import ast
+import importlib
+import inspect
 import re
 from pathlib import Path
+from types import ModuleType
 
 import httpx
 import pytest
+from fastapi.routing import APIRoute
 
 from models.errors import OutputOverflowError, OutputUnderflowError
+from service.api.errors import STATUS_CODES
 from service.core.config import Settings
-from service.main import create_app
+from service.main import ROUTERS, create_app
 from tests.service.static.conftest import chromium, needs_chromium, wait_for_js
 from worker.child_process import ChildDiedError
 from worker.job_processor import error_of, model_unavailable
@@ -94,6 +100,38 @@ def test_the_openapi_names_each_error_a_route_answers(
     control's 400 were not documented, nor ``queue_full``, ``device_busy`` and
     ``job_finished`` named; the newest frame's 404 said only "no such device"."""
     assert words in _description(settings, method, path, status)
+
+
+def _raised_codes(module: ModuleType) -> set[tuple[int, str]]:
+    """``(status, code)`` of each ``ApiError(status, "code", ...)`` in ``module``'s source
+    whose status and code are literals."""
+    found = set()
+    for node in ast.walk(ast.parse(Path(inspect.getfile(module)).read_text())):
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "ApiError":
+            status, code = node.args[:2]
+            if isinstance(status, ast.Constant) and isinstance(code, ast.Constant):
+                found.add((status.value, code.value))
+    return found
+
+
+@pytest.mark.parametrize("name", ROUTERS)
+def test_every_code_a_router_raises_is_named_in_its_documented_responses(name: str) -> None:
+    """Each route-specific code a router's module raises (not the status's own code, such
+    as ``not_found`` for 404) is named in the description of that status on one of its
+    routes: DELETE /v1/jobs/{id}'s 409 did not name ``job_finished``."""
+    module = importlib.import_module(name)
+    described = [
+        str(route.responses.get(status, {}).get("description", ""))
+        for route in module.router.routes
+        if isinstance(route, APIRoute)
+        for status in route.responses
+    ]
+    missing = [
+        (status, code)
+        for status, code in sorted(_raised_codes(module))
+        if code != STATUS_CODES.get(status) and not any(code in text for text in described)
+    ]
+    assert missing == []
 
 
 @pytest.mark.parametrize(("method", "path", "status", "code"), NEVER_ANSWERED)
