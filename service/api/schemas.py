@@ -125,8 +125,13 @@ AUTH_ERRORS: dict[int | str, dict[str, Any]] = {
     403: error_response("the API key lacks the scope"),
     422: error_response("invalid parameters"),
     429: error_response("rate limit exceeded (see Retry-After)"),
-    503: error_response("the queue (Redis) is unreachable or full"),
+    503: error_response("queue_unavailable: the queue (Redis) is unreachable (see Retry-After)"),
 }
+#: The 503 of a route that writes to Redis: a full Redis refuses the write (reads go on).
+WRITE_REFUSED = error_response(
+    "the queue (Redis) is unreachable (queue_unavailable) or at its maxmemory (store_full: "
+    "nothing of the request was stored); see Retry-After"
+)
 #: Responses of a route that reads a request body (``service.api.body_timeout``).
 BODY_ERRORS: dict[int | str, dict[str, Any]] = {
     408: error_response(

@@ -19,7 +19,13 @@ from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.in_turn import decode_in_turn
 from service.api.previews import scene_to_wrap_units, tonemap_png
-from service.api.schemas import AUTH_ERRORS, DECODES_BUSY, SMALL_BODY_ERRORS, error_response
+from service.api.schemas import (
+    AUTH_ERRORS,
+    DECODES_BUSY,
+    SMALL_BODY_ERRORS,
+    WRITE_REFUSED,
+    error_response,
+)
 from service.api.state import ServiceState
 from worker.control_queue import queue_command
 from worker.device_registry import DeviceNotFoundError, forget_device
@@ -114,7 +120,8 @@ def get_device(device_id: str, state: StateDep, _key: ReadKey) -> dict[str, Any]
     return device_view(state.client, known_device(state, device_id))
 
 
-@router.delete("/{device_id}", responses={**DEVICE_ERRORS, 409: _FORGET_BUSY},
+@router.delete("/{device_id}", responses={**DEVICE_ERRORS, 409: _FORGET_BUSY,
+                                          503: WRITE_REFUSED},
                summary="Forget a device whose daemon has stopped (its keys, not its results)")
 def forget(device_id: str, state: StateDep, _key: SubmitKey,
            discard_frames: bool = False) -> dict[str, Any]:

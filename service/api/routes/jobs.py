@@ -29,6 +29,7 @@ from service.api.previews import (
 from service.api.schemas import (
     AUTH_ERRORS,
     DECODES_BUSY,
+    WRITE_REFUSED,
     JobView,
     error_response,
     job_view,
@@ -218,7 +219,9 @@ async def get_result(
     "/{job_id}",
     response_model=JobView,
     responses={
-        409: error_response("job_finished: the job already succeeded or failed"), **JOB_ERRORS
+        409: error_response("job_finished: the job already succeeded or failed"),
+        **JOB_ERRORS,
+        503: WRITE_REFUSED,
     },
     summary="Cancel a queued or running job",
 )

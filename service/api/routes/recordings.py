@@ -36,6 +36,7 @@ from service.api.routes.reconstructions import prefer_wait_s
 from service.api.routes.videos import VideoOptionFields
 from service.api.schemas import (
     SMALL_BODY_ERRORS,
+    WRITE_REFUSED,
     JobAccepted,
     JobView,
     error_response,
@@ -60,6 +61,7 @@ DEFAULT_MAX_FRAMES = 300
 RECORDING_ERRORS = {
     **DEVICE_ERRORS,
     **SMALL_BODY_ERRORS,
+    503: WRITE_REFUSED,
     409: error_response(
         "start: recording_running (one is running); stop: no_recording (none is running) "
         "or recording_failed (the worker could not make its video job)"

@@ -77,11 +77,19 @@ ANSWERED = [
     ("post", "/v1/reconstructions", "503", "queue_full"),
     ("post", "/v1/videos", "503", "queue_full"),
     ("post", "/v1/simulate", "503", "server_busy"),
+    ("delete", "/v1/jobs/{job_id}", "503", "store_full"),
+    ("delete", "/v1/devices/{device_id}", "503", "store_full"),
+    ("post", "/v1/devices/{device_id}/recordings", "503", "store_full"),
 ]
 #: Codes a route's document named although the route can never answer them.
 NEVER_ANSWERED = [
     ("post", "/v1/simulate", "429", "too_many_jobs"),  # it queues no job
     ("post", "/v1/simulate", "503", "full"),
+    # a full Redis refuses writes only: reads go on (tests/service/api/test_store_full.py)
+    ("get", "/v1/jobs/{job_id}", "503", "full"),
+    ("get", "/v1/decoders", "503", "full"),
+    ("get", "/v1/devices/{device_id}", "503", "full"),
+    ("get", "/v1/devices/{device_id}/recordings", "503", "full"),
 ]
 
 
@@ -139,7 +147,8 @@ def test_the_openapi_names_no_error_a_route_cannot_answer(
     settings: Settings, method: str, path: str, status: str, code: str
 ) -> None:
     """``POST /v1/simulate`` shared the responses of the routes that queue a job: its 429
-    named too_many_jobs and its 503 a full queue, neither of which it can answer."""
+    named too_many_jobs and its 503 a full queue, neither of which it can answer; every
+    read route's 503 said Redis may be full, which refuses writes only."""
     assert code not in _description(settings, method, path, status)
 
 def test_the_readme_names_every_code_a_failed_job_reports() -> None:
