@@ -16,6 +16,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable, Collection, Iterable
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
@@ -156,6 +157,43 @@ def replace_text(path: Path, text: str) -> None:
         os.replace(partial, path)
     finally:
         partial.unlink(missing_ok=True)
+
+
+def report_path(text: str) -> Path:
+    """An argparse ``type``: a file to write a report to, in a folder that exists and
+    takes files, else the parser's usage error naming the path (a folder, a missing
+    folder or one that takes no files failed only when the report was written, after
+    the whole measurement, with a traceback)."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(
+            f"{text} is a folder; name a file in it, e.g. {path / 'report.json'}"
+        )
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(
+            f"folder {path.parent} does not exist; create it or choose another path"
+        )
+    try:
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".mcam-bench-"):
+            pass
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(
+            f"cannot write in {path.parent} ({exc.strerror}); choose a folder you may write"
+        ) from None
+    return path
+
+
+def add_report_option(
+    parser: argparse.ArgumentParser, default: str, flag: str = "--out"
+) -> None:
+    """``--out PATH`` (or ``flag``): where the JSON report goes, its Markdown copy beside
+    it as .md; ``default``: the file's name in bench/results/."""
+    parser.add_argument(
+        flag,
+        type=report_path,
+        default=RESULTS / default,
+        help=f"JSON report, its Markdown copy beside it as .md (default bench/results/{default})",
+    )
 
 
 def at_least(minimum: int) -> Callable[[str], int]:

@@ -22,13 +22,12 @@ import argparse
 import os
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench import (
-    RESULTS,
+    add_report_option,
     add_val256_frames_option,
     at_least,
     entry_point,
@@ -316,7 +315,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default=list(NOISE_LEVELS),
         help="read noise sigmas (wraps) of the noise table; none skips it",
     )
-    parser.add_argument("--out", type=Path, default=RESULTS / "accuracy.json")
+    add_report_option(parser, "accuracy.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders)
     return args

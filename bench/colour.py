@@ -22,13 +22,12 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench import (
-    RESULTS,
+    add_report_option,
     at_least,
     entry_point,
     host_facts,
@@ -190,7 +189,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--frames", type=at_least(1), default=None, help="first N frames of each set"
     )
     parser.add_argument("--read-noise", type=read_noise, default=0.0, help="wrap units (default 0)")
-    parser.add_argument("--out", type=Path, default=RESULTS / "colour.json")
+    add_report_option(parser, "colour.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders, encodings=args.encodings)
     refuse_joint_decoders(parser, args.decoders)

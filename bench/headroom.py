@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,7 +31,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from bench import (
-    RESULTS,
+    add_report_option,
     add_val256_frames_option,
     entry_point,
     host_facts,
@@ -196,7 +195,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--decoders", nargs="+", help="default: itoh and the best winding net")
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
     add_val256_frames_option(parser)
-    parser.add_argument("--out", type=Path, default=RESULTS / "headroom.json")
+    add_report_option(parser, "headroom.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders, encodings=args.encodings)
     return args

@@ -17,7 +17,13 @@ import os
 from pathlib import Path
 from typing import Any
 
-from bench import RESULTS, add_val256_frames_option, entry_point, host_facts, host_line
+from bench import (
+    add_report_option,
+    add_val256_frames_option,
+    entry_point,
+    host_facts,
+    host_line,
+)
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.errors import InvalidInputError
 from models.training.config import RUNS_DIR, TrainConfig
@@ -120,7 +126,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )  # fmt: skip
     add_val256_frames_option(parser)
     parser.add_argument("--runs-dir", type=Path, default=RUNS_DIR, help="checkpoints (resumed)")
-    parser.add_argument("--out", type=Path, default=RESULTS / "losses.json")
+    add_report_option(parser, "losses.json")
     return parser.parse_args(argv)
 
 

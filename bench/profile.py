@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from bench import RESULTS, at_least, entry_point, host_facts, refuse_unknown
+from bench import add_report_option, at_least, entry_point, host_facts, refuse_unknown
 from bench.tradeoff import header, matmul_gflops
 from models.decoders.learned import load_cards, make_session, worker_threads
 
@@ -295,7 +295,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--repeats", type=at_least(1), default=15, help="timed runs per lever variant"
     )
-    parser.add_argument("--out", type=Path, default=RESULTS / "profile.json")
+    add_report_option(parser, "profile.json")
     args = parser.parse_args(argv)
     profiled = sorted({card["decoder"] for card in mantissa_cards()})
     refuse_unknown(parser, "models", args.models, profiled)

@@ -29,7 +29,7 @@ import httpx
 import numpy as np
 
 from bench import (
-    RESULTS,
+    add_report_option,
     at_least,
     host_facts,
     host_line,
@@ -269,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--decoder", default="itoh", help="decoder to benchmark (default itoh)")
     parser.add_argument("--jobs-per-client", type=at_least(1), default=5)
-    parser.add_argument("--out", type=Path, default=RESULTS / "service.json")
+    add_report_option(parser, "service.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, [args.decoder], encodings=[PARAMS.encoding])
     result = measure(args.decoder, args.jobs_per_client)

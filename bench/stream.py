@@ -44,8 +44,8 @@ from typing import Any
 import numpy as np
 
 from bench import (
-    RESULTS,
     above_zero,
+    add_report_option,
     at_least,
     entry_point,
     host_facts,
@@ -277,7 +277,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="MCAM_STREAM_PROCESSES of the workers (default: theirs)")
     parser.add_argument("--scenes", choices=tuple(SCENES), default="camera",
                         help="frames of the virtual camera (easy) or val-256 (dense wraps)")
-    parser.add_argument("--out", type=Path, default=RESULTS / "stream.json")
+    add_report_option(parser, "stream.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, [args.decoder], encodings=[SCENES[args.scenes]])
     if len(set(args.workers)) < len(args.workers):

@@ -43,13 +43,12 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bench import (
-    RESULTS,
+    add_report_option,
     add_val256_frames_option,
     at_least,
     entry_point,
@@ -314,7 +313,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_val256_frames_option(parser)
     parser.add_argument("--repeats", type=at_least(1), default=3, help="passes over the frames")
     parser.add_argument("--cores", type=at_least(1), help="cores to fill (default: all)")
-    parser.add_argument("--out", type=Path, default=RESULTS / "throughput.json")
+    add_report_option(parser, "throughput.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, args.decoders, encodings=[args.encoding])
     cores = os.cpu_count() or 1

@@ -40,11 +40,13 @@ from onnx import TensorProto, helper
 
 from bench import (
     RESULTS,
+    add_report_option,
     add_val256_frames_option,
     at_least,
     host_facts,
     one_line_errors,
     refuse_unknown_decoders,
+    report_path,
     write_report,
 )
 from models import metrics
@@ -490,8 +492,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=at_least(1), default=3)
     parser.add_argument("--decoders", nargs="*", help="only these decoders")
     parser.add_argument("--quick", action="store_true", help="skip the 512/1024 sets")
-    parser.add_argument("--out", type=Path, default=RESULTS / "tradeoff.json")
-    parser.add_argument("--plot", type=Path, default=RESULTS / "tradeoff.png")
+    add_report_option(parser, "tradeoff.json")
+    parser.add_argument(
+        "--plot", type=report_path, default=RESULTS / "tradeoff.png",
+        help="PNG of speed against accuracy (default bench/results/tradeoff.png)",
+    )
     args = parser.parse_args(argv)
     refuse_unknown_decoders(
         parser, args.decoders, extra=tile_variants(), encodings=[VAL_PARAMS.encoding]

@@ -18,13 +18,12 @@ import dataclasses
 import os
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bench import RESULTS as RESULTS_DIR
 from bench import (
+    add_report_option,
     at_least,
     host_facts,
     one_line_errors,
@@ -39,7 +38,6 @@ from worker.stream_state import PATHS, StreamState
 from worker.temporal import StreamDecoder
 from worker.temporal_config import MODES, TemporalConfig
 
-RESULTS = RESULTS_DIR / "video.json"
 #: Decoders benchmarked unless named on the command line: the fast spatial ones.
 DEFAULT_DECODERS: tuple[str, ...] = ("itoh", "herraez")
 COLUMNS = ("psnr", "pu21_psnr", "winding_accuracy", "temporal_consistency", "wrap_flicker")
@@ -190,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         default=TemporalConfig.keyframe_interval,
         help="frames between periodic keyframes (0: none)",
     )
-    parser.add_argument("--output", type=Path, default=RESULTS)
+    add_report_option(parser, "video.json", flag="--output")
     args = parser.parse_args(argv)
     decoders = (
         tuple(spec.name for spec in available_decoders())

@@ -5,11 +5,23 @@ after minutes of work, and never a silently smaller table."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 
-from bench import accuracy, colour, headroom, profile, service, stream, throughput, tradeoff, video
+from bench import (
+    accuracy,
+    colour,
+    headroom,
+    losses,
+    profile,
+    service,
+    stream,
+    throughput,
+    tradeoff,
+    video,
+)
 from models.decoders.learned import load_cards
 
 MAINS: dict[str, Callable[[list[str] | None], Any]] = {
@@ -104,3 +116,64 @@ def test_tradeoff_accepts_its_own_tile_variants_and_parametrized_decoders() -> N
     chosen = tradeoff.candidates(names)
     assert [name for name, _ in chosen] == names
     assert chosen[0][1].tile == 32
+
+
+#: Each benchmark's smallest run and the option naming where its report goes.
+SMALLEST: dict[str, tuple[list[str], str]] = {
+    "accuracy": (["--decoders", "itoh", "--frames", "1", "--time-frames", "0",
+                  "--repeats", "1", "--noise-levels"], "--out"),
+    "colour": (["--decoders", "itoh", "--encodings", "mantissa", "--sets", "val",
+                "--frames", "1"], "--out"),
+    "headroom": (["--decoders", "itoh", "--encodings", "mantissa", "--frames", "1"], "--out"),
+    "losses": (["--frames", "1"], "--out"),
+    "profile": (["--models", "mantissanet-tiny", "--runs", "1", "--repeats", "1"], "--out"),
+    "service": (["--jobs-per-client", "1"], "--out"),
+    "stream": (["--frames", "1", "--workers", "1"], "--out"),
+    "throughput": (["--decoders", "itoh", "--frames", "1", "--repeats", "1",
+                    "--cores", "1"], "--out"),
+    "tradeoff": (["--frames", "1", "--dark", "1", "--glows", "0", "--repeats", "1",
+                  "--decoders", "itoh", "--quick"], "--out"),
+    "video": (["--clips", "static_noise", "--encodings", "modulo", "--decoders", "itoh",
+               "--frames", "2"], "--output"),
+}  # fmt: skip
+
+
+def refused(bench: str, argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    """The one line of stderr ``bench`` ends ``argv`` with (exit code 2)."""
+    with pytest.raises(SystemExit) as exc:
+        {**MAINS, "losses": losses.main}[bench](argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize("bench", sorted(SMALLEST))
+def test_a_folder_as_the_report_path_is_a_usage_error(
+    bench: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It measured everything, then ended in an IsADirectoryError traceback."""
+    argv, flag = SMALLEST[bench]
+    err = refused(bench, [*argv, flag, str(tmp_path)], capsys)
+    assert f"{flag}: {tmp_path} is a folder; name a file in it" in err
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--out", "{tmp}/typo/accuracy.json"], "--out: folder {tmp}/typo does not exist"),
+        (["--out", "/proc/accuracy.json"], "--out: cannot write in /proc ("),
+        (["--out", "{tmp}/t.json", "--plot", "{tmp}"], "--plot: {tmp} is a folder"),
+    ],
+)
+def test_a_report_path_that_cannot_be_written_is_a_usage_error(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A missing folder was made (a typo made a stray folder) and an unwritable one ended
+    the run in a traceback, both after the whole measurement."""
+    if "/proc" in argv[-1] and not Path("/proc").is_dir():
+        pytest.skip("no /proc here")
+    bench = "tradeoff" if "--plot" in argv else "accuracy"
+    small = SMALLEST[bench][0]
+    err = refused(bench, [*small, *(arg.format(tmp=tmp_path) for arg in argv)], capsys)
+    assert message.format(tmp=tmp_path) in err
