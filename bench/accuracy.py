@@ -262,8 +262,15 @@ def markdown(report: dict[str, Any]) -> str:
             f"{_cell(row, 'ms_ssim', digits=4)} | {_cell(row, 'ms_per_frame', digits=1)} |"
         )
     lines += recall_table(report["results"])
-    noise = report["noise"]
-    lines += ["", f"PSNR dB (W acc %) against read noise, {noise['encoding']} frames:", ""]
+    return "\n".join(lines + noise_lines(report["noise"]))
+
+
+def noise_lines(noise: dict[str, Any]) -> list[str]:
+    """Markdown lines of the noise table and its note on missing decoders; none when no
+    read noise level was asked (``--noise-levels`` with no value)."""
+    if not noise["levels"]:
+        return []
+    lines = ["", f"PSNR dB (W acc %) against read noise, {noise['encoding']} frames:", ""]
     lines += ["| decoder | " + " | ".join(f"{v:g}" for v in noise["levels"]) + " |"]
     lines += ["|---|" + "---|" * len(noise["levels"])]
     for name in noise["decoders"]:
@@ -277,7 +284,7 @@ def markdown(report: dict[str, Any]) -> str:
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if noise["missing"]:
         lines += ["", f"Not installed, so not in the noise table: {', '.join(noise['missing'])}."]
-    return "\n".join(lines)
+    return lines
 
 
 def recall_table(rows: list[dict[str, Any]]) -> list[str]:

@@ -112,21 +112,35 @@ def test_noise_candidates_pick_the_best_tier_and_name_missing_twins() -> None:
     ]
 
 
-def test_markdown_shows_missing_rows() -> None:
-    report = {
+def report_of(results: list[dict], noise: dict) -> dict:
+    """A report of one val-256 frame with these rows and this noise table."""
+    return {
         "date": "2026-01-01T00:00:00+00:00",
         "machine": {"cpu": "cpu", "cores": 2},
         "load_average": (0.5, 1.0, 1.5),
         "threads": 2,
         "protocol": {"frames": 1, "size": 256, "overexposed": 0.2, "max_wraps": 16, "bits": 8},
-        "results": [
-            {"decoder": "x", "kind": "learned", "encoding": "modulo", "missing": "no model"}
-        ],
-        "noise": {"encoding": "mantissa", "levels": [0.0], "decoders": [], "missing": ["y"]},
+        "results": results,
+        "noise": {"encoding": "mantissa", **noise},
     }
+
+
+def test_markdown_shows_missing_rows() -> None:
+    report = report_of(
+        [{"decoder": "x", "kind": "learned", "encoding": "modulo", "missing": "no model"}],
+        {"levels": [0.0], "decoders": [], "missing": ["y"]},
+    )
     text = accuracy.markdown(report)
     assert "| x | learned | modulo | n/a: no model |" in text
     assert "Not installed, so not in the noise table: y." in text
+
+
+def test_no_noise_level_leaves_the_noise_table_out() -> None:
+    """``--noise-levels`` with no value (its help: "none skips it") printed the table's
+    header with one column too many and an empty row per decoder."""
+    report = report_of([], {"levels": [], "decoders": ["itoh"], "missing": [], "results": []})
+    text = accuracy.markdown(report)
+    assert "against read noise" not in text and "| itoh |" not in text
 
 
 def test_json_safe_replaces_non_finite_floats() -> None:
