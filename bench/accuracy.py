@@ -53,6 +53,8 @@ NOISE_LEVELS = (0.0, 0.005, 0.01, 0.02)
 METRICS = ("winding_accuracy", "psnr", "pu21_psnr", "ssim", "ms_ssim")
 #: Threads for onnxruntime (the learned decoders read MCAM_WORKER_THREADS).
 THREADS = 2
+#: The noise table's "missing" when no ``mantissanet`` tier was measured.
+UNMEASURED_TIERS = ("mantissanet-<best tier>", "mantissanet-<best tier>-noise")
 #: The classical reference shown beside the networks in the noise table.
 NOISE_REFERENCE = "itoh"
 
@@ -171,7 +173,7 @@ def noise_candidates(rows: list[dict[str, Any]]) -> tuple[list[str], list[str]]:
         reverse=True,
     )
     if not tiers:
-        return [NOISE_REFERENCE], ["mantissanet-<best tier>", "mantissanet-<best tier>-noise"]
+        return [NOISE_REFERENCE], list(UNMEASURED_TIERS)
     best = tiers[0]["decoder"]
     wanted = [best, noise_twin(best)]
     if noise_twin(best) not in installed:
@@ -283,8 +285,20 @@ def noise_lines(noise: dict[str, Any]) -> list[str]:
         ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if noise["missing"]:
-        lines += ["", f"Not installed, so not in the noise table: {', '.join(noise['missing'])}."]
+        lines += ["", missing_note(noise["missing"])]
     return lines
+
+
+def missing_note(missing: list[str]) -> str:
+    """The noise table's note on the decoders it lacks: those not installed, or, when no
+    ``mantissanet`` tier was measured at all, that (none installed, or ``--decoders``
+    named none)."""
+    if missing == list(UNMEASURED_TIERS):
+        return (
+            "No mantissanet tier was measured (none is installed, or --decoders named none), "
+            "so the noise table has none."
+        )
+    return f"Not installed, so not in the noise table: {', '.join(missing)}."
 
 
 def recall_table(rows: list[dict[str, Any]]) -> list[str]:

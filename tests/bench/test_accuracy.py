@@ -143,6 +143,16 @@ def test_no_noise_level_leaves_the_noise_table_out() -> None:
     assert "against read noise" not in text and "| itoh |" not in text
 
 
+def test_no_tier_measured_is_not_called_not_installed() -> None:
+    """With ``--decoders itoh`` the note read "Not installed, so not in the noise table:
+    mantissanet-<best tier>, ...", though every tier was installed, just not measured."""
+    missing = list(accuracy.noise_candidates([])[1])
+    noise = {"levels": [0.0], "decoders": ["itoh"], "missing": missing, "results": []}
+    text = accuracy.markdown(report_of([], noise))
+    assert "Not installed" not in text
+    assert "No mantissanet tier was measured (none is installed, or --decoders named" in text
+
+
 def test_json_safe_replaces_non_finite_floats() -> None:
     assert json_safe({"a": [math.inf, 1.0, (math.nan,)], "b": "s"}) == {
         "a": [None, 1.0, [None]],
