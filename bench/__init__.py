@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import importlib
 import json
 import math
 import os
@@ -21,7 +22,8 @@ from collections.abc import Callable, Collection, Iterable
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any, get_args
+from types import ModuleType
+from typing import Any, NoReturn, get_args
 
 from models.allocator import keep_freed_memory
 from models.decoders import available_decoders
@@ -329,6 +331,33 @@ def entry_point(
 
     main.__module__ = run.__module__
     return one_line_errors(main)
+
+
+#: The optional dependencies (pyproject's extras) the benchmarks use, by extra.
+EXTRAS = {"bench": ("matplotlib", "onnx", "httpx"), "train": ("torch", "onnx")}
+
+
+def import_extra(module: str, extra: str, needed_by: str) -> ModuleType:
+    """``module``, an optional dependency of the ``extra`` extra, imported; when it is
+    not installed, :func:`missing_extra` ends the benchmark in one line."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        missing_extra(exc, extra, needed_by)
+
+
+def missing_extra(exc: ModuleNotFoundError, extra: str, needed_by: str) -> NoReturn:
+    """End with one line on stderr and exit code 2, as a usage error does: ``needed_by``
+    (a benchmark, or one of its options) needs the module ``exc`` did not find, and the
+    ``extra`` extra installs it (a traceback came at import, or after measuring). An
+    error about any other module is raised again."""
+    if (exc.name or "").split(".")[0] not in EXTRAS[extra]:
+        raise exc
+    sys.stderr.write(
+        f"{needed_by}: error: it needs {exc.name}, which is not installed; install the "
+        f"'{extra}' extra: pip install -c constraints.txt -e '.[{extra}]'\n"
+    )
+    raise SystemExit(2)
 
 
 def one_line_errors(main: Main) -> Main:

@@ -23,17 +23,22 @@ from bench import (
     entry_point,
     host_facts,
     host_line,
+    missing_extra,
 )
 from models.decoders.learned import LearnedDecoder, load_cards
 from models.errors import InvalidInputError
-from models.training.config import RUNS_DIR, TrainConfig
-from models.training.export import export_run
-from models.training.losses import LOSSES
-from models.training.recipes import TINY_STAGES
-from models.training.train import train
-from models.training.validate import val256_metrics
 from service.cli.options import take_dash_digit_values
 from service.cli.train import parse_stages
+
+try:
+    from models.training.config import RUNS_DIR, TrainConfig
+    from models.training.export import export_run
+    from models.training.losses import LOSSES
+    from models.training.recipes import TINY_STAGES
+    from models.training.train import train
+    from models.training.validate import val256_metrics
+except ModuleNotFoundError as exc:
+    missing_extra(exc, "train", "bench.losses")
 
 NOISE_LEVELS = (0.0, 0.01)
 THREADS = 2

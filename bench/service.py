@@ -25,7 +25,6 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 
 from bench import (
@@ -33,6 +32,7 @@ from bench import (
     at_least,
     host_facts,
     host_line,
+    import_extra,
     one_line_errors,
     refuse_unknown_decoders,
     write_report,
@@ -43,6 +43,7 @@ from models.frames import encode_frame
 from models.timing import median_ns
 from worker.embedded_redis import EmbeddedRedis
 
+httpx = import_extra("httpx", "bench", "bench.service")
 CLIENTS = (1, 4, 16)
 SIZE = 256
 KEY = "bench-key-0123456789abcdef"

@@ -44,6 +44,7 @@ from bench import (
     add_val256_frames_option,
     at_least,
     host_facts,
+    import_extra,
     one_line_errors,
     refuse_unknown_decoders,
     report_path,
@@ -501,6 +502,7 @@ def main(argv: list[str] | None = None) -> int:
     refuse_unknown_decoders(
         parser, args.decoders, extra=tile_variants(), encodings=[VAL_PARAMS.encoding]
     )
+    import_extra("matplotlib", "bench", "bench.tradeoff (its --plot)")
     report = run(args)
     write_report(report, markdown(report), args.out, rows="results")
     plot(report, args.plot)

@@ -4,6 +4,8 @@ after minutes of work, and never a silently smaller table."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,8 @@ from bench import (
     video,
 )
 from models.decoders.learned import load_cards
+
+ROOT = Path(__file__).resolve().parents[2]
 
 MAINS: dict[str, Callable[[list[str] | None], Any]] = {
     "accuracy": accuracy.main,
@@ -177,3 +181,34 @@ def test_a_report_path_that_cannot_be_written_is_a_usage_error(
     small = SMALLEST[bench][0]
     err = refused(bench, [*small, *(arg.format(tmp=tmp_path) for arg in argv)], capsys)
     assert message.format(tmp=tmp_path) in err
+
+
+@pytest.mark.parametrize(
+    ("bench", "module", "extra", "argv"),
+    [
+        ("losses", "torch", "train", ["--help"]),
+        ("service", "httpx", "bench", ["--help"]),
+        ("tradeoff", "matplotlib", "bench",
+         [*SMALLEST["tradeoff"][0], "--out", "{tmp}/t.json", "--plot", "{tmp}/t.png"]),
+    ],
+)  # fmt: skip
+def test_a_missing_optional_dependency_is_named_with_the_extra_that_installs_it(
+    bench: str, module: str, extra: str, argv: list[str], tmp_path: Path
+) -> None:
+    """Without the extra, bench.losses and bench.service ended in a ModuleNotFoundError
+    traceback on start (``--help`` too), and bench.tradeoff after measuring, at its plot."""
+    args = [arg.format(tmp=tmp_path) for arg in argv]
+    code = (
+        f"import runpy, sys; sys.modules[{module!r}] = None; sys.argv = ['x', *{args!r}]; "
+        f"runpy.run_module('bench.{bench}', run_name='__main__')"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=280
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines() == [
+        f"bench.{bench}{' (its --plot)' if bench == 'tradeoff' else ''}: error: it needs "
+        f"{module}, which is not installed; install the '{extra}' extra: "
+        f"pip install -c constraints.txt -e '.[{extra}]'"
+    ]
+    assert not (tmp_path / "t.json").exists()
