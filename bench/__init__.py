@@ -161,6 +161,12 @@ def replace_text(path: Path, text: str) -> None:
         partial.unlink(missing_ok=True)
 
 
+def first_paragraph(doc: str | None) -> str:
+    """A module docstring's first paragraph on one line: a benchmark's ``--help``
+    description (its first line alone cut bench.losses' sentence in half)."""
+    return " ".join((doc or "").split("\n\n")[0].split())
+
+
 def report_path(text: str) -> Path:
     """An argparse ``type``: a file to write a report to, in a folder that exists and
     takes files, else the parser's usage error naming the path (a folder, a missing

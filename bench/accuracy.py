@@ -31,6 +31,7 @@ from bench import (
     add_val256_frames_option,
     at_least,
     entry_point,
+    first_paragraph,
     host_facts,
     host_line,
     read_noise,
@@ -320,7 +321,7 @@ def recall_table(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
     parser.add_argument("--decoders", nargs="+", help="only these decoders (default: all)")
     add_val256_frames_option(parser)
     parser.add_argument(

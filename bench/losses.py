@@ -21,6 +21,7 @@ from bench import (
     add_report_option,
     add_val256_frames_option,
     entry_point,
+    first_paragraph,
     host_facts,
     host_line,
     missing_extra,
@@ -121,7 +122,7 @@ def stage_list(text: str) -> tuple[int, ...]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
     take_dash_digit_values(parser)
     parser.add_argument("--tier", default="tiny", choices=("tiny", "small", "base"))
     parser.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))

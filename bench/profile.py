@@ -33,7 +33,14 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from bench import add_report_option, at_least, entry_point, host_facts, refuse_unknown
+from bench import (
+    add_report_option,
+    at_least,
+    entry_point,
+    first_paragraph,
+    host_facts,
+    refuse_unknown,
+)
 from bench.tradeoff import header, matmul_gflops
 from models.decoders.learned import load_cards, make_session, worker_threads
 
@@ -287,7 +294,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
     parser.add_argument("--models", nargs="+", default=list(MODELS), help="decoders to profile")
     parser.add_argument(
         "--runs", type=at_least(1), default=10, help="profiled inferences per model"

@@ -30,6 +30,7 @@ import numpy as np
 from bench import (
     add_report_option,
     at_least,
+    first_paragraph,
     host_facts,
     host_line,
     import_extra,
@@ -267,7 +268,7 @@ def shown_ms(value: float | None) -> str:
 
 @one_line_errors
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
     parser.add_argument("--decoder", default="itoh", help="decoder to benchmark (default itoh)")
     parser.add_argument("--jobs-per-client", type=at_least(1), default=5)
     add_report_option(parser, "service.json")

@@ -42,3 +42,12 @@ def test_more_frames_than_val256_has_is_a_usage_error(capsys: pytest.CaptureFixt
     assert exc.value.code == 2
     assert "--frames: val-256 has 24 frames, got 30; give 1 to 24" in capsys.readouterr().err
     assert losses.parse_args(["--frames", "24"]).frames == 24
+
+
+def test_help_gives_the_whole_first_sentence(capsys: pytest.CaptureFixture[str]) -> None:
+    """The description was the docstring's first line: "... (alone or plus the"."""
+    with pytest.raises(SystemExit):
+        losses.parse_args(["--help"])
+    assert "(alone or plus the expected PSNR loss), MSE on W, MSE on jumps." in " ".join(
+        capsys.readouterr().out.split()
+    )
