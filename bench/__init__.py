@@ -161,6 +161,15 @@ def replace_text(path: Path, text: str) -> None:
         partial.unlink(missing_ok=True)
 
 
+def bench_parser(module: str, doc: str | None) -> argparse.ArgumentParser:
+    """The argument parser of benchmark ``module`` (its ``__name__``): its usage names
+    the command that runs it (``python -m bench.NAME``; the script's file name, which
+    argparse gave, fails to import ``bench``), and ``doc``'s first paragraph describes it."""
+    return argparse.ArgumentParser(
+        prog=f"python -m {module_name(module)}", description=first_paragraph(doc)
+    )
+
+
 def first_paragraph(doc: str | None) -> str:
     """A module docstring's first paragraph on one line: a benchmark's ``--help``
     description (its first line alone cut bench.losses' sentence in half)."""

@@ -30,8 +30,8 @@ from bench import (
     add_report_option,
     add_val256_frames_option,
     at_least,
+    bench_parser,
     entry_point,
-    first_paragraph,
     host_facts,
     host_line,
     read_noise,
@@ -321,7 +321,7 @@ def recall_table(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     parser.add_argument("--decoders", nargs="+", help="only these decoders (default: all)")
     add_val256_frames_option(parser)
     parser.add_argument(

@@ -29,8 +29,8 @@ import numpy as np
 from bench import (
     add_report_option,
     at_least,
+    bench_parser,
     entry_point,
-    first_paragraph,
     host_facts,
     host_line,
     read_noise,
@@ -182,7 +182,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     parser.add_argument("--decoders", nargs="+", default=list(DEFAULT_DECODERS))
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)

@@ -33,8 +33,8 @@ from scipy.sparse.csgraph import connected_components
 from bench import (
     add_report_option,
     add_val256_frames_option,
+    bench_parser,
     entry_point,
-    first_paragraph,
     host_facts,
     host_line,
     refuse_unknown_decoders,
@@ -192,7 +192,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     parser.add_argument("--decoders", nargs="+", help="default: itoh and the best winding net")
     parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
     add_val256_frames_option(parser)

@@ -20,8 +20,8 @@ from typing import Any
 from bench import (
     add_report_option,
     add_val256_frames_option,
+    bench_parser,
     entry_point,
-    first_paragraph,
     host_facts,
     host_line,
     missing_extra,
@@ -122,7 +122,7 @@ def stage_list(text: str) -> tuple[int, ...]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     take_dash_digit_values(parser)
     parser.add_argument("--tier", default="tiny", choices=("tiny", "small", "base"))
     parser.add_argument("--encoding", default="mantissa", choices=("mantissa", "modulo"))

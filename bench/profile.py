@@ -36,8 +36,8 @@ import onnxruntime as ort
 from bench import (
     add_report_option,
     at_least,
+    bench_parser,
     entry_point,
-    first_paragraph,
     host_facts,
     refuse_unknown,
 )
@@ -294,7 +294,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     parser.add_argument("--models", nargs="+", default=list(MODELS), help="decoders to profile")
     parser.add_argument(
         "--runs", type=at_least(1), default=10, help="profiled inferences per model"

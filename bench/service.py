@@ -13,7 +13,6 @@ the date, the machine, the package versions and the load average at the end.
 
 from __future__ import annotations
 
-import argparse
 import os
 import socket
 import subprocess
@@ -30,7 +29,7 @@ import numpy as np
 from bench import (
     add_report_option,
     at_least,
-    first_paragraph,
+    bench_parser,
     host_facts,
     host_line,
     import_extra,
@@ -268,7 +267,7 @@ def shown_ms(value: float | None) -> str:
 
 @one_line_errors
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     parser.add_argument("--decoder", default="itoh", help="decoder to benchmark (default itoh)")
     parser.add_argument("--jobs-per-client", type=at_least(1), default=5)
     add_report_option(parser, "service.json")

@@ -51,8 +51,8 @@ from bench import (
     add_report_option,
     add_val256_frames_option,
     at_least,
+    bench_parser,
     entry_point,
-    first_paragraph,
     host_facts,
     host_line,
     refuse_unknown_decoders,
@@ -308,7 +308,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     parser.add_argument("--decoders", nargs="+", default=list(DECODERS))
     parser.add_argument("--encoding", choices=("mantissa", "modulo"), default="mantissa")
     add_val256_frames_option(parser)

@@ -43,7 +43,7 @@ from bench import (
     add_report_option,
     add_val256_frames_option,
     at_least,
-    first_paragraph,
+    bench_parser,
     host_facts,
     import_extra,
     one_line_errors,
@@ -487,7 +487,7 @@ def plot(report: dict[str, Any], path: Path) -> None:
 
 @one_line_errors
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=first_paragraph(__doc__))
+    parser = bench_parser(__name__, __doc__)
     add_val256_frames_option(parser)
     parser.add_argument("--dark", type=at_least(1), default=3, help="mostly-dark crops per kind")
     parser.add_argument("--glows", type=at_least(0), default=12, help="glows frames (0: none)")

@@ -212,3 +212,15 @@ def test_a_missing_optional_dependency_is_named_with_the_extra_that_installs_it(
         f"pip install -c constraints.txt -e '.[{extra}]'"
     ]
     assert not (tmp_path / "t.json").exists()
+
+
+@pytest.mark.parametrize("bench", sorted(SMALLEST))
+def test_the_usage_line_names_the_command_that_runs_the_benchmark(
+    bench: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It named the script's file (``usage: accuracy.py``), and ``python accuracy.py``
+    cannot import ``bench``."""
+    argv, flag = SMALLEST[bench]
+    err = refused(bench, [*argv, flag, str(tmp_path)], capsys)
+    assert err.startswith(f"usage: python -m bench.{bench} ")
+    assert f"\npython -m bench.{bench}: error: " in err
