@@ -173,13 +173,26 @@ def markdown_table(summary: list[dict[str, Any]], load: list[Sequence[float]]) -
     return "\n".join(lines)
 
 
+def comma_names(text: str) -> tuple[str, ...]:
+    """An argparse ``type``: comma-separated names, else the parser's usage error when
+    one is empty (``itoh,`` was refused as "unknown decoders ; choose from ...")."""
+    names = tuple(text.split(","))
+    if "" in names:
+        raise argparse.ArgumentTypeError(
+            f"an empty name in {text!r}: separate the names with single commas, none at the ends"
+        )
+    return names
+
+
 @one_line_errors
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark, print the tables, write the JSON and Markdown reports."""
     parser = argparse.ArgumentParser(prog="python -m bench.video", description=__doc__)
-    parser.add_argument("--clips", default=",".join(CLIP_KINDS))
-    parser.add_argument("--encodings", default=",".join(VIDEO_ENCODINGS))
-    parser.add_argument("--decoders", default=",".join(DEFAULT_DECODERS),
+    parser.add_argument("--clips", type=comma_names, default=",".join(CLIP_KINDS),
+                        help="comma-separated")
+    parser.add_argument("--encodings", type=comma_names, default=",".join(VIDEO_ENCODINGS),
+                        help="comma-separated")
+    parser.add_argument("--decoders", type=comma_names, default=",".join(DEFAULT_DECODERS),
                         help="comma-separated, or 'all' for every installed decoder")
     parser.add_argument("--frames", type=at_least(2), default=DEFAULT_FRAMES)
     parser.add_argument(
@@ -192,12 +205,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     decoders = (
         tuple(spec.name for spec in available_decoders())
-        if args.decoders == "all"
-        else tuple(args.decoders.split(","))
+        if args.decoders == ("all",)
+        else args.decoders
     )
-    refuse_unknown(parser, "clips", args.clips.split(","), CLIP_KINDS)
-    refuse_unknown(parser, "encodings", args.encodings.split(","), VIDEO_ENCODINGS)
-    refuse_unknown_decoders(parser, decoders, encodings=args.encodings.split(","))
+    refuse_unknown(parser, "clips", args.clips, CLIP_KINDS)
+    refuse_unknown(parser, "encodings", args.encodings, VIDEO_ENCODINGS)
+    refuse_unknown_decoders(parser, decoders, encodings=args.encodings)
     config = TemporalConfig(keyframe_interval=args.keyframe_interval)
     load_at_start = os.getloadavg()
     print(
@@ -205,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{'W acc':>7s} {'tcons':>8s} {'flicker':>8s} {'ms/fr':>7s} {'local':>6s} {'spat':>6s}"
     )
     rows = run(
-        tuple(args.clips.split(",")), tuple(args.encodings.split(",")), decoders,
+        args.clips, args.encodings, decoders,
         args.frames, config,
     )
     summary = summarize(rows)

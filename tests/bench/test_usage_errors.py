@@ -60,6 +60,9 @@ MANTISSA_ONLY = sorted(
         ("video", ["--decoders", "itoh,nope"], "unknown decoders nope"),
         ("video", ["--clips", "pan_zoom,orbit"], "unknown clips orbit; choose from: pan_zoom"),
         ("video", ["--encodings", "log"], "unknown encodings log; choose from: mantissa"),
+        # An empty name (a comma too many) was refused as "unknown decoders ; choose ...".
+        ("video", ["--decoders", "itoh,"], "--decoders: an empty name in 'itoh,': separate"),
+        ("video", ["--clips", "pan_zoom,,sunrise"], "--clips: an empty name in 'pan_zoom,,"),
         # Counts and levels, refused before anything is measured (they gave NaN timings,
         # an IndexError after the matmul calibration, or a traceback after the main table).
         ("tradeoff", ["--repeats", "0"], "--repeats: must be at least 1, got 0"),
