@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from types import TracebackType
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import unquote, urlsplit
 
 import redis
 import redis.asyncio
@@ -92,15 +92,33 @@ URL_FORMS = "redis://host:port, rediss://host:port or unix:///path/to/redis.sock
 
 def url_problem(url: str) -> str | None:
     """Why ``url`` is no Redis URL :func:`connect` can use (its password masked), or
-    None: an unknown scheme, or one redis-py cannot parse (a port that is no number or
-    past 65535, an unclosed IPv6 bracket), which raised its bare ValueError."""
+    None: an unknown scheme, one redis-py cannot parse (a port that is no number or
+    past 65535, an unclosed IPv6 bracket), which raised its bare ValueError, or a
+    database that is no whole number, which redis-py took for database 0."""
     if not url.startswith(("redis://", "rediss://", "unix://")):
         return f"unsupported Redis URL {redacted_url(url)!r}: use {URL_FORMS}"
     try:
         parse_url(url)
     except ValueError as exc:
         return f"Redis URL {redacted_url(url)!r} does not parse ({exc}): use {URL_FORMS}"
-    return None
+    return database_problem(url)
+
+
+def database_problem(url: str) -> str | None:
+    """Why the database a ``redis://`` or ``rediss://`` URL names in its path is no
+    whole number, or None. redis-py drops the slashes of the path and reads what is
+    left as the number, or silently uses database 0 when it is none: ``/abc`` and
+    ``/-x`` were database 0, ``/1/2`` database 12."""
+    if url.startswith("unix://"):
+        return None  # the path is the socket's; ?db= is checked by parse_url
+    database = unquote(urlsplit(url).path).strip("/")
+    if database == "" or database.isdecimal() and database.isascii():
+        return None
+    return (
+        f"the database {database!r} of Redis URL {redacted_url(url)!r} is no whole number: "
+        "end the URL with the database's number (/0 to /15 on a default Redis), or with "
+        "no path for database 0"
+    )
 
 
 def _check_url(url: str) -> None:

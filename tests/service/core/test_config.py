@@ -305,6 +305,30 @@ def test_a_redis_url_of_the_wrong_form_is_refused_at_start(
     assert "unset MCAM_REDIS_URL for the embedded Redis" in message
 
 
+@pytest.mark.parametrize("url", ["redis://:s3cret@host:6379/abc", "rediss://host/1/2",
+                                 "redis://host/-1"])
+def test_a_redis_database_that_is_no_number_is_refused_at_start(
+    monkeypatch: pytest.MonkeyPatch, url: str
+) -> None:
+    """redis-py took redis://host:6379/abc as database 0 without a word (and /1/2 as
+    database 12): jobs went to another database than the operator named."""
+    monkeypatch.setenv("MCAM_REDIS_URL", url)
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    message = caught.value.errors()[0]["msg"]
+    assert "database" in message and "is no whole number" in message
+    assert "s3cret" not in message
+
+
+@pytest.mark.parametrize("url", ["redis://host:6379/0", "redis://host/15/", "redis://host/",
+                                 "redis://host", "unix:///run/redis.sock?db=3"])
+def test_a_redis_url_with_a_database_number_or_none_is_taken(
+    monkeypatch: pytest.MonkeyPatch, url: str
+) -> None:
+    monkeypatch.setenv("MCAM_REDIS_URL", url)
+    assert Settings().redis_url == url
+
+
 @pytest.mark.usefixtures("fresh_settings")
 def test_a_setting_the_environment_overrides_in_dotenv_is_warned_of(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
