@@ -8,9 +8,12 @@ jobs then need a worker on the same data dir (``mcam worker``) or use
 from __future__ import annotations
 
 import argparse
-import contextlib
+import asyncio
+import logging
+import signal
 import socket
 import sys
+from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
@@ -24,6 +27,9 @@ from service.api.state import embedded_redis_for
 from service.core.config import Settings, get_settings
 from service.core.security import KEY_FILE_NAME, KeyRing
 from service.main import create_app
+
+#: The signals that stop the API: a terminal's Ctrl-C and a service manager's stop.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def settings_with(settings: Settings, **updates: Any) -> Settings:
@@ -114,15 +120,60 @@ class StoppingServer(uvicorn.Server):
             state.stopping.set()
         super().handle_exit(sig, frame)
 
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        """uvicorn's stop, where a second Ctrl-C (its force quit) cancels the open
+        requests and still runs the app's shutdown: uvicorn skipped both, and when the
+        event loop closed it cancelled them, each request and the lifespan logging a
+        ``CancelledError`` traceback, with the Redis connections left open."""
+        await super().shutdown(sockets)
+        if self.force_exit:
+            await self._cancel_requests()
+            if not self.lifespan.shutdown_event.is_set():
+                await self.lifespan.shutdown()
+
+    async def _cancel_requests(self) -> None:
+        """Cancel the requests still running and wait until they have ended."""
+        tasks = list(self.server_state.tasks)
+        if tasks:
+            logging.getLogger("uvicorn.error").warning(
+                "Cancel %d running task(s): Ctrl-C pressed again", len(tasks)
+            )
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+
+def without_cancelled_requests(record: logging.LogRecord) -> bool:
+    """A filter for uvicorn's log: drops a request's ``CancelledError`` traceback. uvicorn
+    cancels requests only when it stops (past ``MCAM_HTTP_SHUTDOWN_GRACE_S``, or at a
+    second Ctrl-C) and says how many in a line of its own."""
+    return not (record.exc_info and isinstance(record.exc_info[1], asyncio.CancelledError))
+
 
 def serve_http(settings: Settings) -> None:
     """Run the API (``service.main:create_app``) under uvicorn until it is stopped; exit
-    3 (uvicorn's startup failure) if it never started."""
+    3 (uvicorn's startup failure) if it never started.
+
+    Ctrl-C and SIGTERM (:data:`STOP_SIGNALS`) stop the server from before its run to its
+    end, and are ignored after it, while the caller stops Redis and the workers: outside
+    uvicorn's own handlers, asyncio's SIGINT handler cancelled the server's task or
+    raised ``KeyboardInterrupt`` in it (uvicorn passes each signal it caught on when it
+    ends), and a second Ctrl-C printed a traceback out of the app's lifespan."""
     server = StoppingServer(uvicorn.Config(create_app(settings), **uvicorn_options(settings)))
-    with contextlib.suppress(KeyboardInterrupt):
+    logging.getLogger("uvicorn.error").addFilter(without_cancelled_requests)
+    handle_stop_signals(server.handle_exit)
+    try:
         server.run()
+    finally:
+        handle_stop_signals(signal.SIG_IGN)
     if not server.started:
         sys.exit(STARTUP_FAILURE)
+
+
+def handle_stop_signals(handler: Callable[[int, FrameType | None], Any] | signal.Handlers) -> None:
+    """Give each of :data:`STOP_SIGNALS` to ``handler``."""
+    for stop_signal in STOP_SIGNALS:
+        signal.signal(stop_signal, handler)
 
 
 def add_listen_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,7 +11,8 @@ worker``) and the API (``service.main:create_app``) under uvicorn in this
 process. It prints the URL and, on first start, the generated API key. A worker
 that dies is restarted (with backoff), and so is the embedded Redis (from its
 append-only file, within a second). Ctrl-C or SIGTERM stops the API, then the
-workers (gracefully), then the embedded Redis.
+workers (gracefully), then the embedded Redis, and exits 0; another Ctrl-C meanwhile
+stops waiting for open requests, and is ignored once the workers are stopping.
 
 One worker (the default) decodes one job at a time on all its onnxruntime threads: the
 least latency for one upload. Uploads and batches are decoded faster by one
@@ -35,7 +36,13 @@ from collections.abc import Callable
 from types import FrameType
 
 from service.api.state import embedded_redis_for
-from service.cli.api import announce, check_listen_address, serve_http, settings_with
+from service.cli.api import (
+    announce,
+    check_listen_address,
+    handle_stop_signals,
+    serve_http,
+    settings_with,
+)
 from service.cli.worker import limit_problem
 from service.core.config import get_settings
 from service.core.security import KeyRing
@@ -202,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        handle_stop_signals(signal.SIG_IGN)  # the stop below finishes: no traceback midway
         for worker in workers:
             worker.terminate()
         for worker in workers:

@@ -102,9 +102,13 @@ def worker_pids(client: redis.Redis) -> set[int]:
 
 
 @contextmanager
-def serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str], Path, int]]:
+def serving(
+    tmp_path: Path, *flags: str, settings: dict[str, str] | None = None
+) -> Iterator[tuple[subprocess.Popen[str], Path, int]]:
     """``mcam serve`` on a free port with its data dir under ``tmp_path``: the process,
-    the data dir and the port; killed at the end if it is still running.
+    the data dir and the port; killed at the end if it is still running. It leads its
+    own process group (as a terminal's foreground job does), its stderr goes to
+    ``tmp_path / "stderr"``, and ``settings`` (``MCAM_*``) replace the ones below.
 
     Each worker decodes device frames in its own process (``MCAM_STREAM_PROCESSES=1``):
     these tests stream from no device, and the default pool (one process per core, each
@@ -116,7 +120,7 @@ def serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str]
     env = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
     env.update({
         "MCAM_DATA_DIR": str(data_dir), "MCAM_HEARTBEAT_S": "0.5", "MCAM_STREAM_PROCESSES": "1",
-        "MCAM_HTTP_SHUTDOWN_GRACE_S": "0.5",
+        "MCAM_HTTP_SHUTDOWN_GRACE_S": "0.5", **(settings or {}),
     })  # fmt: skip
     process = subprocess.Popen(
         [sys.executable, "-m", "service.cli.main", "serve", "--host", "127.0.0.1",
@@ -124,8 +128,9 @@ def serving(tmp_path: Path, *flags: str) -> Iterator[tuple[subprocess.Popen[str]
         cwd=tmp_path,
         env={**env, "PYTHONPATH": str(REPO)},
         stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
+        stderr=(tmp_path / "stderr").open("w"),
         text=True,
+        start_new_session=True,
     )  # fmt: skip
     try:
         yield process, data_dir, port
@@ -334,6 +339,92 @@ def test_an_open_event_stream_does_not_keep_serve_from_stopping(tmp_path: Path) 
         assert opened.wait(30)
         process.send_signal(signal.SIGTERM)
         assert process.wait(60) == 0  # it hung until the client left
+
+
+def descendants(pid: int) -> set[int]:
+    """The processes ``pid`` started, and theirs, now (Linux: /proc's children lists)."""
+    found: set[int] = set()
+    for children in Path(f"/proc/{pid}/task").glob("*/children"):
+        for child in map(int, children.read_text().split()):
+            found |= {child} | descendants(child)
+    return found
+
+
+def running(pid: int) -> bool:
+    """Whether process ``pid`` exists and is no zombie."""
+    try:
+        return not Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1].startswith("Z")
+    except FileNotFoundError:
+        return False
+
+
+def wait_gone(pids: set[int], timeout_s: float = 30.0) -> None:
+    """Wait until none of ``pids`` runs; fail at the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while left := {pid for pid in pids if running(pid)}:
+        assert time.monotonic() < deadline, f"left running after the stop: {left}"
+        time.sleep(0.1)
+
+
+def wait_for_stderr(tmp_path: Path, text: str, timeout_s: float = 60.0) -> None:
+    """Wait until ``serving``'s stderr holds ``text``; fail at the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while text not in (tmp_path / "stderr").read_text():
+        assert time.monotonic() < deadline, f"no {text!r} on stderr within {timeout_s} s"
+        time.sleep(0.1)
+
+
+def assert_stopped_cleanly(
+    process: subprocess.Popen[str], tmp_path: Path, started: set[int]
+) -> None:
+    """serve exited 0 with no traceback on stderr, and left none of its processes."""
+    assert process.wait(90) == 0
+    stderr = (tmp_path / "stderr").read_text()
+    assert "Traceback" not in stderr and "CancelledError" not in stderr, stderr
+    wait_gone(started)
+
+
+@pytest.mark.parametrize("start", range(3))
+def test_ctrl_c_stops_serve_cleanly(tmp_path: Path, start: int) -> None:
+    """A terminal's Ctrl-C (SIGINT to the foreground process group) stops serve with
+    exit 0, no traceback and no process left; several starts, as a stop races the
+    lifespan's shutdown."""
+    with serving(tmp_path) as (process, _, port):
+        read_until(process, r"^use it as: Authorization: Bearer ", 90)
+        wait_ready(f"http://127.0.0.1:{port}")
+        started = descendants(process.pid)
+        os.killpg(process.pid, signal.SIGINT)
+        assert_stopped_cleanly(process, tmp_path, started)
+
+
+@pytest.mark.parametrize("presses", [1, 2])
+def test_ctrl_c_with_an_open_event_stream_stops_serve_cleanly(
+    tmp_path: Path, presses: int
+) -> None:
+    """A request still open when serve stops (a viewer's event stream) is cancelled past
+    the grace period, or at once on a second Ctrl-C (uvicorn asks for one while it
+    waits): each cancelled request logged a CancelledError traceback, and a second
+    Ctrl-C skipped the app's shutdown and raised KeyboardInterrupt in asyncio, so stderr
+    also showed a KeyboardInterrupt and a CancelledError out of the app's lifespan.
+    (With two presses the grace period is long: only the second one ends it.)"""
+    grace_s = "0.5" if presses == 1 else "300"
+    with serving(tmp_path, settings={"MCAM_HTTP_SHUTDOWN_GRACE_S": grace_s}) as (
+        process, data_dir, port
+    ):
+        lines = read_until(process, r"^use it as: Authorization: Bearer ", 90)
+        key = lines[-1].split("Bearer ", 1)[1].strip()
+        base = f"http://127.0.0.1:{port}"
+        wait_ready(base)
+        connect(f"unix://{EmbeddedRedis(data_dir).socket}").sadd(DEVICES_SET, "cam1")
+        with httpx.stream("GET", f"{base}/v1/devices/cam1/events", timeout=120,
+                          headers={"Authorization": f"Bearer {key}"}) as reply:
+            assert reply.status_code == 200
+            started = descendants(process.pid)
+            os.killpg(process.pid, signal.SIGINT)
+            if presses == 2:
+                wait_for_stderr(tmp_path, "Waiting for connections to close")
+                os.killpg(process.pid, signal.SIGINT)
+            assert_stopped_cleanly(process, tmp_path, started)
 
 
 @pytest.mark.parametrize("flag", ["--threads", "--concurrency", "--workers"])
