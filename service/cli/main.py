@@ -111,11 +111,21 @@ def reader_gone() -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Parse arguments, run the command, map caller errors to exit code 2 (and a reader
-    that went away to :data:`READER_GONE`, silently). Freed memory
+    """Parse arguments, run the command, map caller errors to exit code 2 (a reader that
+    went away to :data:`READER_GONE` and Ctrl-C to 130, silently). Freed memory
     stays in the process for reuse (:func:`models.allocator.keep_freed_memory`)."""
     keep_freed_memory()
     argv = sys.argv[1:] if argv is None else argv
+    try:
+        return run_command(argv)
+    except KeyboardInterrupt:
+        return 130
+
+
+def run_command(argv: list[str]) -> int:
+    """Import the command, parse ``argv`` and run it; :func:`main` without Ctrl-C's
+    handling. Importing a command takes a second or more (``mcam serve``: the service),
+    and Ctrl-C meanwhile printed a traceback of the import."""
     args = build_parser(argv[0] if argv else None).parse_args(argv)
     try:
         return int(args.func(args) or 0)
@@ -130,8 +140,6 @@ def main(argv: list[str] | None = None) -> int:
     except ValidationError as exc:
         print(f"mcam {args.command}: error: {settings_problems(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 130
 
 
 if __name__ == "__main__":

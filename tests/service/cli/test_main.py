@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+import service.cli.main as cli_main
 from service.cli.main import (
     COMMAND_MODULES,
     READER_GONE,
@@ -130,3 +131,20 @@ def test_a_command_does_not_import_the_others() -> None:
                           timeout=60, check=False)  # fmt: skip
     assert done.stdout.strip() == "2 []", done.stdout + done.stderr
     assert "--fps must be from 0.1 to 10000" in done.stderr
+
+
+def test_ctrl_c_while_a_command_imports_exits_130_without_a_traceback(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Importing ``mcam serve``'s modules takes over a second; Ctrl-C meanwhile (a
+    KeyboardInterrupt in build_parser) printed the import's traceback, exit -2."""
+
+    def interrupted(command: str | None = None) -> argparse.ArgumentParser:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_main, "build_parser", interrupted)
+    try:
+        code = main(["serve"])
+    except KeyboardInterrupt:
+        pytest.fail("Ctrl-C during the import escaped main (a traceback)")
+    assert code == 130
