@@ -24,7 +24,10 @@ A child that dies while working (killed, out of memory) fails its call with
 :class:`ChildDiedError` (and a warning in the log); a new child is started at once
 after a kill or a death, so the next call does not wait for one to warm up. Children
 ignore SIGINT and SIGTERM and exit by themselves when their worker is gone
-(:func:`follow_parent`), so a worker killed outright leaves none behind.
+(:func:`follow_parent`), so a worker killed outright leaves none behind. They are
+started with both signals blocked (:func:`signals_blocked`) until they ignore them: a
+Ctrl-C while a child was still starting Python killed it mid-import, with a ``Fatal
+Python error: init_import_site`` or a KeyboardInterrupt traceback on the terminal.
 """
 
 from __future__ import annotations
@@ -37,7 +40,8 @@ import signal
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Any
@@ -52,6 +56,9 @@ POLL_S = 0.2
 PARENT_CHECK_S = 1.0
 #: How long a closing child may take to exit before it is killed (s).
 CLOSE_TIMEOUT_S = 5.0
+#: The signals a terminal or a service manager sends the worker's whole process group,
+#: which its children leave to it.
+PARENT_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
 
 
 class ChildDiedError(McamError):
@@ -86,9 +93,28 @@ def leave_signals_to_parent() -> None:
     SIGTERM reaches the whole process group; the worker handles them (it finishes or
     hands back its work) and ends its children itself, by closing their input, by
     SIGKILL, or by dying (:func:`watch_parent`). A child killed by that SIGTERM would
-    look like a crashed decode and cost its job a delivery."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    look like a crashed decode and cost its job a delivery.
+
+    The child was started with these signals blocked (:func:`signals_blocked`): one
+    sent to the group while it started waits, and ignoring it drops it here."""
+    for signum in PARENT_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, PARENT_SIGNALS)
+
+
+@contextmanager
+def signals_blocked() -> Iterator[None]:
+    """Block :data:`PARENT_SIGNALS` in the calling thread while children are started in
+    it: a child inherits the mask through its exec, so a Ctrl-C that reaches the process
+    group while the child starts Python (before :func:`leave_signals_to_parent`) waits
+    instead of killing it mid-import. The parent loses none: another of its threads
+    takes the signal, or this one as the block ends (as multiprocessing's resource
+    tracker starts its own process)."""
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, PARENT_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
 
 def _serve(
@@ -150,7 +176,8 @@ class ChildProcess:
             name="mcam-job-decoder",
             daemon=True,
         )
-        process.start()
+        with signals_blocked():
+            process.start()
         theirs.close()
         self._process, self._conn = process, ours
 

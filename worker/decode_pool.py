@@ -58,7 +58,7 @@ import numpy as np
 from models.decoders.learned import THREAD_VARIABLES
 from models.errors import McamError
 from models.formation import narrow_winding
-from worker.child_process import follow_parent
+from worker.child_process import follow_parent, signals_blocked
 from worker.device_state import DecodedFrame, DeviceState, FrameDecoder, make_frame_decoder, warm_up
 from worker.frame_message import FrameMessage
 
@@ -138,6 +138,9 @@ class DecodePool:
         self._executor = self._start_executor()
 
     def _start_executor(self) -> ProcessPoolExecutor:
+        """A new executor, its processes started (a spawn executor starts one on each
+        submit while it has fewer than it may: the :func:`_ready` tasks start them all,
+        with Ctrl-C and SIGTERM blocked until they ignore them)."""
         context = multiprocessing.get_context("spawn")
         executor = ProcessPoolExecutor(
             self.processes,
@@ -145,7 +148,8 @@ class DecodePool:
             initializer=_start,
             initargs=(self.decoder, context.Barrier(self.processes), os.getpid()),
         )
-        self._started = [executor.submit(_ready) for _ in range(self.processes)]
+        with signals_blocked():
+            self._started = [executor.submit(_ready) for _ in range(self.processes)]
         return executor
 
     def wait_ready(self) -> set[int]:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.service.cli.test_serve import read_until, wait_gone
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.redis_keys import WORKERS_HEARTBEAT
 
@@ -158,3 +159,46 @@ def test_more_processes_than_a_machine_can_hold_are_refused(tmp_path: Path, flag
     assert process.returncode == 2 and "Traceback" not in err
     assert err.startswith(f"mcam worker: error: {flag} must be at most 256 (")
     assert err.rstrip().endswith(f"got {10**19}")
+
+
+def group_running(pgid: int) -> set[int]:
+    """The processes of process group ``pgid`` that run now (zombies left out)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(") ", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.parametrize("start", range(3))
+def test_ctrl_c_as_the_worker_starts_its_children_stops_it_cleanly(
+    tmp_path: Path, start: int
+) -> None:
+    """A terminal's Ctrl-C (SIGINT to the process group) just as the worker starts its
+    decode processes reached them while they still started Python: each printed a
+    ``Fatal Python error: init_import_site`` or a KeyboardInterrupt traceback. Now the
+    worker alone takes it, exits 0 and leaves none of its processes."""
+    with EmbeddedRedis(tmp_path):
+        clean = {k: v for k, v in os.environ.items() if not k.startswith("MCAM_")}
+        process = subprocess.Popen(
+            [sys.executable, "-m", "service.cli.main", "worker", "--stream-processes", "2"],
+            cwd=REPO, env={**clean, "MCAM_DATA_DIR": str(tmp_path)}, text=True,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
+        )  # fmt: skip
+        try:
+            before = "".join(read_until(process, r"running \(", 120))
+            os.killpg(process.pid, signal.SIGINT)
+            after, _ = process.communicate(timeout=90)
+        finally:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait(30)
+        output = before + after
+        assert process.returncode == 0, output
+        assert "Traceback" not in output and "Fatal Python error" not in output, output
+        wait_gone(group_running(process.pid))
+        assert not group_running(process.pid)
