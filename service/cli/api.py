@@ -13,7 +13,6 @@ import logging
 import signal
 import socket
 import sys
-from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
@@ -24,12 +23,10 @@ from uvicorn.config import STARTUP_FAILURE
 from models.errors import InvalidInputError
 from service.api.header_timeout import header_timeout_protocol
 from service.api.state import embedded_redis_for
+from service.cli.options import handle_stop_signals
 from service.core.config import Settings, get_settings
 from service.core.security import KEY_FILE_NAME, KeyRing
 from service.main import create_app
-
-#: The signals that stop the API: a terminal's Ctrl-C and a service manager's stop.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def settings_with(settings: Settings, **updates: Any) -> Settings:
@@ -154,11 +151,12 @@ def serve_http(settings: Settings) -> None:
     """Run the API (``service.main:create_app``) under uvicorn until it is stopped; exit
     3 (uvicorn's startup failure) if it never started.
 
-    Ctrl-C and SIGTERM (:data:`STOP_SIGNALS`) stop the server from before its run to its
-    end, and are ignored after it, while the caller stops Redis and the workers: outside
-    uvicorn's own handlers, asyncio's SIGINT handler cancelled the server's task or
-    raised ``KeyboardInterrupt`` in it (uvicorn passes each signal it caught on when it
-    ends), and a second Ctrl-C printed a traceback out of the app's lifespan."""
+    Ctrl-C and SIGTERM (:data:`~service.cli.options.STOP_SIGNALS`) stop the server from
+    before its run to its end, and are ignored after it, while the caller stops Redis
+    and the workers: outside uvicorn's own handlers, asyncio's SIGINT handler cancelled
+    the server's task or raised ``KeyboardInterrupt`` in it (uvicorn passes each signal
+    it caught on when it ends), and a second Ctrl-C printed a traceback out of the app's
+    lifespan."""
     server = StoppingServer(uvicorn.Config(create_app(settings), **uvicorn_options(settings)))
     logging.getLogger("uvicorn.error").addFilter(without_cancelled_requests)
     handle_stop_signals(server.handle_exit)
@@ -168,12 +166,6 @@ def serve_http(settings: Settings) -> None:
         handle_stop_signals(signal.SIG_IGN)
     if not server.started:
         sys.exit(STARTUP_FAILURE)
-
-
-def handle_stop_signals(handler: Callable[[int, FrameType | None], Any] | signal.Handlers) -> None:
-    """Give each of :data:`STOP_SIGNALS` to ``handler``."""
-    for stop_signal in STOP_SIGNALS:
-        signal.signal(stop_signal, handler)
 
 
 def add_listen_arguments(parser: argparse.ArgumentParser) -> None:

@@ -22,7 +22,7 @@ import redis
 
 from device.daemon import DaemonConfig, DeviceDaemon, check_port_url
 from device.datasets import DatasetLimits
-from service.cli.options import add_log_level_flag, start_logging
+from service.cli.options import add_log_level_flag, handle_stop_signals, start_logging
 from service.cli.worker import redis_url_for
 from service.core.config import get_settings
 from worker.embedded_redis import connect
@@ -59,11 +59,13 @@ def run(args: argparse.Namespace) -> int:
     def stop(_signum: int, _frame: object) -> None:
         daemon.request_stop()
 
-    signal.signal(signal.SIGTERM, stop)
-    signal.signal(signal.SIGINT, stop)
+    handle_stop_signals(stop)
     daemon.start()
     daemon.wait()
     daemon.stop()
+    # Only the interpreter's exit is left, and it gives the signals their default action
+    # back: a second Ctrl-C then ended the process by SIGINT (exit -2, no message).
+    handle_stop_signals(signal.SIG_IGN)
     if daemon.failure is not None:  # another daemon took the device once Redis answered
         raise daemon.failure
     return 0

@@ -39,10 +39,10 @@ from service.api.state import embedded_redis_for
 from service.cli.api import (
     announce,
     check_listen_address,
-    handle_stop_signals,
     serve_http,
     settings_with,
 )
+from service.cli.options import handle_stop_signals
 from service.cli.worker import limit_problem
 from service.core.config import get_settings
 from service.core.security import KeyRing
