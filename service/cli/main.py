@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -119,7 +120,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run_command(argv)
     except KeyboardInterrupt:
-        return 130
+        return interrupted()
+
+
+def interrupted() -> int:
+    """Exit status 130 for a Ctrl-C, further ones ignored: only the interpreter's exit is
+    left, and it gives SIGINT its default action back, so a second Ctrl-C ended the
+    process by SIGINT (exit -2, no message)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return 130
 
 
 def run_command(argv: list[str]) -> int:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -143,8 +144,15 @@ def test_ctrl_c_while_a_command_imports_exits_130_without_a_traceback(
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cli_main, "build_parser", interrupted)
+    previous = signal.getsignal(signal.SIGINT)
     try:
         code = main(["serve"])
+        ignored = signal.getsignal(signal.SIGINT)
     except KeyboardInterrupt:
         pytest.fail("Ctrl-C during the import escaped main (a traceback)")
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert code == 130
+    # The exit is left alone: the interpreter's exit gave SIGINT its default action back,
+    # and a second Ctrl-C then ended the process by SIGINT (exit -2, no message).
+    assert ignored == signal.SIG_IGN
