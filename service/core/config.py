@@ -427,34 +427,26 @@ def unknown_variables(names: Iterable[str], source: str) -> list[str]:
     return problems
 
 
-def environment_problem(environ: Iterable[str], env_file: Path) -> str | None:
-    """What is wrong with the ``MCAM_*`` variables of ``environ`` (names) and
-    ``env_file``, or None. A misspelt setting (``MCAM_MAX_PIXEL``) was ignored without a
-    word, leaving the default it was meant to change in force."""
-    try:
-        bindings = env_file_bindings(env_file)
-    except UnicodeDecodeError as exc:
-        return (
-            f"{env_file} is not {ENV_FILE_ENCODING} text (byte {exc.start} is "
-            f"{exc.object[exc.start]:#04x}): save it as {ENV_FILE_ENCODING}"
-        )
-    except OSError as exc:
-        return (
-            f"cannot read {env_file} ({exc.strerror}): make it a file of NAME=value lines "
-            "that the service's user may read, or remove it"
-        )
-    problems = unknown_variables(environ, "environment") + env_file_problems(bindings, env_file)
-    return "; ".join(problems) or None
-
-
 def env_file_bindings(env_file: Path) -> list[Binding]:
     """The statements of ``env_file`` as python-dotenv reads them; none when there is
-    nothing of that name. Raises :class:`UnicodeDecodeError` when it is not UTF-8, and
-    :class:`OSError` when it cannot be read (a folder: pydantic-settings skipped one
-    without a word, as docker makes of a bind mount whose file is missing)."""
+    nothing of that name. :class:`InvalidInputError` when it is not UTF-8 or cannot be
+    read (a folder: pydantic-settings skipped one without a word, as docker makes of a
+    bind mount whose file is missing)."""
     if not env_file.exists():
         return []
-    return list(parse_stream(io.StringIO(env_file.read_text(encoding=ENV_FILE_ENCODING))))
+    try:
+        text = env_file.read_text(encoding=ENV_FILE_ENCODING)
+    except UnicodeDecodeError as exc:
+        raise InvalidInputError(
+            f"{env_file} is not {ENV_FILE_ENCODING} text (byte {exc.start} is "
+            f"{exc.object[exc.start]:#04x}): save it as {ENV_FILE_ENCODING}"
+        ) from None
+    except OSError as exc:
+        raise InvalidInputError(
+            f"cannot read {env_file} ({exc.strerror}): make it a file of NAME=value lines "
+            "that the service's user may read, or remove it"
+        ) from None
+    return list(parse_stream(io.StringIO(text)))
 
 
 def env_file_problems(bindings: list[Binding], env_file: Path) -> list[str]:
@@ -506,10 +498,11 @@ def get_settings() -> Settings:
     (:class:`InvalidInputError`). A setting the environment gives another value than
     ``.env`` is logged as a warning (the environment's is used)."""
     env_file = Path(str(Settings.model_config["env_file"]))
-    problem = environment_problem(os.environ, env_file)
-    if problem:
-        raise InvalidInputError(problem)
-    for name in overridden_settings(os.environ, env_file_bindings(env_file)):
+    bindings = env_file_bindings(env_file)
+    problems = unknown_variables(os.environ, "environment") + env_file_problems(bindings, env_file)
+    if problems:
+        raise InvalidInputError("; ".join(problems))
+    for name in overridden_settings(os.environ, bindings):
         log.warning(
             "%s is set both in the environment and in %s, to other values: the "
             "environment's is used; remove one of them", name, env_file,
