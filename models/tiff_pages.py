@@ -184,23 +184,26 @@ def _segment_samples(page: tifffile.TiffPage) -> tuple[str, str, int]:
     return "strip", f"{int(page.imagewidth)} x {rows}", int(page.imagewidth) * rows * planes
 
 
-def _deflated(data: bytes, most: int, where: str) -> int | None:
+class _LzmaMemoryExceeded(Exception):
+    """An LZMA stream's decoder needs more than :data:`LZMA_MEMORY_LIMIT`."""
+
+
+def _deflated(data: bytes, most: int) -> int | None:
     """Bytes the deflate stream of ``data`` inflates to, counted to ``most + 1`` at most
-    (tifffile's ``zlib.decompress`` reads one stream); None if it does not inflate.
-    ``where`` is unused: a deflate segment has no refusal of its own."""
+    (tifffile's ``zlib.decompress`` reads one stream); None if it does not inflate."""
     try:
         return len(zlib.decompressobj().decompress(data, most + 1))
     except zlib.error:
         return None
 
 
-def _lzma_inflated(data: bytes, most: int, where: str) -> int | None:
+def _lzma_inflated(data: bytes, most: int) -> int | None:
     """Bytes the LZMA streams of ``data`` inflate to, counted to ``most + 1`` at most,
     read as tifffile's ``lzma.decompress`` reads them: stream after stream (two streams
     of 4 KiB and 256 MiB, 40 KB in all, were checked as 4 KiB, then inflated whole),
     up to data that is not one. None if the first does not inflate.
-    :class:`ImageTooLargeError` naming ``where`` ("strip 3") if a stream's decoder needs
-    more than :data:`LZMA_MEMORY_LIMIT`."""
+    :class:`_LzmaMemoryExceeded` if a stream's decoder needs more than
+    :data:`LZMA_MEMORY_LIMIT`."""
     inflated = 0
     first = True
     while data and inflated <= most:
@@ -209,7 +212,7 @@ def _lzma_inflated(data: bytes, most: int, where: str) -> int | None:
             inflated += len(stream.decompress(data, most + 1 - inflated))
         except lzma.LZMAError as exc:
             if str(exc) == _LZMA_MEMORY_EXCEEDED:
-                raise _lzma_memory_error(where) from None
+                raise _LzmaMemoryExceeded from None
             return None if first else inflated
         if not stream.eof:
             break
@@ -217,13 +220,13 @@ def _lzma_inflated(data: bytes, most: int, where: str) -> int | None:
     return inflated
 
 
-def _packbits_inflated(data: bytes, most: int, where: str) -> int:
+def _packbits_inflated(data: bytes, most: int) -> int:
     """Bytes the PackBits runs of ``data`` decode to, counted to ``most + 1`` at most:
     tifffile decodes a PackBits segment whole, in Python, into a list of 8 bytes an
     output byte (a 64 x 64 frame's one strip of 2 MB held 1.2 GB). Data longer than
     twice ``most`` counts as past it unread: every run (but a no-op header, which no
     writer emits) decodes to at least half its length, and a strip of no-op headers
-    decodes to nothing after a Python step a byte. ``where`` is unused."""
+    decodes to nothing after a Python step a byte."""
     if len(data) > 2 * most:
         return most + 1
     inflated = position = 0
@@ -254,7 +257,7 @@ def _lzma_memory_error(where: str) -> ImageTooLargeError:
 #: :func:`_packbits_inflated`), by TIFF code, for the compressions tifffile inflates
 #: without bound (each segment whole, past its size): deflate (8, and its old code),
 #: LZMA and PackBits.
-_STREAMED: dict[int, Callable[[bytes, int, str], int | None]] = {
+_STREAMED: dict[int, Callable[[bytes, int], int | None]] = {
     8: _deflated,
     32946: _deflated,
     34925: _lzma_inflated,
@@ -282,7 +285,10 @@ def check_inflation(page: tifffile.TiffPage) -> None:
         return
     segments = page.parent.filehandle.read_segments(page.dataoffsets, page.databytecounts)
     for data, index in segments:
-        inflated = inflated_size(data or b"", most, f"{kind} {index}")
+        try:
+            inflated = inflated_size(data or b"", most)
+        except _LzmaMemoryExceeded:
+            raise _lzma_memory_error(f"{kind} {index}") from None
         if inflated is not None and inflated > most:
             raise ImageTooLargeError(
                 f"{kind} {index} of the TIFF page inflates past the {most} bytes a {kind} "
