@@ -13,7 +13,6 @@ The first line on stdout is the URL for ``mcam device --port``. It runs until
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 from pathlib import Path
@@ -26,6 +25,7 @@ from device.sim_link import Endpoint, open_endpoint
 from device.simulator import MAX_SEED, CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
+from service.cli.options import handle_stop_signals
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -121,8 +121,7 @@ def run(args: argparse.Namespace) -> int:
                            max_frames=args.frames)
     print(camera.endpoint.url, flush=True)
     stopped = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
-    signal.signal(signal.SIGINT, lambda *_: stopped.set())
+    handle_stop_signals(lambda *_: stopped.set())
     camera.start()
     stopped.wait()
     camera.stop()
