@@ -71,9 +71,11 @@ FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in FRAME_ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
 _PNG_MODES = ("1", "L", "I;16", "I;16B", "I;16L", "I")
-#: Where a PNG's bit depth per sample is: after the signature (8 bytes), the IHDR
-#: chunk's length and type (8) and its width and height (8).
-_PNG_DEPTH_OFFSET = 24
+#: Where a PNG's width and height are (big-endian 4-byte integers): after the signature
+#: (8 bytes) and the IHDR chunk's length and type (8), its first fields.
+_PNG_SIZE = slice(16, 24)
+#: Where its bit depth per sample is: right after them.
+_PNG_DEPTH_OFFSET = _PNG_SIZE.stop
 logger = logging.getLogger(__name__)
 
 
@@ -223,8 +225,8 @@ def write_frame(
 def _png_bomb_error(data: bytes, max_pixels: int | None) -> ImageTooLargeError:
     """The error for a PNG whose header declares more pixels than Pillow opens (twice
     ``Image.MAX_IMAGE_PIXELS``): its size against ``max_pixels`` when that is the lower
-    limit, else against Pillow's. The size is the IHDR's, the first chunk (bytes 16-23)."""
-    width, height = struct.unpack(">II", data[16:24])
+    limit, else against Pillow's. The size is the IHDR's, the first chunk."""
+    width, height = struct.unpack(">II", data[_PNG_SIZE])
     try:
         check_pixel_count(width, height, max_pixels)
     except ImageTooLargeError as exc:
