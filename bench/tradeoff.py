@@ -492,7 +492,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dark", type=at_least(1), default=3, help="mostly-dark crops per kind")
     parser.add_argument("--glows", type=at_least(0), default=12, help="glows frames (0: none)")
     parser.add_argument("--repeats", type=at_least(1), default=3)
-    parser.add_argument("--decoders", nargs="*", help="only these decoders")
+    parser.add_argument(
+        "--decoders", nargs="+", help="only these decoders (default: every installed one)"
+    )
     parser.add_argument("--quick", action="store_true", help="skip the 512/1024 sets")
     add_report_option(parser, "tradeoff.json")
     parser.add_argument(

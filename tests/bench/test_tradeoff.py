@@ -136,3 +136,19 @@ def test_an_exact_frame_counts_at_the_psnr_cap() -> None:
                          .irradiance, frames[1].x)  # fmt: skip
     assert row["exact_frames"] == 1
     assert row["psnr_db"] == pytest.approx((metrics.PSNR_CAP + wrong) / 2)
+
+
+def test_decoders_without_a_name_is_a_usage_error(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--decoders`` with no name after it gave an empty list, taken as "every decoder":
+    the whole 14-minute benchmark ran instead of a usage error."""
+
+    def measured(args: object) -> dict[str, Any]:
+        raise AssertionError(f"it measured {args}")
+
+    monkeypatch.setattr(tradeoff, "run", measured)
+    with pytest.raises(SystemExit) as exc:
+        tradeoff.main(["--decoders", "--quick", "--out", str(tmp_path / "t.json")])
+    assert exc.value.code == 2
+    assert "argument --decoders: expected at least one argument" in capsys.readouterr().err
