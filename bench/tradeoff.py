@@ -292,9 +292,8 @@ def candidates(names: list[str] | None) -> list[tuple[str, Decoder]]:
 
 def speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """``auto`` against always running a network, alone or refined (``<net>+puma``): for
-    each auto row (but the latency budgets, which mix qualities) and each such row at
-    most as accurate (W accuracy), how many times faster auto is, and both PSNRs."""
-    networks = [r for r in rows if "gflops_per_s" in r or r["decoder"].endswith("+puma")]
+    each :func:`auto_rows` row and each :func:`network_rows` row at most as accurate
+    (W accuracy), how many times faster auto is, and both PSNRs."""
     return [
         {
             "auto": auto["decoder"],
@@ -305,11 +304,35 @@ def speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "auto_psnr_db": auto["psnr_db"],
             "network_psnr_db": net["psnr_db"],
         }
-        for auto in rows
-        if auto["decoder"].startswith("auto") and "within_budget" not in auto
-        for net in networks
+        for auto in auto_rows(rows)
+        for net in network_rows(rows)
         if net["winding_accuracy"] <= auto["winding_accuracy"]
     ]
+
+
+def auto_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of ``auto`` at one quality (but the latency budgets, which mix qualities)."""
+    return [r for r in rows if r["decoder"].startswith("auto") and "within_budget" not in r]
+
+
+def network_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of a network, alone (it has GFLOP/s) or refined (``<net>+puma``)."""
+    return [r for r in rows if "gflops_per_s" in r or r["decoder"].endswith("+puma")]
+
+
+def no_speedups_reason(rows: list[dict[str, Any]]) -> str:
+    """Why :func:`speedups` of ``rows`` is empty, and what to name in ``--decoders``."""
+    if not auto_rows(rows):
+        return (
+            "Skipped: no quality of `auto` (auto, auto-fast, auto-balanced, auto-best) was "
+            "measured on mostly-dark; name one in --decoders."
+        )
+    if not network_rows(rows):
+        return (
+            "Skipped: no network (e.g. mantissanet-small, or refined: mantissanet-small+puma) "
+            "was measured on mostly-dark; name one in --decoders."
+        )
+    return "None: every network measured is more accurate (W acc) than every `auto` quality."
 
 
 def gflops_of(name: str) -> float | None:
@@ -382,39 +405,75 @@ def header(report: dict[str, Any]) -> str:
 
 
 def markdown(report: dict[str, Any]) -> str:
-    """The report as Markdown tables, one per frame set."""
+    """The report as Markdown tables, one per frame set; a table with nothing to show
+    is replaced by why (the decoders measured had none of what it compares)."""
     lines = [header(report)]
     for set_name, rows in report["results"].items():
-        lines += table_head(
-            f"{set_name} ({report['sets'][set_name]} frames)",
-            ("decoder", "PSNR dB", "PU21-PSNR dB", "W acc", "ms/frame", "frames/s",
-             "GFLOP/s (% peak)", "Pareto"),
-        )
-        for r in sorted(rows, key=lambda r: r["ms_per_frame"]):
-            flops = (
-                f"{r['gflops_per_s']:.1f} ({100 * r['fraction_of_peak']:.0f}%)"
-                if "gflops_per_s" in r
-                else "-"
-            )
-            lines.append(
-                f"| {r['decoder']} | {r['psnr_db']:.2f} | {r['pu21_psnr_db']:.2f} | "
-                f"{100 * r['winding_accuracy']:.2f}% | {r['ms_per_frame']:.2f} | "
-                f"{r['frames_per_s']:.1f} | {flops} | {'*' if r['pareto'] else ''} |"
-            )
+        lines += set_lines(f"{set_name} ({report['sets'][set_name]} frames)", rows)
     lines += budget_lines(report)
-    lines += table_head(
+    lines += table_or_reason(
         "mostly-dark: auto against always running a network (alone or refined) at most as "
         "accurate",
         ("auto", "network", "speed-up", "auto W acc", "network W acc", "auto PSNR",
          "network PSNR"),
-    )
-    lines += [
-        f"| {s['auto']} | {s['network']} | {s['speedup']:.2f}x | "
-        f"{100 * s['auto_winding_accuracy']:.2f}% | {100 * s['network_winding_accuracy']:.2f}% "
-        f"| {s['auto_psnr_db']:.2f} | {s['network_psnr_db']:.2f} |"
-        for s in report["mostly_dark_speedups"]
-    ]
+        [
+            f"| {s['auto']} | {s['network']} | {s['speedup']:.2f}x | "
+            f"{100 * s['auto_winding_accuracy']:.2f}% | "
+            f"{100 * s['network_winding_accuracy']:.2f}% "
+            f"| {s['auto_psnr_db']:.2f} | {s['network_psnr_db']:.2f} |"
+            for s in report["mostly_dark_speedups"]
+        ],
+        no_speedups_reason(report["results"].get("mostly-dark", [])),
+    )  # fmt: skip
     return "\n".join(lines)
+
+
+def set_lines(title: str, rows: list[dict[str, Any]]) -> list[str]:
+    """The Markdown table of one frame set's rows, fastest first, and a note on its
+    columns that compare nothing: GFLOP/s when no network alone was measured, the Pareto
+    front when one decoder was."""
+    body = []
+    for r in sorted(rows, key=lambda r: r["ms_per_frame"]):
+        flops = (
+            f"{r['gflops_per_s']:.1f} ({100 * r['fraction_of_peak']:.0f}%)"
+            if "gflops_per_s" in r
+            else "-"
+        )
+        body.append(
+            f"| {r['decoder']} | {r['psnr_db']:.2f} | {r['pu21_psnr_db']:.2f} | "
+            f"{100 * r['winding_accuracy']:.2f}% | {r['ms_per_frame']:.2f} | "
+            f"{r['frames_per_s']:.1f} | {flops} | {'*' if r['pareto'] else ''} |"
+        )
+    lines = table_or_reason(
+        title,
+        ("decoder", "PSNR dB", "PU21-PSNR dB", "W acc", "ms/frame", "frames/s",
+         "GFLOP/s (% peak)", "Pareto"),
+        body,
+        "Skipped: the tile variants (`auto-<quality>-tile<px>`) are measured on val-256 "
+        "only, and --decoders named nothing else.",
+    )  # fmt: skip
+    notes = [
+        note
+        for note, missing in (
+            ("GFLOP/s: none of these decoders is a network alone, whose model card gives "
+             "its GFLOPs.",
+             bool(rows) and not any("gflops_per_s" in r for r in rows)),
+            ("Pareto: one decoder was measured, so it is the front by itself.", len(rows) == 1),
+        )
+        if missing
+    ]  # fmt: skip
+    return lines + (["", " ".join(notes)] if notes else [])
+
+
+def table_or_reason(
+    title: str, columns: tuple[str, ...], body: list[str], reason: str
+) -> list[str]:
+    """A Markdown table (:func:`table_head`, then ``body``), or, when ``body`` has no
+    line, its title and ``reason``: why there is nothing to show (an empty table read as
+    a measurement of nothing)."""
+    if not body:
+        return ["", f"### {title}", "", reason]
+    return table_head(title, columns) + body
 
 
 def table_head(title: str, columns: tuple[str, ...]) -> list[str]:
@@ -427,30 +486,32 @@ def budget_lines(report: dict[str, Any]) -> list[str]:
     """Markdown tables of the latency budgets: what each ``auto-<N>ms`` chose and how
     many frames it decoded within its budget, and the cost model's predicted / measured
     ms per quality of ``auto``."""
-    lines = table_head(
+    lines = table_or_reason(
         "Latency budgets (`auto-<N>ms`): frames decoded within the budget",
         ("set", "decoder", "within budget", "chosen", "ms/frame", "PSNR dB"),
-    )
-    for set_name, rows in report["results"].items():
-        lines += [
+        [
             f"| {set_name} | {r['decoder']} | {100 * r['within_budget']:.0f}% | "
             + ", ".join(f"{name} {count}" for name, count in r["chosen"].items())
             + f" | {r['ms_per_frame']:.1f} | {r['psnr_db']:.2f} |"
+            for set_name, rows in report["results"].items()
             for r in rows
             if "within_budget" in r
-        ]
-    lines += table_head(
+        ],
+        "Skipped: no latency budget was measured; name one in --decoders (e.g. auto-60ms).",
+    )
+    return lines + table_or_reason(
         "Latency cost model: predicted / measured ms of each quality of `auto` (after the "
         "scene analysis; frames with residues)",
         ("set", "quality", "geometric mean", "least", "greatest", "frames"),
-    )
-    for set_name, qualities in report["latency_predictions"].items():
-        lines += [
+        [
             f"| {set_name} | {quality} | {r['geometric_mean']:.2f} | {r['min']:.2f} | "
             f"{r['max']:.2f} | {r['frames']} |"
+            for set_name, qualities in report["latency_predictions"].items()
             for quality, r in qualities.items()
-        ]
-    return lines
+        ],
+        "None: no frame of any set has residues (its scene analysis sends it to itoh), so "
+        "no quality of `auto` was timed.",
+    )
 
 
 def plot(report: dict[str, Any], path: Path) -> None:

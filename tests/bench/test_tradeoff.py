@@ -152,3 +152,72 @@ def test_decoders_without_a_name_is_a_usage_error(
         tradeoff.main(["--decoders", "--quick", "--out", str(tmp_path / "t.json")])
     assert exc.value.code == 2
     assert "argument --decoders: expected at least one argument" in capsys.readouterr().err
+
+
+def measured_row(decoder: str, **extra: Any) -> dict[str, Any]:
+    """A row of a set's table as :func:`bench.tradeoff.run` makes it (figures made up)."""
+    return {
+        "decoder": decoder, "psnr_db": 30.0, "pu21_psnr_db": 31.0, "winding_accuracy": 0.9,
+        "ms_per_frame": 5.0, "frames_per_s": 200.0, "pareto": True, **extra,
+    }  # fmt: skip
+
+
+def report_of(results: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+    """A report of ``results`` (rows by set), with no frame with residues."""
+    return {
+        "date": "2026-11-28T00:00:00+00:00",
+        "machine": {"cores": 2},
+        "load_average": (1.0, 1.0, 1.0),
+        "peak_gflops_per_s": 100.0,
+        "matmul_gflops_per_s": {"numpy": 100.0},
+        "sets": dict.fromkeys(results, 1),
+        "results": results,
+        "mostly_dark_speedups": tradeoff.speedups(results.get("mostly-dark", [])),
+        "latency_predictions": dict.fromkeys(results, {}),
+    }
+
+
+@pytest.mark.parametrize(
+    ("decoders", "reasons"),
+    [
+        (["itoh"], ["Skipped: no latency budget was measured; name one in --decoders",
+                    "Skipped: no quality of `auto` (auto, auto-fast, auto-balanced, auto-best) "
+                    "was measured on mostly-dark; name one in --decoders",
+                    "GFLOP/s: none of these decoders is a network alone",
+                    "Pareto: one decoder was measured, so it is the front by itself"]),
+        (["itoh", "auto-fast"], ["Skipped: no network (e.g. mantissanet-small, or refined: "
+                                 "mantissanet-small+puma) was measured on mostly-dark"]),
+        (["auto-fast-tile32"], ["### mostly-dark (1 frames)\n\nSkipped: the tile variants "
+                                "(`auto-<quality>-tile<px>`) are measured on val-256 only"]),
+    ],
+)  # fmt: skip
+def test_a_table_a_subset_of_decoders_cannot_fill_says_why_it_is_skipped(
+    decoders: list[str], reasons: list[str]
+) -> None:
+    """With ``--decoders itoh`` the latency-budget and speed-up tables were printed with
+    a head and no row, the GFLOP/s column was all dashes and the lone decoder marked as
+    the Pareto front; a set no named decoder is measured on (the tile variants are
+    val-256's only) had an empty table too."""
+    rows = {
+        "val-256": [measured_row(name) for name in decoders],
+        "mostly-dark": [measured_row(name) for name in decoders if "tile" not in name],
+    }
+    text = tradeoff.markdown(report_of(rows))
+    for reason in reasons:
+        assert reason in text
+    assert "None: no frame of any set has residues" in text
+    lines = text.splitlines()
+    empty = [
+        line
+        for line, after in zip(lines, [*lines[1:], ""], strict=True)
+        if line.startswith("|---") and not after.startswith("| ")
+    ]
+    assert not empty, text
+
+
+def test_a_network_more_accurate_than_auto_is_said_to_be_so() -> None:
+    rows = [measured_row("auto-fast", winding_accuracy=0.8),
+            measured_row("mantissanet-tiny", gflops_per_s=1.0, fraction_of_peak=0.01)]  # fmt: skip
+    text = tradeoff.markdown(report_of({"val-256": rows, "mostly-dark": rows}))
+    assert "None: every network measured is more accurate (W acc) than every `auto`" in text
+    assert "GFLOP/s: none" not in text and "Pareto: one decoder" not in text
