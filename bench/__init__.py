@@ -287,6 +287,7 @@ def refuse_unknown_decoders(
     decode one of the ``encodings`` the benchmark will give it (a net trained on one
     encoding, e.g. ``mantissanet-base-noise`` on modulo frames), naming what it decodes."""
     chosen = list(dict.fromkeys(names or ()))
+    refuse_empty_names(parser, "decoders", chosen)
     unknown = sorted({name for name in chosen if name not in extra and not _resolves(name)})
     if unknown:
         accepted = [spec.name for spec in available_decoders()] + list(extra) + name_patterns()
@@ -315,9 +316,22 @@ def refuse_unknown(
 ) -> None:
     """Stop with the parser's usage error when any of ``names`` is not in ``choices``
     (``what``: the option's plural noun, e.g. ``clips``), listing them."""
+    names = list(names)
+    refuse_empty_names(parser, what, names)
     unknown = sorted(set(names) - set(choices))
     if unknown:
         parser.error(f"unknown {what} {', '.join(unknown)}; choose from: {', '.join(choices)}")
+
+
+def refuse_empty_names(parser: argparse.ArgumentParser, what: str, names: list[str]) -> None:
+    """Stop with the parser's usage error when one of ``names`` is empty or blank
+    (``--decoders ''``, an unset shell variable): it was refused as "unknown decoders ;
+    choose from ...", which named nothing (``what``: the option's plural noun)."""
+    if any(not name.strip() for name in names):
+        parser.error(
+            f"an empty name among the {what} given ({', '.join(map(repr, names))}); name "
+            "each one, or leave the option out for its default"
+        )
 
 
 def _resolves(name: str) -> bool:

@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from bench import colour, host_facts, write_report
+from bench import (
+    bench_parser,
+    colour,
+    host_facts,
+    refuse_unknown,
+    refuse_unknown_decoders,
+    write_report,
+)
 from models.errors import InvalidInputError
 
 
@@ -63,3 +72,30 @@ def test_host_facts_name_the_date_machine_versions_and_load() -> None:
     assert set(facts) == {"date", "machine", "versions", "load_average"}
     assert facts["machine"]["cores"] >= 1 and facts["versions"]["numpy"]
     assert len(facts["load_average"]) == 3
+
+
+@pytest.mark.parametrize(
+    ("refuse", "message"),
+    [
+        (lambda parser: refuse_unknown_decoders(parser, ["itoh", ""]),
+         "an empty name among the decoders given ('itoh', ''); name each one, or leave the "
+         "option out for its default"),
+        (lambda parser: refuse_unknown_decoders(parser, [" "]),
+         "an empty name among the decoders given (' ')"),
+        (lambda parser: refuse_unknown(parser, "models", [""], ["mantissanet-tiny"]),
+         "an empty name among the models given ('')"),
+    ],
+)  # fmt: skip
+def test_an_empty_name_is_refused_as_empty(
+    refuse: Callable[[argparse.ArgumentParser], None],
+    message: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """An empty name (``--decoders ''``) was refused as "unknown decoders ; choose from:
+    ...", naming nothing."""
+    with pytest.raises(SystemExit) as exc:
+        refuse(bench_parser("bench.accuracy", None))
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"python -m bench.accuracy: error: {message}" in err
+    assert "unknown" not in err

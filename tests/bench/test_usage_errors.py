@@ -63,6 +63,10 @@ MANTISSA_ONLY = sorted(
         # An empty name (a comma too many) was refused as "unknown decoders ; choose ...".
         ("video", ["--decoders", "itoh,"], "--decoders: an empty name in 'itoh,': separate"),
         ("video", ["--clips", "pan_zoom,,sunrise"], "--clips: an empty name in 'pan_zoom,,"),
+        # An empty name given apart was refused as "unknown decoders ; choose from ...".
+        ("accuracy", ["--decoders", "itoh", ""], "an empty name among the decoders given"),
+        ("service", ["--decoder", ""], "an empty name among the decoders given ('')"),
+        ("profile", ["--models", " "], "an empty name among the models given (' ')"),
         # Counts and levels, refused before anything is measured (they gave NaN timings,
         # an IndexError after the matmul calibration, or a traceback after the main table).
         ("tradeoff", ["--repeats", "0"], "--repeats: must be at least 1, got 0"),
