@@ -203,6 +203,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_report_option(parser, "video.json", flag="--output")
     args = parser.parse_args(argv)
+    if "all" in args.decoders and len(args.decoders) > 1:
+        parser.error(
+            f"argument --decoders: 'all' (every installed decoder) goes alone, got "
+            f"{','.join(args.decoders)}; give --decoders all, or name the decoders only"
+        )
     decoders = (
         tuple(spec.name for spec in available_decoders())
         if args.decoders == ("all",)

@@ -67,3 +67,19 @@ def test_flicker_all_gone_reads_as_such_not_as_a_ratio_over_a_tiny_floor() -> No
     (item,) = video.summarize(rows)
     assert item["flicker_reduction"] == float("inf") and item["targets_met"]["flicker_10x"]
     assert "| 0.05000 -> 0.00000 | all |" in video.markdown_table([item], [[1.0] * 3] * 2)
+
+
+def test_all_with_other_decoders_is_refused_as_such(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--decoders all,itoh`` was refused as "unknown decoders all", though the help
+    offers 'all' (it stands alone)."""
+    with pytest.raises(SystemExit) as exc:
+        video.main(["--decoders", "all,itoh", "--output", str(tmp_path / "v.json")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert (
+        "--decoders: 'all' (every installed decoder) goes alone, got all,itoh; give "
+        "--decoders all, or name the decoders only" in err
+    )
+    assert "unknown decoders" not in err
