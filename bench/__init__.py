@@ -291,7 +291,7 @@ def refuse_unknown_decoders(
     unknown = sorted({name for name in chosen if name not in extra and not _resolves(name)})
     if unknown:
         accepted = [spec.name for spec in available_decoders()] + list(extra) + name_patterns()
-        parser.error(f"unknown decoders {', '.join(unknown)}; choose from: {', '.join(accepted)}")
+        refuse_names(parser, "decoders", unknown, accepted)
     lacking = [
         f"{name} decodes {'/'.join(decodes)}, not {'/'.join(sorted(set(encodings) - set(decodes)))}"
         for name in chosen
@@ -320,7 +320,25 @@ def refuse_unknown(
     refuse_empty_names(parser, what, names)
     unknown = sorted(set(names) - set(choices))
     if unknown:
-        parser.error(f"unknown {what} {', '.join(unknown)}; choose from: {', '.join(choices)}")
+        refuse_names(parser, what, unknown, choices)
+
+
+def refuse_names(
+    parser: argparse.ArgumentParser, what: str, unknown: list[str], accepted: Iterable[str]
+) -> NoReturn:
+    """Stop with the parser's usage error naming the ``unknown`` names and the
+    ``accepted`` ones (``what``: the option's plural noun). A name with a comma is a list
+    given the way bench.video takes it, to an option whose names are apart: that is
+    said (``itoh,herraez`` was told only to choose from a list holding itoh and
+    herraez)."""
+    commas = (
+        " (give the names apart, separated by spaces, not commas)"
+        if any("," in name for name in unknown)
+        else ""
+    )
+    parser.error(
+        f"unknown {what} {', '.join(unknown)}{commas}; choose from: {', '.join(accepted)}"
+    )
 
 
 def refuse_empty_names(parser: argparse.ArgumentParser, what: str, names: list[str]) -> None:

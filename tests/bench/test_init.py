@@ -93,9 +93,38 @@ def test_an_empty_name_is_refused_as_empty(
 ) -> None:
     """An empty name (``--decoders ''``) was refused as "unknown decoders ; choose from:
     ...", naming nothing."""
+    err = refusal(refuse, capsys)
+    assert f"python -m bench.accuracy: error: {message}" in err
+    assert "unknown" not in err
+
+
+@pytest.mark.parametrize(
+    ("refuse", "message"),
+    [
+        (lambda parser: refuse_unknown_decoders(parser, ["itoh,herraez"]),
+         "unknown decoders itoh,herraez (give the names apart, separated by spaces, not "
+         "commas); choose from: itoh, herraez"),
+        (lambda parser: refuse_unknown(parser, "models", ["a,b"], ["a", "b"]),
+         "unknown models a,b (give the names apart, separated by spaces, not commas); "
+         "choose from: a, b"),
+    ],
+)  # fmt: skip
+def test_a_comma_list_given_as_one_name_is_told_to_give_names_apart(
+    refuse: Callable[[argparse.ArgumentParser], None],
+    message: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--decoders itoh,herraez`` (as bench.video takes it) was told only "unknown
+    decoders itoh,herraez; choose from: itoh, herraez, ...", a list holding both."""
+    assert f"python -m bench.accuracy: error: {message}" in refusal(refuse, capsys)
+
+
+def refusal(
+    refuse: Callable[[argparse.ArgumentParser], None], capsys: pytest.CaptureFixture[str]
+) -> str:
+    """The stderr of ``refuse`` given bench.accuracy's parser, which it must stop with
+    exit code 2."""
     with pytest.raises(SystemExit) as exc:
         refuse(bench_parser("bench.accuracy", None))
     assert exc.value.code == 2
-    err = capsys.readouterr().err
-    assert f"python -m bench.accuracy: error: {message}" in err
-    assert "unknown" not in err
+    return capsys.readouterr().err
