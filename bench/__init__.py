@@ -18,7 +18,7 @@ import platform
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable, Collection, Iterable
+from collections.abc import Callable, Collection, Iterable, Sequence
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -264,6 +264,41 @@ def above_zero(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
     return value
+
+
+def given_twice(values: Sequence[Any]) -> list[Any]:
+    """The values ``values`` holds more than once, each once, in order."""
+    return list(dict.fromkeys(v for i, v in enumerate(values) if v in values[:i]))
+
+
+def refuse_given_twice(values: Sequence[Any]) -> None:
+    """Raise an ``argparse.ArgumentTypeError`` naming the values given more than once: a
+    benchmark measures each value given, so one given twice was measured twice and
+    reported twice (bench.video's summary kept the second alone, bench.stream's report
+    the last)."""
+    twice = given_twice(values)
+    if twice:
+        raise argparse.ArgumentTypeError(
+            f"{', '.join(map(str, twice))} given more than once; give each once"
+        )
+
+
+class Distinct(argparse.Action):
+    """The ``action`` of a list option (``nargs``): its values, refused with the
+    parser's usage error when one is given twice (:func:`refuse_given_twice`)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        try:
+            refuse_given_twice(values)
+        except argparse.ArgumentTypeError as exc:
+            raise argparse.ArgumentError(self, str(exc)) from None
+        setattr(namespace, self.dest, values)
 
 
 def read_noise(text: str) -> float:

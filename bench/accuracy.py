@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from bench import (
+    Distinct,
     add_report_option,
     add_val256_frames_option,
     at_least,
@@ -322,7 +323,9 @@ def recall_table(rows: list[dict[str, Any]]) -> list[str]:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = bench_parser(__name__, __doc__)
-    parser.add_argument("--decoders", nargs="+", help="only these decoders (default: all)")
+    parser.add_argument(
+        "--decoders", nargs="+", action=Distinct, help="only these decoders (default: all)"
+    )
     add_val256_frames_option(parser)
     parser.add_argument(
         "--repeats", type=at_least(1), default=3, help="timed decodes per timed frame"
@@ -334,6 +337,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--noise-levels",
         type=read_noise,
         nargs="*",
+        action=Distinct,
         default=list(NOISE_LEVELS),
         help="read noise sigmas (wraps) of the noise table; none skips it",
     )

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from bench import (
+    Distinct,
     add_report_option,
     at_least,
     bench_parser,
@@ -183,9 +184,11 @@ def markdown(report: dict[str, Any]) -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = bench_parser(__name__, __doc__)
-    parser.add_argument("--decoders", nargs="+", default=list(DEFAULT_DECODERS))
-    parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
-    parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
+    parser.add_argument("--decoders", nargs="+", action=Distinct, default=list(DEFAULT_DECODERS))
+    parser.add_argument(
+        "--encodings", nargs="+", action=Distinct, default=list(ENCODINGS), choices=ENCODINGS
+    )
+    parser.add_argument("--sets", nargs="+", action=Distinct, default=list(SETS), choices=SETS)
     parser.add_argument(
         "--frames", type=at_least(1), default=None, help="first N frames of each set"
     )

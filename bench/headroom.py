@@ -31,6 +31,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from bench import (
+    Distinct,
     add_report_option,
     add_val256_frames_option,
     bench_parser,
@@ -193,8 +194,12 @@ def markdown(report: dict[str, Any]) -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = bench_parser(__name__, __doc__)
-    parser.add_argument("--decoders", nargs="+", help="default: itoh and the best winding net")
-    parser.add_argument("--encodings", nargs="+", default=list(ENCODINGS), choices=ENCODINGS)
+    parser.add_argument(
+        "--decoders", nargs="+", action=Distinct, help="default: itoh and the best winding net"
+    )
+    parser.add_argument(
+        "--encodings", nargs="+", action=Distinct, default=list(ENCODINGS), choices=ENCODINGS
+    )
     add_val256_frames_option(parser)
     add_report_option(parser, "headroom.json")
     args = parser.parse_args(argv)

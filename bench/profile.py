@@ -34,6 +34,7 @@ import numpy as np
 import onnxruntime as ort
 
 from bench import (
+    Distinct,
     add_report_option,
     at_least,
     bench_parser,
@@ -295,7 +296,9 @@ def markdown(report: dict[str, Any]) -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = bench_parser(__name__, __doc__)
-    parser.add_argument("--models", nargs="+", default=list(MODELS), help="decoders to profile")
+    parser.add_argument(
+        "--models", nargs="+", action=Distinct, default=list(MODELS), help="decoders to profile"
+    )
     parser.add_argument(
         "--runs", type=at_least(1), default=10, help="profiled inferences per model"
     )

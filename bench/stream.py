@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from bench import (
+    Distinct,
     above_zero,
     add_report_option,
     at_least,
@@ -267,7 +268,7 @@ def start_workers(
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m bench.stream", description=__doc__)
     parser.add_argument("--frames", type=at_least(1), default=300, help="frames per link run")
-    parser.add_argument("--workers", type=at_least(1), nargs="+", default=[1, 2])
+    parser.add_argument("--workers", type=at_least(1), nargs="+", action=Distinct, default=[1, 2])
     parser.add_argument("--latency-fps", type=above_zero, default=5.0,
                         help="paced rate for the latency runs (frames/s, above 0)")
     parser.add_argument("--exr-compression", choices=tuple(EXR_COMPRESSIONS),
@@ -280,12 +281,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_report_option(parser, "stream.json")
     args = parser.parse_args(argv)
     refuse_unknown_decoders(parser, [args.decoder], encodings=[SCENES[args.scenes]])
-    if len(set(args.workers)) < len(args.workers):
-        parser.error(
-            f"--workers {' '.join(map(str, args.workers))} names a count twice: each count's "
-            "runs are reported under its name (e2e_<N>w_...), so a second run replaced the "
-            "first; give each count once"
-        )
     if args.frames < max(args.workers):
         parser.error(
             f"--frames {args.frames} is fewer than --workers {max(args.workers)}: the flood "

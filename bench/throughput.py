@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from bench import (
+    Distinct,
     add_report_option,
     add_val256_frames_option,
     at_least,
@@ -309,7 +310,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = bench_parser(__name__, __doc__)
-    parser.add_argument("--decoders", nargs="+", default=list(DECODERS))
+    parser.add_argument("--decoders", nargs="+", action=Distinct, default=list(DECODERS))
     parser.add_argument("--encoding", choices=("mantissa", "modulo"), default="mantissa")
     add_val256_frames_option(parser)
     parser.add_argument("--repeats", type=at_least(1), default=3, help="passes over the frames")

@@ -40,6 +40,7 @@ from onnx import TensorProto, helper
 
 from bench import (
     RESULTS,
+    Distinct,
     add_report_option,
     add_val256_frames_option,
     at_least,
@@ -554,7 +555,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--glows", type=at_least(0), default=12, help="glows frames (0: none)")
     parser.add_argument("--repeats", type=at_least(1), default=3)
     parser.add_argument(
-        "--decoders", nargs="+", help="only these decoders (default: every installed one)"
+        "--decoders",
+        nargs="+",
+        action=Distinct,
+        help="only these decoders (default: every installed one)",
     )
     parser.add_argument("--quick", action="store_true", help="skip the 512/1024 sets")
     add_report_option(parser, "tradeoff.json")

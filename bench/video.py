@@ -28,6 +28,7 @@ from bench import (
     host_facts,
     one_line_errors,
     publish,
+    refuse_given_twice,
     refuse_unknown,
     refuse_unknown_decoders,
 )
@@ -175,12 +176,14 @@ def markdown_table(summary: list[dict[str, Any]], load: list[Sequence[float]]) -
 
 def comma_names(text: str) -> tuple[str, ...]:
     """An argparse ``type``: comma-separated names, else the parser's usage error when
-    one is empty (``itoh,`` was refused as "unknown decoders ; choose from ...")."""
+    one is empty (``itoh,`` was refused as "unknown decoders ; choose from ...") or
+    given twice (:func:`bench.refuse_given_twice`)."""
     names = tuple(text.split(","))
     if "" in names:
         raise argparse.ArgumentTypeError(
             f"an empty name in {text!r}: separate the names with single commas, none at the ends"
         )
+    refuse_given_twice(names)
     return names
 
 

@@ -70,7 +70,7 @@ def test_a_worker_count_given_twice_is_a_usage_error(capsys: pytest.CaptureFixtu
     with pytest.raises(SystemExit) as exc:
         stream.parse_args(["--workers", "1", "2", "1"])
     assert exc.value.code == 2
-    assert "--workers 1 2 1 names a count twice" in capsys.readouterr().err
+    assert "argument --workers: 1 given more than once; give each once" in capsys.readouterr().err
 
 
 def test_the_report_records_the_paced_rate_and_its_markdown_names_date_host_and_load() -> None:

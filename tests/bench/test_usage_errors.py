@@ -67,6 +67,19 @@ MANTISSA_ONLY = sorted(
         ("accuracy", ["--decoders", "itoh", ""], "an empty name among the decoders given"),
         ("service", ["--decoder", ""], "an empty name among the decoders given ('')"),
         ("profile", ["--models", " "], "an empty name among the models given (' ')"),
+        # A name or value given twice was measured twice and reported twice (bench.video's
+        # summary kept the second measurement alone).
+        ("accuracy", ["--decoders", "itoh", "herraez", "itoh"],
+         "argument --decoders: itoh given more than once; give each once"),
+        ("accuracy", ["--noise-levels", "0", "0.0"], "argument --noise-levels: 0.0 given more"),
+        ("colour", ["--sets", "val", "val"], "argument --sets: val given more than once"),
+        ("headroom", ["--encodings", "modulo", "modulo"], "argument --encodings: modulo given"),
+        ("profile", ["--models", "mantissanet-tiny", "mantissanet-tiny"],
+         "argument --models: mantissanet-tiny given more than once"),
+        ("throughput", ["--decoders", "itoh", "itoh"], "argument --decoders: itoh given more"),
+        ("tradeoff", ["--decoders", "itoh", "itoh"], "argument --decoders: itoh given more"),
+        ("video", ["--clips", "pan_zoom,sunrise,pan_zoom"],
+         "argument --clips: pan_zoom given more than once; give each once"),
         # Counts and levels, refused before anything is measured (they gave NaN timings,
         # an IndexError after the matmul calibration, or a traceback after the main table).
         ("tradeoff", ["--repeats", "0"], "--repeats: must be at least 1, got 0"),
