@@ -47,6 +47,7 @@ from multiprocessing.process import BaseProcess
 from typing import Any
 
 from models.errors import McamError
+from models.stop_signals import STOP_SIGNALS, handle_stop_signals
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +57,6 @@ POLL_S = 0.2
 PARENT_CHECK_S = 1.0
 #: How long a closing child may take to exit before it is killed (s).
 CLOSE_TIMEOUT_S = 5.0
-#: The signals a terminal or a service manager sends the worker's whole process group,
-#: which its children leave to it.
-PARENT_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
 
 
 class ChildDiedError(McamError):
@@ -97,20 +95,19 @@ def leave_signals_to_parent() -> None:
 
     The child was started with these signals blocked (:func:`signals_blocked`): one
     sent to the group while it started waits, and ignoring it drops it here."""
-    for signum in PARENT_SIGNALS:
-        signal.signal(signum, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, PARENT_SIGNALS)
+    handle_stop_signals(signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
 @contextmanager
 def signals_blocked() -> Iterator[None]:
-    """Block :data:`PARENT_SIGNALS` in the calling thread while children are started in
+    """Block :data:`STOP_SIGNALS` in the calling thread while children are started in
     it: a child inherits the mask through its exec, so a Ctrl-C that reaches the process
     group while the child starts Python (before :func:`leave_signals_to_parent`) waits
     instead of killing it mid-import. The parent loses none: another of its threads
     takes the signal, or this one as the block ends (as multiprocessing's resource
     tracker starts its own process)."""
-    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, PARENT_SIGNALS)
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     try:
         yield
     finally:

@@ -25,7 +25,6 @@ import json
 import logging
 import os
 import random
-import signal
 import socket
 import threading
 import time
@@ -39,6 +38,7 @@ import redis
 
 from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
+from models.stop_signals import handle_stop_signals
 from worker.child_process import ChildProcess
 from worker.config_checks import heartbeat_problem
 from worker.decode_pool import DecodePool
@@ -171,8 +171,7 @@ class Worker:
     def run(self) -> int:
         """Run until stopped; returns the process exit code."""
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, self._on_signal)
-            signal.signal(signal.SIGINT, self._on_signal)
+            handle_stop_signals(self._on_signal)
         threads = [
             threading.Thread(target=self._job_loop, args=(i,), name=f"jobs-{i}", daemon=True)
             for i in range(self.config.concurrency)

@@ -15,6 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from models.errors import InvalidInputError
+from models.stop_signals import STOP_SIGNALS, handle_stop_signals
 
 #: A run's log: one JSON record per logged step (:func:`run_steps`).
 LOG_FILE = "log.jsonl"
@@ -74,10 +75,6 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         yield
 
 
-#: The signals that stop a run after its step in progress, with a checkpoint.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
 class Stopped(Exception):
     """A run stopped by a signal (:data:`STOP_SIGNALS`) after saving its checkpoint at
     ``step`` of ``total`` steps; calling :func:`train` again resumes there."""
@@ -102,8 +99,7 @@ def stop_requests() -> Iterator[list[int]]:
         yield received
         return
     previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
-    for signum in STOP_SIGNALS:
-        signal.signal(signum, lambda number, _frame: received.append(number))
+    handle_stop_signals(lambda number, _frame: received.append(number))
     try:
         yield received
     finally:

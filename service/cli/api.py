@@ -21,9 +21,9 @@ from pydantic import ValidationError
 from uvicorn.config import STARTUP_FAILURE
 
 from models.errors import InvalidInputError
+from models.stop_signals import handle_stop_signals
 from service.api.header_timeout import header_timeout_protocol
 from service.api.state import embedded_redis_for
-from service.cli.options import handle_stop_signals
 from service.core.config import Settings, get_settings
 from service.core.security import KEY_FILE_NAME, KeyRing
 from service.main import create_app
@@ -151,7 +151,7 @@ def serve_http(settings: Settings) -> None:
     """Run the API (``service.main:create_app``) under uvicorn until it is stopped; exit
     3 (uvicorn's startup failure) if it never started.
 
-    Ctrl-C and SIGTERM (:data:`~service.cli.options.STOP_SIGNALS`) stop the server from
+    Ctrl-C and SIGTERM (:data:`~models.stop_signals.STOP_SIGNALS`) stop the server from
     before its run to its end, and are ignored after it, while the caller stops Redis
     and the workers: outside uvicorn's own handlers, asyncio's SIGINT handler cancelled
     the server's task or raised ``KeyboardInterrupt`` in it (uvicorn passes each signal

@@ -22,7 +22,8 @@ import redis
 
 from device.daemon import DaemonConfig, DeviceDaemon, check_port_url
 from device.datasets import DatasetLimits
-from service.cli.options import add_log_level_flag, handle_stop_signals, start_logging
+from models.stop_signals import handle_stop_signals
+from service.cli.options import add_log_level_flag, start_logging
 from service.cli.worker import redis_url_for
 from service.core.config import get_settings
 from worker.embedded_redis import connect

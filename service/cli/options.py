@@ -5,17 +5,10 @@ from __future__ import annotations
 import argparse
 import logging
 import re
-import signal
-from collections.abc import Callable
-from types import FrameType
 from typing import Any
 
 from models.formation import ENCODINGS
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
-
-#: The signals that stop a long-running command (the API, serve, a device daemon): a
-#: terminal's Ctrl-C and a service manager's stop.
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 #: Levels ``--log-level`` takes (any case).
 LOG_LEVELS: tuple[str, ...] = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
@@ -87,9 +80,3 @@ def take_dash_digit_values(parser: argparse.ArgumentParser) -> None:
     (:data:`DASH_DIGIT`). argparse has no public setting for this; the parser's
     ``_negative_number_matcher`` is the pattern it reads (Python 3.11 to 3.13)."""
     parser._negative_number_matcher = DASH_DIGIT
-
-
-def handle_stop_signals(handler: Callable[[int, FrameType | None], Any] | signal.Handlers) -> None:
-    """Give each of :data:`STOP_SIGNALS` to ``handler``."""
-    for stop_signal in STOP_SIGNALS:
-        signal.signal(stop_signal, handler)

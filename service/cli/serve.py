@@ -35,6 +35,7 @@ import time
 from collections.abc import Callable
 from types import FrameType
 
+from models.stop_signals import handle_stop_signals
 from service.api.state import embedded_redis_for
 from service.cli.api import (
     announce,
@@ -42,7 +43,6 @@ from service.cli.api import (
     serve_http,
     settings_with,
 )
-from service.cli.options import handle_stop_signals
 from service.cli.worker import limit_problem
 from service.core.config import get_settings
 from service.core.security import KeyRing

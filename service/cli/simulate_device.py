@@ -25,7 +25,7 @@ from device.sim_link import Endpoint, open_endpoint
 from device.simulator import MAX_SEED, CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
-from service.cli.options import handle_stop_signals
+from models.stop_signals import handle_stop_signals
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
