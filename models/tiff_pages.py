@@ -253,6 +253,10 @@ def _lzma_memory_error(where: str) -> ImageTooLargeError:
     )
 
 
+#: Each byte with its bits in reverse order, by byte value: tifffile reverses the bits of
+#: a FillOrder 2 page's segments so before it inflates them.
+_REVERSED_BITS = bytes(int(f"{value:08b}"[::-1], 2) for value in range(256))
+
 #: How far a segment inflates (:func:`_deflated`, :func:`_lzma_inflated`,
 #: :func:`_packbits_inflated`), by TIFF code, for the compressions tifffile inflates
 #: without bound (each segment whole, past its size): deflate (8, and its old code),
@@ -269,7 +273,8 @@ def check_inflation(page: tifffile.TiffPage) -> None:
     """Refuse ``page`` (:class:`ImageTooLargeError`) when its strips or tiles hold more
     than :data:`SEGMENT_SLACK` times its own bytes (and 1 MiB), or one of them inflates
     past the bytes it holds; each is inflated only that far (a 64 x 64 frame's one
-    deflate strip of 522 KB inflated 512 MiB at once in tifffile). A segment that does
+    deflate strip of 522 KB inflated 512 MiB at once in tifffile), as tifffile inflates
+    it (a FillOrder 2 segment with its bits reversed). A segment that does
     not inflate is left to tifffile's decoding, which reports it as damaged."""
     kind, size, samples = _segment_samples(page)
     most = samples * _sample_bytes(page)
@@ -285,8 +290,11 @@ def check_inflation(page: tifffile.TiffPage) -> None:
         return
     segments = page.parent.filehandle.read_segments(page.dataoffsets, page.databytecounts)
     for data, index in segments:
+        stored = data or b""
         try:
-            inflated = inflated_size(data or b"", most)
+            inflated = inflated_size(
+                stored.translate(_REVERSED_BITS) if page.fillorder == 2 else stored, most
+            )
         except _LzmaMemoryExceeded:
             raise _lzma_memory_error(f"{kind} {index}") from None
         if inflated is not None and inflated > most:

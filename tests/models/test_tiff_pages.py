@@ -258,6 +258,32 @@ def test_a_strip_inflating_past_its_rows_is_refused_before_it_is_inflated(
     refused_holding_little(data, "strip 0 of the TIFF page inflates past")
 
 
+#: Each byte with its bits in reverse order, by byte value.
+REVERSED_BITS = bytes(int(f"{value:08b}"[::-1], 2) for value in range(256))
+
+
+def fill_order_2(codes: np.ndarray, segment: bytes) -> bytes:
+    """A deflate TIFF of ``codes``' shape in one strip, ``segment`` (as deflated), with
+    FillOrder 2: its strip stored with each byte's bits reversed."""
+    written = tiff(codes, compression="zlib", extratags=[(265, "H", 1, 2, False)])
+    with tifffile.TiffFile(io.BytesIO(written)) as tif:
+        entry = tif.pages.first.tags[265].offset  # CellLength, tifffile writes it
+    patched = bytearray(written)
+    struct.pack_into("<H", patched, entry, 266)  # ... as FillOrder (tifffile writes none)
+    return with_one_segment(bytes(patched), segment.translate(REVERSED_BITS))
+
+
+def test_a_fill_order_2_strip_is_bounded_as_tifffile_inflates_it() -> None:
+    """tifffile reverses a FillOrder 2 strip's bits before it inflates it; the bound
+    inflated the bytes as stored, which did not inflate, and left the strip to tifffile:
+    a 64 x 64 frame's 64 KB strip was inflated whole (64 MiB, 141 MiB held) and read."""
+    codes = np.arange(64 * 64, dtype=np.uint8).reshape(64, 64)
+    with open_tiff(fill_order_2(codes, zlib.compress(codes.tobytes()))) as (tif, _):
+        np.testing.assert_array_equal(page_codes(tif.pages.first), codes)
+    bomb = fill_order_2(codes, zlib.compress(bytes(64 * 2**20), 9))
+    refused_holding_little(bomb, "strip 0 of the TIFF page inflates past")
+
+
 @pytest.mark.parametrize(
     "payload",
     [b"\x81\0" * 2**19, b"\x81\0" * 2**11, b"\x80" * 2**21],
