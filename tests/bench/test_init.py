@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from bench import (
+    add_report_option,
     bench_parser,
     colour,
     host_facts,
@@ -128,3 +129,12 @@ def refusal(
         refuse(bench_parser("bench.accuracy", None))
     assert exc.value.code == 2
     return capsys.readouterr().err
+
+
+def test_reports_default_outside_the_committed_results(reports_in_tmp: Path) -> None:
+    """The tests' reports go to a temporary folder by default (tests/bench/conftest.py):
+    a usage-error test whose refusal broke ran the benchmark without ``--out`` and
+    overwrote bench/results/accuracy.json."""
+    parser = argparse.ArgumentParser()
+    add_report_option(parser, "accuracy.json")
+    assert parser.parse_args([]).out == reports_in_tmp / "accuracy.json"
