@@ -39,6 +39,9 @@ from models.formation import SensorParams
 
 #: A move must lower the energy by more than this (relative) to count as progress.
 _REL_TOL = 1e-12
+#: Cost per pixel and wrap of K outside :attr:`PumaEnergy.bounds`: far above what any
+#: move can gain at a pixel (its four pairs change by at most a wrap each, at weight 1).
+OUT_OF_BOUNDS_COST = 1e6
 Start = Literal["itoh", "zeros"]
 
 
@@ -111,6 +114,13 @@ class PumaEnergy:
     it and ``c(d) = above_factor * d`` above it (convex for ``above_factor >= 0``, so
     the moves still reach the global minimum). Without a prior the energy does not
     change when ``K`` shifts by a constant.
+
+    ``bounds`` (lowest K, highest K or None) confines ``K`` to the encoding's range:
+    each wrap outside costs :data:`OUT_OF_BOUNDS_COST` per pixel, so no move from
+    inside leaves it. The penalty is convex too: the moves reach the least energy
+    *within* the range, where clipping an unconfined minimum afterwards broke the
+    relative W it had found (a dark region put at W = -1 under a sky at 0 became a sky
+    at the dark region's W).
     """
 
     p: float = 1.0
@@ -118,6 +128,7 @@ class PumaEnergy:
     prior: NDArray[np.int64] | None = None
     prior_weight: float | NDArray[np.float64] = 0.0
     above_factor: float = 1.0
+    bounds: tuple[int, int | None] | None = None
 
     def __call__(self, winding: NDArray[np.int64], m: NDArray[np.float64]) -> float:
         return clique_energy(winding + m, self.p, self.weights) + self.prior_energy(winding)
@@ -125,15 +136,29 @@ class PumaEnergy:
     def prior_energy(
         self, winding: NDArray[np.int64], pixels: NDArray[np.int64] | None = None
     ) -> float:
-        """The prior term ``prior_weight * sum c(K - prior)`` (0 without a prior), summed
-        over every pixel of ``winding`` (H x W) or only over ``pixels`` (flat indices)."""
+        """The per-pixel terms: the prior ``prior_weight * sum c(K - prior)`` (0 without
+        a prior) plus the :meth:`bound_cost` (0 without bounds), summed over every pixel
+        of ``winding`` (H x W) or only over ``pixels`` (flat indices)."""
+        at = winding if pixels is None else winding.ravel()[pixels]
+        bound = float(self.bound_cost(at).sum())
         if self.prior is None:
-            return 0.0
+            return bound
         winding, prior, weight = self._at(winding, self.prior, pixels)
         cost = self.prior_cost(winding - prior)
         if np.ndim(weight) == 0:
-            return float(weight) * float(cost.sum())
-        return float(np.sum(weight * cost))
+            return bound + float(weight) * float(cost.sum())
+        return bound + float(np.sum(weight * cost))
+
+    def bound_cost(self, winding: NDArray[np.int64]) -> NDArray[np.float64]:
+        """Per pixel of ``winding`` (any shape): :data:`OUT_OF_BOUNDS_COST` per wrap of K
+        outside :attr:`bounds` (0 inside, and everywhere without bounds)."""
+        if self.bounds is None:
+            return np.zeros(np.shape(winding))
+        lowest, highest = self.bounds
+        outside = np.maximum(lowest - winding, 0)
+        if highest is not None:
+            outside = outside + np.maximum(winding - highest, 0)
+        return OUT_OF_BOUNDS_COST * outside
 
     def _at(
         self,
@@ -158,14 +183,16 @@ class PumaEnergy:
     def prior_move_cost(
         self, winding: NDArray[np.int64], jump: int, pixels: NDArray[np.int64] | None = None
     ) -> NDArray[np.float64]:
-        """Change of the prior term per pixel if that pixel's ``K`` grows by ``jump``: for
-        every pixel of ``winding`` (H x W), or only at ``pixels`` (flat indices into it;
-        1-D, in their order)."""
+        """Change of the per-pixel terms (:meth:`prior_energy`) at each pixel if its ``K``
+        grows by ``jump``: for every pixel of ``winding`` (H x W), or only at ``pixels``
+        (flat indices into it; 1-D, in their order)."""
+        at = winding if pixels is None else winding.ravel()[pixels]
+        change = self.bound_cost(at + jump) - self.bound_cost(at)
         if self.prior is None:
-            return np.zeros(winding.shape if pixels is None else pixels.shape)
+            return change
         winding, prior, weight = self._at(winding, self.prior, pixels)
         offset = winding - prior
-        return weight * (self.prior_cost(offset + jump) - self.prior_cost(offset))
+        return change + weight * (self.prior_cost(offset + jump) - self.prior_cost(offset))
 
 
 def move_terms(

@@ -43,7 +43,18 @@ frames, bright clouds the tiny net under-counts, lost 0.6-2.7 dB) and 0.2-1.0 dB
 pan/zoom frames; the cheaper rise alone took 25-30% more time per frame for smaller
 gains (pan/zoom at best +2.7 dB, modulo val-256 at best +0.18 dB).
 
-Both terms are convex, so PUMA's +1/-1 binary moves (one min-cut each) reach the
+W is confined to the encoding's range (0 to :func:`models.formation.max_winding`)
+during the moves (:attr:`models.decoders.graphcut.PumaEnergy.bounds`), not clipped
+after them: on the pan/zoom clip's first frame, from the tiny net's or itoh's W, the
+least energy put the dark ground at W = -1 under the sky at 0, and the clip to 0 then
+lowered the sky again (71.6% of W right; confined, 99.96%). Measured with it
+(2026-11-28, auto-best / auto-balanced, dB, against lam 0.007 unconfined): val-256
+mantissa 25.11 -> 25.12 / 24.92 -> 24.93, modulo 24.91 -> 24.94 / 24.85 -> 24.90;
+training-scene crops mantissa 27.93 -> 27.97 / 27.70 -> 27.74, modulo 27.56 -> 27.63 /
+26.94 -> 27.20; mostly-dark 45.53 -> 45.45 / 45.80 -> 45.70; glows 35.80 -> 35.70;
+pan/zoom mantissa 46.91 -> 48.60 / 40.94 -> 41.03, modulo 47.24 / 42.02 -> 43.81.
+
+All terms are convex, so PUMA's +1/-1 binary moves (one min-cut each) reach the
 global minimum of a frame of up to :data:`WHOLE_FRAME_PIXELS`; larger frames are
 refined in overlapping :data:`WINDOW`-px windows stitched with integer offsets.
 The first :data:`REGION_MOVES` moves are region moves
@@ -99,7 +110,7 @@ from models.decoders.region_moves import best_region_move, region_descent
 from models.decoders.registry import DecoderSpec, get_decoder, refuse_budget_inside
 from models.decoders.registry import resolve as resolve_guide
 from models.decoders.saturation import fill_saturated
-from models.formation import SensorParams, clip_winding
+from models.formation import SensorParams, clip_winding, max_winding
 from models.scene_analysis import residue_pixels
 from models.tile_reconcile import common_offset
 
@@ -322,9 +333,10 @@ class GuidedPumaDecoder(Decoder):
         moves are compared by the share of the energy they can change. Facts as
         :meth:`refine` reports them; a frame without pixels is refused."""
         refuse_empty(m)
-        energy = self._energy(m, guide)
+        energy = self._energy(m, guide, params)
         solve, value = BandGraph.of(band).moves(energy)
-        result = minimise(m, guide, energy, JUMPS, self.max_moves, solve, value=value)
+        start = clip_winding(guide, params)
+        result = minimise(m, start, energy, JUMPS, self.max_moves, solve, value=value)
         winding = clip_winding(result.winding, params)
         return winding, _facts(winding, guide, windows=1, region_moves=0, moves=result.moves)
 
@@ -337,10 +349,10 @@ class GuidedPumaDecoder(Decoder):
 
         def refine_window(rows: slice, cols: slice) -> NDArray[np.int64]:
             window, prior = m[rows, cols], guide[rows, cols]
-            energy = self._energy(window, prior)
-            start = prior
+            energy = self._energy(window, prior, params)
+            start = clip_winding(prior, params)
             if self.region_moves:
-                first = self._region_step(window, prior, energy)
+                first = self._region_step(window, start, energy)
                 start = first.winding
                 region_cuts.append(first.moves)
             result = minimise(window, start, energy, JUMPS, self.max_moves, self.pixel_move)
@@ -363,9 +375,13 @@ class GuidedPumaDecoder(Decoder):
             return region_descent(guide, m, energy, JUMPS, DESCENT_MOVES)
         return minimise(m, guide, energy, JUMPS, self.region_moves, best_region_move)
 
-    def _energy(self, m: NDArray[np.float64], guide: NDArray[np.int64]) -> PumaEnergy:
-        """The guided PUMA energy (module doc) of ``m`` (wraps) around ``guide`` (W)."""
-        return PumaEnergy(1.0, pair_weights(m), guide, self.prior_weight, ABOVE_FACTOR)
+    def _energy(
+        self, m: NDArray[np.float64], guide: NDArray[np.int64], params: SensorParams
+    ) -> PumaEnergy:
+        """The guided PUMA energy (module doc) of ``m`` (wraps) around ``guide`` (W), W
+        confined to the encoding's range (0 to :func:`models.formation.max_winding`)."""
+        bounds = (0, max_winding(params))
+        return PumaEnergy(1.0, pair_weights(m), guide, self.prior_weight, ABOVE_FACTOR, bounds)
 
 
 def _facts(

@@ -140,46 +140,62 @@ class BorderEdges:
 
 
 class PriorGroups:
-    """The prior term of :class:`models.decoders.graphcut.PumaEnergy` over regions that
-    move whole: the pixels grouped by (region, offset ``K - prior``), each group with its
-    summed prior weight, so that a move's prior cost and the prior energy take one
-    entry per group instead of one per pixel (a region of the guide's own W is one
-    group)."""
+    """The per-pixel terms of :class:`models.decoders.graphcut.PumaEnergy` (prior and
+    bounds) over regions that move whole: the pixels grouped by (region, offset ``K -
+    prior``, ``K``), each group with its pixel count and summed prior weight, so that a
+    move's cost and the energy take one entry per group instead of one per pixel (a
+    region of the guide's own W spans a few groups, one per wrap level in it)."""
 
     def __init__(
         self, winding: NDArray[np.int64], labels: NDArray[np.int64], energy: PumaEnergy
     ) -> None:
         self.energy = energy
-        if energy.prior is None:
-            self.region = self.offset = np.zeros(0, np.int64)
-            self.weight = np.zeros(0)
+        if energy.prior is None and energy.bounds is None:
+            self.region = self.offset = self.level = np.zeros(0, np.int64)
+            self.weight = self.count = np.zeros(0)
             return
-        offset = (winding - energy.prior).ravel()
-        low = int(offset.min())
-        span = int(offset.max()) - low + 1
-        # Counted, not sorted: a key per (region, offset), few of them (offsets span a
-        # few wraps), and an argsort of the pixels cost more than the cuts it saved.
-        key = labels.ravel() * span + (offset - low)
-        weights = np.broadcast_to(energy.prior_weight, winding.shape).ravel()
-        keys = np.flatnonzero(np.bincount(key))
-        self.region, self.offset = keys // span, keys % span + low
+        prior = np.zeros_like(winding) if energy.prior is None else energy.prior
+        offset, level = (winding - prior).ravel(), winding.ravel()
+        # Counted, not sorted: a key per (region, offset, K), few of them (offsets and K
+        # span a few wraps), and an argsort of the pixels cost more than the cuts it saved.
+        key = labels.ravel()
+        lows = []
+        for values in (offset, level):
+            low = int(values.min())
+            span = int(values.max()) - low + 1
+            key = key * span + (values - low)
+            lows.append((low, span))
+        counts = np.bincount(key)
+        keys = np.flatnonzero(counts)
+        (offset_low, offset_span), (level_low, level_span) = lows
+        self.level = keys % level_span + level_low
+        self.offset = keys // level_span % offset_span + offset_low
+        self.region = keys // (level_span * offset_span)
+        self.count = counts[keys].astype(np.float64)
+        weighed = 0.0 if energy.prior is None else energy.prior_weight  # no prior, no pull
+        weights = np.broadcast_to(weighed, winding.shape).ravel()
         self.weight = np.bincount(key, weights)[keys]
 
+    def _cost(self, groups: NDArray[np.bool_] | slice, moved: NDArray[np.int64]) -> NDArray:
+        """Each of ``groups``' per-pixel terms, summed over its pixels, with its region
+        moved by ``moved`` wraps (int per group)."""
+        prior = self.energy.prior_cost(self.offset[groups] + moved)
+        bound = self.energy.bound_cost(self.level[groups] + moved)
+        return self.weight[groups] * prior + self.count[groups] * bound
+
     def energy_of(self, shift: NDArray[np.int64]) -> float:
-        """The prior energy with each region moved by its ``shift`` (int per region)."""
-        cost = self.energy.prior_cost(self.offset + shift[self.region])
-        return float(np.sum(self.weight * cost))
+        """The per-pixel terms with each region moved by its ``shift`` (int per region)."""
+        return float(np.sum(self._cost(slice(None), shift[self.region])))
 
     def move_cost(
         self, shift: NDArray[np.int64], jump: int, active: NDArray[np.bool_]
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """The ``active`` regions' groups (region per group) and each one's change of the
-        prior energy if its region's shift grows by ``jump``."""
+        per-pixel terms if its region's shift grows by ``jump``."""
         groups = active[self.region]
         region = self.region[groups]
-        offset = self.offset[groups] + shift[region]
-        cost = self.energy.prior_cost(offset + jump) - self.energy.prior_cost(offset)
-        return region, self.weight[groups] * cost
+        moved = shift[region]
+        return region, self._cost(groups, moved + jump) - self._cost(groups, moved)
 
 
 class RegionGraph:

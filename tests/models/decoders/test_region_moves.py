@@ -163,6 +163,10 @@ def test_merged_border_edges_cost_the_same_for_every_cut(
     shift=arrays(np.int64, 3, elements=st.integers(-2, 2)),
     jump=st.sampled_from([1, -1]),
     active=arrays(bool, 3),
+    bounds=st.one_of(
+        st.none(), st.tuples(st.integers(-1, 1), st.one_of(st.none(), st.integers(1, 3)))
+    ),
+    with_prior=st.booleans(),
 )
 def test_the_prior_by_region_is_the_prior_by_pixel(
     winding: np.ndarray,
@@ -172,17 +176,20 @@ def test_the_prior_by_region_is_the_prior_by_pixel(
     shift: np.ndarray,
     jump: int,
     active: np.ndarray,
+    bounds: tuple[int, int | None] | None,
+    with_prior: bool,
 ) -> None:
-    """Grouped by (region, offset), the prior energy and each active region's move cost
-    are the pixel sums of :class:`PumaEnergy`'s."""
-    energy = PumaEnergy(1.0, None, prior, weight, 0.5)
+    """Grouped by (region, offset, K), the per-pixel terms (prior and bounds) and each
+    active region's move cost are the pixel sums of :class:`PumaEnergy`'s."""
+    energy = PumaEnergy(1.0, None, prior if with_prior else None, weight, 0.5, bounds)
     groups = PriorGroups(winding, labels, energy)
     moved = winding + shift[labels]
-    assert groups.energy_of(shift) == pytest.approx(energy.prior_energy(moved), abs=1e-9)
+    expected = energy.prior_energy(moved)
+    assert groups.energy_of(shift) == pytest.approx(expected, rel=1e-12, abs=1e-9)
     region, cost = groups.move_cost(shift, jump, active)
     by_pixel = np.bincount(labels.ravel(), energy.prior_move_cost(moved, jump).ravel(), 3)
     by_group = np.bincount(region, cost, 3)
-    np.testing.assert_allclose(by_group[active], by_pixel[active], atol=1e-9)
+    np.testing.assert_allclose(by_group[active], by_pixel[active], rtol=1e-12, atol=1e-9)
     assert not np.any(by_group[~active])
 
 
