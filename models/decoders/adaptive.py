@@ -299,13 +299,18 @@ class AdaptiveDecoder(Decoder):
         along_cols, along_rows = analysis.along_cols, analysis.along_rows
         difficulty = analysis.frame.difficulty
         hard = self.hard_tile_decoder(params)
-        if self.quality == "best":
-            reason = f"{difficulty} wraps; quality best decodes whole frames"
-            return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
-        if self.network_calls(analysis, m.shape) == [m.shape]:
-            reason = f"{difficulty} wraps; the hard tiles with their margins cover the frame"
-            return hard.predict_winding(m, params), _report({hard.name: m.size}, reason), None
+        whole = self.quality == "best" or self.network_calls(analysis, m.shape) == [m.shape]
+        if whole:
+            winding, facts = hard.explain_winding(m, params)
+            reason = f"{difficulty} wraps; " + (
+                "quality best decodes whole frames"
+                if self.quality == "best"
+                else "the hard tiles with their margins cover the frame"
+            )
+            report = _report({_decoded_by(hard, facts): m.size}, reason)
+            return winding, _with_fallback(report, [facts]), None
         pixels: Counter[str] = Counter()
+        calls: list[dict[str, Any]] = []
         tiles: list[Tile] = []
         doubtful = _hard_tiles(analysis, m.shape)
         for region in analysis.tiles:
@@ -324,14 +329,15 @@ class AdaptiveDecoder(Decoder):
             tiles.append(Tile(rows, cols, relative))
             pixels[route] += region.height * region.width
         for window_rows, window_cols, members in self.hard_windows(analysis, m.shape):
-            window = hard.predict_winding(m[window_rows, window_cols], params)
+            window, facts = hard.explain_winding(m[window_rows, window_cols], params)
+            calls.append(facts)
             for region in members:
                 top, left = region.row - window_rows.start, region.col - window_cols.start
                 relative = window[top : top + region.height, left : left + region.width]
                 rows = slice(region.row, region.row + region.height)
                 cols = slice(region.col, region.col + region.width)
                 tiles.append(Tile(rows, cols, relative))
-                pixels[hard.name] += region.height * region.width
+                pixels[_decoded_by(hard, facts)] += region.height * region.width
         winding = stitch(tiles, m.shape, along_cols, along_rows)
         # Over the whole frame: the tiles known exact may hold none of the darkest
         # pixels (a dark textured corner is a hard tile), and anchoring on them alone
@@ -339,7 +345,7 @@ class AdaptiveDecoder(Decoder):
         # give the same W (docs/experiments.md).
         winding = anchor_winding(winding, params)
         reason = f"{difficulty} wraps; quality {self.quality}"
-        return winding, _report(pixels, reason), doubtful
+        return winding, _with_fallback(_report(pixels, reason), calls), doubtful
 
 
 def _is_hard(region: RegionAnalysis) -> bool:
@@ -356,6 +362,26 @@ def _hard_tiles(analysis: FrameAnalysis, shape: tuple[int, ...]) -> NDArray[np.b
             hard[region.row : region.row + region.height,
                  region.col : region.col + region.width] = True  # fmt: skip
     return hard
+
+
+def _decoded_by(hard: Decoder, facts: dict[str, Any]) -> str:
+    """The route of pixels the hard-tile decoder was given: the decoder it handed them
+    to (a net hands a frame whose W spans more than its classes to a classical one,
+    :meth:`models.decoders.learned.LearnedDecoder.explain_winding`), else its own name."""
+    fallback = facts.get("fallback")
+    return str(fallback["decoder"]) if fallback else hard.name
+
+
+def _with_fallback(report: dict[str, Any], calls: list[dict[str, Any]]) -> dict[str, Any]:
+    """``report`` with why the hard-tile decoder handed a call on (``fallback``) and
+    what it warned of (``warning``; a net's W short of a frame's brightest pixels), the
+    first of each over its ``calls``' facts."""
+    found = {}
+    for key in ("fallback", "warning"):
+        said = [facts[key] for facts in calls if facts.get(key)]
+        if said:
+            found[key] = said[0]
+    return {**report, **found}
 
 
 def _report(pixels: Counter[str] | dict[str, int], reason: str) -> dict[str, Any]:

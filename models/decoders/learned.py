@@ -31,11 +31,11 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
-from models.decoders.base import Decoder, anchor_winding, refuse_empty
-from models.decoders.classical import integrate_gradient
+from models.decoders.base import ANCHOR_PERCENTILE, Decoder, anchor_winding, refuse_empty
+from models.decoders.classical import HerraezDecoder, integrate_gradient, least_squares_unwrap
 from models.decoders.registry import DecoderSpec
 from models.errors import InvalidInputError
-from models.formation import SensorParams
+from models.formation import SensorParams, max_winding
 from models.scene_analysis import has_wrap_edge
 
 ONNX_DIR = Path(__file__).resolve().parents[1] / "onnx"
@@ -63,6 +63,20 @@ OVERLAP = 64
 #: the nets (-7.8 to +3.4 points per net and frame set: which tile border lands on a
 #: hard spot changes), so larger frames keep the card's tile.
 WHOLE_RUN_SLACK = OVERLAP
+#: The highest W one run of a ``mantissanet`` outputs: its classes are 0 .. 16
+#: (``NUM_CLASSES`` in :mod:`models.training.networks`). UnModNet's is its card's
+#: ``max_passes``; a net of jumps integrates them and has none.
+TOP_CLASS = 16
+#: The decoder of frames of which a net cannot output much (:data:`FALLBACK_SHARE`):
+#: exact under the Itoh condition, and where residues break it it keeps the reliable
+#: regions (a 512x512 log ramp of 1e-12 .. 1e30 with read noise 0.1: 99.8% of W right,
+#: itoh 30%).
+FALLBACK = HerraezDecoder()
+#: A frame goes to :data:`FALLBACK` when more than this share of it lies beyond the W a
+#: net outputs (:func:`share_beyond`): the share anchoring ignores. Below it (a lamp's
+#: core), the net decodes the frame, whose glow ``<net>+puma`` lifts as it lifts any
+#: region the net under-counts, and its details warn.
+FALLBACK_SHARE = 0.05
 
 
 def worker_threads() -> int:
@@ -357,6 +371,11 @@ class OnnxWindingModel:
         out = self.session.run(None, {"m": padded[None, None]})[0]
         return out[0, 0, : m.shape[0], : m.shape[1]].astype(np.int64)
 
+    @property
+    def top_winding(self) -> int | None:
+        """The highest W one run outputs (:data:`TOP_CLASS`; None: unbounded)."""
+        return TOP_CLASS
+
     def predict(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
         """W for a frame of any size: tiled with reconciled offsets when large (see
         :data:`WHOLE_RUN_SLACK`)."""
@@ -370,14 +389,18 @@ class OnnxWindingModel:
         is at most the card's tile plus :data:`WHOLE_RUN_SLACK`), else in tiles."""
         return max(shape) <= int(self.card["tile"]) + WHOLE_RUN_SLACK
 
+    def run_windows(self, shape: tuple[int, int]) -> list[tuple[slice, slice]]:
+        """The rows and columns of each run :meth:`predict` makes on a frame of ``shape``."""
+        if self.runs_whole(shape):
+            return [(slice(0, shape[0]), slice(0, shape[1]))]
+        return list(tiles(shape, int(self.card["tile"]), OVERLAP))
+
     def run_pixels(self, shape: tuple[int, int]) -> list[int]:
         """Pixels of each run :meth:`predict` makes on a frame of ``shape`` (each tile
         padded to the net's multiple)."""
         multiple = int(self.card["multiple"])
-        runs = [shape] if self.runs_whole(shape) else [
-            (rows.stop - rows.start, cols.stop - cols.start)
-            for rows, cols in tiles(shape, int(self.card["tile"]), OVERLAP)
-        ]
+        runs = [(rows.stop - rows.start, cols.stop - cols.start)
+                for rows, cols in self.run_windows(shape)]  # fmt: skip
         return [-(-h // multiple) * multiple * (-(-w // multiple) * multiple) for h, w in runs]
 
 
@@ -387,6 +410,10 @@ class OnnxRolloverModel(OnnxWindingModel):
     rolled in the previous one: the true sets ``W > k`` are nested, and without that the
     nets kept rolling bright regions on (val-256 at 15 passes, the tiny nets of
     2026-11-25 05:41: mantissa 18.91 -> 19.21 dB, modulo 18.75 -> 18.87 dB)."""
+
+    @property
+    def top_winding(self) -> int | None:
+        return int(self.card["max_passes"])
 
     def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
         padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))[None, None]
@@ -410,6 +437,10 @@ def winding_from_jumps(jumps: NDArray[np.floating]) -> NDArray[np.int64]:
 class OnnxJumpsModel(OnnxWindingModel):
     """A winding net trained on per-neighbour jumps (``m -> jumps``, 2 channels): W is
     integrated from the predicted jumps (relative; anchored later)."""
+
+    @property
+    def top_winding(self) -> int | None:
+        return None
 
     def run(self, m: NDArray[np.float64]) -> NDArray[np.int64]:
         padded = pad_to_multiple(m.astype(np.float32), int(self.card["multiple"]))
@@ -451,20 +482,71 @@ class LearnedDecoder(Decoder):
         return self.models[params.encoding]
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
-        """The net's W, anchored. A frame without a wrap edge (no neighbour differs by
-        half a wrap or more: a uniform frame, a smooth unwrapped ramp) holds no evidence
-        of where one W ends and another begins, so it gets one W, anchored to 0 as every
-        decoder anchors (the nets alone answered W 0..2 on an all-zero frame, UnModNet
-        0..15 on all-max codes, and up to W = 5 on a smooth ramp below x = 1: an invented
-        image). A frame without pixels is refused."""
+        return self.explain_winding(m, params)[0]
+
+    def explain_winding(
+        self, m: NDArray[np.float64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """The net's W, anchored, and facts (none when the net decoded the frame).
+
+        A frame without a wrap edge (no neighbour differs by half a wrap or more: a
+        uniform frame, a smooth unwrapped ramp) holds no evidence of where one W ends
+        and another begins, so it gets one W, anchored to 0 as every decoder anchors
+        (the nets alone answered W 0..2 on an all-zero frame, UnModNet 0..15 on all-max
+        codes, and up to W = 5 on a smooth ramp below x = 1: an invented image).
+
+        A frame of which more than :data:`FALLBACK_SHARE` lies beyond the W the net can
+        output (:func:`share_beyond`) is decoded by :data:`FALLBACK` instead, and the
+        facts say so (``fallback``); a smaller share beyond gets the net's W and a
+        ``warning``. On a log ramp of 1e-12 .. 1e30 (mantissa, alpha 2; W up to 100)
+        the nets answered W 0..5 and got 30% of W right at 512x512, and
+        ``<net>+puma`` then spent 80-110 s (2 cores) lifting the ramp's columns one
+        wrap per min-cut. A frame without pixels is refused."""
         refuse_empty(m)
         model = self.model_for(params)
         if not has_wrap_edge(m):
-            return np.zeros(m.shape, np.int64)
-        return anchor_winding(model.predict(m), params)
+            return np.zeros(m.shape, np.int64), {}
+        share = share_beyond(model, m, params)
+        if share > FALLBACK_SHARE:
+            reason = beyond_classes(share, model, f"{FALLBACK.name} decoded it")
+            fallback = {"decoder": FALLBACK.name, "reason": reason}
+            return FALLBACK.predict_winding(m, params), {"fallback": fallback}
+        winding = anchor_winding(model.predict(m), params)
+        if share:
+            return winding, {"warning": beyond_classes(share, model, "the net's W is short there")}
+        return winding, {}
 
     def run_pixels(self, shape: tuple[int, int], params: SensorParams) -> list[int]:
         return self.model_for(params).run_pixels(shape)
+
+
+def share_beyond(model: OnnxWindingModel, m: NDArray[np.float64], params: SensorParams) -> float:
+    """The share (0 .. 1) of the pixels of ``m`` (wraps) whose W is beyond what ``model``
+    outputs: more than its :attr:`~OnnxWindingModel.top_winding` wraps above the darkest
+    pixels of their run (the :data:`~models.decoders.base.ANCHOR_PERCENTILE` percentile,
+    what anchoring sets to W = 0), by the least-squares unwrapping (itoh's, about 1 ms
+    at 256x256; it smooths across residues, so it errs low). 0, at no cost, when the
+    params' bound on W (:func:`models.formation.max_winding`) is within the net's
+    range, as on every benchmark frame (``max_wraps`` 16)."""
+    top, bound = model.top_winding, max_winding(params)
+    if top is None or (bound is not None and bound <= top):
+        return 0.0
+    u = least_squares_unwrap(m)
+    beyond = np.zeros(m.shape, bool)
+    for window in model.run_windows(m.shape):
+        run = u[window]
+        beyond[window] |= run - np.percentile(run, ANCHOR_PERCENTILE) >= top + 1
+    return float(beyond.mean())
+
+
+def beyond_classes(share: float, model: OnnxWindingModel, outcome: str) -> str:
+    """What is wrong with a frame of which ``share`` lies beyond ``model``'s classes
+    (:func:`share_beyond`), what became of it (``outcome``), and what to use instead."""
+    return (
+        f"{share:.1%} of the frame lies more than {model.top_winding} wraps above its "
+        f"darkest pixels, beyond what this net can output (W 0..{model.top_winding}): "
+        f"{outcome}; for such frames choose itoh, herraez or auto"
+    )
 
 
 def describe(name: str, cards: list[dict[str, Any]]) -> str:

@@ -273,3 +273,20 @@ def test_dark_pixels_in_a_hard_tile_still_anchor_the_frame(quality: str) -> None
     smooth[:48, :48] = False
     assert result.info["details"]["routes"][INTEGRATION] > 0.5
     np.testing.assert_array_equal(result.winding[smooth], frame.winding[smooth])
+
+
+@pytest.mark.parametrize("quality", QUALITIES)
+def test_hard_tiles_a_net_hands_on_are_routed_to_the_decoder_that_took_them(
+    quality: str,
+) -> None:
+    """A 1e-12 .. 1e30 log ramp with read noise (residues, W up to 100): auto sent it to
+    a net, which answered W 0..5 (about 30% right). The net now hands it to herraez;
+    the report names herraez as the route and says why."""
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8, read_noise=0.1)
+    frame = encode(np.tile(1e-12 * 1e42 ** np.linspace(0.0, 1.0, 512), (96, 1)), params)
+    result = get_decoder(f"auto-{quality}").decode(frame.codes, params)
+    details = result.info["details"]
+    assert analyse(dequantize(frame.codes, 8), params).frame.residues
+    assert set(details["routes"]) <= {PASS_THROUGH, INTEGRATION, "herraez"}
+    assert details["fallback"]["decoder"] == "herraez"
+    assert np.mean(result.winding == frame.winding) > 0.9

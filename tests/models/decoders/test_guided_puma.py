@@ -293,6 +293,21 @@ def test_registry_lists_the_refined_tiers_and_resolves_any_guide() -> None:
     np.testing.assert_array_equal(result.winding, frame.winding)
 
 
+def test_a_net_guide_beyond_its_classes_needs_no_wrap_by_wrap_lifting() -> None:
+    """A 1e-12 .. 1e30 log ramp along the rows (alpha 2: W up to 100): the small net
+    answered W 0..2, and its refinement lifted the ramp's columns one wrap per min-cut
+    (51 cuts, 80-110 s at 512x512) to 30% of W right. The net now hands the frame to
+    herraez (exact on it), so the refinement starts at the minimum: every move fails."""
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+    frame = encode(np.tile(1e-12 * 1e42 ** np.linspace(0.0, 1.0, 320), (64, 1)), params)
+    assert frame.winding.max() == 100
+    result = get_decoder("mantissanet-small+puma").decode(frame.codes, params)
+    np.testing.assert_array_equal(result.winding, frame.winding)
+    details = result.info["details"]
+    assert details["guide_details"]["fallback"]["decoder"] == "herraez"
+    assert (details["moves"], details["changed_fraction"]) == (2, 0.0)
+
+
 def test_a_move_budget_in_the_name_bounds_the_min_cuts() -> None:
     params = SensorParams(encoding="mantissa", max_wraps=64)
     frame = encode(_hill(peak=24.0), params)

@@ -16,7 +16,7 @@ from models import scenes
 from models.decoders import learned
 from models.decoders.registry import available_decoders, get_decoder, resolve
 from models.errors import InvalidInputError
-from models.formation import SensorParams, encode, simulate
+from models.formation import SensorParams, encode, from_unwrapped, simulate
 from models.scenes import synthetic_scene, val256_frames
 
 
@@ -242,6 +242,55 @@ def test_a_frame_without_a_wrap_edge_decodes_to_w_zero(encoding: str) -> None:
         if decoder.supports(params):
             winding = decoder.decode(frame.codes, params).winding
             assert not winding.any(), f"{spec.name}: W {winding.min()}..{winding.max()}"
+
+
+def steep_ramp(params: SensorParams) -> tuple[np.ndarray, np.ndarray]:
+    """Codes and true W of a 48 x 96 frame, dark on its left sixth, then rising 0.4 wrap
+    a pixel along its rows (W 0 .. 31, no aliasing): more wraps than a net outputs."""
+    u = np.tile(0.1 + 0.4 * np.clip(np.arange(96) - 16, 0, None), (48, 1))
+    frame = encode(from_unwrapped(u, params), params)
+    return frame.codes, frame.winding
+
+
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+def test_a_frame_beyond_the_nets_classes_goes_to_herraez_and_says_so(encoding: str) -> None:
+    """The nets answered W 0..5 on a 1e-12 .. 1e30 log ramp (W up to 100), 30% right;
+    each now hands such a frame to herraez, exact on it, and says why."""
+    params = SensorParams(encoding=encoding, bits=8, alpha=2.0)
+    codes, truth = steep_ramp(params)
+    assert truth.max() > learned.TOP_CLASS
+    for spec in learned.specs():
+        decoder = get_decoder(spec.name)
+        if not decoder.supports(params):
+            continue
+        result = decoder.decode(codes, params)
+        np.testing.assert_array_equal(result.winding, truth, err_msg=spec.name)
+        fallback = result.info["details"]["fallback"]
+        assert fallback["decoder"] == "herraez"
+        assert "beyond what this net can output" in fallback["reason"]
+        assert "choose itoh, herraez or auto" in fallback["reason"]
+
+
+def test_a_few_pixels_beyond_the_nets_classes_are_a_warning() -> None:
+    """A frame dark but for a ramp up to 20 wraps in its last 46 columns (3% of it
+    beyond W 16): the net decodes it, and its details say its W is short there."""
+    params = SensorParams(encoding="modulo", bits=8)
+    u = np.tile(0.1 + 0.45 * np.clip(np.arange(256) - 210, 0, None), (48, 1))
+    result = get_decoder("mantissanet-tiny").decode(encode(u, params).codes, params)
+    details = result.info["details"]
+    assert "fallback" not in details
+    assert details["warning"].startswith("3.1% of the frame lies more than 16 wraps")
+    assert "the net's W is short there" in details["warning"]
+
+
+def test_a_frame_whose_bound_fits_the_classes_stays_with_the_net() -> None:
+    """With ``max_wraps`` bounding W within the classes (every benchmark frame), the net
+    decodes the frame and nothing is estimated."""
+    bounded = SensorParams(encoding="modulo", bits=8, max_wraps=16)
+    codes, _ = steep_ramp(SensorParams(encoding="modulo", bits=8))
+    result = get_decoder("mantissanet-tiny").decode(codes, bounded)
+    assert "details" not in result.info
+    assert result.winding.max() <= 16
 
 
 def test_two_cards_of_one_decoder_and_encoding_are_refused_naming_both(tmp_path: Path) -> None:
