@@ -7,6 +7,8 @@ Formats
   writes it). A later page storing parameters of its own must store the same (as
   zipped frames must).
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
+  A ``T x H x W`` array whose last axis could be channels (1 or 3) is refused as one
+  frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
 - ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in file-name order
   (``frame_2.png`` before ``frame_10.png``); parameters from the first frame's text
   chunk. Entries that are not ``.png`` (folders, ``__MACOSX``) and macOS resource
@@ -34,7 +36,7 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from models.decoders.base import check_frame_shape
+from models.decoders.base import FRAME_CHANNELS, check_frame_shape
 from models.errors import (
     ImageTooLargeError,
     InvalidInputError,
@@ -175,13 +177,33 @@ def _check_page(
         raise _frame_differs(f"page {index}", "page 0", differences)
 
 
-def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
-    shape = npy_shape(data)
+def _check_npy_shape(shape: tuple[int, ...]) -> None:
+    """Refuse an npy array that is not T x H x W[x C], or whose T x H x W reads as one
+    frame H x W x C (a last axis of 1 or 3 channels): taken for a video, one colour
+    frame became H frames 3 pixels wide."""
     if len(shape) not in (3, 4):
         raise InvalidInputError(
             f"a wrapped video is an array T x H x W or T x H x W x C, got shape {shape}; "
             "send a single frame as a frame, not a video"
         )
+    if len(shape) == 3 and shape[2] in FRAME_CHANNELS:
+        height, width, channels = shape
+        thin = (
+            "; a video of frames 3 pixels wide is T x H x 3 x 1 (array[..., None])"
+            if channels == 3
+            else ""
+        )
+        raise InvalidInputError(
+            f"the array of shape {shape} reads as one frame (H x W x {channels}), not a "
+            f"video of {height} frames {width} x {channels} pixels: send a frame to POST "
+            "/v1/reconstructions (mcam reconstruct), or a video of that one frame as "
+            f"1 x {height} x {width} x {channels} (array[None]){thin}"
+        )
+
+
+def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
+    shape = npy_shape(data)
+    _check_npy_shape(shape)
     check_frame_count(shape[0], limits.frames)
     check_pixel_count(shape[2], shape[1], limits.pixels)
     check_sample_count(shape[0], shape[1:], limits.samples)

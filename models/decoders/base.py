@@ -22,6 +22,8 @@ from models.formation import SensorParams, clip_winding, dequantize, from_unwrap
 #: exposure leaves most pixels unwrapped (overexposed <= 0.35 in practice), so the 5th
 #: percentile lies deep in the W = 0 population yet ignores up to 5% of wrong pixels.
 ANCHOR_PERCENTILE = 5.0
+#: Channels a frame's last axis may hold: grey or RGB.
+FRAME_CHANNELS = (1, 3)
 
 
 @dataclass
@@ -42,7 +44,7 @@ class DecodeResult:
 
 def check_frame_shape(codes: NDArray[Any]) -> None:
     """Reject frames a decoder cannot unwrap: not 2-D/3-D, or smaller than 2 x 2."""
-    if codes.ndim == 3 and codes.shape[2] not in (1, 3):
+    if codes.ndim == 3 and codes.shape[2] not in FRAME_CHANNELS:
         alpha = " (RGB without its alpha channel)" if codes.shape[2] == 4 else ""
         raise InvalidInputError(
             f"a frame has 1 or 3 channels (grey or RGB), got shape {codes.shape}; give "

@@ -129,6 +129,26 @@ def test_a_second_array_in_the_npy_file_is_refused_not_dropped() -> None:
         decode_video(data, "npy", FLAGS)
 
 
+@pytest.mark.parametrize("channels", [3, 1])
+def test_one_frame_with_channels_is_not_read_as_a_video_of_thin_frames(channels: int) -> None:
+    """A single colour frame (H x W x 3) sent as a video was read as H frames W x 3
+    pixels wide: its job made EXRs of strips, or was refused for HDR10 frames under
+    64 x 64 pixels with 'ask for outputs=sdr,exr_zip'."""
+    frame = codes(1, channels)[0]
+    with pytest.raises(InvalidInputError, match=r"shape \(6, 5, \d\) reads as one frame") as error:
+        decode_video(npy_bytes(frame), "npy", FLAGS)
+    assert f"1 x 6 x 5 x {channels}" in str(error.value)
+
+
+def test_a_video_of_frames_three_pixels_wide_is_read_with_its_channel_axis() -> None:
+    """The way the refusal above gives for frames that really are 3 pixels wide."""
+    frames = codes(1, 3)[0]
+    with pytest.raises(InvalidInputError, match=r"T x H x 3 x 1 \(array\[\.\.\., None\]\)"):
+        decode_video(npy_bytes(frames), "npy", FLAGS)
+    thin = decode_video(npy_bytes(frames[..., None]), "npy", FLAGS)
+    assert thin.frames == 6 and thin.codes.shape[1:] == (5, 3, 1)
+
+
 def test_limits_are_checked() -> None:
     with pytest.raises(ImageTooLargeError, match="frames"):
         decode_video(npy_bytes(codes(5)), "npy", FLAGS, VideoLimits(frames=4))
