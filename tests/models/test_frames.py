@@ -508,6 +508,17 @@ def test_8_bit_codes_read_as_16_bit_are_warned_about(caplog: pytest.LogCaptureFi
     assert caplog.text == ""
 
 
+def test_an_npy_of_python_objects_is_not_called_corrupt() -> None:
+    """An object array (np.save of frames of several sizes with dtype=object, or of
+    codes as Python ints) was 'truncated or corrupt (Object arrays cannot be loaded
+    when allow_pickle=False); send the complete, unmodified file': it is neither."""
+    buffer = io.BytesIO()
+    np.save(buffer, random_codes((6, 5), 8).astype(object), allow_pickle=True)
+    with pytest.raises(InvalidInputError, match="holds Python objects") as caught:
+        decode_frame(buffer.getvalue(), "npy", PARAMS_8.model_dump())
+    assert "corrupt" not in caught.value.message and "np.uint16" in caught.value.message
+
+
 def test_a_corrupt_npy_header_is_reported_without_memory_addresses() -> None:
     """numpy quotes its header parser's nodes, with their addresses in the server."""
     header = b"{'descr': '<u1', 'fortran_order': False, 'shape': (2+2, 4), }"
