@@ -11,8 +11,8 @@ Formats
   frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
 - ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in file-name order
   (``frame_2.png`` before ``frame_10.png``); parameters from the first frame's text
-  chunk. Entries that are not ``.png`` (folders, ``__MACOSX``) and macOS resource
-  forks (``._name.png``) are ignored.
+  chunk. Folders and macOS metadata (``__MACOSX/``, resource forks ``._name.png``) are
+  ignored; other files that are not ``.png`` are left out, with a warning naming them.
 
 The frame count (``max_frames``), the pixels per frame (``max_pixels``) and the code
 values of the whole video (``max_samples``: frames x pixels x channels) are checked
@@ -25,6 +25,7 @@ frames.
 from __future__ import annotations
 
 import io
+import logging
 import os
 import re
 import zipfile
@@ -64,6 +65,10 @@ VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 VIDEO_ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
 #: Bytes inflated per read of a zip entry (bounds the memory one read can take).
 INFLATE_CHUNK = 1 << 20
+#: Most names of left-out zip entries a warning lists.
+LISTED_ENTRIES = 5
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -228,15 +233,9 @@ def _read_zip(
                 f"{limits.frames} frames (one PNG each): send fewer frames, without other files"
             )
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        files = [info for info in archive.infolist() if not _zip_metadata(info)]
         entries = sorted(
-            (
-                info
-                for info in archive.infolist()
-                if not info.is_dir()
-                and info.filename.lower().endswith(".png")
-                and not info.filename.startswith("__MACOSX/")
-                and not info.filename.rsplit("/", 1)[-1].startswith("._")
-            ),
+            (info for info in files if _png_name(info)),
             key=lambda info: _natural_key(info.filename),
         )
         if not entries:
@@ -258,7 +257,45 @@ def _read_zip(
     codes = np.stack([frame.codes for frame in frames])
     warnings = [w for frame in frames for w in frame.warnings]
     warnings.append(eight_bit_warning(codes, first.params))
+    warnings.append(_left_out_warning([info.filename for info in files if not _png_name(info)]))
     return WrappedVideo(codes, first.params, tuple(dict.fromkeys(filter(None, warnings))))
+
+
+def _zip_metadata(entry: zipfile.ZipInfo) -> bool:
+    """Whether a zip entry is no file of the sender's: a folder, or macOS metadata
+    (``__MACOSX/``, ``._name`` resource forks)."""
+    name = entry.filename
+    return (
+        entry.is_dir()
+        or name.startswith("__MACOSX/")
+        or name.rsplit("/", 1)[-1].startswith("._")
+    )
+
+
+def _png_name(entry: zipfile.ZipInfo) -> bool:
+    """Whether a zip entry is named as a PNG frame."""
+    return entry.filename.lower().endswith(".png")
+
+
+def _left_out_warning(names: list[str]) -> str | None:
+    """The warning, logged and returned for the job's ``warnings``, naming the files of
+    a zip (``names``) that are not ``.png`` frames and so are not in the video (a frame
+    saved as JPEG or TIFF was dropped without a word); None when there are none."""
+    if not names:
+        return None
+    listed = ", ".join(names[:LISTED_ENTRIES])
+    more = f" and {len(names) - LISTED_ENTRIES} more" if len(names) > LISTED_ENTRIES else ""
+    files = (
+        "1 file of the zip that is not a .png frame"
+        if len(names) == 1
+        else f"{len(names)} files of the zip that are not .png frames"
+    )
+    warning = (
+        f"left out of the video {files}: {listed}{more}; if any is a frame, send it as a "
+        "PNG (mcam simulate -o frame.png)"
+    )
+    logger.warning("%s", warning)
+    return warning
 
 
 def _frame_differences(frame: WrappedFrame, first: WrappedFrame) -> list[str]:

@@ -112,6 +112,29 @@ def test_macos_resource_forks_in_a_zip_are_not_frames() -> None:
     np.testing.assert_array_equal(decode_video(buffer.getvalue(), "zip").codes, video)
 
 
+def test_files_of_a_zip_that_are_not_png_frames_are_named_in_a_warning() -> None:
+    """A frame saved as JPEG among the PNGs was dropped from the video without a word."""
+    video = codes(3)
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("clip/", b"")
+        archive.writestr("clip/frame_0.png", encode_frame(video[0], PARAMS, "png"))
+        archive.writestr("clip/frame_1.jpg", b"\xff\xd8\xff\xe0 a JPEG frame")
+        archive.writestr("clip/frame_2.png", encode_frame(video[2], PARAMS, "png"))
+        archive.writestr("__MACOSX/clip/._frame_0.png", b"\x00\x05\x16\x07")
+        for t in range(6):
+            archive.writestr(f"clip/notes_{t}.txt", b"not a frame")
+    result = decode_video(buffer.getvalue(), "zip")
+    assert result.frames == 2
+    (warning,) = result.warnings
+    assert warning.startswith(
+        "left out of the video 7 files of the zip that are not .png frames: "
+        "clip/frame_1.jpg, clip/notes_0.txt, clip/notes_1.txt, clip/notes_2.txt, "
+        "clip/notes_3.txt and 2 more; if any is a frame, send it as a PNG"
+    )
+    assert decode_video(zip_of({"a.png": (video[0], PARAMS)}), "zip").warnings == ()
+
+
 def test_overrides_win_over_stored_parameters() -> None:
     result = decode_video(tiff_bytes(codes()), "tif", {"alpha": 4.0, "bits": None})
     assert result.params.alpha == 4.0 and result.params.bits == 8
