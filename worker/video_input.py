@@ -186,24 +186,34 @@ def _check_npy_shape(shape: tuple[int, ...]) -> None:
     """Refuse an npy array that is not T x H x W[x C], or whose T x H x W reads as one
     frame H x W x C (a last axis of 1 or 3 channels): taken for a video, one colour
     frame became H frames 3 pixels wide."""
+    if len(shape) == 2 or (len(shape) == 3 and shape[2] in FRAME_CHANNELS):
+        raise _one_frame(shape)
     if len(shape) not in (3, 4):
         raise InvalidInputError(
             f"a wrapped video is an array T x H x W or T x H x W x C, got shape {shape}; "
-            "send a single frame as a frame, not a video"
+            "save the frames stacked as one array T x H x W (grey) or T x H x W x 3 (colour)"
         )
-    if len(shape) == 3 and shape[2] in FRAME_CHANNELS:
+
+
+def _one_frame(shape: tuple[int, ...]) -> InvalidInputError:
+    """The error for an npy array of ``shape`` that reads as one frame, H x W or
+    H x W x C, saying where to send it and how to shape a one-frame video."""
+    one = " x ".join(str(side) for side in (1, *shape))
+    if len(shape) == 2:
+        layout = "(H x W)"
+    else:
         height, width, channels = shape
-        thin = (
-            "; a video of frames 3 pixels wide is T x H x 3 x 1 (array[..., None])"
-            if channels == 3
-            else ""
-        )
-        raise InvalidInputError(
-            f"the array of shape {shape} reads as one frame (H x W x {channels}), not a "
-            f"video of {height} frames {width} x {channels} pixels: send a frame to POST "
-            "/v1/reconstructions (mcam reconstruct), or a video of that one frame as "
-            f"1 x {height} x {width} x {channels} (array[None]){thin}"
-        )
+        layout = f"(H x W x {channels}), not a video of {height} frames {width} x {channels} px"
+    thin = (
+        "; a video of frames 3 pixels wide is T x H x 3 x 1 (array[..., None])"
+        if len(shape) == 3 and shape[2] == 3
+        else ""
+    )
+    return InvalidInputError(
+        f"the array of shape {shape} reads as one frame {layout}: send a frame to POST "
+        f"/v1/reconstructions (mcam reconstruct), or a video of that one frame as {one} "
+        f"(array[None]){thin}"
+    )
 
 
 def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:

@@ -172,6 +172,20 @@ def test_a_video_of_frames_three_pixels_wide_is_read_with_its_channel_axis() -> 
     assert thin.frames == 6 and thin.codes.shape[1:] == (5, 3, 1)
 
 
+@pytest.mark.parametrize("shape", [(6, 5), (2, 3, 6, 5, 1), (6,), ()])
+def test_arrays_of_no_video_shape_say_how_to_shape_one(shape: tuple[int, ...]) -> None:
+    """Every shape but T x H x W[x C] was told 'send a single frame as a frame, not a
+    video', a 5-D or 1-D array too; a 2-D one was not told how to send one frame."""
+    with pytest.raises(InvalidInputError) as caught:
+        decode_video(npy_bytes(np.zeros(shape, np.uint8)), "npy", FLAGS)
+    if len(shape) == 2:
+        assert "reads as one frame (H x W): send a frame" in caught.value.message
+        assert "1 x 6 x 5 (array[None])" in caught.value.message
+    else:
+        assert "single frame" not in caught.value.message
+        assert "save the frames stacked as one array T x H x W" in caught.value.message
+
+
 def test_limits_are_checked() -> None:
     with pytest.raises(ImageTooLargeError, match="frames"):
         decode_video(npy_bytes(codes(5)), "npy", FLAGS, VideoLimits(frames=4))
