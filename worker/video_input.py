@@ -249,10 +249,7 @@ def _read_zip(
             key=lambda info: _natural_key(info.filename),
         )
         if not entries:
-            raise InvalidInputError(
-                f"the zip holds no .png frame ({len(archive.infolist())} other entries); a "
-                "wrapped video as a zip is one PNG of codes per frame, named in frame order"
-            )
+            raise _no_png_frame([info.filename for info in files])
         check_frame_count(len(entries), limits.frames)
         first = _zip_frame(archive, entries[0], overrides, limits, png_entry_limit(limits.pixels))
         check_sample_count(len(entries), first.codes.shape, limits.samples)
@@ -293,19 +290,37 @@ def _left_out_warning(names: list[str]) -> str | None:
     saved as JPEG or TIFF was dropped without a word); None when there are none."""
     if not names:
         return None
-    listed = ", ".join(names[:LISTED_ENTRIES])
-    more = f" and {len(names) - LISTED_ENTRIES} more" if len(names) > LISTED_ENTRIES else ""
     files = (
         "1 file of the zip that is not a .png frame"
         if len(names) == 1
         else f"{len(names)} files of the zip that are not .png frames"
     )
     warning = (
-        f"left out of the video {files}: {listed}{more}; if any is a frame, send it as a "
+        f"left out of the video {files}: {_listed(names)}; if any is a frame, send it as a "
         "PNG (mcam simulate -o frame.png)"
     )
     logger.warning("%s", warning)
     return warning
+
+
+def _listed(names: list[str]) -> str:
+    """The first :data:`LISTED_ENTRIES` of ``names``, and how many more."""
+    more = f" and {len(names) - LISTED_ENTRIES} more" if len(names) > LISTED_ENTRIES else ""
+    return ", ".join(names[:LISTED_ENTRIES]) + more
+
+
+def _no_png_frame(names: list[str]) -> InvalidInputError:
+    """The error for a zip of no ``.png`` frame, whose files are ``names``: what it
+    holds, and for NumPy's ``.npz`` (a zip of ``.npy`` arrays), what to send instead."""
+    holds = f"its files: {_listed(names)}" if names else "no file"
+    if names and all(name.lower().endswith(".npy") for name in names):
+        remedy = (
+            "it is a NumPy .npz archive (np.savez): save the frames stacked as one array "
+            "in a .npy file instead (np.save, T x H x W or T x H x W x 3)"
+        )
+    else:
+        remedy = "a wrapped video as a zip is one PNG of codes per frame, named in frame order"
+    return InvalidInputError(f"the zip holds no .png frame ({holds}); {remedy}")
 
 
 def _frame_differences(frame: WrappedFrame, first: WrappedFrame) -> list[str]:

@@ -420,7 +420,17 @@ def test_zip_without_pngs_says_what_it_holds() -> None:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
         archive.writestr("notes.txt", "frames to follow")
-    with pytest.raises(InvalidInputError, match=r"no \.png frame \(1 other entries\)"):
+    with pytest.raises(InvalidInputError, match=r"no \.png frame \(its files: notes\.txt\)"):
+        decode_video(buffer.getvalue(), "zip", FLAGS)
+
+
+def test_an_npz_is_told_to_be_sent_as_an_npy() -> None:
+    """np.savez writes a zip of .npy arrays: it was 'the zip holds no .png frame (1 other
+    entries); a wrapped video as a zip is one PNG of codes per frame', not saying what
+    the file was or that the same frames go as one .npy."""
+    buffer = io.BytesIO()
+    np.savez(buffer, codes())
+    with pytest.raises(InvalidInputError, match=r"\(its files: arr_0\.npy\); it is a NumPy \.npz"):
         decode_video(buffer.getvalue(), "zip", FLAGS)
 
 
