@@ -44,7 +44,14 @@ from models.errors import (
     McamError,
     UnsupportedFormatError,
 )
-from models.file_magic import VIDEO_MAGICS, check_signature, content_first
+from models.file_magic import (
+    HDR_MAGICS,
+    PNG_SIGNATURE,
+    VIDEO_MAGICS,
+    check_signature,
+    content_first,
+    format_by_content,
+)
 from models.formation import SensorParams, validate_codes
 from models.frames import (
     WrappedFrame,
@@ -415,6 +422,24 @@ def _inflate(archive: zipfile.ZipFile, entry: zipfile.ZipInfo) -> bytes:
         return b"".join(iter(lambda: stream.read(INFLATE_CHUNK), b""))
 
 
+#: What a file of another reader's format is, and where it goes.
+_NOT_VIDEOS = {
+    "png": "a PNG image, one wrapped frame, not a video: decode it with mcam reconstruct or "
+    "POST /v1/reconstructions, or send the clip's PNG frames together in one .zip",
+    "exr": "an OpenEXR image (scene irradiance), not a wrapped video: make wrapped frames "
+    "of it with mcam simulate or POST /v1/simulate",
+    "hdr": "a Radiance HDR image (scene irradiance), not a wrapped video: make wrapped "
+    "frames of it with mcam simulate or POST /v1/simulate",
+}
+
+
+def not_a_video(data: bytes) -> str | None:
+    """What ``data`` is when it is a file another reader takes (a frame, an HDR image),
+    and where to send it; None otherwise."""
+    fmt = format_by_content(data, ((PNG_SIGNATURE, "png"), *HDR_MAGICS))
+    return None if fmt is None else _NOT_VIDEOS[fmt]
+
+
 #: What a file of each video format is, in an error message.
 _FORMAT_NOUNS = {"tiff": "a TIFF video", "npy": "an npy file", "zip": "a zip of PNG frames"}
 #: What to send instead of data of no video format.
@@ -437,6 +462,8 @@ def decode_video(
     decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
     here, before a job is queued."""
     fmt, warning = content_first(data, video_format(fmt), VIDEO_MAGICS)
+    if (other := not_a_video(data)) is not None:
+        raise UnsupportedFormatError(f"the file is {other}")
     check_signature(data, VIDEO_MAGICS, _FORMAT_NOUNS[fmt], "video", _SEND_A_VIDEO)
     limits = limits or VideoLimits()
     if fmt == "zip":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import bz2
 import io
+import re
 import struct
 import tracemalloc
 import zipfile
@@ -432,6 +433,23 @@ def test_an_npz_is_told_to_be_sent_as_an_npy() -> None:
     np.savez(buffer, codes())
     with pytest.raises(InvalidInputError, match=r"\(its files: arr_0\.npy\); it is a NumPy \.npz"):
         decode_video(buffer.getvalue(), "zip", FLAGS)
+
+
+@pytest.mark.parametrize(
+    ("data", "what"),
+    [
+        (encode_frame(codes()[0], PARAMS, "png"), "a PNG image, one wrapped frame, not a video"),
+        (b"\x76\x2f\x31\x01" + bytes(60), "an OpenEXR image (scene irradiance)"),
+        (b"#?RADIANCE\n" + bytes(60), "a Radiance HDR image (scene irradiance)"),
+    ],
+    ids=["png-frame", "exr", "radiance"],
+)
+def test_a_frame_or_hdr_image_sent_as_a_video_is_named(data: bytes, what: str) -> None:
+    """A PNG frame or an HDR image named as a video was 'not a zip of PNG frames (bad or
+    missing signature), nor any video format read here: send the wrapped video's file
+    itself, as written (...; not converted to another format, renamed or cut short)'."""
+    with pytest.raises(UnsupportedFormatError, match=rf"^the file is {re.escape(what)}"):
+        decode_video(data, "zip", FLAGS)
 
 
 @pytest.mark.parametrize(

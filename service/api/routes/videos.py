@@ -34,7 +34,7 @@ from service.api.uploads import SensorFields, Upload, read_upload_fields
 from service.core.security import ApiKey
 from worker.jobs import JobRecord
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
-from worker.video_input import VIDEO_ALIASES, VideoLimits, decode_video
+from worker.video_input import VIDEO_ALIASES, VideoLimits, decode_video, not_a_video
 from worker.video_jobs import VIDEO_FILES, check_frame_size, video_options
 from worker.video_output import (
     FPS_RANGE,
@@ -122,9 +122,10 @@ def sniff_video_format(upload: Upload, declared: str | None) -> str:
     )
     if fmt is not None:
         return fmt
+    other = not_a_video(upload.data)
     raise UnsupportedFormatError(
         "cannot tell the video's format: send a multi-page .tiff, a .npy (T x H x W[x C]) "
-        "or a .zip of PNG frames"
+        f"or a .zip of PNG frames{'' if other is None else f'; this file is {other}'}"
     )
 
 

@@ -130,6 +130,10 @@ def test_bad_uploads_are_refused(client: Client) -> None:
         ({"file": ("a.npy", small)}, {**FLAGS, "outputs": "gif"}, 422, "gif"),
         ({"file": ("a.npy", small)}, {**FLAGS, "exr_compression": "lzw"}, 422, "exr_compression"),
         ({"file": ("a.bin", b"hello")}, {**FLAGS}, 415, "format"),
+        (
+            {"file": ("f.png", encode_frame(np.zeros((16, 16), np.uint8), PARAMS, "png"))},
+            {**FLAGS}, 415, "this file is a PNG image, one wrapped frame, not a video",
+        ),
         ({"file": ("a.npy", small)}, {"outputs": "exr_zip"}, 422, "--encoding"),
         ({"file": ("a.npy", small)}, {**FLAGS, "fps": "nan"}, 422, "fps: Input should be a finite"),
         (
