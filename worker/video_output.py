@@ -412,6 +412,7 @@ def exr_sequence_zip(
     attributes: Sequence[dict[str, str]] | None = None,
     scene_gain: float | None = None,
     checked: bool = False,
+    progress: Progress | None = None,
 ) -> None:
     """A zip of one EXR per frame (:func:`exr_frame_name`) of reconstructed ``frames``
     (wrap units ``x``; stored as scene units ``x / scene_gain`` when the gain is known,
@@ -419,7 +420,8 @@ def exr_sequence_zip(
     (:data:`models.hdr_io.EXR_COMPRESSIONS`), with ``frameIndex`` and that frame's
     ``attributes`` (string header attributes, one mapping per frame) in its header.
     Refused, before anything is written, as :func:`check_exr_sequence` says (unless
-    ``checked``: the caller ran that check on these frames already)."""
+    ``checked``: the caller ran that check on these frames already). ``progress(n)`` is
+    called after each of the n frames stored."""
     if not checked:
         check_exr_sequence(frames, half=half, scene_gain=scene_gain)
     with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_STORED) as archive:
@@ -428,6 +430,8 @@ def exr_sequence_zip(
             stored = frame if scene_gain is None else to_scene(frame, scene_gain)
             data = encode_exr(stored, header, half=half, compression=compression)
             archive.writestr(exr_frame_name(index, len(frames)), data)
+            if progress:
+                progress(index + 1)
 
 
 def exr_frame_name(index: int, count: int) -> str:

@@ -203,9 +203,8 @@ def write_outputs(
                 decoded.irradiance, target, half=options.half,
                 compression=options.exr_compression,
                 attributes=exr_frame_attributes(decoded, video.params, options.mode),
-                scene_gain=gain, checked=True,
+                scene_gain=gain, checked=True, progress=step,
             )  # fmt: skip
-            step(total)
     return facts
 
 

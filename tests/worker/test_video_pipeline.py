@@ -110,3 +110,16 @@ def test_an_exr_sequence_that_cannot_be_stored_fails_before_any_video_is_encoded
     write_outputs(decoded, video, {"exr_zip": exrs}, VideoOptions(decoder="itoh"))
     with zipfile.ZipFile(exrs) as archive:
         assert len(archive.namelist()) == FRAMES
+
+
+def test_the_exr_sequence_reports_progress_after_each_frame() -> None:
+    """The EXR sequence reported once, when its zip was whole: a video job's progress
+    stood still and its cancel went unread through that stage (9 s for 2^26 samples)."""
+    video = clip()
+    decoded = decode_video_frames(video, VideoOptions(decoder="itoh"))
+    reports: list[tuple[str, int, int]] = []
+    write_outputs(
+        decoded, video, {"exr_zip": io.BytesIO()}, VideoOptions(decoder="itoh"),
+        lambda stage, done, total: reports.append((stage, done, total)),
+    )  # fmt: skip
+    assert reports == [("exr_zip", done, FRAMES) for done in range(1, FRAMES + 1)]
