@@ -72,6 +72,10 @@ VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
 VIDEO_ALIASES = {"tif": "tiff", "tiff": "tiff", "npy": "npy", "zip": "zip"}
 #: Bytes inflated per read of a zip entry (bounds the memory one read can take).
 INFLATE_CHUNK = 1 << 20
+#: Entries a zip of frames may hold besides a PNG and a macOS resource fork per frame
+#: (its folders, ``__MACOSX/``, notes): with none, a clip of the most frames a video
+#: takes, zipped on macOS, was refused.
+ZIP_OTHER_ENTRIES = 64
 #: Most names of left-out zip entries a warning lists.
 LISTED_ENTRIES = 5
 
@@ -239,14 +243,22 @@ def _natural_key(name: str) -> list[Any]:
     return [int(part) if part.isdecimal() else part for part in re.split(r"(\d+)", name)]
 
 
+def _zip_entry_limit(max_frames: int) -> int:
+    """Most entries a zip of at most ``max_frames`` PNG frames may hold, counted from its
+    directory before :mod:`zipfile` reads it: a macOS resource fork per frame, and
+    :data:`ZIP_OTHER_ENTRIES` folders and notes."""
+    return 2 * max_frames + ZIP_OTHER_ENTRIES
+
+
 def _read_zip(
     data: bytes, overrides: dict[str, Any] | None, limits: VideoLimits
 ) -> WrappedVideo:
     if limits.frames is not None:
-        entries = central_entries(data, 2 * limits.frames)
-        if entries is not None and entries > 2 * limits.frames:
+        most = _zip_entry_limit(limits.frames)
+        entries = central_entries(data, most)
+        if entries is not None and entries > most:
             raise ImageTooLargeError(
-                f"the zip holds more than {2 * limits.frames} entries; a video takes at most "
+                f"the zip holds more than {most} entries; a video takes at most "
                 f"{limits.frames} frames (one PNG each): send fewer frames, without other files"
             )
     with zipfile.ZipFile(io.BytesIO(data)) as archive:

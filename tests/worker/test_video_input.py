@@ -549,13 +549,28 @@ def test_a_zip_of_too_many_entries_is_refused_from_its_directory_record() -> Non
     """zipfile builds an object per entry before any count can be checked."""
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
-        for n in range(50):
+        for n in range(100):
             archive.writestr(f"note_{n}.txt", b"")
     data = buffer.getvalue()
-    assert central_entries(data, 100) == 50 and central_entries(data, 20) == 21
-    with pytest.raises(ImageTooLargeError, match="more than 20 entries; .* at most 10 frames"):
+    assert central_entries(data, 200) == 100 and central_entries(data, 20) == 21
+    with pytest.raises(ImageTooLargeError, match="more than 84 entries; .* at most 10 frames"):
         decode_video(data, "zip", FLAGS, VideoLimits(frames=10))
     assert central_entries(b"not a zip", 10) is None
+
+
+def test_a_macos_zip_of_as_many_frames_as_the_limit_is_read() -> None:
+    """A zip made on macOS holds a resource fork per frame and folder entries besides:
+    10 frames made 23 entries, refused as 'more than 20 entries' at a limit of 10 frames."""
+    video = codes(10)
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for folder in ("clip/", "__MACOSX/", "__MACOSX/clip/"):
+            archive.writestr(folder, b"")
+        for t, frame in enumerate(video):
+            archive.writestr(f"clip/frame_{t}.png", encode_frame(frame, PARAMS, "png"))
+            archive.writestr(f"__MACOSX/clip/._frame_{t}.png", b"\x00\x05\x16\x07")
+    result = decode_video(buffer.getvalue(), "zip", FLAGS, VideoLimits(frames=10))
+    np.testing.assert_array_equal(result.codes, video)
 
 
 def test_a_dark_frame_of_a_zip_is_no_eight_bit_warning() -> None:
