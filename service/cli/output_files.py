@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 import secrets
 import signal
+import sys
 import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -27,6 +28,9 @@ from pathlib import Path
 from types import FrameType
 
 from models.errors import InvalidInputError, UnsupportedFormatError
+
+#: The most bytes a file name may hold (NAME_MAX of Linux, macOS and Windows file systems).
+NAME_MAX = 255
 
 
 @dataclass(frozen=True)
@@ -86,10 +90,19 @@ def check_outputs(outputs: Sequence[OutputFile], inputs: Sequence[str] = ()) -> 
             )
 
 
+def _temporary_name(final: Path) -> str:
+    """The hidden name of ``final``'s temporary file: its stem, cut short (at a character)
+    where the name would pass :data:`NAME_MAX` bytes, a random tag and its suffix. A
+    name of 241 to 255 bytes, valid, was refused as too long for its temporary file."""
+    tag = f".mcam-{secrets.token_hex(4)}{final.suffix}"
+    room = NAME_MAX - 1 - len(os.fsencode(tag))
+    stem = os.fsencode(final.stem)[: max(room, 0)].decode(sys.getfilesystemencoding(), "ignore")
+    return f".{stem}{tag}"
+
+
 def _create_temporary(output: OutputFile) -> Path:
     """An empty hidden file beside ``output.path`` with its suffix (mode as umask allows)."""
-    final = Path(output.path)
-    temporary = final.with_name(f".{final.stem}.mcam-{secrets.token_hex(4)}{final.suffix}")
+    temporary = Path(output.path).with_name(_temporary_name(Path(output.path)))
     try:
         os.close(os.open(temporary, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
     except OSError as exc:

@@ -55,6 +55,21 @@ def test_outputs_move_into_place_only_when_all_succeeded(tmp_path: Path) -> None
     assert (tmp_path / "a.exr").stat().st_mode & 0o777 == 0o666 & ~umask
 
 
+@pytest.mark.parametrize("stem", ["a" * 251, "é" * 125 + "a"])
+def test_an_output_whose_name_is_near_the_longest_allowed_is_written(
+    tmp_path: Path, stem: str
+) -> None:
+    """A name of 241 to 255 bytes is a valid file name, but its temporary file's, 15 bytes
+    longer, was not: 'cannot create ... (File name too long) for -o; choose a folder you
+    may write to'."""
+    name = stem + ".exr"
+    assert len(name.encode()) == 255  # the longest a file name may be (NAME_MAX)
+    with staged_outputs([exr("-o", tmp_path / name)]) as paths:
+        assert paths["-o"].suffix == ".exr" and paths["-o"].name.startswith(".")
+        paths["-o"].write_bytes(b"done")
+    assert os.listdir(tmp_path) == [name]
+
+
 def test_an_uncreatable_output_names_its_path() -> None:
     with pytest.raises(InvalidInputError, match="cannot create /proc/x.exr .* for -o"):
         with staged_outputs([exr("-o", "/proc/x.exr")]):
