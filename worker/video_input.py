@@ -5,7 +5,9 @@ Formats
 - ``tiff``: a multi-page TIFF, one frame per page (``H x W`` or ``H x W x C``); the
   parameters as JSON in the first page's ImageDescription (as :mod:`models.frames`
   writes it). A later page storing parameters of its own must store the same (as
-  zipped frames must).
+  zipped frames must). A lone page of separate colour planes that tifffile described
+  as its array (``{"shape": [3, H, W]}``) is refused: ``tifffile.imwrite`` stores a
+  stack of 3 or 4 grey frames so.
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
   A ``T x H x W`` array whose last axis could be channels (1 or 3) is refused as one
   frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
@@ -25,6 +27,7 @@ frames.
 from __future__ import annotations
 
 import io
+import json
 import logging
 import os
 import re
@@ -160,6 +163,8 @@ def _read_tiff(
             )
         check_frame_count(count, limits.frames)
         first = tif.pages.first
+        if count == 1:
+            _check_not_a_stack_of_planes(first)
         check_pixel_count(int(first.imagewidth), int(first.imagelength), limits.pixels)
         check_sample_count(count, page_shape(first), limits.samples)
         stored = tiff_params(first.description)
@@ -169,6 +174,30 @@ def _read_tiff(
                 _check_page(page, len(frames), first, stored, overrides)
             frames.append(page_codes(page))
         return np.stack(frames), stored
+
+
+def _check_not_a_stack_of_planes(page: tifffile.TiffPage) -> None:
+    """Refuse the one page of a TIFF video when it holds separate colour planes whose
+    description is tifffile's own of an array of that shape (``{"shape": [3, H, W]}``):
+    ``tifffile.imwrite(path, frames)`` stores a stack of 3 (or 4) grey frames so, as
+    RGB (RGBA), and 3 frames became one colour frame without a word."""
+    if page.planarconfig != tifffile.PLANARCONFIG.SEPARATE or page.samplesperpixel < 2:
+        return
+    try:
+        described = json.loads(page.description or "null")
+    except ValueError:
+        return
+    shape = [int(n) for n in page.shape]
+    if len(shape) != 3 or not isinstance(described, dict) or described.get("shape") != shape:
+        return
+    planes, height, width = shape
+    raise InvalidInputError(
+        f"the TIFF holds one page of {planes} planes ({planes} x {height} x {width}), as "
+        f"tifffile.imwrite stores an array of {planes} grey frames unless told otherwise: "
+        "write the frames as pages, tifffile.imwrite(path, frames, "
+        "photometric='minisblack'); a single colour frame goes to POST /v1/reconstructions "
+        "(mcam reconstruct)"
+    )
 
 
 def _check_page(

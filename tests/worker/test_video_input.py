@@ -495,6 +495,25 @@ def test_a_separate_plane_tiff_video_is_read_samples_last() -> None:
     np.testing.assert_array_equal(decode_video(buffer.getvalue(), "tiff").codes, video)
 
 
+@pytest.mark.parametrize("frames", [3, 4])
+def test_three_or_four_frames_tifffile_stored_as_colour_planes_are_not_one_frame(
+    frames: int,
+) -> None:
+    """tifffile.imwrite(path, frames) stores a stack of 3 (or 4) grey frames as one page
+    of RGB (RGBA) planes: 3 frames became one colour frame without a word, and 4 were
+    told 'give H x W x 3 (RGB without its alpha channel)'."""
+    stack = codes(frames)
+    buffer = io.BytesIO()
+    alpha = {"extrasamples": ["unassalpha"]} if frames == 4 else {}
+    tifffile.imwrite(buffer, stack, photometric="rgb", planarconfig="separate", **alpha)
+    with pytest.raises(InvalidInputError, match=rf"one page of {frames} planes") as caught:
+        decode_video(buffer.getvalue(), "tiff", FLAGS)
+    assert "photometric='minisblack'" in caught.value.message
+    pages = io.BytesIO()
+    tifffile.imwrite(pages, stack, photometric="minisblack")
+    np.testing.assert_array_equal(decode_video(pages.getvalue(), "tiff", FLAGS).codes, stack)
+
+
 def tiff_pages(*pages: tuple[np.ndarray, SensorParams | None]) -> bytes:
     """A TIFF video written a page at a time, each page with its own description."""
     buffer = io.BytesIO()
