@@ -28,6 +28,9 @@ from models.errors import ECHO_CHARS, echo
 
 #: How many of a repeated parameter's values its error names.
 SHOWN = 3
+#: Parameters that take several values as one comma-separated value (a video's
+#: ``outputs``): repeated, they are told to join them, not to give one.
+COMMA_SEPARATED = frozenset({"outputs"})
 
 
 def shown(name: str) -> str:
@@ -53,12 +56,21 @@ def refuse_repeated(items: Iterable[tuple[str, str]], where: tuple[str, ...] = (
             "type": "repeated_parameter",
             "loc": (*where, shown(name)),
             "msg": f"given {len(given)} times ({', '.join(echo(v) for v in given[:SHOWN])}"
-            f"{', ...' if len(given) > SHOWN else ''}); give it once",
+            f"{', ...' if len(given) > SHOWN else ''}); give it once{_joined(name, given)}",
         }
         for name, given in repeated(items).items()
     ]
     if problems:
         raise RequestValidationError(problems)
+
+
+def _joined(name: str, given: list[str]) -> str:
+    """For a :data:`COMMA_SEPARATED` parameter, how to give its values ``given`` at once
+    (``name=A,B`` when that is short enough to echo); '' for any other."""
+    if name not in COMMA_SEPARATED:
+        return ""
+    joined = ",".join(given)
+    return f", its values comma-separated: {name}={joined if len(joined) <= ECHO_CHARS else 'A,B'}"
 
 
 def single_query_values(request: Request) -> None:

@@ -55,6 +55,22 @@ def test_a_form_field_given_twice_is_refused(client: Client) -> None:
     assert "JSON" not in message
 
 
+@pytest.mark.parametrize("where", ["query", "form"])
+def test_a_list_given_as_repeated_values_is_told_to_be_comma_separated(
+    client: Client, where: str
+) -> None:
+    """-F outputs=hdr10 -F outputs=sdr was told 'give it once', which reads as 'pick
+    one'; a video's outputs are one comma-separated value."""
+    fields = [("outputs", (None, "hdr10")), ("outputs", (None, "sdr"))]
+    query = "?outputs=hdr10&outputs=sdr" if where == "query" else ""
+    reply = client().post(
+        f"/v1/videos{query}", files=[("file", ("clip.npy", b"x")), *(fields * (where == "form"))]
+    )
+    assert reply.status_code == 422, reply.text
+    assert "outputs: given 2 times ('hdr10', 'sdr'); give it once, its values " \
+        "comma-separated: outputs=hdr10,sdr" in reply.json()["message"]
+
+
 @pytest.mark.parametrize(
     ("target", "name", "takes"),
     [
