@@ -46,6 +46,7 @@ from models.errors import (
     InvalidInputError,
     McamError,
     UnsupportedFormatError,
+    echo,
 )
 from models.file_magic import (
     HDR_MAGICS,
@@ -352,9 +353,11 @@ def _left_out_warning(names: list[str]) -> str | None:
 
 
 def _listed(names: list[str]) -> str:
-    """The first :data:`LISTED_ENTRIES` of ``names``, and how many more."""
+    """The first :data:`LISTED_ENTRIES` of ``names`` (each quoted, a long one cut short
+    by :func:`models.errors.echo`: a zip entry's name may run to 64 KiB), and how many
+    more."""
     more = f" and {len(names) - LISTED_ENTRIES} more" if len(names) > LISTED_ENTRIES else ""
-    return ", ".join(names[:LISTED_ENTRIES]) + more
+    return ", ".join(echo(name) for name in names[:LISTED_ENTRIES]) + more
 
 
 def _no_png_frame(names: list[str]) -> InvalidInputError:

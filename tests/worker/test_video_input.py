@@ -130,8 +130,8 @@ def test_files_of_a_zip_that_are_not_png_frames_are_named_in_a_warning() -> None
     (warning,) = result.warnings
     assert warning.startswith(
         "left out of the video 7 files of the zip that are not .png frames: "
-        "clip/frame_1.jpg, clip/notes_0.txt, clip/notes_1.txt, clip/notes_2.txt, "
-        "clip/notes_3.txt and 2 more; if any is a frame, send it as a PNG"
+        "'clip/frame_1.jpg', 'clip/notes_0.txt', 'clip/notes_1.txt', 'clip/notes_2.txt', "
+        "'clip/notes_3.txt' and 2 more; if any is a frame, send it as a PNG"
     )
     assert decode_video(zip_of({"a.png": (video[0], PARAMS)}), "zip").warnings == ()
 
@@ -421,7 +421,7 @@ def test_zip_without_pngs_says_what_it_holds() -> None:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
         archive.writestr("notes.txt", "frames to follow")
-    with pytest.raises(InvalidInputError, match=r"no \.png frame \(its files: notes\.txt\)"):
+    with pytest.raises(InvalidInputError, match=r"no \.png frame \(its files: 'notes\.txt'\)"):
         decode_video(buffer.getvalue(), "zip", FLAGS)
 
 
@@ -431,7 +431,7 @@ def test_an_npz_is_told_to_be_sent_as_an_npy() -> None:
     the file was or that the same frames go as one .npy."""
     buffer = io.BytesIO()
     np.savez(buffer, codes())
-    with pytest.raises(InvalidInputError, match=r"\(its files: arr_0\.npy\); it is a NumPy \.npz"):
+    with pytest.raises(InvalidInputError, match=r"files: 'arr_0\.npy'\); it is a NumPy \.npz"):
         decode_video(buffer.getvalue(), "zip", FLAGS)
 
 
