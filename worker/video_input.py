@@ -7,7 +7,8 @@ Formats
   writes it). A later page storing parameters of its own must store the same (as
   zipped frames must). A lone page of separate colour planes that tifffile described
   as its array (``{"shape": [3, H, W]}``) is refused: ``tifffile.imwrite`` stores a
-  stack of 3 or 4 grey frames so.
+  stack of 3 or 4 grey frames so; so is an ImageJ hyperstack of two axes or more
+  (frames and channels or slices), whose pages interleave them.
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
   A ``T x H x W`` array whose last axis could be channels (1 or 3) is refused as one
   frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
@@ -166,6 +167,7 @@ def _read_tiff(
         first = tif.pages.first
         if count == 1:
             _check_not_a_stack_of_planes(first)
+        _check_not_a_hyperstack(first.description, count)
         check_pixel_count(int(first.imagewidth), int(first.imagelength), limits.pixels)
         check_sample_count(count, page_shape(first), limits.samples)
         stored = tiff_params(first.description)
@@ -198,6 +200,34 @@ def _check_not_a_stack_of_planes(page: tifffile.TiffPage) -> None:
         "write the frames as pages, tifffile.imwrite(path, frames, "
         "photometric='minisblack'); a single colour frame goes to POST /v1/reconstructions "
         "(mcam reconstruct)"
+    )
+
+
+#: The axes of an ImageJ hyperstack its description counts, as they are named there.
+IMAGEJ_AXES = ("frames", "channels", "slices")
+
+
+def _check_not_a_hyperstack(description: str | None, pages: int) -> None:
+    """Refuse a TIFF (of ``pages`` pages) that ImageJ's description (``ImageJ=...``,
+    page 0) declares a hyperstack of two axes or more (frames and channels, or slices):
+    each channel or slice is a page of its own, and 4 colour frames of 3 channels were
+    read as a grey video of 12 frames. A stack of one axis, whatever ImageJ calls it,
+    is a page per frame."""
+    if not description or not description.startswith("ImageJ="):
+        return
+    sizes: dict[str, int] = {}
+    for line in description.splitlines():
+        name, _, value = line.partition("=")
+        if name in IMAGEJ_AXES and value.strip().isdecimal() and int(value) > 1:
+            sizes[name] = int(value)
+    if len(sizes) < 2:
+        return
+    axes = " x ".join(f"{sizes[name]} {name}" for name in IMAGEJ_AXES if name in sizes)
+    raise InvalidInputError(
+        f"the TIFF is an ImageJ hyperstack of {axes}: its {pages} pages interleave them, "
+        "and a TIFF video is one page per frame: save a page per time point (a colour "
+        "frame's channels as its RGB samples, e.g. tifffile.imwrite(path, frames, "
+        "photometric='rgb') of frames T x H x W x 3), or keep one channel and one slice"
     )
 
 

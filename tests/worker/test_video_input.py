@@ -514,6 +514,28 @@ def test_three_or_four_frames_tifffile_stored_as_colour_planes_are_not_one_frame
     np.testing.assert_array_equal(decode_video(pages.getvalue(), "tiff", FLAGS).codes, stack)
 
 
+@pytest.mark.parametrize(
+    ("shape", "axes", "named"),
+    [
+        ((4, 3, 6, 5), "TCYX", "4 frames x 3 channels"),
+        ((4, 2, 6, 5), "TZYX", "4 frames x 2 slices"),
+    ],
+)
+def test_an_imagej_hyperstack_is_not_read_as_one_frame_a_page(
+    shape: tuple[int, ...], axes: str, named: str
+) -> None:
+    """ImageJ stores a hyperstack's channels (or slices) as pages of their own: 4 colour
+    frames of 3 channels became a grey video of 12 frames without a word."""
+    buffer = io.BytesIO()
+    stack = np.random.default_rng(0).integers(0, 256, shape).astype(np.uint8)
+    tifffile.imwrite(buffer, stack, imagej=True, metadata={"axes": axes})
+    with pytest.raises(InvalidInputError, match=rf"ImageJ hyperstack of {named}: its (12|8) pages"):
+        decode_video(buffer.getvalue(), "tiff", FLAGS)
+    plain = io.BytesIO()
+    tifffile.imwrite(plain, stack[:, 0], imagej=True, metadata={"axes": "TYX"})
+    np.testing.assert_array_equal(decode_video(plain.getvalue(), "tiff", FLAGS).codes, stack[:, 0])
+
+
 def tiff_pages(*pages: tuple[np.ndarray, SensorParams | None]) -> bytes:
     """A TIFF video written a page at a time, each page with its own description."""
     buffer = io.BytesIO()
