@@ -150,6 +150,13 @@ async def _read_multipart(request: Request) -> Upload:
         ) from None  # fmt: skip
     try:
         file = form.get("file")
+        if isinstance(file, str):
+            raise MissingParameterError(
+                "the field 'file' came as text, not as a file: its part's Content-Disposition "
+                "has no filename (curl -F file=<frame.png sends the file's bytes as text, "
+                "and the parameter filename* alone is not read); send it as a file "
+                "(curl -F file=@frame.png)"
+            )
         if not isinstance(file, UploadFile):
             raise MissingParameterError(
                 "no file uploaded: send it in the multipart/form-data field 'file' (a body "

@@ -33,3 +33,18 @@ def test_a_raw_file_is_still_read_as_one(client: Client) -> None:
     reply = client().post("/v1/simulate", content=exr_bytes(),
                           headers={"Content-Type": "application/octet-stream"})
     assert reply.status_code == 200, reply.text
+
+
+@pytest.mark.parametrize("route", ["/v1/simulate", "/v1/reconstructions"])
+def test_a_file_sent_as_a_text_field_is_told_to_be_sent_as_a_file(
+    client: Client, route: str
+) -> None:
+    """``curl -F file=<frame.png`` (or a part with no ``filename``) sends the field
+    ``file`` as text: it was told that no file came and to send it in the field 'file',
+    which it had."""
+    file = exr_bytes() if route == "/v1/simulate" else frame_png()[0]
+    reply = client().post(route, files={"file": (None, file)})
+    assert reply.status_code == 422, reply.text
+    message = reply.json()["message"]
+    assert "the field 'file' came as text" in message
+    assert "curl -F file=@" in message
