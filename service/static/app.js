@@ -425,17 +425,25 @@ async function refreshHdr() {
   }
 }
 
-async function run(event) {
-  event.preventDefault();
-  const file = $("file").files[0];
-  if (!file) return setStatus("choose a file first", "error");
+// The page's address names the job in flight or shown (#job=<id>), so that a reload, or
+// leaving the page and coming back, follows it again (it was forgotten: "No job yet.").
+const JOB_HASH = /^#job=([0-9a-f]{32})$/;
+
+// Put job id (null: none) in the page's address, adding no history entry.
+function setJobHash(id) {
+  history.replaceState(null, "", id ? `#job=${id}` : location.pathname + location.search);
+}
+
+// Follow the job whose id start() resolves to (a submit, or the address's job): watch it
+// until it finished, then show its results.
+async function follow(start) {
   $("run").disabled = true;
   clearJob();
   clearResult();
+  setJobHash(null);
   try {
-    const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
-    const frame = simulated ? await simulateFrame(file) : file;
-    const id = await submitFrame(frame, simulated);
+    const id = await start();
+    setJobHash(id);
     watched = { id, stop: new AbortController() };
     $("cancel").disabled = false;
     const job = await waitForJob(id, watched.stop.signal);
@@ -449,6 +457,20 @@ async function run(event) {
     $("cancel").disabled = true;
     $("run").disabled = false;
   }
+}
+
+// Submit file (an HDR image simulated first, as Upload says); resolves to the job's id.
+async function submitFile(file) {
+  const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
+  const frame = simulated ? await simulateFrame(file) : file;
+  return submitFrame(frame, simulated);
+}
+
+function run(event) {
+  event.preventDefault();
+  const file = $("file").files[0];
+  if (!file) return setStatus("choose a file first", "error");
+  follow(() => submitFile(file));
 }
 
 // An error handler for the results of job id that could not be fetched.
@@ -535,5 +557,10 @@ $("job-form").addEventListener("submit", run);
 $("exposure").addEventListener("input", onExposure);
 $("download").addEventListener("click", download);
 $("cancel").addEventListener("click", cancel);
-if (apiKey()) loadDecoders();
-else setStatus("Enter the API key (printed by mcam serve on first start) and save it.");
+if (apiKey()) {
+  loadDecoders();
+  const shown = JOB_HASH.exec(location.hash);
+  if (shown) follow(async () => shown[1]);
+} else {
+  setStatus("Enter the API key (printed by mcam serve on first start) and save it.");
+}

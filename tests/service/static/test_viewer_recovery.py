@@ -133,6 +133,26 @@ def test_a_job_is_followed_across_a_server_restart(
     assert page.is_enabled("#run") and page.is_disabled("#cancel")
 
 
+def test_a_job_is_followed_again_after_a_reload_or_back_and_forward(
+    browser: Browser, settings: Settings, api: str, frame: Path
+) -> None:
+    """The job in flight was forgotten by a reload (or leaving the page and coming
+    back): the page read "No job yet." while the job ran on, its results out of reach."""
+    page = open_viewer(browser, api)
+    job_id = submit(page, frame)  # no worker yet: the job waits in the queue
+    wait_for_status(page, "queued")
+    page.reload()
+    assert wait_for_status(page, job_id) == f"job {job_id}: queued"
+    assert page.is_disabled("#run") and page.is_enabled("#cancel")
+    page.goto("about:blank")
+    page.go_back()
+    assert wait_for_status(page, job_id) == f"job {job_id}: queued"
+    with running_worker(settings):
+        assert wait_for_status(page, "succeeded") == f"job {job_id}: succeeded"
+        wait_for_panels(page)
+    assert page.is_enabled("#run") and page.is_disabled("#cancel")
+
+
 def documented_polls(span_ms: float) -> int:
     """Polls of a job in its first ``span_ms`` as the README says: at once, then after
     250 ms, 1.5 times later each time, up to every 2 s."""
