@@ -49,6 +49,15 @@ IMMUTABLE = "private, max-age=31536000, immutable"
 NOT_MODIFIED_HEADERS = ("etag", "cache-control")
 
 
+def _changed_since(response: Headers, date: str) -> bool | None:
+    """Whether ``response``'s ``Last-Modified`` is later than the HTTP-date ``date``
+    (None: ``date`` is no valid HTTP-date, and the condition that names it is ignored)."""
+    try:
+        return parsedate_to_datetime(response["last-modified"]) > parsedate_to_datetime(date)
+    except (TypeError, ValueError):
+        return None
+
+
 def not_modified(request: Headers, response: Headers) -> bool:
     """Whether a GET of a file with ``response``'s ``ETag`` and ``Last-Modified`` may be
     answered 304: ``If-None-Match`` names its tag (weakly compared) or is ``*``; without
@@ -58,12 +67,20 @@ def not_modified(request: Headers, response: Headers) -> bool:
         tags = {tag.strip().removeprefix("W/") for tag in if_none_match.split(",")}
         return "*" in tags or response["etag"].removeprefix("W/") in tags
     since = request.get("if-modified-since")
-    if since is None:
-        return False
-    try:
-        return parsedate_to_datetime(response["last-modified"]) <= parsedate_to_datetime(since)
-    except (TypeError, ValueError):
-        return False
+    return since is not None and _changed_since(response, since) is False
+
+
+def precondition_failed(request: Headers, response: Headers) -> bool:
+    """Whether a request for a file with ``response``'s ``ETag`` and ``Last-Modified``
+    must be answered 412 (RFC 9110 13.1.1-13.1.2): ``If-Match`` names neither its tag
+    (strongly compared: a weak ``W/`` tag never matches) nor ``*``; without it,
+    ``If-Unmodified-Since`` is a valid date earlier than ``Last-Modified``."""
+    if_match = request.get("if-match")
+    if if_match is not None:
+        tags = {tag.strip() for tag in if_match.split(",")}
+        return "*" not in tags and response["etag"] not in tags
+    since = request.get("if-unmodified-since")
+    return since is not None and _changed_since(response, since) is True
 
 
 class HeldFileResponse(FileResponse):
@@ -80,9 +97,19 @@ class HeldFileResponse(FileResponse):
         self.handle = handle
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        """Send the file, or a 304 without it to a GET or HEAD whose validators say the
-        client's copy is current (RFC 9110 13.1.2-13.1.3), so a viewer revalidating a
-        device's newest frame does not fetch it again."""
+        """Send the file; a 412 to a request whose ``If-Match`` or
+        ``If-Unmodified-Since`` the file fails (a client fetching pieces of one version
+        of a device's newest frame got pieces of another); a 304 without it to a GET or
+        HEAD whose validators say the client's copy is current (RFC 9110 13.1.1-13.1.4),
+        so a viewer revalidating a device's newest frame does not fetch it again."""
+        if scope["type"] == "http" and precondition_failed(Headers(scope=scope), self.headers):
+            raise ApiError(
+                412, "precondition_failed",
+                f"this file is now {self.headers['etag']}, last modified "
+                f"{self.headers['last-modified']}: not the version that If-Match or "
+                "If-Unmodified-Since names; fetch it again whole, without them",
+                headers={"ETag": self.headers["etag"]},
+            )  # fmt: skip
         if scope["type"] == "http" and scope["method"].upper() in ("GET", "HEAD"):
             if not_modified(Headers(scope=scope), self.headers):
                 kept = {name: self.headers[name] for name in NOT_MODIFIED_HEADERS}

@@ -156,3 +156,34 @@ def test_if_none_match_wins_over_if_modified_since(api_download: httpx.Client) -
     modified = api_download.get("/result").headers["last-modified"]
     headers = {"If-None-Match": '"other"', "If-Modified-Since": modified}
     assert api_download.get("/result", headers=headers).status_code == 200
+
+
+def test_an_if_match_naming_another_file_is_a_412(api_download: httpx.Client) -> None:
+    """RFC 9110 13.1.1: a client that fetches pieces of one file (a device's newest frame
+    changes) with If-Match got 200 or 206 from whatever file was there, mixing files."""
+    etag = api_download.get("/result").headers["etag"]
+    for tag in ('"other"', f"W/{etag}"):  # If-Match compares strongly
+        for extra in ({}, {"Range": "bytes=0-9"}):
+            reply = api_download.get("/result", headers={"If-Match": tag, **extra})
+            assert reply.status_code == 412, reply.text
+            assert reply.json()["code"] == "precondition_failed"
+            assert etag in reply.json()["message"]
+    for tag in (etag, f'"other", {etag}', "*"):
+        reply = api_download.get("/result", headers={"If-Match": tag, "Range": "bytes=0-9"})
+        assert reply.status_code == 206 and reply.content == DATA[:10]
+
+
+def test_if_unmodified_since_before_the_file_changed_is_a_412(
+    api_download: httpx.Client,
+) -> None:
+    modified = api_download.get("/result").headers["last-modified"]
+    before = api_download.get(
+        "/result", headers={"If-Unmodified-Since": "Mon, 01 Jan 2001 00:00:00 GMT"}
+    )
+    assert before.status_code == 412 and before.json()["code"] == "precondition_failed"
+    for since in (modified, "yesterday"):
+        reply = api_download.get("/result", headers={"If-Unmodified-Since": since})
+        assert reply.status_code == 200 and reply.content == DATA
+    etag = api_download.get("/result").headers["etag"]
+    headers = {"If-Match": etag, "If-Unmodified-Since": "Mon, 01 Jan 2001 00:00:00 GMT"}
+    assert api_download.get("/result", headers=headers).status_code == 200
