@@ -3,7 +3,8 @@
 The web viewer keeps the API key in ``localStorage``, so its pages get a Content
 Security Policy that runs only the viewer's own scripts and styles, loads images only
 from itself, ``blob:`` (decoded results) and ``data:`` (the inline SVG favicon), talks
-only to its own origin and cannot be framed (clickjacking), plus ``no-referrer``.
+only to its own origin and cannot be framed (clickjacking), plus ``no-referrer``; a
+browser revalidates them on each load (``no-cache``), so it never runs an old script.
 The API documentation (``/docs``, :mod:`service.api.routes.docs`) has a policy of its
 own that still allows no other origin.
 """
@@ -56,8 +57,10 @@ def page_headers(policy: str) -> dict[str, str]:
     }
 
 
-#: Headers of the viewer's files (``service/static``).
-VIEWER_HEADERS = page_headers(VIEWER_CSP)
+#: Headers of the viewer's files (``service/static``): revalidated on each load (304
+#: while unchanged). Sent with ``Last-Modified`` alone, a browser kept them fresh for a
+#: tenth of their age and ran an old ``app.js``, holding the key, against an upgraded API.
+VIEWER_HEADERS = {**page_headers(VIEWER_CSP), "Cache-Control": "no-cache"}
 #: Headers of the API documentation page (``/docs``).
 DOCS_HEADERS = page_headers(DOCS_CSP)
 

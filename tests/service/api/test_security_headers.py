@@ -60,3 +60,15 @@ def test_api_replies_and_errors_are_nosniff_without_the_viewer_policy(client: Cl
         assert "content-security-policy" not in reply.headers, path
     docs = client("").get("/docs")  # its own policy (tests/service/api/routes/test_docs)
     assert directives(docs.headers["content-security-policy"]) != README_VIEWER_POLICY
+
+
+@pytest.mark.parametrize("path", ["/", "/app.js", "/live.js", "/style.css"])
+def test_the_viewer_s_files_are_revalidated_on_each_load(client: Client, path: str) -> None:
+    """With Last-Modified and no Cache-Control a browser kept the files fresh for a tenth
+    of their age (days for an installed checkout), and ran the old app.js against an
+    upgraded server; each load now asks, and gets 304 while the file is unchanged."""
+    first = client("").get(path)
+    assert first.headers["cache-control"] == "no-cache"
+    again = client("").get(path, headers={"If-None-Match": first.headers["etag"]})
+    assert again.status_code == 304
+    assert again.headers["cache-control"] == "no-cache"
