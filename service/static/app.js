@@ -10,6 +10,10 @@ const KEY_STORAGE = "mcam-api-key";
 const POLL_FIRST_MS = 250;
 const POLL_MAX_MS = 2000;
 const RETRY_MAX_MS = 8000;
+// A poll not answered within this long (a connection that died without closing, as on a
+// network that changed) is given up and retried as a lost connection; it was waited
+// for without end.
+const POLL_TIMEOUT_MS = 20000;
 // A result the server is too busy to make (429, or 503 past MCAM_MAX_CONCURRENT_DECODES
 // previews and uploads at once) is asked for again after Retry-After, this many times
 // in all.
@@ -54,6 +58,10 @@ async function replyError(reply) {
 // made fetch refuse the request, which read as "cannot reach the server").
 const KEY_PATTERN = /^[\x21-\x7e]*$/;
 
+// The error of a request that reached no server (or got no answer in time).
+const unreachable = () =>
+  new ApiError("cannot reach the server; check that mcam serve is running");
+
 async function api(path, options = {}) {
   if (!KEY_PATTERN.test(apiKey())) {
     throw new Error("the saved API key holds characters a key never has (a space, a " +
@@ -65,7 +73,7 @@ async function api(path, options = {}) {
     reply = await fetch(path, { ...options, headers });
   } catch (error) {
     if (error.name === "AbortError") throw error;
-    throw new ApiError("cannot reach the server; check that mcam serve is running");
+    throw unreachable();
   }
   if (!reply.ok) throw await replyError(reply);
   return reply;
@@ -256,6 +264,24 @@ function clearJob() {
   $("routing").textContent = "";
 }
 
+// The job's record; one not whole within POLL_TIMEOUT_MS is an unreachable server's
+// error (retried), one asked for until signal aborted an AbortError. (A timer, not
+// AbortSignal.any, which Firefox 115 ESR lacks.)
+async function fetchJob(id, signal) {
+  const asked = new AbortController();
+  const abort = () => asked.abort();
+  signal.addEventListener("abort", abort, { once: true });
+  const timer = setTimeout(abort, POLL_TIMEOUT_MS);
+  try {
+    return await (await api(`/v1/jobs/${id}`, { signal: asked.signal })).json();
+  } catch (error) {
+    throw asked.signal.aborted && !signal.aborted ? unreachable() : error;
+  } finally {
+    clearTimeout(timer);
+    signal.removeEventListener("abort", abort);
+  }
+}
+
 // Poll the job until it finished, at growing intervals. A failed poll (server down, 503,
 // 429) keeps the job on screen and is retried (after Retry-After if given); a 404 or 410
 // means the job is gone. Returns the finished job, or null once signal aborts (Cancel).
@@ -265,7 +291,7 @@ async function waitForJob(id, signal) {
   while (!signal.aborted) {
     let delayMs;
     try {
-      const job = await (await api(`/v1/jobs/${id}`, { signal })).json();
+      const job = await fetchJob(id, signal);
       showJob(job);
       if (FINISHED.includes(job.state)) return job;
       failures = 0;

@@ -371,6 +371,35 @@ def test_a_rate_limited_poll_waits_as_retry_after_says(
         assert page.is_enabled("#cancel")
 
 
+def test_a_poll_left_unanswered_is_given_up_and_asked_again(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """A poll whose answer never came (a connection that died without closing, as on a
+    network that changed) was waited for without end: the status read "queued" however
+    long, and no poll went out again."""
+    page = open_viewer(browser, api, fake_clock=True)
+    job_id = submit(page, frame)  # no worker: the job stays queued
+    held: list[Route] = []
+
+    def hold_once(route: Route) -> None:
+        if held:
+            route.continue_()
+        else:
+            held.append(route)  # never answered
+
+    page.route(f"**/v1/jobs/{job_id}", hold_once)
+    page.clock.run_for(1_000)
+    deadline = time.monotonic() + 30
+    while not held:
+        assert time.monotonic() < deadline, "the page did not poll again"
+        page.wait_for_timeout(POLL_MS)
+    page.clock.run_for(60_000)
+    status = wait_for_status(page, "connection to the server lost")
+    assert job_id in status and "retrying in" in status
+    page.clock.run_for(10_000)
+    assert wait_for_status(page, "queued") == f"job {job_id}: queued"
+
+
 def test_a_job_gone_from_the_server_is_given_up_with_a_clear_message(
     browser: Browser, api: str, settings: Settings, frame: Path
 ) -> None:
