@@ -544,8 +544,13 @@ async function finishedBeforeCancel(id, error) {
     "its results; press Reconstruct to run it again", "warning");
 }
 
-function onExposure() {
+// Name the slider's exposure in the HDR panel's caption.
+function showExposure() {
   $("ev-value").textContent = exposure();
+}
+
+function onExposure() {
+  showExposure();
   drawHistogram();
   clearTimeout(exposureTimer);
   if (shownJob) exposureTimer = setTimeout(refreshHdr, 120);
@@ -568,6 +573,9 @@ async function download() {
 }
 
 $("api-key").value = apiKey();
+// Back to the page, the browser restores the slider where it was, once the page loaded:
+// the caption named the HTML's 0 EV beside previews made at the restored exposure.
+window.addEventListener("pageshow", showExposure);
 $("key-form").addEventListener("submit", (event) => {
   event.preventDefault();
   const key = $("api-key").value.trim();

@@ -3,7 +3,8 @@ in headless Debian chromium (Playwright, no browser download), against real uvic
 Redis and a worker: a scene with negative values (lossy EXR) is simulated once the page
 asks for them clipped, a frame read as another format than its name says is noted, and
 a job not yet decoded shows no decode facts, a file of the other kind is told which choice
-takes it, and the file chooser offers every file the API reads.
+takes it, the file chooser offers every file the API reads, and an exposure the browser
+restored is the one the caption names.
 """
 
 from __future__ import annotations
@@ -139,3 +140,18 @@ def test_the_file_chooser_offers_every_file_the_api_reads(browser: Browser, api:
     assert accept is not None
     read = [*FRAME_ALIASES, "exr", "hdr", "pic"]  # frames, and HDR images by first bytes
     assert set(accept.split(",")) == {f".{suffix}" for suffix in read}
+
+
+def test_an_exposure_the_browser_restored_is_the_one_the_caption_names(
+    browser: Browser, api: str
+) -> None:
+    """Back to the page, the browser restores the slider where it was (-4 EV), and the
+    previews were made at it, but the caption read "tonemapped at 0 EV" until the slider
+    moved."""
+    page = open_viewer(browser, api)
+    page.fill("#exposure", "-4")
+    page.dispatch_event("#exposure", "input")
+    page.goto("about:blank")
+    page.go_back()
+    wait_for_js(page, "document.getElementById('exposure').value === '-4'")
+    wait_for_js(page, "document.getElementById('ev-value').textContent === '-4'")
