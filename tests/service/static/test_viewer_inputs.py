@@ -3,8 +3,8 @@ in headless Debian chromium (Playwright, no browser download), against real uvic
 Redis and a worker: a scene with negative values (lossy EXR) is simulated once the page
 asks for them clipped, a frame read as another format than its name says is noted, and
 a job not yet decoded shows no decode facts, a file of the other kind is told which choice
-takes it, the file chooser offers every file the API reads, and an exposure the browser
-restored is the one the caption names.
+takes it, the file chooser offers every file the API reads, an exposure the browser
+restored is the one the caption names, and a tall thin frame's panels fit the window.
 """
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ from typing import TYPE_CHECKING
 
 import pytest
 
-from models.frames import FRAME_ALIASES
+from models.formation import simulate
+from models.frames import FRAME_ALIASES, encode_frame
 from models.hdr_io import read_hdr
-from tests.service.conftest import exr_bytes, frame_png
+from tests.service.conftest import PARAMS, exr_bytes, frame_png, scene
 from tests.service.static.conftest import (
     needs_chromium,
     open_viewer,
@@ -155,3 +156,23 @@ def test_an_exposure_the_browser_restored_is_the_one_the_caption_names(
     page.go_back()
     wait_for_js(page, "document.getElementById('exposure').value === '-4'")
     wait_for_js(page, "document.getElementById('ev-value').textContent === '-4'")
+
+
+def test_a_tall_thin_frame_s_panels_fit_the_window(
+    browser: Browser, api: str, worker: Worker, tmp_path: Path
+) -> None:
+    """A 256 x 2 frame (valid: at least 2 x 2) was drawn 100% wide, so each panel stood
+    over 50 000 px tall, the exposure slider, histogram and Download far below it."""
+    frame = simulate(scene(256)[:, :2].copy(), PARAMS)
+    tall = tmp_path / "tall.png"
+    tall.write_bytes(encode_frame(frame.codes, frame.params, "png"))
+    page = open_viewer(browser, api)
+    page.set_viewport_size({"width": 1280, "height": 800})
+    page.set_input_files("#file", str(tall))
+    assert "succeeded" in run_and_wait(page)
+    wait_for_js(page, "!document.getElementById('download').disabled")
+    heights = page.evaluate(
+        "['img-codes', 'img-winding', 'img-hdr']"
+        ".map(id => document.getElementById(id).getBoundingClientRect().height)"
+    )
+    assert max(heights) <= 800, f"panels {heights} px tall in an 800 px window"
