@@ -75,12 +75,24 @@ def _check_rate(state: ServiceState, key: ApiKey) -> None:
         )
 
 
-def require(scope: str) -> Callable[[ServiceState, Credentials], ApiKey]:
+def _no_bearer_key(request: Request) -> ApiError:
+    """The 401 of a request without a Bearer key: none sent, or an ``Authorization``
+    header of another form (the key alone, another scheme, ``Bearer`` with no key), which
+    was told the key was missing. The header is not echoed: it may hold the key."""
+    if request.headers.get("authorization") is None:
+        return _unauthorized("missing API key: send the header 'Authorization: Bearer <key>'")
+    return _unauthorized(
+        "the Authorization header is not 'Bearer <key>' (the key alone, another scheme, or "
+        "no key after Bearer): send the header 'Authorization: Bearer <key>'"
+    )
+
+
+def require(scope: str) -> Callable[[Request, ServiceState, Credentials], ApiKey]:
     """A dependency accepting keys that hold ``scope`` (``read`` or ``submit``)."""
 
-    def authenticated(state: StateDep, credentials: Credentials) -> ApiKey:
+    def authenticated(request: Request, state: StateDep, credentials: Credentials) -> ApiKey:
         if credentials is None:
-            raise _unauthorized("missing API key: send the header 'Authorization: Bearer <key>'")
+            raise _no_bearer_key(request)
         key = state.keyring.authenticate(credentials.credentials)
         if key is None:
             raise _unauthorized("unknown API key: check the key (see the data dir's api_keys)")

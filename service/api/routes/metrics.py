@@ -27,6 +27,6 @@ router = APIRouter(tags=["ops"])
 )
 def metrics(request: Request, state: StateDep, credentials: Credentials) -> Response:
     if not state.settings.metrics_public:
-        require("read")(state, credentials)
+        require("read")(request, state, credentials)
     registry: CollectorRegistry = request.app.state.metrics_registry
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

@@ -21,6 +21,22 @@ def test_missing_wrong_and_malformed_keys_are_401(api: str) -> None:
         assert reply.headers["WWW-Authenticate"] == "Bearer"
 
 
+@pytest.mark.parametrize(
+    "value", [FULL_KEY, f"Basic {FULL_KEY}", f"Token {FULL_KEY}", "Bearer"]
+)
+def test_a_key_sent_without_bearer_is_told_so_not_that_it_is_missing(
+    api: str, value: str
+) -> None:
+    """``Authorization: <key>`` (or another scheme, or Bearer with no key) was answered
+    "missing API key", though the header had come; the key itself is not echoed."""
+    reply = httpx.get(f"{api}/v1/decoders", headers={"Authorization": value})
+    assert reply.status_code == 401
+    message = reply.json()["message"]
+    assert message.startswith("the Authorization header is not 'Bearer <key>'"), message
+    assert FULL_KEY not in message
+    assert reply.headers["WWW-Authenticate"] == "Bearer"
+
+
 def test_rate_limit_is_shared_by_api_processes(tmp_path: Path, redis_url: str) -> None:
     settings = make_settings(tmp_path, redis_url, rate_limit_per_minute=4)
     headers = {"Authorization": f"Bearer {FULL_KEY}"}
