@@ -97,7 +97,12 @@ def require(scope: str) -> Callable[[Request, ServiceState, Credentials], ApiKey
         if key is None:
             raise _unauthorized("unknown API key: check the key (see the data dir's api_keys)")
         if scope not in key.scopes:
-            raise ApiError(403, "forbidden", f"this API key lacks the {scope!r} scope needed here")
+            raise ApiError(
+                403, "forbidden",
+                f"this API key lacks the {scope!r} scope needed here; use a key that has it "
+                f"(in MCAM_API_KEYS or the data dir's api_keys: KEY for every scope, or "
+                f"KEY:{scope})",
+            )  # fmt: skip
         _check_rate(state, key)
         return key
 

@@ -9,7 +9,7 @@ import httpx
 import pytest
 
 from service.main import create_app
-from tests.service.conftest import FULL_KEY, make_settings, serve
+from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, make_settings, serve
 from worker.embedded_redis import EmbeddedRedis
 
 
@@ -35,6 +35,22 @@ def test_a_key_sent_without_bearer_is_told_so_not_that_it_is_missing(
     assert message.startswith("the Authorization header is not 'Bearer <key>'"), message
     assert FULL_KEY not in message
     assert reply.headers["WWW-Authenticate"] == "Bearer"
+
+
+@pytest.mark.parametrize(
+    ("key", "path", "scope"),
+    [(READ_KEY, "/v1/jobs/" + "0" * 32, "submit"), (SUBMIT_KEY, "/v1/decoders", "read")],
+)
+def test_a_key_without_the_scope_is_told_which_keys_have_it(
+    api: str, key: str, path: str, scope: str
+) -> None:
+    """The 403 said the key lacked the scope, not where a key gets it."""
+    method = "DELETE" if scope == "submit" else "GET"
+    reply = httpx.request(method, f"{api}{path}", headers={"Authorization": f"Bearer {key}"})
+    assert reply.status_code == 403
+    message = reply.json()["message"]
+    assert f"lacks the {scope!r} scope needed here" in message
+    assert f"KEY:{scope}" in message and "MCAM_API_KEYS" in message
 
 
 def test_rate_limit_is_shared_by_api_processes(tmp_path: Path, redis_url: str) -> None:
