@@ -186,13 +186,18 @@ async function simulateFrame(file) {
   return new File([await reply.blob()], "frame.tiff", { type: "image/tiff" });
 }
 
-async function submitFrame(frame, simulated) {
+// The decoder choice as a form field: [name, value] of the quality, else the decoder.
+function decoderField() {
+  return $("quality").value ? ["quality", $("quality").value] : ["decoder", $("decoder").value];
+}
+
+// Submit frame with decoder (decoderField, read when Reconstruct was pressed).
+async function submitFrame(frame, simulated, decoder) {
   setStatus("uploading the frame…");
   const form = new FormData();
   form.append("file", frame);
   if (!simulated) sensorFields(form, false);
-  if ($("quality").value) form.append("quality", $("quality").value);
-  else form.append("decoder", $("decoder").value);
+  form.append(...decoder);
   const reply = await api("/v1/reconstructions", { method: "POST", body: form }).catch((error) => {
     throw simulated ? error : wrongKind(error, "frame");
   });
@@ -486,10 +491,12 @@ async function follow(start) {
 }
 
 // Submit file (an HDR image simulated first, as Upload says); resolves to the job's id.
+// The decoder is read at once: one chosen while the simulate runs is for the next run.
 async function submitFile(file) {
   const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
+  const decoder = decoderField();
   const frame = simulated ? await simulateFrame(file) : file;
-  return submitFrame(frame, simulated);
+  return submitFrame(frame, simulated, decoder);
 }
 
 function run(event) {

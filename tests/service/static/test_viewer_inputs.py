@@ -4,7 +4,8 @@ Redis and a worker: a scene with negative values (lossy EXR) is simulated once t
 asks for them clipped, a frame read as another format than its name says is noted, and
 a job not yet decoded shows no decode facts, a file of the other kind is told which choice
 takes it, the file chooser offers every file the API reads, an exposure the browser
-restored is the one the caption names, and a tall thin frame's panels fit the window.
+restored is the one the caption names, a tall thin frame's panels fit the window, and a
+job runs with the decoder chosen when Reconstruct was pressed.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from tests.service.static.conftest import (
 from worker.runner import Worker
 
 if TYPE_CHECKING:
-    from playwright.sync_api import Browser, Page
+    from playwright.sync_api import Browser, Page, Route
 
 #: A shipped scene: DWAB-compressed (lossy), it holds negative values, as they all do.
 SCENE = Path(__file__).resolve().parents[3] / "models" / "data" / "hdri" / "sky.exr"
@@ -176,3 +177,28 @@ def test_a_tall_thin_frame_s_panels_fit_the_window(
         ".map(id => document.getElementById(id).getBoundingClientRect().height)"
     )
     assert max(heights) <= 800, f"panels {heights} px tall in an 800 px window"
+
+
+def test_the_decoder_is_the_one_chosen_when_reconstruct_was_pressed(
+    browser: Browser, api: str, tmp_path: Path
+) -> None:
+    """An HDR image is simulated first; the decoder or quality was read only once the
+    simulate came back, so one changed meanwhile (set up for the next run) ran this job."""
+    scene = tmp_path / "scene.exr"
+    scene.write_bytes(exr_bytes(32))
+    page = open_viewer(browser, api)  # no worker: only the submit is looked at
+    held: list[Route] = []
+    page.route("**/v1/simulate", lambda route: held.append(route))
+    page.check("input[name=kind][value=hdr]")
+    page.set_input_files("#file", str(scene))
+    page.select_option("#quality", "fast")
+    page.click("#run")
+    wait_for_js(page, "document.getElementById('status').textContent.includes('simulating')")
+    while not held:
+        page.wait_for_timeout(50)
+    page.select_option("#quality", "best")
+    with page.expect_request("**/v1/reconstructions") as submitted:
+        held[0].continue_()
+    body = submitted.value.post_data_buffer or b""
+    assert b'name="quality"\r\n\r\nfast\r\n' in body, body[-400:]
+    wait_for_status(page, "queued")
