@@ -166,6 +166,16 @@ function wrongKind(error, kind) {
     `“${other}” under Upload and press Reconstruct again`, error.status, null, error.code);
 }
 
+// The error for a frame the API cannot decode without parameters it does not store (an
+// npy frame): the API's words name its CLI flags and form fields; this adds where they
+// go on this page. Not for raw codes (a .raw or .bin file), whose size the page cannot
+// send.
+function sensorMissing(error, name) {
+  if (error.code !== "missing_parameter" || /\.(raw|bin)$/i.test(name)) return error;
+  return new ApiError(`${error.message}; on this page, fill in encoding, alpha and bits ` +
+    "under Sensor and press Reconstruct again", error.status, null, error.code);
+}
+
 // The sensor's frame of an HDR image, as a TIFF: it holds grey and colour frames alike
 // (a PNG frame is grey only, and every Radiance .hdr is colour). Notes how many negative
 // scene values were set to 0 (X-Mcam-Clipped-Negative) when that was asked for.
@@ -199,7 +209,7 @@ async function submitFrame(frame, simulated, decoder) {
   if (!simulated) sensorFields(form, false);
   form.append(...decoder);
   const reply = await api("/v1/reconstructions", { method: "POST", body: form }).catch((error) => {
-    throw simulated ? error : wrongKind(error, "frame");
+    throw simulated ? error : sensorMissing(wrongKind(error, "frame"), frame.name);
   });
   return (await reply.json()).id;
 }

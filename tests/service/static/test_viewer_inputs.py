@@ -4,8 +4,9 @@ Redis and a worker: a scene with negative values (lossy EXR) is simulated once t
 asks for them clipped, a frame read as another format than its name says is noted, and
 a job not yet decoded shows no decode facts, a file of the other kind is told which choice
 takes it, the file chooser offers every file the API reads, an exposure the browser
-restored is the one the caption names, a tall thin frame's panels fit the window, and a
-job runs with the decoder chosen when Reconstruct was pressed.
+restored is the one the caption names, a tall thin frame's panels fit the window, a job
+runs with the decoder chosen when Reconstruct was pressed, and a frame without its
+parameters is told where they go on the page.
 """
 
 from __future__ import annotations
@@ -13,12 +14,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import pytest
 
 from models.formation import simulate
 from models.frames import FRAME_ALIASES, encode_frame
 from models.hdr_io import read_hdr
-from tests.service.conftest import PARAMS, exr_bytes, frame_png, scene
+from tests.service.conftest import PARAMS, exr_bytes, frame_png, npy_bytes, scene
 from tests.service.static.conftest import (
     needs_chromium,
     open_viewer,
@@ -202,3 +204,21 @@ def test_the_decoder_is_the_one_chosen_when_reconstruct_was_pressed(
     body = submitted.value.post_data_buffer or b""
     assert b'name="quality"\r\n\r\nfast\r\n' in body, body[-400:]
     wait_for_status(page, "queued")
+
+
+def test_a_frame_without_its_parameters_is_told_where_to_give_them_on_the_page(
+    browser: Browser, api: str, tmp_path: Path
+) -> None:
+    """An npy frame stores no encoding, alpha or bits: the API's refusal names the
+    command line's flags and the HTTP form fields, neither of which the page's user
+    sends; the page adds where they go on it."""
+    frame = tmp_path / "frame.npy"
+    frame.write_bytes(npy_bytes(np.zeros((8, 8), dtype=np.uint8)))
+    page = open_viewer(browser, api)
+    page.set_input_files("#file", str(frame))
+    refused = run_and_wait(page)
+    assert refused.startswith("missing_parameter: the frame does not store its"), refused
+    assert refused.endswith(
+        "; on this page, fill in encoding, alpha and bits under Sensor and press Reconstruct"
+        " again"
+    ), refused
