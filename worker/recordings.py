@@ -69,6 +69,7 @@ from worker.device_registry import DeviceNotFoundError
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue, check_decoder_supports
 from worker.redis_keys import DEVICES_SET, frame_stream, health_key, recording_key
+from worker.redis_memory import StoreFullError, free_memory, submit_room
 from worker.result_store import ResultStore
 from worker.video_jobs import check_frame_size, video_options
 from worker.video_output import FPS_RANGE
@@ -326,6 +327,42 @@ def reported_frames(
     return params, (int(settings["height"]), int(settings["width"]))
 
 
+def recording_codes_bytes(
+    max_frames: int, max_samples: int, reported: tuple[SensorParams, tuple[int, int]] | None
+) -> int:
+    """Most bytes of codes a recording's video job holds: ``max_frames`` frames of the
+    device's newest frame (``reported``: its parameters and size, H x W px), at most
+    ``max_samples`` code values; before any frame, ``max_samples`` of 2 bytes."""
+    if reported is None:
+        return 2 * max_samples
+    params, (height, width) = reported
+    return np.dtype(params.code_dtype).itemsize * min(max_frames * height * width, max_samples)
+
+
+def check_room(client: redis.Redis, codes_bytes: int) -> None:
+    """Refuse (:class:`StoreFullError`) a recording whose video job, of ``codes_bytes``
+    bytes of codes, Redis could not take now (:func:`submit_room`): it is at its
+    ``maxmemory`` (the camera's frames and the recording's progress are refused too) or
+    has less free below it. Started anyway, it recorded nothing and answered 201."""
+    free = free_memory(client.info("memory"))
+    needed = submit_room(codes_bytes)
+    if free is None or free >= needed:
+        return
+    if free < 0:
+        trouble, fewer = "is full (at its maxmemory) and refuses writes", ""
+    else:
+        trouble = (
+            f"has {free} bytes free below its maxmemory, less than this recording's video "
+            f"needs there ({needed} bytes for up to {codes_bytes} bytes of codes)"
+        )
+        fewer = "record fewer frames (max_frames), "
+    raise StoreFullError(
+        f"the job store (Redis) {trouble}: no recording was started; {fewer}retry once "
+        "queued jobs have finished and finished jobs' records expired, or raise "
+        "MCAM_REDIS_MAXMEMORY (an external Redis: its maxmemory)"
+    )
+
+
 def start_recording(
     client: redis.Redis,
     device: str,
@@ -339,7 +376,8 @@ def start_recording(
     values of the video); None if one is already active. Refused when the device's newest
     frame shows its video job could never be made (:func:`check_recordable`), and with
     :class:`DeviceNotFoundError` when the device is not registered (checked in the same
-    step as the write: a forget that came first leaves no record behind)."""
+    step as the write: a forget that came first leaves no record behind), and with
+    :class:`StoreFullError` when Redis has no room for its video (:func:`check_room`)."""
     reported = reported_frames(client, device)
     if reported is not None:
         check_recordable(device, decoder, options, *reported, "its newest frame")
@@ -349,6 +387,7 @@ def start_recording(
         raise InvalidInputError(
             f"max_samples must be within [1, {MAX_RECORDING_SAMPLES * 2}], got {max_samples}"
         )
+    check_room(client, recording_codes_bytes(max_frames, max_samples, reported))
     fields = {
         "id": uuid.uuid4().hex,
         "device": device,

@@ -94,27 +94,39 @@ def submit_room(codes_bytes: int) -> int:
     return 2 * codes_bytes + min(codes_bytes, QUERY_BUFFER_STEP) + SUBMIT_OVERHEAD_BYTES
 
 
+def free_memory(memory: Mapping[str, Any]) -> int | None:
+    """Bytes Redis has free below its ``maxmemory`` (negative: over it, refusing writes),
+    from its ``INFO memory`` reply, leaving out the buffers Redis does not count against
+    it; None when it is unbounded or evicts keys (never refuses a write)."""
+    maxmemory = int(memory.get("maxmemory", 0))
+    if maxmemory == 0 or memory.get("maxmemory_policy", NO_EVICTION) != NO_EVICTION:
+        return None
+    used = int(memory.get("used_memory", 0)) - int(memory.get("mem_not_counted_for_evict", 0))
+    return maxmemory - used
+
+
 def full_problem(memory: Mapping[str, Any], room_bytes: int) -> str | None:
     """Why Redis refuses, or would refuse, a submit now, from its ``INFO memory`` reply:
     it evicts nothing and is over its ``maxmemory`` (less the buffers Redis leaves out
     of that count), so every submit gets 503 ``store_full``, or it has less than
     ``room_bytes`` free below it, the room the largest upload needs (:func:`submit_room`),
     which would get 503 ``store_full``. None when it has that room (or is unbounded)."""
-    maxmemory = int(memory.get("maxmemory", 0))
-    used = int(memory.get("used_memory", 0)) - int(memory.get("mem_not_counted_for_evict", 0))
-    if maxmemory == 0 or memory.get("maxmemory_policy", NO_EVICTION) != NO_EVICTION:
+    free = free_memory(memory)
+    if free is None:
         return None
-    if used > maxmemory:
+    maxmemory = int(memory["maxmemory"])
+    used = maxmemory - free
+    if free < 0:
         return (
             f"Redis is full ({used} bytes used, maxmemory {maxmemory}) and refuses writes: "
             "every submit gets 503 store_full and queued jobs wait; raise "
             "MCAM_REDIS_MAXMEMORY (an external Redis: its maxmemory), or wait until "
             "finished jobs' records expire (MCAM_RESULT_RETENTION_S)"
         )
-    if maxmemory - used >= room_bytes:
+    if free >= room_bytes:
         return None
     return (
-        f"Redis has {maxmemory - used} bytes free below its maxmemory ({maxmemory}), less "
+        f"Redis has {free} bytes free below its maxmemory ({maxmemory}), less "
         f"than the largest upload needs ({room_bytes}: Redis holds its codes twice, and a "
         "buffer's growth, while it takes them): that upload would get 503 store_full; raise "
         "MCAM_REDIS_MAXMEMORY (an external Redis: its maxmemory), lower the largest upload "

@@ -4,6 +4,7 @@ worker (device frames and jobs), real HTTP; the recorded video's files read back
 from __future__ import annotations
 
 import io
+import json
 import re
 import threading
 import zipfile
@@ -35,10 +36,11 @@ from tests.service.conftest import (
     scene,
     serve,
 )
+from tests.worker.conftest import leave_free
 from worker import recordings
 from worker.embedded_redis import connect
 from worker.frame_message import FrameMessage
-from worker.redis_keys import DEVICES_SET, recording_key
+from worker.redis_keys import DEVICES_SET, health_key, recording_key
 from worker.result_store import RESULTS_DIR, ResultStore
 
 Client = Callable[[str], httpx.Client]
@@ -402,3 +404,49 @@ def test_a_stop_with_start_options_is_refused_and_stops_nothing(
     message = refused.json()["message"]
     assert "max_frames, outputs" in message and "action=start" in message
     assert recording(http)["state"] == "recording"
+
+
+def test_a_start_on_a_full_redis_is_refused_503_and_leaves_no_recording(
+    settings: Settings, client: Client
+) -> None:
+    """A start while Redis is at its maxmemory is refused 503 ``store_full`` saying what
+    to do, and nothing is recorded. Before, it answered 201 "recording": the start's
+    script deletes the old record before it writes, and Redis 6.2 checks a script's
+    memory only at its first write, so the record was written although the camera's
+    frames, the recording's progress and its video job could not be stored."""
+    redis_client = stopped_device(settings, "cam1")
+    http = client(FULL_KEY)
+    redis_client.config_set("maxmemory", 1)
+    try:
+        refused = http.post(URL, json={"action": "start"})
+    finally:
+        redis_client.config_set("maxmemory", 0)
+    assert refused.status_code == 503, refused.text
+    assert refused.json()["code"] == "store_full"
+    assert "MCAM_REDIS_MAXMEMORY" in refused.json()["message"]
+    assert refused.headers["Retry-After"].isdigit()
+    assert http.get(URL).status_code == 404
+    assert http.post(URL, json={"action": "start"}).status_code == 201
+
+
+def test_a_start_is_refused_when_redis_has_no_room_for_its_video(
+    settings: Settings, client: Client
+) -> None:
+    """A start whose video (``max_frames`` of the device's newest frame size) would not
+    fit in what Redis has free below its maxmemory is refused 503 ``store_full``, naming
+    the room it needs; a shorter recording that fits starts."""
+    redis_client = stopped_device(settings, "cam1")
+    redis_client.hset(health_key("cam1"), "settings", json.dumps(
+        {"encoding": "mantissa", "alpha": 2.0, "bits": 8, "gain": 1.0,
+         "height": 64, "width": 64}
+    ))
+    http = client(FULL_KEY)
+    leave_free(redis_client, 1 << 20)
+    try:
+        refused = http.post(URL, json={"action": "start", "max_frames": 300})
+        started = http.post(URL, json={"action": "start", "max_frames": 10})
+    finally:
+        redis_client.config_set("maxmemory", 0)
+    assert refused.status_code == 503, refused.text
+    assert refused.json()["code"] == "store_full" and "max_frames" in refused.json()["message"]
+    assert started.status_code == 201, started.text
