@@ -158,7 +158,7 @@ class DeviceConsumer:
                 continue
             try:
                 busy |= self._drain(device)
-                self.recorder.finish_if_stopping(device)
+                self.recorder.finish_if_due(device)
             except LeaseLost:
                 self._forget(device)
         # A device removed from the registry (DELETE /v1/devices/{id}) is let go here.

@@ -10,7 +10,7 @@ Usage (worker: the device stream's single owner, frames in sequence order)::
 
     recorder = Recorder(client, store, max_deliveries=3)
     recorder.add_frame(message, entry_id)   # each reconstructed frame, before it is committed
-    recorder.finish_if_stopping("cam1")     # every poll, frames or not
+    recorder.finish_if_due("cam1")          # every poll, frames or not
 
 The record is the hash ``device:<id>:recording``; its ``state`` goes ``recording`` ->
 ``stopping`` (asked by the API) -> ``submitted`` (the video job is queued, its id in
@@ -451,6 +451,9 @@ class Recorder:
         recording = load_recording(self.client, message.device)
         if recording is None or not recording.wants(entry_id):
             return
+        if recording.frames >= recording.max_frames:
+            self._finish(recording, "max_frames")  # Redis refused its job at its last frame
+            return
         index = recording.frames
         shape = ",".join(map(str, message.codes.shape))
         update: dict[str, Any] = {
@@ -505,16 +508,25 @@ class Recorder:
             return False
         return True
 
-    def finish_if_stopping(self, device: str) -> None:
+    def finish_if_due(self, device: str) -> None:
         """Queue the video job of a recording the API asked to stop, once every frame sent
         before the stop has been handled (none at or before its ``stop_entry`` is left on
-        the stream: the worker deletes each entry it is done with)."""
-        if self.client.hget(recording_key(device), "state") != b"stopping":
+        the stream: the worker deletes each entry it is done with), or of one holding its
+        ``max_frames`` frames whose job Redis refused when the last of them came (full or
+        unreachable: that frame, retried, is not recorded twice, so it ends here)."""
+        state, frames, max_frames = self.client.hmget(
+            recording_key(device), "state", "frames", "max_frames"
+        )
+        full = bool(frames and max_frames and int(frames) >= int(max_frames))
+        if state not in (b"recording", b"stopping") or (state == b"recording" and not full):
             return
         recording = load_recording(self.client, device)
-        if recording is None or self._frames_left(recording):
+        if recording is None or recording.state not in ACTIVE_STATES:
             return
-        self._finish(recording, recording.reason or "requested")
+        if full:
+            self._finish(recording, "max_frames")
+        elif not self._frames_left(recording):
+            self._finish(recording, recording.reason or "requested")
 
     def _frames_left(self, recording: Recording) -> bool:
         """Whether frames sent before the recording's stop still wait on the stream."""

@@ -97,11 +97,11 @@ def test_frames_recorded_in_order_then_stopped_into_a_video_job(
     assert load_recording(client, "cam1").frames == 6
     assert store.exists(frame_key(recording.id, 5))
 
-    recorder.finish_if_stopping("cam1")  # not asked to stop: nothing happens
+    recorder.finish_if_due("cam1")  # not asked to stop: nothing happens
     assert load_recording(client, "cam1").state == "recording"
     assert request_stop(client, "cam1").state == "stopping"
     recorder.add_frame(message(clip[0], 7), "1000-6")  # after the stop: not recorded
-    recorder.finish_if_stopping("cam1")
+    recorder.finish_if_due("cam1")
 
     done = load_recording(client, "cam1")
     assert done.state == "submitted" and done.reason == "requested" and done.frames == 6
@@ -133,6 +133,70 @@ def test_max_frames_ends_the_recording(
     assert request_stop(client, "cam1").job == done.job  # stopping again: the same job
 
 
+@pytest.mark.parametrize("next_frame_first", [False, True])
+def test_a_recording_whose_job_could_not_be_queued_at_max_frames_keeps_max_frames(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame,
+    monkeypatch: pytest.MonkeyPatch, next_frame_first: bool,
+) -> None:
+    """Redis refuses the video job when the last frame of ``max_frames`` comes (nearly
+    full: the small record update fits, the codes do not), and that frame is retried
+    once it has room. The recording ends with its ``max_frames`` frames, queued by the
+    next poll or the next frame (the same batch), which is not recorded. Before, the
+    retried frame was taken as recorded and nothing queued the job: the recording went
+    on past ``max_frames`` and its video held a frame more than asked (more while Redis
+    stayed full), or, with the camera stopped, it stayed "recording" until a stop."""
+    start(client, max_frames=3)
+    shots = frames(make_frame, 5)
+    for i in range(2):
+        recorder.add_frame(message(shots[i], i), f"2500-{i}")
+    submit = recorder.queue.submit
+
+    def full(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise redis.exceptions.OutOfMemoryError("OOM command not allowed")
+
+    monkeypatch.setattr(recorder.queue, "submit", full)
+    with pytest.raises(redis.exceptions.OutOfMemoryError):
+        recorder.add_frame(message(shots[2], 2), "2500-2")
+    monkeypatch.setattr(recorder.queue, "submit", submit)
+    recorder.add_frame(message(shots[2], 2), "2500-2")  # the retry, once Redis has room
+    if next_frame_first:
+        recorder.add_frame(message(shots[3], 3), "2500-3")
+    recorder.finish_if_due("cam1")  # the next poll (the camera may have stopped sending)
+    recorder.add_frame(message(shots[4], 4), "2500-4")
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.reason == "max_frames" and done.frames == 3
+    assert queue.get(done.job).frames_total == 3
+
+
+def test_a_stop_after_its_job_was_refused_at_max_frames_records_no_more(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """As above, with a stop before Redis has room again: a frame sent before the stop
+    but handled after it is not recorded past ``max_frames`` either."""
+    start(client, max_frames=3)
+    shots = frames(make_frame, 4)
+    for i, shot in enumerate(shots):
+        publish_frame(client, message(shot, i), maxlen=100)
+    entries = [entry.decode() for entry, _ in client.xrange(frame_stream("cam1"))]
+    for i in range(2):
+        recorder.add_frame(message(shots[i], i), entries[i])
+
+    def full(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise redis.exceptions.OutOfMemoryError("OOM command not allowed")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(recorder.queue, "submit", full)
+        with pytest.raises(redis.exceptions.OutOfMemoryError):
+            recorder.add_frame(message(shots[2], 2), entries[2])
+    request_stop(client, "cam1")
+    recorder.add_frame(message(shots[2], 2), entries[2])  # the retry
+    recorder.add_frame(message(shots[3], 3), entries[3])  # sent before the stop
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.frames == 3
+    assert queue.get(done.job).frames_total == 3
+
+
 def test_changed_sensor_parameters_end_the_recording(
     client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
 ) -> None:
@@ -154,7 +218,7 @@ def test_stop_without_frames_fails_with_a_reason(
     assert request_stop(client, "cam1") is None  # never recorded
     start(client)
     request_stop(client, "cam1")
-    recorder.finish_if_stopping("cam1")
+    recorder.finish_if_due("cam1")
     failed = load_recording(client, "cam1")
     assert failed.state == "failed" and failed.job is None
     assert "no frames were recorded" in failed.error
@@ -240,10 +304,10 @@ def test_a_stop_whose_job_was_queued_but_not_noted_queues_it_once(
 
     monkeypatch.setattr(recorder, "_set", failing)
     with pytest.raises(redis.ConnectionError):
-        recorder.finish_if_stopping("cam1")
+        recorder.finish_if_due("cam1")
     assert load_recording(client, "cam1").state == "stopping"
     monkeypatch.setattr(recorder, "_set", note)
-    recorder.finish_if_stopping("cam1")
+    recorder.finish_if_due("cam1")
     done = load_recording(client, "cam1")
     assert done.state == "submitted" and done.job == recording.id
     assert client.xlen(JOBS_STREAM) == 1
@@ -253,7 +317,7 @@ def test_frames_without_a_recording_are_ignored(
     client: redis.Redis, recorder: Recorder, store: ResultStore, make_frame
 ) -> None:
     recorder.add_frame(message(make_frame(), 0), "5000-0")
-    recorder.finish_if_stopping("cam1")
+    recorder.finish_if_due("cam1")
     assert load_recording(client, "cam1") is None and store.keys() == []
     with pytest.raises(ValueError, match="max_frames"):
         start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=0)
@@ -288,11 +352,11 @@ def test_a_stop_finished_by_two_owners_at_once_stays_submitted(
     def read_then_first_finishes(*args: object) -> recordings.Recording | None:
         recording = read(*args)
         monkeypatch.setattr(recordings, "load_recording", read)
-        first.finish_if_stopping("cam1")
+        first.finish_if_due("cam1")
         return recording
 
     monkeypatch.setattr(recordings, "load_recording", read_then_first_finishes)
-    second.finish_if_stopping("cam1")
+    second.finish_if_due("cam1")
     done = read(client, "cam1")
     assert done.state == "submitted" and done.error is None, done
     assert queue.get(done.job).frames_total == 3
@@ -318,7 +382,7 @@ def test_frames_taken_while_the_worker_was_down_are_recorded_by_capture_time(
         fields = client.xrange(stream, entry_id, entry_id)[0][1]
         recorder.add_frame(FrameMessage.from_fields(fields), entry_id)
         client.xdel(stream, entry_id)
-        recorder.finish_if_stopping("cam1")
+        recorder.finish_if_due("cam1")
 
     before = published(0)
     start(client)
@@ -343,7 +407,7 @@ def timed(frame: SensorFrame, sequence: int, t_ns: int, discont: bool = False) -
 def stopped_job(client: redis.Redis, recorder: Recorder, queue: JobQueue) -> JobRecord:
     """Stop cam1's recording and return the video job its frames made."""
     request_stop(client, "cam1")
-    recorder.finish_if_stopping("cam1")
+    recorder.finish_if_due("cam1")
     return queue.get(load_recording(client, "cam1").job)
 
 

@@ -280,7 +280,7 @@ def test_a_stop_racing_a_start_answers_for_the_recording_it_found(
     ended = http.post(URL, json={"action": "start"}).json()
     recordings.request_stop(redis_client, "cam1")
     store = ResultStore(settings.data_dir / RESULTS_DIR, retention_s=60)
-    recordings.Recorder(redis_client, store, max_deliveries=3).finish_if_stopping("cam1")
+    recordings.Recorder(redis_client, store, max_deliveries=3).finish_if_due("cam1")
     assert recording(http)["state"] == "failed"  # no frames: no worker ran
     run_script = Script.__call__
 
@@ -336,7 +336,7 @@ def test_a_stop_whose_recording_a_new_start_replaced_meanwhile_answers_its_end(
 
     def finish_and_start_then_read(*args: Any) -> recordings.Recording | None:
         monkeypatch.setattr(recording_routes, "load_recording", read)
-        worker.finish_if_stopping("cam1")
+        worker.finish_if_due("cam1")
         recordings.start_recording(redis_client, "cam1", decoder="itoh", options={},
                                    max_frames=10)
         return read(*args)
