@@ -410,6 +410,7 @@ class DeviceConsumer:
         a dead letter with the operator's ``letter``."""
         # The entry failed to parse, perhaps here: its seq is shown, never trusted.
         sequence = delivery.fields.get("seq", b"-1").decode(errors="replace")
+        self.recorder.count_failed(device, delivery.entry_id, f"{error.code}: {error.message}")
         event = {
             "type": "failed",
             "sequence": sequence,

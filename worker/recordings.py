@@ -47,7 +47,9 @@ far behind) count in ``frames_lost`` (:func:`worker.queue.publish_frame`), and s
 it drops while a worker that stopped before recording them held them
 (:meth:`Recorder.count_lost`, when the next owner finds them gone): a recording
 that ends with no frame fails saying how many were lost and what to do, and the video
-job of one that lost some carries that as a warning.
+job of one that lost some carries that as a warning. So do frames of the recording that
+the worker gave up on (they could not be reconstructed: a ``failed`` event),
+``frames_failed``, with the last one's error (:meth:`Recorder.count_failed`).
 """
 
 from __future__ import annotations
@@ -142,6 +144,17 @@ if r[1] ~= ARGV[1] or (r[2] ~= 'recording' and r[2] ~= 'stopping') then return 0
 return redis.call('HINCRBY', KEYS[1], 'frames_lost', 1)
 """
 
+# One more frame of the recording of KEYS[1] (id ARGV[1]) that failed to decode: stream
+# entry ARGV[2], whose error is ARGV[3]. Its redelivery (the ack did not happen) is not
+# counted again.
+_COUNT_FAILED = """
+local r = redis.call('HMGET', KEYS[1], 'id', 'state', 'failed_entry')
+if r[1] ~= ARGV[1] or (r[2] ~= 'recording' and r[2] ~= 'stopping') then return 0 end
+if r[3] == ARGV[2] then return 0 end
+redis.call('HSET', KEYS[1], 'failed_entry', ARGV[2], 'failed_error', ARGV[3])
+return redis.call('HINCRBY', KEYS[1], 'frames_failed', 1)
+"""
+
 
 @dataclass(frozen=True)
 class Recording:
@@ -170,6 +183,8 @@ class Recording:
     start_entry: str | None = None
     stop_entry: str | None = None
     frames_lost: int = 0
+    frames_failed: int = 0
+    failed_error: str | None = None
     job: str | None = None
     error: str | None = None
 
@@ -201,6 +216,8 @@ class Recording:
             start_entry=get.get("start_entry") or None,
             stop_entry=get.get("stop_entry") or None,
             frames_lost=int(get.get("frames_lost", "0")),
+            frames_failed=int(get.get("frames_failed", "0")),
+            failed_error=get.get("failed_error") or None,
             job=get.get("job") or None,
             error=get.get("error") or None,
         )
@@ -244,6 +261,7 @@ class Recording:
             "state": self.state,
             "frames": self.frames,
             "frames_lost": self.frames_lost,
+            "frames_failed": self.frames_failed,
             "max_frames": self.max_frames,
             "max_samples": self.max_samples,
             "decoder": self.decoder,
@@ -433,6 +451,7 @@ class Recorder:
         )
         self._update = client.register_script(_UPDATE)
         self._count_lost = client.register_script(_COUNT_LOST)
+        self._count_failed = client.register_script(_COUNT_FAILED)
 
     def _set(
         self, recording: Recording, fields: dict[str, Any], *,
@@ -494,6 +513,14 @@ class Recorder:
         recording = load_recording(self.client, device)
         if recording is not None and recording.wants(entry_id):
             self._count_lost(keys=[recording_key(device)], args=[recording.id])
+
+    def count_failed(self, device: str, entry_id: str, error: str) -> None:
+        """Count in the device's recording (``frames_failed``, with ``error``, the
+        client's words for why) the frame of stream entry ``entry_id`` if it belongs to it
+        and the worker gave up on it (it could not be reconstructed): it is left out."""
+        recording = load_recording(self.client, device)
+        if recording is not None and recording.wants(entry_id):
+            self._count_failed(keys=[recording_key(device)], args=[recording.id, entry_id, error])
 
     def _recordable(self, recording: Recording, message: FrameMessage) -> bool:
         """Whether the recording's video job can be made from frames like ``message``'s
@@ -558,10 +585,9 @@ class Recorder:
                 f"{recording.max_samples}; record smaller frames or raise the limit "
                 "(MCAM_MAX_VIDEO_SAMPLES)"
             )
-        if recording.frames == 0 and recording.frames_lost:
-            raise InvalidInputError(
-                f"no frames were recorded: {frames_lost_text(recording.frames_lost)}"
-            )
+        missing = missing_frames(recording)
+        if recording.frames == 0 and missing:
+            raise InvalidInputError(f"no frames were recorded: {'; '.join(missing)}")
         if recording.frames == 0:
             raise InvalidInputError(
                 "no frames were recorded: is the camera streaming (GET /v1/devices/{id}) "
@@ -576,26 +602,43 @@ class Recorder:
         if "fps" not in options and fps is not None:
             options["fps"] = fps
         params = SensorParams.model_validate_json(recording.params)
-        lost = [frames_lost_text(recording.frames_lost)] if recording.frames_lost else []
         # The recording's id names its job: if noting the job below fails (Redis down),
         # the next try finds the job queued instead of queueing it twice.
         return self.queue.submit(
             "video", codes, params, recording.decoder, options, job_id=recording.id,
-            warnings=lost,
+            warnings=missing,
         ).id
+
+
+def missing_frames(recording: Recording) -> list[str]:
+    """What the recording misses, and why: frames the device stream dropped before a
+    worker read them, frames that failed to decode (the video's warnings)."""
+    missing = [frames_lost_text(recording.frames_lost)] if recording.frames_lost else []
+    if recording.frames_failed:
+        frames = _frames_sent(recording.frames_failed)
+        missing.append(
+            f"{frames} failed to decode and {'is' if recording.frames_failed == 1 else 'are'} "
+            f"left out (the last: {recording.failed_error}); GET /v1/devices/"
+            f"{recording.device}/events lists each failed frame"
+        )
+    return missing
+
+
+def _frames_sent(count: int) -> str:
+    """``count`` frames the camera sent while recording, as words."""
+    if count == 1:
+        return "1 frame the camera sent between the start and the stop"
+    return f"{count} frames the camera sent between the start and the stop"
 
 
 def frames_lost_text(lost: int) -> str:
     """What losing ``lost`` frames of a recording to a full device stream means, and
     what to do."""
-    frames = "1 frame the camera sent between the start and the stop was" if lost == 1 else (
-        f"{lost} frames the camera sent between the start and the stop were"
-    )
     return (
-        f"{frames} dropped from the device's frame stream before a worker read them (it "
-        "keeps the newest MCAM_FRAMES_MAXLEN frames; stream_full in GET /v1/devices/{id}); "
-        "keep a worker running while recording, or raise MCAM_FRAMES_MAXLEN on the device "
-        "daemon"
+        f"{_frames_sent(lost)} {'was' if lost == 1 else 'were'} dropped from the device's "
+        "frame stream before a worker read them (it keeps the newest MCAM_FRAMES_MAXLEN "
+        "frames; stream_full in GET /v1/devices/{id}); keep a worker running while "
+        "recording, or raise MCAM_FRAMES_MAXLEN on the device daemon"
     )
 
 

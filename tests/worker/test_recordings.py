@@ -533,3 +533,62 @@ def test_frames_a_stopped_worker_held_when_the_stream_dropped_them_count_as_lost
 
     done = ended(client, late_worker(client, store), wait_until)
     assert done.state == "submitted" and done.frames == 3 and done.frames_lost == 2
+
+
+def overflowing(frame: SensorFrame, sequence: int) -> FrameMessage:
+    """A frame whose scene-referred reconstruction (x / gain) is beyond float32."""
+    tiny_gain = frame.params.model_copy(update={"gain": 2.3e-308})
+    return FrameMessage("cam1", sequence, sequence * 1000, frame.codes, tiny_gain)
+
+
+def test_a_recording_whose_frames_all_failed_to_decode_says_why(
+    client: redis.Redis, store: ResultStore, make_frame, wait_until
+) -> None:
+    """A camera streams frames the worker cannot reconstruct (here: a gain so small
+    that x / gain passes float32). Before, the recording failed with "no frames were
+    recorded: is the camera streaming (GET /v1/devices/{id}) and a worker running?",
+    though both were; now it says how many frames failed and the last one's error."""
+    [frame] = frames(make_frame, 1)
+    start(client)
+    for sequence in range(3):
+        publish_frame(client, overflowing(frame, sequence), maxlen=100)
+    request_stop(client, "cam1")
+
+    failed = ended(client, late_worker(client, store), wait_until)
+    assert failed.state == "failed" and failed.frames == 0 and failed.frames_failed == 3
+    assert failed.view()["frames_failed"] == 3
+    assert "3 frames the camera sent between the start and the stop failed" in failed.error
+    assert "output_overflow" in failed.error and "a worker running" not in failed.error
+
+
+def test_a_video_whose_frames_partly_failed_to_decode_warns_of_them(
+    client: redis.Redis, store: ResultStore, queue: JobQueue, make_frame, wait_until
+) -> None:
+    """Frames that fail to decode are left out of the video (the next one is a
+    keyframe); its job warns how many, and why the last failed."""
+    clip = frames(make_frame, 3)
+    start(client)
+    publish_frame(client, message(clip[0], 0), maxlen=100)
+    publish_frame(client, overflowing(clip[1], 1), maxlen=100)
+    publish_frame(client, message(clip[2], 2), maxlen=100)
+    request_stop(client, "cam1")
+
+    done = ended(client, late_worker(client, store), wait_until)
+    assert done.state == "submitted" and done.frames == 2 and done.frames_failed == 1
+    assert done.keyframes == [1]
+    [warning] = queue.get(done.job).warnings
+    assert warning.startswith("1 frame the camera sent between the start and the stop failed")
+    assert "output_overflow" in warning
+
+
+def test_a_failed_frame_delivered_again_is_counted_once(
+    client: redis.Redis, recorder: Recorder
+) -> None:
+    """A frame given up on whose ack did not happen (Redis went away) is given up again
+    on its redelivery: it is one frame missing from the video, not two."""
+    start(client)
+    recorder.count_failed("cam1", "7000-0", "output_overflow: too bright")
+    recorder.count_failed("cam1", "7000-0", "output_overflow: too bright")
+    recorder.count_failed("cam1", "7000-1", "invalid_input: the last")
+    recording = load_recording(client, "cam1")
+    assert recording.frames_failed == 2 and recording.failed_error == "invalid_input: the last"
