@@ -6,6 +6,7 @@ import logging
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import redis
 from fastapi import APIRouter
@@ -17,7 +18,7 @@ from models.errors import McamError
 from service.api.deps import StateDep
 from service.api.state import ServiceState
 from service.core.config import nearest_folder, upload_room
-from worker.redis_memory import full_problem
+from worker.redis_memory import free_memory, full_problem
 
 router = APIRouter(prefix="/health", tags=["health"])
 log = logging.getLogger(__name__)
@@ -66,6 +67,19 @@ def store_problem(root: Path, min_free_bytes: int) -> str | None:
     return None
 
 
+def no_workers_problem(memory: dict[str, Any]) -> str:
+    """Why no worker heartbeat is seen, from Redis's ``INFO memory`` reply: a full Redis
+    refuses the heartbeats of workers that run (one more would not beat either)."""
+    free = free_memory(memory)
+    if free is not None and free < 0:
+        return (
+            "no worker heartbeat: Redis is full and refuses the workers' heartbeats, so "
+            "running workers are not seen; give Redis room (see queue), then start one "
+            "with 'mcam worker' if none beats"
+        )
+    return "no worker heartbeat: start one with 'mcam worker'"
+
+
 def readiness(state: ServiceState) -> Readiness:
     """Check the decoder registry, Redis (reachable, with room for the largest upload:
     :func:`upload_room`), the workers' heartbeats and the result store."""
@@ -78,6 +92,7 @@ def readiness(state: ServiceState) -> Readiness:
         detail["decoders"] = f"default decoder: {exc.message}"
     workers = 0
     full = None
+    memory: dict[str, Any] = {}
     try:
         memory = state.client.info("memory")  # answered: Redis is reachable
         reachable = True
@@ -90,7 +105,7 @@ def readiness(state: ServiceState) -> Readiness:
     if full:
         detail["queue"] = full
     if reachable and not workers:
-        detail["workers"] = "no worker heartbeat: start one with 'mcam worker'"
+        detail["workers"] = no_workers_problem(memory)
     problem = store_problem(state.store.root, state.settings.max_upload_bytes)
     if problem:
         detail["store"] = problem

@@ -162,6 +162,33 @@ def test_ready_reports_a_full_redis(tmp_path: Path) -> None:
         embedded.stop()
 
 
+def test_ready_on_a_full_redis_does_not_ask_for_a_worker_that_runs(tmp_path: Path) -> None:
+    """A full Redis refuses the workers' heartbeats too, so a running worker's heartbeat
+    ages out. Before, /health/ready then said "no worker heartbeat: start one with 'mcam
+    worker'": an operator who did got one more worker that could not beat either. Now it
+    says the heartbeats are refused while Redis is full."""
+    embedded = EmbeddedRedis(tmp_path / "r")
+    url = embedded.start()
+    settings = make_settings(tmp_path, url)
+    direct = connect(url)
+    try:
+        with serve(create_app(settings)) as api, running_worker(settings):
+            assert with_a_worker(api).status_code == 200
+            direct.config_set("maxmemory", 1)
+            deadline = time.monotonic() + 30
+            while httpx.get(f"{api}/health/ready").json()["workers"]:
+                assert time.monotonic() < deadline, "the heartbeat did not age out"
+                time.sleep(0.1)
+            body = httpx.get(f"{api}/health/ready").json()
+            direct.config_set("maxmemory", 0)
+            assert body["checks"]["workers"] is False
+            assert "Redis is full and refuses the workers' heartbeats" in body["detail"]["workers"]
+            assert with_a_worker(api).status_code == 200
+    finally:
+        direct.close()
+        embedded.stop()
+
+
 def test_ready_only_with_room_for_the_largest_upload(tmp_path: Path) -> None:
     """Redis with room for the largest upload's codes once, but not for what it holds
     while it takes them (the codes as the command's argument, and a query buffer of
