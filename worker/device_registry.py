@@ -62,6 +62,16 @@ def device_keys(device: str) -> list[str]:
     ]  # fmt: skip
 
 
+def stopped_recording_text(device: str, recording: str) -> str:
+    """Why device ``device`` is still busy with its recording ``recording`` (id) after a
+    stop: the worker has not made the video yet (another stop changes nothing)."""
+    return (
+        f"device {device!r}'s recording {recording} was stopped and waits for the worker "
+        "to make its video from the frames sent before the stop (is a worker running, and "
+        "keeping up with the camera?)"
+    )
+
+
 def _refusal(pipe: redis.client.Pipeline, device: str, silent_after_s: float,
              waiting: int, discard_frames: bool) -> str | None:
     """Why ``device`` must stay (read inside the WATCH; ``waiting``: its undecoded
@@ -71,7 +81,11 @@ def _refusal(pipe: redis.client.Pipeline, device: str, silent_after_s: float,
     if not stopped and updated is not None and time.time_ns() - int(updated) < silent_after_s * 1e9:
         return (f"the daemon of device {device!r} reported {silent_after_s:g} s ago or less; "
                 "stop it (mcam device ... ends with Ctrl-C or SIGTERM) and retry")
-    if pipe.hget(recording_key(device), "state") in _ACTIVE_RECORDING:
+    recording, state = pipe.hmget(recording_key(device), "id", "state")
+    if state == b"stopping":
+        return (f"{stopped_recording_text(device, recording.decode())}; retry once GET "
+                f"/v1/devices/{device}/recordings shows it submitted or failed")
+    if state in _ACTIVE_RECORDING:
         return (f"device {device!r} is recording; stop it with POST "
                 f"/v1/devices/{device}/recordings {{\"action\": \"stop\"}} and retry")
     if waiting and not discard_frames:

@@ -88,12 +88,20 @@ def test_undecoded_frames_are_kept_unless_discarded(client: redis.Redis) -> None
 
 
 def test_a_running_recording_keeps_its_device(client: redis.Redis) -> None:
+    """A recording keeps its device until its video job is made. While it records, the
+    refusal says to stop it; once stopped, that it waits for a worker. Before, a stopped
+    one said "is recording; stop it ... and retry" too: with no worker running, each
+    stop changed nothing and the forget was refused again."""
     _register(client, "rec", reported_s_ago=60, frames=0)
     assert start_recording(client, "rec", decoder="itoh", options={}, max_frames=5)
-    for _ in range(2):  # recording, then stopping (the worker has not finished it)
-        with pytest.raises(DeviceBusyError, match="is recording"):
-            forget_device(client, "rec", silent_after_s=10)
-        request_stop(client, "rec")
+    with pytest.raises(DeviceBusyError, match="is recording; stop it"):
+        forget_device(client, "rec", silent_after_s=10)
+    stopping = request_stop(client, "rec")
+    with pytest.raises(DeviceBusyError) as refused:
+        forget_device(client, "rec", silent_after_s=10)
+    assert f"recording {stopping.id} was stopped and waits for" in refused.value.message
+    assert "is a worker running" in refused.value.message
+    assert "stop it" not in refused.value.message
     client.hset(recording_key("rec"), "state", "submitted")
     assert forget_device(client, "rec", silent_after_s=10) == 0
 

@@ -43,6 +43,7 @@ from service.api.schemas import (
     job_response,
 )
 from service.api.state import ServiceState
+from worker.device_registry import stopped_recording_text
 from worker.jobs import JobNotFoundError
 from worker.recordings import (
     Recording,
@@ -169,10 +170,8 @@ def _running_message(state: ServiceState, device: str) -> str:
     if active is None or active.state != "stopping":
         return f"device {device!r} is already recording; stop it first (action=stop)"
     return (
-        f"device {device!r}'s recording {active.id} was stopped and waits for the worker to "
-        "make its video from the frames sent before the stop (is a worker running, and "
-        f"keeping up with the camera?); start again once GET /v1/devices/{device}/recordings "
-        "shows it submitted or failed"
+        f"{stopped_recording_text(device, active.id)}; start again once GET "
+        f"/v1/devices/{device}/recordings shows it submitted or failed"
     )
 
 
