@@ -64,8 +64,9 @@ RECORDING_ERRORS = {
     **SMALL_BODY_ERRORS,
     503: WRITE_REFUSED,
     409: error_response(
-        "start: recording_running (one is running); stop: no_recording (none is running) "
-        "or recording_failed (the worker could not make its video job)"
+        "start: recording_running (one is running); stop: no_recording (none is running, "
+        "or the last one's video job expired) or recording_failed (the worker could not "
+        "make its video job)"
     ),
 }
 
@@ -223,8 +224,15 @@ def stop(state: ServiceState, device: str, wait_s: float) -> Response:
                        f"{recording.error}")
     if recording.job is None:
         return _recording_response(recording, 202)
-    return job_response(state.queue, state.queue.get(recording.job), wait_s,
-                        state.wait_slots, state.stopping)
+    try:
+        job = state.queue.get(recording.job)
+    except JobNotFoundError:
+        raise ApiError(409, "no_recording", (
+            f"device {device!r} is not recording: its last recording ended "
+            f"({recording.reason}) and its video job {recording.job} has expired "
+            "(MCAM_RESULT_RETENTION_S); start a new one (action=start)"
+        )) from None
+    return job_response(state.queue, job, wait_s, state.wait_slots, state.stopping)
 
 
 @router.post(

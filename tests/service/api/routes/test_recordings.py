@@ -450,3 +450,19 @@ def test_a_start_is_refused_when_redis_has_no_room_for_its_video(
     assert refused.status_code == 503, refused.text
     assert refused.json()["code"] == "store_full" and "max_frames" in refused.json()["message"]
     assert started.status_code == 201, started.text
+
+
+def test_a_stop_after_the_recordings_video_job_expired_says_no_recording(
+    settings: Settings, client: Client
+) -> None:
+    """A stop repeated after the recording's video job passed its retention (its record
+    gone) answers 409 ``no_recording`` saying so. Before, it answered 404 "no job ...:
+    submit the job again", from a device route the client had sent no job to."""
+    redis_client = stopped_device(settings, "cam1")
+    http = client(FULL_KEY)
+    started = http.post(URL, json={"action": "start"}).json()
+    redis_client.hset(recording_key("cam1"), mapping={"state": "submitted", "job": started["id"]})
+    refused = http.post(URL, json={"action": "stop"})
+    assert refused.status_code == 409, refused.text
+    assert refused.json()["code"] == "no_recording"
+    assert "expired" in refused.json()["message"] and "action=start" in refused.json()["message"]
