@@ -27,7 +27,7 @@ from service.api.routes.devices import DEVICE_ERRORS, as_text, known_device
 from service.api.schemas import error_response
 from service.api.state import Slots
 from worker.embedded_redis import connect_async
-from worker.redis_keys import events_stream
+from worker.redis_keys import DEVICES_SET, events_stream
 
 router = APIRouter(prefix="/v1/devices", tags=["devices"])
 #: How long one events poll blocks before a keep-alive comment (ms).
@@ -89,7 +89,9 @@ async def _event_lines(
     """Server-sent events from ``events:<device>``, after entry ``since``, while one of
     ``slots`` is held. Async, on a connection of its own: a waiting client holds no
     thread (as a blocking generator, each held one of the server's 40 for a second per
-    poll, and 100 idle clients made every other request wait 3-8 s)."""
+    poll, and 100 idle clients made every other request wait 3-8 s). It ends with an
+    ``error`` event when Redis fails, or once the device is forgotten (looked at while
+    no event comes: it kept a forgotten device's stream open for ever)."""
     if not slots.take():  # the route saw a free slot; another stream took it since
         yield _stream_error("too_many_streams", _refusal(slots.limit))
         return
@@ -104,11 +106,18 @@ async def _event_lines(
         while limit is None or sent < limit:
             try:
                 reply = await client.xread({stream: last}, count=64, block=EVENTS_BLOCK_MS)
+                forgotten = not reply and not await client.sismember(DEVICES_SET, device)
             except redis.RedisError as exc:
                 # Redis went away (restarted, full, unreachable): the stream ends with
                 # the reason, and the client resumes from its last id when told to retry.
                 yield _stream_error("queue_unavailable", f"the event stream lost Redis "
                                     f"({exc}); reconnecting resumes after the last event")
+                return
+            if forgotten:
+                yield _stream_error("not_found", (
+                    f"device {device!r} was forgotten (DELETE /v1/devices/{device}): no more "
+                    "events come; a daemon that comes back registers it again"
+                ))
                 return
             if not reply:
                 yield ": keep-alive\n\n"

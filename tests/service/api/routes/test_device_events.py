@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import httpx
 from service.core.config import Settings
 from service.main import create_app
 from tests.device.conftest import wait_for
+from tests.service.api.conftest import stopped_device
 from tests.service.conftest import READ_KEY, make_settings, serve
 from worker.embedded_redis import EmbeddedRedis, connect
 from worker.redis_keys import DEVICES_SET, events_stream
@@ -72,3 +74,28 @@ def test_an_event_id_in_other_scripts_digits_is_refused(
     http = client(READ_KEY)
     reply = http.get("/v1/devices/cam1/events", params={"since": "\u0661-\u0660"})
     assert reply.status_code == 422, reply.text
+
+
+def test_an_event_stream_of_a_forgotten_device_ends(
+    client: Callable[..., httpx.Client], settings: Settings
+) -> None:
+    """A device forgotten (DELETE /v1/devices/{id}) under an open stream: it ends with an
+    ``error`` event saying so. Before, it sent keep-alives for ever, holding one of the
+    MCAM_MAX_EVENT_STREAMS slots and a Redis connection for a device that no longer
+    exists (a dashboard of a retired camera never learned it was gone)."""
+    assert settings.redis_url is not None
+    stopped_device(settings, "cam1")
+    with client(READ_KEY).stream("GET", "/v1/devices/cam1/events") as stream:
+        assert stream.status_code == 200
+        lines = stream.iter_lines()
+        assert next(lines) == "retry: 2000"
+        assert client().delete("/v1/devices/cam1").status_code == 200
+        deadline = time.monotonic() + 30
+        rest = []
+        for line in lines:  # keep-alives, then the end
+            rest.append(line)
+            if line == "event: error" or time.monotonic() > deadline:
+                rest += [next(lines)]
+                break
+    assert "event: error" in rest, "the stream went on with keep-alives"
+    assert any('"code": "not_found"' in line and "forgotten" in line for line in rest)
