@@ -590,8 +590,7 @@ class Recorder:
             raise InvalidInputError(f"no frames were recorded: {'; '.join(missing)}")
         if recording.frames == 0:
             raise InvalidInputError(
-                "no frames were recorded: is the camera streaming (GET /v1/devices/{id}) "
-                "and a worker running?"
+                f"no frames were recorded: {no_frames_reason(self.client, recording.device)}"
             )
         codes = np.stack(
             [np.load(self.store.existing_path(frame_key(recording.id, i)))
@@ -608,6 +607,22 @@ class Recorder:
             "video", codes, params, recording.decoder, options, job_id=recording.id,
             warnings=missing,
         ).id
+
+
+def no_frames_reason(client: redis.Redis, device: str) -> str:
+    """Why a recording of ``device`` got no frame, none lost or failed: its daemon
+    cannot open the camera's port (its health's ``port_error``), or the words to check
+    the camera and the workers."""
+    port_error = client.hget(health_key(device), "port_error")
+    if port_error:
+        return (
+            f"the daemon of device {device!r} cannot open its camera's port "
+            f"({port_error.decode()})"
+        )
+    return (
+        f"is device {device!r}'s camera streaming (GET /v1/devices/{device}) and a worker "
+        "running?"
+    )
 
 
 def missing_frames(recording: Recording) -> list[str]:

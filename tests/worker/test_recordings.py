@@ -224,6 +224,24 @@ def test_stop_without_frames_fails_with_a_reason(
     assert "no frames were recorded" in failed.error
 
 
+def test_a_recording_of_a_camera_whose_port_never_opened_says_why(
+    client: redis.Redis, recorder: Recorder
+) -> None:
+    """A recording of a device whose daemon cannot open its camera's port ends saying
+    so, naming the device. Before: "no frames were recorded: is the camera streaming
+    (GET /v1/devices/{id}) and a worker running?", with the id left as ``{id}``."""
+    client.hset(health_key("cam1"), mapping={
+        "state": "connecting", "port_error": "/dev/ttyACM0 does not exist: check --port",
+    })
+    start(client)
+    request_stop(client, "cam1")
+    recorder.finish_if_due("cam1")
+    failed = load_recording(client, "cam1")
+    assert failed.state == "failed"
+    assert "device 'cam1'" in failed.error and "{id}" not in failed.error
+    assert "/dev/ttyACM0 does not exist: check --port" in failed.error
+
+
 @pytest.mark.parametrize(("decoder", "options", "fragment"), [
     ("itoh", {"mode": "temporal", "outputs": ["hdr10"]}, "HDR10 video needs frames"),
     ("itoh", {"mode": "temporal"}, "HDR10 video needs frames"),  # default outputs: hdr10 too
