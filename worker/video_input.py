@@ -12,8 +12,9 @@ Formats
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
   A ``T x H x W`` array whose last axis could be channels (1 or 3) is refused as one
   frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
-- ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in file-name order
-  (``frame_2.png`` before ``frame_10.png``); parameters from the first frame's text
+- ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in natural file-name order
+  regardless of case (``frame_2.png`` before ``frame_10.png``, ``frame_1.png`` before
+  ``Frame_2.png``); parameters from the first frame's text
   chunk. Folders and macOS metadata (``__MACOSX/``, resource forks ``._name.png``) are
   ignored; other files that are not ``.png`` are left out, with a warning naming them.
 
@@ -296,11 +297,13 @@ def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str,
     return load_npy(data), {}
 
 
-def _natural_key(name: str) -> list[Any]:
-    """Sort key putting ``frame_2`` before ``frame_10``: runs of decimal digits (what
-    ``\\d`` matches) as numbers. ``str.isdigit`` also takes superscripts (``²``), which
-    ``int`` refuses."""
-    return [int(part) if part.isdecimal() else part for part in re.split(r"(\d+)", name)]
+def _natural_key(name: str) -> tuple[list[Any], str]:
+    """Sort key putting ``frame_2`` before ``frame_10`` and ``frame_1`` before
+    ``Frame_2``: runs of decimal digits (what ``\\d`` matches) as numbers, the rest
+    regardless of case (``str.casefold``); names equal that way keep the order of their
+    code points. ``str.isdigit`` also takes superscripts (``²``), which ``int`` refuses."""
+    parts = re.split(r"(\d+)", name)
+    return [int(part) if part.isdecimal() else part.casefold() for part in parts], name
 
 
 def _zip_entry_limit(max_frames: int) -> int:

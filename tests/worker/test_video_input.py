@@ -91,6 +91,15 @@ def test_zip_of_pngs_in_natural_order() -> None:
     assert result.params == PARAMS
 
 
+def test_frame_names_sort_regardless_of_case() -> None:
+    """Names were sorted by code point: ``Frame_2.png`` (capital F) came before
+    ``frame_1.png``, and ``FRAME_10.png`` before both."""
+    video = codes(4)
+    names = ["FRAME_10.png", "frame_3.png", "Frame_2.png", "frame_1.png"]
+    result = decode_video(zip_bytes(video[[3, 2, 1, 0]], names), "zip")
+    np.testing.assert_array_equal(result.codes, video)
+
+
 def test_frame_names_with_other_digits_sort_by_their_decimal_numbers() -> None:
     """A superscript digit between digits (``frame_1²2.png``) made the sort key call
     ``int("²")``: the zip was refused as truncated or corrupt."""
