@@ -56,6 +56,14 @@ def named_format(name: str | None, aliases: Mapping[str, str]) -> str | None:
     return aliases.get(name.rsplit(".", 1)[-1].lower())
 
 
+def refuse_empty(size: int, what: str) -> None:
+    """Refuse a file of ``size`` bytes that holds none (not yet written, or cut short
+    to nothing), which the readers called a file of no known format: ``what`` names it
+    ("the uploaded file", "the file clip.npy")."""
+    if size == 0:
+        raise InvalidInputError(f"{what} is empty; send the whole file")
+
+
 def check_signature(data: bytes, magics: Magics, named: str, kind: str, send: str) -> None:
     """Refuse ``data`` whose leading bytes show none of the formats of ``magics`` (a JPEG
     or a text file named as one of them, a file cut short), which the readers called a

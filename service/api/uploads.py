@@ -29,6 +29,7 @@ from models.file_magic import (
     content_first,
     format_by_content,
     named_format,
+    refuse_empty,
 )
 from models.formation import SensorParams
 from models.frames import FRAME_ALIASES, FRAME_FORMATS, not_a_frame
@@ -205,8 +206,7 @@ async def read_upload(request: Request) -> Upload:
             f"unsupported content type {media or '(none)'!r}: send multipart/form-data with "
             "the file in the field 'file', or the raw file as application/octet-stream"
         )
-    if not upload.data:
-        raise InvalidInputError("the uploaded file is empty; send the whole file")
+    refuse_empty(len(upload.data), "the uploaded file")
     return upload
 
 

@@ -4,7 +4,8 @@ A command lists its outputs (:class:`OutputFile`: the flag naming it, the path, 
 suffixes its format allows) and runs inside :func:`staged_outputs`, which
 
 - refuses, before any input is read, a wrong suffix, a path naming a folder, a
-  missing folder, two outputs naming one file and an output naming an input;
+  missing folder, two outputs naming one file, an output naming an input, and an
+  empty input file (:func:`check_inputs`);
 - creates each output as a hidden temporary file in its own folder (so an unwritable
   folder is found at once, and a rename puts it in place atomically) with the final
   suffix (writers pick the format from it);
@@ -28,6 +29,7 @@ from pathlib import Path
 from types import FrameType
 
 from models.errors import InvalidInputError, UnsupportedFormatError
+from models.file_magic import refuse_empty
 
 #: The most bytes a file name may hold (NAME_MAX of Linux, macOS and Windows file systems).
 NAME_MAX = 255
@@ -144,6 +146,15 @@ def _sigterm_unwinds() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def check_inputs(inputs: Sequence[str]) -> None:
+    """Refuse an input that is an empty regular file (the API's check of an upload,
+    :func:`models.file_magic.refuse_empty`): its reader called it a file of no known
+    format. Missing files and pipes are left to the reader."""
+    for source in inputs:
+        if os.path.isfile(source):
+            refuse_empty(os.path.getsize(source), f"the file {source}")
+
+
 @contextmanager
 def staged_outputs(
     outputs: Sequence[OutputFile], inputs: Sequence[str] = ()
@@ -152,6 +163,7 @@ def staged_outputs(
     for each flag; on success move each into place, on any failure (SIGTERM included:
     :func:`_sigterm_unwinds`) remove them all."""
     check_outputs(outputs, inputs)
+    check_inputs(inputs)
     temporaries: dict[str, Path] = {}
     with _sigterm_unwinds():
         try:

@@ -48,3 +48,11 @@ def test_a_file_sent_as_a_text_field_is_told_to_be_sent_as_a_file(
     message = reply.json()["message"]
     assert "the field 'file' came as text" in message
     assert "curl -F file=@" in message
+
+
+@pytest.mark.parametrize("route", ["/v1/simulate", "/v1/reconstructions", "/v1/videos"])
+def test_an_empty_file_is_called_empty(client: Client, route: str) -> None:
+    """The wording ``mcam`` shares (:func:`models.file_magic.refuse_empty`)."""
+    reply = client().post(route, files={"file": ("clip.npy", b"")})
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["message"] == "the uploaded file is empty; send the whole file"

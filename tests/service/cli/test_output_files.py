@@ -10,6 +10,7 @@ import pytest
 
 from models.errors import InvalidInputError, UnsupportedFormatError
 from service.cli.output_files import OutputFile, check_outputs, staged_outputs
+from tests.service.cli.conftest import run_mcam
 
 EXR = (".exr",)
 
@@ -102,3 +103,21 @@ def test_sigterm_removes_the_temporary_files_and_exits_143(tmp_path: Path) -> No
         assert received == [signal.SIGTERM]
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ("video", "e.npy", "-o", "x.mp4", "--encoding", "mantissa", "--alpha", "2", "--bits", "8"),
+        ("reconstruct", "e.npy", "-o", "x.exr", "--encoding", "mantissa", "--alpha", "2"),
+        ("simulate", "e.exr", "-o", "x.png", "--gain", "1"),
+    ],
+)
+def test_an_empty_input_file_is_called_empty(tmp_path: Path, command: tuple[str, ...]) -> None:
+    """An empty input was called "not an npy file (bad or missing signature)" (or not an
+    OpenEXR image) where the API says the uploaded file is empty."""
+    (tmp_path / command[1]).write_bytes(b"")
+    done = run_mcam(*command, cwd=tmp_path)
+    assert done.returncode == 2
+    assert f"the file {command[1]} is empty; send the whole file" in done.stderr
+    assert not (tmp_path / command[3]).exists()
