@@ -275,13 +275,13 @@ def from_unwrapped(
         return u.astype(dtype)
     above = u >= 1.0
     log_x = np.where(above, (u - 1.0) * np.log(params.alpha), 0.0)
-    limit = np.log(float(np.finfo(dtype).max))
-    over = log_x > limit
+    over = log_x > np.log(float(np.finfo(dtype).max))
     if over.any():
+        float32_holds = bool(log_x.max() <= np.log(float(np.finfo(np.float32).max)))
         raise OutputOverflowError(
             f"{int(over.sum())} pixels of the reconstruction exceed the {np.dtype(dtype).name} "
             f"limit {float(np.finfo(dtype).max):.4g} (alpha^(u-1) with u up to {u.max():.6g}); "
-            f"{overflow_remedy(dtype)}, or check the winding numbers"
+            f"{overflow_remedy(dtype, float32_holds=float32_holds)}, or check the winding numbers"
         )
     return np.where(above, np.exp(log_x), u).astype(dtype)
 

@@ -180,6 +180,17 @@ def test_overflow_message_names_pixel_count_and_limit() -> None:
         from_unwrapped(np.array([70000.0, 3.0]), SensorParams(encoding="modulo"), np.float16)
 
 
+def test_half_float_overflow_past_float32_too_is_not_told_to_use_float32() -> None:
+    """alpha^(u-1) past float32 (u = 201, alpha 2) was told "ask for float32 output"."""
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+    with pytest.raises(OutputOverflowError, match="float16 limit .*; ask for float32 output"):
+        reconstruct(np.zeros((1, 2), np.uint8), np.array([[20, 1]]), params, np.float16)
+    with pytest.raises(
+        OutputOverflowError, match="float16 limit .*; float32 output cannot hold them either: lower"
+    ):
+        reconstruct(np.zeros((1, 2), np.uint8), np.array([[200, 1]]), params, np.float16)
+
+
 def test_a_reconstruction_that_would_round_to_zero_is_refused() -> None:
     """A huge gain (scene-referred x / gain) or half floats for tiny values: the EXR would
     be silently black, so the error names the count and what to change."""
@@ -643,8 +654,11 @@ def test_an_exposure_past_float64_is_refused_without_a_numpy_warning() -> None:
 def test_half_float_underflow_also_names_a_wrong_scene_gain() -> None:
     codes, winding = np.array([[3]], np.uint8), np.zeros((1, 1), np.int64)
     huge_gain = SensorParams(encoding="modulo", gain=1e300)
-    with pytest.raises(OutputUnderflowError, match="ask for float32 .*, or .*gain 1e\\+300"):
+    with pytest.raises(OutputUnderflowError, match="float32 .* as 0 too: .*gain 1e\\+300"):
         reconstruct(codes, winding, huge_gain, np.float16, scene_referred=True)
+    with pytest.raises(OutputUnderflowError, match="ask for float32 .*, or .*gain 1e\\+09"):
+        reconstruct(codes, winding, huge_gain.model_copy(update={"gain": 1e9}), np.float16,
+                    scene_referred=True)  # fmt: skip
 
 
 @pytest.mark.filterwarnings("error")

@@ -91,3 +91,20 @@ def test_remedies_point_the_right_way_for_scene_referred_output() -> None:
     assert "lower the gain or alpha" in overflow_remedy(np.float32)
     assert overflow_remedy(np.float16).startswith("ask for float32")
     assert "check the winding numbers" in underflow_remedy(np.float64)
+
+
+def test_half_floats_are_told_to_use_float32_only_where_float32_holds_the_values() -> None:
+    """Values past float32 as well (x / gain at gain 1e-300) were told "ask for float32
+    output instead of half floats", which fails the same way."""
+    with pytest.raises(OutputOverflowError, match="ask for float32 output instead"):
+        ensure_fits(np.array([1e5]), np.float16, "frame", 1e-4)
+    with pytest.raises(OutputOverflowError) as huge:
+        ensure_fits(np.array([1e5, 1e300]), np.float16, "frame", 1e-300)
+    assert "float32 output cannot hold them either: " in huge.value.message
+    assert "instead of half floats" not in huge.value.message
+    with pytest.raises(OutputUnderflowError, match="ask for float32 output instead"):
+        ensure_nonzero_kept(np.array([1e-9]), np.float16, "frame", 1e9)
+    with pytest.raises(OutputUnderflowError) as tiny:
+        ensure_nonzero_kept(np.array([1e-9, 1e-300]), np.float16, "frame", 1e300)
+    assert "float32 output would store them as 0 too: " in tiny.value.message
+    assert "instead of half floats" not in tiny.value.message

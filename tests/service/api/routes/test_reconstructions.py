@@ -247,6 +247,13 @@ def test_a_nan_parameter_is_named_as_not_finite(client: Client, field: str) -> N
         ({"gain": "1e-320"}, "output_overflow", "whatever winding numbers a decoder finds"),
         ({"gain": "1e308", "max_wraps": "16"}, "output_underflow",
          "whatever winding numbers a decoder finds"),
+        ({"gain": "1e-30", "half": "true"}, "output_overflow",
+         "ask for float32 output instead of half floats"),
+        ({"gain": "1e-300", "half": "true"}, "output_overflow",
+         "float16 limit 6.55e+04; float32 output cannot hold them either: the output is "
+         "scene-referred x / gain with gain 1e-300"),
+        ({"gain": "1e308", "max_wraps": "16", "half": "true"}, "output_underflow",
+         "float32 output would store them as 0 too"),
     ],
 )  # fmt: skip
 def test_parameters_that_cannot_give_a_result_are_refused_at_submit(

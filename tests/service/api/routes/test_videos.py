@@ -247,3 +247,24 @@ def test_8_bit_codes_sent_as_wider_tell_the_client(client: Client) -> None:
     reply = http.post("/v1/videos", files={"file": ("clip.zip", buffer.getvalue())})
     assert reply.status_code == 202, reply.text
     assert reply.json()["warnings"] == [warning.replace("bits is 12", "bits is 16")]
+
+
+def test_half_floats_at_a_gain_float32_cannot_take_are_not_told_to_use_float32(
+    client: Client, worker: Worker
+) -> None:
+    """At gain 1e-300 every x / gain exceeds float32 too, yet the job's error said "ask
+    for float32 output instead of half floats"; it now says float32 cannot hold them
+    either, and to give the right gain."""
+    codes = np.stack([encode(x, PARAMS).codes for x in slow_clip()[:2]])
+    http = client()
+    reply = http.post(
+        "/v1/videos",
+        files={"file": ("clip.npy", npy_bytes(codes))},
+        data={**FLAGS, "gain": "1e-300", "half": "true", "outputs": "exr_zip"},
+    )
+    assert reply.status_code == 202, reply.text
+    job = finished_job(http, reply.json()["id"])
+    assert job["state"] == "failed" and job["error"]["code"] == "output_overflow", job
+    message = job["error"]["message"]
+    assert "float32 output cannot hold them either" in message, message
+    assert "instead of half floats" not in message and "a higher gain" in message
