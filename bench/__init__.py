@@ -337,12 +337,14 @@ def refuse_unknown_decoders(
 
 
 def decoded_encodings(name: str) -> list[str]:
-    """The encodings decoder ``name`` can decode (a learned one: those it has a model for)."""
+    """The encodings decoder ``name`` can unwrap (a learned one: those it has a model
+    for; every decoder decodes ``clip`` frames, which never wrap, but a net unwraps
+    none)."""
     decoder = get_decoder(name)
     return [
         encoding
         for encoding in get_args(Encoding)
-        if decoder.supports(SensorParams(encoding=encoding))
+        if decoder.unwraps(SensorParams(encoding=encoding))
     ]
 
 

@@ -109,6 +109,13 @@ def anchor_offset(relative: NDArray[np.int64]) -> int:
     return integer_percentile(relative, ANCHOR_PERCENTILE)
 
 
+def never_wraps(params: SensorParams) -> bool:
+    """Whether frames with ``params`` have W = 0 at every pixel whatever the decoder: a
+    clipped sensor (``clip``) never wraps, so it needs no model and no unwrapping. Every
+    decoder decodes such a frame (:meth:`Decoder.decode`, :meth:`Decoder.supports`)."""
+    return params.encoding == "clip"
+
+
 class Decoder(ABC):
     """Base class of all decoders. Subclasses set ``name`` and ``predict_winding``."""
 
@@ -128,7 +135,7 @@ class Decoder(ABC):
         squeeze = m.ndim == 2
         planes = m[:, :, None] if squeeze else m
         info: dict[str, Any] = {"decoder": self.name, "version": self.version}
-        if params.encoding == "clip":
+        if never_wraps(params):
             winding = np.zeros(planes.shape, np.int64)
         else:
             winding, facts = self.explain_planes(planes, params)
@@ -150,7 +157,13 @@ class Decoder(ABC):
         )
 
     def supports(self, params: SensorParams) -> bool:
-        """Whether this decoder can decode frames with these parameters (all, by default)."""
+        """Whether this decoder can decode frames with these parameters: one that never
+        wraps (:func:`never_wraps`) always, else where it :meth:`unwraps` them."""
+        return never_wraps(params) or self.unwraps(params)
+
+    def unwraps(self, params: SensorParams) -> bool:
+        """Whether this decoder can find W in frames with these parameters (all, by
+        default; a learned decoder only those of the encodings it has a model for)."""
         return True
 
     def explain_winding(

@@ -185,8 +185,8 @@ class ColourDecoder(Decoder):
         self.name = f"{inner.name}{SUFFIX}"  # type: ignore[misc]
         self.version = inner.version
 
-    def supports(self, params: SensorParams) -> bool:
-        return self.inner.supports(params)
+    def unwraps(self, params: SensorParams) -> bool:
+        return self.inner.unwraps(params)
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         return self.inner.predict_winding(m, params)

@@ -248,8 +248,8 @@ class GuidedPumaDecoder(Decoder):
         # refinement, whose energy does not know the clip and lowers them.
         self.fills_saturation = guide.fills_saturation  # type: ignore[misc]
 
-    def supports(self, params: SensorParams) -> bool:
-        return self.guide.supports(params)
+    def unwraps(self, params: SensorParams) -> bool:
+        return self.guide.unwraps(params)
 
     def predict_winding(self, m: NDArray[np.float64], params: SensorParams) -> NDArray[np.int64]:
         return self.explain_winding(m, params)[0]

@@ -466,7 +466,7 @@ class LearnedDecoder(Decoder):
         self.models = {card["encoding"]: onnx_model(card) for card in cards}
         self.version = ",".join(sorted(card["sha256"][:12] for card in cards))
 
-    def supports(self, params: SensorParams) -> bool:
+    def unwraps(self, params: SensorParams) -> bool:
         return params.encoding in self.models
 
     def model_for(self, params: SensorParams) -> OnnxWindingModel:

@@ -18,6 +18,7 @@ from models.decoders.base import (
     integer_percentile,
 )
 from models.decoders.classical import ItohDecoder
+from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError, OutputOverflowError
 from models.formation import SensorParams, encode
 
@@ -158,3 +159,20 @@ def test_absurd_winding_is_an_overflow_error_not_inf() -> None:
 def test_integer_percentile_matches_numpy_higher(values: np.ndarray, percentile: float) -> None:
     expected = np.percentile(values, percentile, method="higher")
     assert integer_percentile(values, percentile) == expected
+
+
+@pytest.mark.parametrize("name", ["mantissanet-small", "mantissanet-small-noise+puma", "itoh"])
+def test_every_decoder_takes_a_clip_frame_which_never_wraps(name: str) -> None:
+    """W is 0 for a clipped sensor whatever the decoder: decode gave it, yet a learned
+    decoder said it did not support clip frames, so the API refused what mcam decoded."""
+    params = SensorParams(encoding="clip", bits=8)
+    decoder = get_decoder(name)
+    assert decoder.supports(params)
+    codes = np.arange(64, dtype=np.uint8).reshape(8, 8)
+    assert not decoder.decode(codes, params).winding.any()
+
+
+def test_a_net_without_a_model_for_an_encoding_that_wraps_still_refuses_it() -> None:
+    decoder = get_decoder("mantissanet-small-noise")
+    assert decoder.supports(SensorParams(encoding="mantissa"))
+    assert not decoder.supports(SensorParams(encoding="modulo"))

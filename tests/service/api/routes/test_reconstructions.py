@@ -609,3 +609,24 @@ def test_the_prefer_header_s_wait_is_read_whole(prefer: str | None, wait_s: floa
     """``wait=1e3`` was read as 1 s and ``wait=5s`` as 5 s (the leading digits), and a
     quoted ``wait="7"``, which RFC 7240 allows, as none."""
     assert prefer_wait_s(prefer, 60.0) == wait_s
+
+
+def test_a_clip_frame_is_decoded_by_a_learned_decoder_as_mcam_does(
+    client: Client, worker: Worker
+) -> None:
+    """A clipped sensor never wraps (W = 0 whatever the decoder): mcam reconstruct
+    decoded it with mantissanet-small, while the API refused it ("has no model for clip
+    frames")."""
+    codes = np.arange(64, dtype=np.uint8).reshape(8, 8) * 4
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": ("f.npy", npy_bytes(codes))},
+        data={"encoding": "clip", "bits": "8", "decoder": "mantissanet-small"},
+        headers={"Prefer": "wait=60"},
+    )
+    assert reply.status_code == 200, reply.text
+    job = reply.json()
+    assert job["state"] == "succeeded" and job["decoder"] == "mantissanet-small", job
+    result = client().get(job["links"]["result"])
+    pixels = read_hdr(result.content).pixels
+    np.testing.assert_allclose(pixels, (codes + 0.5) / 256, rtol=1e-6)
