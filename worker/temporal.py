@@ -75,8 +75,9 @@ then the whole frame is refined, for errors far from any fallback pixel: after
 ``refine_whole_every`` frames, a wait that doubles (up to ``refine_whole_max``) each
 time a whole refinement changes no W beyond that reach, and starts again at
 ``refine_whole_every`` when one does or an anchoring keyframe restarts the stream. (On
-the pan/zoom clip only mantissanet-tiny's whole refinements find anything: a sky a
-wrap off from its keyframe; the other decoders' PSNR was the same with none at all.)
+the pan/zoom clip only mantissanet-tiny's whole refinements found anything: a sky a
+wrap off from its keyframe, which its refinement now raises since guided PUMA confines
+W to the encoding's range; the other decoders' PSNR was the same with none at all.)
 A still camera is not refined this way (it cost the sunrise clip 4.5 dB).
 
 Otherwise (a still camera, or nothing fell back), clusters of safe pixels whose misfit
