@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -43,6 +44,28 @@ def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
 
 #: Cache policy of a stored result: its URL names one job's file, which never changes.
 IMMUTABLE = "private, max-age=31536000, immutable"
+
+
+#: One range of a byte-range set (RFC 9110 14.1.2): FIRST-LAST, FIRST- or -LENGTH.
+BYTE_RANGE = re.compile(r"[0-9]+-[0-9]*|-[0-9]+")
+
+
+def malformed_ranges(spec: str) -> bool:
+    """Whether the byte-range set ``spec`` (the Range header after ``bytes=``) holds a
+    range that is not FIRST-LAST, FIRST- or -LENGTH, or a FIRST-LAST whose LAST is below
+    its FIRST (RFC 9110 14.1.1-14.1.2), or no range at all; empty list elements are
+    ignored (RFC 9110 5.6.1.2)."""
+    parts = [part.strip(" \t") for part in spec.split(",")]
+    ranges = [part for part in parts if part]
+    return not ranges or any(
+        not BYTE_RANGE.fullmatch(part) or _last_before_first(part) for part in ranges
+    )
+
+
+def _last_before_first(part: str) -> bool:
+    """Whether the well-formed range ``part`` is FIRST-LAST with LAST below FIRST."""
+    first, _, last = part.partition("-")
+    return bool(first and last) and int(last) < int(first)
 
 
 #: The headers of a stored file's response that its 304 repeats (RFC 9110 15.4.5).
@@ -121,10 +144,15 @@ class HeldFileResponse(FileResponse):
         """Starlette's byte ranges of ``http_range`` in a file of ``file_size`` bytes
         ([] for the whole file), where a range in a unit other than bytes is ignored (RFC
         9110 14.2: it was 400) and a malformed or unsatisfiable one is the API's JSON 400
-        or 416 (they were plain text)."""
+        or 416 (they were plain text). A set is malformed if any of its ranges is
+        (:func:`malformed_ranges`; RFC 9110 14.2 lets a server reject it): Starlette
+        left out a malformed range beside a good one, so ``bytes=0-9,-`` got a 206 of
+        bytes 0-9 while ``bytes=0-9,5-2`` got the 400."""
         unit, equals, spec = http_range.partition("=")
         if equals and unit.strip().lower() != "bytes":
             return []
+        if malformed_ranges(spec):
+            raise cls._malformed()
         try:
             return super()._parse_range_header(http_range, file_size)
         except RangeNotSatisfiable:
@@ -132,12 +160,6 @@ class HeldFileResponse(FileResponse):
             if not satisfiable:
                 raise cls._unsatisfiable(file_size) from None
             return super()._parse_range_header(f"bytes={','.join(satisfiable)}", file_size)
-        except MalformedRangeHeader:
-            raise ApiError(
-                400, "bad_range",
-                "the Range header is malformed; ask for bytes=FIRST-LAST, bytes=FIRST- or "
-                "bytes=-LENGTH (FIRST <= LAST), or send none for the whole file",
-            ) from None  # fmt: skip
 
     @classmethod
     def _satisfiable_parts(cls, spec: str, file_size: int) -> list[str]:
@@ -153,6 +175,16 @@ class HeldFileResponse(FileResponse):
                 continue
             satisfiable.append(part)
         return satisfiable
+
+    @staticmethod
+    def _malformed() -> ApiError:
+        """The API's JSON 400 for a Range header that is not a byte-range set."""
+        return ApiError(
+            400, "bad_range",
+            "the Range header is malformed; ask for bytes=FIRST-LAST, bytes=FIRST- or "
+            "bytes=-LENGTH (FIRST <= LAST; several separated by commas), or send none for "
+            "the whole file",
+        )  # fmt: skip
 
     @staticmethod
     def _unsatisfiable(file_size: int) -> ApiError:
