@@ -500,6 +500,14 @@ async function follow(start) {
   }
 }
 
+// Follow the job the page's address names, unless it is watched or shown already: at
+// load, and once a key is saved (opened without one, the page asked for the key and
+// saving it never followed the job).
+function followAddressJob() {
+  const named = JOB_HASH.exec(location.hash);
+  if (named && watched?.id !== named[1] && shownJob !== named[1]) follow(async () => named[1]);
+}
+
 // Submit file (an HDR image simulated first, as Upload says); resolves to the job's id.
 // The decoder is read at once: one chosen while the simulate runs is for the next run.
 async function submitFile(file) {
@@ -603,6 +611,7 @@ $("key-form").addEventListener("submit", (event) => {
   localStorage.setItem(KEY_STORAGE, key);
   setStatus("API key saved.");
   loadDecoders();
+  followAddressJob();
 });
 $("job-form").addEventListener("submit", run);
 $("exposure").addEventListener("input", onExposure);
@@ -610,8 +619,9 @@ $("download").addEventListener("click", download);
 $("cancel").addEventListener("click", cancel);
 if (apiKey()) {
   loadDecoders();
-  const shown = JOB_HASH.exec(location.hash);
-  if (shown) follow(async () => shown[1]);
+  followAddressJob();
 } else {
-  setStatus("Enter the API key (printed by mcam serve on first start) and save it.");
+  const named = JOB_HASH.exec(location.hash);
+  setStatus("Enter the API key (printed by mcam serve on first start) and save it" +
+    (named ? `: then job ${named[1]} is followed.` : "."));
 }

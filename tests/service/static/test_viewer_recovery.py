@@ -1,9 +1,10 @@
 """The web viewer when things go wrong, in headless Debian chromium (Playwright, no download).
 
 Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
-a server restart; a 429 is waited out as Retry-After says; a stuck job is polled gently and
-can be cancelled; a job gone from the server is given up with a clear message; the result
-panels show a job's results only once it succeeded, never beside another job's, and previews
+a server restart, and a job's address opened without a key is followed once it is saved;
+a 429 is waited out as Retry-After says; a stuck job is polled gently and can be
+cancelled; a job gone from the server is given up with a clear message; the result panels
+show a job's results only once it succeeded, never beside another job's, and previews
 asked for again are said to be; a decoder list that failed says how to list them again. The
 live device view waits out a 429 too, stops watching a device the server forgot, never shows
 one device's frame or health beside another's, and says why a device sends nothing (no
@@ -151,6 +152,28 @@ def test_a_job_is_followed_again_after_a_reload_or_back_and_forward(
         assert wait_for_status(page, "succeeded") == f"job {job_id}: succeeded"
         wait_for_panels(page)
     assert page.is_enabled("#run") and page.is_disabled("#cancel")
+
+
+def test_the_job_in_the_address_is_followed_once_the_key_is_saved(
+    browser: Browser, settings: Settings, api: str, frame: Path
+) -> None:
+    """A ``#job=`` address opened with no key saved asked for the key, and saving it
+    listed the decoders only: the job was never followed ("No job yet.")."""
+    queued = httpx.post(f"{api}/v1/reconstructions", files={"file": frame.read_bytes()},
+                        headers={"Authorization": f"Bearer {FULL_KEY}"}, timeout=60)
+    job_id = queued.json()["id"]  # no worker yet: the job waits in the queue
+    page = browser.new_page()
+    page.goto(f"{api}/#job={job_id}")
+    asked = page.inner_text("#status")
+    assert asked.startswith("Enter the API key") and f"then job {job_id} is followed" in asked
+    page.fill("#api-key", FULL_KEY)
+    page.click("#key-form button")
+    wait_for_status(page, f"job {job_id}: queued")
+    assert page.is_disabled("#run") and page.is_enabled("#cancel")
+    with running_worker(settings):
+        assert wait_for_status(page, "succeeded") == f"job {job_id}: succeeded"
+        wait_for_panels(page)
+    assert page.url.endswith(f"#job={job_id}")
 
 
 def documented_polls(span_ms: float) -> int:
