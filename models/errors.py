@@ -6,7 +6,7 @@ the CLI) and a human message that says what was wrong and what to do about it.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 from pydantic import ValidationError
@@ -21,9 +21,13 @@ class McamError(ValueError):
     #: for a mistake that retrying does not mend.
     retry_after_s: int | None = None
 
-    def __init__(self, message: str) -> None:
+    def __init__(self, message: str, parameters: Sequence[str] = ()) -> None:
+        """``parameters``: the parameters (their form field names) the message asks the
+        caller to give, for a client to point at its own fields (the API's
+        ``parameters``); empty when it asks for none."""
         super().__init__(message)
         self.message = message
+        self.parameters = tuple(parameters)
 
 
 class InvalidInputError(McamError):

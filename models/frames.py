@@ -373,6 +373,12 @@ def _asking_for(missing: dict[str, str]) -> str:
     return f"command line: {flags}; HTTP: the form fields {fields}{mantissa}"
 
 
+def _asked(missing: dict[str, str]) -> list[str]:
+    """The parameters that :func:`_asking_for` asks for: ``missing``, and alpha when the
+    encoding is missing."""
+    return [*missing, *(["alpha"] if "encoding" in missing else [])]
+
+
 def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> SensorParams:
     """Stored parameters updated by ``overrides`` (None values ignored), checked complete.
 
@@ -386,7 +392,8 @@ def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> Sens
         if missing := _missing(given):
             raise InvalidInputError(
                 f"{stored.problem}; give the parameters to decode the frame without it "
-                f"({_asking_for(missing)})"
+                f"({_asking_for(missing)})",
+                _asked(missing),
             )
         logger.warning("%s; ignored it: decoding with the parameters given", stored.problem)
         stored = {}
@@ -395,7 +402,8 @@ def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> Sens
     if missing:
         raise MissingParameterError(
             f"the frame does not store its {', '.join(missing)}; give them as parameters "
-            f"({_asking_for(missing)})"
+            f"({_asking_for(missing)})",
+            _asked(missing),
         )
     try:
         return SensorParams.parse(merged)
@@ -404,7 +412,8 @@ def merge_params(stored: StoredParams, overrides: dict[str, Any] | None) -> Sens
             overrides = {key: "<value>" for key in stored_faults}
             raise InvalidInputError(
                 f"{exc.message}; the frame stores {', '.join(stored_faults)}: give the right "
-                f"value as a parameter to override it ({_asking_for(overrides)})"
+                f"value as a parameter to override it ({_asking_for(overrides)})",
+                stored_faults,
             ) from None
         raise
 

@@ -1,4 +1,5 @@
-"""Every error the API returns is JSON ``{"code", "message"}`` with a stable code.
+"""Every error the API returns is JSON ``{"code", "message"}`` with a stable code (and
+``parameters``, the form fields the message asks to give, where it asks for some).
 
 Caller mistakes (:class:`McamError`, validation, unknown routes, oversized bodies)
 keep their own status; an unreachable queue is 503, and so is a full one (Redis at
@@ -70,11 +71,12 @@ def _location(loc: tuple[Any, ...] | list[Any]) -> str:
 
 async def mcam_error(_: Request, exc: Exception) -> JSONResponse:
     """The error's JSON, with ``Retry-After`` when retrying later mends it (a full
-    queue, a key's share of it, a full store)."""
+    queue, a key's share of it, a full store), and the ``parameters`` it asks for."""
     assert isinstance(exc, McamError)
     headers = None if exc.retry_after_s is None else {"Retry-After": str(exc.retry_after_s)}
+    extra = {"parameters": list(exc.parameters)} if exc.parameters else {}
     return JSONResponse(
-        error_body(exc.code, exc.message), status_code=exc.http_status, headers=headers
+        error_body(exc.code, exc.message, **extra), status_code=exc.http_status, headers=headers
     )
 
 

@@ -24,6 +24,12 @@ class ErrorBody(BaseModel):
 
     code: str
     message: str
+    parameters: list[str] | None = Field(
+        None,
+        description="the parameters (form field names) the message asks to give, where it "
+        "asks for some: a frame that does not store them, or stores them unreadable or "
+        "out of range",
+    )
 
 
 class JobAccepted(BaseModel):

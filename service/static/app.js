@@ -28,13 +28,15 @@ let inputNotes = []; // what the page notes of this run's input (the simulate's 
 let resultsBusyShown = false; // the status says a result is asked for again (resultsBusy)
 
 // An API call that failed: the HTTP status (0: the server could not be reached), the
-// seconds a 429 or 503 asked to wait (Retry-After) and the error's code (null: none).
+// seconds a 429 or 503 asked to wait (Retry-After), the error's code (null: none) and the
+// parameters its message asks to give (form field names; none: []).
 class ApiError extends Error {
-  constructor(message, status = 0, retryAfterS = null, code = null) {
+  constructor(message, status = 0, retryAfterS = null, code = null, parameters = []) {
     super(message);
     this.status = status;
     this.retryAfterS = retryAfterS;
     this.code = code;
+    this.parameters = parameters;
   }
 }
 
@@ -45,13 +47,15 @@ function apiKey() {
 async function replyError(reply) {
   let message = `${reply.status} ${reply.statusText}`;
   let code = null;
+  let parameters = [];
   try {
     const body = await reply.json();
     message = `${body.code}: ${body.message}`;
     code = body.code;
+    parameters = body.parameters || [];
   } catch (_) { /* not JSON: keep the status line */ }
   const retryAfterS = Number(reply.headers.get("Retry-After")) || null;
-  return new ApiError(message, reply.status, retryAfterS, code);
+  return new ApiError(message, reply.status, retryAfterS, code, parameters);
 }
 
 // An API key is sent in a header: visible ASCII only (a pasted zero-width space or dash
@@ -134,9 +138,12 @@ async function loadDecoders() {
   }
 }
 
+// The frame's parameters the page sends (under Sensor), by their form field names.
+const SENSOR_PARAMETERS = ["encoding", "alpha", "bits"];
+
 // The sensor fields of the form; simulating: the simulate's own too (exposure, clipping).
 function sensorFields(form, simulating) {
-  for (const name of ["encoding", "alpha", "bits"]) {
+  for (const name of SENSOR_PARAMETERS) {
     if ($(name).value) form.append(name, $(name).value);
   }
   if (!simulating) return;
@@ -166,14 +173,20 @@ function wrongKind(error, kind) {
     `“${other}” under Upload and press Reconstruct again`, error.status, null, error.code);
 }
 
+// "a", "a and b", "a, b and c".
+const listed = (names) => names.length < 2 ? names.join("") :
+  `${names.slice(0, -1).join(", ")} and ${names.at(-1)}`;
+
 // The error for a frame the API cannot decode without parameters it does not store (an
-// npy frame): the API's words name its CLI flags and form fields; this adds where they
-// go on this page. Not for raw codes (a .raw or .bin file), whose size the page cannot
-// send.
-function sensorMissing(error, name) {
-  if (error.code !== "missing_parameter" || /\.(raw|bin)$/i.test(name)) return error;
-  return new ApiError(`${error.message}; on this page, fill in encoding, alpha and bits ` +
-    "under Sensor and press Reconstruct again", error.status, null, error.code);
+// npy frame), stores unreadable or stores out of range: the API's words name its CLI
+// flags and form fields (its parameters); this adds where they go on this page. Not
+// where one of them is not on the page (the size of raw codes, a stored read noise).
+function sensorMissing(error) {
+  const asked = error.parameters || [];
+  if (!asked.length || !asked.every((name) => SENSOR_PARAMETERS.includes(name))) return error;
+  const fields = listed(SENSOR_PARAMETERS.filter((name) => asked.includes(name)));
+  return new ApiError(`${error.message}; on this page, fill in ${fields} under Sensor and ` +
+    "press Reconstruct again", error.status, null, error.code, asked);
 }
 
 // The sensor's frame of an HDR image, as a TIFF: it holds grey and colour frames alike
@@ -209,7 +222,7 @@ async function submitFrame(frame, simulated, decoder) {
   if (!simulated) sensorFields(form, false);
   form.append(...decoder);
   const reply = await api("/v1/reconstructions", { method: "POST", body: form }).catch((error) => {
-    throw simulated ? error : sensorMissing(wrongKind(error, "frame"), frame.name);
+    throw simulated ? error : sensorMissing(wrongKind(error, "frame"));
   });
   return (await reply.json()).id;
 }

@@ -20,6 +20,7 @@ import pytest
 from models.formation import simulate
 from models.frames import FRAME_ALIASES, encode_frame
 from models.hdr_io import read_hdr
+from tests.models.test_frames import png_storing
 from tests.service.conftest import PARAMS, exr_bytes, frame_png, npy_bytes, scene
 from tests.service.static.conftest import (
     needs_chromium,
@@ -222,3 +223,38 @@ def test_a_frame_without_its_parameters_is_told_where_to_give_them_on_the_page(
         "; on this page, fill in encoding, alpha and bits under Sensor and press Reconstruct"
         " again"
     ), refused
+
+
+#: The page's hint for a frame refused for the parameters it lacks, after the field names.
+SENSOR_HINT = " under Sensor and press Reconstruct again"
+
+
+def test_a_frame_whose_stored_parameters_are_unreadable_is_told_which_to_fill_in(
+    browser: Browser, api: str, tmp_path: Path
+) -> None:
+    """A PNG whose parameter chunk is no JSON is refused ``invalid_input``, naming the
+    flags and form fields to give instead: the page added no word of its Sensor fields,
+    as it did for ``missing_parameter``. It now names the fields the refusal asks for,
+    and none where one of them is not on the page (a stored read noise out of range)."""
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(png_storing("{broken"))
+    page = open_viewer(browser, api)
+    page.set_input_files("#file", str(broken))
+    refused = run_and_wait(page)
+    assert refused.startswith("invalid_input: the PNG text chunk is not valid JSON"), refused
+    assert refused.endswith(f"; on this page, fill in encoding, alpha and bits{SENSOR_HINT}")
+    page.select_option("#encoding", "mantissa")
+    assert run_and_wait(page).endswith(f"; on this page, fill in alpha and bits{SENSOR_HINT}")
+
+    noisy = tmp_path / "noisy.png"
+    noisy.write_bytes(png_storing('{"alpha": 2, "bits": 8, "read_noise": 5}'))
+    page.set_input_files("#file", str(noisy))
+    refused = run_and_wait(page)
+    assert refused.startswith("invalid_input: invalid sensor parameters: read_noise"), refused
+    assert "on this page" not in refused, refused
+
+    page.set_input_files("#file", str(broken))
+    page.fill("#alpha", "2")
+    page.fill("#bits", "8")
+    page.click("#run")
+    wait_for_status(page, "queued")  # no worker: the job waits

@@ -22,6 +22,7 @@ from models.hdr_io import read_hdr
 from service.api.routes.reconstructions import prefer_wait_s
 from service.api.state import Slots
 from service.main import create_app
+from tests.models.test_frames import png_storing
 from tests.service.conftest import (
     FULL_KEY,
     PARAMS,
@@ -304,6 +305,26 @@ def test_missing_parameters_name_the_form_fields(client: Client) -> None:
     body = reply.json()
     assert body["code"] == "missing_parameter"
     assert "form fields encoding=mantissa, bits=8" in body["message"]
+
+
+@pytest.mark.parametrize(
+    ("stored", "given", "asked"),
+    [(None, {}, ["encoding", "bits", "alpha"]),
+     ("{broken", {}, ["encoding", "bits", "alpha"]),  # unreadable: invalid_input
+     ("{broken", {"encoding": "mantissa"}, ["bits", "alpha"]),
+     ('{"encoding": "modulo", "bits": 8, "read_noise": 5}', {}, ["read_noise"])],
+)  # fmt: skip
+def test_a_refusal_asking_for_parameters_names_them(
+    client: Client, stored: str | None, given: dict[str, str], asked: list[str]
+) -> None:
+    """The refusal's ``parameters`` name the form fields its message asks for, so that a
+    client (the viewer) can point at its own: a frame whose stored parameters were
+    unreadable was refused ``invalid_input`` with its flags and fields in words only."""
+    frame = npy_bytes(np.zeros((8, 8), np.uint8)) if stored is None else png_storing(stored)
+    name = "f.npy" if stored is None else "f.png"
+    reply = client().post("/v1/reconstructions", files={"file": (name, frame)}, data=given)
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["parameters"] == asked
 
 
 def test_truncated_png_is_a_clear_422(client: Client) -> None:
