@@ -13,6 +13,7 @@ from models.exr_header import values_scene_referred
 from models.frames import read_winding
 from models.hdr_io import read_hdr
 from service.cli.options import add_clip_negative_flag
+from service.cli.output_files import check_inputs
 
 #: Display names and units of the metrics in the table.
 LABELS: dict[str, tuple[str, str]] = {
@@ -76,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
     # imported here: scipy.ndimage would add ~0.4 s to the start of every mcam command
     from models.metrics import SSIM_WINDOW, evaluate
 
+    given = (args.image, args.reference, args.winding, args.winding_reference)
+    check_inputs([path for path in given if path])
     estimate = read_hdr(args.image, clip_negative=args.clip_negative)
     reference = read_hdr(args.reference, clip_negative=args.clip_negative)
     check_same_units(estimate.attributes, reference.attributes)

@@ -125,13 +125,30 @@ def test_a_bad_winding_map_is_named_among_the_two(tmp_path: Path, pipeline: Path
     """With --winding and --winding-reference both given, an empty or float map was refused
     as 'the PNG winding map is truncated' or 'a winding map holds integers' without
     saying which of the two files it was."""
-    (tmp_path / "empty.png").write_bytes(b"")
     np.save(tmp_path / "float.npy", np.zeros((64, 64), np.float32))
     images = (pipeline / "hdr.exr", "--reference", pipeline / "reference.exr", "--no-flip")
-    for bad, fragment in (("empty.png", "truncated or corrupt"), ("float.npy", "integers")):
-        result = run_mcam("evaluate", *images, "--winding", pipeline / "W.png",
-                          "--winding-reference", bad, cwd=tmp_path)  # fmt: skip
-        assert_one_line_error(result, f"error: {bad}: ", fragment)
+    result = run_mcam("evaluate", *images, "--winding", pipeline / "W.png",
+                      "--winding-reference", "float.npy", cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(result, "error: float.npy: ", "integers")
+
+
+def test_an_empty_file_is_called_empty(tmp_path: Path, pipeline: Path) -> None:
+    """An empty image was called "not an OpenEXR or Radiance HDR image; convert it to
+    OpenEXR" (an empty W map "truncated or corrupt"), where mcam video, reconstruct and
+    simulate say the file is empty (:func:`models.file_magic.refuse_empty`)."""
+    (tmp_path / "e.exr").write_bytes(b"")
+    (tmp_path / "empty.png").write_bytes(b"")
+    images = (pipeline / "hdr.exr", "--reference", pipeline / "reference.exr", "--no-flip")
+    maps = ("--winding", pipeline / "W.png", "--winding-reference", "empty.png")
+    for empty, args in (
+        ("e.exr", ("e.exr", "--reference", "e.exr")),
+        ("e.exr", (pipeline / "hdr.exr", "--reference", "e.exr")),
+        ("empty.png", (*images, *maps)),
+    ):
+        assert_one_line_error(
+            run_mcam("evaluate", *args, cwd=tmp_path),
+            f"error: the file {empty} is empty; send the whole file",
+        )
 
 
 def test_a_wrapped_frame_given_as_a_winding_map_is_refused(tmp_path: Path, pipeline: Path) -> None:
