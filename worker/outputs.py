@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from models.decodable import check_decodable
+from models.errors import OutputOverflowError, OutputUnderflowError
 from models.exr_header import reconstruction_attributes
 from models.formation import SensorParams, reconstruct
 from models.frames import encode_frame
@@ -48,6 +49,25 @@ def check_result_storable(
     the worker would fail it with output_overflow or output_underflow."""
     dtype, scene_referred = _exr_form(options)
     check_decodable(codes, params, dtype, scene_referred=scene_referred)
+
+
+def check_video_storable(
+    codes: NDArray[Any], params: SensorParams, options: dict[str, Any]
+) -> None:
+    """Refuse, before a video job is queued, a clip (T x H x W[x C] codes) whose EXR
+    frames cannot be stored whatever the decoder finds: :func:`check_result_storable`
+    on each frame, the first frame refused named in the error. A value's fate depends on
+    its code alone, so the clip's distinct codes are checked first; a clip that passes
+    (the usual case) is not reconstructed frame by frame."""
+    try:
+        check_result_storable(np.unique(codes), params, options)
+    except (OutputOverflowError, OutputUnderflowError) as clip_error:
+        for index, frame in enumerate(codes):
+            try:
+                check_result_storable(frame, params, options)
+            except (OutputOverflowError, OutputUnderflowError) as exc:
+                raise type(exc)(f"video frame {index}: {exc.message}") from None
+        raise clip_error
 
 
 def encode_exr_result(

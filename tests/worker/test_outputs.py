@@ -7,11 +7,13 @@ import json
 
 import numpy as np
 import OpenEXR
+import pytest
 
 from models.decoders import get_decoder
+from models.errors import OutputOverflowError
 from models.formation import SensorParams, encode
 from models.hdr_io import EXR_COMPRESSIONS, read_hdr
-from worker.outputs import encode_outputs
+from worker.outputs import check_video_storable, encode_outputs
 
 PARAMS = SensorParams(encoding="modulo", bits=8, gain=2.0)
 
@@ -68,3 +70,14 @@ def test_the_codes_are_kept_whatever_the_exr_can_carry_back() -> None:
     frame = encode(np.linspace(0.0, 1000.0, 4096).reshape(64, 64), params)
     files = encode_outputs(frame.codes, frame.winding, params, {}, {})
     np.testing.assert_array_equal(np.load(io.BytesIO(files["codes"])), frame.codes)
+
+
+def test_a_clip_that_cannot_be_stored_names_its_first_such_frame() -> None:
+    """Half floats at gain 1e-5 hold code 0 at W = 0 (x / gain about 200) but not code
+    255 (about 99800): the frame of 255s is named, and one of 0s alone passes."""
+    params = SensorParams(encoding="modulo", bits=8, gain=1e-5)
+    clip = np.stack([np.zeros((4, 4), np.uint8), np.full((4, 4), 255, np.uint8)])
+    check_video_storable(clip[:1], params, {"half": True})
+    with pytest.raises(OutputOverflowError, match=r"^video frame 1: whatever winding") as exc:
+        check_video_storable(clip, params, {"half": True})
+    assert "16 pixels" in exc.value.message and "ask for float32 output" in exc.value.message

@@ -33,6 +33,7 @@ from service.api.state import ServiceState
 from service.api.uploads import SensorFields, Upload, read_upload_fields
 from service.core.security import ApiKey
 from worker.jobs import JobRecord
+from worker.outputs import check_video_storable
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
 from worker.video_input import VIDEO_ALIASES, VideoLimits, decode_video, not_a_video
 from worker.video_jobs import VIDEO_FILES, check_frame_size, video_options
@@ -142,6 +143,8 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey
     options = fields.video_job_options()
     video_options(decoder, options)
     check_frame_size(options["outputs"], video.codes.shape)
+    if "exr_zip" in options["outputs"]:
+        check_video_storable(video.codes, video.params, options)
     record = state.queue.submit(
         "video", video.codes, video.params, decoder, options, owner=key.id,
         warnings=video.warnings,

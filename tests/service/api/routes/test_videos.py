@@ -18,6 +18,8 @@ from models.frames import encode_frame
 from models.hdr_io import read_hdr
 from service.main import create_app
 from tests.service.conftest import FULL_KEY, finished_job, make_settings, npy_bytes, serve
+from worker.embedded_redis import connect
+from worker.redis_keys import JOBS_STREAM
 from worker.runner import Worker
 
 Client = Callable[[str], httpx.Client]
@@ -249,22 +251,36 @@ def test_8_bit_codes_sent_as_wider_tell_the_client(client: Client) -> None:
     assert reply.json()["warnings"] == [warning.replace("bits is 12", "bits is 16")]
 
 
-def test_half_floats_at_a_gain_float32_cannot_take_are_not_told_to_use_float32(
-    client: Client, worker: Worker
-) -> None:
-    """At gain 1e-300 every x / gain exceeds float32 too, yet the job's error said "ask
-    for float32 output instead of half floats"; it now says float32 cannot hold them
-    either, and to give the right gain."""
+def post_half_floats_at_gain_1e_minus_300(client: Client, outputs: str) -> httpx.Response:
+    """POST two frames of :func:`slow_clip` for ``outputs`` as half floats at gain 1e-300."""
     codes = np.stack([encode(x, PARAMS).codes for x in slow_clip()[:2]])
-    http = client()
-    reply = http.post(
+    return client().post(
         "/v1/videos",
         files={"file": ("clip.npy", npy_bytes(codes))},
-        data={**FLAGS, "gain": "1e-300", "half": "true", "outputs": "exr_zip"},
+        data={**FLAGS, "gain": "1e-300", "half": "true", "outputs": outputs},
     )
-    assert reply.status_code == 202, reply.text
-    job = finished_job(http, reply.json()["id"])
-    assert job["state"] == "failed" and job["error"]["code"] == "output_overflow", job
-    message = job["error"]["message"]
+
+
+def test_half_floats_at_a_gain_float32_cannot_take_are_refused_at_submit(
+    client: Client, redis_url: str
+) -> None:
+    """At gain 1e-300 every x / gain exceeds float32 too: POST /v1/reconstructions refused
+    it with a 422, while POST /v1/videos queued a job that the worker failed with
+    output_overflow after decoding every frame. It is now refused at once, by the same
+    check (:func:`worker.outputs.check_result_storable`), naming the frame, and says that
+    float32 cannot hold the values either."""
+    reply = post_half_floats_at_gain_1e_minus_300(client, "exr_zip")
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["code"] == "output_overflow", reply.text
+    message = reply.json()["message"]
+    assert message.startswith("video frame 0: whatever winding numbers a decoder finds")
     assert "float32 output cannot hold them either" in message, message
     assert "instead of half floats" not in message and "a higher gain" in message
+    assert connect(redis_url).xlen(JOBS_STREAM) == 0
+
+
+def test_a_video_without_exr_frames_is_not_refused_for_them(client: Client) -> None:
+    """Half floats matter only to the EXR frames: a video of HDR10 alone at gain 1e-300
+    is queued."""
+    reply = post_half_floats_at_gain_1e_minus_300(client, "hdr10")
+    assert reply.status_code == 202, reply.text
