@@ -628,7 +628,7 @@ def no_frames_reason(client: redis.Redis, device: str) -> str:
 def missing_frames(recording: Recording) -> list[str]:
     """What the recording misses, and why: frames the device stream dropped before a
     worker read them, frames that failed to decode (the video's warnings)."""
-    missing = [frames_lost_text(recording.frames_lost)] if recording.frames_lost else []
+    missing = [frames_lost_text(recording)] if recording.frames_lost else []
     if recording.frames_failed:
         frames = _frames_sent(recording.frames_failed)
         missing.append(
@@ -646,14 +646,15 @@ def _frames_sent(count: int) -> str:
     return f"{count} frames the camera sent between the start and the stop"
 
 
-def frames_lost_text(lost: int) -> str:
-    """What losing ``lost`` frames of a recording to a full device stream means, and
-    what to do."""
+def frames_lost_text(recording: Recording) -> str:
+    """What losing its ``frames_lost`` frames to its device's full frame stream means to
+    ``recording``, and what to do."""
+    lost = recording.frames_lost
     return (
         f"{_frames_sent(lost)} {'was' if lost == 1 else 'were'} dropped from the device's "
         "frame stream before a worker read them (it keeps the newest MCAM_FRAMES_MAXLEN "
-        "frames; stream_full in GET /v1/devices/{id}); keep a worker running while "
-        "recording, or raise MCAM_FRAMES_MAXLEN on the device daemon"
+        f"frames; stream_full in GET /v1/devices/{recording.device}); keep a worker running "
+        "while recording, or raise MCAM_FRAMES_MAXLEN on the device daemon"
     )
 
 

@@ -503,6 +503,7 @@ def test_a_recording_whose_frames_were_all_trimmed_says_how_many_and_what_to_do(
     assert failed.state == "failed" and failed.frames == 0 and failed.frames_lost == 5
     assert "5 frames the camera sent between the start and the stop" in failed.error
     assert "keep a worker running" in failed.error and "MCAM_FRAMES_MAXLEN" in failed.error
+    assert "stream_full in GET /v1/devices/cam1)" in failed.error, failed.error  # not {id}
 
 
 def test_a_video_that_lost_frames_to_the_full_stream_says_how_many(
@@ -530,6 +531,7 @@ def test_a_video_that_lost_frames_to_the_full_stream_says_how_many(
     [warning] = queue.get(done.job).warnings
     assert warning.startswith("3 frames the camera sent between the start and the stop")
     assert "MCAM_FRAMES_MAXLEN" in warning
+    assert "stream_full in GET /v1/devices/cam1)" in warning, warning  # it said {id}
 
 
 def test_frames_a_stopped_worker_held_when_the_stream_dropped_them_count_as_lost(
