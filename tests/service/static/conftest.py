@@ -29,18 +29,23 @@ needs_chromium = pytest.mark.skipif(
 POLL_MS = 50
 
 
-def wait_for_js(page: Page, expression: str, arg: Any = None, timeout_ms: int = 30_000) -> None:
-    """Poll a JavaScript expression (or a function of ``arg``) until it is truthy.
+def wait_for_js(page: Page, expression: str, arg: Any = None, timeout_ms: int = 30_000) -> Any:
+    """Poll a JavaScript expression (or a function of ``arg``) until it is truthy, and
+    return that value.
 
     ``page.wait_for_function`` compiles its predicate in the page with ``new Function``,
     which the viewer's Content Security Policy forbids (no ``'unsafe-eval'``);
     ``page.evaluate`` runs through the DevTools protocol, which the policy allows.
     """
     deadline = time.monotonic() + timeout_ms / 1000
-    while not (page.evaluate(expression) if arg is None else page.evaluate(expression, arg)):
+    evaluate = (lambda: page.evaluate(expression)) if arg is None else (
+        lambda: page.evaluate(expression, arg)
+    )
+    while not (value := evaluate()):
         if time.monotonic() > deadline:
             pytest.fail(f"not true within {timeout_ms} ms: {expression}")
         page.wait_for_timeout(POLL_MS)
+    return value
 
 
 @contextmanager
@@ -59,7 +64,8 @@ def chromium() -> Iterator[Browser]:
 
 def open_viewer(browser: Browser, url: str, *, fake_clock: bool = False) -> Page:
     """The viewer at ``url`` with the key saved and the decoders listed; with
-    ``fake_clock`` the page's timers run only as the test moves its clock on."""
+    ``fake_clock`` the page's timers are Playwright's fake clock, which the test moves
+    on (``page.clock.run_for``) and which also goes on at the wall clock's pace."""
     page = browser.new_page()
     page.set_default_timeout(30_000)
     if fake_clock:
@@ -72,13 +78,16 @@ def open_viewer(browser: Browser, url: str, *, fake_clock: bool = False) -> Page
 
 
 def wait_for_status(page: Page, text: str, timeout_ms: int = 30_000) -> str:
-    """The page's status line once it holds ``text``."""
-    wait_for_js(
+    """The page's status line as it read when it first held ``text``: read in the same
+    evaluation, since the page's timers run on (a read after the wait could see the next
+    status, as a retry's answer replaced "connection to the server lost")."""
+    return wait_for_js(
         page,
-        f"document.getElementById('status').textContent.includes({text!r})",
+        "(text) => { const status = document.getElementById('status').innerText;"
+        " return status.includes(text) ? status : null; }",
+        text,
         timeout_ms=timeout_ms,
     )
-    return page.inner_text("#status")
 
 
 @pytest.fixture
