@@ -139,15 +139,15 @@ class PumaEnergy:
         """The per-pixel terms: the prior ``prior_weight * sum c(K - prior)`` (0 without
         a prior) plus the :meth:`bound_cost` (0 without bounds), summed over every pixel
         of ``winding`` (H x W) or only over ``pixels`` (flat indices)."""
-        at = winding if pixels is None else winding.ravel()[pixels]
-        bound = float(self.bound_cost(at).sum())
+        at = _pixels_of(winding, pixels)
+        total = 0.0 if self.bounds is None else float(self.bound_cost(at).sum())
         if self.prior is None:
-            return bound
-        winding, prior, weight = self._at(winding, self.prior, pixels)
-        cost = self.prior_cost(winding - prior)
+            return total
+        prior, weight = self._prior_at(pixels)
+        cost = self.prior_cost(at - prior)
         if np.ndim(weight) == 0:
-            return bound + float(weight) * float(cost.sum())
-        return bound + float(np.sum(weight * cost))
+            return total + float(weight) * float(cost.sum())
+        return total + float(np.sum(weight * cost))
 
     def bound_cost(self, winding: NDArray[np.int64]) -> NDArray[np.float64]:
         """Per pixel of ``winding`` (any shape): :data:`OUT_OF_BOUNDS_COST` per wrap of K
@@ -160,20 +160,18 @@ class PumaEnergy:
             outside = outside + np.maximum(winding - highest, 0)
         return OUT_OF_BOUNDS_COST * outside
 
-    def _at(
-        self,
-        winding: NDArray[np.int64],
-        prior: NDArray[np.int64],
-        pixels: NDArray[np.int64] | None,
-    ) -> tuple[NDArray[np.int64], NDArray[np.int64], float | NDArray[np.float64]]:
-        """``winding``, ``prior`` and ``prior_weight`` whole (``pixels`` None) or at
-        ``pixels`` (flat indices; 1-D)."""
+    def _prior_at(
+        self, pixels: NDArray[np.int64] | None
+    ) -> tuple[NDArray[np.int64], float | NDArray[np.float64]]:
+        """``prior`` and ``prior_weight`` whole (``pixels`` None) or at ``pixels`` (flat
+        indices; 1-D); only with a prior."""
+        assert self.prior is not None
         weight = self.prior_weight
         if pixels is None:
-            return winding, prior, weight
+            return self.prior, weight
         if np.ndim(weight) != 0:
             weight = np.ravel(weight)[pixels]
-        return winding.ravel()[pixels], prior.ravel()[pixels], weight
+        return self.prior.ravel()[pixels], weight
 
     def prior_cost(self, offset: NDArray[np.int64]) -> NDArray[np.float64]:
         """``c(K - prior)`` per pixel, in units of ``prior_weight``: ``max(-d, above * d)``,
@@ -186,13 +184,22 @@ class PumaEnergy:
         """Change of the per-pixel terms (:meth:`prior_energy`) at each pixel if its ``K``
         grows by ``jump``: for every pixel of ``winding`` (H x W), or only at ``pixels``
         (flat indices into it; 1-D, in their order)."""
-        at = winding if pixels is None else winding.ravel()[pixels]
-        change = self.bound_cost(at + jump) - self.bound_cost(at)
-        if self.prior is None:
-            return change
-        winding, prior, weight = self._at(winding, self.prior, pixels)
-        offset = winding - prior
-        return change + weight * (self.prior_cost(offset + jump) - self.prior_cost(offset))
+        at = _pixels_of(winding, pixels)
+        change = np.zeros(at.shape)
+        if self.bounds is not None:
+            change += self.bound_cost(at + jump) - self.bound_cost(at)
+        if self.prior is not None:
+            prior, weight = self._prior_at(pixels)
+            offset = at - prior
+            change += weight * (self.prior_cost(offset + jump) - self.prior_cost(offset))
+        return change
+
+
+def _pixels_of(
+    winding: NDArray[np.int64], pixels: NDArray[np.int64] | None
+) -> NDArray[np.int64]:
+    """``winding`` whole (``pixels`` None) or at ``pixels`` (flat indices; 1-D)."""
+    return winding if pixels is None else winding.ravel()[pixels]
 
 
 def move_terms(

@@ -179,9 +179,10 @@ class PriorGroups:
     def _cost(self, groups: NDArray[np.bool_] | slice, moved: NDArray[np.int64]) -> NDArray:
         """Each of ``groups``' per-pixel terms, summed over its pixels, with its region
         moved by ``moved`` wraps (int per group)."""
-        prior = self.energy.prior_cost(self.offset[groups] + moved)
-        bound = self.energy.bound_cost(self.level[groups] + moved)
-        return self.weight[groups] * prior + self.count[groups] * bound
+        cost = self.weight[groups] * self.energy.prior_cost(self.offset[groups] + moved)
+        if self.energy.bounds is None:
+            return cost
+        return cost + self.count[groups] * self.energy.bound_cost(self.level[groups] + moved)
 
     def energy_of(self, shift: NDArray[np.int64]) -> float:
         """The per-pixel terms with each region moved by its ``shift`` (int per region)."""
