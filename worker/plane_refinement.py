@@ -22,16 +22,20 @@ def refined_planes(
     params: SensorParams,
     bands: NDArray[np.bool_] | None = None,
     refill: bool = False,
+    anchor: bool = False,
 ) -> NDArray[np.int64]:
     """Each plane of ``winding`` (H x W x C) refined by ``refiner`` on its plane of ``m``:
     whole, or only within its plane of ``bands`` (bool, H x W x C) when given. With
     ``refill``, a whole plane's clipped blobs are filled again, judged on ``winding``
-    (:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refilled`; an anchoring
-    keyframe, see the module doc)."""
+    (:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refilled`), and with
+    ``anchor`` a whole plane is anchored as a spatial decode is
+    (:meth:`models.decoders.guided_puma.GuidedPumaDecoder.refine_anchored`): both for
+    an anchoring keyframe, see the module doc."""
     planes = []
+    refine = refiner.refine_anchored if anchor else refiner.refine
     for c in range(m.shape[2]):
         if bands is None:
-            plane = refiner.refine(m[:, :, c], winding[:, :, c], params)[0]
+            plane = refine(m[:, :, c], winding[:, :, c], params)[0]
             if refill:
                 plane = refiner.refilled(m[:, :, c], plane, winding[:, :, c], params)[0]
             planes.append(plane)

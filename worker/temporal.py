@@ -106,9 +106,12 @@ below 0.025. The safety checks alone let 41-53% of a cut's pixels pass by chance
 the stream carried their wrong W to the next periodic keyframe. All but the periodic
 (:data:`ANCHOR_KEYFRAMES`) anchor the stream, which carries
 their errors on, so their spatial answer is refined by guided PUMA to convergence
-(``refine_keyframes``; one refinement per stream start, 20-100 ms at 256x256) and,
-with a decoder that fills clipped blobs, filled again, each blob judged on the spatial
-answer (the refinement's energy does not know the clip and lowers the blobs).
+(``refine_keyframes``; one refinement per stream start, 20-100 ms at 256x256),
+anchored again as a spatial decode is (the darkest pixels at W = 0: from itoh's W on
+the sunrise clip's dark first frame the refinement lifted the whole frame a wrap, and
+the stream carried it, 16.27 dB against 40.94 anchored) and, with a decoder that fills
+clipped blobs, filled again, each blob judged on the spatial answer (the refinement's
+energy does not know the clip and lowers the blobs).
 
 A periodic keyframe first makes the temporal step as usual (with its fallbacks), then
 decodes the frame spatially and shifts that answer by its most common difference to
@@ -349,7 +352,9 @@ class StreamDecoder:
     ) -> tuple[NDArray[np.int64], dict[str, float]]:
         spatial = self._spatial_planes(m, params)
         if reason in ANCHOR_KEYFRAMES and self.keyframe_refiner is not None:
-            spatial = refined_planes(self.keyframe_refiner, m, spatial, params, refill=True)
+            spatial = refined_planes(
+                self.keyframe_refiner, m, spatial, params, refill=True, anchor=True
+            )
         spatial = self.spatial.join_channels(m, spatial, params)[0]
         if reason != "periodic" or state.u is None:
             return spatial, {"temporal": 0.0, "local": 0.0, "spatial": 1.0}

@@ -54,6 +54,21 @@ training-scene crops mantissa 27.93 -> 27.97 / 27.70 -> 27.74, modulo 27.56 -> 2
 26.94 -> 27.20; mostly-dark 45.53 -> 45.45 / 45.80 -> 45.70; glows 35.80 -> 35.70;
 pan/zoom mantissa 46.91 -> 48.60 / 40.94 -> 41.03, modulo 47.24 / 42.02 -> 43.81.
 
+The moves keep W within that range but not its constant, so ``<decoder>+puma`` (and a
+stream's anchoring keyframe) anchors the refined W as every decoder anchors its own
+(:meth:`GuidedPumaDecoder.refine_anchored`: the darkest pixels at W = 0). Raising a
+region costs half as much as lowering one, so from itoh's W on the sunrise clip's dark
+first frame (half 0, half 1 on a frame that never wraps) the least energy lifted the
+whole frame to W = 1 (0.2% of W right). Measured (2026-11-28, dB / % of W right):
+itoh+puma val-256 mantissa 19.89 / 57.8 -> 20.46 / 68.1, modulo 19.26 / 59.0 -> 20.02 /
+70.3, training-scene crops 20.26 -> 22.17 and 21.89 -> 22.28 dB, six sunrise frames
+11.15 -> 18.31 and 13.24 -> 17.93 dB; the nets' refinements never moved (their
+guides' W already sits where the frame's darkest pixels are 0), nor did any set of
+mostly-dark, glow or pan/zoom frames. The sunrise stream with itoh as spatial decoder:
+16.27 -> 40.94 dB (mantissa), 17.72 -> 42.73 dB (modulo). ``auto`` refines its stitched
+W (anchored before) without anchoring again: anchored after, it moved only the sunrise
+frames at balanced (mantissa 27.17 -> 27.02 dB, W 80.8 -> 81.3%).
+
 All terms are convex, so PUMA's +1/-1 binary moves (one min-cut each) reach the
 global minimum of a frame of up to :data:`WHOLE_FRAME_PIXELS`; larger frames are
 refined in overlapping :data:`WINDOW`-px windows stitched with integer offsets.
@@ -96,7 +111,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from models.decoders.band_moves import BandGraph, best_band_move
-from models.decoders.base import Decoder, refuse_empty
+from models.decoders.base import Decoder, anchor_offset, anchor_winding, refuse_empty
 from models.decoders.classical import wrap_difference
 from models.decoders.graphcut import (
     PairWeights,
@@ -267,7 +282,7 @@ class GuidedPumaDecoder(Decoder):
         the clipped blobs filled again, judged on the guide's W, when the guide fills
         them: ``auto-fast+puma`` on val-256 mantissa 24.43 -> 24.71 dB)."""
         guide, details = self.guide.explain_winding(m, params)
-        winding, facts = self.refine(m, guide, params)
+        winding, facts = self.refine_anchored(m, guide, params)
         winding, saturation = self.refilled(m, winding, guide, params)
         if saturation is not None:
             facts["saturation"] = saturation
@@ -319,6 +334,21 @@ class GuidedPumaDecoder(Decoder):
             boxes.append(facts)
         totals = {key: sum(facts[key] for facts in boxes) for key in REFINEMENT_COUNTS}
         return winding, _facts(winding, guide, **totals)
+
+    def refine_anchored(
+        self, m: NDArray[np.float64], guide: NDArray[np.int64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """``guide`` (int W, H x W, a whole frame's spatial decode) refined whole, then
+        anchored as every decoder's W is (:func:`models.decoders.base.anchor_winding`:
+        the darkest pixels at W = 0), and :meth:`refine`'s facts with the wraps taken
+        off (``anchor_shift``). The moves keep W within the encoding's range but not its
+        constant: from a guide whose W is half 0 and half 1 on a frame that never wraps
+        (itoh's on a dark frame), they raise the whole frame to 1 at the least energy.
+        """
+        refined, facts = self.refine(m, guide, params)
+        winding = anchor_winding(refined, params)
+        counts = _counts(facts)
+        return winding, {**_facts(winding, guide, **counts), "anchor_shift": anchor_offset(refined)}
 
     def refine_within(
         self,
@@ -382,6 +412,11 @@ class GuidedPumaDecoder(Decoder):
         confined to the encoding's range (0 to :func:`models.formation.max_winding`)."""
         bounds = (0, max_winding(params))
         return PumaEnergy(1.0, pair_weights(m), guide, self.prior_weight, ABOVE_FACTOR, bounds)
+
+
+def _counts(facts: dict[str, Any]) -> dict[str, int]:
+    """The :data:`REFINEMENT_COUNTS` of a refinement's facts."""
+    return {key: facts[key] for key in REFINEMENT_COUNTS}
 
 
 def _facts(

@@ -493,3 +493,23 @@ def test_a_whole_refinement_on_a_pan_keeps_a_filled_lamp_filled() -> None:
         for t, f in enumerate(frames)
     ]
     assert wrong == [0] * 10
+
+
+def test_an_anchoring_keyframe_is_anchored_after_its_refinement() -> None:
+    """A first frame that never wraps, decoded by a spatial decoder one wrap high on its
+    right half (itoh on the sunrise clip's dark first frame): the keyframe's refinement
+    lifts the whole frame to W = 1 at the least energy (raising is cheaper than
+    lowering), and the stream carried that on (sunrise with itoh: 16.27 dB). The
+    refined keyframe is anchored as a spatial decode is: its darkest pixels at W = 0."""
+    params = SensorParams(encoding="mantissa")
+    yy, xx = np.mgrid[0:64, 0:64] / 64
+    frame = encode(0.1 + 0.7 * np.exp(-((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.1), params)
+    assert not frame.winding.any()
+    lifted = np.zeros((64, 64, 1), np.int64)
+    lifted[:, 32:] = 1
+    spatial = FixedPlanesDecoder(lifted)
+    result = StreamDecoder("temporal", spatial, TemporalConfig()).decode(
+        frame.codes, params, StreamState()
+    )
+    assert result.keyframe == "first"
+    np.testing.assert_array_equal(result.winding, frame.winding)
