@@ -28,7 +28,7 @@ and the header attributes it is given per frame.
 from __future__ import annotations
 
 import zipfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import IO, Any
@@ -359,16 +359,16 @@ def frame_rate(fps: float) -> Fraction:
     return Fraction(fps).limit_denominator(1001)
 
 
-def sdr_frames(frames: Sequence[NDArray[np.floating]]) -> list[NDArray[np.uint8]]:
-    """8-bit sRGB previews: Reinhard on luminance keyed on the middle frame, colour kept."""
+def sdr_frames(frames: Sequence[NDArray[np.floating]]) -> Iterator[NDArray[np.uint8]]:
+    """8-bit sRGB previews: Reinhard on luminance keyed on the middle frame, colour kept.
+    Each is made when the next is asked for: made all first, they held the preview's
+    progress (and a cancel) at its start for 80% of its time, and all its frames at once."""
     key = as_rgb(frames[len(frames) // 2])
-    out = []
     for frame in frames:
         rgb = as_rgb(frame)
         lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
         tone = reinhard(rgb, key)
-        out.append(pad_even(srgb8(rgb * (tone / np.maximum(lum, 1e-12))[:, :, None])))
-    return out
+        yield pad_even(srgb8(rgb * (tone / np.maximum(lum, 1e-12))[:, :, None]))
 
 
 def write_sdr_preview(

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from models.errors import InvalidInputError, OutputUnderflowError
 from models.hdr_io import EXR_COMPRESSIONS, read_hdr
+from worker import video_output
 from worker.video_output import (
     BT709_TO_BT2020,
     LUMA_OFFSET,
@@ -186,12 +187,12 @@ def test_sdr_preview_reads_back() -> None:
         assert stream.codec_context.name == "h264"
         decoded = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
     assert len(decoded) == FRAMES
-    expected = sdr_frames(frames)[0].astype(int)
+    expected = next(sdr_frames(frames)).astype(int)
     assert np.abs(decoded[0].astype(int) - expected).mean() < 3
 
 
 def test_sdr_tonemap_keeps_order_and_range() -> None:
-    image = sdr_frames(grey_clip())[0][:, :, 0].ravel()
+    image = next(sdr_frames(grey_clip()))[:, :, 0].ravel()
     assert np.all(np.diff(image.astype(int)) >= 0) and image[0] < 10 and image[-1] > 200
 
 
@@ -201,9 +202,30 @@ def test_sdr_preview_of_a_flash_far_brighter_than_its_key_frame() -> None:
     dark = np.full((64, 64), 1e-5)
     flash = dark.copy()
     flash[:8, :8] = 2.5e305
-    images = sdr_frames([flash, dark, flash])
+    images = list(sdr_frames([flash, dark, flash]))
     assert (images[0][:8, :8] == 255).all() and (images[0][8:, 8:] == images[1][8:, 8:]).all()
 
+
+
+def test_sdr_preview_reports_each_frame_as_soon_as_it_is_tonemapped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Every frame was tonemapped before the first was encoded: a job's progress (and a
+    cancel) waited at the preview's start for 80% of its time (44 ms of 55 ms a frame at
+    512 x 512)."""
+    tonemapped: list[int] = []
+    reinhard = video_output.reinhard
+
+    def counted(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        tonemapped.append(1)
+        return reinhard(image, reference)
+
+    monkeypatch.setattr(video_output, "reinhard", counted)
+    seen: list[tuple[int, int]] = []
+    write_sdr_preview(
+        grey_clip(), io.BytesIO(), progress=lambda done: seen.append((done, len(tonemapped)))
+    )
+    assert seen == [(n, n) for n in range(1, FRAMES + 1)]
 
 @pytest.mark.parametrize("compression", sorted(EXR_COMPRESSIONS))
 def test_exr_sequence_zip_round_trip(compression: str) -> None:
