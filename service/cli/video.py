@@ -11,6 +11,7 @@ from typing import Any
 from models.errors import InvalidInputError
 from service.cli.options import add_exr_compression_flag, add_sensor_flags, sensor_values
 from service.cli.output_files import OutputFile, staged_outputs
+from worker.outputs import check_video_storable
 from worker.temporal_config import MODES, TemporalConfig
 from worker.video_input import read_video
 from worker.video_output import (
@@ -139,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
     with staged_outputs(list(files.values()), [args.video]) as paths:
         video = read_video(args.video, sensor_values(args))
         check_frame_size(files, video.codes.shape)
+        if "exr_zip" in files:
+            check_video_storable(video.codes, video.params, {"half": args.half})
         progress = None if args.quiet else progress_bar
         start = time.perf_counter()
         decoded = decode_video_frames(video, options, progress)

@@ -119,7 +119,21 @@ def test_a_failing_output_leaves_no_other_output_behind(tmp_path: Path) -> None:
         "video", "wrapped.npy", "-o", "clip.mp4", "--preview", "sdr.mp4", "--exr", "frames.zip",
         *FLAGS, "--gain", "1e300", "--quiet", cwd=tmp_path,
     )  # fmt: skip
-    assert_one_line_error(result, "would be stored as 0")  # the EXR frames, written last
+    assert_one_line_error(result, "would be stored as 0")  # the EXR frames
+    assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
+
+
+def test_exr_frames_that_cannot_be_stored_are_refused_before_decoding(tmp_path: Path) -> None:
+    """At gain 1e-300 every x / gain overflows half floats (and float32): the video was
+    decoded frame by frame (its progress line written) before the EXR frames were refused.
+    ``POST /v1/videos`` refuses such a clip before queuing it; so does ``mcam video``."""
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
+    np.save(tmp_path / "wrapped.npy", np.stack([encode(x, params).codes for x in slow_clip()]))
+    result = run_mcam(
+        "video", "wrapped.npy", "-o", "clip.mp4", "--exr", "frames.zip", "--half", *FLAGS,
+        "--gain", "1e-300", cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(result, "video frame 0", "float16", "float32 output cannot hold")
     assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
 
 
