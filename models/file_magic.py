@@ -22,6 +22,9 @@ TIFF_MAGICS: tuple[bytes, ...] = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"
 NPY_MAGIC = b"\x93NUMPY"
 #: Leading bytes of a zip archive (its first local file header).
 ZIP_MAGIC = b"PK\x03\x04"
+#: Leading bytes of a zip archive of no entries: its end record alone (Python's zipfile
+#: writes one when nothing was added, as when the glob of the frames matched none).
+EMPTY_ZIP_MAGIC = b"PK\x05\x06"
 #: Leading bytes of OpenEXR files.
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 #: Leading bytes of Radiance RGBE (.hdr, .pic) files.
@@ -35,7 +38,10 @@ FRAME_MAGICS: Magics = (
 )
 #: Wrapped-video formats (:mod:`worker.video_input`).
 VIDEO_MAGICS: Magics = (
-    *((magic, "tiff") for magic in TIFF_MAGICS), (NPY_MAGIC, "npy"), (ZIP_MAGIC, "zip")
+    *((magic, "tiff") for magic in TIFF_MAGICS),
+    (NPY_MAGIC, "npy"),
+    (ZIP_MAGIC, "zip"),
+    (EMPTY_ZIP_MAGIC, "zip"),
 )
 #: HDR image formats (:mod:`models.hdr_io`).
 HDR_MAGICS: Magics = ((EXR_MAGIC, "exr"), *((magic, "hdr") for magic in RADIANCE_MAGICS))

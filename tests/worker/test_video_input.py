@@ -434,6 +434,17 @@ def test_zip_without_pngs_says_what_it_holds() -> None:
         decode_video(buffer.getvalue(), "zip", FLAGS)
 
 
+@pytest.mark.parametrize("name", ["clip.zip", "clip.npy"])
+def test_an_empty_zip_is_called_a_zip_of_no_frame(name: str) -> None:
+    """A zip of no entry (``zipfile.ZipFile(path, "w")`` when the glob of the frames
+    matched none) is its end record alone: it was "not a zip of PNG frames (bad or
+    missing signature) ... not converted to another format, renamed or cut short"."""
+    buffer = io.BytesIO()
+    zipfile.ZipFile(buffer, "w").close()
+    with pytest.raises(InvalidInputError, match=r"^the zip holds no \.png frame \(no file\)"):
+        decode_video(buffer.getvalue(), name, FLAGS)
+
+
 def test_an_npz_is_told_to_be_sent_as_an_npy() -> None:
     """np.savez writes a zip of .npy arrays: it was 'the zip holds no .png frame (1 other
     entries); a wrapped video as a zip is one PNG of codes per frame', not saying what
