@@ -465,10 +465,12 @@ def decode_frame_codes(
     fmt: str,
     overrides: dict[str, Any] | None = None,
     max_pixels: int | None = None,
+    unstored: SensorParams | None = None,
 ) -> WrappedFrame:
     """:func:`decode_frame` without the 8-bit check, for a frame of a video whose codes
     are checked together (one dark frame of a 16-bit clip is not an 8-bit clip): its
-    only warning is a content not of ``fmt``."""
+    only warning is a content not of ``fmt``. ``unstored``: the parameters of a frame
+    that stores none (a later frame of a video has its first frame's)."""
     fmt, warning = content_first(data, frame_format(fmt), FRAME_MAGICS)
     if (other := not_a_frame(data)) is not None:
         raise UnsupportedFormatError(f"the file is {other}")
@@ -476,6 +478,8 @@ def decode_frame_codes(
     with decoding(f"the {fmt.upper()} frame"):
         codes, stored = _READERS[fmt](data, max_pixels)
     _check_layout(codes)
+    if unstored is not None and stored == {}:
+        stored = unstored.model_dump()
     params = merge_params(stored, overrides)
     sample_type = codes.dtype.name
     codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)

@@ -14,8 +14,9 @@ Formats
   frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
 - ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in natural file-name order
   regardless of case (``frame_2.png`` before ``frame_10.png``, ``frame_1.png`` before
-  ``Frame_2.png``); parameters from the first frame's text
-  chunk. Folders and macOS metadata (``__MACOSX/``, resource forks ``._name.png``) are
+  ``Frame_2.png``); parameters from the first frame's text chunk (a later frame storing
+  none has the first frame's; one storing its own must store the same, as TIFF pages
+  must). Folders and macOS metadata (``__MACOSX/``, resource forks ``._name.png``) are
   ignored; other files that are not ``.png`` are left out, with a warning naming them.
 
 The frame count (``max_frames``), the pixels per frame (``max_pixels``) and the code
@@ -338,7 +339,7 @@ def _read_zip(
         most = frame_entry_limit(first.codes)
         frames = [first]
         for entry in entries[1:]:
-            frame = _zip_frame(archive, entry, overrides, limits, most)
+            frame = _zip_frame(archive, entry, overrides, limits, most, first.params)
             differences = _frame_differences(frame, first)
             if differences:
                 raise _frame_differs(entry.filename, entries[0].filename, differences)
@@ -449,11 +450,13 @@ def _zip_frame(
     overrides: dict[str, Any] | None,
     limits: VideoLimits,
     most: int | None,
+    unstored: SensorParams | None = None,
 ) -> WrappedFrame:
     """One PNG frame of a zip, refused before inflating when its declared size is above
     ``most`` bytes (:func:`png_entry_limit`, then :func:`frame_entry_limit`), and
     inflated in chunks of at most :data:`INFLATE_CHUNK` bytes up to that size (see
-    :func:`_inflate`)."""
+    :func:`_inflate`). ``unstored``: its parameters if it stores none (the first
+    frame's, for the frames after it)."""
     if most is not None and entry.file_size > most:
         raise ImageTooLargeError(
             f"{entry.filename} inflates to {entry.file_size} bytes, more than a PNG frame "
@@ -462,7 +465,8 @@ def _zip_frame(
         )
     try:
         _check_inflatable(entry)
-        return decode_frame_codes(_inflate(archive, entry), "png", overrides, limits.pixels)
+        data = _inflate(archive, entry)
+        return decode_frame_codes(data, "png", overrides, limits.pixels, unstored)
     except McamError as exc:
         raise type(exc)(f"{entry.filename}: {exc.message}") from None
 

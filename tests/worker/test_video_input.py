@@ -345,8 +345,8 @@ def test_frames_no_decoder_takes_are_refused_before_any_job(
         decode_video(data, fmt, FLAGS)
 
 
-def zip_of(frames: dict[str, tuple[np.ndarray, SensorParams]]) -> bytes:
-    """A zip of PNG frames, each with its own parameters."""
+def zip_of(frames: dict[str, tuple[np.ndarray, SensorParams | None]]) -> bytes:
+    """A zip of PNG frames, each with its own parameters (None: it stores none)."""
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w") as archive:
         for name, (frame, params) in frames.items():
@@ -393,6 +393,16 @@ def test_zip_frames_may_differ_in_noise_seed() -> None:
     frames = {f"f{k}.png": (codes()[k], PARAMS.model_copy(update={"seed": k})) for k in range(3)}
     result = decode_video(zip_of(frames), "zip")
     np.testing.assert_array_equal(result.codes, codes()[:3])
+
+
+def test_later_zip_frames_storing_no_parameters_have_the_first_frames() -> None:
+    """Parameters come from the first frame's text chunk, as a TIFF video's from its
+    first page: frames after it that stored none (saved again by a tool that drops text
+    chunks) were refused, "f1.png: the frame does not store its encoding, bits"."""
+    frames = {"f0.png": (codes()[0], PARAMS), "f1.png": (codes()[1], None)}
+    result = decode_video(zip_of({**frames, "f2.png": (codes()[2], None)}), "zip")
+    np.testing.assert_array_equal(result.codes, codes()[:3])
+    assert result.params == PARAMS
 
 
 def test_a_later_zip_entry_may_inflate_only_to_what_the_first_frame_needs() -> None:
