@@ -95,6 +95,7 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
             half=bool(values["half"]),
             exr_compression=str(values["exr_compression"]),
             keyframes=frozenset(int(i) for i in values["keyframes"]),
+            check_exr="exr_zip" in outputs,
         ),
         outputs,
     )

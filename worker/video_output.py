@@ -454,14 +454,23 @@ def check_exr_sequence(
     values below 6.1e-5 (their subnormals) to an absolute 3e-8, not to their relative
     precision."""
     _check_clip(frames)
-    dtype = np.float16 if half else np.float32
     for index, frame in enumerate(frames):
-        values = np.asarray(frame)
-        if not np.isfinite(values).all() or (values < 0).any():
-            raise InvalidInputError(
-                f"video frame {index} has values that are not finite or are negative; "
-                "reconstructions are finite and non-negative"
-            )
-        stored = frame if scene_gain is None else to_scene(frame, scene_gain)
-        ensure_fits(stored, dtype, f"video frame {index}", scene_gain)
-        ensure_nonzero_kept(stored, dtype, f"video frame {index}", scene_gain)
+        check_exr_frame(frame, index, half=half, scene_gain=scene_gain)
+
+
+def check_exr_frame(
+    frame: NDArray[np.floating], index: int, *, half: bool, scene_gain: float | None
+) -> None:
+    """:func:`check_exr_sequence` for frame ``index`` of a clip (wrap units ``x``): a
+    pipeline runs it on each frame as soon as it is decoded, so that a clip whose EXR
+    frames cannot be stored fails at its first such frame."""
+    values = np.asarray(frame)
+    if not np.isfinite(values).all() or (values < 0).any():
+        raise InvalidInputError(
+            f"video frame {index} has values that are not finite or are negative; "
+            "reconstructions are finite and non-negative"
+        )
+    dtype = np.float16 if half else np.float32
+    stored = frame if scene_gain is None else to_scene(frame, scene_gain)
+    ensure_fits(stored, dtype, f"video frame {index}", scene_gain)
+    ensure_nonzero_kept(stored, dtype, f"video frame {index}", scene_gain)

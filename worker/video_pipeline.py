@@ -38,6 +38,7 @@ from worker.video_input import WrappedVideo
 from worker.video_output import (
     Hdr10Settings,
     Target,
+    check_exr_frame,
     check_exr_sequence,
     exr_sequence_zip,
     write_hdr10,
@@ -54,7 +55,10 @@ class VideoOptions:
     knobs, HDR10 settings (frame rate, exposure scaling), half-float EXRs and their
     compression (:data:`models.hdr_io.EXR_COMPRESSIONS`).
     ``keyframes``: indices of frames decoded as after a DISCONT (a live recording's
-    reconnects and sequence gaps)."""
+    reconnects and sequence gaps). ``check_exr``: refuse each frame whose EXR frame
+    cannot be stored as soon as it is decoded (:func:`worker.video_output.check_exr_frame`;
+    the video has EXR frames): an all-dark clip at gain 1e6 in half floats, stored as 0
+    from its first frame, failed only once its last frame was decoded."""
 
     mode: str = "temporal"
     decoder: str = "itoh"
@@ -63,6 +67,7 @@ class VideoOptions:
     half: bool = False
     exr_compression: str = DEFAULT_EXR_COMPRESSION
     keyframes: frozenset[int] = frozenset()
+    check_exr: bool = False
 
 
 @dataclass
@@ -125,7 +130,8 @@ def decode_chunk(
 ) -> tuple[DecodedVideo, StreamState]:
     """Frames ``first`` .. ``first + len(codes) - 1`` of a video (codes, DN) decoded as one
     stream continuing from ``state``; their results and the state after the last. A frame
-    that cannot be decoded (an ``x`` past float64, say) is refused naming its index."""
+    that cannot be decoded (an ``x`` past float64, say), or whose EXR frame cannot be
+    stored (``options.check_exr``), is refused naming its index."""
     decoder = stream_decoder(options.mode, options.decoder, options.temporal)
     spatial = {"decoder": decoder.spatial.name, "version": decoder.spatial.version}
     decoded = DecodedVideo([], [], spatial)
@@ -133,6 +139,10 @@ def decode_chunk(
         discont = index in options.keyframes
         with naming(f"video frame {index}"):
             decoded.add(decoder.decode(frame_codes, params, state, discont=discont))
+        if options.check_exr:
+            check_exr_frame(
+                decoded.irradiance[-1], index, half=options.half, scene_gain=params.gain
+            )
     return decoded, state
 
 

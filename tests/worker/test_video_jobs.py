@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import redis
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, OutputUnderflowError
 from models.hdr_io import EXR_COMPRESSIONS
 from tests.worker.conftest import PARAMS, ramp_frame
 from worker.deliveries import StreamConsumer
@@ -108,6 +108,26 @@ def test_progress_reaches_one_only_when_every_output_is_written(
     assert all(b >= a for a, b in itertools.pairwise(f for _, f in jobs.updates))
     assert jobs.updates[-1] == (frames, 1.0)
     assert len(jobs.updates) > frames  # the encodes report too
+
+
+def test_exr_frames_that_cannot_be_stored_fail_the_job_at_the_first_such_frame(
+    client: redis.Redis, queue: JobQueue, data_dir: Path
+) -> None:
+    """An all-dark clip at gain 1e6 in half floats: its x / gain (2e-9) is stored as 0
+    from frame 0 on (whatever W, a video is not refused when it is sent, as W > 0 would
+    keep it). The job decoded all its frames, then failed on frame 0."""
+    frames = 6
+    codes = np.zeros((frames, 64, 64), np.uint8)
+    params = PARAMS.model_copy(update={"gain": 1e6})
+    options = {"outputs": ["hdr10", "exr_zip"], "half": True}
+    job = queue.submit("video", codes, params, "itoh", options)
+    jobs = _RecordingJobs(client)
+    ctx = JobContext(
+        jobs.load(job.id), jobs, ResultStore(data_dir / RESULTS_DIR, 3600), threading.Event()
+    )
+    with pytest.raises(OutputUnderflowError, match="^[0-9]+ nonzero pixels of the video frame 0"):
+        run_video_job(ctx, codes)
+    assert jobs.updates == []
 
 
 def test_a_videos_decode_counts_in_the_histogram_as_its_frames(

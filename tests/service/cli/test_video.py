@@ -137,6 +137,18 @@ def test_exr_frames_that_cannot_be_stored_are_refused_before_decoding(tmp_path: 
     assert [path.name for path in tmp_path.iterdir()] == ["wrapped.npy"]
 
 
+def test_exr_frames_stored_as_zero_are_refused_at_the_first_such_frame(tmp_path: Path) -> None:
+    """An all-dark clip at gain 1e6 in half floats is stored as 0 from frame 0 on (a
+    W > 0 would keep it, so it is not refused before decoding): every frame was decoded
+    (its progress line written) before frame 0 was refused."""
+    np.save(tmp_path / "wrapped.npy", np.zeros((FRAMES, SIZE, SIZE), np.uint8))
+    result = run_mcam(
+        "video", "wrapped.npy", "-o", "frames.zip", "--half", *FLAGS, "--gain", "1e6",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(result, "of the video frame 0 are below the smallest float16")
+
+
 def test_video_refuses_settings_that_render_no_picture(tmp_path: Path) -> None:
     np.save(tmp_path / "wrapped.npy", np.zeros((2, 64, 64), np.uint8))
     cases = [
