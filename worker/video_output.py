@@ -28,7 +28,7 @@ and the header attributes it is given per frame.
 from __future__ import annotations
 
 import zipfile
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import IO, Any
@@ -293,6 +293,19 @@ def mp4_size_problem(output: str, height: int, width: int) -> str | None:
             f"pixels a side, got {height} x {width}"
         )
     return None
+
+
+def padding_note(outputs: Iterable[str], height: int, width: int) -> str | None:
+    """What the MP4 videos among ``outputs`` (names of :data:`MAX_MP4_SIDES`; others are
+    not padded) of frames ``height`` x ``width`` px are padded to, and why, when a side
+    is odd (:func:`pad_even`); None when both sides are even or no output is an MP4."""
+    if not (height % 2 or width % 2) or not set(MAX_MP4_SIDES) & set(outputs):
+        return None
+    return (
+        f"the MP4 videos are {height + height % 2} x {width + width % 2}: 4:2:0 video "
+        f"needs even sides, so the last row / column of the {height} x {width} frames "
+        "is repeated (EXR frames keep their size)"
+    )
 
 
 def check_mp4_frame_size(output: str, height: int, width: int, remedy: str) -> None:

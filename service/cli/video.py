@@ -22,6 +22,7 @@ from worker.video_output import (
     Hdr10Settings,
     check_mp4_frame_size,
     mp4_size_problem,
+    padding_note,
 )
 from worker.video_pipeline import VideoOptions, decode_video_frames, write_outputs
 
@@ -155,16 +156,6 @@ def run(args: argparse.Namespace) -> int:
         f"decoding, {summary['keyframes']} keyframes, {summary['paths']['temporal']:.1%} of "
         f"pixels temporal, {time.perf_counter() - start:.1f} s in all"
     )
-    if {"hdr10", "sdr"} & set(files):
-        padding_note(video.codes.shape[1], video.codes.shape[2])
+    if note := padding_note(files, video.codes.shape[1], video.codes.shape[2]):
+        print(note)
     return 0
-
-
-def padding_note(height: int, width: int) -> None:
-    """Say so when the MP4 videos are padded to even sides (4:2:0 chroma needs them)."""
-    if height % 2 or width % 2:
-        print(
-            f"the MP4 videos are {height + height % 2} x {width + width % 2}: 4:2:0 video "
-            f"needs even sides, so the last row / column of the {height} x {width} frames "
-            "is repeated (EXR frames keep their size)"
-        )

@@ -42,6 +42,7 @@ from worker.video_output import (
     REFERENCE_WHITE,
     REFERENCE_WHITE_RANGE,
     WHITE_LEVEL_RANGE,
+    padding_note,
 )
 from worker.video_pipeline import OUTPUTS
 
@@ -132,7 +133,8 @@ def sniff_video_format(upload: Upload, declared: str | None) -> str:
 
 def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey) -> Response:
     """Decode the upload, check the options and queue the job for ``key``, with what the
-    decode noticed as the job's ``warnings``."""
+    decode noticed, and that its MP4 videos are padded to even sides, as the job's
+    ``warnings``."""
     settings = state.settings
     fmt = sniff_video_format(upload, fields.format)
     limits = VideoLimits(
@@ -145,9 +147,10 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey
     check_frame_size(options["outputs"], video.codes.shape)
     if "exr_zip" in options["outputs"]:
         check_video_storable(video.codes, video.params, options)
+    padded = padding_note(options["outputs"], video.codes.shape[1], video.codes.shape[2])
     record = state.queue.submit(
         "video", video.codes, video.params, decoder, options, owner=key.id,
-        warnings=video.warnings,
+        warnings=(*video.warnings, padded) if padded else video.warnings,
     )
     return accepted_response(record)
 

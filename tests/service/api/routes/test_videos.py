@@ -251,6 +251,28 @@ def test_8_bit_codes_sent_as_wider_tell_the_client(client: Client) -> None:
     assert reply.json()["warnings"] == [warning.replace("bits is 12", "bits is 16")]
 
 
+def test_mp4_videos_padded_to_even_sides_tell_the_client(client: Client) -> None:
+    """4:2:0 video needs even sides: frames of 65 x 67 px give MP4 videos of 66 x 68.
+    ``mcam video`` said so; a job said nothing, and its videos were a pixel larger than
+    its frames and EXR frames. Its ``warnings`` now say it, unless it makes no MP4."""
+    codes = np.zeros((2, 65, 67), np.uint8)
+    http = client()
+    warnings = [
+        http.post(
+            "/v1/videos", files={"file": ("clip.npy", npy_bytes(codes))},
+            data={**FLAGS, "outputs": outputs},
+        ).json()["warnings"]
+        for outputs in ("sdr,exr_zip", "exr_zip")
+    ]  # fmt: skip
+    assert warnings == [
+        [
+            "the MP4 videos are 66 x 68: 4:2:0 video needs even sides, so the last row / "
+            "column of the 65 x 67 frames is repeated (EXR frames keep their size)"
+        ],
+        [],
+    ]
+
+
 def post_half_floats_at_gain_1e_minus_300(client: Client, outputs: str) -> httpx.Response:
     """POST two frames of :func:`slow_clip` for ``outputs`` as half floats at gain 1e-300."""
     codes = np.stack([encode(x, PARAMS).codes for x in slow_clip()[:2]])
