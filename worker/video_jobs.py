@@ -96,6 +96,7 @@ def video_options(decoder: str, options: dict[str, Any]) -> tuple[VideoOptions, 
             exr_compression=str(values["exr_compression"]),
             keyframes=frozenset(int(i) for i in values["keyframes"]),
             check_exr="exr_zip" in outputs,
+            measure_light="hdr10" in outputs,
         ),
         outputs,
     )

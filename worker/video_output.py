@@ -189,16 +189,38 @@ def to_nits(frame: NDArray[np.floating], settings: Hdr10Settings) -> NDArray[np.
         return np.maximum(rgb, 0.0) * (settings.reference_white / settings.white_level)
 
 
+@dataclass(frozen=True)
+class FrameLight:
+    """One frame's part of a clip's :class:`LightLevels`: its brightest pixel and its
+    average of max(R, G, B) (cd/m^2, both clipped to 10000), and how many of its
+    ``pixels`` are past 10000 cd/m^2 (``clipped``)."""
+
+    brightest: float
+    average: float
+    clipped: int
+    pixels: int
+
+
+def frame_light(frame: NDArray[np.floating], settings: Hdr10Settings) -> FrameLight:
+    """A frame's :class:`FrameLight` (a pipeline measures each as it is decoded)."""
+    brightest = to_nits(frame, settings).max(axis=2)
+    clipped = int(np.count_nonzero(brightest > PQ_PEAK))
+    brightest = np.minimum(brightest, PQ_PEAK)
+    return FrameLight(float(brightest.max()), float(brightest.mean()), clipped, brightest.size)
+
+
+def clip_light(lights: Sequence[FrameLight]) -> LightLevels:
+    """The :class:`LightLevels` of a clip whose frames measured ``lights``."""
+    cll = max((light.brightest for light in lights), default=0.0)
+    fall = max((light.average for light in lights), default=0.0)
+    pixels = sum(light.pixels for light in lights)
+    clipped = sum(light.clipped for light in lights) / max(pixels, 1)
+    return LightLevels(int(np.ceil(cll)), int(np.ceil(fall)), clipped)
+
+
 def light_levels(frames: Sequence[NDArray[np.floating]], settings: Hdr10Settings) -> LightLevels:
     """MaxCLL and MaxFALL of a clip (see :class:`LightLevels`)."""
-    cll, fall, clipped, pixels = 0.0, 0.0, 0, 0
-    for frame in frames:
-        brightest = to_nits(frame, settings).max(axis=2)
-        clipped += int(np.count_nonzero(brightest > PQ_PEAK))
-        pixels += brightest.size
-        brightest = np.minimum(brightest, PQ_PEAK)
-        cll, fall = max(cll, float(brightest.max())), max(fall, float(brightest.mean()))
-    return LightLevels(int(np.ceil(cll)), int(np.ceil(fall)), clipped / max(pixels, 1))
+    return clip_light([frame_light(frame, settings) for frame in frames])
 
 
 def hdr10_yuv(
@@ -320,13 +342,16 @@ def write_hdr10(
     target: Target,
     settings: Hdr10Settings | None = None,
     progress: Progress | None = None,
+    levels: LightLevels | None = None,
 ) -> LightLevels:
     """Encode a clip as HDR10 HEVC Main10 MP4 to a path or binary file; returns its light
-    levels. ``progress(n)`` is called after each of the n frames written."""
+    levels (``levels`` when the caller measured them, else measured here from all frames
+    before the first is encoded). ``progress(n)`` is called after each of the n frames
+    written."""
     settings = settings or Hdr10Settings()
     height, width = _check_clip(frames)
     check_mp4_frame_size("hdr10", *np.shape(frames[0])[:2], "ask for the EXR sequence instead")
-    levels = light_levels(frames, settings)
+    levels = levels or light_levels(frames, settings)
     with av.open(target, mode="w", format="mp4") as container:
         stream = add_hdr10_stream(container, settings, levels, (height, width), len(frames))
         for index, frame in enumerate(frames):

@@ -138,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
         half=args.half,
         exr_compression=args.exr_compression,
         check_exr="exr_zip" in files,
+        measure_light="hdr10" in files,
     )
     with staged_outputs(list(files.values()), [args.video]) as paths:
         video = read_video(args.video, sensor_values(args))

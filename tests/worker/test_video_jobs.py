@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import itertools
 import threading
 from pathlib import Path
@@ -14,6 +15,7 @@ import redis
 from models.errors import InvalidInputError, OutputUnderflowError
 from models.hdr_io import EXR_COMPRESSIONS
 from tests.worker.conftest import PARAMS, ramp_frame
+from worker import video_output
 from worker.deliveries import StreamConsumer
 from worker.job_processor import JobContext, JobProcessor
 from worker.job_store import JobStore
@@ -22,7 +24,9 @@ from worker.metrics import read_metrics
 from worker.queue import JobQueue
 from worker.redis_keys import JOBS_STREAM
 from worker.result_store import RESULTS_DIR, ResultStore
+from worker.video_input import WrappedVideo
 from worker.video_jobs import DEFAULT_OPTIONS, check_frame_size, run_video_job, video_options
+from worker.video_pipeline import decode_video_frames, write_outputs
 
 
 def test_defaults_give_every_output_and_zip_compressed_exrs() -> None:
@@ -108,6 +112,36 @@ def test_progress_reaches_one_only_when_every_output_is_written(
     assert all(b >= a for a, b in itertools.pairwise(f for _, f in jobs.updates))
     assert jobs.updates[-1] == (frames, 1.0)
     assert len(jobs.updates) > frames  # the encodes report too
+
+
+def test_hdr10_light_levels_are_measured_as_the_frames_are_decoded(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """MaxCLL and MaxFALL were measured from every frame at the start of the HDR10
+    encoding, so its progress (and a cancel) waited there for 40% of its time; they are
+    measured as each frame is decoded, and the encoding reports its first frame at once."""
+    converted: list[int] = []
+    to_nits = video_output.to_nits
+
+    def counted(frame: np.ndarray, settings: video_output.Hdr10Settings) -> np.ndarray:
+        converted.append(1)
+        return to_nits(frame, settings)
+
+    monkeypatch.setattr(video_output, "to_nits", counted)
+    frames = 6
+    video = WrappedVideo(np.stack([ramp_frame(size=64).codes] * frames), PARAMS)
+    options, outputs = video_options("itoh", {"outputs": ["hdr10"]})
+    seen: dict[str, list[int]] = {"decode": [], "hdr10": []}
+
+    def progress(stage: str, _done: int, _total: int) -> None:
+        seen[stage].append(len(converted))
+
+    decoded = decode_video_frames(video, options, progress)
+    levels = write_outputs(decoded, video, {"hdr10": io.BytesIO()}, options, progress)
+    assert seen["hdr10"][0] - seen["decode"][-1] == 1  # the first frame's, as it is encoded
+    assert levels["hdr10"]["max_cll"] == video_output.light_levels(
+        decoded.irradiance, options.hdr10
+    ).max_cll
 
 
 def test_exr_frames_that_cannot_be_stored_fail_the_job_at_the_first_such_frame(
