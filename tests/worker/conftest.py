@@ -9,6 +9,8 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import numpy as np
 import pytest
@@ -67,6 +69,20 @@ def leave_free(client: redis.Redis, free: int) -> None:
     memory = client.info("memory")
     used = int(memory["used_memory"]) - int(memory.get("mem_not_counted_for_evict", 0))
     client.config_set("maxmemory", used + free)
+
+
+def count_calls(monkeypatch: pytest.MonkeyPatch, module: ModuleType, name: str) -> list[int]:
+    """Wrap the function ``module.name`` so that each call adds an item to the list
+    returned (its length: the calls so far)."""
+    calls: list[int] = []
+    function = getattr(module, name)
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return function(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, counted)
+    return calls
 
 
 def ramp_frame(size: int = 64, peak: float = 6.0, params: SensorParams = PARAMS) -> SensorFrame:

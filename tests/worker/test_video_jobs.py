@@ -14,7 +14,7 @@ import redis
 
 from models.errors import InvalidInputError, OutputUnderflowError
 from models.hdr_io import EXR_COMPRESSIONS
-from tests.worker.conftest import PARAMS, ramp_frame
+from tests.worker.conftest import PARAMS, count_calls, ramp_frame
 from worker import video_output
 from worker.deliveries import StreamConsumer
 from worker.job_processor import JobContext, JobProcessor
@@ -120,14 +120,7 @@ def test_hdr10_light_levels_are_measured_as_the_frames_are_decoded(
     """MaxCLL and MaxFALL were measured from every frame at the start of the HDR10
     encoding, so its progress (and a cancel) waited there for 40% of its time; they are
     measured as each frame is decoded, and the encoding reports its first frame at once."""
-    converted: list[int] = []
-    to_nits = video_output.to_nits
-
-    def counted(frame: np.ndarray, settings: video_output.Hdr10Settings) -> np.ndarray:
-        converted.append(1)
-        return to_nits(frame, settings)
-
-    monkeypatch.setattr(video_output, "to_nits", counted)
+    converted = count_calls(monkeypatch, video_output, "to_nits")
     frames = 6
     video = WrappedVideo(np.stack([ramp_frame(size=64).codes] * frames), PARAMS)
     options, outputs = video_options("itoh", {"outputs": ["hdr10"]})

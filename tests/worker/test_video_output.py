@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from models.errors import InvalidInputError, OutputUnderflowError
 from models.hdr_io import EXR_COMPRESSIONS, read_hdr
+from tests.worker.conftest import count_calls
 from worker import video_output
 from worker.video_output import (
     BT709_TO_BT2020,
@@ -213,14 +214,7 @@ def test_sdr_preview_reports_each_frame_as_soon_as_it_is_tonemapped(
     """Every frame was tonemapped before the first was encoded: a job's progress (and a
     cancel) waited at the preview's start for 80% of its time (44 ms of 55 ms a frame at
     512 x 512)."""
-    tonemapped: list[int] = []
-    reinhard = video_output.reinhard
-
-    def counted(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        tonemapped.append(1)
-        return reinhard(image, reference)
-
-    monkeypatch.setattr(video_output, "reinhard", counted)
+    tonemapped = count_calls(monkeypatch, video_output, "reinhard")
     seen: list[tuple[int, int]] = []
     write_sdr_preview(
         grey_clip(), io.BytesIO(), progress=lambda done: seen.append((done, len(tonemapped)))
