@@ -29,14 +29,16 @@ aliased ring (a lamp or the sun brighter than ``max_wraps``) are set to the clip
 (:mod:`models.decoders.saturation`; val-256 +0.65-0.8 dB at each quality). No
 network and no unwrapper can count those wraps from the codes.
 
-A frame with no residue at all is integrated whole. At quality ``best`` a frame
-with any residue goes whole to the network: per-tile routing trusts tiles whose
-borders may cross sharp edges (jumps over half a wrap that leave no residue),
-which measured about 2 points of winding accuracy below the network alone. At the
-other qualities, a frame whose hard tiles with their margins cover at least its own
-area also goes whole to the network: one call is cheaper (val-256 mantissa, auto-fast:
+A frame with no residue at all is integrated whole. A frame whose hard tiles with
+their margins cover enough of it goes whole to the network
+(:data:`models.decoders.adaptive_policy.WHOLE_FRAME_COVER`): at ``fast`` and
+``balanced`` its whole area, where one call is cheaper (val-256 mantissa, auto-fast:
 54 ms against 74 ms median, interleaved at load 1; 20.78 dB against 20.66, W accuracy
-84.70% against 85.26%).
+84.70% against 85.26%); at ``best`` 30% of it, since per-tile routing trusts tiles
+whose borders may cross sharp edges (jumps over half a wrap that leave no residue),
+which measured about 2 points of winding accuracy below the network alone, while a
+frame with a few hard spots (a 1024x1024 frame) is decoded as accurately routed, in
+a twentieth of the time.
 Otherwise tiles are stitched into one consistent W by :mod:`models.tile_reconcile`;
 the global offset then comes from the anchoring rule (darkest pixels W = 0), taken
 over the tiles known to be exact (pass-through, integration) when there are any.
@@ -77,6 +79,7 @@ from models.decoders.adaptive_policy import (
     SMALL_REGION_CHECK,
     SMALL_REGION_FRACTION,
     TIER_LADDER,
+    WHOLE_FRAME_COVER,
     most_accurate_net,
 )
 from models.decoders.base import Decoder, anchor_winding
@@ -177,18 +180,17 @@ class AdaptiveDecoder(Decoder):
         self, analysis: FrameAnalysis, shape: tuple[int, int]
     ) -> list[tuple[int, int]]:
         """The shape of each call the hard-tile decoder will get for a frame with this
-        analysis: none without residues, one call on the whole frame at ``best`` or when
-        the windows would cover the frame, else one per window of a group of hard tiles
-        (:meth:`hard_windows`)."""
+        analysis: none without residues, one call on the whole frame when the windows
+        would cover the quality's :data:`WHOLE_FRAME_COVER` of it, else one per window
+        of a group of hard tiles (:meth:`hard_windows`)."""
         if analysis.frame.difficulty in ("none", "smooth"):
             return []
-        if self.quality == "best":
-            return [shape]
         windows = [
             (rows.stop - rows.start, cols.stop - cols.start)
             for rows, cols, _ in self.hard_windows(analysis, shape)
         ]
-        return [shape] if sum(h * w for h, w in windows) >= shape[0] * shape[1] else windows
+        whole = WHOLE_FRAME_COVER[self.quality] * shape[0] * shape[1]
+        return [shape] if sum(h * w for h, w in windows) >= whole else windows
 
     def network_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
         """Pixels the hard-tile decoder will see for a frame with this analysis (over all
@@ -262,6 +264,16 @@ class AdaptiveDecoder(Decoder):
             report["saturation"] = saturation
         return winding, report
 
+    def _whole_reason(self) -> str:
+        """Why a frame went whole to the hard-tile decoder (:data:`WHOLE_FRAME_COVER`)."""
+        share = WHOLE_FRAME_COVER[self.quality]
+        if share >= 1.0:
+            return "the hard tiles with their margins cover the frame"
+        return (
+            f"the hard tiles with their margins cover {share:.0%} of the frame or more, "
+            f"which quality {self.quality} decodes whole"
+        )
+
     def checks_small_regions(self, params: SensorParams) -> bool:
         """Whether frames with residues get :meth:`check_small_regions`: when the quality
         refines nothing and the hard tiles are not already decoded by that decoder."""
@@ -294,19 +306,15 @@ class AdaptiveDecoder(Decoder):
         self, m: NDArray[np.float64], params: SensorParams, analysis: FrameAnalysis
     ) -> tuple[NDArray[np.int64], dict[str, Any], NDArray[np.bool_] | None]:
         """W of a frame with residues, before refinement: the hard-tile decoder on the
-        whole frame (at ``best``, or when its windows would cover the frame), else
-        per tile, stitched; the report; and the pixels the network decided (None: all)."""
+        whole frame (when its windows would cover enough of it, :meth:`network_calls`),
+        else per tile, stitched; the report; and the pixels the network decided (None:
+        all)."""
         along_cols, along_rows = analysis.along_cols, analysis.along_rows
         difficulty = analysis.frame.difficulty
         hard = self.hard_tile_decoder(params)
-        whole = self.quality == "best" or self.network_calls(analysis, m.shape) == [m.shape]
-        if whole:
+        if self.network_calls(analysis, m.shape) == [m.shape]:
             winding, facts = hard.explain_winding(m, params)
-            reason = f"{difficulty} wraps; " + (
-                "quality best decodes whole frames"
-                if self.quality == "best"
-                else "the hard tiles with their margins cover the frame"
-            )
+            reason = f"{difficulty} wraps; {self._whole_reason()}"
             report = _report({_decoded_by(hard, facts): m.size}, reason)
             return winding, _with_fallback(report, [facts]), None
         pixels: Counter[str] = Counter()

@@ -93,6 +93,25 @@ SMALL_REGION_CHECK = "itoh"
 #: answer and val-256 falls to 18.99 dB (itoh 18.60). After a refinement the check
 #: changes nothing (balanced, best: within 0.03 dB), so only ``fast`` runs it.
 SMALL_REGION_FRACTION = 0.015
+#: Share of a frame its hard tiles' network windows (with their margins; overlaps
+#: count twice) must cover for the frame to go whole to the network, in one call,
+#: refined whole; below it the tiles are routed and the hard ones refined in boxes.
+#: One call is cheaper once the windows cover the frame (fast and balanced: val-256
+#: mantissa, auto-fast 54 against 74 ms, 20.78 against 20.66 dB). Best decodes whole
+#: from less: routed tiles trust borders that may cross sharp edges (jumps over half a
+#: wrap that leave no residue), which measured about 2 points of W below the net alone
+#: on val-256, but a frame with few hard spots is decoded as well routed and far
+#: faster. Measured at best (2026-11-28, dB; frames by the share their windows cover),
+#: routing below 30% against 50% against never (always whole): val-256 mantissa 25.12
+#: / 25.15 / 25.12 (its two frames at 38%: 42.60 -> 42.61 and 29.67 -> 30.35 dB routed),
+#: modulo 24.94 / 24.84 / 24.94 (the same frames 42.70 -> 41.84 and 30.78 -> 29.28);
+#: mostly-dark 45.45 / 45.69 / 45.45 (a frame at 46%: 30.20 -> 31.64); 1024x1024 (18%)
+#: 38.20 / 38.20 / 38.16 dB in 0.48 against 10.2 s; 512x512 (26% and 89%) 36.53 dB each
+#: way, in 0.70 against 4.3 s; glows, the training-scene crops, the three val
+#: panoramas and the pan/zoom frames (38% and more) alike within 0.02 dB. Routing
+#: wherever the windows do not cover the frame (balanced's rule) lost 0.2 dB on val-256
+#: mantissa, 0.6 on the panoramas and 6.6 on the pan/zoom frames (mantissa).
+WHOLE_FRAME_COVER: dict[str, float] = {"fast": 1.0, "balanced": 1.0, "best": 0.3}
 #: Tile side in pixels. 128-px tiles measured more accurate on val-256 (W accuracy, mantissa:
 #: fast 87.0% vs 85.3%, balanced 89.9% vs 88.0%; modulo: 87.4% vs 80.2%, 89.4% vs 86.6%) but
 #: send more pixels to the network on frames with scattered hard spots (1024x1024 synthetic:
