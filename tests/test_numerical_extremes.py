@@ -26,6 +26,7 @@ would pass without decoding at all.
 | all-wrapped (uniform random codes) | finite, W >= 0 |
 | random codes, alpha 1000 | finite or a clear output-overflow error |
 | 1 x 1 and 1 x N frames | a clear error: spatial decoders need 2 x 2 |
+| the same, encoding clip | W = 0 at every pixel: a clipped sensor never wraps |
 | codes >= 2^bits, float codes | a clear invalid-input error |
 | an encoding the decoder has no model for | a clear invalid-input error naming it |
 | each case above as a colour frame (3 channels) | the same outcome through the decoders |
@@ -166,6 +167,17 @@ def test_extreme(decoder: str, case: Extreme) -> None:
 def test_degenerate_shapes_are_clear_errors(decoder: str, shape: tuple[int, int]) -> None:
     with pytest.raises(InvalidInputError, match="2 x 2"):
         get_decoder(decoder).decode(np.zeros(shape, np.uint8), SensorParams())
+
+
+@pytest.mark.parametrize("decoder", [*DECODERS, "itoh+colour", "auto+puma"])
+@pytest.mark.parametrize("shape", [(1, 1), (1, 40), (40, 1), (1, 40, 3)])
+def test_degenerate_clip_frames_decode(decoder: str, shape: tuple[int, ...]) -> None:
+    """A clipped sensor's frame one pixel high or wide needs no neighbours (W = 0):
+    it was refused as having none to unwrap against."""
+    codes = np.arange(np.prod(shape), dtype=np.uint8).reshape(shape)
+    result = get_decoder(decoder).decode(codes, SensorParams(encoding="clip"))
+    assert not result.winding.any()
+    np.testing.assert_allclose(result.irradiance, (codes + 0.5) / 256)
 
 
 @pytest.mark.parametrize("decoder", [*DECODERS, "itoh+colour", "auto+puma"])

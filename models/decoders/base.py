@@ -42,8 +42,10 @@ class DecodeResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def check_frame_shape(codes: NDArray[Any]) -> None:
-    """Reject frames a decoder cannot unwrap: not 2-D/3-D, or smaller than 2 x 2."""
+def check_frame_shape(codes: NDArray[Any], params: SensorParams | None = None) -> None:
+    """Reject frames a decoder cannot unwrap: not 2-D/3-D, or smaller than 2 x 2. A
+    frame of ``params`` that never wraps (:func:`never_wraps`) needs no neighbours: any
+    size with a pixel is decoded (W = 0)."""
     if codes.ndim == 3 and codes.shape[2] not in FRAME_CHANNELS:
         alpha = " (RGB without its alpha channel)" if codes.shape[2] == 4 else ""
         raise InvalidInputError(
@@ -52,7 +54,9 @@ def check_frame_shape(codes: NDArray[Any]) -> None:
         )
     if codes.ndim not in (2, 3):
         raise InvalidInputError(f"a frame is H x W or H x W x 3, got shape {codes.shape}")
-    if codes.shape[0] < 2 or codes.shape[1] < 2:
+    if params is not None and never_wraps(params):
+        refuse_empty(codes)
+    elif codes.shape[0] < 2 or codes.shape[1] < 2:
         raise InvalidInputError(_too_narrow(codes.shape[0], codes.shape[1]))
 
 
@@ -130,7 +134,7 @@ class Decoder(ABC):
         """Decode a frame of codes (H x W or H x W x C, DN) into W and x_hat."""
         start = time.perf_counter_ns()
         codes = np.asarray(codes)
-        check_frame_shape(codes)
+        check_frame_shape(codes, params)
         m = dequantize(codes, params.bits)
         squeeze = m.ndim == 2
         planes = m[:, :, None] if squeeze else m

@@ -200,3 +200,15 @@ def test_8_bit_codes_read_as_16_bit_are_warned_about_on_stderr(tmp_path: Path) -
     assert result.returncode == 0, result.stderr
     assert "every code is below 256 although bits is 16" in result.stderr
     assert "--bits 8" in result.stderr
+
+
+def test_a_clip_frame_one_pixel_high_is_decoded(tmp_path: Path) -> None:
+    """A clipped sensor never wraps, so a 1 x N frame needs no neighbours: it was refused
+    as having none to unwrap against ("spatial decoders need at least 2 x 2 pixels")."""
+    codes = np.arange(40, dtype=np.uint8)[None, :]
+    write_frame(tmp_path / "row.png", codes, SensorParams(encoding="clip", gain=2.0))
+    result = run_mcam("reconstruct", "row.png", "-o", "x.exr", "--decoder", "auto",
+                      "--winding-out", "W.png", cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    np.testing.assert_allclose(read_hdr(tmp_path / "x.exr").pixels, (codes + 0.5) / 256 / 2.0)
+    assert not read_winding(tmp_path / "W.png").any()
