@@ -559,6 +559,8 @@ def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
         elif fmt == "tiff":
             with tifffile.TiffFile(io.BytesIO(data)) as tif:
                 arr, frame = tif.asarray(), bool(tiff_params(tif.pages.first.description))
+            if arr.dtype == np.bool_:  # a 1-bit map: tifffile gives booleans
+                arr = arr.astype(np.uint8)
         else:
             arr, frame = load_npy(data), False
     if frame:

@@ -225,6 +225,17 @@ def test_low_bit_depth_pngs_are_read_as_stored(depth: int) -> None:
     np.testing.assert_array_equal(decode_winding(low_depth_png(values, depth), "png"), values)
 
 
+def test_a_1_bit_tiff_winding_map_is_read_as_0_and_1() -> None:
+    """tifffile reads a 1-bit TIFF as booleans: such a W map (of a frame that wraps at
+    most once) was refused as "a winding map holds integers, got dtype bool"."""
+    values = random_codes((5, 7), 1)
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, values.astype(bool))
+    winding = decode_winding(buffer.getvalue(), "tiff")
+    assert winding.dtype == np.int64
+    np.testing.assert_array_equal(winding, values)
+
+
 def png_storing(text: str) -> bytes:
     """A 4 x 4 8-bit PNG frame whose parameter chunk holds ``text`` (another writer's)."""
     info = PngImagePlugin.PngInfo()
@@ -389,6 +400,7 @@ def test_decode_raw_errors() -> None:
         ("png", np.array([[0, 1], [65535, 7]])),
         ("tiff", np.array([[-3, 70_000], [2**40, 0]])),
         ("npy", np.arange(12).reshape(2, 2, 3)),
+        ("tiff", np.arange(12).reshape(4, 3, 1)),
     ],
 )
 def test_winding_round_trip(tmp_path: Path, suffix: str, winding: np.ndarray) -> None:
