@@ -82,18 +82,46 @@ def _black_share_error(lum: NDArray[np.float64], overexposed: float) -> InvalidI
     )
 
 
+def _no_dark_pixel_error(
+    lum: NDArray[np.float64], level: float, overexposed: float
+) -> InvalidInputError:
+    """The error for an ``overexposed`` whose exposure level is the darkest luminance of
+    ``lum`` (> 0): the pixels that share it reach x >= 1 with all the others, and no pixel
+    is left below the first wrap, where a decoder anchors the winding numbers (W = 0)."""
+    tied = int(np.count_nonzero(lum <= level))
+    if tied == lum.size:
+        return InvalidInputError(
+            f"every pixel of the scene has the luminance {level:.4g}: any overexposed "
+            "fraction brings them all to x >= 1 together, leaving no pixel below the first "
+            "wrap, and no decoder can tell their winding number; give the gain instead "
+            f"(below {1.0 / level:.4g} keeps them under the first wrap)"
+        )
+    return InvalidInputError(
+        f"overexposed {overexposed:g} sets the exposure at the scene's darkest luminance, "
+        f"{level:.4g}, which {tied} of {lum.size} pixels ({100 * tied / lum.size:.3g}%) "
+        "share: every pixel reaches x >= 1, leaving none below the first wrap, and no decoder "
+        f"can tell their winding numbers; give overexposed at most "
+        f"{_round_down(1.0 - tied / lum.size)} (the share of pixels brighter than them), or "
+        "the gain instead"
+    )
+
+
 def exposure_gain(scene: NDArray[np.floating], overexposed: float) -> float:
     """Gain such that a fraction ``overexposed`` (strictly between 0 and 1) of pixels
     reach ``x >= 1``.
 
     ``gain = 1 / quantile(luminance, 1 - overexposed)``; an exposure level of 0 (more
-    pixels black than ``1 - overexposed``) or one whose inverse overflows is refused.
+    pixels black than ``1 - overexposed``), one at the darkest luminance (more pixels
+    share it than ``1 - overexposed``: every pixel would reach x >= 1) or one whose
+    inverse overflows is refused.
     """
     check_overexposed(overexposed)
     lum = luminance(scene)
     level = float(np.quantile(lum, 1.0 - overexposed))
     if level <= 0.0:
         raise _black_share_error(lum, overexposed)
+    if level <= float(lum.min()):
+        raise _no_dark_pixel_error(lum, level, overexposed)
     with np.errstate(over="ignore"):
         gain = 1.0 / level
     if not np.isfinite(gain):

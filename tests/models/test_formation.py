@@ -363,6 +363,31 @@ def test_overexposing_more_pixels_than_are_not_black_gives_the_largest_fraction(
     assert np.isfinite(frame.params.gain) and np.mean(frame.irradiance >= 1.0) >= 0.982
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (16, 16), (16, 16, 3)])
+def test_exposure_of_a_uniform_scene_is_refused(shape: tuple[int, ...]) -> None:
+    """Every pixel at the exposure level reached x >= 1: overexposed 0.5 gave a frame of
+    W = 1 everywhere (all codes 0), which every decoder reads as W = 0 without a word."""
+    with pytest.raises(InvalidInputError) as caught:
+        simulate(np.full(shape, 3.0), SensorParams(), overexposed=0.5)
+    message = caught.value.message
+    assert "every pixel of the scene has the luminance 3" in message
+    assert "give the gain instead (below 0.3333" in message
+
+
+def test_exposure_at_a_darkest_level_most_pixels_share_is_refused() -> None:
+    """75% of the pixels share the darkest luminance: overexposed 0.5 brought all of them,
+    and so every pixel, to x >= 1. The refusal gives the largest fraction that works."""
+    scene = np.full((32, 32), 2.0)
+    scene[:8] = np.linspace(3.0, 50.0, 256).reshape(8, 32)
+    with pytest.raises(InvalidInputError) as caught:
+        simulate(scene, SensorParams(), overexposed=0.5)
+    message = caught.value.message
+    assert "768 of 1024 pixels (75%) share" in message
+    assert "give overexposed at most 0.25" in message
+    frame = simulate(scene, SensorParams(), overexposed=0.25)
+    assert not frame.winding[8:].any()
+
+
 @pytest.mark.parametrize("overexposed", [0.5, 0.99, 0.999, 0.999999])
 def test_fractions_near_1_give_finite_frames(overexposed: float) -> None:
     scene = np.geomspace(1e-6, 1e6, 4096).reshape(64, 64)
