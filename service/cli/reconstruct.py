@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any
 
 import numpy as np
@@ -98,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
         f"{result.winding.max()}, {result.timings_ns['total'] / 1e6:.1f} ms, values in "
         f"{values_unit(frame.params)}"
     )
+    for label, text in decoder_notes(result.info):
+        print(f"mcam reconstruct: {label}: {text}", file=sys.stderr)
     channels = result.info.get("channels", [result.info.get("details") or {}])
     for facts in filter(None, (channel.get("budget") for channel in channels)):
         print(budget_summary(facts))
@@ -109,6 +112,26 @@ def run(args: argparse.Namespace) -> int:
             f"{'within' if frame['met'] else 'over'} budget"
         )
     return 0
+
+
+def decoder_notes(facts: Any) -> list[tuple[str, str]]:
+    """What a decode's ``info`` (``DecodeResult.info``) tells its reader, each once, in
+    order: a net that handed the frame to another decoder (``fallback``: a ``note`` with
+    its reason) or whose W falls short of part of it (``warning``), wherever it sits (a
+    channel's facts, the guide of ``+puma``, ``auto``'s hard tiles)."""
+    notes: list[tuple[str, str]] = []
+    if isinstance(facts, dict):
+        for key, value in facts.items():
+            if key == "fallback" and isinstance(value, dict) and "reason" in value:
+                notes.append(("note", str(value["reason"])))
+            elif key == "warning" and isinstance(value, str):
+                notes.append(("warning", value))
+            else:
+                notes.extend(decoder_notes(value))
+    elif isinstance(facts, list):
+        for value in facts:
+            notes.extend(decoder_notes(value))
+    return list(dict.fromkeys(notes))
 
 
 def budget_summary(facts: dict[str, Any]) -> str:

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from models.formation import SensorParams, simulate
+from models.formation import SensorParams, encode, simulate
 from models.frames import read_winding, write_frame
 from models.hdr_io import read_hdr
+from service.cli.reconstruct import decoder_notes
 from tests.service.cli.conftest import (
     assert_one_line_error,
     blob_scene,
@@ -212,3 +213,43 @@ def test_a_clip_frame_one_pixel_high_is_decoded(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     np.testing.assert_allclose(read_hdr(tmp_path / "x.exr").pixels, (codes + 0.5) / 256 / 2.0)
     assert not read_winding(tmp_path / "W.png").any()
+
+
+def log_ramp_frame(folder: Path, high: float) -> None:
+    """``ramp.png``: a 96 x 96 mantissa frame of a diagonal log ramp from 0.01 to ``high``
+    (x, gain 1), W up to ``1 + log2(high)``."""
+    rows, cols = np.mgrid[0:96, 0:96]
+    params = SensorParams(encoding="mantissa", alpha=2.0, bits=8, gain=1.0)
+    frame = encode(1e-2 * (high / 1e-2) ** ((rows + cols) / 190), params)
+    write_frame(folder / "ramp.png", frame.codes, params)
+
+
+def test_a_nets_fallback_and_warning_are_printed(tmp_path: Path) -> None:
+    """A net hands a frame mostly beyond its classes to herraez, and warns of one a little
+    beyond them: the API's job showed it in its details, mcam reconstruct said nothing
+    (nor for a net guiding +puma) and named the net as the decoder."""
+    log_ramp_frame(tmp_path, 1e30)
+    for decoder in ("mantissanet-small", "mantissanet-small+puma"):
+        result = run_mcam("reconstruct", "ramp.png", "-o", "x.exr", "--decoder", decoder,
+                          cwd=tmp_path)  # fmt: skip
+        assert result.returncode == 0, result.stderr
+        (note,) = result.stderr.splitlines()
+        assert note.startswith("mcam reconstruct: note: ")
+        assert note.endswith("herraez decoded it; for such frames choose itoh, herraez or auto")
+    log_ramp_frame(tmp_path, 3e5)
+    result = run_mcam("reconstruct", "ramp.png", "-o", "x.exr", "--decoder", "unmodnet",
+                      cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    (warning,) = result.stderr.splitlines()
+    assert warning.startswith("mcam reconstruct: warning: ")
+    assert "the net's W is short there" in warning
+
+
+def test_decoder_notes_are_found_anywhere_once() -> None:
+    warning = {"warning": "short"}
+    info = {
+        "decoder": "x",
+        "channels": [warning, warning, {"guide_details": {"fallback": {"reason": "handed"}}}],
+    }
+    assert decoder_notes(info) == [("warning", "short"), ("note", "handed")]
+    assert decoder_notes({"decoder": "itoh", "details": {"routes": {"integration": 1.0}}}) == []
