@@ -5,7 +5,7 @@ suffixes its format allows) and runs inside :func:`staged_outputs`, which
 
 - refuses, before any input is read, a wrong suffix, a path naming a folder, a
   missing folder, two outputs naming one file, an output naming an input, and an
-  empty input file (:func:`check_inputs`);
+  input that is a folder or an empty file (:func:`check_inputs`);
 - creates each output as a hidden temporary file in its own folder (so an unwritable
   folder is found at once, and a rename puts it in place atomically) with the final
   suffix (writers pick the format from it);
@@ -17,6 +17,7 @@ suffixes its format allows) and runs inside :func:`staged_outputs`, which
 
 from __future__ import annotations
 
+import errno
 import os
 import secrets
 import signal
@@ -147,10 +148,14 @@ def _sigterm_unwinds() -> Iterator[None]:
 
 
 def check_inputs(inputs: Sequence[str]) -> None:
-    """Refuse an input that is an empty regular file (the API's check of an upload,
-    :func:`models.file_magic.refuse_empty`): its reader called it a file of no known
-    format. Missing files and pipes are left to the reader."""
+    """Refuse an input that is a folder (:class:`IsADirectoryError`, which
+    :func:`service.cli.main.file_problem` words) or an empty regular file (the API's check
+    of an upload, :func:`models.file_magic.refuse_empty`): a frame's reader called a
+    folder an unsupported format, and an empty file a file of no known format. Missing
+    files and pipes are left to the reader."""
     for source in inputs:
+        if os.path.isdir(source):
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), source)
         if os.path.isfile(source):
             refuse_empty(os.path.getsize(source), f"the file {source}")
 

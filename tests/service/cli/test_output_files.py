@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from models.errors import InvalidInputError, UnsupportedFormatError
-from service.cli.output_files import OutputFile, check_outputs, staged_outputs
-from tests.service.cli.conftest import run_mcam
+from service.cli.output_files import OutputFile, check_inputs, check_outputs, staged_outputs
+from tests.service.cli.conftest import assert_one_line_error, run_mcam
 
 EXR = (".exr",)
 
@@ -121,3 +121,14 @@ def test_an_empty_input_file_is_called_empty(tmp_path: Path, command: tuple[str,
     assert done.returncode == 2
     assert f"the file {command[1]} is empty; send the whole file" in done.stderr
     assert not (tmp_path / command[3]).exists()
+
+
+def test_an_input_folder_is_called_a_folder(tmp_path: Path) -> None:
+    """A folder given as the frame (or a W map) was "unsupported wrapped-frame format
+    'frames'; use one of: .png ...", as if the file were of another format."""
+    (tmp_path / "frames").mkdir()
+    with pytest.raises(IsADirectoryError):
+        check_inputs([str(tmp_path / "frames")])
+    result = run_mcam("reconstruct", "frames", "-o", "x.exr", cwd=tmp_path)
+    assert_one_line_error(result, "frames is a folder; give the path of a file")
+    assert not (tmp_path / "x.exr").exists()
