@@ -519,12 +519,24 @@ def decode_raw(data: bytes, width: int, height: int, channels: int, bits: int) -
     return validate_codes(codes.astype(dtype.newbyteorder("=")), bits)
 
 
+def winding_format(name: str | os.PathLike[str]) -> str:
+    """The format (``png``, ``tiff`` or ``npy``) of a winding-map file name; another
+    suffix is refused as a W map's, not as a wrapped frame's."""
+    try:
+        return frame_format(name)
+    except UnsupportedFormatError:
+        raise UnsupportedFormatError(
+            f"unsupported winding-map format {str(name)!r}: a W map is .png, .tiff/.tif or "
+            ".npy, as mcam reconstruct --winding-out and mcam simulate --ground-truth write it"
+        ) from None
+
+
 def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
     """Write a winding-number map: PNG (16-bit, 0 <= W <= 65535), TIFF or npy by suffix."""
     arr = np.asarray(winding)
     if arr.dtype.kind not in "iu":
         raise InvalidInputError(f"winding numbers are integers, got dtype {arr.dtype}")
-    fmt = frame_format(path)
+    fmt = winding_format(path)
     if fmt == "png":
         if arr.ndim != 2 or arr.min() < 0 or arr.max() > np.iinfo(np.uint16).max:
             raise UnsupportedFormatError(
@@ -541,7 +553,7 @@ def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) ->
 def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
     """Read a winding-number map written by :func:`write_winding` (int64); the format is
     its content's, else its suffix's. An error about the file's content names its path."""
-    fmt = frame_format(path)
+    fmt = winding_format(path)
     data = Path(path).read_bytes()
     with naming(str(path)):
         return decode_winding(data, content_first(data, fmt, FRAME_MAGICS).format)

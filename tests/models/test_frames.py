@@ -236,6 +236,18 @@ def test_a_1_bit_tiff_winding_map_is_read_as_0_and_1() -> None:
     np.testing.assert_array_equal(winding, values)
 
 
+def test_a_winding_map_of_another_format_is_refused_as_a_w_map(tmp_path: Path) -> None:
+    """It was "unsupported wrapped-frame format 'w.exr'; use one of: .png (grayscale),
+    .tiff/.tif (grey or RGB), .npy": the W map called a wrapped frame."""
+    (tmp_path / "w.exr").write_bytes(b"v/1\x01")
+    path = tmp_path / "w.exr"
+    for call in (lambda: read_winding(path), lambda: write_winding(path, np.zeros((2, 2), int))):
+        with pytest.raises(UnsupportedFormatError) as caught:
+            call()
+        assert caught.value.message.startswith("unsupported winding-map format")
+        assert "a W map is .png, .tiff/.tif or .npy" in caught.value.message
+
+
 def png_storing(text: str) -> bytes:
     """A 4 x 4 8-bit PNG frame whose parameter chunk holds ``text`` (another writer's)."""
     info = PngImagePlugin.PngInfo()
