@@ -330,13 +330,16 @@ def load_npy(data: bytes) -> NDArray[Any]:
 
 
 def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
+    """The codes of an npy frame; booleans (a 1-bit frame saved as such) as 0 and 1, as
+    1-bit PNG and TIFF frames are read."""
     shape = npy_shape(data)
     if len(shape) not in (2, 3):
         raise InvalidInputError(
             f"a wrapped frame is H x W or H x W x C codes, got an array of shape {shape}"
         )
     check_pixel_count(shape[1], shape[0], max_pixels)
-    return load_npy(data), {}
+    codes = load_npy(data)
+    return (codes.astype(np.uint8) if codes.dtype == np.bool_ else codes), {}
 
 
 _READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}

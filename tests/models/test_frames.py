@@ -225,6 +225,18 @@ def test_low_bit_depth_pngs_are_read_as_stored(depth: int) -> None:
     np.testing.assert_array_equal(decode_winding(low_depth_png(values, depth), "png"), values)
 
 
+def test_a_1_bit_npy_frame_of_booleans_is_read_as_codes_0_and_1() -> None:
+    """It was refused as "codes must be integers (uint8 or uint16), got dtype bool; a
+    wrapped frame stores the raw sensor codes, not normalized floats", where a 1-bit PNG
+    or TIFF frame is read as codes 0 and 1."""
+    values = random_codes((5, 7), 1)
+    buffer = io.BytesIO()
+    np.save(buffer, values.astype(bool))
+    frame = decode_frame(buffer.getvalue(), "npy", {"encoding": "modulo", "bits": 1})
+    assert frame.codes.dtype == np.uint8
+    np.testing.assert_array_equal(frame.codes, values)
+
+
 def test_a_1_bit_tiff_winding_map_is_read_as_0_and_1() -> None:
     """tifffile reads a 1-bit TIFF as booleans: such a W map (of a frame that wraps at
     most once) was refused as "a winding map holds integers, got dtype bool"."""
