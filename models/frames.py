@@ -535,12 +535,15 @@ def winding_format(name: str | os.PathLike[str]) -> str:
 
 
 def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
-    """Write a winding-number map: PNG (16-bit, 0 <= W <= 65535), TIFF or npy by suffix."""
+    """Write a winding-number map: PNG (16-bit, 0 <= W <= 65535, one channel: H x W x 1
+    as H x W), TIFF or npy by suffix."""
     arr = np.asarray(winding)
     if arr.dtype.kind not in "iu":
         raise InvalidInputError(f"winding numbers are integers, got dtype {arr.dtype}")
     fmt = winding_format(path)
     if fmt == "png":
+        if arr.ndim == 3 and arr.shape[2] == 1:  # of a grey frame stored H x W x 1
+            arr = arr[:, :, 0]
         if arr.ndim != 2 or arr.min() < 0 or arr.max() > np.iinfo(np.uint16).max:
             raise UnsupportedFormatError(
                 f"a PNG winding map is one channel with 0 <= W <= 65535; this map has shape "

@@ -79,10 +79,10 @@ def run(args: argparse.Namespace) -> int:
     with staged_outputs(outputs(args), [args.frame]) as paths:
         decoder = get_decoder(args.decoder)
         frame = read_frame(args.frame, sensor_values(args))
-        if args.winding_out and frame.codes.ndim == 3 and frame_format(args.winding_out) == "png":
+        if args.winding_out and is_colour(frame.codes) and frame_format(args.winding_out) == "png":
             raise UnsupportedFormatError(  # before the decode, not after it
-                f"{args.frame} is a colour frame: its W map has 3 channels, which a PNG W "
-                "map cannot hold; give --winding-out a .tiff or .npy name"
+                f"{args.frame} is a colour frame: its W map has {frame.codes.shape[2]} "
+                "channels, which a PNG W map cannot hold; give --winding-out a .tiff or .npy name"
             )
         dtype = np.float16 if args.half else np.float32
         check_decodable(frame.codes, frame.params, dtype, scene_referred=True)
@@ -112,6 +112,11 @@ def run(args: argparse.Namespace) -> int:
             f"{'within' if frame['met'] else 'over'} budget"
         )
     return 0
+
+
+def is_colour(codes: np.ndarray) -> bool:
+    """Whether a frame's codes (H x W or H x W x C) hold more than one channel."""
+    return codes.ndim == 3 and codes.shape[2] > 1
 
 
 def decoder_notes(facts: Any) -> list[tuple[str, str]]:

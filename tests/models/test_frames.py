@@ -435,6 +435,12 @@ def test_winding_round_trip(tmp_path: Path, suffix: str, winding: np.ndarray) ->
     np.testing.assert_array_equal(back, winding)
 
 
+def test_a_one_channel_winding_map_is_written_as_a_png(tmp_path: Path) -> None:
+    winding = np.arange(12).reshape(4, 3, 1)
+    write_winding(tmp_path / "w.png", winding)
+    np.testing.assert_array_equal(read_winding(tmp_path / "w.png"), winding[:, :, 0])
+
+
 def test_winding_png_refuses_what_it_cannot_hold(tmp_path: Path) -> None:
     for winding in (np.array([[70_000]]), np.array([[-1]]), np.zeros((2, 2, 3), np.int64)):
         with pytest.raises(UnsupportedFormatError, match="tiff or .npy"):

@@ -253,3 +253,14 @@ def test_decoder_notes_are_found_anywhere_once() -> None:
     }
     assert decoder_notes(info) == [("warning", "short"), ("note", "handed")]
     assert decoder_notes({"decoder": "itoh", "details": {"routes": {"integration": 1.0}}}) == []
+
+
+def test_a_grey_frame_stored_h_x_w_x_1_writes_a_png_w_map(tmp_path: Path) -> None:
+    """It was refused as "a colour frame: its W map has 3 channels, which a PNG W map
+    cannot hold", and the PNG W map of an H x W x 1 W (its decode) was refused too."""
+    codes = np.arange(64, dtype=np.uint8).reshape(8, 8, 1)
+    write_frame(tmp_path / "grey.npy", codes, None)
+    result = run_mcam("reconstruct", "grey.npy", "-o", "x.exr", "--encoding", "modulo",
+                      "--bits", "8", "--winding-out", "W.png", cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    np.testing.assert_array_equal(read_winding(tmp_path / "W.png"), np.zeros((8, 8)))
