@@ -218,10 +218,21 @@ def split_unwrapped(
     if too_many.any():
         raise InvalidInputError(
             f"{int(too_many.sum())} pixels wrap more than {MAX_WINDING // 2} times, beyond int64 "
-            "winding numbers; lower the gain, set max_wraps, or use the mantissa encoding"
+            f"winding numbers; {_fewer_wraps(params)}"
         )
     winding = floor.astype(np.int64)
     return winding, np.subtract(u, floor, out=floor)
+
+
+def _fewer_wraps(params: SensorParams) -> str:
+    """How to bring a frame of ``params`` within int64 winding numbers: a ``max_wraps``
+    already given must come down (asking to set it was no help)."""
+    if params.max_wraps is None:
+        return "lower the gain, set max_wraps, or use the mantissa encoding"
+    return (
+        f"lower the gain, or max_wraps ({params.max_wraps:g}) to at most {MAX_WINDING // 2}, "
+        "or use the mantissa encoding"
+    )
 
 
 def quantize(m: NDArray[np.floating], bits: int) -> NDArray[np.unsignedinteger]:

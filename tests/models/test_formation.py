@@ -220,6 +220,16 @@ def test_too_many_wraps_for_int64_is_a_clear_error() -> None:
         split_unwrapped(np.array([1e30, 5.0]), SensorParams(encoding="modulo"))
 
 
+def test_too_many_wraps_under_a_max_wraps_given_asks_to_lower_it() -> None:
+    """It asked to "set max_wraps", which was set (1e20) and let x pass int64's W."""
+    params = SensorParams(encoding="modulo", max_wraps=1e20)
+    with pytest.raises(InvalidInputError) as caught:
+        encode(np.array([[1e30, 5.0]]), params)
+    message = caught.value.message
+    assert "lower the gain, or max_wraps (1e+20) to at most 4611686018427387903" in message
+    assert "set max_wraps" not in message
+
+
 @pytest.mark.parametrize(
     ("value", "what"),
     [(np.nan, "NaN or infinite"), (np.inf, "NaN or infinite"), (-0.5, "negative")],
