@@ -200,6 +200,19 @@ def report_path(text: str) -> Path:
     return path
 
 
+def json_report_path(text: str) -> Path:
+    """An argparse ``type``: :func:`report_path` of a JSON report, whose Markdown copy
+    goes beside it as .md. A report named .md is refused: its copy replaced it, after
+    the whole measurement, and the JSON was lost."""
+    path = report_path(text)
+    if path.suffix.lower() == ".md":
+        raise argparse.ArgumentTypeError(
+            f"{text} names the report's Markdown copy, which is written beside the JSON "
+            f"report as .md and would replace it; name the report {path.with_suffix('.json')}"
+        )
+    return path
+
+
 def add_report_option(
     parser: argparse.ArgumentParser, default: str, flag: str = "--out"
 ) -> None:
@@ -207,7 +220,7 @@ def add_report_option(
     it as .md; ``default``: the file's name in bench/results/."""
     parser.add_argument(
         flag,
-        type=report_path,
+        type=json_report_path,
         default=RESULTS / default,
         help=f"JSON report, its Markdown copy beside it as .md (default bench/results/{default})",
     )

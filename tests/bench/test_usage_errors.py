@@ -182,6 +182,18 @@ def test_a_folder_as_the_report_path_is_a_usage_error(
     assert f"{flag}: {tmp_path} is a folder; name a file in it" in err
 
 
+@pytest.mark.parametrize("bench", sorted(SMALLEST))
+def test_a_report_named_as_its_markdown_copy_is_a_usage_error(
+    bench: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The JSON report went to report.md, then its Markdown copy (.md beside it) replaced
+    it: the measurements' JSON was lost after the whole run."""
+    argv, flag = SMALLEST[bench]
+    err = refused(bench, [*argv, flag, str(tmp_path / "report.md")], capsys)
+    assert f"{flag}: {tmp_path / 'report.md'} names the report's Markdown copy" in err
+    assert f"name the report {tmp_path / 'report.json'}" in err
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
