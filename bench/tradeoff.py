@@ -547,6 +547,17 @@ def plot(report: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def refuse_plot_over_report(parser: argparse.ArgumentParser, plot: Path, out: Path) -> None:
+    """A usage error when ``--plot`` names the report (``--out``) or its Markdown copy:
+    the plot, written last, replaced it after the whole measurement."""
+    if plot.resolve() in (out.resolve(), out.with_suffix(".md").resolve()):
+        parser.error(
+            f"argument --plot: {plot} is a file of the report (--out {out} and its .md "
+            f"copy), which the plot would replace; give the plot its own file, e.g. "
+            f"{out.with_suffix('.png')}"
+        )
+
+
 @one_line_errors
 def main(argv: list[str] | None = None) -> int:
     parser = bench_parser(__name__, __doc__)
@@ -567,6 +578,7 @@ def main(argv: list[str] | None = None) -> int:
         help="PNG of speed against accuracy (default bench/results/tradeoff.png)",
     )
     args = parser.parse_args(argv)
+    refuse_plot_over_report(parser, args.plot, args.out)
     refuse_unknown_decoders(
         parser, args.decoders, extra=tile_variants(), encodings=[VAL_PARAMS.encoding]
     )

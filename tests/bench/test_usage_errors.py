@@ -194,6 +194,17 @@ def test_a_report_named_as_its_markdown_copy_is_a_usage_error(
     assert f"name the report {tmp_path / 'report.json'}" in err
 
 
+@pytest.mark.parametrize("plot", ["t.json", "t.md"])
+def test_a_plot_over_the_tradeoff_report_is_a_usage_error(
+    plot: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The plot, written after the report, replaced its JSON or its Markdown copy."""
+    argv = [*SMALLEST["tradeoff"][0], "--out", str(tmp_path / "t.json")]
+    err = refused("tradeoff", [*argv, "--plot", str(tmp_path / plot)], capsys)
+    assert f"--plot: {tmp_path / plot} is a file of the report" in err
+    assert f"e.g. {tmp_path / 't.png'}" in err
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
