@@ -73,7 +73,7 @@ def read_wrapped_frame(
             upload.data, fields.width, fields.height, fields.channels or 1, fields.bits
         )
         frame = WrappedFrame(codes, merge_params({}, overrides))
-    check_frame_shape(frame.codes)
+    check_frame_shape(frame.codes, frame.params)
     return frame
 
 

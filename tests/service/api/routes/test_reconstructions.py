@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -19,6 +20,7 @@ from PIL import Image
 
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
+from service.api.routes.jobs import PART_FORMATS
 from service.api.routes.reconstructions import prefer_wait_s
 from service.api.state import Slots
 from service.main import create_app
@@ -639,15 +641,36 @@ def test_a_clip_frame_is_decoded_by_a_learned_decoder_as_mcam_does(
     decoded it with mantissanet-small, while the API refused it ("has no model for clip
     frames")."""
     codes = np.arange(64, dtype=np.uint8).reshape(8, 8) * 4
+    job = decoded_clip_frame(client, codes, "mantissanet-small")
+    assert job["decoder"] == "mantissanet-small", job
+
+
+def decoded_clip_frame(client: Client, codes: np.ndarray, decoder: str) -> dict[str, Any]:
+    """The finished job of 8-bit clip ``codes`` sent as an npy to ``decoder``, checked
+    to have succeeded with x = the codes' bin centres (W = 0)."""
     reply = client().post(
         "/v1/reconstructions",
         files={"file": ("f.npy", npy_bytes(codes))},
-        data={"encoding": "clip", "bits": "8", "decoder": "mantissanet-small"},
+        data={"encoding": "clip", "bits": "8", "decoder": decoder},
         headers={"Prefer": "wait=60"},
     )
     assert reply.status_code == 200, reply.text
     job = reply.json()
-    assert job["state"] == "succeeded" and job["decoder"] == "mantissanet-small", job
+    assert job["state"] == "succeeded", job
     result = client().get(job["links"]["result"])
-    pixels = read_hdr(result.content).pixels
-    np.testing.assert_allclose(pixels, (codes + 0.5) / 256, rtol=1e-6)
+    np.testing.assert_allclose(read_hdr(result.content).pixels, (codes + 0.5) / 256, rtol=1e-6)
+    return job
+
+
+@pytest.mark.parametrize("shape", [(1, 40), (40, 1), (1, 1)])
+def test_a_clip_frame_one_pixel_high_or_wide_is_decoded_with_its_results(
+    client: Client, worker: Worker, shape: tuple[int, int]
+) -> None:
+    """A clipped sensor never wraps: mcam reconstruct decodes a 1 x N clip frame (W = 0),
+    while the API refused it ("spatial decoders need at least 2 x 2 pixels")."""
+    codes = (np.arange(np.prod(shape), dtype=np.uint8) * 6).reshape(shape)
+    job = decoded_clip_frame(client, codes, "auto")
+    for part, formats in PART_FORMATS.items():
+        for fmt in formats:
+            answer = client().get(job["links"]["result"], params={"part": part, "format": fmt})
+            assert answer.status_code == 200, (part, fmt, answer.text)
