@@ -102,7 +102,8 @@ def test_a_colour_frame_shares_its_latency_budget(tmp_path: Path) -> None:
     lines = result.stdout.splitlines()
     assert sum(line.startswith("latency budget ") for line in lines) == 4
     assert lines[-1].startswith("latency budget 5000 ms for the colour frame, shared by")
-    assert "(made consistent)" in lines[-1] and lines[-1].endswith("within budget")
+    assert "(made consistent)" in lines[-1] and "within budget; measuring" in lines[-1]
+    assert lines[-1].endswith("(once per process)")
     routing = json.loads(read_hdr(tmp_path / "x.exr").attributes["routing"])
     assert routing["budget"]["joined"] is True and len(routing["channels"]) == 3
 
