@@ -209,7 +209,7 @@ class Predicted(NamedTuple):
 def _planes(codes: NDArray[Any], params: SensorParams) -> NDArray[np.float64]:
     """``m`` of a frame as H x W x C (one plane per channel)."""
     codes = np.asarray(codes)
-    check_frame_shape(codes)
+    check_frame_shape(codes, params)
     m = dequantize(codes, params.bits)
     return m[:, :, None] if m.ndim == 2 else m
 

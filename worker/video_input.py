@@ -540,8 +540,8 @@ def decode_video(
 
     ``fmt`` (a format name, suffix or file name) is the format unless the leading bytes
     show another video format: the content wins (see :mod:`models.file_magic`). Frames a
-    decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels) are refused
-    here, before a job is queued."""
+    decoder cannot take (not 1 or 3 channels, under 2 x 2 pixels when they may wrap) are
+    refused here, before a job is queued."""
     fmt, warning = content_first(data, video_format(fmt), VIDEO_MAGICS)
     if (other := not_a_video(data)) is not None:
         raise UnsupportedFormatError(f"the file is {other}")
@@ -560,7 +560,7 @@ def decode_video(
         codes = validate_codes(codes, params.bits).astype(params.code_dtype, copy=False)
         eight_bit = eight_bit_warning(codes, params)
         video = WrappedVideo(codes, params, (eight_bit,) if eight_bit else ())
-    check_frame_shape(video.codes[0])
+    check_frame_shape(video.codes[0], video.params)
     return video if warning is None else replace(video, warnings=(warning, *video.warnings))
 
 

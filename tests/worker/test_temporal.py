@@ -455,6 +455,21 @@ def test_one_pixel_wide_frames_get_a_clear_error(temporal: StreamDecoder, shape:
     assert state.u is None
 
 
+@pytest.mark.parametrize("mode", ["independent", "temporal"])
+@pytest.mark.parametrize("shape", [(1, 9), (9, 1), (1, 1), (1, 9, 3)])
+def test_clip_frames_one_pixel_wide_decode_to_w_0(mode: str, shape: tuple) -> None:
+    """A clipped sensor never wraps: its frames of any size with a pixel decode to
+    W = 0, frame after frame, as a still clip frame does."""
+    params = SensorParams(encoding="clip", bits=8)
+    stream, state = StreamDecoder(mode, "itoh"), StreamState()
+    for value in (10, 200, 255):
+        codes = np.full(shape, value, np.uint8)
+        result = stream.decode(codes, params, state)
+        still = get_decoder("itoh").decode(codes, params)
+        assert not result.winding.any()
+        np.testing.assert_array_equal(result.irradiance, still.irradiance)
+
+
 def test_a_still_stream_keeps_a_clipped_lamp_filled() -> None:
     """auto fills the lamp's clipped core; the anchoring keyframe's refinement would lower
     it again, so the stream fills it after refining and carries it on."""

@@ -345,6 +345,15 @@ def test_frames_no_decoder_takes_are_refused_before_any_job(
         decode_video(data, fmt, FLAGS)
 
 
+@pytest.mark.parametrize("shape", [(3, 1, 5), (3, 6, 1, 1), (3, 1, 1, 1), (3, 1, 5, 3)])
+def test_clip_frames_one_pixel_high_or_wide_are_a_video(shape: tuple[int, ...]) -> None:
+    """A clipped sensor never wraps, so its frames need no neighbours (as a still clip
+    frame of any size with a pixel decodes)."""
+    codes = np.arange(np.prod(shape), dtype=np.uint8).reshape(shape)
+    video = decode_video(npy_bytes(codes), "npy", {**FLAGS, "encoding": "clip"})
+    np.testing.assert_array_equal(video.codes, codes)
+
+
 def zip_of(frames: dict[str, tuple[np.ndarray, SensorParams | None]]) -> bytes:
     """A zip of PNG frames, each with its own parameters (None: it stores none)."""
     buffer = io.BytesIO()
