@@ -96,6 +96,38 @@ def upload_socket(url: str, framing: bytes) -> socket.socket:
     return sock
 
 
+def read_to_end(sock: socket.socket) -> bytes:
+    """Everything the server sends on ``sock`` until it closes the connection (a reset
+    raises ``ConnectionResetError``)."""
+    data = b""
+    while chunk := sock.recv(65536):
+        data += chunk
+    return data
+
+
+def test_a_refused_upload_is_read_so_its_client_gets_the_413(api: str) -> None:
+    """The 413 for a declared length over the limit closed the connection with the body
+    unread: the kernel reset it, and a client sending its whole upload before reading
+    (httpx) often got "peer closed connection" instead of the 413. The body is now read
+    and dropped first; the connection then closes cleanly."""
+    body = bytes(LIMIT + 1_000_000)
+    with upload_socket(api, b"Content-Length: %d" % len(body)) as sock:
+        sock.sendall(body)
+        reply = read_to_end(sock)
+    assert reply.startswith(b"HTTP/1.1 413"), reply
+    head, _, json_body = reply.partition(b"\r\n\r\n")
+    assert b"image_too_large" in json_body and b"connection: close" in head.lower()
+
+
+def test_a_refused_upload_that_expects_100_continue_is_answered_at_once(api: str) -> None:
+    """A client asking ``Expect: 100-continue`` (curl, for large files) sends no body
+    after a final answer: the 413 is not held waiting for one."""
+    framing = b"Content-Length: %d\r\nExpect: 100-continue" % (LIMIT + 1)
+    with upload_socket(api, framing) as sock:
+        reply = read_to_end(sock)
+    assert reply.startswith(b"HTTP/1.1 413") and b"100 Continue" not in reply, reply
+
+
 def test_a_body_that_stops_arriving_gets_408(tmp_path: Path, redis_url: str) -> None:
     """A client that sends half a body and waits held a connection and a task for ever."""
     settings = make_settings(tmp_path, redis_url, http_body_timeout_s=1)
