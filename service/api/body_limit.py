@@ -1,13 +1,13 @@
 """Body size limits enforced while the body streams in (never buffered whole first).
 
 A declared ``Content-Length`` above the limit is refused before any byte is
-kept (the body is then read and dropped, so that its client gets the refusal:
-:meth:`BodyLimitMiddleware._refuse`); a chunked body is counted as it arrives and
-refused the moment it crosses the limit. Uploads (any body but JSON or a URL-encoded
-form) answer 413 ``image_too_large``; a JSON or URL-encoded body has a limit of its own,
-``MCAM_MAX_JSON_BYTES``, and answers 413 ``body_too_large``: a control command or a
-recording request is a few hundred bytes, and FastAPI parses a JSON body before the
-API key is checked (a 22 MB body from no key at all took the API 650 MB).
+kept; a chunked body is counted as it arrives and refused the moment it crosses the
+limit. Either way the rest of the body is then read and dropped, within the body
+timeouts, and the connection closed (:func:`closing_send`). Uploads (any body but JSON
+or a URL-encoded form) answer 413 ``image_too_large``; a JSON or URL-encoded body has a
+limit of its own, ``MCAM_MAX_JSON_BYTES``, and answers 413 ``body_too_large``: a control
+command or a recording request is a few hundred bytes, and FastAPI parses a JSON body
+before the API key is checked (a 22 MB body from no key at all took the API 650 MB).
 """
 
 from __future__ import annotations
@@ -72,45 +72,73 @@ class BodyLimitMiddleware:
             await self._refuse(receive, send, error, headers)
             return
         received = 0
+        refusing: Send | None = None  # the answer's send, once the body crossed the limit
 
         async def limited_receive() -> Message:
-            nonlocal received
+            nonlocal received, refusing
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > limit:
+                if received > limit:  # the rest, if any, is read and dropped
+                    refusing = closing_send(send, receive, bool(message.get("more_body")))
                     raise error
             return message
 
-        await self.app(scope, limited_receive, send)
+        async def limited_send(message: Message) -> None:
+            await (refusing or send)(message)
+
+        await self.app(scope, limited_receive, limited_send)
 
     async def _refuse(
         self, receive: Receive, send: Send, error: ApiError, headers: Headers
     ) -> None:
-        """Answer 413, then read the body to its end, dropping it, before the response
-        ends and the connection closes. Closed with the body unread, the connection was
-        reset (TCP RST), and a client still sending its upload, as most do before they
-        read the answer (httpx), often lost the 413: 7 of 22 uploads of 2.2 to 100 MB
-        over a 2 MB limit ended in "peer closed connection without sending complete
-        message body". A client that asked ``Expect: 100-continue`` (curl, for large
-        files) sends no body after the 413, and none is waited for."""
+        """Answer 413 to a request whose declared length is over the limit, through
+        :func:`closing_send`; a client that asked ``Expect: 100-continue`` (curl, for
+        large files) sends no body after it, and none is waited for."""
         detail = error.detail
         body = json.dumps(error_body(detail["code"], detail["message"])).encode()
-        await send(
+        expects = "100-continue" in headers.get("expect", "").lower()
+        reply = closing_send(send, receive, drain=not expects)
+        await reply(
             {
                 "type": "http.response.start",
                 "status": 413,
                 "headers": [
                     (b"content-type", b"application/json"),
                     (b"content-length", str(len(body)).encode()),
-                    (b"connection", b"close"),
                 ],
             }
         )
-        await send({"type": "http.response.body", "body": body, "more_body": True})
-        if "100-continue" not in headers.get("expect", "").lower():
-            await drop_body(receive)
-        await send({"type": "http.response.body", "body": b""})
+        await reply({"type": "http.response.body", "body": body})
+
+
+def closing_send(send: Send, receive: Receive, drain: bool) -> Send:
+    """``send`` for the answer to a body over its limit: the response says
+    ``Connection: close``, and before its last message ends it, the rest of the request
+    body is read and dropped (``drain``, where some of it has not arrived:
+    :func:`drop_body`; a read past a body's end waits for the client to leave); the
+    connection then closes.
+
+    Closed with the body unread, the connection was reset (TCP RST), and a client still
+    sending its upload, as most do before they read the answer (httpx), often lost the
+    413: 7 of 22 uploads of 2.2 to 100 MB over a 2 MB limit ended in "peer closed
+    connection without sending complete message body". Kept open (a chunked body
+    refused as it crossed the limit), uvicorn read the rest of the body with no bound:
+    a client sending a byte every 2 s after its 413 still held the connection 70 s on."""
+
+    async def closing(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            kept = [(name, value) for name, value in message.get("headers", [])
+                    if name.lower() != b"connection"]
+            message = {**message, "headers": [*kept, (b"connection", b"close")]}
+        elif message["type"] == "http.response.body" and not message.get("more_body"):
+            await send({**message, "more_body": True})
+            if drain:
+                await drop_body(receive)
+            message = {"type": "http.response.body", "body": b""}
+        await send(message)
+
+    return closing
 
 
 async def drop_body(receive: Receive) -> None:

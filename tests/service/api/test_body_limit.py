@@ -128,6 +128,49 @@ def test_a_refused_upload_that_expects_100_continue_is_answered_at_once(api: str
     assert reply.startswith(b"HTTP/1.1 413") and b"100 Continue" not in reply, reply
 
 
+def closed_by_server(sock: socket.socket) -> bool:
+    """Whether the server has closed ``sock`` (an end of file is there to read)."""
+    return bool(select.select([sock], [], [], 0)[0]) and sock.recv(1) == b""
+
+
+def test_a_chunked_upload_trickling_on_after_its_413_is_cut_off(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """A chunked body refused as it crossed the limit got its 413 on a connection kept
+    open, and uvicorn read the rest with no bound: a byte every 0.2 s after the 413 held
+    the connection for good. The rest is now read within the body deadline, and the
+    connection closed."""
+    settings = make_settings(tmp_path, redis_url, http_body_timeout_s=30,
+                             http_body_deadline_s=1)
+    with serve(create_app(settings)) as url:
+        with upload_socket(url, b"Transfer-Encoding: chunked") as sock:
+            chunk = bytes(100_000)
+            for _ in range(LIMIT // len(chunk) + 1):
+                sock.sendall(b"%x\r\n" % len(chunk) + chunk + b"\r\n")
+            reply = read_response(sock)
+            for _ in range(100):  # 20 s at most: still open then, it would be for good
+                if select.select([sock], [], [], 0.2)[0]:
+                    break
+                sock.sendall(b"1\r\nA\r\n")
+            closed = closed_by_server(sock)
+    assert reply.startswith(b"HTTP/1.1 413") and b"image_too_large" in reply, reply
+    assert b"connection: close" in reply.lower() and closed
+
+
+def test_a_chunked_upload_over_the_limit_in_its_last_read_is_answered_and_closed(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """A chunked body whose last read crossed the limit gets its 413 and the connection
+    closed at once: nothing is left to drop, and a read past a body's end would wait for
+    the client to leave (a client reading to the end of the connection, for good)."""
+    settings = make_settings(tmp_path, redis_url, max_upload_bytes=1000)
+    with serve(create_app(settings)) as url:
+        with upload_socket(url, b"Transfer-Encoding: chunked") as sock:
+            sock.sendall(b"7d0\r\n" + bytes(2000) + b"\r\n0\r\n\r\n")
+            reply = read_to_end(sock)
+    assert reply.startswith(b"HTTP/1.1 413") and b"connection: close" in reply.lower(), reply
+
+
 def test_a_body_that_stops_arriving_gets_408(tmp_path: Path, redis_url: str) -> None:
     """A client that sends half a body and waits held a connection and a task for ever."""
     settings = make_settings(tmp_path, redis_url, http_body_timeout_s=1)
