@@ -122,6 +122,18 @@ def test_macos_resource_forks_in_a_zip_are_not_frames() -> None:
     np.testing.assert_array_equal(decode_video(buffer.getvalue(), "zip").codes, video)
 
 
+def test_an_empty_zip_is_told_it_holds_no_frame() -> None:
+    """A zip of no file (a glob that matched nothing) starts with its end record, not a
+    file's header: it was refused as "not a zip of PNG frames (bad or missing
+    signature)", to be sent uncut."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w"):
+        pass
+    with pytest.raises(InvalidInputError) as caught:
+        decode_video(buffer.getvalue(), "clip.zip")
+    assert caught.value.message.startswith("the zip holds no .png frame (no file)")
+
+
 def test_files_of_a_zip_that_are_not_png_frames_are_named_in_a_warning() -> None:
     """A frame saved as JPEG among the PNGs was dropped from the video without a word."""
     video = codes(3)
