@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Annotated, Any
 
@@ -44,11 +45,15 @@ _WAIT = re.compile(
 )
 
 
-def prefer_wait_s(prefer: str | None, limit_s: float) -> float:
+def prefer_wait_s(prefer: str | Sequence[str] | None, limit_s: float) -> float:
     """Seconds asked for by ``Prefer: wait=N`` (RFC 7240: delta-seconds, here also a
     decimal, bare or quoted), at most ``limit_s``; 0 if absent or not a number of
-    seconds (a preference the server does not understand is ignored, RFC 7240 2)."""
-    match = _WAIT.search(prefer or "")
+    seconds (a preference the server does not understand is ignored, RFC 7240 2).
+    ``prefer``: the header's value, or each of its field lines, read as one
+    comma-separated list (RFC 7240 2 allows several ``Prefer`` lines: ``Prefer:
+    respond-async`` then ``Prefer: wait=5`` was answered 202 at once, the wait unread)."""
+    text = prefer if isinstance(prefer, str) else ", ".join(prefer or ())
+    match = _WAIT.search(text)
     return min(float(match.group(1) or match.group(2)), limit_s) if match else 0.0
 
 
@@ -147,7 +152,8 @@ async def post_reconstruction(
     state: StateDep,
     key: SubmitKey,
     prefer: Annotated[
-        str | None, Header(description="`wait=N`: answer 200 with the job if done within N s")
+        list[str] | None,
+        Header(description="`wait=N`: answer 200 with the job if done within N s"),
     ] = None,
 ) -> Response:
     """Queue a wrapped frame; the job's state is at ``GET /v1/jobs/{id}``. Only the

@@ -267,7 +267,8 @@ async def post_recording(
     state: StateDep,
     _: SubmitKey,
     prefer: Annotated[
-        str | None, Header(description="stop: `wait=N` answers 200 with the finished job")
+        list[str] | None,
+        Header(description="stop: `wait=N` answers 200 with the finished job"),
     ] = None,
 ) -> Response:
     """``action=start`` (with video options) or ``action=stop``."""

@@ -99,6 +99,21 @@ def test_prefer_wait_returns_the_finished_job(client: Client, worker: Worker) ->
     assert reply.headers["Location"] == f"/v1/jobs/{job['id']}"
 
 
+def test_a_wait_in_a_second_prefer_line_is_read(client: Client, worker: Worker) -> None:
+    """RFC 7240 lets a client send its preferences on several ``Prefer`` lines: only the
+    first was read, so ``respond-async`` then ``wait=20`` got 202 at once."""
+    data, _ = frame_png()
+    reply = client().post(
+        "/v1/reconstructions",
+        files={"file": ("frame.png", data, "image/png")},
+        data={"decoder": "itoh"},
+        headers=[("Prefer", "respond-async"), ("Prefer", "wait=20")],
+    )
+    assert reply.status_code == 200, reply.text
+    assert reply.json()["state"] == "succeeded"
+    assert reply.headers["Preference-Applied"] == "wait=20"
+
+
 def test_a_prefer_wait_longer_than_the_servers_limit_is_cut_to_it(
     tmp_path: Path, redis_url: str
 ) -> None:
