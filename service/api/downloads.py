@@ -81,13 +81,24 @@ def _changed_since(response: Headers, date: str) -> bool | None:
         return None
 
 
+def entity_tags(request: Headers, name: str) -> set[str] | None:
+    """The entity tags of the request's ``name`` header (``If-Match``, ``If-None-Match``)
+    on all its lines, read as one comma-separated list (RFC 9110 5.3, 13.1.1-13.1.2: a
+    second ``If-Match`` line naming the file's tag got 412, one ``If-Match`` naming both
+    tags 200); None without the header."""
+    lines = request.getlist(name)
+    if not lines:
+        return None
+    return {tag.strip() for line in lines for tag in line.split(",")}
+
+
 def not_modified(request: Headers, response: Headers) -> bool:
     """Whether a GET of a file with ``response``'s ``ETag`` and ``Last-Modified`` may be
     answered 304: ``If-None-Match`` names its tag (weakly compared) or is ``*``; without
     it, ``If-Modified-Since`` is a valid date no earlier than ``Last-Modified``."""
-    if_none_match = request.get("if-none-match")
+    if_none_match = entity_tags(request, "if-none-match")
     if if_none_match is not None:
-        tags = {tag.strip().removeprefix("W/") for tag in if_none_match.split(",")}
+        tags = {tag.removeprefix("W/") for tag in if_none_match}
         return "*" in tags or response["etag"].removeprefix("W/") in tags
     since = request.get("if-modified-since")
     return since is not None and _changed_since(response, since) is False
@@ -98,9 +109,8 @@ def precondition_failed(request: Headers, response: Headers) -> bool:
     must be answered 412 (RFC 9110 13.1.1-13.1.2): ``If-Match`` names neither its tag
     (strongly compared: a weak ``W/`` tag never matches) nor ``*``; without it,
     ``If-Unmodified-Since`` is a valid date earlier than ``Last-Modified``."""
-    if_match = request.get("if-match")
-    if if_match is not None:
-        tags = {tag.strip() for tag in if_match.split(",")}
+    tags = entity_tags(request, "if-match")
+    if tags is not None:
         return "*" not in tags and response["etag"] not in tags
     since = request.get("if-unmodified-since")
     return since is not None and _changed_since(response, since) is True

@@ -191,6 +191,21 @@ def test_an_if_match_naming_another_file_is_a_412(api_download: httpx.Client) ->
         assert reply.status_code == 206 and reply.content == DATA[:10]
 
 
+def test_entity_tags_on_several_header_lines_are_one_list(api_download: httpx.Client) -> None:
+    """RFC 9110 5.3: several lines of a header are one comma-separated list. Only the
+    first line was read: a second ``If-Match`` line naming the file's tag got 412, a
+    second ``If-None-Match`` line naming it got the file again."""
+    etag = api_download.get("/result").headers["etag"]
+    if_match = [("If-Match", '"other"'), ("If-Match", etag), ("Range", "bytes=0-9")]
+    reply = api_download.get("/result", headers=if_match)
+    assert reply.status_code == 206 and reply.content == DATA[:10], reply.text
+    if_none_match = [("If-None-Match", '"other"'), ("If-None-Match", etag)]
+    again = api_download.get("/result", headers=if_none_match)
+    assert again.status_code == 304 and again.content == b""
+    neither = [("If-Match", '"other"'), ("If-Match", '"another"')]
+    assert api_download.get("/result", headers=neither).status_code == 412
+
+
 def test_if_unmodified_since_before_the_file_changed_is_a_412(
     api_download: httpx.Client,
 ) -> None:
