@@ -521,10 +521,6 @@ def not_a_video(data: bytes) -> str | None:
     return None if fmt is None else _NOT_VIDEOS[fmt]
 
 
-#: The start of a zip of no file: its end of central directory record alone (PKWARE
-#: APPNOTE 4.3.16), with no local file header (``ZIP_MAGIC``) before it. Such a zip was
-#: told it was not a zip ("bad or missing signature") and to send it uncut.
-EMPTY_ZIP = b"PK\x05\x06"
 #: What a file of each video format is, in an error message.
 _FORMAT_NOUNS = {"tiff": "a TIFF video", "npy": "an npy file", "zip": "a zip of PNG frames"}
 #: What to send instead of data of no video format.
@@ -549,8 +545,6 @@ def decode_video(
     fmt, warning = content_first(data, video_format(fmt), VIDEO_MAGICS)
     if (other := not_a_video(data)) is not None:
         raise UnsupportedFormatError(f"the file is {other}")
-    if fmt == "zip" and data.startswith(EMPTY_ZIP):
-        raise _no_png_frame([])
     check_signature(data, VIDEO_MAGICS, _FORMAT_NOUNS[fmt], "video", _SEND_A_VIDEO)
     limits = limits or VideoLimits()
     if fmt == "zip":
