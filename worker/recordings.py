@@ -49,7 +49,11 @@ it drops while a worker that stopped before recording them held them
 that ends with no frame fails saying how many were lost and what to do, and the video
 job of one that lost some carries that as a warning. So do frames of the recording that
 the worker gave up on (they could not be reconstructed: a ``failed`` event),
-``frames_failed``, with the last one's error (:meth:`Recorder.count_failed`).
+``frames_failed``, with the last one's error (:meth:`Recorder.count_failed`). Frames
+that never reached the stream (lost on the camera link: corrupt, truncated or undelivered
+packets, a disconnect; or dropped by the device daemon) show as steps of the camera's
+sequence numbers between recorded frames: those steps count in ``frames_skipped``, and
+the video job warns of the frames skipped beyond those lost and failed.
 """
 
 from __future__ import annotations
@@ -63,6 +67,7 @@ from typing import Any
 import numpy as np
 import redis
 
+from device.health import MAX_MISSING_PER_GAP
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
 from models.frames import encode_frame
@@ -184,6 +189,7 @@ class Recording:
     stop_entry: str | None = None
     frames_lost: int = 0
     frames_failed: int = 0
+    frames_skipped: int = 0
     failed_error: str | None = None
     job: str | None = None
     error: str | None = None
@@ -217,6 +223,7 @@ class Recording:
             stop_entry=get.get("stop_entry") or None,
             frames_lost=int(get.get("frames_lost", "0")),
             frames_failed=int(get.get("frames_failed", "0")),
+            frames_skipped=int(get.get("frames_skipped", "0")),
             failed_error=get.get("failed_error") or None,
             job=get.get("job") or None,
             error=get.get("error") or None,
@@ -262,6 +269,7 @@ class Recording:
             "frames": self.frames,
             "frames_lost": self.frames_lost,
             "frames_failed": self.frames_failed,
+            "frames_skipped": self.frames_skipped,
             "max_frames": self.max_frames,
             "max_samples": self.max_samples,
             "decoder": self.decoder,
@@ -480,6 +488,7 @@ class Recorder:
             "last_sequence": message.sequence,
             "last_ts_ns": message.timestamp_ns,
             **camera_timing(recording, message),
+            **skipped_frames(recording, message),
         }
         if index == 0:
             if not self._recordable(recording, message):
@@ -627,7 +636,8 @@ def no_frames_reason(client: redis.Redis, device: str) -> str:
 
 def missing_frames(recording: Recording) -> list[str]:
     """What the recording misses, and why: frames the device stream dropped before a
-    worker read them, frames that failed to decode (the video's warnings)."""
+    worker read them, frames that failed to decode, frames that never reached the stream
+    (the video's warnings)."""
     missing = [frames_lost_text(recording)] if recording.frames_lost else []
     if recording.frames_failed:
         frames = _frames_sent(recording.frames_failed)
@@ -636,7 +646,28 @@ def missing_frames(recording: Recording) -> list[str]:
             f"left out (the last: {recording.failed_error}); GET /v1/devices/"
             f"{recording.device}/events lists each failed frame"
         )
+    unexplained = recording.frames_skipped - recording.frames_lost - recording.frames_failed
+    if unexplained > 0:
+        missing.append(frames_skipped_text(recording, unexplained))
     return missing
+
+
+def frames_skipped_text(recording: Recording, count: int) -> str:
+    """What ``count`` frames skipped between recorded frames, beyond those the stream
+    dropped or that failed to decode, mean to ``recording``, and where to look. "At
+    least" once some were lost or failed: those may lie before the first or after the
+    last recorded frame, outside the skipped steps."""
+    bound = "at least " if recording.frames_lost or recording.frames_failed else ""
+    frames = "frame" if count == 1 else "frames"
+    return (
+        f"{bound}{count} {frames} the camera numbered between the recording's first and "
+        f"last frame never reached the device's frame stream and {'is' if count == 1 else 'are'} "
+        "missing from the video (lost on the camera link: corrupt, truncated or undelivered "
+        "packets, a disconnect; dropped by the device daemon; or sent while it was not "
+        "running): GET /v1/devices/"
+        f"{recording.device} counts them by cause (frames_missing, dropped_*); check the "
+        "camera's cable and the daemon's log"
+    )
 
 
 def _frames_sent(count: int) -> str:
@@ -674,6 +705,19 @@ def camera_timing(recording: Recording, message: FrameMessage) -> dict[str, int]
         "camera_steps": recording.camera_steps + steps,
         "camera_span_ns": recording.camera_span_ns + span_ns,
     }
+
+
+def skipped_frames(recording: Recording, message: FrameMessage) -> dict[str, int]:
+    """The recording's ``frames_skipped`` with ``message``, the next recorded frame,
+    counted in: the sequence numbers between the last recorded frame's and its own;
+    nothing for its first frame, a step back (a camera restart) or a jump beyond
+    :data:`MAX_MISSING_PER_GAP` (a counter that reset or was corrupted)."""
+    if recording.frames == 0 or recording.last_sequence is None:
+        return {}
+    skipped = message.sequence - recording.last_sequence - 1
+    if not 0 < skipped <= MAX_MISSING_PER_GAP:
+        return {}
+    return {"frames_skipped": recording.frames_skipped + skipped}
 
 
 def _ended(recording: Recording, reason: str) -> dict[str, Any]:

@@ -534,6 +534,29 @@ def test_a_video_that_lost_frames_to_the_full_stream_says_how_many(
     assert "stream_full in GET /v1/devices/cam1)" in warning, warning  # it said {id}
 
 
+def test_a_video_that_lacks_frames_lost_on_the_camera_link_says_how_many(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    """Frames lost on the camera link (corrupt or truncated packets, a disconnect) or
+    dropped by the daemon never reach the stream. Before, the video of a recording that
+    lacked them said nothing (``warnings`` []; the daemon's health counted them only):
+    seen with ``mcam simulate-device --drop 0.2``, 52 of 60 frames and no warning. A
+    step back of the camera's counter (a restart) is no loss."""
+    clip = frames(make_frame, 5)
+    start(client)
+    for i, sequence in enumerate((10, 11, 14, 2, 3)):  # 12 and 13 lost; then a restart
+        recorder.add_frame(message(clip[i], sequence, discont=sequence == 2), f"3000-{i}")
+    assert load_recording(client, "cam1").view()["frames_skipped"] == 2
+    request_stop(client, "cam1")
+    recorder.finish_if_due("cam1")
+
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.frames == 5 and done.frames_skipped == 2
+    [warning] = queue.get(done.job).warnings
+    assert warning.startswith("2 frames the camera numbered between the recording's first")
+    assert "lost on the camera link" in warning and "GET /v1/devices/cam1 counts" in warning
+
+
 def test_frames_a_stopped_worker_held_when_the_stream_dropped_them_count_as_lost(
     client: redis.Redis, store: ResultStore, make_frame, wait_until
 ) -> None:
