@@ -5,7 +5,8 @@ Fields (all strings in Redis): ``state`` (connecting / connected / disconnected)
 ``frames_ok`` (published), ``frames_received`` (valid data packets),
 ``dropped_<cause>`` for every parser cause plus ``queue_full`` (the daemon's own
 queue), ``stream_full`` (oldest frames evicted from the Redis stream unread),
-``redis_unavailable`` and ``rejected``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
+``redis_unavailable``, ``redis_full`` (Redis at its ``maxmemory``, refusing writes) and
+``rejected``, ``garbage_bytes``, ``sequence_gaps``, ``frames_missing``
 (sequence numbers never received), ``reconnects``, ``last_frame_ns`` (host
 wall clock, ns since the epoch) and ``last_sequence`` of the device's newest frame (-1:
 none yet; the host's number, on past wraps of the camera's 32-bit counter:
@@ -36,9 +37,11 @@ from typing import Any
 
 from device.link_parser import DROP_CAUSES
 
-#: Drop causes on the host side of the link, after the parser's: publish queue full, Redis
-#: unreachable, or a frame whose header the formation model rejects.
-HOST_DROP_CAUSES: tuple[str, ...] = ("queue_full", "stream_full", "redis_unavailable", "rejected")
+#: Drop causes on the host side of the link, after the parser's: publish queue full, the
+#: device's stream full, Redis unreachable or full (at its maxmemory), or a frame whose
+#: header the formation model rejects.
+HOST_DROP_CAUSES: tuple[str, ...] = ("queue_full", "stream_full", "redis_unavailable",
+                                     "redis_full", "rejected")
 ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + HOST_DROP_CAUSES
 #: A forward sequence jump counts its frames as missing up to this many (an hour at
 #: 250 frames/s); a larger one is a counter that reset or was corrupted, not frames

@@ -6,8 +6,9 @@ queue drops the frame (``queue_full``). A thread publishes each frame with
 full the oldest unread frames are evicted, a DISCONT one at the front excepted, counted
 as ``stream_full``), writes the health hash, and reads ``control:<device>`` for
 commands to forward to the camera.
-While Redis is unreachable, queued frames are dropped (``redis_unavailable``)
-and the connection is retried with backoff; the link keeps being read. After
+While Redis is unreachable, queued frames are dropped (``redis_unavailable``;
+``redis_full`` while it is at its ``maxmemory`` and refuses writes) and the
+connection is retried with backoff; the link keeps being read. After
 any drop the frame that follows the dropped one carries ``discont`` (temporal state
 broke): the next frame queued after a full queue's drop (frames queued before it
 still follow their predecessors), the next frame published after a failed publish.
@@ -45,7 +46,7 @@ from worker.redis_keys import (
     frame_stream,
     health_key,
 )
-from worker.redis_memory import TroubleLog
+from worker.redis_memory import TroubleLog, is_out_of_memory
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +86,8 @@ class FramePublisher:
         self._dropped_at_queue = False
         self._failed_publish = False
         self._redis_ok = True
+        # The drop cause of a frame while Redis is down: why it last failed.
+        self._down_cause = "redis_unavailable"
         self._retry_at = 0.0
         self._backoff = 0.05
         self._control_id: str | None = None  # read from Redis when it is first reachable
@@ -163,15 +166,20 @@ class FramePublisher:
 
     def _redis(self, action: Callable[[], object]) -> bool:
         """Run a Redis action unless Redis is known down; mark it down on any Redis error
-        (unreachable, loading, out of memory, read-only replica...)."""
+        (unreachable, loading, out of memory, read-only replica...), noting the drop
+        cause of the frames meanwhile: ``redis_full`` when it refused a write at its
+        ``maxmemory``, else ``redis_unavailable``."""
         if not self._redis_ok and time.monotonic() < self._retry_at:
             return False
         try:
             action()
         except (redis.RedisError, OSError) as exc:
+            full = is_out_of_memory(exc)
+            self._down_cause = "redis_full" if full else "redis_unavailable"
             self._trouble.warn(
                 f"device {self.device}", exc,
-                then="frames are dropped (dropped_redis_unavailable) until it answers",
+                then=f"frames are dropped (dropped_{self._down_cause}) until it "
+                     f"{'has room' if full else 'answers'}",
             )  # fmt: skip
             self._redis_ok = False
             self._retry_at = time.monotonic() + self._backoff
@@ -201,7 +209,7 @@ class FramePublisher:
             self._failed_publish = False
             self.health.add("frames_ok")
         else:
-            self.health.add("dropped_redis_unavailable")
+            self.health.add(f"dropped_{self._down_cause}")
             self._failed_publish = True
 
     def _new_events(self) -> list[dict[str, str]]:

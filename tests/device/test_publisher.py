@@ -188,6 +188,29 @@ def test_frames_dropped_while_redis_is_away_are_warned_of_once(
     assert len(warnings) == 1 and "dropped_redis_unavailable" in warnings[0]
 
 
+def test_frames_dropped_while_redis_is_full_are_counted_as_such(
+        client: redis.Redis, caplog: pytest.LogCaptureFixture) -> None:
+    """Redis at its maxmemory (noeviction) answers but refuses writes. Before, its
+    dropped frames counted as ``redis_unavailable`` and the warning said they were
+    dropped "until it answers", though it answered all along: an operator looked for a
+    network fault instead of raising maxmemory."""
+    health = DeviceHealth("cam0", "loop://")
+    publisher = FramePublisher(client, "cam0", health, lambda *_: True)
+    client.config_set("maxmemory", 1)
+    with caplog.at_level(logging.WARNING, logger="device.publisher"):
+        for sequence in range(3):
+            publisher._publish(message(sequence))
+            publisher._retry_at = 0.0  # try Redis again for each frame
+    assert health.counts["dropped_redis_full"] == 3
+    assert health.counts["dropped_redis_unavailable"] == 0
+    [warning] = [r.getMessage() for r in caplog.records if r.name == "device.publisher"]
+    assert "Redis is full" in warning and "(dropped_redis_full) until it has room" in warning
+    client.config_set("maxmemory", 0)
+    publisher._retry_at = 0.0
+    publisher._publish(message(3))
+    assert published(client) == [(3, True)]  # after the drops: a discontinuity
+
+
 def test_a_drop_event_names_its_causes(client: redis.Redis) -> None:
     health = DeviceHealth("cam0", "loop://")
     publisher = FramePublisher(client, "cam0", health, lambda *_: True)
