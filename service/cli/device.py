@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import signal
 
 import redis
 
 from device.daemon import DaemonConfig, DeviceDaemon, check_port_url
 from device.datasets import DatasetLimits
-from models.stop_signals import handle_stop_signals
+from models.stop_signals import noting_stop_signals, wait_for_stop
 from service.cli.options import add_log_level_flag, start_logging
 from service.cli.worker import redis_url_for
 from service.core.config import get_settings
@@ -56,17 +55,11 @@ def run(args: argparse.Namespace) -> int:
     daemon = DeviceDaemon(config, client)
     with contextlib.suppress(redis.RedisError, OSError):  # Redis away: claimed once it answers
         daemon.claim.take()
-
-    def stop(_signum: int, _frame: object) -> None:
+    with noting_stop_signals() as received:
+        daemon.start()
+        wait_for_stop(received, daemon.wait)  # a signal, or the daemon's failure
         daemon.request_stop()
-
-    handle_stop_signals(stop)
-    daemon.start()
-    daemon.wait()
-    daemon.stop()
-    # Only the interpreter's exit is left, and it gives the signals their default action
-    # back: a second Ctrl-C then ended the process by SIGINT (exit -2, no message).
-    handle_stop_signals(signal.SIG_IGN)
+        daemon.wait()
     if daemon.failure is not None:  # another daemon took the device once Redis answered
         raise daemon.failure
     return 0

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import threading
 from pathlib import Path
 
 from device.commands import FPS_RANGE
@@ -25,7 +24,7 @@ from device.sim_link import Endpoint, open_endpoint
 from device.simulator import MAX_SEED, CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
-from models.stop_signals import handle_stop_signals
+from models.stop_signals import noting_stop_signals, wait_for_stop
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -120,11 +119,10 @@ def run(args: argparse.Namespace) -> int:
     camera = VirtualScamp5(open_port(args.port), scene, settings, faults, seed=args.seed,
                            max_frames=args.frames)
     print(camera.endpoint.url, flush=True)
-    stopped = threading.Event()
-    handle_stop_signals(lambda *_: stopped.set())
-    camera.start()
-    stopped.wait()
-    camera.stop()
-    print(f"sent {camera.packets_sent} packets ({camera.packets_unsent} undelivered)",
-          file=sys.stderr)
+    with noting_stop_signals() as received:
+        camera.start()
+        wait_for_stop(received)
+        camera.stop()
+        print(f"sent {camera.packets_sent} packets ({camera.packets_unsent} undelivered)",
+              file=sys.stderr)
     return 0

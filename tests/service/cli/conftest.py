@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -175,3 +176,37 @@ def camera_and_daemon(env: dict[str, str], client: redis.Redis, tmp_path: Path,
                 process.send_signal(signal.SIGTERM)
     assert daemon is not None and daemon.wait(20) == 0
     assert camera.wait(20) == 0
+
+
+#: Sends SIGINT and SIGTERM in turn to process argv[1], as fast as it can, until killed.
+SIGNAL_FLOOD = """
+import os, signal, sys
+pid = int(sys.argv[1])
+while True:
+    os.kill(pid, signal.SIGINT)
+    os.kill(pid, signal.SIGTERM)
+"""
+
+
+@contextmanager
+def stopped_by_signal_flood(process: subprocess.Popen[str]) -> Iterator[list[str]]:
+    """Once the body has seen ``process`` (stderr piped, as text) running, flood it with
+    SIGINT and SIGTERM from another process until it exits (30 s at most: then it is
+    killed and the test fails). Yields a list that then holds the process's stderr."""
+    output: list[str] = []
+    flood = None
+    try:
+        yield output
+        flood = subprocess.Popen([sys.executable, "-c", SIGNAL_FLOOD, str(process.pid)],
+                                 stderr=subprocess.DEVNULL)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(30)
+    finally:
+        if flood is not None:
+            flood.kill()
+            flood.wait(30)
+        hung = process.poll() is None
+        if hung:
+            process.kill()
+        output.append(process.communicate(timeout=60)[1])
+    assert not hung, f"still running under the signals: {output[0]}"

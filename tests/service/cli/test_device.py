@@ -14,7 +14,13 @@ import redis
 
 from tests.device import conftest as device_fixtures
 from tests.device.conftest import health, wait_for
-from tests.service.cli.conftest import MCAM, camera_and_daemon, env_for, run_mcams
+from tests.service.cli.conftest import (
+    MCAM,
+    camera_and_daemon,
+    env_for,
+    run_mcams,
+    stopped_by_signal_flood,
+)
 from worker.embedded_redis import EmbeddedRedis
 from worker.redis_keys import control_stream
 
@@ -142,4 +148,23 @@ def test_ctrl_c_pressed_on_and_on_stops_the_daemon_cleanly(
             process.wait(30)
     assert process.returncode == 0, stderr
     assert "Traceback" not in stderr, stderr
+    assert health(client, "rig-1")["state"] == "stopped"
+
+
+@pytest.mark.parametrize("start", range(6))
+def test_a_burst_of_stop_signals_stops_the_daemon(
+        redis_server: EmbeddedRedis, client: redis.Redis, tmp_path: Path, start: int) -> None:
+    """SIGINT and SIGTERM, one after the other as fast as another process can send them.
+    The daemon's handler set a threading.Event, which takes a lock: a signal that came
+    while an earlier handler held it ran a handler that waited for that lock for good,
+    and the process hung, ignoring every later signal, or died of the handlers' nesting
+    with a traceback (10 of 18 starts). It exits 0, its last health says stopped."""
+    env = env_for(redis_server.url, tmp_path / "data")
+    process = subprocess.Popen([MCAM, "device", "--port", "loop://", "--device-id", "rig-1"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               env=env, cwd=tmp_path)
+    with stopped_by_signal_flood(process) as stderr:
+        assert wait_for(lambda: health(client, "rig-1").get("state") is not None, 60)
+    assert process.returncode == 0, stderr
+    assert "Traceback" not in stderr[0], stderr
     assert health(client, "rig-1")["state"] == "stopped"

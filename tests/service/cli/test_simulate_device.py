@@ -6,12 +6,19 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
+import pytest
 import redis
 
 from device.simulator import MAX_SEED
 from tests.device import conftest as device_fixtures
 from tests.device.conftest import stream_frames
-from tests.service.cli.conftest import MCAM, camera_and_daemon, env_for, run_mcams
+from tests.service.cli.conftest import (
+    MCAM,
+    camera_and_daemon,
+    env_for,
+    run_mcams,
+    stopped_by_signal_flood,
+)
 from worker.embedded_redis import EmbeddedRedis
 
 #: The device tests' private redis-server and a redis client of it (in tests/service/,
@@ -69,3 +76,19 @@ def test_help_offers_only_the_ports_it_opens_and_gives_the_defaults() -> None:
                      "scene unit (default 1)", "(default 0.002; 0: none)", "(default 256)",
                      "seconds (default 0.2)", "stays out (default 0.5)"):
         assert fragment in text, fragment
+
+
+@pytest.mark.parametrize("start", range(6))
+def test_a_burst_of_stop_signals_stops_the_camera(tmp_path: Path, start: int) -> None:
+    """SIGINT and SIGTERM as fast as another process can send them. The handler set the
+    threading.Event the main thread waited on, and a signal that came while the lock
+    inside it was held (by the main thread waking, or an earlier handler) hung the
+    process for good, or killed it by the handlers' nesting. It exits 0, saying what
+    it sent."""
+    process = subprocess.Popen([MCAM, "simulate-device", "--port", f"pty:{tmp_path / 'cam'}"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               cwd=tmp_path)
+    with stopped_by_signal_flood(process) as stderr:
+        assert process.stdout is not None and process.stdout.readline().strip()  # the port
+    assert process.returncode == 0, stderr
+    assert stderr[0].startswith("sent "), stderr
