@@ -17,6 +17,10 @@ import numpy as np
 from device.link_protocol import pack_header
 from models.errors import InvalidInputError
 
+#: Longest stall or disconnect (s): an hour. ``time.sleep`` could not wait 1e12 s
+#: (OverflowError: the camera's thread died with a traceback and sent nothing more).
+MAX_FAULT_S = 3600.0
+
 
 @dataclass
 class Faults:
@@ -30,7 +34,7 @@ class Faults:
     ``stall_s``: every N-th packet pauses ``stall_s`` seconds halfway through;
     ``disconnect_every`` / ``disconnect_s``: every N-th packet the link goes away
     for ``disconnect_s`` seconds and comes back. N = 0 means never; durations are
-    finite and 0 or more.
+    0 to :data:`MAX_FAULT_S` seconds.
     """
 
     corrupt_bytes: float = 0.0
@@ -60,9 +64,10 @@ class Faults:
                 )
         for name in ("stall_s", "disconnect_s"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
+            if not (math.isfinite(value) and 0 <= value <= MAX_FAULT_S):
                 raise InvalidInputError(
-                    f"{name} must be a finite number of seconds, 0 or more, got {value}"
+                    f"{name} must be a finite number of seconds, 0 to {MAX_FAULT_S:g}, "
+                    f"got {value:g}"
                 )
         self._rng = np.random.default_rng(self.seed)
 

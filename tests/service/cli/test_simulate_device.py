@@ -52,9 +52,11 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         (("--seed", "-1"), f"--seed must be from 0 to {MAX_SEED}, got -1"),
         (("--seed", "9300000000000"), f"--seed must be from 0 to {MAX_SEED}, got 9300000000000"),
         (("--stall-every", "1", "--stall-s", "-1"),
-         "stall_s must be a finite number of seconds, 0 or more, got -1.0"),
+         "stall_s must be a finite number of seconds, 0 to 3600, got -1"),
         (("--disconnect-every", "2", "--disconnect-s", "nan"),
-         "disconnect_s must be a finite number of seconds, 0 or more, got nan"),
+         "disconnect_s must be a finite number of seconds, 0 to 3600, got nan"),
+        (("--disconnect-every", "1", "--disconnect-s", "1e12"),
+         "disconnect_s must be a finite number of seconds, 0 to 3600, got 1e+12"),
         (("--stall-every", "-1"), "stall_every must be a whole number of packets, 0 (never)"),
     ]
     (tmp_path / "file").touch()
