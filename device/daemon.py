@@ -51,6 +51,9 @@ log = logging.getLogger(__name__)
 PortOpener = Callable[[], Any]
 #: Port URL schemes that name a host and a TCP port.
 NETWORK_SCHEMES = ("socket", "rfc2217")
+#: Port URL schemes whose options pyserial reads without opening anything
+#: (:func:`check_url_options`).
+PARSED_SCHEMES = ("loop", "socket", "rfc2217")
 #: Most bytes taken from the port in one read.
 MAX_READ = 1 << 20
 #: While the port stays closed, a warning every this many failed attempts (about a
@@ -99,6 +102,28 @@ def check_port_url(url: str) -> None:
         )
     if scheme in NETWORK_SCHEMES:
         check_host_port(url, scheme)
+    if scheme in PARSED_SCHEMES and "?" in url:
+        check_url_options(url, scheme)
+
+
+def check_url_options(url: str, scheme: str) -> None:
+    """Refuse a port URL whose options (``?logging=...``) pyserial refuses, as it would at
+    every open: ``loop://?logging=DEBUG`` stopped the daemon with a bare KeyError
+    traceback (exit 0), ``socket://HOST:PORT?logging=bogus`` was retried for good with
+    "'bogus'". pyserial's own parser (``from_url`` of an unopened port) reads them; with
+    a valid ``logging`` it sets up logging as the open would."""
+    handler = importlib.import_module(f"serial.urlhandler.protocol_{scheme}")
+    try:
+        handler.Serial().from_url(url)
+    except (serial.SerialException, ValueError, KeyError) as exc:
+        # A KeyError's text is no reason: an unknown level, or pyserial's own message
+        # failing to format ('debug|info|warning|error' for loop://?baud=9600).
+        reason = "" if isinstance(exc, KeyError) else f" ({exc})"
+        raise InvalidInputError(
+            f"bad option in port URL {url!r}{reason}; pyserial's {scheme}:// takes "
+            "?logging=debug, info, warning or error (rfc2217:// also ign_set_control, "
+            "poll_modem and timeout=SECONDS), or none"
+        ) from None
 
 
 def check_host_port(url: str, scheme: str) -> None:

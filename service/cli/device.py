@@ -46,8 +46,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def run(args: argparse.Namespace) -> int:
     settings = get_settings()
     device = validate_device_id(args.device_id)
+    start_logging(args)  # before a port URL's ?logging= sets it up (check_port_url)
     check_port_url(args.port)
-    start_logging(args)
     client = connect(redis_url_for(settings), timeout_s=1.0)
     limits = DatasetLimits(settings.dataset_max_pairs, settings.dataset_max_bytes)
     config = DaemonConfig(port=args.port, device=device, frames_maxlen=settings.frames_maxlen,

@@ -672,6 +672,29 @@ def test_a_network_port_url_without_host_or_valid_port_is_refused(
         DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
 
 
+@pytest.mark.parametrize(("port", "why"), [
+    ("loop://?logging=DEBUG", ";"),
+    ("socket://127.0.0.1:5555?logging=bogus", ";"),
+    ("rfc2217://127.0.0.1:5555?timeout=abc", "could not convert string to float: 'abc'"),
+    ("loop://?baud=9600", ";"),
+])
+def test_a_port_url_with_an_option_pyserial_refuses_is_refused(
+        client: redis.Redis, port: str, why: str) -> None:
+    """pyserial refuses these at every open: ``loop://?logging=DEBUG`` (its levels are
+    lower case) killed the daemon's thread with a bare KeyError traceback and ``mcam
+    device`` exited 0; the others were retried for good with a cryptic reason. They are
+    refused up front, naming the options a port URL takes."""
+    with pytest.raises(InvalidInputError) as refused:
+        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+    assert refused.value.message.startswith(f"bad option in port URL {port!r}")
+    assert why in refused.value.message and "?logging=debug, info, warning or error" in (
+        refused.value.message)
+
+
+def test_a_port_url_with_valid_options_is_taken(client: redis.Redis) -> None:
+    DeviceDaemon(DaemonConfig(port="loop://?logging=warning", device="cam1"), client)
+
+
 def test_a_second_daemon_on_one_port_waits_and_says_who_holds_it(client: redis.Redis) -> None:
     """Two daemons (two device ids) on one camera's pty each got a share of its bytes:
     most frames were lost as garbage and truncated packets. The first locks the port;

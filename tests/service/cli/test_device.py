@@ -54,10 +54,11 @@ def test_mcam_device_keeps_the_dataset_within_the_settings(
 
 def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_path: Path) -> None:
     env = env_for(redis_server.url, tmp_path / "data")
-    wrong_id, scheme, empty, port, bits = run_mcams([
+    wrong_id, scheme, empty, option, port, bits = run_mcams([
         ("device", "--port", "loop://", "--device-id", "no spaces"),
         ("device", "--port", "bogus://x", "--device-id", "rig1"),
         ("device", "--port", " ", "--device-id", "rig1"),
+        ("device", "--port", "loop://?logging=DEBUG", "--device-id", "rig1"),
         ("simulate-device", "--port", "/dev/ttyS0"),
         ("simulate-device", "--bits", "40"),
     ], cwd=tmp_path, env=env)  # fmt: skip
@@ -71,6 +72,10 @@ def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_pat
     assert empty.returncode == 2 and empty.stderr.strip().splitlines() == [
         "mcam device: error: the port is empty; give a device path (/dev/ttyACM0), "
         "socket://HOST:PORT or rfc2217://HOST:PORT"]
+    assert option.returncode == 2, option.stderr  # a KeyError traceback, and exit 0
+    assert option.stderr.strip().splitlines()[0].startswith(
+        "mcam device: error: bad option in port URL 'loop://?logging=DEBUG'; pyserial's loop:// "
+        "takes ?logging=debug, info, warning or error")
     assert port.returncode == 2 and "unsupported simulator port" in port.stderr
     assert "loop:// reaches readers in the same process only" in port.stderr
     assert bits.returncode == 2 and "bits" in bits.stderr
