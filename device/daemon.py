@@ -54,6 +54,9 @@ NETWORK_SCHEMES = ("socket", "rfc2217")
 #: Port URL schemes whose options pyserial reads without opening anything
 #: (:func:`check_url_options`).
 PARSED_SCHEMES = ("loop", "socket", "rfc2217")
+#: Parser drop causes of packets the link damaged (an unknown type or a malformed packet
+#: came as the camera sent it).
+DAMAGE_CAUSES = ("bad_header", "oversize", "bad_crc", "truncated")
 #: Most bytes taken from the port in one read.
 MAX_READ = 1 << 20
 #: While the port stays closed, a warning every this many failed attempts (about a
@@ -337,6 +340,7 @@ class DeviceDaemon:
         # A partial packet also expires while bytes keep coming, once complete packets
         # arrive behind it: a corrupt length must not hold them back for long.
         malformed = self._parser.drops["malformed"]
+        damaged = self._damaged()
         packets = self._parser.feed(data) if data else []
         packets += self._parser.expire(quiet=not data)
         if self._parser.drops["malformed"] > malformed:
@@ -355,6 +359,26 @@ class DeviceDaemon:
                 self.health.add("dropped_rejected")
         self.health.set_parser_counts(self._parser.drops, self._parser.garbage_bytes,
                                       self._parser_base)
+        if self._damaged() > damaged:
+            self._report_damage()
+
+    def _damaged(self) -> int:
+        """Packets the current parser dropped as damaged on the link (:data:`DAMAGE_CAUSES`)."""
+        return sum(self._parser.drops[cause] for cause in DAMAGE_CAUSES)
+
+    def _report_damage(self) -> None:
+        """Say that the link damages packets, with the device's counts so far, at most
+        every 30 s: only the health hash counted them, and a link losing a third of its
+        frames to bad checksums and cut packets wrote not a line to the daemon's log."""
+        counts = self.health.drop_counts()
+        causes = ", ".join(f"{cause} {counts[cause]}" for cause in DAMAGE_CAUSES if counts[cause])
+        self._trouble.report(
+            f"device {self.device}'s link {self.config.port}",
+            f"packets dropped as damaged ({causes} so far; "
+            f"{self.health.counts['garbage_bytes']} garbage bytes)",
+            then="check the camera's cable, connector and port; the frames are lost "
+                 f"(GET /v1/devices/{self.device} counts each cause)",
+        )  # fmt: skip
 
     def _report_malformed(self) -> None:
         """Say why the camera's packets are dropped as malformed (a counter alone did not:

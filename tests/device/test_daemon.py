@@ -103,6 +103,22 @@ def test_corrupted_bytes_drop_exactly_the_damaged_packets(link, client: redis.Re
         assert wait_for(lambda: "drop" in event_types(client), 5)
 
 
+def test_a_link_that_damages_packets_is_warned_of_in_the_log(
+        link, client: redis.Redis, caplog: pytest.LogCaptureFixture) -> None:
+    """Before, only the health hash counted damaged packets: a link losing a third of
+    its frames to bad checksums and cut packets (simulate-device --corrupt-bytes 0.001
+    --truncate 0.1) wrote not a line to the daemon's log. One warning (at most every
+    30 s) names the causes and what to check."""
+    faults = Faults(corrupt_bytes=0.01, burst_len=1024, truncate_packets=0.2, seed=3)
+    with caplog.at_level(logging.WARNING, logger="device.daemon"), link(40, faults=faults) as run:
+        finish_clean(run, 40)
+    [warning] = [r.getMessage() for r in caplog.records if "dropped as damaged" in r.getMessage()]
+    assert warning.startswith(f"device cam1's link {run.daemon.config.port}: packets dropped")
+    assert re.search(r"damaged \((bad_header|bad_crc|truncated|oversize) [1-9]", warning)
+    assert "garbage bytes" in warning
+    assert "check the camera's cable" in warning
+
+
 def test_disconnect_mid_stream_reconnects_and_marks_discont(link, client: redis.Redis) -> None:
     faults = Faults(disconnect_every=15, disconnect_s=0.3)
     with link(40, faults=faults) as run:
