@@ -264,12 +264,25 @@ class LoopEndpoint:
         self.port.close()
 
 
+def pty_link_path(url: str) -> Path:
+    """The symlink a ``pty:PATH`` port names; refused when PATH names no file (``pty:``,
+    ``pty:/``, ``pty:.``), which ended in a bare ValueError traceback ("PosixPath('.')
+    has an empty name")."""
+    path = Path(url[len("pty:"):])
+    if not path.name:
+        raise InvalidInputError(
+            f"bad simulator port {url!r}: pty:PATH names the symlink to make, such as "
+            "pty:/tmp/scamp5 (not a folder); or give pty alone for a temporary one"
+        )
+    return path
+
+
 def open_endpoint(url: str) -> Endpoint:
     """``pty`` or ``pty:PATH`` (symlink), ``socket://HOST:PORT`` (server), or ``loop://``."""
     if url == "pty":
         return PtyEndpoint()
     if url.startswith("pty:"):
-        return PtyEndpoint(Path(url[4:]))
+        return PtyEndpoint(pty_link_path(url))
     if url.startswith("socket://"):
         host, _, port = url[len("socket://") :].rpartition(":")
         if not port.isdigit() or int(port) > MAX_TCP_PORT:

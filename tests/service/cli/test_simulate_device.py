@@ -43,6 +43,8 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         (("--port", "loop://"), "--port loop:// only reaches readers in this same process"),
         (("--port", f"pty:{tmp_path / 'no-dir' / 'cam'}"),
          f"directory {tmp_path / 'no-dir'} does not exist, so the simulated camera's port"),
+        (("--port", "pty:"), "bad simulator port 'pty:': pty:PATH names the symlink to make"),
+        (("--port", "pty:/"), "bad simulator port 'pty:/': pty:PATH names the symlink to make"),
         (("--port", f"pty:{tmp_path / 'file' / 'cam'}"),
          "cannot open it (Not a directory); name a path in a directory you can write, or pty"),
         (("--fps", "1e-300"), "--fps must be from 0.1 to 10000"),
