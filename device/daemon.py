@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
-import importlib.util
+import importlib
 import logging
 import os
 import queue
@@ -98,11 +98,8 @@ def check_port_url(url: str) -> None:
             "rfc2217://HOST:PORT"
         )
     scheme, separator, _ = url.partition("://")
-    if separator and importlib.util.find_spec(f"serial.urlhandler.protocol_{scheme}") is None:
-        raise InvalidInputError(
-            f"pyserial does not know the port URL scheme {scheme!r} ({url}); use a device "
-            "path (/dev/ttyACM0), socket://HOST:PORT, rfc2217://HOST:PORT or loop://"
-        )
+    if separator:
+        check_scheme(url, scheme)
     if scheme in NETWORK_SCHEMES:
         check_host_port(url, scheme)
     if scheme in PARSED_SCHEMES and "?" in url:
@@ -126,6 +123,30 @@ def check_url_options(url: str, scheme: str) -> None:
             f"bad option in port URL {url!r}{reason}; pyserial's {scheme}:// takes "
             "?logging=debug, info, warning or error (rfc2217:// also ign_set_control, "
             "poll_modem and timeout=SECONDS), or none"
+        ) from None
+
+
+def check_scheme(url: str, scheme: str) -> None:
+    """Refuse a port URL scheme pyserial has no handler for, or whose handler cannot load
+    (a module it needs is not installed: pyserial then said "protocol 'cp2110' not known"
+    at every open, retried for good). A scheme with a dot or another character no module
+    name has (``my.host://``) stopped ``mcam device`` with a ModuleNotFoundError
+    traceback."""
+    module = f"serial.urlhandler.protocol_{scheme}"
+    unknown = InvalidInputError(
+        f"pyserial does not know the port URL scheme {scheme!r} ({url}); use a device "
+        "path (/dev/ttyACM0), socket://HOST:PORT, rfc2217://HOST:PORT or loop://"
+    )
+    if not scheme.isidentifier():
+        raise unknown
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name == module:
+            raise unknown from None
+        raise InvalidInputError(
+            f"pyserial's {scheme}:// ports need the Python module {exc.name!r}, which is "
+            f"not installed ({url}): install it, or use a device path (/dev/ttyACM0)"
         ) from None
 
 

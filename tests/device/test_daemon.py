@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 import logging
 import os
@@ -705,6 +706,25 @@ def test_a_port_url_with_an_option_pyserial_refuses_is_refused(
     assert refused.value.message.startswith(f"bad option in port URL {port!r}")
     assert why in refused.value.message and "?logging=debug, info, warning or error" in (
         refused.value.message)
+
+
+@pytest.mark.parametrize("port", ["my.camera://x", "loop.x://", "..://x"])
+def test_a_port_url_scheme_no_module_can_have_is_refused(client: redis.Redis, port: str) -> None:
+    """A scheme with a dot looked its handler up as a submodule: ``mcam device`` stopped
+    with a ModuleNotFoundError traceback (exit 1)."""
+    scheme = repr(port.partition("://")[0])
+    with pytest.raises(InvalidInputError,
+                       match=f"pyserial does not know the port URL scheme {re.escape(scheme)}"):
+        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("hid") is not None, reason="hid is installed")
+def test_a_port_url_whose_handler_cannot_load_names_what_is_missing(client: redis.Redis) -> None:
+    """pyserial's cp2110:// needs the hid module; without it every open said "protocol
+    'cp2110' not known" and the daemon retried for good."""
+    with pytest.raises(InvalidInputError, match="pyserial's cp2110:// ports need the Python "
+                                                "module 'hid', which is not installed"):
+        DeviceDaemon(DaemonConfig(port="cp2110://10c4:ea80:0", device="cam1"), client)
 
 
 def test_a_port_url_with_valid_options_is_taken(client: redis.Redis) -> None:

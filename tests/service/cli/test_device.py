@@ -54,9 +54,10 @@ def test_mcam_device_keeps_the_dataset_within_the_settings(
 
 def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_path: Path) -> None:
     env = env_for(redis_server.url, tmp_path / "data")
-    wrong_id, scheme, empty, option, port, bits = run_mcams([
+    wrong_id, scheme, dotted, empty, option, port, bits = run_mcams([
         ("device", "--port", "loop://", "--device-id", "no spaces"),
         ("device", "--port", "bogus://x", "--device-id", "rig1"),
+        ("device", "--port", "my.camera://x", "--device-id", "rig1"),
         ("device", "--port", " ", "--device-id", "rig1"),
         ("device", "--port", "loop://?logging=DEBUG", "--device-id", "rig1"),
         ("simulate-device", "--port", "/dev/ttyS0"),
@@ -69,6 +70,11 @@ def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_pat
     assert scheme.returncode == 2 and scheme.stderr.strip().splitlines() == [
         "mcam device: error: pyserial does not know the port URL scheme 'bogus' (bogus://x); "
         "use a device path (/dev/ttyACM0), socket://HOST:PORT, rfc2217://HOST:PORT or loop://"]
+    assert dotted.returncode == 2, dotted.stderr  # a ModuleNotFoundError traceback, exit 1
+    assert dotted.stderr.strip().splitlines() == [
+        "mcam device: error: pyserial does not know the port URL scheme 'my.camera' "
+        "(my.camera://x); use a device path (/dev/ttyACM0), socket://HOST:PORT, "
+        "rfc2217://HOST:PORT or loop://"]
     assert empty.returncode == 2 and empty.stderr.strip().splitlines() == [
         "mcam device: error: the port is empty; give a device path (/dev/ttyACM0), "
         "socket://HOST:PORT or rfc2217://HOST:PORT"]
