@@ -32,13 +32,12 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
 
 import redis
 
 from models.errors import McamError
 from models.hdr_io import EXR_COMPRESSIONS
-from models.stop_signals import handle_stop_signals
+from models.stop_signals import STOP_POLL_S, noting_stop_signals
 from worker.child_process import ChildProcess
 from worker.config_checks import heartbeat_problem
 from worker.decode_pool import DecodePool
@@ -159,6 +158,7 @@ class Worker:
         self._devices: DeviceConsumer | None = None
         self._in_flight: dict[int, tuple[StreamConsumer, Delivery]] = {}
         self._trouble = TroubleLog(log)
+        self._signals_acted_on = 0
 
     def request_stop(self, *_args: object) -> None:
         """Ask every loop to finish its current item and exit (a second call exits now)."""
@@ -169,9 +169,17 @@ class Worker:
         self.stop.set()
 
     def run(self) -> int:
-        """Run until stopped; returns the process exit code."""
-        if threading.current_thread() is threading.main_thread():
-            handle_stop_signals(self._on_signal)
+        """Run until stopped; returns the process exit code. On the main thread, stop
+        signals are noted and acted on by the heartbeat loop (:meth:`_act_on_signals`):
+        a handler that stopped the worker itself set a ``threading.Event``, whose lock a
+        second signal's handler then waited for (or nested into a RecursionError)."""
+        if threading.current_thread() is not threading.main_thread():
+            return self._run([])
+        with noting_stop_signals() as received:
+            return self._run(received)
+
+    def _run(self, signals: list[int]) -> int:
+        """:meth:`run` with the stop signals noted in ``signals``."""
         threads = [
             threading.Thread(target=self._job_loop, args=(i,), name=f"jobs-{i}", daemon=True)
             for i in range(self.config.concurrency)
@@ -187,15 +195,29 @@ class Worker:
         for thread in [*threads, purger]:
             thread.start()
         log.info("worker %s running (%d job threads)", self.id, self.config.concurrency)
-        self._heartbeat_loop(threads)
+        self._heartbeat_loop(threads, signals)
         for thread in [*threads, purger]:
             thread.join()
         self._forget_heartbeat()
         self.client.close()
         return 0
 
-    def _on_signal(self, signum: int, _frame: FrameType | None) -> None:
-        self.request_stop()
+    def _act_on_signals(self, signals: list[int]) -> None:
+        """:meth:`request_stop` for each stop signal noted in ``signals`` since the last
+        call (the first stops the worker, the next exits now)."""
+        while self._signals_acted_on < len(signals):
+            self._signals_acted_on += 1
+            self.request_stop()
+
+    def _pause(self, seconds: float, signals: list[int], done: Callable[[], bool]) -> None:
+        """Wait up to ``seconds`` (s) or until ``done()``, acting on the stop signals
+        noted in ``signals`` every :data:`models.stop_signals.STOP_POLL_S`."""
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            self._act_on_signals(signals)
+            if done():
+                return
+            time.sleep(min(STOP_POLL_S, left))
 
     def _resilient(self, step: Callable[[], None]) -> None:
         """Run ``step`` until stopped, surviving Redis outages and unexpected errors, each
@@ -325,23 +347,26 @@ class Worker:
         if isinstance(decode, DecodePool):
             decode.close()
 
-    def _heartbeat_loop(self, threads: list[threading.Thread]) -> None:
+    def _heartbeat_loop(self, threads: list[threading.Thread], signals: list[int]) -> None:
         """Beat and keep in-flight jobs and device leases alive every ``heartbeat_s``
         until the worker stops and ``threads`` have finished: a job in hand while the
         worker stops is still this worker's (another would reclaim it and decode it
-        again)."""
-        while not self.stop.is_set() or any(thread.is_alive() for thread in threads):
+        again). Meanwhile it acts on the stop signals noted in ``signals``."""
+
+        def finished() -> bool:
+            return self.stop.is_set() and not any(thread.is_alive() for thread in threads)
+
+        while not finished():
             # Each on its own: a full Redis refuses the beat (a write that grows a hash)
             # but not the touches, which keep in-flight jobs from being reclaimed.
             self._heartbeat_step("touch in-flight jobs", self._touch_in_flight)
             if self._devices is not None:
                 self._heartbeat_step("renew device leases", self._devices.renew_all)
             self._heartbeat_step("beat", self._beat)
-            if not self.stop.wait(self.config.heartbeat_s):
-                continue
-            deadline = time.monotonic() + self.config.heartbeat_s
-            for thread in threads:
-                thread.join(max(0.0, deadline - time.monotonic()))
+            stopped = self.stop.is_set()
+            self._pause(
+                self.config.heartbeat_s, signals, finished if stopped else self.stop.is_set
+            )
 
     def _purge_loop(self) -> None:
         """Purge expired results now and every :data:`PURGE_EVERY_S` until the worker
