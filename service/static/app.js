@@ -292,16 +292,16 @@ function clearJob() {
   $("routing").textContent = "";
 }
 
-// The job's record; one not whole within POLL_TIMEOUT_MS is an unreachable server's
-// error (retried), one asked for until signal aborted an AbortError. (A timer, not
-// AbortSignal.any, which Firefox 115 ESR lacks.)
-async function fetchJob(id, signal) {
+// The reply of GET path as read (its json or blob); one not whole within POLL_TIMEOUT_MS
+// is an unreachable server's error (retried), one asked for until signal aborted an
+// AbortError. (A timer, not AbortSignal.any, which Firefox 115 ESR lacks.)
+async function readInTime(path, signal, read) {
   const asked = new AbortController();
   const abort = () => asked.abort();
   signal.addEventListener("abort", abort, { once: true });
   const timer = setTimeout(abort, POLL_TIMEOUT_MS);
   try {
-    return await (await api(`/v1/jobs/${id}`, { signal: asked.signal })).json();
+    return await read(await api(path, { signal: asked.signal }));
   } catch (error) {
     throw asked.signal.aborted && !signal.aborted ? unreachable() : error;
   } finally {
@@ -309,6 +309,9 @@ async function fetchJob(id, signal) {
     signal.removeEventListener("abort", abort);
   }
 }
+
+// The job's record (see readInTime).
+const fetchJob = (id, signal) => readInTime(`/v1/jobs/${id}`, signal, (reply) => reply.json());
 
 // Poll the job until it finished, at growing intervals. A failed poll (server down, 503,
 // 429) keeps the job on screen and is retried (after Retry-After if given); a 404 or 410

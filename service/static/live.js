@@ -2,8 +2,10 @@
 // once a second (EventSource cannot send the API key header, so the page polls). The frame
 // is fetched only when a newer one came or the exposure changed. A failed poll is retried
 // after a growing wait (Retry-After on a 429 or 503); a device the server no longer knows
-// ends the watch. Uses api, sleep, retryDelayMs, retryNote, isGone, isFinal and setImage
-// from app.js.
+// ends the watch. A poll not answered within POLL_TIMEOUT_MS (a connection that died
+// without closing) is retried as a lost connection: it was waited for without end, and
+// the view stood still however the device came back. Uses readInTime, sleep,
+// retryDelayMs, retryNote, isGone, isFinal and setImage from app.js.
 "use strict";
 
 const LIVE_POLL_MS = 1000;
@@ -62,7 +64,7 @@ function describeHealth(health) {
 // The device's health; an error marked deviceGone if the server no longer knows it.
 async function deviceHealth(path, signal) {
   try {
-    return await (await api(path, { signal })).json();
+    return await readInTime(path, signal, (reply) => reply.json());
   } catch (error) {
     error.deviceGone = isGone(error);
     throw error;
@@ -78,8 +80,8 @@ async function pollDevice(id, shown, signal) {
   const ev = document.getElementById("exposure").value;
   const wanted = `${health.latest_result} at ${ev} EV`;
   if (!health.latest_result || wanted === shown) return shown;
-  const reply = await api(`${path}/frames/latest?format=png&exposure=${ev}`, { signal });
-  const blob = await reply.blob();
+  const frame = `${path}/frames/latest?format=png&exposure=${ev}`;
+  const blob = await readInTime(frame, signal, (reply) => reply.blob());
   signal.throwIfAborted();
   setImage("live-frame", blob);
   return wanted;

@@ -6,9 +6,10 @@ a 429 is waited out as Retry-After says; a stuck job is polled gently and can be
 cancelled; a job gone from the server is given up with a clear message; the result panels
 show a job's results only once it succeeded, never beside another job's, and previews
 asked for again are said to be; a decoder list that failed says how to list them again. The
-live device view waits out a 429 too, stops watching a device the server forgot, never shows
-one device's frame or health beside another's, and says why a device sends nothing (no
-health report yet, a port that does not open, a silent daemon).
+live device view waits out a 429 too, asks again for a poll left unanswered, stops watching
+a device the server forgot, never shows one device's frame or health beside another's, and
+says why a device sends nothing (no health report yet, a port that does not open, a silent
+daemon).
 """
 
 from __future__ import annotations
@@ -394,14 +395,9 @@ def test_a_rate_limited_poll_waits_as_retry_after_says(
         assert page.is_enabled("#cancel")
 
 
-def test_a_poll_left_unanswered_is_given_up_and_asked_again(
-    browser: Browser, api: str, frame: Path
-) -> None:
-    """A poll whose answer never came (a connection that died without closing, as on a
-    network that changed) was waited for without end: the status read "queued" however
-    long, and no poll went out again."""
-    page = open_viewer(browser, api, fake_clock=True)
-    job_id = submit(page, frame)  # no worker: the job stays queued
+def hold_first(page: Page, url: str) -> list[Route]:
+    """Leave the page's first request to ``url`` (a glob) unanswered, as on a connection
+    that died without closing; the held request is appended to the list returned."""
     held: list[Route] = []
 
     def hold_once(route: Route) -> None:
@@ -410,12 +406,29 @@ def test_a_poll_left_unanswered_is_given_up_and_asked_again(
         else:
             held.append(route)  # never answered
 
-    page.route(f"**/v1/jobs/{job_id}", hold_once)
-    page.clock.run_for(1_000)
+    page.route(url, hold_once)
+    return held
+
+
+def wait_for_held(page: Page, held: list[Route]) -> None:
+    """Wait until :func:`hold_first` holds a request."""
     deadline = time.monotonic() + 30
     while not held:
-        assert time.monotonic() < deadline, "the page did not poll again"
+        assert time.monotonic() < deadline, "the page did not make the request"
         page.wait_for_timeout(POLL_MS)
+
+
+def test_a_poll_left_unanswered_is_given_up_and_asked_again(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """A poll whose answer never came (a connection that died without closing, as on a
+    network that changed) was waited for without end: the status read "queued" however
+    long, and no poll went out again."""
+    page = open_viewer(browser, api, fake_clock=True)
+    job_id = submit(page, frame)  # no worker: the job stays queued
+    held = hold_first(page, f"**/v1/jobs/{job_id}")
+    page.clock.run_for(1_000)
+    wait_for_held(page, held)
     # Past the poll's 20 s time-out but not its first retry (1 s later): run further,
     # the retry's answer could replace the status before it was read.
     page.clock.run_for(20_500)
@@ -509,6 +522,28 @@ def test_the_live_view_stops_watching_a_forgotten_device(
     stopped = len(polls)
     page.wait_for_timeout(2_500)
     assert len(polls) == stopped, "the live view kept polling a device the server forgot"
+
+
+def test_a_live_poll_left_unanswered_is_given_up_and_asked_again(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """A device poll whose answer never came (a connection that died without closing) was
+    waited for without end: the live view stood still, however the device came back."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api, fake_clock=True)
+    held = hold_first(page, "**/v1/devices/cam1")
+    watch_device(page, "cam1")
+    wait_for_held(page, held)
+    page.clock.run_for(20_500)  # past the poll's 20 s time-out, not its 1 s retry
+    status = wait_for_js(
+        page,
+        "(() => { const status = document.getElementById('live-status').textContent;"
+        " return status.includes('connection to the server lost') ? status : null; })()",
+    )
+    assert status.startswith("device cam1: ") and "retrying in" in status, status
+    page.clock.run_for(2_000)
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
 
 
 def test_a_key_that_cannot_read_jobs_ends_the_wait_with_the_reason(
