@@ -44,6 +44,11 @@ function apiKey() {
   return localStorage.getItem(KEY_STORAGE) || "";
 }
 
+// Where on the page a missing or refused key is mended (the API's 401 names its header
+// and files only).
+const ENTER_KEY = "enter the key mcam serve printed on first start (also in its data " +
+  "folder's api_keys) under API key at the top and press Save key";
+
 async function replyError(reply) {
   let message = `${reply.status} ${reply.statusText}`;
   let code = null;
@@ -54,6 +59,7 @@ async function replyError(reply) {
     code = body.code;
     parameters = body.parameters || [];
   } catch (_) { /* not JSON: keep the status line */ }
+  if (reply.status === 401) message += `; ${ENTER_KEY}`;
   const retryAfterS = Number(reply.headers.get("Retry-After")) || null;
   return new ApiError(message, reply.status, retryAfterS, code, parameters);
 }
@@ -67,6 +73,7 @@ const unreachable = () =>
   new ApiError("cannot reach the server; check that mcam serve is running");
 
 async function api(path, options = {}) {
+  if (!apiKey()) throw new ApiError(`no API key saved: ${ENTER_KEY}`, 401);
   if (!KEY_PATTERN.test(apiKey())) {
     throw new Error("the saved API key holds characters a key never has (a space, a " +
       "typographic dash?); paste it again as mcam serve printed it and save it");
@@ -133,8 +140,9 @@ async function loadDecoders() {
       select.add(option);
     }
   } catch (error) {
-    setStatus(`cannot list decoders: ${error.message}; then press Save key to list them ` +
-      "again (Reconstruct meanwhile uses the server's default decoder or the quality)", "error");
+    const again = error.status === 401 ? "" : "; then press Save key to list them again " +
+      "(Reconstruct meanwhile uses the server's default decoder or the quality)";
+    setStatus(`cannot list decoders: ${error.message}${again}`, "error");
   }
 }
 

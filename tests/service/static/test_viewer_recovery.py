@@ -1,15 +1,15 @@
 """The web viewer when things go wrong, in headless Debian chromium (Playwright, no download).
 
 Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
-a server restart, and a job's address opened without a key is followed once it is saved;
-a 429 is waited out as Retry-After says; a stuck job is polled gently and can be
-cancelled; a job gone from the server is given up with a clear message; the result panels
-show a job's results only once it succeeded, never beside another job's, and previews
-asked for again are said to be; a decoder list that failed says how to list them again. The
-live device view waits out a 429 too, asks again for a poll left unanswered, stops watching
-a device the server forgot, never shows one device's frame or health beside another's, and
-says why a device sends nothing (no health report yet, a port that does not open, a silent
-daemon).
+a server restart, and a job's address opened without a key is followed once it is saved; a
+missing or unknown key says where on the page the key goes; a 429 is waited out as
+Retry-After says; a stuck job is polled gently and can be cancelled; a job gone from the
+server is given up with a clear message; the result panels show a job's results only once it
+succeeded, never beside another job's, and previews asked for again are said to be; a
+decoder list that failed says how to list them again. The live device view waits out a 429
+too, asks again for a poll left unanswered, stops watching a device the server forgot, never
+shows one device's frame or health beside another's, and says why a device sends nothing (no
+health report yet, a port that does not open, a silent daemon).
 """
 
 from __future__ import annotations
@@ -559,6 +559,35 @@ def test_a_key_that_cannot_read_jobs_ends_the_wait_with_the_reason(
     assert status.startswith(f"job {job_id}: ") and "read" in status, status
     assert page.get_attribute("#status", "class") == "error"
     assert page.is_disabled("#cancel")
+
+
+def test_a_missing_or_unknown_key_says_where_to_enter_it(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """Reconstruct pressed with no key saved, or with a key the server does not know, told
+    the API's 401 only: how to send an HTTP header ("send the header 'Authorization:
+    Bearer <key>'") or to look in the data dir, never where on the page the key goes."""
+    page = browser.new_page()
+    page.goto(f"{api}/")
+    uploads = api_requests(page, "/v1/reconstructions")
+    page.set_input_files("#file", str(frame))
+    page.click("#run")
+    status = wait_for_status(page, "no API key saved")
+    assert "under API key at the top and press Save key" in status, status
+    assert page.get_attribute("#status", "class") == "error"
+    assert uploads == []
+    page.fill("#api-key", "not-a-key")
+    page.click("#key-form button")
+    status = wait_for_status(page, "cannot list decoders")
+    assert "unknown API key" in status and status.endswith("press Save key"), status
+    wait_for_js(page, "!document.getElementById('run').disabled")
+    page.click("#run")
+    status = wait_for_js(
+        page,
+        "(() => { const status = document.getElementById('status').textContent;"
+        " return status.startsWith('unauthorized: unknown API key') ? status : null; })()",
+    )
+    assert status.endswith("under API key at the top and press Save key"), status
 
 
 def test_a_key_with_a_character_no_key_has_is_not_saved(browser: Browser, api: str) -> None:
