@@ -532,6 +532,14 @@ function followAddressJob() {
   if (named && watched?.id !== named[1] && shownJob !== named[1]) follow(async () => named[1]);
 }
 
+// An address naming another job, entered or opened while the page is open (only its
+// #job= changed, so the page was not loaded again: it went on showing the job it had
+// under the other's address): the page is loaded afresh, which follows that job.
+function onAddressChange() {
+  const named = JOB_HASH.exec(location.hash);
+  if (named && watched?.id !== named[1] && shownJob !== named[1]) location.reload();
+}
+
 // Submit file (an HDR image simulated first, as Upload says); resolves to the job's id.
 // The decoder is read at once: one chosen while the simulate runs is for the next run.
 async function submitFile(file) {
@@ -625,6 +633,7 @@ $("api-key").value = apiKey();
 // Back to the page, the browser restores the slider where it was, once the page loaded:
 // the caption named the HTML's 0 EV beside previews made at the restored exposure.
 window.addEventListener("pageshow", showExposure);
+window.addEventListener("hashchange", onAddressChange);
 $("key-form").addEventListener("submit", (event) => {
   event.preventDefault();
   const key = $("api-key").value.trim();

@@ -1,15 +1,16 @@
 """The web viewer when things go wrong, in headless Debian chromium (Playwright, no download).
 
 Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
-a server restart, and a job's address opened without a key is followed once it is saved; a
-missing or unknown key says where on the page the key goes; a 429 is waited out as
-Retry-After says; a stuck job is polled gently and can be cancelled; a job gone from the
-server is given up with a clear message; the result panels show a job's results only once it
-succeeded, never beside another job's, and previews asked for again are said to be; a
-decoder list that failed says how to list them again. The live device view waits out a 429
-too, asks again for a poll left unanswered, stops watching a device the server forgot, never
-shows one device's frame or health beside another's, and says why a device sends nothing (no
-health report yet, a port that does not open, a silent daemon).
+a server restart, and a job's address opened without a key is followed once it is saved, and
+another job's address entered on the page is followed; a missing or unknown key says where
+on the page the key goes; a 429 is waited out as Retry-After says; a stuck job is polled
+gently and can be cancelled; a job gone from the server is given up with a clear message;
+the result panels show a job's results only once it succeeded, never beside another job's,
+and previews asked for again are said to be; a decoder list that failed says how to list
+them again. The live device view waits out a 429 too, asks again for a poll left unanswered,
+stops watching a device the server forgot, never shows one device's frame or health beside
+another's, and says why a device sends nothing (no health report yet, a port that does not
+open, a silent daemon).
 """
 
 from __future__ import annotations
@@ -175,6 +176,25 @@ def test_the_job_in_the_address_is_followed_once_the_key_is_saved(
         assert wait_for_status(page, "succeeded") == f"job {job_id}: succeeded"
         wait_for_panels(page)
     assert page.url.endswith(f"#job={job_id}")
+
+
+def test_another_job_s_address_entered_on_the_page_is_followed(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """An address naming another job entered while the page was open changes only its
+    ``#job=``: the page was not loaded again and went on showing the first job under the
+    second's address."""
+    page = open_viewer(browser, api)
+    first = submit(page, frame)  # no worker: both jobs wait in the queue
+    wait_for_status(page, f"job {first}: queued")
+    queued = httpx.post(f"{api}/v1/reconstructions", files={"file": frame.read_bytes()},
+                        headers={"Authorization": f"Bearer {FULL_KEY}"}, timeout=60)
+    second = queued.json()["id"]
+    with page.expect_event("load"):  # the page is loaded afresh
+        page.evaluate("(id) => { setTimeout(() => { location.hash = `job=${id}`; }); }", second)
+    assert wait_for_status(page, second) == f"job {second}: queued"
+    assert page.url.endswith(f"#job={second}")
+    assert page.is_disabled("#run") and page.is_enabled("#cancel")
 
 
 def documented_polls(span_ms: float) -> int:
