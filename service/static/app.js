@@ -524,20 +524,36 @@ async function follow(start) {
   }
 }
 
+// The job id the page's address names (null: none).
+const addressJob = () => JOB_HASH.exec(location.hash)?.[1] ?? null;
+
+// The address's job unless it is watched or shown already (null: none such).
+function unfollowedAddressJob() {
+  const id = addressJob();
+  return id && watched?.id !== id && shownJob !== id ? id : null;
+}
+
 // Follow the job the page's address names, unless it is watched or shown already: at
 // load, and once a key is saved (opened without one, the page asked for the key and
 // saving it never followed the job).
 function followAddressJob() {
-  const named = JOB_HASH.exec(location.hash);
-  if (named && watched?.id !== named[1] && shownJob !== named[1]) follow(async () => named[1]);
+  const id = unfollowedAddressJob();
+  if (id) follow(async () => id);
 }
 
 // An address naming another job, entered or opened while the page is open (only its
 // #job= changed, so the page was not loaded again: it went on showing the job it had
 // under the other's address): the page is loaded afresh, which follows that job.
 function onAddressChange() {
-  const named = JOB_HASH.exec(location.hash);
-  if (named && watched?.id !== named[1] && shownJob !== named[1]) location.reload();
+  if (unfollowedAddressJob()) location.reload();
+}
+
+// Say so if the address's #job= holds no job id (cut short or changed when copied): the
+// page read "No job yet." as if it named none.
+function refuseAddressWithoutJob() {
+  if (!location.hash.startsWith("#job=") || addressJob()) return;
+  setStatus(`the page's address names no job: “${location.hash.slice(5)}” is not a job ` +
+    "id (32 characters 0-9 and a-f); copy the job's whole address again", "error");
 }
 
 // Submit file (an HDR image simulated first, as Upload says); resolves to the job's id.
@@ -654,7 +670,8 @@ if (apiKey()) {
   loadDecoders();
   followAddressJob();
 } else {
-  const named = JOB_HASH.exec(location.hash);
+  const named = addressJob();
   setStatus("Enter the API key (printed by mcam serve on first start) and save it" +
-    (named ? `: then job ${named[1]} is followed.` : "."));
+    (named ? `: then job ${named} is followed.` : "."));
 }
+refuseAddressWithoutJob();

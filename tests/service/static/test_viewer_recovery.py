@@ -2,15 +2,15 @@
 
 Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A job outlives
 a server restart, and a job's address opened without a key is followed once it is saved, and
-another job's address entered on the page is followed; a missing or unknown key says where
-on the page the key goes; a 429 is waited out as Retry-After says; a stuck job is polled
-gently and can be cancelled; a job gone from the server is given up with a clear message;
-the result panels show a job's results only once it succeeded, never beside another job's,
-and previews asked for again are said to be; a decoder list that failed says how to list
-them again. The live device view waits out a 429 too, asks again for a poll left unanswered,
-stops watching a device the server forgot, never shows one device's frame or health beside
-another's, and says why a device sends nothing (no health report yet, a port that does not
-open, a silent daemon).
+another job's address entered on the page is followed, and one cut short says so; a missing
+or unknown key says where on the page the key goes; a 429 is waited out as Retry-After says;
+a stuck job is polled gently and can be cancelled; a job gone from the server is given up
+with a clear message; the result panels show a job's results only once it succeeded, never
+beside another job's, and previews asked for again are said to be; a decoder list that
+failed says how to list them again. The live device view waits out a 429 too, asks again for
+a poll left unanswered, stops watching a device the server forgot, never shows one device's
+frame or health beside another's, and says why a device sends nothing (no health report yet,
+a port that does not open, a silent daemon).
 """
 
 from __future__ import annotations
@@ -195,6 +195,17 @@ def test_another_job_s_address_entered_on_the_page_is_followed(
     assert wait_for_status(page, second) == f"job {second}: queued"
     assert page.url.endswith(f"#job={second}")
     assert page.is_disabled("#run") and page.is_enabled("#cancel")
+
+
+def test_an_address_whose_job_id_was_cut_short_says_so(browser: Browser, api: str) -> None:
+    """A job's address cut short when copied named no job the page could follow, and the
+    page read "No job yet." as if the address named none."""
+    page = open_viewer(browser, api)
+    page.goto("about:blank")
+    page.goto(f"{api}/#job=0123456789abcdef")
+    status = wait_for_status(page, "names no job")
+    assert "0123456789abcdef" in status and "copy the job's whole address again" in status
+    assert page.get_attribute("#status", "class") == "error"
 
 
 def documented_polls(span_ms: float) -> int:
