@@ -1,12 +1,12 @@
-"""What the viewer tells the API about its inputs and what it shows of the API's answer,
-in headless Debian chromium (Playwright, no browser download), against real uvicorn,
-Redis and a worker: a scene with negative values (lossy EXR) is simulated once the page
-asks for them clipped, a frame read as another format than its name says is noted, and
-a job not yet decoded shows no decode facts, a file of the other kind is told which choice
-takes it, the file chooser offers every file the API reads, an exposure the browser
-restored is the one the caption names, a tall thin frame's panels fit the window, a job
-runs with the decoder chosen when Reconstruct was pressed, and a frame without its
-parameters is told where they go on the page.
+"""What the viewer tells the API about its inputs and what it shows of the API's answer, in
+headless Debian chromium (Playwright, no browser download), against real uvicorn, Redis and
+a worker: a scene with negative values (lossy EXR) is simulated once the page asks for them
+clipped, a frame read as another format than its name says is noted, and a job not yet
+decoded shows no decode facts, a file of the other kind is told which choice takes it, the
+file chooser offers every file the API reads, the histogram is named to assistive
+technology, an exposure the browser restored is the one the caption names, a tall thin
+frame's panels fit the window, a job runs with the decoder chosen when Reconstruct was
+pressed, and a frame without its parameters is told where they go on the page.
 """
 
 from __future__ import annotations
@@ -145,6 +145,15 @@ def test_the_file_chooser_offers_every_file_the_api_reads(browser: Browser, api:
     assert accept is not None
     read = [*FRAME_ALIASES, "exr", "hdr", "pic"]  # frames, and HDR images by first bytes
     assert set(accept.split(",")) == {f".{suffix}" for suffix in read}
+
+
+def test_the_histogram_is_named_to_assistive_technology(browser: Browser, api: str) -> None:
+    """The histogram canvas carried an aria-label but no role: a canvas has none of its
+    own, so the label was dropped and a screen reader passed over the histogram."""
+    page = open_viewer(browser, api)
+    histogram = page.get_by_role("img", name="log-luminance histogram")
+    assert histogram.count() == 1
+    assert histogram.get_attribute("id") == "histogram"
 
 
 def test_an_exposure_the_browser_restored_is_the_one_the_caption_names(
