@@ -630,7 +630,9 @@ function onExposure() {
 }
 
 // Save the shown job's EXR as <job id>.exr (the id taken at the click: a Run pressed
-// while it downloads clears shownJob, and the file was saved as null.exr).
+// while it downloads clears shownJob, and the file was saved as null.exr). One that
+// failed says it was the download (the bare "cannot reach the server" read as the job's
+// failure).
 async function download() {
   const job = shownJob;
   try {
@@ -641,7 +643,9 @@ async function download() {
     link.click();
     URL.revokeObjectURL(link.href);
   } catch (error) {
-    setStatus(error.message, "error");
+    const again = isGone(error) ? "Reconstruct to run it again" : "Download EXR to try again";
+    setStatus(`cannot download the EXR of job ${job}: ${error.message}; press ${again}`,
+      "error");
   }
 }
 

@@ -754,6 +754,30 @@ def test_a_download_is_named_after_its_job_when_a_run_starts_meanwhile(
     assert download.value.suggested_filename == f"{job_id}.exr"
 
 
+def test_a_download_that_failed_says_it_was_the_download(
+    browser: Browser, api: str, worker: Worker, frame: Path
+) -> None:
+    """A download that could not reach the server replaced "succeeded" with the bare
+    "cannot reach the server", which read as if the job had failed; one whose result is
+    gone says to run the job again."""
+    page = open_viewer(browser, api)
+    job_id = submit(page, frame)
+    wait_for_panels(page)
+    page.route("**/result?part=image&format=exr", lambda route: route.abort())
+    page.click("#download")
+    status = wait_for_status(page, "cannot download")
+    assert status.startswith(f"cannot download the EXR of job {job_id}: cannot reach"), status
+    assert status.endswith("press Download EXR to try again"), status
+    assert page.get_attribute("#status", "class") == "error"
+    exr = "**/result?part=image&format=exr"
+    page.unroute(exr)
+    gone = {"code": "gone", "message": "the result has expired"}
+    page.route(exr, lambda route: route.fulfill(status=410, json=gone))
+    page.click("#download")
+    status = wait_for_status(page, "expired")
+    assert status.endswith("press Reconstruct to run it again"), status
+
+
 def test_a_device_whose_daemon_went_silent_says_what_to_check(
     browser: Browser, api: str, settings: Settings
 ) -> None:
