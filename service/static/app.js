@@ -630,13 +630,15 @@ function onExposure() {
 }
 
 // Save the shown job's EXR as <job id>.exr (the id taken at the click: a Run pressed
-// while it downloads clears shownJob, and the file was saved as null.exr). One that
-// failed says it was the download (the bare "cannot reach the server" read as the job's
-// failure).
+// while it downloads clears shownJob, and the file was saved as null.exr). While the
+// server is too busy to give it, the status says it is asked for again (resultsBusy: a
+// click did nothing to be seen for up to four Retry-Afters). One that failed says it was
+// the download (the bare "cannot reach the server" read as the job's failure).
 async function download() {
   const job = shownJob;
   try {
-    const blob = await resultBlob(job, "part=image&format=exr");
+    const blob = await resultBlob(job, "part=image&format=exr", null, resultsBusy(job));
+    resultCame(job);
     const link = document.createElement("a");
     link.href = URL.createObjectURL(blob);
     link.download = `${job}.exr`;

@@ -778,6 +778,25 @@ def test_a_download_that_failed_says_it_was_the_download(
     assert status.endswith("press Reconstruct to run it again"), status
 
 
+def test_a_download_the_server_is_too_busy_to_give_is_said_to_be_asked_again(
+    browser: Browser, api: str, worker: Worker, frame: Path
+) -> None:
+    """A download refused 429 was asked for again after each Retry-After without a word:
+    the click did nothing to be seen for minutes."""
+    page = open_viewer(browser, api)
+    job_id = submit(page, frame)
+    wait_for_panels(page)
+    limited = {"code": "rate_limited", "message": "too many requests"}
+    page.route(
+        "**/result?part=image&format=exr",
+        lambda route: route.fulfill(status=429, json=limited, headers={"Retry-After": "30"}),
+    )
+    page.click("#download")
+    status = wait_for_status(page, "rate_limited")
+    assert status.startswith(f"job {job_id}: succeeded; its results: "), status
+    assert status.endswith("retrying in 30 s"), status
+
+
 def test_a_device_whose_daemon_went_silent_says_what_to_check(
     browser: Browser, api: str, settings: Settings
 ) -> None:
