@@ -114,10 +114,27 @@ async function watchDevice(id, signal) {
   }
 }
 
-document.getElementById("live-refresh").addEventListener("click", listDevices);
-document.getElementById("live-device").addEventListener("change", (event) => {
+// Watch device id (none: ""), in place of the one watched. liveWatch is null again once
+// the watch ended by itself.
+function startLiveWatch(id) {
   stopLiveWatch();
-  if (!event.target.value) return;
-  liveWatch = new AbortController();
-  watchDevice(event.target.value, liveWatch.signal);
-});
+  if (!id) return;
+  const watch = new AbortController();
+  liveWatch = watch;
+  watchDevice(id, watch.signal).finally(() => {
+    if (liveWatch === watch) liveWatch = null;
+  });
+}
+
+// Once a key is saved, watch the chosen device again if its watch ended (a key refused
+// 401 or 403 stopped it, and saving the right key, as the status said to, left it
+// stopped: choosing the same device again is no change of the choice).
+function resumeLiveWatch() {
+  const chosen = document.getElementById("live-device").value;
+  if (chosen && !liveWatch) startLiveWatch(chosen);
+}
+
+document.getElementById("live-refresh").addEventListener("click", listDevices);
+document.getElementById("live-device").addEventListener(
+  "change", (event) => startLiveWatch(event.target.value));
+document.getElementById("key-form").addEventListener("submit", resumeLiveWatch);

@@ -8,9 +8,10 @@ a stuck job is polled gently and can be cancelled; a job gone from the server is
 with a clear message; the result panels show a job's results only once it succeeded, never
 beside another job's, and previews asked for again are said to be; a decoder list that
 failed says how to list them again. The live device view waits out a 429 too, asks again for
-a poll left unanswered, stops watching a device the server forgot, never shows one device's
-frame or health beside another's, and says why a device sends nothing (no health report yet,
-a port that does not open, a silent daemon).
+a poll left unanswered, resumes once a key is saved after a refused one, stops watching a
+device the server forgot, never shows one device's frame or health beside another's, and
+says why a device sends nothing (no health report yet, a port that does not open, a silent
+daemon).
 """
 
 from __future__ import annotations
@@ -574,6 +575,25 @@ def test_a_live_poll_left_unanswered_is_given_up_and_asked_again(
     )
     assert status.startswith("device cam1: ") and "retrying in" in status, status
     page.clock.run_for(2_000)
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+
+
+def test_the_live_view_stopped_by_a_refused_key_resumes_once_a_key_is_saved(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """A key refused 401 stopped the watch with "press Save key"; saving the right key
+    left it stopped, and choosing the same device again is no change of the choice."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api)
+    watch_device(page, "cam1")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+    page.evaluate("localStorage.setItem('mcam-api-key', 'not-a-key')")  # as another tab
+    wait_for_js(
+        page, "document.getElementById('live-status').textContent.includes('watch stopped')"
+    )
+    assert "press Save key" in page.inner_text("#live-status")
+    page.click("#key-form button")  # the field still holds the right key
     wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
 
 
