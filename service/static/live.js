@@ -4,8 +4,8 @@
 // after a growing wait (Retry-After on a 429 or 503); a device the server no longer knows
 // ends the watch. A poll not answered within POLL_TIMEOUT_MS (a connection that died
 // without closing) is retried as a lost connection: it was waited for without end, and
-// the view stood still however the device came back. Uses readInTime, sleep,
-// retryDelayMs, retryNote, isGone, isFinal and setImage from app.js.
+// the view stood still however the device came back. Uses api, apiKey, readInTime,
+// sleep, retryDelayMs, retryNote, isGone, isFinal and setImage from app.js.
 "use strict";
 
 const LIVE_POLL_MS = 1000;
@@ -24,6 +24,11 @@ function stopLiveWatch() {
   liveStatus("");
 }
 
+// The device chosen in this tab is kept in sessionStorage: a reload (or a List devices)
+// lost it, and the live view stood empty until the device was chosen again.
+const DEVICE_STORAGE = "mcam-live-device";
+
+// List the devices; the one chosen before, if listed, is chosen and watched again.
 async function listDevices() {
   stopLiveWatch();
   const select = document.getElementById("live-device");
@@ -34,6 +39,12 @@ async function listDevices() {
     liveStatus(`${devices.length} device(s)`);
   } catch (error) {
     liveStatus(`cannot list devices: ${error.message}`);
+    return;
+  }
+  const chosen = sessionStorage.getItem(DEVICE_STORAGE);
+  if (chosen && [...select.options].some((option) => option.value === chosen)) {
+    select.value = chosen;
+    startLiveWatch(chosen);
   }
 }
 
@@ -134,7 +145,15 @@ function resumeLiveWatch() {
   if (chosen && !liveWatch) startLiveWatch(chosen);
 }
 
+// Watch the device chosen, and keep the choice for a reload.
+function onDeviceChosen(event) {
+  const id = event.target.value;
+  if (id) sessionStorage.setItem(DEVICE_STORAGE, id);
+  else sessionStorage.removeItem(DEVICE_STORAGE);
+  startLiveWatch(id);
+}
+
 document.getElementById("live-refresh").addEventListener("click", listDevices);
-document.getElementById("live-device").addEventListener(
-  "change", (event) => startLiveWatch(event.target.value));
+document.getElementById("live-device").addEventListener("change", onDeviceChosen);
 document.getElementById("key-form").addEventListener("submit", resumeLiveWatch);
+if (apiKey() && sessionStorage.getItem(DEVICE_STORAGE)) listDevices();

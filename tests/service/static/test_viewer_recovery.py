@@ -8,10 +8,10 @@ a stuck job is polled gently and can be cancelled; a job gone from the server is
 with a clear message; the result panels show a job's results only once it succeeded, never
 beside another job's, and previews asked for again are said to be; a decoder list that
 failed says how to list them again. The live device view waits out a 429 too, asks again for
-a poll left unanswered, resumes once a key is saved after a refused one, stops watching a
-device the server forgot, never shows one device's frame or health beside another's, and
-says why a device sends nothing (no health report yet, a port that does not open, a silent
-daemon).
+a poll left unanswered, resumes once a key is saved after a refused one, watches the device
+again after a reload, stops watching a device the server forgot, never shows one device's
+frame or health beside another's, and says why a device sends nothing (no health report yet,
+a port that does not open, a silent daemon).
 """
 
 from __future__ import annotations
@@ -595,6 +595,24 @@ def test_the_live_view_stopped_by_a_refused_key_resumes_once_a_key_is_saved(
     assert "press Save key" in page.inner_text("#live-status")
     page.click("#key-form button")  # the field still holds the right key
     wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+
+
+def test_the_watched_device_is_watched_again_after_a_reload(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """A reload forgot the device watched: the live view stood empty until the devices
+    were listed and the device chosen again."""
+    assert settings.redis_url is not None
+    for device in ("cam1", "cam2"):
+        register_device(settings.redis_url, device)
+    page = open_viewer(browser, api)
+    watch_device(page, "cam2")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+    page.reload()
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
+    assert page.input_value("#live-device") == "cam2"
+    page.select_option("#live-device", "")  # none chosen: none to watch after a reload
+    assert page.evaluate("sessionStorage.getItem('mcam-live-device')") is None
 
 
 def test_a_key_that_cannot_read_jobs_ends_the_wait_with_the_reason(
