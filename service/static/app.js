@@ -149,13 +149,20 @@ async function loadDecoders() {
 // The frame's parameters the page sends (under Sensor), by their form field names.
 const SENSOR_PARAMETERS = ["encoding", "alpha", "bits"];
 
+// The field id's value as sent: a number in plain digits ("1e1", which the browser takes
+// as the number 10, was refused by the API as no integer for bits), else as given.
+function fieldValue(id) {
+  const input = $(id);
+  return input.type === "number" ? String(input.valueAsNumber) : input.value;
+}
+
 // The sensor fields of the form; simulating: the simulate's own too (exposure, clipping).
 function sensorFields(form, simulating) {
   for (const name of SENSOR_PARAMETERS) {
-    if ($(name).value) form.append(name, $(name).value);
+    if ($(name).value) form.append(name, fieldValue(name));
   }
   if (!simulating) return;
-  if ($("overexposed").value) form.append("overexposed", $("overexposed").value);
+  if ($("overexposed").value) form.append("overexposed", fieldValue("overexposed"));
   if ($("clip-negative").checked) form.append("clip_negative", "true");
 }
 

@@ -6,7 +6,8 @@ decoded shows no decode facts, a file of the other kind is told which choice tak
 file chooser offers every file the API reads, the histogram is named to assistive
 technology, an exposure the browser restored is the one the caption names, a tall thin
 frame's panels fit the window, a job runs with the decoder chosen when Reconstruct was
-pressed, and a frame without its parameters is told where they go on the page.
+pressed, a number typed in exponent notation is sent as the number it is, and a frame
+without its parameters is told where they go on the page.
 """
 
 from __future__ import annotations
@@ -232,6 +233,22 @@ def test_a_frame_without_its_parameters_is_told_where_to_give_them_on_the_page(
         "; on this page, fill in encoding, alpha and bits under Sensor and press Reconstruct"
         " again"
     ), refused
+
+
+def test_a_number_in_exponent_notation_is_sent_as_the_number_it_is(
+    browser: Browser, api: str, worker: Worker, tmp_path: Path
+) -> None:
+    """The browser takes bits "8e0" as the number 8, but the page sent the text as typed
+    and the API refused it: "bits: Input should be a valid integer"."""
+    frame = tmp_path / "frame.npy"
+    frame.write_bytes(npy_bytes(np.zeros((8, 8), dtype=np.uint8)))
+    page = open_viewer(browser, api)
+    page.set_input_files("#file", str(frame))
+    page.select_option("#encoding", "modulo")
+    page.fill("#bits", "8e0")
+    page.fill("#alpha", "2e0")
+    status = run_and_wait(page)
+    assert status.endswith(": succeeded"), status
 
 
 #: The page's hint for a frame refused for the parameters it lacks, after the field names.
