@@ -126,6 +126,15 @@ function setStatus(text, tone = "") {
   resultsBusyShown = false;
 }
 
+// Disable the button id; the keyboard's focus on it goes to the job's status, which says
+// what happens next (a disabled button dropped it to the page's body: Reconstruct or
+// Cancel pressed from the keyboard left a screen reader nowhere).
+function disable(id) {
+  const focused = document.activeElement === $(id);
+  $(id).disabled = true;
+  if (focused) $("status").focus();
+}
+
 // Fill the decoder choice from GET /v1/decoders; a failure says how to list them again
 // (the page asks only at load and on Save key).
 async function loadDecoders() {
@@ -445,7 +454,7 @@ function clearResult() {
   for (const id of ["img-codes", "img-winding", "img-hdr"]) setImage(id, null);
   histogram = null;
   drawHistogram();
-  $("download").disabled = true;
+  disable("download");
 }
 
 // Fetch every panel of the succeeded job, then show them together; none once signal
@@ -509,7 +518,7 @@ function setJobHash(id) {
 // Follow the job whose id start() resolves to (a submit, or the address's job): watch it
 // until it finished, then show its results.
 async function follow(start) {
-  $("run").disabled = true;
+  disable("run");
   clearJob();
   clearResult();
   setJobHash(null);
@@ -526,7 +535,7 @@ async function follow(start) {
     setStatus(error.message, "error");
   } finally {
     watched = null;
-    $("cancel").disabled = true;
+    disable("cancel");
     $("run").disabled = false;
   }
 }
@@ -594,7 +603,7 @@ function resultsUnreachable(id) {
 // stops waiting all the same and says so.
 async function cancel() {
   const { id, stop } = watched;
-  $("cancel").disabled = true;
+  disable("cancel");
   try {
     const job = await (await api(`/v1/jobs/${id}`, { method: "DELETE" })).json();
     stop.abort();

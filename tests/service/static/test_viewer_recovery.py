@@ -470,6 +470,24 @@ def test_a_poll_left_unanswered_is_given_up_and_asked_again(
     assert wait_for_status(page, "queued") == f"job {job_id}: queued"
 
 
+def test_reconstruct_and_cancel_pressed_from_the_keyboard_keep_the_focus(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """Reconstruct and Cancel are disabled once pressed: pressed from the keyboard, they
+    dropped the focus to the page's body, and a screen reader lost its place. It goes to
+    the job's status, which says what happens next."""
+    page = open_viewer(browser, api)
+    page.set_input_files("#file", str(frame))
+    page.focus("#run")
+    page.keyboard.press("Enter")
+    wait_for_status(page, "queued")  # no worker: the job waits in the queue
+    assert page.evaluate("document.activeElement.id") == "status"
+    page.focus("#cancel")
+    page.keyboard.press("Enter")
+    wait_for_status(page, "cancelled")
+    assert page.evaluate("document.activeElement.id") == "status"
+
+
 def test_a_job_gone_from_the_server_is_given_up_with_a_clear_message(
     browser: Browser, api: str, settings: Settings, frame: Path
 ) -> None:
