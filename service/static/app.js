@@ -135,17 +135,21 @@ function disable(id) {
   if (focused) $("status").focus();
 }
 
-// Fill the decoder choice from GET /v1/decoders; a failure says how to list them again
-// (the page asks only at load and on Save key).
+// Fill the decoder choice from GET /v1/decoders, keeping the one chosen if still listed
+// (Save key pressed again put the server's default in its place, unsaid, and the next
+// run used it); a failure says how to list them again (the page asks only at load and on
+// Save key).
 async function loadDecoders() {
   const select = $("decoder");
+  const chosen = select.value;
   select.replaceChildren();
   try {
     const decoders = await (await api("/v1/decoders")).json();
+    const kept = decoders.some((decoder) => decoder.name === chosen);
     for (const decoder of decoders) {
       const option = new Option(`${decoder.name} (${decoder.kind})`, decoder.name);
       option.title = decoder.description;
-      option.selected = decoder.default;
+      option.selected = kept ? decoder.name === chosen : decoder.default;
       select.add(option);
     }
   } catch (error) {

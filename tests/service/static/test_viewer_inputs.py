@@ -6,8 +6,9 @@ decoded shows no decode facts, a file of the other kind is told which choice tak
 file chooser offers every file the API reads, the histogram is named to assistive
 technology, an exposure the browser restored is the one the caption names, a tall thin
 frame's panels fit the window, a job runs with the decoder chosen when Reconstruct was
-pressed, a number typed in exponent notation is sent as the number it is, and a frame
-without its parameters is told where they go on the page.
+pressed, the decoder chosen is kept when the key is saved again, a number typed in exponent
+notation is sent as the number it is, and a frame without its parameters is told where they
+go on the page.
 """
 
 from __future__ import annotations
@@ -249,6 +250,19 @@ def test_a_number_in_exponent_notation_is_sent_as_the_number_it_is(
     page.fill("#alpha", "2e0")
     status = run_and_wait(page)
     assert status.endswith(": succeeded"), status
+
+
+def test_the_decoder_chosen_is_kept_when_the_key_is_saved_again(
+    browser: Browser, api: str
+) -> None:
+    """Save key lists the decoders again, and put the server's default in place of the
+    one chosen, unsaid: the next run used the default."""
+    page = open_viewer(browser, api)
+    page.select_option("#decoder", "herraez")  # not the default
+    page.click("#key-form button")
+    wait_for_status(page, "API key saved")
+    wait_for_js(page, "document.getElementById('decoder').options.length > 1")
+    assert page.input_value("#decoder") == "herraez"
 
 
 #: The page's hint for a frame refused for the parameters it lacks, after the field names.
