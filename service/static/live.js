@@ -137,12 +137,12 @@ function startLiveWatch(id) {
   });
 }
 
-// Once a key is saved, watch the chosen device again if its watch ended (a key refused
-// 401 or 403 stopped it, and saving the right key, as the status said to, left it
-// stopped: choosing the same device again is no change of the choice).
+// Once a key is saved, list the devices again (watching the chosen one again) if they
+// were listed and no watch runs: a key refused 401 or 403 stopped the watch or the list,
+// and saving the right key, as the status said to, left them so (choosing the same
+// device again is no change of the choice).
 function resumeLiveWatch() {
-  const chosen = document.getElementById("live-device").value;
-  if (chosen && !liveWatch) startLiveWatch(chosen);
+  if (document.getElementById("live-device").options.length && !liveWatch) listDevices();
 }
 
 // Watch the device chosen, and keep the choice for a reload.

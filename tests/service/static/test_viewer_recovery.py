@@ -8,10 +8,10 @@ a stuck job is polled gently and can be cancelled; a job gone from the server is
 with a clear message; the result panels show a job's results only once it succeeded, never
 beside another job's, and previews asked for again are said to be; a decoder list that
 failed says how to list them again. The live device view waits out a 429 too, asks again for
-a poll left unanswered, resumes once a key is saved after a refused one, watches the device
-again after a reload, stops watching a device the server forgot, never shows one device's
-frame or health beside another's, and says why a device sends nothing (no health report yet,
-a port that does not open, a silent daemon).
+a poll left unanswered, resumes (and lists the devices again) once a key is saved after a
+refused one, watches the device again after a reload, stops watching a device the server
+forgot, never shows one device's frame or health beside another's, and says why a device
+sends nothing (no health report yet, a port that does not open, a silent daemon).
 """
 
 from __future__ import annotations
@@ -631,6 +631,24 @@ def test_the_watched_device_is_watched_again_after_a_reload(
     assert page.input_value("#live-device") == "cam2"
     page.select_option("#live-device", "")  # none chosen: none to watch after a reload
     assert page.evaluate("sessionStorage.getItem('mcam-live-device')") is None
+
+
+def test_a_device_list_refused_for_the_key_is_listed_once_a_key_is_saved(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """List devices refused 401 said to press Save key; saving the right key left the list
+    empty until List devices was pressed again."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api)
+    page.evaluate("localStorage.setItem('mcam-api-key', 'not-a-key')")  # as another tab
+    page.click("#live-refresh")
+    wait_for_js(
+        page, "document.getElementById('live-status').textContent.includes('unknown API key')"
+    )
+    assert "press Save key" in page.inner_text("#live-status")
+    page.click("#key-form button")  # the field still holds the right key
+    page.wait_for_selector("#live-device option[value=cam1]", state="attached")
 
 
 def test_a_key_that_cannot_read_jobs_ends_the_wait_with_the_reason(
