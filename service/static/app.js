@@ -312,6 +312,15 @@ function showJob(job) {
   setStatus(`job ${job.id}: ${job.state}${error}`, job.state === "failed" ? "error" : "");
 }
 
+// Keep the notes on job id's input for the tab, or take them back after a reload (they
+// are the page's, not the job's: a reload lost "simulate: N negative scene values set
+// to 0" while the job, and its scene so clipped, ran on).
+function keepNotes(id) {
+  const key = `mcam-notes-${id}`;
+  if (inputNotes.length) sessionStorage.setItem(key, JSON.stringify(inputNotes));
+  else inputNotes = JSON.parse(sessionStorage.getItem(key) ?? "[]");
+}
+
 function clearJob() {
   inputNotes = [];
   showNotes();
@@ -529,6 +538,7 @@ async function follow(start) {
   try {
     const id = await start();
     setJobHash(id);
+    keepNotes(id);
     watched = { id, stop: new AbortController() };
     $("cancel").disabled = false;
     const job = await waitForJob(id, watched.stop.signal);

@@ -54,7 +54,8 @@ def test_a_scene_with_negative_values_is_simulated_once_they_are_clipped(
     """The API refuses negative scene values unless ``clip_negative`` is sent, and the
     viewer never sent it: no shipped scene could be simulated from the page. Refused,
     the page names the box to tick; ticked, the scene is simulated and reconstructed,
-    and the page shows how many values were set to 0 (``X-Mcam-Clipped-Negative``)."""
+    and the page shows how many values were set to 0 (``X-Mcam-Clipped-Negative``), after
+    a reload too."""
     clipped = read_hdr(SCENE, clip_negative=True).negatives_clipped
     assert clipped > 0
     page = open_viewer(browser, api)
@@ -67,9 +68,11 @@ def test_a_scene_with_negative_values_is_simulated_once_they_are_clipped(
     page.check("#clip-negative")
     assert "succeeded" in run_and_wait(page)
     assert page.is_enabled("#download")
-    assert page.inner_text("#notes") == (
-        f"simulate: {clipped} negative scene values set to 0 (clip negative values)"
-    )
+    noted = f"simulate: {clipped} negative scene values set to 0 (clip negative values)"
+    assert page.inner_text("#notes") == noted
+    page.reload()  # the note is the page's, not the job's: a reload lost it
+    wait_for_js(page, "!document.getElementById('download').disabled")
+    assert page.inner_text("#notes") == noted
 
 
 def test_a_frame_read_as_another_format_than_its_name_is_noted(
