@@ -287,6 +287,19 @@ class Settings(BaseSettings):
         description="bytes of bracketed reference pairs kept per device; the oldest are removed",
     )  # fmt: skip
 
+    @field_validator("host")
+    @classmethod
+    def _named_host(cls, value: str) -> str:
+        """An empty host (``--host ""``, or ``--host "$HOST"`` with HOST unset) made
+        uvicorn listen on every interface, where an empty ``MCAM_HOST`` means the
+        default, this machine alone: the API was open to the network unasked."""
+        if value.strip():
+            return value
+        raise ValueError(
+            "is empty: give an address to listen on (127.0.0.1: this machine only; "
+            "0.0.0.0 or '::': every interface), or leave it out for 127.0.0.1"
+        )
+
     @field_validator("redis_url")
     @classmethod
     def _usable_redis_url(cls, value: str | None) -> str | None:

@@ -48,6 +48,14 @@ def test_a_bad_flag_is_named_as_the_flag_not_the_environment() -> None:
         settings_with(Settings(), port=99999)
 
 
+@pytest.mark.parametrize("host", ["", "  "])
+def test_an_empty_host_flag_is_refused_not_every_interface(host: str) -> None:
+    """``--host ""`` (``--host "$HOST"``, HOST unset) had uvicorn listen on 0.0.0.0
+    and ::, where an empty MCAM_HOST means 127.0.0.1."""
+    with pytest.raises(InvalidInputError, match=r"^--host .*: .*is empty: .*127\.0\.0\.1"):
+        settings_with(Settings(), host=host)
+
+
 def test_a_good_flag_overrides_and_a_bad_setting_stays_a_settings_error() -> None:
     assert settings_with(Settings(), port=8123, host=None).port == 8123
     with pytest.raises(ValidationError):
