@@ -69,9 +69,16 @@ def check_listen_address(settings: Settings) -> None:
         ) from None
 
 
+def api_url(settings: Settings) -> str:
+    """The API's base URL; an IPv6 address in brackets, as URLs write it (it printed
+    ``http://::1:8000/``, which no client takes)."""
+    host = f"[{settings.host}]" if ":" in settings.host else settings.host
+    return f"http://{host}:{settings.port}/"
+
+
 def announce(settings: Settings, new_key: str | None) -> None:
     """Print where the API listens and, once, a newly generated API key."""
-    print(f"MantissaCam API on http://{settings.host}:{settings.port}/ (docs: /docs)")
+    print(f"MantissaCam API on {api_url(settings)} (docs: /docs)")
     if new_key is not None:
         print(
             f"generated API key (stored in {settings.data_dir / KEY_FILE_NAME}): {new_key}\n"

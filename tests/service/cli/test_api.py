@@ -23,7 +23,7 @@ import redis as redis_module
 from pydantic import ValidationError
 
 from models.errors import InvalidInputError
-from service.cli.api import settings_with
+from service.cli.api import announce, settings_with
 from service.core.config import Settings
 from tests.service.cli.conftest import assert_one_line_error, run_mcam
 from tests.service.conftest import (
@@ -54,6 +54,16 @@ def test_an_empty_host_flag_is_refused_not_every_interface(host: str) -> None:
     and ::, where an empty MCAM_HOST means 127.0.0.1."""
     with pytest.raises(InvalidInputError, match=r"^--host .*: .*is empty: .*127\.0\.0\.1"):
         settings_with(Settings(), host=host)
+
+
+@pytest.mark.parametrize(("host", "url"), [("::1", "http://[::1]:8123/"),
+                                         ("127.0.0.1", "http://127.0.0.1:8123/")])
+def test_the_announced_url_brackets_an_ipv6_host(
+    host: str, url: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--host ::1`` announced ``http://::1:8123/``, a URL no client takes."""
+    announce(Settings(host=host, port=8123), None)
+    assert capsys.readouterr().out == f"MantissaCam API on {url} (docs: /docs)\n"
 
 
 def test_a_good_flag_overrides_and_a_bad_setting_stays_a_settings_error() -> None:
