@@ -13,15 +13,18 @@ a unix socket (no TCP port), persists with an append-only file fsynced before ea
 reply (so an accepted job or frame survives even a killed server), uses at most
 ``maxmemory`` bytes and never evicts (:mod:`worker.redis_memory`), and keeps its
 files (``appendonly.aof``, ``redis.conf``, ``redis.log``) in ``<data_dir>/redis``, a
-folder only its owner may enter (0700: the append-only file holds every job's codes).
+folder only its owner may enter (0700: the append-only file holds every job's codes),
+which one ``EmbeddedRedis`` at a time may serve (it holds ``owner.lock`` locked).
 ``stop()`` shuts it down cleanly.
 """
 
 from __future__ import annotations
 
 import ctypes
+import fcntl
 import hashlib
 import logging
+import os
 import signal
 import subprocess
 import tempfile
@@ -49,6 +52,9 @@ _MAX_SOCKET_PATH = 100
 _PR_SET_PDEATHSIG = 1
 #: How often a ``keep_alive`` server is checked, and retried after a failed restart (s).
 WATCH_INTERVAL_S = 1.0
+#: File in the redis dir that the process running its server holds locked
+#: (``flock``; the kernel lets go of it when that process dies, however).
+OWNER_LOCK = "owner.lock"
 
 log = logging.getLogger(__name__)
 
@@ -213,6 +219,7 @@ class EmbeddedRedis:
         self._lock = threading.Lock()  # no restart once stop() has begun
         self._stopping = threading.Event()
         self._watcher: threading.Thread | None = None
+        self._owner_fd: int | None = None
 
     @property
     def url(self) -> str:
@@ -256,17 +263,43 @@ class EmbeddedRedis:
             return self.url
         private_dir(self.dir)
         self.socket.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-        if self._answers():
-            raise RedisStartError(
-                f"an embedded Redis already serves this data dir ({self.socket}); stop the "
-                "`mcam api` / `mcam serve` using it, or point MCAM_REDIS_URL at it"
-            )
-        self._stopping.clear()
-        self._launch(with_parent=threading.current_thread() is threading.main_thread())
+        self._own_the_dir()
+        try:
+            if self._answers():
+                raise self._already_served()
+            self._stopping.clear()
+            self._launch(with_parent=threading.current_thread() is threading.main_thread())
+        except BaseException:
+            self._release_the_dir()
+            raise
         if self.keep_alive:
             self._watcher = threading.Thread(target=self._watch, name="redis-watch", daemon=True)
             self._watcher.start()
         return self.url
+
+    def _already_served(self) -> RedisStartError:
+        return RedisStartError(
+            f"an embedded Redis already serves this data dir ({self.socket}); stop the "
+            "`mcam api` / `mcam serve` using it, or point MCAM_REDIS_URL at it"
+        )
+
+    def _own_the_dir(self) -> None:
+        """Lock :data:`OWNER_LOCK` for this object until :meth:`stop`, or refuse: a server
+        that answers is not the only sign of another owner. Two started at once, or one
+        started while another's server was down (being restarted by its ``keep_alive``),
+        each found no answer and ran a redis-server on the same append-only file."""
+        fd = os.open(self.dir / OWNER_LOCK, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise self._already_served() from None
+        self._owner_fd = fd
+
+    def _release_the_dir(self) -> None:
+        fd, self._owner_fd = self._owner_fd, None
+        if fd is not None:
+            os.close(fd)
 
     def _launch(self, *, with_parent: bool) -> None:
         """Spawn the server and wait until it answers. ``with_parent``: it gets SIGTERM
@@ -341,6 +374,7 @@ class EmbeddedRedis:
         watcher, self._watcher = self._watcher, None
         if watcher is not None and watcher is not threading.current_thread():
             watcher.join()
+        self._release_the_dir()
 
     def _end_process(self, timeout_s: float) -> None:
         """SIGTERM the server (SIGKILL after ``timeout_s``), reap it, remove its socket.

@@ -141,6 +141,26 @@ def test_a_refused_second_server_leaves_the_running_one_its_socket(tmp_path: Pat
         assert connect(url).ping()
 
 
+def test_a_second_server_is_refused_while_the_first_ones_server_is_down(tmp_path: Path) -> None:
+    """The only sign of another owner was a server that answers: a second `mcam serve`
+    started while the first's server was down (killed, and about to be restarted by its
+    keep-alive), or two started at once, ran two redis-servers on one append-only file."""
+    first = EmbeddedRedis(tmp_path)
+    first.start()
+    assert first.pid is not None
+    os.kill(first.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while first._answers() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    second = EmbeddedRedis(tmp_path)
+    with pytest.raises(RedisStartError, match="already serves"):
+        second.start()
+    assert second.pid is None
+    first.stop()
+    with EmbeddedRedis(tmp_path) as url:  # the first let go of the data dir
+        assert connect(url).ping()
+
+
 def test_server_stops_when_its_parent_is_killed(tmp_path: Path) -> None:
     script = (
         "import sys, time; from pathlib import Path; from worker.embedded_redis import "
