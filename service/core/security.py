@@ -54,21 +54,22 @@ def key_id(secret: str) -> str:
     return hashlib.sha256(secret.encode()).hexdigest()[:16]
 
 
-def parse_api_keys(text: str) -> dict[str, frozenset[str]]:
+def parse_api_keys(text: str, source: str = "MCAM_API_KEYS") -> dict[str, frozenset[str]]:
     """Parse ``KEY[:scope]`` entries separated by commas or new lines into key -> scopes.
-    A malformed entry is named by its position, never by its text (a key is a secret)."""
+    A malformed entry is named by its position in ``source`` (words for where ``text``
+    was read), never by its text (a key is a secret)."""
     keys: dict[str, frozenset[str]] = {}
     entries = [entry.strip() for entry in text.replace("\n", ",").split(",")]
     for number, entry in enumerate((e for e in entries if e), start=1):
         secret, colon, scope = entry.partition(":")
         if not secret or any(ch.isspace() or not ch.isprintable() for ch in secret):
             raise ApiKeyConfigError(
-                f"API key entry {number} is malformed: use KEY[:scope], a key of printable "
-                "characters without spaces"
+                f"API key entry {number} of {source} is malformed: use KEY[:scope], a key of "
+                "printable characters without spaces"
             )
         if colon and scope not in SCOPES:
             raise ApiKeyConfigError(
-                f"API key entry {number} has the scope {scope!r}; use one of: "
+                f"API key entry {number} of {source} has the scope {scope!r}; use one of: "
                 f"{', '.join(SCOPES)} (or no colon at all for both)"
             )
         keys[secret] = keys.get(secret, frozenset()) | frozenset([scope] if scope else SCOPES)
@@ -133,7 +134,7 @@ def read_key_file(path: Path) -> dict[str, frozenset[str]]:
             f"the API key file {path} is not UTF-8 text (byte {exc.start}); write one "
             "KEY[:scope] per line"
         ) from None
-    keys = parse_api_keys(text)
+    keys = parse_api_keys(text, f"the API key file {path}")
     if not keys:
         raise ApiKeyConfigError(
             f"the API key file {path} holds no key: put KEY[:scope] lines in it, or delete "

@@ -90,13 +90,16 @@ def test_a_key_file_with_a_byte_order_mark_works(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("content", "fragment"),
     [(b"Ren\xe9key\n", r"not UTF-8 text \(byte 3\)"), (b"", "holds no key"),
-     (b"\n \n", "holds no key")],
+     (b"\n \n", "holds no key"),
+     (b"ok-key\ntwo words\n", "entry 2 of the API key file .* malformed"),
+     (b"ok-key:admin\n", "entry 1 of the API key file .* scope 'admin'")],
 )
 def test_an_unusable_key_file_is_named_with_what_to_do(
     tmp_path: Path, content: bytes, fragment: str
 ) -> None:
     """A Latin-1 file gave a bare traceback; an empty one (a full disk at creation) 'no
-    API keys configured' without naming the file."""
+    API keys configured' without naming the file; a malformed entry was named like one
+    of MCAM_API_KEYS ('API key entry 2 is malformed'), the file unnamed."""
     (tmp_path / "api_keys").write_bytes(content)
     with pytest.raises(ApiKeyConfigError, match=fragment) as refused:
         KeyRing.from_settings(Settings(_env_file=None, data_dir=tmp_path))
