@@ -19,11 +19,9 @@ from service.api.errors import ApiError
 from service.api.state import ServiceState
 from service.core.config import Settings
 from service.core.security import ApiKey
-from worker.redis_memory import TroubleLog, is_transient
+from worker.redis_memory import is_transient
 
 log = logging.getLogger(__name__)
-#: An outage fails every request's rate-limit check: one warning per 30 s, not one each.
-_TROUBLE = TroubleLog(log)
 
 bearer = HTTPBearer(
     auto_error=False,
@@ -61,7 +59,7 @@ def _check_rate(state: ServiceState, key: ApiKey) -> None:
         raise  # a hung Redis: answer 503 now rather than wait for it again in the route
     except redis.exceptions.RedisError as exc:
         if is_transient(exc):
-            _TROUBLE.warn("rate limit", exc, then="not enforced meanwhile")
+            state.redis_trouble.warn("rate limit", exc, then="not enforced meanwhile")
         else:
             log.warning("rate limit not enforced: Redis refused it (%s)", exc)
         return

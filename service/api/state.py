@@ -19,6 +19,7 @@ from service.core.config import Settings
 from service.core.security import KeyRing, RateLimiter
 from worker.embedded_redis import EmbeddedRedis, connect, durability_problem, redacted_url
 from worker.queue import JobQueue
+from worker.redis_memory import TroubleLog
 from worker.result_store import RESULTS_DIR, ResultStore
 
 log = logging.getLogger(__name__)
@@ -84,6 +85,11 @@ class ServiceState:
     #: Set when the server begins to stop (:class:`service.cli.api.StoppingServer`):
     #: requests waiting for their jobs answer at once.
     stopping: threading.Event = field(default_factory=threading.Event)
+    #: Redis trouble met by requests (the rate limit): one warning per 30 s per app,
+    #: not one per request (a module-wide one held back another app's first warning).
+    redis_trouble: TroubleLog = field(
+        default_factory=lambda: TroubleLog(logging.getLogger("service.api.deps"))
+    )
     _queue: JobQueue | None = field(default=None, repr=False)
 
     @property
