@@ -34,11 +34,11 @@ their margins cover enough of it goes whole to the network
 (:data:`models.decoders.adaptive_policy.WHOLE_FRAME_COVER`): at ``fast`` and
 ``balanced`` its whole area, where one call is cheaper (val-256 mantissa, auto-fast:
 54 ms against 74 ms median, interleaved at load 1; 20.78 dB against 20.66, W accuracy
-84.70% against 85.26%); at ``best`` 30% of it, since per-tile routing trusts tiles
-whose borders may cross sharp edges (jumps over half a wrap that leave no residue),
-which measured about 2 points of winding accuracy below the network alone, while a
-frame with a few hard spots (a 1024x1024 frame) is decoded as accurately routed, in
-a twentieth of the time.
+84.70% against 85.26%); at ``best`` always up to 512x512, since per-tile routing
+trusts tiles whose borders may cross sharp edges (jumps over half a wrap that leave no
+residue), which measured about 2 points of winding accuracy below the network alone,
+and 30% of a larger frame, which guided PUMA refines in windows anyway: a 1024x1024
+frame with a few hard spots is decoded as accurately routed, in a tenth of the time.
 Otherwise tiles are stitched into one consistent W by :mod:`models.tile_reconcile`;
 the global offset then comes from the anchoring rule (darkest pixels W = 0), taken
 over the tiles known to be exact (pass-through, integration) when there are any.
@@ -79,8 +79,8 @@ from models.decoders.adaptive_policy import (
     SMALL_REGION_CHECK,
     SMALL_REGION_FRACTION,
     TIER_LADDER,
-    WHOLE_FRAME_COVER,
     most_accurate_net,
+    whole_frame_cover,
 )
 from models.decoders.base import Decoder, anchor_winding
 from models.decoders.colour import harmonise
@@ -189,7 +189,8 @@ class AdaptiveDecoder(Decoder):
             (rows.stop - rows.start, cols.stop - cols.start)
             for rows, cols, _ in self.hard_windows(analysis, shape)
         ]
-        whole = WHOLE_FRAME_COVER[self.quality] * shape[0] * shape[1]
+        pixels = shape[0] * shape[1]
+        whole = whole_frame_cover(self.quality, pixels) * pixels
         return [shape] if sum(h * w for h, w in windows) >= whole else windows
 
     def network_pixels(self, analysis: FrameAnalysis, shape: tuple[int, int]) -> int:
@@ -264,11 +265,14 @@ class AdaptiveDecoder(Decoder):
             report["saturation"] = saturation
         return winding, report
 
-    def _whole_reason(self) -> str:
-        """Why a frame went whole to the hard-tile decoder (:data:`WHOLE_FRAME_COVER`)."""
-        share = WHOLE_FRAME_COVER[self.quality]
+    def _whole_reason(self, pixels: int) -> str:
+        """Why a frame of ``pixels`` went whole to the hard-tile decoder
+        (:func:`models.decoders.adaptive_policy.whole_frame_cover`)."""
+        share = whole_frame_cover(self.quality, pixels)
         if share >= 1.0:
             return "the hard tiles with their margins cover the frame"
+        if share == 0.0:
+            return f"quality {self.quality} decodes frames of this size whole"
         return (
             f"the hard tiles with their margins cover {share:.0%} of the frame or more, "
             f"which quality {self.quality} decodes whole"
@@ -314,7 +318,7 @@ class AdaptiveDecoder(Decoder):
         hard = self.hard_tile_decoder(params)
         if self.network_calls(analysis, m.shape) == [m.shape]:
             winding, facts = hard.explain_winding(m, params)
-            reason = f"{difficulty} wraps; {self._whole_reason()}"
+            reason = f"{difficulty} wraps; {self._whole_reason(m.size)}"
             report = _report({_decoded_by(hard, facts): m.size}, reason)
             return winding, _with_fallback(report, [facts]), None
         pixels: Counter[str] = Counter()

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.decoders.guided_puma import MAX_MOVES
+from models.decoders.guided_puma import MAX_MOVES, WHOLE_FRAME_PIXELS
 from models.decoders.registry import DecoderSpec, available_decoders
 from models.formation import SensorParams
 
@@ -95,23 +95,34 @@ SMALL_REGION_CHECK = "itoh"
 SMALL_REGION_FRACTION = 0.015
 #: Share of a frame its hard tiles' network windows (with their margins; overlaps
 #: count twice) must cover for the frame to go whole to the network, in one call,
-#: refined whole; below it the tiles are routed and the hard ones refined in boxes.
-#: One call is cheaper once the windows cover the frame (fast and balanced: val-256
-#: mantissa, auto-fast 54 against 74 ms, 20.78 against 20.66 dB). Best decodes whole
-#: from less: routed tiles trust borders that may cross sharp edges (jumps over half a
+#: refined whole; below it the tiles are routed and the hard ones refined in boxes
+#: (:func:`whole_frame_cover`). One call is cheaper once the windows cover the frame
+#: (fast and balanced: val-256 mantissa, auto-fast 54 against 74 ms, 20.78 against
+#: 20.66 dB). Best decodes frames up to the size guided PUMA refines whole
+#: (:data:`models.decoders.guided_puma.WHOLE_FRAME_PIXELS`) whole whenever they have a
+#: residue: routed tiles trust borders that may cross sharp edges (jumps over half a
 #: wrap that leave no residue), which measured about 2 points of W below the net alone
-#: on val-256, but a frame with few hard spots is decoded as well routed and far
-#: faster. Measured at best (2026-11-28, dB; frames by the share their windows cover),
-#: routing below 30% against 50% against never (always whole): val-256 mantissa 25.12
-#: / 25.15 / 25.12 (its two frames at 38%: 42.60 -> 42.61 and 29.67 -> 30.35 dB routed),
-#: modulo 24.94 / 24.84 / 24.94 (the same frames 42.70 -> 41.84 and 30.78 -> 29.28);
-#: mostly-dark 45.45 / 45.69 / 45.45 (a frame at 46%: 30.20 -> 31.64); 1024x1024 (18%)
-#: 38.20 / 38.20 / 38.16 dB in 0.48 against 10.2 s; 512x512 (26% and 89%) 36.53 dB each
-#: way, in 0.70 against 4.3 s; glows, the training-scene crops, the three val
-#: panoramas and the pan/zoom frames (38% and more) alike within 0.02 dB. Routing
-#: wherever the windows do not cover the frame (balanced's rule) lost 0.2 dB on val-256
-#: mantissa, 0.6 on the panoramas and 6.6 on the pan/zoom frames (mantissa).
+#: on val-256, and a glows frame whose windows cover 23% of it lost 2.9 dB routed.
+#: Larger frames, which guided PUMA refines in windows anyway, are routed below 30%.
+#: Measured at best (2026-11-28, dB; frames by the share their windows cover), routing
+#: below 30% against 50% against never: val-256 mantissa 25.12 / 25.15 / 25.12 (its two
+#: frames at 38%: 42.60 -> 42.61 and 29.67 -> 30.35 dB routed), modulo 24.94 / 24.84 /
+#: 24.94 (the same frames 42.70 -> 41.84 and 30.78 -> 29.28); mostly-dark 45.45 / 45.69
+#: / 45.45 (a frame at 46%: 30.20 -> 31.64); 1024x1024 (18%) 38.20 / 38.20 / 38.16 dB
+#: in 0.50 against 4.8-10.2 s; a 512x512 frame (26%) 33.26 dB either way in a third
+#: of the time; glows 52.57 against 52.80 dB (the frame at 23%: 47.43 against 50.30).
+#: Routing wherever the windows do not cover the frame (balanced's rule) lost 0.2 dB on
+#: val-256 mantissa, 0.6 on the val panoramas and 6.6 on the pan/zoom frames (mantissa).
 WHOLE_FRAME_COVER: dict[str, float] = {"fast": 1.0, "balanced": 1.0, "best": 0.3}
+
+
+def whole_frame_cover(quality: str, pixels: int) -> float:
+    """The share of a frame of ``pixels`` its hard windows must cover for ``quality`` to
+    decode it whole (:data:`WHOLE_FRAME_COVER`; 0 at best up to the size guided PUMA
+    refines whole: any residue)."""
+    if quality == "best" and pixels <= WHOLE_FRAME_PIXELS:
+        return 0.0
+    return WHOLE_FRAME_COVER[quality]
 #: Tile side in pixels. 128-px tiles measured more accurate on val-256 (W accuracy, mantissa:
 #: fast 87.0% vs 85.3%, balanced 89.9% vs 88.0%; modulo: 87.4% vs 80.2%, 89.4% vs 86.6%) but
 #: send more pixels to the network on frames with scattered hard spots (1024x1024 synthetic:

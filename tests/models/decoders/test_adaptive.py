@@ -106,19 +106,22 @@ def test_best_sends_frames_with_residues_whole_to_the_refined_hard_decoder() -> 
     np.testing.assert_array_equal(result.winding, alone.winding)
 
 
-def test_best_routes_a_frame_with_few_hard_spots_and_says_why_it_decodes_others_whole() -> None:
-    """Two hard spots whose windows cover 20% of the frame (under best's 30%): routed
-    like balanced, the hard tiles refined to convergence; four (47%): whole."""
+def test_best_routes_only_large_frames_with_few_hard_spots_and_says_why() -> None:
+    """Over 512x512 px (guided PUMA refines such frames in windows anyway), two hard
+    spots whose windows cover 3% of the frame are routed like balanced, the hard tiles
+    refined to convergence; windows over 30% of it, or any frame up to 512x512 with a
+    residue, go whole."""
     decoder = AdaptiveDecoder("best", tile=64, margin=16)
-    sparse = decoder.decode(_rough_spots((20, 20), (200, 200)), MODULO).info["details"]
+    codes = encode(np.full((640, 640), 0.2), MODULO).codes
+    codes[:256, :256] = _rough_spots((20, 20), (200, 200))
+    calls = decoder.network_calls(analyse(codes / 255.0, MODULO, 64), codes.shape)
+    assert calls == [(80, 80), (96, 96)]
+    sparse = decoder.decode(codes, MODULO).info["details"]
     assert set(sparse["routes"]) == {PASS_THROUGH, decoder.hard_tile_decoder(MODULO).name}
     assert sparse["refinement"]["moves"] <= MAX_MOVES
-    spread = _rough_spots((20, 20), (20, 148), (148, 20), (148, 148))
-    details = decoder.decode(spread, MODULO).info["details"]
-    assert details["routes"] == {decoder.hard_tile_decoder(MODULO).name: 1.0}
-    assert "cover 30% of the frame or more, which quality best decodes whole" in (
-        details["reason"]
-    )
+    small = decoder.decode(_rough_spots((20, 20), (200, 200)), MODULO).info["details"]
+    assert small["routes"] == {decoder.hard_tile_decoder(MODULO).name: 1.0}
+    assert "quality best decodes frames of this size whole" in small["reason"]
 
 
 def test_each_quality_refines_within_its_min_cut_budget() -> None:
@@ -267,12 +270,8 @@ def test_network_calls_and_doubtful_pixels_are_what_decoding_uses() -> None:
     _, doubtful = decoder.unrefined_winding(m, MODULO, analysis)
     np.testing.assert_array_equal(decoder.doubtful_pixels(analysis, m.shape), doubtful)
     best = AdaptiveDecoder("best", tile=64)
-    assert best.network_calls(analysis, m.shape) == [(80, 80), (80, 80)]
-    spread = _rough_spots((20, 20), (20, 148), (148, 20), (148, 148)) / 255.0
-    spread_analysis = analyse(spread, MODULO, 64)
-    assert len(decoder.network_calls(spread_analysis, spread.shape)) == 4
-    assert best.network_calls(spread_analysis, spread.shape) == [(256, 256)]
-    assert best.doubtful_pixels(spread_analysis, spread.shape) is None
+    assert best.network_calls(analysis, m.shape) == [(256, 256)]
+    assert best.doubtful_pixels(analysis, m.shape) is None
     flat = np.full((64, 64), 0.3)
     assert decoder.network_calls(analyse(flat, MODULO, 64), flat.shape) == []
 
