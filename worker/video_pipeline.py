@@ -204,7 +204,9 @@ def write_outputs(
         )
     total = len(decoded.irradiance)
     gain = video.params.gain
-    if "exr_zip" in targets:  # before any encoding, so a clip that cannot be stored fails
+    if "exr_zip" in targets and not options.check_exr:
+        # Before any encoding, so a clip that cannot be stored fails; with check_exr its
+        # frames were checked as they were decoded (decode_chunk).
         check_exr_sequence(decoded.irradiance, half=options.half, scene_gain=gain)
     facts: dict[str, Any] = {}
     for name, target in targets.items():
