@@ -13,6 +13,7 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
+from models.decoders.model_install import broken_models
 from models.decoders.registry import resolve
 from models.errors import McamError
 from service.api.deps import StateDep
@@ -31,9 +32,11 @@ class Liveness(BaseModel):
 
 
 class Readiness(BaseModel):
-    """``checks``: decoders loaded, queue reachable with room (Redis has room below its
-    maxmemory for the largest upload: :func:`upload_room`), workers heartbeating, result
-    store writable with room for a result (name -> ok)."""
+    """``checks``: decoders loaded (the default decoder resolves and every installed
+    model file is the one its card describes: :func:`decoders_problem`), queue reachable
+    with room (Redis has room below its maxmemory for the largest upload:
+    :func:`upload_room`), workers heartbeating, result store writable with room for a
+    result (name -> ok)."""
 
     status: str
     checks: dict[str, bool]
@@ -80,16 +83,29 @@ def no_workers_problem(memory: dict[str, Any]) -> str:
     return "no worker heartbeat: start one with 'mcam worker'"
 
 
-def readiness(state: ServiceState) -> Readiness:
-    """Check the decoder registry, Redis (reachable, with room for the largest upload:
-    :func:`upload_room`), the workers' heartbeats and the result store."""
-    detail: dict[str, str] = {}
-    decoders_ok = True
+def decoders_problem(default_decoder: str) -> str | None:
+    """Why the decoders cannot serve, or None: ``default_decoder`` does not resolve, or
+    an installed model file is not its card's (:func:`broken_models`: the decoder is
+    listed, and its workers' warm-up only logs it, but every job that needs it fails)."""
     try:
-        resolve(state.settings.default_decoder)  # listed, or parametrized (auto-40ms)
+        resolve(default_decoder)  # listed, or parametrized (auto-40ms)
     except McamError as exc:
-        decoders_ok = False
-        detail["decoders"] = f"default decoder: {exc.message}"
+        return f"default decoder: {exc.message}"
+    try:
+        broken = broken_models()
+    except McamError as exc:
+        log.warning("readiness: %s", exc.message)
+        return "a model card is not usable (the API's log says which, and what to do)"
+    return "; ".join(broken) or None
+
+
+def readiness(state: ServiceState) -> Readiness:
+    """Check the decoder registry and model files, Redis (reachable, with room for the
+    largest upload: :func:`upload_room`), the workers' heartbeats and the result store."""
+    detail: dict[str, str] = {}
+    decoders = decoders_problem(state.settings.default_decoder)
+    if decoders:
+        detail["decoders"] = decoders
     workers = 0
     full = None
     memory: dict[str, Any] = {}
@@ -110,7 +126,7 @@ def readiness(state: ServiceState) -> Readiness:
     if problem:
         detail["store"] = problem
     checks = {
-        "decoders": decoders_ok, "queue": reachable and not full, "workers": workers > 0,
+        "decoders": not decoders, "queue": reachable and not full, "workers": workers > 0,
         "store": not problem,
     }
     status = "ready" if all(checks.values()) else "not_ready"
@@ -121,8 +137,8 @@ def readiness(state: ServiceState) -> Readiness:
     "/ready",
     response_model=Readiness,
     responses={503: {"model": Readiness, "description": "not ready: see checks and detail"}},
-    summary="Decoders loaded, queue reachable with room for the largest upload, workers "
-    "heartbeating, result store writable",
+    summary="Decoders loaded with their model files intact, queue reachable with room for "
+    "the largest upload, workers heartbeating, result store writable",
 )
 def ready(state: StateDep) -> JSONResponse:
     result = readiness(state)

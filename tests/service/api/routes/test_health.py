@@ -16,8 +16,10 @@ import httpx
 import numpy as np
 import pytest
 
+from models.decoders import learned
 from service.core.config import Settings
 from service.main import create_app
+from tests.models.decoders.test_model_install import install_one
 from tests.service.conftest import (
     FULL_KEY,
     frame_png,
@@ -72,6 +74,27 @@ def test_a_parametrized_default_decoder_is_ready(tmp_path: Path, redis_url: str)
     settings = make_settings(tmp_path, redis_url, default_decoder="auto-40ms")
     with serve(create_app(settings)) as api:
         assert httpx.get(f"{api}/health/ready").json()["checks"]["decoders"] is True
+
+
+def test_ready_reports_a_model_file_that_is_not_its_card(
+    api: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A model file cut short: /health/ready only resolved the default decoder's name and
+    said the decoders were ready, while the workers' warm-up logged the broken file and
+    every job that needed it failed as model_unavailable. It names the file (not where it
+    lies on the server) and what to do; a card that is not one is reported too."""
+    onnx = install_one(tmp_path / "onnx")
+    onnx.write_bytes(onnx.read_bytes()[:1000])
+    monkeypatch.setattr(learned, "ONNX_DIR", onnx.parent)
+    body = httpx.get(f"{api}/health/ready").json()
+    assert body["checks"]["decoders"] is False
+    detail = body["detail"]["decoders"]
+    assert "mantissanet-tiny-modulo.onnx" in detail and "model_unavailable" in detail
+    assert "restore it" in detail and str(tmp_path) not in detail
+    (onnx.parent / "notes.json").write_text("[]")
+    reply = httpx.get(f"{api}/health/ready")
+    assert reply.status_code == 503 and reply.json()["checks"]["decoders"] is False
+    assert "model card is not usable" in reply.json()["detail"]["decoders"]
 
 
 def test_ready_reports_redis_down_and_unknown_default_decoder(tmp_path: Path) -> None:

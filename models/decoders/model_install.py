@@ -1,0 +1,48 @@
+"""Whether the installed model files are the ones their cards describe, for the API's
+readiness check. A file whose sha256 is not its card's (cut short, corrupt, replaced, a
+Git LFS pointer) makes every job that needs it fail as ``model_unavailable``, while the
+decoder is still listed and the service would otherwise say it is ready. Each file is
+hashed once per size and modification time, so a poll costs a ``stat`` per card."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from models.decoders import learned
+from models.decoders.learned import RESTORE_ADVICE, load_cards, sha256_of
+
+#: Per ONNX file: (size in bytes, mtime in ns, the card's sha256) -> whether it matched.
+_CHECKED: dict[Path, tuple[tuple[int, int, str], bool]] = {}
+
+
+def file_matches(path: Path, sha256: str) -> bool:
+    """Whether the file at ``path`` exists and its sha256 is ``sha256`` (cached by its
+    size and mtime; a file removed since is not its card's)."""
+    try:
+        stat = path.stat()
+    except FileNotFoundError:
+        return False
+    key = (stat.st_size, stat.st_mtime_ns, sha256)
+    cached = _CHECKED.get(path)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    try:
+        matches = sha256_of(path) == sha256
+    except FileNotFoundError:
+        return False
+    _CHECKED[path] = (key, matches)
+    return matches
+
+
+def broken_models(onnx_dir: Path | None = None) -> list[str]:
+    """One line per model installed in ``onnx_dir`` (None: the served one,
+    :data:`models.decoders.learned.ONNX_DIR`) whose ONNX file is not the one its card
+    describes: the file's name (no server path), its decoder and encoding, what follows
+    and what to do. Empty when every installed file is its card's."""
+    return [
+        f"model file {Path(card['path']).name} (decoder {card['decoder']!r}, "
+        f"{card['encoding']} frames) is not the one its card describes, so jobs that need "
+        f"it fail as model_unavailable; {RESTORE_ADVICE}"
+        for card in load_cards(onnx_dir or learned.ONNX_DIR)
+        if not file_matches(Path(card["path"]), str(card["sha256"]))
+    ]
