@@ -83,12 +83,6 @@ def neighbour_jumps(m: NDArray[np.floating]) -> tuple[NDArray[np.int64], NDArray
     return along_cols, along_rows
 
 
-def has_wrap_edge(m: NDArray[np.floating]) -> bool:
-    """Whether any neighbour pair of ``m`` (H x W, wrap units) is a wrap edge (its
-    :func:`neighbour_jumps` jump is not 0); without one, W is one constant."""
-    return any(bool(np.any(jumps)) for jumps in neighbour_jumps(m))
-
-
 def residue_map(
     along_cols: NDArray[np.int64], along_rows: NDArray[np.int64]
 ) -> NDArray[np.int64]:

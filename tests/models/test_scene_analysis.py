@@ -15,7 +15,6 @@ from models.scene_analysis import (
     DENSE_EDGE_DENSITY,
     analyse,
     cross_dilation,
-    has_wrap_edge,
     neighbour_jumps,
     residue_map,
 )
@@ -128,10 +127,13 @@ def test_analysis_carries_the_jumps_it_counted() -> None:
 
 
 def test_a_wrap_edge_is_a_neighbour_jump_of_more_than_half_a_wrap() -> None:
-    assert not has_wrap_edge(np.tile(np.linspace(0.0, 0.99, 64), (3, 1)))
-    assert not has_wrap_edge(np.array([[0.2, 0.7]]))  # exactly half a wrap: no jump
-    assert has_wrap_edge(np.array([[0.9], [0.1]]))
-    assert not has_wrap_edge(np.zeros((1, 1)))
+    def wrap_edges(m: np.ndarray) -> int:
+        return sum(np.count_nonzero(jumps) for jumps in neighbour_jumps(m))
+
+    assert wrap_edges(np.tile(np.linspace(0.0, 0.99, 64), (3, 1))) == 0
+    assert wrap_edges(np.array([[0.2, 0.7]])) == 0  # exactly half a wrap: no jump
+    assert wrap_edges(np.array([[0.9], [0.1]])) == 1
+    assert wrap_edges(np.zeros((1, 1))) == 0
 
 
 def test_a_residue_on_a_tile_border_counts_in_the_tiles_it_touches() -> None:

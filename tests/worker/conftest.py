@@ -91,6 +91,12 @@ def ramp_frame(size: int = 64, peak: float = 6.0, params: SensorParams = PARAMS)
     return simulate(0.2 + peak * x * y, params)
 
 
+def residue_frame(size: int = 16, params: SensorParams = PARAMS) -> SensorFrame:
+    """A frame of random irradiance (0 .. 4 wraps): residues everywhere, so a learned
+    decoder runs its net on it (a frame without residues is integrated instead)."""
+    return simulate(4.0 * np.random.default_rng(5).random((size, size)), params)
+
+
 def wait_for(condition: Callable[[], object], timeout_s: float = 30.0, what: str = "") -> object:
     """Poll ``condition`` until truthy; fail the test after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s

@@ -13,7 +13,7 @@ import redis
 
 from models.decoders import learned
 from models.formation import SensorParams
-from tests.worker.conftest import break_model_file, ramp_frame
+from tests.worker.conftest import break_model_file, ramp_frame, residue_frame
 from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP
 from worker.device_consumer import DeviceConsumer, LeaseLost
@@ -333,8 +333,10 @@ def test_a_frame_meeting_a_broken_model_install_fails_at_once_and_the_stream_goe
         lease_ms=5000, max_deliveries=3, stop=threading.Event(),
         decode=make_frame_decoder("independent", "mantissanet-small"),
     )  # fmt: skip
+    hard = residue_frame()
     for sequence in (0, 1):
-        publish_frame(client, frame("a", sequence), maxlen=10)
+        publish_frame(client, FrameMessage("a", sequence, sequence * 1000, hard.codes,
+                                           hard.params), maxlen=10)  # fmt: skip
     sensor = ramp_frame(size=16, params=SensorParams(encoding="mantissa", bits=8))
     publish_frame(client, FrameMessage("a", 2, 2000, sensor.codes, sensor.params), maxlen=10)
     while consumer.poll():

@@ -26,7 +26,7 @@ from models.decoders import learned
 from models.decoders.registry import get_decoder
 from models.errors import McamError
 from models.formation import SensorFrame, SensorParams
-from tests.worker.conftest import OVERFLOW, overflowing_codes, result_files
+from tests.worker.conftest import OVERFLOW, overflowing_codes, residue_frame, result_files
 from worker.child_process import ChildProcess
 from worker.deliveries import GROUP, Delivery, StreamConsumer
 from worker.embedded_redis import EmbeddedRedis, connect
@@ -603,7 +603,7 @@ def test_a_finished_job_delivered_past_the_limit_is_dropped_not_dead_lettered(
 
 
 def test_a_job_meeting_a_broken_model_install_fails_at_once_for_the_operator(
-    client: redis.Redis, queue: JobQueue, data_dir: Path, make_frame,
+    client: redis.Redis, queue: JobQueue, data_dir: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A model file that is not its card's (cut short, replaced: here its sha256 differs)
@@ -615,7 +615,7 @@ def test_a_job_meeting_a_broken_model_install_fails_at_once_for_the_operator(
     decoder = get_decoder("mantissanet-tiny")
     monkeypatch.setattr(decoder.models["modulo"], "_session", None)
     monkeypatch.setattr(learned, "sha256_of", lambda path: "0" * 64)
-    frame: SensorFrame = make_frame()
+    frame = residue_frame()
     job = queue.submit("reconstruction", frame.codes, frame.params, "mantissanet-tiny")
     handled_here(client, data_dir)
     record = queue.get(job.id)

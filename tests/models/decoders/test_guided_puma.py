@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from numpy.typing import NDArray
 
+from models.decoders import learned
 from models.decoders.band_moves import best_band_move
 from models.decoders.base import Decoder
 from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
@@ -334,15 +335,16 @@ def test_registry_lists_the_refined_tiers_and_resolves_any_guide() -> None:
 def test_a_net_guide_beyond_its_classes_needs_no_wrap_by_wrap_lifting() -> None:
     """A 1e-12 .. 1e30 log ramp along the rows (alpha 2: W up to 100): the small net
     answered W 0..2, and its refinement lifted the ramp's columns one wrap per min-cut
-    (51 cuts, 80-110 s at 512x512) to 30% of W right. The net now hands the frame to
-    herraez (exact on it), so the refinement starts at the minimum: every move fails."""
+    (51 cuts, 80-110 s at 512x512) to 30% of W right. The net now integrates the frame
+    (it has no residue: exact), so the refinement starts at the minimum: every move
+    fails. (A frame with residues goes to herraez: test_learned.)"""
     params = SensorParams(encoding="mantissa", alpha=2.0, bits=8)
     frame = encode(np.tile(1e-12 * 1e42 ** np.linspace(0.0, 1.0, 320), (64, 1)), params)
     assert frame.winding.max() == 100
     result = get_decoder("mantissanet-small+puma").decode(frame.codes, params)
     np.testing.assert_array_equal(result.winding, frame.winding)
     details = result.info["details"]
-    assert details["guide_details"]["fallback"]["decoder"] == "herraez"
+    assert details["guide_details"] == {"integrated": learned.NO_RESIDUE}
     assert (details["moves"], details["changed_fraction"]) == (2, 0.0)
 
 

@@ -244,10 +244,43 @@ def test_a_frame_without_a_wrap_edge_decodes_to_w_zero(encoding: str) -> None:
             assert not winding.any(), f"{spec.name}: W {winding.min()}..{winding.max()}"
 
 
+@pytest.mark.parametrize("encoding", ["mantissa", "modulo"])
+@pytest.mark.parametrize("shape", [(256, 256), (2, 513), (513, 2)])
+def test_a_frame_without_residues_is_integrated_and_says_so(
+    encoding: str, shape: tuple[int, int]
+) -> None:
+    """A linear ramp of 15 wraps (W up to 4 in mantissa, 15 in modulo): every 2x2 loop
+    closes, so integration is exact; the nets got 7-27% of W right at 256x256 and 9-18%
+    on 2 x 513, where itoh and auto are exact."""
+    params = SensorParams(encoding=encoding, bits=8, max_wraps=16.0)
+    rows, cols = shape
+    ramp = np.linspace(0.01, 15.0, max(shape))
+    x = np.tile(ramp, (rows, 1)) if rows <= cols else np.tile(ramp[:, None], (1, cols))
+    frame = encode(x, params)
+    assert frame.winding.max() >= 4
+    for spec in learned.specs():
+        decoder = get_decoder(spec.name)
+        if decoder.supports(params):
+            result = decoder.decode(frame.codes, params)
+            np.testing.assert_array_equal(result.winding, frame.winding, err_msg=spec.name)
+            assert result.info["details"]["integrated"] == learned.NO_RESIDUE
+
+
+def with_residues(u: np.ndarray) -> np.ndarray:
+    """``u`` (48 rows, dark at 0.1 in columns 6..9) with a step up by 0.65 wrap in those
+    columns' upper half and 0.35 in their lower half: two residues where the step falls
+    below half a wrap (a frame without any is integrated, the net not run)."""
+    u = u.copy()
+    u[:24, 6:10] = 0.75
+    u[24:, 6:10] = 0.45
+    return u
+
+
 def steep_ramp(params: SensorParams) -> tuple[np.ndarray, np.ndarray]:
     """Codes and true W of a 48 x 96 frame, dark on its left sixth, then rising 0.4 wrap
-    a pixel along its rows (W 0 .. 31, no aliasing): more wraps than a net outputs."""
-    u = np.tile(0.1 + 0.4 * np.clip(np.arange(96) - 16, 0, None), (48, 1))
+    a pixel along its rows (W 0 .. 31, no aliasing): more wraps than a net outputs;
+    with residues (:func:`with_residues`)."""
+    u = with_residues(np.tile(0.1 + 0.4 * np.clip(np.arange(96) - 16, 0, None), (48, 1)))
     frame = encode(from_unwrapped(u, params), params)
     return frame.codes, frame.winding
 
@@ -275,7 +308,7 @@ def test_a_few_pixels_beyond_the_nets_classes_are_a_warning() -> None:
     """A frame dark but for a ramp up to 20 wraps in its last 46 columns (3% of it
     beyond W 16): the net decodes it, and its details say its W is short there."""
     params = SensorParams(encoding="modulo", bits=8)
-    u = np.tile(0.1 + 0.45 * np.clip(np.arange(256) - 210, 0, None), (48, 1))
+    u = with_residues(np.tile(0.1 + 0.45 * np.clip(np.arange(256) - 210, 0, None), (48, 1)))
     result = get_decoder("mantissanet-tiny").decode(encode(u, params).codes, params)
     details = result.info["details"]
     assert "fallback" not in details

@@ -218,10 +218,16 @@ def test_a_clip_frame_one_pixel_high_is_decoded(tmp_path: Path) -> None:
 
 def log_ramp_frame(folder: Path, high: float) -> None:
     """``ramp.png``: a 96 x 96 mantissa frame of a diagonal log ramp from 0.01 to ``high``
-    (x, gain 1), W up to ``1 + log2(high)``."""
+    (x, gain 1), W up to ``1 + log2(high)``, but for a dark band on its left with a step
+    up by 0.65 wrap in its upper quarter and 0.35 below, which leaves residues (a frame
+    without any is integrated, the net not run)."""
     rows, cols = np.mgrid[0:96, 0:96]
     params = SensorParams(encoding="mantissa", alpha=2.0, bits=8, gain=1.0)
-    frame = encode(1e-2 * (high / 1e-2) ** ((rows + cols) / 190), params)
+    x = 1e-2 * (high / 1e-2) ** ((rows + cols) / 190)
+    x[:, :8] = 0.1
+    x[:24, 2:6] = 0.75
+    x[24:, 2:6] = 0.45
+    frame = encode(x, params)
     write_frame(folder / "ramp.png", frame.codes, params)
 
 
