@@ -36,7 +36,7 @@ import numpy as np
 import redis
 from numpy.typing import NDArray
 
-from models.decoders.registry import get_decoder
+from models.decoders.registry import get_decoder, supporting_decoders
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams, validate_codes
 from worker.frame_message import FrameMessage
@@ -253,11 +253,14 @@ def _check_submission(
 
 def check_decoder_supports(decoder: str, params: SensorParams) -> None:
     """Refuse ``decoder`` (an unknown name too) for frames with ``params`` it has no
-    model for (a learned decoder decodes only the encodings it was trained on)."""
+    model for (a learned decoder decodes only the encodings it was trained on), naming
+    the decoders that have one: a property of a whole job or video, checked before any
+    frame is decoded."""
     if not get_decoder(decoder).supports(params):  # models load lazily
         raise InvalidInputError(
             f"decoder {decoder!r} has no model for {params.encoding} frames (GET /v1/decoders "
-            "lists what each decodes); choose another decoder, or a quality"
+            "and mcam reconstruct --list-decoders say what each decodes); choose one that "
+            f"does: {', '.join(supporting_decoders(params))}"
         )
 
 

@@ -25,6 +25,7 @@ from typing import Any
 
 from models.decoders.base import Decoder
 from models.errors import InvalidInputError, echo
+from models.formation import SensorParams
 
 #: Modules that offer decoders, each with a ``specs()`` function.
 PROVIDERS: tuple[str, ...] = (
@@ -172,6 +173,13 @@ def get_decoder(name: str) -> Decoder:
     if name in _specs():
         return _listed_decoder(name)
     return _parametrized_decoder(name)
+
+
+def supporting_decoders(params: SensorParams) -> list[str]:
+    """The listed decoders (:func:`available_decoders`) that decode frames with
+    ``params`` (:meth:`Decoder.supports`: a learned one only the encodings it has a model
+    for), in registration order. Builds each listed decoder (its models load lazily)."""
+    return [name for name in _specs() if _listed_decoder(name).supports(params)]
 
 
 @cache

@@ -12,6 +12,7 @@ from models.errors import InvalidInputError
 from service.cli.options import add_exr_compression_flag, add_sensor_flags, sensor_values
 from service.cli.output_files import OutputFile, staged_outputs
 from worker.outputs import check_video_storable
+from worker.queue import check_decoder_supports
 from worker.temporal_config import MODES, TemporalConfig
 from worker.video_input import read_video
 from worker.video_output import (
@@ -142,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     )
     with staged_outputs(list(files.values()), [args.video]) as paths:
         video = read_video(args.video, sensor_values(args))
+        check_decoder_supports(args.decoder, video.params)
         check_frame_size(files, video.codes.shape)
         if "exr_zip" in files:
             check_video_storable(video.codes, video.params, {"half": args.half})

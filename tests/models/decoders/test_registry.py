@@ -14,8 +14,10 @@ from models.decoders.registry import (
     available_decoders,
     get_decoder,
     resolve,
+    supporting_decoders,
 )
 from models.errors import InvalidInputError
+from models.formation import SensorParams
 
 
 def test_classical_decoders_are_available_first() -> None:
@@ -90,3 +92,13 @@ def test_an_unknown_decoder_is_echoed_cut_short() -> None:
     message = error.value.message
     assert message.startswith(f"unknown decoder {'x' * 80!r}... (and 99920 more characters);")
     assert len(message) < 2_000 and "choose one of: itoh" in message
+
+
+def test_supporting_decoders_leave_out_those_without_a_model_for_the_encoding() -> None:
+    """The noise-aware nets have mantissa models only: they are no choice for modulo
+    frames, while any decoder decodes frames of a sensor that never wraps."""
+    listed = [spec.name for spec in available_decoders()]
+    modulo = supporting_decoders(SensorParams(encoding="modulo", bits=8))
+    assert modulo == [name for name in listed if "-noise" not in name]
+    assert {"itoh", "mantissanet-tiny", "auto"} <= set(modulo)
+    assert supporting_decoders(SensorParams(encoding="clip", bits=8)) == listed

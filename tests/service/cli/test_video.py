@@ -168,3 +168,25 @@ def test_odd_sized_frames_are_said_to_be_padded(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     assert "the MP4 videos are 66 x 68" in result.stdout
     assert "65 x 67 frames is repeated" in result.stdout
+
+
+def test_a_decoder_without_a_model_for_the_encoding_is_refused_before_decoding(
+    tmp_path: Path,
+) -> None:
+    """mantissanet-tiny-noise has a mantissa model only. On a modulo clip the command
+    failed with "video frame 0: decoder ... has no model for the 'modulo' encoding", as
+    if frame 0 were bad, naming no decoder that has one."""
+    params = SensorParams(encoding="modulo", bits=8)
+    clip = slow_clip()[:2]
+    np.save(tmp_path / "wrapped.npy", np.stack([encode(x, params).codes for x in clip]))
+    result = run_mcam(
+        "video", "wrapped.npy", "-o", "f.zip", "--encoding", "modulo", "--bits", "8",
+        "--mode", "independent", "--decoder", "mantissanet-tiny-noise", cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(
+        result, "decoder 'mantissanet-tiny-noise' has no model for modulo frames",
+        "choose one that does: itoh, herraez", "mantissanet-tiny,",
+    )  # fmt: skip
+    assert "video frame" not in result.stderr
+    assert "mantissanet-tiny-noise," not in result.stderr
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["wrapped.npy"]
