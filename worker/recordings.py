@@ -53,7 +53,9 @@ the worker gave up on (they could not be reconstructed: a ``failed`` event),
 that never reached the stream (lost on the camera link: corrupt, truncated or undelivered
 packets, a disconnect; or dropped by the device daemon) show as steps of the camera's
 sequence numbers between recorded frames: those steps count in ``frames_skipped``, and
-the video job warns of the frames skipped beyond those lost and failed.
+the video job warns of the frames skipped beyond those lost and failed. Frames with an
+odd side are padded to even ones in the MP4 videos, which the job's warnings say too, as
+a job of ``POST /v1/videos`` does (:func:`worker.video_jobs.video_warnings`).
 """
 
 from __future__ import annotations
@@ -78,7 +80,7 @@ from worker.queue import JobQueue, check_decoder_supports
 from worker.redis_keys import DEVICES_SET, frame_stream, health_key, recording_key
 from worker.redis_memory import StoreFullError, free_memory, submit_room
 from worker.result_store import ResultStore
-from worker.video_jobs import check_frame_size, video_options
+from worker.video_jobs import check_frame_size, video_options, video_warnings
 from worker.video_output import FPS_RANGE
 
 #: States of a recording that still collects frames or waits for its video job.
@@ -612,9 +614,10 @@ class Recorder:
         params = SensorParams.model_validate_json(recording.params)
         # The recording's id names its job: if noting the job below fails (Redis down),
         # the next try finds the job queued instead of queueing it twice.
+        outputs = video_options(recording.decoder, options)[1]
         return self.queue.submit(
             "video", codes, params, recording.decoder, options, job_id=recording.id,
-            warnings=missing,
+            warnings=video_warnings(missing, outputs, codes.shape),
         ).id
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import io
 import math
 import time
+from collections.abc import Sequence
 from functools import partial
 from typing import Any
 
@@ -33,6 +34,7 @@ from worker.video_output import (
     REFERENCE_WHITE,
     Hdr10Settings,
     mp4_size_problem,
+    padding_note,
 )
 from worker.video_pipeline import OUTPUTS, VideoOptions, decode_video_frames, write_outputs
 
@@ -111,6 +113,16 @@ def check_frame_size(outputs: list[str], shape: tuple[int, ...]) -> None:
     if refused:
         fitting = ",".join(name for name in OUTPUTS if not problems.get(name))
         raise InvalidInputError(f"{problems[refused[0]]}; ask for outputs={fitting}")
+
+
+def video_warnings(
+    noticed: Sequence[str], outputs: list[str], shape: tuple[int, ...]
+) -> list[str]:
+    """A video job's ``warnings``: what reading or recording its frames ``noticed``,
+    then, when its frames (T x H x W[x C]) have an odd side and ``outputs`` hold an MP4,
+    what the MP4 videos are padded to (:func:`worker.video_output.padding_note`)."""
+    padded = padding_note(outputs, shape[1], shape[2])
+    return [*noticed, padded] if padded else list(noticed)
 
 
 class StageProgress:

@@ -38,6 +38,7 @@ from worker.redis_keys import (
 from worker.result_store import ResultStore
 from worker.video_input import WrappedVideo
 from worker.video_jobs import DEFAULT_OPTIONS, video_options
+from worker.video_output import padding_note
 from worker.video_pipeline import decode_video_frames
 
 OPTIONS = {"mode": "temporal", "outputs": ["exr_zip"]}
@@ -635,3 +636,23 @@ def test_a_failed_frame_delivered_again_is_counted_once(
     recorder.count_failed("cam1", "7000-1", "invalid_input: the last")
     recording = load_recording(client, "cam1")
     assert recording.frames_failed == 2 and recording.failed_error == "invalid_input: the last"
+
+
+def test_a_video_of_frames_with_an_odd_side_says_its_mp4_videos_are_padded(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    """A recording's MP4 videos of 65 x 65 frames are 66 x 66, as 4:2:0 needs. Before,
+    its job said nothing of it, where a job of ``POST /v1/videos`` of such frames warns
+    (:func:`worker.video_output.padding_note`, the same words)."""
+    clip = [make_frame(size=65, peak=4.0 + 0.05 * i) for i in range(2)]
+    start(client, options={"mode": "independent", "outputs": ["hdr10", "exr_zip"]})
+    for i, frame in enumerate(clip):
+        recorder.add_frame(message(frame, i), f"8000-{i}")
+    request_stop(client, "cam1")
+    recorder.finish_if_due("cam1")
+
+    done = load_recording(client, "cam1")
+    assert done.state == "submitted" and done.frames == 2
+    [warning] = queue.get(done.job).warnings
+    assert warning == padding_note(["hdr10"], 65, 65)
+    assert warning.startswith("the MP4 videos are 66 x 66: 4:2:0 video needs even sides")

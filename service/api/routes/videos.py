@@ -36,13 +36,12 @@ from worker.jobs import JobRecord
 from worker.outputs import check_video_storable
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
 from worker.video_input import VIDEO_ALIASES, VideoLimits, decode_video, not_a_video
-from worker.video_jobs import VIDEO_FILES, check_frame_size, video_options
+from worker.video_jobs import VIDEO_FILES, check_frame_size, video_options, video_warnings
 from worker.video_output import (
     FPS_RANGE,
     REFERENCE_WHITE,
     REFERENCE_WHITE_RANGE,
     WHITE_LEVEL_RANGE,
-    padding_note,
 )
 from worker.video_pipeline import OUTPUTS
 
@@ -147,10 +146,9 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey
     check_frame_size(options["outputs"], video.codes.shape)
     if "exr_zip" in options["outputs"]:
         check_video_storable(video.codes, video.params, options)
-    padded = padding_note(options["outputs"], video.codes.shape[1], video.codes.shape[2])
     record = state.queue.submit(
         "video", video.codes, video.params, decoder, options, owner=key.id,
-        warnings=(*video.warnings, padded) if padded else video.warnings,
+        warnings=video_warnings(video.warnings, options["outputs"], video.codes.shape),
     )
     return accepted_response(record)
 
