@@ -238,10 +238,14 @@ def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
     and then takes everything available in one read. A device path is locked while
     open (``exclusive``): two daemons reading one camera each got a share of its bytes,
     and lost most frames as garbage, with pyserial's 'multiple access on port?'.
+    A write gives up after 1 s, but on an ``rfc2217://`` port, which pyserial opens only
+    without a write timeout (else NotImplementedError, at every open): there its
+    socket's own 5 s timeout bounds a write.
     """
     check_port_url(url)
     timeout = 0 if url.startswith("socket://") else read_timeout_s
-    return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=1.0,
+    write_timeout = None if url.startswith("rfc2217://") else 1.0
+    return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=write_timeout,
                                          exclusive=True)
 
 

@@ -2,23 +2,28 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib.util
 import json
 import logging
 import os
 import re
+import socket
 import stat
+import threading
 import tty
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import redis
 import serial
+import serial.rfc2217
 
 from device import link_protocol as lp
-from device.commands import FrameRateCommand
+from device.commands import FrameRateCommand, to_packet
 from device.daemon import DaemonConfig, DeviceDaemon
 from device.datasets import DatasetLimits
 from device.faults import Faults
@@ -830,3 +835,67 @@ def test_a_bracket_leaves_the_reported_settings_those_of_the_streamed_frames(
         daemon._on_data(packet)
     assert daemon.health.counts["brackets_saved"] == 1
     assert daemon.health.settings == streamed and daemon.health.last_sequence == 12
+
+
+class Rfc2217Camera:
+    """A camera behind a real RFC 2217 server (pyserial's ``PortManager``) on 127.0.0.1,
+    for one client: once the client has spoken, it sends a data packet every 20 ms (the
+    sequence counting up), and keeps what the client writes (``received``, Telnet
+    negotiation left out). Use as a context manager."""
+
+    def __init__(self) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"rfc2217://127.0.0.1:{self.server.getsockname()[1]}"
+        self.received = bytearray()
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+
+    def __enter__(self) -> Rfc2217Camera:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._closed.set()
+        self.server.close()
+        self._thread.join(10)
+
+    def _serve(self) -> None:
+        with contextlib.suppress(OSError):
+            connection, _ = self.server.accept()
+            with connection:
+                self._talk(connection)
+
+    def _talk(self, connection: socket.socket) -> None:
+        connection.settimeout(0.02)
+        manager = serial.rfc2217.PortManager(
+            serial.serial_for_url("loop://"), SimpleNamespace(write=connection.sendall)
+        )
+        sequence, spoken = 0, False
+        while not self._closed.is_set():
+            with contextlib.suppress(TimeoutError):
+                data = connection.recv(4096)
+                if not data:
+                    return
+                self.received += b"".join(manager.filter(data))
+                spoken = True
+            if spoken:
+                connection.sendall(b"".join(manager.escape(wire(sequence))))
+                sequence += 1
+
+
+def test_an_rfc2217_port_carries_frames_and_commands(client: redis.Redis) -> None:
+    """pyserial opens an rfc2217:// port only without a write timeout, and the daemon
+    asked for one: at a real RFC 2217 server its thread died with a traceback of
+    "NotImplementedError: write_timeout is currently not supported" and ``mcam device``
+    exited 0 at once, so rfc2217:// never worked."""
+    with Rfc2217Camera() as camera:
+        daemon = DeviceDaemon(DaemonConfig(port=camera.url, device="cam1"), client).start()
+        try:
+            assert wait_for(lambda: daemon.health.counts["frames_ok"] >= 3, 30)
+            command = FrameRateCommand(command="set_frame_rate", fps=5.0)
+            daemon.send_command("1-0", command)
+            packet = lp.encode_control(to_packet(command))
+            assert wait_for(lambda: packet in camera.received, 30)
+        finally:
+            daemon.stop()
+    assert daemon.failure is None and daemon.health.port_error == ""
