@@ -30,6 +30,7 @@ from urllib.parse import urlsplit
 
 import redis
 import serial
+import serial.rfc2217
 
 from device.bracketing import BracketCollector, SaturatedBracketError, save_pair
 from device.commands import Command, to_packet
@@ -57,6 +58,9 @@ PARSED_SCHEMES = ("loop", "socket", "rfc2217")
 #: Parser drop causes of packets the link damaged (an unknown type or a malformed packet
 #: came as the camera sent it).
 DAMAGE_CAUSES = ("bad_header", "oversize", "bad_crc", "truncated")
+#: What pyserial's ``rfc2217://`` open says when the server did not negotiate RFC 2217
+#: (Telnet binary mode and the COM port option) within its timeout.
+RFC2217_UNANSWERED = "Remote does not seem to support RFC2217"
 #: Most bytes taken from the port in one read.
 MAX_READ = 1 << 20
 #: While the port stays closed, a warning every this many failed attempts (about a
@@ -173,6 +177,8 @@ def port_problem(url: str, exc: Exception) -> str:
     only 'No such file or directory', naming the path three times, or 'Could not
     configure port: (25, 'Inappropriate ioctl for device')' ('(22, 'Invalid argument')'
     for a disk), naming none. A port another daemon has open (locked) says so."""
+    if url.startswith("rfc2217://") and RFC2217_UNANSWERED in str(exc):
+        return rfc2217_unanswered(url)
     if "://" in url:
         return str(exc) or type(exc).__name__
     if not os.path.exists(url):
@@ -187,6 +193,20 @@ def port_problem(url: str, exc: Exception) -> str:
         return str(exc) or type(exc).__name__
     return (f"{url} is {kind}, not a serial port: check --port (a camera is a terminal "
             "device such as /dev/ttyACM0; mcam simulate-device prints the path to give)")
+
+
+def rfc2217_unanswered(url: str) -> str:
+    """Why an ``rfc2217://`` port at a server that did not negotiate RFC 2217 did not
+    open, and what to do: pyserial said "Remote does not seem to support RFC2217 or
+    BINARY mode [we-BINARY:False(INACTIVE), we-RFC2217:False(REQUESTED)]"."""
+    address = url.partition("://")[2].partition("?")[0]
+    return (
+        f"the server at {address} did not answer RFC 2217 negotiation (Telnet binary mode "
+        "and COM port control) in time: it is no RFC 2217 server, or not the camera's; "
+        f"check the address, or give socket://{address} for a server that passes the "
+        "camera's bytes as they are (a raw TCP serial server, mcam simulate-device "
+        "--port socket://...), or the camera's serial port (/dev/ttyACM0)"
+    )
 
 
 def _not_a_terminal(path: str) -> str | None:
@@ -238,15 +258,32 @@ def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
     and then takes everything available in one read. A device path is locked while
     open (``exclusive``): two daemons reading one camera each got a share of its bytes,
     and lost most frames as garbage, with pyserial's 'multiple access on port?'.
-    A write gives up after 1 s, but on an ``rfc2217://`` port, which pyserial opens only
-    without a write timeout (else NotImplementedError, at every open): there its
-    socket's own 5 s timeout bounds a write.
+    A write gives up after 1 s, but on an ``rfc2217://`` port (:class:`Rfc2217Port`),
+    which pyserial opens only without a write timeout (else NotImplementedError, at
+    every open): there its socket's own 5 s timeout bounds a write.
     """
     check_port_url(url)
+    if url.startswith("rfc2217://"):
+        return lambda: Rfc2217Port(url, timeout=read_timeout_s, exclusive=True)
     timeout = 0 if url.startswith("socket://") else read_timeout_s
-    write_timeout = None if url.startswith("rfc2217://") else 1.0
-    return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=write_timeout,
+    return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=1.0,
                                          exclusive=True)
+
+
+class Rfc2217Port(serial.rfc2217.Serial):
+    """pyserial's ``rfc2217://`` port, whose reader thread ends the link, instead of
+    dying with a traceback, on bytes its Telnet parser cannot take: a server that does
+    not speak RFC 2217 and sends something (an IAC SE outside a subnegotiation raised
+    TypeError) printed "Exception in thread pySerial RFC 2217 reader thread" and a
+    traceback at every attempt. The open then fails as unanswered negotiation does
+    (:func:`rfc2217_unanswered`); an open link is lost as when the server goes away."""
+
+    def _telnet_read_loop(self) -> None:
+        try:
+            super()._telnet_read_loop()
+        except Exception as exc:  # pyserial's parser, on bytes that are not Telnet
+            log.debug("%s: reader ended on bytes that are not Telnet: %r", self.portstr, exc)
+            self._read_buffer.put(None)
 
 
 class DeviceDaemon:

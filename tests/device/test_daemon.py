@@ -837,6 +837,14 @@ def test_a_bracket_leaves_the_reported_settings_those_of_the_streamed_frames(
     assert daemon.health.settings == streamed and daemon.health.last_sequence == 12
 
 
+def stop_serving(server: socket.socket) -> None:
+    """Close a listening socket, waking a thread waiting in its ``accept`` (a close alone
+    does not)."""
+    with contextlib.suppress(OSError):
+        server.shutdown(socket.SHUT_RDWR)
+    server.close()
+
+
 class Rfc2217Camera:
     """A camera behind a real RFC 2217 server (pyserial's ``PortManager``) on 127.0.0.1,
     for one client: once the client has spoken, it sends a data packet every 20 ms (the
@@ -856,7 +864,7 @@ class Rfc2217Camera:
 
     def __exit__(self, *exc: object) -> None:
         self._closed.set()
-        self.server.close()
+        stop_serving(self.server)
         self._thread.join(10)
 
     def _serve(self) -> None:
@@ -899,3 +907,59 @@ def test_an_rfc2217_port_carries_frames_and_commands(client: redis.Redis) -> Non
         finally:
             daemon.stop()
     assert daemon.failure is None and daemon.health.port_error == ""
+
+
+class PlainTcpServer:
+    """A TCP server on 127.0.0.1 that speaks no RFC 2217: it sends each client ``data``
+    and then keeps it, until closed. Use as a context manager."""
+
+    def __init__(self, data: bytes) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.address = f"127.0.0.1:{self.server.getsockname()[1]}"
+        self.data = data
+        self.connections: list[socket.socket] = []
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+
+    def __enter__(self) -> PlainTcpServer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        stop_serving(self.server)
+        self._thread.join(10)
+        for connection in self.connections:
+            connection.close()
+
+    def _serve(self) -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                connection, _ = self.server.accept()
+                self.connections.append(connection)
+                connection.sendall(self.data)
+
+
+@pytest.mark.parametrize("data", [b"", b"SSH-2.0-OpenSSH_9.6\r\n\xff\xf0\xff\xfa,"],
+                         ids=["silent", "garbage"])
+def test_a_server_that_does_not_speak_rfc2217_is_named_with_what_to_do(
+        client: redis.Redis, monkeypatch: pytest.MonkeyPatch, data: bytes) -> None:
+    """pyserial said "Remote does not seem to support RFC2217 or BINARY mode
+    [we-BINARY:False(INACTIVE), we-RFC2217:False(REQUESTED)]"; a server that sent bytes
+    that are not Telnet (an IAC SE outside a subnegotiation) also killed pyserial's
+    reader thread at every attempt, printing "Exception in thread pySerial RFC 2217
+    reader thread" and a TypeError traceback."""
+    crashes: list[object] = []
+    monkeypatch.setattr(threading, "excepthook", crashes.append)
+    with PlainTcpServer(data) as server:
+        url = f"rfc2217://{server.address}?timeout=0.3"
+        reason = (f"the server at {server.address} did not answer RFC 2217 negotiation "
+                  "(Telnet binary mode and COM port control) in time: it is no RFC 2217 "
+                  f"server, or not the camera's; check the address, or give socket://"
+                  f"{server.address} for a server that passes the camera's bytes as they are")
+        config = DaemonConfig(port=url, device="cam1", backoff_max_s=0.05)
+        daemon = DeviceDaemon(config, client).start()
+        try:
+            assert wait_for(lambda: daemon.health.port_error.startswith(reason)
+                            and len(server.connections) >= 2, 30)
+        finally:
+            daemon.stop()
+    assert crashes == []
