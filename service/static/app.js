@@ -14,6 +14,11 @@ const RETRY_MAX_MS = 8000;
 // network that changed) is given up and retried as a lost connection; it was waited
 // for without end.
 const POLL_TIMEOUT_MS = 20000;
+// A result (a preview, the histogram, the EXR) of which no byte came for this long is
+// given up the same way: it was waited for without end (the panels stood empty beside
+// "succeeded" until Cancel). Longer than a poll's: the server may wait for a decode turn
+// (MCAM_DECODE_WAIT_S, 10 s by default) and then render a 4096 x 4096 preview.
+const RESULT_TIMEOUT_MS = 60000;
 // A result the server is too busy to make (429, or 503 past MCAM_MAX_CONCURRENT_DECODES
 // previews and uploads at once) is asked for again after Retry-After, this many times
 // in all.
@@ -68,7 +73,7 @@ async function replyError(reply) {
 // made fetch refuse the request, which read as "cannot reach the server").
 const KEY_PATTERN = /^[\x21-\x7e]*$/;
 
-// The error of a request that reached no server (or got no answer in time).
+// The error of a request that reached no server.
 const unreachable = () =>
   new ApiError("cannot reach the server; check that mcam serve is running");
 
@@ -329,22 +334,42 @@ function clearJob() {
   $("routing").textContent = "";
 }
 
-// The reply of GET path as read (its json or blob); one not whole within POLL_TIMEOUT_MS
-// is an unreachable server's error (retried), one asked for until signal aborted an
-// AbortError. (A timer, not AbortSignal.any, which Firefox 115 ESR lacks.)
-async function readInTime(path, signal, read) {
+// The reply of GET path as read (read: its json or blob). One that stalls (no answer, or
+// no byte of its body, within idleMs) is given up as an unreachable server's error
+// (retried by the polls), one asked for until signal (if any) aborted is an AbortError.
+// (A timer, not AbortSignal.any, which Firefox 115 ESR lacks.)
+async function readInTime(path, signal, read, idleMs = POLL_TIMEOUT_MS) {
   const asked = new AbortController();
   const abort = () => asked.abort();
-  signal.addEventListener("abort", abort, { once: true });
-  const timer = setTimeout(abort, POLL_TIMEOUT_MS);
+  signal?.addEventListener("abort", abort, { once: true });
+  let timer = setTimeout(abort, idleMs);
+  const restart = () => { clearTimeout(timer); timer = setTimeout(abort, idleMs); };
   try {
-    return await read(await api(path, { signal: asked.signal }));
+    return await read(await whole(await api(path, { signal: asked.signal }), restart));
   } catch (error) {
-    throw asked.signal.aborted && !signal.aborted ? unreachable() : error;
+    throw asked.signal.aborted && !signal?.aborted ? noAnswer(idleMs) : error;
   } finally {
     clearTimeout(timer);
-    signal.removeEventListener("abort", abort);
+    signal?.removeEventListener("abort", abort);
   }
+}
+
+// The error of a request of which no byte came within ms.
+const noAnswer = (ms) => new ApiError(`no answer from the server within ${ms / 1000} s ` +
+  "(the connection died, or the server stopped); check that mcam serve is running");
+
+// reply with its body read whole, calling restart() as each piece of it comes.
+async function whole(reply, restart) {
+  restart();
+  if (!reply.body) return reply;
+  const pieces = [];
+  const reader = reply.body.getReader();
+  for (let piece = await reader.read(); !piece.done; piece = await reader.read()) {
+    pieces.push(piece.value);
+    restart();
+  }
+  const { status, statusText, headers } = reply;
+  return new Response(new Blob(pieces), { status, statusText, headers });
 }
 
 // The job's record (see readInTime).
@@ -382,14 +407,16 @@ async function waitForJob(id, signal) {
   return null;
 }
 
-// The reply of the job's result for query; one the server was too busy to make is
+// The job's result for query as read (read: its json or blob; none within
+// RESULT_TIMEOUT_MS: given up, see readInTime); one the server was too busy to make is
 // asked for again after its Retry-After (RESULT_TRIES in all), told to onBusy (if any)
 // as (error, wait in ms). Once signal (if any) aborts (Cancel, another job or exposure
 // shown), it asks no more: AbortError.
-async function result(job, query, signal = null, onBusy = null) {
+async function result(job, query, read, signal = null, onBusy = null) {
+  const path = `/v1/jobs/${job}/result?${query}`;
   for (let tries = 1; ; tries += 1) {
     try {
-      return await api(`/v1/jobs/${job}/result?${query}`, { signal });
+      return await readInTime(path, signal, read, RESULT_TIMEOUT_MS);
     } catch (error) {
       if (tries >= RESULT_TRIES || !BUSY.includes(error.status)) throw error;
       const delayMs = retryDelayMs(error, tries);
@@ -400,9 +427,8 @@ async function result(job, query, signal = null, onBusy = null) {
   }
 }
 
-async function resultBlob(job, query, signal = null, onBusy = null) {
-  return (await result(job, query, signal, onBusy)).blob();
-}
+const resultBlob = (job, query, signal = null, onBusy = null) =>
+  result(job, query, (reply) => reply.blob(), signal, onBusy);
 
 // The onBusy of result for the succeeded job: the status says its result is asked for
 // again (the panels stayed empty beside "succeeded", up to four Retry-Afters: minutes on
@@ -484,7 +510,7 @@ async function showResult(job, signal) {
     resultBlob(job, "part=codes&format=png", panels, busy),
     resultBlob(job, "part=winding&format=png", panels, busy),
     resultBlob(job, hdrQuery(), panels, busy),
-    result(job, "part=histogram", panels, busy).then((reply) => reply.json()),
+    result(job, "part=histogram", (reply) => reply.json(), panels, busy),
   ]).catch((error) => {
     stop.abort();
     throw error;
@@ -515,7 +541,9 @@ async function refreshHdr() {
     setImage("img-hdr", blob);
     resultCame(job);
   } catch (error) {
-    if (!signal.aborted) setStatus(`cannot tonemap job ${job} again: ${error.message}`, "error");
+    if (signal.aborted) return;
+    setStatus(`cannot tonemap job ${job} again: ${error.message}; move the exposure ` +
+      "slider to try again", "error");
   }
 }
 
@@ -602,12 +630,17 @@ function run(event) {
   follow(() => submitFile(file));
 }
 
-// An error handler for the results of job id that could not be fetched.
+// An error handler for the results of job id that could not be fetched: what to do
+// says how to fetch them again (the page's address names the job, so a reload follows
+// it again), or, once the server no longer has them, to run it again (it said so
+// whatever went wrong, and a new run lost the job already done).
 function resultsUnreachable(id) {
   return (error) => {
     if (error.name === "AbortError") return; // stopped by Cancel, which said so
+    const again = isGone(error) ? "press Reconstruct to run it again"
+      : `reload the page (its address names job ${id}) to fetch them again`;
     throw new ApiError(`job ${id} succeeded, but its results could not be fetched ` +
-      `(${error.message}); press Reconstruct to run it again`);
+      `(${error.message}); ${again}`);
   };
 }
 

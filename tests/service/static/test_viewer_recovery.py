@@ -470,6 +470,32 @@ def test_a_poll_left_unanswered_is_given_up_and_asked_again(
     assert wait_for_status(page, "queued") == f"job {job_id}: queued"
 
 
+def test_a_result_left_unanswered_is_given_up_and_can_be_fetched_again(
+    browser: Browser, api: str, worker: Worker, frame: Path
+) -> None:
+    """A result whose answer never came after the job succeeded (a connection that died
+    without closing) was waited for without end: the panels stood empty beside
+    "succeeded" until Cancel. It is given up with what failed, and a reload (the address
+    names the job) fetches the results without running the job again."""
+    page = open_viewer(browser, api, fake_clock=True)
+    held = hold_first(page, "**/result?part=winding&format=png")
+    job_id = submit(page, frame)
+    wait_for_held(page, held)
+    page.clock.run_for(60_500)  # past the result's 60 s time-out
+    status = wait_for_status(page, "could not be fetched")
+    assert status.startswith(f"job {job_id} succeeded, but its results could not be "
+                             "fetched (no answer from the server within 60 s"), status
+    assert status.endswith(f"reload the page (its address names job {job_id}) to fetch "
+                           "them again"), status
+    assert page.get_attribute("#status", "class") == "error"
+    assert page.is_enabled("#run") and page.is_disabled("#cancel")
+    jobs = api_requests(page, "/v1/reconstructions")
+    page.reload()
+    wait_for_panels(page)
+    assert page.inner_text("#status") == f"job {job_id}: succeeded"
+    assert jobs == []
+
+
 def test_reconstruct_and_cancel_pressed_from_the_keyboard_keep_the_focus(
     browser: Browser, api: str, frame: Path
 ) -> None:
