@@ -225,13 +225,14 @@ function sensorMissing(error) {
 // The sensor's frame of an HDR image, as a TIFF: it holds grey and colour frames alike
 // (a PNG frame is grey only, and every Radiance .hdr is colour). Notes how many negative
 // scene values were set to 0 (X-Mcam-Clipped-Negative) when that was asked for.
-async function simulateFrame(file) {
+async function simulateFrame(file, signal) {
   setStatus("simulating the sensor…");
   const form = new FormData();
   form.append("file", file);
   form.append("format", "tiff");
   sensorFields(form, true);
-  const reply = await api("/v1/simulate", { method: "POST", body: form }).catch((error) => {
+  const request = { method: "POST", body: form, signal };
+  const reply = await api("/v1/simulate", request).catch((error) => {
     throw wrongKind(simulateRefused(error), "hdr");
   });
   if (form.has("clip_negative")) {
@@ -247,14 +248,16 @@ function decoderField() {
   return $("quality").value ? ["quality", $("quality").value] : ["decoder", $("decoder").value];
 }
 
-// Submit frame with decoder (decoderField, read when Reconstruct was pressed).
-async function submitFrame(frame, simulated, decoder) {
+// Submit frame with decoder (decoderField, read when Reconstruct was pressed); an
+// AbortError once signal aborts (Cancel).
+async function submitFrame(frame, simulated, decoder, signal) {
   setStatus("uploading the frame…");
   const form = new FormData();
   form.append("file", frame);
   if (!simulated) sensorFields(form, false);
   form.append(...decoder);
-  const reply = await api("/v1/reconstructions", { method: "POST", body: form }).catch((error) => {
+  const request = { method: "POST", body: form, signal };
+  const reply = await api("/v1/reconstructions", request).catch((error) => {
     throw simulated ? error : sensorMissing(wrongKind(error, "frame"));
   });
   return (await reply.json()).id;
@@ -556,25 +559,28 @@ function setJobHash(id) {
   history.replaceState(null, "", id ? `#job=${id}` : location.pathname + location.search);
 }
 
-// Follow the job whose id start() resolves to (a submit, or the address's job): watch it
-// until it finished, then show its results.
+// Follow the job whose id start(signal) resolves to (a submit, or the address's job):
+// watch it until it finished, then show its results. Cancel stops the upload too
+// (start's AbortError; a large file's upload could not be stopped).
 async function follow(start) {
   disable("run");
   clearJob();
   clearResult();
   setJobHash(null);
+  watched = { id: null, stop: new AbortController() };
+  const { signal } = watched.stop;
+  $("cancel").disabled = false;
   try {
-    const id = await start();
+    const id = await start(signal);
+    watched.id = id;
     setJobHash(id);
     keepNotes(id);
-    watched = { id, stop: new AbortController() };
-    $("cancel").disabled = false;
-    const job = await waitForJob(id, watched.stop.signal);
+    const job = await waitForJob(id, signal);
     if (job?.state === "succeeded") {
-      await showResult(id, watched.stop.signal).catch(resultsUnreachable(id));
+      await showResult(id, signal).catch(resultsUnreachable(id));
     }
   } catch (error) {
-    setStatus(error.message, "error");
+    if (error.name !== "AbortError") setStatus(error.message, "error");
   } finally {
     watched = null;
     disable("cancel");
@@ -614,20 +620,21 @@ function refuseAddressWithoutJob() {
     "id (32 characters 0-9 and a-f); copy the job's whole address again", "error");
 }
 
-// Submit file (an HDR image simulated first, as Upload says); resolves to the job's id.
-// The decoder is read at once: one chosen while the simulate runs is for the next run.
-async function submitFile(file) {
+// Submit file (an HDR image simulated first, as Upload says); resolves to the job's id,
+// or an AbortError once signal aborts (Cancel). The decoder is read at once: one chosen
+// while the simulate runs is for the next run.
+async function submitFile(file, signal) {
   const simulated = document.querySelector("input[name=kind]:checked").value === "hdr";
   const decoder = decoderField();
-  const frame = simulated ? await simulateFrame(file) : file;
-  return submitFrame(frame, simulated, decoder);
+  const frame = simulated ? await simulateFrame(file, signal) : file;
+  return submitFrame(frame, simulated, decoder, signal);
 }
 
 function run(event) {
   event.preventDefault();
   const file = $("file").files[0];
   if (!file) return setStatus("choose a file first", "error");
-  follow(() => submitFile(file));
+  follow((signal) => submitFile(file, signal));
 }
 
 // An error handler for the results of job id that could not be fetched: what to do
@@ -644,13 +651,14 @@ function resultsUnreachable(id) {
   };
 }
 
-// Cancel the job in flight (DELETE /v1/jobs/{id}) and stop waiting for it and its
-// results. One that finished meanwhile (409) is not fetched further either: the page
+// Cancel the upload in flight (cancelUpload), or the job in flight (DELETE
+// /v1/jobs/{id}) and stop waiting for it and its results. One that finished meanwhile (409) is not fetched further either: the page
 // shows its record (why it failed) and says so. If the server cannot be told, the page
 // stops waiting all the same and says so.
 async function cancel() {
   const { id, stop } = watched;
   disable("cancel");
+  if (!id) return cancelUpload(stop);
   try {
     const job = await (await api(`/v1/jobs/${id}`, { method: "DELETE" })).json();
     stop.abort();
@@ -661,6 +669,13 @@ async function cancel() {
     setStatus(`job ${id}: stopped waiting, but the server could not cancel it ` +
       `(${error.message}); it may still run`, "error");
   }
+}
+
+// Stop the upload (or the simulate before it) in flight: its server had not answered.
+function cancelUpload(stop) {
+  stop.abort();
+  setStatus("upload cancelled before the server answered: no job is followed; press " +
+    "Reconstruct to upload the file again");
 }
 
 // Job id had finished when Cancel reached the server (refused: error). A failed one is

@@ -496,6 +496,26 @@ def test_a_result_left_unanswered_is_given_up_and_can_be_fetched_again(
     assert jobs == []
 
 
+def test_an_upload_can_be_cancelled(browser: Browser, api: str, frame: Path) -> None:
+    """Cancel was enabled only once the server had answered the upload with the job's
+    id: a large file's upload (or one whose connection hung) could not be stopped."""
+    page = open_viewer(browser, api)
+    held = hold_first(page, "**/v1/reconstructions")
+    page.set_input_files("#file", str(frame))
+    page.click("#run")
+    wait_for_held(page, held)
+    assert page.inner_text("#status") == "uploading the frame…"
+    assert page.is_enabled("#cancel")
+    page.click("#cancel")
+    status = wait_for_status(page, "upload cancelled")
+    assert status.endswith("press Reconstruct to upload the file again"), status
+    assert page.get_attribute("#status", "class") == ""
+    assert page.is_enabled("#run") and page.is_disabled("#cancel")
+    assert "#job=" not in page.url
+    job_id = submit(page, frame)  # the next upload goes through
+    assert wait_for_status(page, "queued") == f"job {job_id}: queued"
+
+
 def test_reconstruct_and_cancel_pressed_from_the_keyboard_keep_the_focus(
     browser: Browser, api: str, frame: Path
 ) -> None:
