@@ -11,8 +11,17 @@
 const LIVE_POLL_MS = 1000;
 let liveWatch = null; // AbortController of the device being watched
 
-function liveStatus(text) {
-  document.getElementById("live-status").textContent = text;
+// Show the live status line from its parts (at most 5), said and quiet by turns: the
+// said ones are live regions (index.html), the quiet ones, which change at every poll
+// (the frame counters, a silent daemon's age), are in none. A part is written only when
+// its text changed. The whole line was one live region, written every second: a screen
+// reader read it out again every second.
+function liveStatus(...parts) {
+  const line = document.getElementById("live-status").children;
+  [...line].forEach((part, index) => {
+    const text = parts[index] ?? "";
+    if (part.textContent !== text) part.textContent = text;
+  });
 }
 
 // Stop watching the device, and empty its frame and health: nothing of one device stays
@@ -52,24 +61,26 @@ async function listDevices() {
 // frame can register the device just before it; the API then shows no health fields).
 const deviceState = (health) => health.state ?? "no health report yet";
 
-// Why the device sends no frames, and what to do: its daemon went silent (the API's state
-// "silent": no health report for age_s seconds), or its port does not open (the daemon's
-// port_error: a wrong --port, an unplugged camera, another daemon on it); else "".
+// Why the device sends no frames, and what to do, as liveStatus's parts (from a said
+// one): its daemon went silent (the API's state "silent": no health report for age_s
+// seconds), or its port does not open (the daemon's port_error: a wrong --port, an
+// unplugged camera, another daemon on it); else none.
 function healthTrouble(health) {
   if (health.state === "silent") {
-    return `; its daemon has not reported for ${Math.round(health.age_s)} s (stopped, ` +
-      "killed, or cut off from Redis): check that mcam device runs";
+    return ["; its daemon has not reported for ", `${Math.round(health.age_s)} s`,
+      " (stopped, killed, or cut off from Redis): check that mcam device runs"];
   }
-  return health.port_error ? `; its port does not open: ${health.port_error}` : "";
+  return health.port_error ? [`; its port does not open: ${health.port_error}`] : [];
 }
 
-// The device's health in one line, with what keeps it from sending frames.
+// The device's health in one line, with what keeps it from sending frames, as
+// liveStatus's parts: its state, its counters, and its trouble.
 function describeHealth(health) {
-  if (!health.state) return `${deviceState(health)} from the device's daemon`;
+  if (!health.state) return [`${deviceState(health)} from the device's daemon`];
   const dropped = Object.values(health.dropped).reduce((a, b) => a + b, 0);
-  return `${health.state}: ${health.frames_ok} frames, ${health.fps} fps, ` +
-    `${dropped} dropped, ${health.sequence_gaps} gaps, ${health.reconnects} reconnects` +
-    healthTrouble(health);
+  const counters = `: ${health.frames_ok} frames, ${health.fps} fps, ${dropped} dropped, ` +
+    `${health.sequence_gaps} gaps, ${health.reconnects} reconnects`;
+  return [health.state, counters, ...healthTrouble(health)];
 }
 
 // The device's health; an error marked deviceGone if the server no longer knows it.
@@ -87,7 +98,7 @@ async function deviceHealth(path, signal) {
 async function pollDevice(id, shown, signal) {
   const path = `/v1/devices/${encodeURIComponent(id)}`;
   const health = await deviceHealth(path, signal);
-  liveStatus(describeHealth(health));
+  liveStatus(...describeHealth(health));
   const ev = document.getElementById("exposure").value;
   const wanted = `${health.latest_result} at ${ev} EV`;
   if (!health.latest_result || wanted === shown) return shown;

@@ -642,6 +642,47 @@ def test_a_live_poll_left_unanswered_is_given_up_and_asked_again(
     wait_for_js(page, "document.getElementById('live-status').textContent.includes('silent')")
 
 
+def test_the_live_status_is_said_again_only_when_more_than_its_counters_changed(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """The live status line is a live region, and it was written at every poll (once a
+    second) with the same text, or with only its counters or a silent daemon's age
+    changed: a screen reader read it out again every second. Only its said parts are
+    announced now, and only when their text changed; the line reads as before."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = open_viewer(browser, api)
+    polls = watch_device(page, "cam1")
+    first = wait_for_js(
+        page,
+        "(() => { const line = document.getElementById('live-status').textContent;"
+        " return line.includes('silent') ? line : null; })()",
+    )
+    page.evaluate(  # changes within a live region (its nearest, if nested) are said
+        "window.said = []; new MutationObserver((records) => { for (const record of records) {"
+        " const node = record.target.nodeType === 1 ? record.target : record.target.parentNode;"
+        " const live = node.closest('[aria-live], [role=status], [role=alert], [role=log]');"
+        " if (live && live.getAttribute('aria-live') !== 'off')"
+        " window.said.push(node.textContent); } })"
+        ".observe(document.getElementById('live-status'),"
+        " { subtree: true, childList: true, characterData: true })"
+    )
+    client = connect(settings.redis_url)
+    for frames in (1, 2, 3):  # each poll reads other counters and another age
+        client.hset(health_key("cam1"), "frames_ok", frames)
+        wait_for_js(page, f"document.getElementById('live-status').textContent"
+                          f".includes('{frames} frames')")
+        polled, deadline = len(polls), time.monotonic() + 30
+        while len(polls) < polled + 2:  # and a poll whose counters did not change
+            assert time.monotonic() < deadline, "the live view stopped polling"
+            page.wait_for_timeout(POLL_MS)
+    assert page.evaluate("window.said") == []
+    line = page.inner_text("#live-status")
+    assert re.fullmatch(r"silent: 3 frames, 0 fps, 0 dropped, 0 gaps, 0 reconnects; its "
+                        r"daemon has not reported for \d+ s \(stopped, killed, or cut off "
+                        r"from Redis\): check that mcam device runs", line), (first, line)
+
+
 def test_the_live_view_stopped_by_a_refused_key_resumes_once_a_key_is_saved(
     browser: Browser, api: str, settings: Settings
 ) -> None:
