@@ -337,18 +337,19 @@ function clearJob() {
   $("routing").textContent = "";
 }
 
-// The reply of GET path as read (read: its json or blob). One that stalls (no answer, or
-// no byte of its body, within idleMs) is given up as an unreachable server's error
-// (retried by the polls), one asked for until signal (if any) aborted is an AbortError.
-// (A timer, not AbortSignal.any, which Firefox 115 ESR lacks.)
-async function readInTime(path, signal, read, idleMs = POLL_TIMEOUT_MS) {
+// The reply of path to method as read (read: its json or blob). One that stalls (no
+// answer, or no byte of its body, within idleMs) is given up as an unreachable server's
+// error (retried by the polls), one asked for until signal (if any) aborted is an
+// AbortError. (A timer, not AbortSignal.any, which Firefox 115 ESR lacks.)
+async function readInTime(path, signal, read, { idleMs = POLL_TIMEOUT_MS, method = "GET" } = {}) {
   const asked = new AbortController();
   const abort = () => asked.abort();
   signal?.addEventListener("abort", abort, { once: true });
   let timer = setTimeout(abort, idleMs);
   const restart = () => { clearTimeout(timer); timer = setTimeout(abort, idleMs); };
   try {
-    return await read(await whole(await api(path, { signal: asked.signal }), restart));
+    const reply = await api(path, { method, signal: asked.signal });
+    return await read(await whole(reply, restart));
   } catch (error) {
     throw asked.signal.aborted && !signal?.aborted ? noAnswer(idleMs) : error;
   } finally {
@@ -419,7 +420,7 @@ async function result(job, query, read, signal = null, onBusy = null) {
   const path = `/v1/jobs/${job}/result?${query}`;
   for (let tries = 1; ; tries += 1) {
     try {
-      return await readInTime(path, signal, read, RESULT_TIMEOUT_MS);
+      return await readInTime(path, signal, read, { idleMs: RESULT_TIMEOUT_MS });
     } catch (error) {
       if (tries >= RESULT_TRIES || !BUSY.includes(error.status)) throw error;
       const delayMs = retryDelayMs(error, tries);
@@ -652,22 +653,26 @@ function resultsUnreachable(id) {
 }
 
 // Cancel the upload in flight (cancelUpload), or the job in flight (DELETE
-// /v1/jobs/{id}) and stop waiting for it and its results. One that finished meanwhile (409) is not fetched further either: the page
-// shows its record (why it failed) and says so. If the server cannot be told, the page
-// stops waiting all the same and says so.
+// /v1/jobs/{id}) and stop waiting for it and its results. One that finished meanwhile
+// (409) is not fetched further either: the page shows its record (why it failed) and
+// says so. If the server cannot be told (or does not answer within POLL_TIMEOUT_MS: a
+// Cancel on a dead connection did nothing, and the page waited on), the page stops
+// waiting all the same and says so.
 async function cancel() {
   const { id, stop } = watched;
   disable("cancel");
   if (!id) return cancelUpload(stop);
   try {
-    const job = await (await api(`/v1/jobs/${id}`, { method: "DELETE" })).json();
+    const job = await readInTime(`/v1/jobs/${id}`, null, (reply) => reply.json(),
+      { method: "DELETE" });
     stop.abort();
     showJob(job);
   } catch (error) {
     stop.abort();
     if (error.status === 409) return finishedBeforeCancel(id, error);
     setStatus(`job ${id}: stopped waiting, but the server could not cancel it ` +
-      `(${error.message}); it may still run`, "error");
+      `(${error.message}); it may still run: reload the page (its address names it) to ` +
+      "follow it again", "error");
   }
 }
 
@@ -685,7 +690,7 @@ function cancelUpload(stop) {
 async function finishedBeforeCancel(id, error) {
   let job = null;
   try {
-    job = await (await api(`/v1/jobs/${id}`)).json();
+    job = await fetchJob(id, null);
   } catch {
     // the record is out of reach: the refusal's own message says what happened
   }

@@ -516,6 +516,28 @@ def test_an_upload_can_be_cancelled(browser: Browser, api: str, frame: Path) -> 
     assert wait_for_status(page, "queued") == f"job {job_id}: queued"
 
 
+def test_a_cancel_left_unanswered_stops_the_wait_and_says_so(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """Cancel on a connection that died without closing did nothing: its DELETE was
+    waited for without end, and the page went on waiting for the job."""
+    page = open_viewer(browser, api, fake_clock=True)
+    job_id = submit(page, frame)  # no worker: the job stays queued
+    wait_for_status(page, f"job {job_id}: queued")
+    held: list[Route] = []
+    page.route(f"**/v1/jobs/{job_id}", lambda route: held.append(route)
+               if route.request.method == "DELETE" else route.continue_())  # fmt: skip
+    page.click("#cancel")
+    wait_for_held(page, held)
+    page.clock.run_for(20_500)  # past the request's 20 s time-out
+    status = wait_for_status(page, "could not cancel")
+    assert status.startswith(f"job {job_id}: stopped waiting, but the server could not "
+                             "cancel it (no answer from the server within 20 s"), status
+    assert status.endswith("reload the page (its address names it) to follow it again")
+    assert page.is_enabled("#run") and page.is_disabled("#cancel")
+    assert page.url.endswith(f"#job={job_id}")
+
+
 def test_reconstruct_and_cancel_pressed_from_the_keyboard_keep_the_focus(
     browser: Browser, api: str, frame: Path
 ) -> None:
