@@ -142,14 +142,15 @@ function disable(id) {
 
 // Fill the decoder choice from GET /v1/decoders, keeping the one chosen if still listed
 // (Save key pressed again put the server's default in its place, unsaid, and the next
-// run used it); a failure says how to list them again (the page asks only at load and on
-// Save key).
+// run used it); a failure (or no answer within POLL_TIMEOUT_MS: the choice stood empty
+// without a word) says how to list them again (the page asks only at load and on Save
+// key).
 async function loadDecoders() {
   const select = $("decoder");
   const chosen = select.value;
   select.replaceChildren();
   try {
-    const decoders = await (await api("/v1/decoders")).json();
+    const decoders = await readInTime("/v1/decoders", null, (reply) => reply.json());
     const kept = decoders.some((decoder) => decoder.name === chosen);
     for (const decoder of decoders) {
       const option = new Option(`${decoder.name} (${decoder.kind})`, decoder.name);

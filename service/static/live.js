@@ -4,7 +4,7 @@
 // after a growing wait (Retry-After on a 429 or 503); a device the server no longer knows
 // ends the watch. A poll not answered within POLL_TIMEOUT_MS (a connection that died
 // without closing) is retried as a lost connection: it was waited for without end, and
-// the view stood still however the device came back. Uses api, apiKey, readInTime,
+// the view stood still however the device came back. Uses ApiError, apiKey, readInTime,
 // sleep, retryDelayMs, retryNote, isGone, isFinal and setImage from app.js.
 "use strict";
 
@@ -37,17 +37,20 @@ function stopLiveWatch() {
 // lost it, and the live view stood empty until the device was chosen again.
 const DEVICE_STORAGE = "mcam-live-device";
 
-// List the devices; the one chosen before, if listed, is chosen and watched again.
+// List the devices; the one chosen before, if listed, is chosen and watched again. A
+// list not answered within POLL_TIMEOUT_MS (a connection that died without closing: the
+// list stood empty without a word) is given up, and a failure says how to ask again.
 async function listDevices() {
   stopLiveWatch();
   const select = document.getElementById("live-device");
   select.replaceChildren(new Option("(choose a device)", ""));
   try {
-    const { devices } = await (await api("/v1/devices")).json();
+    const { devices } = await readInTime("/v1/devices", null, (reply) => reply.json());
     for (const device of devices) select.add(new Option(`${device.id} (${deviceState(device)})`, device.id));
     liveStatus(`${devices.length} device(s)`);
   } catch (error) {
-    liveStatus(`cannot list devices: ${error.message}`);
+    const again = error.status === 401 ? "" : "; press List devices to try again";
+    liveStatus(`cannot list devices: ${error.message}${again}`);
     return;
   }
   const chosen = sessionStorage.getItem(DEVICE_STORAGE);

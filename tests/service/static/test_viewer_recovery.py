@@ -538,6 +538,40 @@ def test_a_cancel_left_unanswered_stops_the_wait_and_says_so(
     assert page.url.endswith(f"#job={job_id}")
 
 
+def test_lists_left_unanswered_are_given_up_and_say_how_to_ask_again(
+    browser: Browser, api: str, settings: Settings
+) -> None:
+    """The decoder and device lists whose answer never came (a connection that died
+    without closing) were waited for without end: the choices stood empty, no word said."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    page = browser.new_page()
+    page.clock.install()
+    decoders = hold_first(page, "**/v1/decoders")
+    devices = hold_first(page, "**/v1/devices")
+    page.goto(f"{api}/")
+    page.fill("#api-key", FULL_KEY)
+    page.click("#key-form button")
+    wait_for_held(page, decoders)
+    page.click("#live-refresh")
+    wait_for_held(page, devices)
+    page.clock.run_for(20_500)  # past the requests' 20 s time-out
+    status = wait_for_status(page, "cannot list decoders")
+    assert "no answer from the server within 20 s" in status, status
+    assert "press Save key to list them again" in status, status
+    live = wait_for_js(
+        page,
+        "(() => { const line = document.getElementById('live-status').textContent;"
+        " return line.startsWith('cannot list devices') ? line : null; })()",
+    )
+    assert live.startswith("cannot list devices: no answer from the server within 20 s"), live
+    assert live.endswith("; press List devices to try again"), live
+    page.click("#key-form button")
+    page.wait_for_selector("#decoder option[value=itoh]", state="attached")
+    page.click("#live-refresh")
+    page.wait_for_selector("#live-device option[value=cam1]", state="attached")
+
+
 def test_reconstruct_and_cancel_pressed_from_the_keyboard_keep_the_focus(
     browser: Browser, api: str, frame: Path
 ) -> None:
