@@ -124,9 +124,11 @@ function retryNote(error, delayMs) {
   return `${reason}; retrying in ${Math.ceil(delayMs / 1000)} s`;
 }
 
-// tone: "" (plain), "warning" (trouble that is being retried) or "error".
+// tone: "" (plain), "warning" (trouble that is being retried) or "error". The text is
+// written only when it changed: the status is a live region, and each poll of a job
+// wrote "job …: queued" again, which a screen reader read out again every 2 s.
 function setStatus(text, tone = "") {
-  $("status").textContent = text;
+  if ($("status").textContent !== text) $("status").textContent = text;
   $("status").className = tone;
   resultsBusyShown = false;
 }

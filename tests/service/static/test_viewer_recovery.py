@@ -572,6 +572,31 @@ def test_lists_left_unanswered_are_given_up_and_say_how_to_ask_again(
     page.wait_for_selector("#live-device option[value=cam1]", state="attached")
 
 
+def test_the_job_s_status_is_said_again_only_when_it_changed(
+    browser: Browser, api: str, frame: Path
+) -> None:
+    """The job's status is a live region, and each poll wrote it again with the same
+    text ("job …: queued"): a screen reader read it out again at every poll."""
+    page = open_viewer(browser, api)
+    polls = api_requests(page, "/v1/jobs/")
+    job_id = submit(page, frame)  # no worker: the job stays queued
+    wait_for_status(page, f"job {job_id}: queued")
+    page.evaluate(
+        "window.said = []; new MutationObserver((records) => { for (const record of records)"
+        " window.said.push(record.target.textContent); })"
+        ".observe(document.getElementById('status'),"
+        " { subtree: true, childList: true, characterData: true })"
+    )
+    polled, deadline = len(polls), time.monotonic() + 30
+    while len(polls) < polled + 3:  # two more polls answered "queued"
+        assert time.monotonic() < deadline, "the page stopped polling the job"
+        page.wait_for_timeout(POLL_MS)
+    assert page.evaluate("window.said") == []
+    assert page.inner_text("#status") == f"job {job_id}: queued"
+    page.click("#cancel")
+    assert wait_for_status(page, "cancelled") == f"job {job_id}: cancelled"
+
+
 def test_reconstruct_and_cancel_pressed_from_the_keyboard_keep_the_focus(
     browser: Browser, api: str, frame: Path
 ) -> None:
