@@ -56,6 +56,15 @@ class UnsupportedFormatError(McamError):
     http_status = 415
 
 
+class FormatCannotHoldError(McamError):
+    """An output format asked for cannot hold this result (a colour frame as PNG, W
+    over 65535 as a 16-bit PNG or TIFF): the request is well-formed, and another format
+    holds the result. Not :class:`UnsupportedFormatError`, whose 415 is about the
+    format of what the caller sent."""
+
+    code = "format_cannot_hold_result"
+
+
 class OutputOverflowError(McamError):
     """The reconstruction does not fit the requested output dtype (float32 or float16)."""
 

@@ -37,6 +37,7 @@ from PIL import Image, PngImagePlugin, UnidentifiedImageError
 from pydantic import ValidationError
 
 from models.errors import (
+    FormatCannotHoldError,
     ImageTooLargeError,
     InvalidInputError,
     McamError,
@@ -203,9 +204,10 @@ def encode_frame(codes: NDArray[Any], params: SensorParams | None, fmt: str) -> 
         if arr.ndim == 3 and arr.shape[2] == 1:
             arr = arr[:, :, 0]
         if arr.ndim == 3:
-            raise UnsupportedFormatError(
-                f"PNG frames are grayscale, got {arr.shape[2]} channels; "
-                "ask for TIFF (a .tiff file, or format=tiff over HTTP) or for luminance only "
+            raise FormatCannotHoldError(
+                f"a PNG frame is grayscale (one channel) and this frame has {arr.shape[2]} "
+                "channels: ask for TIFF or npy, which hold colour frames (a .tiff or .npy "
+                "file, or format=tiff or format=npy over HTTP), or for luminance only "
                 "(--gray, or gray=true over HTTP)"
             )
         info = PngImagePlugin.PngInfo()
@@ -545,9 +547,10 @@ def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) ->
         if arr.ndim == 3 and arr.shape[2] == 1:  # of a grey frame stored H x W x 1
             arr = arr[:, :, 0]
         if arr.ndim != 2 or arr.min() < 0 or arr.max() > np.iinfo(np.uint16).max:
-            raise UnsupportedFormatError(
+            raise FormatCannotHoldError(
                 f"a PNG winding map is one channel with 0 <= W <= 65535; this map has shape "
-                f"{arr.shape} and W in [{arr.min()}, {arr.max()}]: write it as .tiff or .npy"
+                f"{arr.shape} and W in [{arr.min()}, {arr.max()}]: write it as .tiff or .npy, "
+                "which hold any W and colour maps"
             )
         Image.fromarray(arr.astype(np.uint16)).save(path, format="PNG")
     elif fmt == "tiff":

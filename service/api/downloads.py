@@ -16,7 +16,7 @@ from starlette.datastructures import Headers
 from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
 from starlette.types import Receive, Scope, Send
 
-from models.errors import UnsupportedFormatError
+from models.errors import FormatCannotHoldError
 from models.frames import encode_frame
 from service.api.errors import ApiError
 from worker.outputs import encode_winding
@@ -31,13 +31,22 @@ MEDIA_TYPES: dict[str, str] = {
 
 
 def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
-    """A W map file: ``npy`` (int64, any W) or 16-bit ``png``/``tiff`` (0 <= W <= 65535)."""
+    """A W map file: ``npy`` (int64, any W and channels), 16-bit ``tiff`` (0 <= W <=
+    65535) or 16-bit grey ``png`` (one channel too). :class:`FormatCannotHoldError`
+    naming the formats that hold the map when ``fmt`` cannot."""
     w = np.asarray(winding, dtype=np.int64)
     if fmt == "npy":
         return encode_winding(w)
-    if w.max() > np.iinfo(np.uint16).max or w.min() < 0:
-        raise UnsupportedFormatError(
-            f"W reaches {int(w.max())}, beyond a 16-bit {fmt.upper()}; ask for format=npy"
+    low, high = int(w.min()), int(w.max())
+    if high > np.iinfo(np.uint16).max or low < 0:
+        raise FormatCannotHoldError(
+            f"a {fmt.upper()} W map holds 16-bit W, 0 to 65535, and this map's W is in "
+            f"[{low}, {high}]: ask for format=npy (int64), which holds any W"
+        )
+    if fmt == "png" and w.ndim == 3 and w.shape[2] > 1:
+        raise FormatCannotHoldError(
+            f"a PNG W map is grayscale (one channel) and this map has {w.shape[2]} (a "
+            "colour frame's): ask for format=tiff or format=npy, which hold colour W maps"
         )
     return encode_frame(w.astype(np.uint16), None, fmt)
 

@@ -155,13 +155,21 @@ QUEUE_REFUSALS = (
     "the queue (Redis) is unreachable (queue_unavailable) or full: queue_full (MCAM_JOBS_MAXLEN "
     "jobs, or MCAM_JOBS_MAX_BYTES of codes, queued) or store_full (Redis at its maxmemory)"
 )
+#: The 422 of a route that writes a result in the format asked for.
+CANNOT_HOLD = error_response(
+    "invalid parameters, or format_cannot_hold_result: the output format asked for cannot "
+    "hold this result (a colour frame or W map as PNG, W over 65535 as a 16-bit PNG or "
+    "TIFF; the message names the formats that can)"
+)
 #: Responses of ``POST /v1/simulate``, which reads an upload and queues no job.
 SIMULATE_ERRORS: dict[int | str, dict[str, Any]] = {
     **AUTH_ERRORS,
     **BODY_ERRORS,
     400: error_response("malformed request body"),
     413: error_response("upload or image too large"),
-    415: error_response("unsupported file format or content type"),
+    415: error_response(
+        "unsupported_format: the upload's file format or content type is not one read here"
+    ),
     429: error_response("rate limit exceeded (rate_limited, see Retry-After)"),
     503: error_response(
         f"the queue (Redis) is unreachable (queue_unavailable), or {DECODES_BUSY}"

@@ -11,7 +11,7 @@ import numpy as np
 from models.decodable import check_decodable
 from models.decoders import available_decoders, get_decoder
 from models.decoders.registry import name_patterns
-from models.errors import MissingParameterError, UnsupportedFormatError
+from models.errors import FormatCannotHoldError, MissingParameterError
 from models.exr_header import reconstruction_attributes, values_unit
 from models.formation import reconstruct
 from models.frames import FRAME_SUFFIXES, frame_format, read_frame, write_winding
@@ -80,9 +80,10 @@ def run(args: argparse.Namespace) -> int:
         decoder = get_decoder(args.decoder)
         frame = read_frame(args.frame, sensor_values(args))
         if args.winding_out and is_colour(frame.codes) and frame_format(args.winding_out) == "png":
-            raise UnsupportedFormatError(  # before the decode, not after it
+            raise FormatCannotHoldError(  # before the decode, not after it
                 f"{args.frame} is a colour frame: its W map has {frame.codes.shape[2]} "
-                "channels, which a PNG W map cannot hold; give --winding-out a .tiff or .npy name"
+                "channels, which a PNG W map (one channel) cannot hold; give --winding-out "
+                "a .tiff or .npy name, which hold colour W maps"
             )
         dtype = np.float16 if args.half else np.float32
         check_decodable(frame.codes, frame.params, dtype, scene_referred=True)

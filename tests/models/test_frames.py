@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from PIL import Image, PngImagePlugin
 
 from models.errors import (
+    FormatCannotHoldError,
     ImageTooLargeError,
     InvalidInputError,
     MissingParameterError,
@@ -194,8 +195,11 @@ def test_npy_with_wrong_dtype_or_shape_is_rejected(array: np.ndarray) -> None:
 
 
 def test_colour_png_is_refused_with_a_pointer_to_tiff() -> None:
-    with pytest.raises(UnsupportedFormatError, match="tiff"):
+    """Writing one is a 422 (the PNG cannot hold the result); reading one, a 415 (the
+    upload's format is not read)."""
+    with pytest.raises(FormatCannotHoldError, match="tiff") as caught:
         encode_frame(random_codes((4, 4, 3), 8), PARAMS_8, "png")
+    assert caught.value.http_status == 422
     buffer = io.BytesIO()
     Image.fromarray(random_codes((4, 4, 3), 8)).save(buffer, format="PNG")
     with pytest.raises(UnsupportedFormatError, match="TIFF"):
@@ -443,7 +447,7 @@ def test_a_one_channel_winding_map_is_written_as_a_png(tmp_path: Path) -> None:
 
 def test_winding_png_refuses_what_it_cannot_hold(tmp_path: Path) -> None:
     for winding in (np.array([[70_000]]), np.array([[-1]]), np.zeros((2, 2, 3), np.int64)):
-        with pytest.raises(UnsupportedFormatError, match="tiff or .npy"):
+        with pytest.raises(FormatCannotHoldError, match="tiff or .npy"):
             write_winding(tmp_path / "w.png", winding)
     with pytest.raises(InvalidInputError, match="integers"):
         write_winding(tmp_path / "w.npy", np.zeros((2, 2)))

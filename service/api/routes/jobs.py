@@ -28,6 +28,7 @@ from service.api.previews import (
 )
 from service.api.schemas import (
     AUTH_ERRORS,
+    CANNOT_HOLD,
     DECODES_BUSY,
     WRITE_REFUSED,
     JobView,
@@ -181,6 +182,7 @@ def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
             "/v1/videos/{id}/result"
         ),
         **JOB_ERRORS,
+        422: CANNOT_HOLD,
         503: error_response(
             f"the queue (Redis) is unreachable, or (all but the EXR) {DECODES_BUSY}"
         ),

@@ -13,7 +13,7 @@ from models.hdr_io import read_hdr
 from service.api.deps import StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, winding_bytes
 from service.api.in_turn import decode_in_turn
-from service.api.schemas import SIMULATE_ERRORS, upload_body
+from service.api.schemas import CANNOT_HOLD, SIMULATE_ERRORS, upload_body
 from service.api.uploads import SimulateFields, Upload, read_upload_fields
 from service.core.config import Settings
 
@@ -74,6 +74,7 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
             },
         },
         **SIMULATE_ERRORS,
+        422: CANNOT_HOLD,
     },
     openapi_extra=upload_body(SimulateFields, "an OpenEXR or Radiance .hdr image"),
 )

@@ -179,11 +179,46 @@ def test_colour_scene_as_png_names_the_http_fields(client: Client) -> None:
     assert default.status_code == 200 and default.headers["content-type"] == "image/tiff"
     assert decode_frame(default.content, "tiff").codes.shape == (64, 64, 3)
     reply = client().post("/v1/simulate", files=files, data={**FIELDS, "format": "png"})
-    assert reply.status_code == 415
+    assert reply.status_code == 422 and reply.json()["code"] == "format_cannot_hold_result"
     assert "format=tiff" in reply.json()["message"] and "gray=true" in reply.json()["message"]
     gray = client().post("/v1/simulate", files=files, data={**FIELDS, "gray": "true"})
     assert gray.status_code == 200
     assert decode_frame(gray.content, "png").codes.shape == (64, 64)
+
+
+@pytest.mark.parametrize(
+    ("colour", "fields", "says"),
+    [
+        (False, {"format": "tiff", "gain": "10000"}, ["TIFF W map", "format=npy"]),
+        (False, {"format": "png", "gain": "10000"}, ["PNG W map", "format=npy"]),
+        (True, {"format": "png"}, ["PNG W map is grayscale", "format=tiff", "format=npy"]),
+    ],
+    ids=["W over 65535 as TIFF", "W over 65535 as PNG", "colour W as PNG"],
+)
+def test_a_result_format_that_cannot_hold_it_is_a_422(
+    client: Client, colour: bool, fields: dict[str, str], says: list[str]
+) -> None:
+    """An output format the result cannot be written in was a 415 unsupported_format,
+    which names an upload's format; the request is well-formed and asks for what this
+    result cannot give. The message names the formats that can, which give the map."""
+    pixels = np.repeat(scene()[:, :, None], 3, axis=2) if colour else scene()
+    files = {"file": ("s.exr", encode_exr(pixels))}
+    asked = {**FIELDS, "encoding": "modulo", "part": "winding", **fields}
+    reply = client().post("/v1/simulate", files=files, data=asked)
+    assert reply.status_code == 422, reply.text
+    assert reply.json()["code"] == "format_cannot_hold_result"
+    assert all(text in reply.json()["message"] for text in says), reply.json()["message"]
+    npy = client().post("/v1/simulate", files=files, data={**asked, "format": "npy"})
+    assert npy.status_code == 200, npy.text
+
+
+def test_the_openapi_document_lists_the_422_of_a_format_that_cannot_hold_it(
+    client: Client,
+) -> None:
+    paths = client().get("/openapi.json").json()["paths"]
+    for path, method in (("/v1/simulate", "post"), ("/v1/jobs/{job_id}/result", "get")):
+        described = paths[path][method]["responses"]["422"]["description"]
+        assert "format_cannot_hold_result" in described, path
 
 
 def test_noise_is_seeded_by_default_as_in_mcam_simulate(client: Client) -> None:
