@@ -7,7 +7,8 @@ Formats
   parameters as JSON in a ``tEXt`` chunk with keyword ``mantissacam``. Colour
   frames are refused: store them as TIFF.
 - ``tiff``: ``H x W`` or ``H x W x C`` (decoders take C = 1 or 3: grey or RGB, no
-  alpha); the parameters as JSON in the ImageDescription tag.
+  alpha); the parameters as JSON in the ImageDescription tag. One page of full
+  resolution: reduced-resolution pages (thumbnails) are skipped.
 - ``npy``: the codes array only; parameters come from the caller.
 
 Reading merges the stored parameters (parsed by :mod:`models.stored_params`) with
@@ -278,14 +279,14 @@ def png_samples(image: Image.Image, data: bytes) -> NDArray[Any]:
 
 
 def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
-    with open_tiff(data, max_pages=1) as (tif, pages):
-        if pages > 1:
+    with open_tiff(data, max_pages=1) as (_, pages):
+        if len(pages) > 1:
             raise InvalidInputError(
-                "the TIFF holds more than one page and a reconstruction takes one frame: "
-                "send a single-page TIFF, or decode the sequence as a video "
-                "(POST /v1/videos, mcam video)"
+                "the TIFF holds more than one page of full resolution (its thumbnails "
+                "aside) and a reconstruction takes one frame: send a single-page TIFF, or "
+                "decode the sequence as a video (POST /v1/videos, mcam video)"
             )
-        page = tif.pages.first
+        (page,) = pages
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
         check_samples(page_shape(page), max_pixels)
         return page_codes(page), tiff_params(page.description)

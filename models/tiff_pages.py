@@ -14,6 +14,9 @@ per frame).
   Zstandard, ..., a code of no known compression) is refused by name
   (:func:`page_codes`), not reported as damage: tifffile claims Zstandard on Python
   before 3.14 and fails only when a strip is decoded ("No module named 'compression'").
+- Reduced-resolution pages (NewSubfileType bit 0: the thumbnails and pyramid levels
+  cameras and editors add) are skipped: :func:`open_tiff` gives the full-resolution
+  pages, so a frame with its thumbnail is one frame, a video's thumbnails no frames.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
@@ -33,7 +36,7 @@ import logging
 import lzma
 import threading
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -41,7 +44,7 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from models.errors import ImageTooLargeError, UnsupportedFormatError
+from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
 
 #: The most strips or tiles one page of a TIFF may be stored in: tifffile decodes them
 #: one by one in Python (about 2.7 us and 250 bytes each: a 2 x 8,388,608 frame in
@@ -110,13 +113,13 @@ _HOLD = _LoggerHold()
 @contextmanager
 def open_tiff(
     data: bytes, max_pages: int | None = None
-) -> Iterator[tuple[tifffile.TiffFile, int]]:
-    """The TIFF of ``data`` and its pages counted, indexed now up to ``max_pages + 1``
-    (None: all of them; a count above ``max_pages`` means "more", and the caller refuses
-    the file: indexing 11 million empty pages of a 66 MB upload took 6 s and 420 MB).
-    :class:`TiffDamaged` if tifffile warns while indexing or reading it (callers wrap
-    that with :func:`models.frames.decoding`, which names the file);
-    :class:`ImageTooLargeError` if a page indexed is stored in more than
+) -> Iterator[tuple[tifffile.TiffFile, list[tifffile.TiffPage]]]:
+    """The TIFF of ``data`` and its full-resolution pages (:func:`image_pages`), indexed
+    now up to ``max_pages + 1`` of them (None: all; more than ``max_pages`` means "more",
+    and the caller refuses the file: indexing 11 million empty pages of a 66 MB upload
+    took 6 s and 420 MB). :class:`TiffDamaged` if tifffile warns while indexing or
+    reading it (callers wrap that with :func:`models.frames.decoding`, which names the
+    file); :class:`ImageTooLargeError` if a page indexed is stored in more than
     :data:`MAX_TIFF_SEGMENTS` strips or tiles."""
     logger = tifffile.logger()
     collector = _ThreadWarnings()
@@ -125,14 +128,47 @@ def open_tiff(
         with _HOLD.held(logger), tifffile.TiffFile(io.BytesIO(data)) as tif:
             # Index the pages now: a truncated file warns here.
             most = None if max_pages is None else max_pages + 1
-            indexed = list(itertools.islice(tif.pages, most))
+            pages = list(itertools.islice(image_pages(tif.pages), most))
             collector.check()
-            for index, page in enumerate(indexed):
+            for index, page in enumerate(pages):
                 _check_segments(len(page.dataoffsets), index)
-            yield tif, len(indexed)
+            yield tif, pages
         collector.check()
     finally:
         logger.removeHandler(collector)
+
+
+#: The most reduced-resolution pages (thumbnails, pyramid levels) a TIFF may hold per
+#: full-resolution page and one more: a pyramid of a 4096 x 4096 frame halved down to
+#: one pixel has 12 levels.
+MAX_REDUCED_PAGES = 16
+
+
+def image_pages(pages: Iterable[tifffile.TiffPage]) -> Iterator[tifffile.TiffPage]:
+    """``pages`` without those NewSubfileType marks reduced-resolution (bit 0: the
+    thumbnails and pyramid levels cameras and editors add), which are copies of an
+    image, not images. Refused past :data:`MAX_REDUCED_PAGES` of them per image and one
+    more (:class:`ImageTooLargeError`: each is indexed), and when every page is one
+    (:class:`InvalidInputError`)."""
+    images = reduced = 0
+    for page in pages:
+        if not page.is_reduced:
+            images += 1
+            yield page
+            continue
+        reduced += 1
+        if reduced > MAX_REDUCED_PAGES * (images + 1):
+            raise ImageTooLargeError(
+                f"the TIFF holds more than {MAX_REDUCED_PAGES} reduced-resolution pages "
+                "(thumbnails, pyramid levels) per full-resolution image, which are not "
+                "read; save it with fewer (a thumbnail an image, or none)"
+            )
+    if reduced and not images:
+        raise InvalidInputError(
+            f"the TIFF holds only reduced-resolution pages ({reduced}: thumbnails), no "
+            "full-resolution image as a page (a DNG or raw file stores it in a SubIFD): "
+            "save the frame as a plain TIFF"
+        )
 
 
 def _check_segments(segments: int, index: int) -> None:

@@ -159,14 +159,15 @@ def png_entry_limit(max_pixels: int | None) -> int | None:
 def _read_tiff(
     data: bytes, overrides: dict[str, Any] | None, limits: VideoLimits
 ) -> tuple[NDArray[Any], StoredParams]:
-    with open_tiff(data, limits.frames) as (tif, count):
+    with open_tiff(data, limits.frames) as (_, pages):
+        count = len(pages)
         if limits.frames is not None and count > limits.frames:
             raise ImageTooLargeError(
                 f"the TIFF holds more than {limits.frames} pages (one frame each); send a "
                 "shorter clip or raise the limit (MCAM_MAX_VIDEO_FRAMES)"
             )
         check_frame_count(count, limits.frames)
-        first = tif.pages.first
+        first = pages[0]
         if count == 1:
             _check_not_a_stack_of_planes(first)
         _check_not_a_hyperstack(first.description, count)
@@ -174,7 +175,7 @@ def _read_tiff(
         check_sample_count(count, page_shape(first), limits.samples)
         stored = tiff_params(first.description)
         frames = []
-        for page in tif.pages:
+        for page in pages:
             if frames:
                 _check_page(page, len(frames), first, stored, overrides)
             frames.append(page_codes(page))

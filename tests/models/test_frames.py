@@ -367,6 +367,49 @@ def test_a_multi_page_tiff_is_refused_with_a_pointer_to_video() -> None:
         decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
 
 
+def with_thumbnails(codes: np.ndarray, *first: bool) -> bytes:
+    """A TIFF of ``codes`` (parameters in its description) and, as cameras and editors
+    write them, a thumbnail of it (NewSubfileType 1) per entry of ``first``: before the
+    image where True, after it where False."""
+    thumbnail = codes[::4, ::4] // 2
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as tif:
+        for before in first:
+            if before:
+                tif.write(thumbnail, subfiletype=1, metadata=None)
+        tif.write(codes, description=PARAMS_8.model_dump_json(), metadata=None)
+        for before in first:
+            if not before:
+                tif.write(thumbnail, subfiletype=1, metadata=None)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("first", [(False,), (True,), (False, False, False), (True, False)])
+def test_a_tiff_frame_with_thumbnails_is_read_as_its_full_resolution_page(
+    first: tuple[bool, ...],
+) -> None:
+    """A reduced-resolution page (NewSubfileType bit 0) is a copy of the image, not a
+    frame: a frame with its thumbnail was refused as a multi-page TIFF."""
+    codes = random_codes((16, 12), 8)
+    frame = decode_frame(with_thumbnails(codes, *first), "tiff")
+    np.testing.assert_array_equal(frame.codes, codes)
+    assert frame.params == PARAMS_8
+
+
+def test_a_tiff_of_thumbnails_only_or_two_images_is_refused() -> None:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, random_codes((4, 4), 8), subfiletype=1, metadata=None)
+    with pytest.raises(InvalidInputError, match="only reduced-resolution pages.*plain TIFF"):
+        decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as tif:
+        for _ in range(2):
+            tif.write(random_codes((8, 8), 8), metadata=None)
+            tif.write(random_codes((2, 2), 8), subfiletype=1, metadata=None)
+    with pytest.raises(InvalidInputError, match="holds more than one page.*/v1/videos"):
+        decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
+
+
 @pytest.mark.parametrize("fmt", FRAME_FORMATS)
 def test_pixel_limit(fmt: str) -> None:
     data = encode_frame(random_codes((16, 8), 8), PARAMS_8, fmt)

@@ -19,6 +19,7 @@ from PIL import Image
 
 from models.errors import ImageTooLargeError, UnsupportedFormatError
 from models.tiff_pages import (
+    MAX_REDUCED_PAGES,
     MAX_TIFF_SEGMENTS,
     TiffDamaged,
     open_tiff,
@@ -74,7 +75,7 @@ def test_damage_is_found_whatever_the_global_log_level(caplog: pytest.LogCapture
         assert (logger.level, logger.propagate) == (logging.WARNING, False)
         assert len(damage_in_a_thread(data[: len(data) // 2])) == 1
         assert (logger.level, logger.propagate) == (logging.WARNING, False)
-    assert pages == 12
+    assert len(pages) == 12
     assert (logger.level, logger.propagate) == (logging.NOTSET, True)
     assert caplog.records == []
 
@@ -82,7 +83,7 @@ def test_damage_is_found_whatever_the_global_log_level(caplog: pytest.LogCapture
 def test_separate_planes_come_back_samples_last() -> None:
     rgb = np.arange(3 * 4 * 5, dtype=np.uint8).reshape(3, 4, 5)
     with open_tiff(tiff(rgb, photometric="rgb", planarconfig="separate")) as (tif, pages):
-        assert pages == 1
+        assert len(pages) == 1
         page = tif.pages.first
         assert page_shape(page) == (4, 5, 3)
         np.testing.assert_array_equal(page_codes(page), np.moveaxis(rgb, 0, -1))
@@ -164,7 +165,26 @@ def test_pages_are_counted_up_to_one_past_the_limit(most: int | None, counted: i
         for _ in range(12):
             writer.write(np.zeros((4, 4), np.uint8))
     with open_tiff(buffer.getvalue(), max_pages=most) as (_, pages):
-        assert pages == counted
+        assert len(pages) == counted
+
+
+def test_reduced_resolution_pages_are_skipped_up_to_a_bound_per_image() -> None:
+    """Thumbnails and pyramid levels (NewSubfileType bit 0) are not images; each is
+    indexed, so an upload of millions of them is refused, not indexed for seconds."""
+    def pyramid(levels: int) -> bytes:
+        buffer = io.BytesIO()
+        with tifffile.TiffWriter(buffer) as writer:
+            writer.write(np.full((8, 8), 5, np.uint8), metadata=None)
+            for _ in range(levels):
+                writer.write(np.zeros((1, 1), np.uint8), subfiletype=1, metadata=None)
+            writer.write(np.full((8, 8), 6, np.uint8), metadata=None)
+        return buffer.getvalue()
+
+    with open_tiff(pyramid(2 * MAX_REDUCED_PAGES)) as (_, pages):
+        assert [int(page_codes(page)[0, 0]) for page in pages] == [5, 6]
+    with pytest.raises(ImageTooLargeError, match="reduced-resolution pages"):
+        with open_tiff(pyramid(2 * MAX_REDUCED_PAGES + 1)):
+            pass
 
 
 def one_row_strips(pages: int, rows: int) -> bytes:
@@ -195,10 +215,10 @@ def test_a_tiff_page_of_too_many_strips_is_refused_before_any_is_decoded() -> No
     """8 million one-row strips of a 2 x 8M frame (32 MB) took 22 s and +2.2 GB to
     decode; the bound is a page's."""
     with open_tiff(one_row_strips(2, 3)) as (tif, pages):
-        assert pages == 2
+        assert len(pages) == 2
         np.testing.assert_array_equal(page_codes(tif.pages[1]), [[7, 9]] * 3)
     with open_tiff(one_row_strips(1, MAX_TIFF_SEGMENTS)) as (_, pages):
-        assert pages == 1
+        assert len(pages) == 1
     too_many = rf"page 0 of the TIFF is stored in {MAX_TIFF_SEGMENTS + 1} strips or tiles"
     with pytest.raises(ImageTooLargeError, match=too_many):
         with open_tiff(one_row_strips(1, MAX_TIFF_SEGMENTS + 1)):
@@ -210,7 +230,7 @@ def test_a_video_of_many_strips_in_all_is_read() -> None:
     but 512 a page (a file of 72 kB: every strip the same 2 bytes)."""
     assert 600 * 512 > MAX_TIFF_SEGMENTS
     with open_tiff(one_row_strips(600, 512)) as (tif, pages):
-        assert pages == 600
+        assert len(pages) == 600
         np.testing.assert_array_equal(page_codes(tif.pages[599]), [[7, 9]] * 512)
 
 

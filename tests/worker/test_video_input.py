@@ -597,6 +597,21 @@ def tiff_pages(*pages: tuple[np.ndarray, SensorParams | None]) -> bytes:
     return buffer.getvalue()
 
 
+def test_a_tiff_videos_thumbnails_are_not_frames() -> None:
+    """A page per frame and a thumbnail of each (NewSubfileType 1) was refused: a
+    thumbnail's size differs from its frame's."""
+    video = codes(3)
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as writer:
+        for index, frame in enumerate(video):
+            description = PARAMS.model_dump_json() if index == 0 else None
+            writer.write(frame, description=description, metadata=None)
+            writer.write(frame[::2, ::2], subfiletype=1, metadata=None)
+    result = decode_video(buffer.getvalue(), "tiff")
+    np.testing.assert_array_equal(result.codes, video)
+    assert result.frames == 3
+
+
 TWELVE_BIT = SensorParams(encoding="modulo", bits=12)
 
 
