@@ -8,7 +8,8 @@ Formats
   frames are refused: store them as TIFF.
 - ``tiff``: ``H x W`` or ``H x W x C`` (decoders take C = 1 or 3: grey or RGB, no
   alpha); the parameters as JSON in the ImageDescription tag. One page of full
-  resolution: reduced-resolution pages (thumbnails) are skipped.
+  resolution: reduced-resolution pages (thumbnails) are skipped. Written in the
+  layout :func:`write_tiff_page` says (``H x W x 1`` as ``H x W``).
 - ``npy``: the codes array only; parameters come from the caller.
 
 Reading merges the stored parameters (parsed by :mod:`models.stored_params`) with
@@ -29,7 +30,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import tifffile
@@ -192,15 +193,7 @@ def encode_frame(codes: NDArray[Any], params: SensorParams | None, fmt: str) -> 
     if fmt == "npy":
         np.save(buffer, arr, allow_pickle=False)
     elif fmt == "tiff":
-        tifffile.imwrite(
-            buffer,
-            arr,
-            photometric="rgb" if arr.ndim == 3 and arr.shape[2] == 3 else "minisblack",
-            planarconfig="contig" if arr.ndim == 3 else None,
-            description=text,
-            metadata=None,
-            compression="zlib",
-        )
+        write_tiff_page(buffer, arr, text)
     else:
         if arr.ndim == 3 and arr.shape[2] == 1:
             arr = arr[:, :, 0]
@@ -216,6 +209,28 @@ def encode_frame(codes: NDArray[Any], params: SensorParams | None, fmt: str) -> 
             info.add_text(PNG_KEYWORD, text)
         Image.fromarray(arr).save(buffer, format="PNG", pnginfo=info)
     return buffer.getvalue()
+
+
+def write_tiff_page(
+    target: str | os.PathLike[str] | BinaryIO, arr: NDArray[Any], description: str | None
+) -> None:
+    """Write ``arr`` (``H x W`` or ``H x W x C``) as one deflate TIFF page, its layout
+    said (tifffile guesses one from the shape, and will guess another): ``H x W x 3``
+    RGB, other ``H x W x C`` grey with extra samples, contiguous; ``H x W x 1`` as the
+    grey ``H x W`` page it is (a 4 x 3 x 1 array was guessed a 3 x 1 image of 4
+    separate planes, and the contiguous layout asked for was refused with a
+    ValueError)."""
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    tifffile.imwrite(
+        target,
+        arr,
+        photometric="rgb" if arr.ndim == 3 and arr.shape[2] == 3 else "minisblack",
+        planarconfig="contig" if arr.ndim == 3 else None,
+        description=description,
+        metadata=None,
+        compression="zlib",
+    )
 
 
 def write_frame(

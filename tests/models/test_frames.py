@@ -488,6 +488,16 @@ def test_a_one_channel_winding_map_is_written_as_a_png(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_winding(tmp_path / "w.png"), winding[:, :, 0])
 
 
+@pytest.mark.parametrize("channels", [1, 2, 4])
+def test_a_tiff_frame_of_one_or_other_channel_counts_is_written(channels: int) -> None:
+    """H x W x 1 codes (an npy frame's, given back as TIFF by a job's result) raised
+    tifffile's ValueError: the contiguous layout asked for does not fit one sample.
+    They come back H x W, one grey page."""
+    codes = random_codes((5, 4, channels), 8)
+    back = decode_frame(encode_frame(codes, PARAMS_8, "tiff"), "tiff")
+    np.testing.assert_array_equal(back.codes, codes[:, :, 0] if channels == 1 else codes)
+
+
 def test_winding_png_refuses_what_it_cannot_hold(tmp_path: Path) -> None:
     for winding in (np.array([[70_000]]), np.array([[-1]]), np.zeros((2, 2, 3), np.int64)):
         with pytest.raises(FormatCannotHoldError, match="tiff or .npy"):

@@ -11,6 +11,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+import tifffile
 from PIL import Image
 
 from models.decoders.registry import get_decoder
@@ -73,6 +74,28 @@ def test_codes_part_gives_back_the_uploaded_codes(client: Client, worker: Worker
     assert reply.status_code == 200
     _, codes = frame_png()
     np.testing.assert_array_equal(decode_frame(reply.content, "tiff").codes, codes)
+
+
+def test_the_tiff_parts_of_an_h_x_w_x_1_frame_are_given(client: Client, worker: Worker) -> None:
+    """An npy frame stored H x W x 1: its codes and W map as TIFF were 500s (tifffile
+    refused the contiguous layout asked for one sample)."""
+    _, codes = frame_png()
+    http = client()
+    reply = http.post(
+        "/v1/reconstructions",
+        files={"file": ("frame.npy", npy_bytes(codes[:, :, None]))},
+        data={"decoder": "itoh", "encoding": "mantissa", "alpha": "2", "bits": "8"},
+        headers={"Prefer": "wait=30"},
+    )
+    assert reply.status_code == 200, reply.text
+    url = f"/v1/jobs/{reply.json()['id']}/result"
+    tiff_codes = http.get(url, params={"part": "codes", "format": "tiff"})
+    assert tiff_codes.status_code == 200, tiff_codes.text
+    np.testing.assert_array_equal(decode_frame(tiff_codes.content, "tiff").codes, codes)
+    tiff_winding = http.get(url, params={"part": "winding", "format": "tiff"})
+    assert tiff_winding.status_code == 200, tiff_winding.text
+    expected = get_decoder("itoh").decode(codes, PARAMS).winding
+    np.testing.assert_array_equal(tifffile.imread(io.BytesIO(tiff_winding.content)), expected)
 
 
 #: 16-bit modulo frames: noise (a few wraps) and a ramp to 1000 wraps, a quarter wrap a step.
