@@ -553,8 +553,9 @@ def winding_format(name: str | os.PathLike[str]) -> str:
 
 
 def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
-    """Write a winding-number map: PNG (16-bit, 0 <= W <= 65535, one channel: H x W x 1
-    as H x W), TIFF or npy by suffix."""
+    """Write a winding-number map by suffix: PNG (16-bit, 0 <= W <= 65535, one
+    channel), TIFF (int64, one page: :func:`write_tiff_page`) or npy; ``H x W x 1`` is
+    written as ``H x W`` in PNG and TIFF."""
     arr = np.asarray(winding)
     if arr.dtype.kind not in "iu":
         raise InvalidInputError(f"winding numbers are integers, got dtype {arr.dtype}")
@@ -570,7 +571,7 @@ def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) ->
             )
         Image.fromarray(arr.astype(np.uint16)).save(path, format="PNG")
     elif fmt == "tiff":
-        tifffile.imwrite(path, arr.astype(np.int64), metadata=None, compression="zlib")
+        write_tiff_page(path, arr.astype(np.int64), None)
     else:
         np.save(path, arr.astype(np.int64), allow_pickle=False)
 

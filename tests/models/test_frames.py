@@ -471,10 +471,13 @@ def test_decode_raw_errors() -> None:
         ("png", np.array([[0, 1], [65535, 7]])),
         ("tiff", np.array([[-3, 70_000], [2**40, 0]])),
         ("npy", np.arange(12).reshape(2, 2, 3)),
-        ("tiff", np.arange(12).reshape(4, 3, 1)),
+        ("tiff", np.arange(36).reshape(4, 3, 3) * 2**33),
     ],
 )
+@pytest.mark.filterwarnings("error")
 def test_winding_round_trip(tmp_path: Path, suffix: str, winding: np.ndarray) -> None:
+    """Without a warning: a colour TIFF W map emitted tifffile's DeprecationWarning that
+    its layout would change (RGB guessed from the shape, unless told)."""
     path = tmp_path / f"w.{suffix}"
     write_winding(path, winding)
     back = read_winding(path)
@@ -482,10 +485,32 @@ def test_winding_round_trip(tmp_path: Path, suffix: str, winding: np.ndarray) ->
     np.testing.assert_array_equal(back, winding)
 
 
-def test_a_one_channel_winding_map_is_written_as_a_png(tmp_path: Path) -> None:
+@pytest.mark.parametrize("suffix", ["png", "tiff"])
+@pytest.mark.filterwarnings("error")
+def test_a_one_channel_winding_map_is_written_as_one_grey_image(
+    tmp_path: Path, suffix: str
+) -> None:
+    """H x W x 1 is written H x W. As TIFF it was a 3 x 1 image of 4 separate planes
+    (tifffile's guess from the shape 4 x 3 x 1, with a DeprecationWarning); other
+    software read it so."""
     winding = np.arange(12).reshape(4, 3, 1)
-    write_winding(tmp_path / "w.png", winding)
-    np.testing.assert_array_equal(read_winding(tmp_path / "w.png"), winding[:, :, 0])
+    write_winding(tmp_path / f"w.{suffix}", winding)
+    np.testing.assert_array_equal(read_winding(tmp_path / f"w.{suffix}"), winding[:, :, 0])
+    if suffix == "tiff":
+        with tifffile.TiffFile(tmp_path / "w.tiff") as tif:
+            (page,) = tif.pages
+            assert page.shape == (4, 3)
+            assert page.photometric == tifffile.PHOTOMETRIC.MINISBLACK
+
+
+@pytest.mark.filterwarnings("error")
+def test_a_colour_winding_tiff_is_one_rgb_page_of_contiguous_samples(tmp_path: Path) -> None:
+    write_winding(tmp_path / "w.tiff", np.arange(36).reshape(4, 3, 3))
+    with tifffile.TiffFile(tmp_path / "w.tiff") as tif:
+        (page,) = tif.pages
+        assert page.shape == (4, 3, 3)
+        assert page.photometric == tifffile.PHOTOMETRIC.RGB
+        assert page.planarconfig == tifffile.PLANARCONFIG.CONTIG
 
 
 @pytest.mark.parametrize("channels", [1, 2, 4])
