@@ -22,14 +22,17 @@ per frame).
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
   :func:`open_tiff` before any is decoded.
 - tifffile inflates a deflate, LZMA or PackBits strip or tile whole before it cuts out
-  the rows the page needs: :func:`page_codes` refuses a segment that inflates past what
-  it holds, inflating it only that far (LZMA: all its streams together, as tifffile
-  reads them), an LZMA one whose decoder asks for more than :data:`LZMA_MEMORY_LIMIT`,
-  and tiles far larger than their page, before decoding.
+  the rows the page needs: :func:`page_codes` refuses tiles far larger than their page
+  before decoding, and inflates each segment itself, once, as tifffile would (LZMA: all
+  its streams together), but only as far as the segment holds: one that inflates past
+  it, or an LZMA one whose decoder asks for more than :data:`LZMA_MEMORY_LIMIT`, is
+  refused; tifffile decodes the inflated bytes as an uncompressed segment's (unpacking,
+  predictor, padding).
 """
 
 from __future__ import annotations
 
+import copy
 import io
 import itertools
 import logging
@@ -224,59 +227,160 @@ class _LzmaMemoryExceeded(Exception):
     """An LZMA stream's decoder needs more than :data:`LZMA_MEMORY_LIMIT`."""
 
 
-def _deflated(data: bytes, most: int) -> int | None:
-    """Bytes the deflate stream of ``data`` inflates to, counted to ``most + 1`` at most
-    (tifffile's ``zlib.decompress`` reads one stream); None if it does not inflate."""
-    try:
-        return len(zlib.decompressobj().decompress(data, most + 1))
-    except zlib.error:
-        return None
+class _PastBound(Exception):
+    """A segment inflates past the bytes it holds."""
 
 
-def _lzma_inflated(data: bytes, most: int) -> int | None:
-    """Bytes the LZMA streams of ``data`` inflate to, counted to ``most + 1`` at most,
-    read as tifffile's ``lzma.decompress`` reads them: stream after stream (two streams
-    of 4 KiB and 256 MiB, 40 KB in all, were checked as 4 KiB, then inflated whole),
-    up to data that is not one. None if the first does not inflate.
+def _inflate_deflate(data: bytes, most: int) -> bytes:
+    """The deflate stream of ``data`` inflated, as tifffile's ``zlib.decompress`` reads
+    it (one stream, data after it ignored), but only to ``most + 1`` bytes:
+    :class:`_PastBound` past ``most``, :class:`zlib.error` as that raises when it does
+    not inflate."""
+    stream = zlib.decompressobj()
+    inflated = stream.decompress(data, most + 1)
+    if len(inflated) > most:
+        raise _PastBound
+    if not stream.eof:
+        raise zlib.error("Error -5 while decompressing data: incomplete or truncated stream")
+    return inflated
+
+
+def _inflate_lzma(data: bytes, most: int) -> bytes:
+    """The LZMA streams of ``data`` inflated, read as tifffile's ``lzma.decompress``
+    reads them: stream after stream (two streams of 4 KiB and 256 MiB, 40 KB in all, were
+    checked as 4 KiB, then inflated whole), up to data that is not one; but only to
+    ``most + 1`` bytes in all (:class:`_PastBound` past ``most``).
     :class:`_LzmaMemoryExceeded` if a stream's decoder needs more than
-    :data:`LZMA_MEMORY_LIMIT`."""
-    inflated = 0
-    first = True
-    while data and inflated <= most:
+    :data:`LZMA_MEMORY_LIMIT`; :class:`lzma.LZMAError` as ``lzma.decompress`` raises
+    when the first does not inflate or one is cut short."""
+    parts: list[bytes] = []
+    size = 0
+    while True:
         stream = lzma.LZMADecompressor(memlimit=LZMA_MEMORY_LIMIT)
         try:
-            inflated += len(stream.decompress(data, most + 1 - inflated))
+            part = stream.decompress(data, most + 1 - size)
         except lzma.LZMAError as exc:
             if str(exc) == _LZMA_MEMORY_EXCEEDED:
                 raise _LzmaMemoryExceeded from None
-            return None if first else inflated
+            if parts:  # data after the streams: ignored, as lzma.decompress does
+                break
+            raise
+        parts.append(part)
+        size += len(part)
+        if size > most:
+            raise _PastBound
         if not stream.eof:
+            raise lzma.LZMAError(
+                "Compressed data ended before the end-of-stream marker was reached"
+            )
+        data = stream.unused_data
+        if not data:
             break
-        data, first = stream.unused_data, False
-    return inflated
+    return b"".join(parts)
 
 
-def _packbits_inflated(data: bytes, most: int) -> int:
-    """Bytes the PackBits runs of ``data`` decode to, counted to ``most + 1`` at most:
-    tifffile decodes a PackBits segment whole, in Python, into a list of 8 bytes an
+def _unpack_bits(data: bytes, most: int) -> bytes:
+    """The PackBits runs of ``data`` decoded, as tifffile decodes them (a run cut short
+    gives what is there), but only to ``most + 1`` bytes (:class:`_PastBound` past
+    ``most``): tifffile decodes a segment whole, in Python, into a list of 8 bytes an
     output byte (a 64 x 64 frame's one strip of 2 MB held 1.2 GB). Data longer than
-    twice ``most`` counts as past it unread: every run (but a no-op header, which no
-    writer emits) decodes to at least half its length, and a strip of no-op headers
-    decodes to nothing after a Python step a byte."""
+    twice ``most`` is past it unread: every run (but a no-op header, which no writer
+    emits) decodes to at least half its length, and a strip of no-op headers decodes to
+    nothing after a Python step a byte."""
     if len(data) > 2 * most:
-        return most + 1
-    inflated = position = 0
-    while position < len(data) and inflated <= most:
+        raise _PastBound
+    unpacked = bytearray()
+    position = 0
+    while position < len(data) and len(unpacked) <= most:
         header = data[position]
         if header < 128:  # a literal run of header + 1 bytes
-            inflated += min(header + 1, len(data) - position - 1)
+            unpacked += data[position + 1 : position + header + 2]
             position += header + 2
         elif header > 128:  # one byte repeated 257 - header times
-            inflated += 257 - header if position + 1 < len(data) else 0
+            unpacked += data[position + 1 : position + 2] * (257 - header)
             position += 2
         else:  # a no-op
             position += 1
-    return inflated
+    if len(unpacked) > most:
+        raise _PastBound
+    return bytes(unpacked)
+
+
+#: Each byte with its bits in reverse order, by byte value: tifffile reverses the bits of
+#: a FillOrder 2 page's segments so before it inflates them.
+_REVERSED_BITS = bytes(int(f"{value:08b}"[::-1], 2) for value in range(256))
+
+#: The inflaters (:func:`_inflate_deflate`, :func:`_inflate_lzma`, :func:`_unpack_bits`)
+#: by TIFF code, for the compressions tifffile inflates without bound (each segment
+#: whole, past its size): deflate (8, and its old code), LZMA and PackBits.
+_INFLATERS: dict[int, Callable[[bytes, int], bytes]] = {
+    8: _inflate_deflate,
+    32946: _inflate_deflate,
+    34925: _inflate_lzma,
+    32773: _unpack_bits,
+}
+
+
+def check_segment_sizes(page: tifffile.TiffPage) -> None:
+    """Refuse ``page`` (:class:`ImageTooLargeError`) when its strips or tiles hold more
+    than :data:`SEGMENT_SLACK` times its own bytes (and 1 MiB): a 16 x 16 page in one
+    65536 x 65536 tile could inflate to 4 GiB within the bound of the tile's size."""
+    kind, size, samples = _segment_samples(page)
+    most = samples * _sample_bytes(page)
+    page_bytes = int(np.prod(page.shape, dtype=np.int64)) * _sample_bytes(page)
+    if len(page.dataoffsets) * most > SEGMENT_SLACK * page_bytes + SEGMENT_SLACK_FLOOR:
+        raise ImageTooLargeError(
+            f"the TIFF page of {page_bytes} bytes is stored in {len(page.dataoffsets)} "
+            f"{kind}s of {size} samples ({most} bytes each), far more than it holds; re-save "
+            f"it with {kind}s no larger than the image"
+        )
+
+
+def _stored_plain(page: tifffile.TiffPage) -> tifffile.TiffPage:
+    """``page`` as if its strips or tiles were stored uncompressed, in FillOrder 1:
+    tifffile's decoding of such a page (unpacking, predictor, tiles' padding) is what
+    an inflated segment still needs."""
+    plain = copy.copy(page)
+    plain.compression = tifffile.COMPRESSION.NONE
+    plain.fillorder = 1
+    for cached in ("decode", "hash"):  # tifffile's, computed from the two just set
+        plain.__dict__.pop(cached, None)
+    return plain
+
+
+def _inflated_once(page: tifffile.TiffPage, inflate: Callable[[bytes, int], bytes]) -> NDArray[Any]:
+    """``page``'s samples as tifffile gives them, each strip or tile inflated once by
+    ``inflate``, as tifffile would inflate it (a FillOrder 2 segment with its bits
+    reversed), but refused (:class:`ImageTooLargeError`) past the bytes it holds (a 64 x
+    64 frame's one deflate strip of 522 KB inflated 512 MiB at once in tifffile), or
+    when its LZMA decoder needs more than :data:`LZMA_MEMORY_LIMIT`. The bound was
+    checked by inflating each segment before tifffile inflated it again: a 4096 x 4096
+    deflate frame took 275 ms to read instead of 140."""
+    kind, size, samples = _segment_samples(page)
+    most = samples * _sample_bytes(page)
+    decode_plain = _stored_plain(page).decode
+    reversed_bits = page.fillorder == 2
+
+    def decode(data: bytes | None, index: int, **options: Any) -> Any:
+        if data is None:  # an empty segment: tifffile fills it
+            return decode_plain(data, index, **options)
+        try:
+            inflated = inflate(data.translate(_REVERSED_BITS) if reversed_bits else data, most)
+        except _LzmaMemoryExceeded:
+            raise _lzma_memory_error(f"{kind} {index}") from None
+        except _PastBound:
+            raise ImageTooLargeError(
+                f"{kind} {index} of the TIFF page inflates past the {most} bytes a {kind} "
+                f"of {size} samples holds; send the frame as written, without data after "
+                "its pixels"
+            ) from None
+        return decode_plain(inflated, index, **options)
+
+    page.__dict__["decode"] = decode  # tifffile's asarray decodes each segment with it
+    try:
+        return page.asarray()
+    finally:
+        del page.__dict__["decode"]
 
 
 def _lzma_memory_error(where: str) -> ImageTooLargeError:
@@ -287,58 +391,6 @@ def _lzma_memory_error(where: str) -> ImageTooLargeError:
         f"than {LZMA_MEMORY_LIMIT >> 20} MiB to decode; re-save it with deflate, or with "
         "LZMA at one of its presets (0 to 9: the largest needs 65 MiB)"
     )
-
-
-#: Each byte with its bits in reverse order, by byte value: tifffile reverses the bits of
-#: a FillOrder 2 page's segments so before it inflates them.
-_REVERSED_BITS = bytes(int(f"{value:08b}"[::-1], 2) for value in range(256))
-
-#: How far a segment inflates (:func:`_deflated`, :func:`_lzma_inflated`,
-#: :func:`_packbits_inflated`), by TIFF code, for the compressions tifffile inflates
-#: without bound (each segment whole, past its size): deflate (8, and its old code),
-#: LZMA and PackBits.
-_STREAMED: dict[int, Callable[[bytes, int], int | None]] = {
-    8: _deflated,
-    32946: _deflated,
-    34925: _lzma_inflated,
-    32773: _packbits_inflated,
-}
-
-
-def check_inflation(page: tifffile.TiffPage) -> None:
-    """Refuse ``page`` (:class:`ImageTooLargeError`) when its strips or tiles hold more
-    than :data:`SEGMENT_SLACK` times its own bytes (and 1 MiB), or one of them inflates
-    past the bytes it holds; each is inflated only that far (a 64 x 64 frame's one
-    deflate strip of 522 KB inflated 512 MiB at once in tifffile), as tifffile inflates
-    it (a FillOrder 2 segment with its bits reversed). A segment that does
-    not inflate is left to tifffile's decoding, which reports it as damaged."""
-    kind, size, samples = _segment_samples(page)
-    most = samples * _sample_bytes(page)
-    page_bytes = int(np.prod(page.shape, dtype=np.int64)) * _sample_bytes(page)
-    if len(page.dataoffsets) * most > SEGMENT_SLACK * page_bytes + SEGMENT_SLACK_FLOOR:
-        raise ImageTooLargeError(
-            f"the TIFF page of {page_bytes} bytes is stored in {len(page.dataoffsets)} "
-            f"{kind}s of {size} samples ({most} bytes each), far more than it holds; re-save "
-            f"it with {kind}s no larger than the image"
-        )
-    inflated_size = _STREAMED.get(int(page.compression))
-    if inflated_size is None:
-        return
-    segments = page.parent.filehandle.read_segments(page.dataoffsets, page.databytecounts)
-    for data, index in segments:
-        stored = data or b""
-        try:
-            inflated = inflated_size(
-                stored.translate(_REVERSED_BITS) if page.fillorder == 2 else stored, most
-            )
-        except _LzmaMemoryExceeded:
-            raise _lzma_memory_error(f"{kind} {index}") from None
-        if inflated is not None and inflated > most:
-            raise ImageTooLargeError(
-                f"{kind} {index} of the TIFF page inflates past the {most} bytes a {kind} "
-                f"of {size} samples holds; send the frame as written, without data after "
-                "its pixels"
-            )
 
 
 #: The compressions :func:`page_codes` reads, by TIFF code, with their names in messages.
@@ -374,8 +426,9 @@ def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     Raises :class:`UnsupportedFormatError` for a compression not accepted
     (:func:`check_compression`)."""
     check_compression(int(page.compression))
-    check_inflation(page)
-    codes = page.asarray()
+    check_segment_sizes(page)
+    inflate = _INFLATERS.get(int(page.compression))
+    codes = page.asarray() if inflate is None else _inflated_once(page, inflate)
     if codes.dtype == np.bool_:
         codes = codes.astype(np.uint8)
     return np.moveaxis(codes, 0, -1) if _separate(page) else codes

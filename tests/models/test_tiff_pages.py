@@ -117,13 +117,16 @@ RGB = np.arange(64 * 48 * 3, dtype=np.uint8).reshape(64, 48, 3)
         lambda codes: tiff(codes, compression="zlib"),
         lambda codes: tiff(codes, compression="deflate"),
         lambda codes: tiff(codes, compression="lzma"),
+        lambda codes: tiff(codes, compression="zlib", predictor=True),
+        lambda codes: tiff(codes, compression="lzma", tile=(16, 16)),
         lambda codes: pillow_tiff(codes, "raw"),
         lambda codes: pillow_tiff(codes, "tiff_adobe_deflate"),
         lambda codes: pillow_tiff(codes, "tiff_deflate"),
         lambda codes: pillow_tiff(codes, "lzma"),
         lambda codes: pillow_tiff(codes, "packbits"),
     ],
-    ids=["none", "zlib", "deflate", "lzma", "pillow-raw", "pillow-adobe-deflate",
+    ids=["none", "zlib", "deflate", "lzma", "zlib-predictor", "lzma-tiles", "pillow-raw",
+         "pillow-adobe-deflate",
          "pillow-deflate", "pillow-lzma", "pillow-packbits"],
 )
 def test_every_accepted_compression_is_read(
@@ -131,6 +134,41 @@ def test_every_accepted_compression_is_read(
 ) -> None:
     with open_tiff(write(codes)) as (tif, _):
         np.testing.assert_array_equal(page_codes(tif.pages.first), codes)
+
+
+def test_a_compressed_page_is_inflated_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each deflate strip was inflated twice: to check that it holds no more than its
+    rows, then again by tifffile (a 4096 x 4096 frame read in 275 ms instead of 140)."""
+    inflated: list[int] = []
+    real_decompress, real_decompressobj = zlib.decompress, zlib.decompressobj
+
+    def decompress(data: bytes, *args: int) -> bytes:
+        inflated.append(len(out := real_decompress(data, *args)))
+        return out
+
+    class Counted:
+        def __init__(self) -> None:
+            self.stream = real_decompressobj()
+
+        def decompress(self, data: bytes, max_length: int = 0) -> bytes:
+            inflated.append(len(out := self.stream.decompress(data, max_length)))
+            return out
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self.stream, name)
+
+    monkeypatch.setattr(zlib, "decompress", decompress)
+    monkeypatch.setattr(zlib, "decompressobj", Counted)
+    with open_tiff(tiff(GREY, compression="zlib", rowsperstrip=16)) as (tif, _):
+        np.testing.assert_array_equal(page_codes(tif.pages.first), GREY)
+    assert sum(inflated) == GREY.nbytes
+
+
+def test_a_cut_short_deflate_strip_is_damage() -> None:
+    blank = tiff(np.zeros((64, 64), np.uint8), compression="zlib")
+    cut = with_one_segment(blank, zlib.compress(bytes(64 * 64))[:-8])
+    with open_tiff(cut) as (tif, _), pytest.raises(zlib.error, match="truncated"):
+        page_codes(tif.pages.first)
 
 
 @pytest.mark.parametrize(
