@@ -585,6 +585,24 @@ def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
         return decode_winding(data, content_first(data, fmt, FRAME_MAGICS).format)
 
 
+#: The W maps :func:`decode_winding` reads, in its messages.
+_WRITTEN_W = "the W map that mcam reconstruct --winding-out or mcam simulate --ground-truth wrote"
+
+
+def _tiff_winding(data: bytes) -> tuple[NDArray[Any], bool]:
+    """The samples of a TIFF W map's one page, read as a frame's are (its compression
+    named when not read, its inflation bounded, thumbnails skipped), and whether it
+    stores sensor parameters (a wrapped frame's TIFF)."""
+    with open_tiff(data, max_pages=1) as (_, pages):
+        if len(pages) > 1:
+            raise InvalidInputError(
+                f"the TIFF holds more than one page of full resolution and a W map is one: "
+                f"give {_WRITTEN_W}"
+            )
+        (page,) = pages
+        return page_codes(page), bool(tiff_params(page.description))
+
+
 def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
     """A winding-number map (int64) from the bytes of a ``png``, ``tiff`` or ``npy``
     file as :func:`write_winding` writes them. A PNG or TIFF that stores sensor
@@ -595,16 +613,13 @@ def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
             image = Image.open(io.BytesIO(data), formats=["PNG"])
             arr, frame = png_samples(image, data), PNG_KEYWORD in image.text
         elif fmt == "tiff":
-            with tifffile.TiffFile(io.BytesIO(data)) as tif:
-                arr, frame = tif.asarray(), bool(tiff_params(tif.pages.first.description))
-            if arr.dtype == np.bool_:  # a 1-bit map: tifffile gives booleans
-                arr = arr.astype(np.uint8)
+            arr, frame = _tiff_winding(data)
         else:
             arr, frame = load_npy(data), False
     if frame:
         raise InvalidInputError(
-            "this is a wrapped frame (it stores sensor parameters), not a winding map: give "
-            "the W map that mcam reconstruct --winding-out or mcam simulate --ground-truth wrote"
+            f"this is a wrapped frame (it stores sensor parameters), not a winding map: give "
+            f"{_WRITTEN_W}"
         )
     if arr.dtype.kind not in "iu":
         raise InvalidInputError(f"a winding map holds integers, got dtype {arr.dtype}")

@@ -252,6 +252,27 @@ def test_a_1_bit_tiff_winding_map_is_read_as_0_and_1() -> None:
     np.testing.assert_array_equal(winding, values)
 
 
+def test_a_tiff_winding_map_is_read_as_strictly_as_a_tiff_frame() -> None:
+    """An LZW W map was 'truncated or corrupt (... requires the imagecodecs package)',
+    and two pages were stacked into a W map of shape 2 x H x W; its thumbnail is
+    skipped, as a frame's."""
+    winding = random_codes((8, 8), 4)
+    buffer = io.BytesIO()
+    Image.fromarray(winding).save(buffer, "TIFF", compression="tiff_lzw")
+    with pytest.raises(UnsupportedFormatError, match=r"compression LZW \(5\).*deflate"):
+        decode_winding(buffer.getvalue(), "tiff")
+    for thumbnail in (True, False):
+        buffer = io.BytesIO()
+        with tifffile.TiffWriter(buffer) as tif:
+            tif.write(winding, metadata=None)
+            tif.write(winding[::2, ::2], subfiletype=int(thumbnail), metadata=None)
+        if thumbnail:
+            np.testing.assert_array_equal(decode_winding(buffer.getvalue(), "tiff"), winding)
+        else:
+            with pytest.raises(InvalidInputError, match="more than one page.*--winding-out"):
+                decode_winding(buffer.getvalue(), "tiff")
+
+
 def test_a_winding_map_of_another_format_is_refused_as_a_w_map(tmp_path: Path) -> None:
     """It was "unsupported wrapped-frame format 'w.exr'; use one of: .png (grayscale),
     .tiff/.tif (grey or RGB), .npy": the W map called a wrapped frame."""
