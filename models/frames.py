@@ -589,6 +589,19 @@ def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
 _WRITTEN_W = "the W map that mcam reconstruct --winding-out or mcam simulate --ground-truth wrote"
 
 
+def _check_grey_winding(mode: str) -> None:
+    """Refuse a PNG W map of the Pillow ``mode`` when it is not grey: mcam writes W as
+    16-bit grey, and the API's colour-coded W preview (RGB) shows W modulo its palette,
+    whose colours were read as winding numbers."""
+    if mode not in _PNG_MODES:
+        raise UnsupportedFormatError(
+            f"a PNG W map is grey (16-bit, as mcam writes it) and this PNG is {mode}: a "
+            "colour-coded preview (GET /v1/jobs/{id}/result?part=winding&format=png) shows "
+            "W, it does not store it; ask for format=npy or format=tiff, or give "
+            f"{_WRITTEN_W}"
+        )
+
+
 def _tiff_winding(data: bytes) -> tuple[NDArray[Any], bool]:
     """The samples of a TIFF W map's one page, read as a frame's are (its compression
     named when not read, its inflation bounded, thumbnails skipped), and whether it
@@ -611,6 +624,7 @@ def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
     with decoding(f"the {fmt.upper()} winding map"):
         if fmt == "png":
             image = Image.open(io.BytesIO(data), formats=["PNG"])
+            _check_grey_winding(image.mode)
             arr, frame = png_samples(image, data), PNG_KEYWORD in image.text
         elif fmt == "tiff":
             arr, frame = _tiff_winding(data)

@@ -273,6 +273,15 @@ def test_a_tiff_winding_map_is_read_as_strictly_as_a_tiff_frame() -> None:
                 decode_winding(buffer.getvalue(), "tiff")
 
 
+def test_a_colour_png_is_not_taken_for_a_winding_map() -> None:
+    """The API's colour-coded W preview (an RGB PNG) was read as a W map of 3 channels:
+    its palette's colours compared with a colour frame's W as winding numbers."""
+    preview = io.BytesIO()
+    Image.fromarray(random_codes((4, 4, 3), 8)).save(preview, format="PNG")
+    with pytest.raises(UnsupportedFormatError, match="PNG is RGB.*format=npy"):
+        decode_winding(preview.getvalue(), "png")
+
+
 def test_a_winding_map_of_another_format_is_refused_as_a_w_map(tmp_path: Path) -> None:
     """It was "unsupported wrapped-frame format 'w.exr'; use one of: .png (grayscale),
     .tiff/.tif (grey or RGB), .npy": the W map called a wrapped frame."""
