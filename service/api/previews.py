@@ -35,7 +35,10 @@ HISTOGRAM_BINS = 64
 
 
 def png_bytes(pixels: NDArray[np.uint8]) -> bytes:
-    """An 8-bit PNG (gray for H x W, RGB for H x W x 3)."""
+    """An 8-bit PNG (grey for H x W, and for the H x W x 1 of a frame stored so, which
+    Pillow makes no image of; RGB for H x W x 3)."""
+    if pixels.ndim == 3 and pixels.shape[2] == 1:
+        pixels = pixels[:, :, 0]
     buffer = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(pixels)).save(buffer, format="PNG")
     return buffer.getvalue()

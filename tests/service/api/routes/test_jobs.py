@@ -76,11 +76,9 @@ def test_codes_part_gives_back_the_uploaded_codes(client: Client, worker: Worker
     np.testing.assert_array_equal(decode_frame(reply.content, "tiff").codes, codes)
 
 
-def test_the_tiff_parts_of_an_h_x_w_x_1_frame_are_given(client: Client, worker: Worker) -> None:
-    """An npy frame stored H x W x 1: its codes and W map as TIFF were 500s (tifffile
-    refused the contiguous layout asked for one sample)."""
+def one_channel_job(http: httpx.Client) -> str:
+    """The result URL of a job of :func:`frame_png`'s codes sent as an H x W x 1 npy."""
     _, codes = frame_png()
-    http = client()
     reply = http.post(
         "/v1/reconstructions",
         files={"file": ("frame.npy", npy_bytes(codes[:, :, None]))},
@@ -88,7 +86,15 @@ def test_the_tiff_parts_of_an_h_x_w_x_1_frame_are_given(client: Client, worker: 
         headers={"Prefer": "wait=30"},
     )
     assert reply.status_code == 200, reply.text
-    url = f"/v1/jobs/{reply.json()['id']}/result"
+    return f"/v1/jobs/{reply.json()['id']}/result"
+
+
+def test_the_tiff_parts_of_an_h_x_w_x_1_frame_are_given(client: Client, worker: Worker) -> None:
+    """An npy frame stored H x W x 1: its codes and W map as TIFF were 500s (tifffile
+    refused the contiguous layout asked for one sample)."""
+    _, codes = frame_png()
+    http = client()
+    url = one_channel_job(http)
     tiff_codes = http.get(url, params={"part": "codes", "format": "tiff"})
     assert tiff_codes.status_code == 200, tiff_codes.text
     np.testing.assert_array_equal(decode_frame(tiff_codes.content, "tiff").codes, codes)
@@ -96,6 +102,21 @@ def test_the_tiff_parts_of_an_h_x_w_x_1_frame_are_given(client: Client, worker: 
     assert tiff_winding.status_code == 200, tiff_winding.text
     expected = get_decoder("itoh").decode(codes, PARAMS).winding
     np.testing.assert_array_equal(tifffile.imread(io.BytesIO(tiff_winding.content)), expected)
+
+
+def test_the_png_previews_of_an_h_x_w_x_1_frame_are_given(client: Client, worker: Worker) -> None:
+    """The codes preview of an npy frame stored H x W x 1 (the viewer asks for it for
+    every job) was a 500: Pillow makes no image of H x W x 1 samples."""
+    _, codes = frame_png()
+    http = client()
+    url = one_channel_job(http)
+    for part in ("codes", "image", "winding"):
+        reply = http.get(url, params={"part": part, "format": "png"})
+        assert reply.status_code == 200, (part, reply.text)
+    preview = np.asarray(Image.open(io.BytesIO(reply.content)))
+    assert preview.shape == (*codes.shape, 3)
+    grey = np.asarray(Image.open(io.BytesIO(http.get(url, params={"part": "codes"}).content)))
+    assert grey.shape == codes.shape
 
 
 #: 16-bit modulo frames: noise (a few wraps) and a ramp to 1000 wraps, a quarter wrap a step.
