@@ -311,6 +311,8 @@ class DeviceDaemon:
         self._thread: threading.Thread | None = None
         #: Why the daemon stopped on its own (another daemon keeps the device), or None.
         self.failure: McamError | None = None
+        #: The unexpected error (a bug) the daemon stopped on, or None (:meth:`run`).
+        self.crash: Exception | None = None
         self._last_sequence: int | None = None
         self._discont = True
         self._connected_once = False
@@ -515,27 +517,38 @@ class DeviceDaemon:
         self.health.state = "disconnected"
 
     def run(self) -> None:
-        """Read, parse and publish until :meth:`stop`, reconnecting as needed."""
+        """Read, parse and publish until :meth:`stop`, reconnecting as needed. An error
+        the link's loops do not expect (a bug) ends it as a stop does, logged once with
+        its traceback and kept in :attr:`crash`: it went to threading's excepthook, and
+        ``mcam device`` exited 0 as if stopped, so nothing restarted it."""
         self.publisher.start()
         try:
-            while not self._stop.is_set():
-                port = self._open()
-                if port is None:
-                    break
-                try:
-                    self._pump(port)
-                except (serial.SerialException, OSError) as exc:
-                    log.warning("link %s lost: %s", self.config.port, exc)
-                finally:
-                    with contextlib.suppress(Exception):
-                        port.close()
-                    self._link_lost()
+            self._serve_links()
+        except Exception as exc:
+            log.exception("device %s: the daemon stopped on an unexpected error; %s is no "
+                          "longer read", self.device, self.config.port)
+            self.crash = exc
         finally:
             self.health.state = "stopped"  # the publisher's last health write says so
             self.publisher.stop()
             with contextlib.suppress(redis.RedisError, OSError):
                 self.claim.release()
             self._finished.set()
+
+    def _serve_links(self) -> None:
+        """Open the port and read it, again after each link lost, until :meth:`stop`."""
+        while not self._stop.is_set():
+            port = self._open()
+            if port is None:
+                return
+            try:
+                self._pump(port)
+            except (serial.SerialException, OSError) as exc:
+                log.warning("link %s lost: %s", self.config.port, exc)
+            finally:
+                with contextlib.suppress(Exception):
+                    port.close()
+                self._link_lost()
 
     def _fail(self, error: McamError) -> None:
         """Stop on the publisher's failure (another daemon holds the device's claim)."""
@@ -554,7 +567,8 @@ class DeviceDaemon:
         self._stop.set()
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        """Wait until :meth:`run` has ended (stopped, or :attr:`failure`); True if it has."""
+        """Wait until :meth:`run` has ended (stopped, :attr:`failure` or :attr:`crash`);
+        True if it has."""
         return self._finished.wait(timeout_s)
 
     def stop(self, timeout_s: float = 10.0) -> None:

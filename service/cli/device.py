@@ -9,13 +9,16 @@ Usage::
 Without ``MCAM_REDIS_URL`` it uses the embedded Redis of the data dir (started
 by ``mcam serve`` or ``mcam api``). Bracketed reference pairs go to
 ``<data dir>/datasets/<device>/``, at most ``MCAM_DATASET_MAX_PAIRS`` of them and
-``MCAM_DATASET_MAX_BYTES`` in all (the oldest are removed). SIGTERM / Ctrl-C stop it.
+``MCAM_DATASET_MAX_BYTES`` in all (the oldest are removed). SIGTERM / Ctrl-C stop it
+(exit 0); another daemon of the device stops it with exit 2, an unexpected error (a bug,
+logged with its traceback) with exit 1.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import sys
 
 import redis
 
@@ -27,6 +30,10 @@ from service.cli.worker import redis_url_for
 from service.core.config import get_settings
 from worker.embedded_redis import connect
 from worker.redis_keys import validate_device_id
+
+#: Exit status of a daemon that stopped on an unexpected error (2 is a caller's mistake):
+#: a service manager restarts it, as it does not one stopped by a signal (0).
+CRASHED = 1
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -62,4 +69,16 @@ def run(args: argparse.Namespace) -> int:
         daemon.wait()
     if daemon.failure is not None:  # another daemon took the device once Redis answered
         raise daemon.failure
+    if daemon.crash is not None:
+        print(f"mcam device: error: {crash_message(device, daemon.crash)}", file=sys.stderr)
+        return CRASHED
     return 0
+
+
+def crash_message(device: str, crash: Exception) -> str:
+    """One line for a daemon that stopped on an unexpected error (a bug; the log holds its
+    traceback), saying what to do."""
+    reason = " ".join(str(crash).split())  # on one line
+    return (f"the daemon of device {device!r} stopped on an unexpected error "
+            f"({type(crash).__name__}: {reason}); the log above has its traceback: please "
+            "report it, and restart mcam device")

@@ -963,3 +963,42 @@ def test_a_server_that_does_not_speak_rfc2217_is_named_with_what_to_do(
         finally:
             daemon.stop()
     assert crashes == []
+
+
+
+def not_a_client_mistake(*_args: object) -> None:
+    """A bug of the daemon's, where it does not expect one."""
+    raise RuntimeError("not a client mistake")
+
+
+def loop_port_with_a_byte() -> serial.Serial:
+    """A loop:// port with one byte to read."""
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    port.write(b"\0")
+    return port
+
+
+@pytest.mark.parametrize("where", ["opener", "parser"])
+def test_an_unexpected_error_stops_the_daemon_logged_once_and_kept(
+        client: redis.Redis, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch, where: str) -> None:
+    """A bug in the link's loops (here a port opener or a parser that raises) went to
+    threading's excepthook, and the daemon looked stopped as by a stop (no failure): its
+    command exited 0. It is now logged once with its traceback and kept in ``crash``;
+    the health says stopped, and the thread ends without an uncaught exception."""
+    uncaught: list[threading.ExceptHookArgs] = []
+    monkeypatch.setattr(threading, "excepthook", uncaught.append)
+    opener = not_a_client_mistake if where == "opener" else loop_port_with_a_byte
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client, opener=opener)
+    monkeypatch.setattr(daemon._parser, "feed", not_a_client_mistake)
+    with caplog.at_level(logging.ERROR, logger="device.daemon"):
+        daemon.start()
+        assert daemon.wait(30)
+        daemon.stop()
+    assert isinstance(daemon.crash, RuntimeError) and daemon.failure is None
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert [r.getMessage() for r in errors] == [
+        "device cam9: the daemon stopped on an unexpected error; loop:// is no longer read"]
+    assert errors[0].exc_info is not None
+    assert uncaught == []
+    assert health(client, "cam9")["state"] == "stopped"

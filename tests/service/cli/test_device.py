@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -133,6 +134,37 @@ def test_of_two_daemons_started_while_redis_is_down_the_second_exits_once_it_is_
             if run.poll() is None:
                 run.send_signal(signal.SIGTERM)
     assert runs[1 - loser].wait(20) == 0
+
+
+#: ``mcam device`` on loop:// as the console script runs it, with pyserial's open raising
+#: what it never does: a bug in the daemon's thread.
+BROKEN_OPEN = """
+import sys, serial
+def broken(*args, **kwargs):
+    raise RuntimeError("not a client mistake")
+serial.serial_for_url = broken
+from service.cli.main import main
+sys.exit(main(["device", "--port", "loop://", "--device-id", "rig-1"]))
+"""
+
+
+def test_a_daemon_that_stops_on_an_unexpected_error_exits_1_with_one_line(
+        redis_server: EmbeddedRedis, client: redis.Redis, tmp_path: Path) -> None:
+    """threading printed the traceback and ``mcam device`` exited 0, as if stopped: a
+    service manager would not restart it. The log has the traceback once, then one line
+    says what happened and what to do; exit 1, and the last health says stopped."""
+    env = env_for(redis_server.url, tmp_path / "data")
+    done = subprocess.run([sys.executable, "-c", BROKEN_OPEN], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=120)
+    assert done.returncode == 1, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert lines[-1] == (
+        "mcam device: error: the daemon of device 'rig-1' stopped on an unexpected error "
+        "(RuntimeError: not a client mistake); the log above has its traceback: please "
+        "report it, and restart mcam device")
+    assert done.stderr.count("Traceback") == 1, done.stderr
+    assert "the daemon stopped on an unexpected error; loop:// is no longer read" in done.stderr
+    assert health(client, "rig-1")["state"] == "stopped"
 
 
 @pytest.mark.parametrize("start", range(3))
