@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import parse_qs, urlsplit
 
 import redis
 import serial
@@ -61,6 +61,9 @@ DAMAGE_CAUSES = ("bad_header", "oversize", "bad_crc", "truncated")
 #: What pyserial's ``rfc2217://`` open says when the server did not negotiate RFC 2217
 #: (Telnet binary mode and the COM port option) within its timeout.
 RFC2217_UNANSWERED = "Remote does not seem to support RFC2217"
+#: Most seconds an ``rfc2217://`` URL's ``timeout`` may give the server to answer: a stop
+#: waits for an open in progress, which negotiation bounds by it.
+MAX_RFC2217_TIMEOUT_S = 60.0
 #: Most bytes taken from the port in one read.
 MAX_READ = 1 << 20
 #: While the port stays closed, a warning every this many failed attempts (about a
@@ -128,6 +131,27 @@ def check_url_options(url: str, scheme: str) -> None:
             "?logging=debug, info, warning or error (rfc2217:// also ign_set_control, "
             "poll_modem and timeout=SECONDS), or none"
         ) from None
+    if scheme == "rfc2217":
+        check_rfc2217_timeout(url)
+
+
+def check_rfc2217_timeout(url: str) -> None:
+    """Refuse an ``rfc2217://`` URL's ``timeout`` (seconds the server has to answer
+    negotiation and each control request) that is not above 0 and at most
+    :data:`MAX_RFC2217_TIMEOUT_S`: pyserial takes any float, and at 0 or below (or nan)
+    every open failed as unanswered ("did not answer ... in time", retried for good),
+    while inf never ends the wait for a server that does not negotiate (nor a stop
+    meanwhile). pyserial reads the first value given."""
+    values = parse_qs(urlsplit(url).query, keep_blank_values=True).get("timeout")
+    if not values:
+        return
+    timeout_s = float(values[0])  # a number: pyserial's parser took it
+    if not 0 < timeout_s <= MAX_RFC2217_TIMEOUT_S:
+        raise InvalidInputError(
+            f"bad option in port URL {url!r}: timeout={values[0]} is out of range; give "
+            f"?timeout=SECONDS above 0 and at most {MAX_RFC2217_TIMEOUT_S:g} (how long the "
+            "RFC 2217 server has to answer; 3 without it), or leave it out"
+        )
 
 
 def check_scheme(url: str, scheme: str) -> None:

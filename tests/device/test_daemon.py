@@ -713,6 +713,26 @@ def test_a_port_url_with_an_option_pyserial_refuses_is_refused(
         refused.value.message)
 
 
+@pytest.mark.parametrize("timeout", ["-1", "0", "nan", "inf", "61", "-1&timeout=5"])
+def test_an_rfc2217_timeout_out_of_range_is_refused(client: redis.Redis, timeout: str) -> None:
+    """pyserial takes any float: at 0 or below (or nan) every open failed as if the
+    server did not answer RFC 2217 negotiation in time, retried for good; inf never
+    ended the wait. The option and its range are named up front."""
+    port = f"rfc2217://127.0.0.1:5555?timeout={timeout}"
+    given = timeout.partition("&")[0]
+    with pytest.raises(InvalidInputError) as refused:
+        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+    assert refused.value.message == (
+        f"bad option in port URL {port!r}: timeout={given} is out of range; give "
+        "?timeout=SECONDS above 0 and at most 60 (how long the RFC 2217 server has to "
+        "answer; 3 without it), or leave it out")
+
+
+def test_an_rfc2217_timeout_in_range_is_taken(client: redis.Redis) -> None:
+    DeviceDaemon(DaemonConfig(port="rfc2217://127.0.0.1:5555?timeout=0.5", device="cam1"),
+                 client)
+
+
 @pytest.mark.parametrize("port", ["my.camera://x", "loop.x://", "..://x"])
 def test_a_port_url_scheme_no_module_can_have_is_refused(client: redis.Redis, port: str) -> None:
     """A scheme with a dot looked its handler up as a submodule: ``mcam device`` stopped
