@@ -54,7 +54,7 @@ PortOpener = Callable[[], Any]
 NETWORK_SCHEMES = ("socket", "rfc2217")
 #: Port URL schemes whose options pyserial reads without opening anything
 #: (:func:`check_url_options`).
-PARSED_SCHEMES = ("loop", "socket", "rfc2217")
+PARSED_SCHEMES = ("loop", "socket", "rfc2217", "alt")
 #: Parser drop causes of packets the link damaged (an unknown type or a malformed packet
 #: came as the camera sent it).
 DAMAGE_CAUSES = ("bad_header", "oversize", "bad_crc", "truncated")
@@ -114,25 +114,40 @@ def check_port_url(url: str) -> None:
 
 
 def check_url_options(url: str, scheme: str) -> None:
-    """Refuse a port URL whose options (``?logging=...``) pyserial refuses, as it would at
-    every open: ``loop://?logging=DEBUG`` stopped the daemon with a bare KeyError
-    traceback (exit 0), ``socket://HOST:PORT?logging=bogus`` was retried for good with
-    "'bogus'". pyserial's own parser (``from_url`` of an unopened port) reads them; with
-    a valid ``logging`` it sets up logging as the open would."""
+    """Refuse a port URL whose options (``?logging=...``, ``?class=...``) pyserial
+    refuses, as it would at every open: ``loop://?logging=DEBUG`` stopped the daemon with
+    a bare KeyError traceback (exit 0), ``socket://HOST:PORT?logging=bogus`` was retried
+    for good with "'bogus'", as was ``alt://PATH?class=Nope`` with "unknown class:
+    'Nope'", and ``alt://PATH?class=XON`` (a constant of pyserial's, not a class) stopped
+    the daemon on a TypeError. pyserial's own parser (``from_url`` of an unopened port,
+    alt://'s ``serial_class_for_url``) reads them; with a valid ``logging`` it sets up
+    logging as the open would."""
     handler = importlib.import_module(f"serial.urlhandler.protocol_{scheme}")
     try:
-        handler.Serial().from_url(url)
-    except (serial.SerialException, ValueError, KeyError) as exc:
-        # A KeyError's text is no reason: an unknown level, or pyserial's own message
-        # failing to format ('debug|info|warning|error' for loop://?baud=9600).
-        reason = "" if isinstance(exc, KeyError) else f" ({exc})"
+        if scheme == "alt":
+            handler.serial_class_for_url(url)
+        else:
+            handler.Serial().from_url(url)
+    except (serial.SerialException, ValueError, KeyError, TypeError) as exc:
+        # A KeyError's or TypeError's text is no reason: an unknown level, pyserial's own
+        # message failing to format ('debug|info|warning|error' for loop://?baud=9600), or
+        # its class check failing ('issubclass() arg 1 must be a class').
+        reason = "" if isinstance(exc, KeyError | TypeError) else f" ({exc})"
         raise InvalidInputError(
-            f"bad option in port URL {url!r}{reason}; pyserial's {scheme}:// takes "
-            "?logging=debug, info, warning or error (rfc2217:// also ign_set_control, "
-            "poll_modem and timeout=SECONDS), or none"
+            f"bad option in port URL {url!r}{reason}; {url_options(scheme)}"
         ) from None
     if scheme == "rfc2217":
         check_rfc2217_timeout(url)
+
+
+def url_options(scheme: str) -> str:
+    """What options a :data:`PARSED_SCHEMES` port URL takes, for an error message."""
+    if scheme == "alt":
+        classes = sorted(name for name, value in vars(serial).items()
+                         if isinstance(value, type) and issubclass(value, serial.Serial))
+        return f"pyserial's alt:// takes ?class= one of {', '.join(classes)}, or none"
+    return (f"pyserial's {scheme}:// takes ?logging=debug, info, warning or error "
+            "(rfc2217:// also ign_set_control, poll_modem and timeout=SECONDS), or none")
 
 
 def check_rfc2217_timeout(url: str) -> None:

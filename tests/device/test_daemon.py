@@ -713,6 +713,29 @@ def test_a_port_url_with_an_option_pyserial_refuses_is_refused(
         refused.value.message)
 
 
+@pytest.mark.parametrize(("port", "why"), [
+    ("alt:///dev/ttyACM0?class=Nope", " (unknown class: 'Nope');"),
+    ("alt:///dev/ttyACM0?class=XON", ";"),  # a constant of pyserial's: a TypeError
+    ("alt:///dev/ttyACM0?baud=9600", "unknown option: 'baud'"),
+])
+def test_an_alt_port_url_with_a_class_pyserial_refuses_is_refused(
+        client: redis.Redis, port: str, why: str) -> None:
+    """pyserial refuses these at every open: an unknown class or option was retried for
+    good, and ``class=XON`` stopped the daemon on a TypeError. They are refused up front,
+    naming the classes alt:// takes."""
+    with pytest.raises(InvalidInputError) as refused:
+        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+    assert refused.value.message.startswith(f"bad option in port URL {port!r}")
+    assert why in refused.value.message
+    assert refused.value.message.endswith(
+        "pyserial's alt:// takes ?class= one of PosixPollSerial, Serial, VTIMESerial, or none")
+
+
+def test_an_alt_port_url_with_a_serial_class_is_taken(client: redis.Redis) -> None:
+    DeviceDaemon(DaemonConfig(port="alt:///dev/ttyACM0?class=PosixPollSerial", device="cam1"),
+                 client)
+
+
 @pytest.mark.parametrize("timeout", ["-1", "0", "nan", "inf", "61", "-1&timeout=5"])
 def test_an_rfc2217_timeout_out_of_range_is_refused(client: redis.Redis, timeout: str) -> None:
     """pyserial takes any float: at 0 or below (or nan) every open failed as if the
