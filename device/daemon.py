@@ -350,7 +350,8 @@ class DeviceDaemon:
         self._thread: threading.Thread | None = None
         #: Why the daemon stopped on its own (another daemon keeps the device), or None.
         self.failure: McamError | None = None
-        #: The unexpected error (a bug) the daemon stopped on, or None (:meth:`run`).
+        #: The unexpected error (a bug) the daemon stopped on, or None (:meth:`run`,
+        #: :meth:`FramePublisher.run`).
         self.crash: Exception | None = None
         self._last_sequence: int | None = None
         self._discont = True
@@ -589,9 +590,13 @@ class DeviceDaemon:
                     port.close()
                 self._link_lost()
 
-    def _fail(self, error: McamError) -> None:
-        """Stop on the publisher's failure (another daemon holds the device's claim)."""
-        self.failure = error
+    def _fail(self, error: Exception) -> None:
+        """Stop on the publisher's failure: another daemon holds the device's claim
+        (:attr:`failure`), or an unexpected error (a bug, logged: :attr:`crash`)."""
+        if isinstance(error, McamError):
+            self.failure = error
+        else:
+            self.crash = error
         self._stop.set()
 
     def start(self) -> DeviceDaemon:

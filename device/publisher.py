@@ -35,7 +35,7 @@ import redis
 from device.commands import Command, fields_to_command
 from device.daemon_claim import CLAIM_TTL_MS, DaemonClaim, DeviceTakenError
 from device.health import ALL_DROP_CAUSES, DeviceHealth
-from models.errors import InvalidInputError, McamError
+from models.errors import InvalidInputError
 from worker.frame_message import FrameMessage
 from worker.queue import publish_frame
 from worker.redis_keys import (
@@ -67,12 +67,12 @@ class FramePublisher:
     daemon goes on, moves only as far as :meth:`delivered` says the camera got them: a
     daemon that stops with commands not yet sent leaves them to the next one.
     ``on_failure`` is told when the publisher stops because another daemon holds the
-    device's claim (:meth:`_hold_claim`)."""
+    device's claim (:meth:`_hold_claim`), or on an unexpected error (a bug: :meth:`run`)."""
 
     def __init__(self, client: redis.Redis, device: str, health: DeviceHealth,
                  on_command: Callable[[str, Command | None], bool], frames_maxlen: int = 256,
                  queue_size: int = 64, claim: DaemonClaim | None = None,
-                 on_failure: Callable[[McamError], None] | None = None) -> None:
+                 on_failure: Callable[[Exception], None] | None = None) -> None:
         self.client = client
         self.device = device
         self.health = health
@@ -136,7 +136,20 @@ class FramePublisher:
 
     def run(self) -> None:
         """Loop until stopped with every frame published (or kept back: another daemon
-        holds the device), or until the publisher fails (:attr:`failure`)."""
+        holds the device), or until the publisher fails (:attr:`failure`). An error the
+        loop does not expect (a bug) ends it, logged once with its traceback and told to
+        ``on_failure``: it went to threading's excepthook, and the daemon read on, its
+        frames dropped as queue_full and its health no longer written."""
+        try:
+            self._publish_until_stopped()
+        except Exception as exc:
+            log.exception("device %s: publishing stopped on an unexpected error; its frames "
+                          "are no longer published", self.device)
+            if self.on_failure is not None:
+                self.on_failure(exc)
+
+    def _publish_until_stopped(self) -> None:
+        """:meth:`run` without its handling of unexpected errors."""
         while self.failure is None and not (self._stop.is_set() and self._idle()):
             message = self._next_message()
             if message is not None:

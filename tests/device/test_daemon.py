@@ -13,6 +13,7 @@ import socket
 import stat
 import threading
 import tty
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -1009,16 +1010,37 @@ def test_a_server_that_does_not_speak_rfc2217_is_named_with_what_to_do(
 
 
 
-def not_a_client_mistake(*_args: object) -> None:
+def not_a_client_mistake(*_args: object, **_kwargs: object) -> None:
     """A bug of the daemon's, where it does not expect one."""
     raise RuntimeError("not a client mistake")
 
 
-def loop_port_with_a_byte() -> serial.Serial:
-    """A loop:// port with one byte to read."""
-    port = serial.serial_for_url("loop://", timeout=0.05)
-    port.write(b"\0")
-    return port
+def loop_port_with(data: bytes) -> Callable[[], serial.Serial]:
+    """An opener of a loop:// port with ``data`` to read."""
+    def opener() -> serial.Serial:
+        port = serial.serial_for_url("loop://", timeout=0.05)
+        port.write(data)
+        return port
+    return opener
+
+
+
+def assert_stops_on_the_bug(daemon: DeviceDaemon, caplog: pytest.LogCaptureFixture,
+                            monkeypatch: pytest.MonkeyPatch, logged: str) -> None:
+    """Run ``daemon`` until it stops by itself, on :func:`not_a_client_mistake`'s
+    RuntimeError: kept in ``crash``, logged once (``logged``) with its traceback, and
+    not left to threading's excepthook."""
+    uncaught: list[threading.ExceptHookArgs] = []
+    monkeypatch.setattr(threading, "excepthook", uncaught.append)
+    with caplog.at_level(logging.ERROR):
+        daemon.start()
+        assert daemon.wait(30)
+        daemon.stop()
+    assert isinstance(daemon.crash, RuntimeError) and daemon.failure is None
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert [r.getMessage() for r in errors] == [logged]
+    assert errors[0].exc_info is not None
+    assert uncaught == []
 
 
 @pytest.mark.parametrize("where", ["opener", "parser"])
@@ -1028,20 +1050,27 @@ def test_an_unexpected_error_stops_the_daemon_logged_once_and_kept(
     """A bug in the link's loops (here a port opener or a parser that raises) went to
     threading's excepthook, and the daemon looked stopped as by a stop (no failure): its
     command exited 0. It is now logged once with its traceback and kept in ``crash``;
-    the health says stopped, and the thread ends without an uncaught exception."""
-    uncaught: list[threading.ExceptHookArgs] = []
-    monkeypatch.setattr(threading, "excepthook", uncaught.append)
-    opener = not_a_client_mistake if where == "opener" else loop_port_with_a_byte
+    the health says stopped."""
+    opener = not_a_client_mistake if where == "opener" else loop_port_with(b"\0")
     daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client, opener=opener)
     monkeypatch.setattr(daemon._parser, "feed", not_a_client_mistake)
-    with caplog.at_level(logging.ERROR, logger="device.daemon"):
-        daemon.start()
-        assert daemon.wait(30)
-        daemon.stop()
-    assert isinstance(daemon.crash, RuntimeError) and daemon.failure is None
-    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
-    assert [r.getMessage() for r in errors] == [
-        "device cam9: the daemon stopped on an unexpected error; loop:// is no longer read"]
-    assert errors[0].exc_info is not None
-    assert uncaught == []
+    assert_stops_on_the_bug(
+        daemon, caplog, monkeypatch,
+        "device cam9: the daemon stopped on an unexpected error; loop:// is no longer read")
     assert health(client, "cam9")["state"] == "stopped"
+
+
+def test_an_unexpected_error_in_publishing_stops_the_daemon_logged_once_and_kept(
+        client: redis.Redis, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bug in the publisher's thread (here a frame's publishing that raises) went to
+    threading's excepthook, and the daemon read on: its frames dropped as queue_full, its
+    health no longer written, its command running for good. It now stops the daemon as
+    an unexpected error in the daemon's own thread does, logged once."""
+    monkeypatch.setattr("device.publisher.publish_frame", not_a_client_mistake)
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client,
+                          opener=loop_port_with(wire(0)))
+    assert_stops_on_the_bug(
+        daemon, caplog, monkeypatch,
+        "device cam9: publishing stopped on an unexpected error; its frames are no longer "
+        "published")
