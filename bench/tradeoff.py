@@ -61,7 +61,7 @@ from models.decoders.cost_model import adaptive as budget_adaptive
 from models.decoders.cost_model import predicted_ms
 from models.decoders.learned import make_session, ort_spinning, worker_threads
 from models.formation import SensorParams, dequantize, simulate
-from models.scene_analysis import FrameAnalysis, analyse
+from models.scene_analysis import FrameAnalysis, analyse, has_residue
 from models.scenes import (
     VAL256_BITS,
     VAL256_MAX_WRAPS,
@@ -346,10 +346,20 @@ def gflops_of(name: str) -> float | None:
     return None
 
 
-def add_throughput(row: dict[str, Any], pixels: int, peak: float) -> None:
-    """Achieved GFLOP/s of a network row, and its fraction of the machine's peak."""
+def network_pixels(frames: list[ValFrame]) -> float:
+    """Mean pixels per frame of ``frames`` that a network alone runs on: every pixel of a
+    frame with a residue, none of one without (it is integrated, or has one W: its GFLOP/s
+    had counted the net's work on the glows' and mostly-dark sets' frames that have no
+    residue, 144% of the peak on the glows)."""
+    sizes = [f.codes.size if has_residue(dequantize(f.codes, f.params.bits)) else 0 for f in frames]
+    return float(np.mean(sizes))
+
+
+def add_throughput(row: dict[str, Any], pixels: float, peak: float) -> None:
+    """Achieved GFLOP/s of a network row on ``pixels`` a frame, and its fraction of the
+    machine's peak; none when the network ran on no pixel."""
     flops = gflops_of(row["decoder"])
-    if flops is not None:
+    if flops is not None and pixels > 0:
         row["gflops_per_s"] = flops * pixels / 256**2 / (row["ms_per_frame"] / 1000)
         row["fraction_of_peak"] = row["gflops_per_s"] / peak
 
@@ -372,7 +382,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             if set_name != "val-256" and "tile" in name:
                 continue
             row = {"decoder": name, **measure(decoder, frames, args.repeats)}
-            add_throughput(row, frames[0].codes.size, peak)
+            add_throughput(row, network_pixels(frames), peak)
             rows.append(row)
         pareto(rows)
         table[set_name] = rows

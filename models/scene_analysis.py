@@ -90,6 +90,13 @@ def residue_map(
     return along_cols[:-1, :] + along_rows[:, 1:] - along_cols[1:, :] - along_rows[:, :-1]
 
 
+def has_residue(m: NDArray[np.floating]) -> bool:
+    """Whether any 2x2 loop of ``m`` (H x W, wraps) is a residue (:func:`residue_map`):
+    without one, integrating the neighbour jumps is exact and a learned decoder does not
+    run its net (:meth:`models.decoders.learned.LearnedDecoder.explain_winding`)."""
+    return bool(residue_map(*neighbour_jumps(m)).any())
+
+
 def residue_pixels(m: NDArray[np.float64], reach: int) -> NDArray[np.bool_]:
     """Pixels (H x W) within ``reach`` pixels of a residue's 2x2 loop of ``m`` (wraps)."""
     loops = residue_map(*neighbour_jumps(m)) != 0

@@ -221,3 +221,17 @@ def test_a_network_more_accurate_than_auto_is_said_to_be_so() -> None:
     text = tradeoff.markdown(report_of({"val-256": rows, "mostly-dark": rows}))
     assert "None: every network measured is more accurate (W acc) than every `auto`" in text
     assert "GFLOP/s: none" not in text and "Pareto: one decoder" not in text
+
+
+def test_a_networks_gflops_count_only_the_frames_it_runs_on() -> None:
+    """A frame without a residue is integrated, the net not run: counting its pixels put
+    mantissanet-large at 144% of the machine's peak on the glows (half of them have
+    none)."""
+    busy = val256_frames("mantissa")[0]
+    calm = tradeoff.frames_at(np.tile(np.linspace(0.1, 3.0, 64), (64, 1)), None, 1.0)
+    assert tradeoff.network_pixels([busy, calm]) == busy.codes.size / 2
+    row: dict[str, Any] = {"decoder": "mantissanet-small", "ms_per_frame": 50.0}
+    tradeoff.add_throughput(row, tradeoff.network_pixels([calm]), peak=100.0)
+    assert "gflops_per_s" not in row
+    tradeoff.add_throughput(row, tradeoff.network_pixels([busy]), peak=100.0)
+    assert row["gflops_per_s"] == pytest.approx(tradeoff.gflops_of("mantissanet-small") / 0.05)
