@@ -16,11 +16,13 @@ _CHECKED: dict[Path, tuple[tuple[int, int, str], bool]] = {}
 
 
 def file_matches(path: Path, sha256: str) -> bool:
-    """Whether the file at ``path`` exists and its sha256 is ``sha256`` (cached by its
-    size and mtime; a file removed since is not its card's)."""
+    """Whether the file at ``path`` exists, can be read and its sha256 is ``sha256``
+    (cached by its size and mtime; a file removed since, or one that cannot be read, such
+    as a directory in its place or a file without read permission, is not its card's and
+    is not cached: a chmod does not change the mtime)."""
     try:
         stat = path.stat()
-    except FileNotFoundError:
+    except OSError:
         return False
     key = (stat.st_size, stat.st_mtime_ns, sha256)
     cached = _CHECKED.get(path)
@@ -28,7 +30,7 @@ def file_matches(path: Path, sha256: str) -> bool:
         return cached[1]
     try:
         matches = sha256_of(path) == sha256
-    except FileNotFoundError:
+    except OSError:
         return False
     _CHECKED[path] = (key, matches)
     return matches
@@ -36,13 +38,13 @@ def file_matches(path: Path, sha256: str) -> bool:
 
 def broken_models(onnx_dir: Path | None = None) -> list[str]:
     """One line per model installed in ``onnx_dir`` (None: the served one,
-    :data:`models.decoders.learned.ONNX_DIR`) whose ONNX file is not the one its card
-    describes: the file's name (no server path), its decoder and encoding, what follows
-    and what to do. Empty when every installed file is its card's."""
+    :data:`models.decoders.learned.ONNX_DIR`) whose ONNX file cannot be read or is not
+    the one its card describes: the file's name (no server path), its decoder and
+    encoding, what follows and what to do. Empty when every installed file is its card's."""
     return [
         f"model file {Path(card['path']).name} (decoder {card['decoder']!r}, "
-        f"{card['encoding']} frames) is not the one its card describes, so jobs that need "
-        f"it fail as model_unavailable; {RESTORE_ADVICE}"
+        f"{card['encoding']} frames) cannot be read or is not the one its card describes, "
+        f"so jobs that need it fail as model_unavailable; {RESTORE_ADVICE}"
         for card in load_cards(onnx_dir or learned.ONNX_DIR)
         if not file_matches(Path(card["path"]), str(card["sha256"]))
     ]

@@ -70,3 +70,13 @@ def test_the_served_folder_is_read_when_called(tmp_path: Path,
     onnx.write_bytes(b"not a model")
     monkeypatch.setattr(learned, "ONNX_DIR", onnx.parent)
     assert len(model_install.broken_models()) == 1
+
+
+def test_a_directory_in_place_of_a_model_file_is_named_not_raised(tmp_path: Path) -> None:
+    """A directory named like the model file made the readiness check raise
+    IsADirectoryError (a 500 from /health/ready) instead of naming the file."""
+    onnx = install_one(tmp_path / "onnx")
+    onnx.unlink()
+    onnx.mkdir()
+    [line] = broken_models(onnx.parent)
+    assert f"{CARD}.onnx" in line and "cannot be read" in line and str(tmp_path) not in line
