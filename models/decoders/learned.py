@@ -125,9 +125,15 @@ CARD_COUNTS = {"multiple": 1, "tile": OVERLAP + 1, "max_passes": 1}
 def read_card(path: Path) -> dict[str, Any]:
     """The model card at ``path``, or :class:`InvalidInputError` naming the file when it
     is not one (not JSON text, not an object, or without :data:`CARD_FIELDS`) or is not
-    usable (:func:`card_problems`)."""
+    usable (:func:`card_problems`), or cannot be read (a directory in its place, no read
+    permission)."""
     try:
         card = json.loads(path.read_text())
+    except OSError as exc:
+        raise InvalidInputError(
+            f"{path} cannot be read as a model card ({exc.strerror}): restore it, or move "
+            "it out of the models folder"
+        ) from None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InvalidInputError(
             f"{path} is not a model card (JSON text, models/onnx/<name>.json): {exc}"

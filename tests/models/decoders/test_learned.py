@@ -360,6 +360,14 @@ def test_a_file_that_is_not_a_model_card_is_named_with_what_is_wrong(
         learned.read_cards(tmp_path)
 
 
+def test_a_directory_named_like_a_card_is_named_not_raised(tmp_path: Path) -> None:
+    """A directory ``*.json`` in the models folder raised IsADirectoryError from every
+    listing of the cards (a 500 from /health/ready) instead of naming it."""
+    (tmp_path / "card.json").mkdir()
+    with pytest.raises(InvalidInputError, match="card.json cannot be read as a model card"):
+        learned.read_cards(tmp_path)
+
+
 def test_every_shipped_card_reads() -> None:
     assert all(learned.read_card(path) == card for path, card in learned.read_cards())
 
