@@ -1,15 +1,17 @@
 """Whether the installed model files are the ones their cards describe, for the API's
 readiness check. A file whose sha256 is not its card's (cut short, corrupt, replaced, a
-Git LFS pointer) makes every job that needs it fail as ``model_unavailable``, while the
-decoder is still listed and the service would otherwise say it is ready. Each file is
-hashed once per size and modification time, so a poll costs a ``stat`` per card."""
+Git LFS pointer), or that is gone since the service started, makes every job that needs
+it fail as ``model_unavailable``, while the decoder is still listed and the service would
+otherwise say it is ready. Each file is hashed once per size and modification time, so
+a poll costs a ``stat`` per card."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from models.decoders import learned
-from models.decoders.learned import RESTORE_ADVICE, load_cards, sha256_of
+from models.decoders.learned import RESTORE_ADVICE, load_cards, read_cards, sha256_of
 
 #: Per ONNX file: (size in bytes, mtime in ns, the card's sha256) -> whether it matched.
 _CHECKED: dict[Path, tuple[tuple[int, int, str], bool]] = {}
@@ -38,13 +40,24 @@ def file_matches(path: Path, sha256: str) -> bool:
 
 def broken_models(onnx_dir: Path | None = None) -> list[str]:
     """One line per model installed in ``onnx_dir`` (None: the served one,
-    :data:`models.decoders.learned.ONNX_DIR`) whose ONNX file cannot be read or is not
-    the one its card describes: the file's name (no server path), its decoder and
-    encoding, what follows and what to do. Empty when every installed file is its card's."""
-    return [
-        f"model file {Path(card['path']).name} (decoder {card['decoder']!r}, "
-        f"{card['encoding']} frames) cannot be read or is not the one its card describes, "
-        f"so jobs that need it fail as model_unavailable; {RESTORE_ADVICE}"
-        for card in load_cards(onnx_dir or learned.ONNX_DIR)
+    :data:`models.decoders.learned.ONNX_DIR`) whose ONNX file is missing, cannot be read
+    or is not the one its card describes: the file's name (no server path), its decoder
+    and encoding, what follows and what to do. Empty when every installed file is its
+    card's."""
+    folder = onnx_dir or learned.ONNX_DIR
+    missing = [broken(card, "is missing") for _, card in read_cards(folder, with_file=False)]
+    return missing + [
+        broken(card, "cannot be read or is not the one its card describes")
+        for card in load_cards(folder)
         if not file_matches(Path(card["path"]), str(card["sha256"]))
     ]
+
+
+def broken(card: dict[str, Any], problem: str) -> str:
+    """The readiness line of ``card``'s model file with ``problem`` (what is wrong with
+    it): its name without a folder, its decoder and encoding, what follows and what to do."""
+    return (
+        f"model file {Path(card['file']).name} (decoder {card['decoder']!r}, "
+        f"{card['encoding']} frames) {problem}, so jobs that need it fail as "
+        f"model_unavailable; {RESTORE_ADVICE}"
+    )

@@ -80,3 +80,15 @@ def test_a_directory_in_place_of_a_model_file_is_named_not_raised(tmp_path: Path
     onnx.mkdir()
     [line] = broken_models(onnx.parent)
     assert f"{CARD}.onnx" in line and "cannot be read" in line and str(tmp_path) not in line
+
+
+def test_a_file_removed_while_its_card_stays_is_named_missing(tmp_path: Path) -> None:
+    """The API and workers list a decoder from the cards read at start, so a model file
+    removed since makes its jobs fail as model_unavailable; readiness skipped its card
+    (it only looked at cards whose file exists) and said the decoders were ready."""
+    onnx = install_one(tmp_path / "onnx")
+    assert broken_models(onnx.parent) == []
+    onnx.unlink()
+    [line] = broken_models(onnx.parent)
+    assert f"{CARD}.onnx" in line and "is missing" in line and "restore it" in line
+    assert str(tmp_path) not in line
