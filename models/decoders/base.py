@@ -126,8 +126,9 @@ class Decoder(ABC):
     name: ClassVar[str]
     version: str = "1"
     #: Whether the decoder sets clipped blobs to the sensor's clip
-    #: (:mod:`models.decoders.saturation`); a stream decoding with it along time fills
-    #: them again after refining an anchoring keyframe (:mod:`worker.temporal`).
+    #: (:mod:`models.decoders.saturation`). A stream decoding along time wraps one that
+    #: does not (:mod:`models.decoders.filling`), and fills them again after refining
+    #: an anchoring keyframe (:mod:`worker.temporal`).
     fills_saturation: ClassVar[bool] = False
 
     def decode(self, codes: NDArray[Any], params: SensorParams) -> DecodeResult:
