@@ -378,11 +378,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     predictions: dict[str, dict[str, dict[str, float]]] = {}
     for set_name, frames in sets.items():
         rows = []
+        pixels = network_pixels(frames)
         for name, decoder in candidates(args.decoders):
             if set_name != "val-256" and "tile" in name:
                 continue
             row = {"decoder": name, **measure(decoder, frames, args.repeats)}
-            add_throughput(row, network_pixels(frames), peak)
+            add_throughput(row, pixels, peak)
             rows.append(row)
         pareto(rows)
         table[set_name] = rows
