@@ -71,15 +71,21 @@ def test_only_regions_touching_an_eligible_pixel_may_switch() -> None:
     assert taken.sum() == 4 * 7
 
 
-def test_regions_larger_than_max_region_keep_the_kept_answer() -> None:
+def test_regions_larger_than_max_region_switch_only_on_a_decisive_vote() -> None:
+    """A large region bounded on one side by a true edge steeper than half a wrap (the
+    candidate jumps there too) keeps the kept answer; one the kept answer alone rings
+    with jumps (a smooth lamp's core a network left short) takes the candidate's."""
     truth, m = ramp()
+    truth[:, 12:] += 3
     kept = truth.copy()
-    kept[12:16, 2:9] -= 1
+    kept[12:16, 4:12] -= 1
     kept[2:4, 18:22] += 2
+    kept[3:9, 2:9] -= 2
     merged, taken = region_vote(kept, truth, m, max_region=8)
     np.testing.assert_array_equal(merged[2:4, 18:22], truth[2:4, 18:22])
-    np.testing.assert_array_equal(merged[12:16, 2:9], kept[12:16, 2:9])
-    assert taken.sum() == 2 * 4
+    np.testing.assert_array_equal(merged[3:9, 2:9], truth[3:9, 2:9])
+    np.testing.assert_array_equal(merged[12:16, 4:12], kept[12:16, 4:12])
+    assert taken.sum() == 2 * 4 + 6 * 7
 
 
 def vote_pixel_by_pixel(kept: np.ndarray, candidate: np.ndarray, m: np.ndarray,
@@ -88,20 +94,21 @@ def vote_pixel_by_pixel(kept: np.ndarray, candidate: np.ndarray, m: np.ndarray,
     the candidate's W per pixel where its region takes it, else the kept one."""
     labels, count = ndimage.label(kept != candidate)
     u_kept, u_candidate = kept + m, candidate + m
-    votes = np.zeros(count + 1)
+    was, now, border = np.zeros(count + 1), np.zeros(count + 1), np.zeros(count + 1)
     rows, cols = kept.shape
     for r in range(rows):
         for c in range(cols):
             for nr, nc in ((r + 1, c), (r, c + 1), (r - 1, c), (r, c - 1)):
                 if 0 <= nr < rows and 0 <= nc < cols and labels[r, c] != labels[nr, nc]:
-                    was = abs(u_kept[r, c] - u_kept[nr, nc]) > 0.5
-                    now = abs(u_candidate[r, c] - u_kept[nr, nc]) > 0.5
-                    votes[labels[r, c]] += int(was) - int(now)
+                    was[labels[r, c]] += abs(u_kept[r, c] - u_kept[nr, nc]) > 0.5
+                    now[labels[r, c]] += abs(u_candidate[r, c] - u_kept[nr, nc]) > 0.5
+                    border[labels[r, c]] += 1
     merged = kept.copy()
     for region in range(1, count + 1):
         inside = labels == region
-        if (votes[region] > 0 and (eligible is None or eligible[inside].any())
-                and (max_region is None or inside.sum() <= max_region)):
+        decisive = now[region] <= 0.05 * border[region] and was[region] >= 0.5 * border[region]
+        if (was[region] > now[region] and (eligible is None or eligible[inside].any())
+                and (max_region is None or inside.sum() <= max_region or decisive)):
             merged[inside] = candidate[inside]
     return merged
 
