@@ -8,7 +8,9 @@ Formats
   frames are refused: store them as TIFF.
 - ``tiff``: ``H x W`` or ``H x W x C`` (decoders take C = 1 or 3: grey or RGB, no
   alpha); the parameters as JSON in the ImageDescription tag. One page of full
-  resolution: reduced-resolution pages (thumbnails) are skipped. Written in the
+  resolution: reduced-resolution pages (thumbnails) and transparency masks
+  (NewSubfileType bit 2, a 1-bit page some editors write after the image) are skipped.
+  Written in the
   layout :func:`write_tiff_page` says (``H x W x 1`` as ``H x W``).
 - ``npy``: the codes array only; parameters come from the caller.
 
@@ -298,8 +300,8 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Store
         if len(pages) > 1:
             raise InvalidInputError(
                 "the TIFF holds more than one page of full resolution (its thumbnails "
-                "aside) and a reconstruction takes one frame: send a single-page TIFF, or "
-                "decode the sequence as a video (POST /v1/videos, mcam video)"
+                "and masks aside) and a reconstruction takes one frame: send a single-page "
+                "TIFF, or decode the sequence as a video (POST /v1/videos, mcam video)"
             )
         (page,) = pages
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)

@@ -14,9 +14,11 @@ per frame).
   Zstandard, ..., a code of no known compression) is refused by name
   (:func:`page_codes`), not reported as damage: tifffile claims Zstandard on Python
   before 3.14 and fails only when a strip is decoded ("No module named 'compression'").
-- Reduced-resolution pages (NewSubfileType bit 0: the thumbnails and pyramid levels
-  cameras and editors add) are skipped: :func:`open_tiff` gives the full-resolution
-  pages, so a frame with its thumbnail is one frame, a video's thumbnails no frames.
+- Pages that are not images are skipped: reduced-resolution ones (NewSubfileType bit 0:
+  the thumbnails and pyramid levels cameras and editors add) and transparency masks
+  (bit 2: the 1-bit mask of an image some editors write after it), a page with either
+  bit or both. :func:`open_tiff` gives the full-resolution images, so a frame with its
+  thumbnail or mask is one frame, a video's thumbnails and masks no frames.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
@@ -141,36 +143,44 @@ def open_tiff(
         logger.removeHandler(collector)
 
 
-#: The most reduced-resolution pages (thumbnails, pyramid levels) a TIFF may hold per
-#: full-resolution page and one more: a pyramid of a 4096 x 4096 frame halved down to
-#: one pixel has 12 levels.
-MAX_REDUCED_PAGES = 16
+#: The most pages that are not images (thumbnails, pyramid levels, transparency masks
+#: and their reduced levels) a TIFF may hold per image and one more: a pyramid of a 4096
+#: x 4096 frame halved down to one pixel has 12 levels, and with a mask of the frame and
+#: of each level 25 such pages.
+MAX_SKIPPED_PAGES = 32
+
+
+def is_image(page: tifffile.TiffPage) -> bool:
+    """Whether ``page`` is an image: NewSubfileType marks it neither reduced-resolution
+    (bit 0: a thumbnail or pyramid level, a copy of an image) nor a transparency mask
+    (bit 2: the 1-bit mask of an image)."""
+    return not (page.is_reduced or page.is_mask)
 
 
 def image_pages(pages: Iterable[tifffile.TiffPage]) -> Iterator[tifffile.TiffPage]:
-    """``pages`` without those NewSubfileType marks reduced-resolution (bit 0: the
-    thumbnails and pyramid levels cameras and editors add), which are copies of an
-    image, not images. Refused past :data:`MAX_REDUCED_PAGES` of them per image and one
-    more (:class:`ImageTooLargeError`: each is indexed), and when every page is one
-    (:class:`InvalidInputError`)."""
-    images = reduced = 0
+    """``pages`` without those that are not images (:func:`is_image`: thumbnails,
+    pyramid levels, transparency masks). Refused past :data:`MAX_SKIPPED_PAGES` of them
+    per image and one more (:class:`ImageTooLargeError`: each is indexed), and when
+    every page is one (:class:`InvalidInputError`)."""
+    images = skipped = 0
     for page in pages:
-        if not page.is_reduced:
+        if is_image(page):
             images += 1
             yield page
             continue
-        reduced += 1
-        if reduced > MAX_REDUCED_PAGES * (images + 1):
+        skipped += 1
+        if skipped > MAX_SKIPPED_PAGES * (images + 1):
             raise ImageTooLargeError(
-                f"the TIFF holds more than {MAX_REDUCED_PAGES} reduced-resolution pages "
-                "(thumbnails, pyramid levels) per full-resolution image, which are not "
-                "read; save it with fewer (a thumbnail an image, or none)"
+                f"the TIFF holds more than {MAX_SKIPPED_PAGES} reduced-resolution pages "
+                "and transparency masks (thumbnails, pyramid levels, masks) per "
+                "full-resolution image, which are not read; save it with fewer (a "
+                "thumbnail and a mask an image, or none)"
             )
-    if reduced and not images:
+    if skipped and not images:
         raise InvalidInputError(
-            f"the TIFF holds only reduced-resolution pages ({reduced}: thumbnails), no "
-            "full-resolution image as a page (a DNG or raw file stores it in a SubIFD): "
-            "save the frame as a plain TIFF"
+            f"the TIFF holds only reduced-resolution pages and transparency masks "
+            f"({skipped}: thumbnails, masks), no full-resolution image as a page (a DNG or "
+            "raw file stores it in a SubIFD): save the frame as a plain TIFF"
         )
 
 

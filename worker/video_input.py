@@ -2,7 +2,9 @@
 
 Formats
 -------
-- ``tiff``: a multi-page TIFF, one frame per page (``H x W`` or ``H x W x C``); the
+- ``tiff``: a multi-page TIFF, one frame per page (``H x W`` or ``H x W x C``);
+  thumbnails and transparency masks (NewSubfileType bits 0 and 2, a page per frame or
+  more) are not frames and are skipped (:mod:`models.tiff_pages`); the
   parameters as JSON in the first page's ImageDescription (as :mod:`models.frames`
   writes it). A later page storing parameters of its own must store the same (as
   zipped frames must). A lone page of separate colour planes that tifffile described

@@ -440,6 +440,51 @@ def test_a_tiff_of_thumbnails_only_or_two_images_is_refused() -> None:
         decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
 
 
+def write_mask(tif: tifffile.TiffWriter, shape: tuple[int, ...], kind: int) -> None:
+    """Write, as some editors do, a 1-bit transparency-mask page of an image of ``shape``
+    (``H x W``, channels aside) to ``tif``: NewSubfileType ``kind``, 4 (a mask the size
+    of the image) or 5 (a mask that is also reduced-resolution: half its size)."""
+    step = 2 if kind & 1 else 1
+    mask = np.ones(shape[:2], np.bool_)[::step, ::step]
+    tif.write(mask, subfiletype=kind, photometric="mask", metadata=None)
+
+
+def with_masks(codes: np.ndarray, before: tuple[int, ...], after: tuple[int, ...]) -> bytes:
+    """A TIFF of ``codes`` (parameters in its description) with a transparency-mask page
+    (:func:`write_mask`) per entry of ``before`` and ``after`` (its NewSubfileType),
+    written before and after the image."""
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as tif:
+        for kind in before:
+            write_mask(tif, codes.shape, kind)
+        tif.write(codes, description=PARAMS_8.model_dump_json(), metadata=None)
+        for kind in after:
+            write_mask(tif, codes.shape, kind)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("before", "after"), [((), (4,)), ((), (5,)), ((), (4, 5)), ((4,), ()), ((5,), (4,))]
+)
+def test_a_tiff_frame_with_a_transparency_mask_is_read_as_its_image(
+    before: tuple[int, ...], after: tuple[int, ...]
+) -> None:
+    """A transparency-mask page (NewSubfileType bit 2, with bit 0 or not) is not a
+    frame: a frame with the 1-bit mask some editors write after it was refused as "more
+    than one page of full resolution"."""
+    codes = random_codes((16, 12), 8)
+    frame = decode_frame(with_masks(codes, before, after), "tiff")
+    np.testing.assert_array_equal(frame.codes, codes)
+    assert frame.params == PARAMS_8
+
+
+def test_a_tiff_of_a_mask_only_is_refused_as_holding_no_image() -> None:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, np.ones((4, 4), np.bool_), subfiletype=4, photometric="mask")
+    with pytest.raises(InvalidInputError, match="only reduced-resolution pages and transparency"):
+        decode_frame(buffer.getvalue(), "tiff", {"encoding": "modulo", "bits": 8})
+
+
 @pytest.mark.parametrize("fmt", FRAME_FORMATS)
 def test_pixel_limit(fmt: str) -> None:
     data = encode_frame(random_codes((16, 8), 8), PARAMS_8, fmt)

@@ -19,13 +19,14 @@ from PIL import Image
 
 from models.errors import ImageTooLargeError, UnsupportedFormatError
 from models.tiff_pages import (
-    MAX_REDUCED_PAGES,
+    MAX_SKIPPED_PAGES,
     MAX_TIFF_SEGMENTS,
     TiffDamaged,
     open_tiff,
     page_codes,
     page_shape,
 )
+from tests.models.test_frames import write_mask
 
 
 def tiff(array: np.ndarray, **options: object) -> bytes:
@@ -206,22 +207,26 @@ def test_pages_are_counted_up_to_one_past_the_limit(most: int | None, counted: i
         assert len(pages) == counted
 
 
-def test_reduced_resolution_pages_are_skipped_up_to_a_bound_per_image() -> None:
-    """Thumbnails and pyramid levels (NewSubfileType bit 0) are not images; each is
-    indexed, so an upload of millions of them is refused, not indexed for seconds."""
+def test_reduced_resolution_pages_and_masks_are_skipped_up_to_a_bound_per_image() -> None:
+    """Thumbnails and pyramid levels (NewSubfileType bit 0) and transparency masks (bit
+    2, with bit 0 or not) are not images; each is indexed, so an upload of millions of
+    them is refused, not indexed for seconds."""
     def pyramid(levels: int) -> bytes:
         buffer = io.BytesIO()
         with tifffile.TiffWriter(buffer) as writer:
             writer.write(np.full((8, 8), 5, np.uint8), metadata=None)
-            for _ in range(levels):
-                writer.write(np.zeros((1, 1), np.uint8), subfiletype=1, metadata=None)
+            for level in range(levels):
+                if level % 2:
+                    write_mask(writer, (1, 1), (4, 5)[level % 4 // 2])
+                else:
+                    writer.write(np.zeros((1, 1), np.uint8), subfiletype=1, metadata=None)
             writer.write(np.full((8, 8), 6, np.uint8), metadata=None)
         return buffer.getvalue()
 
-    with open_tiff(pyramid(2 * MAX_REDUCED_PAGES)) as (_, pages):
+    with open_tiff(pyramid(2 * MAX_SKIPPED_PAGES)) as (_, pages):
         assert [int(page_codes(page)[0, 0]) for page in pages] == [5, 6]
     with pytest.raises(ImageTooLargeError, match="reduced-resolution pages"):
-        with open_tiff(pyramid(2 * MAX_REDUCED_PAGES + 1)):
+        with open_tiff(pyramid(2 * MAX_SKIPPED_PAGES + 1)):
             pass
 
 

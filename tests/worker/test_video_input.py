@@ -24,6 +24,7 @@ from models.errors import (
 )
 from models.formation import SensorParams
 from models.frames import encode_frame
+from tests.models.test_frames import write_mask
 from worker.video_input import (
     VideoLimits,
     decode_video,
@@ -597,16 +598,23 @@ def tiff_pages(*pages: tuple[np.ndarray, SensorParams | None]) -> bytes:
     return buffer.getvalue()
 
 
-def test_a_tiff_videos_thumbnails_are_not_frames() -> None:
-    """A page per frame and a thumbnail of each (NewSubfileType 1) was refused: a
-    thumbnail's size differs from its frame's."""
+@pytest.mark.parametrize("kinds", [(1,), (4,), (4, 5), (5, 4), (1, 4)])
+def test_a_tiff_videos_thumbnails_and_masks_are_not_frames(kinds: tuple[int, ...]) -> None:
+    """A page per frame and, after each, a thumbnail (NewSubfileType 1) or a 1-bit
+    transparency mask (4; 5: a reduced-resolution mask, half its size) per entry of
+    ``kinds`` was refused: they were read as frames whose size or sample type (bool)
+    differs from the first page's."""
     video = codes(3)
     buffer = io.BytesIO()
     with tifffile.TiffWriter(buffer) as writer:
         for index, frame in enumerate(video):
             description = PARAMS.model_dump_json() if index == 0 else None
             writer.write(frame, description=description, metadata=None)
-            writer.write(frame[::2, ::2], subfiletype=1, metadata=None)
+            for kind in kinds:
+                if kind & 4:
+                    write_mask(writer, frame.shape, kind)
+                else:
+                    writer.write(frame[::2, ::2], subfiletype=kind, metadata=None)
     result = decode_video(buffer.getvalue(), "tiff")
     np.testing.assert_array_equal(result.codes, video)
     assert result.frames == 3

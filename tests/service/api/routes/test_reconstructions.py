@@ -24,13 +24,14 @@ from service.api.routes.jobs import PART_FORMATS
 from service.api.routes.reconstructions import prefer_wait_s
 from service.api.state import Slots
 from service.main import create_app
-from tests.models.test_frames import png_storing
+from tests.models.test_frames import png_storing, with_masks
 from tests.service.conftest import (
     FULL_KEY,
     PARAMS,
     READ_KEY,
     SUBMIT_KEY,
     exr_bytes,
+    finished_job,
     frame_png,
     make_settings,
     npy_bytes,
@@ -444,6 +445,18 @@ def test_a_zstandard_tiff_frame_is_415_naming_the_compressions_accepted(client: 
     assert reply.json()["code"] == "unsupported_format"
     assert "compression ZSTD (50000)" in reply.json()["message"]
     assert "accepted are none, deflate (zlib), PackBits, LZMA" in reply.json()["message"]
+
+
+def test_a_tiff_frame_with_a_transparency_mask_decodes(client: Client, worker: Worker) -> None:
+    """A TIFF frame followed by the 1-bit transparency-mask page some editors write
+    (NewSubfileType 4) was a 422 "more than one page of full resolution"."""
+    _, codes = frame_png()
+    http = client()
+    reply = http.post(
+        "/v1/reconstructions", files={"file": ("frame.tiff", with_masks(codes, (), (4,)))}
+    )
+    assert reply.status_code == 202, reply.text
+    assert finished_job(http, reply.json()["id"])["state"] == "succeeded"
 
 
 def test_too_many_pixels_is_413_before_decoding(client: Client) -> None:
