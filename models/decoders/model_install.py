@@ -2,31 +2,48 @@
 readiness check. A file whose sha256 is not its card's (cut short, corrupt, replaced, a
 Git LFS pointer), or that is gone since the service started, makes every job that needs
 it fail as ``model_unavailable``, while the decoder is still listed and the service would
-otherwise say it is ready. Each file is hashed once per size and modification time, so
-a poll costs a ``stat`` per card."""
+otherwise say it is ready. Each file is hashed once per size, modification and change
+times, mode and owner (:func:`stat_key`), so a poll costs a ``stat`` per card."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
 from models.decoders import learned
 from models.decoders.learned import RESTORE_ADVICE, load_cards, read_cards, sha256_of
 
-#: Per ONNX file: (size in bytes, mtime in ns, the card's sha256) -> whether it matched.
-_CHECKED: dict[Path, tuple[tuple[int, int, str], bool]] = {}
+#: Per ONNX file: (its :func:`stat_key`, the card's sha256) -> whether it matched.
+_CHECKED: dict[Path, tuple[tuple[tuple[int, ...], str], bool]] = {}
+
+
+def stat_key(stat: os.stat_result) -> tuple[int, ...]:
+    """What of a file's ``stat`` a cached hash check of it holds for: its size (bytes),
+    modification and change times (ns), mode and owner. A ``chmod 000`` keeps the size
+    and the mtime: keyed on those alone, a file made unreadable stayed its card's while
+    loading it failed. A chmod, chown or ACL change moves the change time; the mode and
+    owner are kept too for file systems that do not keep it."""
+    return (
+        stat.st_size,
+        stat.st_mtime_ns,
+        stat.st_ctime_ns,
+        stat.st_mode,
+        stat.st_uid,
+        stat.st_gid,
+    )
 
 
 def file_matches(path: Path, sha256: str) -> bool:
     """Whether the file at ``path`` exists, can be read and its sha256 is ``sha256``
-    (cached by its size and mtime; a file removed since, or one that cannot be read, such
-    as a directory in its place or a file without read permission, is not its card's and
-    is not cached: a chmod does not change the mtime)."""
+    (cached by its :func:`stat_key`, so a file whose permissions or owner change is read
+    again; a file removed since, or one that cannot be read, such as a directory in its
+    place or a file without read permission, is not its card's and is not cached)."""
     try:
         stat = path.stat()
     except OSError:
         return False
-    key = (stat.st_size, stat.st_mtime_ns, sha256)
+    key = (stat_key(stat), sha256)
     cached = _CHECKED.get(path)
     if cached is not None and cached[0] == key:
         return cached[1]

@@ -43,8 +43,8 @@ def test_a_file_cut_short_is_named_without_its_folder_then_cleared_once_restored
 def test_a_file_replaced_in_place_with_the_same_size_and_time_is_seen_by_its_hash(
     tmp_path: Path,
 ) -> None:
-    """The cache is keyed by size and mtime: a rewrite that changes neither is not seen
-    until one of them changes (a new mtime here)."""
+    """The cache is keyed by the file's stat (:func:`stat_key`): a rewrite is seen by
+    its hash once the stat differs (a new mtime here)."""
     onnx = install_one(tmp_path / "onnx")
     card_sha = learned.read_card(onnx.with_suffix(".json"))["sha256"]
     assert file_matches(onnx, card_sha)
@@ -54,6 +54,42 @@ def test_a_file_replaced_in_place_with_the_same_size_and_time_is_seen_by_its_has
     stat = onnx.stat()
     os.utime(onnx, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
     assert not file_matches(onnx, card_sha)
+
+
+def test_a_checked_file_is_hashed_again_once_its_mode_changes_and_only_then(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A poll hashes an unchanged file once; a chmod, which keeps the size and mtime,
+    made the cached answer outlive the file becoming unreadable."""
+    onnx = install_one(tmp_path / "onnx")
+    card_sha = learned.read_card(onnx.with_suffix(".json"))["sha256"]
+    hashed: list[Path] = []
+
+    def counting(path: Path) -> str:
+        hashed.append(path)
+        return learned.sha256_of(path)
+
+    monkeypatch.setattr(model_install, "sha256_of", counting)
+    assert file_matches(onnx, card_sha) and file_matches(onnx, card_sha)
+    assert hashed == [onnx]
+    onnx.chmod(0o400)
+    assert file_matches(onnx, card_sha) and file_matches(onnx, card_sha)
+    assert hashed == [onnx, onnx]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads a file whatever its mode")
+def test_a_file_made_unreadable_after_it_was_checked_is_named(tmp_path: Path) -> None:
+    """``chmod 000`` keeps a file's size and mtime: readiness kept the cached "intact"
+    and said ready while loading the model failed."""
+    onnx = install_one(tmp_path / "onnx")
+    assert broken_models(onnx.parent) == []
+    onnx.chmod(0)
+    try:
+        [line] = broken_models(onnx.parent)
+    finally:
+        onnx.chmod(0o644)
+    assert f"{CARD}.onnx" in line and "cannot be read" in line and str(tmp_path) not in line
+    assert broken_models(onnx.parent) == []
 
 
 def test_a_file_removed_after_it_was_checked_does_not_match(tmp_path: Path) -> None:
