@@ -21,8 +21,8 @@ per frame).
   thumbnail or mask is one frame, a video's thumbnails and masks no frames.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
-- A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles is refused by
-  :func:`open_tiff` before any is decoded.
+- A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles, or of no rows or
+  no columns, is refused by :func:`open_tiff` before any is decoded.
 - tifffile inflates a deflate, LZMA or PackBits strip or tile whole before it cuts out
   the rows the page needs: :func:`page_codes` refuses tiles far larger than their page
   before decoding, and inflates each segment itself, once, as tifffile would (LZMA: all
@@ -125,7 +125,8 @@ def open_tiff(
     took 6 s and 420 MB). :class:`TiffDamaged` if tifffile warns while indexing or
     reading it (callers wrap that with :func:`models.frames.decoding`, which names the
     file); :class:`ImageTooLargeError` if a page indexed is stored in more than
-    :data:`MAX_TIFF_SEGMENTS` strips or tiles."""
+    :data:`MAX_TIFF_SEGMENTS` strips or tiles; :class:`InvalidInputError` if one has no
+    rows or no columns (:func:`_check_not_empty`)."""
     logger = tifffile.logger()
     collector = _ThreadWarnings()
     logger.addHandler(collector)
@@ -137,6 +138,7 @@ def open_tiff(
             collector.check()
             for index, page in enumerate(pages):
                 _check_segments(len(page.dataoffsets), index)
+                _check_not_empty(page, index)
             yield tif, pages
         collector.check()
     finally:
@@ -193,6 +195,20 @@ def _check_segments(segments: int, index: int) -> None:
             f"the {MAX_TIFF_SEGMENTS} read a page; re-save it in fewer, larger ones (more "
             "rows per strip, or larger tiles), as image tools do by default"
         )
+
+
+def _check_not_empty(page: tifffile.TiffPage, index: int) -> None:
+    """Refuse page ``index`` (from 0) of no rows or no columns, naming its size: such a
+    frame was refused as "an array of shape (0,)", and such a page of a video as a size
+    differing from its first page's."""
+    rows, columns = int(page.imagelength), int(page.imagewidth)
+    if rows and columns:
+        return
+    raise InvalidInputError(
+        f"page {index} of the TIFF is {rows} x {columns} pixels (rows x columns): it holds "
+        "none (tifffile writes an empty array so); send an image of at least one row and "
+        "one column"
+    )
 
 
 def _separate(page: tifffile.TiffPage) -> bool:

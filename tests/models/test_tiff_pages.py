@@ -17,7 +17,7 @@ import pytest
 import tifffile
 from PIL import Image
 
-from models.errors import ImageTooLargeError, UnsupportedFormatError
+from models.errors import ImageTooLargeError, InvalidInputError, UnsupportedFormatError
 from models.tiff_pages import (
     MAX_SKIPPED_PAGES,
     MAX_TIFF_SEGMENTS,
@@ -275,6 +275,33 @@ def test_a_video_of_many_strips_in_all_is_read() -> None:
     with open_tiff(one_row_strips(600, 512)) as (tif, pages):
         assert len(pages) == 600
         np.testing.assert_array_equal(page_codes(tif.pages[599]), [[7, 9]] * 512)
+
+
+def with_size(data: bytes, page: int, rows: int, columns: int) -> bytes:
+    """``data``, a TIFF, with page ``page``'s ImageLength and ImageWidth tags set to
+    ``rows`` and ``columns`` (as LONGs)."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        tags = tif.pages[page].tags
+        entries = {tags[name].offset: value
+                   for name, value in (("ImageLength", rows), ("ImageWidth", columns))}
+    patched = bytearray(data)
+    for entry, value in entries.items():
+        code = struct.unpack_from("<H", patched, entry)[0]
+        struct.pack_into("<HHII", patched, entry, code, 4, 1, value)
+    return bytes(patched)
+
+
+@pytest.mark.parametrize(("page", "rows", "columns"), [(0, 0, 2), (0, 3, 0), (0, 0, 0), (1, 0, 2)])
+def test_a_page_of_no_rows_or_no_columns_is_refused_naming_its_size(
+    page: int, rows: int, columns: int
+) -> None:
+    """A frame of 0 rows was refused as "an array of shape (0,)", and such a page of a
+    video as differing in size from its first page ("0 x 0 against 3 x 2")."""
+    data = with_size(one_row_strips(2, 3), page, rows, columns)
+    empty = rf"page {page} of the TIFF is {rows} x {columns} pixels \(rows x columns\)"
+    with pytest.raises(InvalidInputError, match=empty):
+        with open_tiff(data):
+            pass
 
 
 def with_one_segment(data: bytes, payload: bytes) -> bytes:
