@@ -19,6 +19,10 @@ per frame).
   (bit 2: the 1-bit mask of an image some editors write after it), a page with either
   bit or both. :func:`open_tiff` gives the full-resolution images, so a frame with its
   thumbnail or mask is one frame, a video's thumbnails and masks no frames.
+- Only samples of :data:`ACCEPTED_SAMPLE_BITS` bits are read: those tifffile unpacks
+  itself. Others (a camera's 10-, 12- or 14-bit packed samples, 24 bits, sizes of no
+  numpy type such as 0 or 33 bits) are refused by size (:func:`check_sample_bits`), not
+  reported as damage ("requires the 'imagecodecs' package") or read as no samples.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles, or of no rows or
@@ -445,13 +449,42 @@ def check_compression(code: int) -> None:
     )
 
 
+#: The sizes (bits) of the samples :func:`page_codes` reads: those tifffile unpacks
+#: without ``imagecodecs`` (bits, bytes and words of 2, 4 and 8 bytes).
+ACCEPTED_SAMPLE_BITS = (1, 8, 16, 32, 64)
+
+
+def check_sample_bits(page: tifffile.TiffPage) -> None:
+    """Refuse (:class:`UnsupportedFormatError`) ``page`` when its samples are not of
+    :data:`ACCEPTED_SAMPLE_BITS` bits, or of a size and sample format of no numpy type,
+    naming them: tifffile reported a 12-bit packed frame as needing the ``imagecodecs``
+    package (refused as truncated or corrupt), and read one of 0 or 33 bits as no
+    samples (refused as "an array of shape (0,)")."""
+    bits = page.bitspersample
+    if page.dtype is not None and bits in ACCEPTED_SAMPLE_BITS:
+        return
+    size = ", ".join(str(n) for n in bits) if isinstance(bits, tuple) else str(bits)
+    try:
+        kind = tifffile.SAMPLEFORMAT(int(page.sampleformat)).name
+    except ValueError:
+        kind = f"of unknown code {int(page.sampleformat)}"
+    read = ", ".join(str(n) for n in ACCEPTED_SAMPLE_BITS)
+    raise UnsupportedFormatError(
+        f"the TIFF stores samples of {size} bits (sample format {kind}), which are not "
+        f"read; the sample sizes read are {read} bits: save the image with 8- or 16-bit "
+        "samples, its codes unchanged (a 10-, 12- or 14-bit code in a 16-bit sample)"
+    )
+
+
 def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last);
     a 1-bit page's as uint8 0 and 1 (tifffile gives booleans).
 
     Raises :class:`UnsupportedFormatError` for a compression not accepted
-    (:func:`check_compression`)."""
+    (:func:`check_compression`) or samples of a size not read
+    (:func:`check_sample_bits`)."""
     check_compression(int(page.compression))
+    check_sample_bits(page)
     check_segment_sizes(page)
     inflate = _INFLATERS.get(int(page.compression))
     codes = page.asarray() if inflate is None else _inflated_once(page, inflate)

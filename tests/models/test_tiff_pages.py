@@ -97,13 +97,18 @@ def pillow_tiff(array: np.ndarray, compression: str) -> bytes:
     return buffer.getvalue()
 
 
+def with_short(data: bytes, name: str, value: int) -> bytes:
+    """``data``, a TIFF of one page, with its tag ``name`` set to the SHORT ``value``."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        tag = tif.pages.first.tags[name]
+    patched = bytearray(data)
+    struct.pack_into("<HHIH", patched, tag.offset, tag.code, 3, 1, value)
+    return bytes(patched)
+
+
 def with_compression(data: bytes, code: int) -> bytes:
     """``data``, a TIFF of one page, with its Compression tag set to ``code``."""
-    with tifffile.TiffFile(io.BytesIO(data)) as tif:
-        entry = tif.pages.first.tags["Compression"].offset
-    patched = bytearray(data)
-    struct.pack_into("<HHIH", patched, entry, 259, 3, 1, code)
-    return bytes(patched)
+    return with_short(data, "Compression", code)
 
 
 GREY = np.arange(64 * 48, dtype=np.uint16).reshape(64, 48) * 17
@@ -193,6 +198,16 @@ def test_any_other_compression_is_refused_by_name(data: bytes, named: str) -> No
     message = re.escape(f"compression {named}; {accepted}")
     with open_tiff(data) as (tif, _), pytest.raises(UnsupportedFormatError, match=message):
         page_codes(tif.pages.first)
+
+
+@pytest.mark.parametrize("bits", [12, 10, 24, 0, 33])
+def test_samples_of_a_size_not_read_are_refused_naming_it(bits: int) -> None:
+    """A 12-bit packed frame was refused as truncated or corrupt ("packints_decode of
+    12-bit integers requires the 'imagecodecs' package"), and one of 0 or 33 bits was
+    read as no samples (refused as "an array of shape (0,)")."""
+    with open_tiff(with_short(tiff(GREY), "BitsPerSample", bits)) as (_, pages):
+        with pytest.raises(UnsupportedFormatError, match=rf"samples of {bits} bits.*8- or 16"):
+            page_codes(pages[0])
 
 
 @pytest.mark.parametrize(("most", "counted"), [(None, 12), (20, 12), (12, 12), (5, 6), (0, 1)])
