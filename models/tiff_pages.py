@@ -23,6 +23,10 @@ per frame).
   itself. Others (a camera's 10-, 12- or 14-bit packed samples, 24 bits, sizes of no
   numpy type such as 0 or 33 bits) are refused by size (:func:`check_sample_bits`), not
   reported as damage ("requires the 'imagecodecs' package") or read as no samples.
+- Pages whose samples are not grey or RGB values (palette indices, CMYK, YCbCr,
+  L*a*b*, log-encoded luminance: :data:`NOT_CODES`) are refused by their photometric
+  interpretation (:func:`check_photometric`): tifffile gives them as stored, and a
+  palette frame's indices were decoded as codes.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles, or of no rows or
@@ -476,15 +480,47 @@ def check_sample_bits(page: tifffile.TiffPage) -> None:
     )
 
 
+_LAB = "L*a*b* colour values"
+_LOG = "log-encoded luminance"
+#: What the samples of a page of these photometric interpretations are: not sensor
+#: codes as grey or RGB values, which tifffile gives as stored (not converted).
+NOT_CODES: dict[int, str] = {
+    tifffile.PHOTOMETRIC.PALETTE: "indices into its colour map (an indexed-colour image)",
+    tifffile.PHOTOMETRIC.SEPARATED: "ink separations (CMYK)",
+    tifffile.PHOTOMETRIC.YCBCR: "YCbCr values",
+    tifffile.PHOTOMETRIC.CIELAB: _LAB,
+    tifffile.PHOTOMETRIC.ICCLAB: _LAB,
+    tifffile.PHOTOMETRIC.ITULAB: _LAB,
+    tifffile.PHOTOMETRIC.LOGL: _LOG,
+    tifffile.PHOTOMETRIC.LOGLUV: _LOG,
+}
+
+
+def check_photometric(page: tifffile.TiffPage) -> None:
+    """Refuse (:class:`UnsupportedFormatError`) ``page`` when its photometric
+    interpretation makes its samples something else than grey or RGB values
+    (:data:`NOT_CODES`): a palette frame (an image saved as indexed colour) was decoded
+    from its colour map's indices without a word."""
+    photometric = int(page.photometric)
+    if photometric not in NOT_CODES:
+        return
+    raise UnsupportedFormatError(
+        f"the TIFF's samples are {NOT_CODES[photometric]} (photometric "
+        f"{tifffile.PHOTOMETRIC(photometric).name}), not sensor codes: save the image as "
+        "grey (photometric minisblack), or RGB for a colour frame, its codes as the samples"
+    )
+
+
 def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last);
     a 1-bit page's as uint8 0 and 1 (tifffile gives booleans).
 
     Raises :class:`UnsupportedFormatError` for a compression not accepted
-    (:func:`check_compression`) or samples of a size not read
-    (:func:`check_sample_bits`)."""
+    (:func:`check_compression`), samples of a size not read (:func:`check_sample_bits`)
+    or samples that are not grey or RGB values (:func:`check_photometric`)."""
     check_compression(int(page.compression))
     check_sample_bits(page)
+    check_photometric(page)
     check_segment_sizes(page)
     inflate = _INFLATERS.get(int(page.compression))
     codes = page.asarray() if inflate is None else _inflated_once(page, inflate)

@@ -200,6 +200,34 @@ def test_any_other_compression_is_refused_by_name(data: bytes, named: str) -> No
         page_codes(tif.pages.first)
 
 
+def pillow_palette_tiff(codes: np.ndarray) -> bytes:
+    """``codes`` (uint8) saved by Pillow as an indexed-colour TIFF, as an editor's
+    "indexed" mode does: its samples are indices into a palette, not the codes."""
+    buffer = io.BytesIO()
+    Image.fromarray(codes).convert("P", palette=Image.Palette.ADAPTIVE).save(buffer, "TIFF")
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("data", "named"),
+    [
+        (pillow_palette_tiff(RGB[..., 0]), r"indices into its colour map .*PALETTE"),
+        (tiff(np.zeros((8, 8, 4), np.uint8), photometric="separated"), r"CMYK\).*SEPARATED"),
+        (tiff(RGB, photometric="ycbcr"), r"YCbCr values \(photometric YCBCR\)"),
+        (with_short(tiff(GREY), "PhotometricInterpretation", 8), r"L\*a\*b\*.*CIELAB"),
+    ],
+    ids=["palette", "cmyk", "ycbcr", "cielab"],
+)
+def test_samples_that_are_not_grey_or_rgb_values_are_refused_naming_them(
+    data: bytes, named: str
+) -> None:
+    """A palette TIFF's indices were decoded as codes without a word (a palette PNG is
+    refused), and YCbCr values as RGB."""
+    with open_tiff(data) as (_, pages):
+        with pytest.raises(UnsupportedFormatError, match=rf"{named}.*save the image as grey"):
+            page_codes(pages[0])
+
+
 @pytest.mark.parametrize("bits", [12, 10, 24, 0, 33])
 def test_samples_of_a_size_not_read_are_refused_naming_it(bits: int) -> None:
     """A 12-bit packed frame was refused as truncated or corrupt ("packints_decode of
