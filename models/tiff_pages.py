@@ -29,8 +29,9 @@ per frame).
   palette frame's indices were decoded as codes.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
-- A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles, or of no rows or
-  no columns, is refused by :func:`open_tiff` before any is decoded.
+- A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles, of no rows or
+  no columns, or a volume of slices (ImageDepth over 1) is refused by :func:`open_tiff`
+  before any is decoded.
 - tifffile inflates a deflate, LZMA or PackBits strip or tile whole before it cuts out
   the rows the page needs: :func:`page_codes` refuses tiles far larger than their page
   before decoding, and inflates each segment itself, once, as tifffile would (LZMA: all
@@ -134,7 +135,8 @@ def open_tiff(
     reading it (callers wrap that with :func:`models.frames.decoding`, which names the
     file); :class:`ImageTooLargeError` if a page indexed is stored in more than
     :data:`MAX_TIFF_SEGMENTS` strips or tiles; :class:`InvalidInputError` if one has no
-    rows or no columns (:func:`_check_not_empty`)."""
+    rows or no columns (:func:`_check_not_empty`) or is a volume
+    (:func:`_check_not_a_volume`)."""
     logger = tifffile.logger()
     collector = _ThreadWarnings()
     logger.addHandler(collector)
@@ -147,6 +149,7 @@ def open_tiff(
             for index, page in enumerate(pages):
                 _check_segments(len(page.dataoffsets), index)
                 _check_not_empty(page, index)
+                _check_not_a_volume(page, index)
             yield tif, pages
         collector.check()
     finally:
@@ -216,6 +219,20 @@ def _check_not_empty(page: tifffile.TiffPage, index: int) -> None:
         f"page {index} of the TIFF is {rows} x {columns} pixels (rows x columns): it holds "
         "none (tifffile writes an empty array so); send an image of at least one row and "
         "one column"
+    )
+
+
+def _check_not_a_volume(page: tifffile.TiffPage, index: int) -> None:
+    """Refuse page ``index`` (from 0) that is a volume (ImageDepth over 1: slices of
+    one size, ``D x H x W``): tifffile gives it as an array of three axes, and a volume
+    of 3 slices 3 pixels wide was read as one RGB frame of its slices' rows."""
+    depth = int(page.imagedepth)
+    if depth <= 1:
+        return
+    raise InvalidInputError(
+        f"page {index} of the TIFF is a volume of {depth} slices of {int(page.imagelength)} "
+        f"x {int(page.imagewidth)} pixels (ImageDepth {depth}), and a frame is one image: "
+        "save each slice as a page of its own (a video is a page per frame)"
     )
 
 

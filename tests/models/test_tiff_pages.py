@@ -347,6 +347,19 @@ def test_a_page_of_no_rows_or_no_columns_is_refused_naming_its_size(
             pass
 
 
+@pytest.mark.parametrize("tile", [None, (2, 16, 16)])
+def test_a_volume_of_slices_is_refused_not_read_as_a_colour_frame(
+    tile: tuple[int, int, int] | None,
+) -> None:
+    """A volume (ImageDepth 3) of 16 x 3 slices was read as one 3 x 16 RGB frame."""
+    volume = np.arange(3 * 16 * 3, dtype=np.uint8).reshape(3, 16, 3)
+    data = tiff(volume, volumetric=True, photometric="minisblack", tile=tile)
+    refused = r"page 0 of the TIFF is a volume of 3 slices of 16 x 3 pixels \(ImageDepth 3\)"
+    with pytest.raises(InvalidInputError, match=refused):
+        with open_tiff(data):
+            pass
+
+
 def with_one_segment(data: bytes, payload: bytes) -> bytes:
     """``data``, a TIFF of one page in one strip or tile, with that segment replaced by
     ``payload`` appended at the end (its offset and byte count tags rewritten)."""
