@@ -19,6 +19,9 @@ per frame).
   (bit 2: the 1-bit mask of an image some editors write after it), a page with either
   bit or both. :func:`open_tiff` gives the full-resolution images, so a frame with its
   thumbnail or mask is one frame, a video's thumbnails and masks no frames.
+- A page with a strip or tile not stored (offset or byte count 0: a writer stopped
+  before it, or a sparse file), which tifffile fills with zeros, is refused
+  (:func:`check_segments_stored`).
 - Only samples of :data:`ACCEPTED_SAMPLE_BITS` bits are read: those tifffile unpacks
   itself. Others (a camera's 10-, 12- or 14-bit packed samples, 24 bits, sizes of no
   numpy type such as 0 or 33 bits) are refused by size (:func:`check_sample_bits`), not
@@ -387,6 +390,26 @@ def check_segment_sizes(page: tifffile.TiffPage) -> None:
         )
 
 
+def check_segments_stored(page: tifffile.TiffPage) -> None:
+    """Refuse (:class:`InvalidInputError`) ``page`` when one of its strips or tiles is
+    not stored (offset 0 or 0 bytes: a file whose writer stopped before it, or one
+    written sparse): tifffile fills such a segment with zeros, and a frame missing a
+    tile was decoded with a black quarter without a word."""
+    # Tags of differing lengths are damage tifffile warns about (TiffDamaged).
+    segments = list(zip(page.dataoffsets, page.databytecounts, strict=False))
+    missing = [index for index, (offset, count) in enumerate(segments) if not offset or not count]
+    if not missing:
+        return
+    kind = _segment_samples(page)[0]
+    offset, count = segments[missing[0]]
+    raise InvalidInputError(
+        f"the TIFF page has {len(missing)} of its {len(segments)} {kind}s not stored "
+        f"({kind} {missing[0]}: offset {offset}, {count} bytes), which a reader fills with "
+        "zeros: the file's writer stopped before writing them, or wrote it sparse; send "
+        "the frame written whole"
+    )
+
+
 def _stored_plain(page: tifffile.TiffPage) -> tifffile.TiffPage:
     """``page`` as if its strips or tiles were stored uncompressed, in FillOrder 1:
     tifffile's decoding of such a page (unpacking, predictor, tiles' padding) is what
@@ -412,9 +435,7 @@ def _inflated_once(page: tifffile.TiffPage, inflate: Callable[[bytes, int], byte
     decode_plain = _stored_plain(page).decode
     reversed_bits = page.fillorder == 2
 
-    def decode(data: bytes | None, index: int, **options: Any) -> Any:
-        if data is None:  # an empty segment: tifffile fills it
-            return decode_plain(data, index, **options)
+    def decode(data: bytes, index: int, **options: Any) -> Any:
         try:
             inflated = inflate(data.translate(_REVERSED_BITS) if reversed_bits else data, most)
         except _LzmaMemoryExceeded:
@@ -534,11 +555,14 @@ def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
 
     Raises :class:`UnsupportedFormatError` for a compression not accepted
     (:func:`check_compression`), samples of a size not read (:func:`check_sample_bits`)
-    or samples that are not grey or RGB values (:func:`check_photometric`)."""
+    or samples that are not grey or RGB values (:func:`check_photometric`);
+    :class:`InvalidInputError` for a strip or tile not stored
+    (:func:`check_segments_stored`)."""
     check_compression(int(page.compression))
     check_sample_bits(page)
     check_photometric(page)
     check_segment_sizes(page)
+    check_segments_stored(page)
     inflate = _INFLATERS.get(int(page.compression))
     codes = page.asarray() if inflate is None else _inflated_once(page, inflate)
     if codes.dtype == np.bool_:

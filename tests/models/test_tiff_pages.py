@@ -375,6 +375,37 @@ def with_one_segment(data: bytes, payload: bytes) -> bytes:
     return bytes(patched) + payload
 
 
+def without_segment(data: bytes, index: int, tag: str) -> bytes:
+    """``data``, a TIFF of one page, with entry ``index`` of its ``tag`` (an offsets or
+    byte counts tag of SHORTs or LONGs, stored apart from its entry) set to 0."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        found = tif.pages.first.tags[tag]
+        where, code = found.valueoffset, "<H" if found.dtype == 3 else "<I"
+    patched = bytearray(data)
+    struct.pack_into(code, patched, where + struct.calcsize(code) * index, 0)
+    return bytes(patched)
+
+
+@pytest.mark.parametrize(
+    ("options", "tag", "refused"),
+    [
+        ({"tile": (16, 16), "compression": "zlib"}, "TileByteCounts", "tile 1: offset [1-9]"),
+        ({"tile": (16, 16)}, "TileOffsets", "tile 1: offset 0"),
+        ({"rowsperstrip": 16}, "StripByteCounts", "strip 1: offset [1-9][0-9]*, 0 bytes"),
+    ],
+    ids=["deflate-tile", "tile-offset", "strip"],
+)
+def test_a_strip_or_tile_not_stored_is_refused_not_filled_with_zeros(
+    options: dict[str, object], tag: str, refused: str
+) -> None:
+    """A strip or tile of offset or byte count 0 (a writer stopped before it, a sparse
+    file) was filled with zeros by tifffile: a quarter of the frame decoded black."""
+    data = without_segment(tiff(GREY, **options), 1, tag)
+    with open_tiff(data) as (_, pages):
+        with pytest.raises(InvalidInputError, match=rf"has 1 of its \d+ .*not stored \({refused}"):
+            page_codes(pages[0])
+
+
 def refused_holding_little(data: bytes, refused: str) -> None:
     """Reading the one page of TIFF ``data`` is refused (:class:`ImageTooLargeError`
     matching ``refused``) while under 16 MiB is held."""
