@@ -55,6 +55,8 @@ NETWORK_SCHEMES = ("socket", "rfc2217")
 #: Port URL schemes whose options pyserial reads without opening anything
 #: (:func:`check_url_options`).
 PARSED_SCHEMES = ("loop", "socket", "rfc2217", "alt")
+#: Options of pyserial's ``spy://`` URLs that take no value (``file=PATH`` takes one).
+SPY_FLAGS = ("color", "raw", "all")
 #: Parser drop causes of packets the link damaged (an unknown type or a malformed packet
 #: came as the camera sent it).
 DAMAGE_CAUSES = ("bad_header", "oversize", "bad_crc", "truncated")
@@ -97,7 +99,8 @@ def packet_params(packet: DataPacket) -> SensorParams:
 
 def check_port_url(url: str) -> None:
     """Refuse an empty port, a port URL whose scheme pyserial does not know, or a network
-    one without a host and port (:func:`check_host_port`): retrying could never open
+    one without a host and port (:func:`check_host_port`), or options pyserial refuses
+    (:func:`check_url_options`, :func:`check_spy_options`): retrying could never open
     them, unlike a tty that is not plugged in yet."""
     if not url.strip():
         raise InvalidInputError(
@@ -111,6 +114,8 @@ def check_port_url(url: str) -> None:
         check_host_port(url, scheme)
     if scheme in PARSED_SCHEMES and "?" in url:
         check_url_options(url, scheme)
+    if scheme == "spy":
+        check_spy_options(url)
 
 
 def check_url_options(url: str, scheme: str) -> None:
@@ -140,8 +145,46 @@ def check_url_options(url: str, scheme: str) -> None:
         check_rfc2217_timeout(url)
 
 
+def check_spy_options(url: str) -> None:
+    """Refuse a ``spy://`` URL's options that pyserial refuses at every open: an unknown
+    one (``spy:///dev/ttyACM0?bogus=1`` was retried for good with "expected a string in
+    the form ...: unknown option: 'bogus'"), or a ``file`` that cannot be created (no
+    name, a directory, or in a directory that does not exist: retried for good with "No
+    such file or directory"). Read as pyserial reads them, but without opening the file:
+    pyserial's parser opens it for writing, emptying it."""
+    for option, values in parse_qs(urlsplit(url).query, keep_blank_values=True).items():
+        if option == "file":
+            check_spy_file(url, values[0])  # pyserial takes the first
+        elif option not in SPY_FLAGS:
+            raise InvalidInputError(f"bad option in port URL {url!r} (unknown option: "
+                                    f"{option!r}); {url_options('spy')}")
+
+
+def check_spy_file(url: str, path: str) -> None:
+    """Refuse a ``spy://`` URL's ``file`` (where pyserial writes the traffic it sees) that
+    no open could create: empty, a directory, or in a directory that does not exist."""
+    folder = os.path.dirname(path) or "."
+    if not path:
+        problem = "names no file"
+    elif os.path.isdir(path):
+        problem = "is a directory"
+    elif not os.path.isdir(folder):
+        problem = f"is in {folder}, which is no directory"
+    else:
+        return
+    raise InvalidInputError(
+        f"bad option in port URL {url!r}: file={path} {problem}; give ?file= a file in an "
+        "existing directory (spy:// writes the traffic it sees there), or leave it out "
+        "(standard error)"
+    )
+
+
 def url_options(scheme: str) -> str:
-    """What options a :data:`PARSED_SCHEMES` port URL takes, for an error message."""
+    """What options a :data:`PARSED_SCHEMES` or ``spy://`` port URL takes, for an error
+    message."""
+    if scheme == "spy":
+        return (f"pyserial's spy:// takes ?file=PATH (where it writes the traffic it sees; "
+                f"standard error without it), {', '.join(SPY_FLAGS)}, or none")
     if scheme == "alt":
         classes = sorted(name for name, value in vars(serial).items()
                          if isinstance(value, type) and issubclass(value, serial.Serial))

@@ -695,6 +695,13 @@ def test_a_network_port_url_without_host_or_valid_port_is_refused(
         DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
 
 
+def refusal(client: redis.Redis, port: str) -> str:
+    """The message of the InvalidInputError a daemon on ``port`` is refused with."""
+    with pytest.raises(InvalidInputError) as refused:
+        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+    return refused.value.message
+
+
 @pytest.mark.parametrize(("port", "why"), [
     ("loop://?logging=DEBUG", ";"),
     ("socket://127.0.0.1:5555?logging=bogus", ";"),
@@ -707,11 +714,9 @@ def test_a_port_url_with_an_option_pyserial_refuses_is_refused(
     lower case) killed the daemon's thread with a bare KeyError traceback and ``mcam
     device`` exited 0; the others were retried for good with a cryptic reason. They are
     refused up front, naming the options a port URL takes."""
-    with pytest.raises(InvalidInputError) as refused:
-        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
-    assert refused.value.message.startswith(f"bad option in port URL {port!r}")
-    assert why in refused.value.message and "?logging=debug, info, warning or error" in (
-        refused.value.message)
+    message = refusal(client, port)
+    assert message.startswith(f"bad option in port URL {port!r}")
+    assert why in message and "?logging=debug, info, warning or error" in message
 
 
 @pytest.mark.parametrize(("port", "why"), [
@@ -724,11 +729,10 @@ def test_an_alt_port_url_with_a_class_pyserial_refuses_is_refused(
     """pyserial refuses these at every open: an unknown class or option was retried for
     good, and ``class=XON`` stopped the daemon on a TypeError. They are refused up front,
     naming the classes alt:// takes."""
-    with pytest.raises(InvalidInputError) as refused:
-        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
-    assert refused.value.message.startswith(f"bad option in port URL {port!r}")
-    assert why in refused.value.message
-    assert refused.value.message.endswith(
+    message = refusal(client, port)
+    assert message.startswith(f"bad option in port URL {port!r}")
+    assert why in message
+    assert message.endswith(
         "pyserial's alt:// takes ?class= one of PosixPollSerial, Serial, VTIMESerial, or none")
 
 
@@ -744,9 +748,8 @@ def test_an_rfc2217_timeout_out_of_range_is_refused(client: redis.Redis, timeout
     ended the wait. The option and its range are named up front."""
     port = f"rfc2217://127.0.0.1:5555?timeout={timeout}"
     given = timeout.partition("&")[0]
-    with pytest.raises(InvalidInputError) as refused:
-        DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
-    assert refused.value.message == (
+    message = refusal(client, port)
+    assert message == (
         f"bad option in port URL {port!r}: timeout={given} is out of range; give "
         "?timeout=SECONDS above 0 and at most 60 (how long the RFC 2217 server has to "
         "answer; 3 without it), or leave it out")
@@ -755,6 +758,50 @@ def test_an_rfc2217_timeout_out_of_range_is_refused(client: redis.Redis, timeout
 def test_an_rfc2217_timeout_in_range_is_taken(client: redis.Redis) -> None:
     DeviceDaemon(DaemonConfig(port="rfc2217://127.0.0.1:5555?timeout=0.5", device="cam1"),
                  client)
+
+
+@pytest.mark.parametrize(("query", "option"), [
+    ("bogus=1", "bogus"), ("color&raw&Bogus", "Bogus"), ("=x", ""), ("dev=/tmp/spy.log", "dev"),
+])
+def test_a_spy_port_url_with_an_option_pyserial_refuses_is_refused(
+        client: redis.Redis, query: str, option: str) -> None:
+    """pyserial refuses an unknown spy:// option at every open, and the daemon retried it
+    for good. It is refused up front, naming the option and those spy:// takes."""
+    port = f"spy:///dev/ttyACM0?{query}"
+    message = refusal(client, port)
+    assert message == (
+        f"bad option in port URL {port!r} (unknown option: {option!r}); pyserial's spy:// "
+        "takes ?file=PATH (where it writes the traffic it sees; standard error without it), "
+        "color, raw, all, or none")
+
+
+@pytest.mark.parametrize(("file", "problem"), [
+    ("", "names no file"), ("{dir}", "is a directory"),
+    ("{dir}/nope/spy.log", "is in {dir}/nope, which is no directory"),
+])
+def test_a_spy_port_url_whose_file_cannot_be_created_is_refused(
+        client: redis.Redis, tmp_path: Path, file: str, problem: str) -> None:
+    """Opening such a file failed at every open ("No such file or directory"), retried
+    for good."""
+    file = file.format(dir=tmp_path)
+    port = f"spy:///dev/ttyACM0?file={file}"
+    message = refusal(client, port)
+    assert message.startswith(
+        f"bad option in port URL {port!r}: file={file} {problem.format(dir=tmp_path)}; give "
+        "?file= a file in an existing directory")
+
+
+def test_a_spy_port_url_with_valid_options_is_taken_without_opening_its_file(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """pyserial's own parser opens the file for writing: checking the URL with it would
+    empty a file the user keeps, or leave one behind for a daemon that never starts."""
+    kept = tmp_path / "kept.log"
+    kept.write_text("earlier traffic")
+    for file in (kept, tmp_path / "new.log"):
+        DeviceDaemon(DaemonConfig(port=f"spy:///dev/ttyACM0?color&raw&all&file={file}",
+                                  device="cam1"), client)
+    assert kept.read_text() == "earlier traffic"
+    assert not (tmp_path / "new.log").exists()
 
 
 @pytest.mark.parametrize("port", ["my.camera://x", "loop.x://", "..://x"])

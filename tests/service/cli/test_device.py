@@ -55,12 +55,13 @@ def test_mcam_device_keeps_the_dataset_within_the_settings(
 
 def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_path: Path) -> None:
     env = env_for(redis_server.url, tmp_path / "data")
-    wrong_id, scheme, dotted, empty, option, port, bits = run_mcams([
+    wrong_id, scheme, dotted, empty, option, spy, port, bits = run_mcams([
         ("device", "--port", "loop://", "--device-id", "no spaces"),
         ("device", "--port", "bogus://x", "--device-id", "rig1"),
         ("device", "--port", "my.camera://x", "--device-id", "rig1"),
         ("device", "--port", " ", "--device-id", "rig1"),
         ("device", "--port", "loop://?logging=DEBUG", "--device-id", "rig1"),
+        ("device", "--port", "spy:///dev/ttyACM0?bogus=1", "--device-id", "rig1"),
         ("simulate-device", "--port", "/dev/ttyS0"),
         ("simulate-device", "--bits", "40"),
     ], cwd=tmp_path, env=env)  # fmt: skip
@@ -83,6 +84,11 @@ def test_bad_arguments_exit_2_with_one_line(redis_server: EmbeddedRedis, tmp_pat
     assert option.stderr.strip().splitlines()[0].startswith(
         "mcam device: error: bad option in port URL 'loop://?logging=DEBUG'; pyserial's loop:// "
         "takes ?logging=debug, info, warning or error")
+    assert spy.returncode == 2, spy.stderr  # retried for good
+    assert spy.stderr.strip().splitlines() == [
+        "mcam device: error: bad option in port URL 'spy:///dev/ttyACM0?bogus=1' (unknown "
+        "option: 'bogus'); pyserial's spy:// takes ?file=PATH (where it writes the traffic "
+        "it sees; standard error without it), color, raw, all, or none"]
     assert port.returncode == 2 and "unsupported simulator port" in port.stderr
     assert "loop:// reaches readers in the same process only" in port.stderr
     assert bits.returncode == 2 and "bits" in bits.stderr
