@@ -18,6 +18,7 @@ import importlib
 import logging
 import os
 import queue
+import re
 import select
 import stat
 import threading
@@ -100,8 +101,8 @@ def packet_params(packet: DataPacket) -> SensorParams:
 def check_port_url(url: str) -> None:
     """Refuse an empty port, a port URL whose scheme pyserial does not know, or a network
     one without a host and port (:func:`check_host_port`), or options pyserial refuses
-    (:func:`check_url_options`, :func:`check_spy_options`): retrying could never open
-    them, unlike a tty that is not plugged in yet."""
+    (:func:`check_url_options`, :func:`check_spy_options`, :func:`check_hwgrep_url`):
+    retrying could never open them, unlike a tty that is not plugged in yet."""
     if not url.strip():
         raise InvalidInputError(
             "the port is empty; give a device path (/dev/ttyACM0), socket://HOST:PORT or "
@@ -116,6 +117,8 @@ def check_port_url(url: str) -> None:
         check_url_options(url, scheme)
     if scheme == "spy":
         check_spy_options(url)
+    if scheme == "hwgrep":
+        check_hwgrep_url(url)
 
 
 def check_url_options(url: str, scheme: str) -> None:
@@ -179,9 +182,47 @@ def check_spy_file(url: str, path: str) -> None:
     )
 
 
+def check_hwgrep_url(url: str) -> None:
+    """Refuse a ``hwgrep://REGEXP&OPTION...`` URL that pyserial refuses at every open: an
+    unknown option, or an ``n`` that is no whole number from 2 (retried for good with
+    "unknown option: 'bogus'"), an ``n`` with no value or a REGEXP that does not compile
+    (a TypeError or re.error, which stopped ``mcam device`` as a bug: exit 1, "please
+    report it"). Read as pyserial reads it (options follow ``&``: a ``?`` is the
+    regexp's), without looking for ports."""
+    regexp, *options = url[len("hwgrep://"):].split("&")
+    try:
+        re.compile(regexp, re.IGNORECASE)
+    except re.error as exc:
+        raise InvalidInputError(
+            f"bad port URL {url!r}: {regexp!r} is no regular expression ({exc}); give "
+            "hwgrep://REGEXP, a Python regular expression that matches the camera's port "
+            "name, description or hardware id (python -m serial.tools.list_ports -v lists "
+            "them)"
+        ) from None
+    for option in options:
+        name, equals, value = option.partition("=")
+        if name == "skip_busy" or (name == "n" and equals and _from_2(value)):
+            continue
+        raise InvalidInputError(
+            f"bad option {option!r} in port URL {url!r}; {url_options('hwgrep')}"
+        )
+
+
+def _from_2(value: str) -> bool:
+    """Whether hwgrep://'s ``n`` takes ``value``: a whole number from 2 (pyserial's
+    "numbering starts at 1" refuses 1)."""
+    try:
+        return int(value) >= 2
+    except ValueError:
+        return False
+
+
 def url_options(scheme: str) -> str:
-    """What options a :data:`PARSED_SCHEMES` or ``spy://`` port URL takes, for an error
-    message."""
+    """What options a :data:`PARSED_SCHEMES`, ``spy://`` or ``hwgrep://`` port URL takes,
+    for an error message."""
+    if scheme == "hwgrep":
+        return ("pyserial's hwgrep:// takes &n=N (the Nth port that matches, N from 2; the "
+                "first without it) and &skip_busy, or none")
     if scheme == "spy":
         return (f"pyserial's spy:// takes ?file=PATH (where it writes the traffic it sees; "
                 f"standard error without it), {', '.join(SPY_FLAGS)}, or none")

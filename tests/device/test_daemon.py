@@ -804,6 +804,33 @@ def test_a_spy_port_url_with_valid_options_is_taken_without_opening_its_file(
     assert not (tmp_path / "new.log").exists()
 
 
+@pytest.mark.parametrize("option", ["bogus", "n=1", "n=abc", "n=", "n", "N=2", "skip_busy&x"])
+def test_a_hwgrep_port_url_with_an_option_pyserial_refuses_is_refused(
+        client: redis.Redis, option: str) -> None:
+    """pyserial refuses these at every open: most were retried for good ("unknown option:
+    'bogus'"), and ``n`` without a value stopped the daemon on a TypeError, as a bug
+    (exit 1). They are refused up front, naming the option and those hwgrep:// takes."""
+    port = f"hwgrep://ttyACM?&{option}"
+    bad = option.rpartition("&")[2]
+    assert refusal(client, port) == (
+        f"bad option {bad!r} in port URL {port!r}; pyserial's hwgrep:// takes &n=N (the Nth "
+        "port that matches, N from 2; the first without it) and &skip_busy, or none")
+
+
+def test_a_hwgrep_port_url_whose_regexp_does_not_compile_is_refused(
+        client: redis.Redis) -> None:
+    """pyserial compiles it at every open: its re.error stopped the daemon as a bug."""
+    assert refusal(client, "hwgrep://ttyACM[0-&n=2").startswith(
+        "bad port URL 'hwgrep://ttyACM[0-&n=2': 'ttyACM[0-' is no regular expression "
+        "(unterminated character set at position 6); give hwgrep://REGEXP, a Python regular "
+        "expression that matches the camera's port name")
+
+
+def test_a_hwgrep_port_url_with_valid_options_is_taken(client: redis.Redis) -> None:
+    DeviceDaemon(DaemonConfig(port="hwgrep://(?i)scamp|ttyACM[0-9]?&n=2&skip_busy",
+                              device="cam1"), client)
+
+
 @pytest.mark.parametrize("port", ["my.camera://x", "loop.x://", "..://x"])
 def test_a_port_url_scheme_no_module_can_have_is_refused(client: redis.Redis, port: str) -> None:
     """A scheme with a dot looked its handler up as a submodule: ``mcam device`` stopped
