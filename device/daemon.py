@@ -45,7 +45,7 @@ from device.sim_link import MAX_TCP_PORT
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
 from worker.frame_message import FrameMessage
-from worker.redis_keys import validate_device_id
+from worker.redis_keys import DEVICES_SET, health_key, validate_device_id
 from worker.redis_memory import TroubleLog
 
 log = logging.getLogger(__name__)
@@ -96,6 +96,12 @@ def packet_params(packet: DataPacket) -> SensorParams:
     for values out of range."""
     return SensorParams.parse({"encoding": packet.encoding, "alpha": packet.alpha,
                                "bits": packet.bits, "gain": packet.gain or None})
+
+
+def crash_line(crash: Exception) -> str:
+    """An unexpected error on one line: its type, and its message if it has one."""
+    reason = " ".join(str(crash).split())
+    return f"{type(crash).__name__}: {reason}" if reason else type(crash).__name__
 
 
 def check_port_url(url: str) -> None:
@@ -415,6 +421,7 @@ class DeviceDaemon:
     def __init__(self, config: DaemonConfig, client: redis.Redis,
                  opener: PortOpener | None = None) -> None:
         self.config = config
+        self.client = client
         self.device = validate_device_id(config.device)
         self.health = DeviceHealth(self.device, config.port)
         self.claim = DaemonClaim(client, self.device)
@@ -653,11 +660,44 @@ class DeviceDaemon:
                           "longer read", self.device, self.config.port)
             self.crash = exc
         finally:
-            self.health.state = "stopped"  # the publisher's last health write says so
-            self.publisher.stop()
-            with contextlib.suppress(redis.RedisError, OSError):
-                self.claim.release()
-            self._finished.set()
+            self._end()
+
+    def _end(self) -> None:
+        """Publish what is queued, the publisher's last health write saying the daemon
+        stopped or crashed; after a crash (also one in that last write) say so from this
+        thread too (:meth:`_report_crash`); release the claim, and end :meth:`wait`."""
+        if self.crash is None:
+            self.health.state = "stopped"
+        else:
+            self.health.crashed(crash_line(self.crash))
+        self.publisher.stop()
+        if self.crash is not None:
+            self._report_crash(self.crash)
+        with contextlib.suppress(redis.RedisError, OSError):
+            self.claim.release()
+        self._finished.set()
+
+    def _report_crash(self, crash: Exception) -> None:
+        """Say in the device's health that the daemon crashed, and on what: the publishing
+        thread, which writes the health, may be the one that died, and the device then
+        read ``connected`` for good. Written while this daemon holds the device's claim
+        (another daemon's health is not touched): the crash's fields over the health this
+        daemon or its predecessor last wrote, or, with none, all of this daemon's. Redis
+        errors are logged (the crash itself is already)."""
+        fields = self.health.crashed(crash_line(crash))
+        key = health_key(self.device)
+        try:
+            if not self.claim.renew():
+                return
+            if not self.client.exists(key):
+                fields = {**self.health.to_fields(), **fields}
+            pipe = self.client.pipeline(transaction=False)
+            pipe.hset(key, mapping=fields)
+            pipe.sadd(DEVICES_SET, self.device)
+            pipe.execute()
+        except (redis.RedisError, OSError) as exc:
+            log.warning("device %s: its health could not be marked crashed: %s",
+                        self.device, exc)
 
     def _serve_links(self) -> None:
         """Open the port and read it, again after each link lost, until :meth:`stop`."""

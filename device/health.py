@@ -1,7 +1,9 @@
 """Per-device health counters of the daemon, published as the ``device:<id>:health`` hash.
 
-Fields (all strings in Redis): ``state`` (connecting / connected / disconnected),
-``port``, ``port_error`` (why the port last failed to open; empty once it is open),
+Fields (all strings in Redis): ``state`` (connecting / connected / disconnected, and
+the daemon's last word: stopped, or crashed when it stopped on an unexpected error),
+``crash`` (that error, on one line: its type and message; empty otherwise), ``port``,
+``port_error`` (why the port last failed to open; empty once it is open),
 ``frames_ok`` (published), ``frames_received`` (valid data packets),
 ``dropped_<cause>`` for every parser cause plus ``queue_full`` (the daemon's own
 queue), ``stream_full`` (oldest frames evicted from the Redis stream unread),
@@ -23,7 +25,7 @@ camera sent while no daemon ran are a gap); until that frame the newest frame's
 ``last_sequence`` and ``last_frame_ns`` stay the previous daemon's. A killed daemon's
 hash is up to one health write old (0.25 s): the frames it published after that are
 read from the device's frame stream, and only those it got but never published count
-as missing. The gauges (state, port error, fps, settings) are this daemon's own.
+as missing. The gauges (state, crash, port error, fps, settings) are this daemon's own.
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ from device.link_parser import DROP_CAUSES
 HOST_DROP_CAUSES: tuple[str, ...] = ("queue_full", "stream_full", "redis_unavailable",
                                      "redis_full", "rejected")
 ALL_DROP_CAUSES: tuple[str, ...] = DROP_CAUSES + HOST_DROP_CAUSES
+#: States a daemon writes as it ends: its device streams no more until a daemon starts.
+ENDED_STATES: tuple[str, ...] = ("stopped", "crashed")
 #: A forward sequence jump counts its frames as missing up to this many (an hour at
 #: 250 frames/s); a larger one is a counter that reset or was corrupted, not frames
 #: lost, and counts as a gap only (a jump to 2^64 - 1 added 1.8e19 missing frames).
@@ -64,6 +68,7 @@ class DeviceHealth:
         self.device = device
         self.port = port
         self.state = "connecting"
+        self.crash = ""
         self.port_error = ""
         self.counts: Counter[str] = Counter({name: 0 for name in _COUNTERS})
         self._carried: Counter[str] = Counter()  # the previous daemons' counts
@@ -154,6 +159,14 @@ class DeviceHealth:
                 self.settings = settings
             self._arrivals.append(time.monotonic())
 
+    def crashed(self, error: str) -> dict[str, str]:
+        """Mark the daemon stopped on an unexpected error (``error``: its line); returns
+        the hash fields that say so (at 0 fps), for a write of their own."""
+        with self._lock:
+            self.state, self.crash = "crashed", error
+        return {"state": "crashed", "crash": error, "fps": "0.000",
+                "updated_ns": str(time.time_ns())}
+
     @property
     def fps(self) -> float:
         """Frames per second over the last arrivals (0 with fewer than two, or if stale)."""
@@ -179,7 +192,7 @@ class DeviceHealth:
         with self._lock:
             fields = {name: str(value) for name, value in self.counts.items()}
             fields.update(
-                device=self.device, port=self.port, state=self.state,
+                device=self.device, port=self.port, state=self.state, crash=self.crash,
                 port_error=self.port_error,
                 last_frame_ns=str(self.last_frame_ns), last_sequence=str(self.last_sequence),
                 fps=f"{fps:.3f}", settings=json.dumps(self.settings),

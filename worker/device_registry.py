@@ -16,6 +16,7 @@ import time
 
 import redis
 
+from device.health import ENDED_STATES
 from models.errors import McamError
 from worker.metrics import forget_label
 from worker.redis_keys import (
@@ -77,8 +78,8 @@ def _refusal(pipe: redis.client.Pipeline, device: str, silent_after_s: float,
     """Why ``device`` must stay (read inside the WATCH; ``waiting``: its undecoded
     frames), or None."""
     updated, state = pipe.hmget(health_key(device), "updated_ns", "state")  # one snapshot
-    stopped = state == b"stopped"  # its daemon said so
-    if not stopped and updated is not None and time.time_ns() - int(updated) < silent_after_s * 1e9:
+    ended = state is not None and state.decode() in ENDED_STATES  # its daemon said so
+    if not ended and updated is not None and time.time_ns() - int(updated) < silent_after_s * 1e9:
         return (f"the daemon of device {device!r} reported {silent_after_s:g} s ago or less; "
                 "stop it (mcam device ... ends with Ctrl-C or SIGTERM) and retry")
     recording, state = pipe.hmget(recording_key(device), "id", "state")
@@ -98,10 +99,10 @@ def forget_device(client: redis.Redis, device: str, *, silent_after_s: float,
                   discard_frames: bool = False) -> int:
     """Remove ``device`` and its keys atomically; returns how many undecoded frames went
     with it. Raises :class:`DeviceBusyError` when its daemon reported within the last
-    ``silent_after_s`` seconds, while it records, or while frames wait and
-    ``discard_frames`` is false, and :class:`DeviceNotFoundError` when it is not registered
-    (never, or another caller forgot it first). Retried if a daemon or worker writes
-    meanwhile."""
+    ``silent_after_s`` seconds (unless it said it ended: stopped or crashed), while it
+    records, or while frames wait and ``discard_frames`` is false, and
+    :class:`DeviceNotFoundError` when it is not registered (never, or another caller
+    forgot it first). Retried if a daemon or worker writes meanwhile."""
     keys = device_keys(device)
     while True:
         with client.pipeline() as pipe:

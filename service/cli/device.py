@@ -22,7 +22,7 @@ import sys
 
 import redis
 
-from device.daemon import DaemonConfig, DeviceDaemon, check_port_url
+from device.daemon import DaemonConfig, DeviceDaemon, check_port_url, crash_line
 from device.datasets import DatasetLimits
 from models.stop_signals import noting_stop_signals, wait_for_stop
 from service.cli.options import add_log_level_flag, start_logging
@@ -78,7 +78,6 @@ def run(args: argparse.Namespace) -> int:
 def crash_message(device: str, crash: Exception) -> str:
     """One line for a daemon that stopped on an unexpected error (a bug; the log holds its
     traceback), saying what to do."""
-    reason = " ".join(str(crash).split())  # on one line
     return (f"the daemon of device {device!r} stopped on an unexpected error "
-            f"({type(crash).__name__}: {reason}); the log above has its traceback: please "
-            "report it, and restart mcam device")
+            f"({crash_line(crash)}); the log above has its traceback: please report it, "
+            "and restart mcam device")

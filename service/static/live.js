@@ -66,12 +66,17 @@ const deviceState = (health) => health.state ?? "no health report yet";
 
 // Why the device sends no frames, and what to do, as liveStatus's parts (from a said
 // one): its daemon went silent (the API's state "silent": no health report for age_s
-// seconds), or its port does not open (the daemon's port_error: a wrong --port, an
-// unplugged camera, another daemon on it); else none.
+// seconds), its daemon crashed (the state "crashed", the error in crash), or its port
+// does not open (the daemon's port_error: a wrong --port, an unplugged camera, another
+// daemon on it); else none.
 function healthTrouble(health) {
   if (health.state === "silent") {
     return ["; its daemon has not reported for ", `${Math.round(health.age_s)} s`,
       " (stopped, killed, or cut off from Redis): check that mcam device runs"];
+  }
+  if (health.state === "crashed") {
+    return [`; its daemon stopped on an unexpected error (${health.crash}): restart mcam ` +
+      "device, and report the error with the traceback in its log"];
   }
   return health.port_error ? [`; its port does not open: ${health.port_error}`] : [];
 }

@@ -1099,6 +1099,14 @@ def loop_port_with(data: bytes) -> Callable[[], serial.Serial]:
 
 
 
+def assert_health_says_crashed(client: redis.Redis, device: str) -> None:
+    """The device's health says its daemon crashed on :func:`not_a_client_mistake`'s
+    error, at 0 fps."""
+    last = health(client, device)
+    assert (last["state"], last.get("crash"), last["fps"]) == (
+        "crashed", "RuntimeError: not a client mistake", "0.000"), last
+
+
 def assert_stops_on_the_bug(daemon: DeviceDaemon, caplog: pytest.LogCaptureFixture,
                             monkeypatch: pytest.MonkeyPatch, logged: str) -> None:
     """Run ``daemon`` until it stops by itself, on :func:`not_a_client_mistake`'s
@@ -1124,14 +1132,14 @@ def test_an_unexpected_error_stops_the_daemon_logged_once_and_kept(
     """A bug in the link's loops (here a port opener or a parser that raises) went to
     threading's excepthook, and the daemon looked stopped as by a stop (no failure): its
     command exited 0. It is now logged once with its traceback and kept in ``crash``;
-    the health says stopped."""
+    the health says it crashed, and on what."""
     opener = not_a_client_mistake if where == "opener" else loop_port_with(b"\0")
     daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client, opener=opener)
     monkeypatch.setattr(daemon._parser, "feed", not_a_client_mistake)
     assert_stops_on_the_bug(
         daemon, caplog, monkeypatch,
         "device cam9: the daemon stopped on an unexpected error; loop:// is no longer read")
-    assert health(client, "cam9")["state"] == "stopped"
+    assert_health_says_crashed(client, "cam9")
 
 
 def test_an_unexpected_error_in_publishing_stops_the_daemon_logged_once_and_kept(
@@ -1148,3 +1156,24 @@ def test_an_unexpected_error_in_publishing_stops_the_daemon_logged_once_and_kept
         daemon, caplog, monkeypatch,
         "device cam9: publishing stopped on an unexpected error; its frames are no longer "
         "published")
+    assert_health_says_crashed(client, "cam9")
+
+
+def test_a_crash_of_publishing_leaves_the_health_saying_so(
+        client: redis.Redis, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The publishing thread writes the health: once it had crashed, the device read
+    ``connected`` for good (its last write) though the daemon had stopped. The daemon's
+    own thread now writes that it crashed, and on what."""
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client,
+                          opener=lambda: port)
+    daemon.start()
+    try:
+        assert wait_for(lambda: health(client, "cam9").get("state") == "connected")
+        monkeypatch.setattr("device.publisher.publish_frame", not_a_client_mistake)
+        port.write(wire(0))
+        assert daemon.wait(30)
+    finally:
+        daemon.stop()
+    assert isinstance(daemon.crash, RuntimeError)
+    assert_health_says_crashed(client, "cam9")

@@ -24,6 +24,7 @@ def test_fields_carry_counters_gauges_and_the_port_error() -> None:
     health.frame_received(41, {"encoding": "mantissa"})
     fields = health.to_fields()
     assert fields["state"] == "connecting" and fields["port_error"] == "could not open port"
+    assert fields["crash"] == ""  # a crashed predecessor's error is not this daemon's
     assert fields["frames_ok"] == "3" and fields["frames_received"] == "1"
     assert fields["last_sequence"] == "41" and json.loads(fields["settings"]) == {
         "encoding": "mantissa"

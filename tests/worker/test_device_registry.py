@@ -78,6 +78,17 @@ def test_a_reporting_daemon_keeps_its_device(client: redis.Redis) -> None:
     assert client.sismember(DEVICES_SET, "live")
 
 
+@pytest.mark.parametrize("state", ["stopped", "crashed"])
+def test_a_device_whose_daemon_said_it_ended_is_forgotten_at_once(
+        client: redis.Redis, state: str) -> None:
+    """A daemon that stopped on an unexpected error says ``crashed``: it had ended, yet
+    its device was refused for 10 s as if it still reported ("stop it ... and retry")."""
+    _register(client, "ended", reported_s_ago=1, frames=0)
+    client.hset(health_key("ended"), "state", state)
+    assert forget_device(client, "ended", silent_after_s=10) == 0
+    assert client.exists(*device_keys("ended")) == 0
+
+
 def test_undecoded_frames_are_kept_unless_discarded(client: redis.Redis) -> None:
     _register(client, "cam", reported_s_ago=60, frames=3)
     with pytest.raises(DeviceBusyError, match="3 frame"):

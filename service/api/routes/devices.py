@@ -12,7 +12,7 @@ from fastapi import APIRouter, Body, Response
 from starlette.concurrency import run_in_threadpool
 
 from device.commands import Command, command_fields
-from device.health import ALL_DROP_CAUSES
+from device.health import ALL_DROP_CAUSES, ENDED_STATES
 from models.hdr_io import read_hdr
 from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file
@@ -53,8 +53,8 @@ CONTROL_ERRORS = {
     ),
 }
 #: A device whose daemon has not written its health for this long (s; it writes every
-#: 0.25 s) is shown as ``silent``: the daemon was stopped or killed, or lost Redis. Its
-#: last reported state stays in ``last_state``.
+#: 0.25 s) is shown as ``silent``: the daemon was killed, or lost Redis (one that ended,
+#: :data:`ENDED_STATES`, said so). Its last reported state stays in ``last_state``.
 DAEMON_SILENT_S = 10.0
 
 
@@ -74,12 +74,13 @@ def _number(value: str) -> Any:
 
 
 #: Health fields that stay text (the others are numbers).
-_TEXT_FIELDS = ("device", "port", "state", "port_error")
+_TEXT_FIELDS = ("device", "port", "state", "crash", "port_error")
 
 
 def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
     """A device's health hash as JSON: counters as numbers, drops grouped by cause; a
-    device whose daemon stopped or went silent at 0 fps."""
+    device whose daemon ended (stopped, or crashed: ``crash`` says on what) or went
+    silent at 0 fps."""
     fields = {as_text(k): as_text(v) for k, v in client.hgetall(health_key(device)).items()}
     view: dict[str, Any] = {"id": device, "dropped": {}}
     for name, value in fields.items():
@@ -94,9 +95,9 @@ def device_view(client: redis.Redis, device: str) -> dict[str, Any]:
     updated = view.get("updated_ns")
     if isinstance(updated, int):
         view["age_s"] = round((time.time_ns() - updated) / 1e9, 3)
-        if view["age_s"] > DAEMON_SILENT_S and view.get("state") != "stopped":
+        if view["age_s"] > DAEMON_SILENT_S and view.get("state") not in ENDED_STATES:
             view["last_state"], view["state"], view["fps"] = view.get("state"), "silent", 0.0
-    if view.get("state") == "stopped":  # its last write measured the frames before the stop
+    if view.get("state") in ENDED_STATES:  # its last write measured the frames before the end
         view["fps"] = 0.0
     return view
 

@@ -158,7 +158,8 @@ def test_a_daemon_that_stops_on_an_unexpected_error_exits_1_with_one_line(
         redis_server: EmbeddedRedis, client: redis.Redis, tmp_path: Path) -> None:
     """threading printed the traceback and ``mcam device`` exited 0, as if stopped: a
     service manager would not restart it. The log has the traceback once, then one line
-    says what happened and what to do; exit 1, and the last health says stopped."""
+    says what happened and what to do; exit 1, and the last health says it crashed, and
+    on what."""
     env = env_for(redis_server.url, tmp_path / "data")
     done = subprocess.run([sys.executable, "-c", BROKEN_OPEN], capture_output=True, text=True,
                           env=env, cwd=tmp_path, timeout=120)
@@ -170,7 +171,8 @@ def test_a_daemon_that_stops_on_an_unexpected_error_exits_1_with_one_line(
         "report it, and restart mcam device")
     assert done.stderr.count("Traceback") == 1, done.stderr
     assert "the daemon stopped on an unexpected error; loop:// is no longer read" in done.stderr
-    assert health(client, "rig-1")["state"] == "stopped"
+    last = health(client, "rig-1")
+    assert (last["state"], last["crash"]) == ("crashed", "RuntimeError: not a client mistake")
 
 
 @pytest.mark.parametrize("start", range(3))

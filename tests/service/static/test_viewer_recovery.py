@@ -975,6 +975,25 @@ def test_a_device_whose_port_does_not_open_says_why(browser: Browser, api: str,
         f"; its port does not open: {reason}"), status
 
 
+def test_a_device_whose_daemon_crashed_says_on_what_and_what_to_do(
+        browser: Browser, api: str, settings: Settings) -> None:
+    """A daemon that stopped on an unexpected error a minute ago: its health read
+    'connected' for good (or 'silent', with "check that mcam device runs"). It reads
+    'crashed' with the error, and what to do."""
+    assert settings.redis_url is not None
+    register_device(settings.redis_url, "cam1")
+    connect(settings.redis_url).hset(health_key("cam1"), mapping={
+        "state": "crashed", "crash": "RuntimeError: not a client mistake", "fps": "0.000",
+    })  # fmt: skip
+    page = open_viewer(browser, api)
+    watch_device(page, "cam1")
+    wait_for_js(page, "document.getElementById('live-status').textContent.includes('frames')")
+    assert page.inner_text("#live-status") == (
+        "crashed: 0 frames, 0 fps, 0 dropped, 0 gaps, 0 reconnects; its daemon stopped on an "
+        "unexpected error (RuntimeError: not a client mistake): restart mcam device, and "
+        "report the error with the traceback in its log")
+
+
 def test_a_download_is_named_after_its_job_when_a_run_starts_meanwhile(
     browser: Browser, api: str, worker: Worker, frame: Path
 ) -> None:

@@ -136,6 +136,25 @@ def test_a_device_whose_daemon_stopped_streams_at_0_fps(
     assert view["fps"] == 0.0
 
 
+def test_a_device_whose_daemon_crashed_says_on_what_however_long_ago(
+    settings: Settings, client: Callable[..., httpx.Client]
+) -> None:
+    """A daemon that stopped on an unexpected error leaves ``crashed`` and the error as
+    its last word: the device is not called silent after 10 s (which hid the error in
+    ``last_state``, and said to check that mcam device runs), and streams at 0 fps."""
+    assert settings.redis_url is not None
+    redis_client = connect(settings.redis_url)
+    redis_client.sadd(DEVICES_SET, "cam1")
+    minute_ago = time.time_ns() - 60 * 10**9
+    redis_client.hset(health_key("cam1"), mapping={
+        "state": "crashed", "crash": "RuntimeError: 42", "fps": "19.285",
+        "updated_ns": str(minute_ago),
+    })  # fmt: skip
+    view = client(READ_KEY).get("/v1/devices/cam1").json()
+    assert (view["state"], view["crash"], view["fps"]) == ("crashed", "RuntimeError: 42", 0.0)
+    assert "last_state" not in view and view["age_s"] >= 60
+
+
 def test_commands_for_a_stopped_daemon_are_refused_past_the_backlog(
     settings: Settings, client: Callable[..., httpx.Client]
 ) -> None:
