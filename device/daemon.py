@@ -105,8 +105,9 @@ def crash_line(crash: Exception) -> str:
 
 
 def check_port_url(url: str) -> None:
-    """Refuse an empty port, a port URL whose scheme pyserial does not know, or a network
-    one without a host and port (:func:`check_host_port`), or options pyserial refuses
+    """Refuse an empty port, a port URL whose scheme pyserial does not know, a network
+    one without a host and port (:func:`check_host_port`), a ``spy://`` one without a
+    device path (:func:`check_spy_port`), or options pyserial refuses
     (:func:`check_url_options`, :func:`check_spy_options`, :func:`check_hwgrep_url`):
     retrying could never open them, unlike a tty that is not plugged in yet."""
     if not url.strip():
@@ -122,6 +123,7 @@ def check_port_url(url: str) -> None:
     if scheme in PARSED_SCHEMES and "?" in url:
         check_url_options(url, scheme)
     if scheme == "spy":
+        check_spy_port(url)
         check_spy_options(url)
     if scheme == "hwgrep":
         check_hwgrep_url(url)
@@ -152,6 +154,24 @@ def check_url_options(url: str, scheme: str) -> None:
         ) from None
     if scheme == "rfc2217":
         check_rfc2217_timeout(url)
+
+
+def check_spy_port(url: str) -> None:
+    """Refuse a ``spy://`` URL without the device path of the port to watch, or with a
+    port URL in its place (pyserial's spy:// watches device paths only): every open
+    failed with "could not open port : [Errno 2] No such file or directory: ''" (or the
+    URL in its place), retried for good."""
+    parts = urlsplit(url)
+    port = parts.netloc + parts.path  # what pyserial opens
+    scheme, separator, _ = port.partition("://")
+    if port and not separator:
+        return
+    problem = f"pyserial's spy:// cannot watch {scheme}:// ports" if separator else (
+        "it names no port")
+    raise InvalidInputError(
+        f"bad port URL {url!r}: {problem}; give spy:// the device path of the port to "
+        "watch, as in spy:///dev/ttyACM0"
+    )
 
 
 def check_spy_options(url: str) -> None:

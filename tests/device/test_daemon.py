@@ -775,6 +775,21 @@ def test_a_spy_port_url_with_an_option_pyserial_refuses_is_refused(
         "color, raw, all, or none")
 
 
+@pytest.mark.parametrize(("port", "problem"), [
+    ("spy://", "it names no port"), ("spy://?color", "it names no port"),
+    ("spy://socket://127.0.0.1:5555", "pyserial's spy:// cannot watch socket:// ports"),
+    ("spy://loop://?raw", "pyserial's spy:// cannot watch loop:// ports"),
+])
+def test_a_spy_port_url_without_a_device_path_is_refused(
+        client: redis.Redis, port: str, problem: str) -> None:
+    """pyserial's spy:// opens what follows spy:// as a device path: these failed at
+    every open with "could not open port : [Errno 2] No such file or directory: ''" (or
+    the URL in its place), retried for good."""
+    assert refusal(client, port) == (
+        f"bad port URL {port!r}: {problem}; give spy:// the device path of the port to "
+        "watch, as in spy:///dev/ttyACM0")
+
+
 @pytest.mark.parametrize(("file", "problem"), [
     ("", "names no file"), ("{dir}", "is a directory"),
     ("{dir}/nope/spy.log", "is in {dir}/nope, which is no directory"),
