@@ -30,6 +30,13 @@ per frame).
   L*a*b*, log-encoded luminance: :data:`NOT_CODES`) are refused by their photometric
   interpretation (:func:`check_photometric`): tifffile gives them as stored, and a
   palette frame's indices were decoded as codes.
+- A grey page whose photometric interpretation is MinIsWhite (0: the largest value
+  black, the smallest white) is inverted to the codes
+  it stands for (:func:`_as_minisblack`): for unsigned integer samples, the page's
+  largest value (``2^bits - 1``: 1, 255, 65535, ...) minus each stored one; tifffile
+  gives them as stored, and a frame's codes came out as ``255 - code``. Signed and
+  floating-point MinIsWhite samples, which codes are not stored as, are refused
+  (:func:`check_photometric`): save them MinIsBlack.
 - Separate-plane colour pages (``planarconfig=separate``, stored ``C x H x W``) are
   returned ``H x W x C``, as contiguous pages are.
 - A page stored in more than :data:`MAX_TIFF_SEGMENTS` strips or tiles, of no rows or
@@ -538,8 +545,18 @@ def check_photometric(page: tifffile.TiffPage) -> None:
     """Refuse (:class:`UnsupportedFormatError`) ``page`` when its photometric
     interpretation makes its samples something else than grey or RGB values
     (:data:`NOT_CODES`): a palette frame (an image saved as indexed colour) was decoded
-    from its colour map's indices without a word."""
+    from its colour map's indices without a word; or when it is MinIsWhite with samples
+    that are not unsigned integers (floats, signed), which :func:`_as_minisblack` does
+    not invert."""
     photometric = int(page.photometric)
+    unsigned = int(page.sampleformat) == tifffile.SAMPLEFORMAT.UINT
+    if photometric == tifffile.PHOTOMETRIC.MINISWHITE and not unsigned:
+        raise UnsupportedFormatError(
+            f"the TIFF's samples are {np.dtype(page.dtype).name} stored MinIsWhite "
+            "(photometric MINISWHITE: the largest value black), which is read only for "
+            "unsigned integer samples (codes): save the image as grey MinIsBlack "
+            "(photometric minisblack), its codes as the samples"
+        )
     if photometric not in NOT_CODES:
         return
     raise UnsupportedFormatError(
@@ -549,9 +566,20 @@ def check_photometric(page: tifffile.TiffPage) -> None:
     )
 
 
+def _as_minisblack(page: tifffile.TiffPage, samples: NDArray[Any]) -> NDArray[Any]:
+    """``samples`` (unsigned integers, as :func:`page_codes` reads them from ``page``)
+    as the codes they stand for: inverted from the page's largest value (``2^bits - 1``)
+    when ``page`` is MinIsWhite, else unchanged."""
+    if int(page.photometric) != tifffile.PHOTOMETRIC.MINISWHITE:
+        return samples
+    largest = samples.dtype.type((1 << int(page.bitspersample)) - 1)
+    return largest - samples
+
+
 def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     """A page's samples, ``H x W`` or ``H x W x C`` (separate planes moved last);
-    a 1-bit page's as uint8 0 and 1 (tifffile gives booleans).
+    a 1-bit page's as uint8 0 and 1 (tifffile gives booleans); a MinIsWhite page's
+    inverted to the codes they stand for (:func:`_as_minisblack`).
 
     Raises :class:`UnsupportedFormatError` for a compression not accepted
     (:func:`check_compression`), samples of a size not read (:func:`check_sample_bits`)
@@ -567,4 +595,5 @@ def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     codes = page.asarray() if inflate is None else _inflated_once(page, inflate)
     if codes.dtype == np.bool_:
         codes = codes.astype(np.uint8)
+    codes = _as_minisblack(page, codes)
     return np.moveaxis(codes, 0, -1) if _separate(page) else codes

@@ -151,6 +151,25 @@ def test_codes_are_stored_in_the_params_dtype() -> None:
     np.testing.assert_array_equal(frame.codes, wide)
 
 
+def miniswhite_tiff(stored: np.ndarray, params: SensorParams | None = None) -> bytes:
+    """``stored`` as the samples of a MinIsWhite TIFF (the largest value black), a page
+    per frame of a 3-axis array, storing ``params`` if given."""
+    buffer = io.BytesIO()
+    description = params.model_dump_json() if params else None
+    tifffile.imwrite(
+        buffer, stored, photometric="miniswhite", description=description, metadata=None
+    )
+    return buffer.getvalue()
+
+
+def test_a_miniswhite_tiff_frames_codes_are_what_it_stands_for() -> None:
+    """A MinIsWhite 16-bit TIFF (the largest value black) was read as stored: a 12-bit
+    frame's codes came out as 65535 - code and were refused as not 12-bit."""
+    codes = random_codes((9, 7), 12)
+    data = miniswhite_tiff(65535 - codes, PARAMS_12)
+    np.testing.assert_array_equal(decode_frame(data, "tiff").codes, codes)
+
+
 def test_overrides_win_and_none_is_ignored() -> None:
     data = encode_frame(random_codes((4, 4), 8), PARAMS_8, "tiff")
     frame = decode_frame(data, "tiff", {"alpha": 4.0, "gain": 2.0, "bits": None, "encoding": None})
@@ -246,7 +265,7 @@ def test_a_1_bit_tiff_winding_map_is_read_as_0_and_1() -> None:
     most once) was refused as "a winding map holds integers, got dtype bool"."""
     values = random_codes((5, 7), 1)
     buffer = io.BytesIO()
-    tifffile.imwrite(buffer, values.astype(bool))
+    tifffile.imwrite(buffer, values.astype(bool), photometric="minisblack")
     winding = decode_winding(buffer.getvalue(), "tiff")
     assert winding.dtype == np.int64
     np.testing.assert_array_equal(winding, values)

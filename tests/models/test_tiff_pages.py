@@ -26,7 +26,7 @@ from models.tiff_pages import (
     page_codes,
     page_shape,
 )
-from tests.models.test_frames import write_mask
+from tests.models.test_frames import miniswhite_tiff, random_codes, write_mask
 
 
 def tiff(array: np.ndarray, **options: object) -> bytes:
@@ -543,3 +543,32 @@ def test_a_bilevel_tiffs_codes_are_integers() -> None:
         read = page_codes(tif.pages.first)
     assert read.dtype == np.uint8
     np.testing.assert_array_equal(read, codes)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32, np.bool_])
+def test_a_miniswhite_pages_codes_are_what_it_stands_for_not_as_stored(dtype: type) -> None:
+    """A MinIsWhite page was read as stored: its codes came out as 255 - code."""
+    codes = (GREY % 2 if dtype is np.bool_ else GREY % 200).astype(dtype)
+    stored = ~codes if dtype is np.bool_ else np.iinfo(dtype).max - codes
+    with open_tiff(miniswhite_tiff(stored)) as (_, pages):
+        assert int(pages[0].photometric) == tifffile.PHOTOMETRIC.MINISWHITE
+        np.testing.assert_array_equal(page_codes(pages[0]), codes)
+
+
+def test_booleans_tifffile_writes_by_default_read_as_other_readers_show_them() -> None:
+    """tifffile writes a boolean array MinIsWhite unless told otherwise (True black):
+    its codes are what Pillow and viewers show, not the booleans as stored."""
+    values = random_codes((5, 7), 1).astype(bool)
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, values)
+    shown = np.asarray(Image.open(io.BytesIO(buffer.getvalue())))
+    with open_tiff(buffer.getvalue()) as (_, pages):
+        np.testing.assert_array_equal(page_codes(pages[0]), shown)
+        np.testing.assert_array_equal(page_codes(pages[0]), ~values)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.int16])
+def test_miniswhite_samples_of_no_codes_are_refused_naming_minisblack(dtype: type) -> None:
+    with open_tiff(miniswhite_tiff(GREY.astype(dtype))) as (_, pages):
+        with pytest.raises(UnsupportedFormatError, match=r"MinIsWhite.*save the image as grey"):
+            page_codes(pages[0])

@@ -24,7 +24,7 @@ from models.errors import (
 )
 from models.formation import SensorParams
 from models.frames import encode_frame
-from tests.models.test_frames import write_mask
+from tests.models.test_frames import miniswhite_tiff, write_mask
 from worker.video_input import (
     VideoLimits,
     decode_video,
@@ -535,6 +535,14 @@ def test_a_zstandard_tiff_video_is_refused_as_unsupported_not_corrupt() -> None:
         struct.pack_into("<HHIH", data, entry, 259, 3, 1, 50000)
     with pytest.raises(UnsupportedFormatError, match=r"ZSTD \(50000\).*deflate"):
         decode_video(bytes(data), "tiff")
+
+
+def test_a_miniswhite_tiff_videos_codes_are_what_its_pages_stand_for() -> None:
+    """A MinIsWhite video's pages were read as stored: every frame's codes came out as
+    255 - code."""
+    video = codes(frames=3)
+    data = miniswhite_tiff(255 - video, PARAMS)
+    np.testing.assert_array_equal(decode_video(data, "tiff").codes, video)
 
 
 def test_a_separate_plane_tiff_video_is_read_samples_last() -> None:

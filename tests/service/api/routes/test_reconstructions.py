@@ -24,7 +24,7 @@ from service.api.routes.jobs import PART_FORMATS
 from service.api.routes.reconstructions import prefer_wait_s
 from service.api.state import Slots
 from service.main import create_app
-from tests.models.test_frames import png_storing, with_masks
+from tests.models.test_frames import miniswhite_tiff, png_storing, with_masks
 from tests.service.conftest import (
     FULL_KEY,
     PARAMS,
@@ -445,6 +445,28 @@ def test_a_zstandard_tiff_frame_is_415_naming_the_compressions_accepted(client: 
     assert reply.json()["code"] == "unsupported_format"
     assert "compression ZSTD (50000)" in reply.json()["message"]
     assert "accepted are none, deflate (zlib), PackBits, LZMA" in reply.json()["message"]
+
+
+def test_a_miniswhite_tiff_frame_is_decoded_from_the_codes_it_stands_for(
+    client: Client, worker: Worker
+) -> None:
+    """A MinIsWhite TIFF frame (the largest value black) was decoded from its samples as
+    stored, 255 - code, without a word."""
+    _, codes = frame_png()
+    http = client()
+    data = miniswhite_tiff(255 - codes, PARAMS)
+    reply = http.post("/v1/reconstructions", files={"file": ("f.tiff", data)})
+    assert reply.status_code == 202, reply.text
+    assert finished_job(http, reply.json()["id"])["state"] == "succeeded"
+    stored = http.get(f"{reply.json()['url']}/result", params={"part": "codes", "format": "npy"})
+    np.testing.assert_array_equal(np.load(io.BytesIO(stored.content)), codes)
+
+
+def test_a_floating_point_miniswhite_tiff_frame_is_415_naming_minisblack(client: Client) -> None:
+    data = miniswhite_tiff(np.ones((8, 8), "f4"), PARAMS)
+    reply = client().post("/v1/reconstructions", files={"file": ("f.tiff", data)})
+    assert reply.status_code == 415, reply.text
+    assert "save the image as grey MinIsBlack" in reply.json()["message"]
 
 
 def test_a_tiff_frame_with_a_transparency_mask_decodes(client: Client, worker: Worker) -> None:
