@@ -566,6 +566,18 @@ def check_photometric(page: tifffile.TiffPage) -> None:
     )
 
 
+def check_page_format(page: tifffile.TiffPage) -> None:
+    """Refuse (:class:`UnsupportedFormatError`) ``page``, from its tags alone, when
+    :func:`page_codes` does not read it: a compression not accepted
+    (:func:`check_compression`), samples of a size not read (:func:`check_sample_bits`)
+    or samples that are not grey or RGB values (:func:`check_photometric`). A video's
+    pages are checked so before they are compared with its first: a 12-bit packed page
+    1 was said to differ "in sample type (uint16 against uint8)"."""
+    check_compression(int(page.compression))
+    check_sample_bits(page)
+    check_photometric(page)
+
+
 def _as_minisblack(page: tifffile.TiffPage, samples: NDArray[Any]) -> NDArray[Any]:
     """``samples`` (unsigned integers, as :func:`page_codes` reads them from ``page``)
     as the codes they stand for: inverted from the page's largest value (``2^bits - 1``)
@@ -581,14 +593,10 @@ def page_codes(page: tifffile.TiffPage) -> NDArray[Any]:
     a 1-bit page's as uint8 0 and 1 (tifffile gives booleans); a MinIsWhite page's
     inverted to the codes they stand for (:func:`_as_minisblack`).
 
-    Raises :class:`UnsupportedFormatError` for a compression not accepted
-    (:func:`check_compression`), samples of a size not read (:func:`check_sample_bits`)
-    or samples that are not grey or RGB values (:func:`check_photometric`);
-    :class:`InvalidInputError` for a strip or tile not stored
-    (:func:`check_segments_stored`)."""
-    check_compression(int(page.compression))
-    check_sample_bits(page)
-    check_photometric(page)
+    Raises :class:`UnsupportedFormatError` for a page not read
+    (:func:`check_page_format`); :class:`InvalidInputError` for a strip or tile not
+    stored (:func:`check_segments_stored`)."""
+    check_page_format(page)
     check_segment_sizes(page)
     check_segments_stored(page)
     inflate = _INFLATERS.get(int(page.compression))

@@ -7,10 +7,13 @@ Formats
   more) are not frames and are skipped (:mod:`models.tiff_pages`); the
   parameters as JSON in the first page's ImageDescription (as :mod:`models.frames`
   writes it). A later page storing parameters of its own must store the same (as
-  zipped frames must). A lone page of separate colour planes that tifffile described
-  as its array (``{"shape": [3, H, W]}``) is refused: ``tifffile.imwrite`` stores a
-  stack of 3 or 4 grey frames so; so is an ImageJ hyperstack of two axes or more
-  (frames and channels or slices), whose pages interleave them.
+  zipped frames must). A page that is not read (its compression, sample size or
+  photometric interpretation: :func:`models.tiff_pages.check_page_format`) is refused
+  as such before it is compared with the first. A lone page of separate colour
+  planes that tifffile described as its array (``{"shape": [3, H, W]}``) is refused:
+  ``tifffile.imwrite`` stores a stack of 3 or 4 grey frames so; so is an ImageJ
+  hyperstack of two axes or more (frames and channels or slices), whose pages
+  interleave them.
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
   A ``T x H x W`` array whose last axis could be channels (1 or 3) is refused as one
   frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
@@ -73,7 +76,7 @@ from models.frames import (
     npy_shape,
 )
 from models.stored_params import StoredParams, tiff_params
-from models.tiff_pages import open_tiff, page_codes, page_shape
+from models.tiff_pages import check_page_format, open_tiff, page_codes, page_shape
 from worker.zip_directory import central_entries
 
 VIDEO_FORMATS: tuple[str, ...] = ("tiff", "npy", "zip")
@@ -178,6 +181,7 @@ def _read_tiff(
         stored = tiff_params(first.description)
         frames = []
         for page in pages:
+            check_page_format(page)  # its own format first, then its likeness to page 0
             if frames:
                 _check_page(page, len(frames), first, stored, overrides)
             frames.append(page_codes(page))

@@ -97,10 +97,10 @@ def pillow_tiff(array: np.ndarray, compression: str) -> bytes:
     return buffer.getvalue()
 
 
-def with_short(data: bytes, name: str, value: int) -> bytes:
-    """``data``, a TIFF of one page, with its tag ``name`` set to the SHORT ``value``."""
+def with_short(data: bytes, name: str, value: int, page: int = 0) -> bytes:
+    """``data``, a TIFF, with page ``page``'s tag ``name`` set to the SHORT ``value``."""
     with tifffile.TiffFile(io.BytesIO(data)) as tif:
-        tag = tif.pages.first.tags[name]
+        tag = tif.pages[page].tags[name]
     patched = bytearray(data)
     struct.pack_into("<HHIH", patched, tag.offset, tag.code, 3, 1, value)
     return bytes(patched)

@@ -25,6 +25,7 @@ from models.errors import (
 from models.formation import SensorParams
 from models.frames import encode_frame
 from tests.models.test_frames import miniswhite_tiff, write_mask
+from tests.models.test_tiff_pages import with_short
 from worker.video_input import (
     VideoLimits,
     decode_video,
@@ -648,6 +649,15 @@ def test_tiff_pages_must_match_and_the_error_names_what_differs(
     """Every page was decoded with page 0's parameters (a 12-bit page as 8-bit codes)."""
     data = tiff_pages((codes()[0], PARAMS), second)
     with pytest.raises(InvalidInputError, match=f"^page 1 differs from page 0 {named}"):
+        decode_video(data, "tiff")
+
+
+@pytest.mark.parametrize("bits", [0, 12])
+def test_a_later_page_of_a_sample_size_not_read_is_refused_naming_it(bits: int) -> None:
+    """Page 1 of 0 or 12 bits a sample was said to differ from page 0 "in sample type
+    (None against uint8)" (or uint16), where a frame of them is refused by its size."""
+    data = with_short(tiff_bytes(codes()), "BitsPerSample", bits, page=1)
+    with pytest.raises(UnsupportedFormatError, match=rf"samples of {bits} bits.*8- or 16"):
         decode_video(data, "tiff")
 
 
