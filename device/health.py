@@ -219,6 +219,13 @@ def unwrap_sequence(sequence: int, expected: int) -> int:
     return sequence
 
 
+def crashed_daemon_text(device: str, crash: str) -> str:
+    """The words for the daemon of ``device`` that stopped on an unexpected error
+    (``crash``: its line, as in the health's ``crash`` field): each message saying so
+    starts with them, then says where its traceback is and what to do."""
+    return f"the daemon of device {device!r} stopped on an unexpected error ({crash})"
+
+
 def _whole(value: bytes | str | None) -> int:
     """A whole number read back from the health hash; -1 if missing or malformed."""
     try:

@@ -69,7 +69,7 @@ from typing import Any
 import numpy as np
 import redis
 
-from device.health import MAX_MISSING_PER_GAP
+from device.health import MAX_MISSING_PER_GAP, crashed_daemon_text
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams
 from models.frames import encode_frame
@@ -623,9 +623,14 @@ class Recorder:
 
 def no_frames_reason(client: redis.Redis, device: str) -> str:
     """Why a recording of ``device`` got no frame, none lost or failed: its daemon
-    cannot open the camera's port (its health's ``port_error``), or the words to check
-    the camera and the workers."""
-    port_error = client.hget(health_key(device), "port_error")
+    crashed (its health's ``state`` and ``crash``) or cannot open the camera's port
+    (``port_error``), or the words to check the camera and the workers."""
+    state, crash, port_error = client.hmget(health_key(device), "state", "crash", "port_error")
+    if state == b"crashed":
+        return (
+            f"{crashed_daemon_text(device, (crash or b'').decode())}: restart mcam device "
+            "(its log has the traceback: please report it)"
+        )
     if port_error:
         return (
             f"the daemon of device {device!r} cannot open its camera's port "

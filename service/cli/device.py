@@ -24,6 +24,7 @@ import redis
 
 from device.daemon import DaemonConfig, DeviceDaemon, check_port_url, crash_line
 from device.datasets import DatasetLimits
+from device.health import crashed_daemon_text
 from models.stop_signals import noting_stop_signals, wait_for_stop
 from service.cli.options import add_log_level_flag, start_logging
 from service.cli.worker import redis_url_for
@@ -78,6 +79,5 @@ def run(args: argparse.Namespace) -> int:
 def crash_message(device: str, crash: Exception) -> str:
     """One line for a daemon that stopped on an unexpected error (a bug; the log holds its
     traceback), saying what to do."""
-    return (f"the daemon of device {device!r} stopped on an unexpected error "
-            f"({crash_line(crash)}); the log above has its traceback: please report it, "
-            "and restart mcam device")
+    return (f"{crashed_daemon_text(device, crash_line(crash))}; the log above has its "
+            "traceback: please report it, and restart mcam device")

@@ -243,6 +243,25 @@ def test_a_recording_of_a_camera_whose_port_never_opened_says_why(
     assert "/dev/ttyACM0 does not exist: check --port" in failed.error
 
 
+def test_a_recording_of_a_device_whose_daemon_crashed_says_so_and_what_to_do(
+    client: redis.Redis, recorder: Recorder
+) -> None:
+    """A crashed daemon leaves its health ``crashed`` with the error in ``crash``: a
+    recording of its device ended "no frames were recorded: is device 'cam1''s camera
+    streaming ... and a worker running?", naming neither the crash nor what to do."""
+    client.hset(health_key("cam1"), mapping={
+        "state": "crashed", "crash": "RuntimeError: not a client mistake", "port_error": "",
+    })
+    start(client)
+    request_stop(client, "cam1")
+    recorder.finish_if_due("cam1")
+    failed = load_recording(client, "cam1")
+    assert failed.state == "failed"
+    assert "the daemon of device 'cam1' stopped on an unexpected error" in failed.error
+    assert "(RuntimeError: not a client mistake)" in failed.error
+    assert "restart mcam device" in failed.error and "worker running" not in failed.error
+
+
 @pytest.mark.parametrize(("decoder", "options", "fragment"), [
     ("itoh", {"mode": "temporal", "outputs": ["hdr10"]}, "HDR10 video needs frames"),
     ("itoh", {"mode": "temporal"}, "HDR10 video needs frames"),  # default outputs: hdr10 too
