@@ -40,6 +40,7 @@ from models.decoders.registry import get_decoder, supporting_decoders
 from models.errors import InvalidInputError, McamError
 from models.formation import SensorParams, validate_codes
 from worker.frame_message import FrameMessage
+from worker.idempotency import IdempotencyKeyInUseError, IdempotentSubmit
 from worker.job_store import JobStore, record_fields
 from worker.jobs import JobRecord, JobState, time_after
 from worker.metrics import Metrics, counter_key
@@ -74,7 +75,15 @@ REFUSALS: dict[int, str] = {
     0: "queue_full", -2: "queue_bytes", -1: "key_jobs", -3: "key_bytes",
 }
 
+# KEYS: the jobs stream, the job's record, states, holds, per-key jobs and bytes, held
+# bytes, and (an idempotent submit) the idempotency key. ARGV: maxlen, owner, the key's
+# bounds, the codes' bytes, the queue's, the job id, the idempotency key's value while
+# held, once done and its ttl, then the record's and the entry's fields.
 _SUBMIT = """
+if KEYS[8] then
+  local held = redis.call('GET', KEYS[8])
+  if held and held ~= ARGV[8] then return 3 end
+end
 if redis.call('EXISTS', KEYS[2]) == 1 then return 2 end
 if redis.call('XLEN', KEYS[1]) >= tonumber(ARGV[1]) then return 0 end
 local owner, bytes = ARGV[2], tonumber(ARGV[5])
@@ -85,10 +94,10 @@ if owner ~= '' then
   end
 end
 if tonumber(redis.call('GET', KEYS[7]) or '0') + bytes > tonumber(ARGV[6]) then return -2 end
-local n = tonumber(ARGV[8])
-for i = 9, 8 + 2 * n, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
+local n = tonumber(ARGV[11])
+for i = 12, 11 + 2 * n, 2 do redis.call('HSET', KEYS[2], ARGV[i], ARGV[i + 1]) end
 local entry = {}
-for i = 9 + 2 * n, #ARGV do entry[#entry + 1] = ARGV[i] end
+for i = 12 + 2 * n, #ARGV do entry[#entry + 1] = ARGV[i] end
 redis.call('XADD', KEYS[1], '*', unpack(entry))
 redis.call('HINCRBY', KEYS[3], 'queued', 1)
 redis.call('HSET', KEYS[4], ARGV[7], owner .. ' ' .. ARGV[5])
@@ -97,6 +106,7 @@ if owner ~= '' then
   redis.call('HINCRBY', KEYS[6], owner, bytes)
 end
 redis.call('INCRBY', KEYS[7], bytes)
+if KEYS[8] then redis.call('SET', KEYS[8], ARGV[9], 'EX', ARGV[10]) end
 return 1
 """
 
@@ -323,21 +333,26 @@ class JobQueue:
         owner: str = "",
         job_id: str | None = None,
         warnings: Sequence[str] = (),
+        idempotency: IdempotentSubmit | None = None,
     ) -> JobRecord:
         """Queue a job (codes in DN: one frame, or T frames for ``video``) for the API key
         ``owner`` (its id; ``""``: no key, as for a device's recording); returns its record.
         ``job_id`` (default: a new uuid) makes a retried submit safe: a job of that id that
         already exists is returned, not queued again. ``warnings`` (what reading the
-        uploaded file noticed) are kept with the job for its client.
+        uploaded file noticed) are kept with the job for its client. ``idempotency``
+        (with no ``job_id``: the job's id is its) records the job under the request's
+        idempotency key in the same step, if the request still holds the key
+        (:mod:`worker.idempotency`).
 
         Raises :class:`InvalidInputError` for bad codes/kind/decoder or codes larger than
         a bound, :class:`TooManyJobsError` when ``owner`` has ``max_per_key`` jobs or
         would pass ``max_bytes_per_key`` bytes in the queue, and :class:`QueueFullError`
-        when ``maxlen`` jobs are outstanding or the queue would pass ``max_bytes``."""
+        when ``maxlen`` jobs are outstanding or the queue would pass ``max_bytes``, and
+        :class:`IdempotencyKeyInUseError` when another request holds the idempotency key."""
         codes = _check_submission(kind, codes, params, decoder)
         self._check_size(codes.nbytes, owner)
         record = JobRecord(
-            id=job_id or uuid.uuid4().hex,
+            id=job_id or (idempotency.job_id if idempotency else "") or uuid.uuid4().hex,
             kind=kind,  # type: ignore[arg-type]
             decoder=decoder,
             params=params,
@@ -348,17 +363,24 @@ class JobQueue:
         )
         fields = record_fields(record)
         entry = job_entry(record, codes)
+        once = idempotency or IdempotentSubmit("", "", "", "", 0)
         args: list[Any] = [
             self.maxlen, owner, self.max_per_key, self.max_bytes_per_key, codes.nbytes,
-            self.max_bytes, record.id, len(fields),
+            self.max_bytes, record.id, once.held, once.done, once.ttl_s, len(fields),
         ]  # fmt: skip
         for pairs in (fields, entry):
             for name, value in pairs.items():
                 args += [name, value]
-        keys = [JOBS_STREAM, job_key(record.id), JOB_STATES, JOB_HOLDS, JOBS_PER_KEY]
-        accepted = int(self._submit(keys=[*keys, JOB_BYTES_PER_KEY, JOBS_HELD_BYTES], args=args))
+        keys = [JOBS_STREAM, job_key(record.id), JOB_STATES, JOB_HOLDS, JOBS_PER_KEY,
+                JOB_BYTES_PER_KEY, JOBS_HELD_BYTES, *([once.store_key] if idempotency else [])]
+        accepted = int(self._submit(keys=keys, args=args))
         if accepted == 2:
             return self.get(record.id)
+        if accepted == 3:
+            raise IdempotencyKeyInUseError(
+                "another request with this Idempotency-Key took it while this one was "
+                "decoded; ask GET /v1/jobs?idempotency_key=... for its job"
+            )
         if accepted != 1:
             self.metrics.inc("jobs_rejected_total", reason=REFUSALS[accepted])
             raise self._refusal(accepted, codes.nbytes)

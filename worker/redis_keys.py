@@ -7,6 +7,7 @@ them and writes ``control:<device>`` for daemons to forward to the camera.
 
 from __future__ import annotations
 
+import hashlib
 import re
 
 from models.errors import InvalidInputError, echo
@@ -109,3 +110,10 @@ def rate_limit_key(key_id: str) -> str:
 def recording_key(device: str) -> str:
     """Hash of the device's current (or last) live recording (see ``worker/recordings.py``)."""
     return f"device:{validate_device_id(device)}:recording"
+
+
+def idempotency_key(owner: str, key: str) -> str:
+    """String naming the job the API key ``owner`` (its id) made with the idempotency key
+    ``key`` (see ``worker/idempotency.py``): a SHA-256 of the client's key, whatever
+    characters and length it has."""
+    return f"idempotency:{owner}:{hashlib.sha256(key.encode()).hexdigest()}"

@@ -278,6 +278,11 @@ class Settings(BaseSettings):
         "years: Redis expires a record by a whole number of seconds, and a longer or "
         "infinite retention failed every finished job)",
     )  # fmt: skip
+    idempotency_ttl_s: float = Field(
+        24 * 3600.0, ge=1, le=MAX_RESULT_RETENTION_S,
+        description="seconds an Idempotency-Key is remembered after its job was queued: a "
+        "request repeating it within that time gets that job instead of a new one",
+    )  # fmt: skip
     dataset_max_pairs: int = Field(
         DEFAULT_MAX_PAIRS, gt=0,
         description="bracketed reference pairs kept per device; the oldest are removed",

@@ -18,6 +18,7 @@ from models.hdr_io import read_hdr
 from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
 from service.api.errors import ApiError
+from service.api.idempotency import job_by_key
 from service.api.in_turn import decode_in_turn
 from service.api.previews import (
     codes_png,
@@ -154,6 +155,38 @@ def still_record(state: ServiceState, job_id: str) -> JobRecord:
             f"job {job_id} is a video job: fetch its files from {video_files(record)}",
         )  # fmt: skip
     return record
+
+
+@router.get(
+    "",
+    response_model=JobView,
+    responses={
+        **AUTH_ERRORS,
+        400: error_response("invalid_idempotency_key: not 1-255 printable ASCII characters"),
+        404: error_response(
+            "no request with this Idempotency-Key from this API key is remembered (none "
+            "reached the server whole, it was refused, or it came more than "
+            "MCAM_IDEMPOTENCY_TTL_S ago), or its job expired"
+        ),
+        409: error_response(
+            "idempotency_key_in_use: the request with this key is still being received, "
+            "decoded or queued; ask again after Retry-After"
+        ),
+    },
+    summary="The job a request with an Idempotency-Key made",
+)
+def find_job(
+    state: StateDep,
+    key: ReadKey,
+    idempotency_key: Annotated[
+        str,
+        Query(description="the Idempotency-Key header the job's POST (/v1/reconstructions, "
+              "/v1/videos) was sent with by this API key"),
+    ],
+) -> JobView:
+    """Find the job of a request whose answer never came (cut off, or given up: the
+    viewer's Cancel) without sending its file again, to follow or cancel it."""
+    return job_view(job_by_key(state, key, idempotency_key))
 
 
 @router.get(

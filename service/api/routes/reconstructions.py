@@ -16,7 +16,7 @@ from models.errors import InvalidInputError, MissingParameterError
 from models.file_magic import FRAME_MAGICS, format_by_content
 from models.frames import WrappedFrame, check_pixel_count, decode_frame, decode_raw, merge_params
 from service.api.deps import StateDep, SubmitKey
-from service.api.in_turn import decode_in_turn
+from service.api.idempotency import IdempotencyHeader, queued_job
 from service.api.schemas import (
     UPLOAD_ERRORS,
     JobAccepted,
@@ -28,10 +28,10 @@ from service.api.state import ServiceState
 from service.api.uploads import (
     ReconstructionFields,
     Upload,
-    read_upload_fields,
     sniff_frame_format,
 )
 from service.core.security import ApiKey
+from worker.idempotency import IdempotentSubmit
 from worker.jobs import JobRecord
 from worker.outputs import check_result_storable
 
@@ -114,11 +114,15 @@ def choose_decoder(fields: ReconstructionFields, default: str) -> str:
 
 
 def submit(
-    state: ServiceState, upload: Upload, fields: ReconstructionFields, key: ApiKey
+    state: ServiceState,
+    upload: Upload,
+    fields: ReconstructionFields,
+    key: ApiKey,
+    once: IdempotentSubmit | None = None,
 ) -> JobRecord:
-    """Decode the upload and queue its job for ``key``, with what the decode noticed
-    (the file read as another format than its name says, 8-bit codes sent as wider) as
-    the job's ``warnings``."""
+    """Decode the upload and queue its job for ``key`` (under the request's idempotency
+    key, ``once``, if any), with what the decode noticed (the file read as another format
+    than its name says, 8-bit codes sent as wider) as the job's ``warnings``."""
     settings = state.settings
     frame = read_wrapped_frame(upload, fields, settings.max_pixels)
     decoder = choose_decoder(fields, settings.default_decoder)
@@ -130,7 +134,7 @@ def submit(
     check_result_storable(frame.codes, frame.params, options)
     return state.queue.submit(
         "reconstruction", frame.codes, frame.params, decoder, options, owner=key.id,
-        warnings=frame.warnings,
+        warnings=frame.warnings, idempotency=once,
     )
 
 
@@ -155,12 +159,16 @@ async def post_reconstruction(
         list[str] | None,
         Header(description="`wait=N`: answer 200 with the job if done within N s"),
     ] = None,
+    idempotency_key: IdempotencyHeader = None,
 ) -> Response:
     """Queue a wrapped frame; the job's state is at ``GET /v1/jobs/{id}``. Only the
-    decode and the submit hold a decode slot, not the ``Prefer: wait`` for the job."""
-    upload, fields = await read_upload_fields(request, ReconstructionFields, query)
+    decode and the submit hold a decode slot, not the ``Prefer: wait`` for the job. A
+    repeat of a request with its ``Idempotency-Key`` is answered with its job
+    (:mod:`service.api.idempotency`)."""
+    record = await queued_job(
+        request, query, ReconstructionFields, state, key, idempotency_key, submit
+    )
     wait_s = prefer_wait_s(prefer, state.settings.max_prefer_wait_s)
-    record = await decode_in_turn(state, submit, state, upload, fields, key)
     return await run_in_threadpool(
         job_response, state.queue, record, wait_s, state.wait_slots, state.stopping
     )

@@ -20,7 +20,7 @@ from models.hdr_io import DEFAULT_EXR_COMPRESSION, EXR_COMPRESSIONS
 from service.api.deps import ReadKey, StateDep, SubmitKey
 from service.api.downloads import stored_file
 from service.api.errors import ApiError
-from service.api.in_turn import decode_in_turn
+from service.api.idempotency import IdempotencyHeader, queued_job
 from service.api.routes.jobs import JOB_ERRORS, succeeded
 from service.api.schemas import (
     UPLOAD_ERRORS,
@@ -30,8 +30,9 @@ from service.api.schemas import (
     upload_body,
 )
 from service.api.state import ServiceState
-from service.api.uploads import SensorFields, Upload, read_upload_fields
+from service.api.uploads import SensorFields, Upload
 from service.core.security import ApiKey
+from worker.idempotency import IdempotentSubmit
 from worker.jobs import JobRecord
 from worker.outputs import check_video_storable
 from worker.temporal_config import MAX_KEYFRAME_INTERVAL, TemporalConfig
@@ -130,10 +131,16 @@ def sniff_video_format(upload: Upload, declared: str | None) -> str:
     )
 
 
-def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey) -> Response:
-    """Decode the upload, check the options and queue the job for ``key``, with what the
-    decode noticed, and that its MP4 videos are padded to even sides, as the job's
-    ``warnings``."""
+def submit(
+    state: ServiceState,
+    upload: Upload,
+    fields: VideoFields,
+    key: ApiKey,
+    once: IdempotentSubmit | None = None,
+) -> JobRecord:
+    """Decode the upload, check the options and queue the job for ``key`` (under the
+    request's idempotency key, ``once``, if any), with what the decode noticed, and that
+    its MP4 videos are padded to even sides, as the job's ``warnings``."""
     settings = state.settings
     fmt = sniff_video_format(upload, fields.format)
     limits = VideoLimits(
@@ -146,11 +153,11 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey
     check_frame_size(options["outputs"], video.codes.shape)
     if "exr_zip" in options["outputs"]:
         check_video_storable(video.codes, video.params, options)
-    record = state.queue.submit(
+    return state.queue.submit(
         "video", video.codes, video.params, decoder, options, owner=key.id,
         warnings=video_warnings(video.warnings, options["outputs"], video.codes.shape),
+        idempotency=once,
     )
-    return accepted_response(record)
 
 
 @router.post(
@@ -162,11 +169,17 @@ def submit(state: ServiceState, upload: Upload, fields: VideoFields, key: ApiKey
     openapi_extra=upload_body(VideoFields, "a wrapped video (.tiff pages, .npy, .zip of PNGs)"),
 )
 async def post_video(
-    request: Request, query: Annotated[VideoFields, Query()], state: StateDep, key: SubmitKey
+    request: Request,
+    query: Annotated[VideoFields, Query()],
+    state: StateDep,
+    key: SubmitKey,
+    idempotency_key: IdempotencyHeader = None,
 ) -> Response:
-    """Queue a wrapped video; poll ``GET /v1/jobs/{id}`` for progress (frames done)."""
-    upload, fields = await read_upload_fields(request, VideoFields, query)
-    return await decode_in_turn(state, submit, state, upload, fields, key)
+    """Queue a wrapped video; poll ``GET /v1/jobs/{id}`` for progress (frames done). A
+    repeat of a request with its ``Idempotency-Key`` is answered with its job
+    (:mod:`service.api.idempotency`)."""
+    record = await queued_job(request, query, VideoFields, state, key, idempotency_key, submit)
+    return accepted_response(record)
 
 
 @router.get(

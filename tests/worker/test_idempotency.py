@@ -1,0 +1,67 @@
+"""Idempotency keys in Redis: held before a request's body is read, stored with its job in
+the submit's own step, given back by a request that made no job."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import redis
+
+from tests.worker.test_queue import CODES, PARAMS
+from worker.idempotency import (
+    Earlier,
+    IdempotencyKeyInUseError,
+    KeyHold,
+    Pending,
+    hold_key,
+    lookup,
+    release,
+)
+from worker.queue import JobQueue
+from worker.redis_keys import JOBS_STREAM, idempotency_key
+
+STORE_KEY = idempotency_key("owner", "key-1")
+
+
+def held(client: redis.Redis) -> KeyHold:
+    """A new hold on :data:`STORE_KEY` (none there before)."""
+    hold = hold_key(client, STORE_KEY, pending_s=60, ttl_s=3600)
+    assert isinstance(hold, KeyHold)
+    return hold
+
+
+def test_the_submit_stores_the_job_under_the_key(queue: JobQueue, client: redis.Redis) -> None:
+    hold = held(client)
+    assert isinstance(hold_key(client, STORE_KEY, 60, 3600), Pending)
+    assert isinstance(lookup(client, STORE_KEY), Pending)
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh",
+                          idempotency=hold.submit("a" * 32, "f" * 64))
+    assert record.id == "a" * 32
+    assert lookup(client, STORE_KEY) == Earlier("a" * 32, "f" * 64)
+    assert hold_key(client, STORE_KEY, 60, 3600) == Earlier("a" * 32, "f" * 64)
+    assert 3500 < client.ttl(STORE_KEY) <= 3600
+    release(client, hold)  # a hold turned into a job stays
+    assert lookup(client, STORE_KEY) == Earlier("a" * 32, "f" * 64)
+
+
+def test_a_hold_lost_to_another_request_queues_nothing(
+    queue: JobQueue, client: redis.Redis
+) -> None:
+    """A request whose hold expired while it decoded, and which another request with the
+    key then took, makes no second job."""
+    first = held(client)
+    client.delete(STORE_KEY)  # expired
+    second = held(client)
+    with pytest.raises(IdempotencyKeyInUseError):
+        queue.submit("reconstruction", CODES, PARAMS, "itoh",
+                     idempotency=first.submit("a" * 32, "f" * 64))
+    assert client.xlen(JOBS_STREAM) == 0
+    release(client, first)  # not its hold any more: the other's stays
+    assert json.loads(client.get(STORE_KEY)) == json.loads(second.value)
+
+
+def test_a_request_that_made_no_job_gives_the_key_back(client: redis.Redis) -> None:
+    release(client, held(client))
+    assert lookup(client, STORE_KEY) is None
+    held(client)

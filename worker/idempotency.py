@@ -1,0 +1,126 @@
+"""Idempotency keys in Redis: one API key's ``Idempotency-Key`` -> the job its request made.
+
+A request carrying an idempotency key holds it (:func:`hold_key`, one atomic script:
+the value ``{"pending": token}`` set only where no value is, for ``pending_s`` seconds)
+before its body is read. The submit that queues its job (:meth:`worker.queue.JobQueue.submit`
+with an :class:`IdempotentSubmit`) stores, in the same script as the job, ``{"job": id,
+"fingerprint": hex}`` for ``ttl_s`` seconds, and only while the hold is still this
+request's: two requests with one key never both queue a job. A request that ends
+without a job (refused, cut off) gives its hold back (:func:`release`), so that a retry
+may make the job. A hold left by an API process that died expires after ``pending_s``.
+
+The value is stored under :func:`worker.redis_keys.idempotency_key`: a hash of the
+client's key, scoped to the API key's id (two API keys may use the same idempotency key).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import uuid
+from dataclasses import dataclass
+
+import redis
+
+from models.errors import McamError
+
+log = logging.getLogger(__name__)
+
+#: Hold KEYS[1] with ARGV[1] for ARGV[2] s unless it has a value; returns that value (or nil).
+_HOLD = """
+local held = redis.call('GET', KEYS[1])
+if held then return held end
+redis.call('SET', KEYS[1], ARGV[1], 'EX', ARGV[2])
+return false
+"""
+#: Delete KEYS[1] if its value is still ARGV[1].
+_RELEASE = """
+if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end
+return 0
+"""
+
+
+class IdempotencyKeyInUseError(McamError):
+    """Another request with the same idempotency key is still being handled (its upload
+    received, decoded or queued); the client should ask again shortly."""
+
+    code = "idempotency_key_in_use"
+    http_status = 409
+    retry_after_s = 1
+
+
+@dataclass(frozen=True)
+class Earlier:
+    """What an earlier request with the key left: its job's id and its request's
+    fingerprint."""
+
+    job_id: str
+    fingerprint: str
+
+
+@dataclass(frozen=True)
+class Pending:
+    """An earlier request with the key is still being handled: it has no job yet."""
+
+
+@dataclass(frozen=True)
+class KeyHold:
+    """This request's hold on an idempotency key (``value`` is what :func:`hold_key` wrote)."""
+
+    store_key: str
+    value: str
+    ttl_s: int
+
+    def submit(self, job_id: str, fingerprint: str) -> IdempotentSubmit:
+        """What the submit of job ``job_id`` stores for the key, the request's body
+        hashing to ``fingerprint``."""
+        done = json.dumps({"job": job_id, "fingerprint": fingerprint})
+        return IdempotentSubmit(job_id, self.store_key, self.value, done, self.ttl_s)
+
+
+@dataclass(frozen=True)
+class IdempotentSubmit:
+    """A submit of the job ``job_id`` that records it under an idempotency key: only while
+    ``held`` is the key's value (or it has none), then ``done`` for ``ttl_s`` s, with the
+    job, atomically."""
+
+    job_id: str
+    store_key: str
+    held: str
+    done: str
+    ttl_s: int
+
+
+def parse(value: bytes | str) -> Earlier | Pending:
+    """What a stored value says."""
+    stored = json.loads(value)
+    return Pending() if "pending" in stored else Earlier(stored["job"], stored["fingerprint"])
+
+
+def hold_key(
+    client: redis.Redis, store_key: str, pending_s: int, ttl_s: int
+) -> KeyHold | Earlier | Pending:
+    """Hold ``store_key`` for this request (for ``pending_s`` s; its job is then kept
+    ``ttl_s`` s), or what an earlier request with it left."""
+    value = json.dumps({"pending": uuid.uuid4().hex})
+    held = client.register_script(_HOLD)(keys=[store_key], args=[value, max(int(pending_s), 1)])
+    if held is None:
+        return KeyHold(store_key, value, max(int(ttl_s), 1))
+    return parse(held)
+
+
+def lookup(client: redis.Redis, store_key: str) -> Earlier | Pending | None:
+    """What the requests with the key left (None: no request with it is remembered)."""
+    value = client.get(store_key)
+    return None if value is None else parse(value)
+
+
+def release(client: redis.Redis, hold: KeyHold) -> None:
+    """Give the key back unless the request's job was stored under it: a request that
+    ended without a job lets a retry make it. A Redis that cannot be told lets the hold
+    expire (its ``pending_s``) instead; that is logged, not raised: the request's own
+    answer (an error, or its job) matters more."""
+    try:
+        client.register_script(_RELEASE)(keys=[hold.store_key], args=[hold.value])
+    except redis.exceptions.RedisError as exc:
+        log.warning("idempotency key %s left held until it expires: %s", hold.store_key, exc)
