@@ -24,9 +24,15 @@ const RESULT_TIMEOUT_MS = 60000;
 // in all.
 const RESULT_TRIES = 5;
 const BUSY = [429, 503];
+// Cancel pressed while an upload was in flight asks the server for the job the upload
+// may have made (it may have received it whole) for at most this long while the server
+// is still handling the upload (409) or cannot be reached.
+const UPLOAD_LOOKUP_MS = 120000;
 const FINISHED = ["succeeded", "failed", "cancelled"];
 let shownJob = null; // the succeeded job whose results the panels show (null: none)
-let watched = null; // the job in flight: { id, stop: AbortController }
+// The job in flight: { id, stop: AbortController, uploadKey: the Idempotency-Key of its
+// upload (once sent), cancelling: a Cancel's promise (once pressed) }.
+let watched = null;
 let histogram = null;
 let exposureTimer = null;
 let inputNotes = []; // what the page notes of this run's input (the simulate's clipping)
@@ -251,15 +257,27 @@ function decoderField() {
   return $("quality").value ? ["quality", $("quality").value] : ["decoder", $("decoder").value];
 }
 
+// A new Idempotency-Key: a random UUID (crypto.randomUUID exists only in a secure
+// context, and the page may be served over plain HTTP to another host than localhost).
+function newIdempotencyKey() {
+  if (crypto.randomUUID) return crypto.randomUUID();
+  return Array.from(crypto.getRandomValues(new Uint8Array(16)),
+    (byte) => byte.toString(16).padStart(2, "0")).join("");
+}
+
 // Submit frame with decoder (decoderField, read when Reconstruct was pressed); an
-// AbortError once signal aborts (Cancel).
+// AbortError once signal aborts (Cancel). The upload carries a new Idempotency-Key, kept
+// in watched, by which Cancel finds the job of an upload the server received whole
+// before its answer came.
 async function submitFrame(frame, simulated, decoder, signal) {
   setStatus("uploading the frame…");
   const form = new FormData();
   form.append("file", frame);
   if (!simulated) sensorFields(form, false);
   form.append(...decoder);
-  const request = { method: "POST", body: form, signal };
+  watched.uploadKey = newIdempotencyKey();
+  const headers = { "Idempotency-Key": watched.uploadKey };
+  const request = { method: "POST", body: form, signal, headers };
   const reply = await api("/v1/reconstructions", request).catch((error) => {
     throw simulated ? error : sensorMissing(wrongKind(error, "frame"));
   });
@@ -571,8 +589,9 @@ async function follow(start) {
   clearJob();
   clearResult();
   setJobHash(null);
-  watched = { id: null, stop: new AbortController() };
-  const { signal } = watched.stop;
+  const run = { id: null, stop: new AbortController(), uploadKey: null, cancelling: null };
+  watched = run;
+  const { signal } = run.stop;
   $("cancel").disabled = false;
   try {
     const id = await start(signal);
@@ -586,6 +605,7 @@ async function follow(start) {
   } catch (error) {
     if (error.name !== "AbortError") setStatus(error.message, "error");
   } finally {
+    await run.cancelling; // a Cancel still finding or cancelling the upload's job
     watched = null;
     disable("cancel");
     $("run").disabled = false;
@@ -655,16 +675,20 @@ function resultsUnreachable(id) {
   };
 }
 
-// Cancel the upload in flight (cancelUpload), or the job in flight (DELETE
-// /v1/jobs/{id}) and stop waiting for it and its results. One that finished meanwhile
-// (409) is not fetched further either: the page shows its record (why it failed) and
-// says so. If the server cannot be told (or does not answer within POLL_TIMEOUT_MS: a
-// Cancel on a dead connection did nothing, and the page waited on), the page stops
-// waiting all the same and says so.
-async function cancel() {
-  const { id, stop } = watched;
+// Cancel the upload in flight (cancelUpload), or the job in flight (cancelJob). The
+// run ends (Reconstruct is enabled again) once the Cancel has.
+function cancel() {
+  const run = watched;
   disable("cancel");
-  if (!id) return cancelUpload(stop);
+  run.cancelling = run.id ? cancelJob(run.id, run.stop) : cancelUpload(run);
+}
+
+// Cancel job id (DELETE /v1/jobs/{id}) and stop waiting for it and its results (stop).
+// One that finished meanwhile (409) is not fetched further either: the page shows its
+// record (why it failed) and says so. If the server cannot be told (or does not answer
+// within POLL_TIMEOUT_MS: a Cancel on a dead connection did nothing, and the page waited
+// on), the page stops waiting all the same and says so.
+async function cancelJob(id, stop) {
   try {
     const job = await readInTime(`/v1/jobs/${id}`, null, (reply) => reply.json(),
       { method: "DELETE" });
@@ -679,11 +703,46 @@ async function cancel() {
   }
 }
 
-// Stop the upload (or the simulate before it) in flight: its server had not answered.
-function cancelUpload(stop) {
-  stop.abort();
-  setStatus("upload cancelled before the server answered: no job is followed; press " +
-    "Reconstruct to upload the file again");
+const UPLOAD_CANCELLED = "upload cancelled before the server answered: no job was made; " +
+  "press Reconstruct to upload the file again";
+
+// Stop the upload (or the simulate before it) in flight of run: its server had not
+// answered. An upload it had received whole may have made its job all the same (which
+// ran on, followed by no page): that job is found by the upload's Idempotency-Key and
+// cancelled, as the run's job (its id in the page's address).
+async function cancelUpload(run) {
+  run.stop.abort();
+  if (!run.uploadKey) return setStatus(UPLOAD_CANCELLED);
+  setStatus("cancelling: asking the server whether the upload made a job…");
+  let job;
+  try {
+    job = await uploadedJob(run.uploadKey);
+  } catch (error) {
+    return setStatus("upload cancelled, but the server could not say whether it made a " +
+      `job (${error.message}); if it did, the job runs on, followed by no page`, "error");
+  }
+  if (!job) return setStatus(UPLOAD_CANCELLED);
+  run.id = job.id;
+  setJobHash(job.id);
+  await cancelJob(job.id, run.stop);
+}
+
+// The job the upload sent with Idempotency-Key key made (null: none; GET
+// /v1/jobs?idempotency_key=), asked again while the server is still handling the upload
+// (409) or cannot be reached, for up to UPLOAD_LOOKUP_MS.
+async function uploadedJob(key) {
+  const path = `/v1/jobs?idempotency_key=${encodeURIComponent(key)}`;
+  const deadline = Date.now() + UPLOAD_LOOKUP_MS;
+  for (let failures = 1; ; failures += 1) {
+    try {
+      return await readInTime(path, null, (reply) => reply.json());
+    } catch (error) {
+      if (isGone(error)) return null;
+      const again = error instanceof ApiError && (error.status === 409 || !isFinal(error));
+      if (!again || Date.now() > deadline) throw error;
+      await sleep(retryDelayMs(error, failures));
+    }
+  }
 }
 
 // Job id had finished when Cancel reached the server (refused: error). A failed one is

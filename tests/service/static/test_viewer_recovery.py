@@ -4,9 +4,10 @@ Real uvicorn on 127.0.0.1, real Redis, a real worker where a job should run. A j
 a server restart, and a job's address opened without a key is followed once it is saved, and
 another job's address entered on the page is followed, and one cut short says so; a missing
 or unknown key says where on the page the key goes; a 429 is waited out as Retry-After says;
-a stuck job is polled gently and can be cancelled; a job gone from the server is given up
-with a clear message; the result panels show a job's results only once it succeeded, never
-beside another job's, and previews asked for again are said to be; a decoder list that
+a stuck job is polled gently and can be cancelled, and so is the job of an upload the server
+made before Cancel came (found by its Idempotency-Key); a job gone from the server is given
+up with a clear message; the result panels show a job's results only once it succeeded,
+never beside another job's, and previews asked for again are said to be; a decoder list that
 failed says how to list them again. The live device view waits out a 429 too, asks again for
 a poll left unanswered, resumes (and lists the devices again) once a key is saved after a
 refused one, watches the device again after a reload, stops watching a device the server
@@ -17,15 +18,18 @@ sends nothing (no health report yet, a port that does not open, a silent daemon)
 from __future__ import annotations
 
 import re
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import anyio
 import httpx
 import numpy as np
 import pytest
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from models.decoders.registry import get_decoder
 from models.formation import SensorParams, simulate
@@ -52,7 +56,7 @@ from tests.service.static.conftest import (
 from tests.worker.conftest import overflowing_codes
 from worker.embedded_redis import connect
 from worker.outputs import encode_exr_result
-from worker.redis_keys import DEVICES_SET, health_key, job_key, latest_key
+from worker.redis_keys import DEVICES_SET, JOBS_STREAM, health_key, job_key, latest_key
 from worker.result_store import RESULTS_DIR, ResultStore
 from worker.runner import Worker
 
@@ -514,6 +518,114 @@ def test_an_upload_can_be_cancelled(browser: Browser, api: str, frame: Path) -> 
     assert "#job=" not in page.url
     job_id = submit(page, frame)  # the next upload goes through
     assert wait_for_status(page, "queued") == f"job {job_id}: queued"
+
+
+class AnswerHeld:
+    """ASGI middleware holding the answer to the first ``POST path`` (its job queued, the
+    browser told nothing) until ``release`` is set; ``answered`` is set once it is ready."""
+
+    def __init__(self, app: ASGIApp, path: str, answered: threading.Event,
+                 release: threading.Event) -> None:
+        self.app, self.path, self.answered, self.release = app, path, answered, release
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (scope["type"] != "http" or scope["method"] != "POST" or scope["path"] != self.path
+                or self.release.is_set()):
+            return await self.app(scope, receive, send)
+
+        async def held(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                self.answered.set()
+                await anyio.to_thread.run_sync(self.release.wait)
+            await send(message)
+
+        return await self.app(scope, receive, held)
+
+
+@contextmanager
+def answer_held(
+    browser: Browser, settings: Settings, frame: Path
+) -> Iterator[tuple[Page, str, threading.Event]]:
+    """The viewer on a server that holds back its answer to the page's first upload (the
+    job queued): yields the page, pressed Reconstruct and waiting for that answer, the
+    upload's Idempotency-Key and the event that lets such answers go."""
+    answered, release = threading.Event(), threading.Event()
+    app = create_app(settings)
+    app.add_middleware(AnswerHeld, path="/v1/reconstructions", answered=answered,
+                       release=release)
+    with serve(app) as url:
+        try:
+            page = open_viewer(browser, url)
+            page.set_input_files("#file", str(frame))
+            with page.expect_request("**/v1/reconstructions") as upload:
+                page.click("#run")
+            assert answered.wait(30), "the server did not queue the job"
+            yield page, upload.value.headers["idempotency-key"], release
+        finally:
+            release.set()
+
+
+def job_by_key(page: Page, key: str) -> dict:
+    """The job the upload with Idempotency-Key ``key`` made, as the API shows it."""
+    url = page.url.split("#")[0].rstrip("/")
+    reply = httpx.get(f"{url}/v1/jobs", params={"idempotency_key": key},
+                      headers={"Authorization": f"Bearer {FULL_KEY}"})
+    assert reply.status_code == 200, reply.text
+    return dict(reply.json())
+
+
+def test_a_cancel_after_the_server_made_the_job_cancels_it(
+    browser: Browser, tmp_path: Path, redis_url: str, frame: Path
+) -> None:
+    """Cancel pressed after the server had received the whole upload and queued its job,
+    before its answer reached the page: the job ran on, followed by no page. The page
+    finds it by its upload's Idempotency-Key (asked again while the server said it was
+    still handling the upload) and cancels it. The server holds its answer here, so the
+    race is always lost the same way."""
+    settings = make_settings(tmp_path, redis_url)
+    with answer_held(browser, settings, frame) as (page, key, release):
+        lookups: list[str] = []
+
+        def in_use_first(route: Route) -> None:
+            lookups.append(route.request.url)
+            if len(lookups) > 1:
+                return route.continue_()
+            return route.fulfill(status=409, headers={"Retry-After": "1"}, json={
+                "code": "idempotency_key_in_use", "message": "still being decoded"})
+
+        page.route(re.compile(r"/v1/jobs\?idempotency_key="), in_use_first)
+        page.click("#cancel")
+        status = wait_for_status(page, "cancelled")
+        job = job_by_key(page, key)
+        assert status == f"job {job['id']}: cancelled" and job["state"] == "cancelled"
+        assert len(lookups) == 2
+        assert page.get_attribute("#status", "class") == ""
+        assert page.is_enabled("#run") and page.is_disabled("#cancel")
+        assert page.url.endswith(f"#job={job['id']}")
+        assert connect(redis_url).xlen(JOBS_STREAM) == 1  # that job alone was made
+        release.set()
+        with page.expect_request("**/v1/reconstructions") as upload:
+            page.click("#run")
+        assert upload.value.headers["idempotency-key"] != key  # a key per upload
+        wait_for_status(page, "queued")
+
+
+def test_a_cancel_after_the_upload_s_job_finished_says_so(
+    browser: Browser, tmp_path: Path, redis_url: str, frame: Path
+) -> None:
+    """The job of an upload whose answer had not come yet succeeded before Cancel: the
+    page says so, as for a job it followed."""
+    settings = make_settings(tmp_path, redis_url)
+    with answer_held(browser, settings, frame) as (page, key, _), running_worker(settings):
+        deadline = time.monotonic() + 60
+        while job_by_key(page, key)["state"] != "succeeded":
+            assert time.monotonic() < deadline, "the job did not succeed"
+            page.wait_for_timeout(POLL_MS)
+        page.click("#cancel")
+        status = wait_for_status(page, "had finished before Cancel")
+        job_id = job_by_key(page, key)["id"]
+        assert status.startswith(f"job {job_id} had finished before Cancel"), status
+        assert page.is_enabled("#run") and page.is_disabled("#cancel")
 
 
 def test_a_cancel_left_unanswered_stops_the_wait_and_says_so(
