@@ -129,10 +129,12 @@ wrong region nor a tracked one survives the keyframe. Periodic keyframes are not
 refined.
 
 A keyframe of a colour stream then goes through the spatial decoder's
-:meth:`models.decoders.base.Decoder.join_channels`, as a still frame would (``auto``
-at balanced and best, ``<decoder>+colour``: the channels made consistent,
-:mod:`models.decoders.colour`); the temporal steps between keyframes track each
-channel on its own.
+:meth:`models.decoders.base.Decoder.join_channels`, as a still frame would: a clip is
+filled in every channel that holds it (:func:`models.decoders.saturation.fill_shared`;
+each channel's keyframe had filled a white lamp on its own, and the stream carried
+the tint on), then ``auto`` at balanced and best and ``<decoder>+colour`` make the
+channels consistent (:mod:`models.decoders.colour`); the temporal steps between
+keyframes track each channel on its own.
 
 Failure modes
 -------------

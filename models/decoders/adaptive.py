@@ -27,7 +27,9 @@ decode (2.7 ms at 256x256).
 Last, at every quality, compact blobs that read the sensor's clip value behind an
 aliased ring (a lamp or the sun brighter than ``max_wraps``) are set to the clip
 (:mod:`models.decoders.saturation`; val-256 +0.65-0.8 dB at each quality). No
-network and no unwrapper can count those wraps from the codes.
+network and no unwrapper can count those wraps from the codes. A colour frame's clip
+is then filled in every channel that holds it, before the channels are joined
+(:meth:`AdaptiveDecoder.join_channels`).
 
 A frame with no residue at all is integrated whole. A frame whose hard tiles with
 their margins cover enough of it goes whole to the network
@@ -84,6 +86,7 @@ from models.decoders.adaptive_policy import (
 )
 from models.decoders.base import Decoder, anchor_winding
 from models.decoders.colour import harmonise
+from models.decoders.filling import filled_then_joined
 from models.decoders.guided_puma import GuidedPumaDecoder, refined_name
 from models.decoders.region_vote import region_vote
 from models.decoders.registry import DecoderSpec, available_decoders, get_decoder
@@ -163,6 +166,13 @@ class AdaptiveDecoder(Decoder):
         return self.explain_analysed(m, params, analyse(m, params, self.tile))
 
     def join_channels(
+        self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """A colour frame's clips filled in every channel that holds them
+        (:func:`models.decoders.filling.filled_then_joined`), then :meth:`harmonised`."""
+        return filled_then_joined(planes, winding, params, self.harmonised)
+
+    def harmonised(
         self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         """A colour frame's channels made consistent when ``joint_colour`` (by default at

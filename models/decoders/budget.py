@@ -36,6 +36,7 @@ from models.decoders.cost_model import (
     colour_ns_per_pixel,
     unscaled_options,
 )
+from models.decoders.filling import filled_then_joined
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.saturation import fill_saturated
 from models.errors import InvalidInputError
@@ -160,16 +161,16 @@ class BudgetDecoder(Decoder):
         channels: each gets the time left divided by the channels left. The frame's
         facts (``budget``: the budget, whether the channels were joined and the join's
         predicted ms, the measured ms of it all, whether the budget was met) come with
-        each channel's (``channels``) and the join's (``colour``). A frame without pixels
-        is refused before anything is calibrated."""
+        each channel's (``channels``) and the join's (``colour``, with the clips filled in
+        every channel that holds them first, :func:`models.decoders.filling.filled_then_joined`).
+        A frame without pixels is refused before anything is calibrated."""
         refuse_empty(planes)
         if planes.shape[2] == 1:
             return super().explain_planes(planes, params)
         calibration_start = time.perf_counter_ns()
         calibrate(params, planes.shape[:2], colour=True)
-        join_model_ms = planes[:, :, 0].size * colour_ns_per_pixel(params.encoding) / 1e6
         start = time.perf_counter_ns()
-        join_ms = join_model_ms * SPEED.value(COLOUR)
+        join_ms = join_model_ms(planes, params) * SPEED.value(COLOUR)
         joined = join_ms <= JOIN_SHARE * self.budget_ms
         channels_ms = self.budget_ms - (join_ms if joined else 0.0)
         windings, channels = [], []
@@ -180,11 +181,10 @@ class BudgetDecoder(Decoder):
             windings.append(winding)
             channels.append(facts)
         info: dict[str, Any] = {"channels": channels}
-        winding = np.stack(windings, axis=2)
-        if joined:
-            join_start = time.perf_counter_ns()
-            winding, info["colour"] = harmonise(planes, winding, params)
-            SPEED.update(COLOUR, join_model_ms, (time.perf_counter_ns() - join_start) / 1e6)
+        join = self.timed_harmonise if joined else super().join_channels
+        winding, colour = filled_then_joined(planes, np.stack(windings, axis=2), params, join)
+        if colour:
+            info["colour"] = colour
         measured_ms = (time.perf_counter_ns() - start) / 1e6
         info["budget"] = {
             "budget_ms": self.budget_ms,
@@ -195,6 +195,17 @@ class BudgetDecoder(Decoder):
             "calibration_ms": round((start - calibration_start) / 1e6, 2),
         }
         return winding, info
+
+    def timed_harmonise(
+        self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
+    ) -> tuple[NDArray[np.int64], dict[str, Any]]:
+        """:func:`models.decoders.colour.harmonise`, its measured ms folded into the join's
+        speed factor (:class:`SpeedFactors`)."""
+        start = time.perf_counter_ns()
+        harmonised = harmonise(planes, winding, params)
+        elapsed_ms = (time.perf_counter_ns() - start) / 1e6
+        SPEED.update(COLOUR, join_model_ms(planes, params), elapsed_ms)
+        return harmonised
 
     def explain_within(
         self, m: NDArray[np.float64], params: SensorParams, budget_ms: float
@@ -241,6 +252,12 @@ class BudgetDecoder(Decoder):
             "calibration_ms": round((start - calibration_start) / 1e6, 2),
         }
         return winding, info
+
+
+def join_model_ms(planes: NDArray[np.float64], params: SensorParams) -> float:
+    """The cost model's ms to join the channels of a colour frame ``planes`` (H x W x C),
+    before the speed factor."""
+    return planes[:, :, 0].size * colour_ns_per_pixel(params.encoding) / 1e6
 
 
 def resolve(name: str) -> DecoderSpec | None:

@@ -46,11 +46,12 @@ all three votes differ, nothing changes.
 It is a decoder's :meth:`models.decoders.base.Decoder.join_channels`: ``auto`` runs it
 after its channels at best and, up to 512x512 px, at balanced (:data:`JOINT_COLOUR` in
 :mod:`models.decoders.adaptive`: it costs about 2.5 us a pixel), any decoder gets it
-as ``<decoder>+colour``, a refined decoder (``<decoder>+puma``) joins as its guide
-does, and a colour video's keyframes are joined (:mod:`worker.temporal`; the frames
-between them track each channel). A latency budget (``auto-<N>ms``) joins a colour
-frame's channels when that is predicted to take at most half its budget
-(:mod:`models.decoders.budget`).
+as ``<decoder>+colour`` (after a clip is filled in every channel that holds it, when
+``<decoder>`` fills clipped blobs: :func:`models.decoders.saturation.fill_shared`), a
+refined decoder (``<decoder>+puma``) joins as its guide does, and a colour video's
+keyframes are joined (:mod:`worker.temporal`; the frames between them track each
+channel). A latency budget (``auto-<N>ms``) joins a colour frame's channels when that
+is predicted to take at most half its budget (:mod:`models.decoders.budget`).
 
 Measured (``python -m bench.colour``, 2026-11-26, 2 AMD EPYC cores; the constants
 below were chosen on the *tuning* set, 2 crops of each training scene, before the
@@ -75,6 +76,7 @@ from numpy.typing import NDArray
 
 from models.decoders.band_moves import jump_pairs
 from models.decoders.base import Decoder, anchor_offset
+from models.decoders.filling import filled_then_joined
 from models.decoders.graphcut import PumaEnergy, best_pixel_move, minimise
 from models.decoders.guided_puma import JUMPS, pair_weights
 from models.decoders.region_moves import best_region_move
@@ -199,9 +201,14 @@ class ColourDecoder(Decoder):
     def join_channels(
         self, planes: NDArray[np.float64], winding: NDArray[np.int64], params: SensorParams
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
-        if planes.shape[2] == 3:
-            return harmonise(planes, winding, params)
-        return winding, {}
+        """:func:`harmonise` on a colour frame, after its clips are filled in every channel
+        that holds them (:func:`models.decoders.filling.filled_then_joined`) when
+        ``inner`` fills clipped blobs."""
+        if planes.shape[2] != 3:
+            return winding, {}
+        if self.inner.fills_saturation:
+            return filled_then_joined(planes, winding, params, harmonise)
+        return harmonise(planes, winding, params)
 
 
 def resolve(name: str) -> DecoderSpec | None:

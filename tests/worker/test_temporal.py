@@ -11,6 +11,7 @@ from models.decoders.colour import ColourDecoder
 from models.decoders.registry import get_decoder
 from models.errors import InvalidInputError, OutputOverflowError
 from models.formation import SensorParams, encode, quantize, simulate, split_unwrapped
+from tests.models.decoders.colour_lamp import colour_lamp
 from tests.models.decoders.fixed_planes import FixedPlanesDecoder
 from tests.worker.panning import PAN_PARAMS, pan_clip, smooth_scene
 from worker.brightness import BrightnessConfig
@@ -485,6 +486,19 @@ def test_a_still_stream_keeps_a_clipped_lamp_filled() -> None:
         clipped = frame.irradiance >= 16.0
         assert clipped.sum() > 100
         np.testing.assert_array_equal(result.winding[clipped], frame.winding[clipped])
+
+
+@pytest.mark.parametrize("spatial", ["itoh", "auto-fast"])
+def test_a_colour_stream_keeps_a_white_lamp_white(spatial: str) -> None:
+    """Each channel's keyframe filled the lamp on its own, and the stream carried the
+    tint on: with itoh blue stayed short (x 1.0 on the core, 16 true), with auto-fast
+    red and green did."""
+    frame, _, clipped = colour_lamp()
+    codes = [frame.codes] * 3
+    decoded = list(decode_frames(codes, frame.params, StreamDecoder("temporal", spatial)))
+    core = clipped.all(axis=2)
+    for result in decoded:
+        np.testing.assert_array_equal(result.winding[core], frame.winding[core])
 
 
 def test_a_whole_refinement_on_a_pan_keeps_a_filled_lamp_filled() -> None:

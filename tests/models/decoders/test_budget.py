@@ -15,6 +15,7 @@ from models.decoders.registry import name_patterns
 from models.errors import InvalidInputError
 from models.formation import SensorParams, encode, quantize
 from models.scenes import synthetic_val256_frame
+from tests.models.decoders.colour_lamp import colour_lamp
 
 MODULO = SensorParams(encoding="modulo", bits=8)
 
@@ -207,3 +208,14 @@ def test_a_grayscale_frame_keeps_the_whole_budget() -> None:
     result = BudgetDecoder(300.0).decode(hard_frame(), MODULO)
     assert result.info["details"]["budget"]["budget_ms"] == 300.0
     assert "budget" not in result.info
+
+
+@pytest.mark.parametrize("budget_ms", [0.1, 600000.0])
+def test_a_white_lamp_comes_out_white_within_any_budget(budget_ms: float) -> None:
+    """Each channel filled its clipped core on its own: the quickest option (auto-fast
+    or itoh's fallback) left one or two channels short, a tinted lamp. (A generous
+    budget runs best, whose join made the lamp white already.)"""
+    frame, _, clipped = colour_lamp()
+    result = BudgetDecoder(budget_ms).decode(frame.codes, frame.params)
+    core = clipped.all(axis=2)
+    np.testing.assert_array_equal(result.winding[core], frame.winding[core])

@@ -22,6 +22,7 @@ from models.decoders.guided_puma import GuidedPumaDecoder
 from models.decoders.registry import get_decoder, name_patterns, resolve
 from models.errors import InvalidInputError
 from models.formation import SensorParams, dequantize, encode
+from tests.models.decoders.colour_lamp import colour_lamp
 from tests.models.decoders.fixed_planes import FixedPlanesDecoder
 
 
@@ -228,3 +229,13 @@ def test_balanced_joins_frames_up_to_its_size_and_says_why_not_beyond() -> None:
     result = decoder.decode(frame.codes, params)
     reason = "not joined: frames over 32x32 px are joined at best only"
     assert result.info["colour"] == {"reason": reason}
+
+
+def test_a_filling_inner_decoder_fills_a_white_lamp_in_every_channel_before_the_join() -> None:
+    """auto-fast filled the lamp's core in blue alone; the join's majority then lowered
+    blue too (x on the core 0.02 / 0.36 / 3.49 wraps, 16 true)."""
+    frame, _, clipped = colour_lamp()
+    result = get_decoder("auto-fast+colour").decode(frame.codes, frame.params)
+    core = clipped.all(axis=2)
+    np.testing.assert_array_equal(result.winding[core], frame.winding[core])
+    assert result.info["colour"]["saturation"]["changed_fraction"] > 0

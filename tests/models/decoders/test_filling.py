@@ -8,6 +8,8 @@ import pytest
 from models.decoders import get_decoder
 from models.decoders.filling import FillingDecoder, filling
 from models.formation import SensorParams, encode
+from tests.models.decoders.colour_lamp import colour_lamp
+from tests.models.decoders.fixed_planes import FixedPlanesDecoder
 
 PARAMS = SensorParams(encoding="mantissa", bits=8, max_wraps=16.0, seed=3)
 
@@ -51,3 +53,15 @@ def test_the_encodings_and_colour_handling_are_the_inner_decoders() -> None:
     joined = filling(colour).decode(truth.codes, PARAMS)
     assert "colour" in joined.info
     assert joined.winding.shape == truth.winding.shape
+
+
+def test_a_white_lamp_filled_in_one_channel_is_filled_in_every_channel() -> None:
+    """The inner decoder calls the lamp's core dark (W = 0) in red and green and bright
+    (3 wraps short) in blue: each channel filled on its own, the lamp came out blue."""
+    frame, _, clipped = colour_lamp()
+    decoded = np.where(clipped, 0, frame.winding)
+    decoded[:, :, 2] = np.where(clipped[:, :, 2], frame.winding[:, :, 2] - 3, decoded[:, :, 2])
+    result = filling(FixedPlanesDecoder(decoded)).decode(frame.codes, frame.params)
+    core = clipped.all(axis=2)
+    np.testing.assert_array_equal(result.winding[core], frame.winding[core])
+    assert result.info["colour"]["saturation"]["changed_fraction"] > 0

@@ -16,9 +16,11 @@ from models.decoders.saturation import (
     clip_tolerance,
     clipped_value,
     fill_saturated,
+    fill_shared,
     reads_clip,
 )
 from models.formation import SensorParams, dequantize, encode, max_winding
+from tests.models.decoders.colour_lamp import WHITE, colour_lamp
 
 SIZE = 64
 
@@ -236,3 +238,53 @@ def test_a_refiner_refills_only_for_a_guide_that_fills() -> None:
     kept, none = plain.refilled(m, lowered, frame.winding, params)
     np.testing.assert_array_equal(kept, lowered)
     assert none is None
+
+
+def filled_per_channel(decoded: np.ndarray, m: np.ndarray, params: SensorParams) -> np.ndarray:
+    """Each channel of ``decoded`` (H x W x 3) filled on its own, as a decoder does."""
+    return np.stack(
+        [fill_saturated(decoded[:, :, c], m[:, :, c], params)[0] for c in range(3)], axis=2
+    )
+
+
+def test_a_white_lamp_is_filled_in_every_channel_when_one_channel_fills_it() -> None:
+    """A decoder that calls the lamp's core dark (W = 0) in red and green and bright
+    (3 wraps short) in blue filled blue alone: the lamp came out blue."""
+    frame, m, clipped = colour_lamp(size=SIZE, peak=2000.0)
+    truth, params = frame.winding, frame.params
+    core = clipped.all(axis=2)
+    decoded = np.where(clipped, 0, truth)
+    decoded[:, :, 2] = np.where(clipped[:, :, 2], truth[:, :, 2] - 3, truth[:, :, 2])
+    alone = filled_per_channel(decoded, m, params)
+    assert (alone[:, :, :2][core] == 0).all()
+    np.testing.assert_array_equal(alone[:, :, 2][core], truth[:, :, 2][core])
+    filled, facts = fill_shared(alone, m, params)
+    np.testing.assert_array_equal(filled[clipped], truth[clipped])
+    np.testing.assert_array_equal(filled[~clipped], alone[~clipped])
+    assert facts["filled_fraction"] >= core.mean() and facts["changed_fraction"] > 0
+
+
+@pytest.mark.parametrize("dark", [False, True])
+def test_a_lamp_saturating_one_channel_leaves_the_others_as_decoded(dark: bool) -> None:
+    """A blue lamp clips blue alone: blue keeps its own fill, red and green their decoded
+    W, also where they are black and read the clip's code (x = 0) round the clipped
+    blue."""
+    frame, m, clipped = colour_lamp((0.002, 0.004, 1.0), size=SIZE, peak=2000.0, dark=dark)
+    truth, params = frame.winding, frame.params
+    assert clipped[:, :, 2].sum() > MIN_PIXELS and not clipped[:, :, :2].any()
+    alone = filled_per_channel(np.where(clipped, truth - 3, truth), m, params)
+    blue = clipped[:, :, 2]
+    np.testing.assert_array_equal(alone[:, :, 2][blue], truth[:, :, 2][blue])
+    filled, _ = fill_shared(alone, m, params)
+    np.testing.assert_array_equal(filled[:, :, :2], truth[:, :, :2])
+    np.testing.assert_array_equal(filled[:, :, 2], alone[:, :, 2])
+
+
+def test_auto_fast_gives_a_white_lamp_one_clip_in_every_channel() -> None:
+    """auto-fast's net called this lamp's core dark in red and green (x 0.02 and 0.36
+    wraps) and filled blue (16 wraps): a blue lamp."""
+    frame, _, clipped = colour_lamp(WHITE)
+    result = get_decoder("auto-fast").decode(frame.codes, frame.params)
+    core = clipped.all(axis=2)
+    np.testing.assert_array_equal(result.winding[core], frame.winding[core])
+    assert result.info["colour"]["saturation"]["changed_fraction"] > 0
