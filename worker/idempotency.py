@@ -8,6 +8,10 @@ with an :class:`IdempotentSubmit`) stores, in the same script as the job, ``{"jo
 request's: two requests with one key never both queue a job. A request that ends
 without a job (refused, cut off) gives its hold back (:func:`release`), so that a retry
 may make the job. A hold left by an API process that died expires after ``pending_s``.
+A key whose job's record is gone before the key (a retention lowered since the job was
+queued) is held anew by the next request with it (:func:`hold_key` with ``gone``), as if
+it were not remembered: its repeats answered 404 for that job, for the rest of the key's
+life, however often they were sent.
 
 The value is stored under :func:`worker.redis_keys.idempotency_key`: a hash of the
 client's key, scoped to the API key's id (two API keys may use the same idempotency key).
@@ -26,10 +30,11 @@ from models.errors import McamError
 
 log = logging.getLogger(__name__)
 
-#: Hold KEYS[1] with ARGV[1] for ARGV[2] s unless it has a value; returns that value (or nil).
+#: Hold KEYS[1] with ARGV[1] for ARGV[2] s unless it has a value other than the one naming
+#: the job ARGV[3] (whose record is gone; '': none); returns that value (or nil).
 _HOLD = """
 local held = redis.call('GET', KEYS[1])
-if held then return held end
+if held and (ARGV[3] == '' or cjson.decode(held)['job'] ~= ARGV[3]) then return held end
 redis.call('SET', KEYS[1], ARGV[1], 'EX', ARGV[2])
 return false
 """
@@ -98,12 +103,15 @@ def parse(value: bytes | str) -> Earlier | Pending:
 
 
 def hold_key(
-    client: redis.Redis, store_key: str, pending_s: int, ttl_s: int
+    client: redis.Redis, store_key: str, pending_s: int, ttl_s: int, gone: str = ""
 ) -> KeyHold | Earlier | Pending:
     """Hold ``store_key`` for this request (for ``pending_s`` s; its job is then kept
-    ``ttl_s`` s), or what an earlier request with it left."""
+    ``ttl_s`` s), or what an earlier request with it left. ``gone``, the id of a job whose
+    record no longer exists, lets the hold replace what the request that made it left."""
     value = json.dumps({"pending": uuid.uuid4().hex})
-    held = client.register_script(_HOLD)(keys=[store_key], args=[value, max(int(pending_s), 1)])
+    held = client.register_script(_HOLD)(
+        keys=[store_key], args=[value, max(int(pending_s), 1), gone]
+    )
     if held is None:
         return KeyHold(store_key, value, max(int(ttl_s), 1))
     return parse(held)

@@ -146,12 +146,15 @@ class Once:
 
 def _hold(state: ServiceState, owner: ApiKey, key: str) -> Once:
     """Hold ``key`` for ``owner``'s request, or what an earlier request left; 409 while
-    that one is still being handled."""
+    that one is still being handled. A key naming a job whose record is gone (expired
+    under a retention lowered since) is held anew: that request is not remembered any
+    more than its job."""
     settings = state.settings
-    ttl_s = min(settings.idempotency_ttl_s, settings.result_retention_s)
-    found = hold_key(
-        state.client, idempotency_key(owner.id, key), pending_s(settings), int(ttl_s)
-    )
+    ttl_s = int(min(settings.idempotency_ttl_s, settings.result_retention_s))
+    store_key = idempotency_key(owner.id, key)
+    found = hold_key(state.client, store_key, pending_s(settings), ttl_s)
+    if isinstance(found, Earlier) and state.queue.jobs.state(found.job_id) is None:
+        found = hold_key(state.client, store_key, pending_s(settings), ttl_s, found.job_id)
     if isinstance(found, Pending):
         raise in_use()
     return Once(state, found)

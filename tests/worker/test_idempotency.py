@@ -65,3 +65,15 @@ def test_a_request_that_made_no_job_gives_the_key_back(client: redis.Redis) -> N
     release(client, held(client))
     assert lookup(client, STORE_KEY) is None
     held(client)
+
+
+def test_a_key_whose_job_is_gone_is_held_anew_only_for_that_job(
+    queue: JobQueue, client: redis.Redis
+) -> None:
+    """``gone`` names the job whose record expired: a hold replaces what its request left,
+    never another job's value or a hold still pending."""
+    record = queue.submit("reconstruction", CODES, PARAMS, "itoh",
+                          idempotency=held(client).submit("a" * 32, "f" * 64))
+    assert hold_key(client, STORE_KEY, 60, 3600, gone="b" * 32) == Earlier(record.id, "f" * 64)
+    assert isinstance(hold_key(client, STORE_KEY, 60, 3600, gone=record.id), KeyHold)
+    assert isinstance(hold_key(client, STORE_KEY, 60, 3600, gone=record.id), Pending)

@@ -15,7 +15,7 @@ from service.core.config import Settings
 from service.core.security import key_id
 from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, frame_png, npy_bytes
 from worker.embedded_redis import connect
-from worker.redis_keys import JOBS_STREAM, idempotency_key
+from worker.redis_keys import JOBS_STREAM, idempotency_key, job_key
 
 Client = Callable[..., httpx.Client]
 KEY = "8e03978e-40d5-43e8-bc93-6894a57f9324"
@@ -125,6 +125,22 @@ def test_keys_are_scoped_to_the_api_key(client: Client, settings: Settings) -> N
     found = client().get("/v1/jobs", params={"idempotency_key": KEY})
     assert found.status_code == 200 and found.json()["id"] == mine.json()["id"]
     assert client(READ_KEY).get("/v1/jobs", params={"idempotency_key": KEY}).status_code == 404
+
+
+def test_a_key_whose_job_expired_makes_a_new_job(client: Client, settings: Settings) -> None:
+    """A job's record gone before its key (a retention lowered since the job was queued):
+    a repeat makes the job again instead of a 404 for the old one as long as the key
+    lives, however often the client sends it again."""
+    assert settings.redis_url is not None
+    http = client()
+    first = post_frame(http, KEY).json()
+    connect(settings.redis_url).delete(job_key(first["id"]))
+    again = post_frame(http, KEY)
+    assert again.status_code == 202, again.text
+    assert again.json()["id"] != first["id"]
+    found = http.get("/v1/jobs", params={"idempotency_key": KEY})
+    assert found.status_code == 200 and found.json()["id"] == again.json()["id"]
+    assert queued(settings) == 2
 
 
 def test_the_lookup_finds_the_job_or_says_there_is_none(client: Client) -> None:
