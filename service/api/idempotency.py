@@ -22,7 +22,8 @@ same idempotency key):
 
 A key is 1-255 printable ASCII characters (space to ``~``), bare or, as the draft
 writes it, in double quotes (``"8e03978e-..."`` and ``8e03978e-...`` are one key);
-anything else is 400 ``invalid_idempotency_key``.
+anything else, or the header on several lines naming different keys, is 400
+``invalid_idempotency_key``.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from starlette.concurrency import run_in_threadpool
 from models.errors import echo
 from service.api.errors import ApiError
 from service.api.in_turn import decode_in_turn
+from service.api.single_values import SHOWN
 from service.api.state import ServiceState
 from service.api.uploads import Model, Upload, read_upload_fields
 from service.core.config import Settings
@@ -100,6 +102,20 @@ def client_key(value: str) -> str:
         raise ApiError(400, "invalid_idempotency_key",
                        f"the Idempotency-Key {problem}: send {KEY_RULE}")
     return key
+
+
+def refuse_repeated_key(request: Request) -> None:
+    """400 ``invalid_idempotency_key`` for a request with ``Idempotency-Key`` lines naming
+    different keys: which one names the job cannot be told (the first was taken, the
+    others never remembered, and a lookup or repeat with one of them found no job)."""
+    lines = request.headers.getlist("idempotency-key")
+    if len({client_key(line) for line in lines}) > 1:
+        sent = ", ".join(echo(line) for line in lines[:SHOWN])
+        raise ApiError(
+            400, "invalid_idempotency_key",
+            f"the Idempotency-Key header came {len(lines)} times with different keys "
+            f"({sent}{', ...' if len(lines) > SHOWN else ''}): send it once, {KEY_RULE}",
+        )  # fmt: skip
 
 
 def pending_s(settings: Settings) -> int:
@@ -200,6 +216,7 @@ async def queued_job(
     ``model`` takes, then the earlier request's job if it repeats one with its
     ``Idempotency-Key`` (``header``), else ``submit(state, upload, fields, owner,
     idempotent submit or None)``'s, run in a decode turn."""
+    refuse_repeated_key(request)
     async with idempotent(state, owner, header) as once:
         upload, fields = await read_upload_fields(request, model, query)
         if once is None:

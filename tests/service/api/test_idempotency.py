@@ -113,6 +113,26 @@ def test_a_bad_key_is_400_saying_what_a_key_is(
     assert queued(settings) == 0
 
 
+def test_a_key_sent_on_two_lines_naming_two_keys_is_400(
+    client: Client, settings: Settings
+) -> None:
+    """Two Idempotency-Key lines: the first was taken and the other, never remembered,
+    found no job; the same key on both lines (quoted or not) is one key."""
+    http = client()
+    files = {"file": ("frame.png", frame_png(32)[0], "image/png")}
+    two = http.post("/v1/reconstructions", files=files, data={"decoder": "itoh"},
+                    headers=[("Idempotency-Key", KEY), ("Idempotency-Key", "other")])
+    assert two.status_code == 400, two.text
+    assert two.json()["code"] == "invalid_idempotency_key"
+    assert two.json()["message"].startswith("the Idempotency-Key header came 2 times with "
+                                            "different keys ('8e03978e-")
+    assert queued(settings) == 0
+    same = http.post("/v1/reconstructions", files=files, data={"decoder": "itoh"},
+                     headers=[("Idempotency-Key", KEY), ("Idempotency-Key", f'"{KEY}"')])
+    assert same.status_code == 202, same.text
+    assert post_frame(http, KEY).json()["id"] == same.json()["id"]
+
+
 def test_a_key_of_255_characters_is_taken(client: Client) -> None:
     assert post_frame(client(), "k" * 255).status_code == 202
 
