@@ -178,6 +178,18 @@ SIMULATE_ERRORS: dict[int | str, dict[str, Any]] = {
 #: Responses of a route that reads an upload and queues its job.
 UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
     **SIMULATE_ERRORS,
+    400: error_response(
+        "malformed request body, or invalid_idempotency_key: the Idempotency-Key is not "
+        "1-255 printable ASCII characters, or came on several lines naming different keys"
+    ),
+    409: error_response(
+        "idempotency_key_in_use: a request with this Idempotency-Key is still being "
+        "received, decoded or queued; ask again after Retry-After"
+    ),
+    422: error_response(
+        "invalid parameters, or idempotency_key_reused: this Idempotency-Key came before "
+        "with other parameters, another file or file name, or on the other route"
+    ),
     429: error_response(
         "rate limit exceeded (rate_limited, see Retry-After), or the key's jobs in the "
         "queue reach MCAM_MAX_QUEUED_JOBS_PER_KEY or MCAM_MAX_QUEUED_BYTES_PER_KEY "

@@ -224,3 +224,13 @@ def test_the_header_is_in_the_openapi_document(client: Client) -> None:
                      if p["name"] == "Idempotency-Key"]  # fmt: skip
         assert header["in"] == "header" and "never a second one" in header["description"]
     assert "idempotency_key" in [p["name"] for p in paths["/v1/jobs"]["get"]["parameters"]]
+
+
+def test_the_openapi_document_lists_the_keys_errors_on_both_posts(client: Client) -> None:
+    paths = client().get("/openapi.json").json()["paths"]
+    for path in ("/v1/reconstructions", "/v1/videos"):
+        responses = paths[path]["post"]["responses"]
+        for status, code in (("400", "invalid_idempotency_key"),
+                             ("409", "idempotency_key_in_use"),
+                             ("422", "idempotency_key_reused")):  # fmt: skip
+            assert code in responses[status]["description"], (path, status)
