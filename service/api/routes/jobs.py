@@ -177,7 +177,7 @@ def still_record(state: ServiceState, job_id: str) -> JobRecord:
 )
 def find_job(
     state: StateDep,
-    key: ReadKey,
+    key: SubmitKey,
     idempotency_key: Annotated[
         str,
         Query(description="the Idempotency-Key header the job's POST (/v1/reconstructions, "
@@ -185,7 +185,9 @@ def find_job(
     ],
 ) -> JobView:
     """Find the job of a request whose answer never came (cut off, or given up: the
-    viewer's Cancel) without sending its file again, to follow or cancel it."""
+    viewer's Cancel) without sending its file again, to follow or cancel it. It takes
+    the submit scope, as the POST and the cancel do: a submit-only key (a camera rig's)
+    got 403 for the key it had sent, which no other API key can look up."""
     return job_view(job_by_key(state, key, idempotency_key))
 
 

@@ -144,7 +144,10 @@ def test_keys_are_scoped_to_the_api_key(client: Client, settings: Settings) -> N
     assert queued(settings) == 2
     found = client().get("/v1/jobs", params={"idempotency_key": KEY})
     assert found.status_code == 200 and found.json()["id"] == mine.json()["id"]
-    assert client(READ_KEY).get("/v1/jobs", params={"idempotency_key": KEY}).status_code == 404
+    theirs_found = client(SUBMIT_KEY).get("/v1/jobs", params={"idempotency_key": KEY})
+    assert theirs_found.status_code == 200, theirs_found.text
+    assert theirs_found.json()["id"] == theirs.json()["id"]
+    assert client(READ_KEY).get("/v1/jobs", params={"idempotency_key": KEY}).status_code == 403
 
 
 def test_a_key_whose_job_expired_makes_a_new_job(client: Client, settings: Settings) -> None:
