@@ -7,7 +7,9 @@ with an :class:`IdempotentSubmit`) stores, in the same script as the job, ``{"jo
 "fingerprint": hex}`` for ``ttl_s`` seconds, and only while the hold is still this
 request's: two requests with one key never both queue a job. A request that ends
 without a job (refused, cut off) gives its hold back (:func:`release`), so that a retry
-may make the job. A hold left by an API process that died expires after ``pending_s``.
+may make the job; a Redis that could not be told then (restarting) is told again in the
+background until it is, or the hold has expired. A hold left by an API process that died
+expires after ``pending_s``.
 A key whose job's record is gone before the key (a retention lowered since the job was
 queued) is held anew by the next request with it (:func:`hold_key` with ``gone``), as if
 it were not remembered: its repeats answered 404 for that job, for the rest of the key's
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
+import time
 import uuid
 from dataclasses import dataclass
 
@@ -29,6 +33,9 @@ import redis
 from models.errors import McamError
 
 log = logging.getLogger(__name__)
+
+#: Seconds between the background tries to give back a hold Redis could not be told of.
+RELEASE_RETRY_S = 1.0
 
 #: Hold KEYS[1] with ARGV[1] for ARGV[2] s unless it has a value other than the one naming
 #: the job ARGV[3] (whose record is gone; '': none); returns that value (or nil).
@@ -75,6 +82,7 @@ class KeyHold:
     store_key: str
     value: str
     ttl_s: int
+    pending_s: int
 
     def submit(self, job_id: str, fingerprint: str) -> IdempotentSubmit:
         """What the submit of job ``job_id`` stores for the key, the request's body
@@ -109,11 +117,10 @@ def hold_key(
     ``ttl_s`` s), or what an earlier request with it left. ``gone``, the id of a job whose
     record no longer exists, lets the hold replace what the request that made it left."""
     value = json.dumps({"pending": uuid.uuid4().hex})
-    held = client.register_script(_HOLD)(
-        keys=[store_key], args=[value, max(int(pending_s), 1), gone]
-    )
+    pending = max(int(pending_s), 1)
+    held = client.register_script(_HOLD)(keys=[store_key], args=[value, pending, gone])
     if held is None:
-        return KeyHold(store_key, value, max(int(ttl_s), 1))
+        return KeyHold(store_key, value, max(int(ttl_s), 1), pending)
     return parse(held)
 
 
@@ -123,12 +130,40 @@ def lookup(client: redis.Redis, store_key: str) -> Earlier | Pending | None:
     return None if value is None else parse(value)
 
 
+def _give_back(client: redis.Redis, hold: KeyHold) -> None:
+    """Delete the hold's key if its value is still the hold's."""
+    client.register_script(_RELEASE)(keys=[hold.store_key], args=[hold.value])
+
+
 def release(client: redis.Redis, hold: KeyHold) -> None:
     """Give the key back unless the request's job was stored under it: a request that
-    ended without a job lets a retry make it. A Redis that cannot be told lets the hold
-    expire (its ``pending_s``) instead; that is logged, not raised: the request's own
-    answer (an error, or its job) matters more."""
+    ended without a job lets a retry make it. A Redis that cannot be told (restarting,
+    unreachable) is told again every :data:`RELEASE_RETRY_S` s by a background thread
+    until it is or the hold has expired (its ``pending_s``): the hold it kept answered
+    the request's retries 409 ``idempotency_key_in_use`` for all that time (10 min by
+    default) after the request had ended with 503. That is logged, not raised: the
+    request's own answer (an error, or its job) matters more."""
     try:
-        client.register_script(_RELEASE)(keys=[hold.store_key], args=[hold.value])
+        _give_back(client, hold)
     except redis.exceptions.RedisError as exc:
-        log.warning("idempotency key %s left held until it expires: %s", hold.store_key, exc)
+        log.warning("idempotency key %s not given back yet, trying again in the background "
+                    "for up to %d s: %s", hold.store_key, hold.pending_s, exc)  # fmt: skip
+        deadline = time.monotonic() + hold.pending_s
+        threading.Thread(
+            target=_give_back_until, args=(client, hold, deadline), daemon=True,
+            name="idempotency-release",
+        ).start()  # fmt: skip
+
+
+def _give_back_until(client: redis.Redis, hold: KeyHold, deadline: float) -> None:
+    """Try :func:`_give_back` every :data:`RELEASE_RETRY_S` s until it succeeds or the
+    monotonic ``deadline`` (the hold's expiry at the latest) passes."""
+    while time.monotonic() < deadline:
+        time.sleep(RELEASE_RETRY_S)
+        try:
+            _give_back(client, hold)
+        except redis.exceptions.RedisError:
+            continue
+        log.info("idempotency key %s given back", hold.store_key)
+        return
+    log.warning("idempotency key %s left held until it expired", hold.store_key)

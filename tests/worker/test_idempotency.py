@@ -4,6 +4,8 @@ the submit's own step, given back by a request that made no job."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from typing import Any
 
 import pytest
 import redis
@@ -77,3 +79,33 @@ def test_a_key_whose_job_is_gone_is_held_anew_only_for_that_job(
     assert hold_key(client, STORE_KEY, 60, 3600, gone="b" * 32) == Earlier(record.id, "f" * 64)
     assert isinstance(hold_key(client, STORE_KEY, 60, 3600, gone=record.id), KeyHold)
     assert isinstance(hold_key(client, STORE_KEY, 60, 3600, gone=record.id), Pending)
+
+
+class RestartingRedis:
+    """A Redis client whose first script call fails as a restarting Redis's does."""
+
+    def __init__(self, client: redis.Redis) -> None:
+        self.client = client
+        self.refused = False
+
+    def register_script(self, script: str) -> Callable[..., Any]:
+        """The script, run on the real client once one call has been refused."""
+        run = self.client.register_script(script)
+
+        def call(**kwargs: Any) -> Any:
+            if not self.refused:
+                self.refused = True
+                raise redis.exceptions.ConnectionError("Connection refused")
+            return run(**kwargs)
+
+        return call
+
+
+def test_a_hold_redis_could_not_be_told_of_is_given_back_once_it_answers(
+    client: redis.Redis, wait_until: Callable[..., object]
+) -> None:
+    """A request that ended (503) while Redis restarted: its hold is given back once Redis
+    answers, not kept till it expires (10 min by default), answering its retries 409."""
+    release(RestartingRedis(client), held(client))  # type: ignore[arg-type]
+    wait_until(lambda: lookup(client, STORE_KEY) is None, what="the hold given back")
+    held(client)
