@@ -236,8 +236,9 @@ def job_by_key(state: ServiceState, owner: ApiKey, value: str) -> JobRecord:
         raise ApiError(
             404, "not_found",
             "no request with this Idempotency-Key from this API key is remembered: none "
-            "reached the server whole, it was refused, or it came more than "
-            "MCAM_IDEMPOTENCY_TTL_S ago; no job was made for it",
+            "reached POST /v1/reconstructions or /v1/videos whole, or it was refused (no "
+            "job was made for either), or it came more than MCAM_IDEMPOTENCY_TTL_S ago "
+            "(its job, if any, is found by its id only); the other routes take no key",
         )  # fmt: skip
     if isinstance(earlier, Pending):
         raise in_use()

@@ -176,6 +176,8 @@ def test_the_lookup_finds_the_job_or_says_there_is_none(client: Client) -> None:
     missing = http.get("/v1/jobs", params={"idempotency_key": "never sent"})
     assert missing.status_code == 404
     assert "no request with this Idempotency-Key" in missing.json()["message"]
+    assert "no job was made for it" not in missing.json()["message"]
+    assert "the other routes take no key" in missing.json()["message"]
     bad = http.get("/v1/jobs", params={"idempotency_key": ""})
     assert bad.status_code == 400 and bad.json()["code"] == "invalid_idempotency_key"
 
