@@ -10,10 +10,10 @@ without a job (refused, cut off) gives its hold back (:func:`release`), so that 
 may make the job; a Redis that could not be told then (restarting) is told again in the
 background until it is, or the hold has expired. A hold left by an API process that died
 expires after ``pending_s``.
-A key whose job's record is gone before the key (a retention lowered since the job was
-queued) is held anew by the next request with it (:func:`hold_key` with ``gone``), as if
-it were not remembered: its repeats answered 404 for that job, for the rest of the key's
-life, however often they were sent.
+A key whose job's record is gone before the key (``MCAM_RESULT_RETENTION_S`` after the
+job's end, which may come first) is held anew by the next request with it
+(:func:`hold_key` with ``gone``), as if it were not remembered: its repeats answered 404
+for that job, for the rest of the key's life, however often they were sent.
 
 The value is stored under :func:`worker.redis_keys.idempotency_key`: a hash of the
 client's key, scoped to the API key's id (two API keys may use the same idempotency key).

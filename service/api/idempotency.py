@@ -162,11 +162,13 @@ class Once:
 
 def _hold(state: ServiceState, owner: ApiKey, key: str) -> Once:
     """Hold ``key`` for ``owner``'s request, or what an earlier request left; 409 while
-    that one is still being handled. A key naming a job whose record is gone (expired
-    under a retention lowered since) is held anew: that request is not remembered any
-    more than its job."""
+    that one is still being handled. The key is kept ``MCAM_IDEMPOTENCY_TTL_S`` from its
+    job's queueing: capped at ``MCAM_RESULT_RETENTION_S``, which counts from the job's
+    end, it expired while a job waited that long in the queue, and a repeat made a second
+    job. A key naming a job whose record is gone (expired) is held anew: that request is
+    not remembered any more than its job."""
     settings = state.settings
-    ttl_s = int(min(settings.idempotency_ttl_s, settings.result_retention_s))
+    ttl_s = int(settings.idempotency_ttl_s)
     store_key = idempotency_key(owner.id, key)
     found = hold_key(state.client, store_key, pending_s(settings), ttl_s)
     if isinstance(found, Earlier) and state.queue.jobs.state(found.job_id) is None:

@@ -281,7 +281,8 @@ class Settings(BaseSettings):
     idempotency_ttl_s: float = Field(
         24 * 3600.0, ge=1, le=MAX_RESULT_RETENTION_S,
         description="seconds an Idempotency-Key is remembered after its job was queued: a "
-        "request repeating it within that time gets that job instead of a new one",
+        "request repeating it within that time gets that job instead of a new one, unless "
+        "MCAM_RESULT_RETENTION_S has removed the job",
     )  # fmt: skip
     dataset_max_pairs: int = Field(
         DEFAULT_MAX_PAIRS, gt=0,

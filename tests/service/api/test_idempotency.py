@@ -7,13 +7,23 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import httpx
 import pytest
 
 from service.core.config import Settings
 from service.core.security import key_id
-from tests.service.conftest import FULL_KEY, READ_KEY, SUBMIT_KEY, frame_png, npy_bytes
+from service.main import create_app
+from tests.service.conftest import (
+    FULL_KEY,
+    READ_KEY,
+    SUBMIT_KEY,
+    frame_png,
+    make_settings,
+    npy_bytes,
+    serve,
+)
 from worker.embedded_redis import connect
 from worker.redis_keys import JOBS_STREAM, idempotency_key, job_key
 
@@ -164,6 +174,19 @@ def test_a_key_whose_job_expired_makes_a_new_job(client: Client, settings: Setti
     found = http.get("/v1/jobs", params={"idempotency_key": KEY})
     assert found.status_code == 200 and found.json()["id"] == again.json()["id"]
     assert queued(settings) == 2
+
+
+def test_a_key_outlives_a_retention_shorter_than_its_ttl(tmp_path: Path, redis_url: str) -> None:
+    """The key lasts MCAM_IDEMPOTENCY_TTL_S from its job's queueing, however short the
+    retention (which counts from the job's end): capped at it, the key expired while the
+    job still waited in the queue, and a repeat made a second job."""
+    settings = make_settings(tmp_path, redis_url, result_retention_s=60)
+    with serve(create_app(settings)) as url, httpx.Client(
+        base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"}, timeout=60
+    ) as http:
+        assert post_frame(http, KEY).status_code == 202
+    ttl_s = connect(redis_url).ttl(idempotency_key(key_id(FULL_KEY), KEY))
+    assert settings.idempotency_ttl_s - 60 < ttl_s <= settings.idempotency_ttl_s
 
 
 def test_the_lookup_finds_the_job_or_says_there_is_none(client: Client) -> None:
