@@ -77,7 +77,7 @@ KEY_RULE = (
 HEADER_DESCRIPTION = (
     "makes the request safe to repeat (IETF httpapi Idempotency-Key draft): a repeat with "
     "this key from this API key within MCAM_IDEMPOTENCY_TTL_S gets the first request's "
-    "job, never a second one; the same key with other parameters or another file is 422 "
+    "job, never a second one; the same key with other parameters, another file or file name is 422 "
     "idempotency_key_reused, a repeat while the first is still being handled 409 "
     "idempotency_key_in_use (see Retry-After). GET /v1/jobs?idempotency_key=... finds the "
     f"job. A key is {KEY_RULE}"
@@ -154,8 +154,9 @@ class Once:
             raise ApiError(
                 422, "idempotency_key_reused",
                 "this Idempotency-Key was sent before with another request (other "
-                "parameters, another file or route): send a new key for a new job, or "
-                "repeat the first request unchanged to get its job",
+                "parameters, another file or file name, or the other route): send a new "
+                "key for a new job, or repeat the first request unchanged, its file under "
+                "the same name, to get its job",
             )  # fmt: skip
         return self.state.queue.get(self.found.job_id), None
 

@@ -104,6 +104,23 @@ def test_a_key_sent_again_with_another_request_is_422(
     assert queued(settings) == 1
 
 
+def test_a_key_sent_again_with_the_file_renamed_is_422_saying_so(
+    client: Client, settings: Settings
+) -> None:
+    """The same bytes under another file name (which may say the frame's format) are
+    another request: the 422 said "another file" of the very file sent before."""
+    http = client()
+    assert post_frame(http, KEY).status_code == 202
+    renamed = http.post(
+        "/v1/reconstructions", files={"file": ("frame-2.png", frame_png(32)[0], "image/png")},
+        data={"decoder": "itoh"}, headers={"Idempotency-Key": KEY},
+    )  # fmt: skip
+    assert renamed.status_code == 422, renamed.text
+    assert renamed.json()["code"] == "idempotency_key_reused"
+    assert "another file or file name" in renamed.json()["message"]
+    assert queued(settings) == 1
+
+
 @pytest.mark.parametrize(
     ("key", "problem"),
     [("", "is empty"), ('""', "is empty"), ("k" * 256, "has 256 characters"),
