@@ -84,7 +84,8 @@ def _problem(error: dict[str, Any], empty_body: bool) -> dict[str, str]:
     """One validation error as ``{"field", "message"}``; a body that is not JSON at all
     is named as such (FastAPI reports it at the character offset where parsing failed),
     and so is a request without a body (``empty_body``) where one is required (it was
-    "request: Field required")."""
+    "request: Field required"), and a required query parameter left out (``GET
+    /v1/jobs`` without ``idempotency_key`` said "idempotency_key: Field required")."""
     if error.get("type") == "json_invalid":
         reason = error.get("ctx", {}).get("error", "not JSON")
         offset = error["loc"][-1]
@@ -98,6 +99,13 @@ def _problem(error: dict[str, Any], empty_body: bool) -> dict[str, str]:
             "field": "body",
             "message": "the request has no body; send a JSON object with the header "
             "'Content-Type: application/json'",
+        }
+    if error.get("type") == "missing" and tuple(error["loc"][:1]) == ("query",):
+        name = error["loc"][-1]
+        return {
+            "field": str(name),
+            "message": f"this route needs the query parameter {name} (?{name}=...; /docs "
+            "says what it is)",
         }
     return {"field": _location(error["loc"]), "message": error["msg"]}
 

@@ -46,6 +46,17 @@ def test_a_json_route_without_a_body_says_so(client: Client, headers: dict[str, 
     assert "Field required" not in body["message"] and "was not read" not in body["message"]
 
 
+def test_a_required_query_parameter_left_out_is_named_as_one(client: Client) -> None:
+    """GET /v1/jobs without idempotency_key said "idempotency_key: Field required"."""
+    reply = client(FULL_KEY).get("/v1/jobs")
+    assert reply.status_code == 422
+    body = reply.json()
+    assert body["details"] == [{"field": "idempotency_key", "message": "this route needs the "
+                                "query parameter idempotency_key (?idempotency_key=...; /docs "
+                                "says what it is)"}]  # fmt: skip
+    assert "Field required" not in body["message"]
+
+
 def test_a_body_sent_as_another_type_than_json_is_not_called_missing(client: Client) -> None:
     reply = client(FULL_KEY).post("/v1/devices/cam1/control", content=b'{"command": "stop"}',
                                   headers={"Content-Type": "text/plain"})
