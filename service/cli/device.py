@@ -22,9 +22,10 @@ import sys
 
 import redis
 
-from device.daemon import DaemonConfig, DeviceDaemon, check_port_url, crash_line
+from device.daemon import DaemonConfig, DeviceDaemon, crash_line
 from device.datasets import DatasetLimits
 from device.health import crashed_daemon_text
+from device.serial_ports import check_port_url
 from models.stop_signals import noting_stop_signals, wait_for_stop
 from service.cli.options import add_log_level_flag, start_logging
 from service.cli.worker import redis_url_for
