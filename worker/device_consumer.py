@@ -19,7 +19,7 @@ and handles them one by one in stream order. Per frame: decode, write
 the result, append a ``frame`` event to ``events:<id>``, extend the lease and XACK (and
 delete) the entry: one round trip where there were three (record, ack, renew; each
 write waits for Redis's fsync, about 0.3 ms here). Frames also go
-to the device's live recording, if one is running (``worker/recordings.py``). A redelivered
+to the device's live recording, if one is running (``worker/recorder.py``). A redelivered
 entry at or before the recorded one is acked without a second result or event.
 With a :class:`worker.decode_pool.DecodePool` as ``decode`` (independent decoding on
 several processes), each batch read is handed to the pool first, so its frames decode
@@ -56,7 +56,7 @@ from worker.jobs import JobError
 from worker.lease import Lease
 from worker.metrics import Metrics, counter_key
 from worker.outputs import STREAM_EXR_COMPRESSION, encode_exr_result
-from worker.recordings import Recorder
+from worker.recorder import Recorder
 from worker.redis_keys import (
     DEVICES_SET,
     events_stream,

@@ -1,4 +1,5 @@
-"""Live recordings (``worker/recordings.py``) on a real redis-server and a real result store."""
+"""Live recordings (``worker/recordings.py``, ``worker/recorder.py``,
+``worker/recording_texts.py``) on a real redis-server and a real result store."""
 
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ from worker.device_state import make_frame_decoder
 from worker.frame_message import FrameMessage
 from worker.jobs import JobRecord
 from worker.queue import JobQueue, entry_codes, publish_frame
+from worker.recorder import Recorder
 from worker.recordings import (
-    Recorder,
     Recording,
     frame_key,
     load_recording,
@@ -389,11 +390,11 @@ def test_a_stop_finished_by_two_owners_at_once_stays_submitted(
 
     def read_then_first_finishes(*args: object) -> recordings.Recording | None:
         recording = read(*args)
-        monkeypatch.setattr(recordings, "load_recording", read)
+        monkeypatch.setattr("worker.recorder.load_recording", read)
         first.finish_if_due("cam1")
         return recording
 
-    monkeypatch.setattr(recordings, "load_recording", read_then_first_finishes)
+    monkeypatch.setattr("worker.recorder.load_recording", read_then_first_finishes)
     second.finish_if_due("cam1")
     done = read(client, "cam1")
     assert done.state == "submitted" and done.error is None, done

@@ -40,6 +40,7 @@ from tests.worker.conftest import leave_free
 from worker import recordings
 from worker.embedded_redis import connect
 from worker.frame_message import FrameMessage
+from worker.recorder import Recorder
 from worker.redis_keys import DEVICES_SET, health_key, recording_key
 from worker.result_store import RESULTS_DIR, ResultStore
 
@@ -280,7 +281,7 @@ def test_a_stop_racing_a_start_answers_for_the_recording_it_found(
     ended = http.post(URL, json={"action": "start"}).json()
     recordings.request_stop(redis_client, "cam1")
     store = ResultStore(settings.data_dir / RESULTS_DIR, retention_s=60)
-    recordings.Recorder(redis_client, store, max_deliveries=3).finish_if_due("cam1")
+    Recorder(redis_client, store, max_deliveries=3).finish_if_due("cam1")
     assert recording(http)["state"] == "failed"  # no frames: no worker ran
     run_script = Script.__call__
 
@@ -327,7 +328,7 @@ def test_a_stop_whose_recording_a_new_start_replaced_meanwhile_answers_its_end(
     http = client(FULL_KEY)
     started = http.post(URL, json={"action": "start", "outputs": "exr_zip"}).json()
     store = ResultStore(settings.data_dir / RESULTS_DIR, retention_s=60)
-    worker = recordings.Recorder(redis_client, store, max_deliveries=3)
+    worker = Recorder(redis_client, store, max_deliveries=3)
     frame = simulate(scene(64), PARAMS)
     for sequence in range(frames):
         worker.add_frame(FrameMessage("cam1", sequence, sequence * 1000, frame.codes,

@@ -1,0 +1,88 @@
+"""What a live recording misses, and why, in the client's words: the error of a recording
+that got no frame (its daemon crashed, its port does not open), and the warnings of a video
+job that lacks frames (lost to the device's full frame stream, failed to decode, or never
+reached the stream). See :mod:`worker.recorder`, which ends recordings with them."""
+
+from __future__ import annotations
+
+import redis
+
+from device.health import crashed_daemon_text
+from worker.recordings import Recording
+from worker.redis_keys import health_key
+
+
+def no_frames_reason(client: redis.Redis, device: str) -> str:
+    """Why a recording of ``device`` got no frame, none lost or failed: its daemon
+    crashed (its health's ``state`` and ``crash``) or cannot open the camera's port
+    (``port_error``), or the words to check the camera and the workers."""
+    state, crash, port_error = client.hmget(health_key(device), "state", "crash", "port_error")
+    if state == b"crashed":
+        return (
+            f"{crashed_daemon_text(device, (crash or b'').decode())}: restart mcam device "
+            "(its log has the traceback: please report it)"
+        )
+    if port_error:
+        return (
+            f"the daemon of device {device!r} cannot open its camera's port "
+            f"({port_error.decode()})"
+        )
+    return (
+        f"is device {device!r}'s camera streaming (GET /v1/devices/{device}) and a worker "
+        "running?"
+    )
+
+
+def missing_frames(recording: Recording) -> list[str]:
+    """What the recording misses, and why: frames the device stream dropped before a
+    worker read them, frames that failed to decode, frames that never reached the stream
+    (the video's warnings)."""
+    missing = [frames_lost_text(recording)] if recording.frames_lost else []
+    if recording.frames_failed:
+        frames = _frames_sent(recording.frames_failed)
+        missing.append(
+            f"{frames} failed to decode and {'is' if recording.frames_failed == 1 else 'are'} "
+            f"left out (the last: {recording.failed_error}); GET /v1/devices/"
+            f"{recording.device}/events lists each failed frame"
+        )
+    unexplained = recording.frames_skipped - recording.frames_lost - recording.frames_failed
+    if unexplained > 0:
+        missing.append(frames_skipped_text(recording, unexplained))
+    return missing
+
+
+def frames_skipped_text(recording: Recording, count: int) -> str:
+    """What ``count`` frames skipped between recorded frames, beyond those the stream
+    dropped or that failed to decode, mean to ``recording``, and where to look. "At
+    least" once some were lost or failed: those may lie before the first or after the
+    last recorded frame, outside the skipped steps."""
+    bound = "at least " if recording.frames_lost or recording.frames_failed else ""
+    frames = "frame" if count == 1 else "frames"
+    return (
+        f"{bound}{count} {frames} the camera numbered between the recording's first and "
+        f"last frame never reached the device's frame stream and {'is' if count == 1 else 'are'} "
+        "missing from the video (lost on the camera link: corrupt, truncated or undelivered "
+        "packets, a disconnect; dropped by the device daemon; or sent while it was not "
+        "running): GET /v1/devices/"
+        f"{recording.device} counts them by cause (frames_missing, dropped_*); check the "
+        "camera's cable and the daemon's log"
+    )
+
+
+def _frames_sent(count: int) -> str:
+    """``count`` frames the camera sent while recording, as words."""
+    if count == 1:
+        return "1 frame the camera sent between the start and the stop"
+    return f"{count} frames the camera sent between the start and the stop"
+
+
+def frames_lost_text(recording: Recording) -> str:
+    """What losing its ``frames_lost`` frames to its device's full frame stream means to
+    ``recording``, and what to do."""
+    lost = recording.frames_lost
+    return (
+        f"{_frames_sent(lost)} {'was' if lost == 1 else 'were'} dropped from the device's "
+        "frame stream before a worker read them (it keeps the newest MCAM_FRAMES_MAXLEN "
+        f"frames; stream_full in GET /v1/devices/{recording.device}); keep a worker running "
+        "while recording, or raise MCAM_FRAMES_MAXLEN on the device daemon"
+    )
