@@ -17,8 +17,8 @@ Formats
 Reading merges the stored parameters (parsed by :mod:`models.stored_params`) with
 overrides (command-line flags or form fields, which win) and validates them. The pixel count
 is checked from the header before any pixel data is decoded, so a small file cannot
-expand into a huge image. Winding maps (``W``, int64) are written with
-:func:`write_winding`.
+expand into a huge image. Winding maps (``W``, int64) are in
+:mod:`models.winding_files`.
 """
 
 from __future__ import annotations
@@ -75,7 +75,8 @@ FRAME_ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
 FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in FRAME_ALIASES)
 #: Parameters a frame cannot be decoded without, with an example value of each.
 _REQUIRED = {"encoding": "mantissa", "bits": "8"}
-_PNG_MODES = ("1", "L", "I;16", "I;16B", "I;16L", "I")
+#: Pillow modes of the grey PNGs read (of 1 to 16 bits a sample).
+PNG_MODES = ("1", "L", "I;16", "I;16B", "I;16L", "I")
 #: Where a PNG's width and height are (big-endian 4-byte integers): after the signature
 #: (8 bytes) and the IHDR chunk's length and type (8), its first fields.
 _PNG_SIZE = slice(16, 24)
@@ -271,7 +272,7 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
     except Image.DecompressionBombError:
         raise _png_bomb_error(data, max_pixels) from None
     check_pixel_count(image.width, image.height, max_pixels)
-    if image.mode not in _PNG_MODES:
+    if image.mode not in PNG_MODES:
         raise UnsupportedFormatError(
             f"PNG frames are grayscale (1 to 16 bits), got PNG mode {image.mode}; "
             "store colour frames as TIFF"
@@ -540,103 +541,3 @@ def decode_raw(data: bytes, width: int, height: int, channels: int, bits: int) -
     shape = (height, width) if channels == 1 else (height, width, channels)
     codes = np.frombuffer(data, dtype=dtype).reshape(shape)
     return validate_codes(codes.astype(dtype.newbyteorder("=")), bits)
-
-
-def winding_format(name: str | os.PathLike[str]) -> str:
-    """The format (``png``, ``tiff`` or ``npy``) of a winding-map file name; another
-    suffix is refused as a W map's, not as a wrapped frame's."""
-    try:
-        return frame_format(name)
-    except UnsupportedFormatError:
-        raise UnsupportedFormatError(
-            f"unsupported winding-map format {str(name)!r}: a W map is .png, .tiff/.tif or "
-            ".npy, as mcam reconstruct --winding-out and mcam simulate --ground-truth write it"
-        ) from None
-
-
-def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
-    """Write a winding-number map by suffix: PNG (16-bit, 0 <= W <= 65535, one
-    channel), TIFF (int64, one page: :func:`write_tiff_page`) or npy; ``H x W x 1`` is
-    written as ``H x W`` in PNG and TIFF."""
-    arr = np.asarray(winding)
-    if arr.dtype.kind not in "iu":
-        raise InvalidInputError(f"winding numbers are integers, got dtype {arr.dtype}")
-    fmt = winding_format(path)
-    if fmt == "png":
-        if arr.ndim == 3 and arr.shape[2] == 1:  # of a grey frame stored H x W x 1
-            arr = arr[:, :, 0]
-        if arr.ndim != 2 or arr.min() < 0 or arr.max() > np.iinfo(np.uint16).max:
-            raise FormatCannotHoldError(
-                f"a PNG winding map is one channel with 0 <= W <= 65535; this map has shape "
-                f"{arr.shape} and W in [{arr.min()}, {arr.max()}]: write it as .tiff or .npy, "
-                "which hold any W and colour maps"
-            )
-        Image.fromarray(arr.astype(np.uint16)).save(path, format="PNG")
-    elif fmt == "tiff":
-        write_tiff_page(path, arr.astype(np.int64), None)
-    else:
-        np.save(path, arr.astype(np.int64), allow_pickle=False)
-
-
-def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
-    """Read a winding-number map written by :func:`write_winding` (int64); the format is
-    its content's, else its suffix's. An error about the file's content names its path."""
-    fmt = winding_format(path)
-    data = Path(path).read_bytes()
-    with naming(str(path)):
-        return decode_winding(data, content_first(data, fmt, FRAME_MAGICS).format)
-
-
-#: The W maps :func:`decode_winding` reads, in its messages.
-_WRITTEN_W = "the W map that mcam reconstruct --winding-out or mcam simulate --ground-truth wrote"
-
-
-def _check_grey_winding(mode: str) -> None:
-    """Refuse a PNG W map of the Pillow ``mode`` when it is not grey: mcam writes W as
-    16-bit grey, and the API's colour-coded W preview (RGB) shows W modulo its palette,
-    whose colours were read as winding numbers."""
-    if mode not in _PNG_MODES:
-        raise UnsupportedFormatError(
-            f"a PNG W map is grey (16-bit, as mcam writes it) and this PNG is {mode}: a "
-            "colour-coded preview (GET /v1/jobs/{id}/result?part=winding&format=png) shows "
-            "W, it does not store it; ask for format=npy or format=tiff, or give "
-            f"{_WRITTEN_W}"
-        )
-
-
-def _tiff_winding(data: bytes) -> tuple[NDArray[Any], bool]:
-    """The samples of a TIFF W map's one page, read as a frame's are (its compression
-    named when not read, its inflation bounded, thumbnails skipped), and whether it
-    stores sensor parameters (a wrapped frame's TIFF)."""
-    with open_tiff(data, max_pages=1) as (_, pages):
-        if len(pages) > 1:
-            raise InvalidInputError(
-                f"the TIFF holds more than one page of full resolution and a W map is one: "
-                f"give {_WRITTEN_W}"
-            )
-        (page,) = pages
-        return page_codes(page), bool(tiff_params(page.description))
-
-
-def decode_winding(data: bytes, fmt: str) -> NDArray[np.int64]:
-    """A winding-number map (int64) from the bytes of a ``png``, ``tiff`` or ``npy``
-    file as :func:`write_winding` writes them. A PNG or TIFF that stores sensor
-    parameters is a wrapped frame, refused: its codes read as winding numbers gave a
-    winding accuracy without a word."""
-    with decoding(f"the {fmt.upper()} winding map"):
-        if fmt == "png":
-            image = Image.open(io.BytesIO(data), formats=["PNG"])
-            _check_grey_winding(image.mode)
-            arr, frame = png_samples(image, data), PNG_KEYWORD in image.text
-        elif fmt == "tiff":
-            arr, frame = _tiff_winding(data)
-        else:
-            arr, frame = load_npy(data), False
-    if frame:
-        raise InvalidInputError(
-            f"this is a wrapped frame (it stores sensor parameters), not a winding map: give "
-            f"{_WRITTEN_W}"
-        )
-    if arr.dtype.kind not in "iu":
-        raise InvalidInputError(f"a winding map holds integers, got dtype {arr.dtype}")
-    return arr.astype(np.int64)

@@ -10,8 +10,8 @@ from typing import Any
 
 from models.errors import InvalidInputError
 from models.exr_header import values_scene_referred
-from models.frames import read_winding
 from models.hdr_io import read_hdr
+from models.winding_files import read_winding
 from service.cli.options import add_clip_negative_flag
 from service.cli.output_files import check_inputs
 

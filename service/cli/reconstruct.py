@@ -14,8 +14,9 @@ from models.decoders.registry import name_patterns
 from models.errors import FormatCannotHoldError, MissingParameterError
 from models.exr_header import reconstruction_attributes, values_unit
 from models.formation import reconstruct
-from models.frames import FRAME_SUFFIXES, frame_format, read_frame, write_winding
+from models.frames import FRAME_SUFFIXES, frame_format, read_frame
 from models.hdr_io import write_exr
+from models.winding_files import write_winding
 from service.cli.options import (
     add_exr_compression_flag,
     add_sensor_flags,

@@ -8,8 +8,9 @@ from typing import Any
 from models.exposure import check_not_black
 from models.exr_header import sensor_attributes
 from models.formation import SensorParams, simulate
-from models.frames import FRAME_SUFFIXES, frame_format, write_frame, write_winding
+from models.frames import FRAME_SUFFIXES, frame_format, write_frame
 from models.hdr_io import read_hdr, write_exr
+from models.winding_files import write_winding
 from service.cli.options import (
     add_clip_negative_flag,
     add_sensor_flags,

@@ -13,8 +13,9 @@ from starlette.concurrency import run_in_threadpool
 
 from models.errors import InvalidInputError
 from models.formation import encode
-from models.frames import decode_winding, encode_frame, frame_format
+from models.frames import encode_frame, frame_format
 from models.hdr_io import read_hdr
+from models.winding_files import decode_winding
 from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
 from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
 from service.api.errors import ApiError

@@ -9,8 +9,9 @@ import numpy as np
 import OpenEXR
 
 from models.formation import SensorParams, encode, simulate
-from models.frames import read_winding, write_frame
+from models.frames import write_frame
 from models.hdr_io import read_hdr
+from models.winding_files import read_winding
 from service.cli.reconstruct import decoder_notes
 from tests.service.cli.conftest import (
     assert_one_line_error,

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from models.formation import reconstruct
-from models.frames import read_frame, read_winding
+from models.frames import read_frame
 from models.hdr_io import read_hdr, write_exr
+from models.winding_files import read_winding
 from tests.service.cli.conftest import (
     assert_one_line_error,
     blob_scene,
