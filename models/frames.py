@@ -58,6 +58,7 @@ from models.file_magic import (
     format_by_content,
 )
 from models.formation import SensorParams, validate_codes
+from models.npy_files import load_npy, npy_shape
 from models.stored_params import (
     StoredParams,
     UnreadableParams,
@@ -308,46 +309,6 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Store
         check_pixel_count(int(page.imagewidth), int(page.imagelength), max_pixels)
         check_samples(page_shape(page), max_pixels)
         return page_codes(page), tiff_params(page.description)
-
-
-def _npy_header(data: bytes) -> tuple[tuple[int, ...], np.dtype[Any]]:
-    """The array shape and dtype an npy file's header declares, read before any array
-    data."""
-    buffer = io.BytesIO(data)
-    version = np.lib.format.read_magic(buffer)
-    if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(buffer)
-    else:
-        shape, _, dtype = np.lib.format.read_array_header_2_0(buffer)
-    return tuple(shape), dtype
-
-
-def npy_shape(data: bytes) -> tuple[int, ...]:
-    """The array shape an npy file's header declares, read before any array data (so
-    that size limits are checked before the array is loaded)."""
-    return _npy_header(data)[0]
-
-
-def load_npy(data: bytes) -> NDArray[Any]:
-    """The one array of an npy file. An array of Python objects (pickled, not read
-    here) is refused as such, not as a corrupt file. Bytes after the array are refused:
-    numpy would ignore them, and they are most often a second array saved into the
-    same file (whose frames would be lost without a word) or a damaged upload."""
-    shape, dtype = _npy_header(data)
-    if dtype.hasobject:
-        raise InvalidInputError(
-            f"the npy file holds Python objects (dtype {dtype}, shape {shape}), which are "
-            "not read here: save one integer array, e.g. np.save(path, np.asarray(codes, "
-            "np.uint16)) (a video's frames stacked, all of one size)"
-        )
-    buffer = io.BytesIO(data)
-    array = np.load(buffer, allow_pickle=False)
-    if (extra := len(data) - buffer.tell()) > 0:
-        raise InvalidInputError(
-            f"the npy file has {extra} bytes after its array of shape {array.shape}; send "
-            "a file holding one array (np.save once per file; stack frames into one array)"
-        )
-    return array
 
 
 def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:

@@ -34,10 +34,10 @@ from models.frames import (
     PNG_MODES,
     decoding,
     frame_format,
-    load_npy,
     png_samples,
     write_tiff_page,
 )
+from models.npy_files import load_npy
 from models.stored_params import tiff_params
 from models.tiff_pages import open_tiff, page_codes
 

@@ -71,10 +71,9 @@ from models.frames import (
     decode_frame_codes,
     decoding,
     eight_bit_warning,
-    load_npy,
     merge_params,
-    npy_shape,
 )
+from models.npy_files import load_npy, npy_shape
 from models.stored_params import StoredParams, tiff_params
 from models.tiff_pages import check_page_format, open_tiff, page_codes, page_shape
 from worker.zip_directory import central_entries

@@ -612,17 +612,6 @@ def test_8_bit_codes_read_as_16_bit_are_warned_about(caplog: pytest.LogCaptureFi
     assert caplog.text == ""
 
 
-def test_an_npy_of_python_objects_is_not_called_corrupt() -> None:
-    """An object array (np.save of frames of several sizes with dtype=object, or of
-    codes as Python ints) was 'truncated or corrupt (Object arrays cannot be loaded
-    when allow_pickle=False); send the complete, unmodified file': it is neither."""
-    buffer = io.BytesIO()
-    np.save(buffer, random_codes((6, 5), 8).astype(object), allow_pickle=True)
-    with pytest.raises(InvalidInputError, match="holds Python objects") as caught:
-        decode_frame(buffer.getvalue(), "npy", PARAMS_8.model_dump())
-    assert "corrupt" not in caught.value.message and "np.uint16" in caught.value.message
-
-
 def test_a_corrupt_npy_header_is_reported_without_memory_addresses() -> None:
     """numpy quotes its header parser's nodes, with their addresses in the server."""
     header = b"{'descr': '<u1', 'fortran_order': False, 'shape': (2+2, 4), }"
@@ -674,16 +663,3 @@ def test_an_hdr_image_or_a_zip_named_as_a_frame_is_pointed_to_its_command(
     with pytest.raises(UnsupportedFormatError, match="not a wrapped frame") as caught:
         decode_frame(data, "png", PARAMS_8.model_dump())
     assert all(fragment in caught.value.message for fragment in fragments)
-
-
-@pytest.mark.parametrize(
-    "tail",
-    [b"\x00", bytes(7), encode_frame(np.zeros((6, 5), np.uint8), None, "npy")],
-    ids=["one byte", "seven bytes", "a second array"],
-)
-def test_bytes_after_an_npy_array_are_refused(tail: bytes) -> None:
-    """numpy stops at the end of the first array; a second np.save into the same file
-    (or a damaged upload) would otherwise be dropped without a word."""
-    data = encode_frame(random_codes((6, 5), 8), None, "npy")
-    with pytest.raises(InvalidInputError, match=rf"{len(tail)} bytes after its array of shape"):
-        decode_frame(data + tail, "npy", PARAMS_8.model_dump())
