@@ -2,7 +2,7 @@
 ImageDescription), parsed strictly: a JSON object of :class:`SensorParams` field names,
 every parameter other than the encoding a JSON number (or null), text over
 :data:`MAX_PARAMS_TEXT` characters not parsed. Text that cannot be used is
-:class:`UnreadableParams`, saying why; :func:`models.frames.merge_params` decides whether
+:class:`UnreadableParams`, saying why; :func:`models.frame_params.merge_params` decides whether
 the frame can do without it.
 """
 
@@ -23,7 +23,7 @@ MAX_PARAMS_TEXT = 64 * 1024
 @dataclass(frozen=True)
 class UnreadableParams:
     """Stored parameter text that cannot be used (damaged, or written by other software):
-    ``problem`` says why. :func:`models.frames.merge_params` ignores it when the caller
+    ``problem`` says why. :func:`models.frame_params.merge_params` ignores it when the caller
     gives every parameter the frame needs, and refuses the frame otherwise."""
 
     problem: str

@@ -65,13 +65,13 @@ from models.file_magic import (
     format_by_content,
 )
 from models.formation import SensorParams, validate_codes
+from models.frame_params import merge_params
 from models.frames import (
     WrappedFrame,
     check_pixel_count,
     decode_frame_codes,
     decoding,
     eight_bit_warning,
-    merge_params,
 )
 from models.npy_files import load_npy, npy_shape
 from models.stored_params import StoredParams, tiff_params

@@ -168,30 +168,6 @@ def test_a_miniswhite_tiff_frames_codes_are_what_it_stands_for() -> None:
     np.testing.assert_array_equal(decode_frame(data, "tiff").codes, codes)
 
 
-def test_overrides_win_and_none_is_ignored() -> None:
-    data = encode_frame(random_codes((4, 4), 8), PARAMS_8, "tiff")
-    frame = decode_frame(data, "tiff", {"alpha": 4.0, "gain": 2.0, "bits": None, "encoding": None})
-    assert frame.params.alpha == 4.0
-    assert frame.params.gain == 2.0
-    assert frame.params.bits == 8
-    assert frame.params.encoding == "mantissa"
-    assert frame.params.seed == PARAMS_8.seed
-
-
-@pytest.mark.parametrize("fmt", FRAME_FORMATS)
-def test_missing_params_name_the_flags_and_fields(fmt: str) -> None:
-    data = encode_frame(random_codes((4, 4), 8), None, fmt)
-    with pytest.raises(MissingParameterError, match="--encoding mantissa --bits 8") as err:
-        decode_frame(data, fmt)
-    assert err.value.code == "missing_parameter"
-    assert "form fields encoding=mantissa, bits=8" in str(err.value)
-    assert "a mantissa frame also needs its alpha" in str(err.value)  # not a 2nd refusal
-    with pytest.raises(MissingParameterError, match="--alpha 2; HTTP: the form fields alpha=2"):
-        decode_frame(data, fmt, {"encoding": "mantissa", "bits": 8})
-    frame = decode_frame(data, fmt, {"encoding": "modulo", "bits": 8})
-    assert frame.params.encoding == "modulo"
-
-
 def test_codes_above_the_bit_depth_are_rejected() -> None:
     data = encode_frame(np.full((3, 3), 300, np.uint16), PARAMS_12, "png")
     with pytest.raises(InvalidInputError, match="2\\^8"):
@@ -265,24 +241,6 @@ def png_storing(text: str) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(np.zeros((4, 4), np.uint8)).save(buffer, format="PNG", pnginfo=info)
     return buffer.getvalue()
-
-
-@pytest.mark.parametrize(
-    ("stored", "flag"),
-    [('"gain": 1e999', "--gain <value>; HTTP: the form fields gain=<value>"),
-     ('"max_wraps": 0.5', "--max-wraps <value>; HTTP: the form fields max_wraps=<value>")],
-)
-def test_a_bad_value_the_frame_stores_is_named_as_the_frames(stored: str, flag: str) -> None:
-    """A frame storing an out-of-range value (an infinite gain written by other software)
-    was refused with 'invalid sensor parameters: gain: Input should be a finite number',
-    as if the caller had given it, and without saying that a parameter overrides it."""
-    data = png_storing('{"encoding": "mantissa", "alpha": 2, "bits": 8, ' + stored + "}")
-    with pytest.raises(InvalidInputError, match=f"the frame stores .*{re.escape(flag)}"):
-        decode_frame(data, "png")
-    frame = encode_frame(np.zeros((4, 4), np.uint8), PARAMS_8, "png")
-    with pytest.raises(InvalidInputError) as given:
-        decode_frame(frame, "png", {"gain": -1.0})
-    assert "the frame stores" not in given.value.message
 
 
 def test_single_channel_png_is_squeezed() -> None:
@@ -553,34 +511,6 @@ def test_an_undecoded_tiff_compression_is_refused_as_unsupported_not_damage(
     with pytest.raises(UnsupportedFormatError, match=f"compression {named} .*deflate") as caught:
         decode_frame(buffer.getvalue(), "tiff", PARAMS_8.model_dump())
     assert caught.value.http_status == 415
-
-
-@pytest.mark.parametrize(
-    ("text", "problem"),
-    [
-        ("{not json", "not valid JSON"),
-        ("[1, 2]", "not an object"),
-        ('{"encoding": "mantissa", "alpha": 2.0, "bits": 8, "foo": 1}', r"unknown .*\['foo'\]"),
-        (OVERLONG, rf"holds {len(OVERLONG)} characters, more than .* \(at most {MAX_PARAMS_TEXT}"),
-        (NESTED, "not valid JSON"),
-        ('{"encoding": "modulo", "bits": true}', "stores bits as true, not a number"),
-        ('{"encoding": "modulo", "bits": 8, "gain": true}', "stores gain as true, not a"),
-        ('{"encoding": "modulo", "bits": "8"}', 'stores bits as "8", not a number'),
-        ('{"encoding": "modulo", "bits": ' + "9" * 5000 + "}", "not valid JSON"),
-    ],
-)
-def test_a_damaged_png_chunk_gives_way_to_the_callers_parameters(
-    text: str, problem: str, caplog: pytest.LogCaptureFixture
-) -> None:
-    info = PngImagePlugin.PngInfo()
-    info.add_text(PNG_KEYWORD, text)
-    buffer = io.BytesIO()
-    Image.fromarray(random_codes((4, 4), 8)).save(buffer, format="PNG", pnginfo=info)
-    with pytest.raises(InvalidInputError, match=f"{problem}.*--encoding mantissa --bits 8"):
-        decode_frame(buffer.getvalue(), "png", {"alpha": 2.0})
-    given = {"encoding": "modulo", "bits": 8}
-    assert decode_frame(buffer.getvalue(), "png", given).params.encoding == "modulo"
-    assert "ignored it: decoding with the parameters given" in caplog.text
 
 
 @pytest.mark.parametrize(

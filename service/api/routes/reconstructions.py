@@ -14,7 +14,8 @@ from starlette.concurrency import run_in_threadpool
 from models.decoders.base import check_frame_shape
 from models.errors import InvalidInputError, MissingParameterError
 from models.file_magic import FRAME_MAGICS, format_by_content
-from models.frames import WrappedFrame, check_pixel_count, decode_frame, decode_raw, merge_params
+from models.frame_params import merge_params
+from models.frames import WrappedFrame, check_pixel_count, decode_frame, decode_raw
 from service.api.deps import StateDep, SubmitKey
 from service.api.idempotency import IdempotencyHeader, queued_job
 from service.api.schemas import (
