@@ -12,8 +12,9 @@ background until it is, or the hold has expired. A hold left by an API process t
 expires after ``pending_s``.
 A key whose job's record is gone before the key (``MCAM_RESULT_RETENTION_S`` after the
 job's end, which may come first) is held anew by the next request with it
-(:func:`hold_key` with ``gone``), as if it were not remembered: its repeats answered 404
-for that job, for the rest of the key's life, however often they were sent.
+(:func:`hold_key` with ``gone``), as if it were not remembered: that request makes a new
+job, where a 404 for the gone job would answer every repeat for the rest of the key's
+life.
 
 The value is stored under :func:`worker.redis_keys.idempotency_key`: a hash of the
 client's key, scoped to the API key's id (two API keys may use the same idempotency key).
@@ -139,10 +140,10 @@ def release(client: redis.Redis, hold: KeyHold) -> None:
     """Give the key back unless the request's job was stored under it: a request that
     ended without a job lets a retry make it. A Redis that cannot be told (restarting,
     unreachable) is told again every :data:`RELEASE_RETRY_S` s by a background thread
-    until it is or the hold has expired (its ``pending_s``): the hold it kept answered
-    the request's retries 409 ``idempotency_key_in_use`` for all that time (10 min by
-    default) after the request had ended with 503. That is logged, not raised: the
-    request's own answer (an error, or its job) matters more."""
+    until it is or the hold has expired (its ``pending_s``, 610 s by default), so that
+    the request's retries are not answered 409 ``idempotency_key_in_use`` for all that
+    time after the request ended with 503. That is logged, not raised: the request's own
+    answer (an error, or its job) matters more."""
     try:
         _give_back(client, hold)
     except redis.exceptions.RedisError as exc:

@@ -163,11 +163,11 @@ class Once:
 
 def _hold(state: ServiceState, owner: ApiKey, key: str) -> Once:
     """Hold ``key`` for ``owner``'s request, or what an earlier request left; 409 while
-    that one is still being handled. The key is kept ``MCAM_IDEMPOTENCY_TTL_S`` from its
-    job's queueing: capped at ``MCAM_RESULT_RETENTION_S``, which counts from the job's
-    end, it expired while a job waited that long in the queue, and a repeat made a second
-    job. A key naming a job whose record is gone (expired) is held anew: that request is
-    not remembered any more than its job."""
+    that one is still being handled. The key, once its job is queued, is kept
+    ``MCAM_IDEMPOTENCY_TTL_S`` seconds from the queueing, whatever
+    ``MCAM_RESULT_RETENTION_S`` is (that counts from the job's end). A key naming a job
+    whose record is gone (expired) is held anew: that request is not remembered any more
+    than its job."""
     settings = state.settings
     ttl_s = int(settings.idempotency_ttl_s)
     store_key = idempotency_key(owner.id, key)
