@@ -19,7 +19,8 @@ of its border and the kept answer on at least :data:`DECISIVE_KEPT` (a smooth la
 core that a network left wraps short, ringed by its own jumps, which ``itoh``
 integrates exactly). Measured (auto-fast, mean PSNR, 2026-11-28): the glows set 48.48
 -> 52.24 dB; val-256 (read noise 0 and 0.01, both encodings), the mostly-dark set and
-three synthetic 512x512 frames unchanged to 0.001 dB; 0.1 / 0.3 gave the same.
+three synthetic 512x512 frames unchanged to 0.001 dB; thresholds of 0.1 / 0.3
+(candidate / kept) gave the same.
 
 Failure modes: a real edge steeper than half a wrap along a region's boundary
 counts as a jump for either answer (it can tip a vote the wrong way); two
