@@ -1,7 +1,8 @@
 """The camera port: check a port URL up front, open it, and say why it did not open.
 
 The daemon opens any pyserial URL (``/dev/ttyACM0``, a pty path, ``socket://``,
-``rfc2217://``, ``loop://``, ``spy://``, ``hwgrep://``, ``alt://``). A URL that no open
+``rfc2217://``, ``loop://``, ``spy://``, ``hwgrep://``, ``alt://``; a scheme in any case,
+as pyserial reads it: :func:`url_scheme`). A URL that no open
 could ever take (an unknown scheme, a network one without a host and port, options
 pyserial refuses) is refused with :class:`InvalidInputError` before the first open
 (:func:`check_port_url`), as retrying it would never succeed; a port that does not open
@@ -58,8 +59,8 @@ def check_port_url(url: str) -> None:
             "the port is empty; give a device path (/dev/ttyACM0), socket://HOST:PORT or "
             "rfc2217://HOST:PORT"
         )
-    scheme, separator, _ = url.partition("://")
-    if separator:
+    scheme = url_scheme(url)
+    if scheme is not None:
         check_scheme(url, scheme)
     if scheme in NETWORK_SCHEMES:
         check_host_port(url, scheme)
@@ -70,6 +71,13 @@ def check_port_url(url: str) -> None:
         check_spy_options(url)
     if scheme == "hwgrep":
         check_hwgrep_url(url)
+
+
+def url_scheme(url: str) -> str | None:
+    """The scheme of the port URL ``url`` in lower case, as pyserial reads it
+    (``SOCKET://`` and ``socket://`` are one scheme); None for a device path."""
+    scheme, separator, _ = url.partition("://")
+    return scheme.lower() if separator else None
 
 
 def check_url_options(url: str, scheme: str) -> None:
@@ -269,7 +277,7 @@ def port_problem(url: str, exc: Exception) -> str:
     only 'No such file or directory', naming the path three times, or 'Could not
     configure port: (25, 'Inappropriate ioctl for device')' ('(22, 'Invalid argument')'
     for a disk), naming none. A port another daemon has open (locked) says so."""
-    if url.startswith("rfc2217://") and RFC2217_UNANSWERED in str(exc):
+    if url_scheme(url) == "rfc2217" and RFC2217_UNANSWERED in str(exc):
         return rfc2217_unanswered(url)
     if "://" in url:
         return str(exc) or type(exc).__name__
@@ -355,9 +363,10 @@ def serial_opener(url: str, read_timeout_s: float) -> PortOpener:
     every open): there its socket's own 5 s timeout bounds a write.
     """
     check_port_url(url)
-    if url.startswith("rfc2217://"):
+    scheme = url_scheme(url)
+    if scheme == "rfc2217":
         return lambda: Rfc2217Port(url, timeout=read_timeout_s, exclusive=True)
-    timeout = 0 if url.startswith("socket://") else read_timeout_s
+    timeout = 0 if scheme == "socket" else read_timeout_s
     return lambda: serial.serial_for_url(url, timeout=timeout, write_timeout=1.0,
                                          exclusive=True)
 

@@ -25,6 +25,7 @@ import serial.rfc2217
 from device import link_protocol as lp
 from device.commands import FrameRateCommand, to_packet
 from device.daemon import DaemonConfig, DeviceDaemon
+from device.serial_ports import RFC2217_UNANSWERED, port_problem, serial_opener
 from device.sim_link import PtyEndpoint
 from models.errors import InvalidInputError
 from tests.device.conftest import health, wait_for, wire
@@ -288,6 +289,31 @@ def test_a_port_url_whose_handler_cannot_load_names_what_is_missing(client: redi
 
 def test_a_port_url_with_valid_options_is_taken(client: redis.Redis) -> None:
     DeviceDaemon(DaemonConfig(port="loop://?logging=warning", device="cam1"), client)
+
+
+@pytest.mark.parametrize("port", ["LOOP://", "Socket://127.0.0.1:1", "SPY:///dev/ttyACM0",
+                                  "HWGREP://scamp", "RFC2217://127.0.0.1:1?timeout=2"])
+def test_a_port_url_scheme_in_capitals_is_taken_as_pyserial_takes_it(
+        client: redis.Redis, port: str) -> None:
+    """pyserial reads a scheme in any case; such a URL was refused up front as a scheme
+    "pyserial does not know"."""
+    DeviceDaemon(DaemonConfig(port=port, device="cam1"), client)
+
+
+def test_a_socket_port_url_in_capitals_is_opened_non_blocking() -> None:
+    """``SOCKET://`` was opened as a device path is (blocking reads), not as socket://."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = serial_opener(f"SOCKET://127.0.0.1:{server.getsockname()[1]}", 0.5)()
+        try:
+            assert port.timeout == 0
+        finally:
+            port.close()
+
+
+def test_an_rfc2217_server_that_does_not_negotiate_is_named_whatever_the_scheme_case() -> None:
+    reason = port_problem("RFC2217://127.0.0.1:1",
+                          serial.SerialException(f"{RFC2217_UNANSWERED} or BINARY mode"))
+    assert reason.startswith("the server at 127.0.0.1:1 did not answer RFC 2217"), reason
 
 
 def test_a_second_daemon_on_one_port_waits_and_says_who_holds_it(client: redis.Redis) -> None:
