@@ -719,7 +719,9 @@ async function cancelUpload(run) {
     job = await uploadedJob(run.uploadKey);
   } catch (error) {
     return setStatus("upload cancelled, but the server could not say whether it made a " +
-      `job (${error.message}); if it did, the job runs on, followed by no page`, "error");
+      `job (${error.message}); if it did, the job runs on, followed by no page: ` +
+      `GET /v1/jobs?idempotency_key=${run.uploadKey} finds it, to follow or cancel it`,
+      "error");
   }
   if (!job) return setStatus(UPLOAD_CANCELLED);
   run.id = job.id;

@@ -610,6 +610,22 @@ def test_a_cancel_after_the_server_made_the_job_cancels_it(
         wait_for_status(page, "queued")
 
 
+def test_a_cancel_whose_lookup_fails_says_how_to_find_the_job(
+    browser: Browser, tmp_path: Path, redis_url: str, frame: Path
+) -> None:
+    """The server could not say whether the cancelled upload made a job: the page said
+    the job, if any, ran on, but not how to find it. It names the lookup with the
+    upload's Idempotency-Key."""
+    settings = make_settings(tmp_path, redis_url)
+    with answer_held(browser, settings, frame) as (page, key, _):
+        page.route(re.compile(r"/v1/jobs\?idempotency_key="), lambda route: route.fulfill(
+            status=403, json={"code": "forbidden", "message": "no submit scope"}))
+        page.click("#cancel")
+        status = wait_for_status(page, "could not say whether it made a job")
+        assert f"GET /v1/jobs?idempotency_key={key} finds it" in status, status
+        assert page.get_attribute("#status", "class") == "error"
+
+
 def test_a_cancel_after_the_upload_s_job_finished_says_so(
     browser: Browser, tmp_path: Path, redis_url: str, frame: Path
 ) -> None:
