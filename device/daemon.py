@@ -349,19 +349,28 @@ class DeviceDaemon:
         thread, which writes the health, may be the one that died, and the device then
         read ``connected`` for good. Written while this daemon holds the device's claim
         (another daemon's health is not touched): the crash's fields over the health this
-        daemon or its predecessor last wrote, or, with none, all of this daemon's. Redis
-        errors are logged (the crash itself is already)."""
+        daemon or its predecessor last wrote, or, with none, all of this daemon's; but
+        none once this daemon's health was written and is gone: the device was forgotten
+        (``DELETE /v1/devices/{id}`` takes a crashed one at once) after the publisher's
+        last write, and writing would register it again. Redis errors are logged (the
+        crash itself is already)."""
         fields = self.health.crashed(crash_line(crash))
         key = health_key(self.device)
         try:
             if not self.claim.renew():
                 return
-            if not self.client.exists(key):
-                fields = {**self.health.to_fields(), **fields}
-            pipe = self.client.pipeline(transaction=False)
-            pipe.hset(key, mapping=fields)
-            pipe.sadd(DEVICES_SET, self.device)
-            pipe.execute()
+            with self.client.pipeline() as pipe:
+                pipe.watch(key)  # a forget in between: not written (WatchError)
+                if not pipe.exists(key):
+                    if self.publisher.health_written:
+                        return
+                    fields = {**self.health.to_fields(), **fields}
+                pipe.multi()
+                pipe.hset(key, mapping=fields)
+                pipe.sadd(DEVICES_SET, self.device)
+                pipe.execute()
+        except redis.WatchError:
+            return
         except (redis.RedisError, OSError) as exc:
             log.warning("device %s: its health could not be marked crashed: %s",
                         self.device, exc)

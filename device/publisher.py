@@ -103,6 +103,8 @@ class FramePublisher:
         self.on_failure = on_failure
         #: Why the publisher stopped on its own (another daemon keeps the device), or None.
         self.failure: DeviceTakenError | None = None
+        #: Whether this publisher has written the device's health at least once.
+        self.health_written = False
         # Since when (monotonic s) another daemon holds the claim; None while this one does.
         self._refused_since: float | None = None
         # The frame taken from the queue when the claim was found refused: published first.
@@ -265,6 +267,7 @@ class FramePublisher:
             pipe.execute()
 
         if self._redis(write_health):
+            self.health_written = True
             self._redis(self._write_cursor)
             self._redis(self._read_control)
         else:

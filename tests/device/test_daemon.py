@@ -43,6 +43,7 @@ from worker.redis_keys import (
     control_cursor_key,
     control_stream,
     events_stream,
+    health_key,
 )
 
 
@@ -746,6 +747,35 @@ def test_an_unexpected_error_in_publishing_stops_the_daemon_logged_once_and_kept
         "device cam9: publishing stopped on an unexpected error; its frames are no longer "
         "published")
     assert_health_says_crashed(client, "cam9")
+
+
+def test_a_crashed_device_forgotten_after_its_last_health_write_stays_forgotten(
+        client: redis.Redis, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The publisher's last write says ``crashed``, and a crashed device may be forgotten
+    at once: the daemon's own crash report, written after it, registered the device
+    again, its health saying crashed."""
+    port = serial.serial_for_url("loop://", timeout=0.05)
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9"), client,
+                          opener=lambda: port)
+    stop_publishing = daemon.publisher.stop
+
+    def stop_then_forget(*args: object) -> None:
+        stop_publishing(*args)  # type: ignore[arg-type]
+        assert health(client, "cam9")["state"] == "crashed"
+        forget_device(client, "cam9", silent_after_s=10)
+
+    monkeypatch.setattr(daemon.publisher, "stop", stop_then_forget)
+    daemon.start()
+    try:
+        assert wait_for(lambda: health(client, "cam9").get("state") == "connected")
+        monkeypatch.setattr(daemon._parser, "feed", not_a_client_mistake)
+        port.write(b"\0")
+        assert daemon.wait(30)
+    finally:
+        daemon.stop()
+    assert isinstance(daemon.crash, RuntimeError)
+    assert not client.exists(health_key("cam9"))
+    assert not client.sismember(DEVICES_SET, "cam9")
 
 
 def test_a_crash_of_publishing_leaves_the_health_saying_so(
