@@ -78,7 +78,8 @@ REFUSALS: dict[int, str] = {
 # KEYS: the jobs stream, the job's record, states, holds, per-key jobs and bytes, held
 # bytes, and (an idempotent submit) the idempotency key. ARGV: maxlen, owner, the key's
 # bounds, the codes' bytes, the queue's, the job id, the idempotency key's value while
-# held, once done and its ttl, then the record's and the entry's fields.
+# held, once done and its ttl (s), the number of the record's fields, then the record's
+# and the entry's fields (name, value pairs).
 _SUBMIT = """
 if KEYS[8] then
   local held = redis.call('GET', KEYS[8])
