@@ -142,10 +142,13 @@ def check_spy_options(url: str) -> None:
 
 def check_spy_file(url: str, path: str) -> None:
     """Refuse a ``spy://`` URL's ``file`` (where pyserial writes the traffic it sees) that
-    no open could create: empty, a directory, or in a directory that does not exist."""
+    no open could create: empty, holding a NUL, a directory, or in a directory that does
+    not exist."""
     folder = os.path.dirname(path) or "."
     if not path:
         problem = "names no file"
+    elif "\x00" in path:
+        problem = "holds a NUL character, which no file name can"
     elif os.path.isdir(path):
         problem = "is a directory"
     elif not os.path.isdir(folder):
@@ -153,9 +156,9 @@ def check_spy_file(url: str, path: str) -> None:
     else:
         return
     raise InvalidInputError(
-        f"bad option in port URL {url!r}: file={path} {problem}; give ?file= a file in an "
-        "existing directory (spy:// writes the traffic it sees there), or leave it out "
-        "(standard error)"
+        f"bad option in port URL {url!r}: file={path.replace(chr(0), '%00')} {problem}; "
+        "give ?file= a file in an existing directory (spy:// writes the traffic it sees "
+        "there), or leave it out (standard error)"
     )
 
 

@@ -215,6 +215,7 @@ def test_a_spy_port_url_without_a_device_path_is_refused(
 @pytest.mark.parametrize(("file", "problem"), [
     ("", "names no file"), ("{dir}", "is a directory"),
     ("{dir}/nope/spy.log", "is in {dir}/nope, which is no directory"),
+    ("{dir}/spy%00.log", "holds a NUL character, which no file name can"),
 ])
 def test_a_spy_port_url_whose_file_cannot_be_created_is_refused(
         client: redis.Redis, tmp_path: Path, file: str, problem: str) -> None:
