@@ -34,6 +34,7 @@ from models.decoders.cost_model import (
     adaptive,
     calibrate,
     colour_ns_per_pixel,
+    shared_fill_ns_per_pixel,
     unscaled_options,
 )
 from models.decoders.filling import filled_then_joined
@@ -157,10 +158,12 @@ class BudgetDecoder(Decoder):
     ) -> tuple[NDArray[np.int64], dict[str, Any]]:
         """A colour frame is decoded within the budget as a whole. Its channels are made
         consistent (:func:`models.decoders.colour.harmonise`) when that is predicted to
-        take at most :data:`JOIN_SHARE` of the budget, and the rest is shared among the
-        channels: each gets the time left divided by the channels left. The frame's
-        facts (``budget``: the budget, whether the channels were joined and the join's
-        predicted ms, the measured ms of it all, whether the budget was met) come with
+        take at most :data:`JOIN_SHARE` of the budget; that and the predicted time of
+        filling the clips in every channel that holds them (:func:`fill_model_ms`) are
+        set aside, and the rest is shared among the channels: each gets the time left
+        divided by the channels left. The frame's facts (``budget``: the budget, whether
+        the channels were joined, the join's and the fill's predicted ms, the measured ms
+        of it all, whether the budget was met) come with
         each channel's (``channels``) and the join's (``colour``, with the clips filled in
         every channel that holds them first, :func:`models.decoders.filling.filled_then_joined`).
         A frame without pixels is refused before anything is calibrated."""
@@ -172,7 +175,8 @@ class BudgetDecoder(Decoder):
         start = time.perf_counter_ns()
         join_ms = join_model_ms(planes, params) * SPEED.value(COLOUR)
         joined = join_ms <= JOIN_SHARE * self.budget_ms
-        channels_ms = self.budget_ms - (join_ms if joined else 0.0)
+        fill_ms = fill_model_ms(planes, params)
+        channels_ms = self.budget_ms - fill_ms - (join_ms if joined else 0.0)
         windings, channels = [], []
         for channel in range(planes.shape[2]):
             left_ms = channels_ms - (time.perf_counter_ns() - start) / 1e6
@@ -190,6 +194,7 @@ class BudgetDecoder(Decoder):
             "budget_ms": self.budget_ms,
             "joined": joined,
             "join_predicted_ms": round(join_ms, 2),
+            "fill_predicted_ms": round(fill_ms, 2),
             "measured_ms": round(measured_ms, 2),
             "met": measured_ms <= self.budget_ms,
             "calibration_ms": round((start - calibration_start) / 1e6, 2),
@@ -252,6 +257,13 @@ class BudgetDecoder(Decoder):
             "calibration_ms": round((start - calibration_start) / 1e6, 2),
         }
         return winding, info
+
+
+def fill_model_ms(planes: NDArray[np.float64], params: SensorParams) -> float:
+    """The cost model's ms to fill a colour frame's clips in every channel that holds them
+    (:func:`models.decoders.saturation.fill_shared`), which the channels' shares leave
+    aside."""
+    return planes[:, :, 0].size * shared_fill_ns_per_pixel(params.encoding) / 1e6
 
 
 def join_model_ms(planes: NDArray[np.float64], params: SensorParams) -> float:

@@ -15,7 +15,9 @@ analysis:
 - the routing's own work (tile integration, stitching, anchoring), per pixel of the
   frame.
 
-A colour frame's join (:func:`colour_ns_per_pixel`) is charged per pixel of the frame.
+A colour frame's join (:func:`colour_ns_per_pixel`) and its clips' fill in every channel
+(:func:`shared_fill_ns_per_pixel`; 5 ms a 256 x 256 frame, uncharged until session 44)
+are charged per pixel of the frame.
 The inversion from W to irradiance is not part of it. Costs are measured once per
 process on this machine, by timing each stage on a seeded synthetic 256 x 256 frame
 exposed like val-256 (and its top-left quarter, for the fixed cost of a run), so
@@ -50,6 +52,7 @@ from models.decoders.adaptive_policy import QUALITIES
 from models.decoders.colour import harmonise
 from models.decoders.guided_puma import refinement_boxes
 from models.decoders.registry import get_decoder
+from models.decoders.saturation import fill_shared
 from models.formation import SensorParams, dequantize
 from models.scene_analysis import FrameAnalysis, analyse
 from models.scenes import synthetic_val256_frame
@@ -253,17 +256,36 @@ def stage_ns(
 
 
 @cache
-def colour_ns_per_pixel(encoding: str) -> float:
-    """Time per pixel (ns) of making a colour frame's channels consistent
-    (:func:`models.decoders.colour.harmonise`) on the colour calibration frame (the
-    calibration scene tinted, :func:`models.scenes.synthetic_val256_frame`), from the W
-    ``auto-balanced`` gives its channels; the least of :data:`CALIBRATION_RUNS`,
-    measured once."""
+def colour_calibration(
+    encoding: str,
+) -> tuple[NDArray[np.float64], NDArray[np.int64], SensorParams]:
+    """The colour calibration frame (the calibration scene tinted,
+    :func:`models.scenes.synthetic_val256_frame`): its channels' ``m`` (wraps, H x W x C),
+    the W ``auto-balanced`` gives each channel alone, and its parameters."""
     frame = synthetic_val256_frame(encoding, CALIBRATION_SIZE, CALIBRATION_SEED, colour=True)
     planes = dequantize(frame.codes, frame.params.bits)
     channels_alone = AdaptiveDecoder("balanced", joint_colour=False)
-    winding = channels_alone.explain_planes(planes, frame.params)[0]
-    runs = fastest_ns(lambda: harmonise(planes, winding, frame.params), CALIBRATION_RUNS)
+    return planes, channels_alone.explain_planes(planes, frame.params)[0], frame.params
+
+
+@cache
+def colour_ns_per_pixel(encoding: str) -> float:
+    """Time per pixel (ns) of making a colour frame's channels consistent
+    (:func:`models.decoders.colour.harmonise`) on the colour calibration frame
+    (:func:`colour_calibration`); the least of :data:`CALIBRATION_RUNS`, measured once."""
+    planes, winding, params = colour_calibration(encoding)
+    runs = fastest_ns(lambda: harmonise(planes, winding, params), CALIBRATION_RUNS)
+    return runs / (planes.shape[0] * planes.shape[1])
+
+
+@cache
+def shared_fill_ns_per_pixel(encoding: str) -> float:
+    """Time per pixel (ns) of filling a colour frame's clips in every channel that holds
+    them (:func:`models.decoders.saturation.fill_shared`, which every colour frame of
+    ``auto`` gets, joined or not) on the colour calibration frame; the least of
+    :data:`CALIBRATION_RUNS`, measured once."""
+    planes, winding, params = colour_calibration(encoding)
+    runs = fastest_ns(lambda: fill_shared(winding, planes, params), CALIBRATION_RUNS)
     return runs / (planes.shape[0] * planes.shape[1])
 
 
@@ -287,6 +309,7 @@ def calibrate(params: SensorParams, shape: tuple[int, int], colour: bool = False
                 refinement_ns_per_pixel(quality, params.encoding, size)
         if colour:
             colour_ns_per_pixel(params.encoding)
+            shared_fill_ns_per_pixel(params.encoding)
 
 
 def unscaled_options(
