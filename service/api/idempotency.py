@@ -222,10 +222,12 @@ async def queued_job(
     refuse_repeated_key(request)
     async with idempotent(state, owner, header) as once:
         upload, fields = await read_upload_fields(request, model, query)
-        if once is None:
-            return await decode_in_turn(state, submit, state, upload, fields, owner)
-        route = request.url.path
-        record, submission = await run_in_threadpool(once.repeat_or_new, route, upload, fields)
+        record, submission = None, None
+        if once is not None:
+            route = request.url.path
+            record, submission = await run_in_threadpool(
+                once.repeat_or_new, route, upload, fields
+            )
         if record is None:
             record = await decode_in_turn(state, submit, state, upload, fields, owner, submission)
         return record
