@@ -41,7 +41,6 @@ from worker.temporal_config import MODES, TemporalConfig
 
 #: Decoders benchmarked unless named on the command line: the fast spatial ones.
 DEFAULT_DECODERS: tuple[str, ...] = ("itoh", "herraez")
-COLUMNS = ("psnr", "pu21_psnr", "winding_accuracy", "temporal_consistency", "wrap_flicker")
 
 
 def run_mode(
