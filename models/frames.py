@@ -56,7 +56,7 @@ from models.file_magic import (
 )
 from models.formation import SensorParams, validate_codes
 from models.frame_params import merge_params
-from models.npy_files import load_npy, npy_shape
+from models.npy_files import npy_codes, npy_shape
 from models.stored_params import (
     StoredParams,
     parse_stored_params,
@@ -307,16 +307,14 @@ def _read_tiff(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Store
 
 
 def _read_npy(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], dict[str, Any]]:
-    """The codes of an npy frame; booleans (a 1-bit frame saved as such) as 0 and 1, as
-    1-bit PNG and TIFF frames are read."""
+    """The codes of an npy frame (:func:`models.npy_files.npy_codes`: booleans as 0 and 1)."""
     shape = npy_shape(data)
     if len(shape) not in (2, 3):
         raise InvalidInputError(
             f"a wrapped frame is H x W or H x W x C codes, got an array of shape {shape}"
         )
     check_pixel_count(shape[1], shape[0], max_pixels)
-    codes = load_npy(data)
-    return (codes.astype(np.uint8) if codes.dtype == np.bool_ else codes), {}
+    return npy_codes(data), {}
 
 
 _READERS = {"png": _read_png, "tiff": _read_tiff, "npy": _read_npy}

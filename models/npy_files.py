@@ -1,5 +1,6 @@
 """npy files: an array's shape and dtype from the header, read before its data, and the
-one array a file holds (no Python objects, nothing after the array).
+one array a file holds (no Python objects, nothing after the array); sensor codes
+(:func:`npy_codes`) read booleans as 0 and 1.
 
 Wrapped frames (:mod:`models.frames`), winding maps (:mod:`models.winding_files`) and
 videos (:mod:`worker.video_input`) are read through it.
@@ -54,3 +55,11 @@ def load_npy(data: bytes) -> NDArray[Any]:
             "a file holding one array (np.save once per file; stack frames into one array)"
         )
     return array
+
+
+def npy_codes(data: bytes) -> NDArray[Any]:
+    """The sensor codes (DN) an npy file holds: its one array (:func:`load_npy`), with
+    booleans (a 1-bit frame or video saved as such) read as codes 0 and 1, as 1-bit PNG
+    and TIFF frames are read."""
+    codes = load_npy(data)
+    return codes.astype(np.uint8) if codes.dtype == np.bool_ else codes

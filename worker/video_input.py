@@ -14,7 +14,8 @@ Formats
   ``tifffile.imwrite`` stores a stack of 3 or 4 grey frames so; so is an ImageJ
   hyperstack of two axes or more (frames and channels or slices), whose pages
   interleave them.
-- ``npy``: one array ``T x H x W`` or ``T x H x W x C``; parameters from the caller.
+- ``npy``: one array ``T x H x W`` or ``T x H x W x C`` (booleans read as codes 0 and
+  1); parameters from the caller.
   A ``T x H x W`` array whose last axis could be channels (1 or 3) is refused as one
   frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
 - ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in natural file-name order
@@ -73,7 +74,7 @@ from models.frames import (
     decoding,
     eight_bit_warning,
 )
-from models.npy_files import load_npy, npy_shape
+from models.npy_files import npy_codes, npy_shape
 from models.stored_params import StoredParams, tiff_params
 from models.tiff_pages import check_page_format, open_tiff, page_codes, page_shape
 from worker.zip_directory import central_entries
@@ -296,12 +297,14 @@ def _one_frame(shape: tuple[int, ...]) -> InvalidInputError:
 
 
 def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str, Any]]:
+    """The codes of an npy video, its shape checked from the header first; booleans (a
+    1-bit video saved as such) as 0 and 1, as npy frames and 1-bit TIFF pages are read."""
     shape = npy_shape(data)
     _check_npy_shape(shape)
     check_frame_count(shape[0], limits.frames)
     check_pixel_count(shape[2], shape[1], limits.pixels)
     check_sample_count(shape[0], shape[1:], limits.samples)
-    return load_npy(data), {}
+    return npy_codes(data), {}
 
 
 def _natural_key(name: str) -> tuple[list[Any], str]:

@@ -85,6 +85,15 @@ def test_npy_round_trip_needs_parameters() -> None:
     np.testing.assert_array_equal(result.codes, video)
 
 
+def test_an_npy_video_of_booleans_is_read_as_codes_0_and_1() -> None:
+    """A 1-bit video saved as booleans was refused, "codes must be integers (uint8 or
+    uint16), got dtype bool", though an npy frame of booleans and a 1-bit TIFF video
+    are read as codes 0 and 1."""
+    video = codes(3) > 127
+    result = decode_video(npy_bytes(video), "npy", FLAGS | {"bits": 1})
+    np.testing.assert_array_equal(result.codes, video.astype(np.uint8))
+    assert result.codes.dtype == np.uint8
+
 def test_zip_of_pngs_in_natural_order() -> None:
     video = codes(12)
     names = [f"clip/frame_{t}.png" for t in range(12)]
