@@ -271,7 +271,8 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
     if image.mode not in PNG_MODES:
         raise UnsupportedFormatError(
             f"PNG frames are grayscale (1 to 16 bits), got PNG mode {image.mode}; "
-            "store colour frames as TIFF"
+            "store a colour frame as TIFF, and a colour video as a multi-page TIFF (an RGB "
+            "page per frame) or an npy T x H x W x 3, not as a zip of PNGs"
         )
     image.load()
     stored = parse_stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")

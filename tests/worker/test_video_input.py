@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 import tifffile
+from PIL import Image
 
 from models.errors import (
     ImageTooLargeError,
@@ -101,6 +102,20 @@ def test_zip_of_pngs_in_natural_order() -> None:
     np.testing.assert_array_equal(result.codes, video)
     assert result.params == PARAMS
 
+
+def test_a_zip_of_colour_pngs_is_told_where_a_colour_video_goes() -> None:
+    """It was told "store colour frames as TIFF", and a zip of TIFF frames was then
+    refused as a zip of no .png frame: the remedy led nowhere a video is read."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for t, frame in enumerate(codes(2, 3)):
+            png = io.BytesIO()
+            Image.fromarray(frame).save(png, "PNG")
+            archive.writestr(f"frame_{t}.png", png.getvalue())
+    with pytest.raises(UnsupportedFormatError, match="mode RGB") as error:
+        decode_video(buffer.getvalue(), "zip", FLAGS)
+    assert "a colour video as a multi-page TIFF" in str(error.value)
+    assert "T x H x W x 3" in str(error.value)
 
 def test_frame_names_sort_regardless_of_case() -> None:
     """Names were sorted by code point: ``Frame_2.png`` (capital F) came before
