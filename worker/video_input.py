@@ -17,7 +17,8 @@ Formats
 - ``npy``: one array ``T x H x W`` or ``T x H x W x C`` (booleans read as codes 0 and
   1); parameters from the caller.
   A ``T x H x W`` array whose last axis could be channels (1 or 3) is refused as one
-  frame ``H x W x C``: frames 3 pixels wide are sent as ``T x H x 3 x 1``.
+  frame ``H x W x C``: frames 1 or 3 pixels wide are sent as ``T x H x 1 x 1`` or
+  ``T x H x 3 x 1``.
 - ``zip``: a zip of PNG frames (:mod:`models.frames` PNGs), in natural file-name order
   regardless of case (``frame_2.png`` before ``frame_10.png``, ``frame_1.png`` before
   ``Frame_2.png``); parameters from the first frame's text chunk (a later frame storing
@@ -277,18 +278,18 @@ def _check_npy_shape(shape: tuple[int, ...]) -> None:
 
 def _one_frame(shape: tuple[int, ...]) -> InvalidInputError:
     """The error for an npy array of ``shape`` that reads as one frame, H x W or
-    H x W x C, saying where to send it and how to shape a one-frame video."""
+    H x W x C, saying where to send it, how to shape a one-frame video, and how to
+    shape a video of frames as wide as C (1 or 3 pixels: a line sensor's clip)."""
     one = " x ".join(str(side) for side in (1, *shape))
     if len(shape) == 2:
-        layout = "(H x W)"
+        layout, thin = "(H x W)", ""
     else:
         height, width, channels = shape
         layout = f"(H x W x {channels}), not a video of {height} frames {width} x {channels} px"
-    thin = (
-        "; a video of frames 3 pixels wide is T x H x 3 x 1 (array[..., None])"
-        if len(shape) == 3 and shape[2] == 3
-        else ""
-    )
+        thin = (
+            f"; a video of frames {channels} pixel{'s' if channels > 1 else ''} wide is "
+            f"T x H x {channels} x 1 (array[..., None])"
+        )
     return InvalidInputError(
         f"the array of shape {shape} reads as one frame {layout}: send a frame to POST "
         f"/v1/reconstructions (mcam reconstruct), or a video of that one frame as {one} "

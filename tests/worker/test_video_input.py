@@ -220,6 +220,18 @@ def test_a_video_of_frames_three_pixels_wide_is_read_with_its_channel_axis() -> 
     assert thin.frames == 6 and thin.codes.shape[1:] == (5, 3, 1)
 
 
+def test_a_video_of_frames_one_pixel_wide_is_told_its_shape() -> None:
+    """A line sensor's clip (clip frames may be 1 pixel wide), T x H x 1, is refused as
+    one frame H x W x 1; the refusal gave no shape for such a video, only for frames 3
+    pixels wide."""
+    frames = codes(1, 1)[0]
+    clip = FLAGS | {"encoding": "clip"}
+    with pytest.raises(InvalidInputError, match=r"frames 1 pixel wide is T x H x 1 x 1 \(array"):
+        decode_video(npy_bytes(frames), "npy", clip)
+    thin = decode_video(npy_bytes(frames[..., None]), "npy", clip)
+    assert thin.frames == 6 and thin.codes.shape[1:] == (5, 1, 1)
+
+
 @pytest.mark.parametrize("shape", [(6, 5), (2, 3, 6, 5, 1), (6,), ()])
 def test_arrays_of_no_video_shape_say_how_to_shape_one(shape: tuple[int, ...]) -> None:
     """Every shape but T x H x W[x C] was told 'send a single frame as a frame, not a
