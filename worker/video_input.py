@@ -59,12 +59,14 @@ from models.errors import (
     echo,
 )
 from models.file_magic import (
+    FRAME_MAGICS,
     HDR_MAGICS,
     PNG_SIGNATURE,
     VIDEO_MAGICS,
     check_signature,
     content_first,
     format_by_content,
+    refuse_empty,
 )
 from models.formation import SensorParams, validate_codes
 from models.frame_params import merge_params
@@ -74,6 +76,7 @@ from models.frames import (
     decode_frame_codes,
     decoding,
     eight_bit_warning,
+    not_a_frame,
 )
 from models.npy_files import npy_codes, npy_shape
 from models.stored_params import StoredParams, tiff_params
@@ -476,9 +479,28 @@ def _zip_frame(
     try:
         _check_inflatable(entry)
         data = _inflate(archive, entry)
+        _check_frame_entry(data)
         return decode_frame_codes(data, "png", overrides, limits.pixels, unstored)
     except McamError as exc:
         raise type(exc)(f"{entry.filename}: {exc.message}") from None
+
+
+#: What a .png entry of a zip of frames holds, in an error message.
+_ZIP_A_FRAME = (
+    "the frame's whole PNG file in each .png entry of the zip, as written (mcam simulate "
+    "-o frame.png; not converted to another format, renamed or cut short)"
+)
+
+
+def _check_frame_entry(data: bytes) -> None:
+    """Refuse an inflated ``.png`` entry that is empty or of no frame format, saying what
+    an entry holds: the frame reader called an empty entry "not a PNG image" and offered
+    a single frame's other ways in (a .tiff or .npy file, raw codes over HTTP), which a
+    zip of frames does not take. A file of another reader (an HDR image, a zip) is left
+    to the frame reader, which says what it is and where it goes."""
+    refuse_empty(len(data), "the entry")
+    if not_a_frame(data) is None:
+        check_signature(data, FRAME_MAGICS, "a PNG image", "frame", _ZIP_A_FRAME)
 
 
 #: Compression methods inflated here, by number, with their names. :mod:`zipfile` also

@@ -25,6 +25,7 @@ from models.errors import (
 )
 from models.formation import SensorParams
 from models.frames import encode_frame
+from models.hdr_io import encode_exr
 from tests.models.test_frames import miniswhite_tiff, write_mask
 from tests.models.test_tiff_pages import with_short
 from worker.video_input import (
@@ -711,6 +712,33 @@ def test_a_bad_png_in_a_zip_names_its_entry() -> None:
         archive.writestr("frame_0.png", encode_frame(codes(1)[0], PARAMS, "png"))
         archive.writestr("frame_1.png", b"not a png")
     with pytest.raises(InvalidInputError, match=r"^frame_1.png: the data is not a PNG image"):
+        decode_video(buffer.getvalue(), "zip")
+
+
+@pytest.mark.parametrize(
+    ("entry", "said"), [(b"", "the entry is empty"), (b"GIF89a", "the data is not a PNG image")]
+)
+def test_an_entry_of_no_frame_is_told_what_a_zip_entry_holds(entry: bytes, said: str) -> None:
+    """An empty entry was "not a PNG image (bad or missing signature)", and either was
+    told to send a .tiff or .npy frame, or raw codes with format=raw, none of which a
+    zip of frames takes."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("frame_0.png", encode_frame(codes(1)[0], PARAMS, "png"))
+        archive.writestr("frame_1.png", entry)
+    with pytest.raises(InvalidInputError, match=f"^frame_1.png: {said}") as error:
+        decode_video(buffer.getvalue(), "zip")
+    assert "format=raw" not in str(error.value)
+    assert ".npy" not in str(error.value)
+
+
+def test_an_hdr_image_in_a_zip_is_still_named_as_such() -> None:
+    """The frame reader says what an HDR image is and where it goes; the zip's own check
+    of its entries leaves such an entry to it."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("frame_0.png", encode_exr(np.ones((8, 8))))
+    with pytest.raises(UnsupportedFormatError, match="^frame_0.png: the file is an OpenEXR"):
         decode_video(buffer.getvalue(), "zip")
 
 
