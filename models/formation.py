@@ -256,7 +256,12 @@ def validate_codes(codes: NDArray[Any], bits: int) -> NDArray[np.unsignedinteger
             "a wrapped frame stores the raw sensor codes, not normalized floats"
         )
     if arr.dtype.kind == "i" and int(arr.min()) < 0:
-        raise InvalidInputError(f"codes must be non-negative, found {int(arr.min())}")
+        n_bad = int((arr < 0).sum())
+        raise InvalidInputError(
+            f"codes must be non-negative, found {n_bad} below 0 (min {int(arr.min())}); "
+            f"send the sensor's raw codes, 0 to 2^{bits} - 1, as read (uint8 or uint16), "
+            "not with a black level or other offset subtracted"
+        )
     top = int(arr.max())
     if top >= 1 << bits:
         n_bad = int((arr >= (1 << bits)).sum())

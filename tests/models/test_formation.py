@@ -108,6 +108,14 @@ def test_dequantize_then_quantize_returns_every_code(bits: int) -> None:
     assert np.array_equal(quantize(dequantize(codes, bits), bits), codes)
 
 
+def test_negative_codes_are_counted_and_told_what_to_send() -> None:
+    """Negative codes (a black level subtracted, a signed array) were refused as "codes
+    must be non-negative, found -5", without how many or what to send instead."""
+    with pytest.raises(InvalidInputError, match=r"found 2 below 0 \(min -5\)") as error:
+        validate_codes(np.array([-5, -1, 3]), 8)
+    assert "raw codes, 0 to 2^8 - 1, as read" in str(error.value)
+
+
 def test_quantize_clamps_m_of_one_to_the_top_code() -> None:
     assert quantize(np.array([1.0]), 8)[0] == 255
 
