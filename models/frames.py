@@ -16,7 +16,8 @@ Formats
 
 Reading merges the stored parameters with overrides (:mod:`models.frame_params`). The
 pixel count is checked from the header before any pixel data is decoded, so a small file
-cannot expand into a huge image. Winding maps (``W``, int64) are in
+cannot expand into a huge image, and a PNG's compressed metadata (text, ICC profiles) is
+inflated to 1 MiB at most (:mod:`models.png_chunks`). Winding maps (``W``, int64) are in
 :mod:`models.winding_files`.
 """
 
@@ -57,6 +58,7 @@ from models.file_magic import (
 from models.formation import SensorParams, validate_codes
 from models.frame_params import merge_params
 from models.npy_files import npy_codes, npy_shape
+from models.png_chunks import check_metadata
 from models.stored_params import (
     StoredParams,
     parse_stored_params,
@@ -257,6 +259,9 @@ def _png_bomb_error(data: bytes, max_pixels: int | None) -> ImageTooLargeError:
 
 
 def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], StoredParams]:
+    """The samples and stored parameters of a grey PNG frame, its compressed metadata
+    bounded first (:func:`models.png_chunks.check_metadata`)."""
+    check_metadata(data)
     try:
         image = Image.open(io.BytesIO(data), formats=["PNG"])
     except UnidentifiedImageError:

@@ -36,6 +36,7 @@ from models.frames import (
     read_frame,
     write_frame,
 )
+from models.png_chunks import METADATA_BYTES
 from models.stored_params import MAX_PARAMS_TEXT
 from models.winding_files import decode_winding
 
@@ -437,6 +438,18 @@ def test_png_past_the_readers_bomb_limit_names_its_size(max_pixels: int | None) 
     with pytest.raises(ImageTooLargeError, match=r"20000 x 20000 = 400000000 pixels") as err:
         decode_frame(png_header_only(20_000, 20_000), "png", max_pixels=max_pixels)
     assert "send a smaller image" in err.value.message
+
+
+def test_a_png_of_colour_profiles_inflating_past_the_bound_is_refused() -> None:
+    """Pillow inflated every iCCP chunk (1 MiB each at most, without a bound in all):
+    a 1 MB PNG of 8 x 8 pixels and 1000 such chunks of 1 KB inflated 1 GB, in 4 s of an
+    API decode slot, and was read."""
+    profile = png_chunk(b"iCCP", b"icc\0\0" + zlib.compress(bytes(METADATA_BYTES // 2), 9))
+    png = encode_frame(np.zeros((8, 8), np.uint8), PARAMS_8, "png")
+    ihdr_end = len(PNG_SIGNATURE) + 12 + 13  # IHDR: length, type, 13 bytes, CRC
+    data = png[:ihdr_end] + profile * 3 + png[ihdr_end:]
+    with pytest.raises(ImageTooLargeError, match="compressed metadata .* inflates to more"):
+        decode_frame(data, "png")
 
 
 def test_decode_raw_known_bytes() -> None:
