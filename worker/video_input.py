@@ -42,6 +42,7 @@ import logging
 import os
 import re
 import zipfile
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -346,6 +347,7 @@ def _read_zip(
         )
         if not entries:
             raise _no_png_frame([info.filename for info in files])
+        _check_names_once(entries)
         check_frame_count(len(entries), limits.frames)
         first = _zip_frame(archive, entries[0], overrides, limits, png_entry_limit(limits.pixels))
         check_sample_count(len(entries), first.codes.shape, limits.samples)
@@ -362,6 +364,23 @@ def _read_zip(
     warnings.append(eight_bit_warning(codes, first.params))
     warnings.append(_left_out_warning([info.filename for info in files if not _png_name(info)]))
     return WrappedVideo(codes, first.params, tuple(dict.fromkeys(filter(None, warnings))))
+
+
+def _check_names_once(entries: list[zipfile.ZipInfo]) -> None:
+    """Refuse PNG ``entries`` of which two or more share a name: a file added again to a
+    zip (Python's ``ZipFile(path, "a")``, some archivers' updates) is a second entry
+    beside the first, not its replacement, and both were read as frames, where an unzip
+    tool keeps one of them."""
+    counts = Counter(entry.filename for entry in entries)
+    repeated = [name for name, count in counts.items() if count > 1]
+    if repeated:
+        name = repeated[0]
+        raise InvalidInputError(
+            f"the zip holds {counts[name]} entries named {echo(name)}"
+            f"{f' (and {len(repeated) - 1} more names repeated)' if len(repeated) > 1 else ''}: "
+            "a frame added to a zip again is a second entry, not a replacement, and which "
+            "one is the frame is unclear; zip the frames afresh, one entry per name"
+        )
 
 
 def _zip_metadata(entry: zipfile.ZipInfo) -> bool:

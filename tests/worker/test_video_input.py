@@ -118,6 +118,19 @@ def test_a_zip_of_colour_pngs_is_told_where_a_colour_video_goes() -> None:
     assert "a colour video as a multi-page TIFF" in str(error.value)
     assert "T x H x W x 3" in str(error.value)
 
+def test_a_zip_of_a_frame_added_twice_is_refused_naming_it() -> None:
+    """A frame added again to a zip (ZipFile(path, "a")) is a second entry of that name;
+    both were read, so the video held a frame more than the zip unzips to."""
+    video = codes(3)
+    buffer = io.BytesIO(zip_bytes(video[:2]))
+    with pytest.warns(UserWarning, match="Duplicate name"):
+        with zipfile.ZipFile(buffer, "a") as archive:
+            archive.writestr("frame_1.png", encode_frame(video[2], PARAMS, "png"))
+    with pytest.raises(InvalidInputError, match="holds 2 entries named 'frame_1.png'") as error:
+        decode_video(buffer.getvalue(), "zip")
+    assert "zip the frames afresh" in str(error.value)
+
+
 def test_frame_names_sort_regardless_of_case() -> None:
     """Names were sorted by code point: ``Frame_2.png`` (capital F) came before
     ``frame_1.png``, and ``FRAME_10.png`` before both."""
