@@ -56,6 +56,8 @@ from models.output_range import ensure_fits, ensure_nonzero_kept, overflow_remed
 
 Encoding = Literal["modulo", "mantissa", "clip"]
 ENCODINGS: tuple[str, ...] = ("modulo", "mantissa", "clip")
+#: Most bits a code has (codes are stored as uint8 or uint16).
+MAX_BITS = 16
 #: Largest winding number we represent (W is stored as int64).
 MAX_WINDING = np.iinfo(np.int64).max
 #: Largest noise seed a frame takes (:attr:`SensorParams.seed` is an int64).
@@ -93,7 +95,7 @@ class SensorParams(BaseModel):
 
     encoding: Encoding = "mantissa"
     alpha: float = Field(2.0, gt=1.0, le=1e6, allow_inf_nan=False)
-    bits: int = Field(8, ge=1, le=16)
+    bits: int = Field(8, ge=1, le=MAX_BITS)
     gain: float | None = Field(None, gt=0.0, allow_inf_nan=False)
     max_wraps: float | None = Field(None, allow_inf_nan=False, json_schema_extra={"minimum": 1})
     read_noise: float = Field(0.0, ge=0.0, le=1.0, allow_inf_nan=False)
@@ -265,9 +267,14 @@ def validate_codes(codes: NDArray[Any], bits: int) -> NDArray[np.unsignedinteger
     top = int(arr.max())
     if top >= 1 << bits:
         n_bad = int((arr >= (1 << bits)).sum())
-        raise InvalidInputError(
-            f"{n_bad} codes are >= 2^{bits} = {1 << bits} (max {top}); "
+        remedy = (
             f"the frame is not {bits}-bit: set bits to the sensor's real bit depth"
+            if top < 1 << MAX_BITS
+            else f"codes have {MAX_BITS} bits at most, so these are not the sensor's raw "
+            "codes: send them as read (uint8 or uint16), not scaled or summed"
+        )
+        raise InvalidInputError(
+            f"{n_bad} codes are >= 2^{bits} = {1 << bits} (max {top}); {remedy}"
         )
     return arr
 

@@ -116,6 +116,15 @@ def test_negative_codes_are_counted_and_told_what_to_send() -> None:
     assert "raw codes, 0 to 2^8 - 1, as read" in str(error.value)
 
 
+def test_codes_past_16_bits_are_not_told_to_raise_bits() -> None:
+    """Codes of 2^16 or more (scaled, or summed frames) were told "set bits to the
+    sensor's real bit depth", which cannot exceed 16."""
+    with pytest.raises(InvalidInputError, match=r"max 70000\); codes have 16 bits at most"):
+        validate_codes(np.array([0, 70_000]), 8)
+    with pytest.raises(InvalidInputError, match="set bits to the sensor's real bit depth"):
+        validate_codes(np.array([0, 60_000]), 8)
+
+
 def test_quantize_clamps_m_of_one_to_the_top_code() -> None:
     assert quantize(np.array([1.0]), 8)[0] == 255
 
