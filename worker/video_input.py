@@ -41,6 +41,7 @@ import json
 import logging
 import os
 import re
+import unicodedata
 import zipfile
 from collections import Counter
 from dataclasses import dataclass, replace
@@ -314,11 +315,20 @@ def _read_npy(data: bytes, limits: VideoLimits) -> tuple[NDArray[Any], dict[str,
 
 def _natural_key(name: str) -> tuple[list[Any], str]:
     """Sort key putting ``frame_2`` before ``frame_10`` and ``frame_1`` before
-    ``Frame_2``: runs of decimal digits (what ``\\d`` matches) as numbers, the rest
-    regardless of case (``str.casefold``); names equal that way keep the order of their
-    code points. ``str.isdigit`` also takes superscripts (``²``), which ``int`` refuses."""
+    ``Frame_2``: runs of decimal digits (what ``\\d`` matches) by their value
+    (:func:`_number_key`), the rest regardless of case (``str.casefold``); names equal
+    that way keep the order of their code points. ``str.isdigit`` also takes
+    superscripts (``²``), which are not decimal digits."""
     parts = re.split(r"(\d+)", name)
-    return [int(part) if part.isdecimal() else part.casefold() for part in parts], name
+    return [_number_key(part) if part.isdecimal() else part.casefold() for part in parts], name
+
+
+def _number_key(digits: str) -> tuple[int, str]:
+    """A key ordering runs of decimal digits (of any script) by their value: the count
+    and the ASCII digits left once leading zeros go. ``int`` refuses runs of more than
+    4300 digits, and a zip whose entry's name held one was called corrupt."""
+    plain = "".join(str(unicodedata.decimal(digit)) for digit in digits).lstrip("0")
+    return len(plain), plain
 
 
 def _zip_entry_limit(max_frames: int) -> int:

@@ -131,6 +131,16 @@ def test_a_zip_of_a_frame_added_twice_is_refused_naming_it() -> None:
     assert "zip the frames afresh" in str(error.value)
 
 
+def test_names_of_long_digit_runs_sort_by_value() -> None:
+    """A name whose digits passed int's 4300 was "the ZIP video is truncated or corrupt
+    (Exceeds the limit (4300 digits) for integer string conversion ...)"."""
+    video = codes(3)
+    long = "1" + "0" * 5000
+    names = [f"frame_{long}.png", "frame_0002.png", f"frame_{long[:-1]}9.png"]
+    result = decode_video(zip_bytes(video, names), "zip")
+    np.testing.assert_array_equal(result.codes, video[[1, 0, 2]])
+
+
 def test_frame_names_sort_regardless_of_case() -> None:
     """Names were sorted by code point: ``Frame_2.png`` (capital F) came before
     ``frame_1.png``, and ``FRAME_10.png`` before both."""
