@@ -75,6 +75,19 @@ FRAME_ALIASES = {"png": "png", "tif": "tiff", "tiff": "tiff", "npy": "npy"}
 FRAME_SUFFIXES: tuple[str, ...] = tuple(f".{name}" for name in FRAME_ALIASES)
 #: Pillow modes of the grey PNGs read (of 1 to 16 bits a sample).
 PNG_MODES = ("1", "L", "I;16", "I;16B", "I;16L", "I")
+#: What to do with a PNG of a colour mode (RGB, RGBA).
+_COLOUR_PNG_REMEDY = (
+    "store a colour frame as TIFF, and a colour video as a multi-page TIFF (an RGB page "
+    "per frame) or an npy T x H x W x 3, not as a zip of PNGs"
+)
+#: What a PNG of another Pillow mode not read holds, and what to do with it: a palette
+#: image of grey codes (as PNG optimisers write one) was told to store colour as TIFF.
+_PNG_MODE_REMEDIES = {
+    "P": "its samples are indices into a palette (indexed colour), not sensor codes: save "
+    "the frame as a grayscale PNG, its codes as the samples (a PNG optimiser may have "
+    "turned it into a palette image)",
+    "LA": "grey with an alpha channel: save the frame as a grayscale PNG without alpha",
+}
 #: Where a PNG's width and height are (big-endian 4-byte integers): after the signature
 #: (8 bytes) and the IHDR chunk's length and type (8), its first fields.
 _PNG_SIZE = slice(16, 24)
@@ -274,10 +287,9 @@ def _read_png(data: bytes, max_pixels: int | None) -> tuple[NDArray[Any], Stored
         raise _png_bomb_error(data, max_pixels) from None
     check_pixel_count(image.width, image.height, max_pixels)
     if image.mode not in PNG_MODES:
+        remedy = _PNG_MODE_REMEDIES.get(image.mode, _COLOUR_PNG_REMEDY)
         raise UnsupportedFormatError(
-            f"PNG frames are grayscale (1 to 16 bits), got PNG mode {image.mode}; "
-            "store a colour frame as TIFF, and a colour video as a multi-page TIFF (an RGB "
-            "page per frame) or an npy T x H x W x 3, not as a zip of PNGs"
+            f"PNG frames are grayscale (1 to 16 bits), got PNG mode {image.mode}; {remedy}"
         )
     image.load()
     stored = parse_stored_params(image.text.get(PNG_KEYWORD), "PNG text chunk")

@@ -188,6 +188,21 @@ def test_npy_with_wrong_dtype_or_shape_is_rejected(array: np.ndarray) -> None:
         decode_frame(buffer.getvalue(), "npy", {"encoding": "modulo", "bits": 8})
 
 
+@pytest.mark.parametrize(
+    ("mode", "said"), [("P", "its samples are indices"), ("LA", "grey with an alpha channel")]
+)
+def test_a_grey_png_of_a_palette_or_alpha_is_not_told_to_store_colour(
+    mode: str, said: str
+) -> None:
+    """A palette PNG of grey codes (a PNG optimiser's) or a grey one with alpha was told
+    "store colour frames as TIFF", though it holds no colour."""
+    buffer = io.BytesIO()
+    Image.fromarray(random_codes((4, 4), 8)).convert(mode).save(buffer, format="PNG")
+    with pytest.raises(UnsupportedFormatError, match=f"mode {mode}; {said}") as caught:
+        decode_frame(buffer.getvalue(), "png", {"encoding": "modulo", "bits": 8})
+    assert "TIFF" not in caught.value.message
+
+
 def test_colour_png_is_refused_with_a_pointer_to_tiff() -> None:
     """Writing one is a 422 (the PNG cannot hold the result); reading one, a 415 (the
     upload's format is not read)."""
