@@ -436,14 +436,24 @@ def _listed(names: list[str]) -> str:
     return ", ".join(echo(name) for name in names[:LISTED_ENTRIES]) + more
 
 
+#: How to send frames saved in another array container, in an error message.
+_SAVE_AS_NPY = "save the frames stacked as one array in a .npy file instead"
+
+
 def _no_png_frame(names: list[str]) -> InvalidInputError:
     """The error for a zip of no ``.png`` frame, whose files are ``names``: what it
-    holds, and for NumPy's ``.npz`` (a zip of ``.npy`` arrays), what to send instead."""
+    holds, and for NumPy's ``.npz`` (a zip of ``.npy`` arrays) or PyTorch's
+    ``torch.save`` file (a zip holding ``<name>/data.pkl``), what to send instead."""
     holds = f"its files: {_listed(names)}" if names else "no file"
     if names and all(name.lower().endswith(".npy") for name in names):
         remedy = (
-            "it is a NumPy .npz archive (np.savez): save the frames stacked as one array "
-            "in a .npy file instead (np.save, T x H x W or T x H x W x 3)"
+            f"it is a NumPy .npz archive (np.savez): {_SAVE_AS_NPY} (np.save, T x H x W or "
+            "T x H x W x 3)"
+        )
+    elif any(name.rsplit("/", 1)[-1] == "data.pkl" for name in names):
+        remedy = (
+            f"it is a PyTorch file (torch.save), whatever its name: {_SAVE_AS_NPY} "
+            "(np.save(path, tensor.numpy()), T x H x W or T x H x W x 3)"
         )
     else:
         remedy = "a wrapped video as a zip is one PNG of codes per frame, named in frame order"

@@ -548,6 +548,20 @@ def test_an_npz_is_told_to_be_sent_as_an_npy() -> None:
         decode_video(buffer.getvalue(), "zip", FLAGS)
 
 
+def test_a_pytorch_file_is_told_to_be_sent_as_an_npy() -> None:
+    """torch.save writes a zip (of data.pkl and the tensors' storages): saved as
+    clip.npy, it was "the zip holds no .png frame (its files: 'archive/data.pkl', ...);
+    a wrapped video as a zip is one PNG of codes per frame", not saying what it was nor
+    how to send its frames."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:  # the entries torch.save writes
+        for name in ("data.pkl", ".format_version", "byteorder", "data/0", "version"):
+            archive.writestr(f"archive/{name}", b"\x80\x02")
+    with pytest.raises(InvalidInputError, match=r"it is a PyTorch file \(torch.save\)") as error:
+        decode_video(buffer.getvalue(), "clip.npy", FLAGS)
+    assert "np.save(path, tensor.numpy())" in str(error.value)
+
+
 @pytest.mark.parametrize(
     ("data", "what"),
     [
