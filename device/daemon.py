@@ -113,6 +113,9 @@ class DeviceDaemon:
         self.crash: Exception | None = None
         self._last_sequence: int | None = None
         self._discont = True
+        # Packets of bracketed captures since the last streamed frame (sequence numbers
+        # the frame stream lacks, but no frames lost).
+        self._bracketed = 0
         self._connected_once = False
         self._trouble = TroubleLog(log)
 
@@ -161,6 +164,7 @@ class DeviceDaemon:
         if packet.flags & FLAG_BRACKET:
             # A bracket's exposures are not streamed: the settings stay the frames'.
             self.health.frame_received(packet.sequence, None)
+            self._bracketed += 1
             self._on_bracket_packet(packet)
             return
         self.health.frame_received(packet.sequence, {
@@ -169,8 +173,10 @@ class DeviceDaemon:
             "height": int(packet.codes.shape[0]),
         })
         self.publisher.offer(FrameMessage(self.device, packet.sequence, packet.timestamp_ns,
-                                          packet.codes, packet_params(packet), self._discont))
+                                          packet.codes, packet_params(packet), self._discont,
+                                          self._bracketed))
         self._discont = False
+        self._bracketed = 0
 
     def _host_sequence(self, sequence: int) -> int:
         """The host's number for the camera's ``sequence``: on from the last frame's (this

@@ -23,7 +23,9 @@ class FrameMessage:
     ``sequence``: the device's frame counter (numbered on past a wrap of a 32-bit one:
     :func:`device.health.unwrap_sequence`); ``timestamp_ns``: device clock in ns;
     ``discont``: true when temporal state was broken before this frame (reconnect,
-    sequence gap); ``codes``: H x W (or H x W x C) uint8/uint16 in DN.
+    sequence gap); ``codes``: H x W (or H x W x C) uint8/uint16 in DN; ``bracketed``:
+    the sequence numbers since the previous streamed frame that a bracketed capture's
+    packets took (never streamed: no frames missing, and no frame periods).
     """
 
     device: str
@@ -32,6 +34,7 @@ class FrameMessage:
     codes: NDArray[np.unsignedinteger]
     params: SensorParams
     discont: bool = False
+    bracketed: int = 0
 
     def to_fields(self) -> dict[str, bytes]:
         """Stream entry fields: small text header plus the raw code bytes."""
@@ -44,6 +47,7 @@ class FrameMessage:
             "dtype": codes.dtype.str.encode(),
             "params": self.params.model_dump_json().encode(),
             "discont": b"1" if self.discont else b"0",
+            "bracketed": str(self.bracketed).encode(),
             "codes": codes.tobytes(),
         }
 
@@ -64,6 +68,7 @@ class FrameMessage:
                 codes=codes,
                 params=SensorParams.model_validate(json.loads(get["params"])),
                 discont=get.get("discont", b"0") == b"1",
+                bracketed=int(get.get("bracketed", b"0")),
             )
         except KeyError as exc:
             raise InvalidInputError(

@@ -267,9 +267,10 @@ class Recorder:
 
 def camera_timing(recording: Recording, message: FrameMessage) -> dict[str, int]:
     """The recording's camera steps and device time (ns) with ``message``, the next
-    recorded frame, counted in: nothing when it follows a discontinuity or its sequence
-    number or timestamp does not advance (a camera restart)."""
-    if recording.frames == 0 or message.discont:
+    recorded frame, counted in: nothing when it follows a discontinuity, a bracketed
+    capture (its packets, one scene instant, took sequence numbers but no frame periods)
+    or its sequence number or timestamp does not advance (a camera restart)."""
+    if recording.frames == 0 or message.discont or message.bracketed:
         return {}
     if recording.last_sequence is None or recording.last_ts_ns is None:
         return {}
@@ -285,12 +286,13 @@ def camera_timing(recording: Recording, message: FrameMessage) -> dict[str, int]
 
 def skipped_frames(recording: Recording, message: FrameMessage) -> dict[str, int]:
     """The recording's ``frames_skipped`` with ``message``, the next recorded frame,
-    counted in: the sequence numbers between the last recorded frame's and its own;
-    nothing for its first frame, a step back (a camera restart) or a jump beyond
+    counted in: the sequence numbers between the last recorded frame's and its own, less
+    those a bracketed capture's packets took (never streamed, no frames lost); nothing
+    for its first frame, a step back (a camera restart) or a jump beyond
     :data:`MAX_MISSING_PER_GAP` (a counter that reset or was corrupted)."""
     if recording.frames == 0 or recording.last_sequence is None:
         return {}
-    skipped = message.sequence - recording.last_sequence - 1
+    skipped = message.sequence - recording.last_sequence - 1 - message.bracketed
     if not 0 < skipped <= MAX_MISSING_PER_GAP:
         return {}
     return {"frames_skipped": recording.frames_skipped + skipped}

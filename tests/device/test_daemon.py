@@ -796,3 +796,24 @@ def test_a_crash_of_publishing_leaves_the_health_saying_so(
         daemon.stop()
     assert isinstance(daemon.crash, RuntimeError)
     assert_health_says_crashed(client, "cam9")
+
+
+def test_the_frame_after_a_bracket_says_how_many_sequence_numbers_the_bracket_took(
+        client: redis.Redis, tmp_path: Path) -> None:
+    """A bracket's packets take sequence numbers but are never streamed: the next frame
+    says how many (``bracketed``), so a recording tells them from frames lost on the link.
+    Before, a recording across a bracket counted its packets in ``frames_skipped``, warned
+    of frames "lost on the camera link" (check the cable) and measured the camera 14 %
+    fast."""
+    daemon = DeviceDaemon(DaemonConfig(port="loop://", device="cam9", data_dir=tmp_path),
+                          client)
+    frame = np.full((4, 4), 100, np.uint8)
+    daemon._on_data(lp.DataPacket(9, 0, "modulo", 2.0, 8, 1.0, frame))
+    for packet in bracket_packets(10):
+        daemon._on_data(packet)
+    daemon._on_data(lp.DataPacket(13, 0, "modulo", 2.0, 8, 1.0, frame))
+    daemon._on_data(lp.DataPacket(14, 0, "modulo", 2.0, 8, 1.0, frame))
+    daemon.publisher.start()
+    daemon.publisher.stop()
+    assert [(f.sequence, f.bracketed) for f in stream_frames(client, "cam9")] == [
+        (9, 0), (13, 3), (14, 0)]

@@ -24,14 +24,15 @@ PARAMS = SensorParams(encoding="mantissa", alpha=2.0, bits=10)
     ),
     sequence=st.integers(0, 2**40),
     discont=st.booleans(),
+    bracketed=st.integers(0, 255),
 )
-def test_fields_round_trip(codes: np.ndarray, sequence: int, discont: bool) -> None:
-    message = FrameMessage("cam-1", sequence, 123, codes, PARAMS, discont)
+def test_fields_round_trip(codes: np.ndarray, sequence: int, discont: bool, bracketed: int) -> None:
+    message = FrameMessage("cam-1", sequence, 123, codes, PARAMS, discont, bracketed)
     back = FrameMessage.from_fields({k.encode(): v for k, v in message.to_fields().items()})
     np.testing.assert_array_equal(back.codes, codes)
     assert back.codes.dtype == codes.dtype
-    assert (back.device, back.sequence, back.params, back.discont) == (
-        "cam-1", sequence, PARAMS, discont
+    assert (back.device, back.sequence, back.params, back.discont, back.bracketed) == (
+        "cam-1", sequence, PARAMS, discont, bracketed
     )
 
 

@@ -485,6 +485,29 @@ def test_a_rate_not_measured_leaves_the_default_fps(
     assert video_options(job.decoder, job.options)[0].hdr10.fps == DEFAULT_OPTIONS["fps"]
 
 
+def test_a_bracket_inside_a_recording_is_no_frame_lost_and_no_frame_period(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    """A bracketed capture's packets take the camera's sequence numbers but are never
+    streamed. Before, a recording across a bracket (``POST /v1/devices/{id}/control``
+    ``bracket``, 6 packets) counted them in ``frames_skipped``, its video warned of 6
+    frames "lost on the camera link" (check the cable) while none was, and its camera
+    rate counted the bracket's steps as frame periods (5.7 frames/s for a 5 frames/s
+    camera)."""
+    clip = frames(make_frame, 4)
+    start(client)
+    step_ns = 100_000_000  # a 10 frames/s camera; the bracket takes one tick
+    recorder.add_frame(timed(clip[0], 10, 10 * step_ns), "1000-0")
+    recorder.add_frame(timed(clip[1], 11, 11 * step_ns), "1000-1")
+    after = FrameMessage("cam1", 18, 13 * step_ns, clip[2].codes, clip[2].params, bracketed=6)
+    recorder.add_frame(after, "1000-2")
+    recorder.add_frame(timed(clip[3], 19, 14 * step_ns), "1000-3")
+    view = load_recording(client, "cam1").view()
+    assert (view["frames_skipped"], view["camera_fps"]) == (0, 10.0)
+    job = stopped_job(client, recorder, queue)
+    assert job.warnings == [] and job.options["fps"] == 10.0
+
+
 def late_worker(client: redis.Redis, store: ResultStore) -> DeviceConsumer:
     """A worker's device side (itoh), started after the frames were sent."""
     return DeviceConsumer(
