@@ -245,7 +245,7 @@ class Recorder:
             raise InvalidInputError(f"no frames were recorded: {'; '.join(missing)}")
         if recording.frames == 0:
             raise InvalidInputError(
-                f"no frames were recorded: {no_frames_reason(self.client, recording.device)}"
+                f"no frames were recorded: {no_frames_reason(self.client, recording)}"
             )
         codes = np.stack(
             [np.load(self.store.existing_path(frame_key(recording.id, i)))

@@ -5,6 +5,8 @@ reached the stream). See :mod:`worker.recorder`, which ends recordings with them
 
 from __future__ import annotations
 
+import time
+
 import redis
 
 from device.health import crashed_daemon_text
@@ -12,10 +14,12 @@ from worker.recordings import Recording
 from worker.redis_keys import health_key
 
 
-def no_frames_reason(client: redis.Redis, device: str) -> str:
-    """Why a recording of ``device`` got no frame, none lost or failed: its daemon
-    crashed (its health's ``state`` and ``crash``) or cannot open the camera's port
-    (``port_error``), or the words to check the camera and the workers."""
+def no_frames_reason(client: redis.Redis, recording: Recording) -> str:
+    """Why ``recording`` got no frame, none lost or failed: its daemon crashed (its
+    health's ``state`` and ``crash``) or cannot open the camera's port (``port_error``),
+    or (:func:`no_frame_sent_text`) no frame reached the stream between its start and
+    stop."""
+    device = recording.device
     state, crash, port_error = client.hmget(health_key(device), "state", "crash", "port_error")
     if state == b"crashed":
         return (
@@ -27,9 +31,20 @@ def no_frames_reason(client: redis.Redis, device: str) -> str:
             f"the daemon of device {device!r} cannot open its camera's port "
             f"({port_error.decode()})"
         )
+    return no_frame_sent_text(recording)
+
+
+def no_frame_sent_text(recording: Recording) -> str:
+    """That no frame reached the device's stream between the recording's start and stop
+    (a worker finished it, so none waited unread), how long that was (s), and what to do:
+    record for longer than one of the camera's frames, or get it streaming."""
+    device = recording.device
+    window_s = max((recording.stopped_ns or time.time_ns()) - recording.started_ns, 0) / 1e9
     return (
-        f"is device {device!r}'s camera streaming (GET /v1/devices/{device}) and a worker "
-        "running?"
+        f"no frame reached device {device!r}'s stream in the {window_s:.3g} s between the "
+        "start and the stop: record for longer than one frame of its camera (GET "
+        f"/v1/devices/{device} shows its fps), and check there that it is streaming (state "
+        "connected, fps above 0)"
     )
 
 

@@ -226,6 +226,26 @@ def test_stop_without_frames_fails_with_a_reason(
     assert "no frames were recorded" in failed.error
 
 
+def test_a_stop_before_the_cameras_next_frame_says_no_frame_came_and_what_to_do(
+    client: redis.Redis, recorder: Recorder
+) -> None:
+    """A stop that came before the camera's next frame (0.014 s after the start, on a
+    camera at 5 frames/s) failed "is device 'cam1''s camera streaming ... and a worker
+    running?" while both were (the worker that ended it ran). It now says no frame came
+    in how long, and to record for longer or get the camera streaming."""
+    client.hset(health_key("cam1"), "state", "connected")
+    started = start(client)
+    client.hset(recording_key("cam1"), "started_ns", started.started_ns - 14_000_000)
+    request_stop(client, "cam1")
+    recorder.finish_if_due("cam1")
+    failed = load_recording(client, "cam1")
+    assert failed.state == "failed" and "worker running" not in failed.error
+    window_s = (failed.stopped_ns - failed.started_ns) / 1e9
+    assert 0.014 <= window_s < 1.0
+    assert (f"no frame reached device 'cam1''s stream in the {window_s:.3g} s between the "
+            "start and the stop: record for longer than one frame") in failed.error
+
+
 def test_a_recording_of_a_camera_whose_port_never_opened_says_why(
     client: redis.Redis, recorder: Recorder
 ) -> None:
