@@ -184,6 +184,7 @@ class Recorder:
             check_recordable(
                 recording.device, recording.decoder, recording.options, message.params,
                 message.codes.shape, "its first recorded frame",
+                max_samples=recording.max_samples,
             )
         except InvalidInputError as exc:
             self._fail(recording, "frames_refused", exc.message)
@@ -234,12 +235,6 @@ class Recorder:
         self._set(recording, {**_ended(recording, reason), "state": "failed", "error": error})
 
     def _submit(self, recording: Recording, reason: str) -> str:
-        if recording.frames == 0 and reason == "max_samples":
-            raise InvalidInputError(
-                f"one frame holds more code values than the recording's limit of "
-                f"{recording.max_samples}; record smaller frames or raise the limit "
-                "(MCAM_MAX_VIDEO_SAMPLES)"
-            )
         missing = missing_frames(recording)
         if recording.frames == 0 and missing:
             raise InvalidInputError(f"no frames were recorded: {'; '.join(missing)}")

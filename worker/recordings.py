@@ -30,7 +30,8 @@ job decodes as a keyframe. A redelivered frame (stream entry at or before
 
 A recording whose video job could never be made from the device's frames (a decoder
 with no model for their encoding, or ``hdr10`` among the outputs of frames under 64 px:
-the checks ``POST /v1/videos`` makes, :func:`check_recordable`) is refused before any
+the checks ``POST /v1/videos`` makes; or frames each of more code values than
+``max_samples``: :func:`check_recordable`) is refused before any
 frame is kept: at the start, when the device's daemon reports its newest frame's
 encoding and size (its health ``settings``), and otherwise on the first frame recorded.
 A start refused is an :class:`InvalidInputError` (the API's 422) and leaves no record.
@@ -261,20 +262,34 @@ def load_recording(client: redis.Redis, device: str) -> Recording | None:
 
 def check_recordable(
     device: str, decoder: str, options: dict[str, Any], params: SensorParams,
-    shape: tuple[int, ...], seen: str,
+    shape: tuple[int, ...], seen: str, *, max_samples: int,
 ) -> None:
-    """Refuse a recording (``decoder``, video ``options``) whose video job could never be
-    made from the device's frames: codes of ``shape`` (H x W[x C], px) with ``params``,
-    as ``seen`` says (its newest frame, its first recorded frame). The checks are those a
-    video job gets on ``POST /v1/videos``."""
+    """Refuse a recording (``decoder``, video ``options``, at most ``max_samples`` code
+    values) whose video job could never be made from the device's frames: codes of
+    ``shape`` (H x W[x C], px) with ``params``, as ``seen`` says (its newest frame, its
+    first recorded frame). The checks are those a video job gets on ``POST /v1/videos``,
+    and that one frame fits ``max_samples``."""
     try:
         check_decoder_supports(decoder, params)
         check_frame_size(video_options(decoder, options)[1], (1, *shape))
+        _check_frame_samples(shape, max_samples)
     except InvalidInputError as exc:
         raise InvalidInputError(
             f"device {device!r} sends {params.encoding} frames of {shape[0]} x {shape[1]} px "
             f"({seen}), which this recording cannot make into a video: {exc.message}"
         ) from None
+
+
+def _check_frame_samples(shape: tuple[int, ...], max_samples: int) -> None:
+    """Refuse frames of ``shape`` of which not one fits a recording of ``max_samples``
+    code values (the server's ``MCAM_MAX_VIDEO_SAMPLES``)."""
+    samples = int(np.prod(shape))
+    if samples > max_samples:
+        raise InvalidInputError(
+            f"one frame holds {samples} code values, more than the recording's limit of "
+            f"{max_samples}; have the camera send smaller frames, or raise the limit "
+            "(MCAM_MAX_VIDEO_SAMPLES)"
+        )
 
 
 def reported_frames(
@@ -346,14 +361,16 @@ def start_recording(
     :class:`DeviceNotFoundError` when the device is not registered (checked in the same
     step as the write: a forget that came first leaves no record behind), and with
     :class:`StoreFullError` when Redis has no room for its video (:func:`check_room`)."""
-    reported = reported_frames(client, device)
-    if reported is not None:
-        check_recordable(device, decoder, options, *reported, "its newest frame")
     if max_frames < 1:
         raise InvalidInputError(f"max_frames must be at least 1, got {max_frames}")
     if not 1 <= max_samples <= MAX_RECORDING_SAMPLES * 2:
         raise InvalidInputError(
             f"max_samples must be within [1, {MAX_RECORDING_SAMPLES * 2}], got {max_samples}"
+        )
+    reported = reported_frames(client, device)
+    if reported is not None:
+        check_recordable(
+            device, decoder, options, *reported, "its newest frame", max_samples=max_samples
         )
     check_room(client, recording_codes_bytes(max_frames, max_samples, reported))
     fields = {

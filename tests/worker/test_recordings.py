@@ -342,7 +342,32 @@ def test_a_recording_ends_before_a_frame_that_would_pass_its_sample_limit(
                     max_samples=200)
     recorder.add_frame(message(make_frame(size=16), 9), "5000-0")
     failed = load_recording(client, "cam1")
-    assert failed.state == "failed" and "one frame holds more code values" in failed.error
+    assert failed.state == "failed" and failed.reason == "frames_refused"
+    assert "one frame holds 256 code values, more than the recording's limit of 200" in (
+        failed.error)
+
+
+def test_a_start_is_refused_when_one_of_the_devices_frames_passes_its_sample_limit(
+    client: redis.Redis,
+) -> None:
+    """A start whose ``max_samples`` (the server's ``MCAM_MAX_VIDEO_SAMPLES``) is below
+    one of the device's frames could never record one. Before, it answered 201, and the
+    recording failed on its first frame ("one frame holds more code values than the
+    recording's limit of 10000", naming neither the frame's size nor its count): seen
+    with ``MCAM_MAX_VIDEO_SAMPLES=10000`` and a camera of 256 x 256 px frames."""
+    settings = {"encoding": "modulo", "alpha": 2.0, "bits": 8, "gain": 1.0, "width": 256,
+                "height": 256}
+    client.hset(health_key("cam1"), "settings", json.dumps(settings))
+    with pytest.raises(InvalidInputError) as refused:
+        start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=10,
+                        max_samples=10_000)
+    assert ("'cam1' sends modulo frames of 256 x 256 px (its newest frame), which this "
+            "recording cannot make into a video: one frame holds 65536 code values, more "
+            "than the recording's limit of 10000") in str(refused.value)
+    assert "MCAM_MAX_VIDEO_SAMPLES" in str(refused.value)
+    assert load_recording(client, "cam1") is None
+    assert start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=10,
+                           max_samples=65_536)
 
 
 def test_a_stop_whose_job_was_queued_but_not_noted_queues_it_once(

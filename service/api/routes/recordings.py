@@ -9,7 +9,8 @@ stop takes no other field: 422); its files come from ``GET /v1/videos/{job}/resu
 Fields come as JSON, form fields or query parameters. ``GET`` shows the current (or last)
 recording with its frame count. A start is refused (422) when the device's newest frame
 shows that its video could never be made (a decoder with no model for the frames'
-encoding, ``hdr10`` of frames under 64 px); before any frame, the first one recorded is
+encoding, ``hdr10`` of frames under 64 px, a frame of more code values than the server's
+``MCAM_MAX_VIDEO_SAMPLES``); before any frame, the first one recorded is
 checked, and a refusal ends the recording ``failed`` with the reason (``GET``, and the
 stop's 409). See ``worker/recordings.py``.
 """

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import json
-import re
 import threading
 import zipfile
 from collections.abc import Callable, Iterator
@@ -205,22 +204,30 @@ def test_a_stop_waits_for_its_video_job_no_longer_than_the_servers_limit(
 def test_a_stop_answers_409_when_the_worker_could_not_make_the_video_job(
     tmp_path: Path, redis_url: str
 ) -> None:
-    """Under a limit of 1000 code values a 256 x 256 frame cannot be recorded: the worker
-    fails the recording (one frame over the limit, or no frame yet when the stop came)
-    and the stop says why instead of answering 202 with a job that will never come."""
-    settings = make_settings(tmp_path, redis_url, max_video_samples=1000)
-    with serve(create_app(settings)) as url, live_camera(settings, tmp_path, fps=15, seed=6), \
-            httpx.Client(base_url=url, headers={"Authorization": f"Bearer {FULL_KEY}"},
-                         timeout=60) as http:
-        assert wait_for(lambda: http.get("/v1/devices/cam1").status_code == 200, 30)
+    """A camera that stopped streaming (after 3 frames) sends no frame between the start
+    and the stop: the worker fails the recording, and the stop says why instead of
+    answering 202 with a job that will never come. A server whose limit of 1000 code
+    values no 256 x 256 px frame fits refuses the start once the device reported one."""
+    settings = make_settings(tmp_path, redis_url)
+    small = make_settings(tmp_path, redis_url, max_video_samples=1000)
+    with serve(create_app(settings)) as url, serve(create_app(small)) as small_url, \
+            live_camera(settings, tmp_path, fps=15, seed=6, max_frames=3), \
+            httpx.Client(headers={"Authorization": f"Bearer {FULL_KEY}"}, timeout=60) as http:
+        http.base_url = httpx.URL(url)
+        assert wait_for(lambda: "/000000000002-" in str(
+            http.get("/v1/devices/cam1").json().get("latest_result")), 30)  # all 3 decoded
+        refused = http.post(f"{small_url}{URL}", json={"action": "start"})
+        assert refused.status_code == 422, refused.text
+        assert "one frame holds 65536 code values" in refused.text
+        assert "MCAM_MAX_VIDEO_SAMPLES" in refused.text
         started = http.post(URL, json={"action": "start"})
         assert started.status_code == 201, started.text
         stopped = http.post(URL, json={"action": "stop"})
         assert stopped.status_code == 409, stopped.text
         body = stopped.json()
         assert body["code"] == "recording_failed"
-        assert f"recording {started.json()['id']} failed" in body["message"]
-        assert re.search(r"MCAM_MAX_VIDEO_SAMPLES|no frames were recorded", body["message"])
+        assert f"recording {started.json()['id']} failed: no frames were recorded" in (
+            body["message"])
         assert recording(http)["state"] == "failed"
 
 
