@@ -6,13 +6,13 @@ each frame the camera sent from then on, until the stop. ``action=stop`` ends it
 it has handled the frames sent before the stop, the worker queues the video job and the
 answer is that job (202, or 200 with the finished job under ``Prefer: wait=N``; a
 stop takes no other field: 422); its files come from ``GET /v1/videos/{job}/result``.
-Fields come as JSON, form fields or query parameters. ``GET`` shows the current (or last)
-recording with its frame count. A start is refused (422) when the device's newest frame
-shows that its video could never be made (a decoder with no model for the frames'
-encoding, ``hdr10`` of frames under 64 px, a frame of more code values than the server's
-``MCAM_MAX_VIDEO_SAMPLES``); before any frame, the first one recorded is
-checked, and a refusal ends the recording ``failed`` with the reason (``GET``, and the
-stop's 409). See ``worker/recordings.py``.
+Fields come as JSON (``outputs`` also as a list of names), form fields or query
+parameters. ``GET`` shows the current (or last) recording with its frame count. A
+start is refused (422) when the device's newest frame shows that its video could never
+be made (a decoder with no model for the frames' encoding, ``hdr10`` of frames under
+64 px, a frame of more code values than the server's ``MCAM_MAX_VIDEO_SAMPLES``);
+before any frame, the first one recorded is checked, and a refusal ends the recording
+``failed`` with the reason (``GET``, and the stop's 409). See ``worker/recordings.py``.
 """
 
 from __future__ import annotations
@@ -95,6 +95,14 @@ def _refuse_booleans(values: dict[str, Any]) -> None:
             raise InvalidInputError(f"{name} must be a number, not {str(value).lower()}")
 
 
+def _outputs_as_text(values: dict[str, Any]) -> None:
+    """Take ``outputs`` given as the JSON list of names a recording's view shows them in
+    (``["hdr10", "sdr"]``) as their comma-separated form (``hdr10,sdr``)."""
+    outputs = values.get("outputs")
+    if isinstance(outputs, list) and all(isinstance(name, str) for name in outputs):
+        values["outputs"] = ",".join(outputs)
+
+
 def _refuse_start_fields(fields: RecordingFields) -> None:
     """A stop takes no video options nor ``max_frames``: they were dropped unseen, the
     video made as its start asked."""
@@ -128,6 +136,7 @@ async def read_fields(request: Request) -> RecordingFields:
             "object with the header 'Content-Type: application/json', or form fields"
         )
     _refuse_booleans(values)
+    _outputs_as_text(values)
     try:
         return RecordingFields.model_validate(values)
     except ValidationError as exc:

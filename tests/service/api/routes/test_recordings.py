@@ -54,8 +54,8 @@ def camera(settings: Settings, tmp_path: Path) -> Iterator[VirtualScamp5]:
         yield cam
 
 
-def recording(http: httpx.Client) -> dict:
-    reply = http.get(URL)
+def recording(http: httpx.Client, url: str = URL) -> dict:
+    reply = http.get(url)
     assert reply.status_code == 200, reply.text
     return reply.json()
 
@@ -474,3 +474,19 @@ def test_a_stop_after_the_recordings_video_job_expired_says_no_recording(
     assert refused.status_code == 409, refused.text
     assert refused.json()["code"] == "no_recording"
     assert "expired" in refused.json()["message"] and "action=start" in refused.json()["message"]
+
+
+def test_a_start_takes_outputs_as_the_list_a_recordings_view_shows(
+    settings: Settings, client: Client
+) -> None:
+    """``GET /v1/devices/{id}/recordings`` shows ``options.outputs`` as a JSON list. Before,
+    a start sending them back so got 422 "outputs: Input should be a valid string",
+    which said neither that the field is comma-separated nor how to send it."""
+    stopped_device(settings, "cam7")
+    http = client(FULL_KEY)
+    url = "/v1/devices/cam7/recordings"
+    mixed = http.post(url, json={"action": "start", "outputs": ["sdr", 3]})
+    assert mixed.status_code == 422 and mixed.json()["code"] == "invalid_input"
+    started = http.post(url, json={"action": "start", "outputs": ["exr_zip", "sdr"]})
+    assert started.status_code == 201, started.text
+    assert recording(http, url)["options"]["outputs"] == ["exr_zip", "sdr"]
