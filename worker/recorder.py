@@ -40,7 +40,7 @@ from models.formation import SensorParams
 from models.frames import encode_frame
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue
-from worker.recording_texts import missing_frames, no_frames_reason
+from worker.recording_texts import frames_change_text, missing_frames, no_frames_reason
 from worker.recordings import (
     ACTIVE_STATES,
     Recording,
@@ -144,10 +144,8 @@ class Recorder:
                 "shape": shape,
                 "first_sequence": message.sequence,
             }
-        elif shape != recording.shape or SensorParams.model_validate_json(
-            recording.params
-        ).differences(message.params):
-            self._finish(recording, "params_changed")
+        elif change := frames_change_text(recording, message):
+            self._finish(recording, "params_changed", change)
             return
         if (index + 1) * message.codes.size > recording.max_samples:
             self._finish(recording, "max_samples")
@@ -219,10 +217,11 @@ class Recorder:
             frame_stream(recording.device), "-", recording.stop_entry, count=1
         ))
 
-    def _finish(self, recording: Recording, reason: str) -> None:
-        """Assemble the recorded frames (T x H x W codes), queue the video job, note its id."""
+    def _finish(self, recording: Recording, reason: str, ended: str | None = None) -> None:
+        """Assemble the recorded frames (T x H x W codes), queue the video job, note its id;
+        ``ended``: why the recording ended before its stop, for the job's warnings."""
         try:
-            job = self._submit(recording, reason)
+            job = self._submit(recording, reason, ended)
         except McamError as exc:
             self._fail(recording, reason, exc.message)
         else:
@@ -234,7 +233,7 @@ class Recorder:
         """End the recording as failed, ``error`` saying why (no video job comes)."""
         self._set(recording, {**_ended(recording, reason), "state": "failed", "error": error})
 
-    def _submit(self, recording: Recording, reason: str) -> str:
+    def _submit(self, recording: Recording, reason: str, ended: str | None) -> str:
         missing = missing_frames(recording)
         if recording.frames == 0 and missing:
             raise InvalidInputError(f"no frames were recorded: {'; '.join(missing)}")
@@ -256,7 +255,8 @@ class Recorder:
         outputs = video_options(recording.decoder, options)[1]
         return self.queue.submit(
             "video", codes, params, recording.decoder, options, job_id=recording.id,
-            warnings=video_warnings(missing, outputs, codes.shape),
+            warnings=video_warnings([*missing, ended] if ended else missing, outputs,
+                                    codes.shape),
         ).id
 
 

@@ -10,6 +10,8 @@ import time
 import redis
 
 from device.health import crashed_daemon_text
+from models.formation import SensorParams
+from worker.frame_message import FrameMessage
 from worker.recordings import Recording
 from worker.redis_keys import health_key
 
@@ -100,4 +102,32 @@ def frames_lost_text(recording: Recording) -> str:
         "frame stream before a worker read them (it keeps the newest MCAM_FRAMES_MAXLEN "
         f"frames; stream_full in GET /v1/devices/{recording.device}); keep a worker running "
         "while recording, or raise MCAM_FRAMES_MAXLEN on the device daemon"
+    )
+
+
+def frames_change_text(recording: Recording, message: FrameMessage) -> str | None:
+    """What changed in ``message``, the frame after the recording's last, from its frames
+    (their size, H x W px, or sensor parameters other than the noise seed), which ends
+    the recording there, and what to do: the warning its video job carries. None when
+    nothing changed."""
+    shape = ",".join(map(str, message.codes.shape))
+    if shape != recording.shape:
+        change = (
+            f"frame size changed from {recording.shape.replace(',', ' x ')} to "
+            f"{shape.replace(',', ' x ')}"
+        )
+    else:
+        params = SensorParams.model_validate_json(recording.params)
+        changed = params.differences(message.params)
+        if not changed:
+            return None
+        change = ", ".join(
+            f"{name} changed from {getattr(params, name)} to {getattr(message.params, name)}"
+            for name in changed
+        )
+    return (
+        f"the recording ended by itself before the camera's frame {message.sequence}, whose "
+        f"{change} (one video keeps one sensor setting): frames from then on are not in "
+        f"this video; start a new recording (POST /v1/devices/{recording.device}/recordings"
+        " action=start) to record them"
     )

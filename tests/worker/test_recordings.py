@@ -214,6 +214,30 @@ def test_changed_sensor_parameters_end_the_recording(
     assert queue.get(done.job).params.gain == first.params.gain
 
 
+def test_a_video_cut_short_by_a_change_of_the_cameras_settings_says_so(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    """A change of the camera's gain (``set_exposure``) or frame size ends the recording
+    there. Before, the video job of a stop sent minutes later held only the frames before
+    the change, its ``warnings`` []: nothing the stop answered said the recording had
+    ended early, nor why."""
+    first, second = frames(make_frame, 2)
+    start(client)
+    recorder.add_frame(message(first, 5), "3000-0")
+    brighter = first.params.model_copy(update={"gain": 2.0})
+    recorder.add_frame(FrameMessage("cam1", 6, 0, second.codes, brighter), "3000-1")
+    [warning] = queue.get(load_recording(client, "cam1").job).warnings
+    assert warning.startswith(
+        "the recording ended by itself before the camera's frame 6, whose gain changed from "
+        "1.0 to 2.0 (one video keeps one sensor setting): frames from then on are not in "
+        "this video; start a new recording (POST /v1/devices/cam1/recordings")
+    start(client)
+    recorder.add_frame(message(first, 7), "3000-2")
+    recorder.add_frame(message(make_frame(size=32), 8), "3000-3")
+    [warning] = queue.get(load_recording(client, "cam1").job).warnings
+    assert "frame 8, whose frame size changed from 64 x 64 to 32 x 32 (one video" in warning
+
+
 def test_stop_without_frames_fails_with_a_reason(
     client: redis.Redis, recorder: Recorder, store: ResultStore
 ) -> None:
