@@ -40,7 +40,12 @@ from models.formation import SensorParams
 from models.frames import encode_frame
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue
-from worker.recording_texts import frames_change_text, missing_frames, no_frames_reason
+from worker.recording_texts import (
+    frames_change_text,
+    missing_frames,
+    no_frames_reason,
+    samples_limit_text,
+)
 from worker.recordings import (
     ACTIVE_STATES,
     Recording,
@@ -148,7 +153,7 @@ class Recorder:
             self._finish(recording, "params_changed", change)
             return
         if (index + 1) * message.codes.size > recording.max_samples:
-            self._finish(recording, "max_samples")
+            self._finish(recording, "max_samples", samples_limit_text(recording, message))
             return
         if index and (message.discont or message.sequence != (recording.last_sequence or 0) + 1):
             update["keyframes"] = ",".join(map(str, [*recording.keyframes, index]))

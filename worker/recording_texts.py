@@ -125,9 +125,29 @@ def frames_change_text(recording: Recording, message: FrameMessage) -> str | Non
             f"{name} changed from {getattr(params, name)} to {getattr(message.params, name)}"
             for name in changed
         )
+    return _ended_early_text(
+        recording, message, f", whose {change} (one video keeps one sensor setting)"
+    )
+
+
+def samples_limit_text(recording: Recording, message: FrameMessage) -> str:
+    """That ``message``, the frame after the recording's last, would take its video past
+    its ``max_samples`` code values (the server's ``MCAM_MAX_VIDEO_SAMPLES``), which ends
+    the recording there, and what to do: the warning its video job carries."""
+    return _ended_early_text(
+        recording, message,
+        f": with it the video would hold more than the server's limit of "
+        f"{recording.max_samples} code values (MCAM_MAX_VIDEO_SAMPLES; {recording.frames} "
+        "frames of this size fit; record fewer frames at a time with max_frames, or raise "
+        "the limit)",
+    )
+
+
+def _ended_early_text(recording: Recording, message: FrameMessage, why: str) -> str:
+    """That the recording ended before ``message``, the camera's next frame, ``why``, and
+    that a new recording records the frames from then on."""
     return (
-        f"the recording ended by itself before the camera's frame {message.sequence}, whose "
-        f"{change} (one video keeps one sensor setting): frames from then on are not in "
-        f"this video; start a new recording (POST /v1/devices/{recording.device}/recordings"
-        " action=start) to record them"
+        f"the recording ended by itself before the camera's frame {message.sequence}{why}: "
+        "frames from then on are not in this video; start a new recording (POST "
+        f"/v1/devices/{recording.device}/recordings action=start) to record them"
     )

@@ -371,6 +371,26 @@ def test_a_recording_ends_before_a_frame_that_would_pass_its_sample_limit(
         failed.error)
 
 
+def test_a_video_cut_short_by_the_sample_limit_says_so(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    """A recording that reaches the server's ``MCAM_MAX_VIDEO_SAMPLES`` before its
+    ``max_frames`` ends there. Before, the video job a later stop answered with held the
+    frames so far, its ``warnings`` []: nothing said the video ended early, nor why."""
+    start_recording(client, "cam1", decoder="itoh", options=OPTIONS, max_frames=100,
+                    max_samples=800)
+    for sequence in range(4):
+        recorder.add_frame(message(make_frame(size=16), 20 + sequence), f"{4000 + sequence}-0")
+    [warning] = queue.get(load_recording(client, "cam1").job).warnings
+    assert warning == (
+        "the recording ended by itself before the camera's frame 23: with it the video "
+        "would hold more than the server's limit of 800 code values (MCAM_MAX_VIDEO_SAMPLES; "
+        "3 frames of this size fit; record fewer frames at a time with max_frames, or raise "
+        "the limit): frames from then on are not in this video; start a new recording (POST "
+        "/v1/devices/cam1/recordings action=start) to record them"
+    )
+
+
 def test_a_start_is_refused_when_one_of_the_devices_frames_passes_its_sample_limit(
     client: redis.Redis,
 ) -> None:
