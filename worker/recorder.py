@@ -41,6 +41,7 @@ from models.frames import encode_frame
 from worker.frame_message import FrameMessage
 from worker.queue import JobQueue
 from worker.recording_texts import (
+    camera_rate_text,
     frames_change_text,
     missing_frames,
     no_frames_reason,
@@ -251,7 +252,7 @@ class Recorder:
              for i in range(recording.frames)]
         )
         options = {**recording.options, "keyframes": recording.keyframes}
-        fps = recording.camera_fps()
+        fps = recording.video_fps()
         if "fps" not in options and fps is not None:
             options["fps"] = fps
         params = SensorParams.model_validate_json(recording.params)
@@ -260,8 +261,8 @@ class Recorder:
         outputs = video_options(recording.decoder, options)[1]
         return self.queue.submit(
             "video", codes, params, recording.decoder, options, job_id=recording.id,
-            warnings=video_warnings([*missing, ended] if ended else missing, outputs,
-                                    codes.shape),
+            warnings=video_warnings([*missing, *_notes(ended, camera_rate_text(recording))],
+                                    outputs, codes.shape),
         ).id
 
 
@@ -296,6 +297,11 @@ def skipped_frames(recording: Recording, message: FrameMessage) -> dict[str, int
     if not 0 < skipped <= MAX_MISSING_PER_GAP:
         return {}
     return {"frames_skipped": recording.frames_skipped + skipped}
+
+
+def _notes(*texts: str | None) -> list[str]:
+    """The ``texts`` given (warnings of a video job), in order."""
+    return [text for text in texts if text]
 
 
 def _ended(recording: Recording, reason: str) -> dict[str, Any]:

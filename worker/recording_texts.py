@@ -14,6 +14,11 @@ from models.formation import SensorParams
 from worker.frame_message import FrameMessage
 from worker.recordings import Recording
 from worker.redis_keys import health_key
+from worker.video_output import FPS_RANGE
+
+#: How far above the fastest video rate a camera's measured rate may be before its
+#: recording's video warns that it plays slower than the camera (a clock's jitter).
+RATE_TOLERANCE = 1.01
 
 
 def no_frames_reason(client: redis.Redis, recording: Recording) -> str:
@@ -150,4 +155,20 @@ def _ended_early_text(recording: Recording, message: FrameMessage, why: str) -> 
         f"the recording ended by itself before the camera's frame {message.sequence}{why}: "
         "frames from then on are not in this video; start a new recording (POST "
         f"/v1/devices/{recording.device}/recordings action=start) to record them"
+    )
+
+
+def camera_rate_text(recording: Recording) -> str | None:
+    """That the camera ran faster than the fastest rate a video plays at
+    (:data:`FPS_RANGE`), so the video of a recording whose start named no ``fps`` plays
+    slower than the camera, and what to do: the warning its video job carries. None
+    otherwise."""
+    fps = recording.camera_fps()
+    fastest = FPS_RANGE[1]
+    if "fps" in recording.options or fps is None or fps <= fastest * RATE_TOLERANCE:
+        return None
+    return (
+        f"the camera ran at {fps:g} frames/s, faster than the {fastest:g} frames/s a "
+        f"video plays at: this video plays at {fastest:g} frames/s, {fps / fastest:.3g}x "
+        "slower than the camera; to choose its rate, give fps with action=start"
     )

@@ -194,14 +194,19 @@ class Recording:
 
     def camera_fps(self) -> float | None:
         """The camera's frame rate over the recording (frames per s, 4 significant
-        digits, within :data:`FPS_RANGE`): its sequence steps between consecutive recorded
-        frames (dropped frames count) over the device clock's time between them, leaving
-        out steps across a discontinuity (a reconnect, a camera restart). None before two
-        frames have measured it."""
+        digits): its sequence steps between consecutive recorded frames (dropped frames
+        count) over the device clock's time between them, leaving out steps across a
+        discontinuity (a reconnect, a camera restart). None before two frames have
+        measured it."""
         if self.camera_steps <= 0 or self.camera_span_ns <= 0:
             return None
-        fps = self.camera_steps * 1e9 / self.camera_span_ns
-        return float(f"{min(max(fps, FPS_RANGE[0]), FPS_RANGE[1]):.4g}")
+        return float(f"{self.camera_steps * 1e9 / self.camera_span_ns:.4g}")
+
+    def video_fps(self) -> float | None:
+        """The rate its video plays at when the start named no ``fps`` (frames per s):
+        :meth:`camera_fps` within :data:`FPS_RANGE`, the rates a video plays at."""
+        fps = self.camera_fps()
+        return None if fps is None else min(max(fps, FPS_RANGE[0]), FPS_RANGE[1])
 
     def view(self) -> dict[str, Any]:
         """The recording as JSON for the API (frame codes and stream cursors left out)."""

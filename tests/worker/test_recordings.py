@@ -62,7 +62,9 @@ def recorder(client: redis.Redis, store: ResultStore) -> Recorder:
 
 
 def message(frame: SensorFrame, sequence: int, discont: bool = False) -> FrameMessage:
-    return FrameMessage("cam1", sequence, sequence * 1000, frame.codes, frame.params, discont)
+    """A frame of a 10 frames/s camera."""
+    return FrameMessage("cam1", sequence, sequence * 100_000_000, frame.codes, frame.params,
+                        discont)
 
 
 def frames(make_frame, count: int) -> list[SensorFrame]:  # type: ignore[no-untyped-def]
@@ -552,6 +554,27 @@ def test_a_video_without_fps_plays_at_the_cameras_rate(
     recorder.add_frame(timed(clip[4], 1, 10**15 + step_ns), "1000-4")
     assert load_recording(client, "cam1").view()["camera_fps"] == 10.0
     assert stopped_job(client, recorder, queue).options["fps"] == 10.0
+
+
+def test_a_camera_faster_than_any_video_rate_is_shown_as_is_and_warned_of(
+    client: redis.Redis, recorder: Recorder, queue: JobQueue, make_frame
+) -> None:
+    """A camera may run at up to 10,000 frames/s, a video plays at up to 1000. Before,
+    a recording of a 2000 frames/s camera showed ``camera_fps`` 1000 and its video
+    played at half the camera's speed without a word. The recording now shows the
+    camera's rate, and the video (at 1000 frames/s) warns that it plays slower."""
+    clip = frames(make_frame, 3)
+    start(client)
+    for i, frame in enumerate(clip):
+        recorder.add_frame(timed(frame, 10 + i, i * 500_000), f"1000-{i}")  # 0.5 ms apart
+    assert load_recording(client, "cam1").view()["camera_fps"] == 2000.0
+    job = stopped_job(client, recorder, queue)
+    assert job.options["fps"] == 1000.0
+    assert job.warnings == [
+        "the camera ran at 2000 frames/s, faster than the 1000 frames/s a video plays at: "
+        "this video plays at 1000 frames/s, 2x slower than the camera; to choose its rate, "
+        "give fps with action=start"
+    ]
 
 
 def test_a_start_that_names_fps_keeps_it(
