@@ -1,7 +1,9 @@
 """What a live recording misses, and why, in the client's words: the error of a recording
-that got no frame (its daemon crashed, its port does not open), and the warnings of a video
-job that lacks frames (lost to the device's full frame stream, failed to decode, or never
-reached the stream). See :mod:`worker.recorder`, which ends recordings with them."""
+that got no frame (its daemon crashed, its port does not open, none came between the start
+and the stop), and the warnings of a video job that lacks frames (lost to the device's full
+frame stream, failed to decode, or never reached the stream; after the recording ended by
+itself on a change of the camera's settings or at the server's sample limit) or plays
+slower than its camera. See :mod:`worker.recorder`, which ends recordings with them."""
 
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ RATE_TOLERANCE = 1.01
 def no_frames_reason(client: redis.Redis, recording: Recording) -> str:
     """Why ``recording`` got no frame, none lost or failed: its daemon crashed (its
     health's ``state`` and ``crash``) or cannot open the camera's port (``port_error``),
-    or (:func:`no_frame_sent_text`) no frame reached the stream between its start and
+    or (:func:`_no_frame_sent_text`) no frame reached the stream between its start and
     stop."""
     device = recording.device
     state, crash, port_error = client.hmget(health_key(device), "state", "crash", "port_error")
@@ -38,10 +40,10 @@ def no_frames_reason(client: redis.Redis, recording: Recording) -> str:
             f"the daemon of device {device!r} cannot open its camera's port "
             f"({port_error.decode()})"
         )
-    return no_frame_sent_text(recording)
+    return _no_frame_sent_text(recording)
 
 
-def no_frame_sent_text(recording: Recording) -> str:
+def _no_frame_sent_text(recording: Recording) -> str:
     """That no frame reached the device's stream between the recording's start and stop
     (a worker finished it, so none waited unread), how long that was (s), and what to do:
     record for longer than one of the camera's frames, or get it streaming."""
