@@ -11,6 +11,8 @@ viewer's.
 
 from __future__ import annotations
 
+import re
+
 from starlette.exceptions import HTTPException
 from starlette.routing import BaseRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -20,6 +22,9 @@ from service.api.route_match import allowed_methods
 
 #: Path prefixes that belong to the API, not to the viewer's files.
 API_PREFIXES: tuple[str, ...] = ("/v1/", "/health/", "/metrics")
+#: A job-creating collection followed by one more segment: where a client looks for the
+#: job a POST made (``/v1/videos/{id}``), which lives at ``/v1/jobs/{id}``.
+JOB_GUESS = re.compile(r"^/v1/(?:reconstructions|videos)/([^/]+)/?$")
 
 
 def viewer_error(exc: HTTPException, scope: Scope) -> HTTPException:
@@ -77,8 +82,13 @@ class ViewerMount:
                 headers={"Allow": allow},
             )
         if path.startswith(API_PREFIXES) or path in ("/v1", "/health"):
-            raise ApiError(
-                404,
-                "not_found",
-                f"no API resource at {path}; the API's routes are listed at /docs",
-            )
+            raise ApiError(404, "not_found", miss_message(path))
+
+
+def miss_message(path: str) -> str:
+    """What a 404 under the API's prefixes says: where a job's status is, for a path
+    that looks for one under the collection that made it (:data:`JOB_GUESS`), and
+    where the API's routes are listed."""
+    guess = JOB_GUESS.match(path)
+    hint = f"; a job's status is at /v1/jobs/{guess.group(1)}" if guess else ""
+    return f"no API resource at {path}{hint}; the API's routes are listed at /docs"

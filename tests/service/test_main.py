@@ -89,6 +89,16 @@ def test_an_unknown_api_path_points_to_the_docs(api: str) -> None:
     assert reply.status_code == 404 and "/docs" in reply.json()["message"]
 
 
+@pytest.mark.parametrize("collection", ["videos", "reconstructions"])
+def test_a_job_looked_for_under_its_collection_is_pointed_to_jobs(
+    api: str, collection: str
+) -> None:
+    """A client that POSTed to /v1/videos looks for its job at /v1/videos/{id}."""
+    reply = httpx.get(f"{api}/v1/{collection}/abc123")
+    assert reply.status_code == 404
+    assert "a job's status is at /v1/jobs/abc123" in reply.json()["message"]
+
+
 def test_the_viewers_misses_are_told_in_words(api: str) -> None:
     missing = httpx.get(f"{api}/nope.js")
     assert missing.status_code == 404 and "no file /nope.js" in missing.json()["message"]
