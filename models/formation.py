@@ -456,14 +456,18 @@ def reconstruct(
 def max_winding(params: SensorParams) -> int | None:
     """Upper bound on ``W`` from the encoding and ``max_wraps``, six standard deviations
     of read and shot noise above it (shot noise is drawn after the ``max_wraps`` clip);
-    None when unbounded. Cached per (frozen) ``params``: a temporal step of a pan asks
+    None when unbounded, or bounded past ``MAX_WINDING / 2`` wraps (a modulo
+    ``max_wraps`` of 2^62 and more): :func:`encode` refuses a pixel wrapped that often,
+    and W compared with a bound past int64 raised OverflowError (guided graph cuts,
+    temporal decoding). Cached per (frozen) ``params``: a temporal step of a pan asks
     3-4 times a frame, at 0.1 ms each (2026-11-27, AMD EPYC)."""
     if params.encoding == "clip":
         return 0
     if params.max_wraps is None:
         return None
     u_max = float(to_unwrapped(np.array(params.max_wraps), params))
-    return int(np.floor(u_max + 6 * largest_noise_sigma(u_max, params)))
+    bound = np.floor(u_max + 6 * largest_noise_sigma(u_max, params))
+    return int(bound) if bound <= float(MAX_WINDING) / 2 else None
 
 
 def clip_winding(winding: NDArray[np.integer], params: SensorParams) -> NDArray[np.int64]:

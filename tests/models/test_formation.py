@@ -11,6 +11,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from models.decodable import check_decodable
+from models.decoders import get_decoder
 from models.errors import InvalidInputError, OutputOverflowError, OutputUnderflowError
 from models.exposure import check_not_black, exposure_gain, luminance
 from models.formation import (
@@ -547,6 +548,22 @@ def test_max_wraps_clips_x_and_bounds_w(encoding: str, top: int) -> None:
     assert frame.irradiance.max() == 16.0
     assert frame.winding.max() == top
     assert max_winding(params) == top
+
+
+@pytest.mark.parametrize("max_wraps", [2.0**63, 1e19, 1e300])
+@pytest.mark.parametrize("decoder", ["herraez+puma", "auto-best"])
+def test_a_max_wraps_past_int64_winding_numbers_bounds_no_decoding(
+    max_wraps: float, decoder: str
+) -> None:
+    """A modulo max_wraps of 2^63 or more made the bound a Python int past int64: the
+    guided graph cuts (``+puma``, auto at best) and temporal decoding raised
+    OverflowError on it, a job's internal error. No frame wraps that often (encode
+    refuses W past MAX_WINDING / 2), so it bounds nothing."""
+    params = SensorParams(encoding="modulo", max_wraps=max_wraps)
+    assert max_winding(params) is None
+    frame = encode(np.linspace(0.1, 6.0, 32 * 32).reshape(32, 32), params)
+    result = get_decoder(decoder).decode(frame.codes, params)
+    np.testing.assert_array_equal(result.winding, frame.winding)
 
 
 @PROPERTY
