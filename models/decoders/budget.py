@@ -161,10 +161,12 @@ class BudgetDecoder(Decoder):
         take at most :data:`JOIN_SHARE` of the budget; that and the predicted time of
         filling the clips in every channel that holds them (:func:`fill_model_ms`) are
         set aside, and the rest is shared among the channels: each gets the time left
-        divided by the channels left. The frame's facts (``budget``: the budget, whether
-        the channels were joined, the join's and the fill's predicted ms, the measured ms
-        of it all, whether the budget was met) come with
-        each channel's (``channels``) and the join's (``colour``, with the clips filled in
+        divided by the channels left, 0 once it is spent (a budget smaller than what is
+        set aside, or channels before that ran over, gave later channels a negative
+        budget, reported as theirs: -16.71 ms at auto-0.1ms). The frame's facts
+        (``budget``: the budget, whether the channels were joined, the join's and the
+        fill's predicted ms, the measured ms of it all, whether the budget was met) come
+        with each channel's (``channels``) and the join's (``colour``, with the clips filled in
         every channel that holds them first, :func:`models.decoders.filling.filled_then_joined`).
         A frame without pixels is refused before anything is calibrated."""
         refuse_empty(planes)
@@ -180,7 +182,7 @@ class BudgetDecoder(Decoder):
         windings, channels = [], []
         for channel in range(planes.shape[2]):
             left_ms = channels_ms - (time.perf_counter_ns() - start) / 1e6
-            share_ms = left_ms / (planes.shape[2] - channel)
+            share_ms = max(left_ms, 0.0) / (planes.shape[2] - channel)
             winding, facts = self.explain_within(planes[:, :, channel], params, share_ms)
             windings.append(winding)
             channels.append(facts)

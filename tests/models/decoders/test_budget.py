@@ -191,7 +191,7 @@ def test_a_colour_frame_shares_the_budget_among_its_channels(budget_ms: float) -
     )
     for index, channel in enumerate(channels):
         spent = sum(c["budget"]["measured_ms"] for c in channels[:index])
-        assert channel["budget"]["budget_ms"] <= (shared - spent) / (3 - index) + 0.01
+        assert channel["budget"]["budget_ms"] <= max(shared - spent, 0.0) / (3 - index) + 0.01
     assert channels[0]["budget"]["budget_ms"] == pytest.approx(shared / 3, abs=0.05)
     assert frame["measured_ms"] >= sum(c["budget"]["measured_ms"] for c in channels)
     # "met" compares the exact time; the reported one is rounded to 0.01 ms.
@@ -199,6 +199,21 @@ def test_a_colour_frame_shares_the_budget_among_its_channels(budget_ms: float) -
         assert frame["measured_ms"] <= budget_ms + 0.005
     else:
         assert frame["measured_ms"] >= budget_ms - 0.005
+
+
+def test_a_spent_budget_leaves_the_channels_no_time_not_a_negative_budget() -> None:
+    """A budget smaller than the fill set aside for a colour frame left each channel a
+    negative share, reported (GET /v1/jobs/{id}, mcam reconstruct) as its budget: -0.84,
+    -4.48 and -16.71 ms on a 256 x 256 frame at auto-0.1ms. A spent budget is 0 ms, and
+    each channel runs the quickest option."""
+    codes, params = colour_frame()
+    result = BudgetDecoder(0.1).decode(codes, params)
+    assert result.info["budget"]["fill_predicted_ms"] > 0.1
+    for channel in result.info["channels"]:
+        facts = channel["budget"]
+        assert facts["budget_ms"] == 0.0
+        assert not facts["predicted_to_fit"]
+        assert facts["chosen"] == min(facts["predicted_ms"], key=facts["predicted_ms"].get)
 
 
 def test_a_generous_budget_decodes_a_colour_frame_like_auto_best() -> None:
