@@ -135,21 +135,48 @@ def exposure_gain(scene: NDArray[np.floating], overexposed: float) -> float:
 
 
 def check_not_black(frame: SensorFrame) -> None:
-    """Refuse a simulated frame whose every code and W is 0 although the scene it saw is not
-    black: every pixel lies under one code step (``2^-bits`` wrap units), so the frame holds
-    nothing of the scene; the error gives the smallest gain that lifts the brightest pixel
-    to one step."""
+    """Refuse a simulated frame whose every code is 0 although the scene it saw is not
+    black: every pixel stores a fraction ``m`` under one code step (``2^-bits`` wraps),
+    below the first wrap or just past a later one (the pixels an ``overexposed`` fraction
+    puts exactly at ``x = 1``, when they share one luminance, store ``m = 0``), so the
+    frame holds nothing of the scene; the error gives the smallest gain that lifts a
+    pixel to one step (:func:`_least_lifting_gain`)."""
     brightest = float(frame.irradiance.max())
-    if brightest <= 0 or frame.codes.any() or frame.winding.any():
+    if brightest <= 0 or frame.codes.any():
         return
-    step = 2.0**-frame.params.bits
+    bits = frame.params.bits
+    step = 2.0**-bits
     gain = frame.params.gain if frame.params.gain is not None else 1.0
-    with np.errstate(over="ignore"):
-        least = gain * (step / brightest)
+    least = _least_lifting_gain(frame, gain, step)
     raise_to = f" to at least {least:.4g}" if np.isfinite(least) else ""
-    raise InvalidInputError(
-        f"every pixel quantises to code 0 (the brightest is x = {brightest:.4g} wrap units, "
-        f"under one {frame.params.bits}-bit code step of {step:.4g}, at gain {gain:.4g}): "
-        f"raise the gain{raise_to}, or let overexposed set it (e.g. 0.01; --gain and "
-        "--overexposed on the command line)"
+    wrapped = int(np.count_nonzero(frame.winding))
+    where = (
+        f"the brightest is x = {brightest:.4g} wrap units, under one {bits}-bit code step "
+        f"of {step:.4g}"
+        if not wrapped
+        else f"{wrapped} pixels lie just past a wrap, x = {brightest:.4g} at the brightest, "
+        f"and store a fraction under one {bits}-bit code step of {step:.4g}, as the rest do"
     )
+    raise InvalidInputError(
+        f"every pixel quantises to code 0 ({where}, at gain {gain:.4g}): raise the gain"
+        f"{raise_to}, or let overexposed set it (e.g. 0.01; --gain and --overexposed on the "
+        "command line)"
+    )
+
+
+def _least_lifting_gain(frame: SensorFrame, gain: float, step: float) -> float:
+    """The smallest gain at which a pixel of ``frame`` (taken at ``gain``) that is lit
+    and not clipped at ``max_wraps`` stores one code step ``step`` past its wrap
+    ``W``: ``u = W + step``, ``x = u`` (``alpha^(u - 1)`` for mantissa from ``u = 1``);
+    inf when no pixel can be lifted."""
+    params = frame.params
+    x = frame.irradiance
+    top = np.inf if params.max_wraps is None else params.max_wraps
+    liftable = (x > 0) & (x < top)
+    target = frame.winding[liftable] + step
+    if params.encoding == "mantissa":
+        with np.errstate(over="ignore"):
+            target = np.where(target >= 1.0, params.alpha ** (target - 1.0), target)
+    with np.errstate(over="ignore"):
+        factors = gain * (target / x[liftable])
+    return float(factors.min(initial=np.inf))

@@ -657,6 +657,21 @@ def test_a_simulated_frame_of_a_lit_scene_under_one_code_step_is_refused() -> No
     check_not_black(simulate(np.full((2, 2), 1 / 256), SensorParams(bits=8, gain=1.0)))
 
 
+@pytest.mark.parametrize("encoding", ["modulo", "mantissa"])
+def test_a_simulated_frame_of_pixels_just_past_a_wrap_is_refused(encoding: str) -> None:
+    """overexposed 0.001 on 16 equal bright pixels (the rest black) put them exactly at
+    x = 1, where they store m = 0: every code was 0 and the frame said nothing of the
+    scene, yet it was written, since only a frame whose W was 0 everywhere too was
+    refused. The error gives the gain that lifts them a code step past the wrap."""
+    scene = np.zeros((64, 64))
+    scene[:4, :4] = 1e30
+    frame = simulate(scene, SensorParams(encoding=encoding, bits=8), overexposed=0.001)
+    assert not frame.codes.any() and frame.winding.any()
+    message = r"code 0 \(16 pixels lie just past a wrap.* gain to at least 1\.00[0-9]*e-30"
+    with pytest.raises(InvalidInputError, match=message):
+        check_not_black(frame)
+
+
 @pytest.mark.parametrize(
     ("params", "dtype", "error"),
     [
