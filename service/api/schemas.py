@@ -155,6 +155,33 @@ QUEUE_REFUSALS = (
     "the queue (Redis) is unreachable (queue_unavailable) or full: queue_full (MCAM_JOBS_MAXLEN "
     "jobs, or MCAM_JOBS_MAX_BYTES of codes, queued) or store_full (Redis at its maxmemory)"
 )
+
+
+def stored_file_responses(which: str) -> dict[int | str, dict[str, Any]]:
+    """The answers besides 200 of a route sending ``which`` (a file as stored:
+    :func:`service.api.downloads.stored_file`) to Range and conditional requests (RFC 9110
+    13-15); the OpenAPI document named none of them, so a client generated from it knew
+    of no 206 or 304."""
+    return {
+        206: {"description": f"{which}: the byte ranges the Range header asked for "
+              "(Content-Range; several ranges: multipart/byteranges)"},
+        304: {"description": f"{which}: not modified, no body: If-None-Match names its "
+              "ETag, or If-Modified-Since is no earlier than its Last-Modified"},
+        400: error_response(
+            f"{which}: bad_range: the Range header is malformed; ask for bytes=FIRST-LAST, "
+            "bytes=FIRST- or bytes=-LENGTH, or send none for the whole file"
+        ),
+        412: error_response(
+            f"{which}: precondition_failed: If-Match or If-Unmodified-Since names another "
+            "version of the file (its ETag is in the answer); fetch it again whole, without them"
+        ),
+        416: error_response(
+            f"{which}: range_not_satisfiable: no range of the Range header lies in the file "
+            "(its size is in Content-Range); ask for bytes within it"
+        ),
+    }
+
+
 #: The 422 of a route that writes a result in the format asked for.
 CANNOT_HOLD = error_response(
     "invalid parameters, or format_cannot_hold_result: the output format asked for cannot "

@@ -25,6 +25,7 @@ from service.api.schemas import (
     SMALL_BODY_ERRORS,
     WRITE_REFUSED,
     error_response,
+    stored_file_responses,
 )
 from service.api.state import ServiceState
 from worker.control_queue import queue_command
@@ -172,8 +173,9 @@ def frame_preview(state: ServiceState, key: str, exposure: float, stem: str) -> 
     return download(tonemap_png(x, exposure), "png", stem)
 
 
-@router.get("/{device_id}/frames/latest", responses={**DEVICE_ERRORS, 404: _NO_FRAME,
-                                                      503: _PREVIEW_BUSY},
+@router.get("/{device_id}/frames/latest",
+            responses={**stored_file_responses("the EXR (format=exr; the PNG is sent whole)"),
+                       **DEVICE_ERRORS, 404: _NO_FRAME, 503: _PREVIEW_BUSY},
             summary="The newest reconstructed frame: EXR, or a tonemapped PNG preview")
 async def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
                        format: Literal["exr", "png"] = "exr",

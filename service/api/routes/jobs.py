@@ -36,6 +36,7 @@ from service.api.schemas import (
     JobView,
     error_response,
     job_view,
+    stored_file_responses,
     video_outputs_made,
 )
 from service.api.state import ServiceState
@@ -217,6 +218,7 @@ def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
             "job_cancelled (no result will come); video_job: a video's files come from "
             "/v1/videos/{id}/result"
         ),
+        **stored_file_responses("the EXR (part=image, format=exr; the others are sent whole)"),
         **JOB_ERRORS,
         422: CANNOT_HOLD,
         503: error_response(

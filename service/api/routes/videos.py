@@ -27,6 +27,7 @@ from service.api.schemas import (
     JobAccepted,
     accepted_response,
     error_response,
+    stored_file_responses,
     upload_body,
 )
 from service.api.state import ServiceState
@@ -193,6 +194,7 @@ async def post_video(
             "not a video (not_a_video_job) or does not make that output (output_not_made); "
             "the last two also while it is queued or running"
         ),
+        **stored_file_responses("the file"),
         **JOB_ERRORS,
     },
 )

@@ -80,6 +80,21 @@ ANSWERED = [
     ("delete", "/v1/jobs/{job_id}", "503", "store_full"),
     ("delete", "/v1/devices/{device_id}", "503", "store_full"),
     ("post", "/v1/devices/{device_id}/recordings", "503", "store_full"),
+    *[
+        ("get", path, status, words)
+        for path in (
+            "/v1/jobs/{job_id}/result",
+            "/v1/videos/{job_id}/result",
+            "/v1/devices/{device_id}/frames/latest",
+        )
+        for status, words in (
+            ("206", "Range"),
+            ("304", "If-None-Match"),
+            ("400", "bad_range"),
+            ("412", "precondition_failed"),
+            ("416", "range_not_satisfiable"),
+        )
+    ],
 ]
 #: Codes a route's document named although the route can never answer them.
 NEVER_ANSWERED = [
@@ -106,7 +121,9 @@ def test_the_openapi_names_each_error_a_route_answers(
     """A route's responses merged from shared dicts lost the route's own words (the
     recordings' 404, the control's 503); the JSON routes' 413 ``body_too_large`` and the
     control's 400 were not documented, nor ``queue_full``, ``device_busy`` and
-    ``job_finished`` named; the newest frame's 404 said only "no such device"."""
+    ``job_finished`` named; the newest frame's 404 said only "no such device"; the file
+    routes named none of their answers to Range and conditional requests (206, 304,
+    ``bad_range``, ``precondition_failed``, ``range_not_satisfiable``)."""
     assert words in _description(settings, method, path, status)
 
 
