@@ -15,6 +15,7 @@ import redis
 from fastapi import Depends, Query, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from models.errors import InvalidInputError
 from service.api.errors import ApiError
 from service.api.state import ServiceState
 from service.core.config import Settings
@@ -112,5 +113,22 @@ SubmitKey = Annotated[ApiKey, Depends(require("submit"))]
 
 #: A preview's exposure in EV, finite (``nan`` was refused as "less than or equal to 30").
 Exposure = Annotated[
-    float, Query(ge=-30, le=30, allow_inf_nan=False, description="EV of the image preview")
-]
+    float,
+    Query(
+        ge=-30, le=30, allow_inf_nan=False,
+        description="EV of the PNG preview (format=png; any other file refuses it)",
+    ),
+]  # fmt: skip
+
+
+def refuse_unused_exposure(request: Request, asked: str, preview: str) -> None:
+    """422 ``invalid_input`` when the query gives ``exposure`` but asks (``asked``, e.g.
+    ``part=winding&format=npy``) for another file than the tonemapped ``preview`` (e.g.
+    ``format=png``), which alone it shapes: ``?exposure=2`` alone got the EXR, unchanged,
+    as if it had not been given."""
+    if asked != preview and "exposure" in request.query_params:
+        raise InvalidInputError(
+            f"exposure sets the EV of the tonemapped preview ({preview}) only, and this asks "
+            f"for {asked}, which it does not change; ask for {preview} with it, or leave "
+            "exposure out"
+        )

@@ -8,13 +8,13 @@ import time
 from typing import Annotated, Any, Literal
 
 import redis
-from fastapi import APIRouter, Body, Response
+from fastapi import APIRouter, Body, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from device.commands import Command, command_fields
 from device.health import ALL_DROP_CAUSES, ENDED_STATES
 from models.hdr_io import read_hdr
-from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
+from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey, refuse_unused_exposure
 from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.in_turn import decode_in_turn
@@ -177,11 +177,13 @@ def frame_preview(state: ServiceState, key: str, exposure: float, stem: str) -> 
             responses={**stored_file_responses("the EXR (format=exr; the PNG is sent whole)"),
                        **DEVICE_ERRORS, 404: _NO_FRAME, 503: _PREVIEW_BUSY},
             summary="The newest reconstructed frame: EXR, or a tonemapped PNG preview")
-async def latest_frame(device_id: str, state: StateDep, _key: ReadKey,
+async def latest_frame(device_id: str, request: Request, state: StateDep, _key: ReadKey,
                        format: Literal["exr", "png"] = "exr",
                        exposure: Exposure = 0.0) -> Response:
-    """The EXR is streamed as stored; the PNG is made in the API's memory, a few at a
-    time (``MCAM_MAX_CONCURRENT_DECODES``, shared with uploads and job previews)."""
+    """The EXR is streamed as stored; the PNG (tonemapped at ``exposure`` EV, which the
+    EXR refuses) is made in the API's memory, a few at a time
+    (``MCAM_MAX_CONCURRENT_DECODES``, shared with uploads and job previews)."""
+    refuse_unused_exposure(request, f"format={format}", "format=png")
     device, key = await run_in_threadpool(latest_result, state, device_id)
     stem = f"{device}-latest"
     if format == "exr":

@@ -6,7 +6,7 @@ import io
 from typing import Annotated, Literal
 
 import numpy as np
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse
 from numpy.typing import NDArray
 from starlette.concurrency import run_in_threadpool
@@ -16,7 +16,7 @@ from models.formation import encode
 from models.frames import encode_frame, frame_format
 from models.hdr_io import read_hdr
 from models.winding_files import decode_winding
-from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey
+from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey, refuse_unused_exposure
 from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
 from service.api.errors import ApiError
 from service.api.idempotency import job_by_key
@@ -228,6 +228,7 @@ def get_job(job_id: str, state: StateDep, _: ReadKey) -> JobView:
 )
 async def get_result(
     job_id: str,
+    request: Request,
     state: StateDep,
     _: ReadKey,
     part: Annotated[
@@ -238,17 +239,18 @@ async def get_result(
     ] = None,
     exposure: Exposure = 0.0,
 ) -> Response:
-    """``image`` as EXR (``png``: tonemapped at ``exposure`` EV), ``winding`` as npy/tiff
-    (``png``: colour-coded), ``codes`` re-encoded (``png``: 8-bit), ``histogram``: log10
-    luminance counts. All but the EXR are made in the API's memory, a few at a time
-    (``MCAM_MAX_CONCURRENT_DECODES``, shared with uploads: 503 ``server_busy`` past
-    ``MCAM_DECODE_WAIT_S``)."""
+    """``image`` as EXR (``png``: tonemapped at ``exposure`` EV, which any other file
+    refuses), ``winding`` as npy/tiff (``png``: colour-coded), ``codes`` re-encoded
+    (``png``: 8-bit), ``histogram``: log10 luminance counts. All but the EXR are made
+    in the API's memory, a few at a time (``MCAM_MAX_CONCURRENT_DECODES``, shared with
+    uploads: 503 ``server_busy`` past ``MCAM_DECODE_WAIT_S``)."""
     allowed = PART_FORMATS[part]
     fmt = format or allowed[0]
     if fmt not in allowed:
         raise InvalidInputError(
             f"part {part!r} comes as {', '.join(allowed)}, not {fmt!r}; pick one of those"
         )
+    refuse_unused_exposure(request, f"part={part}&format={fmt}", "part=image&format=png")
     record = await run_in_threadpool(still_record, state, job_id)
     if part == "image" and fmt == "exr":
         return await run_in_threadpool(stored_exr, state, record)

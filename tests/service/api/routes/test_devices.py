@@ -173,15 +173,11 @@ def test_commands_for_a_stopped_daemon_are_refused_past_the_backlog(
     assert redis_client.xlen(control_stream("idle")) == CONTROL_BACKLOG
 
 
-def test_the_live_preview_shares_the_job_previews_wrap_units(
-    settings: Settings, client: Callable[..., httpx.Client]
-) -> None:
-    """Device frames are stored scene-referred (x / gain): the PNG preview multiplies the
-    gain back, as a job's preview does, so the one exposure slider means the same on
-    both (a gain-8 camera looked 3 EV darker live)."""
+def store_latest_frame(settings: Settings, params: SensorParams, size: int) -> bytes:
+    """Store a ``size`` x ``size`` ramp decoded as device cam9's newest frame, as its
+    worker would; the EXR's bytes."""
     assert settings.redis_url is not None
-    params = SensorParams(encoding="modulo", bits=8, gain=8.0)
-    codes = simulate(np.linspace(0, 3, 64 * 64).reshape(64, 64), params).codes
+    codes = simulate(np.linspace(0, 3, size * size).reshape(size, size), params).codes
     decoded = get_decoder("itoh").decode(codes, params)
     exr = encode_exr_result(codes, decoded.winding, params, decoded.info, {})
     key = "devices/cam9/000000000001-1-0.exr"
@@ -189,10 +185,34 @@ def test_the_live_preview_shares_the_job_previews_wrap_units(
     redis_client = connect(settings.redis_url)
     redis_client.sadd(DEVICES_SET, "cam9")
     redis_client.set(latest_key("cam9"), key)
+    return exr
+
+
+def test_the_live_preview_shares_the_job_previews_wrap_units(
+    settings: Settings, client: Callable[..., httpx.Client]
+) -> None:
+    """Device frames are stored scene-referred (x / gain): the PNG preview multiplies the
+    gain back, as a job's preview does, so the one exposure slider means the same on
+    both (a gain-8 camera looked 3 EV darker live)."""
+    exr = store_latest_frame(settings, SensorParams(encoding="modulo", bits=8, gain=8.0), 64)
     png = client(READ_KEY).get("/v1/devices/cam9/frames/latest", params={"format": "png"})
     assert png.status_code == 200, png.text
     shown = np.asarray(Image.open(io.BytesIO(png.content)))
     np.testing.assert_array_equal(shown, srgb8(read_hdr(exr).pixels * 8.0))
+
+
+def test_an_exposure_for_the_newest_exr_is_refused(
+    settings: Settings, client: Callable[..., httpx.Client]
+) -> None:
+    """``frames/latest?exposure=2`` got the EXR, unchanged, as if the exposure had not
+    been given: the client meant the tonemapped preview, which ``format=png`` gives."""
+    store_latest_frame(settings, SensorParams(encoding="modulo", bits=8, gain=1.0), 16)
+    http, latest = client(READ_KEY), "/v1/devices/cam9/frames/latest"
+    for params in ({"exposure": "2"}, {"format": "exr", "exposure": "0"}):
+        reply = http.get(latest, params=params)
+        assert reply.status_code == 422, (params, reply.text)
+        assert "ask for format=png with it" in reply.json()["message"]
+    assert http.get(latest, params={"format": "png", "exposure": "2"}).status_code == 200
 
 
 def test_the_live_preview_is_made_in_turn(tmp_path: Path, redis_url: str) -> None:
@@ -200,16 +220,7 @@ def test_the_live_preview_is_made_in_turn(tmp_path: Path, redis_url: str) -> Non
     job's preview does: it takes a turn of MCAM_MAX_CONCURRENT_DECODES (503 server_busy
     with Retry-After past MCAM_DECODE_WAIT_S); the EXR itself is streamed without one."""
     settings = make_settings(tmp_path, redis_url, max_concurrent_decodes=1, decode_wait_s=0)
-    params = SensorParams(encoding="modulo", bits=8, gain=1.0)
-    codes = simulate(np.linspace(0, 3, 16 * 16).reshape(16, 16), params).codes
-    decoded = get_decoder("itoh").decode(codes, params)
-    key = "devices/cam9/000000000001-1-0.exr"
-    ResultStore(settings.data_dir / RESULTS_DIR, settings.result_retention_s).write(
-        key, encode_exr_result(codes, decoded.winding, params, decoded.info, {})
-    )
-    redis_client = connect(redis_url)
-    redis_client.sadd(DEVICES_SET, "cam9")
-    redis_client.set(latest_key("cam9"), key)
+    store_latest_frame(settings, SensorParams(encoding="modulo", bits=8, gain=1.0), 16)
     app = create_app(settings)
     with serve(app) as url:
         latest = f"{url}/v1/devices/cam9/frames/latest"

@@ -189,6 +189,27 @@ def test_bad_result_queries(client: Client, worker: Worker, params: dict, status
         assert "finite number" in reply.text
 
 
+def test_an_exposure_for_a_file_it_does_not_shape_is_refused(
+    client: Client, worker: Worker
+) -> None:
+    """``?exposure=2`` alone got the EXR, unchanged, as if it had not been given (and so
+    did an exposure with the W map, the codes or the histogram): the client meant the
+    tonemapped preview, which only ``format=png`` of the image gives."""
+    url = f"/v1/jobs/{reconstructed_job(client())['id']}/result"
+    for params in (
+        {"exposure": "2"},
+        {"format": "exr", "exposure": "0"},
+        {"part": "winding", "exposure": "-1"},
+        {"part": "codes", "format": "png", "exposure": "1"},
+        {"part": "histogram", "exposure": "1"},
+    ):
+        reply = client().get(url, params=params)
+        assert reply.status_code == 422, (params, reply.text)
+        assert reply.json()["code"] == "invalid_input"
+        assert "ask for part=image&format=png with it" in reply.json()["message"]
+    assert client().get(url, params={"format": "png", "exposure": "2"}).status_code == 200
+
+
 def test_queued_job_has_no_result_and_can_be_cancelled(client: Client) -> None:
     data, _ = frame_png()
     job = client(SUBMIT_KEY).post("/v1/reconstructions", files={"file": ("f.png", data)}).json()
