@@ -10,6 +10,7 @@ show a traceback.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import signal
@@ -77,6 +78,15 @@ def setting_problem(error: ErrorDetails) -> str:
     return f"MCAM_{name.upper()}={error.get('input')!r}: {error['msg']}"
 
 
+#: What to do, by ``errno``, about a path on a filesystem that takes no more writes
+#: (the data dir of ``mcam serve`` on a read-only mount or a full disk, an output file).
+FILESYSTEM_REMEDIES: dict[int | None, str] = {
+    errno.EROFS: "; choose a path on a writable filesystem (or remount it read-write)",
+    errno.ENOSPC: "; free space on its disk or choose a path on another disk",
+    errno.EDQUOT: "; free space within your disk quota or choose a path on another disk",
+}
+
+
 def file_problem(exc: OSError) -> str:
     """One line for a file the command could not read or write, saying what to change."""
     if exc.filename is None:
@@ -91,7 +101,7 @@ def file_problem(exc: OSError) -> str:
         return f"{path} is a folder; give the path of a file (in it or elsewhere)"
     if isinstance(exc, PermissionError):
         return f"permission denied: {path}; choose a path you may read or write"
-    return f"cannot use {path}: {exc.strerror or exc}"
+    return f"cannot use {path}: {exc.strerror or exc}{FILESYSTEM_REMEDIES.get(exc.errno, '')}"
 
 
 #: Exit status of a command whose output's reader went away (128 + SIGPIPE, as a shell

@@ -45,6 +45,23 @@ def test_file_problem_says_what_to_change(error: OSError, expected: str) -> None
     assert expected in line and "\n" not in line
 
 
+@pytest.mark.parametrize(
+    ("error", "remedy"),
+    [
+        (OSError(errno.EROFS, "Read-only file system", "/mnt/ro/data"), "writable filesystem"),
+        (OSError(errno.ENOSPC, "No space left on device", "/mnt/full/data"), "free space"),
+        (OSError(errno.EDQUOT, "Disk quota exceeded", "/home/u/data"), "disk quota"),
+    ],
+    ids=["read-only", "full", "quota"],
+)
+def test_a_filesystem_taking_no_writes_is_told_what_to_do(error: OSError, remedy: str) -> None:
+    """A data dir on a read-only mount stopped `mcam serve` with "cannot use /mnt/ro/data:
+    Read-only file system", which said nothing of what to do."""
+    line = file_problem(error)
+    assert line.startswith(f"cannot use {error.filename}: {error.strerror}; ")
+    assert remedy in line
+
+
 def test_a_link_names_the_path_it_creates(tmp_path: Path) -> None:
     link = tmp_path / "missing" / "cam"
     with pytest.raises(FileNotFoundError) as caught:
