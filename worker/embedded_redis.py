@@ -240,7 +240,24 @@ class EmbeddedRedis:
         return Path(tempfile.gettempdir()) / f"mcam-redis-{digest}" / "redis.sock"
 
     def _write_config(self) -> Path:
+        """Write ``redis.conf`` for the server about to start, or refuse with
+        :class:`RedisStartError`: a bare ``OSError`` stopped ``mcam serve`` on a full
+        disk with "No space left on device" alone (no path, no remedy), and ended the
+        ``keep_alive`` watcher with a traceback, so a server that died while its disk was
+        full or read-only was never restarted, even once the disk was writable again."""
         config = self.dir / "redis.conf"
+        try:
+            self._write_config_to(config)
+        except OSError as exc:
+            raise RedisStartError(
+                f"cannot write the embedded Redis's configuration {config} "
+                f"({exc.strerror or exc}): free space on the data dir's disk or make it "
+                "writable, or move MCAM_DATA_DIR to a writable disk with room"
+            ) from None
+        return config
+
+    def _write_config_to(self, config: Path) -> None:
+        """Write the server's configuration to the file ``config``."""
         config.write_text(
             "\n".join(
                 [
@@ -259,7 +276,6 @@ class EmbeddedRedis:
             )
             + "\n"
         )
-        return config
 
     def start(self) -> str:
         """Start the server, wait until it answers PING, return its URL."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import signal
@@ -10,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -79,6 +81,65 @@ def test_a_kept_alive_server_that_dies_is_restarted_with_its_data(tmp_path: Path
     assert server.pid is None and server.restarts == 1 and not server.socket.exists()
     with pytest.raises(ProcessLookupError):
         os.kill(second, 0)
+
+
+class RefusedConfig:
+    """Makes writes of a ``redis.conf`` fail with ``error`` while :attr:`on` (a full or
+    read-only disk), counting the refusals; other files are written as usual."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, error: OSError) -> None:
+        self.on = True
+        self.refusals = 0
+        write_text = Path.write_text
+
+        def refusing(path: Path, *args: Any, **kwargs: Any) -> int:
+            if self.on and path.name == "redis.conf":
+                self.refusals += 1
+                raise error
+            return write_text(path, *args, **kwargs)
+
+        monkeypatch.setattr(Path, "write_text", refusing)
+
+
+def test_a_full_disk_at_start_names_the_file_and_what_to_do(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A full disk raised the bare OSError of the write, which has no file name: `mcam
+    serve` said "error: No space left on device" alone."""
+    RefusedConfig(monkeypatch, OSError(errno.ENOSPC, "No space left on device"))
+    server = EmbeddedRedis(tmp_path)
+    with pytest.raises(RedisStartError) as caught:
+        server.start()
+    message = caught.value.message
+    assert str(tmp_path / "redis" / "redis.conf") in message
+    assert "No space left on device" in message and "free space" in message
+    assert server.pid is None
+    EmbeddedRedis(tmp_path)._own_the_dir()  # the refused start let go of the data dir
+
+
+def test_a_server_that_died_on_an_unwritable_disk_is_restarted_once_it_is_writable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The watcher's restart failing to write redis.conf ended the watcher thread with a
+    traceback, and the server was never restarted: the service stayed down for good."""
+    server = EmbeddedRedis(tmp_path, keep_alive=True)
+    client = connect(server.start())
+    client.set("accepted", "job")
+    first = server.pid
+    assert first is not None
+    refused = RefusedConfig(monkeypatch, OSError(errno.EROFS, "Read-only file system"))
+    os.kill(first, signal.SIGKILL)
+    deadline = time.monotonic() + 20
+    while refused.refusals < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert refused.refusals >= 1 and server.restarts == 0
+    refused.on = False
+    while server.restarts == 0 and time.monotonic() < deadline + 20:
+        time.sleep(0.05)
+    try:
+        assert server.restarts == 1 and client.get("accepted") == b"job"
+    finally:
+        server.stop()
 
 
 def test_long_data_dir_uses_a_short_socket_path(tmp_path: Path) -> None:
