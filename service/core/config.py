@@ -6,6 +6,7 @@ CLI reads them and passes plain values into ``worker/`` and ``device/``.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import logging
 import os
@@ -306,6 +307,24 @@ class Settings(BaseSettings):
             "0.0.0.0 or '::': every interface), or leave it out for 127.0.0.1"
         )
 
+    @field_validator("data_dir", "accuracy_report")
+    @classmethod
+    def _home_expanded(cls, value: Path | None) -> Path | None:
+        """A path beginning ``~`` or ``~user`` is in that home folder, as a shell reads
+        it: ``.env``, docker's ``env_file`` and systemd's ``EnvironmentFile`` pass it on
+        as it is, and ``MCAM_DATA_DIR=~/data`` put the data in a folder named ``~`` of
+        the working folder, while ``mcam serve`` said the key was stored in
+        ``~/data/api_keys``."""
+        if value is None:
+            return None
+        try:
+            return value.expanduser()
+        except RuntimeError:
+            raise ValueError(
+                f"begins with {value.parts[0]!r}, the home of no user of this machine: "
+                "give the folder's full path"
+            ) from None
+
     @field_validator("redis_url")
     @classmethod
     def _usable_redis_url(cls, value: str | None) -> str | None:
@@ -499,15 +518,26 @@ def overridden_settings(environ: Mapping[str, str], bindings: list[Binding]) -> 
 
 def same_value(name: str, first: str, second: str | None) -> bool:
     """Whether ``first`` and ``second``, values of the ``MCAM_*`` variable ``name``, mean
-    the same; paths are compared resolved (``mcam serve`` gives its workers the data
-    dir's absolute path, where ``.env`` may name it relative to the working folder)."""
+    the same; paths are compared as the paths they mean (``mcam serve`` gives its
+    workers the data dir's absolute path, where ``.env`` may name it relative to the
+    working folder or its home, ``~/data``)."""
     if first == second:
         return True
     field = Settings.model_fields.get(name.upper().removeprefix(PREFIX).lower())
     annotation = None if field is None else field.annotation
     if second is None or Path not in (annotation, *get_args(annotation)):
         return False
-    return Path(first).resolve() == Path(second).resolve()
+    return meant_path(first) == meant_path(second)
+
+
+def meant_path(text: str) -> Path:
+    """The absolute path a path setting's value ``text`` means: ``~`` or ``~user`` at its
+    start expanded as :meth:`Settings._home_expanded` does (left as it is where it names
+    no user, which the setting itself refuses), resolved against the working folder."""
+    path = Path(text)
+    with contextlib.suppress(RuntimeError):
+        path = path.expanduser()
+    return path.resolve()
 
 
 @cache

@@ -63,6 +63,43 @@ def test_an_empty_variable_is_unset(monkeypatch: pytest.MonkeyPatch, tmp_path: P
     assert Settings() == defaults
 
 
+def test_a_path_in_a_home_folder_is_read_as_a_shell_reads_it(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """MCAM_DATA_DIR=~/data in .env (no shell to expand it) put the data in a folder named
+    '~' of the working folder, while mcam serve said the key was stored in ~/data."""
+    home = tmp_path / "home"
+    (home / "bench").mkdir(parents=True)
+    shutil.copy(Path(__file__).parents[3] / "bench" / "results" / "accuracy.json", home / "bench")
+    monkeypatch.setenv("HOME", str(home))
+    (tmp_path / ".env").write_text(
+        "MCAM_DATA_DIR=~/data\nMCAM_ACCURACY_REPORT=~/bench/accuracy.json\n"
+    )
+    settings = Settings()
+    assert settings.data_dir == home / "data"
+    assert settings.accuracy_report == home / "bench" / "accuracy.json"
+
+
+@pytest.mark.usefixtures("fresh_settings")
+def test_mcam_serve_giving_its_workers_the_home_data_dir_is_not_warned_of(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """mcam serve gives its workers the data dir's absolute path: with ~/data in .env each
+    worker warned that MCAM_DATA_DIR was set both there and in the environment."""
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    (tmp_path / ".env").write_text("MCAM_DATA_DIR=~/data\n")
+    monkeypatch.setenv("MCAM_DATA_DIR", str(tmp_path / "home" / "data"))
+    with caplog.at_level(logging.WARNING, logger="service.core.config"):
+        assert get_settings().data_dir == tmp_path / "home" / "data"
+    assert not caplog.records
+
+
+def test_the_home_of_no_user_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MCAM_DATA_DIR", "~no-such-user-of-mcam/data")
+    with pytest.raises(ValidationError, match="the home of no user of this machine"):
+        Settings()
+
+
 @pytest.mark.parametrize(
     ("name", "value"),
     [("MCAM_PORT", "70000"), ("MCAM_WORKER_THREADS", "0"), ("MCAM_HEARTBEAT_S", "-1"),
