@@ -299,9 +299,12 @@ class Settings(BaseSettings):
     def _named_host(cls, value: str) -> str:
         """An empty host (``--host ""``, or ``--host "$HOST"`` with HOST unset) made
         uvicorn listen on every interface, where an empty ``MCAM_HOST`` means the
-        default, this machine alone: the API was open to the network unasked."""
+        default, this machine alone: the API was open to the network unasked. Spaces
+        around an address are dropped (``MCAM_HOST="127.0.0.1 "`` in ``.env``), as of a
+        number: they stopped the service with "cannot listen on 127.0.0.1 :8000 (Name or
+        service not known)", the space unseen."""
         if value.strip():
-            return value
+            return value.strip()
         raise ValueError(
             "is empty: give an address to listen on (127.0.0.1: this machine only; "
             "0.0.0.0 or '::': every interface), or leave it out for 127.0.0.1"

@@ -94,6 +94,14 @@ def test_mcam_serve_giving_its_workers_the_home_data_dir_is_not_warned_of(
     assert not caplog.records
 
 
+@pytest.mark.parametrize("host", [" 127.0.0.1", "127.0.0.1 ", "\t127.0.0.1\n"])
+def test_spaces_around_the_host_are_dropped(monkeypatch: pytest.MonkeyPatch, host: str) -> None:
+    """MCAM_HOST="127.0.0.1 " stopped the service with "cannot listen on 127.0.0.1 :8000
+    (Name or service not known)": an address that looked right, the space unseen."""
+    monkeypatch.setenv("MCAM_HOST", host)
+    assert Settings().host == "127.0.0.1"
+
+
 def test_the_home_of_no_user_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("MCAM_DATA_DIR", "~no-such-user-of-mcam/data")
     with pytest.raises(ValidationError, match="the home of no user of this machine"):
