@@ -19,6 +19,7 @@ from models.errors import McamError
 from service.api.deps import StateDep
 from service.api.state import ServiceState
 from service.core.config import nearest_folder, upload_room
+from worker.embedded_redis import redacted_url
 from worker.redis_memory import free_memory, full_problem
 
 router = APIRouter(prefix="/health", tags=["health"])
@@ -99,6 +100,16 @@ def decoders_problem(default_decoder: str) -> str | None:
     return "; ".join(broken) or None
 
 
+#: What an operator does about a Redis that readiness cannot reach: the log line said
+#: only redis-py's words ("Connection closed by server.", from a server that is no
+#: Redis), without the URL or the setting that names it.
+UNREACHABLE_ADVICE = (
+    "check that MCAM_REDIS_URL names a running Redis server (not another service) that "
+    "this host can reach; the embedded one (unix://.../redis/redis.sock) is restarted "
+    "within a second"
+)
+
+
 def readiness(state: ServiceState) -> Readiness:
     """Check the decoder registry and model files, Redis (reachable, with room for the
     largest upload: :func:`upload_room`), the workers' heartbeats and the result store."""
@@ -116,7 +127,10 @@ def readiness(state: ServiceState) -> Readiness:
         full = full_problem(memory, upload_room(state.settings))
     except redis.exceptions.RedisError as exc:
         reachable = False
-        log.warning("readiness: Redis unreachable: %s", exc)
+        log.warning(
+            "readiness: Redis at %s unreachable: %s; %s",
+            redacted_url(state.redis_url), exc, UNREACHABLE_ADVICE,
+        )
         detail["queue"] = "Redis unreachable (the API's log says why)"
     if full:
         detail["queue"] = full

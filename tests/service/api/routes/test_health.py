@@ -3,10 +3,13 @@ really checked."""
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import signal
+import socket
 import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -112,6 +115,27 @@ def test_ready_reports_redis_down_and_unknown_default_decoder(tmp_path: Path) ->
             f"{api}/v1/jobs/{'0' * 32}", headers={"Authorization": f"Bearer {FULL_KEY}"}
         )
         assert jobs.status_code == 503 and jobs.json()["code"] == "queue_unavailable"
+
+
+def test_an_unreachable_redis_is_logged_with_its_url_and_what_to_do(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An MCAM_REDIS_URL naming a server that is no Redis (an HTTP server) was logged as
+    "readiness: Redis unreachable: Connection closed by server.": no URL, nothing to do."""
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        port = other.getsockname()[1]
+        closer = threading.Thread(target=lambda: other.accept()[0].close(), daemon=True)
+        closer.start()
+        settings = make_settings(tmp_path, f"redis://:secret@127.0.0.1:{port}/0")
+        with caplog.at_level(logging.WARNING, logger="service.api.routes.health"):
+            with serve(create_app(settings)) as api:
+                body = httpx.get(f"{api}/health/ready").json()
+    assert body["checks"]["queue"] is False and "127.0.0.1" not in body["detail"]["queue"]
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("readiness")]
+    assert lines and f"redis://:***@127.0.0.1:{port}/0 unreachable" in lines[0]
+    assert "MCAM_REDIS_URL" in lines[0] and "secret" not in lines[0]
 
 
 def test_a_hung_redis_gets_a_quick_503_not_a_hang(tmp_path: Path) -> None:
