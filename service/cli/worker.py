@@ -69,8 +69,10 @@ FLAG_LIMITS: dict[str, tuple[int, str]] = {
 
 def limit_problem(flag: str, value: int) -> str | None:
     """Why ``value`` of ``flag`` (one of :data:`FLAG_LIMITS`) is refused, and what to
-    give; None when it is within the flag's limit."""
+    give; None when it is from 1 to the flag's limit."""
     most, what = FLAG_LIMITS[flag]
+    if value < 1:
+        return f"{flag} must be at least 1 ({what}), got {value}"
     if value <= most:
         return None
     return (
@@ -128,8 +130,6 @@ def run(args: argparse.Namespace) -> int:
     processes = args.stream_processes
     if processes is None:
         processes = settings.stream_processes or min(usable_cores(), MAX_STREAM_PROCESSES)
-    if concurrency < 1 or threads < 1 or processes < 1:
-        raise McamError("--concurrency, --threads and --stream-processes must be at least 1")
     given = {"--threads": threads, "--concurrency": concurrency, "--stream-processes": processes}
     for flag, value in given.items():
         problem = limit_problem(flag, value)

@@ -38,11 +38,15 @@ def test_worker_without_redis_explains_what_to_do(tmp_path: Path) -> None:
     assert "no Redis" in err and "MCAM_REDIS_URL" in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize("flag", ["--concurrency", "--stream-processes"])
+@pytest.mark.parametrize("flag", ["--concurrency", "--threads", "--stream-processes"])
 def test_worker_rejects_zero_concurrency_or_stream_processes(tmp_path: Path, flag: str) -> None:
-    process = mcam("worker", flag, "0", env={"MCAM_DATA_DIR": str(tmp_path)})
+    """The refusal named all three flags ("--concurrency, --threads and --stream-processes
+    must be at least 1"), not the one given, nor its value."""
+    process = mcam("worker", flag, "-2", env={"MCAM_DATA_DIR": str(tmp_path)})
     _out, err = process.communicate(timeout=60)
-    assert process.returncode == 2 and "at least 1" in err and "Traceback" not in err
+    assert process.returncode == 2 and "Traceback" not in err
+    assert f"error: {flag} must be at least 1 (" in err and "got -2" in err
+    assert err.count("--") == 1
 
 
 @pytest.mark.parametrize(
