@@ -77,9 +77,11 @@ class Settings(BaseSettings):
 
     #: An empty variable (``MCAM_PORT=``, or compose's ``${VAR}`` of an unset one) is
     #: unset: it took ``MCAM_DATA_DIR=`` as the working folder and refused ``MCAM_PORT=``.
+    #: A time that is no finite number is refused as such: ``MCAM_DECODE_WAIT_S=nan`` was
+    #: told "Input should be less than or equal to 300", which nan is not far from.
     model_config = SettingsConfigDict(
         env_prefix=PREFIX, env_file=".env", env_file_encoding=ENV_FILE_ENCODING,
-        extra="ignore", env_ignore_empty=True,
+        extra="ignore", env_ignore_empty=True, allow_inf_nan=False,
     )
 
     data_dir: Path = Field(Path("data"), description="results, embedded Redis, API key file")

@@ -190,6 +190,22 @@ def test_a_heartbeat_too_slow_for_the_leases_is_refused_at_start(
     assert Settings().heartbeat_s == 0.5
 
 
+@pytest.mark.parametrize("value", ["nan", "-nan", "inf", "-inf", "infinity"])
+@pytest.mark.parametrize("name", ["MCAM_DECODE_WAIT_S", "MCAM_HEARTBEAT_S"])
+def test_a_time_that_is_no_finite_number_is_refused_as_such(
+    monkeypatch: pytest.MonkeyPatch, name: str, value: str
+) -> None:
+    """MCAM_DECODE_WAIT_S=nan was told "Input should be less than or equal to 300", and
+    MCAM_HEARTBEAT_S=nan "greater than or equal to 0.1": bounds a nan neither passes nor
+    fails, which said nothing of what was wrong."""
+    monkeypatch.setenv(name, value)
+    with pytest.raises(ValidationError) as caught:
+        Settings()
+    [error] = caught.value.errors()
+    assert error["loc"] == (name.removeprefix("MCAM_").lower(),)
+    assert error["msg"] == "Input should be a finite number"
+
+
 @pytest.mark.parametrize("value", ["inf", "1e20"])
 def test_a_retention_redis_cannot_expire_by_is_refused_at_start(
     monkeypatch: pytest.MonkeyPatch, value: str
