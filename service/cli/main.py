@@ -79,11 +79,13 @@ def setting_problem(error: ErrorDetails) -> str:
 
 
 #: What to do, by ``errno``, about a path on a filesystem that takes no more writes
-#: (the data dir of ``mcam serve`` on a read-only mount or a full disk, an output file).
+#: (the data dir of ``mcam serve`` on a read-only mount or a full disk, an output file),
+#: or one that passes through a file (``MCAM_DATA_DIR`` naming a file).
 FILESYSTEM_REMEDIES: dict[int | None, str] = {
     errno.EROFS: "; choose a path on a writable filesystem (or remount it read-write)",
     errno.ENOSPC: "; free space on its disk or choose a path on another disk",
     errno.EDQUOT: "; free space within your disk quota or choose a path on another disk",
+    errno.ENOTDIR: "; a part of that path is a file, not a folder: choose another path",
 }
 
 

@@ -62,6 +62,18 @@ def test_a_filesystem_taking_no_writes_is_told_what_to_do(error: OSError, remedy
     assert remedy in line
 
 
+def test_a_path_through_a_file_is_told_what_to_do(tmp_path: Path) -> None:
+    """MCAM_DATA_DIR naming a file stopped `mcam serve` with "cannot use FILE/redis: Not
+    a directory", and nothing of what to do."""
+    (tmp_path / "data").write_text("")
+    with pytest.raises(NotADirectoryError) as caught:
+        (tmp_path / "data" / "redis").mkdir()
+    assert file_problem(caught.value) == (
+        f"cannot use {tmp_path / 'data' / 'redis'}: Not a directory; a part of that path "
+        "is a file, not a folder: choose another path"
+    )
+
+
 def test_a_link_names_the_path_it_creates(tmp_path: Path) -> None:
     link = tmp_path / "missing" / "cam"
     with pytest.raises(FileNotFoundError) as caught:
