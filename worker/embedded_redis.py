@@ -347,8 +347,12 @@ class EmbeddedRedis:
                 process = self._process
                 if self._stopping.is_set() or (process is not None and process.poll() is None):
                     continue
-                log.warning("the embedded redis-server exited (status %s); restarting it",
-                            process.returncode if process is not None else "not started")
+                log.warning(
+                    "the embedded redis-server exited (status %s; its log ends: %s); "
+                    "restarting it",
+                    process.returncode if process is not None else "not started",
+                    (self._log_tail().strip().splitlines() or ["(empty)"])[-1],
+                )
                 try:
                     self._launch(with_parent=True)
                     self.restarts += 1
@@ -377,11 +381,17 @@ class EmbeddedRedis:
                     pass
             time.sleep(0.02)
         self._end_process(timeout_s=10.0)
-        log_file = self.dir / "redis.log"
-        tail = log_file.read_text(errors="replace")[-500:] if log_file.exists() else "(no log)"
+        tail = self._log_tail()
         raise RedisStartError(
             f"the embedded redis-server did not start; its log ends: {tail}{self._aof_repair(tail)}"
         )
+
+    def _log_tail(self, chars: int = 500) -> str:
+        """The last ``chars`` characters of redis-server's log (``redis.log``), or "(no
+        log)": why a server that would not start, or that exited, did (a full disk's
+        "Can't recover from AOF write error")."""
+        log_file = self.dir / "redis.log"
+        return log_file.read_text(errors="replace")[-chars:] if log_file.exists() else "(no log)"
 
     def _aof_repair(self, log_tail: str) -> str:
         """How to repair a damaged append-only file when ``log_tail`` (redis-server's

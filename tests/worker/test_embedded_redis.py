@@ -61,17 +61,25 @@ def test_data_survives_stop_and_a_killed_server(tmp_path: Path) -> None:
         assert client.xrange("s")[0][1] == {b"codes": b"\x00\xff" * 10}
 
 
-def test_a_kept_alive_server_that_dies_is_restarted_with_its_data(tmp_path: Path) -> None:
+def test_a_kept_alive_server_that_dies_is_restarted_with_its_data(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     server = EmbeddedRedis(tmp_path, keep_alive=True)
     client = connect(server.start())
     client.set("accepted", "job")
     first = server.pid
     assert first is not None
+    # What redis-server logs before it exits by itself on a full disk.
+    reason = "# Can't recover from AOF write error: No space left on device. Exiting..."
+    with (tmp_path / "redis" / "redis.log").open("a") as log_file:
+        log_file.write(reason + "\n")
     os.kill(first, signal.SIGKILL)
     deadline = time.monotonic() + 20
     while (server.pid in (None, first) or server.restarts == 0) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert server.restarts == 1 and server.pid not in (None, first)
+    # The operator is told why it exited, not only that it did.
+    assert f"its log ends: {reason}); restarting it" in caplog.text
     assert client.get("accepted") == b"job"  # the same client reconnects to the same socket
     with pytest.raises(ChildProcessError):
         os.waitpid(first, os.WNOHANG)  # the dead server was reaped, no zombie left
