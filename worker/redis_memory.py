@@ -174,7 +174,10 @@ def redis_trouble(exc: BaseException) -> str:
         )
     if isinstance(exc, redis.exceptions.TimeoutError):
         return f"Redis did not answer in time ({exc})"
-    return f"Redis unreachable ({exc})"
+    return (
+        f"Redis unreachable ({exc}): check that MCAM_REDIS_URL names a running Redis "
+        "server this host can reach"
+    )
 
 
 class TroubleLog:

@@ -44,7 +44,7 @@ from worker.decode_pool import DecodePool
 from worker.deliveries import Delivery, StreamConsumer, prune_consumers
 from worker.device_consumer import DeviceConsumer
 from worker.device_state import FrameDecoder, make_frame_decoder, warm_up
-from worker.embedded_redis import connect
+from worker.embedded_redis import connect, redacted_url
 from worker.job_processor import JobProcessor, start_job_child
 from worker.outputs import STREAM_EXR_COMPRESSION
 from worker.queue import ensure_group, is_missing_group, server_time_ns
@@ -194,7 +194,8 @@ class Worker:
         purger = threading.Thread(target=self._purge_loop, name="purge", daemon=True)
         for thread in [*threads, purger]:
             thread.start()
-        log.info("worker %s running (%d job threads)", self.id, self.config.concurrency)
+        log.info("worker %s running (%d job threads) on Redis at %s", self.id,
+                 self.config.concurrency, redacted_url(self.config.redis_url))
         self._heartbeat_loop(threads, signals)
         for thread in [*threads, purger]:
             thread.join()

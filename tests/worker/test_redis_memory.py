@@ -116,6 +116,8 @@ def test_refusals_of_a_full_server_are_told_apart_from_other_errors(client: redi
     assert not is_out_of_memory(wrong_type.value) and not is_transient(wrong_type.value)
     lost = redis.exceptions.ConnectionError("gone")
     assert is_transient(lost) and "unreachable" in redis_trouble(lost)
+    # The setting to check is named (a worker's log said only redis-py's "gone").
+    assert "check that MCAM_REDIS_URL names a running Redis" in redis_trouble(lost)
     path = client.connection_pool.connection_kwargs["path"]
     # Not retried: redis-py retries a timeout 3 times with backoff (5 s) by default.
     impatient = redis.Redis(unix_socket_path=path, socket_timeout=0.05, retry=Retry(NoBackoff(), 0))
