@@ -3,8 +3,14 @@
 Formats
 -------
 - ``png``: one 16-bit grey channel, 0 <= W <= 65535 (``H x W x 1`` written as ``H x W``).
-- ``tiff``: int64, one page, in the layout :func:`models.frames.write_tiff_page` says.
-- ``npy``: int64, any shape.
+- ``tiff``: 16-bit, 0 <= W <= 65535, grey or RGB, one page, in the layout
+  :func:`models.frames.write_tiff_page` says (every TIFF reader opens it; an int64 one
+  Pillow and ImageJ do not).
+- ``npy``: int64, any W and shape.
+
+``mcam reconstruct --winding-out``, ``mcam simulate --ground-truth`` and the API's
+``part=winding`` downloads write them alike (:func:`encode_winding_file`). The reader
+takes any integer samples.
 
 Maps are read as strictly as wrapped frames (:mod:`models.frames`): by their content
 first, a TIFF's compression named when not read and its thumbnails skipped; a file
@@ -33,9 +39,9 @@ from models.frames import (
     PNG_KEYWORD,
     PNG_MODES,
     decoding,
+    encode_frame,
     frame_format,
     png_samples,
-    write_tiff_page,
 )
 from models.npy_files import load_npy
 from models.stored_params import tiff_params
@@ -54,28 +60,41 @@ def winding_format(name: str | os.PathLike[str]) -> str:
         ) from None
 
 
-def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
-    """Write a winding-number map by suffix: PNG (16-bit, 0 <= W <= 65535, one
-    channel), TIFF (int64, one page: :func:`write_tiff_page`) or npy; ``H x W x 1`` is
-    written as ``H x W`` in PNG and TIFF."""
+#: The largest W a PNG or TIFF W map holds: their samples are 16-bit unsigned.
+MAX_IMAGE_WINDING = int(np.iinfo(np.uint16).max)
+
+
+def encode_winding_file(winding: NDArray[np.integer], fmt: str) -> bytes:
+    """The bytes of a W map file of format ``fmt`` (``png``, ``tiff`` or ``npy``, a
+    name or suffix too): npy int64 of any W and shape; PNG and TIFF 16-bit, 0 <= W <=
+    :data:`MAX_IMAGE_WINDING`, PNG of one channel. :class:`FormatCannotHoldError`
+    naming the formats that hold the map when ``fmt`` cannot."""
     arr = np.asarray(winding)
     if arr.dtype.kind not in "iu":
         raise InvalidInputError(f"winding numbers are integers, got dtype {arr.dtype}")
-    fmt = winding_format(path)
-    if fmt == "png":
-        if arr.ndim == 3 and arr.shape[2] == 1:  # of a grey frame stored H x W x 1
-            arr = arr[:, :, 0]
-        if arr.ndim != 2 or arr.min() < 0 or arr.max() > np.iinfo(np.uint16).max:
-            raise FormatCannotHoldError(
-                f"a PNG winding map is one channel with 0 <= W <= 65535; this map has shape "
-                f"{arr.shape} and W in [{arr.min()}, {arr.max()}]: write it as .tiff or .npy, "
-                "which hold any W and colour maps"
-            )
-        Image.fromarray(arr.astype(np.uint16)).save(path, format="PNG")
-    elif fmt == "tiff":
-        write_tiff_page(path, arr.astype(np.int64), None)
-    else:
-        np.save(path, arr.astype(np.int64), allow_pickle=False)
+    fmt = winding_format(fmt)
+    if fmt == "npy":
+        buffer = io.BytesIO()
+        np.save(buffer, arr.astype(np.int64), allow_pickle=False)
+        return buffer.getvalue()
+    if arr.size and (arr.min() < 0 or arr.max() > MAX_IMAGE_WINDING):
+        raise FormatCannotHoldError(
+            f"a {fmt.upper()} W map holds 16-bit W, 0 to {MAX_IMAGE_WINDING}, and this "
+            f"map's W is in [{arr.min()}, {arr.max()}]: write it as .npy (format=npy over "
+            "HTTP; int64), which holds any W"
+        )
+    if fmt == "png" and arr.ndim == 3 and arr.shape[2] > 1:
+        raise FormatCannotHoldError(
+            f"a PNG W map is grayscale (one channel) and this map has {arr.shape[2]} (a "
+            "colour frame's): write it as .tiff or .npy (format=tiff or format=npy over "
+            "HTTP), which hold colour W maps"
+        )
+    return encode_frame(arr.astype(np.uint16), None, fmt)
+
+
+def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
+    """Write a W map in the format of ``path``'s suffix (:func:`encode_winding_file`)."""
+    Path(path).write_bytes(encode_winding_file(winding, winding_format(path)))
 
 
 def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:

@@ -12,7 +12,6 @@ is known, else wrap units x), ``half`` (default false: float32 EXR) and
 
 from __future__ import annotations
 
-import io
 from typing import Any
 
 import numpy as np
@@ -24,6 +23,7 @@ from models.exr_header import reconstruction_attributes
 from models.formation import SensorParams, reconstruct
 from models.frames import encode_frame
 from models.hdr_io import DEFAULT_EXR_COMPRESSION, encode_exr
+from models.winding_files import encode_winding_file
 
 #: Result-store key suffixes of a job's outputs.
 OUTPUT_NAMES = {"exr": "result.exr", "winding": "winding.npy", "codes": "codes.npy"}
@@ -90,13 +90,6 @@ def encode_exr_result(
     )
 
 
-def encode_winding(winding: NDArray[np.integer]) -> bytes:
-    """The winding map as ``.npy`` bytes (int64, the frame's shape)."""
-    buffer = io.BytesIO()
-    np.save(buffer, np.asarray(winding, dtype=np.int64), allow_pickle=False)
-    return buffer.getvalue()
-
-
 def encode_outputs(
     codes: NDArray[Any],
     winding: NDArray[np.integer],
@@ -111,6 +104,6 @@ def encode_outputs(
     while W < 256)."""
     return {
         "exr": encode_exr_result(codes, winding, params, info, options),
-        "winding": encode_winding(winding),
+        "winding": encode_winding_file(winding, "npy"),
         "codes": encode_frame(codes, None, "npy"),
     }

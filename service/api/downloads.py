@@ -1,4 +1,5 @@
-"""Files the API sends back: media types, winding-map bytes, and the download response."""
+"""Files the API sends back: media types and the download response (W map files are
+:func:`models.winding_files.encode_winding_file`'s)."""
 
 from __future__ import annotations
 
@@ -8,18 +9,13 @@ from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any, BinaryIO
 
-import numpy as np
 from fastapi import Response
 from fastapi.responses import FileResponse
-from numpy.typing import NDArray
 from starlette.datastructures import Headers
 from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
 from starlette.types import Receive, Scope, Send
 
-from models.errors import FormatCannotHoldError
-from models.frames import encode_frame
 from service.api.errors import ApiError
-from worker.outputs import encode_winding
 from worker.result_store import ResultStore
 
 MEDIA_TYPES: dict[str, str] = {
@@ -28,27 +24,6 @@ MEDIA_TYPES: dict[str, str] = {
     "npy": "application/octet-stream",
     "exr": "image/x-exr",
 }
-
-
-def winding_bytes(winding: NDArray[np.integer], fmt: str) -> bytes:
-    """A W map file: ``npy`` (int64, any W and channels), 16-bit ``tiff`` (0 <= W <=
-    65535) or 16-bit grey ``png`` (one channel too). :class:`FormatCannotHoldError`
-    naming the formats that hold the map when ``fmt`` cannot."""
-    w = np.asarray(winding, dtype=np.int64)
-    if fmt == "npy":
-        return encode_winding(w)
-    low, high = int(w.min()), int(w.max())
-    if high > np.iinfo(np.uint16).max or low < 0:
-        raise FormatCannotHoldError(
-            f"a {fmt.upper()} W map holds 16-bit W, 0 to 65535, and this map's W is in "
-            f"[{low}, {high}]: ask for format=npy (int64), which holds any W"
-        )
-    if fmt == "png" and w.ndim == 3 and w.shape[2] > 1:
-        raise FormatCannotHoldError(
-            f"a PNG W map is grayscale (one channel) and this map has {w.shape[2]} (a "
-            "colour frame's): ask for format=tiff or format=npy, which hold colour W maps"
-        )
-    return encode_frame(w.astype(np.uint16), None, fmt)
 
 
 #: Cache policy of a stored result: its URL names one job's file, which never changes.

@@ -11,7 +11,12 @@ import tifffile
 from PIL import Image
 
 from models.errors import FormatCannotHoldError, InvalidInputError, UnsupportedFormatError
-from models.winding_files import decode_winding, read_winding, write_winding
+from models.winding_files import (
+    decode_winding,
+    encode_winding_file,
+    read_winding,
+    write_winding,
+)
 from tests.models.test_frames import random_codes
 
 
@@ -72,9 +77,10 @@ def test_a_winding_map_of_another_format_is_refused_as_a_w_map(tmp_path: Path) -
     ("suffix", "winding"),
     [
         ("png", np.array([[0, 1], [65535, 7]])),
-        ("tiff", np.array([[-3, 70_000], [2**40, 0]])),
+        ("tiff", np.array([[0, 65535], [70, 1]])),
+        ("npy", np.array([[-3, 70_000], [2**40, 0]])),
         ("npy", np.arange(12).reshape(2, 2, 3)),
-        ("tiff", np.arange(36).reshape(4, 3, 3) * 2**33),
+        ("tiff", np.arange(36).reshape(4, 3, 3) * 1000),
     ],
 )
 @pytest.mark.filterwarnings("error")
@@ -117,14 +123,36 @@ def test_a_colour_winding_tiff_is_one_rgb_page_of_contiguous_samples(tmp_path: P
 
 
 def test_winding_png_refuses_what_it_cannot_hold(tmp_path: Path) -> None:
-    for winding in (np.array([[70_000]]), np.array([[-1]]), np.zeros((2, 2, 3), np.int64)):
-        with pytest.raises(FormatCannotHoldError, match="tiff or .npy"):
+    for winding in (np.array([[70_000]]), np.array([[-1]])):
+        with pytest.raises(FormatCannotHoldError, match="PNG W map holds 16-bit W.*npy"):
             write_winding(tmp_path / "w.png", winding)
+    with pytest.raises(FormatCannotHoldError, match="grayscale.*tiff or .npy"):
+        write_winding(tmp_path / "w.png", np.zeros((2, 2, 3), np.int64))
     with pytest.raises(InvalidInputError, match="integers"):
         write_winding(tmp_path / "w.npy", np.zeros((2, 2)))
     (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n")
     with pytest.raises(InvalidInputError):
         read_winding(tmp_path / "bad.png")
+
+
+@pytest.mark.parametrize("winding", [np.array([[0, 7], [65535, 1]]), np.ones((2, 3, 3), int)])
+def test_a_tiff_winding_map_is_16_bit_as_the_api_s(tmp_path: Path, winding: np.ndarray) -> None:
+    """mcam wrote int64 TIFF W maps, which Pillow (and ImageJ) cannot open, while the
+    API's part=winding&format=tiff is 16-bit: the two now write the same file."""
+    write_winding(tmp_path / "w.tiff", winding)
+    data = (tmp_path / "w.tiff").read_bytes()
+    assert data == encode_winding_file(winding, "tiff")
+    with Image.open(tmp_path / "w.tiff") as image:
+        assert image.size == (winding.shape[1], winding.shape[0])
+    with tifffile.TiffFile(tmp_path / "w.tiff") as tif:
+        assert tif.pages[0].dtype == np.uint16
+    np.testing.assert_array_equal(read_winding(tmp_path / "w.tiff"), winding)
+
+
+@pytest.mark.parametrize("winding", [np.array([[70_000]]), np.array([[-1]])])
+def test_a_tiff_winding_map_refuses_w_past_16_bits(tmp_path: Path, winding: np.ndarray) -> None:
+    with pytest.raises(FormatCannotHoldError, match=r"TIFF W map holds 16-bit W.*\.npy"):
+        write_winding(tmp_path / "w.tiff", winding)
 
 
 def test_a_winding_map_is_read_by_its_content_whatever_its_name(tmp_path: Path) -> None:

@@ -15,9 +15,9 @@ from models.errors import InvalidInputError
 from models.formation import encode
 from models.frames import encode_frame, frame_format
 from models.hdr_io import read_hdr
-from models.winding_files import decode_winding
+from models.winding_files import decode_winding, encode_winding_file
 from service.api.deps import Exposure, ReadKey, StateDep, SubmitKey, refuse_unused_exposure
-from service.api.downloads import MEDIA_TYPES, download, stored_file, winding_bytes
+from service.api.downloads import MEDIA_TYPES, download, stored_file
 from service.api.errors import ApiError
 from service.api.idempotency import job_by_key
 from service.api.in_turn import decode_in_turn
@@ -106,7 +106,7 @@ def result_file(state: ServiceState, record: JobRecord, part: str, fmt: str, ev:
         winding = decode_winding(state.store.read(key), frame_format(key))
         if fmt == "png":
             return download(winding_png(winding), fmt, stem)
-        return download(winding_bytes(winding, fmt), fmt, stem)
+        return download(encode_winding_file(winding, fmt), fmt, stem)
     exr = state.store.read(record.results["exr"])
     x = wrap_units(record, read_hdr(exr, name="the stored result").pixels)
     if part == "image":

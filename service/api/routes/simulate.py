@@ -10,8 +10,9 @@ from models.exposure import check_not_black
 from models.formation import SensorParams, simulate
 from models.frames import encode_frame
 from models.hdr_io import read_hdr
+from models.winding_files import encode_winding_file
 from service.api.deps import StateDep, SubmitKey
-from service.api.downloads import MEDIA_TYPES, download, winding_bytes
+from service.api.downloads import MEDIA_TYPES, download
 from service.api.in_turn import decode_in_turn
 from service.api.schemas import CANNOT_HOLD, SIMULATE_ERRORS, upload_body
 from service.api.uploads import SimulateFields, Upload, read_upload_fields
@@ -39,7 +40,7 @@ def simulate_upload(upload: Upload, fields: SimulateFields, settings: Settings) 
     check_not_black(frame)
     fmt = fields.format or ("tiff" if frame.codes.ndim == 3 else "png")  # PNG frames are grey
     if fields.part == "winding":
-        content = winding_bytes(frame.winding, fmt)
+        content = encode_winding_file(frame.winding, fmt)
     else:
         content = encode_frame(frame.codes, frame.params, fmt)
     stem = "winding" if fields.part == "winding" else "frame"
