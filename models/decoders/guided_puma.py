@@ -125,6 +125,7 @@ from models.decoders.region_moves import best_region_move, region_descent
 from models.decoders.registry import DecoderSpec, get_decoder, refuse_budget_inside
 from models.decoders.registry import resolve as resolve_guide
 from models.decoders.saturation import fill_saturated
+from models.errors import InvalidInputError, echo
 from models.formation import SensorParams, clip_winding, max_winding
 from models.scene_analysis import residue_pixels
 from models.tile_reconcile import common_offset
@@ -133,6 +134,9 @@ SUFFIX = "+puma"
 #: The suffix as the registry finds it in a name (:func:`models.decoders.registry.resolve`).
 SUFFIX_PATTERN = rf"{re.escape(SUFFIX)}(?P<moves>[1-9][0-9]*)?"
 NAME = re.compile(rf"(?P<guide>.+){SUFFIX_PATTERN}")
+#: A name of ``+puma`` followed by something that is not a move count K (``+puma0``,
+#: ``+puma-1``, ``+puma02``, ``+pumax``): refused naming K's range (:func:`check_moves`).
+BAD_MOVES = re.compile(rf"(?P<guide>.+){re.escape(SUFFIX)}(?P<moves>[^+]+)")
 NAME_PATTERNS = (
     "<decoder>+puma (the decoder's W refined by guided graph-cut unwrapping, "
     "e.g. mantissanet-small+puma)",
@@ -449,6 +453,7 @@ def _spec(guide_name: str, max_moves: int = MAX_MOVES) -> DecoderSpec:
 def resolve(name: str) -> DecoderSpec | None:
     """The spec of ``<decoder>+puma`` or ``<decoder>+puma<K>`` when ``<decoder>`` is a
     known decoder (a clear error otherwise); None for any other name."""
+    check_moves(name)
     match = NAME.fullmatch(name)
     if match is None:
         return None
@@ -458,6 +463,22 @@ def resolve(name: str) -> DecoderSpec | None:
     )
     moves = match.group("moves")
     return _spec(guide_name, int(moves) if moves else MAX_MOVES)
+
+
+def check_moves(name: str) -> None:
+    """Refuse ``<decoder>+puma<K>`` whose K is not a whole number of at least 1
+    (:data:`BAD_MOVES`): it was an "unknown decoder" listing every decoder, without a
+    word on K."""
+    match = BAD_MOVES.fullmatch(name)
+    if match is None or NAME.fullmatch(name) is not None:
+        return
+    guide = match.group("guide")
+    raise InvalidInputError(
+        f"decoder {echo(name)}: the K of <decoder>+puma<K>, the most min-cuts to run, must "
+        f"be a whole number of at least 1 (e.g. {echo(guide + SUFFIX + '2')}), not "
+        f"{echo(match.group('moves'))}; or leave K out ({echo(guide + SUFFIX)}: at most "
+        f"{MAX_MOVES})"
+    )
 
 
 def specs() -> list[DecoderSpec]:

@@ -357,10 +357,30 @@ def test_a_move_budget_in_the_name_bounds_the_min_cuts() -> None:
     assert decoder.decode(frame.codes, params).info["details"]["moves"] == 1
 
 
-@pytest.mark.parametrize("name", ["nonsense+puma", "+puma", "nonsense+puma2", "itoh+puma0"])
+@pytest.mark.parametrize("name", ["nonsense+puma", "+puma", "nonsense+puma2"])
 def test_unknown_guides_are_a_clear_error(name: str) -> None:
     with pytest.raises(InvalidInputError, match="unknown decoder"):
         resolve(name)
+
+
+@pytest.mark.parametrize(
+    ("name", "moves"),
+    [
+        ("auto-fast+puma0", "0"),
+        ("itoh+puma-1", "-1"),
+        ("itoh+puma02", "02"),
+        ("itoh+puma0+colour", "0"),
+    ],
+)
+def test_a_move_count_below_1_says_what_k_takes(name: str, moves: str) -> None:
+    """It was "unknown decoder 'auto-fast+puma0'; choose one of: ..." listing every
+    decoder, with no word that K counts min-cuts and must be at least 1."""
+    with pytest.raises(InvalidInputError) as caught:
+        get_decoder(name)
+    message = caught.value.message
+    assert "unknown decoder" not in message
+    guide = name.split("+puma")[0]
+    assert f"must be a whole number of at least 1 (e.g. '{guide}+puma2'), not '{moves}'" in message
 
 
 def test_windows_without_doubtful_pixels_keep_the_guide() -> None:
