@@ -113,11 +113,16 @@ def read_hdr(
     name: str = "",
 ) -> HdrImage:
     """Read an OpenEXR or Radiance (.hdr/.pic) image from a path or bytes; format by magic.
+    A path that is not a regular file (a pipe) is read whole first, once.
 
     ``name`` labels error messages (defaults to the path). Raises
     :class:`UnsupportedFormatError`, :class:`ImageTooLargeError` or
     :class:`InvalidInputError` (truncated, corrupt, NaN/inf/negative pixels).
     """
+    if not isinstance(source, bytes) and not Path(source).is_file():
+        # A pipe (``<(gunzip -c s.exr.gz)``, a FIFO) yields its bytes once; a path is
+        # opened again below (leading bytes, headers, decoder), each open reading on.
+        name, source = name or str(source), Path(source).read_bytes()
     if isinstance(source, bytes):
         label, head = name or "the HDR image", source[:16]
     else:

@@ -207,6 +207,27 @@ def test_bytes_and_path_read_the_same(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_hdr(path.read_bytes()).pixels, read_hdr(path).pixels)
 
 
+@pytest.mark.parametrize("kind", ["exr", "hdr"])
+def test_a_pipe_is_read_as_its_file(kind: str) -> None:
+    """A pipe (``mcam simulate <(gunzip -c s.exr.gz)``) was opened once for its leading
+    bytes and again to decode, which found them gone: "the OpenEXR header is truncated
+    or corrupt". Small files: the pipe holds them whole before they are read."""
+    pixels = smooth_rgb(4, 5)
+    if kind == "exr":
+        data = encode_exr(pixels)
+    else:
+        rgbe = np.full((4, 5, 4), 128, np.uint8)
+        data = RADIANCE_HEADER + b"-Y 4 +X 5\n" + rgbe.tobytes()
+    read, write = os.pipe()
+    try:
+        os.write(write, data)
+        os.close(write)
+        image = read_hdr(f"/dev/fd/{read}")
+    finally:
+        os.close(read)
+    np.testing.assert_array_equal(image.pixels, read_hdr(data).pixels)
+
+
 def test_truncated_and_foreign_files(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """A truncated upload is refused with the reason, and the OpenEXR library, which
     prints its complaints to the process's stderr, never sees it."""
