@@ -9,10 +9,10 @@ the caller (:func:`content_first`).
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, UnsupportedFormatError
 
 #: The eight bytes every PNG file starts with.
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -52,6 +52,20 @@ logger = logging.getLogger(__name__)
 def format_by_content(data: bytes, magics: Magics) -> str | None:
     """The format of ``magics`` whose leading bytes ``data`` starts with; None if none."""
     return next((fmt for magic, fmt in magics if data.startswith(magic)), None)
+
+
+def named_else_shown(name: str, data: bytes, magics: Magics, by_name: Callable[[str], str]) -> str:
+    """The format ``by_name`` gives the file name ``name``, or, when it refuses the name
+    (:class:`UnsupportedFormatError`: no suffix read here, as ``frame`` or a pipe's
+    ``/dev/fd/63``), the one of ``magics`` that the file's ``data`` shows; its refusal
+    stands when the data shows none. Such a file of a known format was refused by name."""
+    try:
+        return by_name(name)
+    except UnsupportedFormatError:
+        shown = format_by_content(data, magics)
+        if shown is None:
+            raise
+        return shown
 
 
 def named_format(name: str | None, aliases: Mapping[str, str]) -> str | None:

@@ -54,6 +54,7 @@ from models.file_magic import (
     check_signature,
     content_first,
     format_by_content,
+    named_else_shown,
 )
 from models.formation import SensorParams, validate_codes
 from models.frame_params import merge_params
@@ -409,10 +410,10 @@ def read_frame(
     overrides: dict[str, Any] | None = None,
     max_pixels: int | None = None,
 ) -> WrappedFrame:
-    """Read a wrapped-frame file; the format is its content's, else its suffix's. An
-    error about the file's content names its path."""
-    fmt = frame_format(path)
+    """Read a wrapped-frame file (a pipe too); the format is its content's, else its
+    suffix's. An error about the file's content names its path."""
     data = Path(path).read_bytes()
+    fmt = named_else_shown(str(path), data, FRAME_MAGICS, frame_format)
     with naming(str(path)):
         return decode_frame(data, fmt, overrides, max_pixels)
 

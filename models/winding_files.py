@@ -34,7 +34,7 @@ from models.errors import (
     UnsupportedFormatError,
     naming,
 )
-from models.file_magic import FRAME_MAGICS, content_first
+from models.file_magic import FRAME_MAGICS, content_first, named_else_shown
 from models.frames import (
     PNG_KEYWORD,
     PNG_MODES,
@@ -100,8 +100,8 @@ def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) ->
 def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:
     """Read a winding-number map written by :func:`write_winding` (int64); the format is
     its content's, else its suffix's. An error about the file's content names its path."""
-    fmt = winding_format(path)
     data = Path(path).read_bytes()
+    fmt = named_else_shown(str(path), data, FRAME_MAGICS, winding_format)
     with naming(str(path)):
         return decode_winding(data, content_first(data, fmt, FRAME_MAGICS).format)
 

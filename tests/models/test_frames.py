@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import os
 import re
 import struct
 import tracemalloc
@@ -105,6 +106,28 @@ def test_round_trip_keeps_codes_and_params(
     assert frame.codes.shape == shape
     assert frame.codes.dtype == params.code_dtype
     np.testing.assert_array_equal(frame.codes, codes)
+
+
+@pytest.mark.parametrize("fmt", ["png", "tiff", "npy"])
+def test_a_frame_file_without_a_suffix_is_read_by_its_content(tmp_path: Path, fmt: str) -> None:
+    """``mcam reconstruct frame`` (no suffix) or ``<(cat f.png)`` (``/dev/fd/63``) was
+    "unsupported wrapped-frame format 'frame'" though its bytes show the format, which
+    decides whatever the name says. A file whose bytes show none is refused by name."""
+    codes = random_codes((4, 5), 8)
+    (tmp_path / "frame").write_bytes(encode_frame(codes, PARAMS_8, fmt))
+    frame = read_frame(tmp_path / "frame", PARAMS_8.model_dump())
+    np.testing.assert_array_equal(frame.codes, codes)
+    read, write = os.pipe()
+    try:
+        os.write(write, encode_frame(codes, PARAMS_8, fmt))
+        os.close(write)
+        frame = read_frame(f"/dev/fd/{read}", PARAMS_8.model_dump())
+    finally:
+        os.close(read)
+    np.testing.assert_array_equal(frame.codes, codes)
+    (tmp_path / "notes").write_bytes(b"no frame here")
+    with pytest.raises(UnsupportedFormatError, match="unsupported wrapped-frame format"):
+        read_frame(tmp_path / "notes")
 
 
 def test_png_bit_depth_follows_bits() -> None:

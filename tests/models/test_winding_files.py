@@ -155,6 +155,18 @@ def test_a_tiff_winding_map_refuses_w_past_16_bits(tmp_path: Path, winding: np.n
         write_winding(tmp_path / "w.tiff", winding)
 
 
+def test_a_winding_map_without_a_suffix_is_read_by_its_content(tmp_path: Path) -> None:
+    """``mcam evaluate --winding w`` (no suffix, or a pipe) was "unsupported
+    winding-map format" though its bytes show the format."""
+    winding = np.array([[0, 3], [2, 9]])
+    write_winding(tmp_path / "w.tiff", winding)
+    (tmp_path / "w.tiff").rename(tmp_path / "w")
+    np.testing.assert_array_equal(read_winding(tmp_path / "w"), winding)
+    (tmp_path / "notes").write_bytes(b"no map here")
+    with pytest.raises(UnsupportedFormatError, match="unsupported winding-map format"):
+        read_winding(tmp_path / "notes")
+
+
 def test_a_winding_map_is_read_by_its_content_whatever_its_name(tmp_path: Path) -> None:
     winding = np.array([[0, 3], [-2, 9]])
     write_winding(tmp_path / "w.npy", winding)
