@@ -40,12 +40,16 @@ from models.decoders.cost_model import (
 from models.decoders.filling import filled_then_joined
 from models.decoders.registry import DecoderSpec, get_decoder
 from models.decoders.saturation import fill_saturated
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, echo
 from models.formation import SensorParams
 from models.scene_analysis import FrameAnalysis, analyse
 
 NAME = re.compile(r"auto-([0-9]+(?:\.[0-9]+)?)ms")  # ASCII digits: one spelling a budget
 NAME_PATTERNS = ("auto-<N>ms (the most accurate quality predicted to decode within N ms)",)
+#: A name meant as a budget that :data:`NAME` does not take (``auto-nanms``,
+#: ``auto-1e3ms``, ``auto--5ms``, ``auto-.5ms``, ``auto-40`` without its unit): refused
+#: saying how to write N (:func:`check_budget_name`).
+MISSPELT_NAME = re.compile(r"auto-(?:[^+]+ms|[-+.0-9eE]+)")
 #: Budgets outside this range (ms) are refused.
 BUDGET_RANGE_MS = (0.1, 600_000.0)
 #: Weight of the latest decode in the running measured / predicted factors
@@ -276,6 +280,7 @@ def join_model_ms(planes: NDArray[np.float64], params: SensorParams) -> float:
 
 def resolve(name: str) -> DecoderSpec | None:
     """The spec of ``auto-<N>ms``, or None for any other name."""
+    check_budget_name(name)
     match = NAME.fullmatch(name)
     if match is None:
         return None
@@ -287,6 +292,19 @@ def resolve(name: str) -> DecoderSpec | None:
         description=f"auto at the most accurate quality predicted to decode in {budget_ms:g} ms",
         factory=lambda: BudgetDecoder(budget_ms),
         budgeted=True,
+    )
+
+
+def check_budget_name(name: str) -> None:
+    """Refuse a name meant as a budget that is not ``auto-<N>ms`` with N a plain
+    decimal number (:data:`MISSPELT_NAME`): it was an "unknown decoder" listing every
+    decoder, without a word on how to write N."""
+    if NAME.fullmatch(name) or not MISSPELT_NAME.fullmatch(name):
+        return
+    low, high = BUDGET_RANGE_MS
+    raise InvalidInputError(
+        f"decoder {echo(name)}: a latency budget is auto-<N>ms, N the milliseconds as a "
+        f"plain decimal number from {low:g} to {high:g} (e.g. 'auto-40ms', 'auto-0.5ms')"
     )
 
 

@@ -29,16 +29,39 @@ def test_budget_names_resolve_and_others_do_not() -> None:
     spec = resolve("auto-40ms")
     assert spec is not None and spec.name == "auto-40ms" and spec.kind == "adaptive"
     assert resolve("auto-12.5ms") is not None
-    assert resolve("auto-40") is None and resolve("itoh") is None
+    assert resolve("itoh") is None and resolve("auto-fast") is None
     assert get_decoder("auto-40ms").name == "auto-40ms"
 
 
 def test_an_unknown_name_lists_the_budget_pattern() -> None:
     with pytest.raises(InvalidInputError, match="auto-<N>ms"):
         get_decoder("auto-soon")
-    for other_digits in ("auto-\u0665\u0660ms", "auto-\uff15\uff10ms"):  # Arabic, fullwidth 50
-        assert resolve(other_digits) is None  # ran as auto-50ms, reported under another name
     assert any("auto-<N>ms" in text for text in name_patterns())
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "auto-nanms",
+        "auto-infms",
+        "auto-1e3ms",
+        "auto--5ms",
+        "auto-.5ms",
+        "auto-0x10ms",
+        "auto-40",
+        "auto-\u0665\u0660ms",  # Arabic 50: it ran as auto-50ms, reported under another name
+        "auto-\uff15\uff10ms",  # fullwidth 50
+    ],
+)
+def test_a_misspelt_budget_says_how_to_write_it(name: str) -> None:
+    """It was "unknown decoder 'auto-nanms'; choose one of: ..." listing every decoder,
+    without a word on how N is written."""
+    with pytest.raises(InvalidInputError) as caught:
+        get_decoder(name)
+    assert caught.value.message.startswith(
+        f"decoder {name!r}: a latency budget is auto-<N>ms, N the milliseconds as a plain "
+        "decimal number from 0.1 to 600000"
+    )
 
 
 @pytest.mark.parametrize("budget", [0.0, 0.05, 1e9])
