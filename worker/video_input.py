@@ -68,6 +68,7 @@ from models.file_magic import (
     check_signature,
     content_first,
     format_by_content,
+    named_else_shown,
     refuse_empty,
 )
 from models.formation import SensorParams, validate_codes
@@ -640,6 +641,8 @@ def read_video(
     overrides: dict[str, Any] | None = None,
     limits: VideoLimits | None = None,
 ) -> WrappedVideo:
-    """Read a wrapped-video file; the format is its content's, else its suffix's."""
-    fmt = video_format(path)
-    return decode_video(Path(path).read_bytes(), fmt, overrides, limits)
+    """Read a wrapped-video file (a pipe too); the format is its content's, else its
+    suffix's (:func:`models.file_magic.named_else_shown`)."""
+    data = Path(path).read_bytes()
+    fmt = named_else_shown(str(path), data, VIDEO_MAGICS, video_format)
+    return decode_video(data, fmt, overrides, limits)

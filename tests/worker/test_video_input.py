@@ -218,6 +218,17 @@ def test_read_video_from_a_path(tmp_path) -> None:
     assert read_video(path, FLAGS).frames == 4
 
 
+def test_a_video_file_without_a_suffix_is_read_by_its_content(tmp_path) -> None:
+    """``mcam video clip`` (no suffix) or ``<(cat clip.npy)`` (``/dev/fd/63``) was
+    "unsupported wrapped-video format" though its bytes show the format; a file whose
+    bytes show none is still refused by name."""
+    (tmp_path / "clip").write_bytes(npy_bytes(codes()))
+    assert read_video(tmp_path / "clip", FLAGS).frames == 4
+    (tmp_path / "notes").write_bytes(b"no video here")
+    with pytest.raises(UnsupportedFormatError, match="unsupported wrapped-video format"):
+        read_video(tmp_path / "notes", FLAGS)
+
+
 def test_a_second_array_in_the_npy_file_is_refused_not_dropped() -> None:
     data = npy_bytes(codes()) + npy_bytes(codes())
     with pytest.raises(InvalidInputError, match="bytes after its array of shape .4, 6, 5.; send"):
