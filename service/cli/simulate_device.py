@@ -25,6 +25,7 @@ from device.simulator import MAX_SEED, CameraSettings, VirtualScamp5
 from models.errors import InvalidInputError
 from models.formation import SensorParams
 from models.stop_signals import noting_stop_signals, wait_for_stop
+from service.cli.output_files import check_inputs
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -72,7 +73,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def check_flags(args: argparse.Namespace) -> None:
-    """Refuse flag values the camera cannot run with, naming the flag."""
+    """Refuse flag values the camera cannot run with, naming the flag, and an ``--exr``
+    that is a folder or an empty file (:func:`check_inputs`)."""
+    check_inputs([str(path) for path in args.exr or ()])
     low, high = FPS_RANGE
     if not low <= args.fps <= high:
         raise InvalidInputError(f"--fps must be from {low:g} to {high:g}, got {args.fps:g}")

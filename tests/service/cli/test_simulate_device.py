@@ -60,8 +60,11 @@ def test_simulate_device_flags_out_of_range_are_named(tmp_path: Path) -> None:
         (("--disconnect-every", "1", "--disconnect-s", "1e12"),
          "disconnect_s must be a finite number of seconds, 0 to 3600, got 1e+12"),
         (("--stall-every", "-1"), "stall_every must be a whole number of packets, 0 (never)"),
+        # It was "empty.exr: not an OpenEXR or Radiance HDR ...; convert it to OpenEXR".
+        (("--exr", "empty.exr"), "error: the file empty.exr is empty; send the whole file"),
     ]
     (tmp_path / "file").touch()
+    (tmp_path / "empty.exr").touch()
     results = run_mcams([("simulate-device", *flags) for flags, _ in cases], cwd=tmp_path)
     for result, (_, fragment) in zip(results, cases, strict=True):
         assert result.returncode == 2, result.stderr
