@@ -72,11 +72,32 @@ def check_same_units(estimate: dict[str, Any], reference: dict[str, Any]) -> Non
     )
 
 
+#: What each W map flag gives, for the refusal of one without the other.
+WINDING_FLAGS = {
+    "--winding": "the decoded W map, as mcam reconstruct --winding-out writes it",
+    "--winding-reference": "the true W map, as mcam simulate --ground-truth writes it",
+}
+
+
+def check_winding_pair(args: argparse.Namespace) -> None:
+    """Refuse one W map flag without the other, naming the one to add: winding accuracy
+    compares the two ("winding accuracy needs both ... winding maps" named no flag)."""
+    if bool(args.winding) == bool(args.winding_reference):
+        return
+    flags = list(WINDING_FLAGS)
+    given, missing = flags if args.winding else flags[::-1]
+    raise InvalidInputError(
+        f"winding accuracy compares two W maps: {given} needs {missing} "
+        f"({WINDING_FLAGS[missing]}); give both, or neither for the image metrics alone"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     """Read both images (and W maps), compute the metrics, print them."""
     # imported here: scipy.ndimage would add ~0.4 s to the start of every mcam command
     from models.metrics import SSIM_WINDOW, evaluate
 
+    check_winding_pair(args)
     given = (args.image, args.reference, args.winding, args.winding_reference)
     check_inputs([path for path in given if path])
     estimate = read_hdr(args.image, clip_negative=args.clip_negative)

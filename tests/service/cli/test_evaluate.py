@@ -65,6 +65,16 @@ def test_evaluate_bad_input(tmp_path: Path, pipeline: Path) -> None:
     )
 
 
+def test_one_winding_map_without_the_other_names_the_flag_to_add(pipeline: Path) -> None:
+    """It was "winding accuracy needs both the estimated and the reference winding
+    maps", naming neither flag, after both images had been read."""
+    images = ("evaluate", "hdr.exr", "--reference", "reference.exr", "--no-flip")
+    alone = run_mcam(*images, "--winding", "W.png", cwd=pipeline)
+    assert_one_line_error(alone, "--winding needs --winding-reference (the true W map, as mcam")
+    alone = run_mcam(*images, "--winding-reference", "W_true.png", cwd=pipeline)
+    assert_one_line_error(alone, "--winding-reference needs --winding (the decoded W map")
+
+
 def test_evaluate_clips_negative_values_when_asked(tmp_path: Path, pipeline: Path) -> None:
     lossy = np.ones((8, 8))
     lossy[0, 0] = -0.5  # a lossy codec's undershoot
