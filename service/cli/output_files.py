@@ -48,11 +48,18 @@ class OutputFile:
     suffixes: tuple[str, ...]
 
     def check_name(self) -> None:
-        """Refuse a path that names a folder or has a suffix of another format."""
+        """Refuse a path that names a folder, is a suffix alone (``.exr``) or has a suffix
+        of another format."""
         if self.path.endswith(("/", os.sep)) or Path(self.path).is_dir():
             raise InvalidInputError(
                 f"{self.flag} {self.path} names a folder; give the path of a file, e.g. "
                 f"{Path(self.path.rstrip('/' + os.sep)) / ('out' + self.suffixes[0])}"
+            )
+        name = Path(self.path).name
+        if name.lower() in self.suffixes:  # ".exr": a hidden file, its suffix ""
+            raise InvalidInputError(
+                f"{self.flag} {self.path} has no name before its suffix {name}; give the "
+                f"file a name, e.g. {Path(self.path).with_name('out' + name)}"
             )
         if Path(self.path).suffix.lower() not in self.suffixes:
             *others, last = self.suffixes

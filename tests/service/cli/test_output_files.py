@@ -27,6 +27,9 @@ def exr(flag: str, path: Path | str) -> OutputFile:
         ([exr("-o", "a.exr"), exr("--w", "./a.exr")], [], InvalidInputError, "both name"),
         ([exr("-o", "in.exr")], ["in.exr"], InvalidInputError, "is the input file"),
         ([exr("-o", "nofolder/a.exr")], [], InvalidInputError, "no such folder: nofolder"),
+        # It was told "-o .exr: ...; name the file .exr", which it is (Path's suffix "").
+        ([exr("-o", ".exr")], [], InvalidInputError, r"-o \.exr has no name before its suffix"),
+        ([exr("-o", "d/.EXR")], [], InvalidInputError, r"\.EXR; give the file a name, e.g. d/out"),
     ],
 )
 def test_bad_outputs_are_refused_before_any_work(
