@@ -47,6 +47,13 @@ class OutputFile:
     what: str
     suffixes: tuple[str, ...]
 
+    @property
+    def target(self) -> Path:
+        """The file written: ``path``, or the file it leads to through symbolic links
+        (``-o latest.exr``, a link to ``runs/7/hdr.exr``, writes ``runs/7/hdr.exr`` and
+        keeps the link, as a shell's ``>`` does; the link was replaced by a file)."""
+        return Path(os.path.realpath(self.path))
+
     def check_name(self) -> None:
         """Refuse a path that names a folder, is a suffix alone (``.exr``) or has a suffix
         of another format."""
@@ -93,6 +100,8 @@ def check_outputs(outputs: Sequence[OutputFile], inputs: Sequence[str] = ()) -> 
                     "another file"
                 )
         folder = Path(output.path).parent
+        if folder.is_dir() and not output.target.parent.is_dir():  # a link into no folder
+            folder = output.target.parent
         if not folder.is_dir():
             raise InvalidInputError(
                 f"no such folder: {folder} (for {output.flag} {output.path}); create it or "
@@ -111,8 +120,9 @@ def _temporary_name(final: Path) -> str:
 
 
 def _create_temporary(output: OutputFile) -> Path:
-    """An empty hidden file beside ``output.path`` with its suffix (mode as umask allows)."""
-    temporary = Path(output.path).with_name(_temporary_name(Path(output.path)))
+    """An empty hidden file beside ``output.target`` with the suffix of ``output.path``
+    (the writers' format), its mode as umask allows."""
+    temporary = output.target.with_name(_temporary_name(Path(output.path)))
     try:
         os.close(os.open(temporary, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
     except OSError as exc:
@@ -183,7 +193,7 @@ def staged_outputs(
                 temporaries[output.flag] = _create_temporary(output)
             yield temporaries
             for output in outputs:
-                os.replace(temporaries.pop(output.flag), output.path)
+                os.replace(temporaries.pop(output.flag), output.target)
         except OSError as exc:
             raise _named_for_its_output(exc, outputs, temporaries) from None
         finally:

@@ -59,6 +59,23 @@ def test_outputs_move_into_place_only_when_all_succeeded(tmp_path: Path) -> None
     assert (tmp_path / "a.exr").stat().st_mode & 0o777 == 0o666 & ~umask
 
 
+def test_an_output_that_is_a_symbolic_link_writes_the_file_it_leads_to(tmp_path: Path) -> None:
+    """``-o latest.exr`` (a link to ``runs/hdr.exr``) replaced the link with a file and
+    left ``runs/hdr.exr`` as it was; a shell's ``>`` writes through the link. A link
+    into a folder that does not exist is refused naming that folder."""
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "latest.exr").symlink_to(tmp_path / "runs" / "hdr.exr")
+    with staged_outputs([exr("-o", tmp_path / "latest.exr")]) as paths:
+        assert paths["-o"].parent == tmp_path / "runs" and paths["-o"].suffix == ".exr"
+        paths["-o"].write_bytes(b"done")
+    assert (tmp_path / "latest.exr").is_symlink()
+    assert (tmp_path / "runs" / "hdr.exr").read_bytes() == b"done"
+    assert sorted(os.listdir(tmp_path / "runs")) == ["hdr.exr"]
+    (tmp_path / "gone.exr").symlink_to(tmp_path / "nowhere" / "hdr.exr")
+    with pytest.raises(InvalidInputError, match=f"no such folder: {tmp_path / 'nowhere'} "):
+        check_outputs([exr("-o", tmp_path / "gone.exr")])
+
+
 @pytest.mark.parametrize("stem", ["a" * 251, "é" * 125 + "a"])
 def test_an_output_whose_name_is_near_the_longest_allowed_is_written(
     tmp_path: Path, stem: str
