@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from collections.abc import Iterable
 from dataclasses import replace
@@ -122,10 +123,16 @@ def add_execution_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+#: One stage's step count in ``--stages``.
+STEP_COUNT = re.compile(r"[0-9]+")
+
+
 def parse_stages(text: str) -> tuple[int, ...]:
-    """``"500,3500,2000"`` -> ``(500, 3500, 2000)``; 3 or 4 non-negative integers."""
+    """``"500,3500,2000"`` -> ``(500, 3500, 2000)``; 3 or 4 non-negative integers in
+    ASCII digits (``str.isdigit`` also took ``²``, which ``int`` refused with a bare
+    traceback, and other scripts' digits)."""
     parts = text.split(",")
-    if len(parts) not in (3, 4) or not all(p.strip().isdigit() for p in parts):
+    if len(parts) not in (3, 4) or not all(STEP_COUNT.fullmatch(p.strip()) for p in parts):
         raise InvalidInputError(
             f"--stages takes 3 or 4 comma-separated step counts (e.g. 500,3500,2000), got {text!r}"
         )

@@ -145,6 +145,9 @@ def test_a_device_this_machine_lacks_is_one_clear_line(
         (("--stages", "0,0,0"), ("stage steps (0, 0, 0) train nothing",)),
         # argparse took "-1,2,3" for an option: "expected one argument".
         (("--stages", "-1,2,3"), ("--stages takes 3 or 4", "got '-1,2,3'")),
+        # str.isdigit took these: "²" ended in a ValueError traceback, "٥" ran as 5.
+        (("--stages", "\u00b2,1,1"), ("--stages takes 3 or 4", "got '\u00b2,1,1'")),
+        (("--stages", "\u0665,1,1"), ("--stages takes 3 or 4", "got '\u0665,1,1'")),
         (("--label", "a/b"), ("label must be one folder name", "'a/b'")),
         (("--init-from", "../x"), ("init_from must be one folder name",)),
         (("--own-states", "2"), ("own_states must be in [0, 1]", "got 2.0")),
