@@ -147,6 +147,9 @@ def check_not_black(frame: SensorFrame) -> None:
     bits = frame.params.bits
     step = 2.0**-bits
     gain = frame.params.gain if frame.params.gain is not None else 1.0
+    top = frame.params.max_wraps
+    if top is not None and bool(np.all(frame.irradiance[frame.irradiance > 0] >= top)):
+        raise InvalidInputError(_all_clipped_message(frame, gain, top))
     least = _least_lifting_gain(frame, gain, step)
     raise_to = f" to at least {least:.4g}" if np.isfinite(least) else ""
     wrapped = int(np.count_nonzero(frame.winding))
@@ -161,6 +164,21 @@ def check_not_black(frame: SensorFrame) -> None:
         f"every pixel quantises to code 0 ({where}, at gain {gain:.4g}): raise the gain"
         f"{raise_to}, or let overexposed set it (e.g. 0.01; --gain and --overexposed on the "
         "command line)"
+    )
+
+
+def _all_clipped_message(frame: SensorFrame, gain: float, top: float) -> str:
+    """Why a frame of every code 0 whose lit pixels all sit at the clip ``top``
+    (``max_wraps``, wrap units) holds nothing, and what to do: ``u(top)`` lies under one
+    code step past a whole number of wraps, which stores code 0, and no gain lifts a
+    clipped pixel (a higher one clips it too)."""
+    lit = int(np.count_nonzero(frame.irradiance))
+    return (
+        f"every pixel quantises to code 0: all {lit} lit pixels are clipped at max_wraps "
+        f"= {top:g} wrap units (at gain {gain:.4g}), stored as "
+        f"{int(frame.winding.max())} whole wraps, code 0 like black; lower the gain, or let "
+        "overexposed set it (e.g. 0.01; --gain and --overexposed on the command line), or "
+        "clip at another max_wraps"
     )
 
 

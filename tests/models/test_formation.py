@@ -672,6 +672,22 @@ def test_a_simulated_frame_of_pixels_just_past_a_wrap_is_refused(encoding: str) 
         check_not_black(frame)
 
 
+@pytest.mark.parametrize(("encoding", "top", "wraps"), [("modulo", 3, 3), ("mantissa", 16, 5)])
+def test_a_frame_clipped_everywhere_at_a_whole_wrap_says_to_lower_the_gain(
+    encoding: str, top: float, wraps: int
+) -> None:
+    """Every lit pixel clipped at a max_wraps whose u is a whole number of wraps stores
+    code 0: the error said "raise the gain", which clips them all the same."""
+    frame = simulate(np.ones((4, 4)), SensorParams(encoding=encoding, gain=1e50, max_wraps=top))
+    assert not frame.codes.any()
+    message = (
+        f"all 16 lit pixels are clipped at max_wraps = {top:g} wrap units .* stored as "
+        f"{wraps} whole wraps, code 0 like black; lower the gain"
+    )
+    with pytest.raises(InvalidInputError, match=message):
+        check_not_black(frame)
+
+
 @pytest.mark.parametrize(
     ("params", "dtype", "error"),
     [

@@ -64,12 +64,13 @@ def test_simulate_rgb_tiff_with_noise_and_max_wraps(tmp_path: Path) -> None:
 
 
 def test_a_reference_float32_would_store_as_zero_is_refused(tmp_path: Path) -> None:
-    """x clipped at 3 wraps over a gain of 1e50 is 4e-50 in scene units, below float32's
-    smallest: the reference was written all 0, in silence."""
+    """x clipped at 2.5 wraps over a gain of 1e50 is 2.5e-50 in scene units, below
+    float32's smallest: the reference was written all 0, in silence. (Not 3 wraps: a
+    frame clipped everywhere at a whole wrap stores code 0 and is refused first.)"""
     write_exr(tmp_path / "scene.exr", blob_scene(size=16))
     result = run_mcam(
         "simulate", "scene.exr", "-o", "f.npy", "--encoding", "modulo", "--gain", "1e50",
-        "--max-wraps", "3", "--reference-out", "ref.exr",
+        "--max-wraps", "2.5", "--reference-out", "ref.exr",
         cwd=tmp_path,
     )  # fmt: skip
     assert_one_line_error(result, "256 nonzero pixels", "stored as 0", "gain 1e+50")
