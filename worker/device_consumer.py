@@ -45,7 +45,12 @@ from typing import Any
 import redis
 
 from models.decoders.learned import ModelFileError
-from models.errors import InvalidInputError, McamError
+from models.errors import (
+    InvalidInputError,
+    McamError,
+    OutputOverflowError,
+    OutputUnderflowError,
+)
 from worker.decode_pool import DecodePool
 from worker.deliveries import GROUP, Delivery, StreamConsumer, entry_order, prune_consumers
 from worker.device_share import device_to_hand_over, frame_clock
@@ -312,10 +317,15 @@ class DeviceConsumer:
         else:
             frame = self.decode(state, message)
         start = time.perf_counter_ns()
-        data = encode_exr_result(
-            message.codes, frame.winding, message.params, frame.info, self.exr_options,
-            f"frame {message.sequence} of device {device}",
-        )
+        try:
+            data = encode_exr_result(
+                message.codes, frame.winding, message.params, frame.info, self.exr_options,
+                f"frame {message.sequence} of device {device}",
+            )
+        except (OutputOverflowError, OutputUnderflowError) as exc:
+            if message.params.gain is None:
+                raise
+            raise camera_gain_error(exc, device, message.params.gain) from None
         key = result_key(device, message.sequence, delivery.entry_id)
         # A frame's file is never replaced: an owner that lost its lease mid-frame would
         # overwrite the file its successor committed (a redelivery finds it complete).
@@ -421,6 +431,21 @@ class DeviceConsumer:
         consumer.dead_letter(
             delivery, letter.code, letter.message, device=device, sequence=sequence
         )
+
+
+def camera_gain_error(
+    exc: OutputOverflowError | OutputUnderflowError, device: str, gain: float
+) -> McamError:
+    """``exc`` (a frame's scene values that its EXR cannot hold) with the remedy a camera's
+    user has: the gain is the camera's (``set_exposure``'s gain x integration_ns / 1 ms,
+    wrap units per scene unit), changed by a control command, not given with the frame."""
+    what, _, _ = exc.message.partition("; ")
+    change = "higher" if isinstance(exc, OutputOverflowError) else "lower"
+    return type(exc)(
+        f"{what}; the scene values are x / gain with the camera's gain {gain:.4g} "
+        f"(set_exposure's gain x integration_ns / 1 ms): send a set_exposure command "
+        f"with a {change} gain to POST /v1/devices/{device}/control"
+    )
 
 
 def _trouble_place(device: str) -> str:

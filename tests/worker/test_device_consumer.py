@@ -316,6 +316,26 @@ def test_a_frame_failing_on_an_internal_error_tells_the_client_what_to_do_not_th
     assert letter[b"message"].startswith(b"OSError: [Errno 30] Read-only file system")
 
 
+def test_a_frame_too_bright_for_its_exr_at_the_cameras_gain_says_to_raise_it_by_control(
+    client: redis.Redis, consumer: DeviceConsumer
+) -> None:
+    """A camera set to gain 1e-300 (``set_exposure``, accepted: a frame can carry it) sent
+    frames whose scene values (x / gain) float32 cannot hold: each failed with "if that
+    gain is not the frame's, give the right one", a remedy for an upload, though a
+    device frame's gain is the camera's. The failure now says to send a set_exposure
+    command with a higher gain to the device's control route."""
+    sent = frame("a", 0)
+    tiny_gain = sent.params.model_copy(update={"gain": 1e-300})
+    publish_frame(client, FrameMessage("a", 0, 0, sent.codes, tiny_gain), maxlen=10)
+    consumer.poll()
+    (event,) = [fields for _, fields in client.xrange(events_stream("a"))]
+    assert event[b"type"] == b"failed" and event[b"code"] == b"output_overflow"
+    message = event[b"message"].decode()
+    assert "give the right one" not in message
+    assert "the camera's gain 1e-300" in message
+    assert "set_exposure command with a higher gain to POST /v1/devices/a/control" in message
+
+
 def test_a_frame_meeting_a_broken_model_install_fails_at_once_and_the_stream_goes_on(
     client: redis.Redis, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
     caplog: pytest.LogCaptureFixture,
