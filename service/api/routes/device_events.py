@@ -13,6 +13,7 @@ descriptors, and nothing ended them).
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -20,7 +21,7 @@ import redis
 from fastapi import APIRouter, Header, Query
 from fastapi.responses import StreamingResponse
 
-from models.errors import InvalidInputError
+from models.errors import InvalidInputError, echo
 from service.api.deps import ReadKey, StateDep
 from service.api.errors import ApiError
 from service.api.routes.devices import DEVICE_ERRORS, as_text, known_device
@@ -36,13 +37,28 @@ EVENTS_BLOCK_MS = 1000
 RETRY_AFTER_S = 5
 
 
-def _check_entry_id(name: str, value: str | None) -> None:
-    """Refuse an event id Redis would reject once the stream has started: both parts of
-    ``<ms>-<seq>`` are unsigned 64-bit integers."""
-    parts = value.split("-") if value and "-" in value else []
-    if any(len(part) > 20 or int(part) >= 2**64 for part in parts):
+#: An event id as the stream's ``id:`` lines send it: ``<ms>-<seq>``.
+_ENTRY_ID = re.compile(r"[0-9]+-[0-9]+")
+#: What ``since`` takes besides an event id, and what each means.
+_SINCE_WORDS = {"$": "new events only", "0": "every kept event"}
+
+
+def _check_entry_id(name: str, value: str | None, words: dict[str, str]) -> None:
+    """Refuse what is not an event id (``<ms>-<seq>``) nor one of ``words`` (a value
+    with its meaning), and an id Redis would reject once the stream has started: both
+    parts of ``<ms>-<seq>`` are unsigned 64-bit integers."""
+    if value is None or value in words:
+        return
+    if not _ENTRY_ID.fullmatch(value):
+        others = "".join(f", {word} for {meaning}" for word, meaning in words.items())
         raise InvalidInputError(
-            f"{name} {value!r} is not an event id: both parts of '<ms>-<seq>' are below "
+            f"{name} {echo(value)} is not an event id: give the id of the last event "
+            f"received ('<ms>-<seq>', as the stream's id: lines send it){others}, or leave "
+            "it out for new events"
+        )
+    if any(len(part) > 20 or int(part) >= 2**64 for part in value.split("-")):
+        raise InvalidInputError(
+            f"{name} {echo(value)} is not an event id: both parts of '<ms>-<seq>' are below "
             "2^64; resume from the last id the stream sent, or leave it out for new events"
         )
 
@@ -144,13 +160,17 @@ async def _event_lines(
             summary="Server-sent events: frame, failed, stale, drop (with causes), reconnect",
             response_class=StreamingResponse)
 def events(device_id: str, state: StateDep, _key: ReadKey,
-           since: Annotated[str, Query(pattern=r"^(\$|0|[0-9]+-[0-9]+)$")] = "$",
+           since: Annotated[str, Query(
+               description="an event id '<ms>-<seq>' to resume after, 0 for every kept "
+                           "event, or $ for new events only")] = "$",
            limit: Annotated[int | None, Query(ge=1, le=100_000)] = None,
-           last_event_id: Annotated[str | None, Header(pattern=r"^[0-9]+-[0-9]+$")] = None,
+           last_event_id: Annotated[str | None, Header(
+               description="the id of the last event received ('<ms>-<seq>'); "
+                           "overrides since")] = None,
            ) -> StreamingResponse:
     device = known_device(state, device_id)
-    for name, value in (("since", since), ("Last-Event-ID", last_event_id)):
-        _check_entry_id(name, value)
+    _check_entry_id("since", since, _SINCE_WORDS)
+    _check_entry_id("Last-Event-ID", last_event_id, {})
     if state.event_slots.full:
         raise ApiError(503, "too_many_streams", _refusal(state.event_slots.limit),
                        headers={"Retry-After": str(RETRY_AFTER_S)})

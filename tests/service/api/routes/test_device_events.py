@@ -76,6 +76,25 @@ def test_an_event_id_in_other_scripts_digits_is_refused(
     assert reply.status_code == 422, reply.text
 
 
+def test_a_malformed_event_id_says_what_an_event_id_is_not_a_regex(
+    client: Callable[..., httpx.Client], settings: Settings
+) -> None:
+    """``since=abc`` (or a Last-Event-ID of ``abc``) was refused with "String should match
+    pattern '^(\\$|0|[0-9]+-[0-9]+)$'": a regex, not what to send. The refusal now names
+    the event id's form and the other values ``since`` takes."""
+    assert settings.redis_url is not None
+    connect(settings.redis_url).sadd(DEVICES_SET, "cam1")
+    http = client(READ_KEY)
+    for params, headers in [({"since": "abc"}, {}), ({}, {"Last-Event-ID": "abc"})]:
+        reply = http.get("/v1/devices/cam1/events", params=params, headers=headers)
+        assert reply.status_code == 422, reply.text
+        message = reply.json()["message"]
+        assert "pattern" not in message and "'abc' is not an event id" in message
+        assert "'<ms>-<seq>', as the stream's id: lines send it" in message
+    since = http.get("/v1/devices/cam1/events", params={"since": "-1"}).json()["message"]
+    assert "$ for new events only, 0 for every kept event" in since
+
+
 def test_an_event_stream_of_a_forgotten_device_ends(
     client: Callable[..., httpx.Client], settings: Settings
 ) -> None:
