@@ -11,6 +11,7 @@ a 500.
 from __future__ import annotations
 
 import logging
+import sys
 from typing import Any
 
 import redis
@@ -136,6 +137,23 @@ async def validation_error(request: Request, exc: Exception) -> JSONResponse:
 UNPARSED_BODY = "There was an error parsing the body"
 
 
+
+def unparsed_body_message(cause: BaseException | None) -> str:
+    """What was wrong with a JSON body FastAPI's parser gave up on (``cause``: what
+    ``json.loads`` raised), and what to send instead. An integer past Python's digit
+    limit (``sys.get_int_max_str_digits``, 4300) is valid JSON, not nesting."""
+    if isinstance(cause, ValueError) and "integer string conversion" in str(cause):
+        return (
+            f"the JSON body could not be parsed: an integer in it has more than "
+            f"{sys.get_int_max_str_digits()} digits; send each number within its field's "
+            "documented range"
+        )
+    return (
+        "the JSON body could not be parsed (nested too deeply, or not JSON); send a flat "
+        "JSON object of the documented fields"
+    )
+
+
 async def client_closed(request: Request, _: Exception) -> JSONResponse:
     """The client closed the connection while its body was arriving (Starlette's
     :class:`ClientDisconnect`): one line in the log and a 499 that no one receives,
@@ -157,11 +175,7 @@ async def http_error(request: Request, exc: Exception) -> JSONResponse:
     if isinstance(exc.detail, dict):
         body = error_body(exc.detail["code"], exc.detail["message"])
     elif exc.status_code == 400 and exc.detail == UNPARSED_BODY:
-        body = error_body(
-            "bad_request",
-            "the JSON body could not be parsed (nested too deeply, or not JSON); send a flat "
-            "JSON object of the documented fields",
-        )
+        body = error_body("bad_request", unparsed_body_message(exc.__cause__))
     else:
         body = error_body(STATUS_CODES.get(exc.status_code, "error"), str(exc.detail))
     return JSONResponse(body, status_code=exc.status_code, headers=exc.headers)

@@ -47,7 +47,10 @@ _FORGET_BUSY = error_response(
 CONTROL_ERRORS = {
     **DEVICE_ERRORS,
     **SMALL_BODY_ERRORS,
-    400: error_response("bad_request: the JSON body could not be parsed (nested too deeply)"),
+    400: error_response(
+        "bad_request: the JSON body could not be parsed (nested too deeply, or an integer "
+        "of more than 4300 digits)"
+    ),
     503: error_response(
         "control_backlog_full: commands already wait unread (nothing was queued); or the "
         "queue (Redis) is unreachable or full (queue_unavailable, store_full)"

@@ -106,6 +106,22 @@ def test_a_json_body_too_deep_to_parse_says_so(client: Client) -> None:
     assert "could not be parsed" in reply.json()["message"]
 
 
+def test_a_json_integer_past_the_digit_limit_is_named_not_called_nesting(
+    client: Client,
+) -> None:
+    """``{"command": "set_frame_rate", "fps": 1000...0}`` with 5000 digits (valid JSON, a
+    flat object) was "could not be parsed (nested too deeply, or not JSON); send a flat
+    JSON object": Python's integer digit limit refused the number. It is named now."""
+    huge = b'{"command": "set_frame_rate", "fps": 1' + b"0" * 5000 + b"}"
+    reply = client(FULL_KEY).post(
+        "/v1/devices/cam1/control", content=huge, headers={"Content-Type": "application/json"}
+    )
+    assert reply.status_code == 400, reply.text
+    message = reply.json()["message"]
+    assert "nested" not in message
+    assert "an integer in it has more than 4300 digits" in message
+
+
 def test_a_body_that_is_not_sent_as_json_is_named(client: Client) -> None:
     reply = client(FULL_KEY).post(
         "/v1/devices/cam1/control",
