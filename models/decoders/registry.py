@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from functools import cache, lru_cache
 from types import ModuleType
 from typing import Any
+from urllib.parse import quote
 
 from models.decoders.base import Decoder
 from models.errors import InvalidInputError, echo
@@ -162,8 +163,28 @@ def resolve(name: str) -> DecoderSpec:
         resolver = getattr(module, "resolve", None)
         if resolver is not None and (spec := resolver(name)) is not None:
             return spec
+    if meant := plus_read_as_space(name):
+        raise InvalidInputError(
+            f"unknown decoder {echo(name)}: a URL query reads an unescaped '+' as a space; "
+            f"write each '+' as %2B (decoder={quote(meant, safe='')} for {echo(meant)})"
+        )
     choices = ", ".join([*specs, *name_patterns()]) or "(none installed)"
     raise InvalidInputError(f"unknown decoder {echo(name)}; choose one of: {choices}")
+
+
+def plus_read_as_space(name: str) -> str:
+    """``name`` with its spaces put back as ``+`` when that names a decoder, else ''.
+
+    A URL query reads an unescaped ``+`` as a space: ``?decoder=herraez+colour`` sends
+    the API 'herraez colour'."""
+    if " " not in name:
+        return ""
+    joined = "+".join(name.split())
+    try:
+        resolve(joined)
+    except InvalidInputError:
+        return ""
+    return joined
 
 
 def get_decoder(name: str) -> Decoder:

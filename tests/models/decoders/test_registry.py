@@ -63,6 +63,29 @@ def test_unknown_decoder_lists_the_valid_names() -> None:
 
 
 @pytest.mark.parametrize(
+    ("name", "escaped"),
+    [
+        ("herraez colour", "herraez%2Bcolour"),
+        ("mantissanet-small puma colour", "mantissanet-small%2Bpuma%2Bcolour"),
+    ],
+)
+def test_a_plus_a_url_query_read_as_a_space_is_named(name: str, escaped: str) -> None:
+    """``?decoder=herraez+colour`` reaches the API as 'herraez colour': the refusal says
+    to write the '+' as %2B instead of listing every decoder."""
+    with pytest.raises(InvalidInputError) as caught:
+        resolve(name)
+    message = str(caught.value)
+    assert "reads an unescaped '+' as a space" in message
+    assert f"decoder={escaped}" in message
+    assert "choose one of" not in message
+
+
+def test_a_spaced_name_that_names_no_decoder_lists_the_valid_names() -> None:
+    with pytest.raises(InvalidInputError, match=r"unknown decoder 'itho colour'; choose one"):
+        resolve("itho colour")
+
+
+@pytest.mark.parametrize(
     ("name", "problem", "meant"),
     [
         ("graphcut+puma+colour+puma", "repeats +puma", "graphcut+puma+colour"),
