@@ -47,17 +47,29 @@ def check_frame_shape(codes: NDArray[Any], params: SensorParams | None = None) -
     frame of ``params`` that never wraps (:func:`never_wraps`) needs no neighbours: any
     size with a pixel is decoded (W = 0)."""
     if codes.ndim == 3 and codes.shape[2] not in FRAME_CHANNELS:
-        alpha = " (RGB without its alpha channel)" if codes.shape[2] == 4 else ""
-        raise InvalidInputError(
-            f"a frame has 1 or 3 channels (grey or RGB), got shape {codes.shape}; give "
-            f"H x W or H x W x 3{alpha}"
-        )
+        raise InvalidInputError(_channels_refused(codes.shape))
     if codes.ndim not in (2, 3):
         raise InvalidInputError(f"a frame is H x W or H x W x 3, got shape {codes.shape}")
     if params is not None and never_wraps(params):
         refuse_empty(codes)
     elif codes.shape[0] < 2 or codes.shape[1] < 2:
         raise InvalidInputError(_too_narrow(codes.shape[0], codes.shape[1]))
+
+
+def _channels_refused(shape: tuple[int, ...]) -> str:
+    """Why an H x W x C frame whose C is not 1 or 3 is refused, and what to send instead:
+    an RGBA frame without its alpha, a frame stored channels first (C x H x W with C of
+    1, 3 or 4 and fewer than its rows and columns, as a tensor is) with its channels last."""
+    if shape[2] == 4:
+        fix = "H x W or H x W x 3 (RGB without its alpha channel)"
+    elif shape[0] in (*FRAME_CHANNELS, 4) and shape[0] < min(shape[1:]):
+        fix = (
+            f"H x W or H x W x 3: this looks stored channels first ({shape[0]} x H x W); "
+            "store each frame with its channels last (H x W x C)"
+        )
+    else:
+        fix = "H x W or H x W x 3"
+    return f"a frame has 1 or 3 channels (grey or RGB), got shape {shape}; give {fix}"
 
 
 def _too_narrow(height: int, width: int) -> str:

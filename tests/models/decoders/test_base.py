@@ -63,6 +63,25 @@ def test_frames_a_decoder_cannot_unwrap_are_rejected(shape: tuple[int, ...], mes
         check_frame_shape(np.zeros(shape, np.uint8))
 
 
+@pytest.mark.parametrize("shape", [(3, 64, 48), (1, 64, 48), (4, 64, 48)])
+def test_a_frame_stored_channels_first_is_told_to_move_them_last(
+    shape: tuple[int, ...],
+) -> None:
+    """A 3 x H x W array (a tensor's layout) was refused as "a frame has 1 or 3
+    channels, got shape (3, 64, 48)", though it has 3: the refusal names the layout."""
+    with pytest.raises(InvalidInputError) as caught:
+        check_frame_shape(np.zeros(shape, np.uint8))
+    message = str(caught.value)
+    assert f"stored channels first ({shape[0]} x H x W)" in message
+    assert "with its channels last (H x W x C)" in message
+
+
+def test_a_small_frame_of_2_channels_is_not_called_channels_first() -> None:
+    with pytest.raises(InvalidInputError) as caught:
+        check_frame_shape(np.zeros((4, 4, 2), np.uint8))
+    assert "channels first" not in str(caught.value)
+
+
 @pytest.mark.parametrize(
     ("shape", "remedy"),
     [
