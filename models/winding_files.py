@@ -94,7 +94,7 @@ def encode_winding_file(winding: NDArray[np.integer], fmt: str) -> bytes:
 
 def write_winding(path: str | os.PathLike[str], winding: NDArray[np.integer]) -> None:
     """Write a W map in the format of ``path``'s suffix (:func:`encode_winding_file`)."""
-    Path(path).write_bytes(encode_winding_file(winding, winding_format(path)))
+    Path(path).write_bytes(encode_winding_file(winding, os.fspath(path)))
 
 
 def read_winding(path: str | os.PathLike[str]) -> NDArray[np.int64]:

@@ -137,7 +137,6 @@ async def validation_error(request: Request, exc: Exception) -> JSONResponse:
 UNPARSED_BODY = "There was an error parsing the body"
 
 
-
 def unparsed_body_message(cause: BaseException | None) -> str:
     """What was wrong with a JSON body FastAPI's parser gave up on (``cause``: what
     ``json.loads`` raised), and what to send instead. An integer past Python's digit
